@@ -1,0 +1,1 @@
+"""Tele-Touch local haptic station: XYZ platform, ArrayTac display, tactile renderer, agent."""

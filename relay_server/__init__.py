@@ -1,0 +1,1 @@
+"""Tele-Touch cloud relay: sessions, auth, per-stream forwarding and latency accounting."""

@@ -1,0 +1,1 @@
+"""Tele-Touch remote palpation station: arm, phantom, visuotactile sensor, stiffness, agent."""

@@ -1,0 +1,86 @@
+"""The ``teletouch`` command: one console script, one subcommand per job.
+
+Each subcommand lives in the package it belongs to, as a module exposing::
+
+    def configure_parser(parser: argparse.ArgumentParser) -> None: ...
+    def run(args: argparse.Namespace) -> int: ...
+
+CLI modules are kept import-light (heavy imports happen inside ``run``) so that
+``teletouch --help`` stays fast. ``teletouch bench NAME`` dispatches the same way.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+from collections.abc import Sequence
+
+from shared import __version__
+from shared.errors import TeleTouchError
+
+__all__ = ["BENCHMARKS", "COMMANDS", "build_parser", "main"]
+
+#: subcommand -> (module, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "relay": ("relay_server.cli", "run the cloud relay (WebSocket + TCP) with latency accounting"),
+}
+
+#: ``teletouch bench NAME`` -> (module, one-line help)
+BENCHMARKS: dict[str, tuple[str, str]] = {}
+
+log = logging.getLogger(__name__)
+
+
+def _add_module_parser(sub: argparse._SubParsersAction, name: str, module: str, help_: str) -> None:
+    mod = importlib.import_module(module)
+    parser = sub.add_parser(name, help=help_, description=(mod.__doc__ or help_).strip(),
+                            formatter_class=argparse.RawDescriptionHelpFormatter)
+    mod.configure_parser(parser)
+    parser.set_defaults(_run=mod.run)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Build the full argument parser (imports each subcommand's light CLI module)."""
+    parser = argparse.ArgumentParser(
+        prog="teletouch",
+        description="Tele-Touch: remote palpation with the ArrayTac pin display.",
+    )
+    parser.add_argument("--version", action="version", version=f"teletouch {__version__}")
+    parser.add_argument("--log-level", default="INFO",
+                        choices=["DEBUG", "INFO", "WARNING", "ERROR"],
+                        help="logging level (default: INFO)")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (module, help_) in COMMANDS.items():
+        _add_module_parser(sub, name, module, help_)
+    if BENCHMARKS:
+        bench = sub.add_parser("bench", help="run a benchmark (time against error, latency)",
+                               description="Benchmarks; results tables go to benchmarks/results/.")
+        bench_sub = bench.add_subparsers(dest="benchmark", metavar="BENCHMARK")
+        for name, (module, help_) in BENCHMARKS.items():
+            _add_module_parser(bench_sub, name, module, help_)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``teletouch`` console script."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=args.log_level,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    run = getattr(args, "_run", None)
+    if run is None:
+        parser.print_help(sys.stderr)
+        return 2
+    try:
+        return int(run(args) or 0)
+    except KeyboardInterrupt:
+        return 130
+    except TeleTouchError as err:
+        log.error("%s: %s", type(err).__name__, err)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,195 @@
+"""Configuration resolved in one place.
+
+Precedence, highest first: explicit arguments (for example CLI flags) > environment
+variables ``TELETOUCH_<SECTION>_<FIELD>`` > a TOML file (table ``[section]``) > the
+dataclass defaults. Every component describes its settings as a frozen dataclass and
+calls :func:`resolve_config` once; nothing else reads the environment.
+
+Example::
+
+    @dataclass(frozen=True)
+    class RelayConfig:
+        host: str = "127.0.0.1"
+        port: int = 8765
+
+    cfg = resolve_config(RelayConfig, "relay", explicit={"port": args.port},
+                         toml_path=args.config)
+    # TELETOUCH_RELAY_HOST=0.0.0.0 overrides the default, --port overrides everything.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import tomllib
+import types
+import typing
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, TypeVar
+
+from shared.errors import ConfigError
+
+__all__ = ["ENV_PREFIX", "load_toml_section", "resolve_config"]
+
+ENV_PREFIX = "TELETOUCH_"
+
+T = TypeVar("T")
+
+
+def load_toml_section(path: str | os.PathLike[str] | None, section: str) -> dict[str, Any]:
+    """Read table ``[section]`` of a TOML file (dotted sections allowed, e.g. ``local.display``).
+
+    Args:
+        path: the TOML file, or None for no file.
+        section: table name.
+
+    Returns:
+        The table as a dict; empty when ``path`` is None or the table is absent.
+
+    Raises:
+        ConfigError: the file is missing or is not valid TOML.
+    """
+    if path is None:
+        return {}
+    try:
+        with open(path, "rb") as fh:
+            data = tomllib.load(fh)
+    except FileNotFoundError as err:
+        raise ConfigError(f"config file not found: {path}") from err
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError(f"config file {path} is not valid TOML: {err}") from err
+    node: Any = data
+    for part in section.split("."):
+        if not isinstance(node, dict) or part not in node:
+            return {}
+        node = node[part]
+    if not isinstance(node, dict):
+        raise ConfigError(f"[{section}] in {path} must be a table, got {type(node).__name__}")
+    return dict(node)
+
+
+def _coerce(value: Any, annotation: Any, name: str) -> Any:
+    """Convert ``value`` (often a string from the environment) to the annotated type."""
+    origin = typing.get_origin(annotation)
+    args = typing.get_args(annotation)
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        if isinstance(value, str) and value.lower() in ("", "none", "null") and type(None) in args:
+            return None
+        last: Exception | None = None
+        for arg in args:
+            if arg is type(None):
+                continue
+            try:
+                return _coerce(value, arg, name)
+            except ConfigError as err:
+                last = err
+        raise ConfigError(f"{name}: cannot use {value!r}") from last
+    if origin in (tuple, list):
+        items = value
+        if isinstance(value, str):
+            items = [v.strip() for v in value.split(",") if v.strip()]
+        if not isinstance(items, list | tuple):
+            raise ConfigError(f"{name}: expected a list, got {value!r}")
+        if origin is tuple and args and args[-1] is not Ellipsis:
+            if len(items) != len(args):
+                raise ConfigError(f"{name}: expected {len(args)} values, got {value!r}")
+            return tuple(_coerce(v, t, name) for v, t in zip(items, args, strict=True))
+        inner = args[0] if args else str
+        converted = [_coerce(v, inner, name) for v in items]
+        return tuple(converted) if origin is tuple else converted
+    if origin is dict or annotation is dict:
+        if not isinstance(value, dict):
+            raise ConfigError(f"{name}: expected a table, got {value!r}")
+        return dict(value)
+    if annotation is bool:
+        if isinstance(value, bool):
+            return value
+        if isinstance(value, str) and value.lower() in ("1", "true", "yes", "on"):
+            return True
+        if isinstance(value, str) and value.lower() in ("0", "false", "no", "off"):
+            return False
+        raise ConfigError(f"{name}: expected true/false, got {value!r}")
+    if annotation is int:
+        if isinstance(value, bool):
+            raise ConfigError(f"{name}: expected an integer, got {value!r}")
+        try:
+            return int(value)
+        except (TypeError, ValueError) as err:
+            raise ConfigError(f"{name}: expected an integer, got {value!r}") from err
+    if annotation is float:
+        try:
+            out = float(value)
+        except (TypeError, ValueError) as err:
+            raise ConfigError(f"{name}: expected a number, got {value!r}") from err
+        if out != out or out in (float("inf"), float("-inf")):
+            raise ConfigError(f"{name}: must be finite, got {value!r}")
+        return out
+    if annotation is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{name}: expected a string, got {value!r}")
+        return value
+    if annotation is Path:
+        return Path(value)
+    return value
+
+
+def resolve_config(
+    cls: type[T],
+    section: str,
+    *,
+    explicit: Mapping[str, Any] | None = None,
+    toml_path: str | os.PathLike[str] | None = None,
+    environ: Mapping[str, str] | None = None,
+) -> T:
+    """Build a settings dataclass from explicit values, environment, TOML file and defaults.
+
+    Args:
+        cls: a dataclass type whose fields are the settings, with defaults.
+        section: the TOML table and the environment infix (``relay`` ->
+            ``TELETOUCH_RELAY_PORT``; dots become underscores).
+        explicit: values given directly (CLI flags); ``None`` values are ignored, so an
+            argparse default of None means "not given".
+        toml_path: optional TOML file; ``TELETOUCH_CONFIG`` is used when None.
+        environ: the environment (``os.environ`` when None).
+
+    Returns:
+        An instance of ``cls``.
+
+    Raises:
+        ConfigError: an unknown key in the TOML table, a value of the wrong type, or a
+            required field with no value anywhere.
+    """
+    if not dataclasses.is_dataclass(cls):
+        raise ConfigError(f"{cls!r} is not a dataclass")
+    env = os.environ if environ is None else environ
+    if toml_path is None:
+        toml_path = env.get(ENV_PREFIX + "CONFIG") or None
+    from_file = load_toml_section(toml_path, section)
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(from_file) - set(fields))
+    if unknown:
+        raise ConfigError(f"unknown setting(s) in [{section}] of {toml_path}: {', '.join(unknown)}")
+    prefix = ENV_PREFIX + section.replace(".", "_").upper() + "_"
+    values: dict[str, Any] = {}
+    for name, field in fields.items():
+        if not field.init:
+            continue
+        raw: Any = dataclasses.MISSING
+        where = ""
+        if explicit is not None and explicit.get(name) is not None:
+            raw, where = explicit[name], "argument"
+        elif prefix + name.upper() in env:
+            raw, where = env[prefix + name.upper()], f"${prefix + name.upper()}"
+        elif name in from_file:
+            raw, where = from_file[name], f"{toml_path} [{section}]"
+        if raw is dataclasses.MISSING:
+            continue
+        values[name] = _coerce(raw, hints[name], f"{section}.{name} (from {where})")
+    try:
+        return cls(**values)
+    except TypeError as err:
+        raise ConfigError(f"[{section}]: {err}") from err

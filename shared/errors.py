@@ -1,0 +1,226 @@
+"""The one error tree of Tele-Touch.
+
+Every error the project raises on purpose derives from :class:`TeleTouchError`.
+Vendor errors (``serial.SerialException``, ``can.CanError``, ``OSError``,
+``msgpack`` errors, ...) are wrapped with ``raise ... from err`` so callers catch
+one family and still see the cause::
+
+    TeleTouchError
+    ├── ConfigError                       bad or missing configuration value
+    ├── ProtocolError                     a message broke the Tele-Touch protocol
+    │   ├── LocalProtocolError            *we* tried to send something invalid (our bug)
+    │   └── RemoteProtocolError           the *peer* sent something invalid (its fault)
+    │       ├── MalformedMessageError     not msgpack / not a map / bad framing
+    │       ├── VersionError              unsupported protocol version
+    │       ├── UnknownMessageTypeError   "type" is not one we know
+    │       ├── FieldError                missing field, wrong type, out of range
+    │       │   └── NonFiniteError        NaN or Inf in a number or an array
+    │       └── OversizeError             frame longer than the configured limit
+    ├── SessionError                      session/role/auth refusals by the relay
+    │   ├── AuthError                     missing or wrong token
+    │   ├── RoleTakenError                a second `local`/`remote` in one session
+    │   └── HandshakeTimeoutError         no hello within the deadline
+    ├── DeviceError                       hardware or simulated device trouble
+    │   ├── DeviceInitError               could not open / configure the device
+    │   ├── DeviceOperationError          an operation failed on an open device
+    │   ├── DeviceTimeoutError            the device did not answer in time
+    │   └── DeviceNotConnectedError       used before connect() or after disconnect()
+    ├── SafetyError                       a command refused for safety (stale, out of bounds)
+    └── NumericalError                    a numerical stage got input it cannot handle
+        ├── CalibrationError              missing, mismatched or degenerate calibration
+        └── InputDataError                frames/labels of the wrong size, saturated, NaN
+
+Protocol errors carry a stable machine-readable ``code`` (sent in ``error``
+messages) and the WebSocket close code the relay uses when it drops the peer.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "AuthError",
+    "CalibrationError",
+    "ConfigError",
+    "DeviceError",
+    "DeviceInitError",
+    "DeviceNotConnectedError",
+    "DeviceOperationError",
+    "DeviceTimeoutError",
+    "FieldError",
+    "HandshakeTimeoutError",
+    "InputDataError",
+    "LocalProtocolError",
+    "MalformedMessageError",
+    "NonFiniteError",
+    "NumericalError",
+    "OversizeError",
+    "ProtocolError",
+    "RemoteProtocolError",
+    "RoleTakenError",
+    "SafetyError",
+    "SessionError",
+    "TeleTouchError",
+    "UnknownMessageTypeError",
+    "VersionError",
+]
+
+
+class TeleTouchError(Exception):
+    """Base of every error Tele-Touch raises on purpose."""
+
+
+class ConfigError(TeleTouchError):
+    """A configuration value is missing, of the wrong type or out of range."""
+
+
+# --------------------------------------------------------------------------- protocol
+
+
+class ProtocolError(TeleTouchError):
+    """A message broke the protocol.
+
+    Attributes:
+        code: stable machine-readable reason, sent in ``error`` messages.
+        close_code: WebSocket close code used when the peer is dropped for it.
+    """
+
+    code: str = "protocol_error"
+    close_code: int = 1002
+
+    def __init__(self, message: str, *, code: str | None = None) -> None:
+        super().__init__(message)
+        if code is not None:
+            self.code = code
+
+
+class LocalProtocolError(ProtocolError):
+    """We tried to send an invalid message: a bug on this side, never the peer's."""
+
+    code = "local_error"
+    close_code = 1011
+
+
+class RemoteProtocolError(ProtocolError):
+    """The peer sent an invalid message: its fault, reported back to it."""
+
+    code = "bad_message"
+    close_code = 1002
+
+
+class MalformedMessageError(RemoteProtocolError):
+    """Bytes that are not a msgpack map, or a broken length prefix."""
+
+    code = "malformed"
+    close_code = 1007
+
+
+class VersionError(RemoteProtocolError):
+    """The peer speaks a protocol version we do not support."""
+
+    code = "version"
+    close_code = 1002
+
+
+class UnknownMessageTypeError(RemoteProtocolError):
+    """The ``type`` field names no known message."""
+
+    code = "unknown_type"
+    close_code = 1003
+
+
+class FieldError(RemoteProtocolError):
+    """A field is missing, has the wrong type, or is out of range."""
+
+    code = "bad_field"
+    close_code = 1007
+
+
+class NonFiniteError(FieldError):
+    """A number or an array element is NaN or infinite."""
+
+    code = "non_finite"
+    close_code = 1007
+
+
+class OversizeError(RemoteProtocolError):
+    """A frame is longer than the configured maximum."""
+
+    code = "oversize"
+    close_code = 1009
+
+
+# --------------------------------------------------------------------------- sessions
+
+
+class SessionError(TeleTouchError):
+    """The relay refused a session, role or credential."""
+
+    code: str = "session"
+    close_code: int = 4000
+
+    def __init__(self, message: str, *, code: str | None = None) -> None:
+        super().__init__(message)
+        if code is not None:
+            self.code = code
+
+
+class AuthError(SessionError):
+    """Missing or wrong token for the session."""
+
+    code = "auth"
+    close_code = 4001
+
+
+class RoleTakenError(SessionError):
+    """The role (``local`` or ``remote``) is already held in this session."""
+
+    code = "role_taken"
+    close_code = 4002
+
+
+class HandshakeTimeoutError(SessionError):
+    """The peer sent no ``hello`` within the deadline."""
+
+    code = "hello_timeout"
+    close_code = 4003
+
+
+# --------------------------------------------------------------------------- devices
+
+
+class DeviceError(TeleTouchError):
+    """Base for hardware and simulated device failures."""
+
+
+class DeviceInitError(DeviceError):
+    """The device could not be opened or configured (unplugged, wrong URL, busy)."""
+
+
+class DeviceOperationError(DeviceError):
+    """An operation failed on an open device."""
+
+
+class DeviceTimeoutError(DeviceError):
+    """The device did not answer within the timeout."""
+
+
+class DeviceNotConnectedError(DeviceError):
+    """The device was used before ``connect()`` or after ``disconnect()``."""
+
+
+class SafetyError(TeleTouchError):
+    """A command was refused for safety: too old, out of bounds, over the force limit."""
+
+
+# --------------------------------------------------------------------------- numerics
+
+
+class NumericalError(TeleTouchError):
+    """A numerical stage got input it cannot process safely."""
+
+
+class CalibrationError(NumericalError):
+    """A calibration is missing, mismatched with the data, or degenerate."""
+
+
+class InputDataError(NumericalError):
+    """Input data of the wrong size or type, saturated, all black, or non-finite."""

@@ -1,0 +1,77 @@
+"""The Tele-Touch wire protocol, sans-I/O: messages, msgpack codec, TCP framing.
+
+See ``docs/protocol.md`` for the byte-level specification.
+"""
+
+from shared.protocol.codec import (
+    DEFAULT_MAX_MESSAGE_BYTES,
+    PROTOCOL_VERSION,
+    SUPPORTED_VERSIONS,
+    decode,
+    decode_map,
+    encode,
+    message_from_map,
+)
+from shared.protocol.connection import (
+    ConnectionFailed,
+    Event,
+    MessageReceived,
+    MessageRejected,
+    ProtocolConnection,
+)
+from shared.protocol.framing import LengthPrefixDecoder, frame
+from shared.protocol.messages import (
+    CLOCKS,
+    LAYER_RANGES,
+    MESSAGE_TYPES,
+    ROLES,
+    ArmCommand,
+    ArmState,
+    Bye,
+    ClockPing,
+    ClockPong,
+    DataMessage,
+    Error,
+    Hello,
+    Hop,
+    Message,
+    PlatformState,
+    Stats,
+    TactileFrame,
+    Welcome,
+)
+
+__all__ = [
+    "CLOCKS",
+    "DEFAULT_MAX_MESSAGE_BYTES",
+    "LAYER_RANGES",
+    "MESSAGE_TYPES",
+    "PROTOCOL_VERSION",
+    "ROLES",
+    "SUPPORTED_VERSIONS",
+    "ArmCommand",
+    "ArmState",
+    "Bye",
+    "ClockPing",
+    "ClockPong",
+    "ConnectionFailed",
+    "DataMessage",
+    "Error",
+    "Event",
+    "Hello",
+    "Hop",
+    "LengthPrefixDecoder",
+    "Message",
+    "MessageReceived",
+    "MessageRejected",
+    "PlatformState",
+    "ProtocolConnection",
+    "Stats",
+    "TactileFrame",
+    "Welcome",
+    "decode",
+    "decode_map",
+    "encode",
+    "frame",
+    "message_from_map",
+]

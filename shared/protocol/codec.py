@@ -1,0 +1,123 @@
+"""msgpack codec for Tele-Touch messages: bytes <-> validated message objects.
+
+One message is one msgpack map with ``v`` (protocol version) and ``type``. Decoding
+checks, in order: size, msgpack well-formedness, map shape, version, type, then the
+fields of that type. Each failure raises its own
+:class:`~shared.errors.RemoteProtocolError` subclass. Encoding validates by default and
+raises :class:`~shared.errors.LocalProtocolError`: we never put an invalid message on
+the wire.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import msgpack
+
+from shared.errors import (
+    FieldError,
+    LocalProtocolError,
+    MalformedMessageError,
+    OversizeError,
+    UnknownMessageTypeError,
+    VersionError,
+)
+from shared.protocol.messages import MESSAGE_TYPES, Message
+
+__all__ = [
+    "DEFAULT_MAX_MESSAGE_BYTES",
+    "PROTOCOL_VERSION",
+    "SUPPORTED_VERSIONS",
+    "decode",
+    "decode_map",
+    "encode",
+    "message_from_map",
+]
+
+PROTOCOL_VERSION = 1
+SUPPORTED_VERSIONS = frozenset({1})
+#: default size limit of one encoded message (a 320 x 240 float32 layer is 300 KiB)
+DEFAULT_MAX_MESSAGE_BYTES = 4 * 1024 * 1024
+
+
+def decode_map(data: bytes | bytearray | memoryview, *,
+               max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> dict[str, Any]:
+    """Unpack bytes into the raw message map, checking size, form and version.
+
+    Raises:
+        OversizeError: more than ``max_message_bytes`` bytes.
+        MalformedMessageError: not exactly one msgpack map with string keys.
+        VersionError: ``v`` is missing or unsupported.
+    """
+    if len(data) > max_message_bytes:
+        raise OversizeError(f"message of {len(data)} bytes exceeds the limit of "
+                            f"{max_message_bytes}")
+    try:
+        obj = msgpack.unpackb(data, raw=False, strict_map_key=True, use_list=True)
+    except msgpack.ExtraData as err:
+        raise MalformedMessageError("trailing bytes after the msgpack map") from err
+    except (ValueError, msgpack.UnpackException) as err:
+        raise MalformedMessageError(f"not valid msgpack: {err}") from err
+    if not isinstance(obj, dict):
+        raise MalformedMessageError(f"a message must be a msgpack map, got {type(obj).__name__}")
+    version = obj.get("v")
+    if isinstance(version, bool) or not isinstance(version, int):
+        raise VersionError("field v (protocol version) is missing or not an integer")
+    if version not in SUPPORTED_VERSIONS:
+        raise VersionError(f"protocol version {version} is not supported "
+                           f"(supported: {sorted(SUPPORTED_VERSIONS)})")
+    return obj
+
+
+def message_from_map(obj: dict[str, Any]) -> Message:
+    """Validate a raw message map (from :func:`decode_map`) into a message object.
+
+    Raises:
+        UnknownMessageTypeError: ``type`` is missing or unknown.
+        FieldError: a field is missing, of the wrong type or out of range.
+    """
+    msg_type = obj.get("type")
+    cls = MESSAGE_TYPES.get(msg_type) if isinstance(msg_type, str) else None
+    if cls is None:
+        shown = msg_type[:40] if isinstance(msg_type, str) else msg_type
+        raise UnknownMessageTypeError(f"unknown message type {shown!r}; known: "
+                                      f"{sorted(MESSAGE_TYPES)}")
+    return cls.from_wire(obj)
+
+
+def decode(data: bytes | bytearray | memoryview, *,
+           max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> Message:
+    """Decode and validate one message.
+
+    Raises:
+        RemoteProtocolError: a subclass naming what is wrong (see module docstring).
+    """
+    return message_from_map(decode_map(data, max_message_bytes=max_message_bytes))
+
+
+def encode(message: Message, *, validate: bool = True,
+           max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> bytes:
+    """Encode a message to msgpack bytes.
+
+    Args:
+        message: the message.
+        validate: re-check every field as a receiver would (default). Forwarders that
+            only re-encode a message they already decoded may pass False.
+        max_message_bytes: refuse to produce a longer message.
+
+    Raises:
+        LocalProtocolError: the message would be rejected by a receiver.
+    """
+    body = message.to_wire()
+    wire = {"v": PROTOCOL_VERSION, "type": message.TYPE, **body}
+    if validate:
+        try:
+            type(message).from_wire(wire)
+        except FieldError as err:
+            raise LocalProtocolError(f"refusing to send an invalid {message.TYPE}: {err}",
+                                     code=err.code) from err
+    data = msgpack.packb(wire, use_bin_type=True)
+    if len(data) > max_message_bytes:
+        raise LocalProtocolError(f"{message.TYPE} of {len(data)} bytes exceeds the limit of "
+                                 f"{max_message_bytes}", code="oversize")
+    return data

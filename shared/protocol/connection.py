@@ -1,0 +1,121 @@
+"""Sans-I/O Tele-Touch connection: bytes in, events out; messages in, bytes out.
+
+The asyncio code of the relay and the stations is only glue around this class::
+
+    conn = ProtocolConnection("tcp")
+    conn.receive_data(chunk)            # whatever the socket gave
+    for event in conn.events_received():
+        ...                              # MessageReceived / MessageRejected / ConnectionFailed
+    conn.send(PlatformState(...))
+    for data in conn.data_to_send():
+        writer.write(data)
+
+With ``"ws"`` framing each ``receive_data`` call is one whole WebSocket message and each
+item of ``data_to_send`` is one WebSocket binary message.
+A rejected message (bad field, unknown type, NaN, ...) leaves the stream usable: the
+caller decides whether to answer with an ``error`` and carry on. A broken frame header
+(oversize or empty on TCP) ends parsing: everything after it is ignored.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+from shared.errors import RemoteProtocolError
+from shared.protocol.codec import DEFAULT_MAX_MESSAGE_BYTES, decode, encode
+from shared.protocol.framing import LengthPrefixDecoder, frame
+from shared.protocol.messages import Message
+
+__all__ = ["ConnectionFailed", "Event", "MessageReceived", "MessageRejected",
+           "ProtocolConnection"]
+
+Framing = Literal["tcp", "ws"]
+
+
+@dataclass(frozen=True, slots=True)
+class MessageReceived:
+    """A valid message arrived; ``size`` is its encoded length in bytes."""
+
+    message: Message
+    size: int
+
+
+@dataclass(frozen=True, slots=True)
+class MessageRejected:
+    """One message was invalid; the connection can go on."""
+
+    error: RemoteProtocolError
+
+
+@dataclass(frozen=True, slots=True)
+class ConnectionFailed:
+    """The byte stream is broken beyond recovery; the connection must be closed."""
+
+    error: RemoteProtocolError
+
+
+Event = MessageReceived | MessageRejected | ConnectionFailed
+
+
+class ProtocolConnection:
+    """Protocol state of one connection, without any I/O.
+
+    Args:
+        framing: ``"tcp"`` (length prefix) or ``"ws"`` (one message per WebSocket message).
+        max_message_bytes: size limit for received and sent messages.
+    """
+
+    def __init__(self, framing: Framing,
+                 max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> None:
+        if framing not in ("tcp", "ws"):
+            raise ValueError(f"framing must be 'tcp' or 'ws', got {framing!r}")
+        self.framing: Framing = framing
+        self.max_message_bytes = max_message_bytes
+        self._decoder = LengthPrefixDecoder(max_message_bytes) if framing == "tcp" else None
+        self._events: list[Event] = []
+        self._outgoing: list[bytes] = []
+        self.failed = False
+
+    def receive_data(self, data: bytes | bytearray | memoryview) -> None:
+        """Take received bytes (TCP: any chunk; WebSocket: one whole message)."""
+        if self.failed:
+            return
+        if self._decoder is None:
+            payloads = [bytes(data)]
+        else:
+            try:
+                payloads = self._decoder.feed(data)
+            except RemoteProtocolError as err:
+                self.failed = True
+                self._events.append(ConnectionFailed(err))
+                return
+        for payload in payloads:
+            try:
+                self._events.append(MessageReceived(
+                    decode(payload, max_message_bytes=self.max_message_bytes), len(payload)))
+            except RemoteProtocolError as err:
+                self._events.append(MessageRejected(err))
+
+    def events_received(self) -> list[Event]:
+        """Return and clear the events produced by :meth:`receive_data`."""
+        events, self._events = self._events, []
+        return events
+
+    def send(self, message: Message, *, validate: bool = True) -> None:
+        """Queue ``message`` for sending (see :meth:`data_to_send`).
+
+        Raises:
+            LocalProtocolError: the message is invalid or too large.
+        """
+        self._outgoing.append(self.encode(message, validate=validate))
+
+    def encode(self, message: Message, *, validate: bool = True) -> bytes:
+        """Encode and frame ``message`` without queueing it."""
+        payload = encode(message, validate=validate, max_message_bytes=self.max_message_bytes)
+        return frame(payload) if self._decoder is not None else payload
+
+    def data_to_send(self) -> list[bytes]:
+        """Return and clear the queued outgoing data."""
+        out, self._outgoing = self._outgoing, []
+        return out

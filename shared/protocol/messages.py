@@ -1,0 +1,479 @@
+"""Tele-Touch message types: frozen dataclasses with wire validation.
+
+Every message is a msgpack map ``{"v": 1, "type": NAME, ...fields}`` (see
+``docs/protocol.md``). Data messages (``platform_state``, ``arm_command``, ``arm_state``,
+``tactile_frame``) also carry ``seq`` (the sender's sequence number), ``ts`` (capture
+timestamp, sender's clock, integer microseconds) and ``hops`` (a list of ``[clock, stage,
+t_us]`` stamps that each hop appends; ``clock`` names whose clock the stamp is in, so the
+latency ledger can correct it with that clock's offset).
+
+``from_wire`` validates a decoded map and raises :class:`~shared.errors.FieldError`
+subclasses; ``to_wire`` gives the map back (without ``v`` and ``type``).
+Units: millimetres, newtons, seconds or integer microseconds as the field names say.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, NamedTuple
+
+import numpy as np
+
+from shared.errors import FieldError, NonFiniteError
+from shared.protocol.fields import (
+    MAX_INT,
+    array_to_wire,
+    read_array,
+    read_bool,
+    read_float,
+    read_int,
+    read_optional,
+    read_str,
+    read_vector,
+)
+
+__all__ = [
+    "CLOCKS",
+    "LAYER_RANGES",
+    "MAX_HOPS",
+    "MESSAGE_TYPES",
+    "ROLES",
+    "SESSION_ID_PATTERN",
+    "ArmCommand",
+    "ArmState",
+    "Bye",
+    "ClockPing",
+    "ClockPong",
+    "DataMessage",
+    "Error",
+    "Hello",
+    "Hop",
+    "Message",
+    "PlatformState",
+    "Stats",
+    "TactileFrame",
+    "Welcome",
+]
+
+ROLES = frozenset({"local", "remote", "observer"})
+#: names a hop stamp's clock may have: a station role or the relay
+CLOCKS = frozenset({"local", "remote", "relay"})
+SESSION_ID_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
+_STAGE_PATTERN = re.compile(r"[a-z][a-z0-9_]{0,31}")
+MAX_HOPS = 32
+#: tactile layer name -> allowed value range (all layers: 2-D, same shape, float)
+LAYER_RANGES: dict[str, tuple[float, float]] = {
+    "height_mm": (-10.0, 10.0),
+    "stiffness_k": (0.5, 1.0),
+    "friction": (0.0, 1.0),
+    "stiffness_n_per_mm": (0.0, 1.0e4),
+}
+ARM_ACTIONS = frozenset({"move", "stop", "home", "set_force_limit"})
+ARM_STATUSES = frozenset({"ok", "moving", "halted", "force_limit", "stale_command", "fault"})
+_WORKSPACE_LIMIT_MM = 1.0e4  # sanity bound for any coordinate on the wire
+
+
+class Hop(NamedTuple):
+    """One latency stamp: ``t_us`` on ``clock``'s clock when ``stage`` happened."""
+
+    clock: str
+    stage: str
+    t_us: int
+
+
+def _read_hops(d: Mapping[str, Any], msg_type: str) -> tuple[Hop, ...]:
+    raw = d.get("hops", [])
+    if not isinstance(raw, list | tuple) or len(raw) > MAX_HOPS:
+        raise FieldError(f"{msg_type}.hops must be a list of at most {MAX_HOPS} stamps")
+    hops = []
+    for i, h in enumerate(raw):
+        if (not isinstance(h, list | tuple) or len(h) != 3 or h[0] not in CLOCKS
+                or not isinstance(h[1], str) or not _STAGE_PATTERN.fullmatch(h[1])
+                or isinstance(h[2], bool) or not isinstance(h[2], int)
+                or not 0 <= h[2] <= MAX_INT):
+            raise FieldError(f"{msg_type}.hops[{i}] must be [clock in {sorted(CLOCKS)}, "
+                             f"stage matching {_STAGE_PATTERN.pattern}, t_us >= 0]")
+        hops.append(Hop(h[0], h[1], h[2]))
+    return tuple(hops)
+
+
+@dataclass(frozen=True, slots=True)
+class Message:
+    """Base of all messages. ``TYPE`` is the wire ``type`` string."""
+
+    TYPE: ClassVar[str] = ""
+
+    def to_wire(self) -> dict[str, Any]:
+        """Return the wire fields (without ``v`` and ``type``)."""
+        raise NotImplementedError  # every concrete message overrides this
+
+    @classmethod
+    def from_wire(cls, d: Mapping[str, Any]) -> Message:
+        """Validate a decoded wire map and build the message."""
+        raise NotImplementedError  # every concrete message overrides this
+
+
+@dataclass(frozen=True, slots=True)
+class DataMessage(Message):
+    """A message of a data stream: sequence number, capture time and hop stamps."""
+
+    seq: int = 0
+    ts_us: int = 0
+    hops: tuple[Hop, ...] = ()
+
+    def _head(self) -> dict[str, Any]:
+        return {"seq": self.seq, "ts": self.ts_us, "hops": [list(h) for h in self.hops]}
+
+    @staticmethod
+    def _read_head(d: Mapping[str, Any], msg_type: str) -> dict[str, Any]:
+        return {"seq": read_int(d, msg_type, "seq"), "ts_us": read_int(d, msg_type, "ts"),
+                "hops": _read_hops(d, msg_type)}
+
+    def with_hop(self, clock: str, stage: str, t_us: int) -> DataMessage:
+        """Return a copy with one more hop stamp appended (at most ``MAX_HOPS`` are kept)."""
+        hops = (*self.hops, Hop(clock, stage, t_us))[-MAX_HOPS:]
+        return dataclasses.replace(self, hops=hops)
+
+
+# --------------------------------------------------------------------------- control
+
+
+@dataclass(frozen=True, slots=True)
+class Hello(Message):
+    """First message of a client: which session, which role, and the session token."""
+
+    TYPE: ClassVar[str] = "hello"
+    role: str = "observer"
+    session: str = ""
+    token: str = ""
+    name: str = ""
+
+    def to_wire(self) -> dict[str, Any]:
+        return {"role": self.role, "session": self.session, "token": self.token,
+                "name": self.name}
+
+    @classmethod
+    def from_wire(cls, d: Mapping[str, Any]) -> Hello:
+        t = cls.TYPE
+        return cls(role=read_str(d, t, "role", choices=ROLES),
+                   session=read_str(d, t, "session", pattern=SESSION_ID_PATTERN),
+                   token=read_str(d, t, "token", max_len=512),
+                   name=read_str(d, t, "name", max_len=64) if "name" in d else "")
+
+
+@dataclass(frozen=True, slots=True)
+class Welcome(Message):
+    """The relay's answer to a valid hello."""
+
+    TYPE: ClassVar[str] = "welcome"
+    session: str = ""
+    role: str = "observer"
+    server_time_us: int = 0
+    ping_interval_s: float = 1.0
+    max_message_bytes: int = 0
+
+    def to_wire(self) -> dict[str, Any]:
+        return {"session": self.session, "role": self.role,
+                "server_time_us": self.server_time_us, "ping_interval_s": self.ping_interval_s,
+                "max_message_bytes": self.max_message_bytes}
+
+    @classmethod
+    def from_wire(cls, d: Mapping[str, Any]) -> Welcome:
+        t = cls.TYPE
+        return cls(session=read_str(d, t, "session", pattern=SESSION_ID_PATTERN),
+                   role=read_str(d, t, "role", choices=ROLES),
+                   server_time_us=read_int(d, t, "server_time_us"),
+                   ping_interval_s=read_float(d, t, "ping_interval_s", lo=0.0, hi=3600.0),
+                   max_message_bytes=read_int(d, t, "max_message_bytes"))
+
+
+@dataclass(frozen=True, slots=True)
+class ClockPing(Message):
+    """NTP-style request: ``t0_us`` is the sender's transmit time (its clock)."""
+
+    TYPE: ClassVar[str] = "clock_ping"
+    ping_id: int = 0
+    t0_us: int = 0
+
+    def to_wire(self) -> dict[str, Any]:
+        return {"ping_id": self.ping_id, "t0_us": self.t0_us}
+
+    @classmethod
+    def from_wire(cls, d: Mapping[str, Any]) -> ClockPing:
+        t = cls.TYPE
+        return cls(ping_id=read_int(d, t, "ping_id"), t0_us=read_int(d, t, "t0_us"))
+
+
+@dataclass(frozen=True, slots=True)
+class ClockPong(Message):
+    """NTP-style answer: ``t1_us`` receive and ``t2_us`` transmit time, responder's clock."""
+
+    TYPE: ClassVar[str] = "clock_pong"
+    ping_id: int = 0
+    t0_us: int = 0
+    t1_us: int = 0
+    t2_us: int = 0
+
+    def to_wire(self) -> dict[str, Any]:
+        return {"ping_id": self.ping_id, "t0_us": self.t0_us, "t1_us": self.t1_us,
+                "t2_us": self.t2_us}
+
+    @classmethod
+    def from_wire(cls, d: Mapping[str, Any]) -> ClockPong:
+        t = cls.TYPE
+        return cls(ping_id=read_int(d, t, "ping_id"), t0_us=read_int(d, t, "t0_us"),
+                   t1_us=read_int(d, t, "t1_us"), t2_us=read_int(d, t, "t2_us"))
+
+
+def _check_metrics(value: Any, where: str, depth: int = 0) -> None:
+    if depth > 4:
+        raise FieldError(f"{where} nests deeper than 4 levels")
+    if isinstance(value, Mapping):
+        if len(value) > 512:
+            raise FieldError(f"{where} has more than 512 entries")
+        for k, v in value.items():
+            if not isinstance(k, str) or len(k) > 64:
+                raise FieldError(f"{where} keys must be strings of at most 64 characters")
+            _check_metrics(v, f"{where}.{k}", depth + 1)
+    elif isinstance(value, float):
+        if not math.isfinite(value):
+            raise NonFiniteError(f"{where} is {value}")
+    elif value is None or isinstance(value, bool | int | str):
+        if isinstance(value, str) and len(value) > 256:
+            raise FieldError(f"{where} is longer than 256 characters")
+    else:
+        raise FieldError(f"{where} must be a number, string, bool, null or map")
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Stats(Message):
+    """Latency and traffic figures (relay -> stations, or a station's own report).
+
+    ``metrics`` is a nested map (depth <= 4) of finite numbers, strings, booleans or
+    nulls; its keys are documented in ``docs/protocol.md``.
+    """
+
+    TYPE: ClassVar[str] = "stats"
+    scope: str = "relay"
+    time_us: int = 0
+    metrics: Mapping[str, Any] = field(default_factory=dict)
+
+    def to_wire(self) -> dict[str, Any]:
+        return {"scope": self.scope, "time_us": self.time_us, "metrics": dict(self.metrics)}
+
+    @classmethod
+    def from_wire(cls, d: Mapping[str, Any]) -> Stats:
+        t = cls.TYPE
+        metrics = d.get("metrics")
+        if not isinstance(metrics, Mapping):
+            raise FieldError(f"{t}.metrics must be a map")
+        _check_metrics(metrics, f"{t}.metrics")
+        return cls(scope=read_str(d, t, "scope", choices=CLOCKS),
+                   time_us=read_int(d, t, "time_us"), metrics=dict(metrics))
+
+
+@dataclass(frozen=True, slots=True)
+class Error(Message):
+    """A protocol or session error, sent before a close when ``fatal``."""
+
+    TYPE: ClassVar[str] = "error"
+    code: str = "bad_message"
+    message: str = ""
+    fatal: bool = False
+
+    def to_wire(self) -> dict[str, Any]:
+        return {"code": self.code, "message": self.message[:1024], "fatal": self.fatal}
+
+    @classmethod
+    def from_wire(cls, d: Mapping[str, Any]) -> Error:
+        t = cls.TYPE
+        return cls(code=read_str(d, t, "code", max_len=64),
+                   message=read_str(d, t, "message", max_len=1024),
+                   fatal=read_bool(d, t, "fatal"))
+
+
+@dataclass(frozen=True, slots=True)
+class Bye(Message):
+    """A clean goodbye before closing."""
+
+    TYPE: ClassVar[str] = "bye"
+    reason: str = ""
+
+    def to_wire(self) -> dict[str, Any]:
+        return {"reason": self.reason}
+
+    @classmethod
+    def from_wire(cls, d: Mapping[str, Any]) -> Bye:
+        return cls(reason=read_str(d, cls.TYPE, "reason", max_len=256) if "reason" in d else "")
+
+
+# --------------------------------------------------------------------------- data streams
+
+
+@dataclass(frozen=True, slots=True)
+class PlatformState(DataMessage):
+    """Local -> remote: the XYZ platform position (platform coordinates, mm)."""
+
+    TYPE: ClassVar[str] = "platform_state"
+    position_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    velocity_mm_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def to_wire(self) -> dict[str, Any]:
+        out = self._head()
+        out["position_mm"] = list(self.position_mm)
+        out["velocity_mm_s"] = list(self.velocity_mm_s)
+        return out
+
+    @classmethod
+    def from_wire(cls, d: Mapping[str, Any]) -> PlatformState:
+        t = cls.TYPE
+        lim = _WORKSPACE_LIMIT_MM
+        return cls(**cls._read_head(d, t),
+                   position_mm=read_vector(d, t, "position_mm", 3, lo=-lim, hi=lim),  # type: ignore[arg-type]
+                   velocity_mm_s=read_vector(d, t, "velocity_mm_s", 3, lo=-1e5, hi=1e5))  # type: ignore[arg-type]
+
+
+@dataclass(frozen=True, slots=True)
+class ArmCommand(DataMessage):
+    """Local -> remote: an explicit arm command (ordered stream, never dropped).
+
+    ``action`` is ``move`` (with ``target_mm``), ``stop``, ``home`` or
+    ``set_force_limit`` (with ``force_limit_n``).
+    """
+
+    TYPE: ClassVar[str] = "arm_command"
+    action: str = "stop"
+    target_mm: tuple[float, float, float] | None = None
+    force_limit_n: float | None = None
+
+    def to_wire(self) -> dict[str, Any]:
+        out = self._head()
+        out["action"] = self.action
+        if self.target_mm is not None:
+            out["target_mm"] = list(self.target_mm)
+        if self.force_limit_n is not None:
+            out["force_limit_n"] = self.force_limit_n
+        return out
+
+    @classmethod
+    def from_wire(cls, d: Mapping[str, Any]) -> ArmCommand:
+        t = cls.TYPE
+        action = read_str(d, t, "action", choices=ARM_ACTIONS)
+        lim = _WORKSPACE_LIMIT_MM
+        target = (read_vector(d, t, "target_mm", 3, lo=-lim, hi=lim)
+                  if read_optional(d, "target_mm") or action == "move" else None)
+        force = (read_float(d, t, "force_limit_n", lo=0.0, hi=1000.0)
+                 if read_optional(d, "force_limit_n") or action == "set_force_limit" else None)
+        return cls(**cls._read_head(d, t), action=action, target_mm=target,  # type: ignore[arg-type]
+                   force_limit_n=force)
+
+
+@dataclass(frozen=True, slots=True)
+class ArmState(DataMessage):
+    """Remote -> local: arm tool position (phantom coordinates, mm) and measured force."""
+
+    TYPE: ClassVar[str] = "arm_state"
+    position_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    force_n: float = 0.0
+    status: str = "ok"
+    source_seq: int | None = None
+
+    def to_wire(self) -> dict[str, Any]:
+        out = self._head()
+        out.update(position_mm=list(self.position_mm), force_n=self.force_n, status=self.status)
+        if self.source_seq is not None:
+            out["source_seq"] = self.source_seq
+        return out
+
+    @classmethod
+    def from_wire(cls, d: Mapping[str, Any]) -> ArmState:
+        t = cls.TYPE
+        lim = _WORKSPACE_LIMIT_MM
+        return cls(**cls._read_head(d, t),
+                   position_mm=read_vector(d, t, "position_mm", 3, lo=-lim, hi=lim),  # type: ignore[arg-type]
+                   force_n=read_float(d, t, "force_n", lo=-1000.0, hi=1000.0),
+                   status=read_str(d, t, "status", choices=ARM_STATUSES),
+                   source_seq=read_int(d, t, "source_seq") if read_optional(d, "source_seq")
+                   else None)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class TactileFrame(DataMessage):
+    """Remote -> local: what the probe feels, as layers on a metric grid.
+
+    Layers are 2-D float arrays of one shape, row index along +y and column index along
+    +x, spaced ``pitch_mm`` apart and centred on ``center_mm`` (platform coordinates,
+    so the renderer samples them at the platform position). ``height_mm`` is required;
+    ``stiffness_k`` (display k in [0.5, 1]), ``friction`` ([0, 1]) and
+    ``stiffness_n_per_mm`` (measured, >= 0) are optional. ``source_seq``/``source_ts_us``
+    name the platform_state this frame answers (for motion-to-touch latency).
+    """
+
+    TYPE: ClassVar[str] = "tactile_frame"
+    center_mm: tuple[float, float] = (0.0, 0.0)
+    pitch_mm: float = 1.7
+    layers: Mapping[str, np.ndarray] = field(default_factory=dict)
+    contact: bool = False
+    force_n: float = 0.0
+    indentation_mm: float = 0.0
+    source_seq: int | None = None
+    source_ts_us: int | None = None
+
+    def to_wire(self) -> dict[str, Any]:
+        out = self._head()
+        out.update(center_mm=list(self.center_mm), pitch_mm=self.pitch_mm,
+                   layers={k: array_to_wire(v) for k, v in self.layers.items()},
+                   contact=self.contact, force_n=self.force_n,
+                   indentation_mm=self.indentation_mm)
+        if self.source_seq is not None:
+            out["source_seq"] = self.source_seq
+        if self.source_ts_us is not None:
+            out["source_ts"] = self.source_ts_us
+        return out
+
+    @classmethod
+    def from_wire(cls, d: Mapping[str, Any]) -> TactileFrame:
+        t = cls.TYPE
+        raw_layers = d.get("layers")
+        if not isinstance(raw_layers, Mapping):
+            raise FieldError(f"{t}.layers must be a map of layer name -> array")
+        unknown = sorted(str(k) for k in raw_layers if k not in LAYER_RANGES)
+        if unknown:
+            raise FieldError(f"{t}.layers has unknown layer(s) {unknown}; known: "
+                             f"{sorted(LAYER_RANGES)}")
+        if "height_mm" not in raw_layers:
+            raise FieldError(f"{t}.layers.height_mm is missing")
+        layers: dict[str, np.ndarray] = {}
+        shape = None
+        for name, raw in raw_layers.items():
+            lo, hi = LAYER_RANGES[name]
+            arr = read_array(raw, f"{t}.layers.{name}", lo=lo, hi=hi, ndim=2)
+            if arr.dtype.kind != "f":
+                raise FieldError(f"{t}.layers.{name} must be float32 or float64")
+            if shape is not None and arr.shape != shape:
+                raise FieldError(f"{t}.layers.{name} has shape {arr.shape}, height_mm has {shape}")
+            shape = arr.shape
+            layers[name] = arr
+        lim = _WORKSPACE_LIMIT_MM
+        return cls(**cls._read_head(d, t),
+                   center_mm=read_vector(d, t, "center_mm", 2, lo=-lim, hi=lim),  # type: ignore[arg-type]
+                   pitch_mm=read_float(d, t, "pitch_mm", lo=1e-4, hi=100.0),
+                   layers=layers, contact=read_bool(d, t, "contact"),
+                   force_n=read_float(d, t, "force_n", lo=-1000.0, hi=1000.0),
+                   indentation_mm=read_float(d, t, "indentation_mm", lo=-100.0, hi=100.0),
+                   source_seq=read_int(d, t, "source_seq") if read_optional(d, "source_seq")
+                   else None,
+                   source_ts_us=read_int(d, t, "source_ts") if read_optional(d, "source_ts")
+                   else None)
+
+
+#: wire ``type`` -> message class
+MESSAGE_TYPES: dict[str, type[Message]] = {
+    cls.TYPE: cls
+    for cls in (Hello, Welcome, ClockPing, ClockPong, Stats, Error, Bye, PlatformState,
+                ArmCommand, ArmState, TactileFrame)
+}
