@@ -1,0 +1,71 @@
+"""Run the Tele-Touch cloud relay: WebSocket and raw TCP, sessions, latency accounting.
+
+Stations connect with a ``hello`` naming a session, a role (local, remote, observer)
+and the session token. The relay forwards local <-> remote with per-stream policy,
+estimates each station's clock offset (NTP-style) and pushes ``stats`` every second.
+Live figures: ``GET http://HOST:PORT/status`` (JSON) and ``GET /metrics`` (Prometheus).
+
+Tokens: either explicit per-session tokens (``--token-file`` TOML with a ``[tokens]``
+table, or ``[relay.tokens]`` in ``--config``) or HMAC-derived tokens from ``--secret``
+(token = hex HMAC-SHA256(secret, session_id); ``teletouch relay --print-token SESSION``
+prints one). Prefer ``TELETOUCH_RELAY_SECRET`` over ``--secret`` on shared hosts.
+
+examples:
+  teletouch relay --host 0.0.0.0 --port 8765 --secret "$SECRET"
+  teletouch relay --port 8765 --token-file tokens.toml
+  curl http://127.0.0.1:8765/status
+"""
+
+from __future__ import annotations
+
+import argparse
+
+__all__ = ["configure_parser", "run"]
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    """Add the relay's flags (None = not given, so env/TOML/defaults apply)."""
+    parser.add_argument("--host", help="address to bind (default 127.0.0.1)")
+    parser.add_argument("--port", type=int,
+                        help="WebSocket port, also serving /status and /metrics (default 8765)")
+    parser.add_argument("--tcp-port", type=int, dest="tcp_port",
+                        help="raw TCP (length-prefixed) port (default: --port + 1)")
+    parser.add_argument("--config", help="TOML file with a [relay] table (or $TELETOUCH_CONFIG)")
+    parser.add_argument("--secret", help="shared secret for HMAC-derived session tokens "
+                                         "(or $TELETOUCH_RELAY_SECRET)")
+    parser.add_argument("--token-file", dest="token_file",
+                        help="TOML file with a [tokens] table: session id -> token")
+    parser.add_argument("--allow-any-token", dest="allow_any_token", action="store_true",
+                        default=None, help="accept any token (development only)")
+    parser.add_argument("--hello-timeout-s", dest="hello_timeout_s", type=float,
+                        help="seconds a client has to send hello (default 5)")
+    parser.add_argument("--ping-interval-s", dest="ping_interval_s", type=float,
+                        help="clock_ping period per station (default 1)")
+    parser.add_argument("--stats-interval-s", dest="stats_interval_s", type=float,
+                        help="stats push period (default 1)")
+    parser.add_argument("--print-token", dest="print_token", metavar="SESSION",
+                        help="print the HMAC-derived token of SESSION for the secret and exit")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Resolve the configuration and serve until SIGINT/SIGTERM."""
+    import asyncio
+
+    from relay_server.auth import derive_token
+    from relay_server.config import RelayConfig
+    from relay_server.server import serve_forever
+    from shared.config import resolve_config
+    from shared.errors import ConfigError
+    from shared.report import emit
+
+    explicit = {name: getattr(args, name, None) for name in (
+        "host", "port", "tcp_port", "secret", "token_file", "allow_any_token",
+        "hello_timeout_s", "ping_interval_s", "stats_interval_s")}
+    config = resolve_config(RelayConfig, "relay", explicit=explicit, toml_path=args.config)
+    if args.print_token:
+        if not config.secret:
+            raise ConfigError("--print-token needs a secret (--secret or $TELETOUCH_RELAY_SECRET)")
+        emit(derive_token(config.secret, args.print_token))
+        return 0
+    asyncio.run(serve_forever(config))
+    return 0

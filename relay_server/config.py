@@ -1,0 +1,86 @@
+"""Settings of the relay (TOML table ``[relay]``, env ``TELETOUCH_RELAY_*``, CLI flags)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from shared.errors import ConfigError
+from shared.protocol.codec import DEFAULT_MAX_MESSAGE_BYTES
+
+__all__ = ["RelayConfig"]
+
+
+@dataclass(frozen=True)
+class RelayConfig:
+    """Everything the relay can be told.
+
+    Attributes:
+        host: address to bind (WebSocket and TCP).
+        port: WebSocket port (also serves ``GET /status`` and ``GET /metrics``); 0 = any free.
+        tcp_port: raw TCP (length-prefixed) port; None = ``port + 1`` (or any free when
+            ``port`` is 0); 0 = any free port.
+        secret: shared secret for HMAC-derived tokens
+            (``token = hex(HMAC-SHA256(secret, session_id))``); None = no derived tokens.
+        tokens: explicit session id -> token table (wins over the secret for that session).
+        token_file: TOML file with a ``[tokens]`` table (session -> token), merged into
+            ``tokens``.
+        allow_any_token: accept any token (development only; logged loudly at start).
+        hello_timeout_s: a client must send a valid ``hello`` within this time.
+        ping_interval_s: period of ``clock_ping`` to every station after the initial burst.
+        ping_burst: number of ``clock_ping`` sent right after ``welcome``.
+        ping_burst_spacing_s: spacing of the burst pings.
+        stats_interval_s: period of the ``stats`` push to every connected peer.
+        max_message_bytes: largest accepted message (fatal ``oversize`` beyond).
+        ordered_queue_len: per-peer bound of the ordered (command/control) queue.
+        bad_message_budget: per-message errors tolerated per connection before it is closed.
+        ledger_window: samples kept per latency window (bounded ring buffer).
+        max_sessions: sessions accepted at once.
+    """
+
+    host: str = "127.0.0.1"
+    port: int = 8765
+    tcp_port: int | None = None
+    secret: str | None = None
+    tokens: dict[str, str] = field(default_factory=dict)
+    token_file: Path | None = None
+    allow_any_token: bool = False
+    hello_timeout_s: float = 5.0
+    ping_interval_s: float = 1.0
+    ping_burst: int = 5
+    ping_burst_spacing_s: float = 0.02
+    stats_interval_s: float = 1.0
+    max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
+    ordered_queue_len: int = 256
+    bad_message_budget: int = 20
+    ledger_window: int = 4096
+    max_sessions: int = 1000
+
+    def __post_init__(self) -> None:
+        for name in ("port",):
+            value = getattr(self, name)
+            if not 0 <= value <= 65535:
+                raise ConfigError(f"relay.{name}={value} is not a TCP port")
+        if self.tcp_port is not None and not 0 <= self.tcp_port <= 65535:
+            raise ConfigError(f"relay.tcp_port={self.tcp_port} is not a TCP port")
+        positive = ("hello_timeout_s", "ping_interval_s", "stats_interval_s")
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"relay.{name} must be > 0")
+        ints = ("ping_burst", "max_message_bytes", "ordered_queue_len", "bad_message_budget",
+                "ledger_window", "max_sessions")
+        for name in ints:
+            if getattr(self, name) < 1:
+                raise ConfigError(f"relay.{name} must be >= 1")
+        if self.ping_burst_spacing_s < 0:
+            raise ConfigError("relay.ping_burst_spacing_s must be >= 0")
+        for session, token in self.tokens.items():
+            if not isinstance(session, str) or not isinstance(token, str) or not token:
+                raise ConfigError("relay.tokens must map session ids to non-empty strings")
+
+    @property
+    def resolved_tcp_port(self) -> int:
+        """The TCP port to bind: ``tcp_port`` or ``port + 1`` (0 when ``port`` is 0)."""
+        if self.tcp_port is not None:
+            return self.tcp_port
+        return self.port + 1 if self.port else 0
