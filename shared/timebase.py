@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import time
 
-__all__ = ["now_us", "monotonic_s"]
+__all__ = ["monotonic_s", "now_us"]
 
 
 def now_us() -> int:

@@ -76,7 +76,8 @@ def read_str(d: Mapping[str, Any], msg_type: str, name: str, *, max_len: int = 2
         raise FieldError(
             f"{_where(msg_type, name)} must be one of {sorted(choices)}, got {value[:40]!r}")
     if pattern is not None and not pattern.fullmatch(value):
-        raise FieldError(f"{_where(msg_type, name)} {value[:40]!r} does not match {pattern.pattern}")
+        raise FieldError(
+            f"{_where(msg_type, name)} {value[:40]!r} does not match {pattern.pattern}")
     return value
 
 
