@@ -1,0 +1,211 @@
+"""Latency ledger of one stream: one-way delay, jitter, rate, drops, queue depth.
+
+Sans-I/O and clock-agnostic: the caller gives each message's send time already converted
+to a common reference clock (see :mod:`shared.clocksync`) and its receive time; the
+ledger keeps
+
+* delays ``received - sent`` (us) in a bounded ring buffer, for p50 / p99 / max;
+* the RFC 3550 interarrival jitter ``J += (|D| - J) / 16`` with
+  ``D = (R_j - S_j) - (R_i - S_i)`` over consecutive arrivals;
+* sequence accounting: ``lost`` (RFC 3550: expected from the seq range minus received,
+  so a late arrival fills its gap), ``out_of_order`` (seq not above the highest seen),
+  ``dropped`` (discarded on purpose, e.g. relay latest-wins, by reason);
+* arrival rate over the window and the queue depth (current and peak).
+
+Memory is O(window) whatever the run length.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["LatencyLedger", "LedgerSnapshot", "merge_snapshots"]
+
+
+@dataclass(frozen=True, slots=True)
+class LedgerSnapshot:
+    """Figures of one ledger (or several merged) at one moment. Times in microseconds."""
+
+    received: int
+    lost: int
+    out_of_order: int
+    dropped: dict[str, int]
+    delay_p50_us: float | None
+    delay_p99_us: float | None
+    delay_max_us: float | None
+    delay_min_us: float | None
+    delay_mean_us: float | None
+    jitter_us: float
+    rate_hz: float
+    queue_depth: int
+    queue_depth_max: int
+    window: int = 0
+    delays_us: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), repr=False)
+    recv_times_us: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), repr=False)
+
+    @property
+    def dropped_total(self) -> int:
+        """All deliberate drops, every reason."""
+        return sum(self.dropped.values())
+
+    def as_dict(self) -> dict[str, object]:
+        """Plain JSON-able figures (no arrays)."""
+        return {
+            "received": self.received, "lost": self.lost, "out_of_order": self.out_of_order,
+            "dropped": dict(self.dropped), "delay_p50_us": self.delay_p50_us,
+            "delay_p99_us": self.delay_p99_us, "delay_max_us": self.delay_max_us,
+            "delay_min_us": self.delay_min_us, "delay_mean_us": self.delay_mean_us,
+            "jitter_us": self.jitter_us, "rate_hz": self.rate_hz,
+            "queue_depth": self.queue_depth, "queue_depth_max": self.queue_depth_max,
+            "window": self.window,
+        }
+
+
+def _rate_hz(recv_times_us: np.ndarray) -> float:
+    if recv_times_us.size < 2:
+        return 0.0
+    span = float(recv_times_us.max() - recv_times_us.min())
+    return (recv_times_us.size - 1) * 1e6 / span if span > 0 else 0.0
+
+
+def _stats(delays: np.ndarray) -> tuple[float | None, ...]:
+    if delays.size == 0:
+        return (None, None, None, None, None)
+    p50, p99 = np.percentile(delays, [50.0, 99.0])
+    return (float(p50), float(p99), float(delays.max()), float(delays.min()),
+            float(delays.mean()))
+
+
+class LatencyLedger:
+    """Per-stream latency statistics over a bounded window.
+
+    Args:
+        window: delays (and arrival times) kept for percentiles and rate.
+    """
+
+    def __init__(self, window: int = 4096) -> None:
+        if window < 1:
+            raise ValueError("window must be >= 1")
+        self.window = window
+        self._delays = np.zeros(window, np.int64)
+        self._recv = np.zeros(window, np.int64)
+        self._n = 0  # total recorded; ring index = _n % window
+        self._jitter_us = 0.0
+        self._last_transit: int | None = None
+        self._first_seq: int | None = None
+        self._highest_seq = 0
+        self._seq_received = 0
+        self.out_of_order = 0
+        self.dropped: dict[str, int] = {}
+        self.queue_depth = 0
+        self.queue_depth_max = 0
+
+    @property
+    def received(self) -> int:
+        """Messages recorded so far."""
+        return self._n
+
+    @property
+    def jitter_us(self) -> float:
+        """RFC 3550 interarrival jitter estimate (us)."""
+        return self._jitter_us
+
+    def record(self, seq: int | None, sent_us: int, received_us: int) -> int:
+        """Account one arrival.
+
+        Args:
+            seq: the sender's sequence number for gap accounting, or None to skip it.
+            sent_us: send (or capture) time, already in the reference clock.
+            received_us: receive time, reference clock.
+
+        Returns:
+            The one-way delay ``received_us - sent_us`` (may be negative if the clock
+            offset is off).
+        """
+        transit = int(received_us) - int(sent_us)
+        i = self._n % self.window
+        self._delays[i] = transit
+        self._recv[i] = received_us
+        self._n += 1
+        if self._last_transit is not None:
+            d = transit - self._last_transit
+            self._jitter_us += (abs(d) - self._jitter_us) / 16.0
+        self._last_transit = transit
+        if seq is not None:
+            self._seq_received += 1
+            if self._first_seq is None:
+                self._first_seq = self._highest_seq = seq
+            elif seq > self._highest_seq:
+                self._highest_seq = seq
+            else:
+                self.out_of_order += 1
+        return transit
+
+    @property
+    def lost(self) -> int:
+        """RFC 3550 cumulative loss: expected (highest - first + 1) minus received, >= 0."""
+        if self._first_seq is None:
+            return 0
+        expected = self._highest_seq - self._first_seq + 1
+        return max(0, expected - self._seq_received)
+
+    def record_drop(self, reason: str = "latest_wins", count: int = 1) -> None:
+        """Count messages discarded on purpose (``latest_wins``, ``queue_full``, ...)."""
+        if count < 0:
+            raise ValueError("count must be >= 0")
+        self.dropped[reason] = self.dropped.get(reason, 0) + count
+
+    def set_queue_depth(self, depth: int) -> None:
+        """Note the current queue depth (messages waiting); the peak is kept."""
+        self.queue_depth = depth
+        if depth > self.queue_depth_max:
+            self.queue_depth_max = depth
+
+    def delays_us(self) -> np.ndarray:
+        """The delays in the window, oldest first (a copy)."""
+        return self._window(self._delays)
+
+    def _window(self, ring: np.ndarray) -> np.ndarray:
+        if self._n <= self.window:
+            return ring[: self._n].copy()
+        i = self._n % self.window
+        return np.concatenate((ring[i:], ring[:i]))
+
+    def snapshot(self) -> LedgerSnapshot:
+        """Figures now (percentiles over the window, counters since the start)."""
+        delays = self.delays_us()
+        recv = self._window(self._recv)
+        p50, p99, mx, mn, mean = _stats(delays)
+        return LedgerSnapshot(
+            received=self._n, lost=self.lost, out_of_order=self.out_of_order,
+            dropped=dict(self.dropped), delay_p50_us=p50, delay_p99_us=p99, delay_max_us=mx,
+            delay_min_us=mn, delay_mean_us=mean, jitter_us=self._jitter_us,
+            rate_hz=_rate_hz(recv), queue_depth=self.queue_depth,
+            queue_depth_max=self.queue_depth_max, window=int(delays.size), delays_us=delays,
+            recv_times_us=recv)
+
+
+def merge_snapshots(snapshots: list[LedgerSnapshot]) -> LedgerSnapshot:
+    """Combine the snapshots of several streams into one (percentiles over all windows).
+
+    Counters and rates add, jitter is the worst stream's, queue depths add.
+    """
+    if not snapshots:
+        return LatencyLedger(1).snapshot()
+    delays = np.concatenate([s.delays_us for s in snapshots])
+    dropped: dict[str, int] = {}
+    for s in snapshots:
+        for k, v in s.dropped.items():
+            dropped[k] = dropped.get(k, 0) + v
+    p50, p99, mx, mn, mean = _stats(delays)
+    return LedgerSnapshot(
+        received=sum(s.received for s in snapshots), lost=sum(s.lost for s in snapshots),
+        out_of_order=sum(s.out_of_order for s in snapshots), dropped=dropped,
+        delay_p50_us=p50, delay_p99_us=p99, delay_max_us=mx, delay_min_us=mn,
+        delay_mean_us=mean, jitter_us=max(s.jitter_us for s in snapshots),
+        rate_hz=sum(s.rate_hz for s in snapshots),
+        queue_depth=sum(s.queue_depth for s in snapshots),
+        queue_depth_max=sum(s.queue_depth_max for s in snapshots), window=int(delays.size),
+        delays_us=delays, recv_times_us=np.concatenate([s.recv_times_us for s in snapshots]))

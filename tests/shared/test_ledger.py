@@ -1,0 +1,100 @@
+"""Latency ledger against numpy references: percentiles, RFC 3550 jitter, loss, bounds."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from shared.ledger import LatencyLedger, merge_snapshots
+
+
+def reference_jitter(transits: np.ndarray) -> float:
+    j = 0.0
+    for d in np.diff(transits):
+        j += (abs(float(d)) - j) / 16.0
+    return j
+
+
+@settings(max_examples=80, deadline=None)
+@given(delays=st.lists(st.integers(-10**6, 10**7), min_size=1, max_size=300),
+       window=st.integers(1, 128))
+def test_percentiles_and_jitter_match_numpy(delays: list[int], window: int) -> None:
+    ledger = LatencyLedger(window)
+    sent = np.arange(len(delays), dtype=np.int64) * 1000 + 10**12
+    recv = sent + np.asarray(delays, np.int64)
+    for i, (s, r) in enumerate(zip(sent, recv, strict=True)):
+        assert ledger.record(i, int(s), int(r)) == delays[i]
+    snap = ledger.snapshot()
+    ref = np.asarray(delays[-window:], dtype=np.int64)
+    np.testing.assert_array_equal(snap.delays_us, ref)
+    assert snap.delay_p50_us == pytest.approx(float(np.percentile(ref, 50)))
+    assert snap.delay_p99_us == pytest.approx(float(np.percentile(ref, 99)))
+    assert snap.delay_max_us == float(ref.max())
+    assert snap.delay_mean_us == pytest.approx(float(ref.mean()))
+    assert snap.jitter_us == pytest.approx(reference_jitter(np.asarray(delays)), rel=1e-9,
+                                           abs=1e-9)
+    assert snap.received == len(delays)
+    assert snap.window == min(window, len(delays))
+
+
+def test_empty_ledger_has_no_percentiles() -> None:
+    snap = LatencyLedger(8).snapshot()
+    assert snap.delay_p50_us is None and snap.rate_hz == 0.0 and snap.lost == 0
+
+
+def test_loss_reorder_and_drops() -> None:
+    ledger = LatencyLedger(64)
+    for seq in (0, 1, 2, 5, 6, 4, 9):  # 3, 7, 8 missing; 4 arrives late
+        ledger.record(seq, seq * 1000, seq * 1000 + 100)
+    assert ledger.lost == 3
+    assert ledger.out_of_order == 1
+    ledger.record_drop("latest_wins", 4)
+    ledger.record_drop("latest_wins")
+    ledger.record_drop("queue_full")
+    snap = ledger.snapshot()
+    assert snap.dropped == {"latest_wins": 5, "queue_full": 1}
+    assert snap.dropped_total == 6
+    with pytest.raises(ValueError):
+        ledger.record_drop("x", -1)
+
+
+def test_rate_and_queue_depth() -> None:
+    ledger = LatencyLedger(1000)
+    for i in range(501):  # 500 intervals of 2 ms -> 500 Hz
+        ledger.record(i, i * 2000, i * 2000 + 300)
+    assert ledger.snapshot().rate_hz == pytest.approx(500.0)
+    ledger.set_queue_depth(7)
+    ledger.set_queue_depth(2)
+    snap = ledger.snapshot()
+    assert (snap.queue_depth, snap.queue_depth_max) == (2, 7)
+
+
+def test_memory_is_bounded() -> None:
+    ledger = LatencyLedger(16)
+    for i in range(10_000):
+        ledger.record(i, i, i + (i % 7))
+    snap = ledger.snapshot()
+    assert snap.delays_us.size == 16
+    assert snap.received == 10_000
+    assert ledger._delays.size == 16
+
+
+def test_merge_matches_pooled_reference() -> None:
+    rng = np.random.default_rng(3)
+    a, b = LatencyLedger(100), LatencyLedger(100)
+    da, db = rng.integers(0, 5000, 80), rng.integers(1000, 9000, 50)
+    for i, d in enumerate(da):
+        a.record(i, i * 1000, i * 1000 + int(d))
+    for i, d in enumerate(db):
+        b.record(i * 2, i * 1000, i * 1000 + int(d))  # every other seq missing
+    b.record_drop("latest_wins", 3)
+    merged = merge_snapshots([a.snapshot(), b.snapshot()])
+    pooled = np.concatenate([da, db])
+    assert merged.delay_p99_us == pytest.approx(float(np.percentile(pooled, 99)))
+    assert merged.received == 130
+    assert merged.lost == 49
+    assert merged.dropped == {"latest_wins": 3}
+    assert merged.jitter_us == max(a.jitter_us, b.jitter_us)
+    assert merge_snapshots([]).received == 0
