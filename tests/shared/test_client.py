@@ -1,0 +1,427 @@
+"""StationLink against a small in-test relay built from the same sans-I/O ProtocolConnection.
+
+The fake relay speaks both framings (WebSocket on one port, length-prefixed TCP on another),
+checks the token, answers hello with welcome or error + close code, can ping, push stats,
+stall (stop reading) and drop every connection. Tests against the real relay live in
+``tests/relay_server/test_station_link_with_relay.py`` once the relay exists.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import random
+from collections.abc import AsyncIterator
+from typing import Any
+
+import numpy as np
+import pytest
+
+from shared.client import LATEST_WINS_TYPES, StationLink, backoff_delay_s, parse_link_url
+from shared.errors import AuthError, ConfigError, LocalProtocolError, RoleTakenError
+from shared.protocol import (
+    ArmCommand,
+    ClockPing,
+    ClockPong,
+    Error,
+    Hello,
+    Message,
+    MessageReceived,
+    PlatformState,
+    ProtocolConnection,
+    Stats,
+    TactileFrame,
+    Welcome,
+)
+from shared.timebase import monotonic_s, now_us
+from tests.support import scaled
+
+TOKEN = "s3cret"
+
+
+class _Peer:
+    """One accepted connection of the fake relay (either framing)."""
+
+    def __init__(self, framing: str, send_raw: Any, recv_raw: Any, close: Any) -> None:
+        self.conn = ProtocolConnection(framing)  # type: ignore[arg-type]
+        self._send_raw, self._recv_raw, self._close = send_raw, recv_raw, close
+        self.hello: Hello | None = None
+
+    async def send(self, msg: Message) -> None:
+        self.conn.send(msg)
+        for data in self.conn.data_to_send():
+            await self._send_raw(data)
+
+    async def recv(self) -> list[Message]:
+        self.conn.receive_data(await self._recv_raw())
+        return [e.message for e in self.conn.events_received() if isinstance(e, MessageReceived)]
+
+    async def close(self, code: int = 1000) -> None:
+        await self._close(code)
+
+
+class FakeRelay:
+    """Minimal relay: token check, welcome, record everything received, manual control."""
+
+    def __init__(self, token: str = TOKEN, refuse_role_code: str | None = None) -> None:
+        self.token = token
+        self.refuse_role_code = refuse_role_code
+        self.received: asyncio.Queue[tuple[_Peer, Message]] = asyncio.Queue()
+        self.peers: list[_Peer] = []
+        self.hellos = 0
+        self.accepts_s: list[float] = []
+        self.reading = asyncio.Event()
+        self.reading.set()
+        self.welcomed = asyncio.Event()
+        self._ws_server: Any = None
+        self._tcp_server: asyncio.Server | None = None
+        self._tasks: set[asyncio.Task[Any]] = set()
+
+    async def __aenter__(self) -> FakeRelay:
+        from websockets.asyncio.server import serve
+
+        self._ws_server = await serve(self._ws_handler, "127.0.0.1", 0, compression=None,
+                                      max_size=None)
+        self._tcp_server = await asyncio.start_server(self._tcp_handler, "127.0.0.1", 0)
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        self._ws_server.close()
+        await self._ws_server.wait_closed()
+        assert self._tcp_server is not None
+        self._tcp_server.close()
+        for t in list(self._tasks):
+            t.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+        with contextlib.suppress(asyncio.TimeoutError):
+            await asyncio.wait_for(self._tcp_server.wait_closed(), 1.0)
+
+    def url(self, scheme: str) -> str:
+        if scheme == "tcp":
+            assert self._tcp_server is not None
+            port = self._tcp_server.sockets[0].getsockname()[1]
+            return f"tcp://127.0.0.1:{port}"
+        port = next(iter(self._ws_server.sockets)).getsockname()[1]
+        return f"ws://127.0.0.1:{port}/"
+
+    async def _ws_handler(self, ws: Any) -> None:
+        async def close(code: int) -> None:
+            await ws.close(code)
+
+        await self._serve(_Peer("ws", ws.send, ws.recv, close))
+
+    async def _tcp_handler(self, reader: asyncio.StreamReader,
+                          writer: asyncio.StreamWriter) -> None:
+        task = asyncio.current_task()
+        assert task is not None
+        self._tasks.add(task)
+
+        async def send(data: bytes) -> None:
+            writer.write(data)
+            await writer.drain()
+
+        async def recv() -> bytes:
+            data = await reader.read(65536)
+            if not data:
+                raise ConnectionError("eof")
+            return data
+
+        async def close(code: int) -> None:
+            writer.close()
+
+        try:
+            await self._serve(_Peer("tcp", send, recv, close))
+        finally:
+            writer.close()
+            self._tasks.discard(task)
+
+    async def _serve(self, peer: _Peer) -> None:
+        self.accepts_s.append(monotonic_s())
+        with contextlib.suppress(Exception):
+            msgs = await peer.recv()
+            hello = msgs[0]
+            assert isinstance(hello, Hello)
+            self.hellos += 1
+            peer.hello = hello
+            if hello.token != self.token:
+                await peer.send(Error(code="auth", message="wrong token", fatal=True))
+                await peer.close(4001)
+                return
+            if self.refuse_role_code is not None:
+                await peer.send(Error(code=self.refuse_role_code, message="no", fatal=True))
+                await peer.close(4002)
+                return
+            await peer.send(Welcome(session=hello.session, role=hello.role,
+                                    server_time_us=now_us(), max_message_bytes=1 << 22))
+            self.peers.append(peer)
+            self.welcomed.set()
+            while True:
+                await self.reading.wait()
+                for msg in await peer.recv():
+                    self.received.put_nowait((peer, msg))
+
+    async def drop_all(self) -> None:
+        for peer in self.peers:
+            await peer.close(1001)
+        self.peers.clear()
+        self.welcomed.clear()
+
+    async def next_message(self, msg_type: type[Message], timeout_s: float = 2.0) -> Message:
+        async with asyncio.timeout(scaled(timeout_s)):
+            while True:
+                _, msg = await self.received.get()
+                if isinstance(msg, msg_type):
+                    return msg
+
+
+@pytest.fixture
+async def relay() -> AsyncIterator[FakeRelay]:
+    async with FakeRelay() as r:
+        yield r
+
+
+def _link(url: str, **kw: Any) -> StationLink:
+    kw.setdefault("connect_timeout_s", scaled(2.0))
+    return StationLink(url, session="lab1", role=kw.pop("role", "local"),
+                       token=kw.pop("token", TOKEN), name="test", **kw)
+
+
+def _state(seq: int) -> PlatformState:
+    return PlatformState(seq=seq, ts_us=now_us(), position_mm=(float(seq % 50), 0.0, 1.0))
+
+
+# --------------------------------------------------------------------------- pure helpers
+
+
+def test_parse_link_url_schemes_and_errors() -> None:
+    assert parse_link_url("ws://relay.example:9000/x") == ("ws", "relay.example", 9000)
+    assert parse_link_url("wss://relay.example/") == ("wss", "relay.example", 443)
+    assert parse_link_url("tcp://10.0.0.1:8766") == ("tcp", "10.0.0.1", 8766)
+    for bad in ("http://h:1", "tcp://h", "ws://:80", "tcp://h:99999"):
+        with pytest.raises(ConfigError):
+            parse_link_url(bad)
+
+
+def test_backoff_doubles_to_cap_and_jitter_stays_in_band() -> None:
+    rng = random.Random(1)
+    exact = [backoff_delay_s(a, min_s=0.1, max_s=5.0, jitter=0.0, rng=rng) for a in range(10)]
+    assert exact[:7] == pytest.approx([0.1, 0.2, 0.4, 0.8, 1.6, 3.2, 5.0])
+    assert exact[7:] == pytest.approx([5.0] * 3)
+    for attempt in range(12):
+        base = min(5.0, 0.1 * 2 ** attempt)
+        samples = [backoff_delay_s(attempt, min_s=0.1, max_s=5.0, jitter=0.5, rng=rng)
+                   for _ in range(200)]
+        assert min(samples) >= 0.5 * base - 1e-12 and max(samples) <= base + 1e-12
+        assert max(samples) - min(samples) > 0.2 * base  # the jitter is really there
+
+
+def test_constructor_rejects_bad_settings() -> None:
+    with pytest.raises(ConfigError):
+        StationLink("tcp://h:1", session="s", role="pilot", token="t")
+    with pytest.raises(ConfigError):
+        StationLink("tcp://h:1", session="s", role="local", token="t", reconnect_min_s=0)
+
+
+# --------------------------------------------------------------------------- over sockets
+
+
+@pytest.mark.parametrize("scheme", ["ws", "tcp"])
+async def test_hello_welcome_and_data_both_ways(relay: FakeRelay, scheme: str) -> None:
+    async with _link(relay.url(scheme)) as link:
+        welcome = await link.wait_connected(scaled(2.0))
+        assert welcome.session == "lab1" and welcome.role == "local"
+        assert link.is_connected and link.link_down_since is None
+        peer = relay.peers[0]
+        assert peer.hello == Hello(role="local", session="lab1", token=TOKEN, name="test")
+
+        await link.send(ArmCommand(seq=7, ts_us=now_us(), action="move", target_mm=(1, 2, 3)))
+        got = await relay.next_message(ArmCommand)
+        assert isinstance(got, ArmCommand) and got.seq == 7 and got.target_mm == (1, 2, 3)
+
+        t_before = now_us()
+        await peer.send(_state(42))
+        msg = await link.recv(timeout_s=scaled(2.0))
+        t_after = now_us()
+        assert isinstance(msg, PlatformState) and msg.seq == 42
+        hop = msg.hops[-1]
+        assert (hop.clock, hop.stage) == ("local", "station_rx")
+        assert t_before <= hop.t_us <= t_after
+
+        with pytest.raises(TimeoutError):
+            await link.recv(timeout_s=0.05)
+
+
+@pytest.mark.parametrize("scheme", ["ws", "tcp"])
+async def test_clock_ping_gets_a_correct_pong(relay: FakeRelay, scheme: str) -> None:
+    async with _link(relay.url(scheme)) as link:
+        await link.wait_connected(scaled(2.0))
+        peer = relay.peers[0]
+        for ping_id in range(3):
+            t0 = now_us()
+            await peer.send(ClockPing(ping_id=ping_id, t0_us=t0))
+            pong = await relay.next_message(ClockPong)
+            t3 = now_us()
+            assert isinstance(pong, ClockPong)
+            assert pong.ping_id == ping_id and pong.t0_us == t0
+            # same host, same clock: t0 <= t1 <= t2 <= t3
+            assert t0 <= pong.t1_us <= pong.t2_us <= t3
+        assert link.counters.pongs_sent == 3
+
+
+async def test_stats_update_clock_offsets(relay: FakeRelay) -> None:
+    async with _link(relay.url("ws"), role="remote") as link:
+        await link.wait_connected(scaled(2.0))
+        assert link.clock_offsets_us == {} and link.clock_offset_us is None
+        metrics = {"clock_offset_us": {"local": -1500, "remote": 250.7}, "sessions": 1}
+        await relay.peers[0].send(Stats(scope="relay", time_us=now_us(), metrics=metrics))
+        msg = await link.recv(timeout_s=scaled(2.0))
+        assert isinstance(msg, Stats) and link.latest_stats is msg
+        assert link.clock_offsets_us == {"local": -1500, "remote": 250}
+        assert link.clock_offset_us == 250
+
+
+@pytest.mark.parametrize("scheme", ["ws", "tcp"])
+async def test_reconnects_after_the_relay_drops_and_resumes(relay: FakeRelay,
+                                                            scheme: str) -> None:
+    async with _link(relay.url(scheme), reconnect_min_s=0.05, reconnect_max_s=0.2) as link:
+        await link.wait_connected(scaled(2.0))
+        await relay.drop_all()
+        async with asyncio.timeout(scaled(2.0)):
+            while link.is_connected:
+                await asyncio.sleep(0.005)
+        assert link.link_down_since is not None
+        await asyncio.sleep(0.01)
+        assert link.link_down_for_s() > 0.0
+        # a command sent while down is delivered after the reconnect
+        await link.send(ArmCommand(seq=1, ts_us=now_us(), action="stop"))
+        await link.wait_connected(scaled(2.0))
+        assert link.link_down_since is None and link.link_down_for_s() == 0.0
+        got = await relay.next_message(ArmCommand)
+        assert isinstance(got, ArmCommand) and got.seq == 1
+        assert link.counters.connects == 2 and link.counters.connection_losses == 1
+        assert relay.hellos == 2
+
+
+async def test_backoff_timing_when_the_relay_is_unreachable(relay: FakeRelay) -> None:
+    """A listener that hangs up at once: attempts are spaced by the doubling delays."""
+    attempts: list[float] = []
+
+    async def hang_up(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        attempts.append(monotonic_s())
+        writer.close()
+
+    server = await asyncio.start_server(hang_up, "127.0.0.1", 0)
+    port = server.sockets[0].getsockname()[1]
+    try:
+        async with _link(f"tcp://127.0.0.1:{port}", reconnect_min_s=0.05,
+                         reconnect_max_s=0.2, reconnect_jitter=0.0) as link:
+            async with asyncio.timeout(scaled(5.0)):
+                while len(attempts) < 6:
+                    await asyncio.sleep(0.01)
+            assert not link.is_connected
+            expected = [0.05, 0.1, 0.2, 0.2, 0.2]
+            assert list(link.backoff_history_s)[:5] == pytest.approx(expected)
+            gaps = np.diff(attempts[:6])
+            for gap, delay in zip(gaps, expected, strict=True):
+                assert delay * 0.9 <= gap <= delay + scaled(0.1)
+    finally:
+        server.close()
+        await server.wait_closed()
+
+
+@pytest.mark.parametrize("scheme", ["ws", "tcp"])
+async def test_wrong_token_is_final_and_logged_once(relay: FakeRelay, scheme: str,
+                                                   caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.ERROR, logger="shared.client")
+    async with _link(relay.url(scheme), token="wrong", reconnect_min_s=0.01) as link:
+        with pytest.raises(AuthError):
+            await link.wait_connected(scaled(2.0))
+        await asyncio.sleep(0.1)  # would be ~4 retries if it retried
+        assert relay.hellos == 1
+        with pytest.raises(AuthError):
+            await link.recv(timeout_s=0.1)
+        with pytest.raises(AuthError):
+            await link.send(_state(1))
+        with pytest.raises(AuthError):
+            async for _ in link.messages():
+                pass
+    refusals = [r for r in caplog.records if "refused" in r.getMessage()]
+    assert len(refusals) == 1
+
+
+async def test_role_taken_on_first_connect_is_final() -> None:
+    async with FakeRelay(refuse_role_code="role_taken") as relay:
+        async with _link(relay.url("ws"), reconnect_min_s=0.01) as link:
+            with pytest.raises(RoleTakenError):
+                await link.wait_connected(scaled(2.0))
+            await asyncio.sleep(0.05)
+            assert relay.hellos == 1
+
+
+async def test_latest_wins_on_a_stalled_socket(relay: FakeRelay) -> None:
+    """The relay stops reading; big frames back up; only the newest state is kept,
+    while ordered commands all arrive, in order."""
+    async with _link(relay.url("tcp"), write_buffer_bytes=1024) as link:
+        await link.wait_connected(scaled(2.0))
+        relay.reading.clear()
+        layer = np.zeros((160, 160), dtype=np.float64)  # ~200 KiB per frame
+        n_frames = 60
+        for i in range(n_frames):
+            await link.send(TactileFrame(seq=i, ts_us=now_us(), center_mm=(0.0, 0.0),
+                                         pitch_mm=0.1, layers={"height_mm": layer},
+                                         contact=False, force_n=0.0, indentation_mm=0.0))
+            await link.send(ArmCommand(seq=i, ts_us=now_us(), action="stop"))
+            await asyncio.sleep(0.002)
+            assert link.pending_sends <= 1 + 256
+        assert link.counters.stale_dropped_tx > 0
+        relay.reading.set()
+        frames: list[int] = []
+        commands: list[int] = []
+        async with asyncio.timeout(scaled(10.0)):
+            while not frames or frames[-1] != n_frames - 1 or len(commands) < n_frames:
+                _, msg = await relay.received.get()
+                if isinstance(msg, TactileFrame):
+                    frames.append(msg.seq)
+                elif isinstance(msg, ArmCommand):
+                    commands.append(msg.seq)
+        assert commands == list(range(n_frames))
+        assert frames == sorted(frames) and len(frames) < n_frames
+        assert len(frames) + link.counters.stale_dropped_tx == n_frames
+
+
+async def test_inbox_is_latest_wins_for_state_and_ordered_for_commands(
+        relay: FakeRelay) -> None:
+    async with _link(relay.url("ws"), role="remote") as link:
+        await link.wait_connected(scaled(2.0))
+        peer = relay.peers[0]
+        for i in range(20):
+            await peer.send(_state(i))
+            await peer.send(ArmCommand(seq=i, ts_us=now_us(), action="stop"))
+        async with asyncio.timeout(scaled(2.0)):
+            while link.counters.messages_received < 40:
+                await asyncio.sleep(0.005)
+        got = [await link.recv(timeout_s=1.0) for _ in range(21)]
+        states = [m.seq for m in got if isinstance(m, PlatformState)]
+        cmds = [m.seq for m in got if isinstance(m, ArmCommand)]
+        assert states == [19] and cmds == list(range(20))
+        assert link.counters.stale_dropped_rx == 19
+        assert "platform_state" in LATEST_WINS_TYPES
+
+
+async def test_invalid_message_is_refused_locally(relay: FakeRelay) -> None:
+    async with _link(relay.url("ws")) as link:
+        with pytest.raises(LocalProtocolError):
+            await link.send(PlatformState(seq=-1, ts_us=0))
+
+
+async def test_silent_link_is_detected_and_reconnected(relay: FakeRelay) -> None:
+    async with _link(relay.url("tcp"), liveness_timeout_s=0.15,
+                     reconnect_min_s=0.02) as link:
+        await link.wait_connected(scaled(2.0))
+        # the fake relay never sends anything: the link must notice and reconnect
+        async with asyncio.timeout(scaled(3.0)):
+            while link.counters.connects < 2:
+                await asyncio.sleep(0.01)
+        assert link.counters.connection_losses >= 1
+        assert link.silent_for_s() < scaled(1.0)
