@@ -62,6 +62,7 @@ from shared.protocol import (
     CLOCKS,
     DEFAULT_MAX_MESSAGE_BYTES,
     ROLES,
+    Bye,
     ClockPing,
     ClockPong,
     ConnectionFailed,
@@ -425,8 +426,6 @@ class StationLink:
         self._closing = True
         if self.connected.is_set():
             with contextlib.suppress(ProtocolError):
-                from shared.protocol import Bye
-
                 self._ordered_out.append(encode(Bye(reason=reason),
                                                 max_message_bytes=self._max_message_bytes))
                 self._tx_ready.set()
@@ -638,8 +637,7 @@ class StationLink:
                     self._tx_room.set()
                     return
                 log.info("relay still holds role %s; retrying", self.role)
-            except (OSError, TimeoutError, asyncio.TimeoutError, SessionError,
-                    ProtocolError) as err:
+            except (OSError, TimeoutError, SessionError, ProtocolError) as err:
                 if not self._down_logged:
                     log.warning("link to %s unavailable (%s: %s); retrying with backoff",
                                 self.url, type(err).__name__, err)
@@ -674,7 +672,7 @@ class StationLink:
     async def _recv_bytes(self, transport: _Transport, timeout_s: float) -> bytes:
         try:
             data = await asyncio.wait_for(transport.recv(), timeout_s)
-        except asyncio.TimeoutError as err:
+        except TimeoutError as err:
             raise TimeoutError(f"relay silent for {timeout_s:.3g} s") from err
         except _LinkClosed as err:
             refusal = _REFUSALS_BY_CLOSE.get(err.close_code or 0)

@@ -351,12 +351,12 @@ async def test_wrong_token_is_final_and_logged_once(relay: FakeRelay, scheme: st
 
 
 async def test_role_taken_on_first_connect_is_final() -> None:
-    async with FakeRelay(refuse_role_code="role_taken") as relay:
-        async with _link(relay.url("ws"), reconnect_min_s=0.01) as link:
-            with pytest.raises(RoleTakenError):
-                await link.wait_connected(scaled(2.0))
-            await asyncio.sleep(0.05)
-            assert relay.hellos == 1
+    async with (FakeRelay(refuse_role_code="role_taken") as relay,
+                _link(relay.url("ws"), reconnect_min_s=0.01) as link):
+        with pytest.raises(RoleTakenError):
+            await link.wait_connected(scaled(2.0))
+        await asyncio.sleep(0.05)
+        assert relay.hellos == 1
 
 
 async def test_latest_wins_on_a_stalled_socket(relay: FakeRelay) -> None:
