@@ -1,0 +1,172 @@
+"""Interpolation of tactile layers stored on a regular metric grid.
+
+A :class:`GridLayers` holds several layers (height, stiffness, friction, ...) sampled on
+one regular grid: element ``[row, col]`` sits at ``x = x0_mm + col * dx_mm`` and
+``y = y0_mm + row * dy_mm`` (row index along +y, column index along +x, sample centres).
+:meth:`GridLayers.sample` evaluates every layer at arbitrary points at once, so the
+renderer's 16 pins cost one gather, not 16 x layers.
+
+Orders:
+
+* ``0`` nearest sample (the naive "one pixel per pin" renderer);
+* ``1`` bilinear: exact for fields that are linear (indeed bilinear) in x and y;
+* ``3`` Keys cubic convolution (a = -1/2): exact for quadratic fields, third-order
+  accurate. The border uses Keys' quadratic extrapolation of one ghost sample
+  (``f[-1] = 3 f[0] - 3 f[1] + f[2]``) so accuracy holds up to the edge. Cubic weights
+  can overshoot between samples; bounded layers are clipped by the caller.
+
+Points outside the grid are evaluated at the nearest point of the grid (edge
+replication) and reported in the ``inside`` mask so a scene can apply its own policy.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from shared.errors import ConfigError, InputDataError
+
+__all__ = ["INTERPOLATION_ORDERS", "MAX_GRID_DIM", "GridLayers", "keys_cubic_weights"]
+
+#: supported interpolation orders (0 nearest, 1 bilinear, 3 Keys cubic)
+INTERPOLATION_ORDERS = (0, 1, 3)
+#: largest grid side accepted (same bound as the wire protocol's arrays)
+MAX_GRID_DIM = 4096
+#: tolerance (in grid cells) for deciding that a point lies inside the grid
+_INSIDE_TOL_CELLS = 1e-9
+
+
+def keys_cubic_weights(t: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Keys (a = -1/2) cubic convolution weights for the 4 samples around ``t``.
+
+    Args:
+        t: fractional positions in [0, 1] between sample 0 and sample 1, any shape.
+
+    Returns:
+        Array of shape ``t.shape + (4,)``: weights of samples -1, 0, 1, 2 (they sum to 1).
+    """
+    t2 = t * t
+    t3 = t2 * t
+    return np.stack([
+        0.5 * (-t3 + 2.0 * t2 - t),
+        0.5 * (3.0 * t3 - 5.0 * t2 + 2.0),
+        0.5 * (-3.0 * t3 + 4.0 * t2 + t),
+        0.5 * (t3 - t2),
+    ], axis=-1)
+
+
+def _pad_ghost(values: NDArray[np.float64], axis: int) -> NDArray[np.float64]:
+    """Add one ghost sample at both ends of ``axis`` (Keys' quadratic extrapolation)."""
+    v = np.moveaxis(values, axis, -1)
+    if v.shape[-1] >= 3:
+        lo = 3.0 * v[..., 0] - 3.0 * v[..., 1] + v[..., 2]
+        hi = 3.0 * v[..., -1] - 3.0 * v[..., -2] + v[..., -3]
+    else:  # two samples: linear extrapolation is the best the data allows
+        lo = 2.0 * v[..., 0] - v[..., 1]
+        hi = 2.0 * v[..., -1] - v[..., -2]
+    out = np.concatenate([lo[..., None], v, hi[..., None]], axis=-1)
+    return np.moveaxis(out, -1, axis)
+
+
+@dataclass(frozen=True, eq=False)
+class GridLayers:
+    """Layers on one regular grid, ready for interpolation.
+
+    Args:
+        values: array ``(n_layers, ny, nx)`` of finite floats, ``ny, nx >= 2``.
+        x0_mm: x of column 0; y0_mm: y of row 0 (sample centres).
+        dx_mm: column spacing; dy_mm: row spacing (both > 0).
+
+    Raises:
+        InputDataError: wrong shape or non-finite values or spacing.
+    """
+
+    values: NDArray[np.float64]
+    x0_mm: float
+    y0_mm: float
+    dx_mm: float
+    dy_mm: float
+    _padded: NDArray[np.float64] = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        v = np.array(self.values, dtype=np.float64)  # private copy
+        if v.ndim != 3 or v.shape[0] < 1:
+            raise InputDataError(f"grid layers must be (n_layers, ny, nx), got shape {v.shape}")
+        ny, nx = v.shape[1:]
+        if not (2 <= ny <= MAX_GRID_DIM and 2 <= nx <= MAX_GRID_DIM):
+            raise InputDataError(f"a layer grid needs 2..{MAX_GRID_DIM} samples per side, "
+                                 f"got {ny} x {nx}")
+        if not np.isfinite(v).all():
+            raise InputDataError("grid layers contain NaN or Inf")
+        geom = np.array([self.x0_mm, self.y0_mm, self.dx_mm, self.dy_mm], dtype=float)
+        if not np.isfinite(geom).all() or self.dx_mm <= 0 or self.dy_mm <= 0:
+            raise InputDataError("grid origin must be finite and spacing positive, got "
+                                 f"x0={self.x0_mm}, y0={self.y0_mm}, dx={self.dx_mm}, "
+                                 f"dy={self.dy_mm}")
+        v.setflags(write=False)
+        padded = _pad_ghost(_pad_ghost(v, 1), 2)
+        padded.setflags(write=False)
+        object.__setattr__(self, "values", v)
+        object.__setattr__(self, "_padded", padded)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """Grid shape ``(ny, nx)``."""
+        return int(self.values.shape[1]), int(self.values.shape[2])
+
+    @property
+    def extent_mm(self) -> tuple[float, float, float, float]:
+        """``(x_min, x_max, y_min, y_max)`` of the sample centres."""
+        ny, nx = self.shape
+        return (self.x0_mm, self.x0_mm + (nx - 1) * self.dx_mm,
+                self.y0_mm, self.y0_mm + (ny - 1) * self.dy_mm)
+
+    def sample(self, points_xy_mm: NDArray[np.float64],
+               order: int = 1) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+        """Interpolate every layer at ``points_xy_mm``.
+
+        Args:
+            points_xy_mm: array ``(n_points, 2)`` of finite (x, y) in mm.
+            order: 0 (nearest), 1 (bilinear) or 3 (Keys cubic).
+
+        Returns:
+            ``(values, inside)``: ``values`` is ``(n_layers, n_points)``; ``inside`` is
+            ``(n_points,)``, False where the point lies outside the grid (its value is then
+            the one at the nearest grid point).
+
+        Raises:
+            ConfigError: an unsupported order.
+        """
+        ny, nx = self.shape
+        fx = (points_xy_mm[:, 0] - self.x0_mm) / self.dx_mm
+        fy = (points_xy_mm[:, 1] - self.y0_mm) / self.dy_mm
+        tol = _INSIDE_TOL_CELLS
+        inside = (fx >= -tol) & (fx <= nx - 1 + tol) & (fy >= -tol) & (fy <= ny - 1 + tol)
+        fx = np.clip(fx, 0.0, nx - 1.0)
+        fy = np.clip(fy, 0.0, ny - 1.0)
+        if order == 0:
+            ix = np.rint(fx).astype(np.intp)
+            iy = np.rint(fy).astype(np.intp)
+            return self.values[:, iy, ix], inside
+        ix = np.minimum(fx.astype(np.intp), nx - 2)
+        iy = np.minimum(fy.astype(np.intp), ny - 2)
+        tx = fx - ix
+        ty = fy - iy
+        if order == 1:
+            v = self.values
+            top = v[:, iy, ix] * (1.0 - tx) + v[:, iy, ix + 1] * tx
+            bottom = v[:, iy + 1, ix] * (1.0 - tx) + v[:, iy + 1, ix + 1] * tx
+            return top * (1.0 - ty) + bottom * ty, inside
+        if order == 3:
+            wx = keys_cubic_weights(tx)  # (P, 4)
+            wy = keys_cubic_weights(ty)
+            offs = np.arange(4)
+            # padded index of sample (i - 1) is i, so the 4 taps start at ix in padded space
+            rows = (iy[:, None] + offs[None, :])[:, :, None]  # (P, 4, 1)
+            cols = (ix[:, None] + offs[None, :])[:, None, :]  # (P, 1, 4)
+            taps = self._padded[:, rows, cols]  # (L, P, 4, 4)
+            return np.einsum("lpij,pi,pj->lp", taps, wy, wx), inside
+        raise ConfigError(f"interpolation order must be one of {INTERPOLATION_ORDERS}, "
+                          f"got {order!r}")
