@@ -1,0 +1,169 @@
+"""Per-peer outgoing queue with per-stream policy, and the writer task that drains it.
+
+Two kinds of entries wait for a peer:
+
+* **latest-wins slots** for state streams (``platform_state``, ``arm_state``,
+  ``tactile_frame``): one slot per stream key; a newer message replaces an unsent one
+  and the replaced one is counted as a drop. Memory is bounded by the number of streams.
+* an **ordered queue** for commands and control (``arm_command``, ``error``, ``stats``,
+  ``clock_ping``, ``welcome``, ``bye``, ...), bounded: :meth:`Outbox.put_ordered` returns
+  False when full and the caller reports the overflow (never a silent loss).
+
+One writer task per peer drains the outbox in arrival order, encodes each message just
+before writing it (``relay_out`` hop stamped then) and writes the batch. A peer whose
+socket is slow only fills its own outbox: nobody else awaits it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections import deque
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+from typing import Protocol
+
+from shared.protocol import DataMessage, Message
+
+__all__ = ["Link", "Outbox", "Pending", "run_writer"]
+
+log = logging.getLogger(__name__)
+
+
+class Link(Protocol):
+    """The transport under one peer (WebSocket or length-prefixed TCP)."""
+
+    framing: str
+
+    async def write(self, frames: list[bytes]) -> None:
+        """Write already framed messages, waiting for the transport to drain."""
+
+    async def close(self, code: int, reason: str) -> None:
+        """Close the connection (``code`` is a WebSocket close code; TCP ignores it)."""
+
+
+#: called just before a data message is encoded: (pending entry, relay_out time) -> None
+OnSend = Callable[["Pending", int], None]
+
+
+@dataclass(slots=True)
+class Pending:
+    """One message waiting for a peer.
+
+    Attributes:
+        order: arrival counter (keeps the writer in arrival order across slots and queue).
+        message: the message.
+        forwarded: a data message relayed from a station (already validated on receipt:
+            gets a ``relay_out`` hop and is encoded without re-validation).
+        on_send: accounting callback for forwarded messages, or None.
+        build: for messages that must carry the time they are written (``clock_ping``):
+            called with that time, returns the message to send instead of ``message``.
+    """
+
+    order: int
+    message: Message
+    forwarded: bool = False
+    on_send: OnSend | None = None
+    build: Callable[[int], Message] | None = None
+
+
+class Outbox:
+    """Bounded outgoing state of one peer (no I/O).
+
+    Args:
+        ordered_limit: maximum entries of the ordered queue.
+    """
+
+    def __init__(self, ordered_limit: int) -> None:
+        self._ordered: deque[Pending] = deque()
+        self._slots: dict[str, Pending] = {}
+        self._limit = ordered_limit
+        self._counter = 0
+        self.wakeup = asyncio.Event()
+        self.closed = False
+
+    def __len__(self) -> int:
+        return len(self._ordered) + len(self._slots)
+
+    def put_latest(self, key: str, message: DataMessage, on_send: OnSend | None = None
+                   ) -> Pending | None:
+        """Put a forwarded ``message`` in slot ``key``; return the unsent entry it replaced."""
+        self._counter += 1
+        old = self._slots.get(key)
+        self._slots[key] = Pending(self._counter, message, True, on_send)
+        self.wakeup.set()
+        return old
+
+    def put_ordered(self, message: Message, on_send: OnSend | None = None, *,
+                    forwarded: bool = False, force: bool = False,
+                    build: Callable[[int], Message] | None = None) -> bool:
+        """Append to the ordered queue; False (nothing queued) when full.
+
+        Args:
+            message: the message.
+            on_send: accounting callback.
+            forwarded: a relayed data message (see :class:`Pending`).
+            build: late-bound message factory (see :class:`Pending`).
+            force: queue even when full (for the relay's own rare control messages, such
+                as a fatal ``error`` before closing).
+        """
+        if len(self._ordered) >= self._limit and not force:
+            return False
+        self._counter += 1
+        self._ordered.append(Pending(self._counter, message, forwarded, on_send, build))
+        self.wakeup.set()
+        return True
+
+    def take(self) -> list[Pending]:
+        """Remove and return everything waiting, in arrival order."""
+        if not self._slots:
+            out = list(self._ordered)
+        else:
+            out = sorted((*self._ordered, *self._slots.values()), key=lambda p: p.order)
+            self._slots.clear()
+        self._ordered.clear()
+        self.wakeup.clear()
+        return out
+
+
+async def run_writer(outbox: Outbox, link: Link, encode: Callable[[Message, bool], bytes],
+                     stamp: Callable[[], int],
+                     on_error: Callable[[BaseException], Awaitable[None]]) -> None:
+    """Drain ``outbox`` to ``link`` until the outbox is closed and empty.
+
+    Args:
+        outbox: the peer's outbox.
+        link: its transport.
+        encode: (message, validate) -> framed bytes; forwarded messages are encoded with
+            ``validate=False`` (they were validated when received).
+        stamp: the relay clock (``now_us``).
+        on_error: awaited once if writing fails (the peer is then dropped).
+    """
+    try:
+        while True:
+            await outbox.wakeup.wait()
+            batch = outbox.take()
+            if not batch:
+                if outbox.closed:
+                    return
+                continue
+            frames = []
+            for pending in batch:
+                msg = pending.message
+                if pending.forwarded and isinstance(msg, DataMessage):
+                    t_out = stamp()
+                    msg = msg.with_hop("relay", "relay_out", t_out)
+                    if pending.on_send is not None:
+                        pending.on_send(pending, t_out)
+                    frames.append(encode(msg, False))
+                elif pending.build is not None:
+                    frames.append(encode(pending.build(stamp()), True))
+                else:
+                    frames.append(encode(msg, True))
+            await link.write(frames)
+            if outbox.closed and not len(outbox):
+                return
+    except asyncio.CancelledError:
+        raise
+    except Exception as err:  # transport failures of any kind end this peer only
+        await on_error(err)

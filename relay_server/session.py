@@ -1,0 +1,240 @@
+"""Sessions, peers and latency accounting of the relay (no I/O here).
+
+A :class:`Session` holds at most one ``local`` and one ``remote`` peer and any number of
+observers, and one :class:`DirectionStats` per direction (``local_to_remote``,
+``remote_to_local``). :meth:`Session.route` applies the per-stream policy; the writer
+task calls back when a forwarded message is actually written, which closes the books on
+its relay residence time and end-to-end estimate.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from typing import Any
+
+from relay_server.outbox import Outbox, Pending
+from shared.clocksync import ClockFilter
+from shared.errors import InputDataError, RoleTakenError
+from shared.ledger import LatencyLedger, LedgerSnapshot, merge_snapshots
+from shared.protocol import ClockPong, DataMessage, Error
+
+__all__ = [
+    "DIRECTION_OF",
+    "LATEST_WINS",
+    "STREAMS_OF",
+    "DirectionStats",
+    "Peer",
+    "RouteResult",
+    "Session",
+]
+
+log = logging.getLogger(__name__)
+
+#: streams where only the newest unsent message matters
+LATEST_WINS = frozenset({"platform_state", "arm_state", "tactile_frame"})
+#: data streams each station role may send
+STREAMS_OF = {"local": frozenset({"platform_state", "arm_command"}),
+              "remote": frozenset({"arm_state", "tactile_frame"})}
+#: sender role -> direction name
+DIRECTION_OF = {"local": "local_to_remote", "remote": "remote_to_local"}
+_OTHER = {"local": "remote", "remote": "local"}
+_MAX_OUTSTANDING_PINGS = 16
+
+
+class DirectionStats:
+    """Latency books of one direction of one session.
+
+    Ledgers (each bounded by ``window``):
+        ``uplink[stream]``: station -> relay one-way delay, with seq loss and drop counts.
+        ``relay``: relay residence (``relay_out - relay_in``), the latency the relay adds.
+        ``end_to_end``: sender stamp -> estimated arrival at the receiving station
+        (relay_out + the receiver's downlink estimate, half its min-delay round trip).
+    """
+
+    def __init__(self, name: str, window: int) -> None:
+        self.name = name
+        self.window = window
+        self.uplink: dict[str, LatencyLedger] = {}
+        self.relay = LatencyLedger(window)
+        self.end_to_end = LatencyLedger(window)
+        self.forwarded = 0
+        self.unsynced = 0  # arrivals before the sender's clock offset was known
+
+    def stream(self, name: str) -> LatencyLedger:
+        """The uplink ledger of one stream (created on first use)."""
+        ledger = self.uplink.get(name)
+        if ledger is None:
+            ledger = self.uplink[name] = LatencyLedger(self.window)
+        return ledger
+
+    def uplink_snapshot(self) -> LedgerSnapshot:
+        """All streams of this direction merged."""
+        return merge_snapshots([lg.snapshot() for lg in self.uplink.values()])
+
+
+@dataclass(eq=False)
+class Peer:
+    """One joined connection: its role, outbox, clock estimate and counters."""
+
+    peer_id: int
+    session_id: str
+    role: str
+    name: str
+    transport: str
+    outbox: Outbox
+    window: int
+    clock: ClockFilter = field(default_factory=ClockFilter)
+    downlink: LatencyLedger = field(init=False)
+    rtt: LatencyLedger = field(init=False)
+    pings: OrderedDict[int, int] = field(default_factory=OrderedDict)
+    received: int = 0
+    bad_messages: int = 0
+    observer_drops: int = 0
+    reported: dict[str, Any] = field(default_factory=dict)
+    _ping_ids: itertools.count = field(default_factory=itertools.count)
+
+    def __post_init__(self) -> None:
+        self.downlink = LatencyLedger(self.window)
+        self.rtt = LatencyLedger(self.window)
+
+    def next_ping(self, t0_us: int) -> int:
+        """Register a ``clock_ping`` sent at ``t0_us``; return its ping id."""
+        ping_id = next(self._ping_ids)
+        self.pings[ping_id] = t0_us
+        while len(self.pings) > _MAX_OUTSTANDING_PINGS:
+            self.pings.popitem(last=False)
+        return ping_id
+
+    def on_pong(self, pong: ClockPong, t3_us: int) -> bool:
+        """Feed a ``clock_pong``; False if it answers no ping of ours or is inconsistent."""
+        t0 = self.pings.pop(pong.ping_id, None)
+        if t0 is None or t0 != pong.t0_us:
+            return False
+        try:
+            sample = self.clock.add_timestamps(t0, pong.t1_us, pong.t2_us, t3_us)
+        except InputDataError:
+            return False
+        # relay -> station one way for this exchange, under the current best offset
+        offset = self.clock.offset_us or 0.0
+        self.downlink.record(None, t0, round(pong.t1_us - offset))
+        self.rtt.record(None, 0, round(sample.delay_us))
+        return True
+
+    @property
+    def downlink_estimate_us(self) -> float | None:
+        """Estimated relay -> station one-way delay (half the best round trip)."""
+        best = self.clock.best
+        return None if best is None else best.delay_us / 2.0
+
+
+@dataclass(frozen=True, slots=True)
+class RouteResult:
+    """What :meth:`Session.route` did with one message (for replies to the sender)."""
+
+    error: Error | None = None
+
+
+class Session:
+    """One session: the two stations, observers, and the books of both directions."""
+
+    def __init__(self, session_id: str, window: int) -> None:
+        self.session_id = session_id
+        self.window = window
+        self.stations: dict[str, Peer] = {}
+        self.observers: dict[int, Peer] = {}
+        self.directions = {d: DirectionStats(d, window)
+                           for d in ("local_to_remote", "remote_to_local")}
+
+    @property
+    def empty(self) -> bool:
+        """No peer left."""
+        return not self.stations and not self.observers
+
+    def join(self, peer: Peer) -> None:
+        """Add a peer.
+
+        Raises:
+            RoleTakenError: ``local``/``remote`` already held in this session.
+        """
+        if peer.role == "observer":
+            self.observers[peer.peer_id] = peer
+            return
+        if peer.role in self.stations:
+            raise RoleTakenError(f"role {peer.role!r} is already taken in session "
+                                 f"{self.session_id!r}")
+        self.stations[peer.role] = peer
+
+    def leave(self, peer: Peer) -> None:
+        """Remove a peer (no-op if it is not here)."""
+        if peer.role == "observer":
+            self.observers.pop(peer.peer_id, None)
+        elif self.stations.get(peer.role) is peer:
+            del self.stations[peer.role]
+
+    def route(self, sender: Peer, msg: DataMessage, t_in_us: int) -> Error | None:
+        """Forward one data message from a station with the stream's policy.
+
+        Args:
+            sender: the station that sent it.
+            msg: the validated message (without the relay_in hop yet).
+            t_in_us: relay clock when its bytes arrived.
+
+        Returns:
+            An ``error`` to send back to the sender (non-fatal), or None.
+        """
+        stream = msg.TYPE
+        if stream not in STREAMS_OF.get(sender.role, ()):
+            return Error(code="wrong_direction",
+                         message=f"{sender.role} may not send {stream}", fatal=False)
+        direction = self.directions[DIRECTION_OF[sender.role]]
+        ledger = direction.stream(stream)
+        # station -> relay: from the sender's last own stamp (its send time), else ts
+        sent_station_us = msg.ts_us
+        for hop in reversed(msg.hops):
+            if hop.clock == sender.role:
+                sent_station_us = hop.t_us
+                break
+        offset = sender.clock.offset_us
+        sent_ref_us: int | None = None
+        if offset is None:
+            direction.unsynced += 1
+        else:
+            sent_ref_us = round(sent_station_us - offset)
+            ledger.record(msg.seq, sent_ref_us, t_in_us)
+        fwd = msg.with_hop("relay", "relay_in", t_in_us)
+        latest = stream in LATEST_WINS
+        key = f"{direction.name}:{stream}"
+        for obs in self.observers.values():
+            if latest:
+                if obs.outbox.put_latest(key, fwd) is not None:
+                    obs.observer_drops += 1
+            elif not obs.outbox.put_ordered(fwd, forwarded=True):
+                obs.observer_drops += 1
+        receiver = self.stations.get(_OTHER[sender.role])
+        if receiver is None:
+            ledger.record_drop("no_peer")
+            if latest:
+                return None
+            return Error(code="no_peer", message=f"{stream} seq {msg.seq} not delivered: no "
+                         f"{_OTHER[sender.role]} station in session {self.session_id!r}")
+
+        def on_send(pending: Pending, t_out_us: int) -> None:
+            direction.forwarded += 1
+            direction.relay.record(None, t_in_us, t_out_us)
+            down = receiver.downlink_estimate_us
+            if sent_ref_us is not None and down is not None:
+                direction.end_to_end.record(None, sent_ref_us, round(t_out_us + down))
+
+        if latest:
+            if receiver.outbox.put_latest(key, fwd, on_send) is not None:
+                ledger.record_drop("latest_wins")
+        elif not receiver.outbox.put_ordered(fwd, on_send, forwarded=True):
+            ledger.record_drop("queue_full")
+            ledger.set_queue_depth(len(receiver.outbox))
+            return Error(code="queue_full", message=f"{stream} seq {msg.seq} refused: the "
+                         f"{receiver.role} station's queue is full", fatal=False)
+        ledger.set_queue_depth(len(receiver.outbox))
+        return None
