@@ -1,0 +1,210 @@
+"""The arm interface: one base class, backends implement a few private methods.
+
+Positions are the pad centre in phantom coordinates (mm, see
+:mod:`remote_site.phantom.phantom`); force is the measured normal force on the pad (N,
+positive when pressing). Public methods validate, clamp to the arm's limits and return
+what was actually applied; backends override ``_connect``, ``_disconnect``, ``_move_to``,
+``_read``, ``_stop``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from abc import ABC, abstractmethod
+from collections.abc import Sequence
+from dataclasses import dataclass
+from types import TracebackType
+
+import numpy as np
+
+from shared.errors import ConfigError, DeviceNotConnectedError, InputDataError
+from shared.protocol.messages import ARM_STATUSES, ArmState
+
+__all__ = ["Arm", "ArmLimits", "ArmReading", "Vec3", "as_vec3"]
+
+log = logging.getLogger(__name__)
+
+Vec3 = tuple[float, float, float]
+
+
+def as_vec3(value: Sequence[float], name: str = "target_mm") -> Vec3:
+    """Validate three finite numbers.
+
+    Raises:
+        InputDataError: wrong length, not numbers, NaN or infinite.
+    """
+    try:
+        x, y, z = (float(v) for v in value)
+    except (TypeError, ValueError) as err:
+        raise InputDataError(f"{name} must be three numbers, got {value!r}") from err
+    if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+        raise InputDataError(f"{name} must be finite, got {value!r}")
+    return x, y, z
+
+
+@dataclass(frozen=True)
+class ArmLimits:
+    """Cartesian box the pad may be commanded into, and the home pose (phantom mm).
+
+    The default box spans the phantom (100 x 100 mm) from 6 mm deep to 40 mm above it.
+    """
+
+    lower_mm: Vec3 = (-50.0, -50.0, -6.0)
+    upper_mm: Vec3 = (50.0, 50.0, 40.0)
+    home_mm: Vec3 = (0.0, 0.0, 20.0)
+
+    def __post_init__(self) -> None:
+        lo, hi, home = (np.asarray(v, dtype=float) for v in (self.lower_mm, self.upper_mm,
+                                                              self.home_mm))
+        if not (np.isfinite(lo).all() and np.isfinite(hi).all() and np.isfinite(home).all()):
+            raise ConfigError("arm limits must be finite")
+        if lo.shape != (3,) or hi.shape != (3,) or np.any(lo >= hi):
+            raise ConfigError("arm limits: lower_mm must be below upper_mm on every axis")
+        if np.any(home < lo) or np.any(home > hi):
+            raise ConfigError("arm limits: home_mm must lie inside the box")
+
+    def clamp(self, target_mm: Vec3) -> Vec3:
+        """Clamp a position into the box."""
+        x, y, z = (min(max(v, lo), hi) for v, lo, hi in zip(target_mm, self.lower_mm,
+                                                              self.upper_mm, strict=True))
+        return x, y, z
+
+
+@dataclass(frozen=True)
+class ArmReading:
+    """One snapshot of the arm.
+
+    Attributes:
+        position_mm: pad centre, phantom coordinates.
+        velocity_mm_s: Cartesian velocity.
+        force_n: measured normal force (N, >= 0 when pressing).
+        status: one of :data:`shared.protocol.messages.ARM_STATUSES`.
+        target_mm: the target being tracked, or None.
+        t_s: time of the reading (the backend's clock, seconds).
+    """
+
+    position_mm: Vec3
+    velocity_mm_s: Vec3
+    force_n: float
+    status: str
+    target_mm: Vec3 | None
+    t_s: float
+
+    def with_status(self, status: str) -> ArmReading:
+        """A copy with another status (the safety layer overrides it)."""
+        return ArmReading(self.position_mm, self.velocity_mm_s, self.force_n, status,
+                          self.target_mm, self.t_s)
+
+    def to_message(self, seq: int, ts_us: int, source_seq: int | None = None) -> ArmState:
+        """The wire message for this reading."""
+        return ArmState(seq=seq, ts_us=ts_us, position_mm=self.position_mm,
+                        force_n=float(self.force_n), status=self.status, source_seq=source_seq)
+
+
+class Arm(ABC):
+    """Base class of every arm backend.
+
+    Args:
+        limits: the Cartesian box targets are clamped to.
+    """
+
+    def __init__(self, *, limits: ArmLimits | None = None) -> None:
+        self.limits = limits or ArmLimits()
+        self._connected = False
+
+    # --------------------------------------------------------------- lifecycle
+
+    @property
+    def connected(self) -> bool:
+        """True between :meth:`connect` and :meth:`disconnect`."""
+        return self._connected
+
+    def connect(self) -> None:
+        """Open the device (idempotent).
+
+        Raises:
+            DeviceInitError: the backend could not be opened.
+        """
+        if self._connected:
+            return
+        self._connect()
+        self._connected = True
+        log.info("%s connected", type(self).__name__)
+
+    def disconnect(self) -> None:
+        """Stop and close the device (idempotent)."""
+        if not self._connected:
+            return
+        try:
+            self._stop()
+        finally:
+            self._disconnect()
+            self._connected = False
+            log.info("%s disconnected", type(self).__name__)
+
+    def __enter__(self) -> Arm:
+        self.connect()
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.disconnect()
+
+    def _require(self) -> None:
+        if not self._connected:
+            raise DeviceNotConnectedError(f"{type(self).__name__} is not connected")
+
+    # --------------------------------------------------------------- commands
+
+    def move_to(self, target_mm: Sequence[float]) -> Vec3:
+        """Track a Cartesian target; returns the target applied after clamping.
+
+        Raises:
+            InputDataError: not three finite numbers.
+            DeviceNotConnectedError: not connected.
+        """
+        self._require()
+        applied = self.limits.clamp(as_vec3(target_mm))
+        self._move_to(applied)
+        return applied
+
+    set_target = move_to
+
+    def state(self) -> ArmReading:
+        """The latest pose, velocity, measured force and status.
+
+        Raises:
+            DeviceNotConnectedError: not connected.
+        """
+        self._require()
+        reading = self._read()
+        if reading.status not in ARM_STATUSES:
+            reading = reading.with_status("fault")
+        return reading
+
+    def stop(self) -> None:
+        """Halt as fast as the limits allow and hold position."""
+        self._require()
+        self._stop()
+
+    def home(self) -> Vec3:
+        """Move to the home pose; returns it."""
+        return self.move_to(self.limits.home_mm)
+
+    # --------------------------------------------------------------- backend hooks
+
+    @abstractmethod
+    def _connect(self) -> None: ...
+
+    @abstractmethod
+    def _disconnect(self) -> None: ...
+
+    @abstractmethod
+    def _move_to(self, target_mm: Vec3) -> None: ...
+
+    @abstractmethod
+    def _read(self) -> ArmReading: ...
+
+    @abstractmethod
+    def _stop(self) -> None: ...

@@ -1,0 +1,291 @@
+"""Station-side arm safety, the same for every backend.
+
+:class:`SafeArm` wraps any :class:`~remote_site.arm.base.Arm` and enforces the design's
+conventions:
+
+* a command whose clock-corrected age exceeds ``max_command_age_ms`` (100 ms) is dropped,
+  counted and reported (status ``stale_command``);
+* no accepted command for ``command_timeout_ms`` (100 ms) halts the arm (checked by
+  :meth:`SafeArm.poll`, which the station calls at >= 100 Hz, or by the built-in watchdog
+  thread started with :meth:`SafeArm.start_watchdog`);
+* pressing stops at ``force_limit_n``: once the measured force reaches it the arm holds its
+  depth and refuses any deeper target (status ``force_limit``) until the force falls below
+  ``force_release_ratio * force_limit_n`` or the target is shallower;
+* targets are clamped to the workspace box, and the applied command is returned.
+
+Clock correction: a command stamped ``sent_ts_us`` on the sender's clock was sent at
+``sent_ts_us + clock_offset_us`` on ours, where ``clock_offset_us`` is our clock minus the
+sender's (from the relay's clock-offset estimates of both stations).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+from remote_site.arm.base import Arm, ArmReading, Vec3, as_vec3
+from shared.errors import ConfigError
+from shared.protocol.messages import ArmCommand
+from shared.timebase import monotonic_s, now_us
+
+__all__ = ["CommandResult", "SafeArm", "SafetyConfig", "SafetyCounters"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class SafetyConfig:
+    """Safety settings (resolve with ``shared.config.resolve_config(..., "arm.safety")``).
+
+    Attributes:
+        max_command_age_ms: commands older than this (clock-corrected) are dropped.
+        command_timeout_ms: no command for this long halts the arm.
+        force_limit_n: the pressing force limit.
+        force_release_ratio: the limit releases below this fraction of it.
+    """
+
+    max_command_age_ms: float = 100.0
+    command_timeout_ms: float = 100.0
+    force_limit_n: float = 10.0
+    force_release_ratio: float = 0.8
+
+    def __post_init__(self) -> None:
+        vals = (self.max_command_age_ms, self.command_timeout_ms, self.force_limit_n)
+        if not all(math.isfinite(v) and v > 0 for v in vals):
+            raise ConfigError("arm safety: ages, timeout and force limit must be finite and > 0")
+        if not 0 < self.force_release_ratio <= 1:
+            raise ConfigError("arm safety: force_release_ratio must be in (0, 1]")
+
+
+@dataclass(frozen=True)
+class CommandResult:
+    """What happened to one command.
+
+    Attributes:
+        accepted: the arm was told to move.
+        applied_mm: the target actually sent (after clamping), or None.
+        status: an ``ARM_STATUSES`` value describing the outcome.
+        clamped: the target was changed by the workspace box or the force limit.
+        age_ms: clock-corrected age of the command, when it carried a timestamp.
+    """
+
+    accepted: bool
+    applied_mm: Vec3 | None
+    status: str
+    clamped: bool = False
+    age_ms: float | None = None
+
+
+@dataclass
+class SafetyCounters:
+    """Running totals, for the station's stats."""
+
+    commands: int = 0
+    applied: int = 0
+    dropped_stale: int = 0
+    clamped: int = 0
+    force_limited: int = 0
+    watchdog_halts: int = 0
+    max_age_ms: float = field(default=0.0)
+
+
+class SafeArm:
+    """Safety wrapper around any arm backend.
+
+    Args:
+        arm: the backend (connected by the caller).
+        config: safety settings.
+        bounds_mm: optional (lower, upper) box tighter than the arm's own limits (for
+            example :attr:`shared.workspace.WorkspaceMap.phantom_bounds_mm`).
+        wall_clock_us: our wall clock in microseconds (injectable for tests).
+        monotonic: monotonic seconds for the watchdog (injectable for tests).
+    """
+
+    def __init__(self, arm: Arm, config: SafetyConfig | None = None, *,
+                 bounds_mm: tuple[Sequence[float], Sequence[float]] | None = None,
+                 wall_clock_us: Callable[[], int] = now_us,
+                 monotonic: Callable[[], float] = monotonic_s) -> None:
+        self.arm = arm
+        self.config = config or SafetyConfig()
+        lo, hi = (arm.limits.lower_mm, arm.limits.upper_mm)
+        if bounds_mm is not None:
+            blo, bhi = as_vec3(bounds_mm[0], "bounds lower"), as_vec3(bounds_mm[1], "bounds upper")
+            lo = tuple(max(a, b) for a, b in zip(lo, blo, strict=True))  # type: ignore[assignment]
+            hi = tuple(min(a, b) for a, b in zip(hi, bhi, strict=True))  # type: ignore[assignment]
+            if any(a > b for a, b in zip(lo, hi, strict=True)):
+                raise ConfigError("arm safety: bounds do not overlap the arm's limits")
+        self._lo, self._hi = lo, hi
+        self._wall_us = wall_clock_us
+        self._mono = monotonic
+        self.counters = SafetyCounters()
+        self._force_limit_n = self.config.force_limit_n
+        self._last_command_s: float | None = None
+        self._halted = False
+        self._limit_hold_z: float | None = None  # deepest z allowed while force-limited
+        self._lock = threading.RLock()
+        self._watchdog: threading.Thread | None = None
+        self._watchdog_stop = threading.Event()
+
+    # --------------------------------------------------------------- properties
+
+    @property
+    def force_limit_n(self) -> float:
+        """The current pressing force limit."""
+        return self._force_limit_n
+
+    @property
+    def halted(self) -> bool:
+        """True after a watchdog halt or stop until the next accepted move."""
+        return self._halted
+
+    # --------------------------------------------------------------- commands
+
+    def move(self, target_mm: Sequence[float], *, sent_ts_us: int | None = None,
+             clock_offset_us: float = 0.0) -> CommandResult:
+        """Apply a move target if fresh, clamped and force-limited.
+
+        Args:
+            target_mm: target (phantom mm).
+            sent_ts_us: sender's timestamp of the command (None: not age-checked).
+            clock_offset_us: our clock minus the sender's.
+
+        Returns:
+            The outcome, with the applied target.
+
+        Raises:
+            InputDataError: a non-finite or malformed target.
+        """
+        target = as_vec3(target_mm)
+        with self._lock:
+            self.counters.commands += 1
+            age_ms = None
+            if sent_ts_us is not None:
+                age_ms = (self._wall_us() - (sent_ts_us + clock_offset_us)) / 1000.0
+                self.counters.max_age_ms = max(self.counters.max_age_ms, age_ms)
+                if age_ms > self.config.max_command_age_ms:
+                    self.counters.dropped_stale += 1
+                    if log.isEnabledFor(logging.DEBUG):
+                        log.debug("dropped stale arm command (%.1f ms old)", age_ms)
+                    return CommandResult(False, None, "stale_command", False, age_ms)
+            self._last_command_s = self._mono()
+            clamped_box = tuple(min(max(v, a), b)
+                                for v, a, b in zip(target, self._lo, self._hi, strict=True))
+            applied: Vec3 = (clamped_box[0], clamped_box[1], clamped_box[2])
+            clamped = applied != target
+            status = "moving"
+            reading = self.arm.state()
+            self._update_force_limit(reading)
+            if self._limit_hold_z is not None and applied[2] < self._limit_hold_z:
+                applied = (applied[0], applied[1], self._limit_hold_z)
+                clamped = True
+                status = "force_limit"
+                self.counters.force_limited += 1
+            if clamped:
+                self.counters.clamped += 1
+            applied = self.arm.move_to(applied)
+            self._halted = False
+            self.counters.applied += 1
+            return CommandResult(True, applied, status, clamped, age_ms)
+
+    def stop(self) -> None:
+        """Halt the arm now."""
+        with self._lock:
+            self.arm.stop()
+            self._halted = True
+
+    def home(self) -> CommandResult:
+        """Move home (clamped and force-limited like any move)."""
+        return self.move(self.arm.limits.home_mm)
+
+    def set_force_limit(self, force_limit_n: float) -> None:
+        """Change the pressing force limit (never above the configured one).
+
+        Raises:
+            ConfigError: not a finite positive number.
+        """
+        if not (math.isfinite(force_limit_n) and force_limit_n > 0):
+            raise ConfigError("force limit must be finite and > 0")
+        with self._lock:
+            self._force_limit_n = min(float(force_limit_n), self.config.force_limit_n)
+
+    def handle(self, command: ArmCommand, *, clock_offset_us: float = 0.0) -> CommandResult:
+        """Apply a wire :class:`~shared.protocol.messages.ArmCommand`.
+
+        ``move`` is age-checked like :meth:`move`; ``stop`` always acts (stopping is never
+        refused, however old); ``home`` and ``set_force_limit`` are age-checked.
+        """
+        if command.action == "stop":
+            self.stop()
+            return CommandResult(True, None, "halted")
+        if command.action == "set_force_limit" and command.force_limit_n is not None:
+            self.set_force_limit(command.force_limit_n)
+            return CommandResult(True, None, "ok")
+        target = command.target_mm if command.action == "move" else self.arm.limits.home_mm
+        if target is None:
+            return CommandResult(False, None, "fault")
+        return self.move(target, sent_ts_us=command.ts_us, clock_offset_us=clock_offset_us)
+
+    # --------------------------------------------------------------- watchdog
+
+    def _update_force_limit(self, reading: ArmReading) -> bool:
+        """Engage or release the force limit from a reading; True when it is engaged."""
+        z = reading.position_mm[2]
+        if reading.force_n >= self._force_limit_n:
+            if self._limit_hold_z is None or z > self._limit_hold_z:
+                self._limit_hold_z = z
+            return True
+        if (self._limit_hold_z is not None
+                and reading.force_n < self.config.force_release_ratio * self._force_limit_n):
+            self._limit_hold_z = None
+        return self._limit_hold_z is not None
+
+    def poll(self) -> ArmReading:
+        """Enforce the command timeout and the force limit; return the arm's reading.
+
+        The returned status is ``halted`` after a watchdog halt and ``force_limit`` while the
+        force limit holds the arm.
+        """
+        with self._lock:
+            reading = self.arm.state()
+            limited = self._update_force_limit(reading)
+            if limited and reading.target_mm is not None and self._limit_hold_z is not None \
+                    and reading.target_mm[2] < self._limit_hold_z:
+                x, y, _ = reading.target_mm
+                self.arm.move_to((x, y, self._limit_hold_z))
+                self.counters.force_limited += 1
+            if (not self._halted and self._last_command_s is not None
+                    and (self._mono() - self._last_command_s) * 1000.0
+                    > self.config.command_timeout_ms):
+                self.arm.stop()
+                self._halted = True
+                self.counters.watchdog_halts += 1
+                log.warning("no arm command for %.0f ms: arm halted",
+                            self.config.command_timeout_ms)
+            if self._halted:
+                return reading.with_status("halted")
+            if limited:
+                return reading.with_status("force_limit")
+            return reading
+
+    def start_watchdog(self, period_s: float = 0.005) -> None:
+        """Run :meth:`poll` every ``period_s`` in a daemon thread until :meth:`close`."""
+        if self._watchdog is not None:
+            return
+        self._watchdog_stop.clear()
+
+        def loop() -> None:
+            while not self._watchdog_stop.wait(period_s):
+                self.poll()
+
+        self._watchdog = threading.Thread(target=loop, name="arm-watchdog", daemon=True)
+        self._watchdog.start()
+
+    def close(self) -> None:
+        """Stop the watchdog thread (the arm itself is left to its owner)."""
+        self._watchdog_stop.set()
+        if self._watchdog is not None:
+            self._watchdog.join(timeout=1.0)
+            self._watchdog = None
