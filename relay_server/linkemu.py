@@ -499,6 +499,13 @@ class LinkEmulator:
             self._tasks.add(task)
         try:
             await self._proxy(c_reader, c_writer)
+        except asyncio.CancelledError:
+            # close() cancels handler tasks; asyncio's stream server would log a cancelled
+            # client_connected_cb as an error, so the handler ends normally instead
+            pass
+        except ConnectionError as err:
+            if log.isEnabledFor(logging.DEBUG):
+                log.debug("proxied connection ended: %s", err)
         finally:
             c_writer.close()  # flushes what was delivered; a reset already aborted it
             if task is not None:
