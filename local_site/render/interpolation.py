@@ -17,6 +17,7 @@ Orders:
 
 Points outside the grid are evaluated at the nearest point of the grid (edge
 replication) and reported in the ``inside`` mask so a scene can apply its own policy.
+:meth:`GridLayers.clip_to_data` bounds interpolated values by the data's own range.
 """
 
 from __future__ import annotations
@@ -89,6 +90,8 @@ class GridLayers:
     dx_mm: float
     dy_mm: float
     _padded: NDArray[np.float64] = field(init=False, repr=False)
+    #: per-layer ``(min, max)`` of the data, shape ``(n_layers, 2)``
+    value_range: NDArray[np.float64] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         v = np.array(self.values, dtype=np.float64)  # private copy
@@ -110,6 +113,17 @@ class GridLayers:
         padded.setflags(write=False)
         object.__setattr__(self, "values", v)
         object.__setattr__(self, "_padded", padded)
+        value_range = np.stack([v.min(axis=(1, 2)), v.max(axis=(1, 2))], axis=1)
+        value_range.setflags(write=False)
+        object.__setattr__(self, "value_range", value_range)
+
+    def clip_to_data(self, values: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Clip interpolated ``values`` ``(n_layers, n)`` to each layer's data range.
+
+        Removes cubic overshoot (and 1-ulp rounding of convex weights), so a layer whose
+        data respect a bound never yields a value beyond it.
+        """
+        return np.clip(values, self.value_range[:, :1], self.value_range[:, 1:])
 
     @property
     def shape(self) -> tuple[int, int]:

@@ -118,6 +118,11 @@ class PinCommand:
         return cls(np.full(shape, float(height_mm)), np.full(shape, float(stiffness_k)),
                    np.full(shape, float(friction)))
 
+    def arrays(self) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """``(height_mm, stiffness_k, friction)``, in the argument order of
+        ``ArrayTacDisplay.send_command`` (which accepts (4, 4) arrays in this layout)."""
+        return self.height_mm, self.stiffness_k, self.friction
+
     def max_difference(self, other: PinCommand) -> float:
         """Largest absolute change of any pin value (height in mm, k and f unitless).
 

@@ -18,7 +18,6 @@ from numpy.typing import NDArray
 from local_site.render.interpolation import INTERPOLATION_ORDERS, GridLayers
 from local_site.scenes.base import OutsidePolicy, SceneSample, SceneSource
 from shared.errors import ConfigError
-from shared.hardness import K_MAX, K_MIN
 
 __all__ = ["GRID_LAYER_ORDER", "GridScene"]
 
@@ -72,11 +71,9 @@ class GridScene(SceneSource):
             return SceneSample(np.full(n, o.height_mm), np.full(n, o.stiffness_k),
                                np.full(n, o.friction), np.zeros(n, dtype=bool))
         values, inside = grid.sample(points_xy_mm, self.order)
-        h, k, f = values[0], values[1], values[2]
         # cubic weights overshoot; even convex weights can round 1 ulp past a bound
-        k = np.clip(k, K_MIN, K_MAX)
-        f = np.clip(f, 0.0, 1.0)
-        s = SceneSample(h, k, f, inside)
+        values = grid.clip_to_data(values)
+        s = SceneSample(values[0], values[1], values[2], inside)
         if not inside.all():
             s = self.outside.apply(s)
         return s

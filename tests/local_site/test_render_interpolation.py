@@ -1,0 +1,132 @@
+"""GridLayers interpolation: exactness on polynomial fields, bounds, inside mask."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from local_site.render.interpolation import GridLayers, keys_cubic_weights
+from shared.errors import ConfigError, InputDataError
+
+
+def _grid(fn, nx: int = 9, ny: int = 7, x0: float = -2.0, y0: float = 1.0,
+          dx: float = 0.5, dy: float = 0.3) -> GridLayers:
+    xs = x0 + dx * np.arange(nx)
+    ys = y0 + dy * np.arange(ny)
+    gx, gy = np.meshgrid(xs, ys)
+    return GridLayers(fn(gx, gy)[None], x0_mm=x0, y0_mm=y0, dx_mm=dx, dy_mm=dy)
+
+
+def _inner_points(n: int = 200, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return np.column_stack([rng.uniform(-2.0, 2.0, n), rng.uniform(1.0, 2.8, n)])
+
+
+def linear(x, y):
+    return 0.7 * x - 1.3 * y + 0.25
+
+
+def bilinear(x, y):
+    return 0.2 * x * y + linear(x, y)
+
+
+def quadratic(x, y):
+    return 0.3 * x * x - 0.2 * x * y + 0.5 * y * y + linear(x, y)
+
+
+@pytest.mark.parametrize("order", [1, 3])
+@pytest.mark.parametrize("field", [linear, bilinear])
+def test_linear_and_bilinear_fields_are_reproduced_exactly(order: int, field) -> None:
+    grid = _grid(field)
+    pts = _inner_points()
+    values, inside = grid.sample(pts, order)
+    assert inside.all()
+    np.testing.assert_allclose(values[0], field(pts[:, 0], pts[:, 1]), atol=1e-12)
+
+
+def test_cubic_is_exact_on_quadratics_up_to_the_border() -> None:
+    grid = _grid(quadratic)
+    pts = _inner_points(400, seed=1)
+    values, _ = grid.sample(pts, 3)
+    np.testing.assert_allclose(values[0], quadratic(pts[:, 0], pts[:, 1]), atol=1e-11)
+
+
+def test_bilinear_is_not_exact_on_quadratics() -> None:
+    """Control for the test above: the check can fail."""
+    grid = _grid(quadratic)
+    pts = _inner_points(400, seed=1)
+    values, _ = grid.sample(pts, 1)
+    assert np.max(np.abs(values[0] - quadratic(pts[:, 0], pts[:, 1]))) > 1e-3
+
+
+def test_nearest_returns_the_closest_sample() -> None:
+    grid = _grid(linear)
+    values, _ = grid.sample(np.array([[-2.0 + 0.5 * 3 + 0.2, 1.0 + 0.3 * 2 - 0.1]]), 0)
+    assert values[0, 0] == pytest.approx(linear(-2.0 + 1.5, 1.0 + 0.6))
+
+
+@pytest.mark.parametrize("order", [0, 1, 3])
+def test_grid_nodes_are_reproduced(order: int) -> None:
+    grid = _grid(quadratic)
+    ny, nx = grid.shape
+    gx, gy = np.meshgrid(-2.0 + 0.5 * np.arange(nx), 1.0 + 0.3 * np.arange(ny))
+    pts = np.column_stack([gx.ravel(), gy.ravel()])
+    values, inside = grid.sample(pts, order)
+    assert inside.all()
+    np.testing.assert_allclose(values[0], quadratic(gx, gy).ravel(), atol=1e-12)
+
+
+def test_outside_points_are_flagged_and_take_the_nearest_edge() -> None:
+    grid = _grid(linear)
+    x0, x1, y0, y1 = grid.extent_mm
+    pts = np.array([[x0 - 1.0, 0.5 * (y0 + y1)], [x1, y1], [x1 + 0.01, y1]])
+    values, inside = grid.sample(pts, 1)
+    assert inside.tolist() == [False, True, False]
+    assert values[0, 0] == pytest.approx(linear(x0, 0.5 * (y0 + y1)))
+    assert values[0, 2] == pytest.approx(linear(x1, y1))
+
+
+def test_keys_weights_sum_to_one_and_interpolate() -> None:
+    t = np.linspace(0.0, 1.0, 11)
+    w = keys_cubic_weights(t)
+    np.testing.assert_allclose(w.sum(axis=-1), 1.0, atol=1e-15)
+    np.testing.assert_allclose(w[0], [0.0, 1.0, 0.0, 0.0])
+    np.testing.assert_allclose(w[-1], [0.0, 0.0, 1.0, 0.0])
+
+
+def test_bad_grids_and_orders_are_rejected() -> None:
+    with pytest.raises(InputDataError):
+        GridLayers(np.zeros((1, 1, 5)), x0_mm=0, y0_mm=0, dx_mm=1, dy_mm=1)
+    with pytest.raises(InputDataError):
+        GridLayers(np.full((1, 3, 3), np.nan), x0_mm=0, y0_mm=0, dx_mm=1, dy_mm=1)
+    with pytest.raises(InputDataError):
+        GridLayers(np.zeros((1, 3, 3)), x0_mm=0, y0_mm=0, dx_mm=0.0, dy_mm=1)
+    grid = _grid(linear)
+    with pytest.raises(ConfigError):
+        grid.sample(np.zeros((1, 2)), 2)
+
+
+def test_grid_is_a_private_read_only_copy() -> None:
+    data = np.zeros((1, 3, 3))
+    grid = GridLayers(data, x0_mm=0, y0_mm=0, dx_mm=1, dy_mm=1)
+    data[0, 1, 1] = 5.0
+    assert grid.values[0, 1, 1] == 0.0
+    with pytest.raises(ValueError):
+        grid.values[0, 0, 0] = 1.0
+
+
+@settings(max_examples=60, deadline=None)
+@given(values=arrays(np.float64, st.tuples(st.integers(2, 6), st.integers(2, 6)),
+                     elements=st.floats(-10.0, 10.0)),
+       pts=arrays(np.float64, (8, 2), elements=st.floats(-50.0, 50.0)),
+       order=st.sampled_from([0, 1, 3]))
+def test_interpolation_is_finite_and_bilinear_stays_within_the_data(values, pts, order) -> None:
+    grid = GridLayers(values[None], x0_mm=-3.0, y0_mm=-2.0, dx_mm=0.7, dy_mm=1.1)
+    out, inside = grid.sample(pts, order)
+    assert np.isfinite(out).all()
+    assert out.shape == (1, 8) and inside.shape == (8,)
+    if order in (0, 1):
+        assert out.min() >= values.min() - 1e-9 and out.max() <= values.max() + 1e-9
