@@ -93,8 +93,9 @@ class Client:
                 for msg in await self._read_once():
                     if isinstance(msg, ClockPing):
                         t1 = self.now()
-                        await self.send(ClockPong(ping_id=msg.ping_id, t0_us=msg.t0_us,
-                                                  t1_us=t1, t2_us=self.now()))
+                        with contextlib.suppress(ConnectionClosed, ConnectionError):
+                            await self.send(ClockPong(ping_id=msg.ping_id, t0_us=msg.t0_us,
+                                                      t1_us=t1, t2_us=self.now()))
                     self.inbox.append(msg)
         return self.inbox.pop(0)
 

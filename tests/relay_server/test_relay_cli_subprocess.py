@@ -1,0 +1,72 @@
+"""`teletouch relay` as a real process: /status over HTTP, a malformed client rejected."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import os
+import shutil
+import signal
+import sys
+
+from websockets.asyncio.client import connect
+
+from relay_server.auth import derive_token
+from shared.protocol import ArmCommand, Hello, ProtocolConnection, decode
+from tests.relay_server.test_relay_isolation_and_status import http_get
+from tests.support import free_tcp_port, scaled
+
+
+async def test_teletouch_relay_subprocess() -> None:
+    port, tcp_port = free_tcp_port(), free_tcp_port()
+    exe = shutil.which("teletouch")
+    cmd = [exe] if exe else [sys.executable, "-m", "shared.cli"]
+    env = dict(os.environ, TELETOUCH_RELAY_SECRET="cli-secret")
+    proc = await asyncio.create_subprocess_exec(
+        *cmd, "relay", "--host", "127.0.0.1", "--port", str(port), "--tcp-port", str(tcp_port),
+        env=env, stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.PIPE)
+    try:
+        async with asyncio.timeout(scaled(20.0)):
+            while True:
+                with contextlib.suppress(OSError):
+                    code, _, body = await http_get(port, "/status")
+                    if code == 200:
+                        break
+                await asyncio.sleep(0.1)
+        assert json.loads(body)["ports"] == {"ws": port, "tcp": tcp_port}
+        token = derive_token("cli-secret", "demo")
+        conn = ProtocolConnection("ws")
+        async with connect(f"ws://127.0.0.1:{port}") as local, \
+                connect(f"ws://127.0.0.1:{port}") as remote, \
+                connect(f"ws://127.0.0.1:{port}") as bad:
+            for ws, role in ((local, "local"), (remote, "remote")):
+                await ws.send(conn.encode(Hello(role=role, session="demo", token=token)))
+                assert decode(await ws.recv()).TYPE == "welcome"
+            await bad.send(b"this is not msgpack")
+            err = decode(await bad.recv())
+            assert (err.code, err.fatal) == ("malformed", True)  # type: ignore[attr-defined]
+            await bad.wait_closed()
+            assert bad.close_code == 1007
+            await local.send(conn.encode(ArmCommand(seq=1, ts_us=1, action="home")))
+            async with asyncio.timeout(scaled(5.0)):
+                while True:
+                    msg = decode(await remote.recv())
+                    if msg.TYPE == "arm_command":
+                        break
+            assert msg.action == "home"  # type: ignore[attr-defined]
+            _, _, body = await http_get(port, "/status")
+            doc = json.loads(body)
+            assert doc["sessions"]["demo"]["forwarded"]["local_to_remote"] == 1
+            assert doc["counters"]["fatal_malformed"] == 1
+        proc.send_signal(signal.SIGTERM)
+        async with asyncio.timeout(scaled(10.0)):
+            rc = await proc.wait()
+        assert rc == 0
+        assert proc.stderr is not None
+        log_text = (await proc.stderr.read()).decode()
+        assert log_text.count("WARNING") == 1 and "Traceback" not in log_text
+    finally:
+        if proc.returncode is None:
+            proc.kill()
+            await proc.wait()

@@ -1,0 +1,74 @@
+"""Per-stream policy without sockets: latest-wins drops, bounded ordered queue, roles."""
+
+from __future__ import annotations
+
+import pytest
+
+from relay_server.outbox import Outbox
+from relay_server.session import Peer, Session
+from shared.errors import RoleTakenError
+from shared.protocol import ArmCommand, ArmState, PlatformState
+
+
+def make_peer(pid: int, role: str, limit: int = 4) -> Peer:
+    return Peer(peer_id=pid, session_id="s", role=role, name="", transport="tcp",
+                outbox=Outbox(limit), window=64)
+
+
+def test_latest_wins_replaces_unsent_and_counts_drops() -> None:
+    session = Session("s", 64)
+    local, remote, obs = make_peer(1, "local"), make_peer(2, "remote"), make_peer(3, "observer")
+    for p in (local, remote, obs):
+        session.join(p)
+    for seq in range(10):
+        msg = PlatformState(seq=seq, ts_us=seq, position_mm=(0.0, 0.0, float(seq)))
+        assert session.route(local, msg, 1000 + seq) is None
+    pending = remote.outbox.take()
+    assert len(pending) == 1 and pending[0].message.seq == 9  # type: ignore[attr-defined]
+    assert [h.stage for h in pending[0].message.hops] == ["relay_in"]  # type: ignore[attr-defined]
+    ledger = session.directions["local_to_remote"].uplink["platform_state"]
+    assert ledger.dropped == {"latest_wins": 9}
+    assert len(obs.outbox) == 1 and obs.observer_drops == 9
+
+
+def test_ordered_queue_is_bounded_and_overflow_is_reported() -> None:
+    session = Session("s", 64)
+    local, remote = make_peer(1, "local"), make_peer(2, "remote", limit=4)
+    session.join(local)
+    session.join(remote)
+    replies = [session.route(local, ArmCommand(seq=s, ts_us=s, action="stop"), 5)
+               for s in range(6)]
+    assert replies[:4] == [None] * 4
+    assert [r.code for r in replies[4:] if r is not None] == ["queue_full", "queue_full"]
+    assert "seq 4" in replies[4].message  # type: ignore[union-attr]
+    assert [p.message.seq for p in remote.outbox.take()] == [0, 1, 2, 3]  # type: ignore[attr-defined]
+    ledger = session.directions["local_to_remote"].uplink["arm_command"]
+    assert ledger.dropped == {"queue_full": 2} and ledger.queue_depth_max == 4
+
+
+def test_no_peer_and_wrong_direction_and_role_taken() -> None:
+    session = Session("s", 64)
+    local = make_peer(1, "local")
+    session.join(local)
+    err = session.route(local, ArmCommand(seq=1, ts_us=1, action="stop"), 5)
+    assert err is not None and err.code == "no_peer"
+    assert session.route(local, PlatformState(seq=2, ts_us=1), 5) is None  # dropped, counted
+    assert session.directions["local_to_remote"].uplink["platform_state"].dropped == {
+        "no_peer": 1}
+    err = session.route(local, ArmState(seq=1, ts_us=1), 5)
+    assert err is not None and err.code == "wrong_direction"
+    with pytest.raises(RoleTakenError) as info:
+        session.join(make_peer(9, "local"))
+    assert info.value.close_code == 4002
+    session.leave(local)
+    assert session.empty
+
+
+def test_ordered_and_latest_leave_in_arrival_order() -> None:
+    box = Outbox(8)
+    box.put_ordered(ArmCommand(seq=1, ts_us=0))
+    box.put_latest("p", PlatformState(seq=2, ts_us=0))
+    box.put_ordered(ArmCommand(seq=3, ts_us=0))
+    box.put_latest("p", PlatformState(seq=4, ts_us=0))  # replaces seq 2, takes its new place
+    assert [p.message.seq for p in box.take()] == [1, 3, 4]  # type: ignore[attr-defined]
+    assert len(box) == 0 and not box.wakeup.is_set()
