@@ -1,0 +1,441 @@
+"""The ArrayTac display device kind: one base class, backends move frames.
+
+:class:`ArrayTacDisplay` owns validation (shape, NaN/Inf), clamping and quantisation to the
+wire codes, the "unchanged pins are not re-sent" rule with its keepalive, sequence numbers,
+the safe state, feedback decoding and bookkeeping. A backend implements ``_open()``,
+``_close()`` and ``_send_frame(arb_id, payload)``, and hands every frame it receives to
+:meth:`ArrayTacDisplay._on_frame` from its reader thread.
+
+Pin order: 16 pins, row-major on a 4 x 4 grid, ``index = row * 4 + col``; ``col`` grows along
+platform +x and ``row`` along +y; pin (row, col) sits at ((col - 1.5) * 1.7 mm,
+(row - 1.5) * 1.7 mm) from the array centre. Arrays may be given as shape (4, 4) in that
+layout, as shape (16,), or as a scalar for all pins; results are always shape (16,).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from types import TracebackType
+from typing import Literal
+
+import numpy as np
+
+from local_site.display import frames as fr
+from shared.errors import (
+    ConfigError,
+    DeviceInitError,
+    DeviceNotConnectedError,
+    DeviceOperationError,
+    DeviceTimeoutError,
+    InputDataError,
+    MalformedMessageError,
+)
+from shared.timebase import monotonic_s, now_us
+
+__all__ = [
+    "FRICTION_RANGE",
+    "HEIGHT_RANGE_MM",
+    "K_RANGE",
+    "ArrayTacDisplay",
+    "DisplayStats",
+    "PinCommand",
+    "PinFeedback",
+    "SafeMode",
+]
+
+log = logging.getLogger(__name__)
+
+HEIGHT_RANGE_MM = (0.0, 5.0)
+K_RANGE = (0.5, 1.0)
+FRICTION_RANGE = (0.0, 1.0)
+SafeMode = Literal["flat", "hold"]
+_SAFE_CODES = {"flat": fr.SAFE_FLAT, "hold": fr.SAFE_HOLD}
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class PinCommand:
+    """The command actually applied: after clamping and quantisation to the wire codes.
+
+    Attributes:
+        height_mm: (16,) heights, multiples of 1.25 um in [0, 5].
+        stiffness_k: (16,) k, multiples of 0.002 in [0.5, 1].
+        friction: (16,) f, multiples of 0.004 in [0, 1].
+        seq: sequence number of the frame that carried it (of the last one sent when skipped).
+        clamped: True when any requested value was outside its range.
+        sent: False when the frame was skipped because nothing changed.
+        keepalive: True when an unchanged command was re-sent to feed the watchdog.
+    """
+
+    height_mm: np.ndarray
+    stiffness_k: np.ndarray
+    friction: np.ndarray
+    seq: int
+    clamped: bool
+    sent: bool
+    keepalive: bool = False
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class PinFeedback:
+    """The board's latest report.
+
+    Attributes:
+        position_mm: (16,) measured pin positions (Hall sensor), mm.
+        saturated: (16,) True where the stiffness limit is reached.
+        drive_voltage_v: (16,) piezo drive voltages.
+        t_us: host wall-clock arrival time, microseconds.
+        board_t_us: board clock (uint32, wraps).
+        seq_echo: sequence number of the last command the board applied.
+        safe_state: the board is in its safe state.
+        watchdog_tripped: the safe state was entered by the link-loss watchdog.
+        commands_rejected: frames the board dropped (CRC/format), wrapping counter.
+        watchdog_trips: watchdog firings, wrapping counter.
+    """
+
+    position_mm: np.ndarray
+    saturated: np.ndarray
+    drive_voltage_v: np.ndarray
+    t_us: int
+    board_t_us: int
+    seq_echo: int
+    safe_state: bool
+    watchdog_tripped: bool
+    commands_rejected: int
+    watchdog_trips: int
+
+
+@dataclass(frozen=True, slots=True)
+class DisplayStats:
+    """Counters of the command and feedback streams.
+
+    Attributes:
+        commands: ``send_command`` calls accepted.
+        frames_sent: command frames put on the link (including keepalives).
+        skipped_unchanged: commands not sent because nothing changed.
+        keepalives: unchanged commands re-sent to feed the watchdog.
+        clamped: commands with at least one value clamped.
+        rejected_inputs: ``send_command`` calls refused (NaN/Inf/shape).
+        safe_states_sent: safe-state frames sent.
+        feedback_frames: valid feedback frames received.
+        bad_frames: received frames that failed to decode.
+    """
+
+    commands: int = 0
+    frames_sent: int = 0
+    skipped_unchanged: int = 0
+    keepalives: int = 0
+    clamped: int = 0
+    rejected_inputs: int = 0
+    safe_states_sent: int = 0
+    feedback_frames: int = 0
+    bad_frames: int = 0
+
+
+class ArrayTacDisplay(ABC):
+    """Base of every ArrayTac backend (CAN FD, serial, and their simulators).
+
+    Args:
+        keepalive_interval_s: an unchanged command is re-sent at least this often so the
+            board's watchdog stays fed (must be well under ``watchdog_ms``).
+        watchdog_ms: link-loss timeout written into every command frame; the board goes
+            to ``watchdog_mode`` when no command arrives for this long.
+        watchdog_mode: the board's safe state on link loss, ``flat`` or ``hold``.
+        disconnect_mode: safe state sent by ``disconnect()`` (None: send none).
+        connect_timeout_s: ``connect()`` waits this long for the first feedback frame.
+        require_feedback: wait for feedback in ``connect()`` (a board always sends it).
+    """
+
+    def __init__(self, *, keepalive_interval_s: float = 0.02, watchdog_ms: int = 100,
+                 watchdog_mode: SafeMode = "flat", disconnect_mode: SafeMode | None = "flat",
+                 connect_timeout_s: float = 2.0, require_feedback: bool = True) -> None:
+        if not 0 < watchdog_ms <= 0xFFFF:
+            raise ConfigError(f"watchdog_ms must be in [1, 65535], got {watchdog_ms}")
+        if not 0 < keepalive_interval_s < watchdog_ms / 1000.0:
+            raise ConfigError(f"keepalive_interval_s ({keepalive_interval_s}) must be > 0 and "
+                              f"shorter than the watchdog ({watchdog_ms} ms)")
+        for mode in (watchdog_mode, disconnect_mode):
+            if mode is not None and mode not in _SAFE_CODES:
+                raise ConfigError(f"safe-state mode must be 'flat' or 'hold', got {mode!r}")
+        self._keepalive_interval_s = keepalive_interval_s
+        self._watchdog_ms = int(watchdog_ms)
+        self._flags = fr.FLAG_WATCHDOG_HOLD if watchdog_mode == "hold" else 0
+        self._disconnect_mode = disconnect_mode
+        self._connect_timeout_s = connect_timeout_s
+        self._require_feedback = require_feedback
+        self._connected = False
+        self._send_lock = threading.Lock()
+        self._cond = threading.Condition()
+        self._reset_session()
+
+    # ------------------------------------------------------------------ backend interface
+
+    @abstractmethod
+    def _open(self) -> None:
+        """Open the link and start passing received frames to :meth:`_on_frame`."""
+
+    @abstractmethod
+    def _close(self) -> None:
+        """Stop the reader and release the link (idempotent)."""
+
+    @abstractmethod
+    def _send_frame(self, arb_id: int, payload: bytes) -> None:
+        """Put one frame on the link; raise DeviceOperationError on failure."""
+
+    @property
+    def name(self) -> str:
+        """Human-readable device name for messages (backends override)."""
+        return type(self).__name__
+
+    # ------------------------------------------------------------------ lifecycle
+
+    @property
+    def is_connected(self) -> bool:
+        """True between a successful ``connect()`` and ``disconnect()``."""
+        return self._connected
+
+    def connect(self) -> None:
+        """Open the link and (by default) wait for the board's first feedback frame.
+
+        Raises:
+            DeviceInitError: the link cannot be opened or the board stays silent.
+        """
+        if self._connected:
+            return
+        self._reset_session()
+        try:
+            self._open()
+        except DeviceInitError:
+            raise
+        except Exception as err:  # vendor errors of any backend: wrap, keep the cause
+            raise DeviceInitError(f"{self.name}: cannot open: {err}") from err
+        self._connected = True
+        if self._require_feedback:
+            try:
+                self.read_feedback(timeout_s=self._connect_timeout_s)
+            except DeviceTimeoutError as err:
+                self.disconnect()
+                raise DeviceInitError(f"{self.name}: no feedback from the drive board within "
+                                      f"{self._connect_timeout_s:.2f} s") from err
+        log.info("%s connected", self.name)
+
+    def disconnect(self) -> None:
+        """Send the disconnect safe state (best effort), stop and close (idempotent)."""
+        if self._connected and self._disconnect_mode is not None:
+            try:
+                self.safe_state(self._disconnect_mode)
+            except DeviceOperationError as err:
+                log.warning("%s: safe state on disconnect failed: %s", self.name, err)
+        self._connected = False
+        self._close()
+        with self._cond:
+            self._cond.notify_all()
+
+    def __enter__(self) -> ArrayTacDisplay:
+        self.connect()
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.disconnect()
+
+    # ------------------------------------------------------------------ commands
+
+    def send_command(self, height_mm: np.ndarray | float, stiffness_k: np.ndarray | float = 1.0,
+                     friction: np.ndarray | float = 0.0) -> PinCommand:
+        """Command the 16 pins; return what was actually applied.
+
+        Values are clamped to height [0, 5] mm, k [0.5, 1], f [0, 1] and quantised to the
+        wire resolution (1.25 um, 0.002, 0.004). A command equal (after quantisation) to the
+        last one sent is not re-sent unless ``keepalive_interval_s`` has passed.
+
+        Args:
+            height_mm: pin heights, shape (4, 4), (16,) or scalar.
+            stiffness_k: stiffness k, same shapes.
+            friction: friction f, same shapes.
+
+        Returns:
+            The applied command (shape (16,) arrays).
+
+        Raises:
+            InputDataError: a wrong shape or a NaN/Inf value; nothing is sent.
+            DeviceNotConnectedError: not connected.
+            DeviceOperationError: the link refused the frame.
+        """
+        if not self._connected:
+            raise DeviceNotConnectedError(f"{self.name}: send_command() before connect()")
+        try:
+            h = self._as_pins("height_mm", height_mm)
+            k = self._as_pins("stiffness_k", stiffness_k)
+            f = self._as_pins("friction", friction)
+        except InputDataError:
+            self._n_rejected += 1
+            raise
+        h_codes = np.rint(np.clip(h, *HEIGHT_RANGE_MM) / fr.HEIGHT_LSB_MM).astype(np.uint16)
+        k_codes = np.rint((np.clip(k, *K_RANGE) - fr.K_MIN) / fr.K_LSB).astype(np.uint16)
+        f_codes = np.rint(np.clip(f, *FRICTION_RANGE) / fr.F_LSB).astype(np.uint16)
+        clamped = bool(np.any(h < HEIGHT_RANGE_MM[0]) or np.any(h > HEIGHT_RANGE_MM[1])
+                       or np.any(k < K_RANGE[0]) or np.any(k > K_RANGE[1])
+                       or np.any(f < FRICTION_RANGE[0]) or np.any(f > FRICTION_RANGE[1]))
+        with self._send_lock:
+            self._n_commands += 1
+            self._n_clamped += clamped
+            now_s = monotonic_s()
+            last = self._last_codes
+            unchanged = (last is not None and not self._force_next
+                         and np.array_equal(last[0], h_codes) and np.array_equal(last[1], k_codes)
+                         and np.array_equal(last[2], f_codes))
+            keepalive = unchanged and now_s - self._last_send_s >= self._keepalive_interval_s
+            if unchanged and not keepalive:
+                self._n_skipped += 1
+                return self._applied(h_codes, k_codes, f_codes, clamped, sent=False)
+            frame = fr.CommandFrame(seq=self._next_seq(),
+                                    flags=self._flags | (fr.FLAG_KEEPALIVE if keepalive else 0),
+                                    height_codes=h_codes, k_codes=k_codes, f_codes=f_codes,
+                                    watchdog_ms=self._watchdog_ms)
+            self._send_frame(fr.ARB_ID_COMMAND, fr.encode_command(frame))
+            self._last_codes = (h_codes, k_codes, f_codes)
+            self._last_send_s = now_s
+            self._force_next = False
+            self._n_frames += 1
+            self._n_keepalives += keepalive
+            if log.isEnabledFor(logging.DEBUG):
+                log.debug("%s: command seq %d keepalive=%s", self.name, frame.seq, keepalive)
+            return self._applied(h_codes, k_codes, f_codes, clamped, sent=True,
+                                 keepalive=keepalive)
+
+    def keepalive(self) -> bool:
+        """Re-send the last command if the keepalive interval has passed.
+
+        Returns:
+            True when a frame was sent.
+        """
+        with self._send_lock:
+            last = self._last_codes
+        if last is None:
+            return False
+        applied = self.send_command(last[0] * fr.HEIGHT_LSB_MM, fr.K_MIN + last[1] * fr.K_LSB,
+                                    last[2] * fr.F_LSB)
+        return applied.sent
+
+    def safe_state(self, mode: SafeMode = "flat") -> None:
+        """Put the pins in a safe state now: ``flat`` (all retracted, no vibration) or
+        ``hold`` (stay where they are, no vibration). The next ``send_command`` is always
+        sent, whatever it contains.
+
+        Raises:
+            ConfigError: unknown mode.
+            DeviceNotConnectedError: not connected.
+            DeviceOperationError: the link refused the frame.
+        """
+        if mode not in _SAFE_CODES:
+            raise ConfigError(f"safe-state mode must be 'flat' or 'hold', got {mode!r}")
+        if not self._connected:
+            raise DeviceNotConnectedError(f"{self.name}: safe_state() before connect()")
+        with self._send_lock:
+            frame = fr.SafeStateFrame(mode=_SAFE_CODES[mode], seq=self._next_seq())
+            self._send_frame(fr.ARB_ID_SAFE_STATE, fr.encode_safe_state(frame))
+            self._force_next = True
+            self._n_safe += 1
+        log.info("%s: safe state %s sent", self.name, mode)
+
+    # ------------------------------------------------------------------ feedback
+
+    def read_feedback(self, timeout_s: float = 0.1, *, newer_than_us: int | None = None) \
+            -> PinFeedback:
+        """The latest feedback from the board.
+
+        Args:
+            timeout_s: how long to wait when no (new enough) feedback has arrived yet.
+            newer_than_us: wait for feedback that arrived after this host time.
+
+        Raises:
+            DeviceNotConnectedError: not connected.
+            DeviceTimeoutError: nothing (new enough) within ``timeout_s``.
+        """
+        if not self._connected:
+            raise DeviceNotConnectedError(f"{self.name}: read_feedback() before connect()")
+        deadline = monotonic_s() + timeout_s
+        with self._cond:
+            while True:
+                fb = self._feedback
+                if fb is not None and (newer_than_us is None or fb.t_us > newer_than_us):
+                    return fb
+                remaining = deadline - monotonic_s()
+                if remaining <= 0 or not self._connected:
+                    raise DeviceTimeoutError(f"{self.name}: no feedback from the drive board "
+                                             f"within {timeout_s * 1e3:.0f} ms")
+                self._cond.wait(remaining)
+
+    def stats(self) -> DisplayStats:
+        """A snapshot of the counters."""
+        return DisplayStats(commands=self._n_commands, frames_sent=self._n_frames,
+                            skipped_unchanged=self._n_skipped, keepalives=self._n_keepalives,
+                            clamped=self._n_clamped, rejected_inputs=self._n_rejected,
+                            safe_states_sent=self._n_safe, feedback_frames=self._n_feedback,
+                            bad_frames=self._n_bad)
+
+    # ------------------------------------------------------------------ for backends
+
+    def _on_frame(self, arb_id: int, payload: bytes, rx_us: int | None = None) -> None:
+        """Handle one received frame (called by the backend's reader thread)."""
+        if arb_id != fr.ARB_ID_FEEDBACK:
+            return  # our own commands echoed, other nodes' traffic
+        try:
+            frame = fr.decode_feedback(payload)
+        except MalformedMessageError as err:
+            self._n_bad += 1
+            if log.isEnabledFor(logging.DEBUG):
+                log.debug("%s: bad feedback frame: %s", self.name, err)
+            return
+        feedback = PinFeedback(
+            position_mm=frame.position_mm, saturated=frame.saturated,
+            drive_voltage_v=frame.drive_voltage_v,
+            t_us=now_us() if rx_us is None else rx_us, board_t_us=frame.board_t_us,
+            seq_echo=frame.seq_echo, safe_state=bool(frame.status & fr.STATUS_SAFE_STATE),
+            watchdog_tripped=bool(frame.status & fr.STATUS_WATCHDOG_TRIPPED),
+            commands_rejected=frame.commands_rejected, watchdog_trips=frame.watchdog_trips)
+        with self._cond:
+            if feedback.safe_state:
+                self._force_next = True  # the board is parked: the next command must go out
+            self._feedback = feedback
+            self._n_feedback += 1
+            self._cond.notify_all()
+
+    def _reset_session(self) -> None:
+        self._seq = 0
+        self._last_codes: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._last_send_s = 0.0
+        self._force_next = False
+        self._feedback: PinFeedback | None = None
+        self._n_commands = self._n_frames = self._n_skipped = self._n_keepalives = 0
+        self._n_clamped = self._n_rejected = self._n_safe = self._n_feedback = self._n_bad = 0
+
+    def _next_seq(self) -> int:
+        self._seq = (self._seq + 1) & 0xFFFF
+        return self._seq
+
+    def _applied(self, h: np.ndarray, k: np.ndarray, f: np.ndarray, clamped: bool, *,
+                 sent: bool, keepalive: bool = False) -> PinCommand:
+        return PinCommand(height_mm=h * fr.HEIGHT_LSB_MM, stiffness_k=fr.K_MIN + k * fr.K_LSB,
+                          friction=f * fr.F_LSB, seq=self._seq, clamped=clamped, sent=sent,
+                          keepalive=keepalive)
+
+    @staticmethod
+    def _as_pins(name: str, value: np.ndarray | float) -> np.ndarray:
+        try:
+            arr = np.asarray(value, dtype=float)
+        except (TypeError, ValueError) as err:
+            raise InputDataError(f"{name}: not numeric: {err}") from err
+        if arr.ndim == 0:
+            arr = np.full(fr.N_PINS, float(arr))
+        elif arr.shape in ((4, 4), (fr.N_PINS,)):
+            arr = arr.reshape(fr.N_PINS)
+        else:
+            raise InputDataError(f"{name}: shape {arr.shape}, expected (4, 4), (16,) or scalar")
+        if not np.all(np.isfinite(arr)):
+            raise InputDataError(f"{name}: NaN or Inf at pin(s) "
+                                 f"{np.flatnonzero(~np.isfinite(arr)).tolist()}; nothing sent")
+        return arr

@@ -1,0 +1,104 @@
+"""The CAN FD backend: ArrayTac frames through any python-can interface.
+
+``CanArrayTacDisplay(channel="can0", interface="socketcan")`` in the field,
+``interface="virtual"`` in tests and for the simulator. Frames are CAN FD, standard 11-bit
+IDs, bit-rate switching on; a reader thread receives feedback (filtered to its ID).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from typing import Any
+
+import can
+
+from local_site.display import frames as fr
+from local_site.display.base import ArrayTacDisplay
+from shared.errors import DeviceInitError, DeviceOperationError
+
+__all__ = ["CanArrayTacDisplay"]
+
+log = logging.getLogger(__name__)
+
+
+class CanArrayTacDisplay(ArrayTacDisplay):
+    """ArrayTac drive board on a CAN FD bus.
+
+    Args:
+        channel: python-can channel (``can0``, a virtual channel name, ...).
+        interface: python-can interface name (``socketcan``, ``pcan``, ``virtual``, ...).
+        bitrate: nominal bit rate (ignored by ``virtual``/``socketcan``, which take it from
+            the OS).
+        data_bitrate: CAN FD data-phase bit rate.
+        send_timeout_s: how long ``bus.send`` may block.
+        bus_options: extra keyword arguments for :class:`can.Bus`.
+        **kwargs: passed to :class:`ArrayTacDisplay`.
+    """
+
+    def __init__(self, channel: str = "can0", *, interface: str = "socketcan",
+                 bitrate: int = 1_000_000, data_bitrate: int = 5_000_000,
+                 send_timeout_s: float = 0.01, bus_options: dict[str, Any] | None = None,
+                 **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        self.channel = channel
+        self.interface = interface
+        self._bus_options = {"bitrate": bitrate, "data_bitrate": data_bitrate,
+                             **(bus_options or {})}
+        if interface in ("virtual", "socketcan"):
+            self._bus_options.pop("bitrate")
+            self._bus_options.pop("data_bitrate")
+        self._send_timeout_s = send_timeout_s
+        self._bus: can.BusABC | None = None
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+
+    @property
+    def name(self) -> str:
+        return f"ArrayTac on {self.interface}:{self.channel}"
+
+    def _open(self) -> None:
+        try:
+            self._bus = can.Bus(interface=self.interface, channel=self.channel, fd=True,
+                                can_filters=[{"can_id": fr.ARB_ID_FEEDBACK, "can_mask": 0x7FF,
+                                              "extended": False}],
+                                **self._bus_options)
+        except (can.CanError, OSError, ValueError, ImportError) as err:
+            raise DeviceInitError(f"{self.name}: cannot open the CAN bus: {err}") from err
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._reader, name=f"arraytac-rx {self.channel}",
+                                        daemon=True)
+        self._thread.start()
+
+    def _close(self) -> None:
+        self._stop.set()
+        thread, self._thread = self._thread, None
+        if thread is not None:
+            thread.join(timeout=2.0)
+        bus, self._bus = self._bus, None
+        if bus is not None:
+            bus.shutdown()
+
+    def _send_frame(self, arb_id: int, payload: bytes) -> None:
+        bus = self._bus
+        if bus is None:
+            raise DeviceOperationError(f"{self.name}: bus is closed")
+        msg = can.Message(arbitration_id=arb_id, data=payload, is_extended_id=False,
+                          is_fd=True, bitrate_switch=True)
+        try:
+            bus.send(msg, timeout=self._send_timeout_s)
+        except can.CanError as err:
+            raise DeviceOperationError(f"{self.name}: send of ID 0x{arb_id:03x} failed: "
+                                       f"{err}") from err
+
+    def _reader(self) -> None:
+        bus = self._bus
+        while bus is not None and not self._stop.is_set():
+            try:
+                msg = bus.recv(timeout=0.05)
+            except can.CanError as err:
+                if not self._stop.is_set():
+                    log.warning("%s: receive failed: %s", self.name, err)
+                return
+            if msg is not None and not msg.is_error_frame:
+                self._on_frame(msg.arbitration_id, bytes(msg.data))

@@ -1,0 +1,342 @@
+"""The XYZ platform device kind: one base class, backends implement a few private methods.
+
+:class:`XYZPlatform` owns everything that does not depend on how samples reach the host:
+counts -> mm, zeroing, workspace clamping, 32-bit counter and board-clock unwrapping,
+velocity, the board-clock -> host-clock mapping, waiting with timeouts, and the link-health
+checks. A backend implements ``_open()`` / ``_close()`` and, from its own reader thread,
+hands each raw :class:`~local_site.platform.protocol.EncoderSample` to
+:meth:`XYZPlatform._publish` (or a link failure to :meth:`XYZPlatform._link_failed`).
+
+Typical use (lerobot habit)::
+
+    with open_platform("sim") as platform:        # or "/dev/ttyUSB0", "socket://host:port"
+        sample = platform.read_state(timeout_s=0.1)
+        sample.position_mm, sample.velocity_mm_s, sample.t_us
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from types import TracebackType
+
+from local_site.platform.kinematics import PlatformGeometry, WrapUnwrapper
+from local_site.platform.protocol import BoardInfo, DecoderStats, EncoderSample
+from shared.errors import (
+    ConfigError,
+    DeviceInitError,
+    DeviceNotConnectedError,
+    DeviceOperationError,
+    DeviceTimeoutError,
+)
+from shared.timebase import monotonic_s, now_us
+
+__all__ = ["PlatformSample", "PlatformStats", "XYZPlatform"]
+
+log = logging.getLogger(__name__)
+
+Vec3 = tuple[float, float, float]
+
+
+@dataclass(frozen=True, slots=True)
+class PlatformSample:
+    """One platform reading.
+
+    Attributes:
+        position_mm: (x, y, z) in platform coordinates, clamped to the workspace.
+        velocity_mm_s: finite-difference velocity over the last ``velocity_window_s``.
+        t_us: capture time on the host wall clock (board latch time mapped to the host clock,
+            so USB/OS jitter does not enter it), integer microseconds.
+        seq: board sample number, unwrapped (monotonic while connected).
+        board_t_us: board clock at the latch instant, unwrapped, microseconds.
+        clamped: True when the raw position lay outside the workspace.
+    """
+
+    position_mm: Vec3
+    velocity_mm_s: Vec3
+    t_us: int
+    seq: int
+    board_t_us: int
+    clamped: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class PlatformStats:
+    """Health of the encoder link.
+
+    Attributes:
+        bytes_in: bytes received.
+        frames_ok: valid frames decoded.
+        crc_errors: candidate frames rejected by their CRC.
+        garbage_bytes: bytes skipped while resynchronising.
+        unknown_types: well-formed frames of a type this driver does not know.
+        samples_missed: gaps in the board's sample sequence (frames lost or dropped).
+        samples_clamped: samples that fell outside the workspace.
+        reads: samples returned by ``read_state``.
+    """
+
+    bytes_in: int = 0
+    frames_ok: int = 0
+    crc_errors: int = 0
+    garbage_bytes: int = 0
+    unknown_types: int = 0
+    samples_missed: int = 0
+    samples_clamped: int = 0
+    reads: int = 0
+
+
+class XYZPlatform(ABC):
+    """Base of every XYZ platform backend (serial encoder board, simulator).
+
+    Args:
+        geometry: axes' mechanics and workspace; default :class:`PlatformGeometry`.
+        velocity_window_s: span of the finite difference for velocity.
+        stale_timeout_s: no valid frame for this long means the device is gone.
+        connect_timeout_s: how long ``connect()`` waits for the first valid sample.
+    """
+
+    def __init__(self, *, geometry: PlatformGeometry | None = None,
+                 velocity_window_s: float = 0.01, stale_timeout_s: float = 0.5,
+                 connect_timeout_s: float = 2.0) -> None:
+        for name, value in (("velocity_window_s", velocity_window_s),
+                            ("stale_timeout_s", stale_timeout_s),
+                            ("connect_timeout_s", connect_timeout_s)):
+            if not value > 0:
+                raise ConfigError(f"{name} must be > 0, got {value}")
+        self.geometry = geometry or PlatformGeometry()
+        self._velocity_window_us = int(velocity_window_s * 1e6)
+        self._stale_timeout_s = stale_timeout_s
+        self._connect_timeout_s = connect_timeout_s
+        self._cond = threading.Condition()
+        self._connected = False
+        self._zero_counts = (0, 0, 0)
+        self._zero_at_mm: Vec3 = (0.0, 0.0, 0.0)
+        self._reset_track()
+
+    # ------------------------------------------------------------------ backend interface
+
+    @abstractmethod
+    def _open(self) -> None:
+        """Open the link and start delivering samples to :meth:`_publish`."""
+
+    @abstractmethod
+    def _close(self) -> None:
+        """Stop delivering samples and release the link (idempotent)."""
+
+    def _decoder_stats(self) -> DecoderStats:
+        """Byte-level counters of the backend (override when there is a byte stream)."""
+        return DecoderStats()
+
+    @property
+    def name(self) -> str:
+        """Human-readable device name for messages (backends override)."""
+        return type(self).__name__
+
+    # ------------------------------------------------------------------ public API
+
+    @property
+    def is_connected(self) -> bool:
+        """True between a successful ``connect()`` and ``disconnect()``."""
+        return self._connected
+
+    @property
+    def board_info(self) -> BoardInfo | None:
+        """The board's last self-description, if it sent one."""
+        return self._board_info
+
+    def connect(self) -> None:
+        """Open the device and wait for its first valid sample.
+
+        Calling it again on a healthy connection does nothing; after a link failure it
+        closes and reopens (this is how a station retries).
+
+        Raises:
+            DeviceInitError: the device cannot be opened or sends no valid sample within
+                ``connect_timeout_s``.
+        """
+        if self._connected and self._link_error is None:
+            return
+        if self._connected:
+            self.disconnect()
+        self._reset_track()
+        try:
+            self._open()
+        except DeviceInitError:
+            raise
+        except Exception as err:  # vendor errors of any backend: wrap, keep the cause
+            raise DeviceInitError(f"{self.name}: cannot open: {err}") from err
+        self._connected = True
+        deadline = monotonic_s() + self._connect_timeout_s
+        with self._cond:
+            while self._latest is None and self._link_error is None:
+                remaining = deadline - monotonic_s()
+                if remaining <= 0:
+                    break
+                self._cond.wait(remaining)
+            latest, error = self._latest, self._link_error
+        if latest is None:
+            self.disconnect()
+            reason = f"link failed: {error}" if error else \
+                f"no valid frame within {self._connect_timeout_s:.2f} s"
+            raise DeviceInitError(f"{self.name}: {reason}") from error
+        log.info("%s connected (board info: %s)", self.name, self._board_info)
+
+    def disconnect(self) -> None:
+        """Stop reading and close the device (idempotent)."""
+        self._connected = False
+        self._close()
+        with self._cond:
+            self._cond.notify_all()
+
+    def __enter__(self) -> XYZPlatform:
+        self.connect()
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.disconnect()
+
+    def latest(self) -> PlatformSample | None:
+        """The newest sample without waiting (None before the first one)."""
+        return self._latest
+
+    def read_state(self, timeout_s: float = 0.1) -> PlatformSample:
+        """Wait for a sample newer than the one returned last, and return it.
+
+        Args:
+            timeout_s: longest wait.
+
+        Returns:
+            The newest sample (samples in between are skipped: latest wins).
+
+        Raises:
+            DeviceNotConnectedError: called before ``connect()`` or after ``disconnect()``.
+            DeviceOperationError: the link failed (device unplugged, port closed).
+            DeviceTimeoutError: no new valid sample within ``timeout_s``.
+        """
+        if not self._connected:
+            raise DeviceNotConnectedError(f"{self.name}: read_state() before connect()")
+        deadline = monotonic_s() + timeout_s
+        with self._cond:
+            while True:
+                if self._link_error is not None:
+                    raise DeviceOperationError(
+                        f"{self.name}: device disappeared ({self._link_error}); "
+                        f"call connect() to retry") from self._link_error
+                latest = self._latest
+                if latest is not None and latest.seq != self._last_read_seq:
+                    self._last_read_seq = latest.seq
+                    self._reads += 1
+                    return latest
+                if not self._connected:
+                    raise DeviceNotConnectedError(f"{self.name}: disconnected while reading")
+                remaining = deadline - monotonic_s()
+                if remaining <= 0:
+                    silent_s = monotonic_s() - self._last_rx_s
+                    raise DeviceTimeoutError(
+                        f"{self.name}: no new valid sample for {silent_s * 1e3:.0f} ms "
+                        f"(waited {timeout_s * 1e3:.0f} ms); device silent or unplugged?")
+                self._cond.wait(remaining)
+
+    def zero(self, at_mm: Vec3 = (0.0, 0.0, 0.0)) -> None:
+        """Declare that the platform is now at ``at_mm`` (default: the workspace origin).
+
+        Raises:
+            DeviceNotConnectedError: no sample yet to zero against.
+            ConfigError: ``at_mm`` outside the workspace.
+        """
+        at = tuple(float(v) for v in at_mm)
+        if len(at) != 3 or any(not 0.0 <= v <= w for v, w in
+                               zip(at, self.geometry.workspace_mm, strict=True)):
+            raise ConfigError(f"zero position {at_mm} outside the workspace "
+                              f"{self.geometry.workspace_mm}")
+        with self._cond:
+            if self._raw_counts is None:
+                raise DeviceNotConnectedError(f"{self.name}: zero() needs a sample first")
+            self._zero_counts = self._raw_counts
+            self._zero_at_mm = at  # type: ignore[assignment]
+            self._history.clear()
+        log.info("%s zeroed at %s mm (counts %s)", self.name, at, self._zero_counts)
+
+    def stats(self) -> PlatformStats:
+        """A snapshot of the link counters."""
+        d = self._decoder_stats()
+        return PlatformStats(bytes_in=d.bytes_in, frames_ok=d.frames_ok,
+                             crc_errors=d.crc_errors, garbage_bytes=d.garbage_bytes,
+                             unknown_types=d.unknown_types, samples_missed=self._missed,
+                             samples_clamped=self._clamped, reads=self._reads)
+
+    # ------------------------------------------------------------------ for backends
+
+    def _reset_track(self) -> None:
+        """Forget the previous connection's samples (zero offset is kept on purpose)."""
+        self._latest: PlatformSample | None = None
+        self._board_info: BoardInfo | None = None
+        self._link_error: BaseException | None = None
+        self._raw_counts: tuple[int, int, int] | None = None
+        self._unwrap = [WrapUnwrapper(32, signed=True) for _ in range(3)]
+        self._unwrap_seq = WrapUnwrapper(32, signed=False)
+        self._unwrap_t = WrapUnwrapper(32, signed=False)
+        self._history: collections.deque[tuple[int, Vec3]] = collections.deque(maxlen=256)
+        self._clock_offset_us: int | None = None
+        self._last_read_seq: int | None = None
+        self._last_rx_s = monotonic_s()
+        self._missed = 0
+        self._clamped = 0
+        self._reads = 0
+
+    def _publish_info(self, info: BoardInfo) -> None:
+        """Record the board's self-description (called by the backend)."""
+        self._board_info = info
+
+    def _publish(self, sample: EncoderSample, rx_us: int | None = None) -> None:
+        """Turn one raw sample into a :class:`PlatformSample` (called by the backend).
+
+        Args:
+            sample: the decoded frame.
+            rx_us: host wall-clock arrival time; defaults to now.
+        """
+        rx_us = now_us() if rx_us is None else rx_us
+        seq = self._unwrap_seq.update(sample.seq)
+        board_t = self._unwrap_t.update(sample.board_t_us)
+        counts = tuple(u.update(c) for u, c in zip(self._unwrap, sample.counts, strict=True))
+        # board clock -> host clock: the smallest (arrival - latch) seen is the link's
+        # fixed delay; let it creep up slowly so clock drift cannot pin it.
+        candidate = rx_us - board_t
+        if self._clock_offset_us is None or candidate < self._clock_offset_us:
+            self._clock_offset_us = candidate
+        else:
+            self._clock_offset_us += max(1, (candidate - self._clock_offset_us) // 1000)
+        with self._cond:
+            rel = tuple(c - z for c, z in zip(counts, self._zero_counts, strict=True))
+            raw_mm = tuple(m + a for m, a in zip(self.geometry.counts_to_mm(rel),  # type: ignore[arg-type]
+                                                 self._zero_at_mm, strict=True))
+            position, clamped = self.geometry.clamp(raw_mm)  # type: ignore[arg-type]
+            previous = self._latest
+            if previous is not None and seq - previous.seq > 1:
+                self._missed += seq - previous.seq - 1
+            self._clamped += clamped
+            history = self._history
+            history.append((board_t, position))
+            while len(history) > 2 and board_t - history[1][0] >= self._velocity_window_us:
+                history.popleft()
+            t_old, p_old = history[0]
+            dt_s = (board_t - t_old) * 1e-6
+            velocity = tuple((p - q) / dt_s for p, q in zip(position, p_old, strict=True)) \
+                if dt_s > 0 else (0.0, 0.0, 0.0)
+            self._raw_counts = counts  # type: ignore[assignment]
+            self._latest = PlatformSample(position_mm=position, velocity_mm_s=velocity,  # type: ignore[arg-type]
+                                          t_us=board_t + self._clock_offset_us, seq=seq,
+                                          board_t_us=board_t, clamped=clamped)
+            self._last_rx_s = monotonic_s()
+            self._cond.notify_all()
+
+    def _link_failed(self, err: BaseException) -> None:
+        """Record that the link broke (called by the backend's reader thread)."""
+        log.warning("%s: link failed: %s", self.name, err)
+        with self._cond:
+            self._link_error = err
+            self._cond.notify_all()

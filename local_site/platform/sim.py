@@ -1,0 +1,98 @@
+"""The ``sim`` platform backend: a simulated encoder board on a pty pair, read by the normal
+serial driver.
+
+Nothing here special-cases the application: :class:`SimulatedPlatform` *is* a
+:class:`~local_site.platform.serial_board.SerialEncoderPlatform` whose ``_open()`` first
+creates a pseudo-terminal, starts a :class:`~local_site.platform.sim_board.SimulatedEncoderBoard`
+writing to the master side, then opens the slave side by its path with
+``serial.serial_for_url`` exactly as it would open ``/dev/ttyUSB0``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tty
+
+from local_site.platform.motion import MotionSource, make_motion
+from local_site.platform.serial_board import SerialEncoderPlatform
+from local_site.platform.sim_board import SimulatedEncoderBoard
+from shared.errors import DeviceInitError
+
+__all__ = ["SimulatedPlatform"]
+
+
+class SimulatedPlatform(SerialEncoderPlatform):
+    """Simulated platform: a motion source -> simulated board -> pty -> serial driver.
+
+    Args:
+        motion: a :class:`MotionSource` or a spec for :func:`make_motion` (``raster``,
+            ``random``, ``hold`` or a trajectory file).
+        motion_options: keyword arguments for :func:`make_motion` when ``motion`` is a spec.
+        sample_rate_hz: the simulated board's rate.
+        initial_counts: board counters at power-up for position (0, 0, 0).
+        start_board_t_us: board clock at the first sample.
+        **kwargs: passed to :class:`SerialEncoderPlatform` / ``XYZPlatform`` (geometry, ...).
+    """
+
+    def __init__(self, motion: MotionSource | str = "raster", *,
+                 motion_options: dict[str, object] | None = None,
+                 sample_rate_hz: float = 1000.0,
+                 initial_counts: tuple[int, int, int] = (0, 0, 0),
+                 start_board_t_us: int = 0, **kwargs: object) -> None:
+        super().__init__("pty://sim", **kwargs)  # type: ignore[arg-type]
+        self.motion = make_motion(motion, **(motion_options or {}))
+        self._sample_rate_hz = sample_rate_hz
+        self._initial_counts = initial_counts
+        self._start_board_t_us = start_board_t_us
+        self._master_fd: int | None = None
+        self.board: SimulatedEncoderBoard | None = None
+
+    @property
+    def name(self) -> str:
+        return f"simulated encoder board at {self.url}"
+
+    def _open(self) -> None:
+        try:
+            master_fd, slave_fd = os.openpty()
+        except OSError as err:
+            raise DeviceInitError(f"cannot create a pty for the simulated board: {err}") from err
+        try:
+            tty.setraw(slave_fd)
+            os.set_blocking(master_fd, False)
+            self.url = os.ttyname(slave_fd)
+        except OSError as err:
+            os.close(master_fd)
+            os.close(slave_fd)
+            raise DeviceInitError(f"cannot configure the simulated board's pty: {err}") from err
+        self._master_fd = master_fd
+        self.board = SimulatedEncoderBoard(
+            self.motion, lambda data: os.write(master_fd, data), geometry=self.geometry,
+            sample_rate_hz=self._sample_rate_hz, initial_counts=self._initial_counts,
+            start_board_t_us=self._start_board_t_us)
+        try:
+            super()._open()
+        except DeviceInitError:
+            self._close_pty()
+            raise
+        finally:
+            os.close(slave_fd)  # the driver holds its own descriptor of the slave
+        self.board.start()
+
+    def _close(self) -> None:
+        if self.board is not None:
+            self.board.stop()
+        super()._close()
+        self._close_pty()
+
+    def _close_pty(self) -> None:
+        fd, self._master_fd = self._master_fd, None
+        if fd is not None:
+            with contextlib.suppress(OSError):
+                os.close(fd)
+
+    def unplug(self) -> None:
+        """Simulate the board disappearing: stop it and close its end of the link."""
+        if self.board is not None:
+            self.board.stop()
+        self._close_pty()
