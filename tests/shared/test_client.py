@@ -2,8 +2,9 @@
 
 The fake relay speaks both framings (WebSocket on one port, length-prefixed TCP on another),
 checks the token, answers hello with welcome or error + close code, can ping, push stats,
-stall (stop reading) and drop every connection. Tests against the real relay live in
-``tests/relay_server/test_station_link_with_relay.py`` once the relay exists.
+stall (stop reading) and drop every connection. The last tests run the same link against
+the real relay (``relay_server.server.RelayServer`` on free ports), directly and through
+the link emulator.
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ from shared.protocol import (
     Welcome,
 )
 from shared.timebase import monotonic_s, now_us
-from tests.support import scaled
+from tests.support import free_tcp_port, scaled
 
 TOKEN = "s3cret"
 
@@ -425,3 +426,120 @@ async def test_silent_link_is_detected_and_reconnected(relay: FakeRelay) -> None
                 await asyncio.sleep(0.01)
         assert link.counters.connection_losses >= 1
         assert link.silent_for_s() < scaled(1.0)
+
+
+# --------------------------------------------------------------------------- real relay
+
+
+@contextlib.asynccontextmanager
+async def _real_relay(port: int = 0, tcp_port: int = 0) -> AsyncIterator[Any]:
+    from relay_server.config import RelayConfig
+    from relay_server.server import RelayServer
+
+    relay = RelayServer(RelayConfig(host="127.0.0.1", port=port, tcp_port=tcp_port,
+                                    tokens={"lab1": TOKEN}, stats_interval_s=0.1,
+                                    ping_interval_s=0.1, ping_burst_spacing_s=0.005,
+                                    hello_timeout_s=scaled(2.0)))
+    await relay.start()
+    try:
+        yield relay
+    finally:
+        await relay.close()
+
+
+async def _recv_type(link: StationLink, msg_type: type[Message], timeout_s: float = 2.0
+                     ) -> Message:
+    async with asyncio.timeout(scaled(timeout_s)):
+        while True:
+            msg = await link.recv()
+            if isinstance(msg, msg_type):
+                return msg
+
+
+async def test_real_relay_forwards_both_ways_with_hops_and_offsets() -> None:
+    async with (_real_relay() as relay,
+                _link(f"ws://127.0.0.1:{relay.ws_port}/", role="local") as local,
+                _link(f"tcp://127.0.0.1:{relay.tcp_port}", role="remote") as remote):
+        await local.wait_connected(scaled(2.0))
+        await remote.wait_connected(scaled(2.0))
+        sent = _state(5)
+        await local.send(sent)
+        got = await _recv_type(remote, PlatformState)
+        assert isinstance(got, PlatformState) and got.seq == 5
+        assert got.position_mm == sent.position_mm
+        assert [(h.clock, h.stage) for h in got.hops] == [
+            ("relay", "relay_in"), ("relay", "relay_out"), ("remote", "station_rx")]
+        stamps = [sent.ts_us] + [h.t_us for h in got.hops]
+        assert stamps == sorted(stamps)  # one host, one clock
+
+        await remote.send(ArmCommand(seq=1, ts_us=now_us(), action="stop"))
+        await local.send(ArmCommand(seq=2, ts_us=now_us(), action="home"))
+        cmd = await _recv_type(remote, ArmCommand)
+        assert isinstance(cmd, ArmCommand) and cmd.seq == 2
+        # pongs went back: the relay reports both offsets (same host: near zero)
+        async with asyncio.timeout(scaled(3.0)):
+            while None in (local.clock_offsets_us.get("local"),
+                           local.clock_offsets_us.get("remote")):
+                await local.recv()
+        assert abs(local.clock_offset_us or 0) < 5_000
+        assert local.counters.pongs_sent >= 1 and remote.counters.pongs_sent >= 1
+
+
+async def test_real_relay_refusals_are_final() -> None:
+    async with _real_relay() as relay:
+        url = f"ws://127.0.0.1:{relay.ws_port}/"
+        async with _link(url, token="nope", reconnect_min_s=0.01) as bad:
+            with pytest.raises(AuthError):
+                await bad.wait_connected(scaled(2.0))
+        async with _link(url, role="local") as first:
+            await first.wait_connected(scaled(2.0))
+            async with _link(f"tcp://127.0.0.1:{relay.tcp_port}", role="local",
+                             reconnect_min_s=0.01) as second:
+                with pytest.raises(RoleTakenError):
+                    await second.wait_connected(scaled(2.0))
+            assert first.is_connected
+
+
+async def test_real_relay_restart_is_survived() -> None:
+    ws_port, tcp_port = free_tcp_port(), free_tcp_port()
+    async with (_link(f"ws://127.0.0.1:{ws_port}/", role="local", reconnect_min_s=0.02,
+                      reconnect_max_s=0.1) as local,
+                _link(f"tcp://127.0.0.1:{tcp_port}", role="remote", reconnect_min_s=0.02,
+                      reconnect_max_s=0.1) as remote):
+        async with _real_relay(ws_port, tcp_port):
+            await local.wait_connected(scaled(2.0))
+            await remote.wait_connected(scaled(2.0))
+        async with asyncio.timeout(scaled(2.0)):
+            while local.is_connected or remote.is_connected:
+                await asyncio.sleep(0.01)
+        assert local.link_down_since is not None
+        async with _real_relay(ws_port, tcp_port):
+            await local.wait_connected(scaled(3.0))
+            await remote.wait_connected(scaled(3.0))
+            await local.send(_state(9))
+            got = await _recv_type(remote, PlatformState)
+            assert isinstance(got, PlatformState) and got.seq == 9
+        assert local.counters.connects == 2 and remote.counters.connects == 2
+
+
+async def test_real_relay_through_the_link_emulator() -> None:
+    from relay_server.linkemu import LinkEmulator, LinkProfile
+
+    profile = LinkProfile(name="test", delay_ms=10.0, jitter_ms=0.5)
+    async with (_real_relay() as relay,
+                LinkEmulator(target=("127.0.0.1", relay.ws_port), profile=profile,
+                             seed=4) as emu,
+                _link(f"ws://127.0.0.1:{emu.port}/", role="local") as local,
+                _link(f"tcp://127.0.0.1:{relay.tcp_port}", role="remote") as remote):
+        await local.wait_connected(scaled(3.0))
+        await remote.wait_connected(scaled(2.0))
+        delays_ms = []
+        for seq in range(10):
+            sent = _state(seq)
+            await local.send(sent)
+            got = await _recv_type(remote, PlatformState)
+            assert isinstance(got, PlatformState)
+            delays_ms.append((got.hops[0].t_us - sent.ts_us) / 1000.0)
+            await asyncio.sleep(0.02)
+        # local -> relay crosses the emulated 10 ms one-way link
+        assert float(np.median(delays_ms)) == pytest.approx(10.0, abs=scaled(2.5))
