@@ -1,0 +1,231 @@
+"""Calibration: background + ball presses of known diameter -> colour-to-slope model, on disk.
+
+Procedure (the standard GelSight one, with the accuracy details made explicit):
+
+1. Every press is brightness-normalised against the background and turned into the
+   relative colour change (see :mod:`.features`).
+2. Training targets come from the ball geometry. Pixels inside the labelled contact circle
+   *shrunk by* ``trim_px`` (default 4 px, as gs_sdk does: the hand-fitted circles are a
+   little generous and the rim is where the gel drapes) get the sphere's slopes. Pixels
+   farther than ``far_factor`` x the contact radius get slope 0 (undeformed gel); a random
+   ``far_fraction`` of them is used so the flat gel does not swamp the contact. The annulus
+   in between (drape, unknown slope) is not used.
+3. The model (``poly``: position-aware polynomial, default; ``lut``: classic lookup table)
+   is fitted by least squares / cell averaging.
+4. The colour noise of the flat gel is measured on the far pixels (robust sigma); the
+   reconstructor uses it for its dead zone and its no-contact test, so another sensor with
+   more noise gets larger thresholds without hand tuning.
+
+The file is an ``.npz`` with a format ``version``; :meth:`Calibration.load` refuses other
+versions, missing keys and inconsistent shapes with :class:`~shared.errors.CalibrationError`.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from remote_site.reconstruction.features import pixel_position, relative_change
+from remote_site.reconstruction.frames import validate_frame
+from remote_site.reconstruction.labels import BallLabel, validate_label
+from remote_site.reconstruction.models import GradientModel, model_from_arrays
+from remote_site.reconstruction.sphere import cap_slopes
+from shared.errors import CalibrationError, InputDataError
+
+__all__ = ["CALIBRATION_VERSION", "Calibration", "fit_calibration"]
+
+log = logging.getLogger(__name__)
+
+CALIBRATION_VERSION = 1
+
+
+@dataclass
+class Calibration:
+    """A calibrated sensor: its background, scale, noise and colour-to-slope model.
+
+    Attributes:
+        model: the colour-to-slope model.
+        background_rgb: (H, W, 3) uint8 no-contact frame used at calibration.
+        mm_per_px: pixel pitch of the stored image.
+        blur_sigma_px: smoothing applied to the colour change (px at full resolution).
+        noise_pct: robust sigma of the colour change on flat gel (percent).
+        ball_radius_mm: radius of the calibration ball.
+        trim_px: pixels trimmed off the labelled radius for training.
+        stats: fit diagnostics (training slope RMSE, number of pixels, ...).
+    """
+
+    model: GradientModel
+    background_rgb: np.ndarray
+    mm_per_px: float
+    blur_sigma_px: float
+    noise_pct: float
+    ball_radius_mm: float = 0.0
+    trim_px: float = 0.0
+    stats: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def shape_hw(self) -> tuple[int, int]:
+        """(rows, cols) of the frames this calibration accepts."""
+        return (int(self.background_rgb.shape[0]), int(self.background_rgb.shape[1]))
+
+    def save(self, path: str | os.PathLike[str]) -> None:
+        """Write the calibration as a compressed ``.npz``."""
+        arrays = {f"model_{k}": v for k, v in self.model.to_arrays().items()}
+        stats_keys = np.array(sorted(self.stats), dtype=str)
+        stats_vals = np.array([self.stats[k] for k in stats_keys], dtype=np.float64)
+        np.savez_compressed(
+            path, version=np.array(CALIBRATION_VERSION), model_kind=np.array(self.model.kind),
+            background_rgb=self.background_rgb.astype(np.uint8),
+            shape_hw=np.array(self.shape_hw), mm_per_px=np.array(self.mm_per_px),
+            blur_sigma_px=np.array(self.blur_sigma_px), noise_pct=np.array(self.noise_pct),
+            ball_radius_mm=np.array(self.ball_radius_mm), trim_px=np.array(self.trim_px),
+            stats_keys=stats_keys, stats_vals=stats_vals, **arrays)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str]) -> Calibration:
+        """Read and check a calibration file.
+
+        Raises:
+            CalibrationError: missing/unreadable file, other format version, missing keys,
+                or a background whose shape disagrees with the stored shape.
+        """
+        if not Path(path).is_file():
+            raise CalibrationError(f"calibration file not found: {path}")
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                arrays = {k: data[k] for k in data.files}
+        except (OSError, ValueError) as err:
+            raise CalibrationError(f"{path} is not a readable .npz calibration: {err}") from err
+        try:
+            version = int(arrays["version"])
+            if version != CALIBRATION_VERSION:
+                raise CalibrationError(f"{path}: calibration format version {version}, this code "
+                                       f"reads version {CALIBRATION_VERSION}; recalibrate")
+            background = arrays["background_rgb"]
+            shape_hw = tuple(int(v) for v in arrays["shape_hw"])
+            if background.ndim != 3 or background.shape[2] != 3 or background.shape[:2] != shape_hw:
+                raise CalibrationError(f"{path}: background shape {background.shape} does not "
+                                       f"match the stored shape {shape_hw}")
+            model = model_from_arrays(str(arrays["model_kind"]), {
+                k.removeprefix("model_"): v for k, v in arrays.items()
+                if k.startswith("model_") and k != "model_kind"})
+            stats = dict(zip((str(k) for k in arrays["stats_keys"]),
+                             (float(v) for v in arrays["stats_vals"]), strict=True))
+            calib = cls(model=model, background_rgb=background.astype(np.uint8),
+                        mm_per_px=float(arrays["mm_per_px"]),
+                        blur_sigma_px=float(arrays["blur_sigma_px"]),
+                        noise_pct=float(arrays["noise_pct"]),
+                        ball_radius_mm=float(arrays["ball_radius_mm"]),
+                        trim_px=float(arrays["trim_px"]), stats=stats)
+        except KeyError as err:
+            raise CalibrationError(f"{path}: not a Tele-Touch calibration (missing {err})") from err
+        for name in ("mm_per_px", "blur_sigma_px", "noise_pct"):
+            value = getattr(calib, name)
+            if not np.isfinite(value) or value < 0 or (name == "mm_per_px" and value == 0):
+                raise CalibrationError(f"{path}: invalid {name} = {value}")
+        return calib
+
+
+def _training_pixels(change: np.ndarray, label: BallLabel, ball_radius_mm: float,
+                     mm_per_px: float, trim_px: float, far_factor: float, far_fraction: float,
+                     rng: np.random.Generator) -> tuple[np.ndarray, ...]:
+    h, w = change.shape[:2]
+    rows, cols = np.mgrid[0:h, 0:w]
+    dx_px = cols - label.center_x
+    dy_px = rows - label.center_y
+    r_px = np.hypot(dx_px, dy_px)
+    inside = r_px < label.radius_px - trim_px
+    far = (r_px > far_factor * label.radius_px) & (rng.random((h, w)) < far_fraction)
+    if inside.sum() < 10:
+        raise InputDataError(f"{label.image}: the labelled contact circle covers fewer than "
+                             "10 pixels inside the image")
+    gx, gy = cap_slopes(dx_px[inside] * mm_per_px, dy_px[inside] * mm_per_px, ball_radius_mm)
+    x, y = pixel_position((h, w))
+    sel = inside | far
+    slopes = np.zeros((h, w, 2), np.float64)
+    slopes[inside, 0] = gx
+    slopes[inside, 1] = gy
+    return change[sel], x[sel], y[sel], slopes[sel], change[far]
+
+
+def fit_calibration(background_rgb: np.ndarray, presses: Sequence[tuple[np.ndarray, BallLabel]],
+                    ball_diameter_mm: float, mm_per_px: float, *, model: str = "poly",
+                    trim_px: float = 4.0, far_factor: float = 2.0, far_fraction: float = 0.03,
+                    blur_sigma_px: float = 1.0, degree: int = 3, bins: int = 32,
+                    seed: int = 0) -> Calibration:
+    """Fit a calibration from a background frame and labelled ball presses.
+
+    Args:
+        background_rgb: (H, W, 3) no-contact frame.
+        presses: (frame, label) pairs; frames of the same shape as the background.
+        ball_diameter_mm: diameter of the calibration ball.
+        mm_per_px: pixel pitch of the images.
+        model: ``"poly"`` (position-aware polynomial) or ``"lut"`` (lookup table).
+        trim_px: pixels trimmed off each labelled radius before use.
+        far_factor: pixels beyond this many contact radii are used as flat gel.
+        far_fraction: fraction of those flat pixels used.
+        blur_sigma_px: smoothing of the colour change (also used at reconstruction).
+        degree: polynomial degree (``poly``).
+        bins: cells per channel (``lut``).
+        seed: random seed for the flat-pixel sampling.
+
+    Returns:
+        The fitted :class:`Calibration`.
+
+    Raises:
+        CalibrationError: bad scale/diameter, no presses, an unknown model, a degenerate fit.
+        InputDataError: a frame or a label does not fit the background's image size.
+    """
+    from remote_site.reconstruction.models import LutGradientModel, PolyGradientModel
+
+    if not (np.isfinite(ball_diameter_mm) and ball_diameter_mm > 0):
+        raise CalibrationError(f"ball diameter must be positive, got {ball_diameter_mm}")
+    if not (np.isfinite(mm_per_px) and mm_per_px > 0):
+        raise CalibrationError(f"mm per px must be positive, got {mm_per_px}")
+    if not presses:
+        raise CalibrationError("no ball presses given")
+    model_cls: type[GradientModel]
+    if model == "poly":
+        model_cls, options = PolyGradientModel, {"degree": degree, "use_position": 1}
+    elif model == "lut":
+        model_cls, options = LutGradientModel, {"bins": bins}
+    else:
+        raise CalibrationError(f"unknown model {model!r}; choose 'poly' or 'lut'")
+    ball_radius_mm = ball_diameter_mm / 2.0
+    background = validate_frame(background_rgb, name="background")
+    shape_hw = background.shape[:2]
+    rng = np.random.default_rng(seed)
+    parts: list[tuple[np.ndarray, ...]] = []
+    for frame, label in presses:
+        validate_label(label, shape_hw, trim_px)
+        if (label.radius_px * mm_per_px) >= ball_radius_mm:
+            raise CalibrationError(f"{label.image}: contact radius {label.radius_px * mm_per_px:.3g}"
+                                   f" mm is not smaller than the ball radius {ball_radius_mm} mm")
+        image = validate_frame(frame, shape_hw, name=label.image)
+        change = relative_change(image, background, blur_sigma_px)
+        parts.append(_training_pixels(change, label, ball_radius_mm, mm_per_px, trim_px,
+                                      far_factor, far_fraction, rng))
+    change_all, x_all, y_all, slopes_all, far_change = (np.concatenate(p) for p in zip(*parts,
+                                                                                     strict=True))
+    fitted = model_cls.fit(change_all, x_all, y_all, slopes_all, **options)
+    residual = fitted.predict(change_all, x_all, y_all) - slopes_all
+    if len(far_change) >= 20:
+        mad = np.median(np.abs(far_change - np.median(far_change, axis=0)), axis=0)
+        noise_pct = float(1.4826 * mad.max())
+    else:
+        noise_pct = 0.5
+        log.warning("too few flat-gel pixels to measure noise; assuming %.2f %%", noise_pct)
+    stats = {"train_slope_rmse": float(np.sqrt(np.mean(residual**2))),
+             "train_pixels": float(len(change_all)), "presses": float(len(presses))}
+    log.info("calibrated %s model on %d presses: slope RMSE %.4f, flat-gel noise %.3f %%",
+             model, len(presses), stats["train_slope_rmse"], noise_pct)
+    return Calibration(model=fitted,
+                       background_rgb=np.rint(background).astype(np.uint8),
+                       mm_per_px=float(mm_per_px), blur_sigma_px=float(blur_sigma_px),
+                       noise_pct=noise_pct, ball_radius_mm=ball_radius_mm, trim_px=float(trim_px),
+                       stats=stats)

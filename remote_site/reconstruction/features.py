@@ -1,0 +1,86 @@
+"""Photometric features: brightness-normalised relative colour change from the background.
+
+The sensor's lights and camera drift between the background frame and a press (auto
+exposure, LED warm-up). A per-channel gain ``g_c`` is estimated robustly on the pixels that
+did not change (median ratio frame/background, refined once after dropping changed pixels)
+and the feature is the relative change ``100 * (I_c / (g_c * B_c) - 1)`` in percent,
+optionally smoothed. Dividing by the background also removes most of the per-pixel
+illumination falloff (vignetting), so a model fitted on one unit transfers better; the
+residual position dependence is left to the model (it gets the normalised pixel position).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from shared.errors import InputDataError
+
+__all__ = ["brightness_gain", "pixel_position", "relative_change"]
+
+#: pixels whose ratio differs from the first gain estimate by more than this are "changed"
+_GAIN_TOLERANCE = 0.05
+#: subsampling step used for the robust statistics (speed; 1/16 of the pixels)
+_STAT_STEP = 4
+
+
+def brightness_gain(frame: np.ndarray, background: np.ndarray) -> np.ndarray:
+    """Per-channel gain that best maps the background onto the unchanged part of a frame.
+
+    Args:
+        frame: float32 (H, W, 3), validated.
+        background: float32 (H, W, 3), validated, same shape.
+
+    Returns:
+        float32 array of 3 gains.
+
+    Raises:
+        InputDataError: the gain is not finite or implausible (< 0.2 or > 5): the frame and
+            background are not from the same sensor/lighting.
+    """
+    f = frame[::_STAT_STEP, ::_STAT_STEP].reshape(-1, 3)
+    b = np.maximum(background[::_STAT_STEP, ::_STAT_STEP].reshape(-1, 3), 1.0)
+    ratio = f / b
+    gain = np.median(ratio, axis=0)
+    unchanged = (np.abs(ratio - gain) < _GAIN_TOLERANCE * gain).all(axis=1)
+    if unchanged.sum() >= 0.1 * len(ratio):
+        gain = np.median(ratio[unchanged], axis=0)
+    if not (np.isfinite(gain).all() and (gain > 0.2).all() and (gain < 5.0).all()):
+        raise InputDataError(f"brightness gain {gain} between frame and background is "
+                             "implausible: is the background from this sensor?")
+    return gain.astype(np.float32)
+
+
+def relative_change(frame: np.ndarray, background: np.ndarray,
+                    blur_sigma_px: float = 1.0) -> np.ndarray:
+    """Brightness-normalised relative colour change in percent, (H, W, 3) float32.
+
+    Args:
+        frame: float32 (H, W, 3), validated.
+        background: float32 (H, W, 3), validated, same shape.
+        blur_sigma_px: Gaussian smoothing of the change (0 = none).
+    """
+    import cv2
+
+    gain = brightness_gain(frame, background)
+    ref = np.maximum(background * gain, 1.0)
+    change = (frame / ref - 1.0) * 100.0
+    change = change.astype(np.float32, copy=False)
+    if blur_sigma_px > 0:
+        change = cv2.GaussianBlur(change, (0, 0), blur_sigma_px)
+    return change
+
+
+def pixel_position(shape_hw: tuple[int, int], rows: np.ndarray | None = None,
+                   cols: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Normalised pixel position in [-0.5, 0.5] (x along columns, y along rows).
+
+    Normalising by the frame size lets the same model serve any resolution of the sensor.
+    With ``rows``/``cols`` given, returns positions of those pixels only (fractional
+    indices allowed, e.g. centres of pooled blocks).
+    """
+    h, w = shape_hw
+    if rows is None or cols is None:
+        rows, cols = np.mgrid[0:h, 0:w]
+    x = (np.asarray(cols, np.float32) + 0.5) / w - 0.5
+    y = (np.asarray(rows, np.float32) + 0.5) / h - 0.5
+    return x, y

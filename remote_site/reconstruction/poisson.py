@@ -1,0 +1,156 @@
+"""Least-squares integration of a gradient field with fast transform solvers.
+
+Given per-pixel slopes ``gx = dh/dx`` (along columns) and ``gy = dh/dy`` (along rows), the
+height ``h`` minimising ``sum (h[i+1]-h[i] - p[i+1/2])**2`` over all neighbour pairs, where
+``p`` is the slope on the edge between two pixels (mean of the two pixel slopes times the
+pitch), solves a discrete Poisson equation ``L h = div p``. The three solvers differ only in
+what they assume beyond the frame:
+
+* ``"dct"`` (Neumann): nothing is known outside; the edge terms across the border are
+  dropped. DCT-II diagonalises this Laplacian exactly. The height is defined up to a
+  constant; the solution returned has zero mean. This is the default and the most robust.
+* ``"dst"`` (Dirichlet): the gel is flat (h = 0) half a pixel outside the frame. DST-II
+  diagonalises this Laplacian (DST-I would need FFTs of length 2(N+1), which is prime-ish
+  and 8x slower for 240 rows). Best when the contact is well inside the frame.
+* ``"fft"`` (periodic, Frankot-Chellappa): the frame wraps around. Fast but it leaks the
+  slope of one border into the opposite one; kept as a reference variant.
+
+Eigenvalue denominators are cached per (shape, solver). All work is in float32 by default
+(heights of a few mm with ~1e-7 relative rounding are far below the sensor noise).
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Literal
+
+import numpy as np
+import scipy.fft as sfft
+
+from shared.errors import InputDataError
+
+__all__ = ["SOLVERS", "PoissonSolver", "integrate_gradients"]
+
+Solver = Literal["dct", "dst", "fft"]
+SOLVERS: tuple[str, ...] = ("dct", "dst", "fft")
+
+
+@functools.lru_cache(maxsize=32)
+def _denominator(shape: tuple[int, int], solver: str, dtype_name: str) -> np.ndarray:
+    """Eigenvalues of the discrete Laplacian for ``solver`` on ``shape`` (cached).
+
+    For Neumann the (0, 0) entry is 0 and is replaced by 1 (the mean is fixed separately).
+    """
+    rows, cols = shape
+    if solver == "dct":
+        ky = 2.0 * np.cos(np.pi * np.arange(rows) / rows) - 2.0
+        kx = 2.0 * np.cos(np.pi * np.arange(cols) / cols) - 2.0
+    elif solver == "dst":
+        ky = 2.0 * np.cos(np.pi * np.arange(1, rows + 1) / rows) - 2.0
+        kx = 2.0 * np.cos(np.pi * np.arange(1, cols + 1) / cols) - 2.0
+    elif solver == "fft":
+        ky = 2.0 * np.cos(2.0 * np.pi * np.arange(rows) / rows) - 2.0
+        kx = 2.0 * np.cos(2.0 * np.pi * np.arange(cols // 2 + 1) / cols) - 2.0
+    else:  # pragma: no cover - guarded by PoissonSolver
+        raise ValueError(solver)
+    denom = ky[:, None] + kx[None, :]
+    if solver in ("dct", "fft"):
+        denom[0, 0] = 1.0
+    out = denom.astype(dtype_name)
+    out.setflags(write=False)
+    return out
+
+
+def _edge_slopes(g: np.ndarray, axis: int, solver: str) -> np.ndarray:
+    """Slopes on the edges between pixels along ``axis``, padded for ``solver``.
+
+    Returns an array one longer than ``g`` along ``axis`` (N+1 edges for N pixels) so that
+    ``np.diff`` of it is the divergence contribution.
+    """
+    g = np.moveaxis(g, axis, -1)
+    inner = 0.5 * (g[..., :-1] + g[..., 1:])
+    if solver == "dct":
+        first = np.zeros_like(g[..., :1])
+        last = first
+    elif solver == "dst":
+        first, last = g[..., :1], g[..., -1:]
+    else:  # fft: the edge between the last and the first pixel wraps
+        wrap = 0.5 * (g[..., -1:] + g[..., :1])
+        first, last = wrap, wrap
+    edges = np.concatenate([first, inner, last], axis=-1)
+    return np.moveaxis(edges, -1, axis)
+
+
+def _divergence(gx: np.ndarray, gy: np.ndarray, solver: str) -> np.ndarray:
+    return (np.diff(_edge_slopes(gx, 1, solver), axis=1)
+            + np.diff(_edge_slopes(gy, 0, solver), axis=0))
+
+
+class PoissonSolver:
+    """Integrate slope maps into a height map.
+
+    Args:
+        solver: ``"dct"`` (Neumann, default), ``"dst"`` (Dirichlet h=0 outside) or ``"fft"``.
+        dtype: float dtype of the computation (float32 default).
+
+    Raises:
+        InputDataError: unknown solver name.
+    """
+
+    def __init__(self, solver: str = "dct", dtype: type[np.floating] = np.float32) -> None:
+        if solver not in SOLVERS:
+            raise InputDataError(f"unknown Poisson solver {solver!r}; choose one of {SOLVERS}")
+        self.solver = solver
+        self.dtype = np.dtype(dtype)
+
+    def integrate(self, gx: np.ndarray, gy: np.ndarray, pitch_mm: float) -> np.ndarray:
+        """Return the least-squares height (mm) whose slopes are ``gx``, ``gy``.
+
+        Args:
+            gx: dh/dx along columns, dimensionless (mm per mm), shape (H, W).
+            gy: dh/dy along rows, same shape.
+            pitch_mm: pixel pitch in mm.
+
+        Returns:
+            Height in mm, shape (H, W). For ``dct``/``fft`` it has zero mean.
+
+        Raises:
+            InputDataError: shapes differ, are smaller than 2 x 2, contain NaN/Inf, or the
+                pitch is not a positive finite number.
+        """
+        gx = np.asarray(gx)
+        gy = np.asarray(gy)
+        if gx.shape != gy.shape or gx.ndim != 2:
+            raise InputDataError(f"gradient maps must be 2-D and equal in shape, got "
+                                 f"{gx.shape} and {gy.shape}")
+        if gx.shape[0] < 2 or gx.shape[1] < 2:
+            raise InputDataError(f"gradient maps must be at least 2 x 2, got {gx.shape}")
+        if not (np.isfinite(pitch_mm) and pitch_mm > 0):
+            raise InputDataError(f"pitch_mm must be positive and finite, got {pitch_mm}")
+        if not (np.isfinite(gx).all() and np.isfinite(gy).all()):
+            raise InputDataError("gradient maps contain NaN or Inf")
+        px = gx.astype(self.dtype, copy=False) * self.dtype.type(pitch_mm)
+        py = gy.astype(self.dtype, copy=False) * self.dtype.type(pitch_mm)
+        div = _divergence(px, py, self.solver)
+        denom = _denominator(gx.shape, self.solver, self.dtype.name)
+        if self.solver == "dct":
+            spec = sfft.dctn(div, type=2, workers=1)
+            spec /= denom
+            spec[0, 0] = 0.0
+            height = sfft.idctn(spec, type=2, workers=1)
+        elif self.solver == "dst":
+            spec = sfft.dstn(div, type=2, workers=1)
+            spec /= denom
+            height = sfft.idstn(spec, type=2, workers=1)
+        else:
+            spec = sfft.rfft2(div, workers=1)
+            spec /= denom
+            spec[0, 0] = 0.0
+            height = sfft.irfft2(spec, s=gx.shape, workers=1)
+        return np.asarray(height, dtype=self.dtype)
+
+
+def integrate_gradients(gx: np.ndarray, gy: np.ndarray, pitch_mm: float,
+                        solver: str = "dct") -> np.ndarray:
+    """Functional shortcut for :meth:`PoissonSolver.integrate`."""
+    return PoissonSolver(solver).integrate(gx, gy, pitch_mm)

@@ -1,0 +1,266 @@
+"""Frame -> height map: colour change -> slopes -> Poisson integration -> zero level -> mask.
+
+Zero level (stated once, used everywhere): height 0 is the *undeformed gel*, estimated as a
+least-squares plane through the reconstructed heights outside the region that rises above
+the contact threshold, dilated by ``zero_exclusion_mm`` (so most of the drape around a
+contact is excluded too). Positive heights are where the object presses into the gel. The
+gel drapes beyond the contact circle, so the rim of a press sits above zero and heights in a
+contact are offset upwards against a rigid sphere cap whose rim is at zero.
+
+Skips: a frame without contact evidence (fewer than ``min_contact_area_mm2`` of pixels whose
+colour change exceeds ``contact_evidence_sigmas`` x the calibrated flat-gel noise) returns an
+all-zero map without integrating. Only pixels above the dead zone
+(``dead_zone_sigmas`` x noise) are fed to the model; the rest get slope 0, which also
+removes the slope bias far from the contact. With ``out_pitch_mm`` the colour change (or the
+slopes, ``pool="slopes"``) is block-averaged to the output grid before the model and Poisson
+run, so a display-sized map costs a fraction of a full one.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+from remote_site.reconstruction.calibration import Calibration
+from remote_site.reconstruction.features import pixel_position, relative_change
+from remote_site.reconstruction.frames import validate_frame
+from remote_site.reconstruction.poisson import SOLVERS, PoissonSolver
+from shared.errors import ConfigError, InputDataError
+
+__all__ = ["HeightMap", "ReconstructionSettings", "Reconstructor"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ReconstructionSettings:
+    """Knobs of the reconstruction (defaults chosen on the real GelSight Mini data).
+
+    Attributes:
+        solver: Poisson solver, ``"dct"`` (Neumann), ``"dst"`` (Dirichlet) or ``"fft"``.
+        zero_level: ``"plane"`` (default), ``"median"`` or ``"none"``.
+        contact_threshold_mm: heights above this are in the contact mask.
+        zero_exclusion_mm: dilation of the raised region excluded from the zero-level fit.
+        dead_zone_sigmas: colour changes below this many noise sigmas get slope 0.
+        contact_evidence_sigmas: a pixel counts as contact evidence above this many sigmas.
+        min_contact_area_mm2: less evidence than this area means "no contact" (skip).
+        pool: ``"change"`` (pool colour change before the model, fastest) or ``"slopes"``.
+    """
+
+    solver: str = "dct"
+    zero_level: str = "plane"
+    contact_threshold_mm: float = 0.03
+    zero_exclusion_mm: float = 1.0
+    dead_zone_sigmas: float = 2.5
+    contact_evidence_sigmas: float = 6.0
+    min_contact_area_mm2: float = 0.1
+    pool: str = "change"
+
+    def __post_init__(self) -> None:
+        if self.solver not in SOLVERS:
+            raise ConfigError(f"solver must be one of {SOLVERS}, got {self.solver!r}")
+        if self.zero_level not in ("plane", "median", "none"):
+            raise ConfigError(f"zero_level must be plane, median or none, got {self.zero_level!r}")
+        if self.pool not in ("change", "slopes"):
+            raise ConfigError(f"pool must be 'change' or 'slopes', got {self.pool!r}")
+        for name in ("contact_threshold_mm", "zero_exclusion_mm", "dead_zone_sigmas",
+                     "contact_evidence_sigmas", "min_contact_area_mm2"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 0):
+                raise ConfigError(f"{name} must be finite and >= 0, got {value}")
+
+
+@dataclass(frozen=True)
+class HeightMap:
+    """A reconstructed height map.
+
+    Attributes:
+        height_mm: (rows, cols) float32 heights, mm, positive into the gel.
+        mask: (rows, cols) bool contact mask (height above the contact threshold).
+        mm_per_px: pitch of this grid (a multiple of the sensor pixel when pooled).
+        skipped: True when no contact evidence was found and integration was skipped.
+    """
+
+    height_mm: np.ndarray
+    mask: np.ndarray
+    mm_per_px: float
+    skipped: bool = False
+
+    @property
+    def contact(self) -> bool:
+        """Whether any pixel is in contact."""
+        return bool(self.mask.any())
+
+    @property
+    def max_height_mm(self) -> float:
+        """Largest height (indentation) in the map, mm."""
+        return float(self.height_mm.max()) if self.height_mm.size else 0.0
+
+
+def _abs_max(change: np.ndarray) -> np.ndarray:
+    """max over channels of |change| (much faster than ``np.abs(c).max(axis=2)``)."""
+    return np.maximum(np.maximum(np.abs(change[..., 0]), np.abs(change[..., 1])),
+                      np.abs(change[..., 2]))
+
+
+def _pool(image: np.ndarray, factor: int) -> np.ndarray:
+    import cv2
+
+    rows, cols = image.shape[0] // factor, image.shape[1] // factor
+    cropped = image[: rows * factor, : cols * factor]
+    return np.asarray(cv2.resize(cropped, (cols, rows), interpolation=cv2.INTER_AREA))
+
+
+class Reconstructor:
+    """Turns sensor frames into height maps with a fixed calibration.
+
+    Args:
+        calibration: the sensor's calibration.
+        settings: reconstruction knobs (defaults if None).
+    """
+
+    def __init__(self, calibration: Calibration,
+                 settings: ReconstructionSettings | None = None) -> None:
+        self.calibration = calibration
+        self.settings = settings or ReconstructionSettings()
+        self._solver = PoissonSolver(self.settings.solver)
+        self._background = validate_frame(calibration.background_rgb, name="calibration background")
+        self._last_bg_id: int | None = None
+        self._last_bg: np.ndarray | None = None
+        self._positions: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+    @classmethod
+    def from_file(cls, path: str | os.PathLike[str],
+                  settings: ReconstructionSettings | None = None) -> Reconstructor:
+        """Load a calibration file and build a reconstructor (raises CalibrationError)."""
+        return cls(Calibration.load(path), settings)
+
+    @property
+    def shape_hw(self) -> tuple[int, int]:
+        """(rows, cols) of accepted frames."""
+        return self.calibration.shape_hw
+
+    def pool_factor(self, out_pitch_mm: float | None) -> int:
+        """Integer block size giving the pitch closest to ``out_pitch_mm`` (1 = full res).
+
+        Raises:
+            InputDataError: a non-positive or non-finite pitch.
+        """
+        if out_pitch_mm is None:
+            return 1
+        if not (np.isfinite(out_pitch_mm) and out_pitch_mm > 0):
+            raise InputDataError(f"out_pitch_mm must be positive and finite, got {out_pitch_mm}")
+        factor = max(1, round(out_pitch_mm / self.calibration.mm_per_px))
+        return int(min(factor, max(1, min(self.shape_hw) // 2)))
+
+    def _background_for(self, background: np.ndarray | None) -> np.ndarray:
+        if background is None:
+            return self._background
+        if self._last_bg is not None and id(background) == self._last_bg_id:
+            return self._last_bg
+        validated = validate_frame(background, self.shape_hw, name="background")
+        self._last_bg_id, self._last_bg = id(background), validated
+        return validated
+
+    def _grid_positions(self, factor: int, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+        cached = self._positions.get(factor)
+        if cached is None or cached[0].shape != shape:
+            rows = (np.arange(shape[0]) * factor + (factor - 1) / 2.0)[:, None]
+            cols = (np.arange(shape[1]) * factor + (factor - 1) / 2.0)[None, :]
+            rows, cols = np.broadcast_arrays(rows, cols)
+            cached = pixel_position(self.shape_hw, rows, cols)
+            self._positions[factor] = cached
+        return cached
+
+    def slopes(self, frame_rgb: np.ndarray, background: np.ndarray | None = None,
+               factor: int = 1) -> tuple[np.ndarray, np.ndarray, bool]:
+        """Slope maps (dh/dx, dh/dy) on the grid pooled by ``factor``, and contact evidence.
+
+        Raises:
+            InputDataError: the frame or background fails validation.
+        """
+        calib = self.calibration
+        frame = validate_frame(frame_rgb, self.shape_hw)
+        change = relative_change(frame, self._background_for(background), calib.blur_sigma_px)
+        noise = max(calib.noise_pct, 1e-3)
+        magnitude_full = _abs_max(change)
+        evidence = int(np.count_nonzero(magnitude_full > self.settings.contact_evidence_sigmas
+                                        * noise))
+        min_px = self.settings.min_contact_area_mm2 / calib.mm_per_px**2
+        has_contact = evidence >= max(min_px, 1.0)
+        pool_change = factor > 1 and self.settings.pool == "change"
+        if pool_change:
+            change = _pool(change, factor)
+        grid = change.shape[:2]
+        x, y = self._grid_positions(factor if pool_change else 1, grid)
+        gx = np.zeros(grid, np.float32)
+        gy = np.zeros(grid, np.float32)
+        if has_contact:
+            magnitude = _abs_max(change) if pool_change else magnitude_full
+            active = magnitude > self.settings.dead_zone_sigmas * noise
+            pred = calib.model.predict(change[active], x[active], y[active])
+            gx[active] = pred[:, 0]
+            gy[active] = pred[:, 1]
+            if factor > 1 and not pool_change:
+                gx, gy = _pool(gx, factor), _pool(gy, factor)
+        elif factor > 1 and not pool_change:
+            gx, gy = _pool(gx, factor), _pool(gy, factor)
+        return gx, gy, has_contact
+
+    def height_map(self, frame_rgb: np.ndarray, background: np.ndarray | None = None,
+                   out_pitch_mm: float | None = None) -> HeightMap:
+        """Reconstruct one frame.
+
+        Args:
+            frame_rgb: (H, W, 3) RGB frame of this sensor (uint8 or float in [0, 255]).
+            background: a fresher no-contact frame; the calibration's background if None.
+            out_pitch_mm: output pitch; None for the full sensor resolution. The pitch used
+                is the nearest integer multiple of the sensor pixel (see ``mm_per_px``).
+
+        Returns:
+            The :class:`HeightMap`.
+
+        Raises:
+            InputDataError: bad frame/background (size, dtype, NaN, saturated, black) or pitch.
+        """
+        factor = self.pool_factor(out_pitch_mm)
+        pitch_mm = self.calibration.mm_per_px * factor
+        gx, gy, has_contact = self.slopes(frame_rgb, background, factor)
+        if not has_contact:
+            zeros = np.zeros(gx.shape, np.float32)
+            return HeightMap(zeros, np.zeros(gx.shape, bool), pitch_mm, skipped=True)
+        height = self._solver.integrate(gx, gy, pitch_mm)
+        height = self._apply_zero_level(height, pitch_mm)
+        if not np.isfinite(height).all():  # cannot happen with finite slopes; never pass it on
+            raise InputDataError("reconstruction produced non-finite heights")
+        mask = height > self.settings.contact_threshold_mm
+        return HeightMap(height, mask, pitch_mm, skipped=False)
+
+    def _apply_zero_level(self, height: np.ndarray, pitch_mm: float) -> np.ndarray:
+        import cv2
+
+        mode = self.settings.zero_level
+        if mode == "none":
+            return height
+        step = max(1, min(height.shape) // 60)
+        base = float(np.median(height[::step, ::step]))
+        raised = ((height - base) > self.settings.contact_threshold_mm).astype(np.uint8)
+        radius_px = round(self.settings.zero_exclusion_mm / pitch_mm)
+        if radius_px > 0:
+            raised = cv2.dilate(raised, np.ones((2 * radius_px + 1, 2 * radius_px + 1), np.uint8))
+        free = raised[::step, ::step] == 0
+        sub = height[::step, ::step]
+        if free.sum() < 10:
+            return height - np.float32(base)
+        if mode == "median":
+            return height - np.float32(np.median(sub[free]))
+        rows, cols = np.nonzero(free)
+        design = np.stack([np.ones(len(rows)), cols * step, rows * step], axis=1)
+        coef, *_ = np.linalg.lstsq(design, sub[free].astype(np.float64), rcond=None)
+        r = np.arange(height.shape[0], dtype=np.float32)[:, None]
+        c = np.arange(height.shape[1], dtype=np.float32)[None, :]
+        plane = np.float32(coef[0]) + np.float32(coef[1]) * c + np.float32(coef[2]) * r
+        return (height - plane).astype(np.float32, copy=False)

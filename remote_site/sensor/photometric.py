@@ -1,0 +1,156 @@
+"""Photometric forward model: gel contact depth map (mm) -> GelSight-style RGB frame.
+
+The gel surface is the contact depth smoothed by an elastic "drape" kernel (Gaussian of
+``drape_sigma_mm``): real gel does not follow a sharp edge. Its unit normal ``n`` is lit by
+three coloured lights at 120 degrees around the optical axis, each ``light_elevation_deg``
+from the gel normal (the GelSight Mini layout). A pixel's colour is the background times
+``1 + shading_gain * sum_k colour_k * (n.l_k / cos(elevation) - 1)``: flat gel reproduces the
+background, tilted gel brightens towards the lights it faces. The background is a smooth gel
+colour with radial vignetting and a linear illumination gradient; camera noise is Gaussian;
+optional markers are dark dots on a square grid. ``brightness`` scales the whole frame per
+channel (to emulate drift of the LEDs/exposure between the background and a press).
+
+Conventions: depth/height positive where the object presses into the gel; x = columns,
+y = rows; slopes ``dh/dx`` etc. are in mm/mm. The Taxim polynomial tables in the team kit
+(``gelsight/taxim_polytables``) are *not* used: their backgrounds are missing from the
+snapshot and their resolution/scale differ, so this analytic model is the default; their
+conventions (normal-magnitude and direction bins, [x^2, y^2, xy, x, y, 1] coefficients,
+``dzdx`` along rows) are noted in remote_site/sensor/README.md for a later table backend.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from shared.errors import InputDataError
+
+__all__ = ["PhotometricModel", "PhotometricSettings"]
+
+
+@dataclass(frozen=True)
+class PhotometricSettings:
+    """Optical parameters of a simulated sensor.
+
+    Attributes:
+        shape_hw: frame (rows, cols).
+        mm_per_px: pixel pitch on the gel.
+        gel_rgb: mean background colour at the centre (0-255).
+        vignetting: relative darkening at the corners.
+        illumination_tilt: relative brightness change across the frame (left to right).
+        light_elevation_deg: angle of each light from the gel normal.
+        light_azimuth_deg: azimuth of the first light; the others follow at +120, +240.
+        light_rgb: (3 lights x 3 channels) colour mix of each light.
+        shading_gain: strength of the shading relative to the background.
+        drape_sigma_mm: Gaussian smoothing of the depth map by the gel.
+        noise_dn: camera noise sigma in digital numbers (0 = none).
+        marker_pitch_mm: marker grid pitch (0 = no markers).
+        marker_radius_mm: marker dot radius.
+        brightness: per-channel gain applied to the rendered frame.
+    """
+
+    shape_hw: tuple[int, int] = (240, 320)
+    mm_per_px: float = 0.0634
+    gel_rgb: tuple[float, float, float] = (125.0, 120.0, 85.0)
+    vignetting: float = 0.25
+    illumination_tilt: float = 0.08
+    light_elevation_deg: float = 65.0
+    light_azimuth_deg: float = 90.0
+    light_rgb: tuple[tuple[float, float, float], ...] = ((1.0, 0.15, 0.1), (0.1, 1.0, 0.15),
+                                                         (0.15, 0.1, 1.0))
+    shading_gain: float = 0.45
+    drape_sigma_mm: float = 0.08
+    noise_dn: float = 1.0
+    marker_pitch_mm: float = 0.0
+    marker_radius_mm: float = 0.15
+    brightness: tuple[float, float, float] = (1.0, 1.0, 1.0)
+
+
+class PhotometricModel:
+    """Renders RGB frames from depth maps (stateless apart from a seeded noise generator).
+
+    Args:
+        settings: optical parameters.
+        seed: noise seed.
+
+    Raises:
+        InputDataError: implausible settings (shape, pitch).
+    """
+
+    def __init__(self, settings: PhotometricSettings | None = None, seed: int = 0) -> None:
+        self.settings = s = settings or PhotometricSettings()
+        rows, cols = s.shape_hw
+        if rows < 8 or cols < 8 or not (np.isfinite(s.mm_per_px) and s.mm_per_px > 0):
+            raise InputDataError(f"bad sensor geometry {s.shape_hw}, {s.mm_per_px} mm/px")
+        self._rng = np.random.default_rng(seed)
+        yy, xx = np.mgrid[0:rows, 0:cols].astype(np.float32)
+        u = (xx + 0.5) / cols - 0.5
+        v = (yy + 0.5) / rows - 0.5
+        illum = (1.0 - s.vignetting * 2.0 * (u**2 + v**2)) * (1.0 + s.illumination_tilt * u)
+        self._background = (illum[..., None] * np.asarray(s.gel_rgb, np.float32)).astype(np.float32)
+        elev = np.deg2rad(s.light_elevation_deg)
+        az = np.deg2rad(s.light_azimuth_deg + np.array([0.0, 120.0, 240.0]))
+        self._lights = np.stack([np.cos(az) * np.sin(elev), np.sin(az) * np.sin(elev),
+                                 np.full(3, np.cos(elev))], axis=1).astype(np.float32)
+        self._cos_elev = np.float32(np.cos(elev))
+        self._mix = np.asarray(s.light_rgb, np.float32)  # (light, channel)
+        self._markers = np.ones((rows, cols), np.float32)
+        if s.marker_pitch_mm > 0:
+            pitch_px = s.marker_pitch_mm / s.mm_per_px
+            du = (xx % pitch_px) - pitch_px / 2
+            dv = (yy % pitch_px) - pitch_px / 2
+            dot = np.hypot(du, dv) < s.marker_radius_mm / s.mm_per_px
+            self._markers[dot] = 0.25
+
+    @property
+    def background_rgb(self) -> np.ndarray:
+        """Noise-free no-contact frame (with markers, without brightness drift) as uint8."""
+        return np.clip(np.rint(self._background * self._markers[..., None]), 0,
+                       255).astype(np.uint8)
+
+    def gel_surface_mm(self, depth_mm: np.ndarray) -> np.ndarray:
+        """The gel surface actually rendered: the depth map smoothed by the drape kernel.
+
+        Raises:
+            InputDataError: wrong shape, NaN/Inf or negative depth.
+        """
+        import cv2
+
+        s = self.settings
+        depth = np.asarray(depth_mm, dtype=np.float32)
+        if depth.shape != s.shape_hw:
+            raise InputDataError(f"depth map shape {depth.shape} != sensor {s.shape_hw}")
+        if not np.isfinite(depth).all():
+            raise InputDataError("depth map contains NaN or Inf")
+        if depth.min() < 0:
+            raise InputDataError("depth map must be >= 0 (mm into the gel)")
+        sigma_px = s.drape_sigma_mm / s.mm_per_px
+        if sigma_px > 0.1:
+            depth = cv2.GaussianBlur(depth, (0, 0), sigma_px, borderType=cv2.BORDER_REPLICATE)
+        return depth
+
+    def render(self, depth_mm: np.ndarray, noise: bool = True) -> np.ndarray:
+        """Render one RGB uint8 frame from a contact depth map (mm, >= 0, sensor shape).
+
+        Raises:
+            InputDataError: wrong shape, NaN/Inf or negative depth.
+        """
+        s = self.settings
+        surface = self.gel_surface_mm(depth_mm)
+        gy, gx = np.gradient(surface, s.mm_per_px)
+        norm = 1.0 / np.sqrt(1.0 + gx * gx + gy * gy)
+        # Normal of the surface z = h(x, y) seen from the camera side.
+        nx, ny, nz = -gx * norm, -gy * norm, norm
+        rel = np.zeros((*s.shape_hw, 3), np.float32)
+        for k in range(3):
+            lx, ly, lz = self._lights[k]
+            shade = np.maximum(nx * lx + ny * ly + nz * lz, 0.0) / self._cos_elev - 1.0
+            rel += shade[..., None] * self._mix[k]
+        image = self._background * (1.0 + s.shading_gain * rel)
+        image *= self._markers[..., None]
+        image *= np.asarray(s.brightness, np.float32)
+        if noise and s.noise_dn > 0:
+            image += self._rng.standard_normal(image.shape, dtype=np.float32) * np.float32(
+                s.noise_dn)
+        return np.clip(np.rint(image), 0, 255).astype(np.uint8)
