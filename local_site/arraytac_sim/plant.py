@@ -1,0 +1,399 @@
+"""ArrayTac simulator: 16 units of drive-board firmware + piezo/lever plant, vectorised.
+
+Per unit and per 10 kHz firmware tick (all units at once, numpy):
+
+1. Hall sensor: ``y_meas = c(V(y) + noise)`` (:mod:`.sensor`, cubic calibration, seeded noise).
+2. Reference: ``r = height + a(f) sin(2 pi f_v(f) t)`` clipped to the stroke, with amplitude
+   ``a = f * friction_amp_mm`` and frequency ``f_v = f * friction_freq_span_hz`` (paper: 0-200 Hz
+   over f, at most 512 Hz). When every ``f == 0`` no sinusoid is evaluated at all.
+3. PID (gains scaled by ``1 + friction_gain_boost * f``): ``u_raw = U_base + Kp e + I +
+   Kd (y_meas_prev - y_meas)/T``, output clamped to ``[U_base, U_limit(k)]`` (Eq. 1) with
+   clamping anti-windup (the integrator holds while the output is clamped in the direction of
+   the error).
+4. Stiffness stage 2: while the PID is saturated high with the pin below target, the output is
+   the feedforward penalty of Eq. (2), ``U = (U_limit - U_base)(1 - (1-k) e / y_lim)^2 +
+   U_base`` (``e`` the compression in mm, ``y_lim = g (U_limit - U_base)``).
+5. Plant: driver lag + slew limits and lever/soft-load lag (:mod:`.integrators`), finger force.
+
+Fast path: while nothing saturates, whole blocks of ticks are integrated exactly with the
+modal decomposition of :mod:`.blockpath`; any tick that would hit a nonlinearity is replayed by
+the per-step path, so results are those of the per-step firmware up to the Hall-chain
+linearisation (measured in ``benchmarks/bench_arraytac_sim.py``).
+
+Asymmetric rise/fall (paper: 0.013 s vs 0.016 s): the driver charges the piezo through a
+current-limited voltage follower and discharges it through a constant-current sink (paper,
+Fig. S1); a current limit into the piezo capacitance is a voltage slew limit, so large steps
+rise at ``slew_up_v_per_s`` and fall at the lower ``slew_down_v_per_s``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import OrderedDict
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from local_site.arraytac_sim.blockpath import LinearModes, modal_decomposition, propagate
+from local_site.arraytac_sim.integrators import make_integrator
+from local_site.arraytac_sim.params import PlantParams
+from local_site.arraytac_sim.sensor import HallSensor
+from local_site.arraytac_sim.stiffness import u_limit_v
+from shared.errors import ConfigError, InputDataError
+
+__all__ = ["ArrayTacPlant", "PlantParams", "PlantTrace"]
+
+log = logging.getLogger(__name__)
+
+_MIN_BLOCK_STEPS = 16      # below this the per-step path is cheaper
+_MAX_BLOCK_STEPS = 4000    # longer blocks waste work when a late tick saturates
+_REPLAY_STEPS = 4          # per-step ticks after a violation before retrying the fast path
+_MAX_FAST_GROUPS = 4       # distinct friction gains handled by the fast path
+_MODE_CACHE = 64
+_LINEARISATION_SPAN_MM = 0.02  # Hall chain linearised within +-20 um of the block start
+
+
+@dataclass(frozen=True)
+class PlantTrace:
+    """Per-tick record of a :meth:`ArrayTacPlant.run` (arrays are ``(ticks, n_units)``).
+
+    Values are sampled at the *start* of each tick, as the firmware sees them.
+    """
+
+    time_s: np.ndarray
+    position_mm: np.ndarray
+    true_position_mm: np.ndarray
+    drive_voltage_v: np.ndarray
+    reference_mm: np.ndarray
+
+
+def _as_unit_array(name: str, value: float | np.ndarray, n_units: int) -> np.ndarray:
+    arr = np.asarray(value, dtype=float)
+    if arr.ndim == 0:
+        arr = np.full(n_units, float(arr))
+    if arr.shape != (n_units,):
+        raise InputDataError(f"{name} must be a scalar or shape ({n_units},), got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise InputDataError(f"{name} contains NaN or Inf: {arr}")
+    return arr
+
+
+class ArrayTacPlant:
+    """The simulated ArrayTac array: firmware + plant for ``n_units`` pins.
+
+    Args:
+        params: plant constants (defaults: :class:`PlantParams`, tuned to the paper).
+        n_units: number of pins (16 for the 4 x 4 array).
+        control_rate_hz: firmware rate, overrides ``params.control_rate_hz``.
+        integrator: plant integrator, ``"zoh"`` (exact, default), ``"rk4"`` or ``"euler"``.
+        substeps: integrator sub-steps per firmware tick.
+        fast_path: integrate saturation-free blocks exactly in one go (see module docstring).
+
+    Raises:
+        ConfigError: bad ``n_units``, rate or integrator.
+    """
+
+    def __init__(self, params: PlantParams | None = None, n_units: int = 16,
+                 control_rate_hz: float = 10_000.0, integrator: str = "zoh",
+                 substeps: int = 1, fast_path: bool = True) -> None:
+        if int(n_units) < 1:
+            raise ConfigError(f"n_units must be >= 1, got {n_units}")
+        if not (math.isfinite(control_rate_hz) and control_rate_hz > 0):
+            raise ConfigError(f"control_rate_hz must be > 0, got {control_rate_hz}")
+        base = params or PlantParams()
+        self.params = replace(base, control_rate_hz=float(control_rate_hz))
+        self.n_units = int(n_units)
+        self.integrator_name = integrator
+        self._integ = make_integrator(integrator, self.params, substeps)
+        self.sensor = HallSensor(self.params)
+        self.fast_path = bool(fast_path)
+        self._dt = self.params.control_period_s
+        self._modes: OrderedDict[float, LinearModes | None] = OrderedDict()
+        #: counters of ticks run by each path (the benchmark reads them)
+        self.fast_ticks = 0
+        self.slow_ticks = 0
+        self.vibration_ticks = 0
+        self._block_len = 4 * _MIN_BLOCK_STEPS
+        self.reset()
+
+    # ------------------------------------------------------------------ commands
+    def reset(self) -> None:
+        """Return to t = 0, pins retracted and at rest, zero commands, noise re-seeded."""
+        n, p = self.n_units, self.params
+        self._u = np.full(n, p.u_base_v)
+        self._y = np.zeros(n)
+        self._i = np.zeros(n)
+        self._m_prev = self.sensor.measure_mm(self._y)
+        self._u_cmd = np.full(n, p.u_base_v)
+        self._sat = np.zeros(n, dtype=bool)
+        self._step = 0
+        self._t_req_s = 0.0
+        self._force = np.zeros(n)
+        self._override: np.ndarray | None = None
+        self._rng = np.random.default_rng(p.noise_seed)
+        self.set_targets(np.zeros(n), np.ones(n) * p.k_max, np.zeros(n))
+
+    def set_targets(self, height_mm: float | np.ndarray, stiffness_k: float | np.ndarray,
+                    friction: float | np.ndarray) -> None:
+        """Set per-pin commands; out-of-range values are clamped.
+
+        Args:
+            height_mm: pin heights, clamped to ``[0, stroke_mm]``.
+            stiffness_k: normalised stiffness, clamped to ``[k_min, k_max]`` (0.5..1).
+            friction: normalised friction, clamped to ``[0, 1]``.
+
+        Raises:
+            InputDataError: NaN/Inf or wrong shape.
+        """
+        p, n = self.params, self.n_units
+        h = np.clip(_as_unit_array("height_mm", height_mm, n), 0.0, p.stroke_mm)
+        k = np.clip(_as_unit_array("stiffness_k", stiffness_k, n), p.k_min, p.k_max)
+        f = np.clip(_as_unit_array("friction", friction, n), 0.0, 1.0)
+        self._height, self._k, self._f = h, k, f
+        self._u_limit = u_limit_v(k, p.u_base_v, p.u_max_v)
+        self._y_lim = p.lever_gain_mm_per_v * (self._u_limit - p.u_base_v)
+        self._amp = f * p.friction_amp_mm
+        self._omega = 2.0 * math.pi * f * p.friction_freq_span_hz
+        self._gain = 1.0 + p.friction_gain_boost * f
+        self._vib = np.flatnonzero(f > 0.0)
+
+    def set_finger_force(self, force_n: float | np.ndarray) -> None:
+        """Fingertip load pressing on each pin (N); negative values clamp to 0 (no pulling).
+
+        Raises:
+            InputDataError: NaN/Inf or wrong shape.
+        """
+        self._force = np.maximum(_as_unit_array("force_n", force_n, self.n_units), 0.0)
+
+    def set_drive_override(self, voltage_v: float | np.ndarray | None) -> None:
+        """Open-loop test mode: drive these voltages, bypassing PID and stiffness law.
+
+        ``None`` returns to closed loop (the integrator restarts bumplessly from the current
+        voltage). Voltages clamp to ``[U_base, U_max]``.
+
+        Raises:
+            InputDataError: NaN/Inf or wrong shape.
+        """
+        if voltage_v is None:
+            if self._override is not None:
+                p = self.params
+                self._i = self._u_cmd - p.u_base_v
+            self._override = None
+            return
+        p = self.params
+        self._override = np.clip(_as_unit_array("voltage_v", voltage_v, self.n_units),
+                                 p.u_base_v, p.u_max_v)
+
+    # ------------------------------------------------------------------ state
+    @property
+    def time_s(self) -> float:
+        """Simulated time (s), a whole number of firmware ticks."""
+        return self._step * self._dt
+
+    @property
+    def position_mm(self) -> np.ndarray:
+        """Pin heights as the firmware measures them (Hall sensor + cubic calibration)."""
+        return self._m_prev.copy()
+
+    @property
+    def true_position_mm(self) -> np.ndarray:
+        """Actual pin heights (mm)."""
+        return self._y.copy()
+
+    @property
+    def saturated(self) -> np.ndarray:
+        """True where the feedforward stiffness stage (Eq. 2) drove the last tick."""
+        return self._sat.copy()
+
+    @property
+    def drive_voltage_v(self) -> np.ndarray:
+        """Piezo voltages (V)."""
+        return self._u.copy()
+
+    @property
+    def commands(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The applied (clamped) ``(height_mm, stiffness_k, friction)``."""
+        return self._height.copy(), self._k.copy(), self._f.copy()
+
+    # ------------------------------------------------------------------ running
+    def advance(self, duration_s: float) -> None:
+        """Run firmware + plant for ``duration_s`` (rounded to whole ticks, without drift).
+
+        Raises:
+            InputDataError: negative or non-finite duration.
+        """
+        self._run(self._ticks_for(duration_s), record=False)
+
+    def run(self, duration_s: float) -> PlantTrace:
+        """Like :meth:`advance`, returning the per-tick trace."""
+        trace = self._run(self._ticks_for(duration_s), record=True)
+        assert trace is not None  # noqa: S101 - record=True always returns a trace
+        return trace
+
+    def _ticks_for(self, duration_s: float) -> int:
+        if not (math.isfinite(duration_s) and duration_s >= 0.0):
+            raise InputDataError(f"duration_s must be finite and >= 0, got {duration_s}")
+        self._t_req_s += duration_s
+        return max(int(round(self._t_req_s * self.params.control_rate_hz)) - self._step, 0)
+
+    def _reference(self, k0: int, n_ticks: int) -> np.ndarray:
+        ref = np.broadcast_to(self._height, (n_ticks, self.n_units)).copy()
+        if self._vib.size:  # friction on: synthesise the vibration only where f > 0
+            v = self._vib
+            t = (k0 + np.arange(n_ticks))[:, None] * self._dt
+            ref[:, v] += self._amp[v] * np.sin(self._omega[v] * t)
+            np.clip(ref, 0.0, self.params.stroke_mm, out=ref)
+            self.vibration_ticks += n_ticks
+        return ref
+
+    def _run(self, n_ticks: int, record: bool) -> PlantTrace | None:
+        n = self.n_units
+        if record:
+            rec = {name: np.empty((n_ticks, n)) for name in ("m", "y", "u", "r")}
+        else:
+            rec = None
+        if n_ticks == 0:
+            return self._trace(rec, 0) if record else None
+        p = self.params
+        noise_v = self._rng.standard_normal((n_ticks, n)) * p.hall_noise_v_rms
+        ref = self._reference(self._step, n_ticks)
+        k = 0
+        while k < n_ticks:
+            remaining = n_ticks - k
+            done = 0
+            if self.fast_path and self._override is None and remaining >= _MIN_BLOCK_STEPS:
+                # adaptive block: grows while blocks pass, shrinks to where the last one failed
+                size = min(remaining, self._block_len)
+                done = self._fast_block(ref[k:k + size], noise_v[k:k + size], rec, k)
+                self._block_len = (min(2 * size, _MAX_BLOCK_STEPS) if done == size
+                                   else max(4 * _MIN_BLOCK_STEPS, done))
+            if done == 0:
+                chunk = min(remaining, _REPLAY_STEPS) if self.fast_path else remaining
+                self._slow_steps(ref[k:k + chunk], noise_v[k:k + chunk], rec, k)
+                done = chunk
+            k += done
+        return self._trace(rec, n_ticks) if record else None
+
+    def _trace(self, rec: dict[str, np.ndarray] | None, n_ticks: int) -> PlantTrace:
+        assert rec is not None  # noqa: S101 - internal
+        t = (self._step - n_ticks + np.arange(n_ticks)) * self._dt
+        return PlantTrace(t, rec["m"], rec["y"], rec["u"], rec["r"])
+
+    # ------------------------------------------------------------------ per-step path
+    def _slow_steps(self, ref: np.ndarray, noise_v: np.ndarray,
+                    rec: dict[str, np.ndarray] | None, offset: int) -> None:
+        p = self.params
+        dt = self._dt
+        kp = p.kp_v_per_mm * self._gain
+        ki_dt = p.ki_v_per_mm_s * self._gain * dt
+        kd_dt = p.kd_v_s_per_mm * self._gain / dt
+        ub, ulim, ylim = p.u_base_v, self._u_limit, self._y_lim
+        a = 1.0 - self._k
+        expo = p.penalty_exponent
+        u, y, integ, m_prev, force = self._u, self._y, self._i, self._m_prev, self._force
+        u_cmd, sat = self._u_cmd, self._sat
+        override = self._override
+        for j in range(ref.shape[0]):
+            m = self.sensor.measure_mm(y, noise_v[j])
+            r = ref[j]
+            if rec is not None:
+                rec["m"][offset + j], rec["y"][offset + j] = m, y
+                rec["u"][offset + j], rec["r"][offset + j] = u, r
+            if override is None:
+                e = r - m
+                u_raw = ub + kp * e + integ + kd_dt * (m_prev - m)
+                high = u_raw > ulim
+                low = u_raw < ub
+                sat = high & (e > 0.0)
+                hold = sat | (low & (e < 0.0))
+                integ = np.where(hold, integ, integ + ki_dt * e)
+                u_cmd = np.clip(u_raw, ub, ulim)
+                if sat.any():
+                    base = np.maximum(1.0 - a * np.maximum(e, 0.0) / ylim, 0.0)
+                    u_cmd = np.where(sat, (ulim - ub) * base ** expo + ub, u_cmd)
+            else:
+                u_cmd = override
+                sat = np.zeros(self.n_units, dtype=bool)
+            u, y = self._integ.step(u, y, u_cmd, force)
+            m_prev = m
+        self._u, self._y, self._i, self._m_prev = u, y, integ, m_prev
+        self._u_cmd, self._sat = u_cmd, sat
+        self._step += ref.shape[0]
+        self.slow_ticks += ref.shape[0]
+
+    # ------------------------------------------------------------------ fast path
+    def _linear_map(self, gain: float):  # type: ignore[no-untyped-def]
+        p = self.params
+        dt = self._dt
+
+        def step(z: np.ndarray, w: np.ndarray) -> np.ndarray:
+            u, y, integ, m_prev = z
+            r, force, delta, nu = w
+            m = y + delta + nu
+            e = r - m
+            u_raw = (p.u_base_v + p.kp_v_per_mm * gain * e + integ
+                     + p.kd_v_s_per_mm * gain / dt * (m_prev - m))
+            u_new, y_new = self._integ.step(u, y, u_raw, force, slew=False)
+            return np.stack([u_new, y_new, integ + p.ki_v_per_mm_s * gain * dt * e, m])
+
+        return step
+
+    def _modes_for(self, gain: float) -> LinearModes | None:
+        if gain in self._modes:
+            self._modes.move_to_end(gain)
+            return self._modes[gain]
+        modes = modal_decomposition(self._linear_map(gain))
+        self._modes[gain] = modes
+        if len(self._modes) > _MODE_CACHE:
+            self._modes.popitem(last=False)
+        return modes
+
+    def _fast_block(self, ref: np.ndarray, noise_v: np.ndarray,
+                    rec: dict[str, np.ndarray] | None, offset: int) -> int:
+        """Integrate as many ticks as possible exactly; return how many were accepted."""
+        gains, group_of = np.unique(self._gain, return_inverse=True)
+        if gains.size > _MAX_FAST_GROUPS:
+            return 0
+        p = self.params
+        n_ticks, n = ref.shape
+        delta = self.sensor.calibration_residual_mm(self._y)
+        nu = noise_v * self.sensor.noise_gain_mm_per_v(self._y)
+        z0 = np.stack([self._u, self._y, self._i, self._m_prev])
+        z_next = np.empty((n_ticks, 4, n))
+        for gi, gain in enumerate(gains):
+            modes = self._modes_for(float(gain))
+            if modes is None:
+                return 0
+            idx = np.flatnonzero(group_of == gi)
+            z_next[:, :, idx] = propagate(modes, z0[:, idx], ref[:, idx], self._force[idx],
+                                          delta[idx], nu[:, idx])
+        z_seq = np.concatenate([z0[None], z_next[:-1]], axis=0)
+        u, y, integ, m_prev = z_seq[:, 0], z_seq[:, 1], z_seq[:, 2], z_seq[:, 3]
+        m = y + delta + nu
+        e = ref - m
+        gain_u = self._gain
+        u_raw = (p.u_base_v + p.kp_v_per_mm * gain_u * e + integ
+                 + p.kd_v_s_per_mm * gain_u / self._dt * (m_prev - m))
+        slope = (u_raw - u) / p.driver_time_constant_s
+        y_new = z_next[:, 1]
+        ok = ((u_raw >= p.u_base_v) & (u_raw <= self._u_limit)
+              & (slope <= p.slew_up_v_per_s) & (slope >= -p.slew_down_v_per_s)
+              & (y_new >= p.stop_low_mm) & (y_new <= p.stop_high_mm)
+              & (np.abs(y_new - self._y) <= _LINEARISATION_SPAN_MM)).all(axis=1)
+        bad = np.flatnonzero(~ok)
+        accepted = int(bad[0]) if bad.size else n_ticks
+        if accepted == 0:
+            return 0
+        last = z_next[accepted - 1]
+        self._u, self._y, self._i, self._m_prev = (last[0].copy(), last[1].copy(),
+                                                   last[2].copy(), last[3].copy())
+        self._u_cmd = u_raw[accepted - 1].copy()
+        self._sat = np.zeros(n, dtype=bool)
+        if rec is not None:
+            sl = slice(offset, offset + accepted)
+            rec["m"][sl], rec["y"][sl] = m[:accepted], y[:accepted]
+            rec["u"][sl], rec["r"][sl] = u[:accepted], ref[:accepted]
+        self._step += accepted
+        self.fast_ticks += accepted
+        return accepted
