@@ -56,13 +56,15 @@ class FrankaArm(Arm):
         try:
             import franky
         except ImportError as err:
-            raise DeviceInitError("the franka backend needs `pip install teletouch[franka]`") from err
+            raise DeviceInitError(
+                "the franka backend needs `pip install teletouch[franka]`") from err
         try:
             robot = franky.Robot(self.config.host)
             robot.recover_from_errors()
             robot.relative_dynamics_factor = self.config.relative_dynamics_factor
         except Exception as err:  # franky raises its own exception types
-            raise DeviceInitError(f"cannot connect to the Franka at {self.config.host}: {err}") from err
+            raise DeviceInitError(
+                f"cannot connect to the Franka at {self.config.host}: {err}") from err
         self._franky, self._robot = franky, robot
 
     def _disconnect(self) -> None:

@@ -3,7 +3,8 @@
 A 1 kHz loop moves the pad towards its target with a time-optimal braking profile
 (``v_des = min(v_max, sqrt(2 m a_max d), K_p d)`` along the line to the target, with a braking
 margin ``m`` < 1 that absorbs the jerk-limited ramp and a proportional gain ``K_p`` for the
-final, exponential approach), then limits acceleration and jerk. At every step the pad feels the phantom: the measured force is
+final, exponential approach), then limits acceleration and jerk. At every step the pad
+feels the phantom: the measured force is
 ``phantom.force_n(position)`` plus optional Gaussian noise.
 
 Time is injectable: with ``realtime=True`` a thread runs the loop against the wall clock;
@@ -165,7 +166,7 @@ class SimArm(Arm):
             raise ConfigError("advance() is for realtime=False; the loop thread is running")
         if not (math.isfinite(seconds) and seconds >= 0):
             raise ConfigError("advance: seconds must be finite and >= 0")
-        steps = int(round(seconds / self._dt))
+        steps = round(seconds / self._dt)
         with self._lock:
             for _ in range(steps):
                 self._step()

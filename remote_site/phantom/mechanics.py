@@ -28,8 +28,8 @@ from shared.errors import InputDataError
 __all__ = [
     "KPA_TO_N_PER_MM2",
     "depth_weight_integral",
-    "punch_stiffness_n_per_mm",
     "punch_modulus_kpa",
+    "punch_stiffness_n_per_mm",
     "thin_layer_correction",
 ]
 

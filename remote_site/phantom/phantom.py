@@ -181,7 +181,8 @@ def _check_pose(position_mm: Sequence[float]) -> tuple[float, float, float]:
     try:
         x, y, z = (float(v) for v in position_mm)
     except (TypeError, ValueError) as err:
-        raise InputDataError(f"pose must be three numbers (x, y, z) mm, got {position_mm!r}") from err
+        raise InputDataError(
+            f"pose must be three numbers (x, y, z) mm, got {position_mm!r}") from err
     if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
         raise InputDataError(f"pose must be finite, got {position_mm!r}")
     return x, y, z
@@ -270,7 +271,7 @@ class Phantom:
         xs = np.arange(-half_x, half_x + step / 2, step)
         ys = np.arange(-half_y, half_y + step / 2, step)
         modulus = self.column_modulus_kpa(xs, ys)
-        n = int(math.ceil(reach / step))
+        n = math.ceil(reach / step)
         k_off = np.arange(-n, n + 1) * step
         kernel = self.pad.weights(np.hypot(k_off[None, :], k_off[:, None]))
         mean_e = fftconvolve(modulus, kernel, mode="same") / kernel.sum()

@@ -73,7 +73,8 @@ class Tumor:
             raise ConfigError(f"tumor {self.tumor_id}: radius, modulus and boundary width > 0")
         if self.depth_mm < 0:
             raise ConfigError(f"tumor {self.tumor_id}: depth_mm must be >= 0")
-        if sum(abs(a) for _, a, _ in self.harmonics) >= 0.5 or not 0 <= self.surface_roughness < 0.5:
+        amp = sum(abs(a) for _, a, _ in self.harmonics)
+        if amp >= 0.5 or not 0 <= self.surface_roughness < 0.5:
             raise ConfigError(f"tumor {self.tumor_id}: perturbations must stay below 0.5")
 
     @property
