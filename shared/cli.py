@@ -26,10 +26,14 @@ __all__ = ["BENCHMARKS", "COMMANDS", "build_parser", "main"]
 COMMANDS: dict[str, tuple[str, str]] = {
     "relay": ("relay_server.cli", "run the cloud relay (WebSocket + TCP) with latency accounting"),
     "link": ("relay_server.linkemu_cli", "emulate a long-haul link (delay, jitter, loss, outages)"),
+    "sensor": ("remote_site.sensor_cli", "calibrate a GelSight-style sensor; reconstruct heights"),
 }
 
 #: ``teletouch bench NAME`` -> (module, one-line help)
-BENCHMARKS: dict[str, tuple[str, str]] = {}
+BENCHMARKS: dict[str, tuple[str, str]] = {
+    "relay": ("relay_server.bench", "relay added latency vs direct WebSocket, and throughput"),
+    "reconstruction": ("remote_site.reconstruction.bench_cli", "height-map time vs error"),
+}
 
 log = logging.getLogger(__name__)
 

@@ -203,9 +203,10 @@ def fit_calibration(background_rgb: np.ndarray, presses: Sequence[tuple[np.ndarr
     parts: list[tuple[np.ndarray, ...]] = []
     for frame, label in presses:
         validate_label(label, shape_hw, trim_px)
-        if (label.radius_px * mm_per_px) >= ball_radius_mm:
-            raise CalibrationError(f"{label.image}: contact radius {label.radius_px * mm_per_px:.3g}"
-                                   f" mm is not smaller than the ball radius {ball_radius_mm} mm")
+        contact_mm = label.radius_px * mm_per_px
+        if contact_mm >= ball_radius_mm:
+            raise CalibrationError(f"{label.image}: contact radius {contact_mm:.3g} mm is not "
+                                   f"smaller than the ball radius {ball_radius_mm} mm")
         image = validate_frame(frame, shape_hw, name=label.image)
         change = relative_change(image, background, blur_sigma_px)
         parts.append(_training_pixels(change, label, ball_radius_mm, mm_per_px, trim_px,

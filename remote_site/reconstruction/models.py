@@ -24,7 +24,8 @@ import numpy as np
 
 from shared.errors import CalibrationError
 
-__all__ = ["MAX_SLOPE", "GradientModel", "LutGradientModel", "PolyGradientModel", "model_from_arrays"]
+__all__ = ["MAX_SLOPE", "GradientModel", "LutGradientModel", "PolyGradientModel",
+           "model_from_arrays"]
 
 #: slopes are clipped to +-MAX_SLOPE (about 78 degrees): steeper is not observable in a gel
 MAX_SLOPE = 5.0

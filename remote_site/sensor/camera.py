@@ -32,7 +32,7 @@ GELSIGHT_MINI_MM_PER_PX = 0.0634
 
 
 class _Capture(Protocol):
-    def isOpened(self) -> bool: ...  # noqa: N802 - OpenCV's name
+    def isOpened(self) -> bool: ...
     def read(self) -> tuple[bool, Any]: ...
     def release(self) -> None: ...
 
@@ -118,8 +118,9 @@ class OpenCVCameraSensor(TactileSensor):
             time.sleep(0.002)
         if self._newest is None:
             self._disconnect()
+            reason = self.read_error or "no data"
             raise DeviceTimeoutError(f"camera {self.source!r} delivered no frame within "
-                                     f"{self.first_frame_timeout_s} s ({self.read_error or 'no data'})")
+                                     f"{self.first_frame_timeout_s} s ({reason})")
 
     def _reader(self) -> None:
         capture = self._capture
