@@ -84,6 +84,7 @@ __all__ = [
     "LATEST_WINS_TYPES",
     "LinkCounters",
     "StationLink",
+    "StationLinkConfig",
     "backoff_delay_s",
     "parse_link_url",
 ]
@@ -150,6 +151,36 @@ def parse_link_url(url: str) -> tuple[Scheme, str, int]:
             raise ConfigError(f"relay URL {url!r}: tcp:// needs a port")
         port = 443 if scheme == "wss" else 80
     return scheme, parts.hostname, port  # type: ignore[return-value]
+
+
+@dataclass(frozen=True)
+class StationLinkConfig:
+    """Link settings of a station: TOML table ``[local.link]`` / ``[remote.link]``.
+
+    Resolve with ``resolve_config(StationLinkConfig, "local.link", ...)``; the token then
+    comes best from ``TELETOUCH_LOCAL_LINK_TOKEN`` (an environment file), not the TOML.
+
+    Attributes:
+        url: relay URL (``ws://``, ``wss://`` or ``tcp://``).
+        session: session id shared by the two stations.
+        token: session token.
+        name: label shown in the relay's status.
+        reconnect_min_s: first reconnect delay.
+        reconnect_max_s: largest reconnect delay.
+        connect_timeout_s: limit for connect + hello -> welcome.
+        liveness_timeout_s: silence after which the connection is treated as dead.
+        max_message_bytes: size limit of one message.
+    """
+
+    url: str = "ws://127.0.0.1:8765/"
+    session: str = "lab1"
+    token: str = ""
+    name: str = ""
+    reconnect_min_s: float = 0.1
+    reconnect_max_s: float = 5.0
+    connect_timeout_s: float = 5.0
+    liveness_timeout_s: float = 5.0
+    max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
 
 
 @dataclass
@@ -403,6 +434,20 @@ class StationLink:
         self._closing = False
         self._ever_welcomed = False
         self._down_logged = False
+
+    @classmethod
+    def from_config(cls, config: StationLinkConfig, role: str, **overrides: Any) -> StationLink:
+        """Build a link from resolved settings (``overrides`` are extra constructor args).
+
+        Raises:
+            ConfigError: bad URL, role or setting.
+        """
+        return cls(config.url, session=config.session, role=role, token=config.token,
+                   name=config.name, reconnect_min_s=config.reconnect_min_s,
+                   reconnect_max_s=config.reconnect_max_s,
+                   connect_timeout_s=config.connect_timeout_s,
+                   liveness_timeout_s=config.liveness_timeout_s,
+                   max_message_bytes=config.max_message_bytes, **overrides)
 
     # ------------------------------------------------------------------ lifecycle
 
