@@ -1,7 +1,7 @@
 """Runs :class:`~local_site.display.firmware.ArrayTacFirmware` in real time on a link.
 
 :class:`FirmwareEmulator` is the drive board's main loop in a thread: it applies every frame
-as soon as it arrives, advances the plant on a fixed tick (1 ms by default) and sends the
+as soon as it arrives, advances the plant on a fixed tick (2 ms by default) and sends the
 feedback the firmware produces. The link is a :class:`FirmwareTransport`: the other end of
 a python-can bus (:class:`CanFirmwareTransport`) or of a pty (:class:`PtyFirmwareTransport`).
 """
@@ -135,7 +135,7 @@ class FirmwareEmulator:
     """
 
     def __init__(self, firmware: ArrayTacFirmware, transport: FirmwareTransport, *,
-                 tick_s: float = 0.001) -> None:
+                 tick_s: float = 0.002) -> None:
         self.firmware = firmware
         self.transport = transport
         self._tick_s = tick_s

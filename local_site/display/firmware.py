@@ -104,8 +104,13 @@ class ArrayTacFirmware:
     # ------------------------------------------------------------------ link side
 
     def receive(self, arb_id: int, payload: bytes, now_s: float) -> None:
-        """Handle one frame from the host at time ``now_s`` (seconds, any monotonic origin)."""
-        self._advance_to(now_s)
+        """Handle one frame from the host at time ``now_s`` (seconds, any monotonic origin).
+
+        Like the MCU, which latches a new command at its next control period, the plant sees
+        the new targets from the next :meth:`poll` on (latch delay <= one emulator tick).
+        """
+        if self._t0_s is None:
+            self._advance_to(now_s)
         try:
             if arb_id == fr.ARB_ID_COMMAND:
                 self._apply_command(fr.decode_command(payload), now_s)

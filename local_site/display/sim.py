@@ -72,7 +72,7 @@ class SimCanArrayTacDisplay(CanArrayTacDisplay):
 
     def __init__(self, *, plant: PlantLike | None = None,
                  plant_options: dict[str, Any] | None = None, feedback_rate_hz: float = 500.0,
-                 firmware_watchdog_ms: int = 100, tick_s: float = 0.001, **kwargs: Any) -> None:
+                 firmware_watchdog_ms: int = 100, tick_s: float = 0.002, **kwargs: Any) -> None:
         super().__init__(channel=f"arraytac-sim-{uuid.uuid4().hex[:12]}", interface="virtual",
                          **kwargs)
         self._board = _EmulatedBoard(plant, plant_options, feedback_rate_hz,
@@ -104,7 +104,7 @@ class SimSerialArrayTacDisplay(SerialArrayTacDisplay):
 
     def __init__(self, *, plant: PlantLike | None = None,
                  plant_options: dict[str, Any] | None = None, feedback_rate_hz: float = 500.0,
-                 firmware_watchdog_ms: int = 100, tick_s: float = 0.001, **kwargs: Any) -> None:
+                 firmware_watchdog_ms: int = 100, tick_s: float = 0.002, **kwargs: Any) -> None:
         super().__init__("pty://sim", **kwargs)
         self._board = _EmulatedBoard(plant, plant_options, feedback_rate_hz,
                                      firmware_watchdog_ms, tick_s)

@@ -259,6 +259,8 @@ class XYZPlatform(ABC):
             self._zero_counts = self._raw_counts
             self._zero_at_mm = at  # type: ignore[assignment]
             self._history.clear()
+            if self._latest is not None:  # the next read_state waits for a post-zero sample
+                self._last_read_seq = self._latest.seq
         log.info("%s zeroed at %s mm (counts %s)", self.name, at, self._zero_counts)
 
     def stats(self) -> PlatformStats:

@@ -1,0 +1,237 @@
+"""XYZ platform driver through the real byte protocol: loop:// and a pty pair."""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+import serial
+
+from local_site.devices import open_platform
+from local_site.platform.kinematics import PlatformGeometry, WrapUnwrapper
+from local_site.platform.motion import HoldMotion, WaypointMotion
+from local_site.platform.protocol import encode_sample_frame
+from local_site.platform.serial_board import SerialEncoderPlatform
+from local_site.platform.sim import SimulatedPlatform
+from local_site.platform.sim_board import SimulatedEncoderBoard
+from shared.errors import (
+    ConfigError,
+    DeviceInitError,
+    DeviceNotConnectedError,
+    DeviceOperationError,
+    DeviceTimeoutError,
+)
+from tests.support import scaled
+
+GEOMETRY = PlatformGeometry()
+RES_MM = max(abs(s) for s in GEOMETRY.mm_per_count)
+
+
+def _line(speed_mm_s: float = 10.0) -> WaypointMotion:
+    """x moves at ``speed`` from 10 mm for 3 s; y, z fixed."""
+    return WaypointMotion(np.array([0.0, 3.0]),
+                          np.array([[10.0, 20.0, 50.0], [10.0 + 3 * speed_mm_s, 20.0, 50.0]]))
+
+
+@pytest.fixture
+def loop_port() -> Iterator[serial.SerialBase]:
+    port = serial.serial_for_url("loop://", timeout=0.02)
+    yield port
+    port.close()
+
+
+def _expected_position(motion: WaypointMotion, board_t_us: int, t0_us: int = 0) -> np.ndarray:
+    return motion.sample(np.array([(board_t_us - t0_us) * 1e-6]))[0]
+
+
+def test_loop_reads_positions_of_the_motion_within_one_count(loop_port: serial.SerialBase) -> None:
+    motion = _line()
+    board = SimulatedEncoderBoard(motion, loop_port.write, sample_rate_hz=500)
+    platform = SerialEncoderPlatform("loop://", port=loop_port)
+    with board, platform:
+        samples = [platform.read_state(scaled(0.5)) for _ in range(50)]
+    for s in samples:
+        expected = _expected_position(motion, s.board_t_us)
+        assert np.max(np.abs(np.asarray(s.position_mm) - expected)) <= RES_MM
+    seqs = [s.seq for s in samples]
+    assert seqs == sorted(set(seqs))  # strictly increasing: each read is a newer sample
+    vx = np.median([s.velocity_mm_s[0] for s in samples[10:]])
+    assert vx == pytest.approx(10.0, abs=1.5)  # +-1 count over the 10 ms window
+    assert platform.board_info is not None and platform.board_info.pulses_per_rev == 1024
+
+
+def test_garbage_and_crc_errors_are_counted_and_skipped(loop_port: serial.SerialBase) -> None:
+    board = SimulatedEncoderBoard(HoldMotion((30.0, 30.0, 90.0)), loop_port.write,
+                                  sample_rate_hz=500)
+    platform = SerialEncoderPlatform("loop://", port=loop_port)
+    with board, platform:
+        platform.read_state(scaled(0.5))
+        corrupt = bytearray(encode_sample_frame(99, 0, (0, 0, 0)))
+        corrupt[-1] ^= 0x55
+        board.inject(b"\x00\x13\x37" * 10)      # 30 bytes of line noise
+        board.inject(bytes(corrupt))             # one frame with a bad CRC
+        deadline = time.monotonic() + scaled(2.0)
+        while platform.stats().crc_errors < 1 and time.monotonic() < deadline:
+            platform.read_state(scaled(0.5))
+        sample = platform.read_state(scaled(0.5))
+        stats = platform.stats()
+    assert stats.crc_errors == 1
+    assert stats.garbage_bytes >= 30 + 1
+    assert sample.position_mm == pytest.approx((30.0, 30.0, 90.0), abs=RES_MM)
+
+
+def test_counter_and_board_clock_wrap_around(loop_port: serial.SerialBase) -> None:
+    # hold 0.3 s at x = 10 mm (zeroed there), then x moves at 20 mm/s
+    motion = WaypointMotion(np.array([0.0, 0.3, 1.3]),
+                            np.array([[10.0, 20.0, 50.0], [10.0, 20.0, 50.0],
+                                      [30.0, 20.0, 50.0]]))
+    x0_counts = GEOMETRY.mm_to_counts((10.0, 0.0, 0.0))[0]
+    start = 2**31 - 200 - x0_counts  # x's raw counter crosses +2^31 after ~1.8 mm of travel
+    board = SimulatedEncoderBoard(motion, loop_port.write, sample_rate_hz=500,
+                                  initial_counts=(start, -(2**31) + 5, 0),
+                                  start_board_t_us=2**32 - 200_000, start_seq=2**32 - 50)
+    platform = SerialEncoderPlatform("loop://", port=loop_port)
+    with board, platform:
+        first = platform.read_state(scaled(0.5))
+        platform.zero(at_mm=(10.0, 20.0, 50.0))
+        first = platform.read_state(scaled(0.5))
+        samples = [platform.read_state(scaled(0.5)) for _ in range(300)]
+    assert samples[-1].board_t_us > 2**32  # the board clock wrapped and was unwrapped
+    assert samples[-1].seq > 2**32
+    for s in samples:
+        expected = _expected_position(motion, s.board_t_us, 2**32 - 200_000)
+        assert np.max(np.abs(np.asarray(s.position_mm) - expected)) <= 2 * RES_MM
+    assert first.position_mm[0] < 10.0 + 1.8 < samples[-1].position_mm[0]  # x crossed it
+
+
+def test_positions_are_clamped_to_the_workspace(loop_port: serial.SerialBase) -> None:
+    motion = WaypointMotion(np.array([0.0, 1.0]), np.array([[55.0, 30.0, 5.0],
+                                                            [75.0, 30.0, -10.0]]))
+    board = SimulatedEncoderBoard(motion, loop_port.write, sample_rate_hz=500)
+    platform = SerialEncoderPlatform("loop://", port=loop_port)
+    with board, platform:
+        deadline = time.monotonic() + scaled(3.0)
+        sample = platform.read_state(scaled(0.5))
+        while not sample.clamped and time.monotonic() < deadline:
+            sample = platform.read_state(scaled(0.5))
+        while sample.board_t_us < 1_000_000 and time.monotonic() < deadline:
+            sample = platform.read_state(scaled(0.5))
+        stats = platform.stats()
+    assert sample.clamped
+    assert sample.position_mm == pytest.approx((60.0, 30.0, 0.0), abs=RES_MM)
+    assert stats.samples_clamped > 0
+
+
+def test_zero_sets_the_current_pose_as_the_given_position(loop_port: serial.SerialBase) -> None:
+    board = SimulatedEncoderBoard(HoldMotion((12.0, 34.0, 56.0)), loop_port.write,
+                                  sample_rate_hz=500, initial_counts=(1000, -5000, 77))
+    platform = SerialEncoderPlatform("loop://", port=loop_port)
+    with board, platform:
+        platform.read_state(scaled(0.5))
+        platform.zero()
+        assert platform.read_state(scaled(0.5)).position_mm == pytest.approx((0.0, 0.0, 0.0))
+        platform.zero(at_mm=(30.0, 30.0, 100.0))
+        assert platform.read_state(scaled(0.5)).position_mm == \
+            pytest.approx((30.0, 30.0, 100.0))
+        with pytest.raises(ConfigError):
+            platform.zero(at_mm=(61.0, 0.0, 0.0))
+
+
+def test_silent_device_gives_init_error_then_timeout(loop_port: serial.SerialBase) -> None:
+    platform = SerialEncoderPlatform("loop://", port=loop_port, connect_timeout_s=0.2)
+    with pytest.raises(DeviceInitError, match="no valid frame"):
+        platform.connect()
+    board = SimulatedEncoderBoard(HoldMotion(), loop_port.write, sample_rate_hz=500)
+    with board:
+        platform.connect()  # retry works once the board talks
+        platform.read_state(scaled(0.5))
+    time.sleep(0.05)
+    while loop_port.in_waiting:  # let the reader drain what the board left
+        time.sleep(0.01)
+    with pytest.raises(DeviceTimeoutError, match="no new valid sample"):
+        platform.read_state(0.1)
+    platform.disconnect()
+    with pytest.raises(DeviceNotConnectedError):
+        platform.read_state(0.1)
+
+
+def test_pty_device_disappearing_is_reported_and_connect_retries() -> None:
+    platform = SimulatedPlatform(HoldMotion((20.0, 20.0, 20.0)))
+    platform.connect()
+    try:
+        assert platform.read_state(scaled(0.5)).position_mm == pytest.approx(
+            (20.0, 20.0, 20.0), abs=RES_MM)
+        platform.unplug()
+        with pytest.raises((DeviceOperationError, DeviceTimeoutError)) as info:
+            for _ in range(20):
+                platform.read_state(0.2)
+        assert "device" in str(info.value)
+        platform.connect()  # the station's retry: a fresh pty and board
+        assert platform.read_state(scaled(0.5)).position_mm == pytest.approx(
+            (20.0, 20.0, 20.0), abs=RES_MM)
+    finally:
+        platform.disconnect()
+
+
+def test_pty_raw_board_hangup_gives_operation_error() -> None:
+    master, slave = os.openpty()
+    import tty
+    tty.setraw(slave)
+    path = os.ttyname(slave)
+    board = SimulatedEncoderBoard(HoldMotion(), lambda b: os.write(master, b),
+                                  sample_rate_hz=500)
+    platform = SerialEncoderPlatform(path)
+    try:
+        with board:
+            platform.connect()
+            platform.read_state(scaled(0.5))
+        os.close(master)  # hang-up: the slave read fails with EIO
+        master = -1
+        with pytest.raises(DeviceOperationError, match="disappeared"):
+            for _ in range(20):
+                platform.read_state(0.2)
+    finally:
+        platform.disconnect()
+        os.close(slave)
+        if master >= 0:
+            os.close(master)
+
+
+def test_open_platform_sim_reads_at_board_rate() -> None:
+    with open_platform("sim", motion="random", motion_options={"seed": 3}) as platform:
+        platform.read_state(scaled(0.5))
+        t0 = time.perf_counter()
+        n = 0
+        while time.perf_counter() - t0 < 0.5:
+            platform.read_state(scaled(0.5))
+            n += 1
+        rate_hz = n / (time.perf_counter() - t0)
+        stats = platform.stats()
+    assert rate_hz >= 500 / max(1.0, scaled(1.0))
+    assert stats.crc_errors == 0 and stats.garbage_bytes == 0
+
+
+def test_open_platform_bad_url_is_init_error() -> None:
+    with pytest.raises(DeviceInitError):
+        open_platform("/dev/does-not-exist-teletouch")
+
+
+def test_unwrapper_against_python_ints() -> None:
+    rng = np.random.default_rng(1)
+    steps = rng.integers(-(2**30), 2**30, size=2000)
+    true = np.cumsum(steps, dtype=object) + (2**31 - 10)
+    unwrap = WrapUnwrapper(32, signed=True)
+    out = [unwrap.update(((int(v) + 2**31) % 2**32) - 2**31) for v in true]
+    assert out[-1] - out[0] == int(true[-1] - true[0])
+
+
+def test_geometry_resolution_matches_4096_counts_per_rev() -> None:
+    assert GEOMETRY.counts_per_rev == 4096
+    assert GEOMETRY.mm_per_count[0] == pytest.approx(math.pi * 12 / 4096)
+    assert GEOMETRY.mm_per_count[2] == pytest.approx(40 / 4096)
+    with pytest.raises(ConfigError):
+        PlatformGeometry(mm_per_rev=(1.0, float("nan"), 1.0))

@@ -1,0 +1,124 @@
+"""Operator motion sources: determinism, bounds, the raster script's geometry, replay files."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from local_site.platform.motion import (
+    HoldMotion,
+    MotionSource,
+    RandomWalk,
+    RasterSweep,
+    ReplayMotion,
+    WaypointMotion,
+    make_motion,
+)
+from shared.errors import ConfigError, InputDataError
+
+
+def test_raster_sweep_covers_the_area_with_presses_at_the_given_depth() -> None:
+    sweep = RasterSweep(origin_mm=(5.0, 10.0), size_mm=(20.0, 10.0), line_spacing_mm=5.0,
+                        speed_mm_s=10.0, hover_z_mm=50.0, press_depth_mm=2.0,
+                        press_spacing_mm=10.0, dwell_s=0.2, press_speed_mm_s=5.0,
+                        loop=False)
+    t = np.arange(0.0, sweep.duration_s + 0.5, 0.001)
+    xyz = sweep.sample(t)
+    assert xyz[:, 0].min() == pytest.approx(5.0) and xyz[:, 0].max() == pytest.approx(25.0)
+    assert xyz[:, 1].min() == pytest.approx(10.0) and xyz[:, 1].max() == pytest.approx(20.0)
+    assert xyz[:, 2].max() == pytest.approx(50.0) and xyz[:, 2].min() == pytest.approx(48.0)
+    # 3 lines x 2 presses; each press holds the bottom for dwell_s
+    bottom = xyz[:, 2] < 48.0 + 1e-9
+    starts = np.flatnonzero(np.diff(bottom.astype(int)) == 1)
+    assert len(starts) == 6
+    assert bottom.sum() * 0.001 == pytest.approx(6 * 0.2, abs=0.01)
+    # speed never exceeds the set one; z moves at the press speed
+    speed = np.linalg.norm(np.diff(xyz, axis=0), axis=1) / 0.001
+    assert speed.max() <= 10.0 + 1e-6
+    z_speed = np.abs(np.diff(xyz[:, 2])) / 0.001
+    assert z_speed.max() == pytest.approx(5.0, rel=1e-6)
+    # boustrophedon: the first line runs +x, the second -x
+    sweeping = t < sweep.duration_s - 1e-6  # before the final return to the start
+    on_line = lambda y: (np.abs(xyz[:, 1] - y) < 1e-9) & (xyz[:, 2] == 50.0) & sweeping  # noqa: E731
+    assert np.diff(xyz[on_line(10.0), 0]).min() >= 0
+    assert np.diff(xyz[on_line(15.0), 0]).max() <= 0
+    assert tuple(xyz[-1]) == pytest.approx((5.0, 10.0, 50.0))  # back at the start
+
+
+def test_raster_sweep_is_deterministic_and_loops() -> None:
+    a, b = RasterSweep(), RasterSweep()
+    t = np.linspace(0.0, 3 * a.duration_s, 5000)
+    np.testing.assert_array_equal(a.sample(t), b.sample(t))
+    np.testing.assert_allclose(a.sample(t[:100]), a.sample(t[:100] + a.duration_s), atol=1e-9)
+
+
+def test_raster_rejects_bad_parameters() -> None:
+    with pytest.raises(ConfigError):
+        RasterSweep(speed_mm_s=0.0)
+    with pytest.raises(ConfigError):
+        RasterSweep(line_spacing_mm=float("nan"))
+    with pytest.raises(ConfigError):
+        RasterSweep(hover_z_mm=1.0, press_depth_mm=2.0)
+    with pytest.raises(ConfigError):
+        RasterSweep(bogus=1)
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**31), t_max=st.floats(0.1, 30.0))
+def test_random_walk_stays_in_bounds_and_is_order_independent(seed: int, t_max: float) -> None:
+    t = np.linspace(0.0, t_max, 400)
+    forward = RandomWalk(seed).sample(t)
+    backward = RandomWalk(seed).sample(t[::-1])[::-1]
+    np.testing.assert_array_equal(forward, backward)
+    assert np.all(forward >= 2.0 - 1e-9)
+    assert np.all(forward <= np.array([58.0, 58.0, 183.0]) + 1e-9)
+    assert np.all(np.isfinite(forward))
+
+
+def test_random_walk_seeds_differ_and_move() -> None:
+    t = np.linspace(0, 5, 100)
+    a, b = RandomWalk(1).sample(t), RandomWalk(2).sample(t)
+    assert not np.allclose(a, b)
+    assert np.ptp(a[:, 0]) > 1.0
+
+
+@pytest.mark.parametrize("suffix", [".csv", ".npz"])
+def test_replay_round_trip(tmp_path: Path, suffix: str) -> None:
+    t = np.linspace(0.0, 2.0, 21)
+    pos = np.stack([10 + t, 20 - t, 50 + 0 * t], axis=1)
+    path = tmp_path / f"trajectory{suffix}"
+    ReplayMotion.save(path, t + 100.0, pos)  # times are shifted to start at 0
+    replay = make_motion(str(path))
+    assert isinstance(replay, ReplayMotion)
+    np.testing.assert_allclose(replay.sample(np.array([0.0, 1.0, 2.0, 9.0])),
+                               [[10, 20, 50], [11, 19, 50], [12, 18, 50], [12, 18, 50]],
+                               atol=1e-6)
+
+
+def test_replay_rejects_bad_files(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.csv"
+    bad.write_text("t,x,y\n0,1,2\n")
+    with pytest.raises(InputDataError):
+        ReplayMotion(bad)
+    unsorted = tmp_path / "unsorted.csv"
+    unsorted.write_text("t,x,y,z\n1,0,0,0\n0,0,0,0\n")
+    with pytest.raises(InputDataError):
+        ReplayMotion(unsorted)
+    with pytest.raises(InputDataError):
+        ReplayMotion(tmp_path / "missing.npz")
+    with pytest.raises(InputDataError):
+        WaypointMotion(np.array([0.0, 1.0]), np.array([[0, 0, 0], [np.nan, 0, 0]]))
+
+
+def test_make_motion_names() -> None:
+    assert isinstance(make_motion("raster"), RasterSweep)
+    assert isinstance(make_motion("random", seed=4), RandomWalk)
+    assert make_motion("hold", position_mm=(1.0, 2.0, 3.0)).position_mm(5.0) == (1.0, 2.0, 3.0)
+    src: MotionSource = HoldMotion()
+    assert make_motion(src) is src
+    with pytest.raises(ConfigError):
+        make_motion("nonsense")
