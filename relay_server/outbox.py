@@ -23,9 +23,12 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Protocol
 
-from shared.protocol import DataMessage, Message
+import msgpack
 
-__all__ = ["Link", "Outbox", "Pending", "run_writer"]
+from shared.protocol import PROTOCOL_VERSION, DataMessage, Message, frame
+from shared.protocol.messages import MAX_HOPS
+
+__all__ = ["Link", "Outbox", "Pending", "encode_forwarded", "run_writer"]
 
 log = logging.getLogger(__name__)
 
@@ -58,6 +61,7 @@ class Pending:
         on_send: accounting callback for forwarded messages, or None.
         build: for messages that must carry the time they are written (``clock_ping``):
             called with that time, returns the message to send instead of ``message``.
+        t_in_us: relay clock when a forwarded message arrived (its ``relay_in`` hop).
     """
 
     order: int
@@ -65,6 +69,24 @@ class Pending:
     forwarded: bool = False
     on_send: OnSend | None = None
     build: Callable[[int], Message] | None = None
+    t_in_us: int = 0
+
+
+def encode_forwarded(msg: DataMessage, t_in_us: int, t_out_us: int, tcp: bool) -> bytes:
+    """Encode a relayed message with its ``relay_in``/``relay_out`` hops appended.
+
+    The message was validated when it arrived, so this skips re-validation and builds the
+    wire map once (no intermediate message copies): the hot path of the relay.
+    """
+    wire = msg.to_wire()
+    hops = wire["hops"]
+    hops.append(["relay", "relay_in", t_in_us])
+    hops.append(["relay", "relay_out", t_out_us])
+    if len(hops) > MAX_HOPS:
+        wire["hops"] = hops[-MAX_HOPS:]
+    data: bytes = msgpack.packb({"v": PROTOCOL_VERSION, "type": msg.TYPE, **wire},
+                                use_bin_type=True)
+    return frame(data) if tcp else data
 
 
 class Outbox:
@@ -85,18 +107,18 @@ class Outbox:
     def __len__(self) -> int:
         return len(self._ordered) + len(self._slots)
 
-    def put_latest(self, key: str, message: DataMessage, on_send: OnSend | None = None
-                   ) -> Pending | None:
+    def put_latest(self, key: str, message: DataMessage, t_in_us: int,
+                   on_send: OnSend | None = None) -> Pending | None:
         """Put a forwarded ``message`` in slot ``key``; return the unsent entry it replaced."""
         self._counter += 1
         old = self._slots.get(key)
-        self._slots[key] = Pending(self._counter, message, True, on_send)
+        self._slots[key] = Pending(self._counter, message, True, on_send, None, t_in_us)
         self.wakeup.set()
         return old
 
     def put_ordered(self, message: Message, on_send: OnSend | None = None, *,
                     forwarded: bool = False, force: bool = False,
-                    build: Callable[[int], Message] | None = None) -> bool:
+                    build: Callable[[int], Message] | None = None, t_in_us: int = 0) -> bool:
         """Append to the ordered queue; False (nothing queued) when full.
 
         Args:
@@ -104,13 +126,15 @@ class Outbox:
             on_send: accounting callback.
             forwarded: a relayed data message (see :class:`Pending`).
             build: late-bound message factory (see :class:`Pending`).
+            t_in_us: arrival time of a forwarded message.
             force: queue even when full (for the relay's own rare control messages, such
                 as a fatal ``error`` before closing).
         """
         if len(self._ordered) >= self._limit and not force:
             return False
         self._counter += 1
-        self._ordered.append(Pending(self._counter, message, forwarded, on_send, build))
+        self._ordered.append(Pending(self._counter, message, forwarded, on_send, build,
+                                     t_in_us))
         self.wakeup.set()
         return True
 
@@ -127,6 +151,7 @@ class Outbox:
 
 
 async def run_writer(outbox: Outbox, link: Link, encode: Callable[[Message, bool], bytes],
+                     max_message_bytes: int,
                      stamp: Callable[[], int],
                      on_error: Callable[[BaseException], Awaitable[None]]) -> None:
     """Drain ``outbox`` to ``link`` until the outbox is closed and empty.
@@ -134,8 +159,10 @@ async def run_writer(outbox: Outbox, link: Link, encode: Callable[[Message, bool
     Args:
         outbox: the peer's outbox.
         link: its transport.
-        encode: (message, validate) -> framed bytes; forwarded messages are encoded with
-            ``validate=False`` (they were validated when received).
+        encode: (message, validate) -> framed bytes, for the relay's own messages;
+            forwarded ones go through :func:`encode_forwarded`.
+        max_message_bytes: a forwarded message that grew past this (two more hops) is
+            not sent (counted by ``on_send`` never being called; logged at debug).
         stamp: the relay clock (``now_us``).
         on_error: awaited once if writing fails (the peer is then dropped).
     """
@@ -148,19 +175,25 @@ async def run_writer(outbox: Outbox, link: Link, encode: Callable[[Message, bool
                     return
                 continue
             frames = []
+            tcp = link.framing == "tcp"
             for pending in batch:
                 msg = pending.message
                 if pending.forwarded and isinstance(msg, DataMessage):
                     t_out = stamp()
-                    msg = msg.with_hop("relay", "relay_out", t_out)
+                    data = encode_forwarded(msg, pending.t_in_us, t_out, tcp)
+                    if len(data) > max_message_bytes + 4:
+                        if log.isEnabledFor(logging.DEBUG):
+                            log.debug("forwarded %s too large after hops", msg.TYPE)
+                        continue
                     if pending.on_send is not None:
                         pending.on_send(pending, t_out)
-                    frames.append(encode(msg, False))
+                    frames.append(data)
                 elif pending.build is not None:
                     frames.append(encode(pending.build(stamp()), True))
                 else:
                     frames.append(encode(msg, True))
-            await link.write(frames)
+            if frames:
+                await link.write(frames)
             if outbox.closed and not len(outbox):
                 return
     except asyncio.CancelledError:

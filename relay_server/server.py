@@ -465,7 +465,8 @@ class _ConnContext:
         self.session, self.peer = self.relay._new_session_peer(hello, self.link)
         peer = self.peer
         self.writer = asyncio.create_task(
-            run_writer(peer.outbox, self.link, self._encode, now_us, self._writer_failed),
+            run_writer(peer.outbox, self.link, self._encode, self.cfg.max_message_bytes, now_us,
+                       self._writer_failed),
             name=f"relay-writer-{peer.peer_id}")
         peer.outbox.put_ordered(Welcome(
             session=hello.session, role=hello.role, server_time_us=now_us(),

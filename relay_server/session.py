@@ -204,14 +204,14 @@ class Session:
         else:
             sent_ref_us = round(sent_station_us - offset)
             ledger.record(msg.seq, sent_ref_us, t_in_us)
-        fwd = msg.with_hop("relay", "relay_in", t_in_us)
+        fwd = msg  # relay_in/relay_out hops are added when it is encoded for each receiver
         latest = stream in LATEST_WINS
         key = f"{direction.name}:{stream}"
         for obs in self.observers.values():
             if latest:
-                if obs.outbox.put_latest(key, fwd) is not None:
+                if obs.outbox.put_latest(key, fwd, t_in_us) is not None:
                     obs.observer_drops += 1
-            elif not obs.outbox.put_ordered(fwd, forwarded=True):
+            elif not obs.outbox.put_ordered(fwd, forwarded=True, t_in_us=t_in_us):
                 obs.observer_drops += 1
         receiver = self.stations.get(_OTHER[sender.role])
         if receiver is None:
@@ -229,9 +229,9 @@ class Session:
                 direction.end_to_end.record(None, sent_ref_us, round(t_out_us + down))
 
         if latest:
-            if receiver.outbox.put_latest(key, fwd, on_send) is not None:
+            if receiver.outbox.put_latest(key, fwd, t_in_us, on_send) is not None:
                 ledger.record_drop("latest_wins")
-        elif not receiver.outbox.put_ordered(fwd, on_send, forwarded=True):
+        elif not receiver.outbox.put_ordered(fwd, on_send, forwarded=True, t_in_us=t_in_us):
             ledger.record_drop("queue_full")
             ledger.set_queue_depth(len(receiver.outbox))
             return Error(code="queue_full", message=f"{stream} seq {msg.seq} refused: the "

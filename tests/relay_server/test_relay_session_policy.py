@@ -25,7 +25,7 @@ def test_latest_wins_replaces_unsent_and_counts_drops() -> None:
         assert session.route(local, msg, 1000 + seq) is None
     pending = remote.outbox.take()
     assert len(pending) == 1 and pending[0].message.seq == 9  # type: ignore[attr-defined]
-    assert [h.stage for h in pending[0].message.hops] == ["relay_in"]  # type: ignore[attr-defined]
+    assert pending[0].t_in_us == 1009 and pending[0].forwarded
     ledger = session.directions["local_to_remote"].uplink["platform_state"]
     assert ledger.dropped == {"latest_wins": 9}
     assert len(obs.outbox) == 1 and obs.observer_drops == 9
@@ -67,8 +67,26 @@ def test_no_peer_and_wrong_direction_and_role_taken() -> None:
 def test_ordered_and_latest_leave_in_arrival_order() -> None:
     box = Outbox(8)
     box.put_ordered(ArmCommand(seq=1, ts_us=0))
-    box.put_latest("p", PlatformState(seq=2, ts_us=0))
+    box.put_latest("p", PlatformState(seq=2, ts_us=0), 0)
     box.put_ordered(ArmCommand(seq=3, ts_us=0))
-    box.put_latest("p", PlatformState(seq=4, ts_us=0))  # replaces seq 2, takes its new place
+    box.put_latest("p", PlatformState(seq=4, ts_us=0), 0)  # replaces seq 2, takes its new place
     assert [p.message.seq for p in box.take()] == [1, 3, 4]  # type: ignore[attr-defined]
     assert len(box) == 0 and not box.wakeup.is_set()
+
+
+def test_encode_forwarded_appends_two_hops_and_keeps_the_hop_limit() -> None:
+    from relay_server.outbox import encode_forwarded
+    from shared.protocol import Hop, decode
+    from shared.protocol.framing import HEADER
+    from shared.protocol.messages import MAX_HOPS
+
+    msg = PlatformState(seq=5, ts_us=10, hops=(Hop("local", "send", 11),))
+    out = decode(encode_forwarded(msg, 20, 30, tcp=False))
+    assert out == PlatformState(seq=5, ts_us=10, hops=(Hop("local", "send", 11),
+                                                       Hop("relay", "relay_in", 20),
+                                                       Hop("relay", "relay_out", 30)))
+    framed = encode_forwarded(msg, 20, 30, tcp=True)
+    assert HEADER.unpack_from(framed)[0] == len(framed) - 4
+    full = PlatformState(seq=1, ts_us=1, hops=tuple(Hop("local", "s", i) for i in range(MAX_HOPS)))
+    hops = decode(encode_forwarded(full, 20, 30, tcp=False)).hops  # type: ignore[attr-defined]
+    assert len(hops) == MAX_HOPS and hops[-1] == Hop("relay", "relay_out", 30)
