@@ -113,4 +113,4 @@ def depth_weight_integral(z_mm: ArrayLike, radius_mm: float) -> NDArray[np.float
     a = float(radius_mm)
     z = np.maximum(np.asarray(z_mm, dtype=float), 0.0)
     r = np.sqrt(a * a + z * z)
-    return z - r - a * a / r + 2.0 * a
+    return 2.0 * a - a * a / (z + r) - a * a / r  # z - r = -a^2 / (z + r), no cancellation

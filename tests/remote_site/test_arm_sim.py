@@ -1,0 +1,162 @@
+"""Simulated arm: limits, convergence, clamping, phantom feel, registry, lifecycle."""
+
+from __future__ import annotations
+
+import importlib.util
+import time
+
+import numpy as np
+import pytest
+
+from remote_site.arm import ARM_BACKENDS, Arm, ArmLimits, arm_class, open_arm
+from remote_site.arm.sim import SimArm, SimArmConfig
+from remote_site.phantom import make_scene
+from shared.errors import ConfigError, DeviceInitError, DeviceNotConnectedError, InputDataError
+from tests.support import scaled
+
+PHANTOM = make_scene("breast", 1)
+
+
+def manual_arm(**kwargs: object) -> SimArm:
+    cfg = SimArmConfig(realtime=False, **kwargs)  # type: ignore[arg-type]
+    arm = SimArm(PHANTOM, cfg)
+    arm.connect()
+    return arm
+
+
+@pytest.mark.parametrize("target", [(10.0, 5.0, 2.0), (-40.0, 30.0, 10.0), (0.0, 0.0, -3.0),
+                                    (0.01, 0.0, 20.0)])
+def test_limits_hold_and_target_is_reached(target: tuple[float, float, float]) -> None:
+    arm = manual_arm()
+    cfg = arm.config
+    arm.move_to(target)
+    prev_acc = np.zeros(3)
+    for _ in range(1500):
+        arm.advance(0.001)
+        s = arm.state()
+        acc = np.array(arm.acceleration_mm_s2)
+        assert np.linalg.norm(s.velocity_mm_s) <= cfg.max_velocity_mm_s * (1 + 1e-9)
+        assert np.linalg.norm(acc) <= cfg.max_acceleration_mm_s2 * (1 + 1e-9)
+        assert np.linalg.norm(acc - prev_acc) / 0.001 <= cfg.max_jerk_mm_s3 * (1 + 1e-9)
+        prev_acc = acc
+    assert np.allclose(s.position_mm, target, atol=1e-3)
+    assert s.status == "ok"
+
+
+def test_no_large_overshoot_on_a_press() -> None:
+    arm = manual_arm()
+    arm.move_to((0.0, 0.0, -3.0))
+    zs = []
+    for _ in range(1500):
+        arm.advance(0.001)
+        zs.append(arm.state().position_mm[2])
+    assert min(zs) > -3.0 - 0.05
+
+
+def test_force_is_the_phantom_force_at_the_pose() -> None:
+    arm = manual_arm()
+    arm.move_to((3.0, -4.0, -2.0))
+    arm.advance(1.5)
+    s = arm.state()
+    assert s.force_n == pytest.approx(PHANTOM.force_n(s.position_mm))
+    assert s.force_n > 1.0
+    samples = arm.drain_samples()
+    assert samples.shape == (1500, 5)
+    assert np.all(np.diff(samples[:, 0]) > 0)
+    assert arm.drain_samples().shape == (0, 5)
+
+
+def test_force_noise_is_seeded() -> None:
+    forces = []
+    for _ in range(2):
+        arm = manual_arm(force_noise_n=0.02, seed=3)
+        arm.move_to((0.0, 0.0, -2.0))
+        arm.advance(1.0)
+        forces.append(arm.drain_samples()[:, 4])
+    np.testing.assert_array_equal(forces[0], forces[1])
+    tail = forces[0][-200:]
+    assert 0.01 < tail.std() < 0.03
+
+
+def test_targets_are_clamped_to_the_limits_and_validated() -> None:
+    arm = SimArm(PHANTOM, SimArmConfig(realtime=False),
+                 limits=ArmLimits((-10.0, -10.0, -2.0), (10.0, 10.0, 30.0), (0.0, 0.0, 5.0)))
+    with arm:
+        assert arm.move_to((50.0, -50.0, -9.0)) == (10.0, -10.0, -2.0)
+        with pytest.raises(InputDataError):
+            arm.move_to((0.0, float("nan"), 0.0))
+        with pytest.raises(InputDataError):
+            arm.move_to((1.0, 2.0))
+        assert arm.home() == (0.0, 0.0, 5.0)
+
+
+def test_stop_halts_and_holds() -> None:
+    arm = manual_arm()
+    arm.move_to((40.0, 0.0, 20.0))
+    arm.advance(0.1)
+    arm.stop()
+    arm.advance(0.5)
+    s1 = arm.state()
+    arm.advance(0.5)
+    s2 = arm.state()
+    assert s1.status == "halted" and s1.position_mm == s2.position_mm
+    assert s1.position_mm[0] < 40.0
+
+
+def test_not_connected_and_lifecycle() -> None:
+    arm = SimArm(PHANTOM, SimArmConfig(realtime=False))
+    with pytest.raises(DeviceNotConnectedError):
+        arm.state()
+    with arm:
+        assert arm.connected
+    assert not arm.connected
+    arm.disconnect()  # idempotent
+
+
+def test_realtime_thread_moves_the_arm() -> None:
+    arm = SimArm(PHANTOM, SimArmConfig(realtime=True))
+    with arm:
+        with pytest.raises(ConfigError):
+            arm.advance(0.1)
+        arm.move_to((0.0, 0.0, 15.0))
+        deadline = time.monotonic() + scaled(3.0)
+        while time.monotonic() < deadline and arm.state().status != "ok":
+            time.sleep(0.01)
+        assert arm.state().position_mm == pytest.approx((0.0, 0.0, 15.0), abs=1e-3)
+        assert arm.sim_time_s > 0.02
+    assert arm._thread is None
+
+
+def test_config_rejects_beyond_franka_limits() -> None:
+    with pytest.raises(ConfigError):
+        SimArmConfig(max_velocity_mm_s=5000.0)
+    with pytest.raises(ConfigError):
+        SimArmConfig(force_noise_n=-1.0)
+
+
+def test_registry() -> None:
+    assert arm_class("sim") is SimArm
+    assert arm_class("remote_site.arm.sim:SimArm") is SimArm
+    assert set(ARM_BACKENDS) >= {"sim", "franka"}
+    arm = open_arm("sim", phantom=PHANTOM, config=SimArmConfig(realtime=False))
+    assert isinstance(arm, Arm)
+    with pytest.raises(ConfigError):
+        arm_class("nope")
+    with pytest.raises(ConfigError):
+        arm_class("remote_site.arm.sim:SimArmConfig")
+    with pytest.raises(DeviceInitError):
+        arm_class("no_such_module_xyz:Arm")
+
+
+def test_franka_backend_without_franky() -> None:
+    if importlib.util.find_spec("franky") is not None:
+        pytest.skip("franky installed: needs a robot")
+    arm = open_arm("franka")
+    with pytest.raises(DeviceInitError):
+        arm.connect()
+
+
+def test_reading_to_wire_message() -> None:
+    arm = manual_arm()
+    msg = arm.state().to_message(seq=4, ts_us=123, source_seq=2)
+    assert msg.seq == 4 and msg.source_seq == 2 and msg.status == "ok"
