@@ -3,7 +3,9 @@
 Sources: "paper" is ``/work/shared/reference/arraytac-paper.md`` (ArrayTac, main text and
 supplement); "design" means derived from the paper's measured figures by
 :mod:`local_site.arraytac_sim.design` (the derivation is written out there); "assumed" means a
-plausible hardware value the paper does not give.
+plausible hardware value the paper does not give. The "design" defaults are the output of
+``design.derive_params()`` (rounded to 5 digits); ``tests/local_site/test_arraytac_sim_design.py``
+re-derives them.
 
 Coordinates: pin heights ``y`` are in mm at the end-effector (0 = retracted, 5 = full stroke);
 voltages in V across the piezo stack; forces in N at the pin tip. The no-load lever gain
@@ -74,14 +76,14 @@ class PlantParams:
     u_base_v: float = 15.0
     u_max_v: float = 150.0
     passive_stiffness_n_per_mm: float = 1.0
-    mech_time_constant_s: float = 0.010402
-    driver_time_constant_s: float = 2.6835e-4
+    mech_time_constant_s: float = 0.0104015
+    driver_time_constant_s: float = 2.7880e-4
     closed_loop_damping: float = 1.2
-    slew_up_v_per_s: float = 12_000.0
-    slew_down_v_per_s: float = 8_000.0
+    slew_up_v_per_s: float = 33_234.0
+    slew_down_v_per_s: float = 8_764.0
     control_rate_hz: float = 10_000.0
-    kp_v_per_mm: float = 181.4
-    ki_v_per_mm_s: float = 17_440.0
+    kp_v_per_mm: float = 174.88
+    ki_v_per_mm_s: float = 16_813.0
     kd_v_s_per_mm: float = 0.0
     penalty_exponent: float = 2.0
     k_min: float = 0.5

@@ -131,6 +131,8 @@ class ArrayTacPlant:
         self._t_req_s = 0.0
         self._force = np.zeros(n)
         self._override: np.ndarray | None = None
+        self._test = np.zeros((2, n))
+        self._test_units = np.flatnonzero(self._test[0] > 0.0)
         self._rng = np.random.default_rng(p.noise_seed)
         self.set_targets(np.zeros(n), np.ones(n) * p.k_max, np.zeros(n))
 
@@ -166,24 +168,49 @@ class ArrayTacPlant:
         """
         self._force = np.maximum(_as_unit_array("force_n", force_n, self.n_units), 0.0)
 
-    def set_drive_override(self, voltage_v: float | np.ndarray | None) -> None:
-        """Open-loop test mode: drive these voltages, bypassing PID and stiffness law.
+    def set_drive_override(self, voltage_v: float | np.ndarray | None,
+                           amplitude_v: float | np.ndarray = 0.0,
+                           frequency_hz: float | np.ndarray = 0.0) -> None:
+        """Open-loop test mode: drive ``voltage + amplitude sin(2 pi f t)``, bypassing the PID.
 
-        ``None`` returns to closed loop (the integrator restarts bumplessly from the current
-        voltage). Voltages clamp to ``[U_base, U_max]``.
+        Used to measure the open-loop response. ``None`` returns to closed loop (the integrator
+        restarts bumplessly from the current voltage). Drive voltages clamp to
+        ``[U_base, U_max]``.
 
         Raises:
-            InputDataError: NaN/Inf or wrong shape.
+            InputDataError: NaN/Inf, wrong shape or a negative frequency.
         """
+        p = self.params
         if voltage_v is None:
             if self._override is not None:
-                p = self.params
                 self._i = self._u_cmd - p.u_base_v
             self._override = None
             return
-        p = self.params
-        self._override = np.clip(_as_unit_array("voltage_v", voltage_v, self.n_units),
-                                 p.u_base_v, p.u_max_v)
+        n = self.n_units
+        freq = _as_unit_array("frequency_hz", frequency_hz, n)
+        if np.any(freq < 0):
+            raise InputDataError("frequency_hz must be >= 0")
+        self._override = np.stack([_as_unit_array("voltage_v", voltage_v, n),
+                                   _as_unit_array("amplitude_v", amplitude_v, n),
+                                   2.0 * math.pi * freq])
+
+    def set_test_signal(self, amplitude_mm: float | np.ndarray,
+                        frequency_hz: float | np.ndarray) -> None:
+        """Firmware sine test: superpose ``a sin(2 pi f t)`` on the height targets.
+
+        Unlike friction, the PID gains stay nominal; used for closed-loop frequency sweeps.
+        Zero amplitude switches it off.
+
+        Raises:
+            InputDataError: NaN/Inf, wrong shape or negative values.
+        """
+        n = self.n_units
+        amp = _as_unit_array("amplitude_mm", amplitude_mm, n)
+        freq = _as_unit_array("frequency_hz", frequency_hz, n)
+        if np.any(amp < 0) or np.any(freq < 0):
+            raise InputDataError("test-signal amplitude and frequency must be >= 0")
+        self._test = np.stack([amp, 2.0 * math.pi * freq])
+        self._test_units = np.flatnonzero(amp > 0.0)
 
     # ------------------------------------------------------------------ state
     @property
@@ -239,12 +266,16 @@ class ArrayTacPlant:
 
     def _reference(self, k0: int, n_ticks: int) -> np.ndarray:
         ref = np.broadcast_to(self._height, (n_ticks, self.n_units)).copy()
-        if self._vib.size:  # friction on: synthesise the vibration only where f > 0
-            v = self._vib
+        if self._vib.size or self._test_units.size:
             t = (k0 + np.arange(n_ticks))[:, None] * self._dt
-            ref[:, v] += self._amp[v] * np.sin(self._omega[v] * t)
+            if self._vib.size:  # friction on: synthesise the vibration only where f > 0
+                v = self._vib
+                ref[:, v] += self._amp[v] * np.sin(self._omega[v] * t)
+                self.vibration_ticks += n_ticks
+            if self._test_units.size:
+                v = self._test_units
+                ref[:, v] += self._test[0, v] * np.sin(self._test[1, v] * t)
             np.clip(ref, 0.0, self.params.stroke_mm, out=ref)
-            self.vibration_ticks += n_ticks
         return ref
 
     def _run(self, n_ticks: int, record: bool) -> PlantTrace | None:
@@ -313,7 +344,9 @@ class ArrayTacPlant:
                     base = np.maximum(1.0 - a * np.maximum(e, 0.0) / ylim, 0.0)
                     u_cmd = np.where(sat, (ulim - ub) * base ** expo + ub, u_cmd)
             else:
-                u_cmd = override
+                t = (self._step + j) * dt
+                u_cmd = np.clip(override[0] + override[1] * np.sin(override[2] * t),
+                                ub, p.u_max_v)
                 sat = np.zeros(self.n_units, dtype=bool)
             u, y = self._integ.step(u, y, u_cmd, force)
             m_prev = m
