@@ -25,6 +25,7 @@ __all__ = ["BENCHMARKS", "COMMANDS", "build_parser", "main"]
 #: subcommand -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "relay": ("relay_server.cli", "run the cloud relay (WebSocket + TCP) with latency accounting"),
+    "display": ("local_site.display_cli", "ArrayTac display tools (characterize the simulator)"),
     "link": ("relay_server.linkemu_cli", "emulate a long-haul link (delay, jitter, loss, outages)"),
     "sensor": ("remote_site.sensor_cli", "calibrate a GelSight-style sensor; reconstruct heights"),
 }
