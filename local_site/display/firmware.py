@@ -146,6 +146,10 @@ class ArrayTacFirmware:
         position = np.asarray(self.plant.position_mm, dtype=float)
         voltage = np.asarray(self.plant.drive_voltage_v, dtype=float)
         saturated = np.asarray(self.plant.saturated, dtype=bool)
+        if not (np.all(np.isfinite(position)) and np.all(np.isfinite(voltage))):
+            self._fault_since_feedback = True  # never put NaN on the wire: report 0 + fault
+            position = np.nan_to_num(position, nan=0.0, posinf=0.0, neginf=0.0)
+            voltage = np.nan_to_num(voltage, nan=0.0, posinf=0.0, neginf=0.0)
         status = ((fr.STATUS_SAFE_STATE if self.safe_state else 0)
                   | (fr.STATUS_WATCHDOG_TRIPPED if self.watchdog_tripped else 0)
                   | (fr.STATUS_SAFE_HOLD if self.safe_state and self.safe_hold else 0)

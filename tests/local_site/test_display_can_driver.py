@@ -1,0 +1,161 @@
+"""ArrayTac CAN FD driver on the python-can virtual bus, a raw bus playing the board."""
+
+from __future__ import annotations
+
+import time
+import uuid
+from collections.abc import Iterator
+
+import can
+import numpy as np
+import pytest
+
+from local_site.devices import open_display, parse_display_spec
+from local_site.display import frames as fr
+from local_site.display.can_link import CanArrayTacDisplay
+from shared.errors import ConfigError, DeviceNotConnectedError, InputDataError
+from tests.support import scaled
+
+
+@pytest.fixture
+def link() -> Iterator[tuple[CanArrayTacDisplay, can.BusABC]]:
+    channel = f"test-{uuid.uuid4().hex}"
+    board = can.Bus(interface="virtual", channel=channel, fd=True)
+    display = CanArrayTacDisplay(channel, interface="virtual", require_feedback=False,
+                                 keepalive_interval_s=0.05, disconnect_mode=None)
+    display.connect()
+    yield display, board
+    display.disconnect()
+    board.shutdown()
+
+
+def _frames(board: can.BusABC, timeout_s: float = 0.05) -> list[can.Message]:
+    out = []
+    while (msg := board.recv(timeout=timeout_s)) is not None:
+        out.append(msg)
+    return out
+
+
+def test_command_frame_bytes_are_exactly_as_documented(link) -> None:  # type: ignore[no-untyped-def]
+    display, board = link
+    pins = np.arange(16)
+    applied = display.send_command((pins * 0.3125).reshape(4, 4), 1.0 - pins * 0.02, pins * 0.02)
+    (msg,) = _frames(board)
+    assert msg.arbitration_id == fr.ARB_ID_COMMAND and msg.is_fd and not msg.is_extended_id
+    assert len(msg.data) == 64
+    frame = fr.decode_command(bytes(msg.data))
+    expected = fr.encode_command(fr.CommandFrame(
+        seq=applied.seq, flags=0, height_codes=(pins * 250).astype(np.uint16),
+        k_codes=(250 - pins * 10).astype(np.uint16), f_codes=(pins * 5).astype(np.uint16),
+        watchdog_ms=100))
+    assert bytes(msg.data) == expected
+    assert frame.seq == applied.seq == 1
+    np.testing.assert_allclose(applied.height_mm, pins * 0.3125)
+
+
+def test_clamped_command_is_returned_as_applied(link) -> None:  # type: ignore[no-untyped-def]
+    display, board = link
+    applied = display.send_command(np.linspace(-1.0, 7.0, 16), 0.2, 1.7)
+    assert applied.clamped and applied.sent
+    assert applied.height_mm.min() == 0.0 and applied.height_mm.max() == 5.0
+    np.testing.assert_allclose(applied.stiffness_k, 0.5)
+    np.testing.assert_allclose(applied.friction, 1.0)
+    (msg,) = _frames(board)
+    wire = fr.decode_command(bytes(msg.data))
+    np.testing.assert_allclose(wire.height_mm, applied.height_mm)
+    np.testing.assert_allclose(wire.stiffness_k, applied.stiffness_k)
+    # quantisation is part of "applied": 1.2345 mm -> 1.235 (a 1.25 um multiple)
+    applied = display.send_command(1.2345)
+    assert applied.height_mm[0] == pytest.approx(1.235) and not applied.clamped
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
+def test_non_finite_input_is_rejected_and_nothing_sent(link, bad: float) -> None:  # type: ignore[no-untyped-def]
+    display, board = link
+    height = np.full(16, 1.0)
+    height[5] = bad
+    with pytest.raises(InputDataError, match="pin"):
+        display.send_command(height)
+    with pytest.raises(InputDataError):
+        display.send_command(1.0, friction=np.full((4, 4), bad))
+    with pytest.raises(InputDataError, match="shape"):
+        display.send_command(np.ones(15))
+    assert _frames(board) == []
+    assert display.stats().rejected_inputs == 3 and display.stats().frames_sent == 0
+
+
+def test_unchanged_commands_are_skipped_then_kept_alive(link) -> None:  # type: ignore[no-untyped-def]
+    display, board = link
+    first = display.send_command(2.0, 0.8, 0.1)
+    skipped = [display.send_command(2.0, 0.8, 0.1) for _ in range(20)]
+    assert first.sent and not any(s.sent for s in skipped)
+    assert len(_frames(board, 0.01)) == 1
+    time.sleep(0.06)  # past the 50 ms keepalive interval
+    kept = display.send_command(2.0 + 1e-5, 0.8, 0.1)  # same after quantisation
+    assert kept.sent and kept.keepalive
+    (msg,) = _frames(board, 0.01)
+    assert fr.decode_command(bytes(msg.data)).flags & fr.FLAG_KEEPALIVE
+    changed = display.send_command(2.5, 0.8, 0.1)
+    assert changed.sent and not changed.keepalive
+    stats = display.stats()
+    assert (stats.skipped_unchanged, stats.keepalives, stats.frames_sent) == (20, 1, 3)
+
+
+def test_safe_state_frame_and_forced_resend(link) -> None:  # type: ignore[no-untyped-def]
+    display, board = link
+    display.send_command(3.0)
+    display.safe_state("hold")
+    after = display.send_command(3.0)  # unchanged, but the board is parked: must go out
+    msgs = _frames(board)
+    assert [m.arbitration_id for m in msgs] == [fr.ARB_ID_COMMAND, fr.ARB_ID_SAFE_STATE,
+                                                fr.ARB_ID_COMMAND]
+    assert len(msgs[1].data) == 8
+    assert fr.decode_safe_state(bytes(msgs[1].data)) == fr.SafeStateFrame(fr.SAFE_HOLD, 2)
+    assert after.sent and after.seq == 3
+    with pytest.raises(ConfigError):
+        display.safe_state("limp")  # type: ignore[arg-type]
+
+
+def test_feedback_is_decoded(link) -> None:  # type: ignore[no-untyped-def]
+    display, board = link
+    pins = np.arange(16)
+    payload = fr.encode_feedback(fr.FeedbackFrame(
+        status=fr.STATUS_SAFE_STATE | fr.STATUS_WATCHDOG_TRIPPED, seq_echo=7, board_t_us=99,
+        position_codes=(pins * 100).astype(np.uint16), saturated_mask=0b101,
+        commands_rejected=3, watchdog_trips=1, voltage_codes=(pins * 20).astype(np.uint16)))
+    board.send(can.Message(arbitration_id=fr.ARB_ID_FEEDBACK, data=payload, is_fd=True,
+                           is_extended_id=False))
+    board.send(can.Message(arbitration_id=fr.ARB_ID_FEEDBACK, data=b"\x21" * 64, is_fd=True,
+                           is_extended_id=False))  # corrupt: counted, ignored
+    fb = display.read_feedback(timeout_s=scaled(1.0))
+    np.testing.assert_allclose(fb.position_mm, pins * 0.125)
+    assert fb.saturated.tolist()[:4] == [True, False, True, False]
+    assert fb.safe_state and fb.watchdog_tripped and fb.seq_echo == 7
+    np.testing.assert_allclose(fb.drive_voltage_v, pins * 1.0)
+    deadline = time.monotonic() + scaled(1.0)
+    while display.stats().bad_frames < 1 and time.monotonic() < deadline:
+        time.sleep(0.005)
+    assert display.stats().bad_frames == 1 and display.stats().feedback_frames == 1
+
+
+def test_not_connected_and_config_errors() -> None:
+    display = CanArrayTacDisplay("nowhere", interface="virtual", require_feedback=False)
+    with pytest.raises(DeviceNotConnectedError):
+        display.send_command(1.0)
+    with pytest.raises(ConfigError):
+        CanArrayTacDisplay("x", interface="virtual", keepalive_interval_s=0.2, watchdog_ms=100)
+
+
+def test_display_specs_parse() -> None:
+    assert parse_display_spec("sim") == ("sim", {})
+    assert parse_display_spec("can://socketcan/can0") == \
+        ("can", {"interface": "socketcan", "channel": "can0"})
+    assert parse_display_spec("virtual:bench") == \
+        ("can", {"interface": "virtual", "channel": "bench"})
+    assert parse_display_spec("/dev/ttyACM0") == ("serial", {"url": "/dev/ttyACM0"})
+    assert parse_display_spec("socket://10.0.0.2:5000") == \
+        ("serial", {"url": "socket://10.0.0.2:5000"})
+    with pytest.raises(ConfigError):
+        parse_display_spec("bogus")
+    with pytest.raises(ConfigError):
+        open_display("sim", bogus_option=1)
