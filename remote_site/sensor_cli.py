@@ -32,7 +32,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     cal.add_argument("--out", required=True, help="calibration file to write (.npz)")
     cal.add_argument("--model", choices=["poly", "lut"], default="poly",
                      help="poly: position-aware polynomial (default); lut: lookup table")
-    cal.add_argument("--degree", type=int, default=3, help="polynomial degree (default 3)")
+    cal.add_argument("--degree", type=int, default=5, help="polynomial degree (default 5)")
     cal.add_argument("--trim-px", type=float, default=4.0,
                      help="pixels trimmed off each labelled radius (default 4, as gs_sdk)")
     cal.add_argument("--json", action="store_true", help="print a JSON summary")
@@ -43,7 +43,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                      help="fresh no-contact frame (default: the calibration's background)")
     rec.add_argument("frames", nargs="+", help="frames (PNG) to reconstruct")
     rec.add_argument("--out", required=True, help="output .npz, one array per frame")
-    rec.add_argument("--solver", choices=["dct", "dst", "fft"], default="dct")
+    rec.add_argument("--solver", choices=["dct", "dst", "fft"], default="dst")
     rec.add_argument("--out-pitch-mm", type=float, default=None,
                      help="coarser output grid pitch (default: full resolution)")
     rec.add_argument("--json", action="store_true", help="print a JSON summary")

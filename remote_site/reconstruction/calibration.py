@@ -156,7 +156,7 @@ def _training_pixels(change: np.ndarray, label: BallLabel, ball_radius_mm: float
 def fit_calibration(background_rgb: np.ndarray, presses: Sequence[tuple[np.ndarray, BallLabel]],
                     ball_diameter_mm: float, mm_per_px: float, *, model: str = "poly",
                     trim_px: float = 4.0, far_factor: float = 2.0, far_fraction: float = 0.03,
-                    blur_sigma_px: float = 1.0, degree: int = 3, bins: int = 32,
+                    blur_sigma_px: float = 1.0, degree: int = 5, bins: int = 32,
                     seed: int = 0) -> Calibration:
     """Fit a calibration from a background frame and labelled ball presses.
 
@@ -170,7 +170,8 @@ def fit_calibration(background_rgb: np.ndarray, presses: Sequence[tuple[np.ndarr
         far_factor: pixels beyond this many contact radii are used as flat gel.
         far_fraction: fraction of those flat pixels used.
         blur_sigma_px: smoothing of the colour change (also used at reconstruction).
-        degree: polynomial degree (``poly``).
+        degree: polynomial degree (``poly``); 5 by measurement on the real GelSight Mini
+            data (the only degree meeting all three accuracy targets; see the benchmark).
         bins: cells per channel (``lut``).
         seed: random seed for the flat-pixel sampling.
 

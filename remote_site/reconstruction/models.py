@@ -137,12 +137,12 @@ class PolyGradientModel(GradientModel):
             **options: int) -> PolyGradientModel:
         """Least-squares fit (small ridge term for conditioning).
 
-        Options: ``degree`` (default 3), ``use_position`` (default 1).
+        Options: ``degree`` (default 5), ``use_position`` (default 1).
 
         Raises:
             CalibrationError: fewer training pixels than terms, or a singular fit.
         """
-        degree = int(options.get("degree", 3))
+        degree = int(options.get("degree", 5))
         use_position = bool(options.get("use_position", 1))
         v = cls._variables(change, x, y, use_position).astype(np.float64)
         scale = np.maximum(np.percentile(np.abs(v), 99, axis=0), 1e-6)

@@ -40,7 +40,8 @@ class ReconstructionSettings:
     """Knobs of the reconstruction (defaults chosen on the real GelSight Mini data).
 
     Attributes:
-        solver: Poisson solver, ``"dct"`` (Neumann), ``"dst"`` (Dirichlet) or ``"fft"``.
+        solver: Poisson solver, ``"dst"`` (Dirichlet, default: flattest far field on the
+            real data), ``"dct"`` (Neumann) or ``"fft"`` (periodic).
         zero_level: ``"plane"`` (default), ``"median"`` or ``"none"``.
         contact_threshold_mm: heights above this are in the contact mask.
         zero_exclusion_mm: dilation of the raised region excluded from the zero-level fit.
@@ -50,11 +51,11 @@ class ReconstructionSettings:
         pool: ``"change"`` (pool colour change before the model, fastest) or ``"slopes"``.
     """
 
-    solver: str = "dct"
+    solver: str = "dst"
     zero_level: str = "plane"
     contact_threshold_mm: float = 0.03
     zero_exclusion_mm: float = 1.0
-    dead_zone_sigmas: float = 2.5
+    dead_zone_sigmas: float = 4.0
     contact_evidence_sigmas: float = 6.0
     min_contact_area_mm2: float = 0.1
     pool: str = "change"

@@ -1,0 +1,61 @@
+"""Write ``labels.csv`` for a split of the GelSight Mini ball-press set (team kit data).
+
+The kit stores each press's hand-labelled contact circle as ``press_XX_label.npz`` (gs_sdk
+format: ``center`` = [x (column), y (row)] px, ``radius`` px) and the author's 40/11 split
+in ``train_test_split.json`` (entries ``9.470mm/<i>`` -> ``press_<ii>.png``). This helper
+converts one split to the CLI's ``labels.csv`` (image,center_x,center_y,radius_px), so the
+calibration is run exactly as a user would::
+
+    python benchmarks/gelsight_labels.py --split train --out /tmp/labels_train.csv
+    teletouch sensor calibrate --background $D/background.png --images $D \\
+        --labels /tmp/labels_train.csv --ball-diameter-mm 9.47 --mm-per-px 0.0634 \\
+        --out /tmp/calib.npz
+
+with ``D=/work/shared/data/gelsight/gsmini_ball_9.47mm``. Radii are written as labelled
+(untrimmed); the calibration trims ``--trim-px`` itself.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from remote_site.reconstruction.labels import (  # noqa: E402
+    BallLabel,
+    labels_from_npz,
+    write_labels_csv,
+)
+
+DEFAULT_DATA = Path("/work/shared/data/gelsight/gsmini_ball_9.47mm")
+
+
+def split_names(data_dir: Path, split: str) -> list[str]:
+    """Image file names of ``split`` ("train" or "test"), in the split file's order."""
+    entries = json.loads((data_dir / "train_test_split.json").read_text())[split]
+    return [f"press_{int(entry.rsplit('/', 1)[1]):02d}.png" for entry in entries]
+
+
+def split_labels(data_dir: Path, split: str) -> list[BallLabel]:
+    """Labels of one split, read from the ``_label.npz`` files."""
+    return labels_from_npz(data_dir, split_names(data_dir, split))
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Command-line entry: write labels.csv for one split."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
+    parser.add_argument("--split", choices=["train", "test"], default="train")
+    parser.add_argument("--out", type=Path, required=True)
+    args = parser.parse_args(argv)
+    write_labels_csv(args.out, split_labels(args.data, args.split))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
