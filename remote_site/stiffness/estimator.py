@@ -115,7 +115,10 @@ def compensate_gel(k_measured_n_per_mm: float, gel_stiffness_n_per_mm: float,
         raise InputDataError("measured stiffness must be finite and >= 0")
     if k_measured_n_per_mm == 0.0:
         return 0.0, False
-    inv = 1.0 / k_measured_n_per_mm - 1.0 / gel_stiffness_n_per_mm
+    inv_meas = 1.0 / k_measured_n_per_mm
+    if not math.isfinite(inv_meas):  # subnormal stiffness: the gel's share is negligible
+        return k_measured_n_per_mm, False
+    inv = inv_meas - 1.0 / gel_stiffness_n_per_mm
     if inv <= 1.0 / max_stiffness_n_per_mm:
         return max_stiffness_n_per_mm, True
     return 1.0 / inv, False
@@ -175,6 +178,8 @@ def estimate_press(approach_mm: ArrayLike, force_n: ArrayLike,
         use = touching & (depth >= max(cfg.min_depth_mm, 1e-9))
         if np.count_nonzero(use) < cfg.min_samples:
             return StiffnessEstimate(False, "too_shallow", method=method)
+        if fit_ols(a[use], f[use])[0] <= 0:  # force must rise with depth to be loading
+            return StiffnessEstimate(False, "not_loading", method=method)
         k_meas = float(np.median(f[use] / depth[use]))
         resid = f[use] - k_meas * depth[use]
         return _finish(cfg, k_meas, a_first, float(depth.max()), int(np.count_nonzero(use)),
