@@ -282,7 +282,8 @@ async def test_websocket_round_trip_through_the_proxy() -> None:
                     assert await ws.recv() == bytes([i]) * 100
                     rtts.append((loop.time() - t0) * 1000.0)
             stats = emu.stats()
-    assert float(np.median(rtts)) == pytest.approx(30.0, abs=scaled(3.0))
+    # 2 x 15 ms; never faster, and late only by timer ticks and scheduling on a busy host
+    assert 29.0 <= float(np.median(rtts)) <= 30.0 + scaled(6.0)
     assert stats["up"]["chunks"] >= 11 and stats["down"]["chunks"] >= 11
 
 
