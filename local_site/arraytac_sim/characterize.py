@@ -183,7 +183,7 @@ def measure_step(params: PlantParams | None = None, low_mm: float = 1.0, high_mm
 # ---------------------------------------------------------------------------- frequency
 def _linear_transfer(plant: ArrayTacPlant) -> tuple[Any, Any]:
     """Exact discrete transfer functions: closed loop r -> y and open loop u -> y."""
-    modes = modal_decomposition(plant._linear_map(1.0))  # noqa: SLF001 - same package
+    modes = modal_decomposition(plant._linear_map(1.0))
     if modes is None:
         raise NumericalError("closed loop is defective; cannot evaluate its transfer function")
     phi_cl, gam_cl = modes.phi, modes.gamma[:, 0]
@@ -191,7 +191,7 @@ def _linear_transfer(plant: ArrayTacPlant) -> tuple[Any, Any]:
     zero = np.zeros(3)
 
     def plant_step(x: np.ndarray) -> np.ndarray:
-        u, y = plant._integ.step(x[0], x[1], x[2], zero, slew=False)  # noqa: SLF001
+        u, y = plant._integ.step(x[0], x[1], x[2], zero, slew=False)
         return np.stack([u, y])
 
     c0 = plant_step(np.zeros((3, 3)))[:, 0]

@@ -10,7 +10,8 @@ Targets (paper, Fig. 2D-F): open-loop bandwidth 15.29 Hz, closed-loop bandwidth 
    ``L = a / (s (tau_d s + 1))`` with ``a = Kp g / tau_m``, and the closed loop is
    ``wn^2 / (s^2 + 2 zeta wn s + wn^2)`` with ``wn^2 = a / tau_d``, ``2 zeta wn = 1 / tau_d``.
    Its phase is -90 deg at ``wn``; its -3 dB frequency is
-   ``w3 = wn sqrt(1 - 2 zeta^2 + sqrt((1 - 2 zeta^2)^2 + 1))``, below ``wn`` for
+   ``w3 = wn sqrt(1 - 2 zeta^2 + sqrt((1 - 2 zeta^2)^2 + 1))``, below ``wn``
+   for
    ``zeta > 1/sqrt(2)``, so the bandwidth is ``w3``. Choosing ``zeta`` (> 1: overdamped, no
    overshoot) gives ``wn = 2 pi f_cl / h(zeta)``, ``tau_d = 1 / (2 zeta wn)``, ``a = wn / (2 zeta)``.
 3. **Open loop**: ``|G(jw)/G(0)|^2 = 1/2`` at ``w_o = 2 pi f_ol``:

@@ -173,5 +173,6 @@ def make_integrator(name: str, params: PlantParams, substeps: int = 1) -> PlantI
     try:
         cls = INTEGRATORS[name]
     except KeyError as err:
-        raise ConfigError(f"unknown integrator {name!r}; choose from {sorted(INTEGRATORS)}") from err
+        raise ConfigError(
+            f"unknown integrator {name!r}; choose from {sorted(INTEGRATORS)}") from err
     return cls(params, substeps)

@@ -255,14 +255,14 @@ class ArrayTacPlant:
     def run(self, duration_s: float) -> PlantTrace:
         """Like :meth:`advance`, returning the per-tick trace."""
         trace = self._run(self._ticks_for(duration_s), record=True)
-        assert trace is not None  # noqa: S101 - record=True always returns a trace
+        assert trace is not None
         return trace
 
     def _ticks_for(self, duration_s: float) -> int:
         if not (math.isfinite(duration_s) and duration_s >= 0.0):
             raise InputDataError(f"duration_s must be finite and >= 0, got {duration_s}")
         self._t_req_s += duration_s
-        return max(int(round(self._t_req_s * self.params.control_rate_hz)) - self._step, 0)
+        return max(round(self._t_req_s * self.params.control_rate_hz) - self._step, 0)
 
     def _reference(self, k0: int, n_ticks: int) -> np.ndarray:
         ref = np.broadcast_to(self._height, (n_ticks, self.n_units)).copy()
@@ -280,10 +280,7 @@ class ArrayTacPlant:
 
     def _run(self, n_ticks: int, record: bool) -> PlantTrace | None:
         n = self.n_units
-        if record:
-            rec = {name: np.empty((n_ticks, n)) for name in ("m", "y", "u", "r")}
-        else:
-            rec = None
+        rec = {name: np.empty((n_ticks, n)) for name in ("m", "y", "u", "r")} if record else None
         if n_ticks == 0:
             return self._trace(rec, 0) if record else None
         p = self.params
@@ -307,7 +304,7 @@ class ArrayTacPlant:
         return self._trace(rec, n_ticks) if record else None
 
     def _trace(self, rec: dict[str, np.ndarray] | None, n_ticks: int) -> PlantTrace:
-        assert rec is not None  # noqa: S101 - internal
+        assert rec is not None
         t = (self._step - n_ticks + np.arange(n_ticks)) * self._dt
         return PlantTrace(t, rec["m"], rec["y"], rec["u"], rec["r"])
 
