@@ -34,6 +34,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
 BENCHMARKS: dict[str, tuple[str, str]] = {
     "relay": ("relay_server.bench", "relay added latency vs direct WebSocket, and throughput"),
     "reconstruction": ("remote_site.reconstruction.bench_cli", "height-map time vs error"),
+    "stiffness": ("remote_site.stiffness.bench_cli", "stiffness error vs noise/samples, time"),
 }
 
 log = logging.getLogger(__name__)
