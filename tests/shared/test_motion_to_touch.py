@@ -1,0 +1,58 @@
+"""Motion-to-touch stage tracing against hand-computed stage durations."""
+
+from __future__ import annotations
+
+from hypothesis import given
+from hypothesis import strategies as st
+
+from shared.motion_to_touch import END_TO_END, MotionToTouchLedger, trace_hops
+from shared.protocol import Hop
+
+# true times on the relay clock (us) of each stamp of one loop
+TRUE = [("local", "capture", 0), ("relay", "relay_in", 10_000), ("relay", "relay_out", 10_050),
+        ("remote", "station_rx", 20_050), ("remote", "arm_command", 20_100),
+        ("remote", "sensor_frame", 28_000), ("remote", "tactile_ready", 30_500),
+        ("relay", "relay_in", 40_500), ("relay", "relay_out", 40_560),
+        ("local", "station_rx", 50_560), ("local", "rendered", 51_000)]
+
+
+def stamped(offsets: dict[str, int]) -> list[Hop]:
+    return [Hop(c, s, t + (0 if c == "relay" else offsets[c])) for c, s, t in TRUE]
+
+
+@given(st.integers(-10**9, 10**9), st.integers(-10**9, 10**9))
+def test_offsets_are_removed(off_local: int, off_remote: int) -> None:
+    offsets = {"local": off_local, "remote": off_remote}
+    trace = trace_hops(stamped(offsets), offsets)
+    assert trace.end_to_end_us == 51_000
+    assert dict(trace.stages_us) == {
+        "uplink_local_to_relay": 10_000, "relay_forward_platform": 50, "relay_to_remote": 10_000,
+        "remote_dispatch": 50, "arm_and_sensor": 7_900, "reconstruction_and_stiffness": 2_500,
+        "uplink_remote_to_relay": 10_000, "relay_forward_tactile": 60, "relay_to_local": 10_000,
+        "render": 440}
+    assert sum(d for _, d in trace.stages_us) == trace.end_to_end_us
+
+
+def test_unknown_offset_skips_stamps_and_merges_stage() -> None:
+    offsets = {"local": 5, "remote": None}
+    trace = trace_hops(stamped({"local": 5, "remote": 777}), offsets)
+    names = [n for n, _ in trace.stages_us]
+    assert "relay.relay_out>relay.relay_in" in names
+    assert trace.end_to_end_us == 51_000
+
+
+def test_missing_render_stamp_gives_no_end_to_end() -> None:
+    trace = trace_hops(stamped({"local": 0, "remote": 0})[:-1], {"local": 0, "remote": 0})
+    assert trace.end_to_end_us is None
+
+
+def test_ledger_summary_in_ms() -> None:
+    ledger = MotionToTouchLedger()
+    for shift in range(100):
+        hops = [Hop(c, s, t + (shift * 10 if s == "rendered" else 0)) for c, s, t in TRUE]
+        ledger.add_hops(hops, {"local": 0, "remote": 0})
+    summary = ledger.summary_ms()
+    assert ledger.frames == 100
+    assert summary[END_TO_END]["max"] == 51.0 + 0.99
+    assert 51.4 <= summary[END_TO_END]["p50"] <= 51.6
+    assert summary["relay_to_local"]["p99"] == 10.0
