@@ -60,7 +60,9 @@ def _argv(args: argparse.Namespace) -> str:
     if args.sessions != [1, 20]:
         parts.append("--sessions " + " ".join(map(str, args.sessions)))
     if args.write_results:
-        parts.append(f"--write-results {args.write_results}")
+        import os
+
+        parts.append(f"--write-results {os.path.relpath(args.write_results)}")
     return " ".join(parts)
 
 

@@ -46,8 +46,8 @@ def _free_port() -> int:
 
 
 @contextlib.asynccontextmanager
-async def relay_process(**settings: Any) -> AsyncIterator[tuple[int, int]]:
-    """Run ``teletouch relay`` in a child process; yield (ws_port, tcp_port)."""
+async def relay_process(**settings: Any) -> AsyncIterator[tuple[int, int, int]]:
+    """Run ``teletouch relay`` in a child process; yield (ws_port, tcp_port, pid)."""
     port, tcp_port = _free_port(), _free_port()
     env = dict(os.environ)
     for key, value in settings.items():
@@ -69,7 +69,7 @@ async def relay_process(**settings: Any) -> AsyncIterator[tuple[int, int]]:
                 if time.monotonic() > deadline or proc.returncode is not None:
                     raise RuntimeError("relay process did not start") from None
                 await asyncio.sleep(0.05)
-        yield port, tcp_port
+        yield port, tcp_port, proc.pid
     finally:
         if proc.returncode is None:
             proc.terminate()
@@ -207,8 +207,17 @@ async def _latency_direct(sessions: int, rate_hz: float, duration_s: float
     return sink.latencies_us, ticks
 
 
-async def _throughput(tcp_port: int, sessions: int, duration_s: float, window: int
-                      ) -> dict[str, float]:
+def _cpu_s(pid: int | None) -> float:
+    """CPU seconds (user + system) used so far by process ``pid`` (Linux), or NaN."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return float("nan")
+
+
+async def _throughput(tcp_port: int, sessions: int, duration_s: float, window: int,
+                      pid: int | None = None) -> dict[str, float]:
     """Closed-loop saturation over TCP with ``arm_command`` (ordered, never dropped)."""
     pre = [frame(encode(ArmCommand(seq=i, ts_us=now_us(), action="stop"), validate=False))
            for i in range(window)]
@@ -269,9 +278,9 @@ async def _throughput(tcp_port: int, sessions: int, duration_s: float, window: i
             tasks.append(asyncio.create_task(sender(i, lw, credit)))
             tasks.append(asyncio.create_task(_discard(lr)))
         await asyncio.sleep(0.5)  # warm-up
-        r0, t0 = sum(received), time.perf_counter()
+        r0, t0, c0 = sum(received), time.perf_counter(), _cpu_s(pid)
         await asyncio.sleep(duration_s)
-        r1, t1 = sum(received), time.perf_counter()
+        r1, t1, c1 = sum(received), time.perf_counter(), _cpu_s(pid)
     finally:
         stop.set()
         for t in tasks:
@@ -279,8 +288,11 @@ async def _throughput(tcp_port: int, sessions: int, duration_s: float, window: i
         await asyncio.gather(*tasks, return_exceptions=True)
         for w in conns:
             w.close()
+    n = max(r1 - r0, 1)
     return {"sessions": sessions, "window": window,
-            "throughput_msgs_per_s": (r1 - r0) / (t1 - t0)}
+            "throughput_msgs_per_s": (r1 - r0) / (t1 - t0),
+            "relay_cpu_us_per_msg": (c1 - c0) * 1e6 / n,
+            "relay_cpu_share": (c1 - c0) / (t1 - t0)}
 
 
 async def _discard(r: asyncio.StreamReader) -> None:
@@ -306,7 +318,7 @@ async def run_benchmark_async(*, sessions: list[int], rate_hz: float, duration_s
     residence: dict[str, Any] = {}
     for n in sessions:
         lat_d, ticks_d = await _latency_direct(n, rate_hz, duration_s)
-        async with relay_process(stats_interval_s=1.0, ledger_window=65536) as (ws_port, _):
+        async with relay_process(stats_interval_s=1.0, ledger_window=65536) as (ws_port, _, _):
             lat_r, ticks_r, status = await _latency_relay(ws_port, n, rate_hz, duration_s)
         offered = 2 * n * rate_hz
         total_s = duration_s + _WARMUP_S
@@ -328,8 +340,8 @@ async def run_benchmark_async(*, sessions: list[int], rate_hz: float, duration_s
             "p99": max((r["p99"] for r in res if r["p99"] is not None), default=None),
             "max": max((r["max"] for r in res if r["max"] is not None), default=None),
             "latest_wins_drops": drops}
-    async with relay_process(ordered_queue_len=4096) as (_, tcp_port):
-        tput = await _throughput(tcp_port, 4, throughput_s, window=1024)
+    async with relay_process(ordered_queue_len=4096) as (_, tcp_port, pid):
+        tput = await _throughput(tcp_port, 4, throughput_s, window=1024, pid=pid)
     key = str(max(sessions))
     return {
         "added_latency_us": added[key], "added_latency_us_by_sessions": added,
@@ -337,7 +349,8 @@ async def run_benchmark_async(*, sessions: list[int], rate_hz: float, duration_s
         "throughput_msgs_per_s": tput["throughput_msgs_per_s"], "throughput": tput,
         "rate_hz": rate_hz, "duration_s": duration_s, "quick": quick,
         "machine": f"{platform.machine()}, {os.cpu_count()} cores, "
-                   f"Python {platform.python_version()}, no GPU",
+                   f"Python {platform.python_version()}, no GPU, load average "
+                   f"{os.getloadavg()[0]:.1f} at the end",
         "targets": {"added_p99_us_at_20_sessions": 500, "throughput_msgs_per_s": 50000},
     }
 
@@ -380,7 +393,10 @@ def _markdown(r: dict[str, Any], argv: str) -> str:
     lines += ["", f"Saturation throughput (TCP, {t['sessions']} sessions, arm_command, "
               f"{t['window']} in flight per session, nothing dropped): "
               f"**{r['throughput_msgs_per_s']:.0f} forwarded msgs/s** "
-              f"(target >= {r['targets']['throughput_msgs_per_s']}).",
+              f"(target >= {r['targets']['throughput_msgs_per_s']}); the relay process used "
+              f"{t['relay_cpu_share']:.2f} CPU cores, i.e. "
+              f"{t['relay_cpu_us_per_msg']:.1f} us of CPU per forwarded message "
+              "(decode + validate + route + encode + socket I/O).",
               "", f"Target: added p99 <= {r['targets']['added_p99_us_at_20_sessions']} us "
               "at 20 sessions x 1 kHz per direction."]
     return "\n".join(lines)

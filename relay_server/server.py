@@ -158,6 +158,8 @@ log = logging.getLogger(__name__)
 _FATAL_AFTER_HELLO = (VersionError, OversizeError)
 _OBSERVER_MAY_SEND = (ClockPong, ClockPing, Stats, Bye)
 _CLOSE_TIMEOUT_S = 2.0
+_EVENTS_PER_SLICE = 32  # messages handled before yielding, for big TCP chunks
+_YIELD_EVERY_S = 0.0002
 
 #: a receive function: the next WebSocket message / TCP chunk, or None at end of stream
 Receive = Callable[[], Awaitable[bytes | str | None]]
@@ -205,7 +207,7 @@ class _TcpLink:
 
     async def receive(self) -> bytes | None:
         try:
-            data = await self.reader.read(256 * 1024)
+            data = await self.reader.read(64 * 1024)
         except (ConnectionError, OSError):
             return None
         return data or None
@@ -412,6 +414,8 @@ class _ConnContext:
             pending = await self._handshake(receive)
             if pending is None:
                 return
+            loop = asyncio.get_running_loop()
+            last_yield = loop.time()
             self._process(pending, now_us())
             while True:
                 data = await receive()
@@ -419,7 +423,18 @@ class _ConnContext:
                     close_code, reason = 1000, "peer closed"
                     break
                 t_in = now_us()
-                self._process(self._feed(data), t_in)
+                events = self._feed(data)
+                for start in range(0, len(events), _EVENTS_PER_SLICE):
+                    self._process(events[start:start + _EVENTS_PER_SLICE], t_in)
+                    if start + _EVENTS_PER_SLICE < len(events):
+                        await asyncio.sleep(0)  # let writers and other sessions run
+                # websockets returns buffered messages without suspending: yield now and
+                # then so one busy reader cannot starve the writers (fairness, bounded
+                # residence time), at most every _YIELD_EVERY_S
+                t_now = loop.time()
+                if t_now - last_yield > _YIELD_EVERY_S:
+                    last_yield = t_now
+                    await asyncio.sleep(0)
                 if self.peer is not None and self.peer.outbox.closed:
                     close_code, reason = 1001, "relay shutting down"
                     break
