@@ -147,7 +147,7 @@ class SimArm(Arm):
             self._vel[:] = 0.0
             self._acc[:] = 0.0
             self._target = self._pos.copy()
-        force = self.phantom.force_n(self._pos) if self.phantom is not None else 0.0
+        force = self.phantom.force_n(self._pos.tolist()) if self.phantom is not None else 0.0
         if cfg.force_noise_n > 0:
             force += float(self._rng.normal(0.0, cfg.force_noise_n))
         self._force_n = force

@@ -138,8 +138,10 @@ class PixelGrid:
 
     def offsets_mm(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Pixel-centre offsets from the grid centre: (x per column, y per row)."""
-        xs = (np.arange(self.width_px) - (self.width_px - 1) / 2.0) * self.mm_per_px
-        ys = (np.arange(self.height_px) - (self.height_px - 1) / 2.0) * self.mm_per_px
+        xs = (np.arange(self.width_px, dtype=np.float64) - (self.width_px - 1) / 2.0) \
+            * self.mm_per_px
+        ys = (np.arange(self.height_px, dtype=np.float64) - (self.height_px - 1) / 2.0) \
+            * self.mm_per_px
         return xs, ys
 
 

@@ -108,6 +108,6 @@ class StiffnessMap:
         """(x per column, y per row) of the cell centres."""
         b = self.bounds
         rows, cols = self.count.shape
-        xs = b.x_min_mm + (np.arange(cols) + 0.5) * b.cell_mm
-        ys = b.y_min_mm + (np.arange(rows) + 0.5) * b.cell_mm
+        xs = b.x_min_mm + (np.arange(cols, dtype=np.float64) + 0.5) * b.cell_mm
+        ys = b.y_min_mm + (np.arange(rows, dtype=np.float64) + 0.5) * b.cell_mm
         return xs, ys
