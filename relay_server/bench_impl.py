@@ -300,6 +300,10 @@ async def _discard(r: asyncio.StreamReader) -> None:
         pass
 
 
+def _diff(a: float | None, b: float | None) -> float | None:
+    return None if a is None or b is None else a - b
+
+
 def _pcts(lat: list[int]) -> dict[str, float | None]:
     if not lat:
         return {"p50": None, "p99": None, "max": None}
@@ -329,8 +333,7 @@ async def run_benchmark_async(*, sessions: list[int], rate_hz: float, duration_s
                          "received_msgs_s": len(lat) / duration_s,
                          "p50_us": p["p50"], "p99_us": p["p99"], "max_us": p["max"]})
         pd, pr = _pcts(lat_d), _pcts(lat_r)
-        added[str(n)] = {k: (None if pr[k] is None or pd[k] is None else pr[k] - pd[k])
-                         for k in ("p50", "p99", "max")}
+        added[str(n)] = {k: _diff(pr[k], pd[k]) for k in ("p50", "p99", "max")}
         res = [s["delay_us"][d]["relay"] for s in status["sessions"].values()
                for d in ("local_to_remote", "remote_to_local")]
         drops = sum(s["drops"][d]["latest_wins"] for s in status["sessions"].values()
