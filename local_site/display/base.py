@@ -369,6 +369,10 @@ class ArrayTacDisplay(ABC):
                                              f"within {timeout_s * 1e3:.0f} ms")
                 self._cond.wait(remaining)
 
+    def latest_feedback(self) -> PinFeedback | None:
+        """The newest feedback without waiting (None before the first frame)."""
+        return self._feedback
+
     def stats(self) -> DisplayStats:
         """A snapshot of the counters."""
         return DisplayStats(commands=self._n_commands, frames_sent=self._n_frames,
