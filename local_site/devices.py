@@ -65,7 +65,7 @@ def load_backend(table: dict[str, str], name: str) -> type:
         raise ConfigError(f"unknown backend {name!r}; known: {sorted(table)}") from err
     module_name, _, class_name = target.partition(":")
     try:
-        return getattr(importlib.import_module(module_name), class_name)  # type: ignore[no-any-return]
+        return getattr(importlib.import_module(module_name), class_name)
     except (ImportError, AttributeError) as err:
         raise ConfigError(f"backend {name!r} ({target}) cannot be loaded: {err}") from err
 

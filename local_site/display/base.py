@@ -148,6 +148,21 @@ class ArrayTacDisplay(ABC):
         require_feedback: wait for feedback in ``connect()`` (a board always sends it).
     """
 
+    _seq: int
+    _last_codes: tuple[np.ndarray, np.ndarray, np.ndarray] | None
+    _last_send_s: float
+    _force_next: bool
+    _feedback: PinFeedback | None
+    _n_commands: int
+    _n_frames: int
+    _n_skipped: int
+    _n_keepalives: int
+    _n_clamped: int
+    _n_rejected: int
+    _n_safe: int
+    _n_feedback: int
+    _n_bad: int
+
     def __init__(self, *, keepalive_interval_s: float = 0.02, watchdog_ms: int = 100,
                  watchdog_mode: SafeMode = "flat", disconnect_mode: SafeMode | None = "flat",
                  connect_timeout_s: float = 2.0, require_feedback: bool = True) -> None:
@@ -410,10 +425,10 @@ class ArrayTacDisplay(ABC):
 
     def _reset_session(self) -> None:
         self._seq = 0
-        self._last_codes: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._last_codes = None
         self._last_send_s = 0.0
         self._force_next = False
-        self._feedback: PinFeedback | None = None
+        self._feedback = None
         self._n_commands = self._n_frames = self._n_skipped = self._n_keepalives = 0
         self._n_clamped = self._n_rejected = self._n_safe = self._n_feedback = self._n_bad = 0
 

@@ -58,7 +58,7 @@ def make_plant(**options: Any) -> PlantLike:
     except ImportError as err:
         raise DeviceInitError(f"ArrayTac plant unavailable: {err}") from err
     try:
-        return ArrayTacPlant(**options)  # type: ignore[no-any-return]
+        return ArrayTacPlant(**options)
     except (TypeError, ValueError) as err:
         raise DeviceInitError(f"ArrayTac plant rejected options {options}: {err}") from err
 

@@ -98,6 +98,18 @@ class XYZPlatform(ABC):
         connect_timeout_s: how long ``connect()`` waits for the first valid sample.
     """
 
+    _latest: PlatformSample | None
+    _board_info: BoardInfo | None
+    _link_error: BaseException | None
+    _raw_counts: tuple[int, int, int] | None
+    _history: collections.deque[tuple[int, Vec3]]
+    _clock_offset_us: int | None
+    _last_read_seq: int | None
+    _last_rx_s: float
+    _missed: int
+    _clamped: int
+    _reads: int
+
     def __init__(self, *, geometry: PlatformGeometry | None = None,
                  velocity_window_s: float = 0.01, stale_timeout_s: float = 0.5,
                  connect_timeout_s: float = 2.0) -> None:
@@ -257,7 +269,7 @@ class XYZPlatform(ABC):
             if self._raw_counts is None:
                 raise DeviceNotConnectedError(f"{self.name}: zero() needs a sample first")
             self._zero_counts = self._raw_counts
-            self._zero_at_mm = at  # type: ignore[assignment]
+            self._zero_at_mm = at
             self._history.clear()
             if self._latest is not None:  # the next read_state waits for a post-zero sample
                 self._last_read_seq = self._latest.seq
@@ -275,16 +287,16 @@ class XYZPlatform(ABC):
 
     def _reset_track(self) -> None:
         """Forget the previous connection's samples (zero offset is kept on purpose)."""
-        self._latest: PlatformSample | None = None
-        self._board_info: BoardInfo | None = None
-        self._link_error: BaseException | None = None
-        self._raw_counts: tuple[int, int, int] | None = None
+        self._latest = None
+        self._board_info = None
+        self._link_error = None
+        self._raw_counts = None
         self._unwrap = [WrapUnwrapper(32, signed=True) for _ in range(3)]
         self._unwrap_seq = WrapUnwrapper(32, signed=False)
         self._unwrap_t = WrapUnwrapper(32, signed=False)
-        self._history: collections.deque[tuple[int, Vec3]] = collections.deque(maxlen=256)
-        self._clock_offset_us: int | None = None
-        self._last_read_seq: int | None = None
+        self._history = collections.deque(maxlen=256)
+        self._clock_offset_us = None
+        self._last_read_seq = None
         self._last_rx_s = monotonic_s()
         self._missed = 0
         self._clamped = 0

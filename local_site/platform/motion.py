@@ -168,12 +168,12 @@ class RasterSweep(WaypointMotion):
     def __init__(self, params: RasterSweepParams | None = None, **overrides: object) -> None:
         base = params or RasterSweepParams()
         if overrides:
-            fields = {f: getattr(base, f) for f in base.__slots__}  # type: ignore[attr-defined]
+            fields = {f: getattr(base, f) for f in base.__slots__}
             unknown = set(overrides) - set(fields)
             if unknown:
                 raise ConfigError(f"unknown raster sweep parameter(s): {sorted(unknown)}")
             fields.update(overrides)
-            base = RasterSweepParams(**fields)  # type: ignore[arg-type]
+            base = RasterSweepParams(**fields)
         base.validate()
         self.params = base
         times, positions = self._build(base)
@@ -364,7 +364,7 @@ def make_motion(spec: str | MotionSource = "raster", **options: object) -> Motio
         return spec
     name = spec.strip().lower()
     if name == "raster":
-        return RasterSweep(**options)
+        return RasterSweep(**options)  # type: ignore[arg-type]
     if name == "random":
         return RandomWalk(**options)  # type: ignore[arg-type]
     if name == "hold":
