@@ -1,0 +1,181 @@
+"""Maps of what the operator felt, in phantom coordinates, from received tactile frames only.
+
+Input is what reached the local station: every accepted tactile frame (a height patch on a
+metric grid centred on ``center_mm`` in platform coordinates, the probe's normal force and
+indentation) plus the workspace map that the operator's platform positions go through. No
+ground truth and nothing from the remote station's internals is used.
+
+Two maps are built on a regular phantom grid:
+
+* **relief**: how much more the gel is pushed at a point than the pad's average, relative.
+  A stiff inclusion under a soft layer carries more of the pad's load, so the gel bulges
+  more over it. Each frame's patch is divided by the pad's own pressure profile (estimated
+  from the data as the median normalised patch over all contact frames, so no pad model is
+  assumed), normalised by its median over the pad's core, and accumulated (mean per cell).
+  Only the core of the pad (profile >= ``core_fraction`` of its peak) is used, where the
+  profile is flat enough to divide by safely.
+* **secant stiffness**: force / indentation of each contact frame, placed at the frame
+  centre (the pad-averaged stiffness the probe felt there), mean per cell.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from local_site.palpation.recording import Recording
+from shared.errors import InputDataError
+from shared.workspace import WorkspaceMap
+
+__all__ = ["MapConfig", "PalpationMaps", "build_maps", "pad_profile"]
+
+
+@dataclass(frozen=True)
+class MapConfig:
+    """Settings of the map building.
+
+    Attributes:
+        cell_mm: grid spacing of the maps (phantom mm).
+        min_indentation_mm: frames pressed less than this are not used (secant too noisy).
+        core_fraction: pad-profile level defining the pad core used for relief.
+        margin_mm: the maps extend this far beyond the phantom bounds of the workspace.
+    """
+
+    cell_mm: float = 0.5
+    min_indentation_mm: float = 0.5
+    core_fraction: float = 0.7
+    margin_mm: float = 10.0
+
+
+@dataclass(frozen=True, eq=False)
+class PalpationMaps:
+    """Relief and stiffness maps on one grid (row = +y, column = +x).
+
+    Attributes:
+        x_mm: cell-centre x of each column (phantom).
+        y_mm: cell-centre y of each row (phantom).
+        relief: mean relative relief (0 = like the pad's average); NaN where never touched.
+        relief_count: samples per cell.
+        stiffness_n_per_mm: mean secant stiffness of frames centred in the cell; NaN if none.
+        frames_used: contact frames that went into the maps.
+        background_stiffness_n_per_mm: median secant stiffness over all used frames.
+    """
+
+    x_mm: NDArray[np.float64]
+    y_mm: NDArray[np.float64]
+    relief: NDArray[np.float64]
+    relief_count: NDArray[np.int64]
+    stiffness_n_per_mm: NDArray[np.float64]
+    frames_used: int
+    background_stiffness_n_per_mm: float
+
+    @property
+    def cell_mm(self) -> float:
+        """Grid spacing."""
+        return float(self.x_mm[1] - self.x_mm[0]) if self.x_mm.size > 1 else 0.0
+
+
+def _contact_frames(rec: Recording, cfg: MapConfig) -> NDArray[np.intp]:
+    h = rec.frame_height_mm
+    ok = (rec.frame_contact & (rec.frame_indentation_mm >= cfg.min_indentation_mm)
+          & (rec.frame_force_n > 0))
+    if h.size:
+        ok &= h.reshape(h.shape[0], -1).max(axis=1) > 0
+    return np.nonzero(ok)[0]
+
+
+def pad_profile(patches: NDArray[np.floating], core_fraction: float = 0.7
+                ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Estimate the pad's pressure profile from contact patches.
+
+    Args:
+        patches: (N, H, W) height patches of contact frames.
+        core_fraction: level (relative to the peak) that defines the core.
+
+    Returns:
+        The profile (H, W), peak-normalised, and the core mask.
+
+    Raises:
+        InputDataError: no patch, or patches with no positive height.
+    """
+    if patches.shape[0] == 0:
+        raise InputDataError("no contact frames to estimate the pad profile from")
+    flat = patches.reshape(patches.shape[0], -1).astype(np.float64)
+    scale = np.percentile(flat, 75, axis=1)
+    good = scale > 0
+    if not good.any():
+        raise InputDataError("contact frames carry no positive height")
+    profile = np.median(flat[good] / scale[good, None], axis=0).reshape(patches.shape[1:])
+    peak = float(profile.max())
+    if not np.isfinite(peak) or peak <= 0:
+        raise InputDataError("pad profile is degenerate")
+    profile /= peak
+    return profile, profile >= core_fraction
+
+
+def build_maps(rec: Recording, workspace: WorkspaceMap,
+               config: MapConfig | None = None) -> PalpationMaps:
+    """Build the relief and stiffness maps of a recording.
+
+    Args:
+        rec: what the local station received.
+        workspace: the platform <-> phantom map the session used.
+        config: map settings.
+
+    Returns:
+        The maps.
+
+    Raises:
+        InputDataError: no usable contact frame.
+    """
+    cfg = config or MapConfig()
+    idx = _contact_frames(rec, cfg)
+    if idx.size == 0:
+        raise InputDataError("the recording has no contact frame pressed deeper than "
+                             f"{cfg.min_indentation_mm} mm: nothing was palpated")
+    patches = rec.frame_height_mm[idx]
+    profile, core = pad_profile(patches, cfg.core_fraction)
+    lo, hi = workspace.phantom_bounds_mm
+    cell = cfg.cell_mm
+    x_mm = np.arange(lo[0] - cfg.margin_mm, hi[0] + cfg.margin_mm + cell / 2, cell)
+    y_mm = np.arange(lo[1] - cfg.margin_mm, hi[1] + cfg.margin_mm + cell / 2, cell)
+    acc = np.zeros((y_mm.size, x_mm.size))
+    cnt = np.zeros((y_mm.size, x_mm.size), np.int64)
+    k_acc = np.zeros_like(acc)
+    k_cnt = np.zeros_like(cnt)
+    _, h_px, w_px = patches.shape
+    secant = rec.frame_force_n[idx] / rec.frame_indentation_mm[idx]
+    rows, cols = np.nonzero(core)
+    inv_profile = 1.0 / profile[rows, cols]
+    for n, i in enumerate(idx):
+        pitch = float(rec.frame_pitch_mm[i])
+        cx, cy = rec.frame_center_mm[i]
+        u = (cols - (w_px - 1) / 2.0) * pitch + cx
+        v = (rows - (h_px - 1) / 2.0) * pitch + cy
+        pts = np.column_stack([u, v, np.full(u.size, workspace.config.z_surface_mm)])
+        ph = workspace.forward_unclamped(pts)
+        ratio = patches[n][rows, cols] * inv_profile
+        s = float(np.median(ratio))
+        if not s > 0:
+            continue
+        rel = ratio / s - 1.0
+        ci = np.rint((ph[:, 1] - y_mm[0]) / cell).astype(np.intp)
+        cj = np.rint((ph[:, 0] - x_mm[0]) / cell).astype(np.intp)
+        inside = (ci >= 0) & (ci < y_mm.size) & (cj >= 0) & (cj < x_mm.size)
+        np.add.at(acc, (ci[inside], cj[inside]), rel[inside])
+        np.add.at(cnt, (ci[inside], cj[inside]), 1)
+        centre = workspace.forward_unclamped(
+            np.array([[cx, cy, workspace.config.z_surface_mm]]))[0]
+        ki = int(np.rint((centre[1] - y_mm[0]) / cell))
+        kj = int(np.rint((centre[0] - x_mm[0]) / cell))
+        if 0 <= ki < y_mm.size and 0 <= kj < x_mm.size:
+            k_acc[ki, kj] += secant[n]
+            k_cnt[ki, kj] += 1
+    with np.errstate(invalid="ignore", divide="ignore"):
+        relief = np.where(cnt > 0, acc / np.maximum(cnt, 1), np.nan)
+        stiffness = np.where(k_cnt > 0, k_acc / np.maximum(k_cnt, 1), np.nan)
+    return PalpationMaps(x_mm=x_mm, y_mm=y_mm, relief=relief, relief_count=cnt,
+                         stiffness_n_per_mm=stiffness, frames_used=int(idx.size),
+                         background_stiffness_n_per_mm=float(np.median(secant)))

@@ -1,0 +1,175 @@
+"""Palpation analysis on recordings synthesised from the phantom's contact model.
+
+The recordings hold only what a local station would receive (patch, pitch, centre in
+platform coordinates, force, indentation), made here directly from the phantom model so the
+analysis is checked against ground truth without the network in between.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from local_site.palpation import (
+    DetectionConfig,
+    Finding,
+    Recording,
+    analyse_recording,
+    build_maps,
+    load_recording,
+)
+from local_site.palpation.scoring import score_findings
+from remote_site.phantom.phantom import PixelGrid
+from remote_site.phantom.scenes import make_scene
+from shared.errors import InputDataError
+from shared.workspace import WorkspaceMap
+
+GRID = PixelGrid(width_px=160, height_px=120, mm_per_px=0.1268)
+BIN = 4  # 0.507 mm patch pitch
+
+
+@functools.cache
+def synthetic(scene: str, seed: int, noise_mm: float = 0.0, press_mm: float = 3.0,
+              spacing_mm: float = 3.0) -> tuple[Recording, dict]:
+    """Raster over the phantom at constant press depth; patches binned to ~0.5 mm."""
+    phantom = make_scene(scene, seed)
+    ws = WorkspaceMap()
+    rng = np.random.default_rng(seed)
+    centres, patches, forces, depths = [], [], [], []
+    h, w = GRID.height_px // BIN, GRID.width_px // BIN
+    for i, y in enumerate(np.arange(-30.0, 30.01, spacing_mm)):
+        xs = np.arange(-30.0, 30.01, 0.75)
+        for x in xs[::-1] if i % 2 else xs:
+            c = phantom.contact((x, y, -press_mm), GRID)
+            patch = c.depth_map_mm.reshape(h, BIN, w, BIN).mean(axis=(1, 3))
+            patch = np.maximum(patch + rng.normal(0, noise_mm, patch.shape), 0.0)
+            centres.append(ws.inverse([x, y, -press_mm])[:2])
+            patches.append(patch.astype(np.float32))
+            forces.append(c.force_n)
+            depths.append(c.indentation_mm)
+    n = len(centres)
+    rec = Recording(
+        platform_t_us=np.arange(n, dtype=np.int64), platform_mm=np.zeros((n, 3)),
+        frame_center_mm=np.array(centres), frame_pitch_mm=np.full(n, BIN * GRID.mm_per_px),
+        frame_contact=np.array(forces) > 0, frame_force_n=np.array(forces),
+        frame_indentation_mm=np.array(depths), frame_height_mm=np.stack(patches))
+    return rec, phantom.ground_truth()
+
+
+@pytest.mark.parametrize("noise_mm", [0.0, 0.01])
+def test_breast_found_located_typed(noise_mm: float) -> None:
+    rec, truth = synthetic("breast", 3, noise_mm)
+    score = score_findings(analyse_recording(rec, WorkspaceMap()), truth)
+    assert score["tumors_found"] == score["tumors_expected"] == 2
+    assert score["false_positives"] == 0
+    assert score["localization_error_mm"]["max"] < 0.6
+    assert score["types_correct"] == 2
+    assert score["kendall_tau"] == 1.0
+
+
+def test_severity_ranking_matches_truth() -> None:
+    rec, truth = synthetic("severity", 5)
+    findings = analyse_recording(rec, WorkspaceMap())
+    score = score_findings(findings, truth)
+    assert score["tumors_found"] == 4
+    assert score["kendall_tau"] == 1.0
+    assert all(f.kind == "benign" for f in findings)
+
+
+def test_localization_identical_tumors() -> None:
+    rec, truth = synthetic("localization", 7)
+    score = score_findings(analyse_recording(rec, WorkspaceMap()), truth)
+    assert score["tumors_found"] == 2 and score["false_positives"] == 0
+    assert score["localization_error_mm"]["mean"] < 0.5
+
+
+def test_stiffness_map_higher_over_tumors() -> None:
+    rec, truth = synthetic("breast", 3)
+    maps = build_maps(rec, WorkspaceMap())
+    for t in truth["tumors"]:
+        j = int(np.argmin(np.abs(maps.x_mm - t["center_mm"][0])))
+        i = int(np.argmin(np.abs(maps.y_mm - t["center_mm"][1])))
+        near = maps.stiffness_n_per_mm[max(0, i - 6):i + 7, max(0, j - 6):j + 7]
+        assert np.nanmax(near) > 1.2 * maps.background_stiffness_n_per_mm
+
+
+def test_flat_phantom_has_no_finding() -> None:
+    rec, _ = synthetic("breast", 3)
+    flat = np.broadcast_to(rec.frame_height_mm.mean(axis=0), rec.frame_height_mm.shape)
+    flat_rec = Recording(**{**rec.__dict__, "frame_height_mm": np.ascontiguousarray(flat)})
+    assert analyse_recording(flat_rec, WorkspaceMap()) == []
+
+
+def test_no_contact_is_a_clear_error() -> None:
+    rec, _ = synthetic("breast", 3)
+    none = Recording(**{**rec.__dict__, "frame_contact": np.zeros_like(rec.frame_contact)})
+    with pytest.raises(InputDataError, match="nothing was palpated"):
+        analyse_recording(none, WorkspaceMap())
+
+
+def test_recording_validation() -> None:
+    rec, _ = synthetic("breast", 3)
+    bad = rec.frame_force_n.copy()
+    bad[3] = np.nan
+    with pytest.raises(InputDataError, match="frame_force_n"):
+        Recording(**{**rec.__dict__, "frame_force_n": bad})
+    with pytest.raises(InputDataError, match="inconsistent"):
+        Recording(**{**rec.__dict__, "frame_pitch_mm": rec.frame_pitch_mm[:-1]})
+
+
+def test_load_recording_round_trip_and_errors(tmp_path: Path) -> None:
+    rec, _ = synthetic("breast", 3)
+    path = tmp_path / "rec.npz"
+    np.savez(path, platform_t_us=rec.platform_t_us, platform_mm=rec.platform_mm,
+             frame_rx_us=np.arange(rec.frames), frame_seq=np.arange(rec.frames),
+             frame_center_mm=rec.frame_center_mm, frame_pitch_mm=rec.frame_pitch_mm,
+             frame_contact=rec.frame_contact, frame_force_n=rec.frame_force_n,
+             frame_indentation_mm=rec.frame_indentation_mm, frame_height_mm=rec.frame_height_mm,
+             meta_json=json.dumps({"session": "s"}))
+    loaded = load_recording(path)
+    assert loaded.frames == rec.frames and loaded.meta == {"session": "s"}
+    np.testing.assert_array_equal(loaded.frame_height_mm, rec.frame_height_mm)
+    np.savez(tmp_path / "partial.npz", platform_mm=rec.platform_mm)
+    with pytest.raises(InputDataError, match="missing"):
+        load_recording(tmp_path / "partial.npz")
+    (tmp_path / "junk.npz").write_bytes(b"not a zip")
+    with pytest.raises(InputDataError, match="cannot read"):
+        load_recording(tmp_path / "junk.npz")
+
+
+def finding(x: float, y: float, kind: str = "benign", rank: int = 1) -> Finding:
+    return Finding(center_mm=(x, y), area_mm2=50.0, equivalent_radius_mm=4.0, peak_relief=1.0,
+                   severity_score=float(rank), boundary_sharpness_per_mm=0.2, irregularity=0.0,
+                   stiffness_n_per_mm=None, kind=kind, severity_rank=rank)
+
+
+def test_scoring_matching_and_tau() -> None:
+    truth = {"tumors": [
+        {"id": "a", "center_mm": [0, 0], "kind": "benign", "severity_rank": 1},
+        {"id": "b", "center_mm": [20, 0], "kind": "malignant", "severity_rank": 2},
+        {"id": "c", "center_mm": [0, 20], "kind": "benign", "severity_rank": 3}]}
+    found = [finding(19, 1, "malignant", 3), finding(1, 0, "benign", 1),
+             finding(-30, -30, "benign", 2)]
+    s = score_findings(found, truth)
+    assert (s["tumors_found"], s["false_positives"], s["types_correct"]) == (2, 1, 2)
+    assert s["localization_error_mm"]["per_tumor"] == {"a": 1.0, "b": pytest.approx(2 ** 0.5)}
+    assert s["kendall_tau"] == 1.0
+    swapped = [finding(19, 1, "benign", 1), finding(1, 0, "benign", 2)]
+    s2 = score_findings(swapped, truth)
+    assert s2["kendall_tau"] == -1.0 and s2["types_correct"] == 1
+
+
+def test_scoring_rejects_malformed_truth() -> None:
+    with pytest.raises(InputDataError):
+        score_findings([], {"tumors": [{"center_mm": [0, 0]}]})
+    assert score_findings([], {"tumors": []})["tumors_found"] == 0
+
+
+def test_detection_threshold_is_respected() -> None:
+    rec, _ = synthetic("breast", 3)
+    strict = DetectionConfig(min_relief=100.0)
+    assert analyse_recording(rec, WorkspaceMap(), detection=strict) == []
