@@ -13,7 +13,8 @@ Targets (paper, Fig. 2D-F): open-loop bandwidth 15.29 Hz, closed-loop bandwidth 
    ``w3 = wn sqrt(1 - 2 zeta^2 + sqrt((1 - 2 zeta^2)^2 + 1))``, below ``wn``
    for
    ``zeta > 1/sqrt(2)``, so the bandwidth is ``w3``. Choosing ``zeta`` (> 1: overdamped, no
-   overshoot) gives ``wn = 2 pi f_cl / h(zeta)``, ``tau_d = 1 / (2 zeta wn)``, ``a = wn / (2 zeta)``.
+   overshoot) gives ``wn = 2 pi f_cl / h(zeta)``, ``tau_d = 1 / (2 zeta wn)``,
+   ``a = wn / (2 zeta)``.
 3. **Open loop**: ``|G(jw)/G(0)|^2 = 1/2`` at ``w_o = 2 pi f_ol``:
    ``(1 + (w_o tau_d)^2)(1 + (w_o tau_m)^2) = 2`` gives ``tau_m`` in closed form. The phase of
    the open loop reaches -90 deg only at ``1/sqrt(tau_d tau_m)`` (well above), so its bandwidth
@@ -25,8 +26,10 @@ Targets (paper, Fig. 2D-F): open-loop bandwidth 15.29 Hz, closed-loop bandwidth 
    form with the saturating PID; :func:`tune_slew_rates` finds them by bisection on the
    simulated step (rise and fall times are monotone in the slew rates).
 
-The 10 kHz sampling (zero-order hold, half a tick of delay) is ignored by the analytic steps;
-the simulated measurements (:mod:`.characterize`) show it shifts the figures by ~1 %.
+The 10 kHz sampling (zero-order hold, half a tick of delay) is ignored by steps 1-4; measured on
+the exact discrete transfer function it moves the closed-loop bandwidth from 123.4 to 128.4 Hz
+(+4 %). :func:`refine_for_sampling` removes that by a fixed-point iteration on the design
+targets (3 iterations reach 1e-6 relative).
 """
 
 from __future__ import annotations

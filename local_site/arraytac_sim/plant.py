@@ -49,6 +49,7 @@ log = logging.getLogger(__name__)
 _MIN_BLOCK_STEPS = 16      # below this the per-step path is cheaper
 _MAX_BLOCK_STEPS = 4000    # longer blocks waste work when a late tick saturates
 _REPLAY_STEPS = 4          # per-step ticks after a violation before retrying the fast path
+_MAX_BACKOFF_STEPS = 400   # longest per-step stretch before the fast path is tried again
 _MAX_FAST_GROUPS = 4       # distinct friction gains handled by the fast path
 _MODE_CACHE = 64
 _LINEARISATION_SPAN_MM = 0.02  # Hall chain linearised within +-20 um of the block start
@@ -115,6 +116,8 @@ class ArrayTacPlant:
         self.slow_ticks = 0
         self.vibration_ticks = 0
         self._block_len = 4 * _MIN_BLOCK_STEPS
+        self._backoff = 0
+        self._backoff_len = _REPLAY_STEPS
         self.reset()
 
     # ------------------------------------------------------------------ commands
@@ -290,16 +293,26 @@ class ArrayTacPlant:
         while k < n_ticks:
             remaining = n_ticks - k
             done = 0
-            if self.fast_path and self._override is None and remaining >= _MIN_BLOCK_STEPS:
+            if (self.fast_path and self._override is None and remaining >= _MIN_BLOCK_STEPS
+                    and self._backoff == 0 and not self._sat.any()):
                 # adaptive block: grows while blocks pass, shrinks to where the last one failed
                 size = min(remaining, self._block_len)
                 done = self._fast_block(ref[k:k + size], noise_v[k:k + size], rec, k)
                 self._block_len = (min(2 * size, _MAX_BLOCK_STEPS) if done == size
                                    else max(4 * _MIN_BLOCK_STEPS, done))
             if done == 0:
-                chunk = min(remaining, _REPLAY_STEPS) if self.fast_path else remaining
+                if self._backoff == 0 and self.fast_path:
+                    # a block failed at its first tick: back off exponentially (saturated
+                    # loads, vibration near the slew limit) instead of retrying every tick
+                    self._backoff_len = min(2 * self._backoff_len, _MAX_BACKOFF_STEPS)
+                    self._backoff = self._backoff_len
+                chunk = min(remaining, max(self._backoff, _REPLAY_STEPS)) if self.fast_path \
+                    else remaining
                 self._slow_steps(ref[k:k + chunk], noise_v[k:k + chunk], rec, k)
+                self._backoff = max(self._backoff - chunk, 0)
                 done = chunk
+            else:
+                self._backoff_len = _REPLAY_STEPS
             k += done
         return self._trace(rec, n_ticks) if record else None
 
@@ -398,8 +411,13 @@ class ArrayTacPlant:
             idx = np.flatnonzero(group_of == gi)
             z_next[:, :, idx] = propagate(modes, z0[:, idx], ref[:, idx], self._force[idx],
                                           delta[idx], nu[:, idx])
-        z_seq = np.concatenate([z0[None], z_next[:-1]], axis=0)
-        u, y, integ, m_prev = z_seq[:, 0], z_seq[:, 1], z_seq[:, 2], z_seq[:, 3]
+        def seq(i: int) -> np.ndarray:  # state i at the start of each tick
+            out = np.empty((n_ticks, n))
+            out[0] = z0[i]
+            out[1:] = z_next[:-1, i]
+            return out
+
+        u, y, integ, m_prev = seq(0), seq(1), seq(2), seq(3)
         m = y + delta + nu
         e = ref - m
         gain_u = self._gain
