@@ -26,7 +26,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     cal = sub.add_parser("calibrate", help="fit a colour-to-slope calibration from ball presses")
     cal.add_argument("--background", required=True, help="no-contact frame (PNG)")
     cal.add_argument("--images", required=True, help="directory holding the press images")
-    cal.add_argument("--labels", required=True, help="labels.csv: image,center_x,center_y,radius_px")
+    cal.add_argument("--labels", required=True,
+                     help="labels.csv: image,center_x,center_y,radius_px")
     cal.add_argument("--ball-diameter-mm", type=float, required=True)
     cal.add_argument("--mm-per-px", type=float, required=True)
     cal.add_argument("--out", required=True, help="calibration file to write (.npz)")

@@ -27,6 +27,7 @@ import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -75,7 +76,7 @@ class Calibration:
 
     def save(self, path: str | os.PathLike[str]) -> None:
         """Write the calibration as a compressed ``.npz``."""
-        arrays = {f"model_{k}": v for k, v in self.model.to_arrays().items()}
+        arrays: dict[str, Any] = {f"model_{k}": v for k, v in self.model.to_arrays().items()}
         stats_keys = np.array(sorted(self.stats), dtype=str)
         stats_vals = np.array([self.stats[k] for k in stats_keys], dtype=np.float64)
         np.savez_compressed(

@@ -19,7 +19,8 @@ __all__ = ["brightness_gain", "pixel_position", "relative_change"]
 
 #: pixels whose ratio differs from the first gain estimate by more than this are "changed"
 _GAIN_TOLERANCE = 0.05
-#: subsampling step used for the robust statistics (speed; 1/16 of the pixels)
+#: largest subsampling step of the robust statistics (speed: 1/16 of a 320x240 frame's pixels;
+#: smaller frames, e.g. pooled ones, use every pixel)
 _STAT_STEP = 4
 
 
@@ -37,8 +38,9 @@ def brightness_gain(frame: np.ndarray, background: np.ndarray) -> np.ndarray:
         InputDataError: the gain is not finite or implausible (< 0.2 or > 5): the frame and
             background are not from the same sensor/lighting.
     """
-    f = frame[::_STAT_STEP, ::_STAT_STEP].reshape(-1, 3)
-    b = np.maximum(background[::_STAT_STEP, ::_STAT_STEP].reshape(-1, 3), 1.0)
+    step = max(1, min(_STAT_STEP, min(frame.shape[:2]) // 60))
+    f = frame[::step, ::step].reshape(-1, 3)
+    b = np.maximum(background[::step, ::step].reshape(-1, 3), 1.0)
     ratio = f / b
     gain = np.median(ratio, axis=0)
     unchanged = (np.abs(ratio - gain) < _GAIN_TOLERANCE * gain).all(axis=1)
@@ -50,21 +52,31 @@ def brightness_gain(frame: np.ndarray, background: np.ndarray) -> np.ndarray:
     return gain.astype(np.float32)
 
 
+def inverse_background_pct(background: np.ndarray) -> np.ndarray:
+    """``100 / max(background, 1)`` as float32: cache it per background (saves a division)."""
+    return (100.0 / np.maximum(background, 1.0)).astype(np.float32)
+
+
 def relative_change(frame: np.ndarray, background: np.ndarray,
-                    blur_sigma_px: float = 1.0) -> np.ndarray:
+                    blur_sigma_px: float = 1.0,
+                    inv_background_pct: np.ndarray | None = None) -> np.ndarray:
     """Brightness-normalised relative colour change in percent, (H, W, 3) float32.
 
     Args:
         frame: float32 (H, W, 3), validated.
         background: float32 (H, W, 3), validated, same shape.
         blur_sigma_px: Gaussian smoothing of the change (0 = none).
+        inv_background_pct: :func:`inverse_background_pct` of ``background`` if cached.
     """
     import cv2
 
     gain = brightness_gain(frame, background)
-    ref = np.maximum(background * gain, 1.0)
-    change = (frame / ref - 1.0) * 100.0
-    change = change.astype(np.float32, copy=False)
+    if inv_background_pct is None:
+        inv_background_pct = inverse_background_pct(background)
+    # 100 * (I / (g * B) - 1), computed in place on one temporary
+    change = frame * (1.0 / gain).astype(np.float32)
+    change *= inv_background_pct
+    change -= np.float32(100.0)
     if blur_sigma_px > 0:
         change = cv2.GaussianBlur(change, (0, 0), blur_sigma_px)
     return change

@@ -88,6 +88,7 @@ class PolyGradientModel(GradientModel):
         if not (np.isfinite(coef).all() and np.isfinite(scale).all() and (scale > 0).all()):
             raise CalibrationError("polynomial model contains non-finite or zero-scale values")
         self.coef = coef.astype(np.float32)
+        self._coef_t = np.ascontiguousarray(self.coef.T)
         self.scale = scale.astype(np.float32)
 
     @staticmethod
@@ -99,27 +100,28 @@ class PolyGradientModel(GradientModel):
         return np.stack(cols, axis=1).astype(np.float32, copy=False)
 
     @staticmethod
-    def _design(v: np.ndarray, exponents: np.ndarray) -> np.ndarray:
+    def _design_t(v: np.ndarray, exponents: np.ndarray) -> np.ndarray:
+        """Transposed design matrix (n_terms, N): rows are contiguous monomials (fast)."""
         n_vars = v.shape[1]
         max_deg = int(exponents.max())
+        columns = np.ascontiguousarray(v.T)
         powers = [[np.ones(len(v), v.dtype)] for _ in range(n_vars)]
         for j in range(n_vars):
             for _ in range(max_deg):
-                powers[j].append(powers[j][-1] * v[:, j])
-        out = np.empty((len(v), len(exponents)), v.dtype)
+                powers[j].append(powers[j][-1] * columns[j])
+        out = np.empty((len(exponents), len(v)), v.dtype)
         for t, e in enumerate(exponents):
-            col = powers[0][e[0]]
+            np.copyto(out[t], powers[0][e[0]])
             for j in range(1, n_vars):
                 if e[j]:
-                    col = col * powers[j][e[j]]
-            out[:, t] = col
+                    out[t] *= powers[j][e[j]]
         return out
 
     def predict(self, change: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Return (N, 2) clipped slopes."""
         v = self._variables(change, x, y, self.use_position) / self.scale
-        out = self._design(v, self.exponents) @ self.coef
-        return np.clip(out, -MAX_SLOPE, MAX_SLOPE, out=out)
+        out = (self._coef_t @ self._design_t(v, self.exponents)).T
+        return np.clip(out, -MAX_SLOPE, MAX_SLOPE)
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Serialise coefficients and settings."""
@@ -150,7 +152,7 @@ class PolyGradientModel(GradientModel):
         if len(v) < 4 * len(exponents):
             raise CalibrationError(f"only {len(v)} training pixels for {len(exponents)} "
                                    "polynomial terms: label more presses")
-        design = cls._design(v / scale, exponents)
+        design = cls._design_t(v / scale, exponents).T
         gram = design.T @ design
         gram[np.diag_indices_from(gram)] += 1e-6 * np.trace(gram) / len(gram)
         try:
@@ -230,11 +232,11 @@ class LutGradientModel(GradientModel):
             table[:, k] = np.bincount(flat, weights=slopes[:, k], minlength=bins**3)
         seen = count > 0
         table[seen] /= count[seen, None]
-        table = table.reshape(bins, bins, bins, 2)
-        seen = seen.reshape(bins, bins, bins)
-        _, nearest = ndimage.distance_transform_edt(~seen, return_indices=True)
-        table = table[nearest[0], nearest[1], nearest[2]]
-        return cls(table.astype(np.float32), lo, hi)
+        cube = table.reshape(bins, bins, bins, 2)
+        seen_cube = seen.reshape(bins, bins, bins)
+        _, nearest = ndimage.distance_transform_edt(~seen_cube, return_indices=True)
+        filled = cube[nearest[0], nearest[1], nearest[2]]
+        return cls(filled.astype(np.float32), lo, hi)
 
 
 _MODELS: dict[str, type[GradientModel]] = {
@@ -253,6 +255,6 @@ def model_from_arrays(kind: str, arrays: dict[str, np.ndarray]) -> GradientModel
     if cls is None:
         raise CalibrationError(f"unknown gradient model kind {kind!r}; known: {sorted(_MODELS)}")
     try:
-        return cls.from_arrays(arrays)  # type: ignore[attr-defined, no-any-return]
+        return cls.from_arrays(arrays)  # type: ignore[attr-defined]
     except KeyError as err:
         raise CalibrationError(f"calibration model {kind!r} is missing array {err}") from err

@@ -13,7 +13,9 @@ all-zero map without integrating. Only pixels above the dead zone
 (``dead_zone_sigmas`` x noise) are fed to the model; the rest get slope 0, which also
 removes the slope bias far from the contact. With ``out_pitch_mm`` the colour change (or the
 slopes, ``pool="slopes"``) is block-averaged to the output grid before the model and Poisson
-run, so a display-sized map costs a fraction of a full one.
+run, so a display-sized map costs a fraction of a full one; the calibration blur is then
+skipped (block averaging smooths more) and the contact evidence is counted on the pooled grid
+(a contact much smaller than one output cell may then read as "no contact").
 """
 
 from __future__ import annotations
@@ -25,7 +27,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from remote_site.reconstruction.calibration import Calibration
-from remote_site.reconstruction.features import pixel_position, relative_change
+from remote_site.reconstruction.features import (
+    inverse_background_pct,
+    pixel_position,
+    relative_change,
+)
 from remote_site.reconstruction.frames import validate_frame
 from remote_site.reconstruction.poisson import SOLVERS, PoissonSolver
 from shared.errors import ConfigError, InputDataError
@@ -128,10 +134,12 @@ class Reconstructor:
         self.calibration = calibration
         self.settings = settings or ReconstructionSettings()
         self._solver = PoissonSolver(self.settings.solver)
-        self._background = validate_frame(calibration.background_rgb, name="calibration background")
+        background = validate_frame(calibration.background_rgb, name="calibration background")
+        self._background = (background, inverse_background_pct(background))
         self._last_bg_id: int | None = None
-        self._last_bg: np.ndarray | None = None
+        self._last_bg: tuple[np.ndarray, np.ndarray] | None = None
         self._positions: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._pooled_bg: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
 
     @classmethod
     def from_file(cls, path: str | os.PathLike[str],
@@ -157,14 +165,28 @@ class Reconstructor:
         factor = max(1, round(out_pitch_mm / self.calibration.mm_per_px))
         return int(min(factor, max(1, min(self.shape_hw) // 2)))
 
-    def _background_for(self, background: np.ndarray | None) -> np.ndarray:
+    def _background_for(self, background: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """(validated background, its inverse), cached for the last array object passed."""
         if background is None:
             return self._background
         if self._last_bg is not None and id(background) == self._last_bg_id:
             return self._last_bg
         validated = validate_frame(background, self.shape_hw, name="background")
-        self._last_bg_id, self._last_bg = id(background), validated
-        return validated
+        self._last_bg_id = id(background)
+        self._last_bg = (validated, inverse_background_pct(validated))
+        return self._last_bg
+
+    def _pooled_background(self, background: np.ndarray,
+                           factor: int) -> tuple[np.ndarray, np.ndarray]:
+        key = (id(background), factor)
+        cached = self._pooled_bg.get(key)
+        if cached is None:
+            pooled = _pool(background, factor)
+            cached = (pooled, inverse_background_pct(pooled))
+            if len(self._pooled_bg) > 16:
+                self._pooled_bg.clear()
+            self._pooled_bg[key] = cached
+        return cached
 
     def _grid_positions(self, factor: int, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
         cached = self._positions.get(factor)
@@ -185,23 +207,29 @@ class Reconstructor:
         """
         calib = self.calibration
         frame = validate_frame(frame_rgb, self.shape_hw)
-        change = relative_change(frame, self._background_for(background), calib.blur_sigma_px)
+        bg, inv_bg = self._background_for(background)
+        pool_change = factor > 1 and self.settings.pool == "change"
+        if pool_change:
+            # Pool frame and background first (the ratio of block means ~ the block mean of the
+            # ratio for a smooth background); pooling smooths more than the calibration blur.
+            frame = _pool(frame, factor)
+            bg, inv_bg = self._pooled_background(bg, factor)
+            change = relative_change(frame, bg, 0.0, inv_background_pct=inv_bg)
+        else:
+            change = relative_change(frame, bg, calib.blur_sigma_px, inv_background_pct=inv_bg)
         noise = max(calib.noise_pct, 1e-3)
         magnitude_full = _abs_max(change)
         evidence = int(np.count_nonzero(magnitude_full > self.settings.contact_evidence_sigmas
                                         * noise))
-        min_px = self.settings.min_contact_area_mm2 / calib.mm_per_px**2
+        grid_pitch_mm = calib.mm_per_px * (factor if pool_change else 1)
+        min_px = self.settings.min_contact_area_mm2 / grid_pitch_mm**2
         has_contact = evidence >= max(min_px, 1.0)
-        pool_change = factor > 1 and self.settings.pool == "change"
-        if pool_change:
-            change = _pool(change, factor)
         grid = change.shape[:2]
         x, y = self._grid_positions(factor if pool_change else 1, grid)
         gx = np.zeros(grid, np.float32)
         gy = np.zeros(grid, np.float32)
         if has_contact:
-            magnitude = _abs_max(change) if pool_change else magnitude_full
-            active = magnitude > self.settings.dead_zone_sigmas * noise
+            active = magnitude_full > self.settings.dead_zone_sigmas * noise
             pred = calib.model.predict(change[active], x[active], y[active])
             gx[active] = pred[:, 0]
             gy[active] = pred[:, 1]
@@ -251,7 +279,8 @@ class Reconstructor:
         raised = ((height - base) > self.settings.contact_threshold_mm).astype(np.uint8)
         radius_px = round(self.settings.zero_exclusion_mm / pitch_mm)
         if radius_px > 0:
-            raised = cv2.dilate(raised, np.ones((2 * radius_px + 1, 2 * radius_px + 1), np.uint8))
+            kernel = np.ones((2 * radius_px + 1, 2 * radius_px + 1), np.uint8)
+            raised = np.asarray(cv2.dilate(raised, kernel), np.uint8)
         free = raised[::step, ::step] == 0
         sub = height[::step, ::step]
         if free.sum() < 10:

@@ -94,7 +94,7 @@ class OpenCVCameraSensor(TactileSensor):
             return self._factory(self.source)
         import cv2
 
-        return cv2.VideoCapture(self.source)  # type: ignore[no-any-return]
+        return cv2.VideoCapture(self.source)
 
     def _connect(self) -> None:
         try:

@@ -7,7 +7,9 @@ from the gel normal (the GelSight Mini layout). A pixel's colour is the backgrou
 ``1 + shading_gain * sum_k colour_k * (n.l_k / cos(elevation) - 1)``: flat gel reproduces the
 background, tilted gel brightens towards the lights it faces. The background is a smooth gel
 colour with radial vignetting and a linear illumination gradient; camera noise is Gaussian;
-optional markers are dark dots on a square grid. ``brightness`` scales the whole frame per
+optional markers are dark dots on a square grid (static: the gel's lateral
+shear is not modelled). Noise windows are drawn from a pre-computed pool (3 frames' worth,
+random offset per frame) to keep rendering fast. ``brightness`` scales the whole frame per
 channel (to emulate drift of the LEDs/exposure between the background and a press).
 
 Conventions: depth/height positive where the object presses into the gel; x = columns,
@@ -84,6 +86,7 @@ class PhotometricModel:
         if rows < 8 or cols < 8 or not (np.isfinite(s.mm_per_px) and s.mm_per_px > 0):
             raise InputDataError(f"bad sensor geometry {s.shape_hw}, {s.mm_per_px} mm/px")
         self._rng = np.random.default_rng(seed)
+        self._noise_pool: np.ndarray | None = None
         yy, xx = np.mgrid[0:rows, 0:cols].astype(np.float32)
         u = (xx + 0.5) / cols - 0.5
         v = (yy + 0.5) / rows - 0.5
@@ -93,6 +96,7 @@ class PhotometricModel:
         az = np.deg2rad(s.light_azimuth_deg + np.array([0.0, 120.0, 240.0]))
         self._lights = np.stack([np.cos(az) * np.sin(elev), np.sin(az) * np.sin(elev),
                                  np.full(3, np.cos(elev))], axis=1).astype(np.float32)
+        self._lights_t = np.ascontiguousarray(self._lights.T)  # contiguous: 20x faster matmul
         self._cos_elev = np.float32(np.cos(elev))
         self._mix = np.asarray(s.light_rgb, np.float32)  # (light, channel)
         self._markers = np.ones((rows, cols), np.float32)
@@ -127,7 +131,8 @@ class PhotometricModel:
             raise InputDataError("depth map must be >= 0 (mm into the gel)")
         sigma_px = s.drape_sigma_mm / s.mm_per_px
         if sigma_px > 0.1:
-            depth = cv2.GaussianBlur(depth, (0, 0), sigma_px, borderType=cv2.BORDER_REPLICATE)
+            depth = np.asarray(cv2.GaussianBlur(depth, (0, 0), sigma_px,
+                                                borderType=cv2.BORDER_REPLICATE), np.float32)
         return depth
 
     def render(self, depth_mm: np.ndarray, noise: bool = True) -> np.ndarray:
@@ -138,19 +143,24 @@ class PhotometricModel:
         """
         s = self.settings
         surface = self.gel_surface_mm(depth_mm)
-        gy, gx = np.gradient(surface, s.mm_per_px)
+        gy, gx = np.gradient(surface, np.float32(s.mm_per_px))
         norm = 1.0 / np.sqrt(1.0 + gx * gx + gy * gy)
-        # Normal of the surface z = h(x, y) seen from the camera side.
-        nx, ny, nz = -gx * norm, -gy * norm, norm
-        rel = np.zeros((*s.shape_hw, 3), np.float32)
-        for k in range(3):
-            lx, ly, lz = self._lights[k]
-            shade = np.maximum(nx * lx + ny * ly + nz * lz, 0.0) / self._cos_elev - 1.0
-            rel += shade[..., None] * self._mix[k]
-        image = self._background * (1.0 + s.shading_gain * rel)
+        # Unit normal of the surface z = h(x, y), seen from the camera side: (-gx, -gy, 1).
+        normals = np.stack([-gx * norm, -gy * norm, norm], axis=-1).reshape(-1, 3)
+        shade = np.maximum(normals @ self._lights_t, 0.0) / self._cos_elev - 1.0
+        rel = (shade @ self._mix).reshape(*s.shape_hw, 3)
+        image = self._background * (1.0 + np.float32(s.shading_gain) * rel)
         image *= self._markers[..., None]
         image *= np.asarray(s.brightness, np.float32)
         if noise and s.noise_dn > 0:
-            image += self._rng.standard_normal(image.shape, dtype=np.float32) * np.float32(
-                s.noise_dn)
+            image += self._noise_sample()
         return np.clip(np.rint(image), 0, 255).astype(np.uint8)
+
+    def _noise_sample(self) -> np.ndarray:
+        """Camera noise for one frame: a random window of a pre-drawn pool (fast)."""
+        size = int(np.prod(self._background.shape))
+        if self._noise_pool is None:
+            self._noise_pool = self._rng.standard_normal(3 * size, dtype=np.float32) * np.float32(
+                self.settings.noise_dn)
+        start = int(self._rng.integers(0, 2 * size))
+        return self._noise_pool[start:start + size].reshape(self._background.shape)

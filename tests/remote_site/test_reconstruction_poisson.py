@@ -41,7 +41,7 @@ def test_dst_pins_the_border_to_zero_without_offset() -> None:
 
 
 def test_linear_ramp_is_exact_for_dct() -> None:
-    rows, cols = np.mgrid[0:50, 0:70]
+    _, cols = np.mgrid[0:50, 0:70]
     h = 0.01 * cols * PITCH_MM
     out = PoissonSolver("dct").integrate(np.full(h.shape, 0.01), np.zeros(h.shape), PITCH_MM)
     np.testing.assert_allclose(out - out.mean(), h - h.mean(), atol=1e-5)

@@ -1,0 +1,219 @@
+"""Sensor sources: simulator and OpenCV camera behind one base class, and the registry."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from remote_site.sensor import SENSORS, open_sensor
+from remote_site.sensor.base import TactileSensor
+from remote_site.sensor.camera import OpenCVCameraSensor, crop_and_resize
+from remote_site.sensor.photometric import PhotometricModel, PhotometricSettings
+from remote_site.sensor.shapes import ball_depth_mm
+from remote_site.sensor.simulator import SimulatedSensor
+from shared.errors import (
+    ConfigError,
+    DeviceInitError,
+    DeviceNotConnectedError,
+    DeviceOperationError,
+    DeviceTimeoutError,
+    InputDataError,
+)
+
+
+class FakeCapture:
+    """A VideoCapture stand-in delivering raw 2464 x 3280-like (scaled down) BGR frames."""
+
+    def __init__(self, frames: list[np.ndarray], opened: bool = True,
+                 repeat: np.ndarray | None = None) -> None:
+        self.frames = list(frames)
+        self.repeat = repeat
+        self.opened = opened
+        self.released = False
+
+    def isOpened(self) -> bool:
+        return self.opened
+
+    def read(self) -> tuple[bool, Any]:
+        if self.repeat is not None:
+            time.sleep(0.002)
+            return True, self.repeat.copy()
+        if not self.frames:
+            return False, None
+        time.sleep(0.001)
+        return True, self.frames.pop(0)
+
+    def release(self) -> None:
+        self.released = True
+
+
+def _raw_frame(rows: int = 350, cols: int = 466) -> np.ndarray:
+    """A raw BGR frame whose crop region is blue, border red (so crop errors show)."""
+    bgr = np.zeros((rows, cols, 3), np.uint8)
+    bgr[..., 2] = 200  # red border (BGR)
+    top, left = rows // 7, cols // 7
+    bgr[top:rows - top, left:cols - left] = (180, 60, 20)  # blue-ish inside (BGR)
+    return bgr
+
+
+# --------------------------------------------------------------------------- base class contract
+
+
+@pytest.fixture(params=["sim", "fake_camera"])
+def any_sensor(request: pytest.FixtureRequest) -> TactileSensor:
+    if request.param == "sim":
+        return open_sensor("sim")
+    return OpenCVCameraSensor(0, capture_factory=lambda src: FakeCapture([], repeat=_raw_frame()))
+
+
+def test_every_backend_follows_the_contract(any_sensor: TactileSensor) -> None:
+    with pytest.raises(DeviceNotConnectedError):
+        any_sensor.read_latest()
+    with any_sensor as sensor:
+        assert sensor.is_connected
+        first = sensor.read_latest(max_age_ms=500)
+        time.sleep(0.01)
+        second = sensor.read_latest(max_age_ms=500)
+        assert first.rgb.shape == (240, 320, 3) and first.rgb.dtype == np.uint8
+        assert second.seq > first.seq
+        assert second.timestamp_us >= first.timestamp_us
+    assert not any_sensor.is_connected
+    with pytest.raises(DeviceNotConnectedError):
+        any_sensor.read_latest()
+    any_sensor.disconnect()  # idempotent
+
+
+# --------------------------------------------------------------------------- simulator
+
+
+def test_simulator_renders_contacts_from_a_provider() -> None:
+    depth = ball_depth_mm((240, 320), 0.0634, 160, 120, 3.0, 0.4)
+    calls = []
+
+    def provider() -> np.ndarray:
+        calls.append(1)
+        return depth
+
+    with SimulatedSensor(depth_provider=provider) as sensor:
+        frame = sensor.read_latest().rgb
+    assert calls
+    diff = np.abs(frame.astype(int) - sensor.background_rgb.astype(int)).max(axis=2)
+    assert diff[120, 160 - 20] > 10  # shading where the gel is tilted
+    assert diff[10, 10] < 6  # flat gel far away only shows noise
+
+
+def test_simulator_set_depth_and_bad_maps() -> None:
+    sensor = SimulatedSensor()
+    with pytest.raises(InputDataError):
+        sensor.set_depth(np.full((240, 320), -0.1))
+    with pytest.raises(InputDataError):
+        sensor.set_depth(np.zeros((10, 10)))
+    bad = SimulatedSensor(depth_provider=lambda: np.full((240, 320), np.nan))
+    with bad, pytest.raises(DeviceOperationError):
+        bad.read_latest()
+
+
+def test_simulator_is_fast_enough_for_60_fps() -> None:
+    model = PhotometricModel()
+    depth = ball_depth_mm((240, 320), 0.0634, 160, 120, 3.0, 0.4)
+    model.render(depth)
+    start = time.perf_counter()
+    for _ in range(20):
+        model.render(depth)
+    per_frame_s = (time.perf_counter() - start) / 20
+    assert per_frame_s < 1 / 60
+
+
+def test_simulator_markers_and_drift() -> None:
+    plain = PhotometricModel(seed=1).render(np.zeros((240, 320)), noise=False)
+    marked = PhotometricModel(PhotometricSettings(marker_pitch_mm=1.0), seed=1).render(
+        np.zeros((240, 320)), noise=False)
+    assert (marked < plain).any()
+    dim = PhotometricModel(PhotometricSettings(brightness=(0.8, 0.8, 0.8))).render(
+        np.zeros((240, 320)), noise=False)
+    assert dim.mean() == pytest.approx(0.8 * plain.mean(), rel=0.02)
+
+
+def test_gel_surface_is_smoothed_but_keeps_volume() -> None:
+    model = PhotometricModel()
+    depth = np.zeros((240, 320), np.float32)
+    depth[100:140, 150:170] = 0.3
+    surface = model.gel_surface_mm(depth)
+    assert surface.max() < 0.3 + 1e-6
+    assert surface.sum() == pytest.approx(depth.sum(), rel=0.01)
+
+
+# --------------------------------------------------------------------------- camera
+
+
+def test_crop_and_resize_removes_one_seventh_per_side() -> None:
+    rgb = crop_and_resize(_raw_frame())
+    assert rgb.shape == (240, 320, 3)
+    # inside colour (BGR 180,60,20) -> RGB (20,60,180) everywhere, no red border left
+    assert np.abs(rgb.astype(int) - [20, 60, 180]).max() <= 2
+
+
+def test_camera_reads_a_video_file(tmp_path: Path) -> None:
+    import cv2
+
+    path = tmp_path / "gelsight.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (466, 350))
+    assert writer.isOpened()
+    for _ in range(10):
+        writer.write(_raw_frame())
+    writer.release()
+    with open_sensor(str(path)) as sensor:
+        frame = sensor.read_latest(max_age_ms=2000)
+    assert frame.rgb.shape == (240, 320, 3)
+    assert np.abs(frame.rgb.astype(int)[20:-20, 20:-20] - [20, 60, 180]).max() < 25
+
+
+def test_camera_that_does_not_open() -> None:
+    sensor = OpenCVCameraSensor(3, capture_factory=lambda src: FakeCapture([], opened=False))
+    with pytest.raises(DeviceInitError):
+        sensor.connect()
+    assert not sensor.is_connected
+
+
+def test_camera_without_frames_times_out() -> None:
+    sensor = OpenCVCameraSensor(0, first_frame_timeout_s=0.2,
+                                capture_factory=lambda src: FakeCapture([]))
+    with pytest.raises(DeviceTimeoutError):
+        sensor.connect()
+
+
+def test_stale_frames_are_refused() -> None:
+    capture = FakeCapture([_raw_frame()])
+    with OpenCVCameraSensor(0, capture_factory=lambda src: capture) as sensor:
+        sensor.read_latest(max_age_ms=1000)
+        time.sleep(0.05)
+        with pytest.raises(DeviceTimeoutError, match="old"):
+            sensor.read_latest(max_age_ms=10)
+    assert capture.released
+
+
+def test_camera_rejects_odd_frames_from_the_device() -> None:
+    gray = np.zeros((350, 466), np.uint8)
+    sensor = OpenCVCameraSensor(0, first_frame_timeout_s=0.3,
+                                capture_factory=lambda src: FakeCapture([gray]))
+    with pytest.raises(DeviceTimeoutError, match="unexpected frame"):
+        sensor.connect()
+
+
+# --------------------------------------------------------------------------- registry
+
+
+def test_registry_names_and_camera_strings() -> None:
+    assert set(SENSORS) >= {"sim", "camera"}
+    assert isinstance(open_sensor("sim"), SimulatedSensor)
+    cam = open_sensor("0")
+    assert isinstance(cam, OpenCVCameraSensor) and cam.source == 0
+    assert isinstance(open_sensor("rtsp://host/stream"), OpenCVCameraSensor)
+    with pytest.raises(ConfigError):
+        open_sensor("gelsight9000")
+    with pytest.raises(ConfigError):
+        open_sensor("sim", no_such_option=1)
