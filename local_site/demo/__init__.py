@@ -1,0 +1,1 @@
+"""One-command Tele-Touch demo and the palpation benchmark (see :mod:`.orchestrator`)."""

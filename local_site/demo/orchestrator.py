@@ -1,0 +1,305 @@
+"""Run the whole Tele-Touch system on one machine and report what the operator found.
+
+:func:`run_demo` starts, as separate processes talking over real sockets on 127.0.0.1:
+
+1. ``teletouch relay`` (HMAC tokens from a random per-run secret);
+2. optionally two ``teletouch link`` emulators (local <-> relay and remote <-> relay) with a
+   named link profile;
+3. ``teletouch remote`` with the simulated arm, sensor and a phantom scene;
+4. ``teletouch local`` with the simulated platform (a scripted raster operator) and the
+   simulated ArrayTac display, recording what it receives.
+
+When the scripted operator has finished, the stations are stopped with SIGTERM, the
+recording is analysed with :mod:`local_site.palpation` (only what reached the local station),
+and the findings are scored against the phantom's ground truth written by the remote station.
+The report includes the motion-to-touch latency ledger measured by the local station.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+import urllib.error
+import urllib.request
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from local_site.palpation import analyse_recording, load_recording
+from local_site.palpation.scoring import score_findings
+from shared.errors import ConfigError, DeviceError, TeleTouchError
+from shared.workspace import load_workspace
+
+__all__ = ["DemoConfig", "DemoError", "run_demo"]
+
+log = logging.getLogger(__name__)
+
+SESSION = "demo"
+#: the scripted operator: slides pressed 3 mm into the phantom (platform z 10 with the
+#: default workspace map) over the whole reachable phantom, lines 3 mm apart
+DEFAULT_MOTION = ("raster:origin_mm=1;1,size_mm=58;58,line_spacing_mm=3,speed_mm_s=30,"
+                  "hover_z_mm=10,press_depth_mm=0,press_spacing_mm=0,start_pause_s=1,loop=false")
+
+
+class DemoError(TeleTouchError):
+    """A demo process failed to start or died; the message names it and quotes its log."""
+
+
+@dataclass(frozen=True)
+class DemoConfig:
+    """What to run.
+
+    Attributes:
+        scene: phantom scene (``breast``, ``severity``, ``localization``).
+        seed: phantom placement seed.
+        link: link-emulator profile between the stations and the relay, or None.
+        motion: the scripted operator (``teletouch local --motion`` spec).
+        max_duration_s: stop the operator after this long whatever happens.
+        frame_rate_hz: remote sensor frame rate.
+        workdir: where logs and files go (a temporary directory when None).
+        keep_files: keep the temporary directory.
+        python: the interpreter running the ``teletouch`` processes.
+        extra_local_args: more flags for ``teletouch local``.
+        extra_remote_args: more flags for ``teletouch remote``.
+    """
+
+    scene: str = "breast"
+    seed: int = 0
+    link: str | None = None
+    motion: str = DEFAULT_MOTION
+    max_duration_s: float = 100.0
+    frame_rate_hz: float = 60.0
+    workdir: Path | None = None
+    keep_files: bool = False
+    python: str = sys.executable
+    extra_local_args: tuple[str, ...] = ()
+    extra_remote_args: tuple[str, ...] = ()
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that is free now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@dataclass
+class _Child:
+    name: str
+    proc: subprocess.Popen[bytes]
+    log_path: Path
+
+    def log_tail(self, lines: int = 15) -> str:
+        try:
+            text = self.log_path.read_text(errors="replace").splitlines()
+        except OSError:
+            return "(no log)"
+        return "\n".join(text[-lines:])
+
+
+@dataclass
+class _Processes:
+    """The demo's child processes; all are stopped on exit, whatever happened."""
+
+    workdir: Path
+    python: str
+    env: dict[str, str]
+    children: list[_Child] = field(default_factory=list)
+
+    def start(self, name: str, *args: str) -> _Child:
+        log_path = self.workdir / f"{name}.log"
+        cmd = [self.python, "-m", "shared.cli", "--log-level", "INFO", *args]
+        log.debug("starting %s: %s", name, " ".join(cmd))
+        with open(log_path, "wb") as out:
+            proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT,
+                                    stdin=subprocess.DEVNULL, cwd=self.workdir, env=self.env)
+        child = _Child(name, proc, log_path)
+        self.children.append(child)
+        return child
+
+    def check_alive(self) -> None:
+        for child in self.children:
+            code = child.proc.poll()
+            if code is not None:
+                raise DemoError(f"{child.name} exited early with code {code}; its log "
+                                f"({child.log_path}) ends with:\n{child.log_tail()}")
+
+    def stop(self, child: _Child, timeout_s: float = 10.0) -> int | None:
+        if child.proc.poll() is None:
+            child.proc.send_signal(signal.SIGTERM)
+            try:
+                child.proc.wait(timeout_s)
+            except subprocess.TimeoutExpired:
+                log.warning("%s did not stop within %.0f s of SIGTERM; killing it",
+                            child.name, timeout_s)
+                child.proc.kill()
+                child.proc.wait(5)
+        return child.proc.returncode
+
+    def stop_all(self) -> None:
+        for child in reversed(self.children):
+            self.stop(child)
+
+
+def _wait_for(predicate: Callable[[], bool], what: str, timeout_s: float,
+              procs: _Processes) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        procs.check_alive()
+        if predicate():
+            return
+        time.sleep(0.1)
+    raise DemoError(f"timed out after {timeout_s:.0f} s waiting for {what}")
+
+
+def _port_open(port: int) -> bool:
+    try:
+        with socket.create_connection(("127.0.0.1", port), timeout=0.2):
+            return True
+    except OSError:
+        return False
+
+
+def relay_status(port: int) -> dict[str, Any] | None:
+    """The relay's /status JSON, or None when it does not answer."""
+    try:
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/status", timeout=1.0) as resp:
+            data = json.loads(resp.read())
+            return data if isinstance(data, dict) else None
+    except (OSError, urllib.error.URLError, json.JSONDecodeError):
+        return None
+
+
+def _read_json(path: Path, what: str) -> dict[str, Any]:
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        raise DemoError(f"{what} ({path}) was not written or is not JSON: {err}") from err
+    if not isinstance(data, dict):
+        raise DemoError(f"{what} ({path}) is not a JSON object")
+    return data
+
+
+def run_demo(config: DemoConfig,
+             progress: Callable[[float, dict[str, Any] | None], None] | None = None
+             ) -> dict[str, Any]:
+    """Run one demo session end to end and return its report.
+
+    Args:
+        config: what to run.
+        progress: called about once a second with the elapsed time and the relay status.
+
+    Returns:
+        The report (see ``docs/demo.md``): scene, findings, score against ground truth,
+        latency ledger, and the stations' summaries.
+
+    Raises:
+        DemoError: a process failed; the message quotes its log.
+        ConfigError: a bad setting.
+    """
+    if config.max_duration_s <= 0:
+        raise ConfigError("max_duration_s must be > 0")
+    temp = config.workdir is None
+    workdir = Path(tempfile.mkdtemp(prefix="teletouch-demo-")) if temp else Path(config.workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    # the per-run secret reaches the children through their environment, never argv
+    env = {**os.environ, "TELETOUCH_RELAY_SECRET": os.urandom(16).hex()}
+    procs = _Processes(workdir, config.python, env)
+    started = time.monotonic()
+    try:
+        ws_port, tcp_port = free_port(), free_port()
+        procs.start("relay", "relay", "--host", "127.0.0.1", "--port", str(ws_port),
+                    "--tcp-port", str(tcp_port))
+        _wait_for(lambda: relay_status(ws_port) is not None, "the relay's /status", 20, procs)
+        token = subprocess.run(
+            [config.python, "-m", "shared.cli", "relay", "--print-token", SESSION],
+            check=True, capture_output=True, text=True, timeout=30, env=env).stdout.strip()
+        local_port = remote_port = ws_port
+        if config.link:
+            local_port, remote_port = free_port(), free_port()
+            for name, port in (("link-local", local_port), ("link-remote", remote_port)):
+                procs.start(name, "link", "--listen", f"127.0.0.1:{port}", "--target",
+                            f"127.0.0.1:{ws_port}", "--profile", config.link,
+                            "--seed", str(config.seed))
+                _wait_for(lambda p=port: _port_open(p), f"the {name} emulator", 20, procs)
+        files = {k: workdir / v for k, v in {
+            "ground_truth": "ground_truth.json", "record": "record.npz",
+            "local_summary": "local_summary.json", "remote_summary": "remote_summary.json"}.items()}
+        common = ["--session", SESSION, "--token", token]
+        remote = procs.start(
+            "remote", "remote", "--relay", f"ws://127.0.0.1:{remote_port}/", *common,
+            "--arm", "sim", "--sensor", "sim", "--phantom", config.scene,
+            "--seed", str(config.seed), "--frame-rate-hz", f"{config.frame_rate_hz:g}",
+            "--ground-truth", str(files["ground_truth"]),
+            "--summary-json", str(files["remote_summary"]), *config.extra_remote_args)
+        local = procs.start(
+            "local", "local", "--relay", f"ws://127.0.0.1:{local_port}/", *common,
+            "--platform", "sim", "--display", "sim", "--motion", config.motion,
+            "--until-motion-done", "--duration", f"{config.max_duration_s:g}",
+            "--record", str(files["record"]), "--summary-json", str(files["local_summary"]),
+            *config.extra_local_args)
+        deadline = started + config.max_duration_s + 60.0
+        while local.proc.poll() is None:
+            for child in procs.children:
+                if child is not local and child.proc.poll() is not None:
+                    raise DemoError(f"{child.name} exited early with code "
+                                    f"{child.proc.returncode}; its log ends with:\n"
+                                    f"{child.log_tail()}")
+            if time.monotonic() > deadline:
+                raise DemoError("the local station did not finish in time; its log ends with:"
+                                f"\n{local.log_tail()}")
+            if progress is not None:
+                progress(time.monotonic() - started, relay_status(ws_port))
+            time.sleep(1.0)
+        if local.proc.returncode != 0:
+            raise DemoError(f"the local station failed with code {local.proc.returncode}; "
+                            f"its log ends with:\n{local.log_tail()}")
+        relay_final = relay_status(ws_port)
+        remote_code = procs.stop(remote)
+        if remote_code not in (0, -signal.SIGTERM):
+            raise DemoError(f"the remote station ended with code {remote_code}; its log ends "
+                            f"with:\n{remote.log_tail()}")
+        procs.stop_all()
+        return _report(config, files, relay_final, time.monotonic() - started, workdir)
+    except (OSError, subprocess.SubprocessError, DeviceError) as err:
+        raise DemoError(f"demo failed: {err}") from err
+    finally:
+        procs.stop_all()
+        if temp and not config.keep_files:
+            shutil.rmtree(workdir, ignore_errors=True)
+
+
+def _report(config: DemoConfig, files: dict[str, Path], relay_final: dict[str, Any] | None,
+            elapsed_s: float, workdir: Path) -> dict[str, Any]:
+    truth = _read_json(files["ground_truth"], "the ground truth")
+    local_summary = _read_json(files["local_summary"], "the local station's summary")
+    remote_summary = _read_json(files["remote_summary"], "the remote station's summary")
+    recording = load_recording(files["record"])
+    findings = analyse_recording(recording, load_workspace())
+    score = score_findings(findings, truth)
+    latency = local_summary.get("motion_to_touch_ms", {})
+    return {
+        "scene": config.scene,
+        "seed": config.seed,
+        "link": config.link or "direct",
+        "elapsed_s": elapsed_s,
+        **{k: score[k] for k in ("tumors_expected", "tumors_found", "false_positives",
+                                 "localization_error_mm", "types_correct", "types_total",
+                                 "kendall_tau", "matches")},
+        "findings": [f.to_dict() for f in findings],
+        "frames_received": recording.frames,
+        "latency_ms": latency,
+        "local": local_summary,
+        "remote": remote_summary,
+        "relay": relay_final,
+        "workdir": str(workdir) if (config.keep_files or config.workdir) else None,
+    }
