@@ -34,6 +34,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
 #: ``teletouch bench NAME`` -> (module, one-line help)
 BENCHMARKS: dict[str, tuple[str, str]] = {
     "relay": ("relay_server.bench", "relay added latency vs direct WebSocket, and throughput"),
+    "palpation": ("local_site.demo.bench", "tumor detection/localization/typing/ranking over "
+                  "random phantoms and link profiles, with motion-to-touch latency"),
     "reconstruction": ("remote_site.reconstruction.bench_cli", "height-map time vs error"),
     "stiffness": ("remote_site.stiffness.bench_cli", "stiffness error vs noise/samples, time"),
 }

@@ -211,8 +211,11 @@ def run_demo(config: DemoConfig,
     temp = config.workdir is None
     workdir = Path(tempfile.mkdtemp(prefix="teletouch-demo-")) if temp else Path(config.workdir)
     workdir.mkdir(parents=True, exist_ok=True)
-    # the per-run secret reaches the children through their environment, never argv
-    env = {**os.environ, "TELETOUCH_RELAY_SECRET": os.urandom(16).hex()}
+    # the per-run secret reaches the children through their environment, never argv; one
+    # BLAS thread per process: several processes share the cores, and threaded BLAS on a
+    # busy machine made reconstruction 5x slower (benchmarks/results/reconstruction.md)
+    env = {**os.environ, "TELETOUCH_RELAY_SECRET": os.urandom(16).hex(),
+           "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
     procs = _Processes(workdir, config.python, env)
     started = time.monotonic()
     try:

@@ -1,0 +1,149 @@
+"""Palpation benchmark: many random phantoms per scene and link profile, through the real system.
+
+Each run is a full :func:`~local_site.demo.orchestrator.run_demo` session (separate relay,
+link-emulator and station processes over real sockets). Per scene and link profile it
+reports detection rate, localization error (mean, p95), type accuracy, Kendall's tau and
+the motion-to-touch latency (p50/p99 of the per-run p50/p99, and the worst p99).
+
+examples:
+  teletouch bench palpation --runs 20 --write-results benchmarks/results
+  teletouch bench palpation --quick --json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import platform
+import time
+from pathlib import Path
+from typing import Any
+
+__all__ = ["configure_parser", "run", "summarise"]
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    """Add the benchmark's flags."""
+    parser.add_argument("--runs", type=int, default=20,
+                        help="random phantoms (seeds) per scene and profile (default 20)")
+    parser.add_argument("--scenes", default="localization,severity,breast",
+                        help="comma-separated scenes (default: all three)")
+    parser.add_argument("--links", default="lan,city-1000km",
+                        help="comma-separated link profiles (default lan,city-1000km)")
+    parser.add_argument("--first-seed", type=int, default=100,
+                        help="seeds are first-seed .. first-seed + runs - 1 (default 100)")
+    parser.add_argument("--quick", action="store_true", help="2 runs per cell")
+    parser.add_argument("--json", action="store_true", help="print the summary as JSON")
+    parser.add_argument("--write-results", default=None, metavar="DIR",
+                        help="write palpation.md, palpation.json and palpation.png there")
+
+
+def _pct(values: list[float], q: float) -> float | None:
+    finite = [v for v in values if v is not None and math.isfinite(v)]
+    if not finite:
+        return None
+    import numpy as np
+
+    return float(np.percentile(finite, q))
+
+
+def summarise(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One row per (scene, link) from individual run reports."""
+    cells: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    for r in runs:
+        cells.setdefault((r["scene"], r["link"]), []).append(r)
+    rows = []
+    for (scene, link), rs in sorted(cells.items()):
+        ok = [r for r in rs if "error" not in r]
+        expected = sum(r["tumors_expected"] for r in ok)
+        found = sum(r["tumors_found"] for r in ok)
+        errors = [e for r in ok for e in r["localization_error_mm"]["per_tumor"].values()]
+        taus = [r["kendall_tau"] for r in ok if r["kendall_tau"] is not None]
+        e2e = [r["latency_ms"].get("end_to_end", {}) for r in ok]
+        rows.append({
+            "scene": scene, "link": link, "runs": len(rs), "failed_runs": len(rs) - len(ok),
+            "detection_rate": found / expected if expected else None,
+            "false_positives": sum(r["false_positives"] for r in ok),
+            "loc_error_mean_mm": sum(errors) / len(errors) if errors else None,
+            "loc_error_p95_mm": _pct(errors, 95),
+            "type_accuracy": (sum(r["types_correct"] for r in ok)
+                              / max(1, sum(r["types_total"] for r in ok))),
+            "tau_mean": sum(taus) / len(taus) if taus else None,
+            "tau_min": min(taus) if taus else None,
+            "e2e_p50_ms": _pct([x.get("p50") for x in e2e], 50),
+            "e2e_p99_ms_median": _pct([x.get("p99") for x in e2e], 50),
+            "e2e_p99_ms_worst": max((x.get("p99") or 0.0 for x in e2e), default=None),
+        })
+    return rows
+
+
+def _plot(rows: list[dict[str, Any]], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    labels = [f"{r['scene']}\n{r['link']}" for r in rows]
+    axes[0].bar(labels, [r["loc_error_mean_mm"] or 0 for r in rows], label="mean")
+    axes[0].plot(labels, [r["loc_error_p95_mm"] or 0 for r in rows], "k^", label="p95")
+    axes[0].axhline(1.5, color="r", ls="--", label="target mean 1.5 mm")
+    axes[0].set_ylabel("localization error (mm)")
+    axes[0].legend()
+    axes[1].bar(labels, [r["e2e_p99_ms_median"] or 0 for r in rows], label="p99 (median run)")
+    axes[1].plot(labels, [r["e2e_p99_ms_worst"] or 0 for r in rows], "k^", label="p99 worst run")
+    axes[1].axhline(50, color="r", ls="--", label="target p99 50 ms (city)")
+    axes[1].set_ylabel("motion-to-touch latency (ms)")
+    axes[1].legend()
+    for ax in axes:
+        ax.tick_params(axis="x", labelsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the benchmark."""
+    from local_site.demo.orchestrator import DemoConfig, DemoError, run_demo
+    from shared.report import emit, emit_json, format_table
+
+    n = 2 if args.quick else args.runs
+    scenes = [s for s in args.scenes.split(",") if s]
+    links = [s for s in args.links.split(",") if s]
+    runs: list[dict[str, Any]] = []
+    started = time.monotonic()
+    for link in links:
+        for scene in scenes:
+            for seed in range(args.first_seed, args.first_seed + n):
+                try:
+                    report = run_demo(DemoConfig(scene=scene, seed=seed, link=link))
+                    report = {k: v for k, v in report.items()
+                              if k not in ("local", "remote", "relay", "findings")}
+                except DemoError as err:
+                    report = {"scene": scene, "link": link, "seed": seed, "error": str(err)}
+                runs.append(report)
+                emit(f"[{time.monotonic() - started:6.0f} s] {scene} seed {seed} {link}: "
+                     + (report.get("error", "")[:200] or
+                        f"found {report['tumors_found']}/{report['tumors_expected']}, "
+                        f"err {report['localization_error_mm']['mean']}, "
+                        f"tau {report['kendall_tau']}"))
+    rows = summarise(runs)
+    if args.write_results:
+        out = Path(args.write_results)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "palpation.json").write_text(json.dumps({"rows": rows, "runs": runs},
+                                                       indent=1, default=str))
+        (out / "palpation.md").write_text(
+            "# Palpation benchmark\n\n"
+            f"Machine: {platform.machine()}, {platform.system()}, 2 cores shared, no GPU. "
+            f"Command: `teletouch bench palpation --runs {n} --scenes {args.scenes} "
+            f"--links {args.links} --first-seed {args.first_seed} --write-results "
+            f"{args.write_results}` ({time.monotonic() - started:.0f} s).\n\n"
+            + format_table(rows) + "\n")
+        _plot(rows, out / "palpation.png")
+    if args.json:
+        emit_json({"rows": rows})
+    else:
+        emit(format_table(rows))
+    return 0
