@@ -1,0 +1,161 @@
+"""Build the remote station from its options and run it (the body of ``teletouch remote``).
+
+Order of start-up, so that every configuration error surfaces before anything moves:
+settings (flags > environment > TOML > defaults), the simulated world and its ground truth,
+the arm and sensor backends (wired to the world in :mod:`remote_site.agent.world`), the
+calibration (checked against the sensor: :class:`~shared.errors.CalibrationError`), then
+connect the devices, open the link and run :class:`~remote_site.agent.station.RemoteStation`.
+Whatever happens, the arm is halted and the devices are closed on the way out.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from remote_site.agent.config import RemoteAgentConfig
+from remote_site.agent.pipeline import FramePipeline
+from remote_site.agent.station import RemoteStation
+from remote_site.agent.stiffness_stage import StiffnessStage
+from remote_site.agent.world import (
+    build_world,
+    load_calibration,
+    open_world_arm,
+    open_world_sensor,
+    write_ground_truth,
+)
+from remote_site.arm.safety import SafeArm, SafetyConfig
+from remote_site.reconstruction.reconstructor import Reconstructor
+from remote_site.stiffness.estimator import StiffnessConfig
+from remote_site.stiffness.shore import ShoreConversion
+from remote_site.stiffness.stiffness_map import MapBounds
+from remote_site.tactile import TactileAssembler
+from shared.client import StationLink, StationLinkConfig
+from shared.config import resolve_config
+from shared.errors import ConfigError
+from shared.workspace import load_workspace
+
+__all__ = ["AgentOptions", "run_agent"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class AgentOptions:
+    """What ``teletouch remote`` was asked to do (None: take it from env/TOML/defaults).
+
+    Attributes:
+        relay: relay URL (``ws://``, ``wss://``, ``tcp://``).
+        session: session id.
+        token: session token (prefer ``TELETOUCH_REMOTE_LINK_TOKEN``).
+        name: label shown in the relay's status.
+        arm: arm backend name (``sim``, ``franka`` or ``module:Class``).
+        sensor: sensor name (``sim``, ``camera``) or a camera index / URL / video file.
+        phantom: scene name of the simulated world (None: no world).
+        seed: placement seed of the phantom.
+        ground_truth: write the phantom's ground truth JSON here.
+        calibration: the sensor calibration (.npz); the backend's default when None.
+        frame_rate_hz: tactile frames per second.
+        patch_pitch_mm: tactile patch pitch on the display side.
+        duration_s: stop after this many seconds (None: until stopped).
+        config_path: TOML file (or ``$TELETOUCH_CONFIG``).
+    """
+
+    relay: str | None = None
+    session: str | None = None
+    token: str | None = None
+    name: str | None = None
+    arm: str = "sim"
+    sensor: str = "sim"
+    phantom: str | None = None
+    seed: int = 0
+    ground_truth: Path | None = None
+    calibration: Path | None = None
+    frame_rate_hz: float | None = None
+    patch_pitch_mm: float | None = None
+    duration_s: float | None = None
+    config_path: Path | None = None
+
+
+async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = None,
+                    on_summary: Callable[[dict[str, Any]], None] | None = None
+                    ) -> dict[str, Any]:
+    """Build everything, run the station until ``stop``/duration, return the summary.
+
+    Args:
+        options: the command line.
+        stop: set it to stop cleanly (the CLI sets it on SIGTERM/SIGINT).
+        status: callable receiving the status text (None: no status line).
+        on_summary: called with the summary once the station has stopped, also when it
+            stopped on an error (so ``--summary-json`` is written in every case).
+
+    Returns:
+        :meth:`RemoteStation.summary` plus ``session``, ``arm``, ``sensor``, ``phantom``.
+
+    Raises:
+        ConfigError: bad settings, unknown backends, a world given to real hardware.
+        CalibrationError: missing or mismatched calibration.
+        DeviceInitError: a device could not be opened.
+        AuthError, RoleTakenError: the relay refused the station for good.
+    """
+    toml = options.config_path
+    link_cfg = resolve_config(StationLinkConfig, "remote.link", toml_path=toml, explicit={
+        "url": options.relay, "session": options.session, "token": options.token,
+        "name": options.name})
+    safety = resolve_config(SafetyConfig, "arm.safety", toml_path=toml)
+    stiffness_cfg = resolve_config(StiffnessConfig, "stiffness", toml_path=toml)
+    agent_cfg = resolve_config(RemoteAgentConfig, "remote.agent", toml_path=toml, explicit={
+        "frame_rate_hz": options.frame_rate_hz, "patch_pitch_mm": options.patch_pitch_mm})
+    workspace = load_workspace(toml_path=toml)
+    shore = ShoreConversion()
+
+    world = build_world(options.phantom, options.seed)
+    if options.ground_truth is not None:
+        if world is None:
+            raise ConfigError("--ground-truth needs a simulated world (--phantom SCENE)")
+        write_ground_truth(world, options.ground_truth, workspace, shore)
+        log.info("ground truth written to %s", options.ground_truth)
+
+    arm = open_world_arm(options.arm, world)
+    sensor = open_world_sensor(options.sensor, world, arm)
+    calibration = load_calibration(options.sensor, options.calibration, sensor)
+    reconstructor = Reconstructor(calibration)
+
+    lo, hi = workspace.phantom_bounds_mm
+    bounds = MapBounds(lo[0], hi[0], lo[1], hi[1], agent_cfg.stiffness_cell_mm)
+    stiffness = StiffnessStage(stiffness_cfg, bounds)
+    assembler = TactileAssembler(workspace, patch_size_mm=agent_cfg.patch_size_mm,
+                                 friction=agent_cfg.friction, shore=shore)
+    arm.connect()
+    safe_arm: SafeArm | None = None
+    try:
+        safe_arm = SafeArm(arm, safety, bounds_mm=workspace.phantom_bounds_mm)
+        sensor.connect()
+        pipeline = FramePipeline(sensor, reconstructor, assembler, stiffness, safe_arm.arm.state,
+                                 platform_pitch_mm=agent_cfg.patch_pitch_mm,
+                                 sensor_max_age_ms=agent_cfg.sensor_max_age_ms,
+                                 contact_force_n=stiffness_cfg.contact_force_n)
+        link = StationLink.from_config(link_cfg, "remote")
+        async with link:
+            station = RemoteStation(link, safe_arm, pipeline, stiffness, workspace.forward,
+                                    agent_cfg, status=status)
+            try:
+                await station.run(stop, options.duration_s)
+            finally:
+                summary = station.summary()
+                summary.update(session=link_cfg.session, arm_backend=options.arm,
+                               sensor_backend=options.sensor, phantom=options.phantom,
+                               seed=options.seed if world else None)
+                if on_summary is not None:
+                    on_summary(summary)
+        return summary
+    finally:
+        if safe_arm is not None:
+            safe_arm.stop()
+            safe_arm.close()
+        sensor.disconnect()
+        arm.disconnect()

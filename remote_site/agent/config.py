@@ -1,0 +1,64 @@
+"""Settings of the remote station agent (TOML table ``[remote.agent]``).
+
+Resolve with ``shared.config.resolve_config(RemoteAgentConfig, "remote.agent", ...)``; the
+link (``[remote.link]``), arm safety (``[arm.safety]``), workspace (``[workspace]``) and
+stiffness (``[stiffness]``) settings resolve through their own dataclasses.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from shared.errors import ConfigError
+
+__all__ = ["RemoteAgentConfig"]
+
+
+@dataclass(frozen=True)
+class RemoteAgentConfig:
+    """Loop rates and tactile-frame layout of the remote station.
+
+    Attributes:
+        frame_rate_hz: sensor frames processed per second (>= 60 for the paper's display).
+        patch_pitch_mm: tactile patch pitch on the display side (platform mm); the actual
+            pitch is the nearest integer multiple of the sensor pixel.
+        patch_size_mm: (x, y) patch extent in phantom mm; 0 = the whole sensor area.
+        arm_poll_hz: rate of the arm monitor (safety poll, stiffness samples, link check).
+        arm_state_hz: rate of ``arm_state`` messages to the local station.
+        link_loss_halt_ms: the arm is halted when the link has been down this long.
+        sensor_max_age_ms: a sensor frame older than this is refused.
+        require_clock_offsets: drop platform states until the relay has reported both
+            stations' clock offsets (their age cannot be checked before).
+        stiffness_cell_mm: cell size of the stiffness map.
+        friction: value of the friction layer (0 for palpation).
+        status_interval_s: how often the status line is refreshed.
+    """
+
+    frame_rate_hz: float = 60.0
+    patch_pitch_mm: float = 0.5
+    patch_size_mm: tuple[float, float] = (0.0, 0.0)
+    arm_poll_hz: float = 250.0
+    arm_state_hz: float = 50.0
+    link_loss_halt_ms: float = 100.0
+    sensor_max_age_ms: float = 100.0
+    require_clock_offsets: bool = True
+    stiffness_cell_mm: float = 2.0
+    friction: float = 0.0
+    status_interval_s: float = 1.0
+
+    def __post_init__(self) -> None:
+        positive = ("frame_rate_hz", "patch_pitch_mm", "arm_poll_hz", "arm_state_hz",
+                    "link_loss_halt_ms", "sensor_max_age_ms", "stiffness_cell_mm",
+                    "status_interval_s")
+        for name in positive:
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+                raise ConfigError(f"remote.agent.{name} must be finite and > 0, got {value!r}")
+        if self.frame_rate_hz > 1000.0 or self.arm_poll_hz > 2000.0:
+            raise ConfigError("remote.agent: frame_rate_hz <= 1000 and arm_poll_hz <= 2000")
+        if len(self.patch_size_mm) != 2 or not all(
+                math.isfinite(v) and v >= 0 for v in self.patch_size_mm):
+            raise ConfigError("remote.agent.patch_size_mm must be two numbers >= 0")
+        if not 0.0 <= self.friction <= 1.0:
+            raise ConfigError("remote.agent.friction must lie in [0, 1]")

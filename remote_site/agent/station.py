@@ -1,0 +1,406 @@
+"""The remote station's loops: follow platform states, stream tactile frames and arm state.
+
+Four asyncio tasks share one :class:`RemoteStation`:
+
+* **receive**: every ``platform_state`` from the relay goes through the workspace map to a
+  :class:`~remote_site.arm.safety.SafeArm` move, age-checked with the relay's clock offsets
+  (``age = (now_remote - off_remote) - (ts_local - off_local)``; older than 100 ms: dropped
+  and counted). ``arm_command`` messages go to :meth:`SafeArm.handle`.
+* **arm monitor** (``arm_poll_hz``): :meth:`SafeArm.poll` (no command for 100 ms halts, the
+  force limit), every reading to the stiffness stage, the link-loss halt (link down for more
+  than ``link_loss_halt_ms``), and ``arm_state`` at ``arm_state_hz``.
+* **frames** (``frame_rate_hz``): :meth:`FramePipeline.process` in a worker thread (numpy
+  releases the GIL, so the receive path stays responsive), then ``tactile_frame`` out.
+* **status**: one status line per ``status_interval_s``.
+
+The StationLink answers clock pings and reconnects with backoff by itself.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+from collections import deque
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass
+from typing import Any, Protocol
+
+import numpy as np
+
+from remote_site.agent.config import RemoteAgentConfig
+from remote_site.agent.pipeline import FrameOutcome, FramePipeline
+from remote_site.agent.stiffness_stage import StiffnessStage
+from remote_site.arm.base import ArmReading
+from remote_site.arm.safety import CommandResult, SafeArm
+from remote_site.tactile import AppliedCommand
+from shared.client import LinkCounters
+from shared.errors import InputDataError
+from shared.protocol.messages import ArmCommand, Message, PlatformState
+from shared.timebase import monotonic_s, now_us
+
+__all__ = ["RemoteStation", "StationCounters", "command_clock_offset_us", "percentiles_ms"]
+
+log = logging.getLogger(__name__)
+
+
+class _Link(Protocol):
+    """What the station needs of :class:`shared.client.StationLink`."""
+
+    counters: LinkCounters
+
+    @property
+    def is_connected(self) -> bool: ...
+
+    @property
+    def clock_offsets_us(self) -> dict[str, int | None]: ...
+
+    def link_down_for_s(self, now_s: float | None = None) -> float: ...
+
+    async def send(self, msg: Message) -> None: ...
+
+    async def recv(self, timeout_s: float | None = None) -> Message: ...
+
+
+@dataclass
+class StationCounters:
+    """Running totals of the station (see :meth:`RemoteStation.summary`)."""
+
+    platform_states: int = 0
+    platform_applied: int = 0
+    platform_dropped_no_clock: int = 0
+    platform_invalid: int = 0
+    arm_commands: int = 0
+    arm_commands_applied: int = 0
+    frames_sent: int = 0
+    frames_not_sent_link_down: int = 0
+    frames_late: int = 0
+    arm_states_sent: int = 0
+    link_loss_halts: int = 0
+    stiffness_samples_rejected: int = 0
+
+
+def command_clock_offset_us(offsets_us: dict[str, int | None]) -> float | None:
+    """Our clock minus the local station's, from the relay's per-role offsets.
+
+    Each offset is a station's clock minus the relay's, so ``remote - local``; the command
+    age is then ``now_remote - (ts_local + offset)``. None when either is unknown.
+    """
+    off_remote, off_local = offsets_us.get("remote"), offsets_us.get("local")
+    if off_remote is None or off_local is None:
+        return None
+    return float(off_remote - off_local)
+
+
+def percentiles_ms(samples_s: Any) -> dict[str, float] | None:
+    """n, p50, p99, mean and max (ms) of samples in seconds; None when empty."""
+    arr = np.asarray(list(samples_s), dtype=float) * 1000.0
+    if arr.size == 0:
+        return None
+    return {"n": int(arr.size), "p50": float(np.percentile(arr, 50)),
+            "p99": float(np.percentile(arr, 99)), "mean": float(arr.mean()),
+            "max": float(arr.max())}
+
+
+class RemoteStation:
+    """Runs the remote station's loops around the devices and the link.
+
+    Args:
+        link: the station's relay link (started by the caller).
+        safe_arm: the arm behind the station's safety layer (connected).
+        pipeline: the frame pipeline (sensor connected).
+        stiffness: the stiffness stage the pipeline reads.
+        workspace_forward: platform mm -> phantom mm (``WorkspaceMap.forward``).
+        config: loop rates and limits.
+        status: called with the status text every ``status_interval_s`` (None: no status).
+    """
+
+    def __init__(self, link: _Link, safe_arm: SafeArm, pipeline: FramePipeline,
+                 stiffness: StiffnessStage, workspace_forward: Callable[[Any], np.ndarray],
+                 config: RemoteAgentConfig | None = None, *,
+                 status: Callable[[str], None] | None = None) -> None:
+        self.link = link
+        self.safe_arm = safe_arm
+        self.pipeline = pipeline
+        self.stiffness = stiffness
+        self.forward = workspace_forward
+        self.config = config or RemoteAgentConfig()
+        self.status = status
+        self.counters = StationCounters()
+        self.latest: AppliedCommand | None = None
+        self.last_reading: ArmReading | None = None
+        self._frame_seq = 0
+        self._arm_state_seq = 0
+        self._link_halted = False
+        self._warned_no_clock = False
+        self._started_s: float | None = None
+        self._stopped_s: float | None = None
+        window = 20_000
+        self.pipeline_s: deque[float] = deque(maxlen=window)
+        self.capture_s: deque[float] = deque(maxlen=window)
+        self.reconstruct_s: deque[float] = deque(maxlen=window)
+        self.assemble_s: deque[float] = deque(maxlen=window)
+        self.dispatch_s: deque[float] = deque(maxlen=window)
+        self.frame_period_s: deque[float] = deque(maxlen=window)
+
+    # ------------------------------------------------------------------ commands
+
+    def apply_platform_state(self, state: PlatformState) -> CommandResult | None:
+        """Turn one platform_state into a safe arm move (age-checked, clamped).
+
+        Returns:
+            The safety layer's result, or None when the state was not offered to the arm
+            (clock offsets unknown, or an invalid position).
+        """
+        self.counters.platform_states += 1
+        offset_us = command_clock_offset_us(self.link.clock_offsets_us)
+        if offset_us is None:
+            if self.config.require_clock_offsets:
+                self.counters.platform_dropped_no_clock += 1
+                if not self._warned_no_clock:
+                    log.warning("clock offsets not reported by the relay yet: platform states "
+                                "are dropped until their age can be checked")
+                    self._warned_no_clock = True
+                return None
+            offset_us = 0.0
+        try:
+            target = self.forward(state.position_mm)
+            result = self.safe_arm.move(tuple(float(v) for v in target),
+                                        sent_ts_us=state.ts_us, clock_offset_us=offset_us)
+        except InputDataError as err:
+            self.counters.platform_invalid += 1
+            log.warning("unusable platform_state %d: %s", state.seq, err)
+            return None
+        if result.accepted:
+            t_us = now_us()
+            self.latest = AppliedCommand(state, t_us)
+            self.counters.platform_applied += 1
+            rx = [h.t_us for h in state.hops if h.clock == "remote" and h.stage == "station_rx"]
+            if rx:
+                self.dispatch_s.append(max(0, t_us - rx[-1]) / 1e6)
+        return result
+
+    def apply_arm_command(self, command: ArmCommand) -> CommandResult:
+        """Apply an explicit arm command (stop always acts; the others are age-checked)."""
+        self.counters.arm_commands += 1
+        offset_us = command_clock_offset_us(self.link.clock_offsets_us)
+        result = self.safe_arm.handle(command, clock_offset_us=offset_us or 0.0)
+        if result.accepted:
+            self.counters.arm_commands_applied += 1
+        return result
+
+    # ------------------------------------------------------------------ loops
+
+    async def _receive_loop(self) -> None:
+        while True:
+            msg = await self.link.recv()
+            if isinstance(msg, PlatformState):
+                self.apply_platform_state(msg)
+            elif isinstance(msg, ArmCommand):
+                self.apply_arm_command(msg)
+            elif log.isEnabledFor(logging.DEBUG):
+                log.debug("ignoring %s from the relay", msg.TYPE)
+
+    def _check_link(self) -> None:
+        if self.link.is_connected:
+            self._link_halted = False
+            return
+        down_ms = self.link.link_down_for_s() * 1000.0
+        if (self.link.counters.connects > 0 and not self._link_halted
+                and down_ms > self.config.link_loss_halt_ms):
+            self.safe_arm.stop()
+            self._link_halted = True
+            self.counters.link_loss_halts += 1
+            log.warning("link to the relay down for %.0f ms: arm halted", down_ms)
+
+    async def _arm_loop(self) -> None:
+        period = 1.0 / self.config.arm_poll_hz
+        state_period = 1.0 / self.config.arm_state_hz
+        loop = asyncio.get_running_loop()
+        next_t = loop.time()
+        next_state_t = next_t
+        while True:
+            reading = self.safe_arm.poll()
+            self.last_reading = reading
+            try:
+                self.stiffness.add_sample(reading.t_s, reading.position_mm, reading.force_n)
+            except InputDataError as err:
+                self.counters.stiffness_samples_rejected += 1
+                if self.counters.stiffness_samples_rejected == 1:
+                    log.warning("arm sample rejected by the stiffness stage: %s", err)
+            self._check_link()
+            now = loop.time()
+            if now >= next_state_t:
+                next_state_t = max(next_state_t + state_period, now)
+                if self.link.is_connected:
+                    self._arm_state_seq += 1
+                    source = self.latest.state.seq if self.latest is not None else None
+                    await self.link.send(reading.to_message(self._arm_state_seq, now_us(),
+                                                            source))
+                    self.counters.arm_states_sent += 1
+            next_t += period
+            delay = next_t - loop.time()
+            if delay < -0.05:
+                next_t = loop.time()
+            await asyncio.sleep(max(0.0, delay))
+
+    async def _frame_loop(self, executor: ThreadPoolExecutor) -> None:
+        period = 1.0 / self.config.frame_rate_hz
+        loop = asyncio.get_running_loop()
+        next_t = loop.time()
+        last_start: float | None = None
+        while True:
+            delay = next_t - loop.time()
+            if delay > 0:
+                await asyncio.sleep(delay)
+            start = loop.time()
+            if last_start is not None:
+                self.frame_period_s.append(start - last_start)
+            last_start = start
+            outcome: FrameOutcome = await loop.run_in_executor(
+                executor, self.pipeline.process, self._frame_seq + 1, self.latest)
+            if outcome.frame is not None:
+                self._frame_seq += 1
+                self._record(outcome)
+                if self.link.is_connected:
+                    await self.link.send(outcome.frame)
+                    self.counters.frames_sent += 1
+                else:
+                    self.counters.frames_not_sent_link_down += 1
+            next_t += period
+            now = loop.time()
+            if now > next_t:
+                self.counters.frames_late += 1
+                next_t = now
+
+    def _record(self, outcome: FrameOutcome) -> None:
+        frame = outcome.frame
+        if frame is None:
+            return
+        stamps = {h.stage: h.t_us for h in frame.hops if h.clock == "remote"}
+        if "sensor_frame" in stamps and "tactile_ready" in stamps:
+            self.pipeline_s.append((stamps["tactile_ready"] - stamps["sensor_frame"]) / 1e6)
+        self.capture_s.append(outcome.capture_s)
+        self.reconstruct_s.append(outcome.reconstruct_s)
+        self.assemble_s.append(outcome.assemble_s)
+
+    def status_text(self) -> str:
+        """One line: link, frames, arm pose and force, stiffness, drops."""
+        link = "up" if self.link.is_connected else "DOWN"
+        elapsed = self.elapsed_s
+        fps = self.pipeline.processed / elapsed if elapsed > 0 else 0.0
+        r = self.last_reading
+        arm = "arm ?" if r is None else (
+            f"arm ({r.position_mm[0]:.1f},{r.position_mm[1]:.1f},{r.position_mm[2]:.2f}) mm "
+            f"{r.force_n:.2f} N {r.status}")
+        k = self.stiffness.current_n_per_mm
+        k_txt = "k -" if k is None else f"k {k:.2f} N/mm"
+        return (f"remote: link {link} | frames {self.counters.frames_sent} ({fps:.0f} fps) "
+                f"rejected {sum(self.pipeline.rejected.values())} | {arm} | {k_txt} | "
+                f"stale {self.safe_arm.counters.dropped_stale}")
+
+    async def _status_loop(self) -> None:
+        while True:
+            await asyncio.sleep(self.config.status_interval_s)
+            if self.status is not None:
+                self.status(self.status_text())
+
+    @property
+    def elapsed_s(self) -> float:
+        """Seconds the station has been running (until it stopped)."""
+        if self._started_s is None:
+            return 0.0
+        end = self._stopped_s if self._stopped_s is not None else monotonic_s()
+        return max(0.0, end - self._started_s)
+
+    async def run(self, stop: asyncio.Event, duration_s: float | None = None) -> None:
+        """Run until ``stop`` is set, ``duration_s`` has passed or a loop fails.
+
+        The arm is halted and the worker thread joined before returning.
+
+        Raises:
+            AuthError, RoleTakenError: the relay refused the station for good.
+            ConfigError: ``duration_s`` is not positive.
+        """
+        if duration_s is not None and not (math.isfinite(duration_s) and duration_s > 0):
+            from shared.errors import ConfigError
+
+            raise ConfigError(f"duration must be finite and > 0, got {duration_s}")
+        self._started_s = monotonic_s()
+        executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="remote-pipeline")
+        tasks = [asyncio.create_task(self._receive_loop(), name="remote-receive"),
+                 asyncio.create_task(self._arm_loop(), name="remote-arm"),
+                 asyncio.create_task(self._frame_loop(executor), name="remote-frames"),
+                 asyncio.create_task(self._status_loop(), name="remote-status")]
+        stopper = asyncio.create_task(stop.wait(), name="remote-stop")
+        try:
+            done, _ = await asyncio.wait({*tasks, stopper}, timeout=duration_s,
+                                         return_when=asyncio.FIRST_COMPLETED)
+            for task in done:
+                if task is not stopper and not task.cancelled() and task.exception() is not None:
+                    raise task.exception()  # type: ignore[misc]
+        finally:
+            for task in (*tasks, stopper):
+                task.cancel()
+            for task in (*tasks, stopper):
+                with contextlib.suppress(asyncio.CancelledError, Exception):
+                    await task
+            self.safe_arm.stop()
+            await asyncio.get_running_loop().run_in_executor(None, executor.shutdown, True)
+            self.stiffness.flush()
+            self._stopped_s = monotonic_s()
+            log.info("remote station stopped after %.1f s: %d tactile frames sent",
+                     self.elapsed_s, self.counters.frames_sent)
+
+    # ------------------------------------------------------------------ summary
+
+    def summary(self) -> dict[str, Any]:
+        """Counters and latency figures of the run (plain JSON values)."""
+        c, p, s = self.counters, self.pipeline, self.safe_arm.counters
+        elapsed = self.elapsed_s
+        r = self.last_reading
+        return {
+            "role": "remote",
+            "elapsed_s": elapsed,
+            "frames": {
+                "frame_rate_hz": self.config.frame_rate_hz,
+                "processed": p.processed,
+                "sent": c.frames_sent,
+                "not_sent_link_down": c.frames_not_sent_link_down,
+                "rejected": dict(p.rejected),
+                "rejected_total": sum(p.rejected.values()),
+                "repeated": p.repeated,
+                "skipped_integration_no_contact": p.skipped_integration,
+                "late": c.frames_late,
+                "achieved_fps": p.processed / elapsed if elapsed > 0 else 0.0,
+                "patch_pitch_mm": p.patch_pitch_mm / p.assembler.scale_xy,
+            },
+            "platform_states": {
+                "received": c.platform_states,
+                "applied": c.platform_applied,
+                "dropped_stale": s.dropped_stale,
+                "dropped_no_clock": c.platform_dropped_no_clock,
+                "invalid": c.platform_invalid,
+            },
+            "arm_commands": {"received": c.arm_commands, "applied": c.arm_commands_applied},
+            "arm": {
+                **asdict(s),
+                "link_loss_halts": c.link_loss_halts,
+                "arm_states_sent": c.arm_states_sent,
+                "final_position_mm": None if r is None else list(r.position_mm),
+                "final_force_n": None if r is None else r.force_n,
+            },
+            "stiffness": {**self.stiffness.summary(),
+                          "samples_rejected": c.stiffness_samples_rejected},
+            "latency_ms": {
+                "sensor_frame_to_tactile_ready": percentiles_ms(self.pipeline_s),
+                "capture": percentiles_ms(self.capture_s),
+                "reconstruct": percentiles_ms(self.reconstruct_s),
+                "assemble": percentiles_ms(self.assemble_s),
+                "station_rx_to_arm_command": percentiles_ms(self.dispatch_s),
+                "frame_period": percentiles_ms(self.frame_period_s),
+            },
+            "link": asdict(self.link.counters),
+        }

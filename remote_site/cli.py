@@ -1,0 +1,93 @@
+"""Run the remote palpation station: follow the operator's platform, stream what the probe feels.
+
+Platform states from the relay drive the arm (workspace map, 100 ms stale-command drop,
+halt after 100 ms without commands or on link loss, force limit, workspace clamp); every
+sensor frame is reconstructed with the calibration at the display's pitch and sent as a
+tactile frame with stiffness layers; arm state goes out at 50 Hz. SIGTERM / SIGINT stop
+cleanly (arm halted) and write --summary-json.
+
+With --phantom SCENE --seed N the simulated arm and sensor act on that phantom (scenes:
+localization, severity, breast); --ground-truth writes its tumors for scoring.
+
+examples:
+  TELETOUCH_REMOTE_LINK_TOKEN=... teletouch remote --relay ws://127.0.0.1:8765/ \\
+      --session lab1 --arm sim --sensor sim --phantom breast --seed 3 \\
+      --ground-truth truth.json --summary-json remote.json
+  teletouch remote --relay tcp://relay:8766 --session lab1 --arm franka --sensor 0 \\
+      --calibration gsmini_calib.npz
+"""
+
+from __future__ import annotations
+
+import argparse
+
+__all__ = ["configure_parser", "run"]
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    """Add the remote station's flags (None = not given, so env/TOML/defaults apply)."""
+    parser.add_argument("--relay", help="relay URL: ws://HOST:PORT/, wss://..., tcp://HOST:PORT")
+    parser.add_argument("--session", help="session id")
+    parser.add_argument("--token", help="session token (prefer $TELETOUCH_REMOTE_LINK_TOKEN)")
+    parser.add_argument("--name", help="label shown in the relay's status")
+    parser.add_argument("--arm", default="sim", help="arm backend: sim, franka (default sim)")
+    parser.add_argument("--sensor", default="sim",
+                        help="sensor: sim, camera, or a camera index / URL / video file")
+    parser.add_argument("--phantom", help="simulated world: a phantom scene for sim backends")
+    parser.add_argument("--seed", type=int, default=0, help="phantom placement seed (default 0)")
+    parser.add_argument("--ground-truth", dest="ground_truth", metavar="PATH.json",
+                        help="write the phantom's ground truth here (needs --phantom)")
+    parser.add_argument("--calibration", metavar="PATH.npz",
+                        help="sensor calibration (default: the shipped one for --sensor sim)")
+    parser.add_argument("--frame-rate-hz", dest="frame_rate_hz", type=float,
+                        help="tactile frames per second (default 60)")
+    parser.add_argument("--patch-pitch-mm", dest="patch_pitch_mm", type=float,
+                        help="tactile patch pitch on the display side (default 0.5)")
+    parser.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    parser.add_argument("--summary-json", dest="summary_json", metavar="PATH",
+                        help="write the run's counters and latencies here at exit")
+    parser.add_argument("--config", help="TOML file ([remote.link], [remote.agent], "
+                                         "[arm.safety], [workspace], [stiffness])")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the station until SIGTERM/SIGINT or --duration; 0 on a clean stop."""
+    import asyncio
+    import json
+    import signal
+    from pathlib import Path
+    from typing import Any
+
+    from remote_site.agent.app import AgentOptions, run_agent
+    from shared.report import StatusLine, emit, to_jsonable
+
+    options = AgentOptions(
+        relay=args.relay, session=args.session, token=args.token, name=args.name,
+        arm=args.arm, sensor=args.sensor, phantom=args.phantom, seed=args.seed,
+        ground_truth=Path(args.ground_truth) if args.ground_truth else None,
+        calibration=Path(args.calibration) if args.calibration else None,
+        frame_rate_hz=args.frame_rate_hz, patch_pitch_mm=args.patch_pitch_mm,
+        duration_s=args.duration, config_path=Path(args.config) if args.config else None)
+    status = StatusLine()
+
+    def write_summary(summary: dict[str, Any]) -> None:
+        if args.summary_json:
+            Path(args.summary_json).write_text(
+                json.dumps(to_jsonable(summary), indent=2, sort_keys=True, allow_nan=False))
+
+    async def main() -> dict[str, Any]:
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            loop.add_signal_handler(sig, stop.set)
+        return await run_agent(options, stop, status=status.update, on_summary=write_summary)
+
+    try:
+        summary = asyncio.run(main())
+    finally:
+        status.close()
+    frames = summary["frames"]
+    emit(f"remote station: {frames['sent']} tactile frames sent, "
+         f"{frames['rejected_total']} rejected, "
+         f"{summary['platform_states']['dropped_stale']} stale commands dropped")
+    return 0
