@@ -45,6 +45,10 @@ from shared.protocol.messages import LAYER_RANGES, Hop, PlatformState, TactileFr
 from shared.timebase import now_us
 from shared.workspace import WorkspaceMap
 
+#: wire bounds of the scalar fields (shared.protocol.messages.TactileFrame); never exceeded
+_FORCE_LIMIT_N = 1000.0
+_INDENTATION_LIMIT_MM = 100.0
+
 __all__ = ["AppliedCommand", "TactileAssembler", "crop_centered", "patch_offsets_mm",
            "sample_stiffness_map"]
 
@@ -237,6 +241,8 @@ class TactileAssembler:
         return TactileFrame(seq=seq, ts_us=int(frame_ts_us), hops=hops,
                             center_mm=(float(center[0]), float(center[1])),
                             pitch_mm=float(pitch_mm) / self.scale_xy, layers=layers,
-                            contact=bool(contact), force_n=float(force_n),
-                            indentation_mm=max(0.0, -z), source_seq=source_seq,
+                            contact=bool(contact),
+                            force_n=min(max(float(force_n), -_FORCE_LIMIT_N), _FORCE_LIMIT_N),
+                            indentation_mm=min(max(0.0, -z), _INDENTATION_LIMIT_MM),
+                            source_seq=source_seq,
                             source_ts_us=source_ts)

@@ -1,0 +1,352 @@
+"""The station's safety and robustness without a network: a fake link, the real sim devices.
+
+Stale (clock-corrected) platform states are dropped and counted, the arm halts on silence
+and on link loss, pressing stops at the force limit, bad sensor frames are skipped and
+counted, and start-up refuses a missing or mismatched calibration and a world given to
+real hardware.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from remote_site.agent.config import RemoteAgentConfig
+from remote_site.agent.pipeline import FramePipeline
+from remote_site.agent.station import RemoteStation, command_clock_offset_us
+from remote_site.agent.stiffness_stage import StiffnessStage
+from remote_site.agent.world import (
+    SimWorld,
+    build_world,
+    load_calibration,
+    open_world_arm,
+    open_world_sensor,
+    write_ground_truth,
+)
+from remote_site.arm.safety import SafeArm, SafetyConfig
+from remote_site.arm.sim import SimArm, SimArmConfig
+from remote_site.phantom.scenes import make_scene
+from remote_site.reconstruction.reconstructor import Reconstructor
+from remote_site.sensor.base import SensorFrame, TactileSensor
+from remote_site.sensor.sim_calibration import simulated_calibration
+from remote_site.sensor.simulator import SimulatedSensor
+from remote_site.tactile import TactileAssembler
+from shared.client import LinkCounters
+from shared.errors import CalibrationError, ConfigError
+from shared.protocol import ArmCommand, ArmState, Message, PlatformState, TactileFrame
+from shared.timebase import now_us
+from shared.workspace import WorkspaceMap
+from tests.support import scaled
+
+
+class FakeLink:
+    """In-memory stand-in for StationLink: an inbox, a sent list, settable link state."""
+
+    def __init__(self, offsets: dict[str, int | None] | None = None, connected: bool = True,
+                 down_s: float = 0.0) -> None:
+        self.counters = LinkCounters(connects=1)
+        self.offsets = {"local": 0, "remote": 0} if offsets is None else offsets
+        self.connected = connected
+        self.down_s = down_s
+        self.sent: list[Message] = []
+        self.inbox: asyncio.Queue[Message] = asyncio.Queue()
+
+    @property
+    def is_connected(self) -> bool:
+        return self.connected
+
+    @property
+    def clock_offsets_us(self) -> dict[str, int | None]:
+        return dict(self.offsets)
+
+    def link_down_for_s(self, now_s: float | None = None) -> float:
+        return 0.0 if self.connected else self.down_s
+
+    async def send(self, msg: Message) -> None:
+        self.sent.append(msg)
+
+    async def recv(self, timeout_s: float | None = None) -> Message:
+        return await self.inbox.get()
+
+
+WS = WorkspaceMap()
+CALIB = simulated_calibration()
+
+
+def make_station(link: FakeLink, safety: SafetyConfig | None = None, *, realtime: bool = True,
+                 scene: str = "breast", seed: int = 0, sensor: TactileSensor | None = None,
+                 config: RemoteAgentConfig | None = None) -> RemoteStation:
+    world = SimWorld(make_scene(scene, seed))
+    arm = open_world_arm("sim", world, config=SimArmConfig(realtime=realtime))
+    sensor = sensor or open_world_sensor("sim", world, arm)
+    arm.connect()
+    sensor.connect()
+    safe = SafeArm(arm, safety, bounds_mm=WS.phantom_bounds_mm)
+    stiffness = StiffnessStage()
+    pipeline = FramePipeline(sensor, Reconstructor(CALIB), TactileAssembler(WS), stiffness,
+                             arm.state)
+    cfg = config or RemoteAgentConfig(frame_rate_hz=30.0, status_interval_s=0.05)
+    return RemoteStation(link, safe, pipeline, stiffness, WS.forward, cfg)
+
+
+def close_station(station: RemoteStation) -> None:
+    station.safe_arm.close()
+    station.pipeline.sensor.disconnect()
+    station.safe_arm.arm.disconnect()
+
+
+def platform_state(seq: int, phantom_mm: tuple[float, float, float], ts_us: int | None = None
+                   ) -> PlatformState:
+    p = WS.inverse(list(phantom_mm))
+    ts = now_us() if ts_us is None else ts_us
+    return PlatformState(seq=seq, ts_us=ts, position_mm=(float(p[0]), float(p[1]), float(p[2])))
+
+
+def test_clock_offset_is_remote_minus_local() -> None:
+    assert command_clock_offset_us({"local": 500, "remote": -200}) == -700
+    assert command_clock_offset_us({"local": None, "remote": 0}) is None
+    assert command_clock_offset_us({}) is None
+
+
+def test_stale_platform_states_are_dropped_with_clock_correction() -> None:
+    # the local clock runs 0.5 s ahead of the relay, ours is on time
+    link = FakeLink(offsets={"local": 500_000, "remote": 0})
+    station = make_station(link, realtime=False)
+    try:
+        fresh = station.apply_platform_state(
+            platform_state(1, (0.0, 0.0, 5.0), ts_us=now_us() + 500_000 - 20_000))
+        assert fresh is not None and fresh.accepted
+        assert fresh.age_ms == pytest.approx(20.0, abs=15.0)
+        stale = station.apply_platform_state(
+            platform_state(2, (1.0, 0.0, 5.0), ts_us=now_us() + 500_000 - 150_000))
+        assert stale is not None and not stale.accepted and stale.status == "stale_command"
+        assert station.latest is not None and station.latest.state.seq == 1
+        summary = station.summary()["platform_states"]
+        assert (summary["received"], summary["applied"], summary["dropped_stale"]) == (2, 1, 1)
+        # the arm was told to go to the fresh state's target only
+        assert station.safe_arm.arm.state().target_mm == pytest.approx((0.0, 0.0, 5.0))
+    finally:
+        close_station(station)
+
+
+def test_platform_states_wait_for_clock_offsets() -> None:
+    station = make_station(FakeLink(offsets={"local": None, "remote": 0}), realtime=False)
+    try:
+        assert station.apply_platform_state(platform_state(1, (0.0, 0.0, 5.0))) is None
+        assert station.counters.platform_dropped_no_clock == 1
+        assert station.latest is None
+    finally:
+        close_station(station)
+
+
+async def test_arm_halts_when_commands_stop() -> None:
+    link = FakeLink()
+    station = make_station(link)
+    try:
+        link.inbox.put_nowait(platform_state(1, (10.0, 0.0, 10.0)))
+        await station.run(asyncio.Event(), duration_s=scaled(0.5))
+        assert station.counters.platform_applied == 1
+        assert station.safe_arm.counters.watchdog_halts == 1
+        states = [m for m in link.sent if isinstance(m, ArmState)]
+        assert states and states[-1].status == "halted" and states[-1].source_seq == 1
+        # the arm stopped short of the target: it was halted 100 ms after the command
+        x = station.safe_arm.arm.state().position_mm[0]
+        assert 0.0 < x < 10.0
+        frames = [m for m in link.sent if isinstance(m, TactileFrame)]
+        assert frames and frames[-1].source_seq == 1
+    finally:
+        close_station(station)
+
+
+async def test_arm_halts_on_link_loss() -> None:
+    # no watchdog halt in this test: only the link loss may stop the arm
+    link = FakeLink(connected=False, down_s=0.3)
+    station = make_station(link, SafetyConfig(command_timeout_ms=60_000.0))
+    try:
+        station.safe_arm.move((10.0, 0.0, 10.0))
+        await station.run(asyncio.Event(), duration_s=scaled(0.2))
+        assert station.counters.link_loss_halts == 1
+        assert station.safe_arm.counters.watchdog_halts == 0
+        assert station.counters.frames_not_sent_link_down > 0 and not link.sent
+    finally:
+        close_station(station)
+
+
+async def test_pressing_stops_at_the_force_limit() -> None:
+    link = FakeLink()
+    limit_n = 2.0
+    station = make_station(link, SafetyConfig(force_limit_n=limit_n))
+    stop = asyncio.Event()
+
+    async def press() -> None:
+        seq = 0
+        for z in [*np.linspace(1.0, -6.0, 120), *[-6.0] * 60]:  # far deeper than the limit
+            seq += 1
+            link.inbox.put_nowait(platform_state(seq, (0.0, -35.0, float(z))))
+            await asyncio.sleep(0.008)
+        stop.set()
+
+    try:
+        presser = asyncio.create_task(press())
+        forces = []
+
+        async def watch() -> None:
+            while not stop.is_set():
+                forces.append(station.safe_arm.arm.state().force_n)
+                await asyncio.sleep(0.002)
+
+        watcher = asyncio.create_task(watch())
+        await station.run(stop, duration_s=scaled(10.0))
+        await presser
+        await watcher
+        assert max(forces) >= 0.9 * limit_n  # it did press up to the limit
+        assert max(forces) <= 1.25 * limit_n  # and no further than a small overshoot
+        assert station.safe_arm.counters.force_limited > 0
+        assert any(isinstance(m, ArmState) and m.status == "force_limit" for m in link.sent)
+        assert station.safe_arm.arm.state().position_mm[2] > -3.0
+    finally:
+        close_station(station)
+
+
+class ScriptedSensor(TactileSensor):
+    """A sensor backend that delivers queued frames (None = no frame captured)."""
+
+    def __init__(self, frames: list[np.ndarray | None]) -> None:
+        super().__init__((240, 320), 0.0634)
+        self.frames = frames
+        self.seq = 0
+
+    def _connect(self) -> None:
+        pass
+
+    def _disconnect(self) -> None:
+        pass
+
+    def _latest(self) -> SensorFrame | None:
+        frame = self.frames.pop(0) if self.frames else None
+        if frame is None:
+            return None
+        self.seq += 1
+        return SensorFrame(frame, now_us(), self.seq)
+
+
+def test_bad_frames_are_skipped_and_counted(caplog: pytest.LogCaptureFixture) -> None:
+    good = SimulatedSensor().render(np.zeros((240, 320)))
+    nan_frame = good.astype(np.float32)
+    nan_frame[5, 5, 1] = np.nan
+    frames: list[np.ndarray | None] = [
+        np.full((200, 300, 3), 120, np.uint8),  # wrong size
+        np.full((240, 320, 3), 255, np.uint8),  # saturated
+        np.zeros((240, 320, 3), np.uint8),  # black
+        nan_frame,  # NaN (float)
+        None,  # nothing captured: timeout
+        good,
+    ]
+    station = make_station(FakeLink(), realtime=False, sensor=ScriptedSensor(frames))
+    caplog.set_level(logging.DEBUG, logger="remote_site.agent.pipeline")
+    try:
+        outcomes = [station.pipeline.process(i + 1, None) for i in range(6)]
+        assert [o.status for o in outcomes] == ["rejected"] * 5 + ["ok"]
+        assert station.pipeline.rejected == {"sensor_error": 2, "bad_frame": 2,
+                                             "sensor_timeout": 1}
+        assert outcomes[-1].frame is not None and outcomes[-1].skipped_integration
+        text = caplog.text
+        assert "saturated" in text and "black" in text and "expected (240, 320, 3)" in text
+        summary = station.summary()["frames"]
+        assert summary["rejected_total"] == 5
+    finally:
+        close_station(station)
+
+
+def test_calibration_problems_fail_at_start_up(tmp_path: Path) -> None:
+    world = build_world("localization", 1)
+    arm = open_world_arm("sim", world)
+    sensor = open_world_sensor("sim", world, arm)
+    assert load_calibration("sim", None, sensor).shape_hw == (240, 320)
+    with pytest.raises(CalibrationError, match="not found"):
+        load_calibration("sim", tmp_path / "missing.npz", sensor)
+    other = tmp_path / "other_pitch.npz"
+    dataclasses.replace(CALIB, mm_per_px=0.1).save(other)
+    with pytest.raises(CalibrationError, match="mm/px"):
+        load_calibration("sim", other, sensor)
+    garbage = tmp_path / "garbage.npz"
+    garbage.write_bytes(b"not a calibration")
+    with pytest.raises(CalibrationError):
+        load_calibration("sim", garbage, sensor)
+    camera = open_world_sensor("camera", None, arm)
+    with pytest.raises(CalibrationError, match="--calibration"):
+        load_calibration("camera", None, camera)
+
+
+def test_a_world_is_refused_by_real_hardware() -> None:
+    world = build_world("breast", 0)
+    with pytest.raises(ConfigError, match="real hardware"):
+        open_world_arm("franka", world)
+    arm = open_world_arm("sim", world)
+    assert isinstance(arm, SimArm) and arm.phantom is world.phantom  # type: ignore[union-attr]
+    with pytest.raises(ConfigError, match="real camera"):
+        open_world_sensor("camera", world, arm)
+    with pytest.raises(ConfigError, match="real camera"):
+        open_world_sensor("0", world, arm)
+    with pytest.raises(ConfigError):
+        build_world("no-such-scene", 0)
+
+
+def test_the_sim_sensor_renders_the_phantom_at_the_arm_pose() -> None:
+    world = build_world("breast", 0)
+    assert world is not None
+    arm = open_world_arm("sim", world, config=SimArmConfig(realtime=False))
+    sensor = open_world_sensor("sim", world, arm)
+    arm.connect()
+    sensor.connect()
+    try:
+        flat = sensor.read_latest().rgb.astype(float)  # home: 20 mm above the surface
+        arm.move_to((0.0, 0.0, -2.0))
+        arm.advance(1.0)
+        pressed = sensor.read_latest().rgb.astype(float)
+        assert arm.state().force_n > 0.5
+        assert np.abs(pressed - flat).max() > 20.0
+        truth = world.phantom.contact(arm.state().position_mm).depth_map_mm
+        assert truth.max() > 0.1
+    finally:
+        sensor.disconnect()
+        arm.disconnect()
+
+
+def test_ground_truth_file_has_platform_coordinates_and_severity(tmp_path: Path) -> None:
+    world = build_world("severity", 4)
+    assert world is not None
+    path = write_ground_truth(world, tmp_path / "truth.json", WS)
+    truth: dict[str, Any] = json.loads(path.read_text())
+    assert truth["scene"] == "severity" and truth["seed"] == 4
+    assert len(truth["tumors"]) == 4
+    for tumor in truth["tumors"]:
+        cx, cy = tumor["center_mm"]
+        assert tumor["center_platform_mm"] == pytest.approx([cx + 30.0, cy + 30.0])
+        assert tumor["stiffness_n_per_mm"] == pytest.approx(
+            world.phantom.tissue_stiffness_n_per_mm(cx, cy))
+        assert 0.5 <= tumor["display_k"] <= 1.0
+    ranks = {t["id"]: t["severity_rank"] for t in truth["tumors"]}
+    assert [ranks[i] for i in truth["severity_order"]] == [1, 2, 3, 4]
+    assert truth["workspace"]["scale_xy"] == 1.0
+    with pytest.raises(ConfigError):
+        write_ground_truth(world, tmp_path / "no" / "such" / "dir.json", WS)
+
+
+def test_explicit_stop_command_always_acts() -> None:
+    station = make_station(FakeLink(), realtime=False)
+    try:
+        station.apply_platform_state(platform_state(1, (0.0, 0.0, 5.0)))
+        old = ArmCommand(seq=1, ts_us=now_us() - 10_000_000, action="stop")  # 10 s old
+        assert station.apply_arm_command(old).accepted
+        assert station.safe_arm.halted
+        assert station.summary()["arm_commands"] == {"received": 1, "applied": 1}
+    finally:
+        close_station(station)
