@@ -1,0 +1,111 @@
+"""Settings of the local station agent: TOML table ``[local.agent]``.
+
+The table is ``[local.agent]`` rather than ``[local]`` because ``[local]`` already holds the
+``[local.link]`` and ``[local.render]`` sub-tables, which :func:`shared.config.resolve_config`
+would report as unknown keys of a ``local`` section. Environment variables are therefore
+``TELETOUCH_LOCAL_AGENT_<FIELD>`` (for example ``TELETOUCH_LOCAL_AGENT_DISPLAY=sim``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from shared.errors import ConfigError
+
+__all__ = ["RENDER_LOOP_MODES", "SAFE_STATE_MODES", "LocalAgentConfig"]
+
+SAFE_STATE_MODES = ("flat", "hold")
+#: where the display loop runs: a dedicated thread (default, by measurement) or an asyncio task
+RENDER_LOOP_MODES = ("thread", "asyncio")
+
+
+@dataclass(frozen=True)
+class LocalAgentConfig:
+    """Everything the local agent can be told (flags override, see ``teletouch local -h``).
+
+    Attributes:
+        platform: platform spec for :func:`local_site.devices.open_platform` (``sim``,
+            ``/dev/ttyUSB0``, ``socket://host:port``...).
+        display: display spec for :func:`local_site.devices.open_display` (``sim``,
+            ``sim-serial``, ``can://socketcan/can0``...).
+        motion: scripted operator of the simulated platform (see
+            :mod:`local_site.agent.motion_spec`); empty: the backend's default.
+        scene: a local scene (shape name or ``.npz`` layer file) to run without a relay;
+            empty: render the remote tactile stream from the relay.
+        safe_state: display safe state on link loss / stale scene / lost platform.
+        link_loss_timeout_s: link down longer than this puts the display in its safe state.
+        stale_frame_timeout_s: no tactile frame for this long (while linked) does the same.
+        platform_send_rate_hz: platform_state messages per second to the relay (at most).
+        render_rate_hz: display loop rate (the array refresh; >= 500 Hz required).
+        render_loop: ``thread`` or ``asyncio`` (where the display loop runs).
+        platform_read_timeout_s: no new platform sample for this long means it is lost.
+        device_retry_min_s: first delay before reopening a lost device.
+        device_retry_max_s: largest such delay (the delay doubles up to it).
+        display_keepalive_interval_s: unchanged commands are re-sent this often.
+        display_watchdog_ms: the drive board's link-loss watchdog.
+        interpolation_order: interpolation of grid scenes (0, 1 or 3).
+        scene_center_x_mm: x where a shape without ``x_mm`` is placed (platform frame).
+        scene_center_y_mm: y where a shape without ``y_mm`` is placed.
+        status_interval_s: status line refresh period.
+        record_max_frames: tactile frames kept by ``--record`` (then recording stops).
+        record_max_platform_samples: platform samples kept by ``--record``.
+        motion_done_grace_s: with ``--until-motion-done``, keep running this long after the
+            motion finished so the last tactile frames come back.
+    """
+
+    platform: str = "sim"
+    display: str = "sim"
+    motion: str = ""
+    scene: str = ""
+    safe_state: str = "flat"
+    link_loss_timeout_s: float = 0.1
+    stale_frame_timeout_s: float = 0.1
+    platform_send_rate_hz: float = 250.0
+    render_rate_hz: float = 1000.0
+    render_loop: str = "thread"
+    platform_read_timeout_s: float = 0.1
+    device_retry_min_s: float = 0.2
+    device_retry_max_s: float = 5.0
+    display_keepalive_interval_s: float = 0.02
+    display_watchdog_ms: int = 100
+    interpolation_order: int = 1
+    scene_center_x_mm: float = 30.0
+    scene_center_y_mm: float = 30.0
+    status_interval_s: float = 0.25
+    record_max_frames: int = 20_000
+    record_max_platform_samples: int = 1_000_000
+    motion_done_grace_s: float = 0.5
+
+    def __post_init__(self) -> None:
+        if self.safe_state not in SAFE_STATE_MODES:
+            raise ConfigError(f"local.agent.safe_state must be one of {SAFE_STATE_MODES}, "
+                              f"got {self.safe_state!r}")
+        if self.render_loop not in RENDER_LOOP_MODES:
+            raise ConfigError(f"local.agent.render_loop must be one of {RENDER_LOOP_MODES}, "
+                              f"got {self.render_loop!r}")
+        positive = ("link_loss_timeout_s", "stale_frame_timeout_s", "platform_send_rate_hz",
+                    "render_rate_hz", "platform_read_timeout_s", "device_retry_min_s",
+                    "device_retry_max_s", "display_keepalive_interval_s",
+                    "status_interval_s")
+        for name in positive:
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int | float) \
+                    or not math.isfinite(value) or value <= 0:
+                raise ConfigError(f"local.agent.{name} must be a finite number > 0, "
+                                  f"got {value!r}")
+        if not 1.0 <= self.render_rate_hz <= 10_000.0:
+            raise ConfigError("local.agent.render_rate_hz must lie in [1, 10000]")
+        if not 1.0 <= self.platform_send_rate_hz <= 10_000.0:
+            raise ConfigError("local.agent.platform_send_rate_hz must lie in [1, 10000]")
+        if self.device_retry_max_s < self.device_retry_min_s:
+            raise ConfigError("local.agent.device_retry_max_s must be >= device_retry_min_s")
+        if self.interpolation_order not in (0, 1, 3):
+            raise ConfigError("local.agent.interpolation_order must be 0, 1 or 3")
+        if self.record_max_frames < 0 or self.record_max_platform_samples < 0:
+            raise ConfigError("local.agent.record_max_* must be >= 0")
+        if not (math.isfinite(self.motion_done_grace_s) and self.motion_done_grace_s >= 0):
+            raise ConfigError("local.agent.motion_done_grace_s must be >= 0")
+        for name in ("scene_center_x_mm", "scene_center_y_mm"):
+            if not math.isfinite(getattr(self, name)):
+                raise ConfigError(f"local.agent.{name} must be finite")

@@ -1,0 +1,402 @@
+"""The display loop: tactile frames in, safety rules, render, ArrayTac out, at the refresh rate.
+
+One iteration (:meth:`DisplayLoop.tick`):
+
+1. take the newest tactile frame handed over by the link (:class:`FrameSlot`, latest wins)
+   and apply it to the :class:`~local_site.scenes.TactileFrameScene`; a bad frame (NaN,
+   out of range, malformed) is rejected and counted and the pins are not touched;
+2. decide whether the pins must be in their safe state, in this order: the platform is
+   lost, the link has been down longer than ``link_loss_timeout_s``, no frame has
+   arrived yet, the last frame is older than ``stale_timeout_s`` (the last two only for the
+   remote stream). Entering the safe state sends ``safe_state(mode)`` once; while in it,
+   nothing else is sent (the board's watchdog is set to the same mode). It is left as
+   soon as no reason remains (for the remote stream: a fresh frame arrived);
+3. render the scene at the newest platform position; the renderer returns the same
+   object when nothing changed, in which case only the driver's keepalive runs;
+4. when the first command rendered from a new frame goes to the display, stamp
+   ``local.rendered`` and account the frame's hops in the motion-to-touch ledger.
+
+All scene access happens in this loop, so the scene needs no lock. Display errors are
+caught by the runner, which reopens the display with backoff. The loop runs in a
+dedicated thread (:meth:`DisplayLoop.run_in_thread`) or as an asyncio task
+(:meth:`DisplayLoop.run_async`); benchmarks/bench_display_loop_agent.py measures both.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import logging
+import threading
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Protocol
+
+from local_site.agent.period_stats import PeriodStats
+from local_site.display.base import ArrayTacDisplay, SafeMode
+from local_site.platform.base import PlatformSample
+from local_site.recording import SessionRecorder
+from local_site.render import PinCommand, Renderer
+from local_site.scenes import SceneSource, TactileFrameScene
+from shared.errors import ConfigError, DeviceError, DeviceInitError, InputDataError
+from shared.motion_to_touch import MotionToTouchLedger
+from shared.protocol import Hop, TactileFrame
+from shared.timebase import monotonic_s, now_us
+
+__all__ = ["SAFE_REASONS", "DisplayLoop", "DisplayLoopCounters", "FrameSlot", "LinkHealth"]
+
+log = logging.getLogger(__name__)
+
+#: why the pins are in their safe state, in order of precedence
+SAFE_REASONS = ("platform_lost", "link_lost", "no_frames", "stale_scene", "shutdown")
+
+
+class LinkHealth(Protocol):
+    """What the loop needs from the relay link (:class:`shared.client.StationLink`)."""
+
+    def link_down_for_s(self, now_s: float | None = None) -> float: ...
+
+    @property
+    def clock_offsets_us(self) -> Mapping[str, int | None]: ...
+
+
+class FrameSlot:
+    """Latest-wins hand-over of tactile frames from the link task to the display loop."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._item: tuple[TactileFrame, int] | None = None
+        self.put_count = 0
+        self.superseded = 0
+
+    def put(self, frame: TactileFrame, rx_us: int) -> None:
+        """Offer a frame (replaces one the loop has not taken yet, counted)."""
+        with self._lock:
+            if self._item is not None:
+                self.superseded += 1
+            self._item = (frame, rx_us)
+            self.put_count += 1
+
+    def take(self) -> tuple[TactileFrame, int] | None:
+        """The newest frame and its arrival time, or None."""
+        with self._lock:
+            item, self._item = self._item, None
+            return item
+
+
+@dataclass
+class DisplayLoopCounters:
+    """What the display loop did (read for the status line and the summary)."""
+
+    frames_accepted: int = 0
+    frames_rejected: int = 0
+    frames_rendered: int = 0
+    frames_superseded_unrendered: int = 0
+    commands_sent: int = 0
+    commands_skipped_unchanged: int = 0
+    keepalives_sent: int = 0
+    render_rejected: int = 0
+    safe_entries: dict[str, int] = field(default_factory=dict)
+    safe_time_s: float = 0.0
+    link_loss_to_safe_ms: list[float] = field(default_factory=list)
+    display_errors: int = 0
+    display_reconnects: int = 0
+    last_reject_reason: str | None = None
+
+
+class DisplayLoop:
+    """Drives the display from the scene at the platform position (see module docstring).
+
+    Args:
+        display: the ArrayTac display (the loop connects it when needed).
+        renderer: the renderer.
+        scene: a local scene, or a :class:`TactileFrameScene` fed through ``frames``.
+        positions: returns the newest platform sample (None before the first).
+        platform_ok: returns False while the platform is lost.
+        rate_hz: loop rate (the array refresh rate).
+        safe_mode: ``flat`` or ``hold``.
+        frames: the frame hand-over (remote stream only).
+        link: the relay link (remote stream only).
+        link_loss_timeout_s: link down longer than this -> safe state.
+        stale_timeout_s: remote scene older than this -> safe state.
+        recorder: records every accepted frame (optional).
+        ledger: motion-to-touch accounting (optional).
+        retry_min_s: first delay before reopening a failed display.
+        retry_max_s: largest such delay.
+
+    Raises:
+        ConfigError: ``frames`` given without a :class:`TactileFrameScene`, or bad values.
+    """
+
+    def __init__(self, display: ArrayTacDisplay, renderer: Renderer, scene: SceneSource, *,
+                 positions: Callable[[], PlatformSample | None],
+                 platform_ok: Callable[[], bool], rate_hz: float = 1000.0,
+                 safe_mode: SafeMode = "flat", frames: FrameSlot | None = None,
+                 link: LinkHealth | None = None, link_loss_timeout_s: float = 0.1,
+                 stale_timeout_s: float = 0.1, recorder: SessionRecorder | None = None,
+                 ledger: MotionToTouchLedger | None = None, retry_min_s: float = 0.2,
+                 retry_max_s: float = 5.0) -> None:
+        if frames is not None and not isinstance(scene, TactileFrameScene):
+            raise ConfigError("a frame hand-over needs a TactileFrameScene")
+        if not rate_hz > 0 or not link_loss_timeout_s > 0 or not stale_timeout_s > 0:
+            raise ConfigError("rate and timeouts of the display loop must be > 0")
+        self.display = display
+        self.renderer = renderer
+        self.scene = scene
+        self._positions = positions
+        self._platform_ok = platform_ok
+        self.period_s = 1.0 / rate_hz
+        self.safe_mode: SafeMode = safe_mode
+        self.frames = frames
+        self._stream = scene if isinstance(scene, TactileFrameScene) and frames is not None \
+            else None
+        self.link = link
+        self._link_loss_timeout_s = link_loss_timeout_s
+        self._stale_timeout_s = stale_timeout_s
+        self.recorder = recorder
+        self.ledger = ledger
+        self._retry_min_s = retry_min_s
+        self._retry_max_s = retry_max_s
+        self.periods = PeriodStats(self.period_s)
+        self.counters = DisplayLoopCounters()
+        #: current safe-state reason (None: rendering)
+        self.safe_reason: str | None = None
+        self._safe_since_s: float | None = None
+        self._last_command: PinCommand | None = None
+        self._pending_hops: tuple[tuple[Hop, ...], int] | None = None
+        #: recent end-to-end latencies (ms) for the status line (the ledger is read at exit)
+        self.recent_e2e_ms: collections.deque[float] = collections.deque(maxlen=2000)
+
+    # ------------------------------------------------------------------ one iteration
+
+    def _intake(self) -> None:
+        if self.frames is None:
+            return
+        item = self.frames.take()
+        if item is None:
+            return
+        frame, rx_us = item
+        scene = self._stream
+        if scene is None:
+            return
+        try:
+            scene.update(frame)
+        except InputDataError as err:
+            self.counters.frames_rejected += 1
+            self.counters.last_reject_reason = str(err)
+            if self.counters.frames_rejected == 1 or log.isEnabledFor(logging.DEBUG):
+                log.warning("tactile frame seq=%s rejected, pins untouched: %s", frame.seq, err)
+            return
+        self.counters.frames_accepted += 1
+        if self._pending_hops is not None:
+            self.counters.frames_superseded_unrendered += 1
+        self._pending_hops = (tuple(frame.hops), scene.version)
+        if self.recorder is not None:
+            self.recorder.add_frame(frame, rx_us)
+
+    def _safety_reason(self, now_s: float) -> str | None:
+        if not self._platform_ok():
+            return "platform_lost"
+        if self.link is not None and \
+                self.link.link_down_for_s(now_s) > self._link_loss_timeout_s:
+            return "link_lost"
+        if self._stream is not None:
+            age_s = self._stream.age_s(now_s)
+            if age_s is None:
+                return "no_frames"
+            if age_s > self._stale_timeout_s:
+                return "stale_scene"
+        return None
+
+    def enter_safe_state(self, reason: str, now_s: float | None = None) -> None:
+        """Put the pins in the safe state now (idempotent while already safe).
+
+        Raises:
+            DeviceError: the display refused the frame.
+        """
+        now_s = monotonic_s() if now_s is None else now_s
+        if self.safe_reason is not None:
+            return
+        self.display.safe_state(self.safe_mode)
+        self.safe_reason = reason
+        self._safe_since_s = now_s
+        self.counters.safe_entries[reason] = self.counters.safe_entries.get(reason, 0) + 1
+        if self.link is not None:
+            down_s = self.link.link_down_for_s(now_s)
+            if down_s > 0 and len(self.counters.link_loss_to_safe_ms) < 1000:
+                self.counters.link_loss_to_safe_ms.append(down_s * 1e3)
+        self._last_command = None
+        self.renderer.invalidate()
+        log.info("display to safe state %r (%s)", self.safe_mode, reason)
+
+    def _leave_safe_state(self, now_s: float) -> None:
+        if self._safe_since_s is not None:
+            self.counters.safe_time_s += now_s - self._safe_since_s
+        log.info("display resumes rendering (was safe: %s)", self.safe_reason)
+        self.safe_reason = None
+        self._safe_since_s = None
+
+    def tick(self) -> None:
+        """One iteration (see the module docstring).
+
+        Raises:
+            DeviceError: the display failed (the runner reopens it).
+        """
+        self._intake()
+        now_s = monotonic_s()
+        reason = self._safety_reason(now_s)
+        if reason is not None:
+            self.enter_safe_state(reason, now_s)
+            return
+        if self.safe_reason is not None:
+            self._leave_safe_state(now_s)
+        sample = self._positions()
+        if sample is None:
+            return
+        try:
+            command = self.renderer.render(self.scene, sample.position_mm)
+        except InputDataError as err:
+            self.counters.render_rejected += 1
+            if self.counters.render_rejected == 1 or log.isEnabledFor(logging.DEBUG):
+                log.warning("render refused, pins keep their last command: %s", err)
+            self._keepalive()
+            return
+        if command is self._last_command:
+            self._keepalive()
+            return
+        applied = self.display.send_command(*command.arrays())
+        self._last_command = command
+        if applied.sent:
+            self.counters.commands_sent += 1
+        else:
+            self.counters.commands_skipped_unchanged += 1
+        pending = self._pending_hops
+        if pending is not None and command.scene_version >= pending[1]:
+            self._pending_hops = None
+            self.counters.frames_rendered += 1
+            if self.ledger is not None:
+                offsets = dict(self.link.clock_offsets_us) if self.link is not None else {}
+                trace = self.ledger.add_hops((*pending[0], Hop("local", "rendered", now_us())),
+                                             offsets)
+                if trace.end_to_end_us is not None:
+                    self.recent_e2e_ms.append(trace.end_to_end_us / 1e3)
+
+    def _keepalive(self) -> None:
+        if self.display.keepalive():
+            self.counters.keepalives_sent += 1
+
+    # ------------------------------------------------------------------ device recovery
+
+    def _reopen_display(self, stop: Callable[[float], bool]) -> bool:
+        """Reopen the display with backoff; ``stop(delay)`` waits and says whether to quit."""
+        delay = self._retry_min_s
+        logged = False
+        while True:
+            try:
+                self.display.connect()
+                break
+            except DeviceInitError as err:
+                if not logged:
+                    log.error("display %s cannot be opened: %s; retrying with backoff",
+                              self.display.name, err)
+                    logged = True
+            if stop(delay):
+                return False
+            delay = min(self._retry_max_s, delay * 2.0)
+        self.safe_reason = None
+        self._safe_since_s = None
+        self._last_command = None
+        self.renderer.invalidate()
+        self.periods.restart()
+        return True
+
+    def _display_failed(self, err: DeviceError, stop: Callable[[float], bool]) -> bool:
+        self.counters.display_errors += 1
+        log.error("display failed: %s; reopening with backoff", err)
+        try:
+            self.display.disconnect()
+        except DeviceError as close_err:
+            log.debug("display disconnect after failure: %s", close_err)
+        if stop(self._retry_min_s):
+            return False
+        ok = self._reopen_display(stop)
+        if ok:
+            self.counters.display_reconnects += 1
+            log.info("display %s is back", self.display.name)
+        return ok
+
+    # ------------------------------------------------------------------ runners
+
+    def run_in_thread(self, stop: threading.Event) -> None:
+        """Run at ``rate_hz`` until ``stop`` is set (blocking; call from a thread).
+
+        The schedule is absolute (sleep overshoot does not accumulate); when an iteration
+        is late by more than a period the schedule is re-anchored (counted as an overrun)
+        rather than bursting. The thread always sleeps, never spins, so it cannot starve
+        the other threads of the GIL.
+        """
+        if not self.display.is_connected and not self._reopen_display(stop.wait):
+            return
+        period = self.period_s
+        next_t = time.perf_counter()
+        while not stop.is_set():
+            self.periods.tick(time.perf_counter())
+            try:
+                self.tick()
+            except DeviceError as err:
+                if not self._display_failed(err, stop.wait):
+                    return
+                next_t = time.perf_counter()
+            next_t += period
+            after = time.perf_counter()
+            if next_t < after - period:
+                next_t = after
+                self.periods.overruns += 1
+            remaining = next_t - time.perf_counter()
+            if remaining > 0:
+                time.sleep(remaining)
+
+    async def run_async(self, stop: asyncio.Event) -> None:
+        """Run at ``rate_hz`` as an asyncio task until ``stop`` is set.
+
+        Same schedule as :meth:`run_in_thread`; display recovery runs in a worker thread.
+        """
+        def stop_wait(delay_s: float) -> bool:
+            time.sleep(delay_s)
+            return stop.is_set()
+
+        if not self.display.is_connected and \
+                not await asyncio.to_thread(self._reopen_display, stop_wait):
+            return
+        period = self.period_s
+        next_t = time.perf_counter()
+        while not stop.is_set():
+            self.periods.tick(time.perf_counter())
+            try:
+                self.tick()
+            except DeviceError as err:
+                if not await asyncio.to_thread(self._display_failed, err, stop_wait):
+                    return
+                next_t = time.perf_counter()
+            next_t += period
+            after = time.perf_counter()
+            if next_t < after - period:
+                next_t = after
+                self.periods.overruns += 1
+            await asyncio.sleep(max(0.0, next_t - time.perf_counter()))
+
+    def finish(self, reason: str = "shutdown") -> None:
+        """Final safe state at shutdown (best effort; the display stays open)."""
+        now_s = monotonic_s()
+        if self.safe_reason is not None and self._safe_since_s is not None:
+            self.counters.safe_time_s += now_s - self._safe_since_s
+            self._safe_since_s = now_s
+        if not self.display.is_connected:
+            return
+        try:
+            self.display.safe_state(self.safe_mode)
+        except DeviceError as err:
+            log.warning("safe state at shutdown failed: %s", err)
+            return
+        self.safe_reason = reason

@@ -1,0 +1,508 @@
+"""The local station agent: platform -> relay, tactile frames -> pins, safely.
+
+:class:`LocalAgent` wires the parts together and runs them until a stop condition:
+
+* a :class:`~local_site.agent.platform_reader.PlatformReader` thread takes every platform
+  sample (the driver streams at the board rate, >= 500 Hz);
+* the *uplink* task sends the newest sample as a ``platform_state`` at
+  ``platform_send_rate_hz`` (latest wins), stamped ``Hop("local", "capture", ts)``;
+* the *receive* task takes ``tactile_frame`` (handed to the display loop), ``arm_state``,
+  ``stats`` (kept by the link for clock offsets) and ``error`` messages;
+* the :class:`~local_site.agent.display_loop.DisplayLoop` renders at the refresh rate in a
+  thread (default) or a task, with the safe-state rules;
+* a status task redraws the terminal status line.
+
+Without a relay (``scene`` set), the same loop renders a local shape or layer file.
+Stop conditions: ``duration_s``, the scripted motion finished (``until_motion_done``),
+SIGTERM/SIGINT (when ``handle_signals``), :meth:`LocalAgent.request_stop`, or a final
+refusal by the relay (exit code 1). On stop: the display goes to its safe state and is
+closed, the platform is closed, the link says bye, then the record and summary are written.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import json
+import logging
+import math
+import os
+import signal
+import threading
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from local_site.agent.config import LocalAgentConfig
+from local_site.agent.display_loop import DisplayLoop, FrameSlot
+from local_site.agent.motion_spec import parse_motion_spec
+from local_site.agent.platform_reader import PlatformReader
+from local_site.devices import open_display, open_platform
+from local_site.recording import SessionRecorder
+from local_site.render import Renderer, RendererConfig
+from local_site.scenes import SceneSource, open_scene, parse_shape_spec
+from local_site.scenes.factory import REMOTE_SPECS
+from shared.client import StationLink, StationLinkConfig
+from shared.errors import (
+    AuthError,
+    ConfigError,
+    DeviceError,
+    LocalProtocolError,
+    RoleTakenError,
+    SessionError,
+)
+from shared.motion_to_touch import MotionToTouchLedger
+from shared.protocol import ArmState, Bye, Error, Hop, PlatformState, TactileFrame
+from shared.report import StatusLine, to_jsonable
+from shared.timebase import monotonic_s, now_us
+from shared.workspace import WorkspaceConfig
+
+__all__ = ["LocalAgent", "place_shape_spec"]
+
+log = logging.getLogger(__name__)
+
+_VELOCITY_LIMIT_MM_S = 1e5  # the wire's bound for platform_state.velocity_mm_s
+
+
+def place_shape_spec(spec: str, center_mm: tuple[float, float]) -> str:
+    """Put a shape without an explicit centre at ``center_mm`` (platform frame).
+
+    Shapes are defined around the origin, a corner of the platform's travel; the operator
+    could not reach most of them. Layer files and specs with ``x_mm``/``y_mm`` are returned
+    unchanged.
+
+    Raises:
+        ConfigError: a malformed shape spec.
+    """
+    text = spec.strip()
+    if text.lower().endswith(".npz") or os.path.isfile(text) or text.lower() in REMOTE_SPECS:
+        return text
+    name, params = parse_shape_spec(text)
+    params.setdefault("x_mm", float(center_mm[0]))
+    params.setdefault("y_mm", float(center_mm[1]))
+    return name + ":" + ",".join(f"{k}={v!r}" for k, v in params.items())
+
+
+def _percentiles_ms(values: list[float] | np.ndarray) -> dict[str, float | int | None]:
+    arr = np.asarray(values, dtype=float)
+    if arr.size == 0:
+        return {"p50": None, "p99": None, "max": None, "count": 0}
+    return {"p50": float(np.percentile(arr, 50)), "p99": float(np.percentile(arr, 99)),
+            "max": float(arr.max()), "count": int(arr.size)}
+
+
+class LocalAgent:
+    """The local haptic station (see the module docstring).
+
+    Args:
+        config: agent settings.
+        link_config: relay link settings (required unless ``config.scene`` is set).
+        render_config: renderer settings (defaults when None).
+        workspace: workspace settings written into the recording's metadata.
+        duration_s: stop after this long (None: run until stopped).
+        until_motion_done: stop once the simulated platform's scripted motion finished
+            (plus ``config.motion_done_grace_s``).
+        record_path: write the recording here at exit (None: no recording).
+        summary_path: write the summary JSON here at exit (None: none).
+        status: live status line (None: no status output).
+        handle_signals: stop cleanly on SIGTERM/SIGINT (main thread only).
+        platform_options: extra keyword arguments for ``open_platform``.
+        display_options: extra keyword arguments for ``open_display``.
+
+    Raises:
+        ConfigError: bad specs or settings (raised by :meth:`open` / :meth:`run`).
+    """
+
+    def __init__(self, config: LocalAgentConfig, *,
+                 link_config: StationLinkConfig | None = None,
+                 render_config: RendererConfig | None = None,
+                 workspace: WorkspaceConfig | None = None, duration_s: float | None = None,
+                 until_motion_done: bool = False, record_path: str | Path | None = None,
+                 summary_path: str | Path | None = None, status: StatusLine | None = None,
+                 handle_signals: bool = False,
+                 platform_options: dict[str, Any] | None = None,
+                 display_options: dict[str, Any] | None = None) -> None:
+        if duration_s is not None and not (math.isfinite(duration_s) and duration_s > 0):
+            raise ConfigError(f"duration must be > 0 s, got {duration_s}")
+        self.config = config
+        self.remote_mode = not config.scene.strip() or config.scene.strip().lower() in REMOTE_SPECS
+        if self.remote_mode and link_config is None:
+            raise ConfigError("the local agent needs a relay link (--relay) or a --scene")
+        self.link_config = link_config
+        self.render_config = render_config or RendererConfig()
+        self.workspace = workspace or WorkspaceConfig()
+        self.duration_s = duration_s
+        self.until_motion_done = until_motion_done
+        self.record_path = Path(record_path) if record_path is not None else None
+        self.summary_path = Path(summary_path) if summary_path is not None else None
+        self.status = status
+        self.handle_signals = handle_signals
+        self._platform_options = dict(platform_options or {})
+        self._display_options = dict(display_options or {})
+        self.recorder = SessionRecorder(config.record_max_frames,
+                                        config.record_max_platform_samples) \
+            if self.record_path is not None else None
+        self.ledger = MotionToTouchLedger()
+        self.frames = FrameSlot()
+        self.link: StationLink | None = None
+        self.reader: PlatformReader | None = None
+        self.loop: DisplayLoop | None = None
+        self.scene: SceneSource | None = None
+        self.exit_reason: str | None = None
+        self.exit_code = 0
+        self.summary: dict[str, Any] | None = None
+        self.platform_states_sent = 0
+        self.platform_states_skipped_link_down = 0
+        self.send_errors = 0
+        self.arm_states_received = 0
+        self.relay_errors = 0
+        self.last_arm_state: ArmState | None = None
+        self._stop: asyncio.Event | None = None
+        self._thread_stop = threading.Event()
+        self._started_s: float | None = None
+        self._motion_done_at_s: float | None = None
+
+    # ------------------------------------------------------------------ building
+
+    def open(self) -> None:
+        """Build the devices (not yet connected), the scene, renderer, link and loop.
+
+        Raises:
+            ConfigError: a bad platform/display/scene/motion spec or option.
+        """
+        cfg = self.config
+        platform_opts = dict(self._platform_options)
+        if cfg.motion.strip():
+            platform_opts["motion"] = parse_motion_spec(cfg.motion)
+        platform = open_platform(cfg.platform, connect=False, **platform_opts)
+        motion = getattr(platform, "motion", None)
+        motion_duration_s = getattr(motion, "duration_s", None)
+        if self.until_motion_done and motion_duration_s is None:
+            raise ConfigError("--until-motion-done needs a platform with a scripted motion of "
+                              "finite length (the sim platform with raster, hold or replay)")
+        display_opts: dict[str, Any] = dict(
+            keepalive_interval_s=cfg.display_keepalive_interval_s,
+            watchdog_ms=cfg.display_watchdog_ms, watchdog_mode=cfg.safe_state,
+            disconnect_mode=cfg.safe_state)
+        display_opts.update(self._display_options)
+        display = open_display(cfg.display, connect=False, **display_opts)
+        if self.remote_mode:
+            self.scene = open_scene("remote", interpolation_order=cfg.interpolation_order)
+            assert self.link_config is not None  # checked in __init__
+            self.link = StationLink.from_config(self.link_config, "local")
+        else:
+            spec = place_shape_spec(cfg.scene, (cfg.scene_center_x_mm, cfg.scene_center_y_mm))
+            self.scene = open_scene(spec, interpolation_order=cfg.interpolation_order)
+        self.reader = PlatformReader(
+            platform, read_timeout_s=cfg.platform_read_timeout_s,
+            retry_min_s=cfg.device_retry_min_s, retry_max_s=cfg.device_retry_max_s,
+            motion_duration_s=motion_duration_s if self.until_motion_done else None)
+        reader = self.reader
+        self.loop = DisplayLoop(
+            display, Renderer(self.render_config), self.scene,
+            positions=lambda: reader.latest, platform_ok=lambda: reader.healthy,
+            rate_hz=cfg.render_rate_hz, safe_mode=cfg.safe_state,  # type: ignore[arg-type]
+            frames=self.frames if self.remote_mode else None, link=self.link,
+            link_loss_timeout_s=cfg.link_loss_timeout_s,
+            stale_timeout_s=cfg.stale_frame_timeout_s, recorder=self.recorder,
+            ledger=self.ledger, retry_min_s=cfg.device_retry_min_s,
+            retry_max_s=cfg.device_retry_max_s)
+
+    # ------------------------------------------------------------------ control
+
+    def request_stop(self, reason: str = "stopped") -> None:
+        """Ask the agent to stop (thread-safe from the event loop's thread)."""
+        if self.exit_reason is None:
+            self.exit_reason = reason
+        if self._stop is not None:
+            self._stop.set()
+
+    @property
+    def elapsed_s(self) -> float:
+        """Seconds since :meth:`run` started (0 before)."""
+        return 0.0 if self._started_s is None else monotonic_s() - self._started_s
+
+    # ------------------------------------------------------------------ tasks
+
+    async def _uplink(self) -> None:
+        link, reader = self.link, self.reader
+        if link is None or reader is None:
+            return
+        period_s = 1.0 / self.config.platform_send_rate_hz
+        loop = asyncio.get_running_loop()
+        next_t = loop.time()
+        last = None
+        seq = 0
+        while True:
+            sample = reader.latest
+            if sample is not None and sample is not last:
+                last = sample
+                if link.is_connected:
+                    seq += 1
+                    velocity = tuple(min(max(v, -_VELOCITY_LIMIT_MM_S), _VELOCITY_LIMIT_MM_S)
+                                     for v in sample.velocity_mm_s)
+                    msg = PlatformState(seq=seq, ts_us=sample.t_us,
+                                        hops=(Hop("local", "capture", sample.t_us),),
+                                        position_mm=sample.position_mm,
+                                        velocity_mm_s=velocity)  # type: ignore[arg-type]
+                    try:
+                        await link.send(msg)
+                    except LocalProtocolError as err:
+                        self.send_errors += 1
+                        if self.send_errors == 1:
+                            log.warning("platform_state not sent: %s", err)
+                    except (AuthError, RoleTakenError):
+                        return  # the receive task reports the refusal
+                    except SessionError:
+                        return  # link closed: shutting down
+                    else:
+                        self.platform_states_sent += 1
+                        if self.recorder is not None:
+                            self.recorder.add_platform(sample.t_us, sample.position_mm)
+                else:
+                    self.platform_states_skipped_link_down += 1
+            next_t += period_s
+            now = loop.time()
+            if next_t < now - period_s:
+                next_t = now
+            await asyncio.sleep(max(0.0, next_t - now))
+
+    async def _receive(self) -> None:
+        link = self.link
+        if link is None:
+            return
+        try:
+            async for msg in link.messages():
+                if isinstance(msg, TactileFrame):
+                    rx_us = next((h.t_us for h in reversed(msg.hops)
+                                  if h.clock == "local" and h.stage == "station_rx"), None)
+                    self.frames.put(msg, now_us() if rx_us is None else rx_us)
+                elif isinstance(msg, ArmState):
+                    self.arm_states_received += 1
+                    self.last_arm_state = msg
+                elif isinstance(msg, Error):
+                    self.relay_errors += 1
+                    if self.relay_errors <= 3 or log.isEnabledFor(logging.DEBUG):
+                        log.warning("relay error: %s: %s", msg.code, msg.message)
+                elif isinstance(msg, Bye):
+                    log.info("relay said bye: %s", msg.reason)
+        except (AuthError, RoleTakenError) as err:
+            log.error("the relay refused this station for good: %s", err)
+            self.exit_code = 1
+            self.request_stop("link_refused")
+
+    def _status_text(self, rates: dict[str, float]) -> str:
+        loop, reader, link = self.loop, self.reader, self.link
+        assert loop is not None and reader is not None
+        parts = ["local"]
+        if link is not None:
+            parts.append("link up" if link.is_connected
+                         else f"link DOWN {link.link_down_for_s():.1f}s")
+        parts.append(f"platform {rates['platform_hz']:.0f} Hz" if reader.healthy
+                     else "platform LOST")
+        if link is not None:
+            parts.append(f"tx {rates['tx_hz']:.0f}/s")
+            c = loop.counters
+            parts.append(f"frames {rates['frames_hz']:.0f}/s rx {self.frames.put_count} "
+                         f"rend {c.frames_rendered} rej {c.frames_rejected}")
+            e2e = list(loop.recent_e2e_ms)[-500:]
+            if e2e:
+                p50, p99 = np.percentile(e2e, [50, 99])
+                parts.append(f"e2e p50 {p50:.1f} p99 {p99:.1f} ms")
+            drops = link.counters.stale_dropped_rx + link.counters.stale_dropped_tx \
+                + self.frames.superseded
+            parts.append(f"drops {drops}")
+        period = loop.periods.summary(last=1000)
+        if period["rate_hz"] is not None:
+            parts.append(f"loop {period['rate_hz']:.0f} Hz p99 {period['period_p99_ms']:.2f} ms")
+        if loop.safe_reason is not None:
+            parts.append(f"SAFE({loop.safe_reason})")
+        return " | ".join(parts)
+
+    async def _status(self) -> None:
+        status, reader, loop = self.status, self.reader, self.loop
+        if status is None or reader is None or loop is None:
+            return
+        interval_s = self.config.status_interval_s
+        last = (monotonic_s(), reader.reads, self.platform_states_sent, self.frames.put_count)
+        while True:
+            await asyncio.sleep(interval_s)
+            now = (monotonic_s(), reader.reads, self.platform_states_sent, self.frames.put_count)
+            dt = max(1e-6, now[0] - last[0])
+            rates = {"platform_hz": (now[1] - last[1]) / dt, "tx_hz": (now[2] - last[2]) / dt,
+                     "frames_hz": (now[3] - last[3]) / dt}
+            last = now
+            status.update(self._status_text(rates))
+
+    async def _supervise(self) -> None:
+        reader = self.reader
+        assert reader is not None
+        while True:
+            if self.duration_s is not None and self.elapsed_s >= self.duration_s:
+                self.request_stop("duration")
+                return
+            if self.until_motion_done and reader.motion_done.is_set():
+                if self._motion_done_at_s is None:
+                    self._motion_done_at_s = monotonic_s()
+                    log.info("scripted motion finished; stopping in %.2f s",
+                             self.config.motion_done_grace_s)
+                if monotonic_s() - self._motion_done_at_s >= self.config.motion_done_grace_s:
+                    self.request_stop("motion_done")
+                    return
+            await asyncio.sleep(0.02)
+
+    # ------------------------------------------------------------------ run
+
+    async def run(self) -> int:
+        """Run until a stop condition, shut down cleanly, write the outputs.
+
+        Returns:
+            The exit code: 0, or 1 when the relay refused the station for good.
+
+        Raises:
+            ConfigError: bad settings (from :meth:`open`).
+        """
+        if self.loop is None:
+            self.open()
+        loop, reader = self.loop, self.reader
+        assert loop is not None and reader is not None
+        aio = asyncio.get_running_loop()
+        self._stop = asyncio.Event()
+        signals: list[int] = []
+        if self.handle_signals:
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+                    aio.add_signal_handler(sig, self.request_stop, "signal")
+                    signals.append(sig)
+        self._started_s = monotonic_s()
+        self._thread_stop.clear()
+        reader.start()
+        if self.link is not None:
+            self.link.start()
+        display_task: asyncio.Future[None]
+        async_stop = asyncio.Event()
+        if self.config.render_loop == "thread":
+            display_task = aio.run_in_executor(None, loop.run_in_thread, self._thread_stop)
+        else:
+            display_task = aio.create_task(loop.run_async(async_stop), name="display-loop")
+        tasks = [aio.create_task(coro, name=name) for name, coro in (
+            ("uplink", self._uplink()), ("receive", self._receive()),
+            ("status", self._status()), ("supervise", self._supervise()))]
+        try:
+            stop_wait = aio.create_task(self._stop.wait())
+            await asyncio.wait({stop_wait, display_task}, return_when=asyncio.FIRST_COMPLETED)
+            if not stop_wait.done():
+                stop_wait.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await stop_wait
+                self.request_stop("display_loop_ended")
+            if display_task.done() and display_task.exception() is not None:
+                self.exit_code = 1
+                log.error("display loop failed: %s", display_task.exception())
+        finally:
+            for task in tasks:
+                task.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+            self._thread_stop.set()
+            async_stop.set()
+            with contextlib.suppress(Exception):
+                await display_task
+            await self._shutdown()
+            for sig in signals:
+                aio.remove_signal_handler(sig)
+        return self.exit_code
+
+    async def _shutdown(self) -> None:
+        loop, reader = self.loop, self.reader
+        assert loop is not None and reader is not None
+        display = loop.display
+        loop.finish("shutdown")
+        display_stats = display.stats()
+        feedback = display.latest_feedback() if display.is_connected else None
+        try:
+            await asyncio.to_thread(display.disconnect)
+        except DeviceError as err:
+            log.warning("display close failed: %s", err)
+        await asyncio.to_thread(reader.stop)
+        platform_stats = reader.platform.stats()
+        try:
+            await asyncio.to_thread(reader.platform.disconnect)
+        except DeviceError as err:
+            log.warning("platform close failed: %s", err)
+        if self.link is not None:
+            await self.link.close("local station stopping")
+        if self.status is not None:
+            self.status.close()
+        self.summary = self._build_summary(display_stats, platform_stats, feedback)
+        if self.recorder is not None and self.record_path is not None:
+            meta = {"session": self.link_config.session if self.link_config else None,
+                    "mode": "relay" if self.remote_mode else "scene",
+                    "scene": self.config.scene or "remote", "platform": self.config.platform,
+                    "display": self.config.display, "motion": self.config.motion,
+                    "workspace": dataclasses.asdict(self.workspace),
+                    "render": dataclasses.asdict(self.render_config),
+                    "summary": {k: self.summary[k] for k in
+                                ("frames_received", "frames_rendered", "frames_rejected")}}
+            try:
+                written = await asyncio.to_thread(self.recorder.save, self.record_path, meta)
+                self.summary["recording"]["path"] = str(written)
+            except ConfigError as err:
+                log.error("%s", err)
+                self.exit_code = 1
+        if self.summary_path is not None:
+            text = json.dumps(to_jsonable(self.summary), allow_nan=False, sort_keys=True)
+            try:
+                self.summary_path.write_text(text + "\n")
+            except OSError as err:
+                log.error("cannot write the summary %s: %s", self.summary_path, err)
+                self.exit_code = 1
+
+    def _build_summary(self, display_stats: Any, platform_stats: Any,
+                       feedback: Any) -> dict[str, Any]:
+        loop, reader, link = self.loop, self.reader, self.link
+        assert loop is not None and reader is not None
+        elapsed = max(1e-9, self.elapsed_s)
+        c = loop.counters
+        safe_time_s = c.safe_time_s
+        return {
+            "mode": "relay" if self.remote_mode else "scene",
+            "scene": self.config.scene or "remote",
+            "session": self.link_config.session if self.link_config else None,
+            "exit_reason": self.exit_reason, "exit_code": self.exit_code,
+            "duration_s": elapsed,
+            "frames_received": self.frames.put_count,
+            "frames_accepted": c.frames_accepted,
+            "frames_rendered": c.frames_rendered,
+            "frames_rejected": c.frames_rejected,
+            "frames_superseded": self.frames.superseded + c.frames_superseded_unrendered,
+            "motion_to_touch_ms": self.ledger.summary_ms(),
+            "display_loop": {"mode": self.config.render_loop, **loop.periods.summary()},
+            "platform": {"spec": self.config.platform, "reads": reader.reads,
+                         "read_rate_hz": reader.reads / elapsed, "errors": reader.errors,
+                         "reconnects": reader.reconnects, "last_error": reader.last_error,
+                         **dataclasses.asdict(platform_stats)},
+            "uplink": {"platform_states_sent": self.platform_states_sent,
+                       "send_rate_hz": self.platform_states_sent / elapsed,
+                       "skipped_link_down": self.platform_states_skipped_link_down,
+                       "send_errors": self.send_errors},
+            "display": {"spec": self.config.display, "commands_sent": c.commands_sent,
+                        "commands_skipped_unchanged": c.commands_skipped_unchanged,
+                        "keepalives_sent": c.keepalives_sent,
+                        "render_rejected": c.render_rejected, "errors": c.display_errors,
+                        "reconnects": c.display_reconnects,
+                        "driver": dataclasses.asdict(display_stats),
+                        "last_feedback_safe_state": None if feedback is None
+                        else feedback.safe_state},
+            "safe_state": {"mode": self.config.safe_state, "entries": dict(c.safe_entries),
+                           "time_s": safe_time_s,
+                           "link_loss_to_safe_ms": _percentiles_ms(c.link_loss_to_safe_ms)},
+            "render": dataclasses.asdict(loop.renderer.stats),
+            "link": None if link is None else {
+                **dataclasses.asdict(link.counters), "url": link.url,
+                "clock_offsets_us": link.clock_offsets_us,
+                "relay_errors": self.relay_errors},
+            "arm_states_received": self.arm_states_received,
+            "recording": None if self.recorder is None else self.recorder.counts(),
+        }

@@ -1,0 +1,117 @@
+"""teletouch local: the local haptic station (XYZ platform + ArrayTac display).
+
+With a relay: reads the platform (>= 500 Hz), sends platform_state to the relay, renders
+the tactile frames it receives on the ArrayTac pins at the refresh rate, answers the
+relay's clock pings and shows a live status line. Link loss longer than
+--link-loss-timeout (default 100 ms) or no tactile frame for --stale-timeout puts the pins
+in their safe state (--safe-state flat|hold); the link reconnects with backoff and
+rendering resumes when frames arrive again.
+
+Without a relay: --scene SHAPE|FILE.npz renders a virtual shape (hemisphere, cone, cube,
+bow, semi-ellipsoid, triangular-prism; "hemisphere:radius_mm=8,k=0.7", placed at the
+workspace centre unless x_mm/y_mm are given) or a layer file under the moving platform.
+
+Settings: flags > TELETOUCH_LOCAL_AGENT_* / TELETOUCH_LOCAL_LINK_* > --config TOML
+([local.agent], [local.link], [local.render], [workspace]) > defaults.
+
+Examples:
+  teletouch local --relay ws://127.0.0.1:8765/ --session lab1 --token T \\
+      --platform sim --display sim --motion raster:x0=5,x1=55,y0=5,y1=55,spacing=2 \\
+      --until-motion-done --record run.npz --summary-json run.json
+  teletouch local --scene hemisphere:radius_mm=10 --platform sim --display sim --duration 10
+
+Exit: 0 on a clean stop (duration, motion done, SIGTERM/SIGINT), 1 when the relay refuses
+the station for good (token, role taken) or an output cannot be written, 2 on bad usage.
+"""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+__all__ = ["configure_parser", "run"]
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    """Add the ``teletouch local`` arguments."""
+    link = parser.add_argument_group("relay link ([local.link])")
+    link.add_argument("--relay", metavar="URL", help="relay URL: ws://, wss:// or tcp://")
+    link.add_argument("--session", metavar="ID", help="session id")
+    link.add_argument("--token", metavar="T",
+                      help="session token (better: TELETOUCH_LOCAL_LINK_TOKEN)")
+    link.add_argument("--name", help="label shown in the relay's status")
+    dev = parser.add_argument_group("devices and scene ([local.agent])")
+    dev.add_argument("--platform", metavar="SPEC", help="sim, /dev/ttyUSB0, socket://... "
+                     "(default sim)")
+    dev.add_argument("--display", metavar="SPEC", help="sim, sim-serial, can://socketcan/can0, "
+                     "socketcan:can0, /dev/ttyACM0 ... (default sim)")
+    dev.add_argument("--motion", metavar="SPEC",
+                     help="scripted operator of the sim platform, e.g. "
+                     "raster:x0=5,x1=55,y0=5,y1=55,spacing=2,speed=20,press_depth=3,"
+                     "press_every=4 | random:seed=1 | hold:x=30,y=30,z=100 | FILE.csv")
+    dev.add_argument("--scene", metavar="FILE|SHAPE", help="render a local scene, no relay")
+    run_ = parser.add_argument_group("run")
+    run_.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    run_.add_argument("--until-motion-done", action="store_true",
+                      help="stop when the sim platform's scripted motion has finished")
+    run_.add_argument("--record", metavar="PATH.npz", help="write the session recording")
+    run_.add_argument("--summary-json", metavar="PATH", help="write the summary JSON at exit")
+    run_.add_argument("--config", metavar="FILE", help="TOML settings file")
+    run_.add_argument("--no-status", action="store_true", help="no live status line")
+    tune = parser.add_argument_group("tuning ([local.agent])")
+    tune.add_argument("--safe-state", choices=["flat", "hold"], help="display safe state")
+    tune.add_argument("--link-loss-timeout", type=float, metavar="S",
+                      help="safe state after the link is down this long (default 0.1)")
+    tune.add_argument("--stale-timeout", type=float, metavar="S",
+                      help="safe state after no tactile frame for this long (default 0.1)")
+    tune.add_argument("--send-rate", type=float, metavar="HZ",
+                      help="platform_state rate to the relay (default 250)")
+    tune.add_argument("--render-rate", type=float, metavar="HZ",
+                      help="display loop rate (default 1000)")
+    tune.add_argument("--render-loop", choices=["thread", "asyncio"],
+                      help="where the display loop runs (default thread)")
+    tune.add_argument("--record-max-frames", type=int, metavar="N",
+                      help="tactile frames kept in the recording (default 20000)")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the local station until it stops; see the module docstring for exit codes."""
+    import asyncio
+
+    from local_site.agent import LocalAgent, LocalAgentConfig
+    from local_site.render import RendererConfig
+    from shared.client import StationLinkConfig
+    from shared.config import resolve_config
+    from shared.report import StatusLine, emit
+    from shared.workspace import WorkspaceConfig
+
+    agent_flags: dict[str, Any] = {
+        "platform": args.platform, "display": args.display, "motion": args.motion,
+        "scene": args.scene, "safe_state": args.safe_state,
+        "link_loss_timeout_s": args.link_loss_timeout,
+        "stale_frame_timeout_s": args.stale_timeout, "platform_send_rate_hz": args.send_rate,
+        "render_rate_hz": args.render_rate, "render_loop": args.render_loop,
+        "record_max_frames": args.record_max_frames}
+    config = resolve_config(LocalAgentConfig, "local.agent", explicit=agent_flags,
+                            toml_path=args.config)
+    link_config = resolve_config(StationLinkConfig, "local.link", explicit={
+        "url": args.relay, "session": args.session, "token": args.token, "name": args.name},
+        toml_path=args.config)
+    render_config = resolve_config(RendererConfig, "local.render", toml_path=args.config)
+    workspace = resolve_config(WorkspaceConfig, "workspace", toml_path=args.config)
+    agent = LocalAgent(config, link_config=link_config, render_config=render_config,
+                       workspace=workspace, duration_s=args.duration,
+                       until_motion_done=args.until_motion_done, record_path=args.record,
+                       summary_path=args.summary_json,
+                       status=None if args.no_status else StatusLine(min_interval_s=5.0),
+                       handle_signals=True)
+    agent.open()
+    code = asyncio.run(agent.run())
+    summary = agent.summary or {}
+    e2e = (summary.get("motion_to_touch_ms") or {}).get("end_to_end") or {}
+    loop = summary.get("display_loop") or {}
+    emit(f"local station stopped ({agent.exit_reason}): frames received "
+         f"{summary.get('frames_received')}, rendered {summary.get('frames_rendered')}, "
+         f"rejected {summary.get('frames_rejected')}; e2e p50 {e2e.get('p50')} ms; display "
+         f"loop {loop.get('rate_hz') or 0:.0f} Hz, period p99 {loop.get('period_p99_ms')} ms")
+    return code

@@ -1,0 +1,144 @@
+"""The local agent against a real (in-process) relay and a fake remote station."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from pathlib import Path
+
+import numpy as np
+
+from local_site.recording import RECORD_KEYS, load_recording
+from shared.protocol import TactileFrame
+from shared.timebase import monotonic_s, now_us
+from tests.local_site.agent_support import (
+    FRAME_SHAPE,
+    FakeRemote,
+    make_frame,
+    relay_agent,
+    wait_for,
+)
+from tests.relay_server.relay_clients import running_relay
+from tests.support import free_tcp_port, scaled
+
+
+def _pins_near(agent: object, height_mm: float, tol_mm: float = 0.15) -> bool:
+    fb = agent.loop.display.latest_feedback()  # type: ignore[attr-defined]
+    return fb is not None and not fb.safe_state and \
+        bool(np.all(np.abs(fb.position_mm - height_mm) < tol_mm))
+
+
+async def test_platform_state_and_frames_flow_record_and_summary(tmp_path: Path) -> None:
+    async with running_relay() as relay:
+        url = f"ws://127.0.0.1:{relay.ws_port}/"
+        agent = relay_agent(url, tmp_path)
+        run = asyncio.create_task(agent.run())
+        async with FakeRemote(url) as remote:
+            await wait_for(lambda: agent.loop is not None and _pins_near(agent, 2.0), 6.0,
+                           "pins at the frames' 2 mm")
+            await wait_for(lambda: agent.ledger.frames >= 5, 3.0, "end-to-end latencies")
+            await wait_for(lambda: agent.loop.periods.iterations > 300, 3.0, "loop iterations")
+            agent.request_stop("test")
+            assert await run == 0
+    # platform_state: capture hop = ts, then the relay's stamps, then the remote's receipt
+    state = remote.states[-1]
+    assert [f"{h.clock}.{h.stage}" for h in state.hops] == [
+        "local.capture", "relay.relay_in", "relay.relay_out", "remote.station_rx"]
+    assert state.hops[0].t_us == state.ts_us
+    assert abs(state.position_mm[0] - 30.0) < 0.1 and abs(state.position_mm[2] - 100.0) < 0.1
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary == agent.summary | {"recording": summary["recording"]}
+    assert summary["mode"] == "relay" and summary["exit_reason"] == "test"
+    assert summary["frames_rendered"] > 0 and summary["frames_rejected"] == 0
+    assert summary["frames_received"] >= summary["frames_accepted"] >= summary["frames_rendered"]
+    e2e = summary["motion_to_touch_ms"]["end_to_end"]
+    assert e2e["count"] >= 5 and 0 < e2e["p50"] < 1000
+    assert "render" in summary["motion_to_touch_ms"]
+    assert summary["display_loop"]["iterations"] > 100
+    assert summary["display_loop"]["period_p50_ms"] is not None
+    assert summary["link"]["connects"] == 1 and summary["uplink"]["platform_states_sent"] > 50
+    assert summary["platform"]["read_rate_hz"] > 100
+    rec = load_recording(tmp_path / "rec.npz")
+    assert set(RECORD_KEYS) <= set(rec)
+    n = rec["frame_seq"].size
+    assert n == summary["frames_accepted"] and n > 0
+    assert rec["frame_height_mm"].shape == (n, *FRAME_SHAPE)
+    assert rec["frame_height_mm"].dtype == np.float32
+    assert np.allclose(rec["frame_height_mm"], 2.0) and np.allclose(rec["frame_stiffness_k"], 0.8)
+    assert np.allclose(rec["frame_stiffness_n_per_mm"], 0.7)
+    assert rec["frame_rx_us"].dtype == np.int64 and np.all(np.diff(rec["frame_rx_us"]) >= 0)
+    assert rec["frame_center_mm"].shape == (n, 2) and rec["frame_contact"].all()
+    assert rec["platform_mm"].shape == (rec["platform_t_us"].size, 3)
+    assert rec["platform_t_us"].size == summary["uplink"]["platform_states_sent"]
+    assert rec["meta"]["session"] == "agent-test" and rec["meta"]["layer_shape"] == [9, 9]
+    assert "workspace" in rec["meta"] and rec["meta"]["counts"]["frames"] == n
+
+
+async def test_bad_frames_are_rejected_without_touching_the_pins() -> None:
+    async with running_relay() as relay:
+        url = f"ws://127.0.0.1:{relay.ws_port}/"
+        agent = relay_agent(url, stale_frame_timeout_s=30.0)
+        run = asyncio.create_task(agent.run())
+        try:
+            async with FakeRemote(url, height_mm=3.0) as remote:
+                await wait_for(lambda: agent.loop is not None and _pins_near(agent, 3.0), 6.0,
+                               "pins at 3 mm")
+                remote.paused = True
+                await asyncio.sleep(0.1)
+                loop = agent.loop
+                version = loop.scene.version
+                sent = loop.counters.commands_sent
+                command = loop.renderer.last_command
+                nan = make_frame(900, None, 3.0)
+                nan.layers["height_mm"][2, 3] = np.nan
+                for bad in (nan, make_frame(901, None, 50.0),  # out of range
+                            TactileFrame(seq=902, center_mm=(30.0, 30.0), layers={
+                                "height_mm": np.ones((4, 4)), "friction": np.ones((3, 3))})):
+                    agent.frames.put(bad, now_us())
+                    await asyncio.sleep(0.02)
+                await asyncio.sleep(0.1)
+                assert loop.counters.frames_rejected == 3
+                assert loop.scene.version == version
+                assert loop.counters.commands_sent == sent
+                assert loop.renderer.last_command is command
+                assert _pins_near(agent, 3.0) and loop.safe_reason is None
+        finally:
+            agent.request_stop("test")
+            assert await run == 0
+    assert agent.summary is not None and agent.summary["frames_rejected"] == 3
+
+
+async def test_link_loss_goes_safe_then_reconnects_and_resumes() -> None:
+    port, tcp_port = free_tcp_port(), free_tcp_port()
+    url = f"ws://127.0.0.1:{port}/"
+    agent = relay_agent(url, safe_state="flat")
+    run = asyncio.create_task(agent.run())
+    try:
+        async with running_relay(port=port, tcp_port=tcp_port), FakeRemote(url) as remote:
+            await wait_for(lambda: agent.loop is not None and _pins_near(agent, 2.0), 6.0,
+                           "pins at 2 mm")
+            rendered = agent.loop.counters.frames_rendered
+        # relay gone: the link is down, the pins go flat within ~100 ms
+        await wait_for(lambda: not agent.link.is_connected, 2.0, "link down")
+        down_at = agent.link.link_down_since
+        await wait_for(lambda: agent.loop.safe_reason is not None, 1.0, "safe state")
+        reaction_s = monotonic_s() - down_at
+        assert reaction_s < 0.1 + scaled(0.15)
+        await wait_for(lambda: (fb := agent.loop.display.latest_feedback()) is not None
+                       and fb.safe_state and float(fb.position_mm.max()) < 0.3, 2.0,
+                       "pins flat")
+        async with running_relay(port=port, tcp_port=tcp_port), FakeRemote(url) as remote:
+            await wait_for(lambda: agent.link.is_connected, 3.0, "reconnected")
+            await wait_for(lambda: agent.loop.safe_reason is None
+                           and _pins_near(agent, 2.0), 4.0, "rendering resumed")
+            assert agent.loop.counters.frames_rendered > rendered
+            assert remote.frames_sent > 0
+    finally:
+        agent.request_stop("test")
+        assert await run == 0
+    summary = agent.summary
+    assert summary is not None
+    assert summary["link"]["connects"] == 2 and summary["link"]["connection_losses"] >= 1
+    entries = summary["safe_state"]["entries"]
+    assert entries.get("link_lost", 0) + entries.get("stale_scene", 0) >= 1
+    assert summary["safe_state"]["link_loss_to_safe_ms"]["max"] < 100 + scaled(150)
