@@ -29,7 +29,6 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "link": ("relay_server.linkemu_cli", "emulate a long-haul link (delay, jitter, loss, outages)"),
     "sensor": ("remote_site.sensor_cli", "calibrate a GelSight-style sensor; reconstruct heights"),
     "local": ("local_site.cli", "run the local haptic station (platform, ArrayTac, relay link)"),
-    "local": ("local_site.cli", "run the local haptic station (platform, ArrayTac, relay link)"),
     "remote": ("remote_site.cli", "run the remote palpation station (arm, sensor, tactile frames)"),
     "demo": ("local_site.demo.cli", "run relay + both stations on this machine and report"),
 }
