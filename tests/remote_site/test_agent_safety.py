@@ -186,9 +186,8 @@ async def test_pressing_stops_at_the_force_limit() -> None:
     stop = asyncio.Event()
 
     async def press() -> None:
-        seq = 0
-        for z in [*np.linspace(1.0, -6.0, 120), *[-6.0] * 60]:  # far deeper than the limit
-            seq += 1
+        depths = [*np.linspace(1.0, -6.0, 120), *[-6.0] * 60]  # far deeper than the limit
+        for seq, z in enumerate(depths, start=1):
             link.inbox.put_nowait(platform_state(seq, (0.0, -35.0, float(z))))
             await asyncio.sleep(0.008)
         stop.set()
@@ -350,3 +349,14 @@ def test_explicit_stop_command_always_acts() -> None:
         assert station.summary()["arm_commands"] == {"received": 1, "applied": 1}
     finally:
         close_station(station)
+
+
+def test_the_deploy_example_resolves_the_agent_settings() -> None:
+    from shared.config import resolve_config
+
+    path = Path(__file__).resolve().parents[2] / "deploy" / "config" / "remote.toml"
+    cfg = resolve_config(RemoteAgentConfig, "remote.agent", toml_path=path, environ={})
+    assert cfg.frame_rate_hz == 60.0 and cfg.patch_size_mm == (0.0, 0.0)
+    assert cfg.require_clock_offsets
+    with pytest.raises(ConfigError):
+        RemoteAgentConfig(frame_rate_hz=0.0)

@@ -12,8 +12,8 @@ from hypothesis import strategies as st
 
 from remote_site.phantom.phantom import Phantom
 from remote_site.reconstruction.reconstructor import Reconstructor
-from remote_site.sensor.sim_calibration import simulated_calibration
 from remote_site.sensor.shapes import ball_depth_mm
+from remote_site.sensor.sim_calibration import simulated_calibration
 from remote_site.sensor.simulator import SimulatedSensor
 from remote_site.stiffness.shore import ShoreConversion
 from remote_site.stiffness.stiffness_map import MapBounds, StiffnessMap
@@ -177,7 +177,7 @@ def test_crop_keeps_the_patch_centred(rows: int, cols: int, size_x: float, size_
     assert cx.shape == cy.shape and cx.size > 0
     assert abs(float(cx.mean())) < 1e-9 * max(1.0, pitch * cols)
     assert abs(float(cy.mean())) < 1e-9 * max(1.0, pitch * rows)
-    if 0 < size_x and size_x / pitch + 1 < cols - 2:
+    if size_x > 0 and size_x / pitch + 1 < cols - 2:
         assert (cx.shape[1] - 1) * pitch <= size_x + 2 * pitch
 
 

@@ -1,0 +1,87 @@
+"""`teletouch relay` and `teletouch remote` as real processes, a fake local station in the test.
+
+The remote presses a known tumor for the fake local station, writes the ground truth, and
+on SIGTERM stops cleanly (exit 0) and writes --summary-json.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import os
+import shutil
+import signal
+import sys
+import time
+from pathlib import Path
+
+from relay_server.auth import derive_token
+from tests.relay_server.test_relay_isolation_and_status import http_get
+from tests.remote_site.test_agent_relay import SESSION, check_press_result, fake_local
+from tests.support import free_tcp_port, scaled
+
+SUMMARY_KEYS = {"role", "elapsed_s", "frames", "platform_states", "arm_commands", "arm",
+                "stiffness", "latency_ms", "link", "session", "arm_backend", "sensor_backend",
+                "phantom", "seed"}
+
+
+async def _stop(proc: asyncio.subprocess.Process) -> None:
+    if proc.returncode is None:
+        proc.kill()
+        await proc.wait()
+
+
+async def test_relay_and_remote_as_processes(tmp_path: Path) -> None:
+    exe = shutil.which("teletouch")
+    cmd = [exe] if exe else [sys.executable, "-m", "shared.cli"]
+    port, tcp_port = free_tcp_port(), free_tcp_port()
+    env = dict(os.environ, TELETOUCH_RELAY_SECRET="sub-secret")
+    token = derive_token("sub-secret", SESSION)
+    relay = await asyncio.create_subprocess_exec(
+        *cmd, "relay", "--host", "127.0.0.1", "--port", str(port), "--tcp-port", str(tcp_port),
+        "--stats-interval-s", "0.2", env=env, stdout=asyncio.subprocess.DEVNULL,
+        stderr=asyncio.subprocess.DEVNULL)
+    remote = None
+    try:
+        async with asyncio.timeout(scaled(20.0)):
+            while True:
+                with contextlib.suppress(OSError):
+                    if (await http_get(port, "/status"))[0] == 200:
+                        break
+                await asyncio.sleep(0.1)
+        truth_path, summary_path = tmp_path / "truth.json", tmp_path / "summary.json"
+        remote_env = dict(os.environ, TELETOUCH_REMOTE_LINK_TOKEN=token)
+        remote = await asyncio.create_subprocess_exec(
+            *cmd, "remote", "--relay", f"tcp://127.0.0.1:{tcp_port}", "--session", SESSION,
+            "--arm", "sim", "--sensor", "sim", "--phantom", "severity", "--seed", "2",
+            "--ground-truth", str(truth_path), "--frame-rate-hz", "60",
+            "--summary-json", str(summary_path), env=remote_env,
+            stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
+        deadline = time.monotonic() + scaled(20.0)
+        while not truth_path.exists() and time.monotonic() < deadline:
+            await asyncio.sleep(0.1)
+        truth = json.loads(truth_path.read_text())
+        hardest = next(t for t in truth["tumors"] if t["id"] == truth["severity_order"][-1])
+        got = await fake_local(f"ws://127.0.0.1:{port}/", tuple(hardest["center_mm"]),
+                               duration_s=scaled(4.5), token=token)
+        remote.send_signal(signal.SIGTERM)
+        async with asyncio.timeout(scaled(15.0)):
+            out, err = await remote.communicate()
+        assert remote.returncode == 0, err.decode()[-2000:]
+        check_press_result(got, truth, hardest["id"])
+        summary = json.loads(summary_path.read_text())
+        assert set(summary) >= SUMMARY_KEYS
+        assert summary["phantom"] == "severity" and summary["seed"] == 2
+        assert summary["frames"]["sent"] > 30
+        assert summary["arm"]["applied"] > 0
+        assert "tactile frames sent" in out.decode()
+        assert "Traceback" not in err.decode().split("remote station stopped")[0]
+    finally:
+        if remote is not None:
+            await _stop(remote)
+        relay.send_signal(signal.SIGTERM)
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(scaled(10.0)):
+                await relay.wait()
+        await _stop(relay)

@@ -1,0 +1,176 @@
+"""The remote agent against the real relay (in-process RelayServer) and a fake local station.
+
+The fake local station is a real StationLink sending platform states that press a known
+tumor of the phantom; it checks what comes back: tactile frames with the contract's hops,
+contact while pressing, a stiffness layer near the phantom's ground truth, arm state.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import time
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from relay_server.config import RelayConfig
+from relay_server.server import RelayServer
+from remote_site.agent.app import AgentOptions, run_agent
+from remote_site.phantom.scenes import make_scene
+from shared.client import StationLink
+from shared.protocol import ArmState, PlatformState, TactileFrame
+from shared.timebase import now_us
+from shared.workspace import WorkspaceMap
+from tests.support import free_tcp_port, scaled
+
+TOKEN = "palpate"
+SESSION = "lab1"
+CONTRACT_STAMPS = ["local.capture", "relay.relay_in", "relay.relay_out", "remote.station_rx",
+                   "remote.arm_command", "remote.sensor_frame", "remote.tactile_ready",
+                   "relay.relay_in", "relay.relay_out", "local.station_rx"]
+
+
+def press_profile_mm(t_s: float, depth_mm: float = 3.0) -> float:
+    """Phantom z of the scripted press: hover, descend, hold, lift (mm)."""
+    if t_s < 0.4:
+        return 2.0
+    if t_s < 1.9:
+        return 2.0 - (2.0 + depth_mm) * (t_s - 0.4) / 1.5
+    if t_s < 2.4:
+        return -depth_mm
+    return 2.0
+
+
+async def fake_local(url: str, target_xy_mm: tuple[float, float], duration_s: float,
+                     token: str = TOKEN) -> dict[str, list[Any]]:
+    """Press ``target_xy_mm`` (phantom) through the relay; collect what comes back."""
+    ws = WorkspaceMap()
+    got: dict[str, list[Any]] = {"frames": [], "arm_states": []}
+    async with StationLink(url, session=SESSION, role="local", token=token) as link:
+        await link.wait_connected(timeout_s=scaled(10.0))
+
+        async def send_states() -> None:
+            seq = 0
+            t0 = time.monotonic()
+            while True:
+                z = press_profile_mm(time.monotonic() - t0)
+                p = ws.inverse([target_xy_mm[0], target_xy_mm[1], z])
+                seq += 1
+                ts = now_us()
+                state = PlatformState(seq=seq, ts_us=ts, position_mm=(float(p[0]), float(p[1]),
+                                                                      float(p[2])))
+                await link.send(state.with_hop("local", "capture", ts))
+                await asyncio.sleep(0.004)
+
+        sender = asyncio.create_task(send_states())
+        try:
+            end = time.monotonic() + duration_s
+            while time.monotonic() < end:
+                try:
+                    msg = await link.recv(timeout_s=0.2)
+                except TimeoutError:
+                    continue
+                if isinstance(msg, TactileFrame):
+                    got["frames"].append(msg)
+                elif isinstance(msg, ArmState):
+                    got["arm_states"].append(msg)
+        finally:
+            sender.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await sender
+    return got
+
+
+@pytest.fixture
+async def relay() -> AsyncIterator[RelayServer]:
+    server = RelayServer(RelayConfig(host="127.0.0.1", port=free_tcp_port(),
+                                     tcp_port=free_tcp_port(), tokens={SESSION: TOKEN},
+                                     stats_interval_s=0.1, ping_interval_s=0.2,
+                                     ping_burst_spacing_s=0.005))
+    await server.start()
+    try:
+        yield server
+    finally:
+        await server.close()
+
+
+def check_press_result(got: dict[str, list[Any]], truth: dict[str, Any], tumor_id: str) -> None:
+    """Shared checks: hops, contact, stiffness near ground truth, arm state."""
+    frames: list[TactileFrame] = got["frames"]
+    assert len(frames) > 30
+    answered = [f for f in frames if f.source_seq is not None]
+    assert answered
+    stamps = [f"{h.clock}.{h.stage}" for h in answered[-1].hops]
+    assert stamps == CONTRACT_STAMPS
+    times = [h.t_us for h in answered[-1].hops if h.clock == "remote"]
+    assert times == sorted(times)
+    assert answered[-1].ts_us == answered[-1].hops[5].t_us
+    pressing = [f for f in frames if f.contact]
+    assert pressing and not frames[0].contact
+    deepest = max(pressing, key=lambda f: f.force_n)
+    assert deepest.indentation_mm == pytest.approx(3.0, abs=0.3)
+    assert deepest.layers["height_mm"].shape == (30, 40)
+    assert deepest.layers["height_mm"].max() > 0.1
+    tumor = next(t for t in truth["tumors"] if t["id"] == tumor_id)
+    # the probe centre maps back to the tumor in platform coordinates
+    assert deepest.center_mm == pytest.approx(tumor["center_platform_mm"], abs=0.2)
+    with_k = [f for f in frames if "stiffness_n_per_mm" in f.layers]
+    assert with_k, "no stiffness estimate reached the local station"
+    k_patch = with_k[-1].layers["stiffness_n_per_mm"]
+    k_centre = float(k_patch[15, 20])
+    assert k_centre == pytest.approx(tumor["stiffness_n_per_mm"], rel=0.05)
+    assert 0.5 <= float(with_k[-1].layers["stiffness_k"].min()) <= 1.0
+    assert got["arm_states"] and got["arm_states"][-1].source_seq is not None
+
+
+async def test_agent_follows_a_press_and_streams_tactile_frames(relay: RelayServer,
+                                                                tmp_path: Path) -> None:
+    url = f"ws://127.0.0.1:{relay.ws_port}/"
+    truth_path = tmp_path / "truth.json"
+    options = AgentOptions(relay=url, session=SESSION, token=TOKEN, phantom="breast", seed=5,
+                           ground_truth=truth_path, frame_rate_hz=60.0)
+    stop = asyncio.Event()
+    agent = asyncio.create_task(run_agent(options, stop))
+    try:
+        truth_wait = time.monotonic() + scaled(10.0)
+        while not truth_path.exists() and time.monotonic() < truth_wait:
+            await asyncio.sleep(0.05)
+        truth = json.loads(truth_path.read_text())
+        malignant = next(t for t in truth["tumors"] if t["id"] == "malignant")
+        got = await fake_local(url, tuple(malignant["center_mm"]), duration_s=scaled(3.2))
+        # then the relay goes away: the arm must be halted for link loss
+        await relay.close()
+        await asyncio.sleep(0.4)
+    finally:
+        stop.set()
+        summary = await asyncio.wait_for(agent, scaled(10.0))
+    check_press_result(got, truth, "malignant")
+    phantom = make_scene("breast", 5)
+    assert truth["tumors"][1]["stiffness_n_per_mm"] == pytest.approx(
+        phantom.tissue_stiffness_n_per_mm(*phantom.tumors[1].center_mm))
+    assert summary["frames"]["sent"] >= len(got["frames"])
+    assert summary["frames"]["skipped_integration_no_contact"] > 0
+    assert summary["stiffness"]["estimates_valid"] >= 1
+    assert summary["stiffness"]["samples_skipped_not_loading"] > 0
+    assert summary["platform_states"]["applied"] > 100
+    assert summary["platform_states"]["dropped_stale"] == 0
+    assert summary["arm"]["link_loss_halts"] == 1
+    assert summary["link"]["pongs_sent"] > 0
+    assert summary["latency_ms"]["sensor_frame_to_tactile_ready"]["p50"] > 0
+    json.dumps(summary, allow_nan=False)
+
+
+async def test_agent_with_a_wrong_token_stops_with_auth_error(relay: RelayServer) -> None:
+    from shared.errors import AuthError
+
+    options = AgentOptions(relay=f"tcp://127.0.0.1:{relay.tcp_port}", session=SESSION,
+                           token="wrong", duration_s=scaled(10.0))
+    summaries: list[dict[str, Any]] = []
+    with pytest.raises(AuthError):
+        await asyncio.wait_for(run_agent(options, asyncio.Event(), on_summary=summaries.append),
+                               scaled(10.0))
+    assert summaries and summaries[0]["frames"]["sent"] == 0
