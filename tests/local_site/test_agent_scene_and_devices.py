@@ -1,0 +1,140 @@
+"""The local agent without a relay (--scene), a platform that disappears, and its parts."""
+
+from __future__ import annotations
+
+import asyncio
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from local_site.agent import LocalAgent, LocalAgentConfig, parse_motion_spec
+from local_site.agent.period_stats import PeriodStats
+from local_site.agent.station import place_shape_spec
+from local_site.platform.motion import HoldMotion, RandomWalk, RasterSweep, ReplayMotion
+from local_site.recording import SessionRecorder, load_recording
+from shared.config import resolve_config
+from shared.errors import ConfigError
+from tests.local_site.agent_support import make_frame, wait_for
+
+DEPLOY_LOCAL = Path(__file__).resolve().parents[2] / "deploy" / "config" / "local.toml"
+
+
+async def test_scene_mode_renders_the_hemisphere_and_survives_an_unplugged_platform() -> None:
+    agent = LocalAgent(LocalAgentConfig(scene="hemisphere", motion="hold:x=30,y=30,z=100",
+                                        device_retry_min_s=0.05))
+    run = asyncio.create_task(agent.run())
+    try:
+        # hemisphere r = 4.5 mm placed at the workspace centre, platform on its top:
+        # pins at (+-0.85, +-0.85) -> 4.34 mm, corners (+-2.55, +-2.55) -> 2.69 mm
+        await wait_for(lambda: agent.loop is not None and
+                       (fb := agent.loop.display.latest_feedback()) is not None
+                       and abs(float(fb.position_mm.max()) - 4.34) < 0.1
+                       and abs(float(fb.position_mm.min()) - 2.69) < 0.1, 6.0,
+                       "pins showing the hemisphere")
+        assert agent.link is None and agent.loop.safe_reason is None
+        platform = agent.reader.platform
+        platform.unplug()  # type: ignore[attr-defined]
+        await wait_for(lambda: agent.loop.safe_reason == "platform_lost", 2.0, "safe state")
+        await wait_for(lambda: agent.reader.reconnects >= 1 and agent.loop.safe_reason is None,
+                       4.0, "platform reopened and rendering again")
+    finally:
+        agent.request_stop("test")
+        assert await run == 0
+    s = agent.summary
+    assert s is not None and s["mode"] == "scene" and s["link"] is None
+    assert s["safe_state"]["entries"] == {"platform_lost": 1}
+    assert s["platform"]["errors"] >= 1 and s["platform"]["reconnects"] >= 1
+    assert s["display"]["commands_sent"] >= 2 and s["display"]["errors"] == 0
+    assert s["display"]["driver"]["safe_states_sent"] >= 2  # the loss, and the shutdown
+
+
+def test_place_shape_spec_centres_shapes_only(tmp_path: Path) -> None:
+    assert place_shape_spec("cone", (30.0, 20.0)) == "cone:x_mm=30.0,y_mm=20.0"
+    assert place_shape_spec("cone:x_mm=5,k=0.7", (30.0, 20.0)) == \
+        "cone:x_mm=5.0,k=0.7,y_mm=20.0"
+    layer = tmp_path / "layers.npz"
+    assert place_shape_spec(str(layer), (1.0, 1.0)) == str(layer)
+    with pytest.raises(ConfigError):
+        place_shape_spec("cone:radius", (0.0, 0.0))
+
+
+def test_motion_specs() -> None:
+    m = parse_motion_spec("raster:x0=5,x1=55,y0=5,y1=55,spacing=2,speed=20,press_depth=3,"
+                          "press_every=4")
+    assert isinstance(m, RasterSweep)
+    p = m.params
+    assert (p.origin_mm, p.size_mm, p.line_spacing_mm, p.speed_mm_s) == \
+        ((5.0, 5.0), (50.0, 50.0), 2.0, 20.0)
+    assert (p.press_depth_mm, p.press_spacing_mm) == (3.0, 4.0)
+    once = parse_motion_spec("raster:x0=20,x1=30,y0=30,y1=30,loop=0,pause=0,press_depth=0")
+    assert once.duration_s == pytest.approx(10.0 / 20.0 + 10.0 / 20.0)  # line, then back
+    assert once.position_mm(100.0) == pytest.approx((20.0, 30.0, 100.0))  # holds: no loop
+    walk = parse_motion_spec("random:seed=4,speed=5,x=10,y=10,z=50")
+    assert isinstance(walk, RandomWalk) and walk.position_mm(0.0) == pytest.approx((10, 10, 50))
+    hold = parse_motion_spec("hold:x=12")
+    assert isinstance(hold, HoldMotion) and hold.position_mm(5.0) == (12.0, 30.0, 100.0)
+    for bad in ("raster:spacing", "raster:x0=5,x0=6", "raster:speed=fast", "raster:bogus=1",
+                "hold:w=1", "swim", "random:x=1", "raster:x0=50,x1=10", "replay:loop=1", ""):
+        with pytest.raises(ConfigError):
+            parse_motion_spec(bad)
+
+
+def test_motion_spec_replay_file(tmp_path: Path) -> None:
+    path = tmp_path / "walk.csv"
+    ReplayMotion.save(path, np.array([0.0, 1.0]), np.array([[0, 0, 0], [10, 20, 30.0]]))
+    for spec in (str(path), f"replay:file={path},loop=1"):
+        m = parse_motion_spec(spec)
+        assert m.position_mm(0.5) == pytest.approx((5.0, 10.0, 15.0))
+
+
+def test_recorder_keeps_first_shape_and_its_limit(tmp_path: Path) -> None:
+    rec = SessionRecorder(max_frames=2, max_platform_samples=1)
+    assert rec.add_platform(5, (1.0, 2.0, 3.0)) and not rec.add_platform(6, (1.0, 2.0, 3.0))
+    frame = make_frame(1, None)
+    assert rec.add_frame(frame, 100)
+    no_k = make_frame(2, None)
+    del no_k.layers["stiffness_k"], no_k.layers["stiffness_n_per_mm"]
+    other = make_frame(3, None)
+    other.layers.update({k: np.zeros((3, 3), np.float32) for k in other.layers})
+    assert not rec.add_frame(other, 101)
+    assert rec.add_frame(no_k, 102) and not rec.add_frame(frame, 103)
+    assert rec.counts() == {"frames": 2, "platform_samples": 1, "frames_dropped_limit": 1,
+                            "frames_rejected_shape": 1, "platform_dropped_limit": 1}
+    out = load_recording(rec.save(tmp_path / "r", {"session": "s"}))
+    assert out["frame_seq"].tolist() == [1, 2] and out["frame_rx_us"].tolist() == [100, 102]
+    assert np.all(out["frame_stiffness_k"][1] == 1.0)
+    assert np.all(out["frame_stiffness_n_per_mm"][1] == 0.0)
+    assert out["platform_mm"].tolist() == [[1.0, 2.0, 3.0]]
+    assert out["meta"]["session"] == "s" and out["meta"]["layer_shape"] == [9, 9]
+    empty = load_recording(SessionRecorder().save(tmp_path / "e.npz"))
+    assert empty["frame_height_mm"].shape == (0, 0, 0) and empty["platform_mm"].shape == (0, 3)
+
+
+def test_period_stats_percentiles_against_numpy() -> None:
+    stats = PeriodStats(0.001, capacity=64)
+    rng = np.random.default_rng(0)
+    starts = np.cumsum(0.001 + rng.uniform(-2e-4, 5e-4, 200))
+    for t in starts:
+        stats.tick(float(t))
+    periods = np.diff(starts)[-64:]
+    s = stats.summary()
+    assert s["iterations"] == 200
+    assert s["period_p99_ms"] == pytest.approx(np.percentile(periods, 99) * 1e3)
+    assert s["jitter_p50_ms"] == pytest.approx(np.percentile(np.abs(periods - 1e-3), 50) * 1e3)
+
+
+def test_config_validation_and_deploy_example() -> None:
+    cfg = resolve_config(LocalAgentConfig, "local.agent", toml_path=DEPLOY_LOCAL, environ={})
+    assert cfg.safe_state in ("flat", "hold") and cfg.render_rate_hz >= 500
+    env = {"TELETOUCH_LOCAL_AGENT_SAFE_STATE": "hold",
+           "TELETOUCH_LOCAL_AGENT_RENDER_RATE_HZ": "800"}
+    cfg = resolve_config(LocalAgentConfig, "local.agent", environ=env)
+    assert (cfg.safe_state, cfg.render_rate_hz) == ("hold", 800.0)
+    for bad in ({"safe_state": "up"}, {"render_loop": "fiber"}, {"render_rate_hz": 0.0},
+                {"link_loss_timeout_s": float("nan")}, {"interpolation_order": 2},
+                {"device_retry_min_s": 2.0, "device_retry_max_s": 1.0}):
+        with pytest.raises(ConfigError):
+            LocalAgentConfig(**bad)  # type: ignore[arg-type]
+    with pytest.raises(ConfigError):
+        LocalAgent(LocalAgentConfig())  # neither a relay nor a scene
