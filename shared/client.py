@@ -200,6 +200,12 @@ class LinkCounters:
 # --------------------------------------------------------------------------- transports
 
 
+def _retrieve(future: asyncio.Future[object]) -> None:
+    """Mark a finished future's outcome as read, so asyncio does not log it as lost."""
+    if not future.cancelled():
+        future.exception()
+
+
 class _LinkClosed(ConnectionError):
     """The transport closed; ``close_code`` is the WebSocket close code if any."""
 
@@ -786,7 +792,12 @@ class StationLink:
                          writer: asyncio.Task[None]) -> None:
         while True:
             recv = asyncio.ensure_future(self._recv_bytes(transport, self._liveness_timeout_s))
-            done, _ = await asyncio.wait({recv, writer}, return_when=asyncio.FIRST_COMPLETED)
+            try:
+                done, _ = await asyncio.wait({recv, writer}, return_when=asyncio.FIRST_COMPLETED)
+            except BaseException:  # cancelled (link closing): do not leave recv's error unread
+                recv.cancel()
+                recv.add_done_callback(_retrieve)
+                raise
             if recv not in done:  # the writer died: the socket is gone
                 recv.cancel()
                 with contextlib.suppress(asyncio.CancelledError, _LinkClosed, TimeoutError):
