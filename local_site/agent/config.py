@@ -52,6 +52,10 @@ class LocalAgentConfig:
         record_max_platform_samples: platform samples kept by ``--record``.
         motion_done_grace_s: with ``--until-motion-done``, keep running this long after the
             motion finished so the last tactile frames come back.
+        gil_switch_interval_s: ``sys.setswitchinterval`` while the agent runs (restored
+            after). Python's 5 ms default lets a busy thread delay the display loop and the
+            platform reader by up to 5 ms; benchmarks/results/display_loop_agent.md
+            measures the effect. 0 leaves the interpreter's setting alone.
     """
 
     platform: str = "sim"
@@ -76,6 +80,7 @@ class LocalAgentConfig:
     record_max_frames: int = 20_000
     record_max_platform_samples: int = 1_000_000
     motion_done_grace_s: float = 0.5
+    gil_switch_interval_s: float = 0.0002
 
     def __post_init__(self) -> None:
         if self.safe_state not in SAFE_STATE_MODES:
@@ -106,6 +111,9 @@ class LocalAgentConfig:
             raise ConfigError("local.agent.record_max_* must be >= 0")
         if not (math.isfinite(self.motion_done_grace_s) and self.motion_done_grace_s >= 0):
             raise ConfigError("local.agent.motion_done_grace_s must be >= 0")
+        if not (math.isfinite(self.gil_switch_interval_s)
+                and 0.0 <= self.gil_switch_interval_s <= 0.1):
+            raise ConfigError("local.agent.gil_switch_interval_s must lie in [0, 0.1] s")
         for name in ("scene_center_x_mm", "scene_center_y_mm"):
             if not math.isfinite(getattr(self, name)):
                 raise ConfigError(f"local.agent.{name} must be finite")

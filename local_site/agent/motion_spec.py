@@ -96,7 +96,7 @@ def _raster(spec: str, params: dict[str, str]) -> RasterSweep:
         field = _RASTER_ALIASES.get(key, key)
         overrides[field] = _boolean(spec, key, value) if field == "loop" \
             else _number(spec, key, value)
-    return RasterSweep(**overrides)
+    return RasterSweep(**overrides)  # type: ignore[arg-type]
 
 
 def _random(spec: str, params: dict[str, str]) -> RandomWalk:

@@ -29,6 +29,7 @@ import logging
 import math
 import os
 import signal
+import sys
 import threading
 from pathlib import Path
 from typing import Any
@@ -190,7 +191,8 @@ class LocalAgent:
         display = open_display(cfg.display, connect=False, **display_opts)
         if self.remote_mode:
             self.scene = open_scene("remote", interpolation_order=cfg.interpolation_order)
-            assert self.link_config is not None  # checked in __init__
+            if self.link_config is None:
+                raise ConfigError("the local agent needs a relay link (--relay) or a --scene")
             self.link = StationLink.from_config(self.link_config, "local")
         else:
             spec = place_shape_spec(cfg.scene, (cfg.scene_center_x_mm, cfg.scene_center_y_mm))
@@ -209,6 +211,11 @@ class LocalAgent:
             stale_timeout_s=cfg.stale_frame_timeout_s, recorder=self.recorder,
             ledger=self.ledger, retry_min_s=cfg.device_retry_min_s,
             retry_max_s=cfg.device_retry_max_s)
+
+    def _require_open(self) -> tuple[DisplayLoop, PlatformReader]:
+        if self.loop is None or self.reader is None:
+            raise ConfigError("LocalAgent.open() has not been called")
+        return self.loop, self.reader
 
     # ------------------------------------------------------------------ control
 
@@ -294,8 +301,8 @@ class LocalAgent:
             self.request_stop("link_refused")
 
     def _status_text(self, rates: dict[str, float]) -> str:
-        loop, reader, link = self.loop, self.reader, self.link
-        assert loop is not None and reader is not None
+        loop, reader = self._require_open()
+        link = self.link
         parts = ["local"]
         if link is not None:
             parts.append("link up" if link.is_connected
@@ -337,8 +344,7 @@ class LocalAgent:
             status.update(self._status_text(rates))
 
     async def _supervise(self) -> None:
-        reader = self.reader
-        assert reader is not None
+        _, reader = self._require_open()
         while True:
             if self.duration_s is not None and self.elapsed_s >= self.duration_s:
                 self.request_stop("duration")
@@ -366,8 +372,7 @@ class LocalAgent:
         """
         if self.loop is None:
             self.open()
-        loop, reader = self.loop, self.reader
-        assert loop is not None and reader is not None
+        loop, reader = self._require_open()
         aio = asyncio.get_running_loop()
         self._stop = asyncio.Event()
         signals: list[int] = []
@@ -376,6 +381,9 @@ class LocalAgent:
                 with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
                     aio.add_signal_handler(sig, self.request_stop, "signal")
                     signals.append(sig)
+        previous_switch_s = sys.getswitchinterval()
+        if self.config.gil_switch_interval_s > 0:
+            sys.setswitchinterval(self.config.gil_switch_interval_s)
         self._started_s = monotonic_s()
         self._thread_stop.clear()
         reader.start()
@@ -392,7 +400,8 @@ class LocalAgent:
             ("status", self._status()), ("supervise", self._supervise()))]
         try:
             stop_wait = aio.create_task(self._stop.wait())
-            await asyncio.wait({stop_wait, display_task}, return_when=asyncio.FIRST_COMPLETED)
+            waiters: set[asyncio.Future[Any]] = {stop_wait, display_task}
+            await asyncio.wait(waiters, return_when=asyncio.FIRST_COMPLETED)
             if not stop_wait.done():
                 stop_wait.cancel()
                 with contextlib.suppress(asyncio.CancelledError):
@@ -410,13 +419,13 @@ class LocalAgent:
             with contextlib.suppress(Exception):
                 await display_task
             await self._shutdown()
-            for sig in signals:
-                aio.remove_signal_handler(sig)
+            for signum in signals:
+                aio.remove_signal_handler(signum)
+            sys.setswitchinterval(previous_switch_s)
         return self.exit_code
 
     async def _shutdown(self) -> None:
-        loop, reader = self.loop, self.reader
-        assert loop is not None and reader is not None
+        loop, reader = self._require_open()
         display = loop.display
         loop.finish("shutdown")
         display_stats = display.stats()
@@ -461,8 +470,8 @@ class LocalAgent:
 
     def _build_summary(self, display_stats: Any, platform_stats: Any,
                        feedback: Any) -> dict[str, Any]:
-        loop, reader, link = self.loop, self.reader, self.link
-        assert loop is not None and reader is not None
+        loop, reader = self._require_open()
+        link = self.link
         elapsed = max(1e-9, self.elapsed_s)
         c = loop.counters
         safe_time_s = c.safe_time_s
@@ -480,7 +489,9 @@ class LocalAgent:
             "motion_to_touch_ms": self.ledger.summary_ms(),
             "display_loop": {"mode": self.config.render_loop, **loop.periods.summary()},
             "platform": {"spec": self.config.platform, "reads": reader.reads,
-                         "read_rate_hz": reader.reads / elapsed, "errors": reader.errors,
+                         "read_rate_hz": reader.reads / elapsed,
+                         "decoded_rate_hz": platform_stats.frames_ok / elapsed,
+                         "errors": reader.errors,
                          "reconnects": reader.reconnects, "last_error": reader.last_error,
                          **dataclasses.asdict(platform_stats)},
             "uplink": {"platform_states_sent": self.platform_states_sent,
