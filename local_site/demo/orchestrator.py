@@ -46,8 +46,8 @@ log = logging.getLogger(__name__)
 SESSION = "demo"
 #: the scripted operator: slides pressed 3 mm into the phantom (platform z 10 with the
 #: default workspace map) over the whole reachable phantom, lines 3 mm apart
-DEFAULT_MOTION = ("raster:origin_mm=1;1,size_mm=58;58,line_spacing_mm=3,speed_mm_s=30,"
-                  "hover_z_mm=10,press_depth_mm=0,press_spacing_mm=0,start_pause_s=1,loop=false")
+DEFAULT_MOTION = ("raster:x0=1,x1=59,y0=1,y1=59,spacing=3,speed=30,z=10,press_depth=0,"
+                  "press_every=0,pause=1,loop=0")
 
 
 class DemoError(TeleTouchError):
@@ -247,7 +247,7 @@ def run_demo(config: DemoConfig,
         local = procs.start(
             "local", "local", "--relay", f"ws://127.0.0.1:{local_port}/", *common,
             "--platform", "sim", "--display", "sim", "--motion", config.motion,
-            "--until-motion-done", "--duration", f"{config.max_duration_s:g}",
+            "--until-motion-done", "--duration", f"{config.max_duration_s:g}", "--no-status",
             "--record", str(files["record"]), "--summary-json", str(files["local_summary"]),
             *config.extra_local_args)
         deadline = started + config.max_duration_s + 60.0
