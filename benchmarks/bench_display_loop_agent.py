@@ -205,6 +205,8 @@ def main(argv: list[str] | None = None) -> int:
     ratio = (aio["jitter_p99_ms"] or 0.0) / max(1e-9, thread["jitter_p99_ms"] or 0.0)
     ratio_switch = (slow["jitter_p99_ms"] or 0.0) / max(1e-9, thread["jitter_p99_ms"] or 0.0)
     best = min(rows, key=lambda r: r["jitter_p99_ms"] or float("inf"))
+    best_p50 = min(rows, key=lambda r: r["jitter_p50_ms"] or float("inf"))
+    best_e2e = min(rows, key=lambda r: r["e2e_p99_ms"] or float("inf"))
     command = "python benchmarks/bench_display_loop_agent.py" + \
         (" --quick" if args.quick else "") + \
         (f" --duration {args.duration:g}" if args.duration else "")
@@ -227,11 +229,13 @@ def main(argv: list[str] | None = None) -> int:
         "",
         f"Jitter p99 ratios (same agent settings otherwise): asyncio / thread = {ratio:.2f}; "
         f"thread with Python's 5 ms GIL switch interval / thread at the agent's default = "
-        f"{ratio_switch:.2f}. Lowest p99 jitter in this run: {best['placement']}. "
+        f"{ratio_switch:.2f}. Lowest jitter p99 in this run: {best['placement']}; lowest "
+        f"jitter p50: {best_p50['placement']}; lowest e2e p99: {best_e2e['placement']}. "
         "The agent's default is a thread (`render_loop`, `--render-loop asyncio` for the "
         "other). Platform: decoded = samples the driver decoded per second (board at "
-        "1 kHz), read = newest samples the agent's reader thread took (latest wins when it "
-        "wakes late). e2e = motion-to-touch latency "
+        "1 kHz; counted since the last reconnect, so a row whose platform was reopened "
+        "(safe_entries > 0) under-reports it), read = newest samples the agent's reader "
+        "thread took (latest wins when it wakes late). e2e = motion-to-touch latency "
         "(platform capture -> pins, relay on localhost); track = RMS of pin feedback minus "
         "command (plant lag included).",
         "",

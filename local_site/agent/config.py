@@ -39,7 +39,8 @@ class LocalAgentConfig:
         platform_send_rate_hz: platform_state messages per second to the relay (at most).
         render_rate_hz: display loop rate (the array refresh; >= 500 Hz required).
         render_loop: ``thread`` or ``asyncio`` (where the display loop runs).
-        platform_read_timeout_s: no new platform sample for this long means it is lost.
+        platform_read_timeout_s: no new platform sample for this long means it is lost
+            (0.25 s: on a loaded 2-core host the reader thread was seen starved > 100 ms).
         device_retry_min_s: first delay before reopening a lost device.
         device_retry_max_s: largest such delay (the delay doubles up to it).
         display_keepalive_interval_s: unchanged commands are re-sent this often.
@@ -68,7 +69,7 @@ class LocalAgentConfig:
     platform_send_rate_hz: float = 250.0
     render_rate_hz: float = 1000.0
     render_loop: str = "thread"
-    platform_read_timeout_s: float = 0.1
+    platform_read_timeout_s: float = 0.25
     device_retry_min_s: float = 0.2
     device_retry_max_s: float = 5.0
     display_keepalive_interval_s: float = 0.02

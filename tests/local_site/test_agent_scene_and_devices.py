@@ -138,3 +138,15 @@ def test_config_validation_and_deploy_example() -> None:
             LocalAgentConfig(**bad)  # type: ignore[arg-type]
     with pytest.raises(ConfigError):
         LocalAgent(LocalAgentConfig())  # neither a relay nor a scene
+
+
+async def test_display_loop_as_asyncio_task_renders_too() -> None:
+    agent = LocalAgent(LocalAgentConfig(scene="cone:radius_mm=10,height_mm=3",
+                                        motion="random:seed=2,speed=10", render_loop="asyncio",
+                                        render_rate_hz=500.0), duration_s=1.5)
+    assert await agent.run() == 0
+    s = agent.summary
+    assert s is not None and s["exit_reason"] == "duration"
+    assert s["display_loop"]["mode"] == "asyncio" and s["display_loop"]["iterations"] > 100
+    assert s["display_loop"]["target_hz"] == 500.0
+    assert s["display"]["commands_sent"] > 10 and s["render"]["rendered"] > 10
