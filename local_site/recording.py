@@ -33,17 +33,20 @@ import json
 import logging
 import os
 import threading
+import zipfile
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from shared.errors import ConfigError, InputDataError
 from shared.protocol import TactileFrame
 from shared.report import to_jsonable
 
-__all__ = ["RECORD_KEYS", "SessionRecorder", "load_recording"]
+__all__ = ["RECORD_KEYS", "Recording", "SessionRecorder", "load_recording"]
 
 log = logging.getLogger(__name__)
 
@@ -212,19 +215,99 @@ class SessionRecorder:
         return out
 
 
-def load_recording(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """Read a recording back: the arrays, with ``meta_json`` parsed into ``meta``.
+@dataclass(frozen=True, eq=False)
+class Recording:
+    """Platform samples sent and tactile frames accepted by the local station.
+
+    Attributes:
+        platform_t_us: (P,) sample times (local clock).
+        platform_mm: (P, 3) platform positions sent.
+        frame_center_mm: (N, 2) patch centres, platform coordinates.
+        frame_pitch_mm: (N,) patch pitch, platform mm.
+        frame_contact: (N,) bool.
+        frame_force_n: (N,) normal force.
+        frame_indentation_mm: (N,) probe indentation.
+        frame_height_mm: (N, H, W) height patches.
+        frame_rx_us: (N,) receive times (local clock).
+        frame_seq: (N,) tactile frame sequence numbers.
+        frame_stiffness_k: (N, H, W) display k, or None when not recorded.
+        frame_stiffness_n_per_mm: (N, H, W) measured stiffness, or None.
+        meta: free-form metadata (session, workspace settings, counts).
+    """
+
+    platform_t_us: NDArray[np.int64]
+    platform_mm: NDArray[np.float64]
+    frame_center_mm: NDArray[np.float64]
+    frame_pitch_mm: NDArray[np.float64]
+    frame_contact: NDArray[np.bool_]
+    frame_force_n: NDArray[np.float64]
+    frame_indentation_mm: NDArray[np.float64]
+    frame_height_mm: NDArray[np.float32]
+    frame_rx_us: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    frame_seq: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    frame_stiffness_k: NDArray[np.float32] | None = None
+    frame_stiffness_n_per_mm: NDArray[np.float32] | None = None
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        n = self.frame_center_mm.shape[0]
+        checks = {
+            "frame_center_mm": self.frame_center_mm.shape == (n, 2),
+            "frame_pitch_mm": self.frame_pitch_mm.shape == (n,),
+            "frame_contact": self.frame_contact.shape == (n,),
+            "frame_force_n": self.frame_force_n.shape == (n,),
+            "frame_indentation_mm": self.frame_indentation_mm.shape == (n,),
+            "frame_height_mm": self.frame_height_mm.ndim == 3
+            and self.frame_height_mm.shape[0] == n,
+            "platform_mm": self.platform_mm.ndim == 2 and self.platform_mm.shape[1] == 3,
+        }
+        bad = [k for k, ok in checks.items() if not ok]
+        if bad:
+            raise InputDataError(f"recording arrays of inconsistent shape: {bad} ({n} frames)")
+        for name in ("frame_center_mm", "frame_pitch_mm", "frame_force_n",
+                     "frame_indentation_mm", "frame_height_mm", "platform_mm"):
+            if not np.isfinite(getattr(self, name)).all():
+                raise InputDataError(f"recording array {name} has NaN or Inf")
+        if n and not (self.frame_pitch_mm > 0).all():
+            raise InputDataError("recording frame_pitch_mm must be > 0")
+
+    @property
+    def frames(self) -> int:
+        """Number of tactile frames."""
+        return int(self.frame_center_mm.shape[0])
+
+
+def load_recording(path: str | os.PathLike[str]) -> Recording:
+    """Read and validate a recording written by :class:`SessionRecorder`.
 
     Raises:
-        InputDataError: missing keys or an unreadable file.
+        InputDataError: an unreadable file, missing keys, inconsistent or non-finite arrays.
     """
+    p = Path(path)
     try:
-        with np.load(path, allow_pickle=False) as data:
+        with np.load(p, allow_pickle=False) as data:
             missing = sorted(set(RECORD_KEYS) - set(data.files))
             if missing:
-                raise InputDataError(f"{path}: not a local-station recording, missing {missing}")
-            out: dict[str, Any] = {k: data[k] for k in RECORD_KEYS}
-    except (OSError, ValueError) as err:
-        raise InputDataError(f"cannot read the recording {path}: {err}") from err
-    out["meta"] = json.loads(str(out["meta_json"]))
-    return out
+                raise InputDataError(f"{p}: not a local-station recording, missing {missing}")
+            raw: dict[str, Any] = {k: data[k] for k in RECORD_KEYS}
+    except (OSError, ValueError, zipfile.BadZipFile) as err:
+        raise InputDataError(f"cannot read the recording {p}: {err}") from err
+    try:
+        meta = json.loads(str(raw["meta_json"]))
+    except json.JSONDecodeError as err:
+        raise InputDataError(f"{p}: meta_json is not JSON: {err}") from err
+    return Recording(
+        platform_t_us=raw["platform_t_us"].astype(np.int64),
+        platform_mm=raw["platform_mm"].astype(np.float64).reshape(-1, 3),
+        frame_center_mm=raw["frame_center_mm"].astype(np.float64).reshape(-1, 2),
+        frame_pitch_mm=raw["frame_pitch_mm"].astype(np.float64),
+        frame_contact=raw["frame_contact"].astype(bool),
+        frame_force_n=raw["frame_force_n"].astype(np.float64),
+        frame_indentation_mm=raw["frame_indentation_mm"].astype(np.float64),
+        frame_height_mm=raw["frame_height_mm"].astype(np.float32),
+        frame_rx_us=raw["frame_rx_us"].astype(np.int64),
+        frame_seq=raw["frame_seq"].astype(np.int64),
+        frame_stiffness_k=raw["frame_stiffness_k"].astype(np.float32),
+        frame_stiffness_n_per_mm=raw["frame_stiffness_n_per_mm"].astype(np.float32),
+        meta=meta if isinstance(meta, dict) else {"meta": meta},
+    )

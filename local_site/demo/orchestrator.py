@@ -37,7 +37,6 @@ from typing import Any
 from local_site.palpation import analyse_recording, load_recording
 from local_site.palpation.scoring import score_findings
 from shared.errors import ConfigError, DeviceError, TeleTouchError
-from shared.workspace import load_workspace
 
 __all__ = ["DemoConfig", "DemoError", "run_demo"]
 
@@ -287,7 +286,7 @@ def _report(config: DemoConfig, files: dict[str, Path], relay_final: dict[str, A
     local_summary = _read_json(files["local_summary"], "the local station's summary")
     remote_summary = _read_json(files["remote_summary"], "the remote station's summary")
     recording = load_recording(files["record"])
-    findings = analyse_recording(recording, load_workspace())
+    findings = analyse_recording(recording)  # in the workspace the station recorded
     score = score_findings(findings, truth)
     latency = local_summary.get("motion_to_touch_ms", {})
     return {

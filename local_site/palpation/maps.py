@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from local_site.palpation.recording import Recording
+from local_site.recording import Recording
 from shared.errors import InputDataError
 from shared.workspace import WorkspaceMap
 

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from local_site.recording import RECORD_KEYS, load_recording
+from local_site.recording import load_recording
 from tests.local_site.agent_support import FakeRemote, wait_for
 from tests.relay_server.relay_clients import SECRET
 from tests.support import free_tcp_port, scaled
@@ -69,9 +69,9 @@ async def test_relay_and_local_processes_sigterm_writes_record_and_summary(tmp_p
         assert doc["motion_to_touch_ms"]["end_to_end"]["count"] > 10
         assert doc["display"]["last_feedback_safe_state"] is not None
         rec = load_recording(record)
-        assert set(RECORD_KEYS) <= set(rec) and rec["frame_seq"].size == doc["frames_accepted"]
-        xs = rec["platform_mm"][:, 0]
-        assert xs.min() < 27 and xs.max() > 33 and np.all(np.diff(rec["platform_t_us"]) > 0)
+        assert rec.frames == doc["frames_accepted"]
+        xs = rec.platform_mm[:, 0]
+        assert xs.min() < 27 and xs.max() > 33 and np.all(np.diff(rec.platform_t_us) > 0)
     finally:
         if local is not None:
             await _stop(local)

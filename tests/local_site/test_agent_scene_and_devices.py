@@ -102,13 +102,13 @@ def test_recorder_keeps_first_shape_and_its_limit(tmp_path: Path) -> None:
     assert rec.counts() == {"frames": 2, "platform_samples": 1, "frames_dropped_limit": 1,
                             "frames_rejected_shape": 1, "platform_dropped_limit": 1}
     out = load_recording(rec.save(tmp_path / "r", {"session": "s"}))
-    assert out["frame_seq"].tolist() == [1, 2] and out["frame_rx_us"].tolist() == [100, 102]
-    assert np.all(out["frame_stiffness_k"][1] == 1.0)
-    assert np.all(out["frame_stiffness_n_per_mm"][1] == 0.0)
-    assert out["platform_mm"].tolist() == [[1.0, 2.0, 3.0]]
-    assert out["meta"]["session"] == "s" and out["meta"]["layer_shape"] == [9, 9]
+    assert out.frame_seq.tolist() == [1, 2] and out.frame_rx_us.tolist() == [100, 102]
+    assert np.all(out.frame_stiffness_k[1] == 1.0)
+    assert np.all(out.frame_stiffness_n_per_mm[1] == 0.0)
+    assert out.platform_mm.tolist() == [[1.0, 2.0, 3.0]]
+    assert out.meta["session"] == "s" and out.meta["layer_shape"] == [9, 9]
     empty = load_recording(SessionRecorder().save(tmp_path / "e.npz"))
-    assert empty["frame_height_mm"].shape == (0, 0, 0) and empty["platform_mm"].shape == (0, 3)
+    assert empty.frame_height_mm.shape == (0, 0, 0) and empty.platform_mm.shape == (0, 3)
 
 
 def test_period_stats_percentiles_against_numpy() -> None:

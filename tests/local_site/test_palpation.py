@@ -129,6 +129,8 @@ def test_load_recording_round_trip_and_errors(tmp_path: Path) -> None:
              frame_center_mm=rec.frame_center_mm, frame_pitch_mm=rec.frame_pitch_mm,
              frame_contact=rec.frame_contact, frame_force_n=rec.frame_force_n,
              frame_indentation_mm=rec.frame_indentation_mm, frame_height_mm=rec.frame_height_mm,
+             frame_stiffness_k=np.ones_like(rec.frame_height_mm),
+             frame_stiffness_n_per_mm=np.zeros_like(rec.frame_height_mm),
              meta_json=json.dumps({"session": "s"}))
     loaded = load_recording(path)
     assert loaded.frames == rec.frames and loaded.meta == {"session": "s"}
