@@ -103,6 +103,23 @@ def _plot(rows: list[dict[str, Any]], path: Path) -> None:
     plt.close(fig)
 
 
+def _write(out: Path, runs: list[dict[str, Any]], command: str, elapsed_s: float) -> None:
+    from shared.report import format_table
+
+    rows = summarise(runs)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "palpation.json").write_text(json.dumps({"rows": rows, "runs": runs}, indent=1,
+                                                   default=str))
+    (out / "palpation.md").write_text(
+        "# Palpation benchmark\n\n"
+        f"Machine: {platform.machine()} {platform.system()}, 2 cores shared, no GPU. "
+        f"Command: `{command}` ({len(runs)} runs, {elapsed_s:.0f} s). Each run is a full "
+        "`teletouch demo` session (relay, link emulators, both stations as processes); "
+        "latency is the local station's motion-to-touch ledger, per run p50/p99, then the "
+        "median (or worst) over runs.\n\n" + format_table(rows) + "\n")
+    _plot(rows, out / "palpation.png")
+
+
 def run(args: argparse.Namespace) -> int:
     """Run the benchmark."""
     from local_site.demo.orchestrator import DemoConfig, DemoError, run_demo
@@ -113,9 +130,13 @@ def run(args: argparse.Namespace) -> int:
     links = [s for s in args.links.split(",") if s]
     runs: list[dict[str, Any]] = []
     started = time.monotonic()
-    for link in links:
-        for scene in scenes:
-            for seed in range(args.first_seed, args.first_seed + n):
+    command = (f"teletouch bench palpation --runs {n} --scenes {args.scenes} --links "
+               f"{args.links} --first-seed {args.first_seed}"
+               + (f" --write-results {args.write_results}" if args.write_results else ""))
+    # seeds outermost: an interrupted run still has results for every cell
+    for seed in range(args.first_seed, args.first_seed + n):
+        for link in links:
+            for scene in scenes:
                 try:
                     report = run_demo(DemoConfig(scene=scene, seed=seed, link=link))
                     report = {k: v for k, v in report.items()
@@ -128,20 +149,9 @@ def run(args: argparse.Namespace) -> int:
                         f"found {report['tumors_found']}/{report['tumors_expected']}, "
                         f"err {report['localization_error_mm']['mean']}, "
                         f"tau {report['kendall_tau']}"))
+                if args.write_results:
+                    _write(Path(args.write_results), runs, command, time.monotonic() - started)
     rows = summarise(runs)
-    if args.write_results:
-        out = Path(args.write_results)
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "palpation.json").write_text(json.dumps({"rows": rows, "runs": runs},
-                                                       indent=1, default=str))
-        (out / "palpation.md").write_text(
-            "# Palpation benchmark\n\n"
-            f"Machine: {platform.machine()}, {platform.system()}, 2 cores shared, no GPU. "
-            f"Command: `teletouch bench palpation --runs {n} --scenes {args.scenes} "
-            f"--links {args.links} --first-seed {args.first_seed} --write-results "
-            f"{args.write_results}` ({time.monotonic() - started:.0f} s).\n\n"
-            + format_table(rows) + "\n")
-        _plot(rows, out / "palpation.png")
     if args.json:
         emit_json({"rows": rows})
     else:

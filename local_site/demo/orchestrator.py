@@ -36,6 +36,7 @@ from typing import Any
 
 from local_site.palpation import analyse_recording, load_recording
 from local_site.palpation.scoring import score_findings
+from relay_server.linkemu import get_profile
 from shared.errors import ConfigError, DeviceError, TeleTouchError
 
 __all__ = ["DemoConfig", "DemoError", "run_demo"]
@@ -44,8 +45,9 @@ log = logging.getLogger(__name__)
 
 SESSION = "demo"
 #: the scripted operator: slides pressed 3 mm into the phantom (platform z 10 with the
-#: default workspace map) over the whole reachable phantom, lines 3 mm apart
-DEFAULT_MOTION = ("raster:x0=1,x1=59,y0=1,y1=59,spacing=3,speed=30,z=10,press_depth=0,"
+#: default workspace map) over the whole reachable phantom, lines 4 mm apart at 45 mm/s
+#: (about 25 s; the patches are 20 x 15 mm, so every point is felt several times)
+DEFAULT_MOTION = ("raster:x0=1,x1=59,y0=1,y1=59,spacing=4,speed=45,z=10,press_depth=0,"
                   "press_every=0,pause=1,loop=0")
 
 
@@ -60,7 +62,8 @@ class DemoConfig:
     Attributes:
         scene: phantom scene (``breast``, ``severity``, ``localization``).
         seed: phantom placement seed.
-        link: link-emulator profile between the stations and the relay, or None.
+        link: link-emulator profile of the path between the two sites, or None; each
+            station <-> relay leg gets half its one-way delay and jitter.
         motion: the scripted operator (``teletouch local --motion`` spec).
         max_duration_s: stop the operator after this long whatever happens.
         frame_rate_hz: remote sensor frame rate.
@@ -228,10 +231,17 @@ def run_demo(config: DemoConfig,
         local_port = remote_port = ws_port
         if config.link:
             local_port, remote_port = free_port(), free_port()
-            for name, port in (("link-local", local_port), ("link-remote", remote_port)):
+            # The profile describes the path between the two sites; the relay sits on it, so
+            # each station <-> relay leg carries half its one-way delay and jitter and a loop
+            # (local -> remote -> local) sees one round trip of the profile, not two.
+            leg = get_profile(config.link)
+            leg_delay = ["--delay-ms", f"{leg.delay_ms / 2:g}", "--jitter-ms",
+                         f"{leg.jitter_ms / 2:g}"]
+            for i, (name, port) in enumerate((("link-local", local_port),
+                                              ("link-remote", remote_port))):
                 procs.start(name, "link", "--listen", f"127.0.0.1:{port}", "--target",
-                            f"127.0.0.1:{ws_port}", "--profile", config.link,
-                            "--seed", str(config.seed))
+                            f"127.0.0.1:{ws_port}", "--profile", config.link, *leg_delay,
+                            "--seed", str(config.seed * 2 + i))
                 _wait_for(lambda p=port: _port_open(p), f"the {name} emulator", 20, procs)
         files = {k: workdir / v for k, v in {
             "ground_truth": "ground_truth.json", "record": "record.npz",
