@@ -6,16 +6,12 @@ For boards reached over USB CDC / UART instead of CAN FD (``/dev/ttyACM0``,
 
 from __future__ import annotations
 
-import contextlib
 import logging
-import threading
 from typing import Any
-
-import serial
 
 from local_site.display.base import ArrayTacDisplay
 from local_site.display.serial_framing import LinkFrameDecoder, encode_link_frame
-from shared.errors import DeviceInitError, DeviceOperationError
+from local_site.serial_port import SerialPortReader
 
 __all__ = ["SerialArrayTacDisplay"]
 
@@ -36,62 +32,29 @@ class SerialArrayTacDisplay(ArrayTacDisplay):
                  **kwargs: Any) -> None:
         super().__init__(**kwargs)
         self.url = url
-        self._baudrate = baudrate
-        self._write_timeout_s = write_timeout_s
-        self._port: serial.SerialBase | None = None
-        self._thread: threading.Thread | None = None
-        self._stop = threading.Event()
         self.decoder = LinkFrameDecoder()
+        self._link = SerialPortReader(url, name=self.name, thread_name=f"arraytac-rx {url}",
+                                      on_data=self._on_data, on_error=self._on_read_error,
+                                      baudrate=baudrate, timeout_s=0.05,
+                                      write_timeout_s=write_timeout_s)
 
     @property
     def name(self) -> str:
         return f"ArrayTac on serial {self.url}"
 
     def _open(self) -> None:
-        try:
-            self._port = serial.serial_for_url(self.url, baudrate=self._baudrate, timeout=0.05,
-                                               write_timeout=self._write_timeout_s)
-        except (serial.SerialException, OSError, ValueError) as err:
-            raise DeviceInitError(f"{self.name}: cannot open: {err}") from err
         self.decoder = LinkFrameDecoder()
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._reader, name=f"arraytac-rx {self.url}",
-                                        daemon=True)
-        self._thread.start()
+        self._link.open(self.url, self.name)
 
     def _close(self) -> None:
-        self._stop.set()
-        port, self._port = self._port, None
-        thread, self._thread = self._thread, None
-        if port is not None and hasattr(port, "cancel_read"):
-            with contextlib.suppress(serial.SerialException, OSError):
-                port.cancel_read()
-        if thread is not None:
-            thread.join(timeout=2.0)
-        if port is not None:
-            try:
-                port.close()
-            except (serial.SerialException, OSError):
-                log.debug("closing %s failed", self.url, exc_info=True)
+        self._link.close()
 
     def _send_frame(self, arb_id: int, payload: bytes) -> None:
-        port = self._port
-        if port is None:
-            raise DeviceOperationError(f"{self.name}: port is closed")
-        try:
-            port.write(encode_link_frame(arb_id, payload))
-        except (serial.SerialException, OSError) as err:
-            raise DeviceOperationError(f"{self.name}: write failed: {err}") from err
+        self._link.write(encode_link_frame(arb_id, payload))
 
-    def _reader(self) -> None:
-        port = self._port
-        while port is not None and not self._stop.is_set():
-            try:
-                waiting = port.in_waiting
-                data = port.read(waiting if waiting else 1)
-            except (serial.SerialException, OSError, TypeError, AttributeError) as err:
-                if not self._stop.is_set():
-                    log.warning("%s: read failed: %s", self.name, err)
-                return
-            for arb_id, payload in self.decoder.feed(data) if data else ():
-                self._on_frame(arb_id, payload)
+    def _on_data(self, data: bytes) -> None:
+        for arb_id, payload in self.decoder.feed(data):
+            self._on_frame(arb_id, payload)
+
+    def _on_read_error(self, err: BaseException) -> None:
+        log.warning("%s: read failed: %s", self.name, err)

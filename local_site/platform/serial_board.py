@@ -9,15 +9,13 @@ reported by the next ``read_state()`` as :class:`~shared.errors.DeviceOperationE
 
 from __future__ import annotations
 
-import contextlib
 import logging
-import threading
 
 import serial
 
 from local_site.platform.base import XYZPlatform
 from local_site.platform.protocol import BoardInfo, DecoderStats, EncoderFrameDecoder
-from shared.errors import DeviceInitError
+from local_site.serial_port import SerialPortReader
 from shared.timebase import now_us
 
 __all__ = ["SerialEncoderPlatform"]
@@ -44,13 +42,10 @@ class SerialEncoderPlatform(XYZPlatform):
                  **kwargs: object) -> None:
         super().__init__(**kwargs)  # type: ignore[arg-type]
         self.url = url
-        self._baudrate = baudrate
-        self._given_port = port
-        self._read_timeout_s = read_timeout_s
-        self._port: serial.SerialBase | None = None
-        self._thread: threading.Thread | None = None
-        self._stop = threading.Event()
         self._decoder = EncoderFrameDecoder()
+        self._link = SerialPortReader(url, name=self.name, thread_name=f"platform-rx {url}",
+                                      on_data=self._on_data, on_error=self._link_failed,
+                                      baudrate=baudrate, timeout_s=read_timeout_s, port=port)
 
     @property
     def name(self) -> str:
@@ -58,57 +53,18 @@ class SerialEncoderPlatform(XYZPlatform):
 
     def _open(self) -> None:
         self._decoder = EncoderFrameDecoder()
-        if self._given_port is not None:
-            self._port = self._given_port
-        else:
-            try:
-                self._port = serial.serial_for_url(self.url, baudrate=self._baudrate,
-                                                   timeout=self._read_timeout_s)
-            except (serial.SerialException, OSError, ValueError) as err:
-                raise DeviceInitError(f"{self.name}: cannot open: {err}") from err
-        self._port.timeout = self._read_timeout_s
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._reader, name=f"platform-rx {self.url}",
-                                        daemon=True)
-        self._thread.start()
+        self._link.open(self.url, self.name)
 
     def _close(self) -> None:
-        self._stop.set()
-        port, self._port = self._port, None
-        thread, self._thread = self._thread, None
-        if port is not None and hasattr(port, "cancel_read"):
-            with contextlib.suppress(serial.SerialException, OSError):
-                port.cancel_read()
-        if thread is not None:
-            thread.join(timeout=2.0)
-        if port is not None and port is not self._given_port:
-            try:
-                port.close()
-            except (serial.SerialException, OSError):
-                log.debug("closing %s failed", self.url, exc_info=True)
+        self._link.close()
 
     def _decoder_stats(self) -> DecoderStats:
         return self._decoder.stats
 
-    def _reader(self) -> None:
-        port = self._port
-        if port is None:
-            return
-        decoder = self._decoder
-        while not self._stop.is_set():
-            try:
-                waiting = port.in_waiting
-                data = port.read(waiting if waiting else 1)
-            except (serial.SerialException, OSError, TypeError, AttributeError) as err:
-                # TypeError/AttributeError: pyserial internals after a concurrent close
-                if not self._stop.is_set():
-                    self._link_failed(err)
-                return
-            if not data:
-                continue
-            rx_us = now_us()
-            for frame in decoder.feed(data):
-                if isinstance(frame, BoardInfo):
-                    self._publish_info(frame)
-                else:
-                    self._publish(frame, rx_us)
+    def _on_data(self, data: bytes) -> None:
+        rx_us = now_us()
+        for frame in self._decoder.feed(data):
+            if isinstance(frame, BoardInfo):
+                self._publish_info(frame)
+            else:
+                self._publish(frame, rx_us)
