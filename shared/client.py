@@ -200,7 +200,7 @@ class LinkCounters:
 # --------------------------------------------------------------------------- transports
 
 
-def _retrieve(future: asyncio.Future[object]) -> None:
+def _retrieve(future: asyncio.Future[Any]) -> None:
     """Mark a finished future's outcome as read, so asyncio does not log it as lost."""
     if not future.cancelled():
         future.exception()

@@ -17,6 +17,7 @@ The report includes the motion-to-touch latency ledger measured by the local sta
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import os
@@ -211,7 +212,8 @@ def run_demo(config: DemoConfig,
     if config.max_duration_s <= 0:
         raise ConfigError("max_duration_s must be > 0")
     temp = config.workdir is None
-    workdir = Path(tempfile.mkdtemp(prefix="teletouch-demo-")) if temp else Path(config.workdir)
+    workdir = (Path(tempfile.mkdtemp(prefix="teletouch-demo-")) if config.workdir is None
+               else Path(config.workdir))
     workdir.mkdir(parents=True, exist_ok=True)
     # the per-run secret reaches the children through their environment, never argv; one
     # BLAS thread per process: several processes share the cores, and threaded BLAS on a
@@ -242,7 +244,8 @@ def run_demo(config: DemoConfig,
                 procs.start(name, "link", "--listen", f"127.0.0.1:{port}", "--target",
                             f"127.0.0.1:{ws_port}", "--profile", config.link, *leg_delay,
                             "--seed", str(config.seed * 2 + i))
-                _wait_for(lambda p=port: _port_open(p), f"the {name} emulator", 20, procs)
+                _wait_for(functools.partial(_port_open, port), f"the {name} emulator", 20,
+                          procs)
         files = {k: workdir / v for k, v in {
             "ground_truth": "ground_truth.json", "record": "record.npz",
             "local_summary": "local_summary.json", "remote_summary": "remote_summary.json"}.items()}
