@@ -3,11 +3,11 @@ and the emulated drive-board firmware. Open one with :func:`local_site.devices.o
 """
 
 from local_site.display.base import (
+    AppliedPinCommand,
     ArrayTacDisplay,
     DisplayStats,
-    PinCommand,
     PinFeedback,
     SafeMode,
 )
 
-__all__ = ["ArrayTacDisplay", "DisplayStats", "PinCommand", "PinFeedback", "SafeMode"]
+__all__ = ["AppliedPinCommand", "ArrayTacDisplay", "DisplayStats", "PinFeedback", "SafeMode"]

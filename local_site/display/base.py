@@ -39,9 +39,9 @@ __all__ = [
     "FRICTION_RANGE",
     "HEIGHT_RANGE_MM",
     "K_RANGE",
+    "AppliedPinCommand",
     "ArrayTacDisplay",
     "DisplayStats",
-    "PinCommand",
     "PinFeedback",
     "SafeMode",
 ]
@@ -56,7 +56,7 @@ _SAFE_CODES = {"flat": fr.SAFE_FLAT, "hold": fr.SAFE_HOLD}
 
 
 @dataclass(frozen=True, slots=True, eq=False)
-class PinCommand:
+class AppliedPinCommand:
     """The command actually applied: after clamping and quantisation to the wire codes.
 
     Attributes:
@@ -259,7 +259,7 @@ class ArrayTacDisplay(ABC):
     # ------------------------------------------------------------------ commands
 
     def send_command(self, height_mm: np.ndarray | float, stiffness_k: np.ndarray | float = 1.0,
-                     friction: np.ndarray | float = 0.0) -> PinCommand:
+                     friction: np.ndarray | float = 0.0) -> AppliedPinCommand:
         """Command the 16 pins; return what was actually applied.
 
         Values are clamped to height [0, 5] mm, k [0.5, 1], f [0, 1] and quantised to the
@@ -437,10 +437,10 @@ class ArrayTacDisplay(ABC):
         return self._seq
 
     def _applied(self, h: np.ndarray, k: np.ndarray, f: np.ndarray, clamped: bool, *,
-                 sent: bool, keepalive: bool = False) -> PinCommand:
-        return PinCommand(height_mm=h * fr.HEIGHT_LSB_MM, stiffness_k=fr.K_MIN + k * fr.K_LSB,
-                          friction=f * fr.F_LSB, seq=self._seq, clamped=clamped, sent=sent,
-                          keepalive=keepalive)
+                 sent: bool, keepalive: bool = False) -> AppliedPinCommand:
+        return AppliedPinCommand(height_mm=h * fr.HEIGHT_LSB_MM,
+                                 stiffness_k=fr.K_MIN + k * fr.K_LSB, friction=f * fr.F_LSB,
+                                 seq=self._seq, clamped=clamped, sent=sent, keepalive=keepalive)
 
     @staticmethod
     def _as_pins(name: str, value: np.ndarray | float) -> np.ndarray:
