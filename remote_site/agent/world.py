@@ -130,6 +130,8 @@ def open_world_sensor(name: str, world: SimWorld | None, arm: Arm, **options: An
         options = {**options, "depth_provider": world.depth_provider(arm, grid)}
     sensor = open_sensor(name, **options)
     holder.append(sensor)
+    if world is not None:  # build the contact table now, not on the first pressed frame
+        world.phantom.modulus_table(sensor.mm_per_px)
     return sensor
 
 

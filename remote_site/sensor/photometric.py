@@ -96,7 +96,6 @@ class PhotometricModel:
         az = np.deg2rad(s.light_azimuth_deg + np.array([0.0, 120.0, 240.0]))
         self._lights = np.stack([np.cos(az) * np.sin(elev), np.sin(az) * np.sin(elev),
                                  np.full(3, np.cos(elev))], axis=1).astype(np.float32)
-        self._lights_t = np.ascontiguousarray(self._lights.T)  # contiguous: 20x faster matmul
         self._cos_elev = np.float32(np.cos(elev))
         self._mix = np.asarray(s.light_rgb, np.float32)  # (light, channel)
         self._markers = np.ones((rows, cols), np.float32)
@@ -106,6 +105,16 @@ class PhotometricModel:
             dv = (yy % pitch_px) - pitch_px / 2
             dot = np.hypot(du, dv) < s.marker_radius_mm / s.mm_per_px
             self._markers[dot] = 0.25
+        # Static per-pixel terms of the shading (see render): the lit colour is
+        # A (1 + gain * sum_k mix_kc (max(n.l_k, 0) / cos(elev) - 1)) with
+        # A = background * markers * brightness, i.e. base + sum_k coef_k * max(n.l_k, 0).
+        gain = np.float32(s.shading_gain)
+        lit = self._background * self._markers[..., None] * np.asarray(s.brightness, np.float32)
+        self._base = np.ascontiguousarray(lit * (1.0 - gain * self._mix.sum(axis=0)),
+                                          dtype=np.float32)
+        self._coef = np.ascontiguousarray(
+            lit[:, :, None, :] * (gain / self._cos_elev * self._mix)[None, None, :, :],
+            dtype=np.float32)  # (rows, cols, light, channel)
 
     @property
     def background_rgb(self) -> np.ndarray:
@@ -141,20 +150,15 @@ class PhotometricModel:
         Raises:
             InputDataError: wrong shape, NaN/Inf or negative depth.
         """
+        from remote_site.sensor.shading import shade_frame
+
         s = self.settings
         surface = self.gel_surface_mm(depth_mm)
-        gy, gx = np.gradient(surface, np.float32(s.mm_per_px))
-        norm = 1.0 / np.sqrt(1.0 + gx * gx + gy * gy)
-        # Unit normal of the surface z = h(x, y), seen from the camera side: (-gx, -gy, 1).
-        normals = np.stack([-gx * norm, -gy * norm, norm], axis=-1).reshape(-1, 3)
-        shade = np.maximum(normals @ self._lights_t, 0.0) / self._cos_elev - 1.0
-        rel = (shade @ self._mix).reshape(*s.shape_hw, 3)
-        image = self._background * (1.0 + np.float32(s.shading_gain) * rel)
-        image *= self._markers[..., None]
-        image *= np.asarray(s.brightness, np.float32)
-        if noise and s.noise_dn > 0:
-            image += self._noise_sample()
-        return np.clip(np.rint(image), 0, 255).astype(np.uint8)
+        # Unit normal of the surface z = h(x, y), seen from the camera side:
+        # (-h_x, -h_y, 1) / sqrt(1 + h_x^2 + h_y^2); one fused pass with the static terms.
+        camera_noise = self._noise_sample() if noise and s.noise_dn > 0 else None
+        return shade_frame(surface, s.mm_per_px, self._base, self._coef, self._lights,
+                           camera_noise)
 
     def _noise_sample(self) -> np.ndarray:
         """Camera noise for one frame: a random window of a pre-drawn pool (fast)."""

@@ -66,7 +66,7 @@ def test_contact_force_is_the_integral_of_the_depth_map() -> None:
     c = ph.contact((x, y, -2.5), grid)
     assert c.force_n == pytest.approx(ph.force_n((x, y, -2.5)))
     integral = c.depth_map_mm.sum() * ph.pad.gel_stiffness_per_area * grid.mm_per_px ** 2
-    assert integral == pytest.approx(c.force_n, rel=1e-9)
+    assert integral == pytest.approx(c.force_n, rel=1e-6)  # float32 depth map
     assert c.depth_map_mm.shape == (240, 320)
     assert np.all(c.depth_map_mm >= 0) and np.isfinite(c.depth_map_mm).all()
     assert c.tissue_indentation_mm < c.indentation_mm == pytest.approx(2.5)
