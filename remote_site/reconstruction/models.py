@@ -22,6 +22,12 @@ from abc import ABC, abstractmethod
 
 import numpy as np
 
+from remote_site.reconstruction.grid_predict import (
+    MAX_BAKED_BYTES,
+    BakedPolyPredictor,
+    GridPredictor,
+    PlainGridPredictor,
+)
 from shared.errors import CalibrationError
 
 __all__ = ["MAX_SLOPE", "GradientModel", "LutGradientModel", "PolyGradientModel",
@@ -39,6 +45,14 @@ class GradientModel(ABC):
     @abstractmethod
     def predict(self, change: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Return (N, 2) slopes (dh/dx, dh/dy) for N pixels."""
+
+    def grid_predictor(self, x: np.ndarray, y: np.ndarray) -> GridPredictor:
+        """A predictor for a fixed grid with pixel positions ``x``, ``y`` ((rows, cols)).
+
+        The default gathers the active pixels and calls :meth:`predict`; models with
+        position terms override it to precompute what depends on the position only.
+        """
+        return PlainGridPredictor(self, x, y)
 
     @abstractmethod
     def to_arrays(self) -> dict[str, np.ndarray]:
@@ -122,6 +136,17 @@ class PolyGradientModel(GradientModel):
         v = self._variables(change, x, y, self.use_position) / self.scale
         out = (self._coef_t @ self._design_t(v, self.exponents)).T
         return np.clip(out, -MAX_SLOPE, MAX_SLOPE)
+
+    def grid_predictor(self, x: np.ndarray, y: np.ndarray) -> GridPredictor:
+        """Bake the position part per pixel (exact regrouping; see ``grid_predict``).
+
+        Falls back to the plain predictor without position terms or when the per-pixel
+        table would exceed :data:`~remote_site.reconstruction.grid_predict.MAX_BAKED_BYTES`.
+        """
+        size = BakedPolyPredictor.table_bytes(int(np.size(x)), self.exponents)
+        if not self.use_position or size > MAX_BAKED_BYTES:
+            return PlainGridPredictor(self, x, y)
+        return BakedPolyPredictor(self.coef, self.scale, self.exponents, x, y, MAX_SLOPE)
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Serialise coefficients and settings."""

@@ -33,6 +33,7 @@ from remote_site.reconstruction.features import (
     relative_change,
 )
 from remote_site.reconstruction.frames import validate_frame
+from remote_site.reconstruction.grid_predict import GridPredictor
 from remote_site.reconstruction.poisson import SOLVERS, PoissonSolver
 from shared.errors import ConfigError, InputDataError
 
@@ -138,7 +139,7 @@ class Reconstructor:
         self._background = (background, inverse_background_pct(background))
         self._last_bg_id: int | None = None
         self._last_bg: tuple[np.ndarray, np.ndarray] | None = None
-        self._positions: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._predictors: dict[int, GridPredictor] = {}
         self._pooled_bg: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
 
     @classmethod
@@ -188,14 +189,16 @@ class Reconstructor:
             self._pooled_bg[key] = cached
         return cached
 
-    def _grid_positions(self, factor: int, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-        cached = self._positions.get(factor)
-        if cached is None or cached[0].shape != shape:
+    def _grid_predictor(self, factor: int, shape: tuple[int, int]) -> GridPredictor:
+        """The calibration model bound to the grid pooled by ``factor`` (built once)."""
+        cached = self._predictors.get(factor)
+        if cached is None or cached.shape != shape:
             rows = (np.arange(shape[0]) * factor + (factor - 1) / 2.0)[:, None]
             cols = (np.arange(shape[1]) * factor + (factor - 1) / 2.0)[None, :]
             rows, cols = np.broadcast_arrays(rows, cols)
-            cached = pixel_position(self.shape_hw, rows, cols)
-            self._positions[factor] = cached
+            x, y = pixel_position(self.shape_hw, rows, cols)
+            cached = self.calibration.model.grid_predictor(x, y)
+            self._predictors[factor] = cached
         return cached
 
     def slopes(self, frame_rgb: np.ndarray, background: np.ndarray | None = None,
@@ -225,14 +228,12 @@ class Reconstructor:
         min_px = self.settings.min_contact_area_mm2 / grid_pitch_mm**2
         has_contact = evidence >= max(min_px, 1.0)
         grid = change.shape[:2]
-        x, y = self._grid_positions(factor if pool_change else 1, grid)
         gx = np.zeros(grid, np.float32)
         gy = np.zeros(grid, np.float32)
         if has_contact:
             active = magnitude_full > self.settings.dead_zone_sigmas * noise
-            pred = calib.model.predict(change[active], x[active], y[active])
-            gx[active] = pred[:, 0]
-            gy[active] = pred[:, 1]
+            predictor = self._grid_predictor(factor if pool_change else 1, grid)
+            predictor.predict_into(change, active, gx, gy)
             if factor > 1 and not pool_change:
                 gx, gy = _pool(gx, factor), _pool(gy, factor)
         elif factor > 1 and not pool_change:
