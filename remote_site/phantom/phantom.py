@@ -162,7 +162,7 @@ class Contact:
         tissue_stiffness_n_per_mm: the tissue's contact stiffness K at this (x, y).
     """
 
-    depth_map_mm: NDArray[np.float64]
+    depth_map_mm: NDArray[np.float32]
     force_n: float
     indentation_mm: float
     tissue_indentation_mm: float
