@@ -136,6 +136,11 @@ class ZOHIntegrator(PlantIntegrator):
         b_s = np.array([[0.0, 0.0, 1.0], [-self._inv_b, -g * p.u_base_v / tm, 0.0]])
         self._phi_s, self._gam_s = _zoh(a_s, b_s, self.h_s)
 
+    @property
+    def matrices(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``(Phi, Gamma)`` of the linear mode and ``(Phi_s, Gamma_s)`` of the slewing mode."""
+        return self._phi, self._gam, self._phi_s, self._gam_s
+
     def _substep(self, u, y, u_cmd, force_n, slew):  # type: ignore[no-untyped-def]
         ph, ga = self._phi, self._gam
         u_lin = ph[0, 0] * u + ga[0, 0] * u_cmd

@@ -1,6 +1,6 @@
-"""ArrayTac simulator: 16 units of drive-board firmware + piezo/lever plant, vectorised.
+"""ArrayTac simulator: 16 units of drive-board firmware + piezo/lever plant.
 
-Per unit and per 10 kHz firmware tick (all units at once, numpy):
+Per unit and per 10 kHz firmware tick:
 
 1. Hall sensor: ``y_meas = c(V(y) + noise)`` (:mod:`.sensor`, cubic calibration, seeded noise).
 2. Reference: ``r = height + a(f) sin(2 pi f_v(f) t)`` clipped to the stroke, with amplitude
@@ -15,10 +15,16 @@ Per unit and per 10 kHz firmware tick (all units at once, numpy):
    U_base`` (``e`` the compression in mm, ``y_lim = g (U_limit - U_base)``).
 5. Plant: driver lag + slew limits and lever/soft-load lag (:mod:`.integrators`), finger force.
 
-Fast path: while nothing saturates, whole blocks of ticks are integrated exactly with the
-modal decomposition of :mod:`.blockpath`; any tick that would hit a nonlinearity is replayed by
-the per-step path, so results are those of the per-step firmware up to the Hall-chain
-linearisation (measured in ``benchmarks/bench_arraytac_sim.py``).
+Engines (``engine=``): ``"numba"`` (default) runs steps 1-5 for all units in one compiled call
+per :meth:`ArrayTacPlant.advance` (:mod:`.kernel`); ``"numpy"`` is the reference
+implementation, vectorised over units with one Python iteration per tick. Both run the same
+arithmetic in the same order and consume the same noise stream, so their trajectories agree to
+rounding (``tests/local_site/test_arraytac_sim_kernel.py``).
+
+Fast path (numpy engine only): while nothing saturates, whole blocks of ticks are integrated
+exactly with the modal decomposition of :mod:`.blockpath`; any tick that would hit a
+nonlinearity is replayed by the per-step path, so results are those of the per-step firmware up
+to the Hall-chain linearisation (measured in ``benchmarks/bench_arraytac_sim.py``).
 
 Asymmetric rise/fall (paper: 0.013 s vs 0.016 s): the driver charges the piezo through a
 current-limited voltage follower and discharges it through a constant-current sink (paper,
@@ -35,14 +41,18 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from local_site.arraytac_sim import layout
 from local_site.arraytac_sim.blockpath import LinearModes, modal_decomposition, propagate
-from local_site.arraytac_sim.integrators import make_integrator
+from local_site.arraytac_sim.integrators import ZOHIntegrator, make_integrator
 from local_site.arraytac_sim.params import PlantParams
 from local_site.arraytac_sim.sensor import HallSensor
 from local_site.arraytac_sim.stiffness import u_limit_v
 from shared.errors import ConfigError, InputDataError
 
-__all__ = ["ArrayTacPlant", "PlantParams", "PlantTrace"]
+__all__ = ["ENGINES", "ArrayTacPlant", "PlantParams", "PlantTrace"]
+
+#: tick-loop implementations: the compiled kernel and the numpy reference
+ENGINES = ("numba", "numpy")
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +63,7 @@ _MAX_BACKOFF_STEPS = 400   # longest per-step stretch before the fast path is tr
 _MAX_FAST_GROUPS = 4       # distinct friction gains handled by the fast path
 _MODE_CACHE = 64
 _LINEARISATION_SPAN_MM = 0.02  # Hall chain linearised within +-20 um of the block start
+_NOISE_BLOCK_TICKS = 2048  # sensor noise is drawn in blocks (same stream, fewer calls)
 
 
 @dataclass(frozen=True)
@@ -75,9 +86,14 @@ def _as_unit_array(name: str, value: float | np.ndarray, n_units: int) -> np.nda
         arr = np.full(n_units, float(arr))
     if arr.shape != (n_units,):
         raise InputDataError(f"{name} must be a scalar or shape ({n_units},), got {arr.shape}")
-    if not np.all(np.isfinite(arr)):
+    if not np.isfinite(arr).all():
         raise InputDataError(f"{name} contains NaN or Inf: {arr}")
     return arr
+
+
+def _clip_into(out: np.ndarray, value: np.ndarray, low: float, high: float) -> None:
+    """``out[:] = clip(value, low, high)`` (cheaper than ``np.clip`` on 16 elements)."""
+    np.minimum(np.maximum(value, low, out=out), high, out=out)
 
 
 class ArrayTacPlant:
@@ -89,17 +105,22 @@ class ArrayTacPlant:
         control_rate_hz: firmware rate, overrides ``params.control_rate_hz``.
         integrator: plant integrator, ``"zoh"`` (exact, default), ``"rk4"`` or ``"euler"``.
         substeps: integrator sub-steps per firmware tick.
-        fast_path: integrate saturation-free blocks exactly in one go (see module docstring).
+        fast_path: numpy engine: integrate saturation-free blocks exactly in one go (see
+            module docstring); the numba engine always runs the exact per-step firmware.
+        engine: ``"numba"`` (compiled tick loop, default) or ``"numpy"`` (the reference).
 
     Raises:
-        ConfigError: bad ``n_units``, rate or integrator.
+        ConfigError: bad ``n_units``, rate, integrator or engine, or the ``numba`` engine
+            without the ``numba`` package installed.
     """
 
     def __init__(self, params: PlantParams | None = None, n_units: int = 16,
                  control_rate_hz: float = 10_000.0, integrator: str = "zoh",
-                 substeps: int = 1, fast_path: bool = True) -> None:
+                 substeps: int = 1, fast_path: bool = True, engine: str = "numba") -> None:
         if int(n_units) < 1:
             raise ConfigError(f"n_units must be >= 1, got {n_units}")
+        if engine not in ENGINES:
+            raise ConfigError(f"unknown engine {engine!r}; choose from {list(ENGINES)}")
         if not (math.isfinite(control_rate_hz) and control_rate_hz > 0):
             raise ConfigError(f"control_rate_hz must be > 0, got {control_rate_hz}")
         base = params or PlantParams()
@@ -111,7 +132,12 @@ class ArrayTacPlant:
         self.fast_path = bool(fast_path)
         self._dt = self.params.control_period_s
         self._modes: OrderedDict[float, LinearModes | None] = OrderedDict()
-        #: counters of ticks run by each path (the benchmark reads them)
+        self.engine = engine
+        self._run_ticks = {"numba": self._compiled_steps, "numpy": self._numpy_steps}[engine]
+        if engine == "numba":
+            self._init_kernel(integrator)
+        #: counters of ticks run by each path (the benchmark reads them); ``slow_ticks`` counts
+        #: per-step ticks of either engine
         self.fast_ticks = 0
         self.slow_ticks = 0
         self.vibration_ticks = 0
@@ -120,23 +146,42 @@ class ArrayTacPlant:
         self._backoff_len = _REPLAY_STEPS
         self.reset()
 
+    def _init_kernel(self, integrator: str) -> None:
+        try:
+            from local_site.arraytac_sim import kernel
+        except ImportError as err:
+            raise ConfigError(f"ArrayTac engine 'numba' unavailable: {err}") from err
+        kernel.warm_up()  # compile or load from the cache now, not in the first advance()
+        zoh = self._integ.matrices if isinstance(self._integ, ZOHIntegrator) else None
+        self._kernel = kernel.run_ticks
+        self._consts = kernel.pack_constants(self.params, self.sensor.calibration_coefficients,
+                                             kernel.INTEGRATOR_IDS[integrator],
+                                             self._integ.substeps, zoh)
+        self._no_rec = np.empty((4, 0, self.n_units))
+
     # ------------------------------------------------------------------ commands
     def reset(self) -> None:
         """Return to t = 0, pins retracted and at rest, zero commands, noise re-seeded."""
         n, p = self.n_units, self.params
-        self._u = np.full(n, p.u_base_v)
-        self._y = np.zeros(n)
-        self._i = np.zeros(n)
-        self._m_prev = self.sensor.measure_mm(self._y)
-        self._u_cmd = np.full(n, p.u_base_v)
+        # state and commands: rows of two arrays (layout), updated in place by both engines
+        self._z = np.empty((layout.N_STATE_ROWS, n))
+        self._u, self._y, self._i, self._m_prev, self._u_cmd = self._z
+        self._cmd = np.zeros((layout.N_CMD_ROWS, n))
+        self._height, self._k, self._f, self._force = self._cmd[:layout.CMD_TEST_AMP]
+        self._test = self._cmd[layout.CMD_TEST_AMP:layout.CMD_TEST_OMEGA + 1]
+        self._u[:] = p.u_base_v
+        self._y[:] = 0.0
+        self._i[:] = 0.0
+        self._m_prev[:] = self.sensor.measure_mm(self._y)
+        self._u_cmd[:] = p.u_base_v
         self._sat = np.zeros(n, dtype=bool)
         self._step = 0
         self._t_req_s = 0.0
-        self._force = np.zeros(n)
         self._override: np.ndarray | None = None
-        self._test = np.zeros((2, n))
         self._test_units = np.flatnonzero(self._test[0] > 0.0)
         self._rng = np.random.default_rng(p.noise_seed)
+        self._noise_buf = np.empty((0, n))
+        self._noise_pos = 0
         self.set_targets(np.zeros(n), np.ones(n) * p.k_max, np.zeros(n))
 
     def set_targets(self, height_mm: float | np.ndarray, stiffness_k: float | np.ndarray,
@@ -152,16 +197,25 @@ class ArrayTacPlant:
             InputDataError: NaN/Inf or wrong shape.
         """
         p, n = self.params, self.n_units
-        h = np.clip(_as_unit_array("height_mm", height_mm, n), 0.0, p.stroke_mm)
-        k = np.clip(_as_unit_array("stiffness_k", stiffness_k, n), p.k_min, p.k_max)
-        f = np.clip(_as_unit_array("friction", friction, n), 0.0, 1.0)
-        self._height, self._k, self._f = h, k, f
+        h = _as_unit_array("height_mm", height_mm, n)
+        k = _as_unit_array("stiffness_k", stiffness_k, n)
+        f = _as_unit_array("friction", friction, n)
+        _clip_into(self._height, h, 0.0, p.stroke_mm)
+        _clip_into(self._k, k, p.k_min, p.k_max)
+        _clip_into(self._f, f, 0.0, 1.0)
+        self._friction_on = bool(self._f.any())
+        self._derived = False
+
+    def _derive_commands(self) -> None:
+        """Per-unit quantities of the numpy engine (the kernel derives the same ones itself)."""
+        p, k, f = self.params, self._k, self._f
         self._u_limit = u_limit_v(k, p.u_base_v, p.u_max_v)
         self._y_lim = p.lever_gain_mm_per_v * (self._u_limit - p.u_base_v)
         self._amp = f * p.friction_amp_mm
         self._omega = 2.0 * math.pi * f * p.friction_freq_span_hz
         self._gain = 1.0 + p.friction_gain_boost * f
         self._vib = np.flatnonzero(f > 0.0)
+        self._derived = True
 
     def set_finger_force(self, force_n: float | np.ndarray) -> None:
         """Fingertip load pressing on each pin (N); negative values clamp to 0 (no pulling).
@@ -169,7 +223,7 @@ class ArrayTacPlant:
         Raises:
             InputDataError: NaN/Inf or wrong shape.
         """
-        self._force = np.maximum(_as_unit_array("force_n", force_n, self.n_units), 0.0)
+        np.maximum(_as_unit_array("force_n", force_n, self.n_units), 0.0, out=self._force)
 
     def set_drive_override(self, voltage_v: float | np.ndarray | None,
                            amplitude_v: float | np.ndarray = 0.0,
@@ -186,16 +240,17 @@ class ArrayTacPlant:
         p = self.params
         if voltage_v is None:
             if self._override is not None:
-                self._i = self._u_cmd - p.u_base_v
+                self._i[:] = self._u_cmd - p.u_base_v
             self._override = None
             return
         n = self.n_units
         freq = _as_unit_array("frequency_hz", frequency_hz, n)
         if np.any(freq < 0):
             raise InputDataError("frequency_hz must be >= 0")
-        self._override = np.stack([_as_unit_array("voltage_v", voltage_v, n),
-                                   _as_unit_array("amplitude_v", amplitude_v, n),
-                                   2.0 * math.pi * freq])
+        volt = _as_unit_array("voltage_v", voltage_v, n)
+        amp = _as_unit_array("amplitude_v", amplitude_v, n)
+        self._override = self._cmd[layout.CMD_OV_V:layout.CMD_OV_OMEGA + 1]
+        self._override[:] = volt, amp, 2.0 * math.pi * freq
 
     def set_test_signal(self, amplitude_mm: float | np.ndarray,
                         frequency_hz: float | np.ndarray) -> None:
@@ -212,7 +267,7 @@ class ArrayTacPlant:
         freq = _as_unit_array("frequency_hz", frequency_hz, n)
         if np.any(amp < 0) or np.any(freq < 0):
             raise InputDataError("test-signal amplitude and frequency must be >= 0")
-        self._test = np.stack([amp, 2.0 * math.pi * freq])
+        self._test[:] = amp, 2.0 * math.pi * freq
         self._test_units = np.flatnonzero(amp > 0.0)
 
     # ------------------------------------------------------------------ state
@@ -282,12 +337,46 @@ class ArrayTacPlant:
         return ref
 
     def _run(self, n_ticks: int, record: bool) -> PlantTrace | None:
-        n = self.n_units
-        rec = {name: np.empty((n_ticks, n)) for name in ("m", "y", "u", "r")} if record else None
         if n_ticks == 0:
-            return self._trace(rec, 0) if record else None
-        p = self.params
-        noise_v = self._rng.standard_normal((n_ticks, n)) * p.hall_noise_v_rms
+            n = self.n_units
+            return self._trace({name: np.empty((0, n)) for name in "myur"}, 0) if record \
+                else None
+        rec = self._run_ticks(n_ticks, self._noise_v(n_ticks), record)
+        return self._trace(rec, n_ticks) if record else None
+
+    def _noise_v(self, n_ticks: int) -> np.ndarray:
+        """The next ``n_ticks`` rows of Hall noise (V), drawn from the seeded stream in blocks.
+
+        Drawing ``(a, n)`` then ``(b, n)`` normals gives the same numbers as one ``(a + b, n)``
+        draw, so the block size does not change the trajectory.
+        """
+        buf, pos = self._noise_buf, self._noise_pos
+        if pos + n_ticks > buf.shape[0]:
+            fresh = self._rng.standard_normal((max(n_ticks, _NOISE_BLOCK_TICKS), self.n_units))
+            buf = np.concatenate([buf[pos:], fresh * self.params.hall_noise_v_rms])
+            self._noise_buf, pos = buf, 0
+        self._noise_pos = pos + n_ticks
+        return buf[pos:pos + n_ticks]
+
+    def _compiled_steps(self, n_ticks: int, noise_v: np.ndarray,
+                        record: bool) -> dict[str, np.ndarray] | None:
+        """The numba engine: all ticks of all units in one compiled call (:mod:`.kernel`)."""
+        rec = np.empty((4, n_ticks, self.n_units)) if record else self._no_rec
+        self._kernel(self._consts, self._cmd, self._z, self._sat, noise_v, self._step,
+                     self._override is not None, record, rec)
+        if self._friction_on:
+            self.vibration_ticks += n_ticks
+        self._step += n_ticks
+        self.slow_ticks += n_ticks
+        return dict(zip("myur", rec, strict=True)) if record else None
+
+    def _numpy_steps(self, n_ticks: int, noise_v: np.ndarray,
+                     record: bool) -> dict[str, np.ndarray] | None:
+        """The numpy engine: block fast path + per-step path, one Python iteration per tick."""
+        n = self.n_units
+        if not self._derived:
+            self._derive_commands()
+        rec = {name: np.empty((n_ticks, n)) for name in "myur"} if record else None
         ref = self._reference(self._step, n_ticks)
         k = 0
         while k < n_ticks:
@@ -314,7 +403,7 @@ class ArrayTacPlant:
             else:
                 self._backoff_len = _REPLAY_STEPS
             k += done
-        return self._trace(rec, n_ticks) if record else None
+        return rec
 
     def _trace(self, rec: dict[str, np.ndarray] | None, n_ticks: int) -> PlantTrace:
         assert rec is not None
@@ -360,8 +449,8 @@ class ArrayTacPlant:
                 sat = np.zeros(self.n_units, dtype=bool)
             u, y = self._integ.step(u, y, u_cmd, force)
             m_prev = m
-        self._u, self._y, self._i, self._m_prev = u, y, integ, m_prev
-        self._u_cmd, self._sat = u_cmd, sat
+        self._u[:], self._y[:], self._i[:], self._m_prev[:] = u, y, integ, m_prev
+        self._u_cmd[:], self._sat[:] = u_cmd, sat
         self._step += ref.shape[0]
         self.slow_ticks += ref.shape[0]
 
@@ -434,10 +523,9 @@ class ArrayTacPlant:
         if accepted == 0:
             return 0
         last = z_next[accepted - 1]
-        self._u, self._y, self._i, self._m_prev = (last[0].copy(), last[1].copy(),
-                                                   last[2].copy(), last[3].copy())
-        self._u_cmd = u_raw[accepted - 1].copy()
-        self._sat = np.zeros(n, dtype=bool)
+        self._u[:], self._y[:], self._i[:], self._m_prev[:] = last
+        self._u_cmd[:] = u_raw[accepted - 1]
+        self._sat[:] = False
         if rec is not None:
             sl = slice(offset, offset + accepted)
             rec["m"][sl], rec["y"][sl] = m[:accepted], y[:accepted]

@@ -45,6 +45,8 @@ def test_bad_config_rejected() -> None:
     with pytest.raises(ConfigError):
         ArrayTacPlant(integrator="leapfrog")
     with pytest.raises(ConfigError):
+        ArrayTacPlant(engine="cython")
+    with pytest.raises(ConfigError):
         PlantParams(u_max_v=10.0)
     with pytest.raises(ConfigError):
         PlantParams(kp_v_per_mm=float("nan"))
@@ -70,9 +72,10 @@ def test_tracks_targets_with_zero_steady_state_error() -> None:
 
 
 def test_fast_path_matches_per_step_path() -> None:
+    """The numpy engine's block path against its per-step path (Hall linearisation only)."""
     results = []
     for fast in (True, False):
-        plant = ArrayTacPlant(fast_path=fast)
+        plant = ArrayTacPlant(fast_path=fast, engine="numpy")
         plant.set_targets(np.linspace(1, 4, 16), 1.0, 0.0)
         plant.advance(0.3)
         plant.set_targets(np.linspace(1, 4, 16) + 0.01, 1.0, 0.0)
