@@ -1,5 +1,6 @@
-"""ArrayTac simulator benchmark: speed (x real time) against integration error, the friction-off
-skip, and the characterisation figures against the paper's.
+"""ArrayTac simulator benchmark: speed (x real time) against integration error for the compiled
+(numba) and the numpy reference engine, advance-chunk sizes, first-call latency, the
+friction-off skip, and the characterisation figures against the paper's.
 
 Run from the repository root::
 
@@ -12,8 +13,9 @@ Writes ``benchmarks/results/arraytac_sim.md``, ``arraytac_sim.png`` and ``charac
 Integration error: a 1 s scene for 16 units (settle, large steps, finger loads driving some pins
 into the feedforward stiffness stage, friction vibration on two pins, release), sensor noise
 off so every run sees the same inputs, compared every 10 ms with a reference run (RK4, 64
-sub-steps per 10 kHz tick, per-step path). Speed: wall time of the same scene, and of steady
-shape rendering (targets nudged every chunk, friction off) at several ``advance`` chunk sizes.
+sub-steps per 10 kHz tick, numpy engine, per-step path). Speed: wall time of the same scene, and
+of shape rendering (targets nudged every chunk) at ``advance`` chunk sizes of 1-100 ms, free and
+under finger load + friction.
 """
 
 from __future__ import annotations
@@ -21,7 +23,9 @@ from __future__ import annotations
 import argparse
 import os
 import platform
+import subprocess
 import sys
+import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -35,7 +39,12 @@ from local_site.arraytac_sim.characterize import PAPER_FIGURES, characterize
 from shared.report import emit, format_table
 
 RESULTS = Path(__file__).resolve().parent / "results"
+ROOT = Path(__file__).resolve().parents[1]
 CHUNK_S = 0.01
+#: (label, ArrayTacPlant options): the compiled engine and the numpy reference's two paths
+ENGINES = [("numba", {"engine": "numba"}),
+           ("numpy block+step", {"engine": "numpy", "fast_path": True}),
+           ("numpy per-step", {"engine": "numpy", "fast_path": False})]
 
 
 def _scene(plant: ArrayTacPlant, duration_s: float) -> tuple[np.ndarray, float]:
@@ -66,20 +75,19 @@ def _scene(plant: ArrayTacPlant, duration_s: float) -> tuple[np.ndarray, float]:
 def integrator_table(quick: bool) -> list[dict[str, object]]:
     params = replace(PlantParams(), hall_noise_v_rms=0.0)
     duration = 1.0
-    ref, _ = _scene(ArrayTacPlant(params, integrator="rk4", substeps=64, fast_path=False),
-                    duration)
+    ref, _ = _scene(ArrayTacPlant(params, integrator="rk4", substeps=64, fast_path=False,
+                                  engine="numpy"), duration)
     combos = [("zoh", 1), ("zoh", 4), ("rk4", 1), ("rk4", 2), ("euler", 1), ("euler", 4),
               ("euler", 16)]
     if quick:
         combos = [("zoh", 1), ("rk4", 1), ("euler", 1), ("euler", 4)]
     rows = []
     for name, sub in combos:
-        for fast in (True, False):
-            plant = ArrayTacPlant(params, integrator=name, substeps=sub, fast_path=fast)
+        for label, options in ENGINES:
+            plant = ArrayTacPlant(params, integrator=name, substeps=sub, **options)
             y, wall = _scene(plant, duration)
             err = np.abs(y - ref)
-            rows.append({"integrator": name, "substeps": sub,
-                         "path": "block+step" if fast else "per-step",
+            rows.append({"integrator": name, "substeps": sub, "engine": label,
                          "x_real_time": duration / wall,
                          "max_err_um": 1e3 * float(err.max()),
                          "rms_err_um": 1e3 * float(np.sqrt(np.mean(err ** 2))),
@@ -89,29 +97,64 @@ def integrator_table(quick: bool) -> list[dict[str, object]]:
 
 
 def speed_table(quick: bool) -> list[dict[str, object]]:
-    """Steady shape rendering (friction 0) at several advance chunk sizes, 16 units, 10 kHz."""
-    duration = 1.0 if quick else 3.0
+    """Shape rendering (targets nudged every chunk) at several advance chunk sizes, 16 units.
+
+    ``free``: no load, friction 0. ``load+friction``: 2.5 N on every 4th pin (beyond the yield
+    force: stiffness stage 2 active), 1.5 N on every 4th + 1 (region A), friction 0.5 on two
+    other pins. Only ``advance`` is timed; ``with_set_targets`` also counts the command update
+    (the emulator calls both).
+    """
     rows = []
-    for chunk in (0.001, 0.01, 0.1):
-        for fast in (True, False):
-            if not fast and chunk > 0.01:
-                continue  # the per-step path does not depend on the chunk size
-            plant = ArrayTacPlant(fast_path=fast)
-            base = np.linspace(1.0, 4.0, plant.n_units)
-            plant.set_targets(base, 1.0, 0.0)
-            plant.advance(0.3)
-            n = round(duration / chunk)
-            walls = []
-            for i in range(n):
-                plant.set_targets(base + 0.002 * np.sin(i * chunk * 6.0), 1.0, 0.0)
-                t0 = time.perf_counter()
-                plant.advance(chunk)
-                walls.append(time.perf_counter() - t0)
-            w = np.asarray(walls)
-            rows.append({"chunk_ms": chunk * 1e3, "path": "block+step" if fast else "per-step",
-                         "x_real_time": duration / w.sum(),
-                         "p50_chunk_us": 1e6 * float(np.percentile(w, 50)),
-                         "p99_chunk_us": 1e6 * float(np.percentile(w, 99))})
+    n = 16
+    base = np.linspace(1.0, 4.0, n)
+    force = np.where(np.arange(n) % 4 == 0, 2.5, np.where(np.arange(n) % 4 == 1, 1.5, 0.0))
+    friction = np.where(np.isin(np.arange(n), (2, 7)), 0.5, 0.0)
+    scenes = {"free": (np.zeros(n), np.zeros(n)), "load+friction": (force, friction)}
+    for scene, (fn, ff) in scenes.items():
+        for chunk in (0.001, 0.002, 0.01, 0.1):
+            for label, options in ENGINES[:2]:
+                compiled = options["engine"] == "numba"
+                duration = (1.0 if quick else 3.0) if compiled else (0.3 if quick else 1.0)
+                plant = ArrayTacPlant(**options)  # type: ignore[arg-type]
+                plant.set_targets(base, 0.8, ff)
+                plant.set_finger_force(fn)
+                plant.advance(0.3)
+                steps = round(duration / chunk)
+                walls = np.empty(steps)
+                with_cmd = 0.0
+                for i in range(steps):
+                    t_cmd = time.perf_counter()
+                    plant.set_targets(base + 0.002 * np.sin(i * chunk * 6.0), 0.8, ff)
+                    t0 = time.perf_counter()
+                    plant.advance(chunk)
+                    t1 = time.perf_counter()
+                    walls[i] = t1 - t0
+                    with_cmd += t1 - t_cmd
+                rows.append({"scene": scene, "chunk_ms": chunk * 1e3, "engine": label,
+                             "x_real_time": duration / walls.sum(),
+                             "with_set_targets": duration / with_cmd,
+                             "p50_chunk_us": 1e6 * float(np.percentile(walls, 50)),
+                             "p99_chunk_us": 1e6 * float(np.percentile(walls, 99))})
+    return rows
+
+
+def first_call_table() -> list[dict[str, object]]:
+    """Import + first plant + first advance in a fresh interpreter (compile vs cache load)."""
+    code = ("import time; t0 = time.perf_counter(); "
+            "from local_site.arraytac_sim import ArrayTacPlant; t1 = time.perf_counter(); "
+            "p = ArrayTacPlant(engine='{engine}'); p.advance(0.01); t2 = time.perf_counter(); "
+            "print(t1 - t0, t2 - t1)")
+    rows = []
+    with tempfile.TemporaryDirectory() as cache_dir:
+        env = dict(os.environ, NUMBA_CACHE_DIR=cache_dir, PYTHONPATH=str(ROOT))
+        for engine, case in (("numba", "no cache (compiles)"), ("numba", "cached"),
+                             ("numpy", "-")):
+            out = subprocess.run([sys.executable, "-c", code.format(engine=engine)], env=env,
+                                 cwd=ROOT, capture_output=True, text=True, check=True).stdout
+            t_import, t_first = (float(x) for x in out.split())
+            rows.append({"engine": engine, "numba_cache": case,
+                         "import_ms": 1e3 * t_import,
+                         "first_plant_and_advance_ms": 1e3 * t_first})
     return rows
 
 
@@ -119,10 +162,10 @@ def friction_skip_table(quick: bool) -> list[dict[str, object]]:
     """f == 0 everywhere (no sinusoid evaluated) vs a vanishing f > 0 (sinusoid evaluated)."""
     duration = 0.5 if quick else 2.0
     rows = []
-    for fast in (True, False):
+    for engine, options in ENGINES:
         walls = {}
         for label, f in (("f = 0 (skipped)", 0.0), ("f = 1e-6 (synthesised)", 1e-6)):
-            plant = ArrayTacPlant(fast_path=fast)
+            plant = ArrayTacPlant(**options)  # type: ignore[arg-type]
             plant.set_targets(np.linspace(1, 4, 16), 1.0, f)
             plant.advance(0.3)
             best = np.inf
@@ -133,7 +176,7 @@ def friction_skip_table(quick: bool) -> list[dict[str, object]]:
                 best = min(best, time.perf_counter() - t0)
             walls[label] = best
         skipped, synth = walls["f = 0 (skipped)"], walls["f = 1e-6 (synthesised)"]
-        rows.append({"path": "block+step" if fast else "per-step",
+        rows.append({"engine": engine,
                      "wall_f0_ms": 1e3 * skipped, "wall_f_on_ms": 1e3 * synth,
                      "saving_pct": 100.0 * (synth - skipped) / synth})
     return rows
@@ -173,16 +216,19 @@ def characterize_rows(quick: bool) -> tuple[list[dict[str, object]], list[dict[s
     return rows, stiff, result  # type: ignore[return-value]
 
 
-def _plot(path: Path, integ: list[dict[str, object]], result: dict) -> None:  # type: ignore[type-arg]
+def _plot(path: Path, integ: list[dict[str, object]], speed: list[dict[str, object]],
+          result: dict) -> None:  # type: ignore[type-arg]
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4.5))
+    fig, axes = plt.subplots(2, 2, figsize=(13, 9))
+    axes = axes.ravel()
+    markers = {"numba": "^", "numpy block+step": "o", "numpy per-step": "s"}
     ax = axes[0]
     for row in integ:
-        marker = "o" if row["path"] == "block+step" else "s"
+        marker = markers[str(row["engine"])]
         color = {"zoh": "C0", "rk4": "C1", "euler": "C2"}[str(row["integrator"])]
         ax.scatter(row["x_real_time"], max(float(row["max_err_um"]), 1e-6), marker=marker,
                    color=color)
@@ -193,9 +239,22 @@ def _plot(path: Path, integ: list[dict[str, object]], result: dict) -> None:  # 
     ax.axvline(50, ls="--", color="grey")
     ax.set_xlabel("x real time (16 units, 10 kHz)")
     ax.set_ylabel("max |y - y_ref| (um)")
-    ax.set_title("speed vs error (o block+step, s per-step)")
-    fr = result["frequency_response"]
+    ax.set_title("1 s scene: speed vs error (^ numba, o numpy block+step, s numpy per-step)",
+                 fontsize=9)
     ax = axes[1]
+    for (scene, engine), style in {("free", "numba"): "C0^-", ("load+friction", "numba"): "C0^--",
+                                   ("free", "numpy block+step"): "C1o-",
+                                   ("load+friction", "numpy block+step"): "C1o--"}.items():
+        rows = [r for r in speed if r["scene"] == scene and r["engine"] == engine]
+        ax.loglog([r["chunk_ms"] for r in rows], [r["x_real_time"] for r in rows], style,
+                  label=f"{engine}, {scene}")
+    ax.axhline(50, ls="--", color="grey")
+    ax.set_xlabel("advance chunk (ms)")
+    ax.set_ylabel("x real time (16 units, 10 kHz)")
+    ax.set_title("speed vs advance chunk size (dashed grey: 50x target)")
+    ax.legend(fontsize=8)
+    fr = result["frequency_response"]
+    ax = axes[2]
     ax.semilogx(fr["sweep_open_freq_hz"], fr["sweep_open_gain_db"], "o-", label="open loop")
     ax.semilogx(fr["sweep_closed_freq_hz"], fr["sweep_closed_gain_db"], "s-",
                 label="closed loop")
@@ -206,7 +265,7 @@ def _plot(path: Path, integ: list[dict[str, object]], result: dict) -> None:  # 
     ax.set_ylabel("gain (dB)")
     ax.set_title("sine sweep (dotted: paper bandwidths)")
     ax.legend()
-    ax = axes[2]
+    ax = axes[3]
     for c in result["force_displacement"]:
         ax.plot(c["compression_mm"], c["force_n"], ".-", label=f"k = {c['k']}")
     ax.set_xlabel("compression (mm)")
@@ -227,6 +286,7 @@ def main(argv: list[str] | None = None) -> int:
     cmd = "python benchmarks/bench_arraytac_sim.py" + (" --quick" if args.quick else "")
     machine = (f"{platform.machine()}, {os.cpu_count()} cores shared with other jobs, no GPU, "
                f"Python {platform.python_version()}, numpy {np.__version__}")
+    first = first_call_table()
     integ = integrator_table(args.quick)
     speed = speed_table(args.quick)
     skip = friction_skip_table(args.quick)
@@ -235,25 +295,41 @@ def main(argv: list[str] | None = None) -> int:
     md = [
         "# ArrayTac simulator: speed against integration error", "",
         f"Command: `{cmd}`  ", f"Machine: {machine}", "",
-        "## Integrators: speed vs error (1 s scene, 16 units, 10 kHz firmware)", "",
-        "Reference: RK4 with 64 sub-steps per tick on the per-step path; noise off; error of the "
-        "true pin heights sampled every 10 ms. `block+step` integrates saturation-free blocks "
-        "exactly (modal decomposition + lfilter) and replays ticks that hit a nonlinearity per "
-        "step; `fast_tick_pct` is the share of ticks the block path took. The scene spends "
-        "much of its time saturated (steps, finger loads, friction gain groups), so it is the "
-        "hard case for the fast path.", "",
-        format_table(integ), "",
-        "## Steady shape rendering speed (friction 0, targets nudged every chunk)", "",
-        "Target: >= 50x real time for 16 units at 10 kHz. Wall times are sums over all chunks, "
-        "so contention from other jobs on the shared cores (load average "
+        "Engines: `numba` (default) runs the per-tick firmware + plant loop for all units in "
+        "one compiled call per `advance` (`local_site/arraytac_sim/kernel.py`); `numpy` is the "
+        "reference (one Python iteration per tick), with its block fast path (`block+step`) "
+        "or without (`per-step`). The numba engine reproduces the numpy per-step path to "
+        "rounding (`tests/local_site/test_arraytac_sim_kernel.py`, 1e-9 mm), so its error "
+        "equals that of `numpy per-step` below.", "",
+        "## Advance chunk size: x real time (16 units, 10 kHz firmware)", "",
+        "Target: >= 50x real time, also in the 1-2 ms chunks the CAN emulator uses. Targets "
+        "nudged every chunk; `x_real_time` times `advance` only, `with_set_targets` also the "
+        "command update before it. Wall times are sums over all chunks, so contention from "
+        "other jobs on the shared cores (load average "
         f"{os.getloadavg()[0]:.1f} when this report was written) shows up directly; the p50 "
         "chunk time is the less contended figure.", "",
         format_table(speed), "",
+        "## Integrators: speed vs error (1 s scene, 16 units, 10 ms chunks)", "",
+        "Reference: RK4 with 64 sub-steps per tick, numpy engine, per-step path; noise off; "
+        "error of the true pin heights sampled every 10 ms. `block+step` integrates "
+        "saturation-free blocks exactly (modal decomposition + lfilter) and replays ticks that "
+        "hit a nonlinearity per step (Hall chain linearised over a block); `fast_tick_pct` is "
+        "the share of ticks the block path took. The scene spends much of its time saturated "
+        "(steps, finger loads, friction gain groups), so it is the hard case for the fast "
+        "path.", "",
+        format_table(integ), "",
+        "## First-call latency (fresh interpreter)", "",
+        "Import of `local_site.arraytac_sim`, then `ArrayTacPlant()` (which compiles the kernel "
+        "or loads it from numba's cache) and one 10 ms `advance`. `no cache` compiles into an "
+        "empty `NUMBA_CACHE_DIR`; `cached` is the next process (the normal case: `cache=True` "
+        "keeps the machine code in `__pycache__`).", "",
+        format_table(first), "",
         "## Friction-off skip (no sinusoid synthesised when every f == 0)", "",
         "Best of 3 runs; `f = 1e-6` makes the firmware synthesise the vibration (and puts the "
         "pins in a second PID-gain group) with a negligible amplitude.", "",
         format_table(skip), "",
-        "Figures: `arraytac_sim.png` (speed vs error; sine sweeps; force-displacement).", "",
+        "Figures: `arraytac_sim.png` (speed vs error; speed vs chunk size; sine sweeps; "
+        "force-displacement).", "",
     ]
     (args.out_dir / "arraytac_sim.md").write_text("\n".join(md))
     cmd_char = "teletouch display characterize" + (" --quick" if args.quick else "")
@@ -274,7 +350,7 @@ def main(argv: list[str] | None = None) -> int:
         format_table(stiff), "",
     ]
     (args.out_dir / "characterize.md").write_text("\n".join(cmd_md))
-    _plot(args.out_dir / "arraytac_sim.png", integ, result)
+    _plot(args.out_dir / "arraytac_sim.png", integ, speed, result)
     emit("\n".join(md))
     emit("\n".join(cmd_md))
     return 0

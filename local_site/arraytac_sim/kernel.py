@@ -162,6 +162,9 @@ def run_ticks(c, cmd, state, sat, noise_v, k0, override, record, rec):  # type: 
         record: write ``rec``.
         rec: ``(4, ticks, n)`` measured height, true height, voltage, reference at the start
             of each tick (untouched unless ``record``).
+
+    Returns:
+        Whether any unit synthesised the friction vibration (some ``f > 0``).
     """
     n_ticks, n = noise_v.shape
     ub, dt = c[C_UB], c[C_DT]
@@ -180,9 +183,12 @@ def run_ticks(c, cmd, state, sat, noise_v, k0, override, record, rec):  # type: 
     kd_dt = c[C_KD] * gain / dt
     height, force = cmd[CMD_HEIGHT], cmd[CMD_FORCE]
     test_amp, test_omega = cmd[CMD_TEST_AMP], cmd[CMD_TEST_OMEGA]
-    any_sine = False
+    any_vib = False
+    any_test = False
     for i in range(n):
-        any_sine = any_sine or f[i] > 0.0 or test_amp[i] > 0.0
+        any_vib = any_vib or f[i] > 0.0
+        any_test = any_test or test_amp[i] > 0.0
+    any_sine = any_vib or any_test
     su, sy, si, sm, sc = state[S_U], state[S_Y], state[S_I], state[S_M_PREV], state[S_U_CMD]
     # tick-major: the units' independent dependency chains overlap in the CPU
     for j in range(n_ticks):
@@ -227,6 +233,7 @@ def run_ticks(c, cmd, state, sat, noise_v, k0, override, record, rec):  # type: 
                 y = min(max(y, c[C_STOP_LO]), c[C_STOP_HI])
             su[i], sy[i], sm[i], sc[i] = u, y, m, u_cmd
             sat[i] = s_i
+    return any_vib
 
 
 def warm_up() -> None:

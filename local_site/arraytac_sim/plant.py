@@ -91,9 +91,21 @@ def _as_unit_array(name: str, value: float | np.ndarray, n_units: int) -> np.nda
     return arr
 
 
-def _clip_into(out: np.ndarray, value: np.ndarray, low: float, high: float) -> None:
-    """``out[:] = clip(value, low, high)`` (cheaper than ``np.clip`` on 16 elements)."""
-    np.minimum(np.maximum(value, low, out=out), high, out=out)
+def _store_clamped(out: np.ndarray, name: str, value: float | np.ndarray, low: float,
+                   high: float) -> None:
+    """Validate ``value`` like :func:`_as_unit_array` and store ``clip(value, low, high)``.
+
+    Commands arrive at 1 kHz from the emulated CAN link, so this avoids ``np.clip`` (slow on
+    16 elements) and handles plain scalars without building an array.
+    """
+    if isinstance(value, float | int):
+        x = float(value)
+        if not math.isfinite(x):
+            raise InputDataError(f"{name} contains NaN or Inf: {x}")
+        out.fill(min(max(x, low), high))
+        return
+    arr = _as_unit_array(name, value, out.shape[0])
+    np.minimum(np.maximum(arr, low, out=out), high, out=out)
 
 
 class ArrayTacPlant:
@@ -169,6 +181,7 @@ class ArrayTacPlant:
         self._cmd = np.zeros((layout.N_CMD_ROWS, n))
         self._height, self._k, self._f, self._force = self._cmd[:layout.CMD_TEST_AMP]
         self._test = self._cmd[layout.CMD_TEST_AMP:layout.CMD_TEST_OMEGA + 1]
+        self._k_new, self._f_new = np.empty(n), np.empty(n)   # validated before stored
         self._u[:] = p.u_base_v
         self._y[:] = 0.0
         self._i[:] = 0.0
@@ -196,14 +209,14 @@ class ArrayTacPlant:
         Raises:
             InputDataError: NaN/Inf or wrong shape.
         """
-        p, n = self.params, self.n_units
-        h = _as_unit_array("height_mm", height_mm, n)
-        k = _as_unit_array("stiffness_k", stiffness_k, n)
-        f = _as_unit_array("friction", friction, n)
-        _clip_into(self._height, h, 0.0, p.stroke_mm)
-        _clip_into(self._k, k, p.k_min, p.k_max)
-        _clip_into(self._f, f, 0.0, 1.0)
-        self._friction_on = bool(self._f.any())
+        p = self.params
+        # validate all three before storing any (a bad command changes nothing)
+        h = _as_unit_array("height_mm", height_mm, self.n_units)
+        _store_clamped(self._k_new, "stiffness_k", stiffness_k, p.k_min, p.k_max)
+        _store_clamped(self._f_new, "friction", friction, 0.0, 1.0)
+        np.minimum(np.maximum(h, 0.0, out=self._height), p.stroke_mm, out=self._height)
+        self._k[:] = self._k_new
+        self._f[:] = self._f_new
         self._derived = False
 
     def _derive_commands(self) -> None:
@@ -223,7 +236,7 @@ class ArrayTacPlant:
         Raises:
             InputDataError: NaN/Inf or wrong shape.
         """
-        np.maximum(_as_unit_array("force_n", force_n, self.n_units), 0.0, out=self._force)
+        _store_clamped(self._force, "force_n", force_n, 0.0, math.inf)
 
     def set_drive_override(self, voltage_v: float | np.ndarray | None,
                            amplitude_v: float | np.ndarray = 0.0,
@@ -362,9 +375,9 @@ class ArrayTacPlant:
                         record: bool) -> dict[str, np.ndarray] | None:
         """The numba engine: all ticks of all units in one compiled call (:mod:`.kernel`)."""
         rec = np.empty((4, n_ticks, self.n_units)) if record else self._no_rec
-        self._kernel(self._consts, self._cmd, self._z, self._sat, noise_v, self._step,
-                     self._override is not None, record, rec)
-        if self._friction_on:
+        vibrated = self._kernel(self._consts, self._cmd, self._z, self._sat, noise_v,
+                                self._step, self._override is not None, record, rec)
+        if vibrated:
             self.vibration_ticks += n_ticks
         self._step += n_ticks
         self.slow_ticks += n_ticks

@@ -41,6 +41,25 @@ def test_non_finite_commands_rejected(bad: float) -> None:
         plant.set_targets(np.ones(15), 1.0, 0.0)
 
 
+@pytest.mark.parametrize("engine", ["numba", "numpy"])
+def test_rejected_command_changes_nothing(engine: str) -> None:
+    plant = ArrayTacPlant(n_units=4, engine=engine)
+    plant.set_targets(np.full(4, 2.0), 0.75, 0.5)
+    plant.set_finger_force(1.0)
+    before = plant.commands
+    with pytest.raises(InputDataError):
+        plant.set_targets(np.full(4, 3.0), np.array([0.6, np.nan, 0.6, 0.6]), 0.0)
+    with pytest.raises(InputDataError):
+        plant.set_targets(np.full(4, 3.0), 0.6, float("inf"))
+    with pytest.raises(InputDataError):
+        plant.set_finger_force(float("nan"))
+    for a, b in zip(before, plant.commands, strict=True):
+        np.testing.assert_array_equal(a, b)
+    plant.set_targets(7.0, 0.2, 3.0)                    # scalars clamp like arrays
+    h, k, f = plant.commands
+    assert np.all(h == 5.0) and np.all(k == 0.5) and np.all(f == 1.0)
+
+
 def test_bad_config_rejected() -> None:
     with pytest.raises(ConfigError):
         ArrayTacPlant(integrator="leapfrog")
