@@ -107,7 +107,8 @@ def pack_constants(params: PlantParams, calibration: np.ndarray, integrator_id: 
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _derivatives(c, u, y, u_cmd, force):  # type: ignore[no-untyped-def]
+def _derivatives(c: np.ndarray, u: float, y: float, u_cmd: float,
+                 force: float) -> tuple[float, float]:
     du = (u_cmd - u) / c[C_TD]
     if du < -c[C_S_DOWN]:
         du = -c[C_S_DOWN]
@@ -118,7 +119,8 @@ def _derivatives(c, u, y, u_cmd, force):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _substep(c, kind, u, y, u_cmd, force):  # type: ignore[no-untyped-def]
+def _substep(c: np.ndarray, kind: int, u: float, y: float, u_cmd: float,
+             force: float) -> tuple[float, float]:
     """One integrator sub-step with slew limits (same arithmetic as :mod:`.integrators`)."""
     h = c[C_H]
     if kind == 0:  # zoh
@@ -148,7 +150,9 @@ def _substep(c, kind, u, y, u_cmd, force):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, error_model="numpy")
-def run_ticks(c, cmd, state, sat, noise_v, k0, override, record, rec):  # type: ignore[no-untyped-def]
+def run_ticks(c: np.ndarray, cmd: np.ndarray, state: np.ndarray, sat: np.ndarray,
+              noise_v: np.ndarray, k0: int, override: bool, record: bool,
+              rec: np.ndarray) -> bool:
     """Run ``noise_v.shape[0]`` firmware ticks for every unit, in place.
 
     Args:
