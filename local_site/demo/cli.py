@@ -36,8 +36,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                              "(default: a 3 mm-spaced raster, pressed 3 mm into the phantom)")
     parser.add_argument("--duration", type=float, default=100.0,
                         help="stop the operator after this many seconds (default 100)")
-    parser.add_argument("--frame-rate-hz", type=float, default=60.0,
-                        help="remote sensor frame rate (default 60)")
+    parser.add_argument("--frame-rate-hz", type=float, default=120.0,
+                        help="remote sensor frame rate (default 120)")
     parser.add_argument("--headless", action="store_true",
                         help="no live status line")
     parser.add_argument("--json", action="store_true",

@@ -80,7 +80,7 @@ class DemoConfig:
     link: str | None = None
     motion: str = DEFAULT_MOTION
     max_duration_s: float = 100.0
-    frame_rate_hz: float = 60.0
+    frame_rate_hz: float = 120.0
     workdir: Path | None = None
     keep_files: bool = False
     python: str = sys.executable
