@@ -24,7 +24,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                       help="plant integrator (default: zoh, exact)")
 
 
-def _report_text(result: dict) -> str:  # type: ignore[type-arg]
+def _report_text(result: dict) -> str:
     from shared.report import format_table
 
     paper = result["paper"]

@@ -200,7 +200,7 @@ def _linear_transfer(plant: ArrayTacPlant) -> tuple[Any, Any]:
     gam_ol = probe[:, 2] - c0
     dt = p.control_period_s
 
-    def response(phi: np.ndarray, gam: np.ndarray, out: int):  # type: ignore[no-untyped-def]
+    def response(phi: np.ndarray, gam: np.ndarray, out: int):
         eye = np.eye(phi.shape[0])
 
         def h(f_hz: float) -> complex:
@@ -212,13 +212,13 @@ def _linear_transfer(plant: ArrayTacPlant) -> tuple[Any, Any]:
     return response(phi_cl, gam_cl, 1), response(phi_ol, gam_ol, 1)
 
 
-def _bandwidths(h, f_max_hz: float) -> tuple[float, float]:  # type: ignore[no-untyped-def]
+def _bandwidths(h, f_max_hz: float) -> tuple[float, float]:
     dc = h(1e-3)
     freqs = np.logspace(-1, math.log10(f_max_hz), 400)
     gain = np.array([abs(h(f) / dc) for f in freqs])
     phase = np.unwrap(np.array([np.angle(h(f) / dc) for f in freqs]))
 
-    def first_root(values: np.ndarray, level: float, fn) -> float:  # type: ignore[no-untyped-def]
+    def first_root(values: np.ndarray, level: float, fn) -> float:
         idx = np.flatnonzero(values < level)
         if idx.size == 0 or idx[0] == 0:
             return math.inf
@@ -367,6 +367,6 @@ def characterize(params: PlantParams | None = None, quick: bool = False,
     )
 
 
-def with_targets(params: PlantParams, **changes: float) -> PlantParams:
+def with_targets(params: PlantParams, **changes: Any) -> PlantParams:
     """Convenience for experiments: ``replace`` that keeps validation."""
     return replace(params, **changes)

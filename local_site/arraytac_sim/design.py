@@ -94,7 +94,7 @@ def design_linear(targets: DesignTargets, base: PlantParams | None = None) -> Pl
                    closed_loop_damping=zeta, kp_v_per_mm=kp, ki_v_per_mm_s=kp / tau_m)
 
 
-def _bisect(fn, lo: float, hi: float, target: float, iters: int) -> float:  # type: ignore[no-untyped-def]
+def _bisect(fn, lo: float, hi: float, target: float, iters: int) -> float:
     """Geometric bisection of a decreasing ``fn`` for ``fn(x) = target``."""
     for _ in range(iters):
         mid = math.sqrt(lo * hi)

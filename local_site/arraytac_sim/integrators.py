@@ -87,7 +87,7 @@ class EulerIntegrator(PlantIntegrator):
 
     name = "euler"
 
-    def _substep(self, u, y, u_cmd, force_n, slew):  # type: ignore[no-untyped-def]
+    def _substep(self, u, y, u_cmd, force_n, slew):
         du, dy = self._derivatives(u, y, u_cmd, force_n, slew)
         return u + self.h_s * du, y + self.h_s * dy
 
@@ -97,7 +97,7 @@ class RK4Integrator(PlantIntegrator):
 
     name = "rk4"
 
-    def _substep(self, u, y, u_cmd, force_n, slew):  # type: ignore[no-untyped-def]
+    def _substep(self, u, y, u_cmd, force_n, slew):
         h = self.h_s
         d = self._derivatives
         k1u, k1y = d(u, y, u_cmd, force_n, slew)
@@ -141,7 +141,7 @@ class ZOHIntegrator(PlantIntegrator):
         """``(Phi, Gamma)`` of the linear mode and ``(Phi_s, Gamma_s)`` of the slewing mode."""
         return self._phi, self._gam, self._phi_s, self._gam_s
 
-    def _substep(self, u, y, u_cmd, force_n, slew):  # type: ignore[no-untyped-def]
+    def _substep(self, u, y, u_cmd, force_n, slew):
         ph, ga = self._phi, self._gam
         u_lin = ph[0, 0] * u + ga[0, 0] * u_cmd
         y_lin = ph[1, 0] * u + ph[1, 1] * y + ga[1, 0] * u_cmd + ga[1, 1] * force_n + ga[1, 2]

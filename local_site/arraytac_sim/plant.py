@@ -468,7 +468,7 @@ class ArrayTacPlant:
         self.slow_ticks += ref.shape[0]
 
     # ------------------------------------------------------------------ fast path
-    def _linear_map(self, gain: float):  # type: ignore[no-untyped-def]
+    def _linear_map(self, gain: float):
         p = self.params
         dt = self._dt
 
