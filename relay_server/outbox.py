@@ -5,9 +5,14 @@ Two kinds of entries wait for a peer:
 * **latest-wins slots** for state streams (``platform_state``, ``arm_state``,
   ``tactile_frame``): one slot per stream key; a newer message replaces an unsent one
   and the replaced one is counted as a drop. Memory is bounded by the number of streams.
-* an **ordered queue** for commands and control (``arm_command``, ``error``, ``stats``,
-  ``clock_ping``, ``welcome``, ``bye``, ...), bounded: :meth:`Outbox.put_ordered` returns
-  False when full and the caller reports the overflow (never a silent loss).
+* **latest-wins control slots** for the relay's own periodic messages (``stats``,
+  ``clock_ping``): an unsent one is stale, so a fresh one replaces it.
+* an **ordered queue** for commands and control (``arm_command``, ``error``, ``welcome``,
+  ``bye``, ...), bounded: :meth:`Outbox.put_ordered` returns False when full and the caller
+  reports the overflow (never a silent loss).
+
+A stalled peer therefore holds at most one entry per state stream and per periodic control
+message, plus whatever ordered messages it was sent.
 
 One writer task per peer drains the outbox in arrival order, encodes each message just
 before writing it (``relay_out`` hop stamped then) and writes the batch. A peer whose
@@ -115,6 +120,20 @@ class Outbox:
         self._slots[key] = Pending(self._counter, message, True, on_send, None, t_in_us)
         self.wakeup.set()
         return old
+
+    def put_control_latest(self, key: str, message: Message,
+                           build: Callable[[int], Message] | None = None) -> bool:
+        """Put the relay's own periodic control message (``stats``, ``clock_ping``) in slot
+        ``key``: a fresh one replaces an unsent one, so a stalled peer never accumulates them.
+
+        Returns:
+            True when an unsent message was replaced.
+        """
+        self._counter += 1
+        replaced = key in self._slots
+        self._slots[key] = Pending(self._counter, message, False, None, build, 0)
+        self.wakeup.set()
+        return replaced
 
     def put_ordered(self, message: Message, on_send: OnSend | None = None, *,
                     forwarded: bool = False, force: bool = False,

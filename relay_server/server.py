@@ -605,8 +605,8 @@ class _ConnContext:
                     next_ping = now + cfg.ping_interval_s
             if now >= next_stats:
                 metrics = session_metrics(session, peer.role)
-                peer.outbox.put_ordered(Stats(scope="relay", time_us=now_us(),
-                                              metrics=metrics))
+                peer.outbox.put_control_latest("stats", Stats(scope="relay", time_us=now_us(),
+                                                              metrics=metrics))
                 next_stats += cfg.stats_interval_s
                 if next_stats < now:
                     next_stats = now + cfg.stats_interval_s
@@ -619,7 +619,7 @@ class _ConnContext:
         def build(t0_us: int) -> ClockPing:
             return ClockPing(ping_id=peer.next_ping(t0_us), t0_us=t0_us)
 
-        peer.outbox.put_ordered(ClockPing(), build=build)
+        peer.outbox.put_control_latest("clock_ping", ClockPing(), build=build)
 
     # -------------------------------------------------------------- ending
 

@@ -66,7 +66,9 @@ async def test_stalled_consumer_does_not_delay_another_session() -> None:
         status = relay.status()["sessions"]["stuck"]
         drops = status["drops"]["remote_to_local"]["latest_wins"]
         assert drops > 0  # the stalled reader's socket is full: frames replaced unsent
-        assert status["queue_depth"]["local"] <= 2  # bounded: one slot per stream (+ control)
+        # bounded by construction: one slot per state stream towards the local station
+        # (tactile_frame, arm_state) and per periodic control message (stats, clock_ping)
+        assert status["queue_depth"]["local"] <= 4
         # the other session's round trip stays small (not seconds of queued frames)
         assert max(during) < max(scaled(250.0), 10 * float(np.median(baseline)))
         fine = relay.status()["sessions"]["fine"]

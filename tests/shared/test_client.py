@@ -542,4 +542,5 @@ async def test_real_relay_through_the_link_emulator() -> None:
             delays_ms.append((got.hops[0].t_us - sent.ts_us) / 1000.0)
             await asyncio.sleep(0.02)
         # local -> relay crosses the emulated 10 ms one-way link
-        assert float(np.median(delays_ms)) == pytest.approx(10.0, abs=scaled(2.5))
+        # the emulator may deliver up to 0.5 ms early; scheduling noise only adds delay
+        assert 9.0 <= float(np.median(delays_ms)) <= 10.0 + scaled(2.5)
