@@ -19,6 +19,8 @@ Integrators (``substeps`` sub-steps per firmware period):
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
+
 import numpy as np
 from scipy.linalg import expm
 
@@ -28,7 +30,7 @@ from shared.errors import ConfigError
 __all__ = ["INTEGRATORS", "PlantIntegrator", "make_integrator"]
 
 
-class PlantIntegrator:
+class PlantIntegrator(ABC):
     """Base: advances ``(U, y)`` of all units by one firmware period.
 
     Args:
@@ -77,9 +79,10 @@ class PlantIntegrator:
                 y = np.clip(y, self.p.stop_low_mm, self.p.stop_high_mm)
         return u, y
 
+    @abstractmethod
     def _substep(self, u: np.ndarray, y: np.ndarray, u_cmd: np.ndarray, force_n: np.ndarray,
                  slew: bool) -> tuple[np.ndarray, np.ndarray]:
-        raise NotImplementedError
+        """Advance ``(U, y)`` by one sub-step; each integrator implements it."""
 
 
 class EulerIntegrator(PlantIntegrator):

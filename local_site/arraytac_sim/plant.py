@@ -144,6 +144,7 @@ class ArrayTacPlant:
         self.fast_path = bool(fast_path)
         self._dt = self.params.control_period_s
         self._modes: OrderedDict[float, LinearModes | None] = OrderedDict()
+        self._empty_record = {name: np.empty((0, self.n_units)) for name in "myur"}
         self.engine = engine
         self._run_ticks = {"numba": self._compiled_steps, "numpy": self._numpy_steps}[engine]
         if engine == "numba":
@@ -325,9 +326,8 @@ class ArrayTacPlant:
 
     def run(self, duration_s: float) -> PlantTrace:
         """Like :meth:`advance`, returning the per-tick trace."""
-        trace = self._run(self._ticks_for(duration_s), record=True)
-        assert trace is not None
-        return trace
+        n_ticks = self._ticks_for(duration_s)
+        return self._trace(self._run(n_ticks, record=True), n_ticks)
 
     def _ticks_for(self, duration_s: float) -> int:
         if not (math.isfinite(duration_s) and duration_s >= 0.0):
@@ -349,13 +349,12 @@ class ArrayTacPlant:
             np.clip(ref, 0.0, self.params.stroke_mm, out=ref)
         return ref
 
-    def _run(self, n_ticks: int, record: bool) -> PlantTrace | None:
+    def _run(self, n_ticks: int, record: bool) -> dict[str, np.ndarray]:
+        """Run ``n_ticks``; return the per-tick record (no rows when not recording)."""
         if n_ticks == 0:
-            n = self.n_units
-            return self._trace({name: np.empty((0, n)) for name in "myur"}, 0) if record \
-                else None
+            return self._empty_record
         rec = self._run_ticks(n_ticks, self._noise_v(n_ticks), record)
-        return self._trace(rec, n_ticks) if record else None
+        return self._empty_record if rec is None else rec
 
     def _noise_v(self, n_ticks: int) -> np.ndarray:
         """The next ``n_ticks`` rows of Hall noise (V), drawn from the seeded stream in blocks.
@@ -418,8 +417,7 @@ class ArrayTacPlant:
             k += done
         return rec
 
-    def _trace(self, rec: dict[str, np.ndarray] | None, n_ticks: int) -> PlantTrace:
-        assert rec is not None
+    def _trace(self, rec: dict[str, np.ndarray], n_ticks: int) -> PlantTrace:
         t = (self._step - n_ticks + np.arange(n_ticks)) * self._dt
         return PlantTrace(t, rec["m"], rec["y"], rec["u"], rec["r"])
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import re
+from abc import ABC, abstractmethod
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, NamedTuple
@@ -102,19 +103,19 @@ def _read_hops(d: Mapping[str, Any], msg_type: str) -> tuple[Hop, ...]:
 
 
 @dataclass(frozen=True, slots=True)
-class Message:
+class Message(ABC):
     """Base of all messages. ``TYPE`` is the wire ``type`` string."""
 
     TYPE: ClassVar[str] = ""
 
+    @abstractmethod
     def to_wire(self) -> dict[str, Any]:
         """Return the wire fields (without ``v`` and ``type``)."""
-        raise NotImplementedError  # every concrete message overrides this
 
     @classmethod
+    @abstractmethod
     def from_wire(cls, d: Mapping[str, Any]) -> Message:
         """Validate a decoded wire map and build the message."""
-        raise NotImplementedError  # every concrete message overrides this
 
 
 @dataclass(frozen=True, slots=True)
