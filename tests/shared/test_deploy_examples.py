@@ -37,7 +37,6 @@ SECTIONS: dict[str, type] = {
     "workspace": WorkspaceConfig,
 }
 #: subcommands the deploy files call that the station issues are still adding
-PENDING_COMMANDS = {"local", "remote"}
 
 
 def _tables(node: dict[str, Any], prefix: str = "") -> list[str]:
@@ -111,6 +110,6 @@ def test_units_and_compose_call_existing_subcommands() -> None:
     calls += re.findall(r'"teletouch",\s*"(\w+)"', (DEPLOY / "Dockerfile").read_text())
     assert {"relay", "link", "local", "remote"} <= set(calls)
     for sub in calls:
-        assert sub in COMMANDS or sub in PENDING_COMMANDS, sub
+        assert sub in COMMANDS, sub
     configs = set(re.findall(r"/etc/teletouch/(\w+\.toml)", "\n".join(texts)))
     assert configs and all((DEPLOY / "config" / c).is_file() for c in configs)
