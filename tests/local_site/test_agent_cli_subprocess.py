@@ -50,19 +50,29 @@ async def test_relay_and_local_processes_sigterm_writes_record_and_summary(tmp_p
             "sim", "--motion", "raster:x0=25,x1=35,y0=30,y1=31,spacing=1,press_depth=0",
             "--record", str(record), "--summary-json", str(summary), "--no-status",
             stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
-        async with FakeRemote(url) as remote:
-            # clock offsets come with the relay's stats (every 1 s): run a few seconds
-            await wait_for(lambda: remote.frames_sent >= 180, 25.0, "frames to the local process")
-        assert await _stop(local) == 0
         assert local.stderr is not None and local.stdout is not None
-        err_text = (await local.stderr.read()).decode()
+        err_lines: list[str] = []
+
+        async def read_stderr() -> None:
+            assert local is not None and local.stderr is not None
+            async for line in local.stderr:
+                err_lines.append(line.decode(errors="replace"))
+
+        reader = asyncio.create_task(read_stderr())
+        async with FakeRemote(url) as remote:
+            # start counting once the display is connected (the render loop runs from then
+            # on): a cold start (first JIT compile of the plant) may take seconds
+            await wait_for(lambda: any("ArrayTac on" in ln and "connected" in ln
+                                       for ln in err_lines),
+                           30.0, "the local station's display to connect")
+            first = remote.frames_sent
+            await wait_for(lambda: remote.frames_sent >= first + 180, 25.0,
+                           "frames to the local process")
+        assert await _stop(local) == 0
+        await asyncio.wait_for(reader, scaled(10.0))
+        err_text = "".join(err_lines)
         out_text = (await local.stdout.read()).decode()
-        # shared.client leaves a receive future unretrieved when closed (reported to the
-        # lead); any other traceback, and any from local_site, fails the test
-        unretrieved = err_text.count("Task exception was never retrieved")
-        assert err_text.count("Traceback") <= 2 * unretrieved  # cause + effect per event
-        frames = [ln for ln in err_text.splitlines() if ln.lstrip().startswith('File "')]
-        assert not [ln for ln in frames if "local_site" in ln]
+        assert "Traceback" not in err_text, err_text[-2000:]
         assert "stopped (signal)" in out_text
         doc = json.loads(summary.read_text())
         assert doc["exit_reason"] == "signal" and doc["frames_rendered"] > 10

@@ -116,7 +116,9 @@ def test_bad_poses_are_rejected(pose: object) -> None:
 
 
 @settings(max_examples=60, deadline=None)
-@given(x=st.floats(-80, 80), y=st.floats(-80, 80), d1=st.floats(0, 6), d2=st.floats(0, 6))
+# subnormal depths keep only a few significant bits, so no product with them is linear
+@given(x=st.floats(-80, 80), y=st.floats(-80, 80), d1=st.floats(0, 6, allow_subnormal=False),
+       d2=st.floats(0, 6, allow_subnormal=False))
 def test_force_finite_nonnegative_and_linear_in_depth(x: float, y: float, d1: float,
                                                       d2: float) -> None:
     ph = _BREAST
