@@ -107,7 +107,17 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _relay_line(relay: dict[str, Any] | None) -> str:
-    if not relay:
-        return "relay: waiting"
-    return "relay: " + ", ".join(f"{k}={v}" for k, v in sorted(relay.get("counters", {}).items())
-                                 if isinstance(v, int | float))[:160]
+    """Messages forwarded each way and the relay's end-to-end delay estimates, live."""
+    session = ((relay or {}).get("sessions") or {}).get("demo")
+    if not session:
+        return "waiting for both stations"
+    fwd = session.get("forwarded", {})
+    delay = session.get("delay_us", {})
+
+    def e2e_ms(direction: str) -> str:
+        p50 = delay.get(direction, {}).get("end_to_end", {}).get("p50")
+        return "-" if p50 is None else f"{p50 / 1000:.1f} ms"
+
+    return (f"platform states -> remote {fwd.get('local_to_remote', 0)} "
+            f"(~{e2e_ms('local_to_remote')}), tactile frames -> local "
+            f"{fwd.get('remote_to_local', 0)} (~{e2e_ms('remote_to_local')})")

@@ -1,0 +1,43 @@
+"""`teletouch demo` as a user runs it: real processes, JSON report, live status line."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+from local_site.demo.cli import _relay_line, format_report
+from tests.support import scaled
+
+# breast seed 0: the benign tumor is at phantom (6.0, -10.1) = platform (36.0, 19.9); this
+# raster covers it (and not the malignant one), so the run takes seconds, not the full sweep
+SMALL_RASTER = ("raster:x0=28,x1=44,y0=12,y1=28,spacing=4,speed=45,z=10,press_depth=0,"
+                "press_every=0,pause=0.5,loop=0")
+
+
+def test_demo_headless_json_reports_the_felt_tumor() -> None:
+    done = subprocess.run(
+        [sys.executable, "-m", "shared.cli", "demo", "--headless", "--json", "--scene", "breast",
+         "--seed", "0", "--motion", SMALL_RASTER, "--duration", "30"],
+        capture_output=True, text=True, timeout=scaled(120.0), check=False)
+    assert done.returncode == 0, done.stderr[-3000:]
+    report = json.loads(done.stdout)
+    for key in ("tumors_expected", "tumors_found", "localization_error_mm", "types_correct",
+                "kendall_tau", "latency_ms"):
+        assert key in report
+    assert report["tumors_expected"] == 2
+    assert report["false_positives"] == 0
+    benign = report["localization_error_mm"]["per_tumor"]["benign"]
+    assert benign < 1.5
+    assert [m["found_kind"] for m in report["matches"] if m["id"] == "benign"] == ["benign"]
+    e2e = report["latency_ms"]["end_to_end"]
+    assert 0 < e2e["p50"] <= e2e["p99"]
+    assert "tumors found" in format_report(report)
+
+
+def test_status_line_shows_flow_and_latency() -> None:
+    assert _relay_line(None) == "waiting for both stations"
+    line = _relay_line({"sessions": {"demo": {
+        "forwarded": {"local_to_remote": 5000, "remote_to_local": 300},
+        "delay_us": {"local_to_remote": {"end_to_end": {"p50": 2300}}}}}})
+    assert "5000" in line and "300" in line and "2.3 ms" in line
