@@ -18,7 +18,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from local_site.display import frames as fr
-from shared.errors import DeviceInitError, MalformedMessageError
+from shared.errors import ConfigError, DeviceInitError, MalformedMessageError
 
 __all__ = ["ArrayTacFirmware", "PlantLike", "make_plant"]
 
@@ -59,7 +59,7 @@ def make_plant(**options: Any) -> PlantLike:
         raise DeviceInitError(f"ArrayTac plant unavailable: {err}") from err
     try:
         return ArrayTacPlant(**options)
-    except (TypeError, ValueError) as err:
+    except (TypeError, ValueError, ConfigError) as err:
         raise DeviceInitError(f"ArrayTac plant rejected options {options}: {err}") from err
 
 

@@ -37,15 +37,17 @@ class _EmulatedBoard:
 
     def __init__(self, plant: PlantLike | None, plant_options: dict[str, Any] | None,
                  feedback_rate_hz: float, firmware_watchdog_ms: int, tick_s: float) -> None:
-        self._plant = plant
-        self._plant_options = plant_options or {}
+        # The simulated hardware exists as soon as the backend does: building the plant here
+        # (compiling its kernel on a cold cache) keeps that one-off cost out of connect(),
+        # which runs in the station's display thread next to its platform reader.
+        self._plant = plant if plant is not None else make_plant(**(plant_options or {}))
         self._feedback_period_s = 1.0 / feedback_rate_hz
         self._watchdog_ms = firmware_watchdog_ms
         self._tick_s = tick_s
         self.emulator: FirmwareEmulator | None = None
 
     def start(self, transport: FirmwareTransport) -> FirmwareEmulator:
-        plant = self._plant if self._plant is not None else make_plant(**self._plant_options)
+        plant = self._plant
         plant.reset()
         firmware = ArrayTacFirmware(plant, default_watchdog_ms=self._watchdog_ms,
                                     feedback_period_s=self._feedback_period_s)

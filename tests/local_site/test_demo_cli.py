@@ -10,9 +10,11 @@ from local_site.demo.cli import _relay_line, format_report
 from tests.support import scaled
 
 # breast seed 0: the benign tumor is at phantom (6.0, -10.1) = platform (36.0, 19.9); this
-# raster covers it (and not the malignant one), so the run takes seconds, not the full sweep
+# raster covers it (and not the malignant one), so the run takes seconds, not the full sweep.
+# It first holds 3 s pressed at its start point, so a cold start (first-use kernel compiles
+# in a fresh checkout) is over before the sweep reaches the tumor.
 SMALL_RASTER = ("raster:x0=28,x1=44,y0=12,y1=28,spacing=4,speed=45,z=10,press_depth=0,"
-                "press_every=0,pause=0.5,loop=0")
+                "press_every=0,pause=3,loop=0")
 
 
 def test_demo_headless_json_reports_the_felt_tumor() -> None:
