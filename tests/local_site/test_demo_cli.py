@@ -9,18 +9,18 @@ import sys
 from local_site.demo.cli import _relay_line, format_report
 from tests.support import scaled
 
-# breast seed 0: the benign tumor is at phantom (6.0, -10.1) = platform (36.0, 19.9); this
-# raster covers it (and not the malignant one), so the run takes seconds, not the full sweep.
-# It first holds 3 s pressed at its start point, so a cold start (first-use kernel compiles
-# in a fresh checkout) is over before the sweep reaches the tumor.
-SMALL_RASTER = ("raster:x0=28,x1=44,y0=12,y1=28,spacing=4,speed=45,z=10,press_depth=0,"
+# breast seed 0: the benign tumor is at phantom (6.0, -10.1) = platform (36.0, 19.9). This
+# 32 mm sweep around it is mostly healthy tissue, as the detector's background estimate needs,
+# and takes seconds rather than the full sweep. It first holds 3 s pressed at its start point,
+# so a cold start (first-use kernel compiles in a fresh checkout) is over before the tumor.
+SMALL_RASTER = ("raster:x0=20,x1=52,y0=4,y1=36,spacing=4,speed=45,z=10,press_depth=0,"
                 "press_every=0,pause=3,loop=0")
 
 
 def test_demo_headless_json_reports_the_felt_tumor() -> None:
     done = subprocess.run(
         [sys.executable, "-m", "shared.cli", "demo", "--headless", "--json", "--scene", "breast",
-         "--seed", "0", "--motion", SMALL_RASTER, "--duration", "30"],
+         "--seed", "0", "--motion", SMALL_RASTER, "--duration", "45"],
         capture_output=True, text=True, timeout=scaled(120.0), check=False)
     assert done.returncode == 0, done.stderr[-3000:]
     report = json.loads(done.stdout)
