@@ -1,7 +1,7 @@
 """Link emulator accuracy: measured one-way delay vs the model, and its CPU cost.
 
 For every named profile, a 1 kHz stream of 32-byte records goes through
-``relay_server.linkemu.LinkEmulator`` to a sink on 127.0.0.1. Reported side by side from one
+``lab.linkemu.LinkEmulator`` to a sink on 127.0.0.1. Reported side by side from one
 run: the added one-way delay the sink measured (p50/p99/max) next to the profile's nominal
 delay, the emulator's timing error (measured minus the delay the model planned for each
 chunk), the chunks the loss model delayed, and the proxy's CPU time per chunk.
@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from relay_server.linkemu import PROFILES, LinkEmulator
+from lab.linkemu import PROFILES, LinkEmulator
 from shared.report import emit, format_table
 
 RECORD = struct.Struct(">Id24x")  # seq, send time; 32 bytes

@@ -29,9 +29,9 @@ if str(ROOT) not in sys.path:
 import numpy as np  # noqa: E402
 
 from benchmarks.gelsight_labels import DEFAULT_DATA, split_labels  # noqa: E402
+from lab.reconstruction_metrics import evaluate_press  # noqa: E402
 from remote_site.reconstruction.calibration import Calibration, fit_calibration  # noqa: E402
 from remote_site.reconstruction.frames import load_rgb  # noqa: E402
-from remote_site.reconstruction.metrics import evaluate_press  # noqa: E402
 from remote_site.reconstruction.reconstructor import (  # noqa: E402
     ReconstructionSettings,
     Reconstructor,
@@ -347,7 +347,7 @@ def _summary_rows(per_press: list[dict]) -> list[dict]:
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    from remote_site.reconstruction.bench_cli import configure_parser
+    from lab.bench.reconstruction import configure_parser
 
     configure_parser(parser)
     sys.exit(main(parser.parse_args()))

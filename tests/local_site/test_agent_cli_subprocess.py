@@ -18,7 +18,7 @@ from tests.relay_server.relay_clients import SECRET
 from tests.support import free_tcp_port, scaled
 
 EXE = shutil.which("teletouch")
-CMD = [EXE] if EXE else [sys.executable, "-m", "shared.cli"]
+CMD = [EXE] if EXE else [sys.executable, "-m", "lab.cli"]
 
 
 async def _stop(proc: asyncio.subprocess.Process) -> int:

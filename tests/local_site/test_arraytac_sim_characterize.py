@@ -9,6 +9,7 @@ import math
 import numpy as np
 import pytest
 
+from lab.cli import main
 from local_site.arraytac_sim import PlantParams
 from local_site.arraytac_sim.characterize import (
     PAPER_FIGURES,
@@ -23,7 +24,6 @@ from local_site.arraytac_sim.design import (
     refine_for_sampling,
     second_order_bandwidth_ratio,
 )
-from shared.cli import main
 
 
 def test_step_response_matches_paper() -> None:

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from lab.scoring import score_findings
 from local_site.palpation import (
     DetectionConfig,
     Finding,
@@ -22,7 +23,6 @@ from local_site.palpation import (
     build_maps,
     load_recording,
 )
-from local_site.palpation.scoring import score_findings
 from remote_site.phantom.phantom import PixelGrid
 from remote_site.phantom.scenes import make_scene
 from shared.errors import InputDataError

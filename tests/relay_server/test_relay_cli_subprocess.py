@@ -21,7 +21,7 @@ from tests.support import free_tcp_port, scaled
 async def test_teletouch_relay_subprocess() -> None:
     port, tcp_port = free_tcp_port(), free_tcp_port()
     exe = shutil.which("teletouch")
-    cmd = [exe] if exe else [sys.executable, "-m", "shared.cli"]
+    cmd = [exe] if exe else [sys.executable, "-m", "lab.cli"]
     env = dict(os.environ, TELETOUCH_RELAY_SECRET="cli-secret")
     proc = await asyncio.create_subprocess_exec(
         *cmd, "relay", "--host", "127.0.0.1", "--port", str(port), "--tcp-port", str(tcp_port),

@@ -34,7 +34,7 @@ async def _stop(proc: asyncio.subprocess.Process) -> None:
 
 async def test_relay_and_remote_as_processes(tmp_path: Path) -> None:
     exe = shutil.which("teletouch")
-    cmd = [exe] if exe else [sys.executable, "-m", "shared.cli"]
+    cmd = [exe] if exe else [sys.executable, "-m", "lab.cli"]
     port, tcp_port = free_tcp_port(), free_tcp_port()
     env = dict(os.environ, TELETOUCH_RELAY_SECRET="sub-secret")
     token = derive_token("sub-secret", SESSION)

@@ -10,13 +10,13 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
+from lab.cli import main as cli_main
 from remote_site.reconstruction.calibration import CALIBRATION_VERSION, Calibration, fit_calibration
 from remote_site.reconstruction.frames import load_rgb, validate_frame
 from remote_site.reconstruction.labels import BallLabel, read_labels_csv
 from remote_site.reconstruction.reconstructor import ReconstructionSettings, Reconstructor
 from remote_site.sensor.photometric import PhotometricModel
 from remote_site.sensor.sim_calibration import SIM_CALIBRATION_PATH, simulated_calibration
-from shared.cli import main as cli_main
 from shared.errors import CalibrationError, ConfigError, InputDataError
 
 

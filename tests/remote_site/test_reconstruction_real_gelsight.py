@@ -13,12 +13,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from lab.cli import main as cli_main
+from lab.reconstruction_metrics import evaluate_press
 from remote_site.reconstruction.calibration import Calibration, fit_calibration
 from remote_site.reconstruction.frames import load_rgb
 from remote_site.reconstruction.labels import BallLabel, labels_from_npz, write_labels_csv
-from remote_site.reconstruction.metrics import evaluate_press
 from remote_site.reconstruction.reconstructor import Reconstructor
-from shared.cli import main as cli_main
 
 DATA = Path("/work/shared/data/gelsight/gsmini_ball_9.47mm")
 EXAMPLES = Path("/work/shared/data/gelsight/gsmini_examples")

@@ -12,8 +12,8 @@ import dataclasses
 import numpy as np
 import pytest
 
+from lab.reconstruction_metrics import evaluate_press
 from remote_site.reconstruction.calibration import fit_calibration
-from remote_site.reconstruction.metrics import evaluate_press
 from remote_site.reconstruction.reconstructor import Reconstructor
 from remote_site.sensor.photometric import PhotometricModel, PhotometricSettings
 from remote_site.sensor.shapes import ball_depth_mm, cone_depth_mm, flat_punch_depth_mm

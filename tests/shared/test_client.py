@@ -523,7 +523,7 @@ async def test_real_relay_restart_is_survived() -> None:
 
 
 async def test_real_relay_through_the_link_emulator() -> None:
-    from relay_server.linkemu import LinkEmulator, LinkProfile
+    from lab.linkemu import LinkEmulator, LinkProfile
 
     profile = LinkProfile(name="test", delay_ms=10.0, jitter_ms=0.5)
     async with (_real_relay() as relay,

@@ -15,11 +15,11 @@ from typing import Any
 
 import pytest
 
+from lab.cli import COMMANDS
+from lab.linkemu_cli import LinkSettings
 from local_site.render.renderer import RendererConfig
 from relay_server.config import RelayConfig
-from relay_server.linkemu_cli import LinkSettings
 from remote_site.arm.safety import SafetyConfig
-from shared.cli import COMMANDS
 from shared.client import StationLinkConfig
 from shared.config import resolve_config
 from shared.workspace import WorkspaceConfig

@@ -1,6 +1,6 @@
 """Palpation benchmark: many random phantoms per scene and link profile, through the real system.
 
-Each run is a full :func:`~local_site.demo.orchestrator.run_demo` session (separate relay,
+Each run is a full :func:`~lab.demo.orchestrator.run_demo` session (separate relay,
 link-emulator and station processes over real sockets). Per scene and link profile it
 reports detection rate, localization error (mean, p95), type accuracy, Kendall's tau and
 the motion-to-touch latency (p50/p99 of the per-run p50/p99, and the worst p99).
@@ -122,7 +122,7 @@ def _write(out: Path, runs: list[dict[str, Any]], command: str, elapsed_s: float
 
 def run(args: argparse.Namespace) -> int:
     """Run the benchmark."""
-    from local_site.demo.orchestrator import DemoConfig, DemoError, run_demo
+    from lab.demo.orchestrator import DemoConfig, DemoError, run_demo
     from shared.report import emit, emit_json, format_table
 
     n = 2 if args.quick else args.runs

@@ -80,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
     """Run the demo and print its report."""
     from pathlib import Path
 
-    from local_site.demo.orchestrator import DEFAULT_MOTION, DemoConfig, run_demo
+    from lab.demo.orchestrator import DEFAULT_MOTION, DemoConfig, run_demo
     from shared.report import StatusLine, emit, emit_json
 
     config = DemoConfig(scene=args.scene, seed=args.seed, link=args.link,

@@ -6,7 +6,7 @@ import json
 import subprocess
 import sys
 
-from local_site.demo.cli import _relay_line, format_report
+from lab.demo.cli import _relay_line, format_report
 from tests.support import scaled
 
 # breast seed 0: the benign tumor is at phantom (6.0, -10.1) = platform (36.0, 19.9). This
@@ -19,7 +19,7 @@ SMALL_RASTER = ("raster:x0=20,x1=52,y0=4,y1=36,spacing=4,speed=45,z=10,press_dep
 
 def test_demo_headless_json_reports_the_felt_tumor() -> None:
     done = subprocess.run(
-        [sys.executable, "-m", "shared.cli", "demo", "--headless", "--json", "--scene", "breast",
+        [sys.executable, "-m", "lab.cli", "demo", "--headless", "--json", "--scene", "breast",
          "--seed", "0", "--motion", SMALL_RASTER, "--duration", "45"],
         capture_output=True, text=True, timeout=scaled(120.0), check=False)
     assert done.returncode == 0, done.stderr[-3000:]

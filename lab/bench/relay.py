@@ -2,7 +2,7 @@
 
 How it measures (one run, one machine):
 
-* The relay runs as a separate process (``python -m shared.cli relay``) so the load
+* The relay runs as a separate process (``python -m lab.cli relay``) so the load
   generator (this process, one asyncio loop) does not share its event loop.
 * **Latency.** N sessions, each with a local and a remote WebSocket station sending
   ``platform_state`` / ``arm_state`` at ``rate_hz`` per direction on a drift-free
@@ -41,7 +41,7 @@ def run(args: argparse.Namespace) -> int:
     """Run the benchmark and report."""
     import asyncio
 
-    from relay_server.bench_impl import report, run_benchmark_async
+    from lab.bench.relay_impl import report, run_benchmark_async
 
     duration_s = args.duration_s or (1.5 if args.quick else 5.0)
     results = asyncio.run(run_benchmark_async(
@@ -67,9 +67,9 @@ def _argv(args: argparse.Namespace) -> str:
 
 
 def run_benchmark(**kwargs: object) -> dict[str, object]:
-    """Programmatic entry (see :func:`relay_server.bench_impl.run_benchmark_async`)."""
+    """Programmatic entry (see :func:`lab.bench.relay_impl.run_benchmark_async`)."""
     import asyncio
 
-    from relay_server.bench_impl import run_benchmark_async
+    from lab.bench.relay_impl import run_benchmark_async
 
     return asyncio.run(run_benchmark_async(**kwargs))  # type: ignore[arg-type]

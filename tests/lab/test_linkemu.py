@@ -14,7 +14,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from relay_server.linkemu import (
+from lab.linkemu import (
     PROFILES,
     DirectionStats,
     LinkEmulator,
@@ -297,7 +297,7 @@ async def test_unreachable_target_closes_the_client() -> None:
 
 
 def test_cli_runs_for_a_duration_and_prints_json(capsys: pytest.CaptureFixture[str]) -> None:
-    from shared.cli import main
+    from lab.cli import main
 
     port = free_tcp_port()
     code = main(["link", "--listen", f"127.0.0.1:{port}", "--target", "127.0.0.1:1",

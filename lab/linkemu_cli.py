@@ -135,7 +135,7 @@ def run(args: argparse.Namespace) -> int:
     import asyncio
     import contextlib
 
-    from relay_server.linkemu import LinkEmulator, get_profile
+    from lab.linkemu import LinkEmulator, get_profile
     from shared.config import resolve_config
     from shared.report import StatusLine, emit, emit_json
 

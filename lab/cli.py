@@ -7,6 +7,9 @@ Each subcommand lives in the package it belongs to, as a module exposing::
 
 CLI modules are kept import-light (heavy imports happen inside ``run``) so that
 ``teletouch --help`` stays fast. ``teletouch bench NAME`` dispatches the same way.
+
+The dispatcher sits in the lab, the top layer of the import graph, because it names every
+package: the stations and the relay import only ``shared``, and ``shared`` imports none of them.
 """
 
 from __future__ import annotations
@@ -25,21 +28,21 @@ __all__ = ["BENCHMARKS", "COMMANDS", "build_parser", "main"]
 #: subcommand -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "relay": ("relay_server.cli", "run the cloud relay (WebSocket + TCP) with latency accounting"),
-    "display": ("local_site.display_cli", "ArrayTac display tools (characterize the simulator)"),
-    "link": ("relay_server.linkemu_cli", "emulate a long-haul link (delay, jitter, loss, outages)"),
+    "display": ("lab.display_cli", "ArrayTac display tools (characterize the simulator)"),
+    "link": ("lab.linkemu_cli", "emulate a long-haul link (delay, jitter, loss, outages)"),
     "sensor": ("remote_site.sensor_cli", "calibrate a GelSight-style sensor; reconstruct heights"),
     "local": ("local_site.cli", "run the local haptic station (platform, ArrayTac, relay link)"),
     "remote": ("remote_site.cli", "run the remote palpation station (arm, sensor, tactile frames)"),
-    "demo": ("local_site.demo.cli", "run relay + both stations on this machine and report"),
+    "demo": ("lab.demo.cli", "run relay + both stations on this machine and report"),
 }
 
 #: ``teletouch bench NAME`` -> (module, one-line help)
 BENCHMARKS: dict[str, tuple[str, str]] = {
-    "relay": ("relay_server.bench", "relay added latency vs direct WebSocket, and throughput"),
-    "palpation": ("local_site.demo.bench", "tumor detection/localization/typing/ranking over "
+    "relay": ("lab.bench.relay", "relay added latency vs direct WebSocket, and throughput"),
+    "palpation": ("lab.bench.palpation", "tumor detection/localization/typing/ranking over "
                   "random phantoms and link profiles, with motion-to-touch latency"),
-    "reconstruction": ("remote_site.reconstruction.bench_cli", "height-map time vs error"),
-    "stiffness": ("remote_site.stiffness.bench_cli", "stiffness error vs noise/samples, time"),
+    "reconstruction": ("lab.bench.reconstruction", "height-map time vs error"),
+    "stiffness": ("lab.bench.stiffness", "stiffness error vs noise/samples, time"),
 }
 
 log = logging.getLogger(__name__)

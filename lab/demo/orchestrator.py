@@ -35,9 +35,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from lab.linkemu import get_profile
+from lab.scoring import score_findings
 from local_site.palpation import analyse_recording, load_recording
-from local_site.palpation.scoring import score_findings
-from relay_server.linkemu import get_profile
 from shared.errors import ConfigError, DeviceError, TeleTouchError
 
 __all__ = ["DemoConfig", "DemoError", "run_demo"]
@@ -120,7 +120,7 @@ class _Processes:
 
     def start(self, name: str, *args: str) -> _Child:
         log_path = self.workdir / f"{name}.log"
-        cmd = [self.python, "-m", "shared.cli", "--log-level", "INFO", *args]
+        cmd = [self.python, "-m", "lab.cli", "--log-level", "INFO", *args]
         log.debug("starting %s: %s", name, " ".join(cmd))
         with open(log_path, "wb") as out:
             proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT,
@@ -228,7 +228,7 @@ def run_demo(config: DemoConfig,
                     "--tcp-port", str(tcp_port))
         _wait_for(lambda: relay_status(ws_port) is not None, "the relay's /status", 20, procs)
         token = subprocess.run(
-            [config.python, "-m", "shared.cli", "relay", "--print-token", SESSION],
+            [config.python, "-m", "lab.cli", "relay", "--print-token", SESSION],
             check=True, capture_output=True, text=True, timeout=30, env=env).stdout.strip()
         local_port = remote_port = ws_port
         if config.link:

@@ -23,7 +23,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the benchmark and print the Markdown report."""
-    from remote_site.stiffness.benchmark import BenchSettings, run_benchmark
+    from lab.bench.stiffness_impl import BenchSettings, run_benchmark
     from shared.report import emit
 
     trials = args.trials or (20 if args.quick else 100)

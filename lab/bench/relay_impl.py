@@ -1,4 +1,4 @@
-"""Implementation of ``teletouch bench relay`` (see :mod:`relay_server.bench`)."""
+"""Implementation of ``teletouch bench relay`` (see :mod:`lab.bench.relay`)."""
 
 from __future__ import annotations
 
@@ -53,7 +53,7 @@ async def relay_process(**settings: Any) -> AsyncIterator[tuple[int, int, int]]:
     for key, value in settings.items():
         env[f"TELETOUCH_RELAY_{key.upper()}"] = str(value)
     proc = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "shared.cli", "--log-level", "WARNING", "relay",
+        sys.executable, "-m", "lab.cli", "--log-level", "WARNING", "relay",
         "--host", "127.0.0.1", "--port", str(port), "--tcp-port", str(tcp_port),
         "--allow-any-token", env=env, stdout=asyncio.subprocess.DEVNULL,
         stderr=asyncio.subprocess.DEVNULL)

@@ -1,0 +1,1 @@
+"""``teletouch bench NAME``: benchmarks of the product, results in ``benchmarks/results/``."""
