@@ -16,7 +16,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from remote_site.stiffness import bench_cli
+from lab.bench import stiffness as bench_cli
 
 
 def main() -> int:
