@@ -29,6 +29,7 @@ import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import Any, TypedDict
 
 import numpy as np
 
@@ -41,10 +42,20 @@ from shared.report import emit, format_table
 RESULTS = Path(__file__).resolve().parent / "results"
 ROOT = Path(__file__).resolve().parents[1]
 CHUNK_S = 0.01
+
+
+class _EngineOptions(TypedDict, total=False):
+    """Keyword arguments of :class:`ArrayTacPlant` that select the engine and its path."""
+
+    engine: str
+    fast_path: bool
+
+
 #: (label, ArrayTacPlant options): the compiled engine and the numpy reference's two paths
-ENGINES = [("numba", {"engine": "numba"}),
-           ("numpy block+step", {"engine": "numpy", "fast_path": True}),
-           ("numpy per-step", {"engine": "numpy", "fast_path": False})]
+ENGINES: list[tuple[str, _EngineOptions]] = [
+    ("numba", {"engine": "numba"}),
+    ("numpy block+step", {"engine": "numpy", "fast_path": True}),
+    ("numpy per-step", {"engine": "numpy", "fast_path": False})]
 
 
 def _scene(plant: ArrayTacPlant, duration_s: float) -> tuple[np.ndarray, float]:
@@ -56,9 +67,10 @@ def _scene(plant: ArrayTacPlant, duration_s: float) -> tuple[np.ndarray, float]:
     f = np.zeros(n)
     f[:2] = (0.5, 1.0)
     force = np.where(np.arange(n) % 4 == 0, 2.5, 0.0)
-    events = {0: (h0, k, 0 * f, 0.0), int(0.3 / CHUNK_S): (h1, k, 0 * f, 0.0),
-              int(0.5 / CHUNK_S): (h1, k, 0 * f, force), int(0.7 / CHUNK_S): (h1, k, f, force),
-              int(0.9 / CHUNK_S): (h0, k, f, 0.0)}
+    events: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, float | np.ndarray]] = {
+        0: (h0, k, 0 * f, 0.0), int(0.3 / CHUNK_S): (h1, k, 0 * f, 0.0),
+        int(0.5 / CHUNK_S): (h1, k, 0 * f, force), int(0.7 / CHUNK_S): (h1, k, f, force),
+        int(0.9 / CHUNK_S): (h0, k, f, 0.0)}
     n_chunks = round(duration_s / CHUNK_S)
     out = np.empty((n_chunks, n))
     t0 = time.perf_counter()
@@ -72,7 +84,7 @@ def _scene(plant: ArrayTacPlant, duration_s: float) -> tuple[np.ndarray, float]:
     return out, time.perf_counter() - t0
 
 
-def integrator_table(quick: bool) -> list[dict[str, object]]:
+def integrator_table(quick: bool) -> list[dict[str, Any]]:
     params = replace(PlantParams(), hall_noise_v_rms=0.0)
     duration = 1.0
     ref, _ = _scene(ArrayTacPlant(params, integrator="rk4", substeps=64, fast_path=False,
@@ -96,7 +108,7 @@ def integrator_table(quick: bool) -> list[dict[str, object]]:
     return rows
 
 
-def speed_table(quick: bool) -> list[dict[str, object]]:
+def speed_table(quick: bool) -> list[dict[str, Any]]:
     """Shape rendering (targets nudged every chunk) at several advance chunk sizes, 16 units.
 
     ``free``: no load, friction 0. ``load+friction``: 2.5 N on every 4th pin (beyond the yield
@@ -115,7 +127,7 @@ def speed_table(quick: bool) -> list[dict[str, object]]:
             for label, options in ENGINES[:2]:
                 compiled = options["engine"] == "numba"
                 duration = (1.0 if quick else 3.0) if compiled else (0.3 if quick else 1.0)
-                plant = ArrayTacPlant(**options)  # type: ignore[arg-type]
+                plant = ArrayTacPlant(**options)
                 plant.set_targets(base, 0.8, ff)
                 plant.set_finger_force(fn)
                 plant.advance(0.3)
@@ -138,7 +150,7 @@ def speed_table(quick: bool) -> list[dict[str, object]]:
     return rows
 
 
-def first_call_table() -> list[dict[str, object]]:
+def first_call_table() -> list[dict[str, Any]]:
     """Import + first plant + first advance in a fresh interpreter (compile vs cache load)."""
     code = ("import time; t0 = time.perf_counter(); "
             "from local_site.arraytac_sim import ArrayTacPlant; t1 = time.perf_counter(); "
@@ -158,14 +170,14 @@ def first_call_table() -> list[dict[str, object]]:
     return rows
 
 
-def friction_skip_table(quick: bool) -> list[dict[str, object]]:
+def friction_skip_table(quick: bool) -> list[dict[str, Any]]:
     """f == 0 everywhere (no sinusoid evaluated) vs a vanishing f > 0 (sinusoid evaluated)."""
     duration = 0.5 if quick else 2.0
     rows = []
     for engine, options in ENGINES:
         walls = {}
         for label, f in (("f = 0 (skipped)", 0.0), ("f = 1e-6 (synthesised)", 1e-6)):
-            plant = ArrayTacPlant(**options)  # type: ignore[arg-type]
+            plant = ArrayTacPlant(**options)
             plant.set_targets(np.linspace(1, 4, 16), 1.0, f)
             plant.advance(0.3)
             best = np.inf
@@ -182,7 +194,8 @@ def friction_skip_table(quick: bool) -> list[dict[str, object]]:
     return rows
 
 
-def characterize_rows(quick: bool) -> tuple[list[dict[str, object]], list[dict[str, object]]]:
+def characterize_rows(quick: bool) -> tuple[list[dict[str, Any]], list[dict[str, Any]],
+                                             dict[str, Any]]:
     result = characterize(quick=quick).to_dict()
     rows = []
     tolerances = {"open_loop_bandwidth_hz": 0.1, "closed_loop_bandwidth_hz": 0.1,
@@ -213,11 +226,11 @@ def characterize_rows(quick: bool) -> tuple[list[dict[str, object]], list[dict[s
               "region_b_slope_n_per_mm": c["region_b_stiffness_n_per_mm"],
               "secant_at_3N_n_per_mm": c["secant_stiffness_n_per_mm"]}
              for c in result["force_displacement"]]
-    return rows, stiff, result  # type: ignore[return-value]
+    return rows, stiff, result
 
 
-def _plot(path: Path, integ: list[dict[str, object]], speed: list[dict[str, object]],
-          result: dict) -> None:  # type: ignore[type-arg]
+def _plot(path: Path, integ: list[dict[str, Any]], speed: list[dict[str, Any]],
+          result: dict[str, Any]) -> None:
     import matplotlib
 
     matplotlib.use("Agg")

@@ -29,6 +29,7 @@ import platform as host_platform
 import sys
 import time
 from pathlib import Path
+from typing import Any, TypedDict
 
 import numpy as np
 
@@ -43,8 +44,19 @@ from shared.report import emit, format_table  # noqa: E402
 RESULTS = ROOT / "benchmarks" / "results"
 PERIOD_S = 0.001
 RADIUS_MM = 20.0
+
+
+class _SweepOverrides(TypedDict):
+    """Fields of :class:`RasterSweepParams` that :data:`SWEEP` overrides."""
+
+    origin_mm: tuple[float, float]
+    size_mm: tuple[float, float]
+    line_spacing_mm: float
+
+
 #: the scripted operator sweeps over the hemisphere from its first line on, with presses
-SWEEP = {"origin_mm": (20.0, 25.0), "size_mm": (30.0, 20.0), "line_spacing_mm": 4.0}
+SWEEP: _SweepOverrides = {"origin_mm": (20.0, 25.0), "size_mm": (30.0, 20.0),
+                          "line_spacing_mm": 4.0}
 PIN_OFFSETS_MM = np.stack(np.meshgrid((np.arange(4) - 1.5) * 1.7, (np.arange(4) - 1.5) * 1.7),
                           axis=-1).reshape(16, 2)  # (x, y) per pin, row-major
 
@@ -59,7 +71,7 @@ def _pct(values: np.ndarray, q: float) -> float:
     return float(np.percentile(values, q)) if values.size else float("nan")
 
 
-def measure_platform(duration_s: float) -> dict[str, object]:
+def measure_platform(duration_s: float) -> dict[str, Any]:
     """Tight read_state loop on the simulated platform."""
     motion = RasterSweep()
     with open_platform("sim", motion=motion) as plat:
@@ -82,11 +94,15 @@ def measure_platform(duration_s: float) -> dict[str, object]:
             "samples_missed": stats.samples_missed, "periods_ms": periods_ms}
 
 
-def measure_display(spec: str, duration_s: float) -> dict[str, object]:
+def measure_display(spec: str, duration_s: float) -> dict[str, Any]:
     """1 kHz command loop: platform -> hemisphere -> 16 pins -> sim backend."""
     with open_platform("sim", motion=RasterSweep(**SWEEP)) as plat, \
             open_display(spec, keepalive_interval_s=0.02, watchdog_ms=100) as disp:
-        starts, costs_sent, costs_skipped, track_err, quant_err = [], [], [], [], []
+        starts: list[float] = []
+        costs_sent: list[float] = []
+        costs_skipped: list[float] = []
+        track_err: list[float] = []
+        quant_err: list[float] = []
         next_t = time.perf_counter()
         t_end = next_t + duration_s
         while True:
@@ -138,7 +154,7 @@ def measure_display(spec: str, duration_s: float) -> dict[str, object]:
             "periods_ms": periods_ms}
 
 
-def _plot(path: Path, plat: dict[str, object], loops: list[dict[str, object]]) -> None:
+def _plot(path: Path, plat: dict[str, Any], loops: list[dict[str, Any]]) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -146,9 +162,9 @@ def _plot(path: Path, plat: dict[str, object], loops: list[dict[str, object]]) -
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     bins = np.linspace(0.0, 3.0, 121)
     for loop in loops:
-        axes[0].hist(np.clip(loop["periods_ms"], 0, 3), bins=bins, histtype="step",  # type: ignore[arg-type]
+        axes[0].hist(np.clip(loop["periods_ms"], 0, 3), bins=bins, histtype="step",
                      label=f"display loop, {loop['backend']}")
-    axes[0].hist(np.clip(plat["periods_ms"], 0, 3), bins=bins, histtype="step",  # type: ignore[arg-type]
+    axes[0].hist(np.clip(plat["periods_ms"], 0, 3), bins=bins, histtype="step",
                  label="platform samples read")
     axes[0].axvline(2.0, color="grey", ls=":", label="500 Hz (paper's refresh)")
     axes[0].set_yscale("log")
@@ -158,9 +174,9 @@ def _plot(path: Path, plat: dict[str, object], loops: list[dict[str, object]]) -
     axes[0].set_title("loop and read periods (1 ms target)")
     names = [str(loop["backend"]) for loop in loops]
     x = np.arange(len(names))
-    axes[1].bar(x - 0.2, [loop["cost_sent_p50_ms"] * 1e3 for loop in loops], 0.4,  # type: ignore[operator]
+    axes[1].bar(x - 0.2, [loop["cost_sent_p50_ms"] * 1e3 for loop in loops], 0.4,
                 label="sent (p50)")
-    axes[1].bar(x + 0.2, [loop["cost_skip_p50_ms"] * 1e3 for loop in loops], 0.4,  # type: ignore[operator]
+    axes[1].bar(x + 0.2, [loop["cost_skip_p50_ms"] * 1e3 for loop in loops], 0.4,
                 label="skipped, unchanged (p50)")
     axes[1].set_xticks(x, names)
     axes[1].set_ylabel("send_command cost (us)")
@@ -197,7 +213,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = [{k: v for k, v in loop.items() if k != "periods_ms"} for loop in loops]
     command = "python benchmarks/bench_display_loop.py" + (" --quick" if args.quick else "") \
         + (f" --duration {args.duration:g}" if args.duration else "")
-    sent_vs_skip = [loop["cost_sent_p50_ms"] / loop["cost_skip_p50_ms"] for loop in loops]  # type: ignore[operator]
+    sent_vs_skip = [loop["cost_sent_p50_ms"] / loop["cost_skip_p50_ms"] for loop in loops]
     text = "\n".join([
         "# Local-station drive loop: ArrayTac command rate and jitter, platform read rate",
         "",

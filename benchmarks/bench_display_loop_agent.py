@@ -105,7 +105,8 @@ async def measure(render_loop: str, duration_s: float,
 
     ``switch_interval_s`` overrides the agent's GIL switch interval (None: its default).
     """
-    extra = {} if switch_interval_s is None else {"gil_switch_interval_s": switch_interval_s}
+    extra: dict[str, Any] = ({} if switch_interval_s is None
+                             else {"gil_switch_interval_s": switch_interval_s})
     relay = RelayServer(RelayConfig(host="127.0.0.1", port=0, tcp_port=0,
                                     allow_any_token=True, stats_interval_s=0.5))
     await relay.start()

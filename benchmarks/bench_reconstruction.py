@@ -21,6 +21,7 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
@@ -33,6 +34,7 @@ from lab.reconstruction_metrics import evaluate_press  # noqa: E402
 from remote_site.reconstruction.calibration import Calibration, fit_calibration  # noqa: E402
 from remote_site.reconstruction.frames import load_rgb  # noqa: E402
 from remote_site.reconstruction.reconstructor import (  # noqa: E402
+    HeightMap,
     ReconstructionSettings,
     Reconstructor,
 )
@@ -74,8 +76,10 @@ def real_data(data: Path, repeats: int) -> tuple[list[dict], list[dict], list[di
     presses = [(frames[lb.image], lb) for lb in train]
     calibs: dict[str, Calibration] = {}
     fit_s: dict[str, float] = {}
-    for name, kw in [("lut (baseline)", {"model": "lut"}), ("poly3", {"degree": 3}),
-                     ("poly5 (default)", {"degree": 5})]:
+    fit_options: list[tuple[str, dict[str, Any]]] = [
+        ("lut (baseline)", {"model": "lut"}), ("poly3", {"degree": 3}),
+        ("poly5 (default)", {"degree": 5})]
+    for name, kw in fit_options:
         t0 = time.perf_counter()
         calibs[name] = fit_calibration(background, presses, 2 * BALL_RADIUS_MM, MM_PER_PX, **kw)
         fit_s[name] = time.perf_counter() - t0
@@ -88,6 +92,7 @@ def real_data(data: Path, repeats: int) -> tuple[list[dict], list[dict], list[di
                                       MM_PER_PX, BALL_RADIUS_MM) for lb in test]
             t50, t90 = _time_per_frame_ms(rec.height_map, test_frames, repeats)
             radius = np.array([m.radius_error(BALL_RADIUS_MM) for m in metrics])
+            row: dict[str, Any]
             row = {"model": name, "solver": solver,
                    "abs_rmse_mm": float(np.mean([m.abs_rmse_mm for m in metrics])),
                    "offset_mm": float(np.mean([m.offset_mm for m in metrics])),
@@ -126,8 +131,11 @@ def real_data(data: Path, repeats: int) -> tuple[list[dict], list[dict], list[di
                     if f <= 4:
                         shapes.append(evaluate_press(hm.height_mm, hm.mm_per_px, lb, MM_PER_PX,
                                                      BALL_RADIUS_MM).shape_rmse_mm)
-                t50, t90 = _time_per_frame_ms(lambda fr, p=pitch, r=rec: r.height_map(
-                    fr, out_pitch_mm=p), test_frames, repeats)
+                def at_pitch(fr: np.ndarray, p: float | None = pitch,
+                             r: Reconstructor = rec) -> HeightMap:
+                    return r.height_map(fr, out_pitch_mm=p)
+
+                t50, t90 = _time_per_frame_ms(at_pitch, test_frames, repeats)
                 sweep.append({"data": "real", "model": name, "pool": pool, "output": label,
                               "grid": f"{240 // f}x{320 // f}",
                               "rmse_vs_pooled_full_mm": float(np.mean(diffs)),
@@ -206,8 +214,11 @@ def simulated(repeats: int) -> list[dict]:
                     inside = t > 0.02
                     if inside.sum() > 3:
                         shapes.append(np.sqrt(np.mean((e[inside] - e[inside].mean()) ** 2)))
-                t50, t90 = _time_per_frame_ms(lambda fr, pp=pitch, r=rec: r.height_map(
-                    fr, out_pitch_mm=pp), frames, repeats)
+                def at_pitch(fr: np.ndarray, pp: float | None = pitch,
+                             r: Reconstructor = rec) -> HeightMap:
+                    return r.height_map(fr, out_pitch_mm=pp)
+
+                t50, t90 = _time_per_frame_ms(at_pitch, frames, repeats)
                 out.append({"data": "sim", "model": name, "solver": solver, "output": label,
                             "grid": f"{rows_hw[0] // f}x{rows_hw[1] // f}",
                             "rmse_vs_surface_mm": float(np.mean(errs)),

@@ -192,7 +192,7 @@ def run_resolution(frames: list[tuple[np.ndarray, np.ndarray]], repeats: int
     """Part 2: reconstruction time against height error per pooling factor."""
     rec = Reconstructor(simulated_calibration())
     full = [rec.height_map(rgb).height_mm for _, rgb in frames]
-    rows = []
+    rows: list[dict[str, Any]] = []
     for factor in (1, 2, 4, 8, 16):
         pitch = 0.0634 * factor
         times, err_truth, err_full = [], [], []

@@ -104,9 +104,9 @@ def bench_rate(n: int) -> list[dict]:
                                  "stiffness_k": np.full((32, 32), 0.8)})
     update_us = []
     for _ in range(max(50, n // 100)):
-        t0 = time.perf_counter_ns()
+        t0_ns = time.perf_counter_ns()
         frame_scene.update(frame)
-        update_us.append((time.perf_counter_ns() - t0) / 1e3)
+        update_us.append((time.perf_counter_ns() - t0_ns) / 1e3)
     hemi = make_shape_scene("hemisphere", radius_mm=4.5, shore00=40.0)
     scenes: list[tuple[str, SceneSource]] = [
         ("virtual hemisphere", hemi),
@@ -204,11 +204,14 @@ def bench_skips(n: int) -> tuple[list[dict], list[dict]]:
                      "us_per_call_no_skip": timings[False], "us_per_call_skip": timings[True],
                      "speedup": timings[False] / timings[True]})
     friction_rows = []
+    plant_cls: type[ArrayTacPlant] | None
     try:
         from local_site.arraytac_sim.plant import ArrayTacPlant
     except ImportError as err:  # the simulator is another developer's module
         log.warning("ArrayTac simulator not importable (%s): zero-friction saving not timed", err)
-        ArrayTacPlant = None
+        plant_cls = None
+    else:
+        plant_cls = ArrayTacPlant
     g = np.linspace(-10.0, 10.0, 25)
     grid_positions = np.stack(np.meshgrid(g, g), axis=-1).reshape(-1, 2)
     for label, friction in (("cone, friction 0", 0.0), ("cone, friction 0.3 on the shape", 0.3)):
@@ -219,11 +222,11 @@ def bench_skips(n: int) -> tuple[list[dict], list[dict]]:
         friction_rows.append({"case": f"{label}: window positions on a 25x25 grid over "
                                       "+-10 mm", "no_vibration_pct": 100.0 * inactive,
                               "sim_ms_per_1ms_period": float("nan")})
-    if ArrayTacPlant is not None:
+    if plant_cls is not None:
         periods = max(100, n // 20)
         for label, friction in (("simulator, flat 2.5 mm, all f = 0", 0.0),
                                 ("simulator, flat 2.5 mm, all f = 0.3", 0.3)):
-            plant = ArrayTacPlant()
+            plant = plant_cls()
             plant.set_targets(np.full(16, 2.5), np.full(16, 0.8), np.full(16, friction))
             plant.advance(0.05)  # settle
             t0 = time.perf_counter()
@@ -245,7 +248,7 @@ def plot(order_rows: list[dict], rate_rows: list[dict], path: Path) -> None:
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
     ax = axes[0]
     styles = {0: ":", 1: "-", 3: "--"}
-    colours = {}
+    colours: dict[str, str] = {}
     for row in order_rows:
         colours.setdefault(row["reference"], f"C{len(colours)}")
     for ref, colour in colours.items():
