@@ -2,10 +2,15 @@
 
 Like python-can's interface table, each kind maps names to ``"module:Class"`` strings and
 imports the backend only when it is opened, so ``import local_site.devices`` stays cheap and a
-missing optional dependency only hurts the backend that needs it.
+missing optional dependency only hurts the backend that needs it. The tables are registered
+with the one loader, :func:`shared.devices.registry.load_backend` (kinds ``platform`` and
+``display``), which also finds backends a lab installs as entry points in the groups
+``teletouch.platform`` / ``teletouch.display``; such a name, or a ``"module:Class"`` path,
+is a spec too.
 
 Platform specs (:func:`open_platform`):
     ``sim``                      simulated encoder board on a pty, scripted raster operator
+    an entry-point name, ``package.module:Class``   that backend, no arguments
     ``serial:<url>``             explicit serial backend
     anything else                a pyserial device or URL: ``/dev/ttyUSB0``, ``COM3``,
                                  ``socket://host:port``, ``rfc2217://...``, ``loop://``
@@ -13,6 +18,7 @@ Platform specs (:func:`open_platform`):
 Display specs (:func:`open_display`):
     ``sim``                      emulated drive board on a fresh virtual CAN FD channel
     ``sim-serial``               emulated drive board on a pty, serial framing
+    an entry-point name, ``package.module:Class``   that backend, no arguments
     ``can://<interface>/<channel>``  any python-can interface, e.g. ``can://socketcan/can0``,
                                  ``can://virtual/bench``, ``can://pcan/PCAN_USBBUS1``
     ``socketcan:can0``           shorthand ``<interface>:<channel>`` for a python-can interface
@@ -22,17 +28,22 @@ Display specs (:func:`open_display`):
 
 from __future__ import annotations
 
-import importlib
 from typing import TYPE_CHECKING, Any
 
+from shared.devices.registry import (
+    is_backend_name,
+    is_class_path,
+    load_backend,
+    register_kind,
+)
 from shared.errors import ConfigError
 
 if TYPE_CHECKING:
     from local_site.display.base import ArrayTacDisplay
     from local_site.platform.base import XYZPlatform
 
-__all__ = ["DISPLAY_BACKENDS", "PLATFORM_BACKENDS", "load_backend", "open_display",
-           "open_platform", "parse_display_spec", "parse_platform_spec"]
+__all__ = ["DISPLAY_BACKENDS", "PLATFORM_BACKENDS", "open_display", "open_platform",
+           "parse_display_spec", "parse_platform_spec"]
 
 #: platform backend name -> "module:Class"
 PLATFORM_BACKENDS: dict[str, str] = {
@@ -53,22 +64,8 @@ _CAN_INTERFACES = ("socketcan", "virtual", "pcan", "kvaser", "vector", "ixxat", 
                    "gs_usb", "canalystii", "nican", "neovi", "etas", "udp_multicast")
 
 
-def load_backend(table: dict[str, str], name: str) -> type:
-    """Import ``module:Class`` of backend ``name`` from ``table``.
-
-    Raises:
-        ConfigError: unknown name, or the module/class cannot be imported.
-    """
-    try:
-        target = table[name]
-    except KeyError as err:
-        raise ConfigError(f"unknown backend {name!r}; known: {sorted(table)}") from err
-    module_name, _, class_name = target.partition(":")
-    try:
-        return getattr(importlib.import_module(module_name), class_name)
-    except (ImportError, AttributeError) as err:
-        raise ConfigError(f"backend {name!r} ({target}) cannot be loaded: {err}") from err
-
+register_kind("platform", "local_site.platform.base:XYZPlatform", PLATFORM_BACKENDS)
+register_kind("display", "local_site.display.base:ArrayTacDisplay", DISPLAY_BACKENDS)
 
 def _is_serial_url(spec: str) -> bool:
     return (spec.startswith(_SERIAL_SCHEMES) or spec.startswith("/dev/")
@@ -84,10 +81,10 @@ def parse_platform_spec(spec: str) -> tuple[str, dict[str, Any]]:
     spec = spec.strip()
     if not spec:
         raise ConfigError("empty platform spec; use 'sim' or a serial device/URL")
-    if spec in PLATFORM_BACKENDS and spec != "serial":
-        return spec, {}
     if spec.startswith("serial:"):
-        spec = spec[len("serial:"):]
+        return "serial", {"url": spec[len("serial:"):]}
+    if spec != "serial" and (is_backend_name("platform", spec) or is_class_path(spec)):
+        return spec, {}
     return "serial", {"url": spec}
 
 
@@ -98,7 +95,7 @@ def parse_display_spec(spec: str) -> tuple[str, dict[str, Any]]:
         ConfigError: a spec that names no backend.
     """
     spec = spec.strip()
-    if spec in ("sim", "sim-serial"):
+    if spec not in ("can", "serial") and is_backend_name("display", spec):
         return spec, {}
     if spec.startswith("can://"):
         interface, _, channel = spec[len("can://"):].partition("/")
@@ -112,6 +109,8 @@ def parse_display_spec(spec: str) -> tuple[str, dict[str, Any]]:
     interface, sep, channel = spec.partition(":")
     if sep and interface in _CAN_INTERFACES and channel:
         return "can", {"interface": interface, "channel": channel}
+    if is_class_path(spec):
+        return spec, {}
     raise ConfigError(f"display spec {spec!r} names no backend: use sim, sim-serial, "
                       f"can://<interface>/<channel>, <interface>:<channel>, or a serial "
                       f"device/URL")
@@ -127,10 +126,10 @@ def open_platform(spec: str, *, connect: bool = True, **options: Any) -> XYZPlat
 
     Raises:
         ConfigError: bad spec or options.
-        DeviceInitError: the device cannot be opened.
+        DeviceInitError: the backend cannot be imported or the device cannot be opened.
     """
     name, args = parse_platform_spec(spec)
-    cls = load_backend(PLATFORM_BACKENDS, name)
+    cls = load_backend("platform", name)
     try:
         platform: XYZPlatform = cls(**args, **options)
     except TypeError as err:
@@ -153,10 +152,11 @@ def open_display(spec: str, *, connect: bool = True, **options: Any) -> ArrayTac
 
     Raises:
         ConfigError: bad spec or options.
-        DeviceInitError: the device cannot be opened or stays silent.
+        DeviceInitError: the backend cannot be imported, or the device cannot be opened or
+            stays silent.
     """
     name, args = parse_display_spec(spec)
-    cls = load_backend(DISPLAY_BACKENDS, name)
+    cls = load_backend("display", name)
     try:
         display: ArrayTacDisplay = cls(**args, **options)
     except TypeError as err:

@@ -2,7 +2,8 @@
 
 The platform's encoder board and the ArrayTac serial link both open a port by URL
 (``serial.serial_for_url``: a device, ``loop://``, ``socket://``, a pty), read it from a
-daemon thread that hands every chunk to a callback, and close it so that a blocked read
+daemon thread (:class:`~shared.devices.reader.ReaderThread`) that hands every chunk to a
+callback, and close it so that a blocked read
 returns at once. Only their byte protocols differ, and those stay in the drivers.
 """
 
@@ -10,11 +11,11 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import threading
 from collections.abc import Callable
 
 import serial
 
+from shared.devices import ReaderThread
 from shared.errors import DeviceInitError, DeviceOperationError
 
 __all__ = ["SerialPortReader"]
@@ -55,8 +56,7 @@ class SerialPortReader:
         self._write_timeout_s = write_timeout_s
         self._given_port = port
         self._port: serial.SerialBase | None = None
-        self._thread: threading.Thread | None = None
-        self._stop = threading.Event()
+        self._reader: ReaderThread | None = None
 
     @property
     def is_open(self) -> bool:
@@ -87,21 +87,21 @@ class SerialPortReader:
                 raise DeviceInitError(f"{self.name}: cannot open: {err}") from err
         port.timeout = self._timeout_s
         self._port = port
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._read_loop, args=(port,),
-                                        name=self._thread_name, daemon=True)
-        self._thread.start()
+        reader = ReaderThread(self._thread_name, lambda: self._read_once(port, reader))
+        self._reader = reader
+        reader.start()
 
     def close(self) -> None:
         """Stop the reader thread and close the port (a given port is left open)."""
-        self._stop.set()
         port, self._port = self._port, None
-        thread, self._thread = self._thread, None
+        reader, self._reader = self._reader, None
+        if reader is not None:
+            reader.request_stop()
         if port is not None and hasattr(port, "cancel_read"):
             with contextlib.suppress(serial.SerialException, OSError):
                 port.cancel_read()
-        if thread is not None:
-            thread.join(timeout=2.0)
+        if reader is not None:
+            reader.join(timeout_s=2.0)
         if port is not None and port is not self._given_port:
             try:
                 port.close()
@@ -122,14 +122,14 @@ class SerialPortReader:
         except (serial.SerialException, OSError) as err:
             raise DeviceOperationError(f"{self.name}: write failed: {err}") from err
 
-    def _read_loop(self, port: serial.SerialBase) -> None:
-        while not self._stop.is_set():
-            try:
-                waiting = port.in_waiting
-                data = port.read(waiting if waiting else 1)
-            except _READ_ERRORS as err:  # Type/AttributeError: pyserial after a close
-                if not self._stop.is_set():
-                    self._on_error(err)
-                return
-            if data:
-                self._on_data(data)
+    def _read_once(self, port: serial.SerialBase, reader: ReaderThread) -> bool:
+        try:
+            waiting = port.in_waiting
+            data = port.read(waiting if waiting else 1)
+        except _READ_ERRORS as err:  # Type/AttributeError: pyserial after a close
+            if not reader.stopping:
+                self._on_error(err)
+            return False
+        if data:
+            self._on_data(data)
+        return True

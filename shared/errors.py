@@ -21,7 +21,8 @@ one family and still see the cause::
     │   ├── RoleTakenError                a second `local`/`remote` in one session
     │   └── HandshakeTimeoutError         no hello within the deadline
     ├── DeviceError                       hardware or simulated device trouble
-    │   ├── DeviceInitError               could not open / configure the device
+    │   ├── DeviceInitError               could not load the backend (missing dependency),
+    │   │                                 open or configure the device: connect() phase
     │   ├── DeviceOperationError          an operation failed on an open device
     │   ├── DeviceTimeoutError            the device did not answer in time
     │   └── DeviceNotConnectedError       used before connect() or after disconnect()
@@ -29,6 +30,13 @@ one family and still see the cause::
     └── NumericalError                    a numerical stage got input it cannot handle
         ├── CalibrationError              missing, mismatched or degenerate calibration
         └── InputDataError                frames/labels of the wrong size, saturated, NaN
+
+Device errors are sorted by phase in one place, :class:`shared.devices.base.Device`:
+vendor errors raised while connecting become ``DeviceInitError``, while operating
+``DeviceOperationError`` (``TimeoutError`` -> ``DeviceTimeoutError``); the backend loader
+(:mod:`shared.devices.registry`) raises ``ConfigError`` for an unknown backend name or a
+class of the wrong kind, and ``DeviceInitError`` when the backend's module cannot be
+imported.
 
 Protocol errors carry a stable machine-readable ``code`` (sent in ``error``
 messages) and the WebSocket close code the relay uses when it drops the peer.

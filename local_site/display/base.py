@@ -2,8 +2,9 @@
 
 :class:`ArrayTacDisplay` owns validation (shape, NaN/Inf), clamping and quantisation to the
 wire codes, the "unchanged pins are not re-sent" rule with its keepalive, sequence numbers,
-the safe state, feedback decoding and bookkeeping. A backend implements ``_open()``,
-``_close()`` and ``_send_frame(arb_id, payload)``, and hands every frame it receives to
+the safe state, feedback decoding and bookkeeping; the lifecycle is
+:class:`~shared.devices.base.Device`'s. A backend implements ``_connect()``,
+``_disconnect()`` and ``_send_frame(arb_id, payload)``, and hands every frame it receives to
 :meth:`ArrayTacDisplay._on_frame` from its reader thread.
 
 Pin order: 16 pins, row-major on a 4 x 4 grid, ``index = row * 4 + col``; ``col`` grows along
@@ -16,14 +17,14 @@ from __future__ import annotations
 
 import logging
 import threading
-from abc import ABC, abstractmethod
+from abc import abstractmethod
 from dataclasses import dataclass
-from types import TracebackType
 from typing import Literal
 
 import numpy as np
 
 from local_site.display import frames as fr
+from shared.devices import Device
 from shared.errors import (
     ConfigError,
     DeviceInitError,
@@ -134,7 +135,7 @@ class DisplayStats:
     bad_frames: int = 0
 
 
-class ArrayTacDisplay(ABC):
+class ArrayTacDisplay(Device):
     """Base of every ArrayTac backend (CAN FD, serial, and their simulators).
 
     Args:
@@ -166,6 +167,7 @@ class ArrayTacDisplay(ABC):
     def __init__(self, *, keepalive_interval_s: float = 0.02, watchdog_ms: int = 100,
                  watchdog_mode: SafeMode = "flat", disconnect_mode: SafeMode | None = "flat",
                  connect_timeout_s: float = 2.0, require_feedback: bool = True) -> None:
+        super().__init__()
         if not 0 < watchdog_ms <= 0xFFFF:
             raise ConfigError(f"watchdog_ms must be in [1, 65535], got {watchdog_ms}")
         if not 0 < keepalive_interval_s < watchdog_ms / 1000.0:
@@ -180,36 +182,45 @@ class ArrayTacDisplay(ABC):
         self._disconnect_mode = disconnect_mode
         self._connect_timeout_s = connect_timeout_s
         self._require_feedback = require_feedback
-        self._connected = False
         self._send_lock = threading.Lock()
         self._cond = threading.Condition()
         self._reset_session()
 
     # ------------------------------------------------------------------ backend interface
-
-    @abstractmethod
-    def _open(self) -> None:
-        """Open the link and start passing received frames to :meth:`_on_frame`."""
-
-    @abstractmethod
-    def _close(self) -> None:
-        """Stop the reader and release the link (idempotent)."""
+    # _connect() / _disconnect(): see shared.devices.base.Device
 
     @abstractmethod
     def _send_frame(self, arb_id: int, payload: bytes) -> None:
         """Put one frame on the link; raise DeviceOperationError on failure."""
 
-    @property
-    def name(self) -> str:
-        """Human-readable device name for messages (backends override)."""
-        return type(self).__name__
+    # ------------------------------------------------------------------ lifecycle steps
+
+    def _before_connect(self) -> None:
+        self._reset_session()
+
+    def _after_connect(self) -> None:
+        """Wait for the board's first feedback frame (unless ``require_feedback`` is off)."""
+        if not self._require_feedback:
+            return
+        try:
+            self.read_feedback(timeout_s=self._connect_timeout_s)
+        except DeviceTimeoutError as err:
+            raise DeviceInitError(f"{self.name}: no feedback from the drive board within "
+                                  f"{self._connect_timeout_s:.2f} s") from err
+
+    def _before_disconnect(self) -> None:
+        """Send the disconnect safe state, best effort."""
+        if self._disconnect_mode is not None:
+            try:
+                self.safe_state(self._disconnect_mode)
+            except DeviceOperationError as err:
+                log.warning("%s: safe state on disconnect failed: %s", self.name, err)
+
+    def _after_disconnect(self) -> None:
+        with self._cond:
+            self._cond.notify_all()
 
     # ------------------------------------------------------------------ lifecycle
-
-    @property
-    def is_connected(self) -> bool:
-        """True between a successful ``connect()`` and ``disconnect()``."""
-        return self._connected
 
     def connect(self) -> None:
         """Open the link and (by default) wait for the board's first feedback frame.
@@ -217,44 +228,11 @@ class ArrayTacDisplay(ABC):
         Raises:
             DeviceInitError: the link cannot be opened or the board stays silent.
         """
-        if self._connected:
-            return
-        self._reset_session()
-        try:
-            self._open()
-        except DeviceInitError:
-            raise
-        except Exception as err:  # vendor errors of any backend: wrap, keep the cause
-            raise DeviceInitError(f"{self.name}: cannot open: {err}") from err
-        self._connected = True
-        if self._require_feedback:
-            try:
-                self.read_feedback(timeout_s=self._connect_timeout_s)
-            except DeviceTimeoutError as err:
-                self.disconnect()
-                raise DeviceInitError(f"{self.name}: no feedback from the drive board within "
-                                      f"{self._connect_timeout_s:.2f} s") from err
-        log.info("%s connected", self.name)
+        super().connect()
 
     def disconnect(self) -> None:
         """Send the disconnect safe state (best effort), stop and close (idempotent)."""
-        if self._connected and self._disconnect_mode is not None:
-            try:
-                self.safe_state(self._disconnect_mode)
-            except DeviceOperationError as err:
-                log.warning("%s: safe state on disconnect failed: %s", self.name, err)
-        self._connected = False
-        self._close()
-        with self._cond:
-            self._cond.notify_all()
-
-    def __enter__(self) -> ArrayTacDisplay:
-        self.connect()
-        return self
-
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
-        self.disconnect()
+        super().disconnect()
 
     # ------------------------------------------------------------------ commands
 

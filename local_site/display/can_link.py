@@ -8,13 +8,13 @@ IDs, bit-rate switching on; a reader thread receives feedback (filtered to its I
 from __future__ import annotations
 
 import logging
-import threading
 from typing import Any
 
 import can
 
 from local_site.display import frames as fr
 from local_site.display.base import ArrayTacDisplay
+from shared.devices import ReaderThread
 from shared.errors import DeviceInitError, DeviceOperationError
 
 __all__ = ["CanArrayTacDisplay"]
@@ -50,14 +50,13 @@ class CanArrayTacDisplay(ArrayTacDisplay):
             self._bus_options.pop("data_bitrate")
         self._send_timeout_s = send_timeout_s
         self._bus: can.BusABC | None = None
-        self._thread: threading.Thread | None = None
-        self._stop = threading.Event()
+        self._reader: ReaderThread | None = None
 
     @property
     def name(self) -> str:
         return f"ArrayTac on {self.interface}:{self.channel}"
 
-    def _open(self) -> None:
+    def _connect(self) -> None:
         try:
             self._bus = can.Bus(interface=self.interface, channel=self.channel, fd=True,
                                 can_filters=[{"can_id": fr.ARB_ID_FEEDBACK, "can_mask": 0x7FF,
@@ -65,16 +64,16 @@ class CanArrayTacDisplay(ArrayTacDisplay):
                                 **self._bus_options)
         except (can.CanError, OSError, ValueError, ImportError) as err:
             raise DeviceInitError(f"{self.name}: cannot open the CAN bus: {err}") from err
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._reader, name=f"arraytac-rx {self.channel}",
-                                        daemon=True)
-        self._thread.start()
+        bus = self._bus
+        reader = ReaderThread(f"arraytac-rx {self.channel}",
+                              lambda: self._receive_once(bus, reader))
+        self._reader = reader
+        reader.start()
 
-    def _close(self) -> None:
-        self._stop.set()
-        thread, self._thread = self._thread, None
-        if thread is not None:
-            thread.join(timeout=2.0)
+    def _disconnect(self) -> None:
+        reader, self._reader = self._reader, None
+        if reader is not None:
+            reader.stop(timeout_s=2.0)
         bus, self._bus = self._bus, None
         if bus is not None:
             bus.shutdown()
@@ -91,14 +90,13 @@ class CanArrayTacDisplay(ArrayTacDisplay):
             raise DeviceOperationError(f"{self.name}: send of ID 0x{arb_id:03x} failed: "
                                        f"{err}") from err
 
-    def _reader(self) -> None:
-        bus = self._bus
-        while bus is not None and not self._stop.is_set():
-            try:
-                msg = bus.recv(timeout=0.05)
-            except can.CanError as err:
-                if not self._stop.is_set():
-                    log.warning("%s: receive failed: %s", self.name, err)
-                return
-            if msg is not None and not msg.is_error_frame:
-                self._on_frame(msg.arbitration_id, bytes(msg.data))
+    def _receive_once(self, bus: can.BusABC, reader: ReaderThread) -> bool:
+        try:
+            msg = bus.recv(timeout=0.05)
+        except can.CanError as err:
+            if not reader.stopping:
+                log.warning("%s: receive failed: %s", self.name, err)
+            return False
+        if msg is not None and not msg.is_error_frame:
+            self._on_frame(msg.arbitration_id, bytes(msg.data))
+        return True

@@ -42,11 +42,11 @@ class SerialArrayTacDisplay(ArrayTacDisplay):
     def name(self) -> str:
         return f"ArrayTac on serial {self.url}"
 
-    def _open(self) -> None:
+    def _connect(self) -> None:
         self.decoder = LinkFrameDecoder()
         self._link.open(self.url, self.name)
 
-    def _close(self) -> None:
+    def _disconnect(self) -> None:
         self._link.close()
 
     def _send_frame(self, arb_id: int, payload: bytes) -> None:

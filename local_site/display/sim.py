@@ -85,16 +85,16 @@ class SimCanArrayTacDisplay(CanArrayTacDisplay):
         """The running emulator (None when disconnected)."""
         return self._board.emulator
 
-    def _open(self) -> None:
+    def _connect(self) -> None:
         self._board.start(CanFirmwareTransport(self.channel, "virtual"))
         try:
-            super()._open()
+            super()._connect()
         except DeviceInitError:
             self._board.stop()
             raise
 
-    def _close(self) -> None:
-        super()._close()
+    def _disconnect(self) -> None:
+        super()._disconnect()
         self._board.stop()
 
 
@@ -116,7 +116,7 @@ class SimSerialArrayTacDisplay(SerialArrayTacDisplay):
         """The running emulator (None when disconnected)."""
         return self._board.emulator
 
-    def _open(self) -> None:
+    def _connect(self) -> None:
         try:
             master_fd, slave_fd = os.openpty()
         except OSError as err:
@@ -128,7 +128,7 @@ class SimSerialArrayTacDisplay(SerialArrayTacDisplay):
             self.url = os.ttyname(slave_fd)
             self._board.start(PtyFirmwareTransport(master_fd))  # owns master_fd from here
             master_fd = -1
-            super()._open()
+            super()._connect()
         except (OSError, DeviceInitError) as err:
             self._board.stop()
             if master_fd >= 0:
@@ -140,6 +140,6 @@ class SimSerialArrayTacDisplay(SerialArrayTacDisplay):
         finally:
             os.close(slave_fd)
 
-    def _close(self) -> None:
-        super()._close()
+    def _disconnect(self) -> None:
+        super()._disconnect()
         self._board.stop()

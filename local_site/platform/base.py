@@ -3,7 +3,9 @@
 :class:`XYZPlatform` owns everything that does not depend on how samples reach the host:
 counts -> mm, zeroing, workspace clamping, 32-bit counter and board-clock unwrapping,
 velocity, the board-clock -> host-clock mapping, waiting with timeouts, and the link-health
-checks. A backend implements ``_open()`` / ``_close()`` and, from its own reader thread,
+checks; the lifecycle (``connect``/``disconnect``, context manager, errors by phase) is
+:class:`~shared.devices.base.Device`'s. A backend implements ``_connect()`` /
+``_disconnect()`` and, from its own reader thread,
 hands each raw :class:`~local_site.platform.protocol.EncoderSample` to
 :meth:`XYZPlatform._publish` (or a link failure to :meth:`XYZPlatform._link_failed`).
 
@@ -19,12 +21,11 @@ from __future__ import annotations
 import collections
 import logging
 import threading
-from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from types import TracebackType
 
 from local_site.platform.kinematics import PlatformGeometry, WrapUnwrapper
 from local_site.platform.protocol import BoardInfo, DecoderStats, EncoderSample
+from shared.devices import Device
 from shared.errors import (
     ConfigError,
     DeviceInitError,
@@ -88,7 +89,7 @@ class PlatformStats:
     reads: int = 0
 
 
-class XYZPlatform(ABC):
+class XYZPlatform(Device):
     """Base of every XYZ platform backend (serial encoder board, simulator).
 
     Args:
@@ -122,37 +123,48 @@ class XYZPlatform(ABC):
         self._velocity_window_us = int(velocity_window_s * 1e6)
         self._stale_timeout_s = stale_timeout_s
         self._connect_timeout_s = connect_timeout_s
+        super().__init__()
         self._cond = threading.Condition()
-        self._connected = False
         self._zero_counts = (0, 0, 0)
         self._zero_at_mm: Vec3 = (0.0, 0.0, 0.0)
         self._reset_track()
 
     # ------------------------------------------------------------------ backend interface
-
-    @abstractmethod
-    def _open(self) -> None:
-        """Open the link and start delivering samples to :meth:`_publish`."""
-
-    @abstractmethod
-    def _close(self) -> None:
-        """Stop delivering samples and release the link (idempotent)."""
+    # _connect() / _disconnect(): see shared.devices.base.Device
 
     def _decoder_stats(self) -> DecoderStats:
         """Byte-level counters of the backend (override when there is a byte stream)."""
         return DecoderStats()
 
-    @property
-    def name(self) -> str:
-        """Human-readable device name for messages (backends override)."""
-        return type(self).__name__
+    # ------------------------------------------------------------------ lifecycle steps
+
+    def _before_connect(self) -> None:
+        self._reset_track()
+
+    def _after_connect(self) -> None:
+        """Wait for the first valid sample (or a link failure) within connect_timeout_s."""
+        deadline = monotonic_s() + self._connect_timeout_s
+        with self._cond:
+            while self._latest is None and self._link_error is None:
+                remaining = deadline - monotonic_s()
+                if remaining <= 0:
+                    break
+                self._cond.wait(remaining)
+            latest, error = self._latest, self._link_error
+        if latest is None:
+            reason = f"link failed: {error}" if error else \
+                f"no valid frame within {self._connect_timeout_s:.2f} s"
+            raise DeviceInitError(f"{self.name}: {reason}") from error
+        log.info("%s: board info: %s", self.name, self._board_info)
+
+    def _is_healthy(self) -> bool:
+        return self._link_error is None
+
+    def _after_disconnect(self) -> None:
+        with self._cond:
+            self._cond.notify_all()
 
     # ------------------------------------------------------------------ public API
-
-    @property
-    def is_connected(self) -> bool:
-        """True between a successful ``connect()`` and ``disconnect()``."""
-        return self._connected
 
     @property
     def board_info(self) -> BoardInfo | None:
@@ -169,47 +181,7 @@ class XYZPlatform(ABC):
             DeviceInitError: the device cannot be opened or sends no valid sample within
                 ``connect_timeout_s``.
         """
-        if self._connected and self._link_error is None:
-            return
-        if self._connected:
-            self.disconnect()
-        self._reset_track()
-        try:
-            self._open()
-        except DeviceInitError:
-            raise
-        except Exception as err:  # vendor errors of any backend: wrap, keep the cause
-            raise DeviceInitError(f"{self.name}: cannot open: {err}") from err
-        self._connected = True
-        deadline = monotonic_s() + self._connect_timeout_s
-        with self._cond:
-            while self._latest is None and self._link_error is None:
-                remaining = deadline - monotonic_s()
-                if remaining <= 0:
-                    break
-                self._cond.wait(remaining)
-            latest, error = self._latest, self._link_error
-        if latest is None:
-            self.disconnect()
-            reason = f"link failed: {error}" if error else \
-                f"no valid frame within {self._connect_timeout_s:.2f} s"
-            raise DeviceInitError(f"{self.name}: {reason}") from error
-        log.info("%s connected (board info: %s)", self.name, self._board_info)
-
-    def disconnect(self) -> None:
-        """Stop reading and close the device (idempotent)."""
-        self._connected = False
-        self._close()
-        with self._cond:
-            self._cond.notify_all()
-
-    def __enter__(self) -> XYZPlatform:
-        self.connect()
-        return self
-
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
-        self.disconnect()
+        super().connect()
 
     def latest(self) -> PlatformSample | None:
         """The newest sample without waiting (None before the first one)."""

@@ -51,11 +51,11 @@ class SerialEncoderPlatform(XYZPlatform):
     def name(self) -> str:
         return f"encoder board at {self.url}"
 
-    def _open(self) -> None:
+    def _connect(self) -> None:
         self._decoder = EncoderFrameDecoder()
         self._link.open(self.url, self.name)
 
-    def _close(self) -> None:
+    def _disconnect(self) -> None:
         self._link.close()
 
     def _decoder_stats(self) -> DecoderStats:

@@ -2,7 +2,7 @@
 serial driver.
 
 Nothing here special-cases the application: :class:`SimulatedPlatform` *is* a
-:class:`~local_site.platform.serial_board.SerialEncoderPlatform` whose ``_open()`` first
+:class:`~local_site.platform.serial_board.SerialEncoderPlatform` whose ``_connect()`` first
 creates a pseudo-terminal, starts a :class:`~local_site.platform.sim_board.SimulatedEncoderBoard`
 writing to the master side, then opens the slave side by its path with
 ``serial.serial_for_url`` exactly as it would open ``/dev/ttyUSB0``.
@@ -52,7 +52,7 @@ class SimulatedPlatform(SerialEncoderPlatform):
     def name(self) -> str:
         return f"simulated encoder board at {self.url}"
 
-    def _open(self) -> None:
+    def _connect(self) -> None:
         try:
             master_fd, slave_fd = os.openpty()
         except OSError as err:
@@ -71,7 +71,7 @@ class SimulatedPlatform(SerialEncoderPlatform):
             sample_rate_hz=self._sample_rate_hz, initial_counts=self._initial_counts,
             start_board_t_us=self._start_board_t_us)
         try:
-            super()._open()
+            super()._connect()
         except DeviceInitError:
             self._close_pty()
             raise
@@ -79,10 +79,10 @@ class SimulatedPlatform(SerialEncoderPlatform):
             os.close(slave_fd)  # the driver holds its own descriptor of the slave
         self.board.start()
 
-    def _close(self) -> None:
+    def _disconnect(self) -> None:
         if self.board is not None:
             self.board.stop()
-        super()._close()
+        super()._disconnect()
         self._close_pty()
 
     def _close_pty(self) -> None:

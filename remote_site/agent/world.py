@@ -32,7 +32,7 @@ from remote_site.phantom.phantom import Phantom, PixelGrid
 from remote_site.phantom.scenes import make_scene
 from remote_site.reconstruction.calibration import Calibration
 from remote_site.sensor.base import TactileSensor
-from remote_site.sensor.registry import SENSORS, open_sensor
+from remote_site.sensor.registry import SENSORS, open_sensor, sensor_class
 from remote_site.stiffness.shore import ShoreConversion
 from shared.errors import CalibrationError, ConfigError
 from shared.workspace import WorkspaceMap
@@ -115,9 +115,7 @@ def open_world_sensor(name: str, world: SimWorld | None, arm: Arm, **options: An
     """
     holder: list[TactileSensor] = []
     if world is not None:
-        target = SENSORS.get(name)
-        module_name, _, class_name = (target or "").partition(":")
-        cls = getattr(importlib.import_module(module_name), class_name) if target else None
+        cls = sensor_class(name) if name in SENSORS else None
         if cls is None or not _accepts(cls, "depth_provider"):
             raise ConfigError(f"sensor {name!r} is a real camera and cannot render a simulated "
                               "phantom; drop --phantom or use --sensor sim")

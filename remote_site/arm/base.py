@@ -3,22 +3,23 @@
 Positions are the pad centre in phantom coordinates (mm, see
 :mod:`remote_site.phantom.phantom`); force is the measured normal force on the pad (N,
 positive when pressing). Public methods validate, clamp to the arm's limits and return
-what was actually applied; backends override ``_connect``, ``_disconnect``, ``_move_to``,
-``_read``, ``_stop``.
+what was actually applied; the lifecycle (``connect``/``disconnect``, context manager,
+errors by phase, halting before disconnect) is :class:`~shared.devices.base.Device`'s.
+Backends override ``_connect``, ``_disconnect``, ``_move_to``, ``_read``, ``_stop``.
 """
 
 from __future__ import annotations
 
 import logging
 import math
-from abc import ABC, abstractmethod
+from abc import abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass
-from types import TracebackType
 
 import numpy as np
 
-from shared.errors import ConfigError, DeviceNotConnectedError, InputDataError
+from shared.devices import Device
+from shared.errors import ConfigError, InputDataError
 from shared.protocol.messages import ARM_STATUSES, ArmState
 
 __all__ = ["Arm", "ArmLimits", "ArmReading", "Vec3", "as_vec3"]
@@ -102,7 +103,7 @@ class ArmReading:
                         force_n=float(self.force_n), status=self.status, source_seq=source_seq)
 
 
-class Arm(ABC):
+class Arm(Device):
     """Base class of every arm backend.
 
     Args:
@@ -110,50 +111,23 @@ class Arm(ABC):
     """
 
     def __init__(self, *, limits: ArmLimits | None = None) -> None:
+        super().__init__()
         self.limits = limits or ArmLimits()
-        self._connected = False
 
     # --------------------------------------------------------------- lifecycle
 
     @property
     def connected(self) -> bool:
-        """True between :meth:`connect` and :meth:`disconnect`."""
+        """True between :meth:`connect` and :meth:`disconnect` (same as ``is_connected``)."""
         return self._connected
 
-    def connect(self) -> None:
-        """Open the device (idempotent).
-
-        Raises:
-            DeviceInitError: the backend could not be opened.
-        """
-        if self._connected:
-            return
-        self._connect()
-        self._connected = True
-        log.info("%s connected", type(self).__name__)
-
-    def disconnect(self) -> None:
-        """Stop and close the device (idempotent)."""
-        if not self._connected:
-            return
-        try:
+    def _before_disconnect(self) -> None:
+        """Halt before the link is released."""
+        with self._operation("stop"):
             self._stop()
-        finally:
-            self._disconnect()
-            self._connected = False
-            log.info("%s disconnected", type(self).__name__)
-
-    def __enter__(self) -> Arm:
-        self.connect()
-        return self
-
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
-        self.disconnect()
 
     def _require(self) -> None:
-        if not self._connected:
-            raise DeviceNotConnectedError(f"{type(self).__name__} is not connected")
+        self._require_connected()
 
     # --------------------------------------------------------------- commands
 
@@ -166,7 +140,8 @@ class Arm(ABC):
         """
         self._require()
         applied = self.limits.clamp(as_vec3(target_mm))
-        self._move_to(applied)
+        with self._operation("move"):
+            self._move_to(applied)
         return applied
 
     set_target = move_to
@@ -178,15 +153,21 @@ class Arm(ABC):
             DeviceNotConnectedError: not connected.
         """
         self._require()
-        reading = self._read()
+        with self._operation("state read"):
+            reading = self._read()
         if reading.status not in ARM_STATUSES:
             reading = reading.with_status("fault")
         return reading
 
     def stop(self) -> None:
-        """Halt as fast as the limits allow and hold position."""
+        """Halt as fast as the limits allow and hold position.
+
+        Raises:
+            DeviceNotConnectedError: not connected.
+        """
         self._require()
-        self._stop()
+        with self._operation("stop"):
+            self._stop()
 
     def home(self) -> Vec3:
         """Move to the home pose; returns it."""
@@ -194,11 +175,7 @@ class Arm(ABC):
 
     # --------------------------------------------------------------- backend hooks
 
-    @abstractmethod
-    def _connect(self) -> None: ...
-
-    @abstractmethod
-    def _disconnect(self) -> None: ...
+    # _connect() / _disconnect(): see shared.devices.base.Device
 
     @abstractmethod
     def _move_to(self, target_mm: Vec3) -> None: ...

@@ -10,6 +10,6 @@ Backends are imported lazily through :data:`~remote_site.sensor.registry.SENSORS
 """
 
 from remote_site.sensor.base import SensorFrame, TactileSensor
-from remote_site.sensor.registry import SENSORS, open_sensor
+from remote_site.sensor.registry import SENSORS, open_sensor, sensor_class
 
-__all__ = ["SENSORS", "SensorFrame", "TactileSensor", "open_sensor"]
+__all__ = ["SENSORS", "SensorFrame", "TactileSensor", "open_sensor", "sensor_class"]

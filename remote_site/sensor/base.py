@@ -1,7 +1,9 @@
 """One base class for every visuotactile sensor source (camera, simulator, ...).
 
-The public methods do the state checks, timeouts and validation; backends implement three
-private methods (python-can / lerobot habit)::
+The lifecycle (``connect``/``disconnect``, context manager, errors by phase) is
+:class:`~shared.devices.base.Device`'s; the public methods here do the state checks,
+timeouts and validation, and backends implement three private methods (python-can /
+lerobot habit)::
 
     _connect() -> None            open the device (raise DeviceInitError)
     _disconnect() -> None         release it (must not raise)
@@ -15,13 +17,13 @@ an old image.
 from __future__ import annotations
 
 import logging
-from abc import ABC, abstractmethod
+from abc import abstractmethod
 from dataclasses import dataclass
-from types import TracebackType
 
 import numpy as np
 
-from shared.errors import DeviceNotConnectedError, DeviceOperationError, DeviceTimeoutError
+from shared.devices import Device
+from shared.errors import DeviceOperationError, DeviceTimeoutError
 from shared.timebase import now_us
 
 __all__ = ["SensorFrame", "TactileSensor"]
@@ -44,7 +46,7 @@ class SensorFrame:
     seq: int
 
 
-class TactileSensor(ABC):
+class TactileSensor(Device):
     """Abstract visuotactile sensor source.
 
     Args:
@@ -53,43 +55,13 @@ class TactileSensor(ABC):
     """
 
     def __init__(self, shape_hw: tuple[int, int], mm_per_px: float) -> None:
+        super().__init__()
         self.shape_hw = (int(shape_hw[0]), int(shape_hw[1]))
         self.mm_per_px = float(mm_per_px)
-        self._connected = False
 
-    @property
-    def is_connected(self) -> bool:
-        """True between :meth:`connect` and :meth:`disconnect`."""
-        return self._connected
-
-    def connect(self) -> None:
-        """Open the sensor (idempotent).
-
-        Raises:
-            DeviceInitError: the backend could not open the device.
-        """
-        if self._connected:
-            return
-        self._connect()
-        self._connected = True
-        log.info("%s connected (%dx%d, %.4f mm/px)", type(self).__name__, self.shape_hw[1],
-                 self.shape_hw[0], self.mm_per_px)
-
-    def disconnect(self) -> None:
-        """Release the sensor (idempotent, never raises for an already closed sensor)."""
-        if not self._connected:
-            return
-        self._connected = False
-        self._disconnect()
-        log.info("%s disconnected", type(self).__name__)
-
-    def __enter__(self) -> TactileSensor:
-        self.connect()
-        return self
-
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
-        self.disconnect()
+    def _after_connect(self) -> None:
+        log.info("%s: %dx%d frames, %.4f mm/px", self.name, self.shape_hw[1], self.shape_hw[0],
+                 self.mm_per_px)
 
     def read_latest(self, max_age_ms: float = 100.0) -> SensorFrame:
         """Return the newest frame, if it is at most ``max_age_ms`` old.
@@ -99,28 +71,20 @@ class TactileSensor(ABC):
             DeviceTimeoutError: no frame yet, or the newest one is too old.
             DeviceOperationError: the backend delivered a frame of the wrong size or type.
         """
-        if not self._connected:
-            raise DeviceNotConnectedError(f"{type(self).__name__} is not connected")
-        frame = self._latest()
+        self._require_connected()
+        with self._operation("frame read"):
+            frame = self._latest()
         if frame is None:
-            raise DeviceTimeoutError(f"{type(self).__name__}: no frame captured yet")
+            raise DeviceTimeoutError(f"{self.name}: no frame captured yet")
         age_ms = (now_us() - frame.timestamp_us) / 1000.0
         if age_ms > max_age_ms:
-            raise DeviceTimeoutError(f"{type(self).__name__}: newest frame is {age_ms:.0f} ms "
+            raise DeviceTimeoutError(f"{self.name}: newest frame is {age_ms:.0f} ms "
                                      f"old (max {max_age_ms:.0f} ms)")
         rgb = frame.rgb
         if rgb.dtype != np.uint8 or rgb.shape != (*self.shape_hw, 3):
-            raise DeviceOperationError(f"{type(self).__name__}: frame {rgb.shape} {rgb.dtype}, "
+            raise DeviceOperationError(f"{self.name}: frame {rgb.shape} {rgb.dtype}, "
                                        f"expected {(*self.shape_hw, 3)} uint8")
         return frame
-
-    @abstractmethod
-    def _connect(self) -> None:
-        """Open the device."""
-
-    @abstractmethod
-    def _disconnect(self) -> None:
-        """Release the device."""
 
     @abstractmethod
     def _latest(self) -> SensorFrame | None:

@@ -20,6 +20,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from remote_site.sensor.base import SensorFrame, TactileSensor
+from shared.devices import ReaderThread
 from shared.errors import DeviceInitError, DeviceTimeoutError
 from shared.timebase import now_us
 
@@ -82,14 +83,13 @@ class OpenCVCameraSensor(TactileSensor):
         self.first_frame_timeout_s = float(first_frame_timeout_s)
         self._factory = capture_factory
         self._capture: _Capture | None = None
-        self._thread: threading.Thread | None = None
-        self._stop = threading.Event()
+        self._reader: ReaderThread | None = None
         self._lock = threading.Lock()
         self._newest: SensorFrame | None = None
         self._seq = 0
         self.read_error: str | None = None
 
-    def _open(self) -> _Capture:
+    def _open_capture(self) -> _Capture:
         if self._factory is not None:
             return self._factory(self.source)
         import cv2
@@ -98,7 +98,7 @@ class OpenCVCameraSensor(TactileSensor):
 
     def _connect(self) -> None:
         try:
-            capture = self._open()
+            capture = self._open_capture()
         except Exception as err:  # vendor errors of any kind: wrap them
             raise DeviceInitError(f"cannot open camera {self.source!r}: {err}") from err
         if not capture.isOpened():
@@ -106,11 +106,10 @@ class OpenCVCameraSensor(TactileSensor):
             raise DeviceInitError(f"camera {self.source!r} did not open (unplugged, busy or a "
                                   "wrong URL?)")
         self._capture = capture
-        self._stop.clear()
         self._newest = None
         self.read_error = None
-        self._thread = threading.Thread(target=self._reader, name="tactile-camera", daemon=True)
-        self._thread.start()
+        self._reader = ReaderThread("tactile-camera", lambda: self._read_once(capture))
+        self._reader.start()
         deadline = time.monotonic() + self.first_frame_timeout_s
         while self._newest is None and time.monotonic() < deadline:
             if self.read_error is not None:
@@ -122,28 +121,26 @@ class OpenCVCameraSensor(TactileSensor):
             raise DeviceTimeoutError(f"camera {self.source!r} delivered no frame within "
                                      f"{self.first_frame_timeout_s} s ({reason})")
 
-    def _reader(self) -> None:
-        capture = self._capture
-        while capture is not None and not self._stop.is_set():
-            ok, bgr = capture.read()
-            if not ok or bgr is None:
-                self.read_error = "capture.read() failed (end of stream or device lost)"
-                log.warning("camera %r: %s", self.source, self.read_error)
-                return
-            if bgr.ndim != 3 or bgr.shape[2] != 3 or bgr.dtype != np.uint8:
-                self.read_error = f"unexpected frame {bgr.shape} {bgr.dtype}"
-                log.warning("camera %r: %s", self.source, self.read_error)
-                return
-            rgb = crop_and_resize(bgr, self.shape_hw, self.crop_fraction)
-            with self._lock:
-                self._seq += 1
-                self._newest = SensorFrame(rgb=rgb, timestamp_us=now_us(), seq=self._seq)
+    def _read_once(self, capture: _Capture) -> bool:
+        ok, bgr = capture.read()
+        if not ok or bgr is None:
+            self.read_error = "capture.read() failed (end of stream or device lost)"
+            log.warning("camera %r: %s", self.source, self.read_error)
+            return False
+        if bgr.ndim != 3 or bgr.shape[2] != 3 or bgr.dtype != np.uint8:
+            self.read_error = f"unexpected frame {bgr.shape} {bgr.dtype}"
+            log.warning("camera %r: %s", self.source, self.read_error)
+            return False
+        rgb = crop_and_resize(bgr, self.shape_hw, self.crop_fraction)
+        with self._lock:
+            self._seq += 1
+            self._newest = SensorFrame(rgb=rgb, timestamp_us=now_us(), seq=self._seq)
+        return True
 
     def _disconnect(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
-            self._thread = None
+        reader, self._reader = self._reader, None
+        if reader is not None:
+            reader.stop(timeout_s=2.0)
         if self._capture is not None:
             self._capture.release()
             self._capture = None

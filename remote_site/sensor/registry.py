@@ -1,19 +1,22 @@
 """Sensor sources by name: ``"sim"``, ``"camera"``, or a camera given directly.
 
 ``SENSORS`` maps a name to ``"module:Class"``; the module is imported only when that
-sensor is opened. :func:`open_sensor` also accepts what a user types for a real camera: a
-device index (``"0"``), a URL (``"rtsp://..."``, ``"http://..."``) or a video file path.
+sensor is opened. The table is registered as device kind ``sensor`` with the one loader,
+:func:`shared.devices.registry.load_backend`, which also finds backends installed as entry
+points in the group ``teletouch.sensor`` and accepts a ``"module:Class"`` path.
+:func:`open_sensor` also accepts what a user types for a real camera: a device index
+(``"0"``), a URL (``"rtsp://..."``, ``"http://..."``) or a video file path.
 """
 
 from __future__ import annotations
 
-import importlib
 from typing import Any
 
 from remote_site.sensor.base import TactileSensor
+from shared.devices.registry import is_backend_name, is_class_path, load_backend, register_kind
 from shared.errors import ConfigError
 
-__all__ = ["SENSORS", "open_sensor"]
+__all__ = ["SENSORS", "open_sensor", "sensor_class"]
 
 SENSORS: dict[str, str] = {
     "sim": "remote_site.sensor.simulator:SimulatedSensor",
@@ -21,14 +24,17 @@ SENSORS: dict[str, str] = {
 }
 
 
-def _load(target: str) -> type[TactileSensor]:
-    module_name, _, class_name = target.partition(":")
-    try:
-        cls = getattr(importlib.import_module(module_name), class_name)
-    except (ImportError, AttributeError) as err:
-        raise ConfigError(f"sensor backend {target!r} cannot be imported: {err}") from err
-    if not (isinstance(cls, type) and issubclass(cls, TactileSensor)):
-        raise ConfigError(f"{target!r} is not a TactileSensor")
+register_kind("sensor", TactileSensor, SENSORS)
+
+
+def sensor_class(name: str) -> type[TactileSensor]:
+    """Resolve a backend name, an entry-point name or a ``"module:Class"`` string.
+
+    Raises:
+        ConfigError: unknown name, or not a :class:`TactileSensor` subclass.
+        DeviceInitError: the backend's module cannot be imported (missing extra).
+    """
+    cls: type[TactileSensor] = load_backend("sensor", name)
     return cls
 
 
@@ -36,8 +42,9 @@ def open_sensor(name_or_camera: str | int, **options: Any) -> TactileSensor:
     """Build (not connect) a sensor source.
 
     Args:
-        name_or_camera: a registered name (``"sim"``, ``"camera"``), a device index, a URL
-            or a video file path (the last three open the OpenCV camera source).
+        name_or_camera: a registered name (``"sim"``, ``"camera"``), an entry-point name, a
+            ``"module:Class"`` path, a device index, a URL or a video file path (the last
+            three open the OpenCV camera source).
         **options: keyword arguments of the backend's constructor.
 
     Returns:
@@ -45,13 +52,15 @@ def open_sensor(name_or_camera: str | int, **options: Any) -> TactileSensor:
 
     Raises:
         ConfigError: an unknown name, or options the backend does not accept.
+        DeviceInitError: the backend's module cannot be imported.
     """
-    if isinstance(name_or_camera, str) and name_or_camera in SENSORS:
-        cls = _load(SENSORS[name_or_camera])
+    if isinstance(name_or_camera, str) and (is_backend_name("sensor", name_or_camera)
+                                            or is_class_path(name_or_camera)):
+        cls = sensor_class(name_or_camera)
     elif isinstance(name_or_camera, int) or (isinstance(name_or_camera, str) and (
             name_or_camera.isdigit() or "://" in name_or_camera or "/" in name_or_camera
             or "." in name_or_camera)):
-        cls = _load(SENSORS["camera"])
+        cls = sensor_class("camera")
         options = {"source": name_or_camera, **options}
     else:
         raise ConfigError(f"unknown sensor {name_or_camera!r}; known: {sorted(SENSORS)} or a "
