@@ -14,7 +14,7 @@ examples:
       --session lab1 --arm sim --sensor sim --phantom breast --seed 3 \\
       --ground-truth truth.json --summary-json remote.json
   teletouch remote --relay tcp://relay:8766 --session lab1 --arm franka --sensor 0 \\
-      --calibration gsmini_calib.npz
+      --calibration gsmini_calib.npz --stiffness-calibration gsmini_stiffness.json
 """
 
 from __future__ import annotations
@@ -39,6 +39,11 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="write the phantom's ground truth here (needs --phantom)")
     parser.add_argument("--calibration", metavar="PATH.npz",
                         help="sensor calibration (default: the shipped one for --sensor sim)")
+    parser.add_argument("--stiffness-calibration", dest="stiffness_calibration",
+                        metavar="PATH.json",
+                        help="probe stiffness calibration: gel and N/mm -> Shore 00, made by "
+                             "'teletouch sensor calibrate-stiffness' (default: the shipped "
+                             "one for --sensor sim; required for a real sensor)")
     parser.add_argument("--frame-rate-hz", dest="frame_rate_hz", type=float,
                         help="tactile frames per second (default 60)")
     parser.add_argument("--patch-pitch-mm", dest="patch_pitch_mm", type=float,
@@ -66,6 +71,8 @@ def run(args: argparse.Namespace) -> int:
         arm=args.arm, sensor=args.sensor, phantom=args.phantom, seed=args.seed,
         ground_truth=Path(args.ground_truth) if args.ground_truth else None,
         calibration=Path(args.calibration) if args.calibration else None,
+        stiffness_calibration=(Path(args.stiffness_calibration)
+                               if args.stiffness_calibration else None),
         frame_rate_hz=args.frame_rate_hz, patch_pitch_mm=args.patch_pitch_mm,
         duration_s=args.duration, config_path=Path(args.config) if args.config else None)
     status = StatusLine()

@@ -6,8 +6,8 @@ simulator does the same with its own physics: each block is a plain
 :class:`~remote_site.phantom.phantom.Phantom` (no tumors) whose silicone has the modulus that
 reads that hardness on a type 00 durometer (:func:`durometer_modulus_kpa`), as thick as the
 scenes' silicone layer, pressed at its centre by the default :class:`SensorPad`; the rigid
-block has a modulus of 1 TPa. The records go through the calibration command; the result
-ships as package data, ``remote_site/phantom/data/sim_stiffness_calib.json`` (with the
+block has a modulus of 1e12 kPa (the gel then reads within 1e-8). The records go through the
+calibration command; the result ships as package data, ``remote_site/phantom/data/sim_stiffness_calib.json`` (with the
 presses beside it), regenerated with::
 
     python -m remote_site.phantom.reference_presses
@@ -40,7 +40,7 @@ SIM_STIFFNESS_CALIBRATION_PATH = _DATA / "sim_stiffness_calib.json"
 SIM_PRESSES_PATH = _DATA / "sim_stiffness_presses.csv"
 #: hardness of the simulated reference blocks (a dense set: simulated blocks are free)
 REFERENCE_SHORE00: tuple[float, ...] = tuple(float(s) for s in np.arange(0.0, 100.0, 1.0))
-RIGID_MODULUS_KPA = 1.0e9
+RIGID_MODULUS_KPA = 1.0e12
 PRESS_DEPTHS_MM: tuple[float, ...] = (0.5, 1.0, 1.5, 2.0)
 _BLOCK_SIZE_MM = (40.0, 40.0)
 

@@ -17,6 +17,7 @@ measures softer than a softer one is refused, as is a block as stiff as the rigi
 from __future__ import annotations
 
 import csv
+import itertools
 import math
 import os
 from collections.abc import Iterable, Sequence
@@ -159,7 +160,7 @@ def fit_stiffness_calibration(records: Iterable[PressRecord],
                                    f"not softer than the gel ({k_gel:.4g} N/mm)")
         samples.append(ReferenceSample(name, shore, len(rs), k_meas, 1.0 / inv))
         points.append((1.0 / inv, shore))
-    for (k0, s0), (k1, s1) in zip(points, points[1:], strict=False):
+    for (k0, s0), (k1, s1) in itertools.pairwise(points):
         if not (k1 > k0 and s1 > s0):
             raise CalibrationError(f"reference samples are not monotone: Shore 00 {s0:g} -> "
                                    f"{k0:.4g} N/mm but Shore 00 {s1:g} -> {k1:.4g} N/mm")

@@ -22,21 +22,23 @@ from remote_site.agent.config import RemoteAgentConfig
 from remote_site.agent.pipeline import FramePipeline
 from remote_site.agent.station import RemoteStation, command_clock_offset_us
 from remote_site.agent.stiffness_stage import StiffnessStage
-from remote_site.agent.world import (
-    SimWorld,
-    build_world,
+from remote_site.agent.devices import (
     load_calibration,
+    load_stiffness_calibration,
+    open_world,
     open_world_arm,
     open_world_sensor,
-    write_ground_truth,
 )
+from remote_site.agent.world import SimWorld, build_world, write_ground_truth
 from remote_site.arm.safety import SafeArm, SafetyConfig
 from remote_site.arm.sim import SimArm, SimArmConfig
+from remote_site.phantom.reference_presses import sim_stiffness_calibration
 from remote_site.phantom.scenes import make_scene
 from remote_site.reconstruction.reconstructor import Reconstructor
 from remote_site.sensor.base import SensorFrame, TactileSensor
 from remote_site.sensor.sim_calibration import simulated_calibration
 from remote_site.sensor.simulator import SimulatedSensor
+from remote_site.stiffness.estimator import StiffnessConfig
 from remote_site.tactile import TactileAssembler
 from shared.client import LinkCounters
 from shared.errors import CalibrationError, ConfigError
@@ -78,6 +80,7 @@ class FakeLink:
 
 WS = WorkspaceMap()
 CALIB = simulated_calibration()
+STIFFNESS_CALIB = sim_stiffness_calibration()
 
 
 def make_station(link: FakeLink, safety: SafetyConfig | None = None, *, realtime: bool = True,
@@ -89,8 +92,9 @@ def make_station(link: FakeLink, safety: SafetyConfig | None = None, *, realtime
     arm.connect()
     sensor.connect()
     safe = SafeArm(arm, safety, bounds_mm=WS.phantom_bounds_mm)
-    stiffness = StiffnessStage()
-    pipeline = FramePipeline(sensor, Reconstructor(CALIB), TactileAssembler(WS), stiffness,
+    stiffness = StiffnessStage(StiffnessConfig().with_calibration(STIFFNESS_CALIB))
+    assembler = TactileAssembler(WS, stiffness_to_k=STIFFNESS_CALIB.stiffness_to_k())
+    pipeline = FramePipeline(sensor, Reconstructor(CALIB), assembler, stiffness,
                              arm.state)
     cfg = config or RemoteAgentConfig(frame_rate_hz=30.0, status_interval_s=0.05)
     return RemoteStation(link, safe, pipeline, stiffness, WS.forward, cfg)
@@ -282,6 +286,23 @@ def test_calibration_problems_fail_at_start_up(tmp_path: Path) -> None:
     camera = open_world_sensor("camera", None, arm)
     with pytest.raises(CalibrationError, match="--calibration"):
         load_calibration("camera", None, camera)
+
+
+def test_stiffness_calibration_is_required_for_a_real_sensor(tmp_path: Path) -> None:
+    assert load_stiffness_calibration("sim", None) == STIFFNESS_CALIB
+    with pytest.raises(ConfigError, match="--stiffness-calibration"):
+        load_stiffness_calibration("camera", None)
+    path = STIFFNESS_CALIB.save(tmp_path / "stiffness.json")
+    assert load_stiffness_calibration("camera", path) == STIFFNESS_CALIB
+    with pytest.raises(CalibrationError):
+        load_stiffness_calibration("camera", tmp_path / "missing.json")
+
+
+def test_worlds_are_opened_by_name() -> None:
+    world = open_world("phantom", "breast", 2)
+    assert isinstance(world, SimWorld) and world.phantom.seed == 2
+    with pytest.raises(ConfigError, match="unknown world"):
+        open_world("no-such-world", "breast", 0)
 
 
 def test_a_world_is_refused_by_real_hardware() -> None:
