@@ -7,8 +7,9 @@ simulator does the same with its own physics: each block is a plain
 reads that hardness on a type 00 durometer (:func:`durometer_modulus_kpa`), as thick as the
 scenes' silicone layer, pressed at its centre by the default :class:`SensorPad`; the rigid
 block has a modulus of 1e12 kPa (the gel then reads within 1e-8). The records go through the
-calibration command; the result ships as package data, ``remote_site/phantom/data/sim_stiffness_calib.json`` (with the
-presses beside it), regenerated with::
+calibration command; the result ships as package data,
+``remote_site/phantom/data/sim_stiffness_calib.json`` (with the presses beside it),
+regenerated with::
 
     python -m remote_site.phantom.reference_presses
 """

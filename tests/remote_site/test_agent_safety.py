@@ -19,9 +19,6 @@ import numpy as np
 import pytest
 
 from remote_site.agent.config import RemoteAgentConfig
-from remote_site.agent.pipeline import FramePipeline
-from remote_site.agent.station import RemoteStation, command_clock_offset_us
-from remote_site.agent.stiffness_stage import StiffnessStage
 from remote_site.agent.devices import (
     load_calibration,
     load_stiffness_calibration,
@@ -29,6 +26,9 @@ from remote_site.agent.devices import (
     open_world_arm,
     open_world_sensor,
 )
+from remote_site.agent.pipeline import FramePipeline
+from remote_site.agent.station import RemoteStation, command_clock_offset_us
+from remote_site.agent.stiffness_stage import StiffnessStage
 from remote_site.agent.world import SimWorld, build_world, write_ground_truth
 from remote_site.arm.safety import SafeArm, SafetyConfig
 from remote_site.arm.sim import SimArm, SimArmConfig

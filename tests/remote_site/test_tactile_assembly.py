@@ -11,11 +11,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from remote_site.phantom.phantom import Phantom
+from remote_site.phantom.reference_presses import sim_stiffness_calibration
 from remote_site.reconstruction.reconstructor import Reconstructor
 from remote_site.sensor.shapes import ball_depth_mm
 from remote_site.sensor.sim_calibration import simulated_calibration
 from remote_site.sensor.simulator import SimulatedSensor
-from remote_site.phantom.reference_presses import sim_stiffness_calibration
 from remote_site.stiffness.stiffness_map import MapBounds, StiffnessMap
 from remote_site.tactile import (
     AppliedCommand,
@@ -30,6 +30,12 @@ from shared.protocol.messages import Hop
 from shared.workspace import WorkspaceConfig, WorkspaceMap
 
 TO_K = sim_stiffness_calibration().stiffness_to_k()
+
+
+def _assembler(workspace: WorkspaceMap | None = None) -> TactileAssembler:
+    return TactileAssembler(workspace or WorkspaceMap(), stiffness_to_k=TO_K)
+
+
 PITCH_MM = 0.0634 * 8  # the sim sensor pixel pooled 8x: the default patch pitch
 
 
@@ -54,7 +60,7 @@ def test_flat_phantom_without_contact_gives_a_zero_patch(reconstructor: Reconstr
     assert not depth.any()
     hm = reconstructor.height_map(sensor.render(depth), out_pitch_mm=0.5)
     assert hm.skipped
-    frame = _assemble(TactileAssembler(WorkspaceMap(), stiffness_to_k=TO_K), hm.height_mm, pitch=hm.mm_per_px)
+    frame = _assemble(_assembler(), hm.height_mm, pitch=hm.mm_per_px)
     assert frame.layers["height_mm"].shape == (30, 40)
     assert np.all(frame.layers["height_mm"] == 0.0)
     assert np.all(frame.layers["friction"] == 0.0)
@@ -65,7 +71,7 @@ def test_sphere_patch_matches_the_depth_map_at_the_patch_pitch(
     depth = ball_depth_mm((240, 320), 0.0634, 159.5, 119.5, 3.0, 0.5)
     hm = reconstructor.height_map(SimulatedSensor(seed=2).render(depth), out_pitch_mm=0.5)
     assert hm.mm_per_px == pytest.approx(PITCH_MM)
-    frame = _assemble(TactileAssembler(WorkspaceMap(), stiffness_to_k=TO_K), hm.height_mm, pitch=hm.mm_per_px)
+    frame = _assemble(_assembler(), hm.height_mm, pitch=hm.mm_per_px)
     patch = frame.layers["height_mm"]
     reference = cv2.resize(depth, (40, 30), interpolation=cv2.INTER_AREA)  # area mean per cell
     err = patch - reference
@@ -80,7 +86,7 @@ def test_sphere_off_centre_shows_up_where_it_is_in_platform_coordinates() -> Non
     ws = WorkspaceMap()
     depth = ball_depth_mm((240, 320), 0.0634, 240.0, 60.0, 2.0, 0.4)
     pooled = cv2.resize(depth, (40, 30), interpolation=cv2.INTER_AREA)
-    frame = _assemble(TactileAssembler(ws, stiffness_to_k=TO_K), pooled, probe=(3.0, -2.0, -0.5))
+    frame = _assemble(_assembler(ws), pooled, probe=(3.0, -2.0, -0.5))
     r, c = np.unravel_index(np.argmax(frame.layers["height_mm"]), (30, 40))
     x = frame.center_mm[0] + (c - 19.5) * frame.pitch_mm
     y = frame.center_mm[1] + (r - 14.5) * frame.pitch_mm
@@ -96,7 +102,7 @@ def test_center_is_the_inverse_workspace_map_and_pitch_is_in_platform_mm(
         scale_xy: float, offset: tuple[float, float]) -> None:
     ws = WorkspaceMap(WorkspaceConfig(scale_xy=scale_xy, offset_mm=offset))
     probe = (offset[0] + 3.0 * scale_xy, offset[1] - 5.0 * scale_xy, -0.8)
-    frame = _assemble(TactileAssembler(ws, stiffness_to_k=TO_K), np.zeros((30, 40), np.float32), probe=probe)
+    frame = _assemble(_assembler(ws), np.zeros((30, 40), np.float32), probe=probe)
     # independent formula: x_pl = (x_ph - offset) / scale + platform centre (30 mm)
     assert frame.center_mm == pytest.approx((33.0, 25.0))
     assert frame.pitch_mm == pytest.approx(PITCH_MM / scale_xy)
@@ -109,7 +115,7 @@ def test_hops_follow_the_contract_and_survive_the_wire() -> None:
     state = PlatformState(seq=7, ts_us=100, position_mm=(30.0, 30.0, 40.0), hops=(
         Hop("local", "capture", 100), Hop("relay", "relay_in", 150),
         Hop("relay", "relay_out", 160), Hop("remote", "station_rx", 170)))
-    frame = _assemble(TactileAssembler(WorkspaceMap(), stiffness_to_k=TO_K), np.zeros((30, 40), np.float32),
+    frame = _assemble(_assembler(), np.zeros((30, 40), np.float32),
                       source=AppliedCommand(state, 180))
     assert [f"{h.clock}.{h.stage}" for h in frame.hops] == [
         "local.capture", "relay.relay_in", "relay.relay_out", "remote.station_rx",
@@ -121,7 +127,7 @@ def test_hops_follow_the_contract_and_survive_the_wire() -> None:
 
 
 def test_without_a_source_only_the_remote_stamps_are_present() -> None:
-    frame = _assemble(TactileAssembler(WorkspaceMap(), stiffness_to_k=TO_K), np.zeros((30, 40), np.float32))
+    frame = _assemble(_assembler(), np.zeros((30, 40), np.float32))
     assert [h.stage for h in frame.hops] == ["sensor_frame", "tactile_ready"]
     assert frame.source_seq is None and frame.source_ts_us is None
 
