@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from remote_site.agent.app import AgentOptions, run_agent
 from remote_site.agent.config import RemoteAgentConfig
 from remote_site.agent.devices import (
     load_calibration,
@@ -298,6 +299,16 @@ def test_stiffness_calibration_is_required_for_a_real_sensor(tmp_path: Path) -> 
         load_stiffness_calibration("camera", tmp_path / "missing.json")
 
 
+async def test_a_real_sensor_without_stiffness_calibration_fails_before_anything_moves(
+        tmp_path: Path) -> None:
+    empty = tmp_path / "empty.toml"
+    empty.write_text("")
+    options = AgentOptions(relay="ws://127.0.0.1:9/", session="s", token="t", arm="sim",
+                           sensor="camera", config_path=empty)
+    with pytest.raises(ConfigError, match="--stiffness-calibration"):
+        await run_agent(options, asyncio.Event())
+
+
 def test_worlds_are_opened_by_name() -> None:
     world = open_world("phantom", "breast", 2)
     assert isinstance(world, SimWorld) and world.phantom.seed == 2
@@ -310,7 +321,7 @@ def test_a_world_is_refused_by_real_hardware() -> None:
     with pytest.raises(ConfigError, match="real hardware"):
         open_world_arm("franka", world)
     arm = open_world_arm("sim", world)
-    assert isinstance(arm, SimArm) and arm.phantom is world.phantom  # type: ignore[union-attr]
+    assert isinstance(arm, SimArm) and arm.phantom is world.phantom
     with pytest.raises(ConfigError, match="real camera"):
         open_world_sensor("camera", world, arm)
     with pytest.raises(ConfigError, match="real camera"):
@@ -323,6 +334,7 @@ def test_the_sim_sensor_renders_the_phantom_at_the_arm_pose() -> None:
     world = build_world("breast", 0)
     assert world is not None
     arm = open_world_arm("sim", world, config=SimArmConfig(realtime=False))
+    assert isinstance(arm, SimArm)
     sensor = open_world_sensor("sim", world, arm)
     arm.connect()
     sensor.connect()

@@ -25,7 +25,7 @@ from remote_site.tactile import (
     sample_stiffness_map,
 )
 from shared.errors import ConfigError, InputDataError
-from shared.protocol import PlatformState, decode, encode
+from shared.protocol import PlatformState, TactileFrame, decode, encode
 from shared.protocol.messages import Hop
 from shared.workspace import WorkspaceConfig, WorkspaceMap
 
@@ -123,6 +123,7 @@ def test_hops_follow_the_contract_and_survive_the_wire() -> None:
     assert [h.t_us for h in frame.hops][-3:] == [180, 1_000, 2_000]
     assert (frame.source_seq, frame.source_ts_us, frame.ts_us) == (7, 100, 1_000)
     back = decode(encode(frame))
+    assert isinstance(back, TactileFrame)
     assert back.hops == frame.hops and back.layers["height_mm"].shape == (30, 40)
 
 
