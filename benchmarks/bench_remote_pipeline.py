@@ -38,16 +38,18 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import numpy as np
 
 from remote_site.agent.config import RemoteAgentConfig
+from remote_site.agent.devices import open_world_arm, open_world_sensor
 from remote_site.agent.pipeline import FramePipeline
 from remote_site.agent.station import RemoteStation, percentiles_ms
 from remote_site.agent.stiffness_stage import StiffnessStage
-from remote_site.agent.world import SimWorld, open_world_arm, open_world_sensor
+from remote_site.agent.world import SimWorld
 from remote_site.arm.safety import SafeArm
+from remote_site.phantom.reference_presses import sim_stiffness_calibration
 from remote_site.phantom.scenes import make_scene
 from remote_site.reconstruction.reconstructor import ReconstructionSettings, Reconstructor
 from remote_site.sensor.sim_calibration import simulated_calibration
 from remote_site.sensor.simulator import SimulatedSensor
-from remote_site.stiffness.estimator import estimate_press
+from remote_site.stiffness.estimator import StiffnessConfig, estimate_press
 from remote_site.tactile import TactileAssembler
 from shared.client import LinkCounters
 from shared.protocol import Message, PlatformState, TactileFrame
@@ -108,9 +110,11 @@ def build_station(frame_rate_hz: float) -> tuple[RemoteStation, MemoryLink, SimW
     arm.connect()
     sensor.connect()
     safe = SafeArm(arm, bounds_mm=ws.phantom_bounds_mm)
-    stiffness = StiffnessStage()
+    calib = sim_stiffness_calibration()
+    stiffness = StiffnessStage(StiffnessConfig().with_calibration(calib))
     pipeline = FramePipeline(sensor, Reconstructor(simulated_calibration()),
-                             TactileAssembler(ws), stiffness, arm.state)
+                             TactileAssembler(ws, stiffness_to_k=calib.stiffness_to_k()),
+                             stiffness, arm.state)
     link = MemoryLink()
     cfg = RemoteAgentConfig(frame_rate_hz=frame_rate_hz, status_interval_s=60.0)
     return RemoteStation(link, safe, pipeline, stiffness, ws.forward, cfg), link, world
@@ -243,7 +247,7 @@ def run_skips(n: int, latency: dict[str, Any]) -> list[dict[str, Any]]:
     f = 1.3 * np.clip(a - 0.5, 0, None) + rng.normal(0, 0.02, a.size)
     t0 = time.perf_counter()
     for _ in range(50):
-        estimate_press(a, f)
+        estimate_press(a, f, StiffnessConfig().with_calibration(sim_stiffness_calibration()))
     fit_ms = (time.perf_counter() - t0) / 50 * 1e3
     st = s["stiffness"]
     naive_ms_per_s = fit_ms * s["frames"]["achieved_fps"]

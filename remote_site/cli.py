@@ -7,14 +7,14 @@ tactile frame with stiffness layers; arm state goes out at 50 Hz. SIGTERM / SIGI
 cleanly (arm halted) and write --summary-json.
 
 With --phantom SCENE --seed N the simulated arm and sensor act on that phantom (scenes:
-localization, severity, breast); --ground-truth writes its tumors for scoring.
+localization, severity, breast).
 
 examples:
   TELETOUCH_REMOTE_LINK_TOKEN=... teletouch remote --relay ws://127.0.0.1:8765/ \\
       --session lab1 --arm sim --sensor sim --phantom breast --seed 3 \\
-      --ground-truth truth.json --summary-json remote.json
+      --summary-json remote.json
   teletouch remote --relay tcp://relay:8766 --session lab1 --arm franka --sensor 0 \\
-      --calibration gsmini_calib.npz
+      --calibration gsmini_calib.npz --stiffness-calibration gsmini_stiffness.json
 """
 
 from __future__ import annotations
@@ -35,10 +35,13 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="sensor: sim, camera, or a camera index / URL / video file")
     parser.add_argument("--phantom", help="simulated world: a phantom scene for sim backends")
     parser.add_argument("--seed", type=int, default=0, help="phantom placement seed (default 0)")
-    parser.add_argument("--ground-truth", dest="ground_truth", metavar="PATH.json",
-                        help="write the phantom's ground truth here (needs --phantom)")
     parser.add_argument("--calibration", metavar="PATH.npz",
                         help="sensor calibration (default: the shipped one for --sensor sim)")
+    parser.add_argument("--stiffness-calibration", dest="stiffness_calibration",
+                        metavar="PATH.json",
+                        help="probe stiffness calibration: gel and N/mm -> Shore 00, made by "
+                             "'teletouch sensor calibrate-stiffness' (default: the shipped "
+                             "one for --sensor sim; required for a real sensor)")
     parser.add_argument("--frame-rate-hz", dest="frame_rate_hz", type=float,
                         help="tactile frames per second (default 60)")
     parser.add_argument("--patch-pitch-mm", dest="patch_pitch_mm", type=float,
@@ -64,8 +67,9 @@ def run(args: argparse.Namespace) -> int:
     options = AgentOptions(
         relay=args.relay, session=args.session, token=args.token, name=args.name,
         arm=args.arm, sensor=args.sensor, phantom=args.phantom, seed=args.seed,
-        ground_truth=Path(args.ground_truth) if args.ground_truth else None,
         calibration=Path(args.calibration) if args.calibration else None,
+        stiffness_calibration=(Path(args.stiffness_calibration)
+                               if args.stiffness_calibration else None),
         frame_rate_hz=args.frame_rate_hz, patch_pitch_mm=args.patch_pitch_mm,
         duration_s=args.duration, config_path=Path(args.config) if args.config else None)
     status = StatusLine()

@@ -4,12 +4,18 @@
       --ball-diameter-mm D --mm-per-px P --out calib.npz
   teletouch sensor reconstruct --calibration calib.npz --background BG.png FRAME.png ... \\
       --out heights.npz
+  teletouch sensor calibrate-stiffness --presses presses.csv --out stiffness_calib.json
 
 labels.csv has columns image,center_x,center_y,radius_px (center_x = column, center_y =
 row, pixels; image relative to --images). heights.npz holds one float32 array per frame,
 keyed by the frame's file name, in mm, positive where the object presses into the gel, the
 same shape as the frame (unless --out-pitch-mm asks for a coarser grid). Height 0 is the
 undeformed gel (a plane fitted outside the contact region).
+
+presses.csv (for calibrate-stiffness) has columns sample,shore00,force_n,indentation_mm:
+presses of the pad on reference blocks of known Shore 00 (``rigid`` for a rigid block); see
+:mod:`remote_site.stiffness.calibrate`. The result is a stiffness calibration (JSON, see
+:mod:`shared.stiffness_calibration`) for ``teletouch remote --stiffness-calibration``.
 """
 
 from __future__ import annotations
@@ -21,7 +27,7 @@ __all__ = ["configure_parser", "run"]
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
-    """Add the ``calibrate`` and ``reconstruct`` subcommands."""
+    """Add the ``calibrate``, ``reconstruct`` and ``calibrate-stiffness`` subcommands."""
     sub = parser.add_subparsers(dest="sensor_command", metavar="SUBCOMMAND", required=True)
     cal = sub.add_parser("calibrate", help="fit a colour-to-slope calibration from ball presses")
     cal.add_argument("--background", required=True, help="no-contact frame (PNG)")
@@ -48,6 +54,17 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     rec.add_argument("--out-pitch-mm", type=float, default=None,
                      help="coarser output grid pitch (default: full resolution)")
     rec.add_argument("--json", action="store_true", help="print a JSON summary")
+
+    stiff = sub.add_parser("calibrate-stiffness",
+                           help="fit the gel stiffness and the N/mm -> Shore 00 curve from "
+                                "presses on reference blocks")
+    stiff.add_argument("--presses", required=True,
+                       help="presses.csv: sample,shore00,force_n,indentation_mm")
+    stiff.add_argument("--out", required=True, help="stiffness calibration to write (.json)")
+    stiff.add_argument("--source", default="", help="free text stored in the file")
+    out_mode = stiff.add_mutually_exclusive_group()
+    out_mode.add_argument("--json", action="store_true", help="print a JSON summary")
+    out_mode.add_argument("--quiet", action="store_true", help="print nothing")
 
 
 def _calibrate(args: argparse.Namespace) -> int:
@@ -109,8 +126,33 @@ def _reconstruct(args: argparse.Namespace) -> int:
     return 0
 
 
+def _calibrate_stiffness(args: argparse.Namespace) -> int:
+    from remote_site.stiffness.calibrate import fit_stiffness_calibration, read_presses_csv
+    from shared.report import emit, emit_json
+
+    records = read_presses_csv(args.presses)
+    calib = fit_stiffness_calibration(records, source=args.source or str(args.presses))
+    calib.save(args.out)
+    curve = calib.shore_curve.points
+    summary = {"out": str(args.out), "presses": len(records),
+               "reference_samples": len(calib.reference_samples),
+               "gel_stiffness_n_per_mm": calib.gel_stiffness_n_per_mm,
+               "shore00_range": [curve[0][1], curve[-1][1]],
+               "n_per_mm_range": [curve[0][0], curve[-1][0]]}
+    if args.json:
+        emit_json(summary)
+    elif not args.quiet:
+        emit(f"stiffness calibration from {len(records)} presses on "
+             f"{len(calib.reference_samples)} blocks: gel {calib.gel_stiffness_n_per_mm:.4g} "
+             f"N/mm, Shore 00 {curve[0][1]:g}..{curve[-1][1]:g} over "
+             f"{curve[0][0]:.4g}..{curve[-1][0]:.4g} N/mm -> {args.out}")
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
-    """Dispatch ``teletouch sensor calibrate|reconstruct``."""
+    """Dispatch ``teletouch sensor calibrate|reconstruct|calibrate-stiffness``."""
     if args.sensor_command == "calibrate":
         return _calibrate(args)
+    if args.sensor_command == "calibrate-stiffness":
+        return _calibrate_stiffness(args)
     return _reconstruct(args)

@@ -7,7 +7,9 @@ Layout of a ``tactile_frame`` built here (see :class:`shared.protocol.TactileFra
   centre (default: the whole sensor area). Rows run along +y, columns along +x.
 * ``stiffness_n_per_mm`` and ``stiffness_k``: the stiffness map sampled at every patch point
   (the probe stiffness the pad would measure centred there), the current estimate where the
-  map has none; both layers are omitted until a first estimate exists (the local scene then
+  map has none; ``stiffness_k`` comes from the one N/mm -> k mapping
+  (:class:`shared.hardness.StiffnessToK`, the probe's stiffness calibration); both layers are
+  omitted until a first estimate exists (the local scene then
   uses its default).
 * ``friction``: constant (0 for palpation, the paper's setting).
 * ``center_mm``: the pad centre mapped back to PLATFORM coordinates
@@ -38,9 +40,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from remote_site.stiffness.shore import ShoreConversion
 from remote_site.stiffness.stiffness_map import StiffnessMap
 from shared.errors import ConfigError, InputDataError
+from shared.hardness import StiffnessToK
 from shared.protocol.messages import LAYER_RANGES, Hop, PlatformState, TactileFrame
 from shared.timebase import now_us
 from shared.workspace import WorkspaceMap
@@ -137,14 +139,14 @@ class TactileAssembler:
         workspace: the platform <-> phantom map (for ``center_mm`` and ``pitch_mm``).
         patch_size_mm: (x, y) extent of the height patch in phantom mm; 0 = whole sensor.
         friction: value of the friction layer (0 for palpation).
-        shore: N/mm -> Shore 00 -> display k conversion.
+        stiffness_to_k: N/mm -> display k (the probe's stiffness calibration).
 
     Raises:
         ConfigError: a friction outside [0, 1] or a bad patch size.
     """
 
-    def __init__(self, workspace: WorkspaceMap, *, patch_size_mm: Sequence[float] = (0.0, 0.0),
-                 friction: float = 0.0, shore: ShoreConversion | None = None) -> None:
+    def __init__(self, workspace: WorkspaceMap, *, stiffness_to_k: StiffnessToK,
+                 patch_size_mm: Sequence[float] = (0.0, 0.0), friction: float = 0.0) -> None:
         size = tuple(float(v) for v in patch_size_mm)
         if len(size) != 2 or not all(math.isfinite(v) and v >= 0 for v in size):
             raise ConfigError(f"patch_size_mm must be two finite numbers >= 0, got {patch_size_mm}")
@@ -153,7 +155,7 @@ class TactileAssembler:
         self.workspace = workspace
         self.patch_size_mm: tuple[float, float] = (size[0], size[1])
         self.friction = float(friction)
-        self.shore = shore or ShoreConversion()
+        self.stiffness_to_k = stiffness_to_k
 
     @property
     def scale_xy(self) -> float:
@@ -227,8 +229,7 @@ class TactileAssembler:
             k_lo, k_hi = LAYER_RANGES["stiffness_n_per_mm"]
             n_per_mm = np.clip(np.nan_to_num(stiffness_n_per_mm, nan=0.0), k_lo, k_hi)
             layers["stiffness_n_per_mm"] = n_per_mm.astype(np.float32)
-            layers["stiffness_k"] = np.clip(self.shore.display_k(n_per_mm), 0.5,
-                                            1.0).astype(np.float32)
+            layers["stiffness_k"] = self.stiffness_to_k.k(n_per_mm).astype(np.float32)
         center = self.workspace.inverse([x, y, z])
         hops: tuple[Hop, ...] = ()
         source_seq = source_ts = None

@@ -19,10 +19,13 @@ import numpy as np
 
 from remote_site.arm.sim import SimArm, SimArmConfig
 from remote_site.phantom import PixelGrid, make_scene
-from remote_site.phantom.phantom import Phantom
+from remote_site.phantom.phantom import Phantom, SensorPad
 from remote_site.stiffness.estimator import METHODS, StiffnessConfig, estimate_press
 from remote_site.stiffness.tracker import StiffnessTracker
 from shared.report import format_table
+
+#: the benchmark knows the simulated pad's true gel (the station gets it from calibration)
+_SIM_STIFFNESS = StiffnessConfig(gel_stiffness_n_per_mm=SensorPad().gel_stiffness_n_per_mm)
 
 __all__ = ["BenchSettings", "run_benchmark"]
 
@@ -81,7 +84,7 @@ def sweep_estimators(settings: BenchSettings) -> list[dict[str, Any]]:
                             force + rng.normal(0, f_sd, n) if f_sd else force,
                             ph.tissue_stiffness_n_per_mm(x, y)))
         for method in METHODS:
-            cfg = replace(StiffnessConfig(), method=method)
+            cfg = replace(_SIM_STIFFNESS, method=method)
             errors, times = [], []
             invalid = 0
             for a, f, k_true in presses:
@@ -106,7 +109,7 @@ def loading_only_saving(settings: BenchSettings) -> list[dict[str, Any]]:
     in-contact sample (dwell and unloading included). Times include segmenting."""
     rng = np.random.default_rng(settings.seed + 1)
     ph = make_scene("breast", 0)
-    cfg = StiffnessConfig()
+    cfg = _SIM_STIFFNESS
     modes: dict[str, dict[str, list[float]]] = {"loading only": {"err": [], "t": [], "n": []},
                                                 "all contact samples": {"err": [], "t": [],
                                                                         "n": []}}

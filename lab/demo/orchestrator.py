@@ -11,7 +11,7 @@
 
 When the scripted operator has finished, the stations are stopped with SIGTERM, the
 recording is analysed with :mod:`local_site.palpation` (only what reached the local station),
-and the findings are scored against the phantom's ground truth written by the remote station.
+and the findings are scored against the phantom's ground truth (:mod:`lab.ground_truth`).
 The report includes the motion-to-touch latency ledger measured by the local station.
 """
 
@@ -35,10 +35,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from lab.ground_truth import write_ground_truth
 from lab.linkemu import get_profile
 from lab.scoring import score_findings
 from local_site.palpation import analyse_recording, load_recording
+from remote_site.agent.world import build_world
 from shared.errors import ConfigError, DeviceError, TeleTouchError
+from shared.workspace import load_workspace
 
 __all__ = ["DemoConfig", "DemoError", "run_demo"]
 
@@ -249,12 +252,18 @@ def run_demo(config: DemoConfig,
         files = {k: workdir / v for k, v in {
             "ground_truth": "ground_truth.json", "record": "record.npz",
             "local_summary": "local_summary.json", "remote_summary": "remote_summary.json"}.items()}
+        # The truth of the phantom the remote station simulates: same scene and seed, the
+        # workspace its settings give, the simulated probe's shipped stiffness calibration.
+        remote_args = list(config.extra_remote_args)
+        remote_toml = (Path(remote_args[remote_args.index("--config") + 1])
+                       if "--config" in remote_args[:-1] else None)
+        write_ground_truth(build_world(config.scene, config.seed), files["ground_truth"],
+                           load_workspace(toml_path=remote_toml))
         common = ["--session", SESSION, "--token", token]
         remote = procs.start(
             "remote", "remote", "--relay", f"ws://127.0.0.1:{remote_port}/", *common,
             "--arm", "sim", "--sensor", "sim", "--phantom", config.scene,
             "--seed", str(config.seed), "--frame-rate-hz", f"{config.frame_rate_hz:g}",
-            "--ground-truth", str(files["ground_truth"]),
             "--summary-json", str(files["remote_summary"]), *config.extra_remote_args)
         local = procs.start(
             "local", "local", "--relay", f"ws://127.0.0.1:{local_port}/", *common,

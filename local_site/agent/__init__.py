@@ -8,7 +8,6 @@ lost platform) and the recording of what was felt.
 
 Modules:
     config          :class:`LocalAgentConfig`, TOML table ``[local.agent]``
-    motion_spec     ``--motion`` spec strings -> a motion source of the simulated platform
     period_stats    loop-period statistics (ring buffer, percentiles)
     platform_reader the platform read thread with retry and backoff
     display_loop    frame intake, safety, render and display, run in a thread or a task
@@ -16,7 +15,6 @@ Modules:
 """
 
 from local_site.agent.config import LocalAgentConfig
-from local_site.agent.motion_spec import parse_motion_spec
 from local_site.agent.station import LocalAgent
 
-__all__ = ["LocalAgent", "LocalAgentConfig", "parse_motion_spec"]
+__all__ = ["LocalAgent", "LocalAgentConfig"]

@@ -30,7 +30,7 @@ class LocalAgentConfig:
         display: display spec for :func:`local_site.devices.open_display` (``sim``,
             ``sim-serial``, ``can://socketcan/can0``...).
         motion: scripted operator of the simulated platform (see
-            :mod:`local_site.agent.motion_spec`); empty: the backend's default.
+            :mod:`local_site.platform.motion_spec`); empty: the backend's default.
         scene: a local scene (shape name or ``.npz`` layer file) to run without a relay;
             empty: render the remote tactile stream from the relay.
         safe_state: display safe state on link loss / stale scene / lost platform.

@@ -38,7 +38,6 @@ import numpy as np
 
 from local_site.agent.config import LocalAgentConfig
 from local_site.agent.display_loop import DisplayLoop, FrameSlot
-from local_site.agent.motion_spec import parse_motion_spec
 from local_site.agent.platform_reader import PlatformReader
 from local_site.devices import open_display, open_platform
 from local_site.recording import SessionRecorder
@@ -176,7 +175,7 @@ class LocalAgent:
         cfg = self.config
         platform_opts = dict(self._platform_options)
         if cfg.motion.strip():
-            platform_opts["motion"] = parse_motion_spec(cfg.motion)
+            platform_opts["motion"] = cfg.motion  # parsed by the sim backend
         platform = open_platform(cfg.platform, connect=False, **platform_opts)
         motion = getattr(platform, "motion", None)
         motion_duration_s = getattr(motion, "duration_s", None)

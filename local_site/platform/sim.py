@@ -15,6 +15,7 @@ import os
 import tty
 
 from local_site.platform.motion import MotionSource, make_motion
+from local_site.platform.motion_spec import parse_motion_spec
 from local_site.platform.serial_board import SerialEncoderPlatform
 from local_site.platform.sim_board import SimulatedEncoderBoard
 from shared.errors import DeviceInitError
@@ -26,9 +27,11 @@ class SimulatedPlatform(SerialEncoderPlatform):
     """Simulated platform: a motion source -> simulated board -> pty -> serial driver.
 
     Args:
-        motion: a :class:`MotionSource` or a spec for :func:`make_motion` (``raster``,
-            ``random``, ``hold`` or a trajectory file).
-        motion_options: keyword arguments for :func:`make_motion` when ``motion`` is a spec.
+        motion: a :class:`MotionSource`, or a ``--motion`` spec string
+            (:mod:`local_site.platform.motion_spec`: ``raster``, ``random:seed=3``, ``hold``,
+            a trajectory file, ...).
+        motion_options: keyword arguments for :func:`make_motion` when ``motion`` is a bare
+            name (then the string is not parsed as a spec).
         sample_rate_hz: the simulated board's rate.
         initial_counts: board counters at power-up for position (0, 0, 0).
         start_board_t_us: board clock at the first sample.
@@ -41,6 +44,8 @@ class SimulatedPlatform(SerialEncoderPlatform):
                  initial_counts: tuple[int, int, int] = (0, 0, 0),
                  start_board_t_us: int = 0, **kwargs: object) -> None:
         super().__init__("pty://sim", **kwargs)  # type: ignore[arg-type]
+        if isinstance(motion, str) and motion_options is None:
+            motion = parse_motion_spec(motion)
         self.motion = make_motion(motion, **(motion_options or {}))
         self._sample_rate_hz = sample_rate_hz
         self._initial_counts = initial_counts

@@ -61,7 +61,7 @@ def open_scene(spec: str, *, interpolation_order: int = 1,
         outside: policy outside a grid scene's extent (default flat at height 0).
         hardness: Shore 00 <-> k table for layer files and shapes given in Shore 00.
         **remote_options: extra keyword arguments of :class:`TactileFrameScene`
-            (``default_stiffness_k``, ``n_per_mm_range``); only with ``"remote"``.
+            (``default_stiffness_k``, ``stiffness_to_k``); only with ``"remote"``.
 
     Returns:
         The scene source.

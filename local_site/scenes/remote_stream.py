@@ -14,10 +14,11 @@ values inside :data:`shared.protocol.messages.LAYER_RANGES`, a finite centre and
 positive pitch. A bad frame raises :class:`~shared.errors.InputDataError` and leaves the
 previous content (and therefore the pins) untouched.
 
-Stiffness: ``stiffness_k`` is used as is. A frame with only ``stiffness_n_per_mm``
-(measured force / indentation) is mapped linearly from ``n_per_mm_range`` onto
-[0.5, 1] and clamped: the paper gives no such mapping, so the default range is an
-assumption to be calibrated per phantom. Without either, k = ``default_stiffness_k``.
+Stiffness: ``stiffness_k`` is used as is (the remote station computes it with the
+project's one N/mm -> k mapping, :class:`shared.hardness.StiffnessToK`). A frame with only
+``stiffness_n_per_mm`` (measured force / indentation) goes through the same mapping when
+the scene was given one (``stiffness_to_k``, built from the probe's stiffness
+calibration); without a mapping, or without either layer, k = ``default_stiffness_k``.
 Friction defaults to 0 (the paper's palpation setting).
 
 Where the window leaves the frame's extent (the probe's patch is small), the scene
@@ -39,16 +40,14 @@ from local_site.render.interpolation import MAX_GRID_DIM, GridLayers
 from local_site.scenes.base import OutsidePolicy
 from local_site.scenes.grid_scene import GridScene
 from shared.errors import ConfigError, InputDataError
-from shared.hardness import K_MAX, K_MIN
+from shared.hardness import K_MAX, K_MIN, StiffnessToK
 from shared.protocol.messages import LAYER_RANGES, TactileFrame
 from shared.timebase import monotonic_s
 
-__all__ = ["DEFAULT_N_PER_MM_RANGE", "TactileFrameScene"]
+__all__ = ["TactileFrameScene"]
 
 log = logging.getLogger(__name__)
 
-#: assumed measured-stiffness span (N/mm) mapped onto k in [0.5, 1]; see module docstring
-DEFAULT_N_PER_MM_RANGE: tuple[float, float] = (0.05, 2.0)
 _COORD_LIMIT_MM = 1.0e4
 
 
@@ -59,7 +58,8 @@ class TactileFrameScene(GridScene):
         order: interpolation order (0, 1, 3).
         outside: per-pin policy outside the frame's extent (default flat).
         default_stiffness_k: k when a frame carries no stiffness layer.
-        n_per_mm_range: ``(soft, stiff)`` N/mm mapped to k = 0.5 and k = 1.
+        stiffness_to_k: the N/mm -> k mapping for frames with only ``stiffness_n_per_mm``
+            (None: such frames render at ``default_stiffness_k``).
 
     Raises:
         ConfigError: invalid settings.
@@ -69,15 +69,14 @@ class TactileFrameScene(GridScene):
 
     def __init__(self, *, order: int = 1, outside: OutsidePolicy | None = None,
                  default_stiffness_k: float = K_MAX,
-                 n_per_mm_range: tuple[float, float] = DEFAULT_N_PER_MM_RANGE) -> None:
+                 stiffness_to_k: StiffnessToK | None = None) -> None:
         super().__init__(order=order, outside=outside)
         if not K_MIN <= default_stiffness_k <= K_MAX:
             raise ConfigError(f"default_stiffness_k must lie in [{K_MIN}, {K_MAX}]")
-        lo, hi = (float(v) for v in n_per_mm_range)
-        if not (np.isfinite([lo, hi]).all() and 0.0 <= lo < hi):
-            raise ConfigError(f"n_per_mm_range must be 0 <= soft < stiff, got {n_per_mm_range}")
+        if stiffness_to_k is not None and not isinstance(stiffness_to_k, StiffnessToK):
+            raise ConfigError("stiffness_to_k must be a shared.hardness.StiffnessToK")
         self.default_stiffness_k = float(default_stiffness_k)
-        self.n_per_mm_range = (lo, hi)
+        self.stiffness_to_k = stiffness_to_k
         self.frames_accepted = 0
         self.frames_rejected = 0
         self.last_frame: TactileFrame | None = None
@@ -172,13 +171,13 @@ class TactileFrameScene(GridScene):
         shape = height.shape
         if "stiffness_k" in layers:
             k = self._layer(layers, "stiffness_k", shape)
-        elif "stiffness_n_per_mm" in layers:
+        elif "stiffness_n_per_mm" in layers and self.stiffness_to_k is not None:
             n = self._layer(layers, "stiffness_n_per_mm", shape)
-            lo, hi = self.n_per_mm_range
-            k = K_MIN + (K_MAX - K_MIN) * np.clip((n - lo) / (hi - lo), 0.0, 1.0)
+            k = self.stiffness_to_k.k(n)
         else:
             k = np.full(shape, self.default_stiffness_k)
-        if "stiffness_k" in layers and "stiffness_n_per_mm" in layers:
+        if "stiffness_n_per_mm" in layers and ("stiffness_k" in layers
+                                               or self.stiffness_to_k is None):
             self._layer(layers, "stiffness_n_per_mm", shape)  # still validated
         friction = (self._layer(layers, "friction", shape) if "friction" in layers
                     else np.zeros(shape))

@@ -1,8 +1,10 @@
 """Build the remote station from its options and run it (the body of ``teletouch remote``).
 
 Order of start-up, so that every configuration error surfaces before anything moves:
-settings (flags > environment > TOML > defaults), the simulated world and its ground truth,
-the arm and sensor backends (wired to the world in :mod:`remote_site.agent.world`), the
+settings (flags > environment > TOML > defaults), the probe's stiffness calibration (gel
+and N/mm -> Shore 00; required for a real sensor), the simulated world (by name, through
+:data:`~remote_site.agent.devices.WORLDS`; this module never imports simulator code), the
+arm and sensor backends (wired to the world in :mod:`remote_site.agent.devices`), the sensor
 calibration (checked against the sensor: :class:`~shared.errors.CalibrationError`), then
 connect the devices, open the link and run :class:`~remote_site.agent.station.RemoteStation`.
 Whatever happens, the arm is halted and the devices are closed on the way out.
@@ -18,25 +20,23 @@ from pathlib import Path
 from typing import Any
 
 from remote_site.agent.config import RemoteAgentConfig
+from remote_site.agent.devices import (
+    load_calibration,
+    load_stiffness_calibration,
+    open_world,
+    open_world_arm,
+    open_world_sensor,
+)
 from remote_site.agent.pipeline import FramePipeline
 from remote_site.agent.station import RemoteStation
 from remote_site.agent.stiffness_stage import StiffnessStage
-from remote_site.agent.world import (
-    build_world,
-    load_calibration,
-    open_world_arm,
-    open_world_sensor,
-    write_ground_truth,
-)
 from remote_site.arm.safety import SafeArm, SafetyConfig
 from remote_site.reconstruction.reconstructor import Reconstructor
 from remote_site.stiffness.estimator import StiffnessConfig
-from remote_site.stiffness.shore import ShoreConversion
 from remote_site.stiffness.stiffness_map import MapBounds
 from remote_site.tactile import TactileAssembler
 from shared.client import StationLink, StationLinkConfig
 from shared.config import resolve_config
-from shared.errors import ConfigError
 from shared.workspace import load_workspace
 
 __all__ = ["AgentOptions", "run_agent"]
@@ -57,8 +57,10 @@ class AgentOptions:
         sensor: sensor name (``sim``, ``camera``) or a camera index / URL / video file.
         phantom: scene name of the simulated world (None: no world).
         seed: placement seed of the phantom.
-        ground_truth: write the phantom's ground truth JSON here.
         calibration: the sensor calibration (.npz); the backend's default when None.
+        stiffness_calibration: the probe's stiffness calibration (.json, made by
+            ``teletouch sensor calibrate-stiffness``); the backend's default when None
+            (a real sensor has none).
         frame_rate_hz: tactile frames per second.
         patch_pitch_mm: tactile patch pitch on the display side.
         duration_s: stop after this many seconds (None: until stopped).
@@ -73,8 +75,8 @@ class AgentOptions:
     sensor: str = "sim"
     phantom: str | None = None
     seed: int = 0
-    ground_truth: Path | None = None
     calibration: Path | None = None
+    stiffness_calibration: Path | None = None
     frame_rate_hz: float | None = None
     patch_pitch_mm: float | None = None
     duration_s: float | None = None
@@ -97,7 +99,8 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
         :meth:`RemoteStation.summary` plus ``session``, ``arm``, ``sensor``, ``phantom``.
 
     Raises:
-        ConfigError: bad settings, unknown backends, a world given to real hardware.
+        ConfigError: bad settings, unknown backends, a world given to real hardware, no
+            stiffness calibration for a real sensor.
         CalibrationError: missing or mismatched calibration.
         DeviceInitError: a device could not be opened.
         AuthError, RoleTakenError: the relay refused the station for good.
@@ -111,14 +114,13 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
     agent_cfg = resolve_config(RemoteAgentConfig, "remote.agent", toml_path=toml, explicit={
         "frame_rate_hz": options.frame_rate_hz, "patch_pitch_mm": options.patch_pitch_mm})
     workspace = load_workspace(toml_path=toml)
-    shore = ShoreConversion()
+    stiffness_calibration = load_stiffness_calibration(options.sensor,
+                                                       options.stiffness_calibration)
+    if stiffness_cfg.gel_stiffness_n_per_mm is None:  # flags/env/TOML win over the file
+        stiffness_cfg = stiffness_cfg.with_calibration(stiffness_calibration)
+    stiffness_to_k = stiffness_calibration.stiffness_to_k()
 
-    world = build_world(options.phantom, options.seed)
-    if options.ground_truth is not None:
-        if world is None:
-            raise ConfigError("--ground-truth needs a simulated world (--phantom SCENE)")
-        write_ground_truth(world, options.ground_truth, workspace, shore)
-        log.info("ground truth written to %s", options.ground_truth)
+    world = open_world("phantom", options.phantom, options.seed) if options.phantom else None
 
     arm = open_world_arm(options.arm, world)
     sensor = open_world_sensor(options.sensor, world, arm)
@@ -128,8 +130,9 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
     lo, hi = workspace.phantom_bounds_mm
     bounds = MapBounds(lo[0], hi[0], lo[1], hi[1], agent_cfg.stiffness_cell_mm)
     stiffness = StiffnessStage(stiffness_cfg, bounds)
-    assembler = TactileAssembler(workspace, patch_size_mm=agent_cfg.patch_size_mm,
-                                 friction=agent_cfg.friction, shore=shore)
+    assembler = TactileAssembler(workspace, stiffness_to_k=stiffness_to_k,
+                                 patch_size_mm=agent_cfg.patch_size_mm,
+                                 friction=agent_cfg.friction)
     arm.connect()
     safe_arm: SafeArm | None = None
     try:

@@ -39,12 +39,15 @@ class StiffnessStage:
     """Tracker + map + current estimate, thread-safe.
 
     Args:
-        config: estimator settings.
+        config: estimator settings, with the probe's gel stiffness (calibration data).
         bounds: the stiffness map's rectangle and cell size (phantom mm).
         segments: loading-segment detection settings.
+
+    Raises:
+        ConfigError: ``config`` has no gel stiffness.
     """
 
-    def __init__(self, config: StiffnessConfig | None = None, bounds: MapBounds | None = None,
+    def __init__(self, config: StiffnessConfig, bounds: MapBounds | None = None,
                  segments: SegmentConfig | None = None) -> None:
         self.tracker = StiffnessTracker(config, segments)
         self.map = StiffnessMap(bounds)

@@ -1,6 +1,12 @@
 """Stiffness from force and indentation: contact point, robust regression, gel compensation,
-loading-only streaming, a stiffness map, and the N/mm -> Shore 00 -> k conversion."""
+loading-only streaming, a stiffness map, and the stiffness calibration fit (gel and
+N/mm -> Shore 00 from reference presses; the N/mm -> k mapping is :mod:`shared.hardness`)."""
 
+from remote_site.stiffness.calibrate import (
+    PressRecord,
+    fit_stiffness_calibration,
+    read_presses_csv,
+)
 from remote_site.stiffness.estimator import (
     METHODS,
     StiffnessConfig,
@@ -8,10 +14,9 @@ from remote_site.stiffness.estimator import (
     compensate_gel,
     estimate_press,
 )
-from remote_site.stiffness.shore import ShoreConversion, durometer_modulus_kpa
 from remote_site.stiffness.stiffness_map import MapBounds, StiffnessMap
 from remote_site.stiffness.tracker import PressResult, SegmentConfig, StiffnessTracker
 
-__all__ = ["METHODS", "MapBounds", "PressResult", "SegmentConfig", "ShoreConversion",
+__all__ = ["METHODS", "MapBounds", "PressRecord", "PressResult", "SegmentConfig",
            "StiffnessConfig", "StiffnessEstimate", "StiffnessMap", "StiffnessTracker",
-           "compensate_gel", "durometer_modulus_kpa", "estimate_press"]
+           "compensate_gel", "estimate_press", "fit_stiffness_calibration", "read_presses_csv"]

@@ -16,7 +16,9 @@ Pipeline for one press (``approach_mm`` = how far the pad has moved down, any ze
    ``1/k_meas = 1/k_tissue + 1/k_gel``, so ``k_tissue = 1 / (1/k_meas - 1/k_gel)``. A measured
    stiffness at or above ``k_gel / (1 + 1/max_ratio)`` means the tissue is too stiff to
    resolve through the gel: the result is clamped to ``max_stiffness_n_per_mm`` and flagged
-   ``saturated``.
+   ``saturated``. ``k_gel`` is calibration data (the probe's
+   :class:`~shared.stiffness_calibration.StiffnessCalibration`), never a built-in constant: a
+   configuration without it refuses to estimate (:class:`~shared.errors.ConfigError`).
 
 Invalid presses (no contact, too shallow, force not rising) give ``valid=False`` with a
 reason and zero stiffness, never NaN.
@@ -25,14 +27,14 @@ reason and zero stiffness, never NaN.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from remote_site.phantom.phantom import SensorPad
 from remote_site.stiffness.regression import fit_ols, get_fit
 from shared.errors import ConfigError, InputDataError
+from shared.stiffness_calibration import StiffnessCalibration
 
 __all__ = ["METHODS", "StiffnessConfig", "StiffnessEstimate", "compensate_gel", "estimate_press"]
 
@@ -50,7 +52,8 @@ class StiffnessConfig:
         min_samples: fewer usable samples give an invalid estimate.
         max_samples: longer segments are decimated uniformly before fitting (Theil-Sen is
             O(n^2)).
-        gel_stiffness_n_per_mm: the sensor gel as a series spring (default: the sim pad's).
+        gel_stiffness_n_per_mm: the sensor gel as a series spring, from the probe's stiffness
+            calibration (:meth:`with_calibration`); None refuses to estimate.
         max_stiffness_n_per_mm: clamp for saturated (too stiff) tissue.
     """
 
@@ -59,19 +62,36 @@ class StiffnessConfig:
     min_depth_mm: float = 0.3
     min_samples: int = 8
     max_samples: int = 400
-    gel_stiffness_n_per_mm: float = SensorPad().gel_stiffness_n_per_mm
+    gel_stiffness_n_per_mm: float | None = None
     max_stiffness_n_per_mm: float = 100.0
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
             raise ConfigError(f"stiffness method must be one of {METHODS}, got {self.method!r}")
-        vals = (self.contact_force_n, self.gel_stiffness_n_per_mm, self.max_stiffness_n_per_mm)
+        vals = (self.contact_force_n, self.max_stiffness_n_per_mm,
+                *(() if self.gel_stiffness_n_per_mm is None else (self.gel_stiffness_n_per_mm,)))
         if not all(math.isfinite(v) and v > 0 for v in vals):
             raise ConfigError("stiffness: force threshold and stiffnesses must be finite and > 0")
         if not (math.isfinite(self.min_depth_mm) and self.min_depth_mm >= 0):
             raise ConfigError("stiffness: min_depth_mm must be >= 0")
         if self.min_samples < 3 or self.max_samples < self.min_samples:
             raise ConfigError("stiffness: need 3 <= min_samples <= max_samples")
+
+    def with_calibration(self, calibration: StiffnessCalibration) -> StiffnessConfig:
+        """These settings with the gel stiffness of ``calibration``."""
+        return replace(self, gel_stiffness_n_per_mm=calibration.gel_stiffness_n_per_mm)
+
+    def require_gel(self) -> float:
+        """The gel stiffness, or a clear error when no calibration supplied it.
+
+        Raises:
+            ConfigError: no gel stiffness (no stiffness calibration was loaded).
+        """
+        if self.gel_stiffness_n_per_mm is None:
+            raise ConfigError("stiffness: no gel stiffness; load the probe's stiffness "
+                              "calibration (--stiffness-calibration FILE, made by `teletouch "
+                              "sensor calibrate-stiffness`)")
+        return self.gel_stiffness_n_per_mm
 
 
 @dataclass(frozen=True)
@@ -148,21 +168,23 @@ def _mad(r: NDArray[np.float64]) -> float:
 
 
 def estimate_press(approach_mm: ArrayLike, force_n: ArrayLike,
-                   config: StiffnessConfig | None = None) -> StiffnessEstimate:
+                   config: StiffnessConfig) -> StiffnessEstimate:
     """Estimate tissue stiffness from one loading segment.
 
     Args:
         approach_mm: downward pad travel per sample (mm; larger = deeper).
         force_n: measured normal force per sample (N).
-        config: settings (defaults when None).
+        config: settings with the probe's gel stiffness.
 
     Returns:
         The estimate; ``valid`` is False (stiffness 0) when the press cannot give one.
 
     Raises:
         InputDataError: NaN/Inf samples or mismatched lengths.
+        ConfigError: ``config`` has no gel stiffness (no stiffness calibration).
     """
-    cfg = config or StiffnessConfig()
+    cfg = config
+    cfg.require_gel()
     a, f = _as_samples(approach_mm, force_n)
     method = cfg.method
     touching = f >= cfg.contact_force_n
@@ -209,7 +231,7 @@ def _finish(cfg: StiffnessConfig, k_meas: float, a_c: float, max_depth: float, n
             resid_std: float, method: str) -> StiffnessEstimate:
     if not (math.isfinite(k_meas) and k_meas > 0):
         return StiffnessEstimate(False, "not_loading", method=method)
-    k_tissue, saturated = compensate_gel(k_meas, cfg.gel_stiffness_n_per_mm,
+    k_tissue, saturated = compensate_gel(k_meas, cfg.require_gel(),
                                          cfg.max_stiffness_n_per_mm)
     return StiffnessEstimate(True, "saturated" if saturated else "ok", k_meas, k_tissue, a_c,
                              max_depth, n_used, resid_std, method)

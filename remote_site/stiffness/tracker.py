@@ -61,13 +61,17 @@ class StiffnessTracker:
     """Feed ``(t, position, force)`` samples; get a :class:`PressResult` per loading segment.
 
     Args:
-        config: estimator settings.
+        config: estimator settings, with the probe's gel stiffness (calibration data).
         segments: segment detection settings.
+
+    Raises:
+        ConfigError: ``config`` has no gel stiffness (no stiffness calibration loaded).
     """
 
-    def __init__(self, config: StiffnessConfig | None = None,
+    def __init__(self, config: StiffnessConfig,
                  segments: SegmentConfig | None = None) -> None:
-        self.config = config or StiffnessConfig()
+        config.require_gel()
+        self.config = config
         self.segments = segments or SegmentConfig()
         self.seen = 0
         self.used = 0

@@ -38,7 +38,7 @@ from importlib.metadata import EntryPoint, entry_points
 from shared.errors import ConfigError, DeviceInitError
 
 __all__ = ["ENTRY_POINT_GROUP_PREFIX", "backend_names", "is_backend_name", "is_class_path",
-           "load_backend", "register_kind"]
+           "load_backend", "load_object", "register_kind"]
 
 log = logging.getLogger(__name__)
 
@@ -151,21 +151,37 @@ def _entry_point(kind: str, name: str) -> EntryPoint | None:
 
 
 def _import(kind: str, name: str, target: str) -> type:
+    return load_object(target, f"{kind} backend {name!r}")  # type: ignore[return-value]
+
+
+def load_object(target: str, what: str = "object") -> object:
+    """Import the object named by ``"module:attr"`` (``attr`` may be dotted).
+
+    The one lazy importer of the project: device backends, and the remote station's worlds
+    and default calibrations (``"module:function"``), are all found through it.
+
+    Args:
+        target: ``"module:attr"``.
+        what: what is loaded, for error messages (e.g. ``"arm backend 'sim'"``).
+
+    Raises:
+        ConfigError: ``target`` is not ``"module:attr"``, or the module lacks ``attr``.
+        DeviceInitError: the module (or one it needs) cannot be imported.
+    """
     module_name, sep, attr_path = target.partition(":")
     if not sep or not module_name or not attr_path:
-        raise ConfigError(f"{kind} backend {name!r}: {target!r} is not 'module:Class'")
+        raise ConfigError(f"{what}: {target!r} is not 'module:attr'")
     try:
         obj: object = importlib.import_module(module_name)
     except ImportError as err:
         missing = getattr(err, "name", None) or module_name
-        raise DeviceInitError(f"{kind} backend {name!r} ({target}) cannot be imported: "
+        raise DeviceInitError(f"{what} ({target}) cannot be imported: "
                               f"missing {missing!r} ({err})") from err
     for attr in attr_path.split("."):
         try:
             obj = getattr(obj, attr)
         except AttributeError as err:
-            raise ConfigError(f"{kind} backend {name!r}: {target} does not exist: "
-                              f"{err}") from err
+            raise ConfigError(f"{what}: {target} does not exist: {err}") from err
     if log.isEnabledFor(logging.DEBUG):
-        log.debug("%s backend %r loaded from %s", kind, name, target)
-    return obj  # type: ignore[return-value]
+        log.debug("%s loaded from %s", what, target)
+    return obj

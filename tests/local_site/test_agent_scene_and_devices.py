@@ -8,10 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from local_site.agent import LocalAgent, LocalAgentConfig, parse_motion_spec
+from local_site.agent import LocalAgent, LocalAgentConfig
 from local_site.agent.period_stats import PeriodStats
 from local_site.agent.station import place_shape_spec
 from local_site.platform.motion import HoldMotion, RandomWalk, RasterSweep, ReplayMotion
+from local_site.platform.motion_spec import parse_motion_spec
 from local_site.recording import SessionRecorder, load_recording
 from shared.config import resolve_config
 from shared.errors import ConfigError

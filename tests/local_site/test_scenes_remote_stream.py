@@ -8,6 +8,7 @@ import pytest
 from local_site.render import Renderer
 from local_site.scenes import OutsidePolicy, TactileFrameScene, open_scene
 from shared.errors import ConfigError, InputDataError
+from shared.hardness import StiffnessShoreCurve, StiffnessToK
 from shared.protocol import TactileFrame, decode, encode
 
 
@@ -54,16 +55,22 @@ def test_frames_through_the_wire_codec_render() -> None:
     assert cmd.friction_active and cmd.outside_pins == 0
 
 
-def test_measured_stiffness_maps_linearly_onto_k() -> None:
-    scene = TactileFrameScene(n_per_mm_range=(0.0, 2.0))
+def test_measured_stiffness_goes_through_the_shared_mapping() -> None:
+    # N/mm -> Shore 00 linear in log N/mm from (0.1, 0) to (10, 100); Shore 10..90 -> k 0.5..1
+    to_k = StiffnessToK(StiffnessShoreCurve(((0.1, 0.0), (10.0, 100.0))))
+    scene = TactileFrameScene(stiffness_to_k=to_k)
     n = np.full((12, 16), 1.0)
-    n[:, 8:] = 5.0  # stiffer than the range: clamped to k = 1
+    n[:, 8:] = 50.0  # stiffer than the curve: clamped to k = 1
     scene.update(_frame(stiffness_n_per_mm=n))
     k = scene.sample(np.array([[7.0, -5.0], [13.0, -5.0]])).stiffness_k
     assert k.tolist() == pytest.approx([0.75, 1.0])
+    assert k[0] == pytest.approx(float(to_k.k(1.0)))
     scene2 = TactileFrameScene(default_stiffness_k=0.6)
     scene2.update(_frame())
     assert scene2.sample(np.array([[10.0, -5.0]])).stiffness_k[0] == pytest.approx(0.6)
+    # without a mapping, a frame with only N/mm renders at the default k (no guessed mapping)
+    scene2.update(_frame(stiffness_n_per_mm=n))
+    assert scene2.sample(np.array([[7.0, -5.0]])).stiffness_k[0] == pytest.approx(0.6)
 
 
 def _nan_height() -> np.ndarray:
@@ -130,7 +137,7 @@ def test_bad_settings_are_rejected() -> None:
     with pytest.raises(ConfigError):
         TactileFrameScene(default_stiffness_k=0.2)
     with pytest.raises(ConfigError):
-        TactileFrameScene(n_per_mm_range=(2.0, 1.0))
+        TactileFrameScene(stiffness_to_k=(2.0, 1.0))  # type: ignore[arg-type]
     with pytest.raises(ConfigError):
         TactileFrameScene(order=2)
     with pytest.raises(ConfigError):

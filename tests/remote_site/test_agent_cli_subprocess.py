@@ -1,7 +1,8 @@
 """`teletouch relay` and `teletouch remote` as real processes, a fake local station in the test.
 
-The remote presses a known tumor for the fake local station, writes the ground truth, and
-on SIGTERM stops cleanly (exit 0) and writes --summary-json.
+The remote presses a known tumor (found in the ground truth the lab writes for the same
+phantom) for the fake local station, and on SIGTERM stops cleanly (exit 0) and writes
+--summary-json.
 """
 
 from __future__ import annotations
@@ -13,10 +14,12 @@ import os
 import shutil
 import signal
 import sys
-import time
 from pathlib import Path
 
+from lab.ground_truth import write_ground_truth
 from relay_server.auth import derive_token
+from remote_site.agent.world import build_world
+from shared.workspace import WorkspaceMap
 from tests.relay_server.test_relay_isolation_and_status import http_get
 from tests.remote_site.test_agent_relay import SESSION, check_press_result, fake_local
 from tests.support import free_tcp_port, scaled
@@ -30,6 +33,14 @@ async def _stop(proc: asyncio.subprocess.Process) -> None:
     if proc.returncode is None:
         proc.kill()
         await proc.wait()
+
+
+async def _remote_joined(port: int) -> bool:
+    with contextlib.suppress(OSError, ValueError):
+        code, _, body = await http_get(port, "/status")
+        session = json.loads(body).get("sessions", {}).get(SESSION, {})
+        return code == 200 and any(p.get("role") == "remote" for p in session.get("peers", []))
+    return False
 
 
 async def test_relay_and_remote_as_processes(tmp_path: Path) -> None:
@@ -51,16 +62,17 @@ async def test_relay_and_remote_as_processes(tmp_path: Path) -> None:
                         break
                 await asyncio.sleep(0.1)
         truth_path, summary_path = tmp_path / "truth.json", tmp_path / "summary.json"
+        write_ground_truth(build_world("severity", 2), truth_path, WorkspaceMap())
         remote_env = dict(os.environ, TELETOUCH_REMOTE_LINK_TOKEN=token)
         remote = await asyncio.create_subprocess_exec(
             *cmd, "remote", "--relay", f"tcp://127.0.0.1:{tcp_port}", "--session", SESSION,
             "--arm", "sim", "--sensor", "sim", "--phantom", "severity", "--seed", "2",
-            "--ground-truth", str(truth_path), "--frame-rate-hz", "60",
+            "--frame-rate-hz", "60",
             "--summary-json", str(summary_path), env=remote_env,
             stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
-        deadline = time.monotonic() + scaled(20.0)
-        while not truth_path.exists() and time.monotonic() < deadline:
-            await asyncio.sleep(0.1)
+        async with asyncio.timeout(scaled(30.0)):  # the remote has opened its devices
+            while not await _remote_joined(port):
+                await asyncio.sleep(0.1)
         truth = json.loads(truth_path.read_text())
         hardest = next(t for t in truth["tumors"] if t["id"] == truth["severity_order"][-1])
         got = await fake_local(f"ws://127.0.0.1:{port}/", tuple(hardest["center_mm"]),

@@ -17,9 +17,11 @@ from typing import Any
 
 import pytest
 
+from lab.ground_truth import write_ground_truth
 from relay_server.config import RelayConfig
 from relay_server.server import RelayServer
 from remote_site.agent.app import AgentOptions, run_agent
+from remote_site.agent.world import build_world
 from remote_site.phantom.scenes import make_scene
 from shared.client import StationLink
 from shared.protocol import ArmState, PlatformState, TactileFrame
@@ -141,14 +143,16 @@ async def test_agent_follows_a_press_and_streams_tactile_frames(relay: RelayServ
                                                                 tmp_path: Path) -> None:
     url = f"ws://127.0.0.1:{relay.ws_port}/"
     truth_path = tmp_path / "truth.json"
+    write_ground_truth(build_world("breast", 5), truth_path, WorkspaceMap())
     options = AgentOptions(relay=url, session=SESSION, token=TOKEN, phantom="breast", seed=5,
-                           ground_truth=truth_path, frame_rate_hz=60.0)
+                           frame_rate_hz=60.0)
     stop = asyncio.Event()
     agent = asyncio.create_task(run_agent(options, stop))
     try:
-        truth_wait = time.monotonic() + scaled(10.0)
-        while not truth_path.exists() and time.monotonic() < truth_wait:
-            await asyncio.sleep(0.05)
+        async with asyncio.timeout(scaled(20.0)):  # the station has opened its devices
+            while not any(p["role"] == "remote" for p in relay.status()["sessions"].get(
+                    SESSION, {}).get("peers", [])):
+                await asyncio.sleep(0.05)
         truth = json.loads(truth_path.read_text())
         malignant = next(t for t in truth["tumors"] if t["id"] == "malignant")
         got = await fake_local(url, tuple(malignant["center_mm"]), duration_s=scaled(3.2))

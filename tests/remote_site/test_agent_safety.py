@@ -10,33 +10,34 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
-import json
 import logging
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pytest
 
+from remote_site.agent.app import AgentOptions, run_agent
 from remote_site.agent.config import RemoteAgentConfig
+from remote_site.agent.devices import (
+    load_calibration,
+    load_stiffness_calibration,
+    open_world,
+    open_world_arm,
+    open_world_sensor,
+)
 from remote_site.agent.pipeline import FramePipeline
 from remote_site.agent.station import RemoteStation, command_clock_offset_us
 from remote_site.agent.stiffness_stage import StiffnessStage
-from remote_site.agent.world import (
-    SimWorld,
-    build_world,
-    load_calibration,
-    open_world_arm,
-    open_world_sensor,
-    write_ground_truth,
-)
+from remote_site.agent.world import SimWorld, build_world
 from remote_site.arm.safety import SafeArm, SafetyConfig
 from remote_site.arm.sim import SimArm, SimArmConfig
+from remote_site.phantom.reference_presses import sim_stiffness_calibration
 from remote_site.phantom.scenes import make_scene
 from remote_site.reconstruction.reconstructor import Reconstructor
 from remote_site.sensor.base import SensorFrame, TactileSensor
 from remote_site.sensor.sim_calibration import simulated_calibration
 from remote_site.sensor.simulator import SimulatedSensor
+from remote_site.stiffness.estimator import StiffnessConfig
 from remote_site.tactile import TactileAssembler
 from shared.client import LinkCounters
 from shared.errors import CalibrationError, ConfigError
@@ -78,6 +79,7 @@ class FakeLink:
 
 WS = WorkspaceMap()
 CALIB = simulated_calibration()
+STIFFNESS_CALIB = sim_stiffness_calibration()
 
 
 def make_station(link: FakeLink, safety: SafetyConfig | None = None, *, realtime: bool = True,
@@ -89,8 +91,9 @@ def make_station(link: FakeLink, safety: SafetyConfig | None = None, *, realtime
     arm.connect()
     sensor.connect()
     safe = SafeArm(arm, safety, bounds_mm=WS.phantom_bounds_mm)
-    stiffness = StiffnessStage()
-    pipeline = FramePipeline(sensor, Reconstructor(CALIB), TactileAssembler(WS), stiffness,
+    stiffness = StiffnessStage(StiffnessConfig().with_calibration(STIFFNESS_CALIB))
+    assembler = TactileAssembler(WS, stiffness_to_k=STIFFNESS_CALIB.stiffness_to_k())
+    pipeline = FramePipeline(sensor, Reconstructor(CALIB), assembler, stiffness,
                              arm.state)
     cfg = config or RemoteAgentConfig(frame_rate_hz=30.0, status_interval_s=0.05)
     return RemoteStation(link, safe, pipeline, stiffness, WS.forward, cfg)
@@ -284,12 +287,39 @@ def test_calibration_problems_fail_at_start_up(tmp_path: Path) -> None:
         load_calibration("camera", None, camera)
 
 
+def test_stiffness_calibration_is_required_for_a_real_sensor(tmp_path: Path) -> None:
+    assert load_stiffness_calibration("sim", None) == STIFFNESS_CALIB
+    with pytest.raises(ConfigError, match="--stiffness-calibration"):
+        load_stiffness_calibration("camera", None)
+    path = STIFFNESS_CALIB.save(tmp_path / "stiffness.json")
+    assert load_stiffness_calibration("camera", path) == STIFFNESS_CALIB
+    with pytest.raises(CalibrationError):
+        load_stiffness_calibration("camera", tmp_path / "missing.json")
+
+
+async def test_a_real_sensor_without_stiffness_calibration_fails_before_anything_moves(
+        tmp_path: Path) -> None:
+    empty = tmp_path / "empty.toml"
+    empty.write_text("")
+    options = AgentOptions(relay="ws://127.0.0.1:9/", session="s", token="t", arm="sim",
+                           sensor="camera", config_path=empty)
+    with pytest.raises(ConfigError, match="--stiffness-calibration"):
+        await run_agent(options, asyncio.Event())
+
+
+def test_worlds_are_opened_by_name() -> None:
+    world = open_world("phantom", "breast", 2)
+    assert isinstance(world, SimWorld) and world.phantom.seed == 2
+    with pytest.raises(ConfigError, match="unknown world"):
+        open_world("no-such-world", "breast", 0)
+
+
 def test_a_world_is_refused_by_real_hardware() -> None:
     world = build_world("breast", 0)
     with pytest.raises(ConfigError, match="real hardware"):
         open_world_arm("franka", world)
     arm = open_world_arm("sim", world)
-    assert isinstance(arm, SimArm) and arm.phantom is world.phantom  # type: ignore[union-attr]
+    assert isinstance(arm, SimArm) and arm.phantom is world.phantom
     with pytest.raises(ConfigError, match="real camera"):
         open_world_sensor("camera", world, arm)
     with pytest.raises(ConfigError, match="real camera"):
@@ -302,6 +332,7 @@ def test_the_sim_sensor_renders_the_phantom_at_the_arm_pose() -> None:
     world = build_world("breast", 0)
     assert world is not None
     arm = open_world_arm("sim", world, config=SimArmConfig(realtime=False))
+    assert isinstance(arm, SimArm)
     sensor = open_world_sensor("sim", world, arm)
     arm.connect()
     sensor.connect()
@@ -317,26 +348,6 @@ def test_the_sim_sensor_renders_the_phantom_at_the_arm_pose() -> None:
     finally:
         sensor.disconnect()
         arm.disconnect()
-
-
-def test_ground_truth_file_has_platform_coordinates_and_severity(tmp_path: Path) -> None:
-    world = build_world("severity", 4)
-    assert world is not None
-    path = write_ground_truth(world, tmp_path / "truth.json", WS)
-    truth: dict[str, Any] = json.loads(path.read_text())
-    assert truth["scene"] == "severity" and truth["seed"] == 4
-    assert len(truth["tumors"]) == 4
-    for tumor in truth["tumors"]:
-        cx, cy = tumor["center_mm"]
-        assert tumor["center_platform_mm"] == pytest.approx([cx + 30.0, cy + 30.0])
-        assert tumor["stiffness_n_per_mm"] == pytest.approx(
-            world.phantom.tissue_stiffness_n_per_mm(cx, cy))
-        assert 0.5 <= tumor["display_k"] <= 1.0
-    ranks = {t["id"]: t["severity_rank"] for t in truth["tumors"]}
-    assert [ranks[i] for i in truth["severity_order"]] == [1, 2, 3, 4]
-    assert truth["workspace"]["scale_xy"] == 1.0
-    with pytest.raises(ConfigError):
-        write_ground_truth(world, tmp_path / "no" / "such" / "dir.json", WS)
 
 
 def test_explicit_stop_command_always_acts() -> None:

@@ -10,13 +10,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from remote_site.phantom import Phantom, SiliconeLayer, make_scene
+from remote_site.phantom import Phantom, SensorPad, SiliconeLayer, make_scene
 from remote_site.phantom.mechanics import punch_stiffness_n_per_mm
 from remote_site.stiffness import METHODS, StiffnessConfig, compensate_gel, estimate_press
 from shared.errors import ConfigError, InputDataError
 
-CFG = StiffnessConfig()
-K_GEL = CFG.gel_stiffness_n_per_mm
+#: the simulated pad's true gel (a station reads it from its stiffness calibration)
+CFG = StiffnessConfig(gel_stiffness_n_per_mm=SensorPad().gel_stiffness_n_per_mm)
+K_GEL = CFG.require_gel()
 
 
 def press(k_series: float, contact_mm: float, depth_mm: float = 3.0, n: int = 200,
@@ -83,7 +84,7 @@ def test_noise_target_against_phantom_ground_truth(method: str) -> None:
 def test_plain_ratio_is_biased_by_contact_detection() -> None:
     a, f = press(series(1.5), 1.0)
     ratio = estimate_press(a, f, replace(CFG, method="ratio"))
-    fitted = estimate_press(a, f)
+    fitted = estimate_press(a, f, CFG)
     assert ratio.valid and fitted.valid
     assert abs(fitted.k_tissue_n_per_mm / 1.5 - 1) < 1e-9 < abs(ratio.k_tissue_n_per_mm / 1.5 - 1)
 
@@ -108,9 +109,9 @@ def test_nan_and_mismatched_input_rejected() -> None:
     a, f = press(series(1.0), 0.5)
     f[10] = np.nan
     with pytest.raises(InputDataError):
-        estimate_press(a, f)
+        estimate_press(a, f, CFG)
     with pytest.raises(InputDataError):
-        estimate_press(a[:-1], np.zeros(a.size))
+        estimate_press(a[:-1], np.zeros(a.size), CFG)
     with pytest.raises(ConfigError):
         StiffnessConfig(method="magic")
 
@@ -118,7 +119,7 @@ def test_nan_and_mismatched_input_rejected() -> None:
 def test_k_at_extremes_saturates_instead_of_blowing_up() -> None:
     # tissue as stiff as the gel or stiffer than the cap: measured k close to k_gel
     a, f = press(K_GEL * 0.999, 0.5)
-    est = estimate_press(a, f)
+    est = estimate_press(a, f, CFG)
     assert est.valid and est.reason == "saturated"
     assert est.k_tissue_n_per_mm == CFG.max_stiffness_n_per_mm
     a, f = press(series(1e-3), 0.5, depth_mm=300.0)
@@ -136,3 +137,12 @@ def test_compensate_gel_properties(k_meas: float, k_gel: float, k_max: float) ->
         assert k_t >= k_meas * (1 - 1e-12)
     with pytest.raises(InputDataError):
         compensate_gel(float("nan"), k_gel, k_max)
+
+
+def test_no_gel_stiffness_is_refused_not_guessed() -> None:
+    """Without a stiffness calibration there is no gel stiffness: estimating is refused."""
+    a, f = press(series(1.0), 0.5)
+    with pytest.raises(ConfigError, match="stiffness calibration"):
+        estimate_press(a, f, StiffnessConfig())
+    with pytest.raises(ConfigError):
+        StiffnessConfig(gel_stiffness_n_per_mm=-1.0)

@@ -10,23 +10,23 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from remote_site.arm.sim import SimArm, SimArmConfig
-from remote_site.phantom import make_scene
-from remote_site.phantom.mechanics import punch_stiffness_n_per_mm
-from remote_site.stiffness import (
-    MapBounds,
-    ShoreConversion,
-    StiffnessMap,
-    StiffnessTracker,
-    durometer_modulus_kpa,
-)
+from remote_site.phantom import SensorPad, SiliconeLayer, make_scene
+from remote_site.phantom.durometer import durometer_modulus_kpa
+from remote_site.phantom.mechanics import punch_modulus_kpa, punch_stiffness_n_per_mm
+from remote_site.phantom.reference_presses import sim_stiffness_calibration
+from remote_site.stiffness import MapBounds, StiffnessConfig, StiffnessMap, StiffnessTracker
 from shared.errors import ConfigError, InputDataError
+from shared.hardness import StiffnessShoreCurve
+
+#: the simulated pad's true gel (a station reads it from its stiffness calibration)
+SIM_CFG = StiffnessConfig(gel_stiffness_n_per_mm=SensorPad().gel_stiffness_n_per_mm)
 
 
 def test_sim_arm_presses_give_one_estimate_each_from_loading_only() -> None:
     ph = make_scene("breast", 4)
     arm = SimArm(ph, SimArmConfig(realtime=False, force_noise_n=0.02, seed=1))
     arm.connect()
-    tracker = StiffnessTracker()
+    tracker = StiffnessTracker(SIM_CFG)
     spots = [(-20.0, 10.0), (5.0, -15.0), tuple(ph.ground_truth()["tumors"][0]["center_mm"])]
     results = []
     for x, y in spots:
@@ -53,9 +53,9 @@ def test_sim_arm_presses_give_one_estimate_each_from_loading_only() -> None:
 
 def test_tracker_rejects_nan() -> None:
     with pytest.raises(InputDataError):
-        StiffnessTracker().update(0.0, (0.0, float("nan"), 0.0), 1.0)
+        StiffnessTracker(SIM_CFG).update(0.0, (0.0, float("nan"), 0.0), 1.0)
     with pytest.raises(InputDataError):
-        StiffnessTracker().update(0.0, (0.0, 0.0, 0.0), float("inf"))
+        StiffnessTracker(SIM_CFG).update(0.0, (0.0, 0.0, 0.0), float("inf"))
 
 
 def test_stiffness_map_statistics() -> None:
@@ -79,31 +79,34 @@ def test_stiffness_map_statistics() -> None:
 
 
 def test_durometer_model_round_trip_and_monotone() -> None:
-    conv = ShoreConversion()
+    """The simulated probe's calibration inverts the simulator's physics (punch + durometer)."""
+    to_k = sim_stiffness_calibration().stiffness_to_k()
+    pad_radius_mm, thickness_mm = SensorPad().effective_radius_mm, SiliconeLayer().thickness_mm
     shore = np.linspace(1, 99, 50)
     mod = durometer_modulus_kpa(shore)
     assert np.all(np.diff(mod) > 0)
-    np.testing.assert_allclose(conv.shore00_from_modulus(mod), shore, atol=0.05)
+    k = punch_stiffness_n_per_mm(mod, pad_radius_mm, thickness_mm)
+    np.testing.assert_allclose(to_k.shore00(k), shore, atol=0.05)
     # stiffness -> modulus inverts the punch model exactly
-    k = punch_stiffness_n_per_mm(80.0, conv.pad_radius_mm, conv.layer_thickness_mm)
-    assert conv.modulus_kpa(k) == pytest.approx(80.0)
+    k80 = punch_stiffness_n_per_mm(80.0, pad_radius_mm, thickness_mm)
+    assert punch_modulus_kpa(k80, pad_radius_mm, thickness_mm) == pytest.approx(80.0)
 
 
 @settings(max_examples=100, deadline=None)
 @given(k=st.floats(0.0, 1e5))
 def test_display_k_is_clamped_and_monotone(k: float) -> None:
-    conv = ShoreConversion()
-    kd = float(conv.display_k(k))
+    to_k = sim_stiffness_calibration().stiffness_to_k()
+    kd = float(to_k.k(k))
     assert 0.5 <= kd <= 1.0
-    assert 0.0 <= float(conv.shore00(k)) <= 100.0
-    assert float(conv.display_k(k * 1.5 + 0.1)) >= kd
+    assert 0.0 <= float(to_k.shore00(k)) <= 100.0
+    assert float(to_k.k(k * 1.5 + 0.1)) >= kd
 
 
 def test_shore_conversion_rejects_bad_values() -> None:
-    conv = ShoreConversion()
+    to_k = sim_stiffness_calibration().stiffness_to_k()
     with pytest.raises(InputDataError):
-        conv.shore00(float("nan"))
+        to_k.shore00(float("nan"))
     with pytest.raises(InputDataError):
         durometer_modulus_kpa(100.0)
     with pytest.raises(ConfigError):
-        ShoreConversion(spring_full_n=0.1)
+        StiffnessShoreCurve(((1.0, 50.0), (2.0, 40.0)))

@@ -11,11 +11,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from remote_site.phantom.phantom import Phantom
+from remote_site.phantom.reference_presses import sim_stiffness_calibration
 from remote_site.reconstruction.reconstructor import Reconstructor
 from remote_site.sensor.shapes import ball_depth_mm
 from remote_site.sensor.sim_calibration import simulated_calibration
 from remote_site.sensor.simulator import SimulatedSensor
-from remote_site.stiffness.shore import ShoreConversion
 from remote_site.stiffness.stiffness_map import MapBounds, StiffnessMap
 from remote_site.tactile import (
     AppliedCommand,
@@ -25,9 +25,16 @@ from remote_site.tactile import (
     sample_stiffness_map,
 )
 from shared.errors import ConfigError, InputDataError
-from shared.protocol import PlatformState, decode, encode
+from shared.protocol import PlatformState, TactileFrame, decode, encode
 from shared.protocol.messages import Hop
 from shared.workspace import WorkspaceConfig, WorkspaceMap
+
+TO_K = sim_stiffness_calibration().stiffness_to_k()
+
+
+def _assembler(workspace: WorkspaceMap | None = None) -> TactileAssembler:
+    return TactileAssembler(workspace or WorkspaceMap(), stiffness_to_k=TO_K)
+
 
 PITCH_MM = 0.0634 * 8  # the sim sensor pixel pooled 8x: the default patch pitch
 
@@ -53,7 +60,7 @@ def test_flat_phantom_without_contact_gives_a_zero_patch(reconstructor: Reconstr
     assert not depth.any()
     hm = reconstructor.height_map(sensor.render(depth), out_pitch_mm=0.5)
     assert hm.skipped
-    frame = _assemble(TactileAssembler(WorkspaceMap()), hm.height_mm, pitch=hm.mm_per_px)
+    frame = _assemble(_assembler(), hm.height_mm, pitch=hm.mm_per_px)
     assert frame.layers["height_mm"].shape == (30, 40)
     assert np.all(frame.layers["height_mm"] == 0.0)
     assert np.all(frame.layers["friction"] == 0.0)
@@ -64,7 +71,7 @@ def test_sphere_patch_matches_the_depth_map_at_the_patch_pitch(
     depth = ball_depth_mm((240, 320), 0.0634, 159.5, 119.5, 3.0, 0.5)
     hm = reconstructor.height_map(SimulatedSensor(seed=2).render(depth), out_pitch_mm=0.5)
     assert hm.mm_per_px == pytest.approx(PITCH_MM)
-    frame = _assemble(TactileAssembler(WorkspaceMap()), hm.height_mm, pitch=hm.mm_per_px)
+    frame = _assemble(_assembler(), hm.height_mm, pitch=hm.mm_per_px)
     patch = frame.layers["height_mm"]
     reference = cv2.resize(depth, (40, 30), interpolation=cv2.INTER_AREA)  # area mean per cell
     err = patch - reference
@@ -79,7 +86,7 @@ def test_sphere_off_centre_shows_up_where_it_is_in_platform_coordinates() -> Non
     ws = WorkspaceMap()
     depth = ball_depth_mm((240, 320), 0.0634, 240.0, 60.0, 2.0, 0.4)
     pooled = cv2.resize(depth, (40, 30), interpolation=cv2.INTER_AREA)
-    frame = _assemble(TactileAssembler(ws), pooled, probe=(3.0, -2.0, -0.5))
+    frame = _assemble(_assembler(ws), pooled, probe=(3.0, -2.0, -0.5))
     r, c = np.unravel_index(np.argmax(frame.layers["height_mm"]), (30, 40))
     x = frame.center_mm[0] + (c - 19.5) * frame.pitch_mm
     y = frame.center_mm[1] + (r - 14.5) * frame.pitch_mm
@@ -95,7 +102,7 @@ def test_center_is_the_inverse_workspace_map_and_pitch_is_in_platform_mm(
         scale_xy: float, offset: tuple[float, float]) -> None:
     ws = WorkspaceMap(WorkspaceConfig(scale_xy=scale_xy, offset_mm=offset))
     probe = (offset[0] + 3.0 * scale_xy, offset[1] - 5.0 * scale_xy, -0.8)
-    frame = _assemble(TactileAssembler(ws), np.zeros((30, 40), np.float32), probe=probe)
+    frame = _assemble(_assembler(ws), np.zeros((30, 40), np.float32), probe=probe)
     # independent formula: x_pl = (x_ph - offset) / scale + platform centre (30 mm)
     assert frame.center_mm == pytest.approx((33.0, 25.0))
     assert frame.pitch_mm == pytest.approx(PITCH_MM / scale_xy)
@@ -108,7 +115,7 @@ def test_hops_follow_the_contract_and_survive_the_wire() -> None:
     state = PlatformState(seq=7, ts_us=100, position_mm=(30.0, 30.0, 40.0), hops=(
         Hop("local", "capture", 100), Hop("relay", "relay_in", 150),
         Hop("relay", "relay_out", 160), Hop("remote", "station_rx", 170)))
-    frame = _assemble(TactileAssembler(WorkspaceMap()), np.zeros((30, 40), np.float32),
+    frame = _assemble(_assembler(), np.zeros((30, 40), np.float32),
                       source=AppliedCommand(state, 180))
     assert [f"{h.clock}.{h.stage}" for h in frame.hops] == [
         "local.capture", "relay.relay_in", "relay.relay_out", "remote.station_rx",
@@ -116,17 +123,18 @@ def test_hops_follow_the_contract_and_survive_the_wire() -> None:
     assert [h.t_us for h in frame.hops][-3:] == [180, 1_000, 2_000]
     assert (frame.source_seq, frame.source_ts_us, frame.ts_us) == (7, 100, 1_000)
     back = decode(encode(frame))
+    assert isinstance(back, TactileFrame)
     assert back.hops == frame.hops and back.layers["height_mm"].shape == (30, 40)
 
 
 def test_without_a_source_only_the_remote_stamps_are_present() -> None:
-    frame = _assemble(TactileAssembler(WorkspaceMap()), np.zeros((30, 40), np.float32))
+    frame = _assemble(_assembler(), np.zeros((30, 40), np.float32))
     assert [h.stage for h in frame.hops] == ["sensor_frame", "tactile_ready"]
     assert frame.source_seq is None and frame.source_ts_us is None
 
 
 def test_stiffness_layers_come_from_the_map_and_the_current_estimate() -> None:
-    assembler = TactileAssembler(WorkspaceMap())
+    assembler = TactileAssembler(WorkspaceMap(), stiffness_to_k=TO_K)
     smap = StiffnessMap(MapBounds(cell_mm=2.0))
     zeros = np.zeros((30, 40), np.float32)
     assert "stiffness_k" not in _assemble(assembler, zeros, stiffness_map=smap).layers
@@ -139,9 +147,8 @@ def test_stiffness_layers_come_from_the_map_and_the_current_estimate() -> None:
     assert np.all(n_per_mm[inside] == pytest.approx(3.0))
     assert np.all(n_per_mm[~inside] == pytest.approx(1.5))
     k = frame.layers["stiffness_k"]
-    shore = ShoreConversion()
-    assert k[inside][0] == pytest.approx(float(shore.display_k(3.0)), abs=1e-6)
-    assert k[~inside][0] == pytest.approx(float(shore.display_k(1.5)), abs=1e-6)
+    assert k[inside][0] == pytest.approx(float(TO_K.k(3.0)), abs=1e-6)
+    assert k[~inside][0] == pytest.approx(float(TO_K.k(1.5)), abs=1e-6)
     assert k[inside][0] > k[~inside][0]
     # without a current estimate the rest is filled with the known cells' mean
     frame = _assemble(assembler, zeros, stiffness_map=smap, current=None)
@@ -186,7 +193,7 @@ def test_crop_keeps_the_patch_centred(rows: int, cols: int, size_x: float, size_
        st.floats(0.0, 200.0), st.floats(-1e3, 1e3, allow_nan=False))
 def test_layers_are_finite_and_in_range_for_any_heights(values: list[float], k: float,
                                                          z: float) -> None:
-    assembler = TactileAssembler(WorkspaceMap())
+    assembler = TactileAssembler(WorkspaceMap(), stiffness_to_k=TO_K)
     smap = StiffnessMap()
     smap.add(0.0, 0.0, k)
     frame = _assemble(assembler, np.asarray(values, np.float32).reshape(3, 4),
@@ -200,7 +207,7 @@ def test_layers_are_finite_and_in_range_for_any_heights(values: list[float], k: 
 
 
 def test_non_finite_input_is_refused() -> None:
-    assembler = TactileAssembler(WorkspaceMap())
+    assembler = TactileAssembler(WorkspaceMap(), stiffness_to_k=TO_K)
     bad = np.zeros((30, 40), np.float32)
     bad[3, 3] = math.nan
     with pytest.raises(InputDataError):
@@ -208,6 +215,7 @@ def test_non_finite_input_is_refused() -> None:
     with pytest.raises(InputDataError):
         _assemble(assembler, np.zeros((30, 40)), probe=(0.0, math.inf, 0.0))
     with pytest.raises(ConfigError):
-        TactileAssembler(WorkspaceMap(), friction=1.5)
+        TactileAssembler(WorkspaceMap(), stiffness_to_k=TO_K, friction=1.5)
     with pytest.raises(ConfigError):
-        TactileAssembler(WorkspaceMap(), patch_size_mm=(-1.0, 2.0))
+        TactileAssembler(WorkspaceMap(), stiffness_to_k=TO_K,
+                         patch_size_mm=(-1.0, 2.0))

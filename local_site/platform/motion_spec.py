@@ -1,5 +1,8 @@
 """``--motion SPEC``: the scripted operator of the simulated platform, in one string.
 
+Simulator code (beside :mod:`local_site.platform.motion`): the station passes the string to
+the platform backend, and only the ``sim`` backend accepts it.
+
 Grammar: ``NAME[:key=value,...]`` or a trajectory file path (``.csv`` / ``.npz``, replayed by
 :class:`~local_site.platform.motion.ReplayMotion`). Names and keys (every key of the
 underlying class is also accepted under its full name):
