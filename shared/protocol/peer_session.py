@@ -311,11 +311,14 @@ class PeerSession:
         process what the peer sent behind its hello."""
         self.outbox.put_ordered(welcome, force=True)
         self._joined = True
-        self._next_stats_us = now_us + self.settings.stats_interval_us
+        s = self.settings
+        burst_us = 0
         if welcome.role != "observer":
-            self._burst_left = self.settings.ping_burst
-            self._next_ping_us = now_us + (0 if self._burst_left else
-                                           self.settings.ping_interval_us)
+            self._burst_left = s.ping_burst
+            self._next_ping_us = now_us + (0 if s.ping_burst else s.ping_interval_us)
+            burst_us = s.ping_burst * s.ping_burst_spacing_us
+        # periodic pings and stats start together, after the burst
+        self._next_stats_us = now_us + burst_us + s.stats_interval_us
         held, self._held = self._held or [], None
         for event, t_in_us in held:
             if self.closing:

@@ -195,7 +195,7 @@ def test_ping_burst_then_interval_and_stats_due() -> None:
             stats_due.append(t)
         pings += [decode(d[4:]).t0_us for d in peer.data_to_send(itertools.repeat(t).__next__)]  # type: ignore[attr-defined]
     assert pings == [2, 12, 122, 222, 322]
-    assert stats_due == [52, 102, 152, 202, 252, 302, 352]
+    assert stats_due == [72, 122, 172, 222, 272, 322, 372]
 
 
 # --------------------------------------------------------------------------- streams
