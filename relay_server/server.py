@@ -364,6 +364,7 @@ class _Connection:
     async def shutdown(self) -> None:
         """Relay shutdown: bye, drain the writer (bounded), close with 1001."""
         self.protocol.shutdown()
+        self.wake.set()
         if self.writer is not None:
             with contextlib.suppress(TimeoutError, asyncio.CancelledError):
                 async with asyncio.timeout(_CLOSE_TIMEOUT_S):

@@ -394,8 +394,9 @@ class PeerSession:
 
     def next_tick_us(self) -> int:
         """When :meth:`tick` next has something to do."""
-        if not self._joined:
-            return self._hello_deadline_us
+        if not self._joined:  # waiting for the hello, or for accept() after it
+            return self._hello_deadline_us + (0 if self.hello is None
+                                              else self.settings.hello_timeout_us)
         times = [t for t in (self._next_ping_us, self._next_stats_us) if t is not None]
         return min(times)
 
