@@ -312,13 +312,13 @@ class PeerSession:
         self.outbox.put_ordered(welcome, force=True)
         self._joined = True
         s = self.settings
-        burst_us = 0
-        if welcome.role != "observer":
-            self._burst_left = s.ping_burst
-            self._next_ping_us = now_us + (0 if s.ping_burst else s.ping_interval_us)
-            burst_us = s.ping_burst * s.ping_burst_spacing_us
-        # periodic pings and stats start together, after the burst
-        self._next_stats_us = now_us + burst_us + s.stats_interval_us
+        if welcome.role != "observer" and s.ping_burst:
+            # stats wait for the burst; then periodic pings and stats start together
+            self._burst_left, self._next_ping_us = s.ping_burst, now_us
+        else:
+            if welcome.role != "observer":
+                self._next_ping_us = now_us + s.ping_interval_us
+            self._next_stats_us = now_us + s.stats_interval_us
         held, self._held = self._held or [], None
         for event, t_in_us in held:
             if self.closing:
@@ -419,11 +419,14 @@ class PeerSession:
             if self._burst_left > 1:
                 self._burst_left -= 1
                 self._next_ping_us = now_us + s.ping_burst_spacing_us
-            else:
-                spacing = s.ping_burst_spacing_us if self._burst_left else 0
+            elif self._burst_left == 1:  # the burst is over
                 self._burst_left = 0
-                nxt = self._next_ping_us + spacing + s.ping_interval_us
-                self._next_ping_us = nxt if nxt >= now_us else now_us + s.ping_interval_us
+                self._next_ping_us = now_us + s.ping_burst_spacing_us + s.ping_interval_us
+                self._next_stats_us = now_us + s.ping_burst_spacing_us + s.stats_interval_us
+            else:
+                self._next_ping_us += s.ping_interval_us
+                if self._next_ping_us < now_us:
+                    self._next_ping_us = now_us + s.ping_interval_us
         if self._next_stats_us is not None and now_us >= self._next_stats_us:
             self._next_stats_us += s.stats_interval_us
             if self._next_stats_us < now_us:
