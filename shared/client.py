@@ -424,9 +424,11 @@ class StationLink:
     async def _read_loop(self, transport: Transport) -> None:
         session = self._session
         while True:
-            while session.inbox.ordered_full:  # back-pressure: a slow consumer stops reading
-                self._rx_room.clear()
-                await self._rx_room.wait()
+            if session.inbox.ordered_full:  # back-pressure: a slow consumer stops reading
+                while session.inbox.ordered_full:
+                    self._rx_room.clear()
+                    await self._rx_room.wait()
+                session.reading_resumed(now_us())
             timeout_s = max(0.0, (session.deadline_us() - now_us()) / 1e6)
             try:
                 data = await asyncio.wait_for(transport.recv(), timeout_s)

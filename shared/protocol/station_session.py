@@ -200,6 +200,10 @@ class StationSession:
             return LinkSilent(silent, self._open)
         return None
 
+    def reading_resumed(self, now_us: int) -> None:
+        """The glue paused reading (full inbox) and reads again: silence counts from now."""
+        self._last_rx_us = max(self._last_rx_us, now_us)
+
     def deadline_us(self) -> int:
         """When :meth:`check_liveness` fires if nothing arrives before."""
         limit = self.liveness_timeout_us if self._open else self.connect_timeout_us

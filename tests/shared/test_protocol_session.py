@@ -321,6 +321,8 @@ def test_silence_past_the_timeout_gives_the_liveness_event() -> None:
     assert station.deadline_us() == 1600
     assert station.check_liveness(1599) is None
     assert station.check_liveness(1600) == LinkSilent(1000, True)
+    station.reading_resumed(1700)  # reading was paused (full inbox): silence counts from now
+    assert station.deadline_us() == 2700 and station.check_liveness(2000) is None
     assert station.connection_lost() and station.counters.connection_losses == 1
 
 
