@@ -250,6 +250,7 @@ class PeerSession:
         self._events: list[PeerEvent] = []
         self._held: list[tuple[Event, int]] | None = None  # between hello and accept()
         self._joined = False
+        self._observer = False
         self._warned = False
         self._pings: OrderedDict[int, int] = OrderedDict()
         self._ping_ids = itertools.count()
@@ -303,6 +304,7 @@ class PeerSession:
                                           f"{event.message.TYPE}", code="hello_expected"))
         else:
             self.hello = event.message
+            self._observer = event.message.role == "observer"
             self._held = []
             self._events.append(HelloReceived(event.message))
 
@@ -337,7 +339,7 @@ class PeerSession:
             return
         msg = event.message
         self.received += 1
-        observer = self.hello is not None and self.hello.role == "observer"
+        observer = self._observer
         if isinstance(msg, DataMessage):
             if observer:
                 self.reject(SessionError(f"observers are read-only; {msg.TYPE} refused",
