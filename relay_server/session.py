@@ -9,21 +9,18 @@ its relay residence time and end-to-end estimate.
 
 from __future__ import annotations
 
-import itertools
 import logging
-from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Any
 
-from relay_server.outbox import Outbox, Pending
 from shared.clocksync import ClockFilter
-from shared.errors import InputDataError, RoleTakenError
+from shared.errors import RoleTakenError
 from shared.ledger import LatencyLedger, LedgerSnapshot, merge_snapshots
-from shared.protocol import ClockPong, DataMessage, Error
+from shared.protocol import DataMessage, Error, StreamPolicy
+from shared.protocol.peer_session import Outbox, Pending
 
 __all__ = [
     "DIRECTION_OF",
-    "LATEST_WINS",
     "STREAMS_OF",
     "DirectionStats",
     "Peer",
@@ -33,15 +30,12 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-#: streams where only the newest unsent message matters
-LATEST_WINS = frozenset({"platform_state", "arm_state", "tactile_frame"})
 #: data streams each station role may send
 STREAMS_OF = {"local": frozenset({"platform_state", "arm_command"}),
               "remote": frozenset({"arm_state", "tactile_frame"})}
 #: sender role -> direction name
 DIRECTION_OF = {"local": "local_to_remote", "remote": "remote_to_local"}
 _OTHER = {"local": "remote", "remote": "local"}
-_MAX_OUTSTANDING_PINGS = 16
 
 
 class DirectionStats:
@@ -77,7 +71,11 @@ class DirectionStats:
 
 @dataclass(eq=False)
 class Peer:
-    """One joined connection: its role, outbox, clock estimate and counters."""
+    """One joined connection: its role, outbox, clock estimate and counters.
+
+    ``outbox`` and ``clock`` belong to the connection's
+    :class:`~shared.protocol.peer_session.PeerSession`; the ledgers are the relay's.
+    """
 
     peer_id: int
     session_id: str
@@ -89,39 +87,21 @@ class Peer:
     clock: ClockFilter = field(default_factory=ClockFilter)
     downlink: LatencyLedger = field(init=False)
     rtt: LatencyLedger = field(init=False)
-    pings: OrderedDict[int, int] = field(default_factory=OrderedDict)
     received: int = 0
     bad_messages: int = 0
     observer_drops: int = 0
     reported: dict[str, Any] = field(default_factory=dict)
-    _ping_ids: itertools.count = field(default_factory=itertools.count)
 
     def __post_init__(self) -> None:
         self.downlink = LatencyLedger(self.window)
         self.rtt = LatencyLedger(self.window)
 
-    def next_ping(self, t0_us: int) -> int:
-        """Register a ``clock_ping`` sent at ``t0_us``; return its ping id."""
-        ping_id = next(self._ping_ids)
-        self.pings[ping_id] = t0_us
-        while len(self.pings) > _MAX_OUTSTANDING_PINGS:
-            self.pings.popitem(last=False)
-        return ping_id
-
-    def on_pong(self, pong: ClockPong, t3_us: int) -> bool:
-        """Feed a ``clock_pong``; False if it answers no ping of ours or is inconsistent."""
-        t0 = self.pings.pop(pong.ping_id, None)
-        if t0 is None or t0 != pong.t0_us:
-            return False
-        try:
-            sample = self.clock.add_timestamps(t0, pong.t1_us, pong.t2_us, t3_us)
-        except InputDataError:
-            return False
-        # relay -> station one way for this exchange, under the current best offset
+    def record_clock_exchange(self, t0_us: int, t1_us: int, delay_us: float) -> None:
+        """Book a completed clock exchange (already added to ``clock``): the relay ->
+        station delay under the current best offset, and the round trip."""
         offset = self.clock.offset_us or 0.0
-        self.downlink.record(None, t0, round(pong.t1_us - offset))
-        self.rtt.record(None, 0, round(sample.delay_us))
-        return True
+        self.downlink.record(None, t0_us, round(t1_us - offset))
+        self.rtt.record(None, 0, round(delay_us))
 
     @property
     def downlink_estimate_us(self) -> float | None:
@@ -205,7 +185,7 @@ class Session:
             sent_ref_us = round(sent_station_us - offset)
             ledger.record(msg.seq, sent_ref_us, t_in_us)
         fwd = msg  # relay_in/relay_out hops are added when it is encoded for each receiver
-        latest = stream in LATEST_WINS
+        latest = msg.POLICY is StreamPolicy.LATEST_WINS
         key = f"{direction.name}:{stream}"
         for obs in self.observers.values():
             if latest:

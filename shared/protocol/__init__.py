@@ -1,4 +1,6 @@
-"""The Tele-Touch wire protocol, sans-I/O: messages, msgpack codec, TCP framing.
+"""The Tele-Touch wire protocol, sans-I/O: messages, msgpack codec, TCP framing, and the
+session state machines of both ends (:mod:`~shared.protocol.station_session` for stations,
+:mod:`~shared.protocol.peer_session` for the relay's side of each connection).
 
 See ``docs/protocol.md`` for the byte-level specification.
 """
@@ -22,6 +24,7 @@ from shared.protocol.connection import (
 from shared.protocol.framing import LengthPrefixDecoder, frame
 from shared.protocol.messages import (
     CLOCKS,
+    LATEST_WINS_TYPES,
     LAYER_RANGES,
     MESSAGE_TYPES,
     ROLES,
@@ -37,13 +40,16 @@ from shared.protocol.messages import (
     Message,
     PlatformState,
     Stats,
+    StreamPolicy,
     TactileFrame,
     Welcome,
 )
+from shared.protocol.queues import StreamQueue
 
 __all__ = [
     "CLOCKS",
     "DEFAULT_MAX_MESSAGE_BYTES",
+    "LATEST_WINS_TYPES",
     "LAYER_RANGES",
     "MESSAGE_TYPES",
     "PROTOCOL_VERSION",
@@ -67,6 +73,8 @@ __all__ = [
     "PlatformState",
     "ProtocolConnection",
     "Stats",
+    "StreamPolicy",
+    "StreamQueue",
     "TactileFrame",
     "Welcome",
     "decode",

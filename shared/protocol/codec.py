@@ -10,6 +10,7 @@ the wire.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import msgpack
@@ -22,7 +23,7 @@ from shared.errors import (
     UnknownMessageTypeError,
     VersionError,
 )
-from shared.protocol.messages import MESSAGE_TYPES, Message
+from shared.protocol.messages import MAX_HOPS, MESSAGE_TYPES, Hop, Message
 
 __all__ = [
     "DEFAULT_MAX_MESSAGE_BYTES",
@@ -96,7 +97,8 @@ def decode(data: bytes | bytearray | memoryview, *,
 
 
 def encode(message: Message, *, validate: bool = True,
-           max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> bytes:
+           max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
+           extra_hops: Sequence[Hop] = ()) -> bytes:
     """Encode a message to msgpack bytes.
 
     Args:
@@ -104,11 +106,19 @@ def encode(message: Message, *, validate: bool = True,
         validate: re-check every field as a receiver would (default). Forwarders that
             only re-encode a message they already decoded may pass False.
         max_message_bytes: refuse to produce a longer message.
+        extra_hops: hop stamps appended to a data message's ``hops`` while encoding (the
+            relay's ``relay_in``/``relay_out``), keeping the last ``MAX_HOPS``; this saves
+            forwarders a copy of the message per hop.
 
     Raises:
         LocalProtocolError: the message would be rejected by a receiver.
     """
     body = message.to_wire()
+    if extra_hops:
+        hops = body["hops"]
+        hops.extend(list(h) for h in extra_hops)
+        if len(hops) > MAX_HOPS:
+            body["hops"] = hops[-MAX_HOPS:]
     wire = {"v": PROTOCOL_VERSION, "type": message.TYPE, **body}
     if validate:
         try:

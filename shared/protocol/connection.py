@@ -1,6 +1,7 @@
 """Sans-I/O Tele-Touch connection: bytes in, events out; messages in, bytes out.
 
-The asyncio code of the relay and the stations is only glue around this class::
+The session state machines (:mod:`~shared.protocol.station_session`,
+:mod:`~shared.protocol.peer_session`) are built on this class::
 
     conn = ProtocolConnection("tcp")
     conn.receive_data(chunk)            # whatever the socket gave

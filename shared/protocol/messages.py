@@ -20,6 +20,7 @@ import re
 from abc import ABC, abstractmethod
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from enum import Enum
 from typing import Any, ClassVar, NamedTuple
 
 import numpy as np
@@ -39,6 +40,7 @@ from shared.protocol.fields import (
 
 __all__ = [
     "CLOCKS",
+    "LATEST_WINS_TYPES",
     "LAYER_RANGES",
     "MAX_HOPS",
     "MESSAGE_TYPES",
@@ -56,6 +58,7 @@ __all__ = [
     "Message",
     "PlatformState",
     "Stats",
+    "StreamPolicy",
     "TactileFrame",
     "Welcome",
 ]
@@ -76,6 +79,18 @@ LAYER_RANGES: dict[str, tuple[float, float]] = {
 ARM_ACTIONS = frozenset({"move", "stop", "home", "set_force_limit"})
 ARM_STATUSES = frozenset({"ok", "moving", "halted", "force_limit", "stale_command", "fault"})
 _WORKSPACE_LIMIT_MM = 1.0e4  # sanity bound for any coordinate on the wire
+
+
+class StreamPolicy(Enum):
+    """How a queue treats messages of one type when the receiver or the socket lags.
+
+    ``LATEST_WINS``: state streams; only the newest unsent message matters, a newer one
+    replaces it and the replaced one is counted as dropped. ``ORDERED``: commands and
+    control; every message is kept, in order, in a bounded queue.
+    """
+
+    LATEST_WINS = "latest_wins"
+    ORDERED = "ordered"
 
 
 class Hop(NamedTuple):
@@ -104,9 +119,11 @@ def _read_hops(d: Mapping[str, Any], msg_type: str) -> tuple[Hop, ...]:
 
 @dataclass(frozen=True, slots=True)
 class Message(ABC):
-    """Base of all messages. ``TYPE`` is the wire ``type`` string."""
+    """Base of all messages. ``TYPE`` is the wire ``type`` string; ``POLICY`` is how every
+    queue (relay outboxes, station send queue and inbox) treats the type."""
 
     TYPE: ClassVar[str] = ""
+    POLICY: ClassVar[StreamPolicy] = StreamPolicy.ORDERED
 
     @abstractmethod
     def to_wire(self) -> dict[str, Any]:
@@ -320,6 +337,7 @@ class PlatformState(DataMessage):
     """Local -> remote: the XYZ platform position (platform coordinates, mm)."""
 
     TYPE: ClassVar[str] = "platform_state"
+    POLICY: ClassVar[StreamPolicy] = StreamPolicy.LATEST_WINS
     position_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
     velocity_mm_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
@@ -378,6 +396,7 @@ class ArmState(DataMessage):
     """Remote -> local: arm tool position (phantom coordinates, mm) and measured force."""
 
     TYPE: ClassVar[str] = "arm_state"
+    POLICY: ClassVar[StreamPolicy] = StreamPolicy.LATEST_WINS
     position_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
     force_n: float = 0.0
     status: str = "ok"
@@ -415,6 +434,7 @@ class TactileFrame(DataMessage):
     """
 
     TYPE: ClassVar[str] = "tactile_frame"
+    POLICY: ClassVar[StreamPolicy] = StreamPolicy.LATEST_WINS
     center_mm: tuple[float, float] = (0.0, 0.0)
     pitch_mm: float = 1.7
     layers: Mapping[str, np.ndarray] = field(default_factory=dict)
@@ -478,3 +498,6 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
     for cls in (Hello, Welcome, ClockPing, ClockPong, Stats, Error, Bye, PlatformState,
                 ArmCommand, ArmState, TactileFrame)
 }
+#: wire ``type`` of every latest-wins stream (derived from ``POLICY``)
+LATEST_WINS_TYPES = frozenset(t for t, cls in MESSAGE_TYPES.items()
+                              if cls.POLICY is StreamPolicy.LATEST_WINS)

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from relay_server.outbox import Outbox
 from shared.protocol import ArmCommand, ClockPing, PlatformState, Stats
+from shared.protocol.peer_session import Outbox
 
 
 def test_periodic_control_replaces_unsent_and_stays_bounded() -> None:

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import pytest
 
-from relay_server.outbox import Outbox
 from relay_server.session import Peer, Session
 from shared.errors import RoleTakenError
 from shared.protocol import ArmCommand, ArmState, PlatformState
+from shared.protocol.peer_session import Outbox
 
 
 def make_peer(pid: int, role: str, limit: int = 4) -> Peer:
@@ -71,22 +71,19 @@ def test_ordered_and_latest_leave_in_arrival_order() -> None:
     box.put_ordered(ArmCommand(seq=3, ts_us=0))
     box.put_latest("p", PlatformState(seq=4, ts_us=0), 0)  # replaces seq 2, takes its new place
     assert [p.message.seq for p in box.take()] == [1, 3, 4]  # type: ignore[attr-defined]
-    assert len(box) == 0 and not box.wakeup.is_set()
+    assert len(box) == 0 and box.take() == []
 
 
-def test_encode_forwarded_appends_two_hops_and_keeps_the_hop_limit() -> None:
-    from relay_server.outbox import encode_forwarded
-    from shared.protocol import Hop, decode
-    from shared.protocol.framing import HEADER
+def test_forwarded_encoding_appends_two_hops_and_keeps_the_hop_limit() -> None:
+    from shared.protocol import Hop, decode, encode, frame
     from shared.protocol.messages import MAX_HOPS
 
+    relay_hops = (Hop("relay", "relay_in", 20), Hop("relay", "relay_out", 30))
     msg = PlatformState(seq=5, ts_us=10, hops=(Hop("local", "send", 11),))
-    out = decode(encode_forwarded(msg, 20, 30, tcp=False))
-    assert out == PlatformState(seq=5, ts_us=10, hops=(Hop("local", "send", 11),
-                                                       Hop("relay", "relay_in", 20),
-                                                       Hop("relay", "relay_out", 30)))
-    framed = encode_forwarded(msg, 20, 30, tcp=True)
-    assert HEADER.unpack_from(framed)[0] == len(framed) - 4
+    data = encode(msg, validate=False, extra_hops=relay_hops)
+    assert decode(data) == PlatformState(seq=5, ts_us=10, hops=(Hop("local", "send", 11),
+                                                                *relay_hops))
+    assert frame(data)[4:] == data
     full = PlatformState(seq=1, ts_us=1, hops=tuple(Hop("local", "s", i) for i in range(MAX_HOPS)))
-    hops = decode(encode_forwarded(full, 20, 30, tcp=False)).hops  # type: ignore[attr-defined]
+    hops = decode(encode(full, validate=False, extra_hops=relay_hops)).hops  # type: ignore[attr-defined]
     assert len(hops) == MAX_HOPS and hops[-1] == Hop("relay", "relay_out", 30)

@@ -1,0 +1,528 @@
+"""Sans-I/O relay-side session: one per connected peer, without sockets or clocks.
+
+The relay's asyncio glue (:mod:`relay_server.server`) moves bytes and passes the time;
+everything a single connection decides is here::
+
+    ps = PeerSession("ws", settings, now_us)
+    ps.receive_data(data, now_us)
+    for event in ps.events_received():   # HelloReceived / DataReceived / StatsReported /
+        ...                              # ClockSampled / Closing
+    ps.accept(now_us)                    # after auth + join: queue the welcome
+    ps.tick(now_us)                      # hello timeout, clock pings; True when stats are due
+    frames = ps.data_to_send(clock)      # encodes the outbox, stamps relay_out
+    ps.close_code, ps.close_reason       # set once the connection must be closed
+
+It owns the handshake (the first message must be a ``hello``; before ``welcome`` every
+problem is fatal), the clock exchange (ping ids, the ``ClockFilter``), the observer
+rules, the error budget, the close decisions and the outbox with the per-stream policy.
+Routing between peers, authentication and latency ledgers stay in the relay.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+from collections import Counter, OrderedDict
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from shared.clocksync import ClockFilter, ClockSample
+from shared.errors import (
+    HandshakeTimeoutError,
+    InputDataError,
+    LocalProtocolError,
+    MalformedMessageError,
+    OversizeError,
+    ProtocolError,
+    RemoteProtocolError,
+    SessionError,
+    VersionError,
+)
+from shared.protocol.codec import DEFAULT_MAX_MESSAGE_BYTES, encode
+from shared.protocol.connection import (
+    Event,
+    Framing,
+    MessageReceived,
+    MessageRejected,
+    ProtocolConnection,
+)
+from shared.protocol.framing import frame
+from shared.protocol.messages import (
+    Bye,
+    ClockPing,
+    ClockPong,
+    DataMessage,
+    Error,
+    Hello,
+    Hop,
+    Message,
+    Stats,
+    Welcome,
+)
+from shared.protocol.queues import StreamQueue
+
+__all__ = [
+    "ClockSampled",
+    "Closing",
+    "DataReceived",
+    "HelloReceived",
+    "Outbox",
+    "PeerEvent",
+    "PeerSession",
+    "PeerSettings",
+    "Pending",
+    "StatsReported",
+]
+
+log = logging.getLogger(__name__)
+
+_FATAL_AFTER_HELLO = (VersionError, OversizeError)
+_OBSERVER_MAY_SEND = (ClockPong, ClockPing, Stats, Bye)
+_MAX_OUTSTANDING_PINGS = 16
+
+#: called when a forwarded message is encoded: (pending entry, relay_out time) -> None
+OnSend = Callable[["Pending", int], None]
+
+
+# --------------------------------------------------------------------------- outbox
+
+
+@dataclass(slots=True)
+class Pending:
+    """One message waiting for a peer.
+
+    Attributes:
+        message: the message.
+        forwarded: a data message relayed from a station (validated on receipt: encoded
+            without re-validation, with ``relay_in``/``relay_out`` hops).
+        on_send: accounting callback for forwarded messages, or None.
+        build: for messages that carry the time they are written (``clock_ping``,
+            ``clock_pong``): called with that time, returns the message to send.
+        t_in_us: relay clock when a forwarded message arrived (its ``relay_in`` hop).
+    """
+
+    message: Message
+    forwarded: bool = False
+    on_send: OnSend | None = None
+    build: Callable[[int], Message] | None = None
+    t_in_us: int = 0
+
+
+class Outbox:
+    """Bounded outgoing state of one peer: latest-wins slots and an ordered queue.
+
+    A stalled peer holds at most one entry per state stream and per periodic control
+    message (``stats``, ``clock_ping``), plus at most ``ordered_limit`` ordered ones.
+
+    Args:
+        ordered_limit: maximum entries of the ordered queue.
+        wakeup: called after every put (the glue wakes its writer).
+    """
+
+    def __init__(self, ordered_limit: int, wakeup: Callable[[], None] | None = None) -> None:
+        self._queue: StreamQueue[Pending] = StreamQueue(ordered_limit)
+        self.wakeup = wakeup
+        self.closed = False
+
+    def __len__(self) -> int:
+        return len(self._queue)
+
+    def _woken(self) -> None:
+        if self.wakeup is not None:
+            self.wakeup()
+
+    def put_latest(self, key: str, message: DataMessage, t_in_us: int,
+                   on_send: OnSend | None = None) -> Pending | None:
+        """Put a forwarded ``message`` in slot ``key``; return the unsent entry it replaced."""
+        old = self._queue.put_latest(key, Pending(message, True, on_send, None, t_in_us))
+        self._woken()
+        return old
+
+    def put_control_latest(self, key: str, message: Message,
+                           build: Callable[[int], Message] | None = None) -> bool:
+        """Put the relay's own periodic message in slot ``key`` (a fresh one replaces an
+        unsent one). Returns True when an unsent message was replaced."""
+        old = self._queue.put_latest(key, Pending(message, False, None, build, 0))
+        self._woken()
+        return old is not None
+
+    def put_ordered(self, message: Message, on_send: OnSend | None = None, *,
+                    forwarded: bool = False, force: bool = False,
+                    build: Callable[[int], Message] | None = None, t_in_us: int = 0) -> bool:
+        """Append to the ordered queue; False (nothing queued) when full and not ``force``."""
+        if not self._queue.put_ordered(Pending(message, forwarded, on_send, build, t_in_us),
+                                       force=force):
+            return False
+        self._woken()
+        return True
+
+    def take(self) -> list[Pending]:
+        """Remove and return everything waiting, in arrival order."""
+        return self._queue.take()
+
+
+# --------------------------------------------------------------------------- events
+
+
+@dataclass(frozen=True, slots=True)
+class HelloReceived:
+    """A valid first ``hello``: authenticate and join, then :meth:`PeerSession.accept`."""
+
+    hello: Hello
+
+
+@dataclass(frozen=True, slots=True)
+class DataReceived:
+    """A data message from a station, to route; ``t_in_us`` is its arrival time."""
+
+    message: DataMessage
+    t_in_us: int
+
+
+@dataclass(frozen=True, slots=True)
+class StatsReported:
+    """The peer sent its own ``stats``."""
+
+    metrics: dict[str, object]
+
+
+@dataclass(frozen=True, slots=True)
+class ClockSampled:
+    """A ``clock_pong`` answered one of our pings; the sample is in ``PeerSession.clock``."""
+
+    t0_us: int
+    t1_us: int
+    sample: ClockSample
+
+
+@dataclass(frozen=True, slots=True)
+class Closing:
+    """The connection must be closed once the outbox is flushed."""
+
+    close_code: int
+    reason: str
+
+
+PeerEvent = HelloReceived | DataReceived | StatsReported | ClockSampled | Closing
+
+
+@dataclass(frozen=True)
+class PeerSettings:
+    """Per-connection protocol settings of the relay (all times in microseconds)."""
+
+    max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
+    ordered_queue_len: int = 256
+    bad_message_budget: int = 20
+    hello_timeout_us: int = 5_000_000
+    ping_interval_us: int = 1_000_000
+    ping_burst: int = 5
+    ping_burst_spacing_us: int = 20_000
+    stats_interval_us: int = 1_000_000
+
+
+# --------------------------------------------------------------------------- session
+
+
+class PeerSession:
+    """Protocol state of one relay connection (see the module docstring).
+
+    Args:
+        framing: ``"tcp"`` or ``"ws"``.
+        settings: limits, budget and periods.
+        now_us: the time the connection was accepted (starts the hello timeout).
+        counters: relay-wide counters to add to (``bad_<code>``, ``fatal_<code>``,
+            ``stray_pong``, ``client_errors``, ``replies_dropped``).
+    """
+
+    def __init__(self, framing: Framing, settings: PeerSettings, now_us: int,
+                 counters: Counter[str] | None = None) -> None:
+        self.framing: Framing = framing
+        self.settings = settings
+        self.counters: Counter[str] = Counter() if counters is None else counters
+        self.outbox = Outbox(settings.ordered_queue_len)
+        self.clock = ClockFilter()
+        self.hello: Hello | None = None
+        self.received = 0
+        self.bad_messages = 0
+        self.close_code: int | None = None
+        self.close_reason = ""
+        self._conn = ProtocolConnection(framing, settings.max_message_bytes)
+        self._events: list[PeerEvent] = []
+        self._held: list[tuple[Event, int]] | None = None  # between hello and accept()
+        self._joined = False
+        self._observer = False
+        self._warned = False
+        self._pings: OrderedDict[int, int] = OrderedDict()
+        self._ping_ids = itertools.count()
+        self._hello_deadline_us = now_us + settings.hello_timeout_us
+        self._next_ping_us: int | None = None
+        self._next_stats_us: int | None = None
+        self._burst_left = 0
+
+    @property
+    def where(self) -> str:
+        """``role@session`` for logs (``?`` before the hello)."""
+        return "?" if self.hello is None else f"{self.hello.role}@{self.hello.session}"
+
+    @property
+    def closing(self) -> bool:
+        """True once a close was decided."""
+        return self.close_code is not None
+
+    # ------------------------------------------------------------------ input
+
+    def receive_data(self, data: bytes | bytearray | memoryview | str, now_us: int) -> None:
+        """Take received bytes (TCP: any chunk; WebSocket: one message, text refused)."""
+        if self.closing:
+            return
+        if isinstance(data, str):  # WebSocket text frame: not our protocol
+            events: list[Event] = [MessageRejected(MalformedMessageError(
+                "text WebSocket messages are not accepted; send binary msgpack"))]
+        else:
+            self._conn.receive_data(data)
+            events = self._conn.events_received()
+        for event in events:
+            if self.closing:
+                return
+            if self._held is not None:
+                self._held.append((event, now_us))
+            elif self.hello is None:
+                self._first(event)
+            else:
+                self._process(event, now_us)
+
+    def events_received(self) -> list[PeerEvent]:
+        """Return and clear the events produced so far."""
+        events, self._events = self._events, []
+        return events
+
+    def _first(self, event: Event) -> None:
+        if not isinstance(event, MessageReceived):
+            self.fail(event.error)
+        elif not isinstance(event.message, Hello):
+            self.fail(RemoteProtocolError(f"the first message must be a hello, got "
+                                          f"{event.message.TYPE}", code="hello_expected"))
+        else:
+            self.hello = event.message
+            self._observer = event.message.role == "observer"
+            self._held = []
+            self._events.append(HelloReceived(event.message))
+
+    def accept(self, welcome: Welcome, now_us: int) -> None:
+        """The relay admitted the peer: queue ``welcome``, start pings and stats, then
+        process what the peer sent behind its hello."""
+        self.outbox.put_ordered(welcome, force=True)
+        self._joined = True
+        s = self.settings
+        if welcome.role != "observer" and s.ping_burst:
+            # stats wait for the burst; then periodic pings and stats start together
+            self._burst_left, self._next_ping_us = s.ping_burst, now_us
+        else:
+            if welcome.role != "observer":
+                self._next_ping_us = now_us + s.ping_interval_us
+            self._next_stats_us = now_us + s.stats_interval_us
+        held, self._held = self._held or [], None
+        for event, t_in_us in held:
+            if self.closing:
+                break
+            self._process(event, t_in_us)
+
+    def _process(self, event: Event, t_in_us: int) -> None:
+        if isinstance(event, MessageRejected):
+            if isinstance(event.error, _FATAL_AFTER_HELLO):
+                self.fail(event.error)
+            else:
+                self.reject(event.error)
+            return
+        if not isinstance(event, MessageReceived):
+            self.fail(event.error)
+            return
+        msg = event.message
+        self.received += 1
+        observer = self._observer
+        if isinstance(msg, DataMessage):
+            if observer:
+                self.reject(SessionError(f"observers are read-only; {msg.TYPE} refused",
+                                         code="read_only"))
+            else:
+                self._events.append(DataReceived(msg, t_in_us))
+        elif isinstance(msg, ClockPong):
+            self._on_pong(msg, t_in_us)
+        elif isinstance(msg, ClockPing):
+            ping_id, t0_us = msg.ping_id, msg.t0_us
+            self.reply(ClockPong(ping_id=ping_id, t0_us=t0_us, t1_us=t_in_us),
+                       build=lambda t2: ClockPong(ping_id=ping_id, t0_us=t0_us,
+                                                  t1_us=t_in_us, t2_us=t2))
+        elif isinstance(msg, Bye):
+            self._close(1000, "bye")
+        elif observer and not isinstance(msg, _OBSERVER_MAY_SEND):
+            self.reject(SessionError(f"observers are read-only; {msg.TYPE} refused",
+                                     code="read_only"))
+        elif isinstance(msg, Stats):
+            self._events.append(StatsReported(dict(msg.metrics)))
+        elif isinstance(msg, Error):
+            self.counters["client_errors"] += 1
+            if log.isEnabledFor(logging.DEBUG):
+                log.debug("%s reported error %s: %s", self.where, msg.code, msg.message)
+        elif isinstance(msg, Hello):
+            self.reject(SessionError("already joined; hello is only valid once",
+                                     code="already_joined"))
+        else:
+            self.reject(SessionError(f"{msg.TYPE} is sent by the relay only",
+                                     code="unexpected_type"))
+
+    # ------------------------------------------------------------------ clock exchange
+
+    def _ping(self, t0_us: int) -> ClockPing:
+        ping_id = next(self._ping_ids)
+        self._pings[ping_id] = t0_us
+        while len(self._pings) > _MAX_OUTSTANDING_PINGS:
+            self._pings.popitem(last=False)
+        return ClockPing(ping_id=ping_id, t0_us=t0_us)
+
+    def _on_pong(self, pong: ClockPong, t3_us: int) -> None:
+        t0 = self._pings.pop(pong.ping_id, None)
+        if t0 is None or t0 != pong.t0_us:
+            self.counters["stray_pong"] += 1
+            return
+        try:
+            sample = self.clock.add_timestamps(t0, pong.t1_us, pong.t2_us, t3_us)
+        except InputDataError:
+            self.counters["stray_pong"] += 1
+            return
+        self._events.append(ClockSampled(t0, pong.t1_us, sample))
+
+    # ------------------------------------------------------------------ time
+
+    def next_tick_us(self) -> int:
+        """When :meth:`tick` next has something to do."""
+        if not self._joined:  # waiting for the hello, or for accept() after it
+            return self._hello_deadline_us + (0 if self.hello is None
+                                              else self.settings.hello_timeout_us)
+        times = [t for t in (self._next_ping_us, self._next_stats_us) if t is not None]
+        return min(times)
+
+    def tick(self, now_us: int) -> bool:
+        """Apply the hello timeout and queue due clock pings.
+
+        Returns:
+            True when a ``stats`` push is due (the relay builds it: :meth:`send_stats`).
+        """
+        if self.closing:
+            return False
+        if not self._joined:
+            if self.hello is None and now_us >= self._hello_deadline_us:
+                timeout_s = self.settings.hello_timeout_us / 1e6
+                self.fail(HandshakeTimeoutError(f"no hello within {timeout_s:g} s"))
+            return False
+        s = self.settings
+        if self._next_ping_us is not None and now_us >= self._next_ping_us:
+            self.outbox.put_control_latest("clock_ping", ClockPing(), build=self._ping)
+            if self._burst_left > 1:
+                self._burst_left -= 1
+                self._next_ping_us = now_us + s.ping_burst_spacing_us
+            elif self._burst_left == 1:  # the burst is over
+                self._burst_left = 0
+                self._next_ping_us = now_us + s.ping_burst_spacing_us + s.ping_interval_us
+                self._next_stats_us = now_us + s.ping_burst_spacing_us + s.stats_interval_us
+            else:
+                self._next_ping_us += s.ping_interval_us
+                if self._next_ping_us < now_us:
+                    self._next_ping_us = now_us + s.ping_interval_us
+        if self._next_stats_us is not None and now_us >= self._next_stats_us:
+            self._next_stats_us += s.stats_interval_us
+            if self._next_stats_us < now_us:
+                self._next_stats_us = now_us + s.stats_interval_us
+            return True
+        return False
+
+    # ------------------------------------------------------------------ output
+
+    def send_stats(self, stats: Stats) -> None:
+        """Queue the relay's periodic ``stats`` (replaces an unsent one)."""
+        self.outbox.put_control_latest("stats", stats)
+
+    def reply(self, msg: Message, build: Callable[[int], Message] | None = None) -> None:
+        """Queue a control reply to the peer (counted when the ordered queue is full)."""
+        if not self.outbox.put_ordered(msg, build=build):
+            self.counters["replies_dropped"] += 1
+
+    def reject(self, err: ProtocolError | SessionError) -> None:
+        """A per-message error: reply with a non-fatal ``error``, close past the budget."""
+        if not self._joined:
+            self.fail(err)
+            return
+        self.bad_messages += 1
+        self.counters[f"bad_{err.code}"] += 1
+        if not self._warned:
+            self._warned = True
+            log.warning("%s %s: %s: %s (error sent, connection kept)", self.framing,
+                        self.where, err.code, err)
+        elif log.isEnabledFor(logging.DEBUG):
+            log.debug("%s: %s: %s", self.where, err.code, err)
+        budget = self.settings.bad_message_budget
+        if self.bad_messages > budget:
+            over = RemoteProtocolError(f"more than {budget} bad messages",
+                                       code="too_many_errors")
+            over.close_code = 1008
+            self.fail(over)
+            return
+        self.reply(Error(code=err.code, message=str(err), fatal=False))
+
+    def fail(self, err: ProtocolError | SessionError) -> None:
+        """A fatal error: log once, queue a fatal ``error``, then close with its code."""
+        if self.closing:
+            return
+        self.counters[f"fatal_{err.code}"] += 1
+        log.warning("%s %s closed: %s: %s (close %d)", self.framing, self.where, err.code,
+                    err, err.close_code)
+        self.outbox.put_ordered(Error(code=err.code, message=str(err), fatal=True),
+                                force=True)
+        self._close(err.close_code, err.code)
+
+    def shutdown(self) -> None:
+        """The relay is stopping: queue ``bye`` and close with 1001."""
+        if self.closing:
+            return
+        if self._joined:
+            self.outbox.put_ordered(Bye(reason="relay shutting down"), force=True)
+        self._close(1001, "relay shutting down")
+
+    def _close(self, close_code: int, reason: str) -> None:
+        self.close_code, self.close_reason = close_code, reason
+        self.outbox.closed = True
+        self._events.append(Closing(close_code, reason))
+
+    def data_to_send(self, clock: Callable[[], int]) -> list[bytes]:
+        """Encode and frame everything waiting, in arrival order.
+
+        Forwarded data messages get their ``relay_in`` and ``relay_out`` hops, the latter
+        read from ``clock`` just before encoding, and their ``on_send`` callback; one
+        that grew past the size limit is skipped.
+
+        Args:
+            clock: the relay clock in microseconds (read once per timed message).
+        """
+        tcp = self.framing == "tcp"
+        limit = self.settings.max_message_bytes
+        frames: list[bytes] = []
+        for pending in self.outbox.take():
+            msg = pending.message
+            if pending.forwarded:
+                t_out = clock()
+                try:
+                    data = encode(msg, validate=False, max_message_bytes=limit,
+                                  extra_hops=(Hop("relay", "relay_in", pending.t_in_us),
+                                              Hop("relay", "relay_out", t_out)))
+                except LocalProtocolError:
+                    if log.isEnabledFor(logging.DEBUG):
+                        log.debug("forwarded %s too large after hops", msg.TYPE)
+                    continue
+                if pending.on_send is not None:
+                    pending.on_send(pending, t_out)
+            else:
+                if pending.build is not None:
+                    msg = pending.build(clock())
+                data = encode(msg, max_message_bytes=limit)
+            frames.append(frame(data) if tcp else data)
+        return frames

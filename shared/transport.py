@@ -1,0 +1,174 @@
+"""The two byte transports of Tele-Touch, for the stations and the relay alike.
+
+A :class:`Transport` moves whole protocol units: over WebSocket one binary message per
+Tele-Touch message (``websockets`` asyncio API, client or server connection), over raw TCP
+the length-prefixed byte stream in chunks (asyncio streams; framing is the sans-I/O
+core's job). Both turn every way a connection can end into :class:`TransportClosed`, with
+the WebSocket close code when there is one, so the glue above handles one error.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import socket
+import ssl
+from typing import Any, Protocol
+
+from websockets.exceptions import ConnectionClosed
+
+from shared.protocol.connection import Framing
+
+__all__ = [
+    "TcpTransport",
+    "Transport",
+    "TransportClosed",
+    "WsTransport",
+    "open_client_transport",
+    "set_nodelay",
+]
+
+_CLOSE_TIMEOUT_S = 2.0
+_TCP_READ_BYTES = 64 * 1024
+
+
+class TransportClosed(ConnectionError):
+    """The connection ended; ``close_code`` is the WebSocket close code, if any."""
+
+    def __init__(self, message: str, close_code: int | None = None) -> None:
+        super().__init__(message)
+        self.close_code = close_code
+
+
+class Transport(Protocol):
+    """One open connection carrying Tele-Touch messages."""
+
+    framing: Framing
+
+    async def write(self, frames: list[bytes]) -> None:
+        """Write framed messages and wait for the transport to take them.
+
+        Raises:
+            TransportClosed: the connection is gone.
+        """
+
+    async def recv(self) -> bytes | str:
+        """Return the next WebSocket message or TCP chunk.
+
+        Raises:
+            TransportClosed: the connection ended.
+        """
+
+    async def close(self, code: int = 1000, reason: str = "") -> None:
+        """Close (``code`` is a WebSocket close code; TCP ignores it); never raises."""
+
+
+def set_nodelay(transport: Any) -> None:
+    """Turn Nagle's algorithm off on an asyncio transport's TCP socket (if it has one)."""
+    sock = transport.get_extra_info("socket") if transport is not None else None
+    if sock is not None and sock.family in (socket.AF_INET, socket.AF_INET6):
+        with contextlib.suppress(OSError):
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+
+
+class TcpTransport:
+    """Length-prefixed TCP over asyncio streams.
+
+    Args:
+        reader: the stream reader.
+        writer: the stream writer.
+        write_buffer_bytes: high-water mark of the write buffer (None: asyncio's default).
+    """
+
+    framing: Framing = "tcp"
+
+    def __init__(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter,
+                 write_buffer_bytes: int | None = None) -> None:
+        self._reader, self._writer = reader, writer
+        set_nodelay(writer.transport)
+        if write_buffer_bytes is not None:
+            writer.transport.set_write_buffer_limits(high=write_buffer_bytes)
+
+    async def write(self, frames: list[bytes]) -> None:
+        try:
+            self._writer.write(frames[0] if len(frames) == 1 else b"".join(frames))
+            await self._writer.drain()
+        except (OSError, RuntimeError) as err:
+            raise TransportClosed(f"TCP send failed: {err}") from err
+
+    async def recv(self) -> bytes:
+        try:
+            data = await self._reader.read(_TCP_READ_BYTES)
+        except OSError as err:
+            raise TransportClosed(f"TCP receive failed: {err}") from err
+        if not data:
+            raise TransportClosed("the peer closed the TCP connection")
+        return data
+
+    async def close(self, code: int = 1000, reason: str = "") -> None:
+        if not self._writer.is_closing():
+            self._writer.close()
+        with contextlib.suppress(OSError, asyncio.TimeoutError):
+            await asyncio.wait_for(self._writer.wait_closed(), _CLOSE_TIMEOUT_S)
+
+
+class WsTransport:
+    """One Tele-Touch message per binary WebSocket message (client or server side).
+
+    Args:
+        ws: a ``websockets`` asyncio connection.
+    """
+
+    framing: Framing = "ws"
+
+    def __init__(self, ws: Any) -> None:
+        self.ws = ws
+
+    @staticmethod
+    def _closed(err: ConnectionClosed) -> TransportClosed:
+        rcvd = err.rcvd
+        code = rcvd.code if rcvd is not None else None
+        reason = f" ({rcvd.reason})" if rcvd is not None and rcvd.reason else ""
+        return TransportClosed(f"WebSocket closed with code {code}{reason}", close_code=code)
+
+    async def write(self, frames: list[bytes]) -> None:
+        try:
+            for data in frames:
+                await self.ws.send(data)
+        except ConnectionClosed as err:
+            raise self._closed(err) from err
+
+    async def recv(self) -> bytes | str:
+        try:
+            data: bytes | str = await self.ws.recv()
+        except ConnectionClosed as err:
+            raise self._closed(err) from err
+        return data
+
+    async def close(self, code: int = 1000, reason: str = "") -> None:
+        with contextlib.suppress(Exception):
+            await asyncio.wait_for(self.ws.close(code, reason[:120]), _CLOSE_TIMEOUT_S)
+
+
+async def open_client_transport(scheme: str, host: str, port: int, url: str, *,
+                                max_message_bytes: int, open_timeout_s: float,
+                                write_buffer_bytes: int,
+                                ssl_context: ssl.SSLContext | None = None) -> Transport:
+    """Connect to a relay: ``tcp`` to ``host:port``, ``ws``/``wss`` to ``url``.
+
+    Raises:
+        OSError: the connection failed.
+        websockets.exceptions.WebSocketException: the WebSocket handshake failed.
+    """
+    if scheme == "tcp":
+        reader, writer = await asyncio.open_connection(host, port)
+        return TcpTransport(reader, writer, write_buffer_bytes)
+    from websockets.asyncio.client import connect
+
+    kwargs: dict[str, Any] = {}
+    if scheme == "wss" and ssl_context is not None:
+        kwargs["ssl"] = ssl_context
+    ws = await connect(url, compression=None, max_size=max_message_bytes, ping_interval=None,
+                       open_timeout=open_timeout_s, write_limit=write_buffer_bytes,
+                       proxy=None, **kwargs)
+    return WsTransport(ws)

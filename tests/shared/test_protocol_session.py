@@ -1,0 +1,352 @@
+"""Session state machines without an event loop: a station and a relay peer exchange bytes."""
+
+from __future__ import annotations
+
+import itertools
+from collections import Counter
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from shared.errors import AuthError, MalformedMessageError, RoleTakenError
+from shared.protocol import (
+    ArmCommand,
+    ClockPing,
+    ClockPong,
+    Error,
+    Hello,
+    Hop,
+    PlatformState,
+    Stats,
+    StreamPolicy,
+    StreamQueue,
+    TactileFrame,
+    Welcome,
+    decode,
+    encode,
+    frame,
+)
+from shared.protocol.framing import HEADER
+from shared.protocol.messages import LATEST_WINS_TYPES, MAX_HOPS
+from shared.protocol.peer_session import (
+    ClockSampled,
+    Closing,
+    DataReceived,
+    HelloReceived,
+    PeerSession,
+    PeerSettings,
+    StatsReported,
+)
+from shared.protocol.station_session import (
+    Failed,
+    LinkSilent,
+    Refused,
+    Rejected,
+    StationSession,
+    Welcomed,
+    refusal_for_close_code,
+)
+
+HELLO = Hello(role="local", session="lab1", token="t", name="n")
+WELCOME = Welcome(session="lab1", role="local", server_time_us=5, ping_interval_s=1.0,
+                  max_message_bytes=1 << 22)
+SETTINGS = PeerSettings(hello_timeout_us=1000, ping_burst=2, ping_burst_spacing_us=10,
+                        ping_interval_us=100, stats_interval_us=50, bad_message_budget=3,
+                        ordered_queue_len=4)
+
+
+
+def joined_pair(framing: str = "tcp") -> tuple[StationSession, PeerSession]:
+    """A station and its relay peer, through hello and welcome."""
+    station = StationSession(HELLO, send_queue_size=4, receive_queue_size=8)
+    peer = PeerSession(framing, SETTINGS, now_us=0)  # type: ignore[arg-type]
+    peer.receive_data(station.connect(framing, 0), 1)  # type: ignore[arg-type]
+    assert peer.events_received() == [HelloReceived(HELLO)]
+    peer.accept(WELCOME, 2)
+    for data in peer.data_to_send(lambda: 3):
+        station.receive_data(data, 4)
+    assert station.events_received() == [Welcomed(WELCOME)]
+    return station, peer
+
+
+def pump(station: StationSession, now_us: int) -> list[bytes]:
+    out = []
+    while (data := station.next_data(now_us)) is not None:
+        out.append(data)
+    return out
+
+
+# --------------------------------------------------------------------------- policy
+
+
+def test_policy_is_declared_on_the_message_types() -> None:
+    assert PlatformState.POLICY is StreamPolicy.LATEST_WINS
+    assert TactileFrame.POLICY is StreamPolicy.LATEST_WINS
+    assert ArmCommand.POLICY is StreamPolicy.ORDERED and Stats.POLICY is StreamPolicy.ORDERED
+    assert {"platform_state", "arm_state", "tactile_frame"} == LATEST_WINS_TYPES
+
+
+def test_stream_queue_arrival_order_latest_and_bound() -> None:
+    q: StreamQueue[int] = StreamQueue(2)
+    assert q.put_latest("a", 1) is None
+    assert q.put_ordered(2) and q.put_ordered(3)
+    assert not q.put_ordered(4) and q.ordered_full
+    assert q.put_latest("a", 5) == 1  # replaced, and moved to the end
+    assert len(q) == 3
+    assert [q.pop(), q.pop(), q.pop(), q.pop()] == [2, 3, 5, None]
+    assert q.put_ordered(6, force=True) and q.take() == [6] and len(q) == 0
+
+
+# --------------------------------------------------------------------------- handshake
+
+
+@pytest.mark.parametrize("framing", ["tcp", "ws"])
+def test_handshake_bytes_are_the_codec_output(framing: str) -> None:
+    station = StationSession(HELLO)
+    hello_bytes = station.connect(framing, 0)  # type: ignore[arg-type]
+    expected = encode(HELLO)
+    assert hello_bytes == (frame(expected) if framing == "tcp" else expected)
+    assert station.next_data(0) is None  # nothing leaves before the welcome
+    peer = PeerSession(framing, SETTINGS, 0)  # type: ignore[arg-type]
+    peer.receive_data(hello_bytes, 1)
+    assert peer.events_received() == [HelloReceived(HELLO)]
+    peer.accept(WELCOME, 2)
+    welcome_bytes = peer.data_to_send(lambda: 3)
+    assert welcome_bytes == [frame(encode(WELCOME)) if framing == "tcp" else encode(WELCOME)]
+    station.receive_data(welcome_bytes[0], 4)
+    assert station.events_received() == [Welcomed(WELCOME)] and station.is_open
+    assert station.counters.connects == 1
+
+
+def test_messages_behind_the_hello_wait_for_the_welcome() -> None:
+    peer = PeerSession("tcp", SETTINGS, 0)
+    peer.receive_data(frame(encode(HELLO)) + frame(encode(ClockPing(ping_id=7, t0_us=1))), 10)
+    assert peer.events_received() == [HelloReceived(HELLO)]
+    assert peer.data_to_send(lambda: 11) == []
+    peer.accept(WELCOME, 12)
+    out = [decode(d[4:]) for d in peer.data_to_send(lambda: 13)]
+    assert out[:2] == [WELCOME, ClockPong(ping_id=7, t0_us=1, t1_us=10, t2_us=13)]
+
+
+def test_refusal_before_welcome_is_typed() -> None:
+    station = StationSession(HELLO)
+    station.connect("ws", 0)
+    station.receive_data(encode(Error(code="auth", message="wrong token", fatal=True)), 1)
+    (event,) = station.events_received()
+    assert isinstance(event, Refused) and isinstance(event.error, AuthError)
+    assert isinstance(refusal_for_close_code(4002, "x"), RoleTakenError)
+    assert refusal_for_close_code(1000, "x") is None
+
+
+def test_first_message_must_be_hello() -> None:
+    peer = PeerSession("ws", SETTINGS, 0)
+    peer.receive_data(encode(Stats(scope="local", time_us=1, metrics={})), 1)
+    assert peer.events_received() == [Closing(1002, "hello_expected")]
+    (sent,) = peer.data_to_send(lambda: 2)
+    assert decode(sent) == Error(code="hello_expected", message="the first message must be "
+                                 "a hello, got stats", fatal=True)
+
+
+def test_hello_timeout_closes_with_4003() -> None:
+    peer = PeerSession("tcp", SETTINGS, now_us=0)
+    assert peer.next_tick_us() == 1000
+    assert peer.tick(999) is False and not peer.closing
+    peer.tick(1000)
+    assert peer.events_received() == [Closing(4003, "hello_timeout")]
+
+
+# --------------------------------------------------------------------------- clock
+
+
+def test_clock_ping_pong_gives_the_offset() -> None:
+    """Relay pings at t0=100; station (clock +5000 us) receives at 5150, sends at 5160;
+    relay receives at 220: offset = ((5150-100) + (5160-220)) / 2 = 4995, delay 110."""
+    station, peer = joined_pair()
+    peer.tick(100)  # first burst ping is due
+    (ping_bytes,) = peer.data_to_send(lambda: 100)
+    assert decode(ping_bytes[4:]) == ClockPing(ping_id=0, t0_us=100)
+    station.receive_data(ping_bytes, 5150)
+    (pong_bytes,) = pump(station, 5160)
+    assert pong_bytes == frame(encode(ClockPong(ping_id=0, t0_us=100, t1_us=5150,
+                                                t2_us=5160)))
+    peer.receive_data(pong_bytes, 220)
+    (sampled,) = peer.events_received()
+    assert isinstance(sampled, ClockSampled) and sampled.t0_us == 100
+    assert peer.clock.offset_us == 4995.0 and peer.clock.delay_us == 110.0
+    assert station.counters.pongs_sent == 1
+
+
+def test_stray_pong_is_counted_not_sampled() -> None:
+    counters: Counter[str] = Counter()
+    peer = PeerSession("ws", SETTINGS, 0, counters)
+    peer.receive_data(encode(HELLO), 1)
+    peer.accept(WELCOME, 2)
+    peer.receive_data(encode(ClockPong(ping_id=42, t0_us=1, t1_us=2, t2_us=3)), 5)
+    assert peer.events_received() == [HelloReceived(HELLO)] and counters["stray_pong"] == 1
+
+
+def test_ping_burst_then_interval_and_stats_due() -> None:
+    _, peer = joined_pair()  # accepted at t=2: burst of 2 spaced 10, then every 100
+    pings = []
+    stats_due = []
+    for t in range(2, 400):
+        if peer.tick(t):
+            stats_due.append(t)
+        pings += [decode(d[4:]).t0_us for d in peer.data_to_send(itertools.repeat(t).__next__)]  # type: ignore[attr-defined]
+    assert pings == [2, 12, 122, 222, 322]
+    assert stats_due == [72, 122, 172, 222, 272, 322, 372]
+
+
+# --------------------------------------------------------------------------- streams
+
+
+def test_latest_wins_replaces_unsent_state_and_counts_a_drop() -> None:
+    station, peer = joined_pair()
+    for seq in range(3):
+        assert station.send(PlatformState(seq=seq, ts_us=seq))
+    assert station.pending_sends == 1 and station.counters.stale_dropped_tx == 2
+    (data,) = pump(station, 10)
+    assert data == frame(encode(PlatformState(seq=2, ts_us=2)))
+    peer.receive_data(data, 20)
+    assert peer.events_received() == [DataReceived(PlatformState(seq=2, ts_us=2), 20)]
+
+
+def test_ordered_queue_bound_refuses_and_keeps_order() -> None:
+    station, _ = joined_pair()
+    assert all(station.send(ArmCommand(seq=i, ts_us=0)) for i in range(4))
+    assert station.send(ArmCommand(seq=4, ts_us=0)) is False
+    assert [decode(d[4:]).seq for d in pump(station, 1)] == [0, 1, 2, 3]  # type: ignore[attr-defined]
+
+
+def test_relay_outbox_stamps_relay_hops_at_encoding() -> None:
+    _, peer = joined_pair("ws")
+    sent: list[int] = []
+    msg = PlatformState(seq=5, ts_us=10, hops=(Hop("local", "send", 11),))
+    peer.outbox.put_latest("p", msg, 20, on_send=lambda p, t: sent.append(t))
+    (data,) = peer.data_to_send(lambda: 30)
+    assert data == encode(PlatformState(seq=5, ts_us=10, hops=(
+        Hop("local", "send", 11), Hop("relay", "relay_in", 20), Hop("relay", "relay_out", 30))))
+    assert sent == [30]
+    full = PlatformState(seq=1, ts_us=1, hops=tuple(Hop("local", "s", i) for i in range(MAX_HOPS)))
+    peer.outbox.put_ordered(full, forwarded=True, t_in_us=20)
+    hops = decode(peer.data_to_send(lambda: 30)[0]).hops  # type: ignore[attr-defined]
+    assert len(hops) == MAX_HOPS and hops[-1] == Hop("relay", "relay_out", 30)
+
+
+def test_station_inbox_latest_wins_and_hop_stamp() -> None:
+    station, _ = joined_pair("ws")
+    for seq in range(3):
+        station.receive_data(encode(PlatformState(seq=seq, ts_us=0)), 100 + seq)
+    station.receive_data(encode(ArmCommand(seq=9, ts_us=0)), 200)
+    assert station.counters.stale_dropped_rx == 2
+    assert station.next_message() == PlatformState(seq=2, ts_us=0,
+                                                   hops=(Hop("local", "station_rx", 102),))
+    assert station.next_message() == ArmCommand(seq=9, ts_us=0,
+                                                hops=(Hop("local", "station_rx", 200),))
+    assert station.next_message() is None
+
+
+# --------------------------------------------------------------------------- errors
+
+
+def test_malformed_frame_is_rejected_with_its_type_and_code() -> None:
+    station, peer = joined_pair()
+    peer.receive_data(frame(b"\xc1"), 5)  # 0xc1 is never valid msgpack
+    (sent,) = peer.data_to_send(lambda: 6)
+    err = decode(sent[4:])
+    assert isinstance(err, Error) and err.code == "malformed" and not err.fatal
+    assert MalformedMessageError.close_code == 1007
+    station.receive_data(frame(b"\xc1"), 7)
+    (event,) = station.events_received()
+    assert isinstance(event, Rejected) and isinstance(event.error, MalformedMessageError)
+    assert station.counters.rejected_rx == 1 and station.is_open
+
+
+def test_broken_length_prefix_is_fatal() -> None:
+    station, peer = joined_pair()
+    peer.receive_data(HEADER.pack(0), 5)
+    assert peer.events_received() == [Closing(1007, "malformed")]
+    station.receive_data(HEADER.pack(0), 5)
+    (event,) = station.events_received()
+    assert isinstance(event, Failed) and event.error.code == "malformed"
+
+
+def test_error_budget_exhausted_closes_with_1008() -> None:
+    counters: Counter[str] = Counter()
+    peer = PeerSession("ws", SETTINGS, 0, counters)
+    peer.receive_data(encode(HELLO), 1)
+    peer.accept(WELCOME, 2)
+    peer.events_received()
+    for _ in range(SETTINGS.bad_message_budget + 1):
+        peer.receive_data(encode(HELLO), 3)
+    assert peer.events_received() == [Closing(1008, "too_many_errors")]
+    sent = [decode(d) for d in peer.data_to_send(lambda: 4)]
+    codes = [(m.code, m.fatal) for m in sent if isinstance(m, Error)]
+    assert codes == [("already_joined", False)] * 3 + [("too_many_errors", True)]
+    assert counters["bad_already_joined"] == 4 and counters["fatal_too_many_errors"] == 1
+    peer.receive_data(encode(HELLO), 5)  # closed: ignored
+    assert peer.events_received() == []
+
+
+def test_observer_is_read_only_but_may_report_stats() -> None:
+    peer = PeerSession("ws", SETTINGS, 0)
+    peer.receive_data(encode(Hello(role="observer", session="lab1", token="t")), 1)
+    peer.accept(Welcome(session="lab1", role="observer"), 2)
+    peer.events_received()
+    peer.receive_data(encode(PlatformState(seq=1, ts_us=1)), 3)
+    peer.receive_data(encode(Stats(scope="local", time_us=1, metrics={"a": 1})), 3)
+    assert peer.events_received() == [StatsReported({"a": 1})]
+    errors = [decode(d) for d in peer.data_to_send(lambda: 4)]
+    assert [e.code for e in errors if isinstance(e, Error)] == ["read_only"]
+    assert peer.next_tick_us() == 52  # no pings for observers, only stats
+
+
+def test_bye_closes_with_1000() -> None:
+    station, peer = joined_pair()
+    station.send_bye("done")
+    for data in pump(station, 5):
+        peer.receive_data(data, 6)
+    assert peer.events_received() == [Closing(1000, "bye")]
+
+
+def test_silence_past_the_timeout_gives_the_liveness_event() -> None:
+    station = StationSession(HELLO, connect_timeout_us=500, liveness_timeout_us=1000)
+    assert station.check_liveness(10**9) is None  # not connected: nothing to time out
+    station.connect("ws", 0)
+    assert station.check_liveness(499) is None
+    assert station.check_liveness(500) == LinkSilent(500, False)
+    station.receive_data(encode(WELCOME), 600)
+    station.events_received()
+    assert station.deadline_us() == 1600
+    assert station.check_liveness(1599) is None
+    assert station.check_liveness(1600) == LinkSilent(1000, True)
+    station.reading_resumed(1700)  # reading was paused (full inbox): silence counts from now
+    assert station.deadline_us() == 2700 and station.check_liveness(2000) is None
+    assert station.connection_lost() and station.counters.connection_losses == 1
+
+
+# --------------------------------------------------------------------------- property
+
+
+@settings(max_examples=50, deadline=None)
+@given(cuts=st.lists(st.integers(0, 5000), max_size=20))
+def test_any_split_of_the_stream_gives_the_same_events(cuts: list[int]) -> None:
+    """However the relay's TCP stream is chunked, the station ends up in the same state."""
+    sender = StationSession(Hello(role="remote", session="lab1", token="t"))
+    sender.connect("tcp", 0)
+    sender.receive_data(frame(encode(Welcome(session="lab1", role="remote"))), 0)
+    for seq in range(6):
+        sender.send(ArmCommand(seq=seq, ts_us=seq))
+        sender.send(PlatformState(seq=seq, ts_us=seq))
+    stream = frame(encode(Welcome(session="lab1", role="local"))) + b"".join(pump(sender, 1))
+    receiver = StationSession(HELLO)
+    receiver.connect("tcp", 0)
+    points = sorted({c % (len(stream) + 1) for c in cuts} | {0, len(stream)})
+    for a, b in itertools.pairwise(points):
+        receiver.receive_data(stream[a:b], 7)
+    assert [type(e) for e in receiver.events_received()] == [Welcomed]
+    got = []
+    while (m := receiver.next_message()) is not None:
+        got.append((m.TYPE, m.seq))  # type: ignore[attr-defined]
+    assert got == [*(("arm_command", s) for s in range(6)), ("platform_state", 5)]
