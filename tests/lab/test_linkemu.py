@@ -115,7 +115,7 @@ def test_profiles_match_the_issue() -> None:
     for bad in ({"delay_ms": -1}, {"loss": 1.0}, {"loss_burst_len": 0.5},
                 {"bandwidth_mbps": 0}, {"jitter_ms": float("nan")}, {"outages": ((1, 0),)}):
         with pytest.raises(ConfigError):
-            LinkProfile(**bad)  # type: ignore[arg-type]
+            LinkProfile(**bad)
 
 
 @settings(max_examples=60, deadline=None)

@@ -36,7 +36,7 @@ def _frames(board: can.BusABC, timeout_s: float = 0.05) -> list[can.Message]:
     return out
 
 
-def test_command_frame_bytes_are_exactly_as_documented(link) -> None:  # type: ignore[no-untyped-def]
+def test_command_frame_bytes_are_exactly_as_documented(link) -> None:
     display, board = link
     pins = np.arange(16)
     applied = display.send_command((pins * 0.3125).reshape(4, 4), 1.0 - pins * 0.02, pins * 0.02)
@@ -53,7 +53,7 @@ def test_command_frame_bytes_are_exactly_as_documented(link) -> None:  # type: i
     np.testing.assert_allclose(applied.height_mm, pins * 0.3125)
 
 
-def test_clamped_command_is_returned_as_applied(link) -> None:  # type: ignore[no-untyped-def]
+def test_clamped_command_is_returned_as_applied(link) -> None:
     display, board = link
     applied = display.send_command(np.linspace(-1.0, 7.0, 16), 0.2, 1.7)
     assert applied.clamped and applied.sent
@@ -70,7 +70,7 @@ def test_clamped_command_is_returned_as_applied(link) -> None:  # type: ignore[n
 
 
 @pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
-def test_non_finite_input_is_rejected_and_nothing_sent(link, bad: float) -> None:  # type: ignore[no-untyped-def]
+def test_non_finite_input_is_rejected_and_nothing_sent(link, bad: float) -> None:
     display, board = link
     height = np.full(16, 1.0)
     height[5] = bad
@@ -84,7 +84,7 @@ def test_non_finite_input_is_rejected_and_nothing_sent(link, bad: float) -> None
     assert display.stats().rejected_inputs == 3 and display.stats().frames_sent == 0
 
 
-def test_unchanged_commands_are_skipped_then_kept_alive(link) -> None:  # type: ignore[no-untyped-def]
+def test_unchanged_commands_are_skipped_then_kept_alive(link) -> None:
     display, board = link
     first = display.send_command(2.0, 0.8, 0.1)
     skipped = [display.send_command(2.0, 0.8, 0.1) for _ in range(20)]
@@ -101,7 +101,7 @@ def test_unchanged_commands_are_skipped_then_kept_alive(link) -> None:  # type: 
     assert (stats.skipped_unchanged, stats.keepalives, stats.frames_sent) == (20, 1, 3)
 
 
-def test_safe_state_frame_and_forced_resend(link) -> None:  # type: ignore[no-untyped-def]
+def test_safe_state_frame_and_forced_resend(link) -> None:
     display, board = link
     display.send_command(3.0)
     display.safe_state("hold")
@@ -113,10 +113,10 @@ def test_safe_state_frame_and_forced_resend(link) -> None:  # type: ignore[no-un
     assert fr.decode_safe_state(bytes(msgs[1].data)) == fr.SafeStateFrame(fr.SAFE_HOLD, 2)
     assert after.sent and after.seq == 3
     with pytest.raises(ConfigError):
-        display.safe_state("limp")  # type: ignore[arg-type]
+        display.safe_state("limp")
 
 
-def test_feedback_is_decoded(link) -> None:  # type: ignore[no-untyped-def]
+def test_feedback_is_decoded(link) -> None:
     display, board = link
     pins = np.arange(16)
     payload = fr.encode_feedback(fr.FeedbackFrame(

@@ -26,6 +26,7 @@ def test_raster_sweep_covers_the_area_with_presses_at_the_given_depth() -> None:
                         speed_mm_s=10.0, hover_z_mm=50.0, press_depth_mm=2.0,
                         press_spacing_mm=10.0, dwell_s=0.2, press_speed_mm_s=5.0,
                         loop=False)
+    assert sweep.duration_s is not None
     t = np.arange(0.0, sweep.duration_s + 0.5, 0.001)
     xyz = sweep.sample(t)
     assert xyz[:, 0].min() == pytest.approx(5.0) and xyz[:, 0].max() == pytest.approx(25.0)
@@ -51,6 +52,7 @@ def test_raster_sweep_covers_the_area_with_presses_at_the_given_depth() -> None:
 
 def test_raster_sweep_is_deterministic_and_loops() -> None:
     a, b = RasterSweep(), RasterSweep()
+    assert a.duration_s is not None
     t = np.linspace(0.0, 3 * a.duration_s, 5000)
     np.testing.assert_array_equal(a.sample(t), b.sample(t))
     np.testing.assert_allclose(a.sample(t[:100]), a.sample(t[:100] + a.duration_s), atol=1e-9)

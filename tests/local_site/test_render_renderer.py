@@ -270,7 +270,8 @@ def test_two_ridges_closer_than_the_pitch_are_resolved_by_moving(kind: str) -> N
     centres, half_width, peak = (-0.5, 0.5), 0.2, 3.0
 
     def ridges(x: np.ndarray) -> np.ndarray:
-        return sum(peak * np.clip(1.0 - np.abs(x - c) / half_width, 0.0, None) for c in centres)
+        return np.sum([peak * np.clip(1.0 - np.abs(x - c) / half_width, 0.0, None)
+                       for c in centres], axis=0)
 
     if kind == "grid":
         xs = np.arange(-8.0, 8.0 + 1e-9, 0.05)

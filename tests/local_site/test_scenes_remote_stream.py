@@ -49,7 +49,9 @@ def test_frames_through_the_wire_codec_render() -> None:
     scene = TactileFrameScene()
     frame = _frame(np.full((12, 16), 3.0), stiffness_k=np.full((12, 16), 0.7, np.float32),
                    friction=np.full((12, 16), 0.25))
-    scene.update(decode(encode(frame)))
+    decoded = decode(encode(frame))
+    assert isinstance(decoded, TactileFrame)
+    scene.update(decoded)
     cmd = Renderer().render(scene, (10.0, -5.0))
     assert np.allclose(cmd.height_mm, 3.0) and np.allclose(cmd.stiffness_k, 0.7)
     assert cmd.friction_active and cmd.outside_pins == 0

@@ -133,7 +133,7 @@ def test_spec_strings() -> None:
     assert parse_shape_spec("hemisphere:radius_mm=10, shore00=30") == (
         "hemisphere", {"radius_mm": 10.0, "shore00": 30.0})
     scene = open_scene("semi-ellipsoid:semi_axis_x_mm=9,k=0.6,friction=0.25")
-    assert isinstance(scene, VirtualShapeScene)
+    assert isinstance(scene, VirtualShapeScene) and isinstance(scene.shape, SemiEllipsoid)
     assert scene.name == "semi_ellipsoid" and scene.shape.semi_axis_x_mm == 9.0
     assert scene.stiffness_k == 0.6 and scene.friction == 0.25
     assert "radius_mm" in shape_parameters("cone")

@@ -71,7 +71,7 @@ class Client:
     async def _read_once(self) -> list[Message]:
         if self.ws is not None:
             try:
-                data = await self.ws.recv()
+                data = await self.ws.recv(decode=False)
             except ConnectionClosed as err:
                 self.close_code = err.rcvd.code if err.rcvd is not None else None
                 raise Closed(str(err)) from err

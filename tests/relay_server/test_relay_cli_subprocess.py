@@ -42,16 +42,16 @@ async def test_teletouch_relay_subprocess() -> None:
                 connect(f"ws://127.0.0.1:{port}") as bad:
             for ws, role in ((local, "local"), (remote, "remote")):
                 await ws.send(conn.encode(Hello(role=role, session="demo", token=token)))
-                assert decode(await ws.recv()).TYPE == "welcome"
+                assert decode(await ws.recv(decode=False)).TYPE == "welcome"
             await bad.send(b"this is not msgpack")
-            err = decode(await bad.recv())
+            err = decode(await bad.recv(decode=False))
             assert (err.code, err.fatal) == ("malformed", True)  # type: ignore[attr-defined]
             await bad.wait_closed()
             assert bad.close_code == 1007
             await local.send(conn.encode(ArmCommand(seq=1, ts_us=1, action="home")))
             async with asyncio.timeout(scaled(5.0)):
                 while True:
-                    msg = decode(await remote.recv())
+                    msg = decode(await remote.recv(decode=False))
                     if msg.TYPE == "arm_command":
                         break
             assert msg.action == "home"  # type: ignore[attr-defined]

@@ -7,7 +7,7 @@ import asyncio
 import numpy as np
 
 from relay_server.server import RelayServer
-from shared.protocol import ArmCommand, ArmState, PlatformState, TactileFrame
+from shared.protocol import ArmCommand, ArmState, PlatformState, TactileFrame, Welcome
 from shared.timebase import now_us
 from tests.relay_server.relay_clients import Client, clients, running_relay
 from tests.support import scaled
@@ -21,8 +21,11 @@ def platform(seq: int, clock_us: int) -> PlatformState:
 async def join_pair(relay: RelayServer, session: str, local: Client, remote: Client) -> None:
     await local.connect(relay)
     await remote.connect(relay)
-    assert (await local.hello("local", session)).role == "local"
-    assert (await remote.hello("remote", session)).role == "remote"
+    welcome_local = await local.hello("local", session)
+    welcome_remote = await remote.hello("remote", session)
+    assert isinstance(welcome_local, Welcome) and isinstance(welcome_remote, Welcome)
+    assert welcome_local.role == "local"
+    assert welcome_remote.role == "remote"
 
 
 async def test_two_sessions_both_directions_ws_and_tcp() -> None:
@@ -47,7 +50,7 @@ async def test_two_sessions_both_directions_ws_and_tcp() -> None:
         await l2.send(platform(11, l2.now()))
         assert (await r2.expect("platform_state")).seq == 11
         # nothing crossed sessions
-        assert not [m for m in r2.inbox + l1.inbox if m.TYPE in ("arm_command", "arm_state")
+        assert not [m for m in r2.inbox + l1.inbox if isinstance(m, ArmCommand | ArmState)
                     and m.seq in (1, 3)]
 
 

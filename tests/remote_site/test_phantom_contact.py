@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -131,7 +132,7 @@ def test_force_finite_nonnegative_and_linear_in_depth(x: float, y: float, d1: fl
 _BREAST = make_scene("breast", 5)
 
 
-def test_scenes_are_seeded_and_ground_truth_is_json(tmp_path) -> None:  # type: ignore[no-untyped-def]
+def test_scenes_are_seeded_and_ground_truth_is_json(tmp_path: Path) -> None:
     a, b, c = make_scene("severity", 7), make_scene("severity", 7), make_scene("severity", 8)
     assert a.ground_truth() == b.ground_truth() != c.ground_truth()
     path = a.write_ground_truth(tmp_path / "gt.json")

@@ -63,7 +63,7 @@ def test_every_table_of_the_example_resolves(name: str) -> None:
     assert not top_level_values, f"{name}: keys outside any table: {top_level_values}"
     for section in tables:
         cls = SECTIONS[section]
-        config = resolve_config(cls, section, toml_path=path, environ={})
+        config: object = resolve_config(cls, section, toml_path=path, environ={})
         assert isinstance(config, cls)
         # every key written in the file reached the dataclass (no silent defaults)
         node: Any = data

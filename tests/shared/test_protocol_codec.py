@@ -32,6 +32,7 @@ from shared.protocol import (
     Bye,
     ClockPing,
     ClockPong,
+    DataMessage,
     Error,
     Hello,
     Hop,
@@ -295,7 +296,7 @@ def test_encode_refuses_oversize() -> None:
 
 
 def test_with_hop_keeps_at_most_max_hops() -> None:
-    msg = PlatformState()
+    msg: DataMessage = PlatformState()
     for i in range(40):
         msg = msg.with_hop("relay", "relay_in", i)
     assert len(msg.hops) == 32
