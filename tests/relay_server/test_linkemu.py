@@ -48,7 +48,7 @@ class Sink:
         for w in self._writers:
             w.close()
         with contextlib.suppress(asyncio.TimeoutError):
-            await asyncio.wait_for(self._server.wait_closed(), 1.0)
+            await asyncio.wait_for(self._server.wait_closed(), scaled(1.0))
 
     @property
     def address(self) -> tuple[str, int]:

@@ -154,7 +154,7 @@ async def test_agent_follows_a_press_and_streams_tactile_frames(relay: RelayServ
         got = await fake_local(url, tuple(malignant["center_mm"]), duration_s=scaled(3.2))
         # then the relay goes away: the arm must be halted for link loss
         await relay.close()
-        await asyncio.sleep(0.4)
+        await asyncio.sleep(scaled(0.4))  # the agent notices the loss and halts the arm
     finally:
         stop.set()
         summary = await asyncio.wait_for(agent, scaled(10.0))
