@@ -236,7 +236,8 @@ async def test_manual_outage_holds_data_then_delivers_it(sink: Sink) -> None:
 
 
 async def test_scheduled_outage_with_close_resets_and_refuses(sink: Sink) -> None:
-    profile = LinkProfile(outages=((0.1, 0.3),), close_on_outage=True)
+    # the second connection below must land inside the outage: its length scales
+    profile = LinkProfile(outages=((0.1, scaled(0.3)),), close_on_outage=True)
     async with LinkEmulator(target=sink.address, profile=profile) as emu:
         reader, writer = await asyncio.open_connection("127.0.0.1", emu.port)
         async with asyncio.timeout(scaled(2.0)):
