@@ -137,8 +137,12 @@ def check_press_result(got: dict[str, list[Any]], truth: dict[str, Any], tumor_i
     assert got["arm_states"] and got["arm_states"][-1].source_seq is not None
 
 
-async def test_agent_follows_a_press_and_streams_tactile_frames(relay: RelayServer,
-                                                                tmp_path: Path) -> None:
+async def test_agent_follows_a_press_and_streams_tactile_frames(
+        relay: RelayServer, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # the arm's command age limit and command timeout are product timeouts under test:
+    # scaled, so a loaded machine's queueing delays do not read as stale commands
+    monkeypatch.setenv("TELETOUCH_ARM_SAFETY_MAX_COMMAND_AGE_MS", str(scaled(100.0)))
+    monkeypatch.setenv("TELETOUCH_ARM_SAFETY_COMMAND_TIMEOUT_MS", str(scaled(100.0)))
     url = f"ws://127.0.0.1:{relay.ws_port}/"
     truth_path = tmp_path / "truth.json"
     options = AgentOptions(relay=url, session=SESSION, token=TOKEN, phantom="breast", seed=5,
