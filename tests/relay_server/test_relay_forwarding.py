@@ -98,8 +98,9 @@ async def test_clock_offsets_and_stats_push() -> None:
         m = stats.metrics
         assert m["role"] == "remote" and m["session"] == "clk"
         up = m["delay_us"]["local_to_remote"]["station_to_relay"]
-        # offset-corrected one-way delay on loopback: small, not ~250 ms
-        assert -scaled(20_000) < up["p50"] < scaled(20_000)
+        # offset-corrected one-way delay on loopback: small, not ~250 ms (a generous bound,
+        # scaled: queueing on a loaded machine adds tens of ms)
+        assert -scaled(40_000) < up["p50"] < scaled(40_000)
         assert m["delay_us"]["local_to_remote"]["relay"]["p99"] >= 0
         assert set(m["drops"]["local_to_remote"]) == {"lost", "latest_wins", "queue_full",
                                                       "no_peer"}
