@@ -11,8 +11,8 @@ calibration is run exactly as a user would::
         --labels /tmp/labels_train.csv --ball-diameter-mm 9.47 --mm-per-px 0.0634 \\
         --out /tmp/calib.npz
 
-with ``D=/work/shared/data/gelsight/gsmini_ball_9.47mm``. Radii are written as labelled
-(untrimmed); the calibration trims ``--trim-px`` itself.
+with ``D=../shared/data/gelsight/gsmini_ball_9.47mm`` (the team kit beside the repository).
+Radii are written as labelled (untrimmed); the calibration trims ``--trim-px`` itself.
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ from remote_site.reconstruction.labels import (  # noqa: E402
     write_labels_csv,
 )
 
-DEFAULT_DATA = Path("/work/shared/data/gelsight/gsmini_ball_9.47mm")
+DEFAULT_DATA = (ROOT / ".." / "shared" / "data" / "gelsight" / "gsmini_ball_9.47mm").resolve()
 
 
 def split_names(data_dir: Path, split: str) -> list[str]:

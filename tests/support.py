@@ -1,15 +1,30 @@
 """Helpers shared by the test suite.
 
 Timeouts scale with ``TELETOUCH_TEST_TIMEOUT_SCALE`` (default 1) so slow or loaded
-machines do not flake: write ``scaled(2.0)`` instead of ``2.0``.
+machines do not flake: write ``scaled(2.0)`` instead of ``2.0``, and wait for a condition
+with :func:`wait_until` / :func:`async_wait_until` instead of sleeping a fixed time.
+Subprocesses started by a test inherit the variable through the environment.
+
+The team kit (design doc, real GelSight data) lies beside the repository, at
+``<repo>/../shared``; :func:`kit_path` names a file in it and :func:`require_kit` skips a test
+whose kit data is missing, or fails it when ``CI=true``.
 """
 
 from __future__ import annotations
 
+import asyncio
 import os
 import socket
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
 
 TIMEOUT_SCALE = float(os.environ.get("TELETOUCH_TEST_TIMEOUT_SCALE", "1"))
+
+#: the repository's root (this file is ``<repo>/tests/support.py``)
+REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
 def scaled(seconds: float) -> float:
@@ -17,8 +32,64 @@ def scaled(seconds: float) -> float:
     return seconds * TIMEOUT_SCALE
 
 
+def wait_until(predicate: Callable[[], object], timeout_s: float, what: str = "condition",
+               *, poll_s: float = 0.005) -> None:
+    """Poll ``predicate()`` until it is true; fail the test after ``scaled(timeout_s)``.
+
+    Args:
+        predicate: the condition to wait for (called from this thread).
+        timeout_s: unscaled longest wait.
+        what: what is awaited, for the failure message.
+        poll_s: polling period.
+
+    Raises:
+        AssertionError: the condition did not hold within the scaled timeout.
+    """
+    deadline = time.monotonic() + scaled(timeout_s)
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {scaled(timeout_s):.2f} s waiting for {what}")
+        time.sleep(poll_s)
+
+
+async def async_wait_until(predicate: Callable[[], object], timeout_s: float,
+                           what: str = "condition", *, poll_s: float = 0.005) -> None:
+    """Like :func:`wait_until`, polling with ``asyncio.sleep`` so the event loop runs.
+
+    Raises:
+        AssertionError: the condition did not hold within the scaled timeout.
+    """
+    try:
+        async with asyncio.timeout(scaled(timeout_s)):
+            while not predicate():
+                await asyncio.sleep(poll_s)
+    except TimeoutError as err:
+        raise AssertionError(
+            f"timed out after {scaled(timeout_s):.2f} s waiting for {what}") from err
+
+
 def free_tcp_port() -> int:
     """Return a TCP port on 127.0.0.1 that is free right now."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+def kit_path(*parts: str) -> Path:
+    """A path inside the team kit, ``<repo>/../shared/<parts...>`` (may not exist)."""
+    return (REPO_ROOT / ".." / "shared").resolve().joinpath(*parts)
+
+
+def require_kit(path: Path) -> Path:
+    """Return ``path`` if the kit data is there; skip the test otherwise (fail under CI).
+
+    Raises:
+        pytest.fail.Exception: the data is missing and the environment says ``CI=true``.
+        pytest.skip.Exception: the data is missing outside CI.
+    """
+    if path.exists():
+        return path
+    message = f"team kit data not found at {path} (the kit belongs at {kit_path()})"
+    if os.environ.get("CI", "").strip().lower() in ("true", "1", "yes"):
+        pytest.fail(message)
+    pytest.skip(message)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 
@@ -17,11 +18,19 @@ SMALL_RASTER = ("raster:x0=20,x1=52,y0=4,y1=36,spacing=4,speed=45,z=10,press_dep
                 "press_every=0,pause=3,loop=0")
 
 
+def _scaled_env() -> dict[str, str]:
+    """The stations' environment: the remote arm's command age limit and command timeout
+    (product timeouts under test) scaled, so load-delayed commands still move the arm."""
+    return dict(os.environ,
+                TELETOUCH_ARM_SAFETY_MAX_COMMAND_AGE_MS=str(scaled(100.0)),
+                TELETOUCH_ARM_SAFETY_COMMAND_TIMEOUT_MS=str(scaled(100.0)))
+
+
 def test_demo_headless_json_reports_the_felt_tumor() -> None:
     done = subprocess.run(
         [sys.executable, "-m", "lab.cli", "demo", "--headless", "--json", "--scene", "breast",
          "--seed", "0", "--motion", SMALL_RASTER, "--duration", "45"],
-        capture_output=True, text=True, timeout=scaled(120.0), check=False)
+        capture_output=True, text=True, timeout=scaled(120.0), check=False, env=_scaled_env())
     assert done.returncode == 0, done.stderr[-3000:]
     report = json.loads(done.stdout)
     for key in ("tumors_expected", "tumors_found", "localization_error_mm", "types_correct",

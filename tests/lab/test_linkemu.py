@@ -48,7 +48,7 @@ class Sink:
         for w in self._writers:
             w.close()
         with contextlib.suppress(asyncio.TimeoutError):
-            await asyncio.wait_for(self._server.wait_closed(), 1.0)
+            await asyncio.wait_for(self._server.wait_closed(), scaled(1.0))
 
     @property
     def address(self) -> tuple[str, int]:
@@ -185,7 +185,9 @@ async def test_added_delay_and_jitter_match_the_profile(sink: Sink) -> None:
     assert (p84 - p16) == pytest.approx(6.0, abs=tol)
     assert added_ms.min() >= 20.0 - 4 * 3.0 - 1.0  # no chunk faster than the model allows
     up = stats["up"]
-    assert up["bytes"] == n * RECORD.size and up["chunks"] >= n
+    # one read per 10 ms record while the emulator keeps up; a loaded emulator reads some
+    # records together (TCP coalesces them), so the chunk count is a scaled timing bound
+    assert up["bytes"] == n * RECORD.size and up["chunks"] >= n / max(1.0, scaled(1.0))
     assert up["planned_delay_ms"]["p50"] == pytest.approx(20.0, abs=1.5)
     assert stats["down"]["bytes"] == 0 and stats["connections_total"] == 1
 
@@ -236,7 +238,8 @@ async def test_manual_outage_holds_data_then_delivers_it(sink: Sink) -> None:
 
 
 async def test_scheduled_outage_with_close_resets_and_refuses(sink: Sink) -> None:
-    profile = LinkProfile(outages=((0.1, 0.3),), close_on_outage=True)
+    # the second connection below must land inside the outage: its length scales
+    profile = LinkProfile(outages=((0.1, scaled(0.3)),), close_on_outage=True)
     async with LinkEmulator(target=sink.address, profile=profile) as emu:
         reader, writer = await asyncio.open_connection("127.0.0.1", emu.port)
         async with asyncio.timeout(scaled(2.0)):

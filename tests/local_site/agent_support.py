@@ -15,7 +15,7 @@ from shared.client import StationLink, StationLinkConfig
 from shared.protocol import Hop, PlatformState, TactileFrame
 from shared.timebase import now_us
 from tests.relay_server.relay_clients import SECRET
-from tests.support import scaled
+from tests.support import async_wait_until
 
 SESSION = "agent-test"
 TOKEN = derive_token(SECRET, SESSION)
@@ -92,9 +92,4 @@ def relay_agent(url: str, tmp_path: Path | None = None, **overrides: Any) -> Loc
 
 async def wait_for(predicate: Any, timeout_s: float, what: str) -> None:
     """Poll ``predicate()`` every 10 ms until true; fail after ``scaled(timeout_s)``."""
-    try:
-        async with asyncio.timeout(scaled(timeout_s)):
-            while not predicate():
-                await asyncio.sleep(0.01)
-    except TimeoutError as err:
-        raise AssertionError(f"timed out waiting for {what}") from err
+    await async_wait_until(predicate, timeout_s, what, poll_s=0.01)

@@ -103,4 +103,7 @@ async def test_scene_mode_process_until_motion_done(tmp_path: Path) -> None:
     doc = json.loads(summary.read_text())
     assert doc["mode"] == "scene" and doc["exit_reason"] == "motion_done"
     assert doc["display"]["commands_sent"] > 20 and doc["link"] is None
-    assert doc["safe_state"]["entries"] == {}
+    # No loss during the run: no platform error, and at most the start-up wait for the
+    # platform's first sample when the display is ready first (loaded machine).
+    assert doc["platform"]["errors"] == 0
+    assert doc["safe_state"]["entries"] in ({}, {"platform_lost": 1})

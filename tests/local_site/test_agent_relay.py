@@ -84,7 +84,7 @@ async def test_bad_frames_are_rejected_without_touching_the_pins() -> None:
                 await wait_for(lambda: agent.loop is not None and _pins_near(agent, 3.0), 6.0,
                                "pins at 3 mm")
                 remote.paused = True
-                await asyncio.sleep(0.1)
+                await asyncio.sleep(scaled(0.1))  # frames in flight arrive
                 loop = agent.loop
                 version = loop.scene.version
                 sent = loop.counters.commands_sent
@@ -96,7 +96,8 @@ async def test_bad_frames_are_rejected_without_touching_the_pins() -> None:
                                 "height_mm": np.ones((4, 4)), "friction": np.ones((3, 3))})):
                     agent.frames.put(bad, now_us())
                     await asyncio.sleep(0.02)
-                await asyncio.sleep(0.1)
+                await wait_for(lambda: loop.counters.frames_rejected >= 3, 2.0,
+                               "the display loop to reject the bad frames")
                 assert loop.counters.frames_rejected == 3
                 assert loop.scene.version == version
                 assert loop.counters.commands_sent == sent

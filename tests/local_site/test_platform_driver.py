@@ -25,7 +25,7 @@ from shared.errors import (
     DeviceOperationError,
     DeviceTimeoutError,
 )
-from tests.support import scaled
+from tests.support import scaled, wait_until
 
 GEOMETRY = PlatformGeometry()
 RES_MM = max(abs(s) for s in GEOMETRY.mm_per_count)
@@ -142,18 +142,21 @@ def test_zero_sets_the_current_pose_as_the_given_position(loop_port: serial.Seri
 
 
 def test_silent_device_gives_init_error_then_timeout(loop_port: serial.SerialBase) -> None:
-    platform = SerialEncoderPlatform("loop://", port=loop_port, connect_timeout_s=0.2)
+    # The same connect timeout must let the retry below find the board's first frame on a
+    # loaded machine, so it scales.
+    platform = SerialEncoderPlatform("loop://", port=loop_port, connect_timeout_s=scaled(0.2))
     with pytest.raises(DeviceInitError, match="no valid frame"):
         platform.connect()
     board = SimulatedEncoderBoard(HoldMotion(), loop_port.write, sample_rate_hz=500)
     with board:
         platform.connect()  # retry works once the board talks
         platform.read_state(scaled(0.5))
-    time.sleep(0.05)
-    while loop_port.in_waiting:  # let the reader drain what the board left
-        time.sleep(0.01)
+    wait_until(lambda: not loop_port.in_waiting, 1.0, "the reader to drain the port")
+    # Samples the board sent before it stopped may still be in the decoder (a loaded reader
+    # thread lags): take them, then the silent device must time out.
     with pytest.raises(DeviceTimeoutError, match="no new valid sample"):
-        platform.read_state(0.1)
+        for _ in range(50):
+            platform.read_state(0.1)
     platform.disconnect()
     with pytest.raises(DeviceNotConnectedError):
         platform.read_state(0.1)

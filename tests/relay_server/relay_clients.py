@@ -77,7 +77,10 @@ class Client:
                 raise Closed(str(err)) from err
             return [decode(data, max_message_bytes=2**30)]
         assert self.reader is not None
-        chunk = await self.reader.read(65536)
+        try:
+            chunk = await self.reader.read(65536)
+        except ConnectionResetError as err:  # the relay closed with our reply in flight
+            raise Closed(f"reset: {err}") from err
         if not chunk:
             raise Closed("eof")
         self.conn.receive_data(chunk)

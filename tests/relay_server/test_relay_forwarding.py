@@ -101,7 +101,8 @@ async def test_clock_offsets_and_stats_push() -> None:
         m = stats.metrics
         assert m["role"] == "remote" and m["session"] == "clk"
         up = m["delay_us"]["local_to_remote"]["station_to_relay"]
-        # offset-corrected one-way delay on loopback: small, not ~250 ms
+        # offset-corrected one-way delay on loopback: small, not ~250 ms (scaled: queueing on
+        # a loaded machine adds tens of ms)
         assert -scaled(20_000) < up["p50"] < scaled(20_000)
         assert m["delay_us"]["local_to_remote"]["relay"]["p99"] >= 0
         assert set(m["drops"]["local_to_remote"]) == {"lost", "latest_wins", "queue_full",

@@ -139,8 +139,12 @@ def check_press_result(got: dict[str, list[Any]], truth: dict[str, Any], tumor_i
     assert got["arm_states"] and got["arm_states"][-1].source_seq is not None
 
 
-async def test_agent_follows_a_press_and_streams_tactile_frames(relay: RelayServer,
-                                                                tmp_path: Path) -> None:
+async def test_agent_follows_a_press_and_streams_tactile_frames(
+        relay: RelayServer, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # the arm's command age limit and command timeout are product timeouts under test:
+    # scaled, so a loaded machine's queueing delays do not read as stale commands
+    monkeypatch.setenv("TELETOUCH_ARM_SAFETY_MAX_COMMAND_AGE_MS", str(scaled(100.0)))
+    monkeypatch.setenv("TELETOUCH_ARM_SAFETY_COMMAND_TIMEOUT_MS", str(scaled(100.0)))
     url = f"ws://127.0.0.1:{relay.ws_port}/"
     truth_path = tmp_path / "truth.json"
     write_ground_truth(build_world("breast", 5), truth_path, WorkspaceMap())
@@ -158,7 +162,7 @@ async def test_agent_follows_a_press_and_streams_tactile_frames(relay: RelayServ
         got = await fake_local(url, tuple(malignant["center_mm"]), duration_s=scaled(3.2))
         # then the relay goes away: the arm must be halted for link loss
         await relay.close()
-        await asyncio.sleep(0.4)
+        await asyncio.sleep(scaled(0.4))  # the agent notices the loss and halts the arm
     finally:
         stop.set()
         summary = await asyncio.wait_for(agent, scaled(10.0))

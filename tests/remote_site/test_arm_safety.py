@@ -9,6 +9,7 @@ from remote_site.arm.sim import SimArm, SimArmConfig
 from remote_site.phantom import make_scene
 from shared.errors import ConfigError, InputDataError
 from shared.protocol.messages import ArmCommand
+from tests.support import wait_until
 
 PHANTOM = make_scene("localization", 0)
 
@@ -127,11 +128,7 @@ def test_watchdog_thread_halts_a_real_clock_arm() -> None:
     safe.move((10.0, 0.0, 10.0))
     safe.start_watchdog(0.005)
     try:
-        import time
-
-        deadline = time.monotonic() + 2.0
-        while time.monotonic() < deadline and not safe.halted:
-            time.sleep(0.01)
+        wait_until(lambda: safe.halted, 2.0, "the watchdog to halt the arm")
         assert safe.halted
     finally:
         safe.close()

@@ -19,13 +19,19 @@ from remote_site.reconstruction.calibration import Calibration, fit_calibration
 from remote_site.reconstruction.frames import load_rgb
 from remote_site.reconstruction.labels import BallLabel, labels_from_npz, write_labels_csv
 from remote_site.reconstruction.reconstructor import Reconstructor
+from tests.support import kit_path, require_kit
 
-DATA = Path("/work/shared/data/gelsight/gsmini_ball_9.47mm")
-EXAMPLES = Path("/work/shared/data/gelsight/gsmini_examples")
+DATA = kit_path("data", "gelsight", "gsmini_ball_9.47mm")
+EXAMPLES = kit_path("data", "gelsight", "gsmini_examples")
 BALL_RADIUS_MM = 4.735
 MM_PER_PX = 0.0634
 
-pytestmark = pytest.mark.skipif(not DATA.is_dir(), reason="team kit GelSight data not present")
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _kit_data() -> None:
+    """Every test here needs the kit's GelSight set: skip without it, fail under CI."""
+    require_kit(DATA)
 
 
 def _split(name: str) -> list[BallLabel]:
@@ -140,7 +146,7 @@ def test_cli_reconstruct_writes_one_map_per_frame(calib_path: Path, tmp_path: Pa
 def test_other_unit_background_is_flat_against_itself(calib_path: Path) -> None:
     # A no-contact frame of another Mini, used with itself as background: nothing changed.
     rec = Reconstructor.from_file(calib_path)
-    bg = load_rgb(EXAMPLES / "background.png")
+    bg = load_rgb(require_kit(EXAMPLES) / "background.png")
     hm = rec.height_map(bg, background=bg)
     assert hm.skipped and not hm.contact
 

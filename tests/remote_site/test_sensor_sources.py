@@ -23,6 +23,7 @@ from shared.errors import (
     DeviceTimeoutError,
     InputDataError,
 )
+from tests.support import scaled, wait_until
 
 
 class FakeCapture:
@@ -75,9 +76,10 @@ def test_every_backend_follows_the_contract(any_sensor: TactileSensor) -> None:
         any_sensor.read_latest()
     with any_sensor as sensor:
         assert sensor.is_connected
-        first = sensor.read_latest(max_age_ms=500)
-        time.sleep(0.01)
-        second = sensor.read_latest(max_age_ms=500)
+        first = sensor.read_latest(max_age_ms=scaled(500))
+        wait_until(lambda: sensor.read_latest(max_age_ms=scaled(500)).seq != first.seq, 1.0,
+                   "the next frame")  # a loaded capture thread may need more than 10 ms
+        second = sensor.read_latest(max_age_ms=scaled(500))
         assert first.rgb.shape == (240, 320, 3) and first.rgb.dtype == np.uint8
         assert second.seq > first.seq
         assert second.timestamp_us >= first.timestamp_us
@@ -198,7 +200,7 @@ def test_stale_frames_are_refused() -> None:
 
 def test_camera_rejects_odd_frames_from_the_device() -> None:
     gray = np.zeros((350, 466), np.uint8)
-    sensor = OpenCVCameraSensor(0, first_frame_timeout_s=0.3,
+    sensor = OpenCVCameraSensor(0, first_frame_timeout_s=scaled(0.3),
                                 capture_factory=lambda src: FakeCapture([gray]))
     with pytest.raises(DeviceTimeoutError, match="unexpected frame"):
         sensor.connect()

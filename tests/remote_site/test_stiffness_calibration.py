@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from shared.cli import main as teletouch
 
+from lab.cli import main as teletouch
 from remote_site.phantom.durometer import durometer_modulus_kpa
 from remote_site.phantom.mechanics import punch_stiffness_n_per_mm
 from remote_site.phantom.phantom import SensorPad, SiliconeLayer

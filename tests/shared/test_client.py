@@ -96,7 +96,7 @@ class FakeRelay:
             t.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
         with contextlib.suppress(asyncio.TimeoutError):
-            await asyncio.wait_for(self._tcp_server.wait_closed(), 1.0)
+            await asyncio.wait_for(self._tcp_server.wait_closed(), scaled(1.0))
 
     def url(self, scheme: str) -> str:
         if scheme == "tcp":
@@ -338,7 +338,7 @@ async def test_wrong_token_is_final_and_logged_once(relay: FakeRelay, scheme: st
     async with _link(relay.url(scheme), token="wrong", reconnect_min_s=0.01) as link:
         with pytest.raises(AuthError):
             await link.wait_connected(scaled(2.0))
-        await asyncio.sleep(0.1)  # would be ~4 retries if it retried
+        await asyncio.sleep(scaled(0.1))  # would be ~4 retries if it retried
         assert relay.hellos == 1
         with pytest.raises(AuthError):
             await link.recv(timeout_s=0.1)
@@ -356,7 +356,7 @@ async def test_role_taken_on_first_connect_is_final() -> None:
                 _link(relay.url("ws"), reconnect_min_s=0.01) as link):
         with pytest.raises(RoleTakenError):
             await link.wait_connected(scaled(2.0))
-        await asyncio.sleep(0.05)
+        await asyncio.sleep(scaled(0.05))  # time for retries, had it retried
         assert relay.hellos == 1
 
 
@@ -402,7 +402,7 @@ async def test_inbox_is_latest_wins_for_state_and_ordered_for_commands(
         async with asyncio.timeout(scaled(2.0)):
             while link.counters.messages_received < 40:
                 await asyncio.sleep(0.005)
-        got = [await link.recv(timeout_s=1.0) for _ in range(21)]
+        got = [await link.recv(timeout_s=scaled(1.0)) for _ in range(21)]
         states = [m.seq for m in got if isinstance(m, PlatformState)]
         cmds = [m.seq for m in got if isinstance(m, ArmCommand)]
         assert states == [19] and cmds == list(range(20))

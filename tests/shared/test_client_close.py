@@ -22,8 +22,8 @@ async def test_close_logs_no_lost_task_exception(caplog: pytest.LogCaptureFixtur
                            token="x")
         async with link:
             await link.wait_connected(scaled(5.0))
-            await asyncio.sleep(0.1)
-    await asyncio.sleep(0.05)
+            await asyncio.sleep(scaled(0.1))
+    await asyncio.sleep(scaled(0.05))
     gc.collect()
     await asyncio.sleep(0)
     lost = [r for r in caplog.records if "never retrieved" in r.getMessage()]
