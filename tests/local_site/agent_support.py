@@ -10,6 +10,8 @@ from typing import Any
 import numpy as np
 
 from local_site.agent import LocalAgent, LocalAgentConfig
+from local_site.agent.display_loop import DisplayLoop
+from local_site.agent.platform_reader import PlatformReader
 from relay_server.auth import derive_token
 from shared.client import StationLink, StationLinkConfig
 from shared.protocol import Hop, PlatformState, TactileFrame
@@ -93,3 +95,24 @@ def relay_agent(url: str, tmp_path: Path | None = None, **overrides: Any) -> Loc
 async def wait_for(predicate: Any, timeout_s: float, what: str) -> None:
     """Poll ``predicate()`` every 10 ms until true; fail after ``scaled(timeout_s)``."""
     await async_wait_until(predicate, timeout_s, what, poll_s=0.01)
+
+
+def loop_of(agent: LocalAgent) -> DisplayLoop:
+    """The agent's display loop; fails the test when the agent has not opened it."""
+    if agent.loop is None:
+        raise AssertionError("the agent's display loop is not running")
+    return agent.loop
+
+
+def reader_of(agent: LocalAgent) -> PlatformReader:
+    """The agent's platform reader; fails the test when the agent has not opened it."""
+    if agent.reader is None:
+        raise AssertionError("the agent's platform reader is not running")
+    return agent.reader
+
+
+def link_of(agent: LocalAgent) -> StationLink:
+    """The agent's relay link; fails the test when the agent has none."""
+    if agent.link is None:
+        raise AssertionError("the agent has no relay link")
+    return agent.link

@@ -8,12 +8,15 @@ from pathlib import Path
 
 import numpy as np
 
+from local_site.agent import LocalAgent
 from local_site.recording import load_recording
 from shared.protocol import TactileFrame
 from shared.timebase import monotonic_s, now_us
 from tests.local_site.agent_support import (
     FRAME_SHAPE,
     FakeRemote,
+    link_of,
+    loop_of,
     make_frame,
     relay_agent,
     wait_for,
@@ -22,8 +25,8 @@ from tests.relay_server.relay_clients import running_relay
 from tests.support import free_tcp_port, scaled
 
 
-def _pins_near(agent: object, height_mm: float, tol_mm: float = 0.15) -> bool:
-    fb = agent.loop.display.latest_feedback()  # type: ignore[attr-defined]
+def _pins_near(agent: LocalAgent, height_mm: float, tol_mm: float = 0.15) -> bool:
+    fb = loop_of(agent).display.latest_feedback()
     return fb is not None and not fb.safe_state and \
         bool(np.all(np.abs(fb.position_mm - height_mm) < tol_mm))
 
@@ -37,7 +40,7 @@ async def test_platform_state_and_frames_flow_record_and_summary(tmp_path: Path)
             await wait_for(lambda: agent.loop is not None and _pins_near(agent, 2.0), 6.0,
                            "pins at the frames' 2 mm")
             await wait_for(lambda: agent.ledger.frames >= 5, 3.0, "end-to-end latencies")
-            await wait_for(lambda: agent.loop.periods.iterations > 300, 3.0, "loop iterations")
+            await wait_for(lambda: loop_of(agent).periods.iterations > 300, 3.0, "loop iterations")
             agent.request_stop("test")
             assert await run == 0
     # platform_state: capture hop = ts, then the relay's stamps, then the remote's receipt
@@ -47,6 +50,7 @@ async def test_platform_state_and_frames_flow_record_and_summary(tmp_path: Path)
     assert state.hops[0].t_us == state.ts_us
     assert abs(state.position_mm[0] - 30.0) < 0.1 and abs(state.position_mm[2] - 100.0) < 0.1
     summary = json.loads((tmp_path / "summary.json").read_text())
+    assert agent.summary is not None
     assert summary == agent.summary | {"recording": summary["recording"]}
     assert summary["mode"] == "relay" and summary["exit_reason"] == "test"
     assert summary["frames_rendered"] > 0 and summary["frames_rejected"] == 0
@@ -64,6 +68,7 @@ async def test_platform_state_and_frames_flow_record_and_summary(tmp_path: Path)
     assert n == summary["frames_accepted"] and n > 0
     assert rec.frame_height_mm.shape == (n, *FRAME_SHAPE)
     assert rec.frame_height_mm.dtype == np.float32
+    assert rec.frame_stiffness_k is not None and rec.frame_stiffness_n_per_mm is not None
     assert np.allclose(rec.frame_height_mm, 2.0) and np.allclose(rec.frame_stiffness_k, 0.8)
     assert np.allclose(rec.frame_stiffness_n_per_mm, 0.7)
     assert rec.frame_rx_us.dtype == np.int64 and np.all(np.diff(rec.frame_rx_us) >= 0)
@@ -85,7 +90,7 @@ async def test_bad_frames_are_rejected_without_touching_the_pins() -> None:
                                "pins at 3 mm")
                 remote.paused = True
                 await asyncio.sleep(scaled(0.1))  # frames in flight arrive
-                loop = agent.loop
+                loop = loop_of(agent)
                 version = loop.scene.version
                 sent = loop.counters.commands_sent
                 command = loop.renderer.last_command
@@ -118,21 +123,22 @@ async def test_link_loss_goes_safe_then_reconnects_and_resumes() -> None:
         async with running_relay(port=port, tcp_port=tcp_port), FakeRemote(url) as remote:
             await wait_for(lambda: agent.loop is not None and _pins_near(agent, 2.0), 6.0,
                            "pins at 2 mm")
-            rendered = agent.loop.counters.frames_rendered
+            rendered = loop_of(agent).counters.frames_rendered
         # relay gone: the link is down, the pins go flat within ~100 ms
-        await wait_for(lambda: not agent.link.is_connected, 2.0, "link down")
-        down_at = agent.link.link_down_since
-        await wait_for(lambda: agent.loop.safe_reason is not None, 1.0, "safe state")
+        await wait_for(lambda: not link_of(agent).is_connected, 2.0, "link down")
+        down_at = link_of(agent).link_down_since
+        assert down_at is not None
+        await wait_for(lambda: loop_of(agent).safe_reason is not None, 1.0, "safe state")
         reaction_s = monotonic_s() - down_at
         assert reaction_s < 0.1 + scaled(0.15)
-        await wait_for(lambda: (fb := agent.loop.display.latest_feedback()) is not None
+        await wait_for(lambda: (fb := loop_of(agent).display.latest_feedback()) is not None
                        and fb.safe_state and float(fb.position_mm.max()) < 0.3, 2.0,
                        "pins flat")
         async with running_relay(port=port, tcp_port=tcp_port), FakeRemote(url) as remote:
-            await wait_for(lambda: agent.link.is_connected, 3.0, "reconnected")
-            await wait_for(lambda: agent.loop.safe_reason is None
+            await wait_for(lambda: link_of(agent).is_connected, 3.0, "reconnected")
+            await wait_for(lambda: loop_of(agent).safe_reason is None
                            and _pins_near(agent, 2.0), 4.0, "rendering resumed")
-            assert agent.loop.counters.frames_rendered > rendered
+            assert loop_of(agent).counters.frames_rendered > rendered
             assert remote.frames_sent > 0
     finally:
         agent.request_stop("test")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 import pytest
@@ -16,7 +17,7 @@ from local_site.platform.motion_spec import parse_motion_spec
 from local_site.recording import SessionRecorder, load_recording
 from shared.config import resolve_config
 from shared.errors import ConfigError
-from tests.local_site.agent_support import make_frame, wait_for
+from tests.local_site.agent_support import loop_of, make_frame, reader_of, wait_for
 from tests.support import scaled
 
 DEPLOY_LOCAL = Path(__file__).resolve().parents[2] / "deploy" / "config" / "local.toml"
@@ -33,20 +34,21 @@ async def test_scene_mode_renders_the_hemisphere_and_survives_an_unplugged_platf
         # hemisphere r = 4.5 mm placed at the workspace centre, platform on its top:
         # pins at (+-0.85, +-0.85) -> 4.34 mm, corners (+-2.55, +-2.55) -> 2.69 mm
         await wait_for(lambda: agent.loop is not None and
-                       (fb := agent.loop.display.latest_feedback()) is not None
+                       (fb := loop_of(agent).display.latest_feedback()) is not None
                        and abs(float(fb.position_mm.max()) - 4.34) < 0.1
                        and abs(float(fb.position_mm.min()) - 2.69) < 0.1, 6.0,
                        "pins showing the hemisphere")
-        assert agent.link is None and agent.loop.safe_reason is None
+        assert agent.link is None and loop_of(agent).safe_reason is None
         # The display loop starts beside the platform reader: when the display is ready
         # first (a loaded machine), the pins wait in the safe state for the platform's first
         # sample, counted as one "platform_lost" at start. Count the unplug on top of that.
-        at_start = dict(agent.loop.counters.safe_entries)
-        assert at_start in ({}, {"platform_lost": 1}) and agent.reader.errors == 0
-        platform = agent.reader.platform
+        at_start = dict(loop_of(agent).counters.safe_entries)
+        assert at_start in ({}, {"platform_lost": 1}) and reader_of(agent).errors == 0
+        platform = reader_of(agent).platform
         platform.unplug()  # type: ignore[attr-defined]
-        await wait_for(lambda: agent.loop.safe_reason == "platform_lost", 2.0, "safe state")
-        await wait_for(lambda: agent.reader.reconnects >= 1 and agent.loop.safe_reason is None,
+        await wait_for(lambda: loop_of(agent).safe_reason == "platform_lost", 2.0, "safe state")
+        await wait_for(lambda: reader_of(agent).reconnects >= 1
+                       and loop_of(agent).safe_reason is None,
                        4.0, "platform reopened and rendering again")
     finally:
         agent.request_stop("test")
@@ -106,13 +108,15 @@ def test_recorder_keeps_first_shape_and_its_limit(tmp_path: Path) -> None:
     no_k = make_frame(2, None)
     del no_k.layers["stiffness_k"], no_k.layers["stiffness_n_per_mm"]
     other = make_frame(3, None)
-    other.layers.update({k: np.zeros((3, 3), np.float32) for k in other.layers})
+    cast(dict[str, np.ndarray], other.layers).update(
+        {k: np.zeros((3, 3), np.float32) for k in other.layers})
     assert not rec.add_frame(other, 101)
     assert rec.add_frame(no_k, 102) and not rec.add_frame(frame, 103)
     assert rec.counts() == {"frames": 2, "platform_samples": 1, "frames_dropped_limit": 1,
                             "frames_rejected_shape": 1, "platform_dropped_limit": 1}
     out = load_recording(rec.save(tmp_path / "r", {"session": "s"}))
     assert out.frame_seq.tolist() == [1, 2] and out.frame_rx_us.tolist() == [100, 102]
+    assert out.frame_stiffness_k is not None and out.frame_stiffness_n_per_mm is not None
     assert np.all(out.frame_stiffness_k[1] == 1.0)
     assert np.all(out.frame_stiffness_n_per_mm[1] == 0.0)
     assert out.platform_mm.tolist() == [[1.0, 2.0, 3.0]]
@@ -145,7 +149,7 @@ def test_config_validation_and_deploy_example() -> None:
                 {"link_loss_timeout_s": float("nan")}, {"interpolation_order": 2},
                 {"device_retry_min_s": 2.0, "device_retry_max_s": 1.0}):
         with pytest.raises(ConfigError):
-            LocalAgentConfig(**bad)  # type: ignore[arg-type]
+            LocalAgentConfig(**bad)
     with pytest.raises(ConfigError):
         LocalAgent(LocalAgentConfig())  # neither a relay nor a scene
 

@@ -5,13 +5,13 @@ serial + emulator. The emulator runs the real plant in real time on the other en
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import numpy as np
 import pytest
 
 from local_site.devices import open_display
-from local_site.display.base import ArrayTacDisplay
+from local_site.display.base import ArrayTacDisplay, PinFeedback
 from shared.errors import DeviceNotConnectedError, InputDataError
 from tests.support import scaled
 
@@ -28,8 +28,9 @@ def display(request: pytest.FixtureRequest) -> Iterator[ArrayTacDisplay]:
     dev.disconnect()
 
 
-def _wait_for(display: ArrayTacDisplay, predicate, timeout_s: float, *,  # type: ignore[no-untyped-def]
-              command: tuple[float, float, float] | None = None):
+def _wait_for(display: ArrayTacDisplay, predicate: Callable[[PinFeedback], bool],
+              timeout_s: float, *,
+              command: tuple[np.ndarray | float, float, float] | None = None) -> PinFeedback:
     """Poll feedback (commanding ``command`` at ~500 Hz meanwhile) until ``predicate``."""
     deadline = time.monotonic() + scaled(timeout_s)
     fb = display.read_feedback(scaled(1.0))

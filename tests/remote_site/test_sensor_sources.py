@@ -163,7 +163,7 @@ def test_camera_reads_a_video_file(tmp_path: Path) -> None:
     import cv2
 
     path = tmp_path / "gelsight.avi"
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (466, 350))
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"MJPG"), 25.0, (466, 350))
     assert writer.isOpened()
     for _ in range(10):
         writer.write(_raw_frame())
