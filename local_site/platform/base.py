@@ -314,8 +314,13 @@ class XYZPlatform(Device):
             velocity = tuple((p - q) / dt_s for p, q in zip(position, p_old, strict=True)) \
                 if dt_s > 0 else (0.0, 0.0, 0.0)
             self._raw_counts = counts  # type: ignore[assignment]
+            # capture times never go backwards, even when a faster arrival lowers the offset
+            # estimate (a sample stamped before its predecessor would look older than it is)
+            t_us = board_t + self._clock_offset_us
+            if previous is not None and t_us <= previous.t_us:
+                t_us = previous.t_us + 1
             self._latest = PlatformSample(position_mm=position, velocity_mm_s=velocity,  # type: ignore[arg-type]
-                                          t_us=board_t + self._clock_offset_us, seq=seq,
+                                          t_us=t_us, seq=seq,
                                           board_t_us=board_t, clamped=clamped)
             self._last_rx_s = monotonic_s()
             self._cond.notify_all()

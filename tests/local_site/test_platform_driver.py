@@ -10,11 +10,13 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 import serial
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from local_site.devices import open_platform
 from local_site.platform.kinematics import PlatformGeometry, WrapUnwrapper
 from local_site.platform.motion import HoldMotion, WaypointMotion
-from local_site.platform.protocol import encode_sample_frame
+from local_site.platform.protocol import EncoderSample, encode_sample_frame
 from local_site.platform.serial_board import SerialEncoderPlatform
 from local_site.platform.sim import SimulatedPlatform
 from local_site.platform.sim_board import SimulatedEncoderBoard
@@ -238,3 +240,25 @@ def test_geometry_resolution_matches_4096_counts_per_rev() -> None:
     assert GEOMETRY.mm_per_count[2] == pytest.approx(40 / 4096)
     with pytest.raises(ConfigError):
         PlatformGeometry(mm_per_rev=(1.0, float("nan"), 1.0))
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.integers(100, 5_000), st.integers(0, 200_000)), min_size=2,
+                max_size=60))
+def test_capture_times_never_go_backwards(steps: list[tuple[int, int]]) -> None:
+    """Arrival delays of any size and order (a loaded host): t_us strictly increases and
+    never precedes the latch time on the host clock (board time + the smallest delay)."""
+    platform = SerialEncoderPlatform("loop://")
+    board_t, previous = 1_000, None
+    min_delay = None
+    for seq, (dt_us, delay_us) in enumerate(steps, start=1):
+        board_t += dt_us
+        platform._publish(EncoderSample(seq, board_t, (0, 0, 0)), rx_us=10**12 + board_t
+                          + delay_us)
+        sample = platform.latest()
+        assert sample is not None
+        min_delay = delay_us if min_delay is None else min(min_delay, delay_us)
+        assert sample.t_us >= 10**12 + board_t + min_delay
+        if previous is not None:
+            assert sample.t_us > previous
+        previous = sample.t_us
