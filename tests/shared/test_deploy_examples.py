@@ -113,3 +113,14 @@ def test_units_and_compose_call_existing_subcommands() -> None:
         assert sub in COMMANDS, sub
     configs = set(re.findall(r"/etc/teletouch/(\w+\.toml)", "\n".join(texts)))
     assert configs and all((DEPLOY / "config" / c).is_file() for c in configs)
+
+
+def test_the_image_copies_every_installed_package() -> None:
+    """``pip install .`` in the image needs every package the distribution declares (the
+    console script lives in ``lab``)."""
+    project = tomllib.loads((DEPLOY.parent / "pyproject.toml").read_text())
+    packages = [p.rstrip("*") for p in project["tool"]["setuptools"]["packages"]["find"]["include"]]
+    assert "lab" in packages
+    dockerfile = (DEPLOY / "Dockerfile").read_text()
+    for package in packages:
+        assert f"COPY {package} ./{package}" in dockerfile, package
