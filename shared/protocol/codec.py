@@ -23,7 +23,7 @@ from shared.errors import (
     UnknownMessageTypeError,
     VersionError,
 )
-from shared.protocol.messages import MAX_HOPS, MESSAGE_TYPES, Hop, Message
+from shared.protocol.messages import MAX_HOPS, MESSAGE_TYPES, Message
 
 __all__ = [
     "DEFAULT_MAX_MESSAGE_BYTES",
@@ -98,7 +98,7 @@ def decode(data: bytes | bytearray | memoryview, *,
 
 def encode(message: Message, *, validate: bool = True,
            max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
-           extra_hops: Sequence[Hop] = ()) -> bytes:
+           extra_hops: Sequence[tuple[str, str, int]] = ()) -> bytes:
     """Encode a message to msgpack bytes.
 
     Args:
@@ -106,9 +106,10 @@ def encode(message: Message, *, validate: bool = True,
         validate: re-check every field as a receiver would (default). Forwarders that
             only re-encode a message they already decoded may pass False.
         max_message_bytes: refuse to produce a longer message.
-        extra_hops: hop stamps appended to a data message's ``hops`` while encoding (the
-            relay's ``relay_in``/``relay_out``), keeping the last ``MAX_HOPS``; this saves
-            forwarders a copy of the message per hop.
+        extra_hops: hop stamps ``(clock, stage, t_us)`` (a :class:`Hop` or a plain tuple)
+            appended to a data message's ``hops`` while encoding (the relay's
+            ``relay_in``/``relay_out``), keeping the last ``MAX_HOPS``; this saves forwarders
+            a copy of the message per hop. Not validated: the caller's own stamps.
 
     Raises:
         LocalProtocolError: the message would be rejected by a receiver.
@@ -116,7 +117,7 @@ def encode(message: Message, *, validate: bool = True,
     body = message.to_wire()
     if extra_hops:
         hops = body["hops"]
-        hops.extend(list(h) for h in extra_hops)
+        hops.extend(extra_hops)  # tuples pack as msgpack arrays, like the lists of to_wire
         if len(hops) > MAX_HOPS:
             body["hops"] = hops[-MAX_HOPS:]
     wire = {"v": PROTOCOL_VERSION, "type": message.TYPE, **body}
