@@ -7,6 +7,7 @@ error becomes the one line a lab reads before a session. Errors are sorted by th
 layer's phases (:mod:`shared.devices.base`)::
 
     DeviceInitError                      could not open: ... check the cable/port/permissions
+    DeviceInitError from an ImportError  backend not installed: ...
     DeviceTimeoutError (or an init error
       caused by one: opened, no answer)  opened but silent: ... check power, wiring, baud rate
     DeviceOperationError                 opened but failed: ...
@@ -135,10 +136,10 @@ def _format_value(value: Any) -> str:
     return str(value)
 
 
-def _caused_by_timeout(err: BaseException) -> bool:
+def _caused_by(err: BaseException, kinds: type | tuple[type, ...]) -> bool:
     cause: BaseException | None = err.__cause__
     while cause is not None:
-        if isinstance(cause, DeviceTimeoutError | TimeoutError):
+        if isinstance(cause, kinds):
             return True
         cause = cause.__cause__
     return False
@@ -155,8 +156,10 @@ def failure_line(err: TeleTouchError) -> str:
         ``bad setting: ...``.
     """
     text = str(err).replace("\n", " ")
-    if isinstance(err, DeviceTimeoutError) or (isinstance(err, DeviceInitError)
-                                                and _caused_by_timeout(err)):
+    if isinstance(err, DeviceInitError) and _caused_by(err, ImportError):
+        return f"backend not installed: {text}"
+    if isinstance(err, DeviceTimeoutError) or (isinstance(err, DeviceInitError) and _caused_by(
+            err, (DeviceTimeoutError, TimeoutError))):
         return f"opened but silent: {text}; check power, wiring, bus/baud settings"
     if isinstance(err, DeviceInitError):
         return f"could not open: {text}; check the cable/port/permissions"
