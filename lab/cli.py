@@ -34,6 +34,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "local": ("local_site.cli", "run the local haptic station (platform, ArrayTac, relay link)"),
     "remote": ("remote_site.cli", "run the remote palpation station (arm, sensor, tactile frames)"),
     "demo": ("lab.demo.cli", "run relay + both stations on this machine and report"),
+    "check": ("lab.check_cli", "probe a station's devices before a session (local|remote)"),
 }
 
 #: ``teletouch bench NAME`` -> (module, one-line help)

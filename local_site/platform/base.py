@@ -154,7 +154,10 @@ class XYZPlatform(Device):
         if latest is None:
             reason = f"link failed: {error}" if error else \
                 f"no valid frame within {self._connect_timeout_s:.2f} s"
-            raise DeviceInitError(f"{self.name}: {reason}") from error
+            # a silent board is a timeout inside the connect phase (tools tell it from a
+            # port that does not open by this cause)
+            raise DeviceInitError(f"{self.name}: {reason}") from (
+                error or DeviceTimeoutError(reason))
         log.info("%s: board info: %s", self.name, self._board_info)
 
     def _is_healthy(self) -> bool:

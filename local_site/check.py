@@ -1,0 +1,213 @@
+"""Probes of the local station's devices, for ``teletouch check local``.
+
+Each probe opens one device through the station's registry (:mod:`local_site.devices`),
+measures what a session relies on, and always closes it again (context manager), within
+bounded times (:class:`~shared.device_check.CheckSettings`):
+
+* the XYZ encoder board: opens, sample rate over ``rate_window_s`` (from the board's sample
+  numbers, so samples the host skipped still count), link errors, position and counts;
+  with ``push_s`` the operator is asked to push the platform and the counts must move;
+* the ArrayTac drive board: opens, feedback rate, the safe state is applied, a zero command
+  (all pins retracted) is echoed back, and the link-loss watchdog trips once commands stop
+  (proof that the board's watchdog is armed with the configured timeout).
+
+A probe returns a :class:`~shared.device_check.DeviceCheck`; device errors become its one-line
+message (:func:`shared.device_check.failure_line`), never an exception.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from typing import Any
+
+from local_site.devices import open_display, open_platform
+from shared.device_check import CheckReport, CheckSettings, DeviceCheck, failed_check
+from shared.errors import DeviceOperationError, DeviceTimeoutError, TeleTouchError
+from shared.timebase import monotonic_s, now_us
+
+__all__ = ["MIN_PLATFORM_RATE_HZ", "check_display", "check_local", "check_platform"]
+
+log = logging.getLogger(__name__)
+
+#: the station's display loop needs platform samples at least this often
+MIN_PLATFORM_RATE_HZ = 500.0
+#: counts an axis must move during the push window to count as moved
+MIN_PUSH_COUNTS = 2
+
+
+def check_platform(spec: str, settings: CheckSettings | None = None, *, push_s: float = 0.0,
+                   notify: Callable[[str], None] | None = None,
+                   **options: Any) -> DeviceCheck:
+    """Probe the XYZ encoder board named by ``spec``.
+
+    Args:
+        spec: platform spec (``sim``, ``/dev/ttyUSB0``, ...; see :mod:`local_site.devices`).
+        settings: time bounds (defaults: :class:`CheckSettings`).
+        push_s: if > 0, ask the operator (through ``notify``) to push the platform and check
+            that the encoder counts move during this many seconds.
+        notify: where the push request goes (the CLI prints it); None: not shown.
+        **options: backend keyword arguments (``baudrate``, ``geometry``, ...).
+
+    Returns:
+        The result; ``ok`` when the board opened, sampled at >= 500 Hz and (with ``push_s``)
+        its counts moved.
+    """
+    cfg = settings or CheckSettings()
+    figures: dict[str, Any] = {}
+    try:
+        platform = open_platform(spec, connect=False,
+                                 connect_timeout_s=cfg.connect_timeout_s, **options)
+        with platform:
+            first = platform.read_state(cfg.read_timeout_s)
+            info = platform.board_info
+            if info is not None:
+                figures["board_sample_rate_hz"] = info.sample_rate_hz
+                figures["board_firmware"] = info.firmware_version
+            start_s, last = monotonic_s(), first
+            while monotonic_s() - start_s < cfg.rate_window_s:
+                last = platform.read_state(cfg.read_timeout_s)
+            elapsed_s = monotonic_s() - start_s
+            rate_hz = (last.seq - first.seq) / elapsed_s
+            stats = platform.stats()
+            figures.update(sample_rate_hz=round(rate_hz, 1),
+                           samples_missed=stats.samples_missed, crc_errors=stats.crc_errors,
+                           position_mm=[round(v, 4) for v in last.position_mm],
+                           counts=list(platform.geometry.mm_to_counts(last.position_mm)))
+            if rate_hz < MIN_PLATFORM_RATE_HZ:
+                return DeviceCheck("platform", spec, False,
+                                   f"opened but too slow: {rate_hz:.0f} samples/s, the station "
+                                   f"needs >= {MIN_PLATFORM_RATE_HZ:.0f}; check the board's "
+                                   "rate setting and the USB link", figures)
+            if push_s > 0:
+                moved = _counts_moved(platform, push_s, cfg.read_timeout_s, notify)
+                figures["push_counts_moved"] = moved
+                if max(moved) < MIN_PUSH_COUNTS:
+                    return DeviceCheck("platform", spec, False,
+                                       f"opened, but no encoder count moved while the platform "
+                                       f"was to be pushed for {push_s:g} s; check the encoder "
+                                       "cables and the board's axis inputs", figures)
+    except TeleTouchError as err:
+        return failed_check("platform", spec, err, figures)
+    return DeviceCheck("platform", spec, True,
+                       f"{figures['sample_rate_hz']:.0f} samples/s, at "
+                       f"{tuple(figures['position_mm'])} mm"
+                       + (", counts moved when pushed" if push_s > 0 else ""), figures)
+
+
+def _counts_moved(platform: Any, push_s: float, read_timeout_s: float,
+                  notify: Callable[[str], None] | None) -> list[int]:
+    """Range of each axis's counts while the operator pushes, over ``push_s`` seconds."""
+    if notify is not None:
+        notify(f"push the platform along each axis now ({push_s:g} s)...")
+    geometry = platform.geometry
+    start = geometry.mm_to_counts(platform.read_state(read_timeout_s).position_mm)
+    low, high = list(start), list(start)
+    deadline = monotonic_s() + push_s
+    while monotonic_s() < deadline:
+        counts = geometry.mm_to_counts(platform.read_state(read_timeout_s).position_mm)
+        low = [min(a, b) for a, b in zip(low, counts, strict=True)]
+        high = [max(a, b) for a, b in zip(high, counts, strict=True)]
+    return [h - lo for h, lo in zip(high, low, strict=True)]
+
+
+def check_display(spec: str, settings: CheckSettings | None = None, *,
+                  watchdog_ms: int = 100, **options: Any) -> DeviceCheck:
+    """Probe the ArrayTac drive board named by ``spec``.
+
+    Pins only ever go to their safe state and to zero height (retracted).
+
+    Args:
+        spec: display spec (``sim``, ``can://socketcan/can0``, ...).
+        settings: time bounds (defaults: :class:`CheckSettings`).
+        watchdog_ms: the link-loss watchdog written into the zero command; the probe checks
+            that the board trips it once commands stop.
+        **options: backend keyword arguments.
+
+    Returns:
+        The result; ``ok`` when the board opened, sent feedback, parked, applied the zero
+        command and tripped its watchdog.
+    """
+    cfg = settings or CheckSettings()
+    figures: dict[str, Any] = {"watchdog_ms": watchdog_ms}
+    try:
+        display = open_display(spec, connect=False, connect_timeout_s=cfg.connect_timeout_s,
+                               watchdog_ms=watchdog_ms, watchdog_mode="flat",
+                               disconnect_mode="flat", **options)
+        with display:
+            n0, start_s = display.stats().feedback_frames, monotonic_s()
+            last = display.read_feedback(cfg.read_timeout_s)
+            while monotonic_s() - start_s < cfg.rate_window_s:
+                last = display.read_feedback(cfg.read_timeout_s, newer_than_us=last.t_us)
+            rate_hz = (display.stats().feedback_frames - n0) / (monotonic_s() - start_s)
+            figures["feedback_rate_hz"] = round(rate_hz, 1)
+
+            display.safe_state("flat")
+            parked = _wait_feedback(display, lambda fb: fb.safe_state, cfg.read_timeout_s,
+                                    "the safe state")
+            figures["safe_state_applied"] = parked.safe_state
+            applied = display.send_command(0.0)
+            echoed = _wait_feedback(display, lambda fb: fb.seq_echo == applied.seq,
+                                    cfg.read_timeout_s, f"zero command seq {applied.seq}")
+            figures["zero_command_echoed"] = True
+            figures["pin_position_max_mm"] = round(float(echoed.position_mm.max()), 4)
+            tripped = _wait_feedback(display, lambda fb: fb.watchdog_tripped,
+                                     watchdog_ms / 1000.0 + cfg.read_timeout_s,
+                                     f"the {watchdog_ms} ms watchdog to trip")
+            figures["watchdog_tripped"] = tripped.watchdog_tripped
+            figures["commands_rejected"] = tripped.commands_rejected
+    except TeleTouchError as err:
+        return failed_check("display", spec, err, figures)
+    return DeviceCheck("display", spec, True,
+                       f"{figures['feedback_rate_hz']:.0f} feedback frames/s, safe state and a "
+                       f"zero command applied, {watchdog_ms} ms watchdog trips", figures)
+
+
+def _wait_feedback(display: Any, done: Callable[[Any], bool], timeout_s: float,
+                   what: str) -> Any:
+    """Wait for a feedback frame for which ``done`` holds.
+
+    Raises:
+        DeviceOperationError: the board kept answering, but never so (within ``timeout_s``).
+        DeviceTimeoutError: the board stopped answering.
+    """
+    deadline = monotonic_s() + timeout_s
+    since_us = now_us()
+    answered = False
+    while True:
+        remaining = deadline - monotonic_s()
+        if remaining <= 0:
+            if not answered:
+                raise DeviceTimeoutError(f"{display.name}: no feedback while waiting for "
+                                         f"{what} ({timeout_s * 1e3:.0f} ms)")
+            raise DeviceOperationError(f"{display.name}: feedback never showed {what} "
+                                       f"within {timeout_s * 1e3:.0f} ms")
+        try:
+            fb = display.read_feedback(remaining, newer_than_us=since_us)
+        except DeviceTimeoutError:
+            continue  # the loop reports the missing condition
+        answered = True
+        if done(fb):
+            return fb
+        since_us = fb.t_us
+
+
+def check_local(platform: str, display: str, settings: CheckSettings | None = None, *,
+                push_s: float = 0.0, notify: Callable[[str], None] | None = None,
+                watchdog_ms: int = 100) -> CheckReport:
+    """Probe the local station's platform and display, one after the other.
+
+    Args:
+        platform: platform spec.
+        display: display spec.
+        settings: time bounds.
+        push_s: see :func:`check_platform`.
+        notify: see :func:`check_platform`.
+        watchdog_ms: see :func:`check_display`.
+
+    Returns:
+        The report (``exit_code`` 0 when both passed).
+    """
+    return CheckReport("local", (
+        check_platform(platform, settings, push_s=push_s, notify=notify),
+        check_display(display, settings, watchdog_ms=watchdog_ms)))

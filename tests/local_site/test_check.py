@@ -1,0 +1,107 @@
+"""``teletouch check local``: the encoder board and drive-board probes, through the CLI as a
+lab runs it (simulated devices pass; a missing serial device and a silent CAN channel fail
+with one line naming the device), and one real subprocess."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import uuid
+from typing import Any
+
+import pytest
+
+from lab.cli import main
+from local_site.check import check_platform
+from shared.device_check import CheckSettings
+from tests.support import REPO_ROOT, scaled
+
+
+def _strict_json(text: str) -> dict[str, Any]:
+    def refuse(constant: str) -> None:
+        raise AssertionError(f"non-strict JSON constant {constant}")
+
+    obj: dict[str, Any] = json.loads(text, parse_constant=refuse)
+    return obj
+
+
+@pytest.fixture
+def check_env(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Probe time bounds scaled for this machine (the product reads TELETOUCH_CHECK_*)."""
+    monkeypatch.setenv("TELETOUCH_CHECK_CONNECT_TIMEOUT_S", str(scaled(3.0)))
+    monkeypatch.setenv("TELETOUCH_CHECK_READ_TIMEOUT_S", str(scaled(0.5)))
+    monkeypatch.setenv("TELETOUCH_CHECK_RATE_WINDOW_S", "0.5")
+
+
+def test_sim_devices_pass_with_json_one_entry_per_device(
+        check_env: None, capsys: pytest.CaptureFixture[str]) -> None:
+    code = main(["check", "local", "--platform", "sim", "--display", "sim", "--json"])
+    report = _strict_json(capsys.readouterr().out)
+    assert code == 0, report
+    assert report["station"] == "local" and report["ok"] is True
+    assert set(report["devices"]) == {"platform", "display"}
+    for name, entry in report["devices"].items():
+        assert set(entry) == {"device", "spec", "ok", "message", "figures"}
+        assert entry["device"] == name and entry["spec"] == "sim" and entry["ok"] is True
+    platform = report["devices"]["platform"]["figures"]
+    assert platform["sample_rate_hz"] >= 500.0
+    assert len(platform["position_mm"]) == 3 and len(platform["counts"]) == 3
+    display = report["devices"]["display"]["figures"]
+    assert display["feedback_rate_hz"] > 100.0
+    assert display["safe_state_applied"] and display["zero_command_echoed"]
+    assert display["watchdog_tripped"] and display["watchdog_ms"] == 100
+
+
+def test_missing_serial_device_and_silent_can_channel_fail_naming_them(
+        check_env: None, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    monkeypatch.setenv("TELETOUCH_CHECK_CONNECT_TIMEOUT_S", str(scaled(0.5)))
+    channel = f"nobody-{uuid.uuid4().hex[:8]}"
+    code = main(["check", "local", "--platform", "/dev/ttyUSB9",
+                 "--display", f"can://virtual/{channel}"])
+    out = capsys.readouterr().out
+    assert code == 1
+    lines = {line.split()[1]: line for line in out.splitlines() if line.startswith("  FAIL")}
+    assert set(lines) == {"platform", "display"}
+    assert "/dev/ttyUSB9" in lines["platform"] and "could not open" in lines["platform"]
+    assert "cable/port/permissions" in lines["platform"]
+    assert channel in lines["display"] and "opened but silent" in lines["display"]
+
+
+def test_push_window_sees_moving_counts_and_flags_a_still_platform() -> None:
+    settings = CheckSettings(connect_timeout_s=scaled(3.0), read_timeout_s=scaled(0.5),
+                             rate_window_s=0.2)
+    asked: list[str] = []
+    moving = check_platform("sim", settings, push_s=0.3, notify=asked.append)
+    assert moving.ok, moving.message
+    assert asked and "push" in asked[0]
+    assert max(moving.figures["push_counts_moved"]) >= 2
+
+    still = check_platform("sim", settings, push_s=0.3, motion="hold")
+    assert not still.ok
+    assert "no encoder count moved" in still.message
+    assert still.figures["push_counts_moved"] == [0, 0, 0]
+
+
+def test_usage_errors_exit_2(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as info:
+        main(["check", "local", "--platform", "sim"])
+    assert info.value.code == 2
+    assert main(["check", "local", "--platform", "sim", "--display", "sim",
+                 "--push-s", "-1"]) == 2
+    capsys.readouterr()
+
+
+def test_cli_subprocess_json() -> None:
+    done = subprocess.run(
+        [sys.executable, "-m", "lab.cli", "--log-level", "WARNING", "check", "local",
+         "--platform", "sim", "--display", "sim", "--json",
+         "--timeout-s", str(scaled(3.0))],
+        cwd=REPO_ROOT, capture_output=True, text=True, timeout=scaled(60.0), check=False,
+        env={**os.environ, "TELETOUCH_CHECK_READ_TIMEOUT_S": str(scaled(0.5))})
+    assert done.returncode == 0, done.stderr
+    report = _strict_json(done.stdout)
+    assert report["ok"] is True
+    assert [report["devices"][d]["ok"] for d in ("platform", "display")] == [True, True]
