@@ -39,7 +39,7 @@ from shared.client import StationLink, StationLinkConfig
 from shared.config import resolve_config
 from shared.workspace import load_workspace
 
-__all__ = ["AgentOptions", "run_agent"]
+__all__ = ["AgentOptions", "run_agent", "sensor_options"]
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +55,10 @@ class AgentOptions:
         name: label shown in the relay's status.
         arm: arm backend name (``sim``, ``franka`` or ``module:Class``).
         sensor: sensor name (``sim``, ``camera``) or a camera index / URL / video file.
+        sensor_preset: camera crop / size preset (``mini-raw``, ``mini-recording``); None:
+            the camera's default.
+        sensor_fps: pace a camera source at this rate (None: a video file's own rate).
+        sensor_loop: restart a video file at its end.
         phantom: scene name of the simulated world (None: no world).
         seed: placement seed of the phantom.
         calibration: the sensor calibration (.npz); the backend's default when None.
@@ -73,6 +77,9 @@ class AgentOptions:
     name: str | None = None
     arm: str = "sim"
     sensor: str = "sim"
+    sensor_preset: str | None = None
+    sensor_fps: float | None = None
+    sensor_loop: bool = False
     phantom: str | None = None
     seed: int = 0
     calibration: Path | None = None
@@ -81,6 +88,19 @@ class AgentOptions:
     patch_pitch_mm: float | None = None
     duration_s: float | None = None
     config_path: Path | None = None
+
+
+def sensor_options(options: AgentOptions) -> dict[str, Any]:
+    """The camera options given on the command line (only those given: a simulated sensor
+    refuses them with a ConfigError)."""
+    given: dict[str, Any] = {}
+    if options.sensor_preset is not None:
+        given["preset"] = options.sensor_preset
+    if options.sensor_fps is not None:
+        given["fps"] = options.sensor_fps
+    if options.sensor_loop:
+        given["loop"] = True
+    return given
 
 
 async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = None,
@@ -123,7 +143,7 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
     world = open_world("phantom", options.phantom, options.seed) if options.phantom else None
 
     arm = open_world_arm(options.arm, world)
-    sensor = open_world_sensor(options.sensor, world, arm)
+    sensor = open_world_sensor(options.sensor, world, arm, **sensor_options(options))
     calibration = load_calibration(options.sensor, options.calibration, sensor)
     reconstructor = Reconstructor(calibration)
 
