@@ -6,7 +6,9 @@ and N/mm -> Shore 00; required for a real sensor), the simulated world (by name,
 :data:`~remote_site.agent.devices.WORLDS`; this module never imports simulator code), the
 arm and sensor backends (wired to the world in :mod:`remote_site.agent.devices`), the sensor
 calibration (checked against the sensor: :class:`~shared.errors.CalibrationError`), then
-connect the devices, open the link and run :class:`~remote_site.agent.station.RemoteStation`.
+connect the devices, capture the no-contact background (arm at its home pose, before any
+press: :mod:`remote_site.agent.background`), open the link and run
+:class:`~remote_site.agent.station.RemoteStation`.
 Whatever happens, the arm is halted and the devices are closed on the way out.
 """
 
@@ -19,6 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from remote_site.agent.background import BackgroundSettings, BackgroundTracker
 from remote_site.agent.config import RemoteAgentConfig
 from remote_site.agent.devices import (
     load_calibration,
@@ -133,6 +136,7 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
     stiffness_cfg = resolve_config(StiffnessConfig, "stiffness", toml_path=toml)
     agent_cfg = resolve_config(RemoteAgentConfig, "remote.agent", toml_path=toml, explicit={
         "frame_rate_hz": options.frame_rate_hz, "patch_pitch_mm": options.patch_pitch_mm})
+    background_cfg = resolve_config(BackgroundSettings, "remote.background", toml_path=toml)
     workspace = load_workspace(toml_path=toml)
     stiffness_calibration = load_stiffness_calibration(options.sensor,
                                                        options.stiffness_calibration)
@@ -158,10 +162,14 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
     try:
         safe_arm = SafeArm(arm, safety, bounds_mm=workspace.phantom_bounds_mm)
         sensor.connect()
+        # the arm is at its home pose (pad lifted) and nothing has moved it yet
+        background = BackgroundTracker(reconstructor, background_cfg)
+        background.capture(sensor, safe_arm.arm.state().force_n)
         pipeline = FramePipeline(sensor, reconstructor, assembler, stiffness, safe_arm.arm.state,
                                  platform_pitch_mm=agent_cfg.patch_pitch_mm,
                                  sensor_max_age_ms=agent_cfg.sensor_max_age_ms,
-                                 contact_force_n=stiffness_cfg.contact_force_n)
+                                 contact_force_n=stiffness_cfg.contact_force_n,
+                                 background=background)
         link = StationLink.from_config(link_cfg, "remote")
         async with link:
             station = RemoteStation(link, safe_arm, pipeline, stiffness, workspace.forward,

@@ -300,9 +300,12 @@ class RemoteStation:
         health = self.pipeline.sensor.health
         sensor = ("sensor ENDED | " if health.ended else
                   "sensor STALLED | " if health.stalled else "")
+        bg = self.pipeline.background
+        bg_txt = "" if bg is None else (
+            f" | bg {bg.source} drift {np.mean(bg.drift_rgb):.1f}")
         return (f"remote: link {link} | {sensor}frames {self.counters.frames_sent} "
                 f"({fps:.0f} fps) rejected {sum(self.pipeline.rejected.values())} | {arm} | "
-                f"{k_txt} | stale {self.safe_arm.counters.dropped_stale}")
+                f"{k_txt} | stale {self.safe_arm.counters.dropped_stale}{bg_txt}")
 
     async def _status_loop(self) -> None:
         while True:
@@ -381,6 +384,7 @@ class RemoteStation:
                 "patch_pitch_mm": p.patch_pitch_mm / p.assembler.scale_xy,
             },
             "sensor": asdict(p.sensor.health),
+            "background": None if p.background is None else p.background.summary(),
             "platform_states": {
                 "received": c.platform_states,
                 "applied": c.platform_applied,

@@ -244,13 +244,12 @@ class OpenCVCameraSensor(TactileSensor):
         if capture is None:
             return False
         ok, bgr = capture.read()
-        if (not ok or bgr is None) and self.loop and self.is_file and self._newest is not None:
-            if self._restart() and self._capture is not None:
-                ok, bgr = self._capture.read()
+        looping = self.loop and self.is_file and self._newest is not None
+        if (not ok or bgr is None) and looping and self._restart() and self._capture:
+            ok, bgr = self._capture.read()
         if not ok or bgr is None:
-            what = "end of the video file" if self.is_file else "capture.read() failed"
-            return self._end(f"{what} (device lost or end of stream)" if not self.is_file
-                             else what)
+            return self._end("end of the video file" if self.is_file else
+                             "capture.read() failed (device lost or end of stream)")
         if bgr.ndim != 3 or bgr.shape[2] != 3 or bgr.dtype != np.uint8:
             return self._end(f"unexpected frame {bgr.shape} {bgr.dtype}")
         try:

@@ -15,6 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from remote_site.sensor import open_sensor
+from remote_site.sensor.base import TactileSensor
 from remote_site.sensor.camera import OpenCVCameraSensor
 from remote_site.sensor.camera_presets import CAMERA_PRESETS, camera_preset, shape_frame
 from shared.errors import ConfigError, DeviceTimeoutError, InputDataError
@@ -38,7 +39,7 @@ def _write_video(path: Path, n: int, fps: float = 25.0,
     return path
 
 
-def _collect(sensor: OpenCVCameraSensor, until_seq: int, timeout_s: float
+def _collect(sensor: TactileSensor, until_seq: int, timeout_s: float
              ) -> dict[int, int]:
     """seq -> timestamp_us of every frame seen while polling until ``until_seq``."""
     seen: dict[int, int] = {}
