@@ -270,6 +270,10 @@ def session(kit_files: tuple[Path, Path], tmp_path_factory: pytest.TempPathFacto
                        f"(offset {r.offset_mm:+.3f}, without it "
                        f"{r.shape_rms_without_offset_mm:.3f}) over {r.pins_inside} pins"
                        for r in results)
+    f, bg = summary["frames"], summary["background"]
+    report += (f"\nremote: {f['sent']} tactile frames in {summary['elapsed_s']:.1f} s, rejected "
+               f"{f['rejected']}, repeated {f['repeated']}; background {bg['source']}, drift "
+               f"{bg['drift_from_calibration_rgb']} grey levels")
     print(report)  # the measured figures, for the record (pytest -s)
     return summary, results, report
 
