@@ -15,6 +15,8 @@ examples:
       --summary-json remote.json
   teletouch remote --relay tcp://relay:8766 --session lab1 --arm franka --sensor 0 \\
       --calibration gsmini_calib.npz --stiffness-calibration gsmini_stiffness.json
+  teletouch remote ... --arm sim --sensor presses.avi --sensor-preset mini-recording \\
+      --sensor-loop --calibration gsmini_calib.npz --stiffness-calibration stiffness.json
 """
 
 from __future__ import annotations
@@ -33,6 +35,15 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--arm", default="sim", help="arm backend: sim, franka (default sim)")
     parser.add_argument("--sensor", default="sim",
                         help="sensor: sim, camera, or a camera index / URL / video file")
+    parser.add_argument("--sensor-preset", dest="sensor_preset", metavar="NAME",
+                        help="camera crop/size: mini-raw (raw GelSight Mini camera: 1/7 cropped "
+                             "per side, resized to 320x240; default) or mini-recording (a "
+                             "recording of the Mini's 320x240 output, taken as it is)")
+    parser.add_argument("--sensor-fps", dest="sensor_fps", type=float, metavar="HZ",
+                        help="publish camera frames at this rate (default: a video file's own "
+                             "rate; a live camera paces itself)")
+    parser.add_argument("--sensor-loop", dest="sensor_loop", action="store_true",
+                        help="restart a video file at its end (default: it ends, reported once)")
     parser.add_argument("--phantom", help="simulated world: a phantom scene for sim backends")
     parser.add_argument("--seed", type=int, default=0, help="phantom placement seed (default 0)")
     parser.add_argument("--calibration", metavar="PATH.npz",
@@ -66,7 +77,9 @@ def run(args: argparse.Namespace) -> int:
 
     options = AgentOptions(
         relay=args.relay, session=args.session, token=args.token, name=args.name,
-        arm=args.arm, sensor=args.sensor, phantom=args.phantom, seed=args.seed,
+        arm=args.arm, sensor=args.sensor, sensor_preset=args.sensor_preset,
+        sensor_fps=args.sensor_fps, sensor_loop=args.sensor_loop, phantom=args.phantom,
+        seed=args.seed,
         calibration=Path(args.calibration) if args.calibration else None,
         stiffness_calibration=(Path(args.stiffness_calibration)
                                if args.stiffness_calibration else None),

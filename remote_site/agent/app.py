@@ -6,7 +6,9 @@ and N/mm -> Shore 00; required for a real sensor), the simulated world (by name,
 :data:`~remote_site.agent.devices.WORLDS`; this module never imports simulator code), the
 arm and sensor backends (wired to the world in :mod:`remote_site.agent.devices`), the sensor
 calibration (checked against the sensor: :class:`~shared.errors.CalibrationError`), then
-connect the devices, open the link and run :class:`~remote_site.agent.station.RemoteStation`.
+connect the devices, capture the no-contact background (arm at its home pose, before any
+press: :mod:`remote_site.agent.background`), open the link and run
+:class:`~remote_site.agent.station.RemoteStation`.
 Whatever happens, the arm is halted and the devices are closed on the way out.
 """
 
@@ -19,6 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from remote_site.agent.background import BackgroundSettings, BackgroundTracker
 from remote_site.agent.config import RemoteAgentConfig
 from remote_site.agent.devices import (
     load_calibration,
@@ -39,7 +42,7 @@ from shared.client import StationLink, StationLinkConfig
 from shared.config import resolve_config
 from shared.workspace import load_workspace
 
-__all__ = ["AgentOptions", "run_agent"]
+__all__ = ["AgentOptions", "run_agent", "sensor_options"]
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +58,10 @@ class AgentOptions:
         name: label shown in the relay's status.
         arm: arm backend name (``sim``, ``franka`` or ``module:Class``).
         sensor: sensor name (``sim``, ``camera``) or a camera index / URL / video file.
+        sensor_preset: camera crop / size preset (``mini-raw``, ``mini-recording``); None:
+            the camera's default.
+        sensor_fps: pace a camera source at this rate (None: a video file's own rate).
+        sensor_loop: restart a video file at its end.
         phantom: scene name of the simulated world (None: no world).
         seed: placement seed of the phantom.
         calibration: the sensor calibration (.npz); the backend's default when None.
@@ -73,6 +80,9 @@ class AgentOptions:
     name: str | None = None
     arm: str = "sim"
     sensor: str = "sim"
+    sensor_preset: str | None = None
+    sensor_fps: float | None = None
+    sensor_loop: bool = False
     phantom: str | None = None
     seed: int = 0
     calibration: Path | None = None
@@ -81,6 +91,19 @@ class AgentOptions:
     patch_pitch_mm: float | None = None
     duration_s: float | None = None
     config_path: Path | None = None
+
+
+def sensor_options(options: AgentOptions) -> dict[str, Any]:
+    """The camera options given on the command line (only those given: a simulated sensor
+    refuses them with a ConfigError)."""
+    given: dict[str, Any] = {}
+    if options.sensor_preset is not None:
+        given["preset"] = options.sensor_preset
+    if options.sensor_fps is not None:
+        given["fps"] = options.sensor_fps
+    if options.sensor_loop:
+        given["loop"] = True
+    return given
 
 
 async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = None,
@@ -113,6 +136,7 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
     stiffness_cfg = resolve_config(StiffnessConfig, "stiffness", toml_path=toml)
     agent_cfg = resolve_config(RemoteAgentConfig, "remote.agent", toml_path=toml, explicit={
         "frame_rate_hz": options.frame_rate_hz, "patch_pitch_mm": options.patch_pitch_mm})
+    background_cfg = resolve_config(BackgroundSettings, "remote.background", toml_path=toml)
     workspace = load_workspace(toml_path=toml)
     stiffness_calibration = load_stiffness_calibration(options.sensor,
                                                        options.stiffness_calibration)
@@ -123,7 +147,7 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
     world = open_world("phantom", options.phantom, options.seed) if options.phantom else None
 
     arm = open_world_arm(options.arm, world)
-    sensor = open_world_sensor(options.sensor, world, arm)
+    sensor = open_world_sensor(options.sensor, world, arm, **sensor_options(options))
     calibration = load_calibration(options.sensor, options.calibration, sensor)
     reconstructor = Reconstructor(calibration)
 
@@ -138,10 +162,14 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
     try:
         safe_arm = SafeArm(arm, safety, bounds_mm=workspace.phantom_bounds_mm)
         sensor.connect()
+        # the arm is at its home pose (pad lifted) and nothing has moved it yet
+        background = BackgroundTracker(reconstructor, background_cfg)
+        background.capture(sensor, safe_arm.arm.state().force_n)
         pipeline = FramePipeline(sensor, reconstructor, assembler, stiffness, safe_arm.arm.state,
                                  platform_pitch_mm=agent_cfg.patch_pitch_mm,
                                  sensor_max_age_ms=agent_cfg.sensor_max_age_ms,
-                                 contact_force_n=stiffness_cfg.contact_force_n)
+                                 contact_force_n=stiffness_cfg.contact_force_n,
+                                 background=background)
         link = StationLink.from_config(link_cfg, "remote")
         async with link:
             station = RemoteStation(link, safe_arm, pipeline, stiffness, workspace.forward,

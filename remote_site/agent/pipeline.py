@@ -16,6 +16,7 @@ from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from remote_site.agent.background import BackgroundTracker
 from remote_site.agent.stiffness_stage import StiffnessStage
 from remote_site.arm.base import ArmReading
 from remote_site.reconstruction.reconstructor import Reconstructor
@@ -66,12 +67,15 @@ class FramePipeline:
         sensor_max_age_ms: older sensor frames are refused.
         contact_force_n: a force at or above this means contact even without a visible
             height change.
+        background: keeps the reconstructor's background fresh (offered every frame after
+            its reconstruction); None: the calibration's background throughout.
     """
 
     def __init__(self, sensor: TactileSensor, reconstructor: Reconstructor,
                  assembler: TactileAssembler, stiffness: StiffnessStage,
                  read_arm: Callable[[], ArmReading], *, platform_pitch_mm: float = 0.5,
-                 sensor_max_age_ms: float = 100.0, contact_force_n: float = 0.1) -> None:
+                 sensor_max_age_ms: float = 100.0, contact_force_n: float = 0.1,
+                 background: BackgroundTracker | None = None) -> None:
         self.sensor = sensor
         self.reconstructor = reconstructor
         self.assembler = assembler
@@ -80,6 +84,7 @@ class FramePipeline:
         self.phantom_pitch_mm = assembler.phantom_pitch_mm(platform_pitch_mm)
         self.sensor_max_age_ms = float(sensor_max_age_ms)
         self.contact_force_n = float(contact_force_n)
+        self.background = background
         self.rejected: Counter[str] = Counter()
         self.skipped_integration = 0
         self.repeated = 0
@@ -130,6 +135,8 @@ class FramePipeline:
         t2 = time.perf_counter()
         if height_map.skipped:
             self.skipped_integration += 1
+        if self.background is not None:
+            self.background.offer(sensor_frame.rgb, reading.force_n, height_map.contact)
         contact = height_map.contact or reading.force_n >= self.contact_force_n
         with self.stiffness.lock:
             current = self.stiffness.current_n_per_mm

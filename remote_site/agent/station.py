@@ -297,9 +297,15 @@ class RemoteStation:
             f"{r.force_n:.2f} N {r.status}")
         k = self.stiffness.current_n_per_mm
         k_txt = "k -" if k is None else f"k {k:.2f} N/mm"
-        return (f"remote: link {link} | frames {self.counters.frames_sent} ({fps:.0f} fps) "
-                f"rejected {sum(self.pipeline.rejected.values())} | {arm} | {k_txt} | "
-                f"stale {self.safe_arm.counters.dropped_stale}")
+        health = self.pipeline.sensor.health
+        sensor = ("sensor ENDED | " if health.ended else
+                  "sensor STALLED | " if health.stalled else "")
+        bg = self.pipeline.background
+        bg_txt = "" if bg is None else (
+            f" | bg {bg.source} drift {np.mean(bg.drift_rgb):.1f}")
+        return (f"remote: link {link} | {sensor}frames {self.counters.frames_sent} "
+                f"({fps:.0f} fps) rejected {sum(self.pipeline.rejected.values())} | {arm} | "
+                f"{k_txt} | stale {self.safe_arm.counters.dropped_stale}{bg_txt}")
 
     async def _status_loop(self) -> None:
         while True:
@@ -377,6 +383,8 @@ class RemoteStation:
                 "achieved_fps": p.processed / elapsed if elapsed > 0 else 0.0,
                 "patch_pitch_mm": p.patch_pitch_mm / p.assembler.scale_xy,
             },
+            "sensor": asdict(p.sensor.health),
+            "background": None if p.background is None else p.background.summary(),
             "platform_states": {
                 "received": c.platform_states,
                 "applied": c.platform_applied,

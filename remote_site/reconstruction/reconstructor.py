@@ -153,6 +153,28 @@ class Reconstructor:
         """(rows, cols) of accepted frames."""
         return self.calibration.shape_hw
 
+    @property
+    def background_rgb(self) -> np.ndarray:
+        """The no-contact frame in use (float32, (H, W, 3)); the calibration's until set."""
+        return self._background[0]
+
+    def set_background(self, background_rgb: np.ndarray) -> None:
+        """Use a fresher no-contact frame from now on, keeping the calibrated model.
+
+        The gel's illumination drifts between calibration day and a session; a background
+        captured at the station (pad lifted) replaces the calibration's without refitting.
+
+        Args:
+            background_rgb: (H, W, 3) RGB frame of this sensor's size, uint8 or float in
+                [0, 255], NaN-free (e.g. the mean of a few no-contact frames).
+
+        Raises:
+            InputDataError: wrong shape or dtype, NaN/Inf, out of range, saturated or black.
+        """
+        validated = validate_frame(background_rgb, self.shape_hw, name="station background")
+        self._background = (validated, inverse_background_pct(validated))
+        self._pooled_bg.clear()  # keyed by the array's id: never reuse a stale entry
+
     def pool_factor(self, out_pitch_mm: float | None) -> int:
         """Integer block size giving the pitch closest to ``out_pitch_mm`` (1 = full res).
 

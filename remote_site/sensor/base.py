@@ -26,7 +26,7 @@ from shared.devices import Device
 from shared.errors import DeviceOperationError, DeviceTimeoutError
 from shared.timebase import now_us
 
-__all__ = ["SensorFrame", "TactileSensor"]
+__all__ = ["SensorFrame", "SensorHealth", "TactileSensor"]
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +44,27 @@ class SensorFrame:
     rgb: np.ndarray
     timestamp_us: int
     seq: int
+
+
+@dataclass(frozen=True)
+class SensorHealth:
+    """Whether a source still delivers frames (for status lines and summaries).
+
+    Attributes:
+        ended: the source delivered its last frame (a video file without looping, a
+            camera whose read failed); no frame will come any more.
+        stalls: times the source went silent for longer than its stall timeout while
+            still running (a live camera that stopped delivering).
+        stalled: the source is silent right now.
+        loops: times a looped video file restarted.
+        reason: why the source ended, or None.
+    """
+
+    ended: bool = False
+    stalls: int = 0
+    stalled: bool = False
+    loops: int = 0
+    reason: str | None = None
 
 
 class TactileSensor(Device):
@@ -85,6 +106,11 @@ class TactileSensor(Device):
             raise DeviceOperationError(f"{self.name}: frame {rgb.shape} {rgb.dtype}, "
                                        f"expected {(*self.shape_hw, 3)} uint8")
         return frame
+
+    @property
+    def health(self) -> SensorHealth:
+        """Whether the source still delivers frames (a renderer never ends or stalls)."""
+        return SensorHealth()
 
     @abstractmethod
     def _latest(self) -> SensorFrame | None:

@@ -1,35 +1,58 @@
 """Real visuotactile camera through OpenCV ``VideoCapture`` (device index, URL or video file).
 
-A GelSight Mini delivers a wide raw image whose border shows the sensor housing; like the
-vendor SDK, 1/7 of the height and of the width is cropped off each side and the rest is
-resized to 320 x 240. A background thread keeps only the newest frame (lerobot's
-``read_latest`` habit); ``read_latest(max_age_ms)`` refuses stale frames.
+Frames are cropped and sized by a named preset (:mod:`.camera_presets`): ``mini-raw`` for a
+GelSight Mini's raw camera (1/7 cropped off each side, resized to 320 x 240; the default),
+``mini-recording`` for a recording of the Mini's 320 x 240 output (taken as it is). A
+background thread keeps only the newest frame (lerobot's ``read_latest`` habit);
+``read_latest(max_age_ms)`` refuses stale frames.
+
+A source behaves like a camera:
+
+* a **video file** is paced at its own frame rate (or ``fps``): frame ``n`` is published
+  ``n / fps`` s after the first, stamped with the time it is published, so a consumer sees
+  the recording in real time instead of all of it within a second; ``loop=True`` restarts it
+  at its end (by reopening it);
+* a source that **ends** (file without loop, a read failure) is reported once (WARNING)
+  and in :attr:`health` (``ended``); a source that **stalls** (no new frame for
+  ``stall_timeout_s``) is reported once per silence and counted (``stalls``). Neither
+  changes ``read_latest``: its frames just grow old, and the consumer's stale-frame logic
+  applies.
 
 For tests, ``capture_factory`` replaces ``cv2.VideoCapture`` with any object offering
-``isOpened()``, ``read() -> (ok, bgr)`` and ``release()``.
+``isOpened()``, ``read() -> (ok, bgr)`` and ``release()`` (and optionally ``get(prop)`` for a
+file's frame rate).
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
 
-from remote_site.sensor.base import SensorFrame, TactileSensor
+from remote_site.sensor.base import SensorFrame, SensorHealth, TactileSensor
+from remote_site.sensor.camera_presets import (
+    DEFAULT_PRESET,
+    GELSIGHT_MINI_MM_PER_PX,
+    CameraPreset,
+    camera_preset,
+    shape_frame,
+)
 from shared.devices import ReaderThread
-from shared.errors import DeviceInitError, DeviceTimeoutError
+from shared.errors import ConfigError, DeviceInitError, DeviceTimeoutError, InputDataError
 from shared.timebase import now_us
 
 __all__ = ["GELSIGHT_MINI_MM_PER_PX", "OpenCVCameraSensor", "crop_and_resize"]
 
 log = logging.getLogger(__name__)
 
-#: GelSight Mini at 320 x 240 after the standard crop
-GELSIGHT_MINI_MM_PER_PX = 0.0634
+#: cv2.CAP_PROP_FPS (kept here so the module imports without OpenCV)
+_CAP_PROP_FPS = 5
 
 
 class _Capture(Protocol):
@@ -50,13 +73,17 @@ def crop_and_resize(bgr: np.ndarray, out_hw: tuple[int, int] = (240, 320),
     Returns:
         (rows, cols, 3) uint8 RGB frame.
     """
-    import cv2
+    preset = CameraPreset("custom", crop_fraction, out_hw, True, GELSIGHT_MINI_MM_PER_PX)
+    return shape_frame(bgr, preset)
 
-    h, w = bgr.shape[:2]
-    top, left = int(h * crop_fraction), int(w * crop_fraction)
-    cropped = bgr[top:h - top, left:w - left]
-    resized = cv2.resize(cropped, (out_hw[1], out_hw[0]), interpolation=cv2.INTER_AREA)
-    return np.ascontiguousarray(resized[:, :, ::-1])
+
+def _positive_or_none(value: float | None, name: str) -> float | None:
+    if value is None:
+        return None
+    value = float(value)
+    if not (math.isfinite(value) and value > 0):
+        raise ConfigError(f"camera {name} must be finite and > 0, got {value}")
+    return value
 
 
 class OpenCVCameraSensor(TactileSensor):
@@ -64,30 +91,67 @@ class OpenCVCameraSensor(TactileSensor):
 
     Args:
         source: device index (``0``), stream URL or video file path.
-        out_hw: delivered frame size (rows, cols); 240 x 320 for a GelSight Mini.
-        mm_per_px: pitch of the delivered frames (0.0634 for a GelSight Mini).
-        crop_fraction: border removed on each side before resizing.
+        preset: crop / size preset (``mini-raw``: raw Mini camera, the default;
+            ``mini-recording``: an already cropped 320 x 240 recording).
+        out_hw: delivered frame size (rows, cols); the preset's when None.
+        mm_per_px: pitch of the delivered frames; the preset's when None.
+        crop_fraction: border removed on each side before resizing; the preset's when None.
+        fps: publish frames at this rate; None: a video file's own rate, a live camera
+            unpaced (it paces itself).
+        loop: restart a video file at its end.
+        stall_timeout_s: no new frame for this long counts as a stall.
         first_frame_timeout_s: how long connect() waits for the first frame.
         capture_factory: builds the capture object (``cv2.VideoCapture`` by default).
+
+    Raises:
+        ConfigError: an unknown preset or a non-positive rate / timeout.
     """
 
-    def __init__(self, source: int | str = 0, out_hw: tuple[int, int] = (240, 320),
-                 mm_per_px: float = GELSIGHT_MINI_MM_PER_PX, crop_fraction: float = 1.0 / 7.0,
+    def __init__(self, source: int | str = 0, preset: str = DEFAULT_PRESET,
+                 out_hw: tuple[int, int] | None = None, mm_per_px: float | None = None,
+                 crop_fraction: float | None = None, fps: float | None = None,
+                 loop: bool = False, stall_timeout_s: float = 1.0,
                  first_frame_timeout_s: float = 5.0,
                  capture_factory: Callable[[int | str], _Capture] | None = None) -> None:
-        super().__init__(out_hw, mm_per_px)
+        base = camera_preset(preset)
+        self.preset = CameraPreset(
+            base.name,
+            base.crop_fraction if crop_fraction is None else float(crop_fraction),
+            base.out_hw if out_hw is None else (int(out_hw[0]), int(out_hw[1])),
+            base.resize, base.mm_per_px if mm_per_px is None else float(mm_per_px))
+        super().__init__(self.preset.out_hw, self.preset.mm_per_px)
         if isinstance(source, str) and source.isdigit():
             source = int(source)
         self.source = source
-        self.crop_fraction = float(crop_fraction)
+        self.crop_fraction = self.preset.crop_fraction
+        self.fps = _positive_or_none(fps, "fps")
+        self.loop = bool(loop)
+        self.stall_timeout_s = float(_positive_or_none(stall_timeout_s, "stall_timeout_s") or 1.0)
         self.first_frame_timeout_s = float(first_frame_timeout_s)
         self._factory = capture_factory
         self._capture: _Capture | None = None
         self._reader: ReaderThread | None = None
+        self._wake = threading.Event()
         self._lock = threading.Lock()
         self._newest: SensorFrame | None = None
         self._seq = 0
+        self._period_s: float | None = None
+        self._next_due_s: float | None = None
+        self._health = SensorHealth()
         self.read_error: str | None = None
+
+    @property
+    def is_file(self) -> bool:
+        """True when the source is a video file on disk (paced, loopable)."""
+        return isinstance(self.source, str) and "://" not in self.source and Path(
+            self.source).is_file()
+
+    @property
+    def health(self) -> SensorHealth:
+        """Ended / stalled state of the source (see the module docstring)."""
+        with self._lock:
+            self._check_stall()
+            return self._health
 
     def _open_capture(self) -> _Capture:
         if self._factory is not None:
@@ -95,6 +159,16 @@ class OpenCVCameraSensor(TactileSensor):
         import cv2
 
         return cv2.VideoCapture(self.source)
+
+    def _file_fps(self, capture: _Capture) -> float | None:
+        get = getattr(capture, "get", None)
+        if get is None:
+            return None
+        try:
+            fps = float(get(_CAP_PROP_FPS))
+        except (TypeError, ValueError):
+            return None
+        return fps if math.isfinite(fps) and 0 < fps <= 1000 else None
 
     def _connect(self) -> None:
         try:
@@ -105,10 +179,26 @@ class OpenCVCameraSensor(TactileSensor):
             capture.release()
             raise DeviceInitError(f"camera {self.source!r} did not open (unplugged, busy or a "
                                   "wrong URL?)")
+        self._period_s = None
+        if self.fps is not None:
+            self._period_s = 1.0 / self.fps
+        elif self.is_file:
+            fps = self._file_fps(capture)
+            if fps is None:
+                capture.release()
+                raise DeviceInitError(f"video file {self.source!r} does not state its frame "
+                                      "rate: give one (fps option, --sensor-fps)")
+            self._period_s = 1.0 / fps
+        if self._period_s is not None:
+            log.info("camera %r: paced at %.2f frames/s%s", self.source, 1.0 / self._period_s,
+                     ", looped" if self.loop else "")
         self._capture = capture
         self._newest = None
+        self._next_due_s = None
+        self._health = SensorHealth()
         self.read_error = None
-        self._reader = ReaderThread("tactile-camera", lambda: self._read_once(capture))
+        self._wake.clear()
+        self._reader = ReaderThread("tactile-camera", self._read_once)
         self._reader.start()
         deadline = time.monotonic() + self.first_frame_timeout_s
         while self._newest is None and time.monotonic() < deadline:
@@ -121,25 +211,92 @@ class OpenCVCameraSensor(TactileSensor):
             raise DeviceTimeoutError(f"camera {self.source!r} delivered no frame within "
                                      f"{self.first_frame_timeout_s} s ({reason})")
 
-    def _read_once(self, capture: _Capture) -> bool:
+    def _restart(self) -> bool:
+        """Reopen a looped video file at its start; False when that fails."""
+        old, self._capture = self._capture, None
+        if old is not None:
+            old.release()
+        try:
+            capture = self._open_capture()
+        except Exception as err:  # vendor errors of any kind: report them as the end
+            log.debug("camera %r: reopening failed: %s", self.source, err)
+            return False
+        if not capture.isOpened():
+            capture.release()
+            return False
+        self._capture = capture
+        with self._lock:
+            self._health = SensorHealth(stalls=self._health.stalls, loops=self._health.loops + 1)
+        return True
+
+    def _end(self, reason: str) -> bool:
+        self.read_error = reason
+        with self._lock:
+            self._health = SensorHealth(ended=True, stalls=self._health.stalls,
+                                        loops=self._health.loops, reason=reason)
+        if not self._wake.is_set():  # not a disconnect in progress
+            log.warning("camera %r ended: %s; no new frame will come (the station keeps its "
+                        "stale-frame behaviour)", self.source, reason)
+        return False
+
+    def _read_once(self) -> bool:
+        capture = self._capture
+        if capture is None:
+            return False
         ok, bgr = capture.read()
+        looping = self.loop and self.is_file and self._newest is not None
+        if (not ok or bgr is None) and looping and self._restart() and self._capture:
+            ok, bgr = self._capture.read()
         if not ok or bgr is None:
-            self.read_error = "capture.read() failed (end of stream or device lost)"
-            log.warning("camera %r: %s", self.source, self.read_error)
-            return False
+            return self._end("end of the video file" if self.is_file else
+                             "capture.read() failed (device lost or end of stream)")
         if bgr.ndim != 3 or bgr.shape[2] != 3 or bgr.dtype != np.uint8:
-            self.read_error = f"unexpected frame {bgr.shape} {bgr.dtype}"
-            log.warning("camera %r: %s", self.source, self.read_error)
+            return self._end(f"unexpected frame {bgr.shape} {bgr.dtype}")
+        try:
+            rgb = shape_frame(bgr, self.preset)
+        except InputDataError as err:
+            return self._end(str(err))
+        if self._period_s is not None and not self._wait_until_due():
             return False
-        rgb = crop_and_resize(bgr, self.shape_hw, self.crop_fraction)
         with self._lock:
             self._seq += 1
             self._newest = SensorFrame(rgb=rgb, timestamp_us=now_us(), seq=self._seq)
+            if self._health.stalled:
+                log.info("camera %r delivers frames again", self.source)
+                self._health = SensorHealth(stalls=self._health.stalls,
+                                            loops=self._health.loops)
         return True
+
+    def _wait_until_due(self) -> bool:
+        """Sleep until the next frame is due (real-time pacing); False if stopping."""
+        period = self._period_s
+        if period is None:
+            return True
+        now = time.monotonic()
+        due = now if self._next_due_s is None else self._next_due_s
+        if due < now - period:  # more than a frame behind (a slow decoder): no burst
+            due = now
+        if due > now and self._wake.wait(due - now):
+            return False
+        self._next_due_s = due + period
+        return True
+
+    def _check_stall(self) -> None:
+        """Under the lock: mark a stall once when the newest frame is too old."""
+        h = self._health
+        if h.ended or h.stalled or self._newest is None:
+            return
+        age_s = (now_us() - self._newest.timestamp_us) / 1e6
+        if age_s > self.stall_timeout_s:
+            self._health = SensorHealth(stalls=h.stalls + 1, stalled=True, loops=h.loops)
+            log.warning("camera %r stalled: no new frame for %.1f s (stall %d)", self.source,
+                        age_s, h.stalls + 1)
 
     def _disconnect(self) -> None:
         reader, self._reader = self._reader, None
+        self._wake.set()
         if reader is not None:
+            reader.request_stop()
             reader.stop(timeout_s=2.0)
         if self._capture is not None:
             self._capture.release()
@@ -147,4 +304,5 @@ class OpenCVCameraSensor(TactileSensor):
 
     def _latest(self) -> SensorFrame | None:
         with self._lock:
+            self._check_stall()
             return self._newest

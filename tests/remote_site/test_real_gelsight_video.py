@@ -1,0 +1,317 @@
+"""Real GelSight Mini presses as a 25 frames/s video, through relay and remote as processes.
+
+A lab's first session, as a new user runs it: the kit's GelSight Mini ball presses
+(``gsmini_ball_9.47mm``) become a lossless 25 frames/s video (the no-contact background for
+1.2 s, then each test-split press held for 10 frames, with 10 background frames between
+presses), the calibration is made from the train split with ``teletouch sensor calibrate``,
+and ``teletouch relay`` and ``teletouch remote --sensor presses.avi --sensor-preset
+mini-recording --sensor-loop --arm sim`` run as real processes on 127.0.0.1. The local
+station is played by the test (a real StationLink): it feeds every tactile frame to the local
+station's own scene (:class:`~local_site.scenes.remote_stream.TactileFrameScene`) and renders
+the pins with its :class:`~local_site.render.Renderer`, the window placed so that one pin
+sits on the press centre (where an operator feeling for the peak puts it).
+
+Targets (the issue): peak rendered height within 0.05 mm of the press depth derived from
+the label (ball radius 4.735 mm, labelled contact radius a: d = R - sqrt(R^2 - a^2)); cap
+shape within 0.05 mm RMS over the pins inside the contact.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import os
+import shutil
+import signal
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from lab.cli import main as cli_main
+from local_site.render import Renderer
+from local_site.render.pin_command import PIN_PITCH_MM
+from local_site.scenes.remote_stream import TactileFrameScene
+from relay_server.auth import derive_token
+from remote_site.reconstruction.frames import load_rgb
+from remote_site.reconstruction.labels import BallLabel, labels_from_npz, write_labels_csv
+from shared.client import StationLink
+from shared.protocol import TactileFrame
+from shared.workspace import WorkspaceMap
+from tests.relay_server.test_relay_isolation_and_status import http_get
+from tests.support import REPO_ROOT, free_tcp_port, kit_path, require_kit, scaled
+
+DATA = kit_path("data", "gelsight", "gsmini_ball_9.47mm")
+BALL_RADIUS_MM = 4.735
+MM_PER_PX = 0.0634
+FPS = 25.0
+LEAD_FRAMES, PRESS_FRAMES, GAP_FRAMES = 30, 10, 10
+SESSION = "gelsight-video"
+STIFFNESS_CALIBRATION = REPO_ROOT / "remote_site" / "phantom" / "data" / "sim_stiffness_calib.json"
+#: a frame whose highest point exceeds this shows a press
+PRESS_HEIGHT_MM = 0.1
+#: the issue's targets
+PEAK_TOLERANCE_MM = 0.05
+SHAPE_RMS_TOLERANCE_MM = 0.05
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _kit_data() -> None:
+    require_kit(DATA)
+
+
+def _split(name: str) -> list[BallLabel]:
+    entries = json.loads((DATA / "train_test_split.json").read_text())[name]
+    return labels_from_npz(DATA, [f"press_{int(e.rsplit('/', 1)[1]):02d}.png" for e in entries])
+
+
+def cap_depth_mm(radius_px: float) -> float:
+    """Indentation of the ball for a labelled contact radius."""
+    a = radius_px * MM_PER_PX
+    return float(BALL_RADIUS_MM - np.sqrt(BALL_RADIUS_MM**2 - a**2))
+
+
+def cap_height_mm(r_mm: np.ndarray, radius_px: float) -> np.ndarray:
+    """Sphere-cap height at distance ``r_mm`` from the press centre (0 outside)."""
+    a = radius_px * MM_PER_PX
+    z = np.sqrt(np.clip(BALL_RADIUS_MM**2 - r_mm**2, 0, None)) - np.sqrt(BALL_RADIUS_MM**2 - a**2)
+    return np.clip(z, 0.0, None)
+
+
+@pytest.fixture(scope="module")
+def kit_files(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """(presses.avi, calib.npz): the video of the test presses and the train calibration."""
+    import cv2
+
+    tmp = tmp_path_factory.mktemp("gelsight-video")
+    labels_csv = tmp / "labels.csv"
+    write_labels_csv(labels_csv, _split("train"))
+    calib = tmp / "calib.npz"
+    assert cli_main(["sensor", "calibrate", "--background", str(DATA / "background.png"),
+                     "--images", str(DATA), "--labels", str(labels_csv),
+                     "--ball-diameter-mm", "9.47", "--mm-per-px", str(MM_PER_PX),
+                     "--out", str(calib)]) == 0
+    video = tmp / "presses.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter.fourcc(*"FFV1"), FPS, (320, 240))
+    assert writer.isOpened()
+    background = load_rgb(DATA / "background.png")[:, :, ::-1]
+    for _ in range(LEAD_FRAMES):
+        writer.write(np.ascontiguousarray(background))
+    for label in _split("test"):
+        press = np.ascontiguousarray(load_rgb(DATA / label.image)[:, :, ::-1])
+        for _ in range(PRESS_FRAMES):
+            writer.write(press)
+        for _ in range(GAP_FRAMES):
+            writer.write(np.ascontiguousarray(background))
+    writer.release()
+    return video, calib
+
+
+@dataclass
+class PressResult:
+    """What the pins rendered for one press, against the label's sphere cap."""
+
+    image: str
+    depth_mm: float
+    peak_mm: float
+    shape_rms_mm: float
+    offset_mm: float
+    shape_rms_without_offset_mm: float
+    pins_inside: int
+
+
+def press_segments(frames: list[TactileFrame], n_presses: int) -> list[TactileFrame] | None:
+    """The middle frame of each press of one full cycle of the video, in order.
+
+    A cycle starts after the lead background (more than ``GAP_FRAMES`` flat frames in a
+    row); None until a whole cycle has arrived.
+    """
+    pressed = [float(f.layers["height_mm"].max()) > PRESS_HEIGHT_MM for f in frames]
+    flat_run, start = 0, None
+    for i, p in enumerate(pressed):
+        flat_run = 0 if p else flat_run + 1
+        if flat_run > GAP_FRAMES + 5:
+            start = i + 1
+            break
+    if start is None:
+        return None
+    segments: list[list[TactileFrame]] = []
+    current: list[TactileFrame] = []
+    for frame, p in zip(frames[start:], pressed[start:], strict=True):
+        if p:
+            current.append(frame)
+        elif current:
+            segments.append(current)
+            current = []
+            if len(segments) == n_presses:
+                break
+    if len(segments) < n_presses:
+        return None
+    return [seg[len(seg) // 2] for seg in segments]
+
+
+def render_press(frame: TactileFrame, label: BallLabel, scale_xy: float) -> PressResult:
+    """Render the pins with one pin on the press centre; compare with the sphere cap."""
+    height = frame.layers["height_mm"]
+    rows, cols = height.shape
+    pitch_px = frame.pitch_mm * scale_xy / MM_PER_PX  # sensor pixels per grid cell
+    # the grid covers rows * pitch_px sensor pixels centred on the image centre
+    used_w, used_h = cols * pitch_px, rows * pitch_px
+    x0 = (320 - used_w) / 2.0
+    y0 = (240 - used_h) / 2.0
+    cx_mm = frame.center_mm[0] + ((label.center_x - x0 + 0.5) / pitch_px - cols / 2.0) \
+        * frame.pitch_mm
+    cy_mm = frame.center_mm[1] + ((label.center_y - y0 + 0.5) / pitch_px - rows / 2.0) \
+        * frame.pitch_mm
+    scene = TactileFrameScene()
+    scene.update(frame)
+    renderer = Renderer()
+    half = PIN_PITCH_MM / 2.0  # pin (1, 1) sits at (-half, -half) from the window centre
+    command = renderer.render(scene, (cx_mm + half, cy_mm + half))
+    pins_xy = renderer.pin_positions_mm((cx_mm + half, cy_mm + half))
+    heights, _, _ = command.arrays()
+    r_mm = np.hypot(pins_xy[..., 0] - cx_mm, pins_xy[..., 1] - cy_mm) * scale_xy
+    # pins in the contact circle and over the sensor image (a press at the image's edge
+    # leaves some of its circle outside the frame: the pins there have no data)
+    inside = (r_mm < label.radius_px * MM_PER_PX) & scene.sample(pins_xy).inside
+    expected = cap_height_mm(r_mm, label.radius_px)
+    error = heights[inside] - expected[inside]
+    rms = float(np.sqrt(np.mean(error**2)))
+    offset = float(error.mean())
+    rms_centred = float(np.sqrt(np.mean((error - offset) ** 2)))
+    return PressResult(label.image, cap_depth_mm(label.radius_px), float(heights.max()), rms,
+                       offset, rms_centred, int(inside.sum()))
+
+
+async def _collect(url: str, token: str, n_presses: int, timeout_s: float
+                   ) -> list[TactileFrame]:
+    frames: list[TactileFrame] = []
+    async with StationLink(url, session=SESSION, role="local", token=token) as link:
+        await link.wait_connected(timeout_s=scaled(10.0))
+        async with asyncio.timeout(timeout_s):
+            while press_segments(frames, n_presses) is None:
+                with contextlib.suppress(TimeoutError):
+                    msg = await link.recv(timeout_s=0.2)
+                    if isinstance(msg, TactileFrame):
+                        frames.append(msg)
+    return frames
+
+
+async def _stop(proc: asyncio.subprocess.Process) -> None:
+    if proc.returncode is None:
+        proc.kill()
+        await proc.wait()
+
+
+async def _run_session(video: Path, calib: Path, summary_path: Path, n_presses: int
+                       ) -> list[TactileFrame]:
+    """Relay and remote as processes, the test as the local station; the frames received."""
+    exe = shutil.which("teletouch")
+    cmd = [exe] if exe else [sys.executable, "-m", "lab.cli"]
+    port = free_tcp_port()
+    env = dict(os.environ, TELETOUCH_RELAY_SECRET="video-secret")
+    token = derive_token("video-secret", SESSION)
+    relay = await asyncio.create_subprocess_exec(
+        *cmd, "relay", "--host", "127.0.0.1", "--port", str(port), env=env,
+        stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.DEVNULL)
+    remote = None
+    try:
+        async with asyncio.timeout(scaled(20.0)):
+            while True:
+                with contextlib.suppress(OSError):
+                    if (await http_get(port, "/status"))[0] == 200:
+                        break
+                await asyncio.sleep(0.1)
+        remote = await asyncio.create_subprocess_exec(
+            *cmd, "remote", "--relay", f"ws://127.0.0.1:{port}/", "--session", SESSION,
+            "--arm", "sim", "--sensor", str(video), "--sensor-preset", "mini-recording",
+            "--sensor-loop", "--calibration", str(calib),
+            "--stiffness-calibration", str(STIFFNESS_CALIBRATION),
+            "--summary-json", str(summary_path),
+            env=dict(os.environ, TELETOUCH_REMOTE_LINK_TOKEN=token),
+            stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
+        cycle_s = (LEAD_FRAMES + n_presses * (PRESS_FRAMES + GAP_FRAMES)) / FPS
+        frames = await _collect(f"ws://127.0.0.1:{port}/", token, n_presses,
+                                scaled(30.0 + 2.5 * cycle_s))
+        remote.send_signal(signal.SIGTERM)
+        async with asyncio.timeout(scaled(15.0)):
+            _, err = await remote.communicate()
+        assert remote.returncode == 0, err.decode()[-2000:]
+        return frames
+    finally:
+        if remote is not None:
+            await _stop(remote)
+        relay.send_signal(signal.SIGTERM)
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(scaled(10.0)):
+                await relay.wait()
+        await _stop(relay)
+
+
+@pytest.fixture(scope="module")
+def session(kit_files: tuple[Path, Path], tmp_path_factory: pytest.TempPathFactory
+            ) -> tuple[dict[str, Any], list[PressResult], str]:
+    """One session over the video: (remote summary, per-press pin results, a report)."""
+    video, calib = kit_files
+    labels = _split("test")
+    summary_path = tmp_path_factory.mktemp("gelsight-session") / "remote.json"
+    frames = asyncio.run(_run_session(video, calib, summary_path, len(labels)))
+    summary = json.loads(summary_path.read_text())
+    mids = press_segments(frames, len(labels))
+    assert mids is not None
+    scale_xy = WorkspaceMap().config.scale_xy
+    results = [render_press(f, lb, scale_xy) for f, lb in zip(mids, labels, strict=True)]
+    report = "\n".join(f"{r.image}: depth {r.depth_mm:.3f} peak {r.peak_mm:.3f} "
+                       f"(err {r.peak_mm - r.depth_mm:+.3f}) shape rms {r.shape_rms_mm:.3f} "
+                       f"(offset {r.offset_mm:+.3f}, without it "
+                       f"{r.shape_rms_without_offset_mm:.3f}) over {r.pins_inside} pins"
+                       for r in results)
+    f, bg = summary["frames"], summary["background"]
+    report += (f"\nremote: {f['sent']} tactile frames in {summary['elapsed_s']:.1f} s, rejected "
+               f"{f['rejected']}, repeated {f['repeated']}; background {bg['source']}, drift "
+               f"{bg['drift_from_calibration_rgb']} grey levels")
+    print(report)  # the measured figures, for the record (pytest -s)
+    return summary, results, report
+
+
+def test_the_video_plays_like_a_camera_and_the_station_captures_its_background(
+        session: tuple[dict[str, Any], list[PressResult], str]) -> None:
+    summary, _, _ = session
+    # paced at 25 frames/s: the 60 Hz station finds a fresh frame on every tick but the first
+    assert summary["frames"]["rejected"].get("sensor_timeout", 0) <= 5
+    assert not summary["sensor"]["ended"]  # looped: the source never ended
+    assert summary["background"]["source"] == "station"
+    assert summary["background"]["drift_from_calibration_mean"] < 1.0  # same gel, same day
+
+
+def test_every_real_press_reaches_the_pins(
+        session: tuple[dict[str, Any], list[PressResult], str]) -> None:
+    """What is achieved (measured 2026-11 on the 11 test presses, see the report):
+    peak error +0.03..+0.16 mm (mean ~+0.10), shape RMS up to ~0.16 mm, almost all of it
+    a constant offset; without it the shape is within 0.065 mm (median ~0.02)."""
+    _, results, report = session
+    peak_err = np.array([r.peak_mm - r.depth_mm for r in results])
+    assert (np.array([r.peak_mm for r in results]) > PRESS_HEIGHT_MM).all(), report
+    assert (peak_err > -PEAK_TOLERANCE_MM).all(), report  # never shallower than the cap
+    assert (peak_err < 0.2).all(), report
+    assert max(r.shape_rms_mm for r in results) <= 0.2, report
+    assert max(r.shape_rms_without_offset_mm for r in results) <= 0.08, report
+    assert all(r.pins_inside >= 2 for r in results), report
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "issue 14 targets not met: the pins sit ~0.1 mm above the sphere cap. The reconstruction's "
+    "zero level is the undeformed gel, and the gel drapes beyond the labelled contact circle, "
+    "so heights inside the contact carry the drape offset (the reconstruction tests measure it "
+    "as offset_mm, 0..0.4 mm); removing it is reconstruction work (zero level / drape model), "
+    "not camera or background work"))
+def test_issue_targets_peak_and_shape(
+        session: tuple[dict[str, Any], list[PressResult], str]) -> None:
+    _, results, report = session
+    peak_err = np.array([r.peak_mm - r.depth_mm for r in results])
+    assert np.abs(peak_err).max() <= PEAK_TOLERANCE_MM, report
+    assert max(r.shape_rms_mm for r in results) <= SHAPE_RMS_TOLERANCE_MM, report
