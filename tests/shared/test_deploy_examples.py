@@ -19,6 +19,7 @@ from lab.cli import COMMANDS
 from lab.linkemu_cli import LinkSettings
 from local_site.render.renderer import RendererConfig
 from relay_server.config import RelayConfig
+from remote_site.agent.background import BackgroundSettings
 from remote_site.arm.safety import SafetyConfig
 from shared.client import StationLinkConfig
 from shared.config import resolve_config
@@ -35,6 +36,7 @@ SECTIONS: dict[str, type] = {
     "local.render": RendererConfig,
     "arm.safety": SafetyConfig,
     "workspace": WorkspaceConfig,
+    "remote.background": BackgroundSettings,
 }
 #: subcommands the deploy files call that the station issues are still adding
 
