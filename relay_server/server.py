@@ -56,6 +56,9 @@ __all__ = ["RelayServer", "serve_forever"]
 log = logging.getLogger(__name__)
 
 _CLOSE_TIMEOUT_S = 2.0
+#: after a fatal error on TCP, read (and discard) the client's input this long before the
+#: close, so the error is not destroyed by a reset (less than _CLOSE_TIMEOUT_S)
+_TCP_LINGER_S = 1.0
 _EVENTS_PER_SLICE = 32  # messages handled before yielding, for big TCP chunks
 _YIELD_EVERY_S = 0.0002
 
@@ -181,7 +184,7 @@ class RelayServer:
 
     async def _tcp_handler(self, reader: asyncio.StreamReader,
                            writer: asyncio.StreamWriter) -> None:
-        transport = TcpTransport(reader, writer)
+        transport = TcpTransport(reader, writer, linger_s=_TCP_LINGER_S)
         try:
             await self._serve(transport)
         finally:

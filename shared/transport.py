@@ -30,6 +30,8 @@ __all__ = [
 
 _CLOSE_TIMEOUT_S = 2.0
 _TCP_READ_BYTES = 64 * 1024
+#: WebSocket close codes of a clean close (bye, shutdown): no lingering needed
+_CLEAN_CLOSE_CODES = frozenset({1000, 1001})
 
 
 class TransportClosed(ConnectionError):
@@ -78,13 +80,20 @@ class TcpTransport:
         reader: the stream reader.
         writer: the stream writer.
         write_buffer_bytes: high-water mark of the write buffer (None: asyncio's default).
+        linger_s: on an error close (any code but 1000/1001), half-close and read and
+            discard what the peer still sends for up to this long before closing. Closing
+            a socket with unread input makes the kernel send a reset, and a reset destroys
+            the data in flight to the peer: the fatal ``error`` just written (the relay's
+            ``oversize`` was lost 10 times in 20 without this). 0 = close at once.
     """
 
     framing: Framing = "tcp"
 
     def __init__(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter,
-                 write_buffer_bytes: int | None = None) -> None:
+                 write_buffer_bytes: int | None = None, linger_s: float = 0.0) -> None:
         self._reader, self._writer = reader, writer
+        self._linger_s = linger_s
+        self._close_lock = asyncio.Lock()
         set_nodelay(writer.transport)
         if write_buffer_bytes is not None:
             writer.transport.set_write_buffer_limits(high=write_buffer_bytes)
@@ -106,10 +115,22 @@ class TcpTransport:
         return data
 
     async def close(self, code: int = 1000, reason: str = "") -> None:
-        if not self._writer.is_closing():
-            self._writer.close()
-        with contextlib.suppress(OSError, asyncio.TimeoutError):
-            await asyncio.wait_for(self._writer.wait_closed(), _CLOSE_TIMEOUT_S)
+        async with self._close_lock:  # a second closer waits for the first one's linger
+            if not self._writer.is_closing():
+                if self._linger_s > 0 and code not in _CLEAN_CLOSE_CODES:
+                    await self._linger()
+                self._writer.close()
+            with contextlib.suppress(OSError, asyncio.TimeoutError):
+                await asyncio.wait_for(self._writer.wait_closed(), _CLOSE_TIMEOUT_S)
+
+    async def _linger(self) -> None:
+        with contextlib.suppress(OSError, RuntimeError, asyncio.TimeoutError):
+            await asyncio.wait_for(self._writer.drain(), self._linger_s)
+            if self._writer.can_write_eof():
+                self._writer.write_eof()  # our side is done: the peer reads to EOF
+            async with asyncio.timeout(self._linger_s):
+                while await self._reader.read(_TCP_READ_BYTES):
+                    pass  # discard: only so the close is a FIN, not a reset
 
 
 class WsTransport:
