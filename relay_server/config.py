@@ -36,6 +36,15 @@ class RelayConfig:
         bad_message_budget: per-message errors tolerated per connection before it is closed.
         ledger_window: samples kept per latency window (bounded ring buffer).
         max_sessions: sessions accepted at once.
+        max_connections: open connections (both ports, any state) accepted at once; one
+            more gets ``too_many_connections`` (close 1013).
+        max_connections_per_ip: open connections from one remote address.
+        max_hello_bytes: the largest message accepted before the hello is accepted (the
+            most a connection that has not said hello makes the relay buffer).
+        rate_limit_per_s: sustained received messages per second per connection (token
+            bucket); excess messages are discarded with ``rate_limited``.
+        rate_limit_burst: bucket size; more than this many discarded in one over-rate
+            episode closes the connection (``rate_limited``, close 1008).
     """
 
     host: str = "127.0.0.1"
@@ -55,6 +64,11 @@ class RelayConfig:
     bad_message_budget: int = 20
     ledger_window: int = 4096
     max_sessions: int = 1000
+    max_connections: int = 1024
+    max_connections_per_ip: int = 16
+    max_hello_bytes: int = 64 * 1024
+    rate_limit_per_s: float = 5000.0
+    rate_limit_burst: int = 10_000
 
     def __post_init__(self) -> None:
         for name in ("port",):
@@ -63,12 +77,14 @@ class RelayConfig:
                 raise ConfigError(f"relay.{name}={value} is not a TCP port")
         if self.tcp_port is not None and not 0 <= self.tcp_port <= 65535:
             raise ConfigError(f"relay.tcp_port={self.tcp_port} is not a TCP port")
-        positive = ("hello_timeout_s", "ping_interval_s", "stats_interval_s")
+        positive = ("hello_timeout_s", "ping_interval_s", "stats_interval_s",
+                    "rate_limit_per_s")
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ConfigError(f"relay.{name} must be > 0")
         ints = ("ping_burst", "max_message_bytes", "ordered_queue_len", "bad_message_budget",
-                "ledger_window", "max_sessions")
+                "ledger_window", "max_sessions", "max_connections", "max_connections_per_ip",
+                "max_hello_bytes", "rate_limit_burst")
         for name in ints:
             if getattr(self, name) < 1:
                 raise ConfigError(f"relay.{name} must be >= 1")

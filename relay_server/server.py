@@ -37,7 +37,7 @@ from relay_server.auth import TokenAuthority, load_token_file
 from relay_server.config import RelayConfig
 from relay_server.metrics import prometheus_text, session_metrics, session_status
 from relay_server.session import Peer, Session
-from shared.errors import ProtocolError, SessionError
+from shared.errors import LimitError, ProtocolError, SessionError
 from shared.protocol import Hello, Stats, Welcome
 from shared.protocol.peer_session import (
     ClockSampled,
@@ -83,6 +83,8 @@ class RelayServer:
         self.counters: Counter[str] = Counter()
         self.peer_settings = PeerSettings(
             max_message_bytes=config.max_message_bytes,
+            max_hello_bytes=min(config.max_hello_bytes, config.max_message_bytes),
+            rate_limit_per_s=config.rate_limit_per_s, rate_limit_burst=config.rate_limit_burst,
             ordered_queue_len=config.ordered_queue_len,
             bad_message_budget=config.bad_message_budget,
             hello_timeout_us=round(config.hello_timeout_s * 1e6),
@@ -94,6 +96,7 @@ class RelayServer:
         self._tcp_server: asyncio.Server | None = None
         self._handlers: set[asyncio.Task[Any]] = set()
         self._connections: set[_Connection] = set()
+        self._per_ip: Counter[str] = Counter()
         self._closing = False
 
     # ------------------------------------------------------------------ lifecycle
@@ -105,7 +108,7 @@ class RelayServer:
             log.warning("relay accepts ANY token (--allow-any-token): development only")
         self._ws_server = await serve(
             self._ws_handler, cfg.host, cfg.port, compression=None,
-            process_request=self._process_http, max_size=2 * cfg.max_message_bytes,
+            process_request=self._process_http, max_size=2 * self.peer_settings.max_hello_bytes,
             max_queue=64, write_limit=256 * 1024)
         self._tcp_server = await asyncio.start_server(
             self._tcp_handler, cfg.host, cfg.resolved_tcp_port, limit=2**20)
@@ -180,28 +183,48 @@ class RelayServer:
 
     async def _ws_handler(self, ws: ServerConnection) -> None:
         set_nodelay(ws.transport)
-        await self._serve(WsTransport(ws))
+        await self._serve(WsTransport(ws), _host_of(ws.remote_address))
 
     async def _tcp_handler(self, reader: asyncio.StreamReader,
                            writer: asyncio.StreamWriter) -> None:
         transport = TcpTransport(reader, writer, linger_s=_TCP_LINGER_S)
         try:
-            await self._serve(transport)
+            await self._serve(transport, _host_of(writer.get_extra_info("peername")))
         finally:
             await transport.close()
 
-    async def _serve(self, transport: Transport) -> None:
+    async def _serve(self, transport: Transport, host: str) -> None:
         task = asyncio.current_task()
         if task is not None:
             self._handlers.add(task)
         conn = _Connection(self, transport)
         self._connections.add(conn)
+        self._per_ip[host] += 1
         try:
+            refusal = self._connection_limit(host)
+            if refusal is not None:
+                self.counters["refused_connections"] += 1
+                conn.protocol.fail(refusal)
             await conn.run()
         finally:
             self._connections.discard(conn)
+            self._per_ip[host] -= 1
+            if self._per_ip[host] <= 0:
+                del self._per_ip[host]
             if task is not None:
                 self._handlers.discard(task)
+
+    def _connection_limit(self, host: str) -> LimitError | None:
+        """The refusal of a new connection from ``host`` (already counted), or None."""
+        cfg = self.config
+        if len(self._connections) > cfg.max_connections:
+            return LimitError(f"the relay has {cfg.max_connections} connections open; "
+                              "try again later", code="too_many_connections", close_code=1013)
+        if self._per_ip[host] > cfg.max_connections_per_ip:
+            return LimitError(f"{cfg.max_connections_per_ip} connections from {host} are "
+                              "open; try again later", code="too_many_connections",
+                              close_code=1013)
+        return None
 
     def _join(self, hello: Hello, conn: _Connection) -> tuple[Session, Peer]:
         if self._closing:
@@ -225,6 +248,13 @@ class RelayServer:
         session.leave(peer)
         if session.empty and self.sessions.get(session.session_id) is session:
             del self.sessions[session.session_id]
+
+
+def _host_of(address: object) -> str:
+    """The host part of a socket address (``?`` when unknown)."""
+    if isinstance(address, tuple) and address:
+        return str(address[0])
+    return "?"
 
 
 def _http_response(connection: ServerConnection, status: int, body: str,
@@ -323,6 +353,8 @@ class _Connection:
                                      server_time_us=now_us(),
                                      ping_interval_s=cfg.ping_interval_s,
                                      max_message_bytes=cfg.max_message_bytes), now_us())
+        if isinstance(self.transport, WsTransport):  # the hello limit is over: full size now
+            self.transport.ws.protocol.max_message_size = 2 * cfg.max_message_bytes
         self._restart_ticker()  # the schedule changed: pings and stats instead of the timeout
         # what the peer sent behind its hello has been processed by accept()
         self._handle(self.protocol.events_received())

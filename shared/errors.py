@@ -19,7 +19,8 @@ one family and still see the cause::
     ├── SessionError                      session/role/auth refusals by the relay
     │   ├── AuthError                     missing or wrong token
     │   ├── RoleTakenError                a second `local`/`remote` in one session
-    │   └── HandshakeTimeoutError         no hello within the deadline
+    │   ├── HandshakeTimeoutError         no hello within the deadline
+    │   └── LimitError                    a relay limit: connections, message rate
     ├── DeviceError                       hardware or simulated device trouble
     │   ├── DeviceInitError               could not load the backend (missing dependency),
     │   │                                 open or configure the device: connect() phase
@@ -56,6 +57,7 @@ __all__ = [
     "FieldError",
     "HandshakeTimeoutError",
     "InputDataError",
+    "LimitError",
     "LocalProtocolError",
     "MalformedMessageError",
     "NonFiniteError",
@@ -190,6 +192,23 @@ class HandshakeTimeoutError(SessionError):
 
     code = "hello_timeout"
     close_code = 4003
+
+
+class LimitError(SessionError):
+    """A relay limit refused the connection or its traffic.
+
+    Codes: ``too_many_connections`` (close 1013, try again later) and ``rate_limited``
+    (close 1008 when sustained).
+    """
+
+    code = "limit"
+    close_code = 1008
+
+    def __init__(self, message: str, *, code: str | None = None,
+                 close_code: int | None = None) -> None:
+        super().__init__(message, code=code)
+        if close_code is not None:
+            self.close_code = close_code
 
 
 # --------------------------------------------------------------------------- devices

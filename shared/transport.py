@@ -167,8 +167,22 @@ class WsTransport:
         return data
 
     async def close(self, code: int = 1000, reason: str = "") -> None:
-        with contextlib.suppress(Exception):
+        # read and discard what the peer still sends, else a receive queue full of its
+        # unread messages hides its close frame and the close handshake never completes
+        discard = asyncio.ensure_future(self._discard_incoming())
+        try:
             await asyncio.wait_for(self.ws.close(code, reason[:120]), _CLOSE_TIMEOUT_S)
+        except Exception:
+            with contextlib.suppress(Exception):  # no handshake in time: drop the socket
+                self.ws.transport.abort()
+        finally:
+            discard.cancel()
+            await asyncio.gather(discard, return_exceptions=True)
+
+    async def _discard_incoming(self) -> None:
+        with contextlib.suppress(Exception):  # closed, or a reader is already receiving
+            while True:
+                await self.ws.recv(decode=False)
 
 
 async def open_client_transport(scheme: str, host: str, port: int, url: str, *,
