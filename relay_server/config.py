@@ -26,6 +26,9 @@ class RelayConfig:
         token_file: TOML file with a ``[tokens]`` table (session -> token), merged into
             ``tokens``.
         allow_any_token: accept any token (development only; logged loudly at start).
+        allow_legacy_tokens: also accept the legacy tokens (``tokens``/``token_file`` and
+            ``hex(HMAC(secret, session))``), which name no role and never expire; version-2
+            tokens (session, role, expiry) are always accepted with a ``secret``.
         hello_timeout_s: a client must send a valid ``hello`` within this time.
         ping_interval_s: period of ``clock_ping`` to every station after the initial burst.
         ping_burst: number of ``clock_ping`` sent right after ``welcome``.
@@ -54,6 +57,7 @@ class RelayConfig:
     tokens: dict[str, str] = field(default_factory=dict)
     token_file: Path | None = None
     allow_any_token: bool = False
+    allow_legacy_tokens: bool = True
     hello_timeout_s: float = 5.0
     ping_interval_s: float = 1.0
     ping_burst: int = 5

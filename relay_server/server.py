@@ -78,7 +78,8 @@ class RelayServer:
         tokens = dict(config.tokens)
         if config.token_file is not None:
             tokens.update(load_token_file(config.token_file))
-        self.auth = TokenAuthority(tokens, config.secret, allow_any=config.allow_any_token)
+        self.auth = TokenAuthority(tokens, config.secret, allow_any=config.allow_any_token,
+                                   allow_legacy=config.allow_legacy_tokens)
         self.sessions: dict[str, Session] = {}
         self.counters: Counter[str] = Counter()
         self.peer_settings = PeerSettings(
@@ -229,7 +230,7 @@ class RelayServer:
     def _join(self, hello: Hello, conn: _Connection) -> tuple[Session, Peer]:
         if self._closing:
             raise SessionError("relay shutting down", code="shutdown")
-        self.auth.check(hello.session, hello.token)
+        self.auth.check(hello.session, hello.token, hello.role)
         session = self.sessions.get(hello.session)
         if session is None:
             if len(self.sessions) >= self.config.max_sessions:
