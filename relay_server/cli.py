@@ -15,6 +15,7 @@ session_id), printed by ``--print-token SESSION`` without ``--role``) work while
 
 examples:
   teletouch relay --host 0.0.0.0 --port 8765 --secret "$SECRET"
+  teletouch relay --host 0.0.0.0 --tls-cert relay.crt --tls-key relay.key  # wss://, tls://
   teletouch relay --port 8765 --token-file tokens.toml
   teletouch relay --print-token lab1 --role remote --ttl-s 604800
   curl http://127.0.0.1:8765/status
@@ -39,6 +40,11 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                                          "(or $TELETOUCH_RELAY_SECRET)")
     parser.add_argument("--token-file", dest="token_file",
                         help="TOML file with a [tokens] table: session id -> token")
+    parser.add_argument("--tls-cert", dest="tls_cert", metavar="FILE",
+                        help="PEM certificate (chain): serve wss:// and TLS on the TCP port "
+                             "(tls:// URLs); with --tls-key (docs/security.md)")
+    parser.add_argument("--tls-key", dest="tls_key", metavar="FILE",
+                        help="PEM private key of --tls-cert")
     parser.add_argument("--allow-any-token", dest="allow_any_token", action="store_true",
                         default=None, help="accept any token (development only)")
     parser.add_argument("--hello-timeout-s", dest="hello_timeout_s", type=float,
@@ -70,7 +76,8 @@ def run(args: argparse.Namespace) -> int:
     from shared.report import emit
 
     explicit = {name: getattr(args, name, None) for name in (
-        "host", "port", "tcp_port", "secret", "token_file", "allow_any_token",
+        "host", "port", "tcp_port", "secret", "token_file", "allow_any_token", "tls_cert",
+        "tls_key",
         "hello_timeout_s", "ping_interval_s", "stats_interval_s")}
     config = resolve_config(RelayConfig, "relay", explicit=explicit, toml_path=args.config)
     if args.print_token:

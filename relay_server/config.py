@@ -29,6 +29,10 @@ class RelayConfig:
         allow_legacy_tokens: also accept the legacy tokens (``tokens``/``token_file`` and
             ``hex(HMAC(secret, session))``), which name no role and never expire; version-2
             tokens (session, role, expiry) are always accepted with a ``secret``.
+        tls_cert: PEM certificate chain of the relay; with ``tls_key`` the relay serves
+            ``wss://`` on ``port`` (and HTTPS ``/status``) and TLS on ``tcp_port``
+            (``tls://`` URLs). None = plain ``ws://`` and ``tcp://``.
+        tls_key: PEM private key of ``tls_cert``.
         hello_timeout_s: a client must send a valid ``hello`` within this time.
         ping_interval_s: period of ``clock_ping`` to every station after the initial burst.
         ping_burst: number of ``clock_ping`` sent right after ``welcome``.
@@ -58,6 +62,8 @@ class RelayConfig:
     token_file: Path | None = None
     allow_any_token: bool = False
     allow_legacy_tokens: bool = True
+    tls_cert: Path | None = None
+    tls_key: Path | None = None
     hello_timeout_s: float = 5.0
     ping_interval_s: float = 1.0
     ping_burst: int = 5
@@ -94,6 +100,8 @@ class RelayConfig:
                 raise ConfigError(f"relay.{name} must be >= 1")
         if self.ping_burst_spacing_s < 0:
             raise ConfigError("relay.ping_burst_spacing_s must be >= 0")
+        if (self.tls_cert is None) != (self.tls_key is None):
+            raise ConfigError("relay.tls_cert and relay.tls_key go together (both or neither)")
         for session, token in self.tokens.items():
             if not isinstance(session, str) or not isinstance(token, str) or not token:
                 raise ConfigError("relay.tokens must map session ids to non-empty strings")

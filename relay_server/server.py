@@ -25,6 +25,7 @@ import itertools
 import json
 import logging
 import signal
+import ssl
 from collections import Counter
 from collections.abc import Callable
 from typing import Any
@@ -37,7 +38,7 @@ from relay_server.auth import TokenAuthority, load_token_file
 from relay_server.config import RelayConfig
 from relay_server.metrics import prometheus_text, session_metrics, session_status
 from relay_server.session import Peer, Session
-from shared.errors import LimitError, ProtocolError, SessionError
+from shared.errors import ConfigError, LimitError, ProtocolError, SessionError
 from shared.protocol import Hello, Stats, Welcome
 from shared.protocol.peer_session import (
     ClockSampled,
@@ -98,6 +99,7 @@ class RelayServer:
         self._handlers: set[asyncio.Task[Any]] = set()
         self._connections: set[_Connection] = set()
         self._per_ip: Counter[str] = Counter()
+        self.tls = _server_tls_context(config)
         self._closing = False
 
     # ------------------------------------------------------------------ lifecycle
@@ -110,11 +112,16 @@ class RelayServer:
         self._ws_server = await serve(
             self._ws_handler, cfg.host, cfg.port, compression=None,
             process_request=self._process_http, max_size=2 * self.peer_settings.max_hello_bytes,
-            max_queue=64, write_limit=256 * 1024)
+            max_queue=64, write_limit=256 * 1024, ssl=self.tls)
         self._tcp_server = await asyncio.start_server(
-            self._tcp_handler, cfg.host, cfg.resolved_tcp_port, limit=2**20)
-        log.info("relay listening: ws://%s:%d (status: /status, /metrics), tcp://%s:%d",
-                 cfg.host, self.ws_port, cfg.host, self.tcp_port)
+            self._tcp_handler, cfg.host, cfg.resolved_tcp_port, limit=2**20, ssl=self.tls)
+        ws, tcp = ("wss", "tls") if self.tls is not None else ("ws", "tcp")
+        log.info("relay listening: %s://%s:%d (status: /status, /metrics), %s://%s:%d",
+                 ws, cfg.host, self.ws_port, tcp, cfg.host, self.tcp_port)
+        if self.tls is None and cfg.host not in ("127.0.0.1", "::1", "localhost"):
+            log.warning("relay serves plain ws:// and tcp:// on %s: tokens and data cross "
+                        "the network in clear unless a TLS proxy is in front "
+                        "(--tls-cert/--tls-key; docs/security.md)", cfg.host)
 
     @property
     def ws_port(self) -> int:
@@ -249,6 +256,24 @@ class RelayServer:
         session.leave(peer)
         if session.empty and self.sessions.get(session.session_id) is session:
             del self.sessions[session.session_id]
+
+
+def _server_tls_context(config: RelayConfig) -> ssl.SSLContext | None:
+    """The relay's TLS context from ``tls_cert``/``tls_key`` (None without them).
+
+    Raises:
+        ConfigError: unreadable files, or a key that does not match the certificate.
+    """
+    if config.tls_cert is None or config.tls_key is None:
+        return None
+    ctx = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+    ctx.minimum_version = ssl.TLSVersion.TLSv1_2
+    try:
+        ctx.load_cert_chain(config.tls_cert, config.tls_key)
+    except (OSError, ssl.SSLError) as err:
+        raise ConfigError(f"cannot load the relay's TLS certificate {config.tls_cert} / key "
+                          f"{config.tls_key}: {err}") from err
+    return ctx
 
 
 def _host_of(address: object) -> str:

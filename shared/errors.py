@@ -18,6 +18,7 @@ one family and still see the cause::
     │       └── OversizeError             frame longer than the configured limit
     ├── SessionError                      session/role/auth refusals by the relay
     │   ├── AuthError                     missing or wrong token
+    │   │   └── TlsCertificateError       the relay's TLS certificate is not trusted
     │   ├── RoleTakenError                a second `local`/`remote` in one session
     │   ├── HandshakeTimeoutError         no hello within the deadline
     │   └── LimitError                    a relay limit: connections, message rate
@@ -69,6 +70,7 @@ __all__ = [
     "SafetyError",
     "SessionError",
     "TeleTouchError",
+    "TlsCertificateError",
     "UnknownMessageTypeError",
     "VersionError",
 ]
@@ -178,6 +180,13 @@ class AuthError(SessionError):
 
     code = "auth"
     close_code = 4001
+
+
+class TlsCertificateError(AuthError):
+    """The relay's TLS certificate failed verification (unknown CA, wrong host name,
+    expired): the relay could not prove who it is, so the station does not send its token."""
+
+    code = "tls_certificate"
 
 
 class RoleTakenError(SessionError):

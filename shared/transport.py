@@ -17,6 +17,7 @@ from typing import Any, Protocol
 
 from websockets.exceptions import ConnectionClosed
 
+from shared.errors import TlsCertificateError
 from shared.protocol.connection import Framing
 
 __all__ = [
@@ -189,21 +190,32 @@ async def open_client_transport(scheme: str, host: str, port: int, url: str, *,
                                 max_message_bytes: int, open_timeout_s: float,
                                 write_buffer_bytes: int,
                                 ssl_context: ssl.SSLContext | None = None) -> Transport:
-    """Connect to a relay: ``tcp`` to ``host:port``, ``ws``/``wss`` to ``url``.
+    """Connect to a relay: ``tcp`` (``tls``: inside TLS) to ``host:port``, ``ws``/``wss``
+    to ``url``. TLS verifies the relay's certificate and host name with ``ssl_context``
+    (the system's trust store when None).
 
     Raises:
+        TlsCertificateError: the relay's certificate failed verification.
         OSError: the connection failed.
         websockets.exceptions.WebSocketException: the WebSocket handshake failed.
     """
-    if scheme == "tcp":
-        reader, writer = await asyncio.open_connection(host, port)
-        return TcpTransport(reader, writer, write_buffer_bytes)
-    from websockets.asyncio.client import connect
+    tls = scheme in ("tls", "wss")
+    if tls and ssl_context is None:
+        ssl_context = ssl.create_default_context()
+    try:
+        if scheme in ("tcp", "tls"):
+            reader, writer = await asyncio.open_connection(
+                host, port, ssl=ssl_context if tls else None,
+                server_hostname=host if tls else None)
+            return TcpTransport(reader, writer, write_buffer_bytes)
+        from websockets.asyncio.client import connect
 
-    kwargs: dict[str, Any] = {}
-    if scheme == "wss" and ssl_context is not None:
-        kwargs["ssl"] = ssl_context
-    ws = await connect(url, compression=None, max_size=max_message_bytes, ping_interval=None,
-                       open_timeout=open_timeout_s, write_limit=write_buffer_bytes,
-                       proxy=None, **kwargs)
+        kwargs: dict[str, Any] = {"ssl": ssl_context} if tls else {}
+        ws = await connect(url, compression=None, max_size=max_message_bytes,
+                           ping_interval=None, open_timeout=open_timeout_s,
+                           write_limit=write_buffer_bytes, proxy=None, **kwargs)
+    except ssl.SSLCertVerificationError as err:
+        raise TlsCertificateError(
+            f"TLS certificate of the relay {host}:{port} not trusted: {err.verify_message} "
+            "(give the relay's CA with ca_file / --ca-file; docs/security.md)") from err
     return WsTransport(ws)
