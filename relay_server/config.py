@@ -33,6 +33,9 @@ class RelayConfig:
             ``wss://`` on ``port`` (and HTTPS ``/status``) and TLS on ``tcp_port``
             (``tls://`` URLs). None = plain ``ws://`` and ``tcp://``.
         tls_key: PEM private key of ``tls_cert``.
+        status_token: when set, ``GET /status`` and ``GET /metrics`` need the header
+            ``Authorization: Bearer <status_token>`` (else 401); None = public (a WARNING
+            at start says so).
         hello_timeout_s: a client must send a valid ``hello`` within this time.
         ping_interval_s: period of ``clock_ping`` to every station after the initial burst.
         ping_burst: number of ``clock_ping`` sent right after ``welcome``.
@@ -64,6 +67,7 @@ class RelayConfig:
     allow_legacy_tokens: bool = True
     tls_cert: Path | None = None
     tls_key: Path | None = None
+    status_token: str | None = None
     hello_timeout_s: float = 5.0
     ping_interval_s: float = 1.0
     ping_burst: int = 5

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import hmac
 import itertools
 import json
 import logging
@@ -57,6 +58,21 @@ __all__ = ["RelayServer", "serve_forever"]
 log = logging.getLogger(__name__)
 
 _CLOSE_TIMEOUT_S = 2.0
+_LOOPBACK_HOSTS = frozenset({"127.0.0.1", "::1", "localhost"})
+
+
+class _RedactAuthorization(logging.Filter):
+    """websockets logs every request header at DEBUG: hide the status bearer token."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if "authorization" in record.getMessage().lower():
+            record.msg, record.args = "< Authorization: [redacted]", None
+        return True
+
+
+#: the WebSocket layer's logger (its DEBUG header dump goes through the redaction filter)
+_WS_LOG = logging.getLogger("relay_server.websockets")
+_WS_LOG.addFilter(_RedactAuthorization())
 #: after a fatal error on TCP, read (and discard) the client's input this long before the
 #: close, so the error is not destroyed by a reset (less than _CLOSE_TIMEOUT_S)
 _TCP_LINGER_S = 1.0
@@ -112,13 +128,19 @@ class RelayServer:
         self._ws_server = await serve(
             self._ws_handler, cfg.host, cfg.port, compression=None,
             process_request=self._process_http, max_size=2 * self.peer_settings.max_hello_bytes,
-            max_queue=64, write_limit=256 * 1024, ssl=self.tls)
+            max_queue=64, write_limit=256 * 1024, ssl=self.tls, logger=_WS_LOG)
         self._tcp_server = await asyncio.start_server(
             self._tcp_handler, cfg.host, cfg.resolved_tcp_port, limit=2**20, ssl=self.tls)
         ws, tcp = ("wss", "tls") if self.tls is not None else ("ws", "tcp")
         log.info("relay listening: %s://%s:%d (status: /status, /metrics), %s://%s:%d",
                  ws, cfg.host, self.ws_port, tcp, cfg.host, self.tcp_port)
-        if self.tls is None and cfg.host not in ("127.0.0.1", "::1", "localhost"):
+        loopback = cfg.host in _LOOPBACK_HOSTS
+        if not cfg.status_token:
+            # public on a loopback bind only to this host: INFO; reachable from outside: WARNING
+            log.log(logging.INFO if loopback else logging.WARNING,
+                    "/status and /metrics are public on %s (session ids, peers, latencies): "
+                    "set status_token to require 'Authorization: Bearer ...'", cfg.host)
+        if self.tls is None and not loopback:
             log.warning("relay serves plain ws:// and tcp:// on %s: tokens and data cross "
                         "the network in clear unless a TLS proxy is in front "
                         "(--tls-cert/--tls-key; docs/security.md)", cfg.host)
@@ -175,6 +197,13 @@ class RelayServer:
     def _process_http(self, connection: ServerConnection, request: Request
                       ) -> Response | None:
         path = request.path.split("?", 1)[0]
+        if path in ("/status", "/metrics") and not self._status_allowed(request):
+            self.counters["status_unauthorized"] += 1
+            response = _http_response(connection, 401, "Tele-Touch relay: /status and "
+                                      "/metrics need 'Authorization: Bearer <status_token>'\n",
+                                      "text/plain; charset=utf-8")
+            response.headers["WWW-Authenticate"] = 'Bearer realm="teletouch-relay"'
+            return response
         if path == "/status":
             body = json.dumps(self.status(), allow_nan=False, indent=1)
             return _http_response(connection, 200, body, "application/json")
@@ -186,6 +215,15 @@ class RelayServer:
             return _http_response(connection, 404, "Tele-Touch relay: WebSocket endpoint; "
                                   "see /status and /metrics\n", "text/plain; charset=utf-8")
         return None
+
+    def _status_allowed(self, request: Request) -> bool:
+        expected = self.config.status_token
+        if not expected:
+            return True
+        given = request.headers.get("Authorization", "")
+        scheme, _, token = given.partition(" ")
+        return scheme.lower() == "bearer" and hmac.compare_digest(
+            token.strip().encode(), expected.encode())
 
     # ------------------------------------------------------------------ connections
 

@@ -167,7 +167,7 @@ class Hello(Message):
     TYPE: ClassVar[str] = "hello"
     role: str = "observer"
     session: str = ""
-    token: str = ""
+    token: str = field(default="", repr=False)  # never in a log line through repr()
     name: str = ""
 
     def to_wire(self) -> dict[str, Any]:
