@@ -262,6 +262,8 @@ class PeerSession:
         self._conn.set_receive_limit(min(settings.max_hello_bytes, settings.max_message_bytes))
         self._bucket = TokenBucket(settings.rate_limit_per_s, settings.rate_limit_burst, now_us)
         self._over_rate = 0  # messages refused in the current over-rate episode
+        self._rate_used = 0  # messages since the bucket was last read
+        self._rate_free = self._bucket.tokens  # tokens at that reading
         self._rate_warned = False
         self._events: list[PeerEvent] = []
         self._held: list[tuple[Event, int]] | None = None  # between hello and accept()
@@ -298,12 +300,11 @@ class PeerSession:
             self._conn.receive_data(data)
             events = self._conn.events_received()
         if self._joined and events:
-            granted = self._bucket.take(len(events), now_us)
-            if granted < len(events):
-                self._rate_exceeded(len(events) - granted)
-                events = events[:granted]
-            elif self._over_rate and self._bucket.tokens * 2 >= self._bucket.burst:
-                self._over_rate = 0  # calm again (half the bucket back): the episode is over
+            # the hot path is a counter: the bucket is only consulted once the messages
+            # since its last reading exceed the tokens it had then
+            self._rate_used += len(events)
+            if self._rate_used > self._rate_free:
+                events = self._settle_rate(events, now_us)
         for event in events:
             if self.closing:
                 return
@@ -313,6 +314,20 @@ class PeerSession:
                 self._first(event)
             else:
                 self._process(event, now_us)
+
+    def _settle_rate(self, events: list[Event], now_us: int) -> list[Event]:
+        """Charge the bucket for the messages counted since its last reading; return the
+        events it still allows (only this chunk's can be refused: the earlier ones fitted
+        in the tokens of the last reading)."""
+        used, self._rate_used = self._rate_used, 0
+        refused = used - self._bucket.take(used, now_us)
+        self._rate_free = self._bucket.tokens
+        if refused:
+            self._rate_exceeded(refused)
+            return events[:len(events) - refused]
+        if self._over_rate and self._rate_free * 2 >= self._bucket.burst:
+            self._over_rate = 0  # calm again (half the bucket back): the episode is over
+        return events
 
     def _rate_exceeded(self, refused: int) -> None:
         """Messages over the rate limit are discarded; the first of an episode gets a

@@ -1,8 +1,11 @@
 """Token bucket for the relay's per-connection message-rate limit (sans-I/O, integer us).
 
 The bucket holds up to ``burst`` tokens and refills at ``rate_per_s``; each received message
-takes one. It is charged per received chunk (TCP) or message (WebSocket), so the hot path
-costs a few integer operations, not a timer per message.
+takes one. The relay charges it lazily (:mod:`~shared.protocol.peer_session`): it counts
+messages and reads the bucket only when the count passes the tokens of the last reading,
+charging all of them at once; the refill of the interval is credited before the cap, as the
+messages arrived spread over it. So the bucket is never stricter than an exact one, and over
+any time ``T`` grants at most ``burst + rate_per_s * T`` messages.
 """
 
 from __future__ import annotations
@@ -40,10 +43,13 @@ class TokenBucket:
 
     def take(self, count: int, now_us: int) -> int:
         """Take up to ``count`` tokens; return how many were granted (0..count)."""
+        available = self._tokens_us
         elapsed = now_us - self._last_us
         if elapsed > 0:
             self._last_us = now_us
-            self._tokens_us = min(self._cap_us, self._tokens_us + int(elapsed * self._rate))
-        granted = min(count, self._tokens_us // 1_000_000)
-        self._tokens_us -= granted * 1_000_000
+            available += int(elapsed * self._rate)
+        granted = min(count, available // 1_000_000)
+        # the cap applies after the charge: the ``count`` messages arrived spread over the
+        # elapsed time, during which the real bucket refilled as they drained it
+        self._tokens_us = min(self._cap_us, available - granted * 1_000_000)
         return granted
