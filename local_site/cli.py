@@ -35,7 +35,11 @@ __all__ = ["configure_parser", "run"]
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     """Add the ``teletouch local`` arguments."""
     link = parser.add_argument_group("relay link ([local.link])")
-    link.add_argument("--relay", metavar="URL", help="relay URL: ws://, wss:// or tcp://")
+    link.add_argument("--relay", metavar="URL",
+                      help="relay URL: ws://, wss://, tcp:// or tls://")
+    link.add_argument("--ca-file", dest="ca_file", metavar="PEM",
+                      help="CA to trust for wss:// and tls:// (a lab CA; default: the "
+                           "system's trust store)")
     link.add_argument("--session", metavar="ID", help="session id")
     link.add_argument("--token", metavar="T",
                       help="session token (better: TELETOUCH_LOCAL_LINK_TOKEN)")
@@ -95,7 +99,8 @@ def run(args: argparse.Namespace) -> int:
     config = resolve_config(LocalAgentConfig, "local.agent", explicit=agent_flags,
                             toml_path=args.config)
     link_config = resolve_config(StationLinkConfig, "local.link", explicit={
-        "url": args.relay, "session": args.session, "token": args.token, "name": args.name},
+        "url": args.relay, "session": args.session, "token": args.token, "name": args.name,
+        "ca_file": args.ca_file},
         toml_path=args.config)
     render_config = resolve_config(RendererConfig, "local.render", toml_path=args.config)
     workspace = resolve_config(WorkspaceConfig, "workspace", toml_path=args.config)

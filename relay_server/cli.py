@@ -5,14 +5,19 @@ and the session token. The relay forwards local <-> remote with per-stream polic
 estimates each station's clock offset (NTP-style) and pushes ``stats`` every second.
 Live figures: ``GET http://HOST:PORT/status`` (JSON) and ``GET /metrics`` (Prometheus).
 
-Tokens: either explicit per-session tokens (``--token-file`` TOML with a ``[tokens]``
-table, or ``[relay.tokens]`` in ``--config``) or HMAC-derived tokens from ``--secret``
-(token = hex HMAC-SHA256(secret, session_id); ``teletouch relay --print-token SESSION``
-prints one). Prefer ``TELETOUCH_RELAY_SECRET`` over ``--secret`` on shared hosts.
+Tokens: with ``--secret``, version-2 tokens bound to a session, a role and an expiry
+(``teletouch relay --print-token SESSION --role local --ttl-s 86400`` prints one; a local
+token cannot join as remote, an expired one is refused). Legacy tokens (explicit
+per-session tokens from ``--token-file`` or ``[relay.tokens]``, and hex HMAC-SHA256(secret,
+session_id), printed by ``--print-token SESSION`` without ``--role``) work while
+``allow_legacy_tokens`` is true (the default). Prefer ``TELETOUCH_RELAY_SECRET`` over
+``--secret`` on shared hosts. See docs/security.md.
 
 examples:
   teletouch relay --host 0.0.0.0 --port 8765 --secret "$SECRET"
+  teletouch relay --host 0.0.0.0 --tls-cert relay.crt --tls-key relay.key  # wss://, tls://
   teletouch relay --port 8765 --token-file tokens.toml
+  teletouch relay --print-token lab1 --role remote --ttl-s 604800
   curl http://127.0.0.1:8765/status
 """
 
@@ -35,6 +40,11 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                                          "(or $TELETOUCH_RELAY_SECRET)")
     parser.add_argument("--token-file", dest="token_file",
                         help="TOML file with a [tokens] table: session id -> token")
+    parser.add_argument("--tls-cert", dest="tls_cert", metavar="FILE",
+                        help="PEM certificate (chain): serve wss:// and TLS on the TCP port "
+                             "(tls:// URLs); with --tls-key (docs/security.md)")
+    parser.add_argument("--tls-key", dest="tls_key", metavar="FILE",
+                        help="PEM private key of --tls-cert")
     parser.add_argument("--allow-any-token", dest="allow_any_token", action="store_true",
                         default=None, help="accept any token (development only)")
     parser.add_argument("--hello-timeout-s", dest="hello_timeout_s", type=float,
@@ -44,14 +54,21 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--stats-interval-s", dest="stats_interval_s", type=float,
                         help="stats push period (default 1)")
     parser.add_argument("--print-token", dest="print_token", metavar="SESSION",
-                        help="print the HMAC-derived token of SESSION for the secret and exit")
+                        help="print a token of SESSION for the secret and exit: v2 (role, "
+                             "expiry) with --role, else the legacy per-session token")
+    parser.add_argument("--role", choices=("local", "remote", "observer"),
+                        help="with --print-token: the role the token admits")
+    parser.add_argument("--ttl-s", dest="ttl_s", type=int, default=None,
+                        help="with --print-token --role: validity in seconds "
+                             "(default 604800, 7 days)")
 
 
 def run(args: argparse.Namespace) -> int:
     """Resolve the configuration and serve until SIGINT/SIGTERM."""
     import asyncio
+    import time
 
-    from relay_server.auth import derive_token
+    from relay_server.auth import derive_token, make_token
     from relay_server.config import RelayConfig
     from relay_server.server import serve_forever
     from shared.config import resolve_config
@@ -59,13 +76,23 @@ def run(args: argparse.Namespace) -> int:
     from shared.report import emit
 
     explicit = {name: getattr(args, name, None) for name in (
-        "host", "port", "tcp_port", "secret", "token_file", "allow_any_token",
+        "host", "port", "tcp_port", "secret", "token_file", "allow_any_token", "tls_cert",
+        "tls_key",
         "hello_timeout_s", "ping_interval_s", "stats_interval_s")}
     config = resolve_config(RelayConfig, "relay", explicit=explicit, toml_path=args.config)
     if args.print_token:
         if not config.secret:
             raise ConfigError("--print-token needs a secret (--secret or $TELETOUCH_RELAY_SECRET)")
-        emit(derive_token(config.secret, args.print_token))
+        if args.role is not None:
+            ttl_s = 604_800 if args.ttl_s is None else args.ttl_s
+            if ttl_s <= 0:
+                raise ConfigError("--ttl-s must be > 0")
+            emit(make_token(config.secret, args.print_token, args.role,
+                            int(time.time()) + ttl_s))
+        elif args.ttl_s is not None:
+            raise ConfigError("--ttl-s needs --role (legacy tokens never expire)")
+        else:
+            emit(derive_token(config.secret, args.print_token))
         return 0
     asyncio.run(serve_forever(config))
     return 0

@@ -26,6 +26,16 @@ class RelayConfig:
         token_file: TOML file with a ``[tokens]`` table (session -> token), merged into
             ``tokens``.
         allow_any_token: accept any token (development only; logged loudly at start).
+        allow_legacy_tokens: also accept the legacy tokens (``tokens``/``token_file`` and
+            ``hex(HMAC(secret, session))``), which name no role and never expire; version-2
+            tokens (session, role, expiry) are always accepted with a ``secret``.
+        tls_cert: PEM certificate chain of the relay; with ``tls_key`` the relay serves
+            ``wss://`` on ``port`` (and HTTPS ``/status``) and TLS on ``tcp_port``
+            (``tls://`` URLs). None = plain ``ws://`` and ``tcp://``.
+        tls_key: PEM private key of ``tls_cert``.
+        status_token: when set, ``GET /status`` and ``GET /metrics`` need the header
+            ``Authorization: Bearer <status_token>`` (else 401); None = public (a WARNING
+            at start says so).
         hello_timeout_s: a client must send a valid ``hello`` within this time.
         ping_interval_s: period of ``clock_ping`` to every station after the initial burst.
         ping_burst: number of ``clock_ping`` sent right after ``welcome``.
@@ -36,6 +46,15 @@ class RelayConfig:
         bad_message_budget: per-message errors tolerated per connection before it is closed.
         ledger_window: samples kept per latency window (bounded ring buffer).
         max_sessions: sessions accepted at once.
+        max_connections: open connections (both ports, any state) accepted at once; one
+            more gets ``too_many_connections`` (close 1013).
+        max_connections_per_ip: open connections from one remote address.
+        max_hello_bytes: the largest message accepted before the hello is accepted (the
+            most a connection that has not said hello makes the relay buffer).
+        rate_limit_per_s: sustained received messages per second per connection (token
+            bucket); excess messages are discarded with ``rate_limited``.
+        rate_limit_burst: bucket size; more than this many discarded in one over-rate
+            episode closes the connection (``rate_limited``, close 1008).
     """
 
     host: str = "127.0.0.1"
@@ -45,6 +64,10 @@ class RelayConfig:
     tokens: dict[str, str] = field(default_factory=dict)
     token_file: Path | None = None
     allow_any_token: bool = False
+    allow_legacy_tokens: bool = True
+    tls_cert: Path | None = None
+    tls_key: Path | None = None
+    status_token: str | None = None
     hello_timeout_s: float = 5.0
     ping_interval_s: float = 1.0
     ping_burst: int = 5
@@ -55,6 +78,11 @@ class RelayConfig:
     bad_message_budget: int = 20
     ledger_window: int = 4096
     max_sessions: int = 1000
+    max_connections: int = 1024
+    max_connections_per_ip: int = 16
+    max_hello_bytes: int = 64 * 1024
+    rate_limit_per_s: float = 5000.0
+    rate_limit_burst: int = 10_000
 
     def __post_init__(self) -> None:
         for name in ("port",):
@@ -63,17 +91,21 @@ class RelayConfig:
                 raise ConfigError(f"relay.{name}={value} is not a TCP port")
         if self.tcp_port is not None and not 0 <= self.tcp_port <= 65535:
             raise ConfigError(f"relay.tcp_port={self.tcp_port} is not a TCP port")
-        positive = ("hello_timeout_s", "ping_interval_s", "stats_interval_s")
+        positive = ("hello_timeout_s", "ping_interval_s", "stats_interval_s",
+                    "rate_limit_per_s")
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ConfigError(f"relay.{name} must be > 0")
         ints = ("ping_burst", "max_message_bytes", "ordered_queue_len", "bad_message_budget",
-                "ledger_window", "max_sessions")
+                "ledger_window", "max_sessions", "max_connections", "max_connections_per_ip",
+                "max_hello_bytes", "rate_limit_burst")
         for name in ints:
             if getattr(self, name) < 1:
                 raise ConfigError(f"relay.{name} must be >= 1")
         if self.ping_burst_spacing_s < 0:
             raise ConfigError("relay.ping_burst_spacing_s must be >= 0")
+        if (self.tls_cert is None) != (self.tls_key is None):
+            raise ConfigError("relay.tls_cert and relay.tls_key go together (both or neither)")
         for session, token in self.tokens.items():
             if not isinstance(session, str) or not isinstance(token, str) or not token:
                 raise ConfigError("relay.tokens must map session ids to non-empty strings")

@@ -24,6 +24,8 @@
                             lost: sequence gaps (RFC 3550); latest_wins: state frames
                             replaced unsent; queue_full: ordered messages refused;
                             no_peer: sent while the other station was absent
+    seq_resets              {local_to_remote, remote_to_local}: sequence jumps too large to
+                              be loss (a sender restart): the gap count restarted there
     queue_depth             {local, remote}: messages waiting in the relay for that station
     observers               number of observers
 
@@ -77,6 +79,7 @@ def session_metrics(session: Session, role: str) -> dict[str, Any]:
     rate: dict[str, float] = {}
     drops: dict[str, Any] = {}
     forwarded: dict[str, int] = {}
+    resets: dict[str, int] = {}
     for d in _DIRECTIONS:
         ds = session.directions[d]
         up = ds.uplink_snapshot()
@@ -92,9 +95,10 @@ def session_metrics(session: Session, role: str) -> dict[str, Any]:
         rate[d] = round(up.rate_hz, 1)
         drops[d] = {"lost": up.lost, **{k: up.dropped.get(k, 0) for k in _DROP_REASONS}}
         forwarded[d] = ds.forwarded
+        resets[d] = up.seq_resets
     return {"session": session.session_id, "role": role, "clock_offset_us": offsets,
             "rtt_us": rtts, "delay_us": delay, "jitter_us": jitter, "rate_hz": rate,
-            "forwarded": forwarded, "drops": drops, "queue_depth": depth,
+            "forwarded": forwarded, "drops": drops, "seq_resets": resets, "queue_depth": depth,
             "observers": len(session.observers)}
 
 

@@ -21,10 +21,12 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import hmac
 import itertools
 import json
 import logging
 import signal
+import ssl
 from collections import Counter
 from collections.abc import Callable
 from typing import Any
@@ -37,7 +39,7 @@ from relay_server.auth import TokenAuthority, load_token_file
 from relay_server.config import RelayConfig
 from relay_server.metrics import prometheus_text, session_metrics, session_status
 from relay_server.session import Peer, Session
-from shared.errors import ProtocolError, SessionError
+from shared.errors import ConfigError, LimitError, ProtocolError, SessionError
 from shared.protocol import Hello, Stats, Welcome
 from shared.protocol.peer_session import (
     ClockSampled,
@@ -56,6 +58,24 @@ __all__ = ["RelayServer", "serve_forever"]
 log = logging.getLogger(__name__)
 
 _CLOSE_TIMEOUT_S = 2.0
+_LOOPBACK_HOSTS = frozenset({"127.0.0.1", "::1", "localhost"})
+
+
+class _RedactAuthorization(logging.Filter):
+    """websockets logs every request header at DEBUG: hide the status bearer token."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if "authorization" in record.getMessage().lower():
+            record.msg, record.args = "< Authorization: [redacted]", None
+        return True
+
+
+#: the WebSocket layer's logger (its DEBUG header dump goes through the redaction filter)
+_WS_LOG = logging.getLogger("relay_server.websockets")
+_WS_LOG.addFilter(_RedactAuthorization())
+#: after a fatal error on TCP, read (and discard) the client's input this long before the
+#: close, so the error is not destroyed by a reset (less than _CLOSE_TIMEOUT_S)
+_TCP_LINGER_S = 1.0
 _EVENTS_PER_SLICE = 32  # messages handled before yielding, for big TCP chunks
 _YIELD_EVERY_S = 0.0002
 
@@ -75,11 +95,14 @@ class RelayServer:
         tokens = dict(config.tokens)
         if config.token_file is not None:
             tokens.update(load_token_file(config.token_file))
-        self.auth = TokenAuthority(tokens, config.secret, allow_any=config.allow_any_token)
+        self.auth = TokenAuthority(tokens, config.secret, allow_any=config.allow_any_token,
+                                   allow_legacy=config.allow_legacy_tokens)
         self.sessions: dict[str, Session] = {}
         self.counters: Counter[str] = Counter()
         self.peer_settings = PeerSettings(
             max_message_bytes=config.max_message_bytes,
+            max_hello_bytes=min(config.max_hello_bytes, config.max_message_bytes),
+            rate_limit_per_s=config.rate_limit_per_s, rate_limit_burst=config.rate_limit_burst,
             ordered_queue_len=config.ordered_queue_len,
             bad_message_budget=config.bad_message_budget,
             hello_timeout_us=round(config.hello_timeout_s * 1e6),
@@ -91,6 +114,8 @@ class RelayServer:
         self._tcp_server: asyncio.Server | None = None
         self._handlers: set[asyncio.Task[Any]] = set()
         self._connections: set[_Connection] = set()
+        self._per_ip: Counter[str] = Counter()
+        self.tls = _server_tls_context(config)
         self._closing = False
 
     # ------------------------------------------------------------------ lifecycle
@@ -102,12 +127,23 @@ class RelayServer:
             log.warning("relay accepts ANY token (--allow-any-token): development only")
         self._ws_server = await serve(
             self._ws_handler, cfg.host, cfg.port, compression=None,
-            process_request=self._process_http, max_size=2 * cfg.max_message_bytes,
-            max_queue=64, write_limit=256 * 1024)
+            process_request=self._process_http, max_size=2 * self.peer_settings.max_hello_bytes,
+            max_queue=64, write_limit=256 * 1024, ssl=self.tls, logger=_WS_LOG)
         self._tcp_server = await asyncio.start_server(
-            self._tcp_handler, cfg.host, cfg.resolved_tcp_port, limit=2**20)
-        log.info("relay listening: ws://%s:%d (status: /status, /metrics), tcp://%s:%d",
-                 cfg.host, self.ws_port, cfg.host, self.tcp_port)
+            self._tcp_handler, cfg.host, cfg.resolved_tcp_port, limit=2**20, ssl=self.tls)
+        ws, tcp = ("wss", "tls") if self.tls is not None else ("ws", "tcp")
+        log.info("relay listening: %s://%s:%d (status: /status, /metrics), %s://%s:%d",
+                 ws, cfg.host, self.ws_port, tcp, cfg.host, self.tcp_port)
+        loopback = cfg.host in _LOOPBACK_HOSTS
+        if not cfg.status_token:
+            # public on a loopback bind only to this host: INFO; reachable from outside: WARNING
+            log.log(logging.INFO if loopback else logging.WARNING,
+                    "/status and /metrics are public on %s (session ids, peers, latencies): "
+                    "set status_token to require 'Authorization: Bearer ...'", cfg.host)
+        if self.tls is None and not loopback:
+            log.warning("relay serves plain ws:// and tcp:// on %s: tokens and data cross "
+                        "the network in clear unless a TLS proxy is in front "
+                        "(--tls-cert/--tls-key; docs/security.md)", cfg.host)
 
     @property
     def ws_port(self) -> int:
@@ -161,6 +197,13 @@ class RelayServer:
     def _process_http(self, connection: ServerConnection, request: Request
                       ) -> Response | None:
         path = request.path.split("?", 1)[0]
+        if path in ("/status", "/metrics") and not self._status_allowed(request):
+            self.counters["status_unauthorized"] += 1
+            response = _http_response(connection, 401, "Tele-Touch relay: /status and "
+                                      "/metrics need 'Authorization: Bearer <status_token>'\n",
+                                      "text/plain; charset=utf-8")
+            response.headers["WWW-Authenticate"] = 'Bearer realm="teletouch-relay"'
+            return response
         if path == "/status":
             body = json.dumps(self.status(), allow_nan=False, indent=1)
             return _http_response(connection, 200, body, "application/json")
@@ -173,37 +216,66 @@ class RelayServer:
                                   "see /status and /metrics\n", "text/plain; charset=utf-8")
         return None
 
+    def _status_allowed(self, request: Request) -> bool:
+        expected = self.config.status_token
+        if not expected:
+            return True
+        given = request.headers.get("Authorization", "")
+        scheme, _, token = given.partition(" ")
+        return scheme.lower() == "bearer" and hmac.compare_digest(
+            token.strip().encode(), expected.encode())
+
     # ------------------------------------------------------------------ connections
 
     async def _ws_handler(self, ws: ServerConnection) -> None:
         set_nodelay(ws.transport)
-        await self._serve(WsTransport(ws))
+        await self._serve(WsTransport(ws), _host_of(ws.remote_address))
 
     async def _tcp_handler(self, reader: asyncio.StreamReader,
                            writer: asyncio.StreamWriter) -> None:
-        transport = TcpTransport(reader, writer)
+        transport = TcpTransport(reader, writer, linger_s=_TCP_LINGER_S)
         try:
-            await self._serve(transport)
+            await self._serve(transport, _host_of(writer.get_extra_info("peername")))
         finally:
             await transport.close()
 
-    async def _serve(self, transport: Transport) -> None:
+    async def _serve(self, transport: Transport, host: str) -> None:
         task = asyncio.current_task()
         if task is not None:
             self._handlers.add(task)
         conn = _Connection(self, transport)
         self._connections.add(conn)
+        self._per_ip[host] += 1
         try:
+            refusal = self._connection_limit(host)
+            if refusal is not None:
+                self.counters["refused_connections"] += 1
+                conn.protocol.fail(refusal)
             await conn.run()
         finally:
             self._connections.discard(conn)
+            self._per_ip[host] -= 1
+            if self._per_ip[host] <= 0:
+                del self._per_ip[host]
             if task is not None:
                 self._handlers.discard(task)
+
+    def _connection_limit(self, host: str) -> LimitError | None:
+        """The refusal of a new connection from ``host`` (already counted), or None."""
+        cfg = self.config
+        if len(self._connections) > cfg.max_connections:
+            return LimitError(f"the relay has {cfg.max_connections} connections open; "
+                              "try again later", code="too_many_connections", close_code=1013)
+        if self._per_ip[host] > cfg.max_connections_per_ip:
+            return LimitError(f"{cfg.max_connections_per_ip} connections from {host} are "
+                              "open; try again later", code="too_many_connections",
+                              close_code=1013)
+        return None
 
     def _join(self, hello: Hello, conn: _Connection) -> tuple[Session, Peer]:
         if self._closing:
             raise SessionError("relay shutting down", code="shutdown")
-        self.auth.check(hello.session, hello.token)
+        self.auth.check(hello.session, hello.token, hello.role)
         session = self.sessions.get(hello.session)
         if session is None:
             if len(self.sessions) >= self.config.max_sessions:
@@ -222,6 +294,31 @@ class RelayServer:
         session.leave(peer)
         if session.empty and self.sessions.get(session.session_id) is session:
             del self.sessions[session.session_id]
+
+
+def _server_tls_context(config: RelayConfig) -> ssl.SSLContext | None:
+    """The relay's TLS context from ``tls_cert``/``tls_key`` (None without them).
+
+    Raises:
+        ConfigError: unreadable files, or a key that does not match the certificate.
+    """
+    if config.tls_cert is None or config.tls_key is None:
+        return None
+    ctx = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+    ctx.minimum_version = ssl.TLSVersion.TLSv1_2
+    try:
+        ctx.load_cert_chain(config.tls_cert, config.tls_key)
+    except (OSError, ssl.SSLError) as err:
+        raise ConfigError(f"cannot load the relay's TLS certificate {config.tls_cert} / key "
+                          f"{config.tls_key}: {err}") from err
+    return ctx
+
+
+def _host_of(address: object) -> str:
+    """The host part of a socket address (``?`` when unknown)."""
+    if isinstance(address, tuple) and address:
+        return str(address[0])
+    return "?"
 
 
 def _http_response(connection: ServerConnection, status: int, body: str,
@@ -320,6 +417,8 @@ class _Connection:
                                      server_time_us=now_us(),
                                      ping_interval_s=cfg.ping_interval_s,
                                      max_message_bytes=cfg.max_message_bytes), now_us())
+        if isinstance(self.transport, WsTransport):  # the hello limit is over: full size now
+            self.transport.ws.protocol.max_message_size = 2 * cfg.max_message_bytes
         self._restart_ticker()  # the schedule changed: pings and stats instead of the timeout
         # what the peer sent behind its hello has been processed by accept()
         self._handle(self.protocol.events_received())

@@ -199,7 +199,8 @@ class Session:
             if latest:
                 return None
             return Error(code="no_peer", message=f"{stream} seq {msg.seq} not delivered: no "
-                         f"{_OTHER[sender.role]} station in session {self.session_id!r}")
+                         f"{_OTHER[sender.role]} station in session {self.session_id!r}",
+                         stream=stream, seq=msg.seq)
 
         def on_send(pending: Pending, t_out_us: int) -> None:
             direction.forwarded += 1
@@ -215,6 +216,7 @@ class Session:
             ledger.record_drop("queue_full")
             ledger.set_queue_depth(len(receiver.outbox))
             return Error(code="queue_full", message=f"{stream} seq {msg.seq} refused: the "
-                         f"{receiver.role} station's queue is full", fatal=False)
+                         f"{receiver.role} station's queue is full", fatal=False,
+                         stream=stream, seq=msg.seq)
         ledger.set_queue_depth(len(receiver.outbox))
         return None

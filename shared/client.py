@@ -42,7 +42,12 @@ from typing import Any
 from websockets.exceptions import WebSocketException
 
 from shared.errors import AuthError, ConfigError, ProtocolError, RoleTakenError, SessionError
-from shared.link_settings import StationLinkConfig, backoff_delay_s, parse_link_url
+from shared.link_settings import (
+    StationLinkConfig,
+    backoff_delay_s,
+    client_tls_context,
+    parse_link_url,
+)
 from shared.protocol import (
     DEFAULT_MAX_MESSAGE_BYTES,
     LATEST_WINS_TYPES,
@@ -100,7 +105,8 @@ class StationLink:
             value keeps latest-wins effective when the link is slow.
         role_taken_grace_s: after a connection loss, keep retrying a ``role_taken`` refusal
             this long (the relay may not yet have noticed our old connection died).
-        ssl_context: TLS context for ``wss://`` (the system default when None).
+        ssl_context: TLS context for ``wss://`` and ``tls://`` (the system default when
+            None); :func:`~shared.link_settings.client_tls_context` makes one for a CA file.
         seed: seed of the backoff jitter (None: random).
 
     Raises:
@@ -166,6 +172,8 @@ class StationLink:
         Raises:
             ConfigError: bad URL, role or setting.
         """
+        if config.ca_file is not None and "ssl_context" not in overrides:
+            overrides["ssl_context"] = client_tls_context(config.ca_file)
         return cls(config.url, session=config.session, role=role, token=config.token,
                    name=config.name, reconnect_min_s=config.reconnect_min_s,
                    reconnect_max_s=config.reconnect_max_s,

@@ -18,8 +18,10 @@ one family and still see the cause::
     │       └── OversizeError             frame longer than the configured limit
     ├── SessionError                      session/role/auth refusals by the relay
     │   ├── AuthError                     missing or wrong token
+    │   │   └── TlsCertificateError       the relay's TLS certificate is not trusted
     │   ├── RoleTakenError                a second `local`/`remote` in one session
-    │   └── HandshakeTimeoutError         no hello within the deadline
+    │   ├── HandshakeTimeoutError         no hello within the deadline
+    │   └── LimitError                    a relay limit: connections, message rate
     ├── DeviceError                       hardware or simulated device trouble
     │   ├── DeviceInitError               could not load the backend (missing dependency),
     │   │                                 open or configure the device: connect() phase
@@ -56,6 +58,7 @@ __all__ = [
     "FieldError",
     "HandshakeTimeoutError",
     "InputDataError",
+    "LimitError",
     "LocalProtocolError",
     "MalformedMessageError",
     "NonFiniteError",
@@ -67,6 +70,7 @@ __all__ = [
     "SafetyError",
     "SessionError",
     "TeleTouchError",
+    "TlsCertificateError",
     "UnknownMessageTypeError",
     "VersionError",
 ]
@@ -178,6 +182,13 @@ class AuthError(SessionError):
     close_code = 4001
 
 
+class TlsCertificateError(AuthError):
+    """The relay's TLS certificate failed verification (unknown CA, wrong host name,
+    expired): the relay could not prove who it is, so the station does not send its token."""
+
+    code = "tls_certificate"
+
+
 class RoleTakenError(SessionError):
     """The role (``local`` or ``remote``) is already held in this session."""
 
@@ -190,6 +201,23 @@ class HandshakeTimeoutError(SessionError):
 
     code = "hello_timeout"
     close_code = 4003
+
+
+class LimitError(SessionError):
+    """A relay limit refused the connection or its traffic.
+
+    Codes: ``too_many_connections`` (close 1013, try again later) and ``rate_limited``
+    (close 1008 when sustained).
+    """
+
+    code = "limit"
+    close_code = 1008
+
+    def __init__(self, message: str, *, code: str | None = None,
+                 close_code: int | None = None) -> None:
+        super().__init__(message, code=code)
+        if close_code is not None:
+            self.close_code = close_code
 
 
 # --------------------------------------------------------------------------- devices

@@ -9,7 +9,10 @@ ledger keeps
   ``D = (R_j - S_j) - (R_i - S_i)`` over consecutive arrivals;
 * sequence accounting: ``lost`` (RFC 3550: expected from the seq range minus received,
   so a late arrival fills its gap), ``out_of_order`` (seq not above the highest seen),
-  ``dropped`` (discarded on purpose, e.g. relay latest-wins, by reason);
+  ``dropped`` (discarded on purpose, e.g. relay latest-wins, by reason), and
+  ``seq_resets``: a sequence jump of more than ``max_seq_jump`` either way (a sender
+  restart, or a hostile seq of 2^63 - 1) restarts the gap count from the new seq instead
+  of adding the jump to ``lost`` (RFC 3550 A.1 treats a large jump the same way);
 * arrival rate over the window and the queue depth (current and peak).
 
 Memory is O(window) whatever the run length.
@@ -42,6 +45,7 @@ class LedgerSnapshot:
     queue_depth: int
     queue_depth_max: int
     window: int = 0
+    seq_resets: int = 0
     delays_us: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), repr=False)
     recv_times_us: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), repr=False)
 
@@ -59,7 +63,7 @@ class LedgerSnapshot:
             "delay_min_us": self.delay_min_us, "delay_mean_us": self.delay_mean_us,
             "jitter_us": self.jitter_us, "rate_hz": self.rate_hz,
             "queue_depth": self.queue_depth, "queue_depth_max": self.queue_depth_max,
-            "window": self.window,
+            "window": self.window, "seq_resets": self.seq_resets,
         }
 
 
@@ -78,17 +82,26 @@ def _stats(delays: np.ndarray) -> tuple[float | None, ...]:
             float(delays.mean()))
 
 
+#: default largest sequence jump still counted as loss (about 17 min of a 1 kHz stream)
+DEFAULT_MAX_SEQ_JUMP = 1 << 20
+
+
 class LatencyLedger:
     """Per-stream latency statistics over a bounded window.
 
     Args:
         window: delays (and arrival times) kept for percentiles and rate.
+        max_seq_jump: a seq further than this from the highest seen (either way) restarts
+            the gap accounting (counted in ``seq_resets``) instead of counting as loss.
     """
 
-    def __init__(self, window: int = 4096) -> None:
+    def __init__(self, window: int = 4096, max_seq_jump: int = DEFAULT_MAX_SEQ_JUMP) -> None:
         if window < 1:
             raise ValueError("window must be >= 1")
+        if max_seq_jump < 1:
+            raise ValueError("max_seq_jump must be >= 1")
         self.window = window
+        self.max_seq_jump = max_seq_jump
         self._delays = np.zeros(window, np.int64)
         self._recv = np.zeros(window, np.int64)
         self._n = 0  # total recorded; ring index = _n % window
@@ -97,6 +110,8 @@ class LatencyLedger:
         self._first_seq: int | None = None
         self._highest_seq = 0
         self._seq_received = 0
+        self._lost_before_reset = 0  # loss banked by earlier sequence runs
+        self.seq_resets = 0
         self.out_of_order = 0
         self.dropped: dict[str, int] = {}
         self.queue_depth = 0
@@ -137,19 +152,29 @@ class LatencyLedger:
             self._seq_received += 1
             if self._first_seq is None:
                 self._first_seq = self._highest_seq = seq
+            elif abs(seq - self._highest_seq) > self.max_seq_jump:
+                self._lost_before_reset += self._run_lost()
+                self.seq_resets += 1
+                self._first_seq = self._highest_seq = seq
+                self._seq_received = 1
             elif seq > self._highest_seq:
                 self._highest_seq = seq
             else:
                 self.out_of_order += 1
         return transit
 
-    @property
-    def lost(self) -> int:
-        """RFC 3550 cumulative loss: expected (highest - first + 1) minus received, >= 0."""
+    def _run_lost(self) -> int:
         if self._first_seq is None:
             return 0
         expected = self._highest_seq - self._first_seq + 1
         return max(0, expected - self._seq_received)
+
+    @property
+    def lost(self) -> int:
+        """RFC 3550 cumulative loss: expected (highest - first + 1) minus received, >= 0,
+        summed over the sequence runs separated by resets (so at most ``max_seq_jump`` per
+        run beyond the messages actually missing)."""
+        return self._lost_before_reset + self._run_lost()
 
     def record_drop(self, reason: str = "latest_wins", count: int = 1) -> None:
         """Count messages discarded on purpose (``latest_wins``, ``queue_full``, ...)."""
@@ -184,7 +209,7 @@ class LatencyLedger:
             delay_min_us=mn, delay_mean_us=mean, jitter_us=self._jitter_us,
             rate_hz=_rate_hz(recv), queue_depth=self.queue_depth,
             queue_depth_max=self.queue_depth_max, window=int(delays.size), delays_us=delays,
-            recv_times_us=recv)
+            recv_times_us=recv, seq_resets=self.seq_resets)
 
 
 def merge_snapshots(snapshots: list[LedgerSnapshot]) -> LedgerSnapshot:
@@ -208,4 +233,5 @@ def merge_snapshots(snapshots: list[LedgerSnapshot]) -> LedgerSnapshot:
         rate_hz=sum(s.rate_hz for s in snapshots),
         queue_depth=sum(s.queue_depth for s in snapshots),
         queue_depth_max=sum(s.queue_depth_max for s in snapshots), window=int(delays.size),
+        seq_resets=sum(s.seq_resets for s in snapshots),
         delays_us=delays, recv_times_us=np.concatenate([s.recv_times_us for s in snapshots]))

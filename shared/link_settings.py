@@ -7,6 +7,7 @@ tests can use them without the link's machinery.
 from __future__ import annotations
 
 import random
+import ssl
 from dataclasses import dataclass
 from typing import Literal
 from urllib.parse import urlsplit
@@ -14,7 +15,8 @@ from urllib.parse import urlsplit
 from shared.errors import ConfigError
 from shared.protocol import DEFAULT_MAX_MESSAGE_BYTES
 
-__all__ = ["Scheme", "StationLinkConfig", "backoff_delay_s", "parse_link_url"]
+__all__ = ["Scheme", "StationLinkConfig", "backoff_delay_s", "client_tls_context",
+           "parse_link_url"]
 
 
 def backoff_delay_s(attempt: int, *, min_s: float, max_s: float, jitter: float,
@@ -38,14 +40,15 @@ def backoff_delay_s(attempt: int, *, min_s: float, max_s: float, jitter: float,
     return base * (1.0 - jitter * rng.random())
 
 
-Scheme = Literal["ws", "wss", "tcp"]
+Scheme = Literal["ws", "wss", "tcp", "tls"]
 
 
 def parse_link_url(url: str) -> tuple[Scheme, str, int]:
     """Split a relay URL into scheme, host and port.
 
     Args:
-        url: ``ws://host[:port][/path]``, ``wss://...`` or ``tcp://host:port``.
+        url: ``ws://host[:port][/path]``, ``wss://...``, ``tcp://host:port`` or
+            ``tls://host:port`` (the raw TCP protocol inside TLS).
 
     Returns:
         ``(scheme, host, port)``; WebSocket ports default to 80 / 443.
@@ -59,15 +62,30 @@ def parse_link_url(url: str) -> tuple[Scheme, str, int]:
     except ValueError as err:
         raise ConfigError(f"bad relay URL {url!r}: {err}") from err
     scheme = parts.scheme.lower()
-    if scheme not in ("ws", "wss", "tcp"):
-        raise ConfigError(f"relay URL {url!r}: scheme must be ws://, wss:// or tcp://")
+    if scheme not in ("ws", "wss", "tcp", "tls"):
+        raise ConfigError(f"relay URL {url!r}: scheme must be ws://, wss://, tcp:// or tls://")
     if not parts.hostname:
         raise ConfigError(f"relay URL {url!r} has no host")
     if port is None:
-        if scheme == "tcp":
-            raise ConfigError(f"relay URL {url!r}: tcp:// needs a port")
+        if scheme in ("tcp", "tls"):
+            raise ConfigError(f"relay URL {url!r}: {scheme}:// needs a port")
         port = 443 if scheme == "wss" else 80
     return scheme, parts.hostname, port  # type: ignore[return-value]
+
+
+def client_tls_context(ca_file: str | None) -> ssl.SSLContext:
+    """A TLS client context verifying the relay's certificate and host name.
+
+    Args:
+        ca_file: PEM file of the CA(s) to trust; None = the system's trust store.
+
+    Raises:
+        ConfigError: the CA file is missing or not a PEM certificate.
+    """
+    try:
+        return ssl.create_default_context(cafile=ca_file)
+    except (OSError, ssl.SSLError) as err:
+        raise ConfigError(f"cannot load the CA file {ca_file!r}: {err}") from err
 
 
 @dataclass(frozen=True)
@@ -78,7 +96,9 @@ class StationLinkConfig:
     comes best from ``TELETOUCH_LOCAL_LINK_TOKEN`` (an environment file), not the TOML.
 
     Attributes:
-        url: relay URL (``ws://``, ``wss://`` or ``tcp://``).
+        url: relay URL (``ws://``, ``wss://``, ``tcp://`` or ``tls://``).
+        ca_file: PEM file of the CA(s) to trust for ``wss://``/``tls://`` instead of the
+            system's (a lab CA, ``docs/security.md``); None = the system's trust store.
         session: session id shared by the two stations.
         token: session token.
         name: label shown in the relay's status.
@@ -98,3 +118,4 @@ class StationLinkConfig:
     connect_timeout_s: float = 5.0
     liveness_timeout_s: float = 5.0
     max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
+    ca_file: str | None = None

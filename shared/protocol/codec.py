@@ -41,23 +41,35 @@ SUPPORTED_VERSIONS = frozenset({1})
 DEFAULT_MAX_MESSAGE_BYTES = 4 * 1024 * 1024
 
 
+def _string_keys(obj: dict[Any, Any]) -> dict[Any, Any]:
+    # msgpack's strict_map_key still lets bin keys through; the protocol allows str only
+    for key in obj:
+        if key.__class__ is not str:
+            raise ValueError(f"map keys must be strings, got a {type(key).__name__} key")
+    return obj
+
+
 def decode_map(data: bytes | bytearray | memoryview, *,
                max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> dict[str, Any]:
     """Unpack bytes into the raw message map, checking size, form and version.
 
     Raises:
         OversizeError: more than ``max_message_bytes`` bytes.
-        MalformedMessageError: not exactly one msgpack map with string keys.
+        MalformedMessageError: not exactly one msgpack map with string keys (every map,
+            nested ones too: an int, float or bin key anywhere is malformed).
         VersionError: ``v`` is missing or unsupported.
     """
     if len(data) > max_message_bytes:
         raise OversizeError(f"message of {len(data)} bytes exceeds the limit of "
                             f"{max_message_bytes}")
     try:
-        obj = msgpack.unpackb(data, raw=False, strict_map_key=True, use_list=True)
+        obj = msgpack.unpackb(data, raw=False, strict_map_key=True, use_list=True,
+                              object_hook=_string_keys)
     except msgpack.ExtraData as err:
         raise MalformedMessageError("trailing bytes after the msgpack map") from err
-    except (ValueError, msgpack.UnpackException) as err:
+    except (ValueError, TypeError, msgpack.UnpackException) as err:
+        if "map key" in str(err) or "keys must be strings" in str(err):
+            raise MalformedMessageError(f"map keys must be strings: {err}") from err
         raise MalformedMessageError(f"not valid msgpack: {err}") from err
     if not isinstance(obj, dict):
         raise MalformedMessageError(f"a message must be a msgpack map, got {type(obj).__name__}")

@@ -73,10 +73,17 @@ class ProtocolConnection:
             raise ValueError(f"framing must be 'tcp' or 'ws', got {framing!r}")
         self.framing: Framing = framing
         self.max_message_bytes = max_message_bytes
+        self._receive_limit = max_message_bytes
         self._decoder = LengthPrefixDecoder(max_message_bytes) if framing == "tcp" else None
         self._events: list[Event] = []
         self._outgoing: list[bytes] = []
         self.failed = False
+
+    def set_receive_limit(self, max_bytes: int) -> None:
+        """Change the size limit of received messages (e.g. small until the hello)."""
+        self._receive_limit = max_bytes
+        if self._decoder is not None:
+            self._decoder.max_message_bytes = max_bytes
 
     def receive_data(self, data: bytes | bytearray | memoryview) -> None:
         """Take received bytes (TCP: any chunk; WebSocket: one whole message)."""
@@ -94,7 +101,7 @@ class ProtocolConnection:
         for payload in payloads:
             try:
                 self._events.append(MessageReceived(
-                    decode(payload, max_message_bytes=self.max_message_bytes), len(payload)))
+                    decode(payload, max_message_bytes=self._receive_limit), len(payload)))
             except RemoteProtocolError as err:
                 self._events.append(MessageRejected(err))
 

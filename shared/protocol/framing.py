@@ -30,7 +30,7 @@ class LengthPrefixDecoder:
     """
 
     def __init__(self, max_message_bytes: int) -> None:
-        self._max = max_message_bytes
+        self.max_message_bytes = max_message_bytes
         self._buffer = bytearray()
         self._need: int | None = None  # payload length once the header is read
 
@@ -53,8 +53,9 @@ class LengthPrefixDecoder:
                 if len(self._buffer) < HEADER.size:
                     return out
                 (length,) = HEADER.unpack_from(self._buffer)
-                if length > self._max:
-                    raise OversizeError(f"frame announces {length} bytes, limit is {self._max}")
+                if length > self.max_message_bytes:
+                    raise OversizeError(f"frame announces {length} bytes, limit is "
+                                        f"{self.max_message_bytes}")
                 if length == 0:
                     raise MalformedMessageError("frame of length 0")
                 del self._buffer[:HEADER.size]

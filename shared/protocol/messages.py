@@ -167,7 +167,7 @@ class Hello(Message):
     TYPE: ClassVar[str] = "hello"
     role: str = "observer"
     session: str = ""
-    token: str = ""
+    token: str = field(default="", repr=False)  # never in a log line through repr()
     name: str = ""
 
     def to_wire(self) -> dict[str, Any]:
@@ -179,7 +179,8 @@ class Hello(Message):
         t = cls.TYPE
         return cls(role=read_str(d, t, "role", choices=ROLES),
                    session=read_str(d, t, "session", pattern=SESSION_ID_PATTERN),
-                   token=read_str(d, t, "token", max_len=512),
+                   # no token is refused by the relay as `auth` (4001), not as a bad field
+                   token=read_str(d, t, "token", max_len=512) if "token" in d else "",
                    name=read_str(d, t, "name", max_len=64) if "name" in d else "")
 
 
@@ -296,22 +297,37 @@ class Stats(Message):
 
 @dataclass(frozen=True, slots=True)
 class Error(Message):
-    """A protocol or session error, sent before a close when ``fatal``."""
+    """A protocol or session error, sent before a close when ``fatal``.
+
+    ``stream`` and ``seq`` (optional) name the data message refused, for the per-message
+    refusals of one message (``queue_full``, ``no_peer``); absent otherwise.
+    """
 
     TYPE: ClassVar[str] = "error"
     code: str = "bad_message"
     message: str = ""
     fatal: bool = False
+    stream: str | None = None
+    seq: int | None = None
 
     def to_wire(self) -> dict[str, Any]:
-        return {"code": self.code, "message": self.message[:1024], "fatal": self.fatal}
+        out: dict[str, Any] = {"code": self.code, "message": self.message[:1024],
+                               "fatal": self.fatal}
+        if self.stream is not None:
+            out["stream"] = self.stream
+        if self.seq is not None:
+            out["seq"] = self.seq
+        return out
 
     @classmethod
     def from_wire(cls, d: Mapping[str, Any]) -> Error:
         t = cls.TYPE
         return cls(code=read_str(d, t, "code", max_len=64),
                    message=read_str(d, t, "message", max_len=1024),
-                   fatal=read_bool(d, t, "fatal"))
+                   fatal=read_bool(d, t, "fatal"),
+                   stream=read_str(d, t, "stream", max_len=64)
+                   if read_optional(d, "stream") else None,
+                   seq=read_int(d, t, "seq") if read_optional(d, "seq") else None)
 
 
 @dataclass(frozen=True, slots=True)

@@ -30,6 +30,7 @@ from shared.clocksync import ClockFilter, ClockSample
 from shared.errors import (
     HandshakeTimeoutError,
     InputDataError,
+    LimitError,
     LocalProtocolError,
     MalformedMessageError,
     OversizeError,
@@ -60,6 +61,7 @@ from shared.protocol.messages import (
     Welcome,
 )
 from shared.protocol.queues import StreamQueue
+from shared.protocol.ratelimit import TokenBucket
 
 __all__ = [
     "ClockSampled",
@@ -210,9 +212,17 @@ PeerEvent = HelloReceived | DataReceived | StatsReported | ClockSampled | Closin
 
 @dataclass(frozen=True)
 class PeerSettings:
-    """Per-connection protocol settings of the relay (all times in microseconds)."""
+    """Per-connection protocol settings of the relay (all times in microseconds).
+
+    ``max_hello_bytes`` bounds what a connection may send before its hello is accepted
+    (the TCP framing buffers no more than that); ``rate_limit_per_s`` and
+    ``rate_limit_burst`` are the token bucket of received messages after the hello.
+    """
 
     max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
+    max_hello_bytes: int = 64 * 1024
+    rate_limit_per_s: float = 5000.0
+    rate_limit_burst: int = 10_000
     ordered_queue_len: int = 256
     bad_message_budget: int = 20
     hello_timeout_us: int = 5_000_000
@@ -249,6 +259,12 @@ class PeerSession:
         self.close_code: int | None = None
         self.close_reason = ""
         self._conn = ProtocolConnection(framing, settings.max_message_bytes)
+        self._conn.set_receive_limit(min(settings.max_hello_bytes, settings.max_message_bytes))
+        self._bucket = TokenBucket(settings.rate_limit_per_s, settings.rate_limit_burst, now_us)
+        self._over_rate = 0  # messages refused in the current over-rate episode
+        self._rate_used = 0  # messages since the bucket was last read
+        self._rate_free = self._bucket.tokens  # tokens at that reading
+        self._rate_warned = False
         self._events: list[PeerEvent] = []
         self._held: list[tuple[Event, int]] | None = None  # between hello and accept()
         self._joined = False
@@ -283,6 +299,12 @@ class PeerSession:
         else:
             self._conn.receive_data(data)
             events = self._conn.events_received()
+        if self._joined and events:
+            # the hot path is a counter: the bucket is only consulted once the messages
+            # since its last reading exceed the tokens it had then
+            self._rate_used += len(events)
+            if self._rate_used > self._rate_free:
+                events = self._settle_rate(events, now_us)
         for event in events:
             if self.closing:
                 return
@@ -292,6 +314,40 @@ class PeerSession:
                 self._first(event)
             else:
                 self._process(event, now_us)
+
+    def _settle_rate(self, events: list[Event], now_us: int) -> list[Event]:
+        """Charge the bucket for the messages counted since its last reading; return the
+        events it still allows (only this chunk's can be refused: the earlier ones fitted
+        in the tokens of the last reading)."""
+        used, self._rate_used = self._rate_used, 0
+        refused = used - self._bucket.take(used, now_us)
+        self._rate_free = self._bucket.tokens
+        if refused:
+            self._rate_exceeded(refused)
+            return events[:len(events) - refused]
+        if self._over_rate and self._rate_free * 2 >= self._bucket.burst:
+            self._over_rate = 0  # calm again (half the bucket back): the episode is over
+        return events
+
+    def _rate_exceeded(self, refused: int) -> None:
+        """Messages over the rate limit are discarded; the first of an episode gets a
+        non-fatal ``rate_limited`` error, more than a burst of them closes the connection.
+        An episode ends when the bucket is half full again."""
+        self.counters["rate_limited"] += refused
+        s = self.settings
+        first = self._over_rate == 0
+        self._over_rate += refused
+        if self._over_rate > s.rate_limit_burst:
+            self.fail(LimitError(f"over {s.rate_limit_per_s:g} messages/s for more than "
+                                 f"{s.rate_limit_burst} messages", code="rate_limited"))
+            return
+        if first:
+            message = (f"over {s.rate_limit_per_s:g} messages/s (burst "
+                       f"{s.rate_limit_burst}): {refused} message(s) discarded")
+            if not self._rate_warned:
+                self._rate_warned = True
+                log.warning("%s %s: rate_limited: %s", self.framing, self.where, message)
+            self.reply(Error(code="rate_limited", message=message, fatal=False))
 
     def events_received(self) -> list[PeerEvent]:
         """Return and clear the events produced so far."""
@@ -315,6 +371,7 @@ class PeerSession:
         process what the peer sent behind its hello."""
         self.outbox.put_ordered(welcome, force=True)
         self._joined = True
+        self._conn.set_receive_limit(self.settings.max_message_bytes)
         s = self.settings
         if welcome.role != "observer" and s.ping_burst:
             # stats wait for the burst; then periodic pings and stats start together

@@ -98,3 +98,31 @@ def test_merge_matches_pooled_reference() -> None:
     assert merged.dropped == {"latest_wins": 3}
     assert merged.jitter_us == max(a.jitter_us, b.jitter_us)
     assert merge_snapshots([]).received == 0
+
+
+def test_a_huge_sequence_jump_is_a_reset_not_loss() -> None:
+    """Issue 11: one seq of 2^63 - 1 made ``lost`` 9.2e18 for the rest of the connection."""
+    ledger = LatencyLedger(64, max_seq_jump=1000)
+    for seq in range(10):
+        ledger.record(seq, 0, 10)
+    ledger.record(2**63 - 1, 0, 10)
+    assert ledger.lost == 0 and ledger.seq_resets == 1
+    ledger.record(0, 0, 10)  # the sender restarts from 0: another reset, still no loss
+    ledger.record(2, 0, 10)  # then a real gap of one
+    assert (ledger.lost, ledger.seq_resets) == (1, 2)
+    snap = ledger.snapshot()
+    assert (snap.lost, snap.seq_resets) == (1, 2)
+    assert snap.as_dict()["seq_resets"] == 2
+    assert merge_snapshots([snap, snap]).seq_resets == 4
+
+
+@settings(max_examples=80, deadline=None)
+@given(seqs=st.lists(st.integers(0, 2**63 - 1), min_size=1, max_size=200),
+       max_jump=st.integers(1, 10_000))
+def test_lost_is_bounded_by_the_jump_limit(seqs: list[int], max_jump: int) -> None:
+    """Whatever the seqs, each run adds at most max_jump per arrival to ``lost``."""
+    ledger = LatencyLedger(16, max_seq_jump=max_jump)
+    for seq in seqs:
+        ledger.record(seq, 0, 1)
+    assert 0 <= ledger.lost <= len(seqs) * max_jump
+    assert ledger.seq_resets <= len(seqs) - 1

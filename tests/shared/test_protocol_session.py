@@ -350,3 +350,20 @@ def test_any_split_of_the_stream_gives_the_same_events(cuts: list[int]) -> None:
     while (m := receiver.next_message()) is not None:
         got.append((m.TYPE, m.seq))  # type: ignore[attr-defined]
     assert got == [*(("arm_command", s) for s in range(6)), ("platform_state", 5)]
+
+
+@settings(max_examples=60, deadline=None)
+@given(rate=st.floats(1.0, 1e5), burst=st.integers(1, 10_000),
+       steps=st.lists(st.tuples(st.integers(0, 10**6), st.integers(0, 5000)), max_size=50))
+def test_token_bucket_never_grants_more_than_burst_plus_refill(
+        rate: float, burst: int, steps: list[tuple[int, int]]) -> None:
+    from shared.protocol.ratelimit import TokenBucket
+
+    bucket = TokenBucket(rate, burst, 0)
+    t = granted = 0
+    for dt, count in steps:
+        t += dt
+        got = bucket.take(count, t)
+        assert 0 <= got <= count
+        granted += got
+    assert granted <= burst + rate * t / 1e6 + 1e-6
