@@ -343,7 +343,10 @@ async def run_benchmark_async(*, sessions: list[int], rate_hz: float, duration_s
             "p99": max((r["p99"] for r in res if r["p99"] is not None), default=None),
             "max": max((r["max"] for r in res if r["max"] is not None), default=None),
             "latest_wins_drops": drops}
-    async with relay_process(ordered_queue_len=4096) as (_, tcp_port, pid):
+    # saturation measures forwarding capacity: the per-connection message-rate limit (5,000/s
+    # by default, far above the real streams) is lifted for this phase only
+    async with relay_process(ordered_queue_len=4096, rate_limit_per_s=1e9,
+                             rate_limit_burst=10**9) as (_, tcp_port, pid):
         tput = await _throughput(tcp_port, 4, throughput_s, window=1024, pid=pid)
     key = str(max(sessions))
     return {
