@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
 
-from shared.ledger import LatencyLedger, merge_snapshots
+from shared.ledger import LatencyLedger, merge_snapshots, percentiles
 
 
 def reference_jitter(transits: np.ndarray) -> float:
@@ -126,3 +127,13 @@ def test_lost_is_bounded_by_the_jump_limit(seqs: list[int], max_jump: int) -> No
         ledger.record(seq, 0, 1)
     assert 0 <= ledger.lost <= len(seqs) * max_jump
     assert ledger.seq_resets <= len(seqs) - 1
+
+
+@settings(max_examples=200, deadline=None)
+@given(hnp.arrays(np.int64, st.integers(1, 300), elements=st.integers(-10**12, 10**12)),
+       st.lists(st.floats(0.0, 100.0), min_size=1, max_size=4))
+def test_percentiles_match_numpy(values: np.ndarray, qs: list[float]) -> None:
+    """The partial-sort percentiles are numpy's linear-interpolation percentiles."""
+    ours = percentiles(values, tuple(qs))
+    ref = np.percentile(values, qs)
+    np.testing.assert_allclose(ours, ref, rtol=1e-12, atol=1e-3)
