@@ -32,6 +32,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--session", help="session id")
     parser.add_argument("--token", help="session token (prefer $TELETOUCH_REMOTE_LINK_TOKEN)")
     parser.add_argument("--name", help="label shown in the relay's status")
+    parser.add_argument("--ca-file", dest="ca_file", metavar="PEM",
+                        help="CA to trust for wss:// and tls:// (a lab CA; default: the "
+                             "system's trust store)")
     parser.add_argument("--arm", default="sim", help="arm backend: sim, franka (default sim)")
     parser.add_argument("--sensor", default="sim",
                         help="sensor: sim, camera, or a camera index / URL / video file")
@@ -77,6 +80,7 @@ def run(args: argparse.Namespace) -> int:
 
     options = AgentOptions(
         relay=args.relay, session=args.session, token=args.token, name=args.name,
+        ca_file=args.ca_file,
         arm=args.arm, sensor=args.sensor, sensor_preset=args.sensor_preset,
         sensor_fps=args.sensor_fps, sensor_loop=args.sensor_loop, phantom=args.phantom,
         seed=args.seed,

@@ -56,6 +56,7 @@ class AgentOptions:
         session: session id.
         token: session token (prefer ``TELETOUCH_REMOTE_LINK_TOKEN``).
         name: label shown in the relay's status.
+        ca_file: CA certificate (PEM) to trust for ``wss://`` and ``tls://`` relays.
         arm: arm backend name (``sim``, ``franka`` or ``module:Class``).
         sensor: sensor name (``sim``, ``camera``) or a camera index / URL / video file.
         sensor_preset: camera crop / size preset (``mini-raw``, ``mini-recording``); None:
@@ -78,6 +79,7 @@ class AgentOptions:
     session: str | None = None
     token: str | None = None
     name: str | None = None
+    ca_file: str | None = None
     arm: str = "sim"
     sensor: str = "sim"
     sensor_preset: str | None = None
@@ -131,7 +133,7 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
     toml = options.config_path
     link_cfg = resolve_config(StationLinkConfig, "remote.link", toml_path=toml, explicit={
         "url": options.relay, "session": options.session, "token": options.token,
-        "name": options.name})
+        "name": options.name, "ca_file": options.ca_file})
     safety = resolve_config(SafetyConfig, "arm.safety", toml_path=toml)
     stiffness_cfg = resolve_config(StiffnessConfig, "stiffness", toml_path=toml)
     agent_cfg = resolve_config(RemoteAgentConfig, "remote.agent", toml_path=toml, explicit={
