@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
 import hmac
 import itertools
 import json
@@ -486,6 +487,25 @@ class _Connection:
         await self.transport.close(close_code, reason)
 
 
+#: gen-0 collection every this many allocations (Python's default is 700), gen 1 every 50 of
+#: those, gen 2 every 1,000 gen-1 runs: a forwarded message allocates a few objects, and with
+#: the defaults the relay's tail latency was its garbage collector's pauses
+_GC_THRESHOLDS = (50_000, 50, 1_000)
+
+
+def _tune_gc_for_latency() -> None:
+    """Freeze what start-up allocated and collect rarely (the relay process only).
+
+    Objects that live as long as the process (modules, settings, listeners) are moved out of
+    the collector's way (``gc.freeze``) and collections run less often, so that forwarding is
+    not paused by sweeps of them: in a paired run the relay's added p99 at one session went from
+    1.8-6.2 ms to 1.0-1.4 ms (the previous release: 1.1-1.6 ms), with the same p50.
+    """
+    gc.collect()
+    gc.freeze()
+    gc.set_threshold(*_GC_THRESHOLDS)
+
+
 async def serve_forever(config: RelayConfig,
                         started: Callable[[RelayServer], None] | None = None) -> None:
     """Run a relay until SIGINT or SIGTERM, then shut it down gracefully.
@@ -496,6 +516,7 @@ async def serve_forever(config: RelayConfig,
     """
     relay = RelayServer(config)
     await relay.start()
+    _tune_gc_for_latency()
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
