@@ -14,7 +14,9 @@ from __future__ import annotations
 
 import asyncio
 import os
+import shutil
 import socket
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -93,3 +95,9 @@ def require_kit(path: Path) -> Path:
     if os.environ.get("CI", "").strip().lower() in ("true", "1", "yes"):
         pytest.fail(message)
     pytest.skip(message)
+
+
+def teletouch_cmd() -> list[str]:
+    """The ``teletouch`` command as a new user runs it (the console script, else the module)."""
+    exe = shutil.which("teletouch")
+    return [exe] if exe else [sys.executable, "-m", "lab.cli"]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import time
 
@@ -28,6 +29,16 @@ async def http_get(port: int, path: str) -> tuple[int, dict[str, str], str]:
     lines = head.decode().split("\r\n")
     headers = dict(line.split(": ", 1) for line in lines[1:])
     return int(lines[0].split()[1]), headers, body.decode()
+
+
+async def wait_relay_ready(port: int, timeout_s: float = 20.0) -> None:
+    """Wait (scaled) until a relay process answers ``GET /status`` on ``port``."""
+    async with asyncio.timeout(scaled(timeout_s)):
+        while True:
+            with contextlib.suppress(OSError):
+                if (await http_get(port, "/status"))[0] == 200:
+                    return
+            await asyncio.sleep(0.1)
 
 
 async def round_trip_ms(local: Client, remote: Client, seq: int) -> float:

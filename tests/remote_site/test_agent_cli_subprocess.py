@@ -11,18 +11,16 @@ import asyncio
 import contextlib
 import json
 import os
-import shutil
 import signal
-import sys
 from pathlib import Path
 
 from lab.ground_truth import write_ground_truth
 from relay_server.auth import derive_token
 from remote_site.agent.world import build_world
 from shared.workspace import WorkspaceMap
-from tests.relay_server.test_relay_isolation_and_status import http_get
+from tests.relay_server.test_relay_isolation_and_status import http_get, wait_relay_ready
 from tests.remote_site.test_agent_relay import SESSION, check_press_result, fake_local
-from tests.support import free_tcp_port, scaled
+from tests.support import free_tcp_port, scaled, teletouch_cmd
 
 SUMMARY_KEYS = {"role", "elapsed_s", "frames", "platform_states", "arm_commands", "arm",
                 "stiffness", "latency_ms", "link", "session", "arm_backend", "sensor_backend",
@@ -44,8 +42,7 @@ async def _remote_joined(port: int) -> bool:
 
 
 async def test_relay_and_remote_as_processes(tmp_path: Path) -> None:
-    exe = shutil.which("teletouch")
-    cmd = [exe] if exe else [sys.executable, "-m", "lab.cli"]
+    cmd = teletouch_cmd()
     port, tcp_port = free_tcp_port(), free_tcp_port()
     env = dict(os.environ, TELETOUCH_RELAY_SECRET="sub-secret")
     token = derive_token("sub-secret", SESSION)
@@ -55,12 +52,7 @@ async def test_relay_and_remote_as_processes(tmp_path: Path) -> None:
         stderr=asyncio.subprocess.DEVNULL)
     remote = None
     try:
-        async with asyncio.timeout(scaled(20.0)):
-            while True:
-                with contextlib.suppress(OSError):
-                    if (await http_get(port, "/status"))[0] == 200:
-                        break
-                await asyncio.sleep(0.1)
+        await wait_relay_ready(port)
         truth_path, summary_path = tmp_path / "truth.json", tmp_path / "summary.json"
         write_ground_truth(build_world("severity", 2), truth_path, WorkspaceMap())
         remote_env = dict(os.environ, TELETOUCH_REMOTE_LINK_TOKEN=token)

@@ -22,9 +22,7 @@ import asyncio
 import contextlib
 import json
 import os
-import shutil
 import signal
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -42,8 +40,8 @@ from remote_site.reconstruction.labels import BallLabel, labels_from_npz, write_
 from shared.client import StationLink
 from shared.protocol import TactileFrame
 from shared.workspace import WorkspaceMap
-from tests.relay_server.test_relay_isolation_and_status import http_get
-from tests.support import REPO_ROOT, free_tcp_port, kit_path, require_kit, scaled
+from tests.relay_server.test_relay_isolation_and_status import wait_relay_ready
+from tests.support import REPO_ROOT, free_tcp_port, kit_path, require_kit, scaled, teletouch_cmd
 
 DATA = kit_path("data", "gelsight", "gsmini_ball_9.47mm")
 BALL_RADIUS_MM = 4.735
@@ -210,8 +208,7 @@ async def _stop(proc: asyncio.subprocess.Process) -> None:
 async def _run_session(video: Path, calib: Path, summary_path: Path, n_presses: int
                        ) -> list[TactileFrame]:
     """Relay and remote as processes, the test as the local station; the frames received."""
-    exe = shutil.which("teletouch")
-    cmd = [exe] if exe else [sys.executable, "-m", "lab.cli"]
+    cmd = teletouch_cmd()
     port = free_tcp_port()
     env = dict(os.environ, TELETOUCH_RELAY_SECRET="video-secret")
     token = derive_token("video-secret", SESSION)
@@ -220,12 +217,7 @@ async def _run_session(video: Path, calib: Path, summary_path: Path, n_presses: 
         stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.DEVNULL)
     remote = None
     try:
-        async with asyncio.timeout(scaled(20.0)):
-            while True:
-                with contextlib.suppress(OSError):
-                    if (await http_get(port, "/status"))[0] == 200:
-                        break
-                await asyncio.sleep(0.1)
+        await wait_relay_ready(port)
         remote = await asyncio.create_subprocess_exec(
             *cmd, "remote", "--relay", f"ws://127.0.0.1:{port}/", "--session", SESSION,
             "--arm", "sim", "--sensor", str(video), "--sensor-preset", "mini-recording",
