@@ -5,7 +5,12 @@
 
     session                 session id
     role                    the receiving peer's role
-    clock_offset_us         {local, remote}: station clock minus relay clock (min-delay filter)
+    clock_offset_us         {local, remote}: station clock minus relay clock (the middle of
+                              the clock filter's interval, see shared.clocksync)
+    clock_uncertainty_us    {local, remote}: bound on that offset's error when the stats
+                              were built (half the interval plus drift since the last
+                              exchange); a station adds its own drift allowance for the
+                              time since it received them
     rtt_us                  {local, remote}: round trip of the chosen clock sample
     delay_us                {local_to_remote, remote_to_local}:
                               {station_to_relay, relay, relay_to_station, end_to_end}:
@@ -35,10 +40,12 @@ Prometheus text exposition (``teletouch_relay_*``).
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 from relay_server.session import Peer, Session
 from shared.ledger import LatencyLedger, LedgerSnapshot
+from shared.timebase import now_us
 
 __all__ = ["prometheus_text", "session_metrics", "session_status"]
 
@@ -65,11 +72,15 @@ def _receiver_downlink(session: Session, direction: str) -> LatencyLedger | None
 def session_metrics(session: Session, role: str) -> dict[str, Any]:
     """The ``stats`` metrics of a session as seen by a peer of ``role`` (see module doc)."""
     offsets: dict[str, int | None] = {}
+    uncertainty: dict[str, int | None] = {}
     rtts: dict[str, int | None] = {}
     depth: dict[str, int] = {}
+    t_now = now_us()
     for r in ("local", "remote"):
         peer = _station(session, r)
         off = None if peer is None else peer.clock.offset_us
+        unc = None if peer is None else peer.clock.uncertainty_us(t_now)
+        uncertainty[r] = None if unc is None else math.ceil(unc)
         rtt = None if peer is None else peer.clock.delay_us
         offsets[r] = None if off is None else round(off)
         rtts[r] = None if rtt is None else round(rtt)
@@ -97,7 +108,7 @@ def session_metrics(session: Session, role: str) -> dict[str, Any]:
         forwarded[d] = ds.forwarded
         resets[d] = up.seq_resets
     return {"session": session.session_id, "role": role, "clock_offset_us": offsets,
-            "rtt_us": rtts, "delay_us": delay, "jitter_us": jitter, "rate_hz": rate,
+            "clock_uncertainty_us": uncertainty, "rtt_us": rtts, "delay_us": delay, "jitter_us": jitter, "rate_hz": rate,
             "forwarded": forwarded, "drops": drops, "seq_resets": resets, "queue_depth": depth,
             "observers": len(session.observers)}
 

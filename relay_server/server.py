@@ -26,6 +26,7 @@ import hmac
 import itertools
 import json
 import logging
+import secrets
 import signal
 import ssl
 from collections import Counter
@@ -40,7 +41,13 @@ from relay_server.auth import TokenAuthority, load_token_file
 from relay_server.config import RelayConfig
 from relay_server.metrics import prometheus_text, session_metrics, session_status
 from relay_server.session import Peer, Session
-from shared.errors import ConfigError, LimitError, ProtocolError, SessionError
+from shared.errors import (
+    ConfigError,
+    LimitError,
+    ProtocolError,
+    ReplacedError,
+    SessionError,
+)
 from shared.protocol import Hello, Stats, Welcome
 from shared.protocol.peer_session import (
     ClockSampled,
@@ -114,6 +121,8 @@ class RelayServer:
         self._ws_server: Server | None = None
         self._tcp_server: asyncio.Server | None = None
         self._handlers: set[asyncio.Task[Any]] = set()
+        #: fire-and-forget tasks (closing replaced connections), kept referenced
+        self._background: set[asyncio.Task[Any]] = set()
         self._connections: set[_Connection] = set()
         self._per_ip: Counter[str] = Counter()
         self.tls = _server_tls_context(config)
@@ -286,8 +295,13 @@ class RelayServer:
         peer = Peer(peer_id=next(self._peer_ids), session_id=hello.session, role=hello.role,
                     name=hello.name, transport=conn.transport.framing,
                     outbox=conn.protocol.outbox, window=self.config.ledger_window,
-                    clock=conn.protocol.clock)
-        session.join(peer)
+                    clock=conn.protocol.clock, resume_secret=secrets.token_hex(16),
+                    evict=conn.evict, request_stats=conn.request_stats)
+        replaced = session.join(peer, hello.resume)
+        if replaced is not None:
+            self.counters["resumed"] += 1
+            log.info("session %s: %s reconnected; its previous connection (peer %d) replaced",
+                     hello.session, hello.role, replaced.peer_id)
         self.sessions[hello.session] = session
         return session, peer
 
@@ -399,6 +413,11 @@ class _Connection:
                 peer, session = self.peer, self.session
             elif isinstance(ev, ClockSampled) and peer is not None:
                 peer.record_clock_exchange(ev.t0_us, ev.t1_us, ev.sample.delay_us)
+                if ev.stepped and session is not None:
+                    self._restart_ticker()  # the burst starts now
+                    for other in (*session.stations.values(), *session.observers.values()):
+                        if other.request_stats is not None:
+                            other.request_stats()
             elif isinstance(ev, StatsReported) and peer is not None:
                 peer.reported = ev.metrics
         if peer is not None:
@@ -417,7 +436,8 @@ class _Connection:
         self.protocol.accept(Welcome(session=hello.session, role=hello.role,
                                      server_time_us=now_us(),
                                      ping_interval_s=cfg.ping_interval_s,
-                                     max_message_bytes=cfg.max_message_bytes), now_us())
+                                     max_message_bytes=cfg.max_message_bytes,
+                                     resume=self.peer.resume_secret), now_us())
         if isinstance(self.transport, WsTransport):  # the hello limit is over: full size now
             self.transport.ws.protocol.max_message_size = 2 * cfg.max_message_bytes
         self._restart_ticker()  # the schedule changed: pings and stats instead of the timeout
@@ -460,6 +480,24 @@ class _Connection:
             return
         if ps.closing:
             await self.transport.close(ps.close_code or 1000, ps.close_reason)
+
+    def request_stats(self) -> None:
+        """Push ``stats`` at once (see :meth:`PeerSession.stats_soon`)."""
+        self.protocol.stats_soon(now_us())
+        self._restart_ticker()
+
+    def evict(self) -> None:
+        """A newer connection of the same station replaced this one: tell it (if it still
+        listens) and close. The peer is already out of its session."""
+        self.session, self.peer = None, None  # the teardown must not drop the new peer
+        self.protocol.fail(ReplacedError("a newer connection of this station resumed the "
+                                         "session"))
+        self.wake.set()
+        # a silent (blackholed) socket may never drain the writer: close it regardless
+        task = asyncio.get_running_loop().create_task(
+            self.transport.close(ReplacedError.close_code, "replaced"))
+        self.relay._background.add(task)
+        task.add_done_callback(self.relay._background.discard)
 
     async def shutdown(self) -> None:
         """Relay shutdown: bye, drain the writer (bounded), close with 1001."""

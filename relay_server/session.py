@@ -9,7 +9,9 @@ its relay residence time and end-to-end estimate.
 
 from __future__ import annotations
 
+import hmac
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -90,6 +92,12 @@ class Peer:
     received: int = 0
     bad_messages: int = 0
     observer_drops: int = 0
+    #: the per-connection secret given in ``welcome`` (a reconnect proves it to replace us)
+    resume_secret: str = field(default="", repr=False)
+    #: closes this peer's connection when a newer one of the same station replaces it
+    evict: Callable[[], None] | None = field(default=None, repr=False)
+    #: pushes ``stats`` to this peer at once (a station's clock offset changed)
+    request_stats: Callable[[], None] | None = field(default=None, repr=False)
     reported: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -133,19 +141,36 @@ class Session:
         """No peer left."""
         return not self.stations and not self.observers
 
-    def join(self, peer: Peer) -> None:
+    def join(self, peer: Peer, resume: str = "") -> Peer | None:
         """Add a peer.
 
+        Args:
+            peer: the new peer.
+            resume: the ``resume`` secret of the hello; when it matches the secret of the
+                connection holding the role, that connection is the same station's older one
+                (dead or silent: the station would not reconnect otherwise) and is replaced.
+
+        Returns:
+            The replaced peer (already removed, its ``evict`` called), or None.
+
         Raises:
-            RoleTakenError: ``local``/``remote`` already held in this session.
+            RoleTakenError: ``local``/``remote`` already held in this session by another
+                station (no or a wrong ``resume`` secret).
         """
         if peer.role == "observer":
             self.observers[peer.peer_id] = peer
-            return
-        if peer.role in self.stations:
-            raise RoleTakenError(f"role {peer.role!r} is already taken in session "
-                                 f"{self.session_id!r}")
+            return None
+        holder = self.stations.get(peer.role)
+        if holder is not None:
+            if not (resume and holder.resume_secret
+                    and hmac.compare_digest(resume.encode(), holder.resume_secret.encode())):
+                raise RoleTakenError(f"role {peer.role!r} is already taken in session "
+                                     f"{self.session_id!r}")
+            del self.stations[peer.role]
+            if holder.evict is not None:
+                holder.evict()
         self.stations[peer.role] = peer
+        return holder
 
     def leave(self, peer: Peer) -> None:
         """Remove a peer (no-op if it is not here)."""

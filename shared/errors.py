@@ -196,6 +196,14 @@ class RoleTakenError(SessionError):
     close_code = 4002
 
 
+class ReplacedError(SessionError):
+    """A newer connection of the same station resumed the session (it proved the
+    per-connection ``resume`` secret of this one), so the relay closed this one."""
+
+    code = "replaced"
+    close_code = 4004
+
+
 class HandshakeTimeoutError(SessionError):
     """The peer sent no ``hello`` within the deadline."""
 

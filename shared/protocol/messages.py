@@ -169,10 +169,15 @@ class Hello(Message):
     session: str = ""
     token: str = field(default="", repr=False)  # never in a log line through repr()
     name: str = ""
+    #: the ``resume`` secret of this station's previous connection (``""``: none)
+    resume: str = field(default="", repr=False)
 
     def to_wire(self) -> dict[str, Any]:
-        return {"role": self.role, "session": self.session, "token": self.token,
-                "name": self.name}
+        out = {"role": self.role, "session": self.session, "token": self.token,
+               "name": self.name}
+        if self.resume:
+            out["resume"] = self.resume
+        return out
 
     @classmethod
     def from_wire(cls, d: Mapping[str, Any]) -> Hello:
@@ -181,7 +186,8 @@ class Hello(Message):
                    session=read_str(d, t, "session", pattern=SESSION_ID_PATTERN),
                    # no token is refused by the relay as `auth` (4001), not as a bad field
                    token=read_str(d, t, "token", max_len=512) if "token" in d else "",
-                   name=read_str(d, t, "name", max_len=64) if "name" in d else "")
+                   name=read_str(d, t, "name", max_len=64) if "name" in d else "",
+                   resume=read_str(d, t, "resume", max_len=64) if "resume" in d else "")
 
 
 @dataclass(frozen=True, slots=True)
@@ -194,11 +200,18 @@ class Welcome(Message):
     server_time_us: int = 0
     ping_interval_s: float = 1.0
     max_message_bytes: int = 0
+    #: per-connection secret: a reconnecting station sends it in its next ``hello`` and the
+    #: relay replaces this connection if it is still held (``""``: the relay gives none)
+    resume: str = field(default="", repr=False)
 
     def to_wire(self) -> dict[str, Any]:
-        return {"session": self.session, "role": self.role,
-                "server_time_us": self.server_time_us, "ping_interval_s": self.ping_interval_s,
-                "max_message_bytes": self.max_message_bytes}
+        out: dict[str, Any] = {"session": self.session, "role": self.role,
+                               "server_time_us": self.server_time_us,
+                               "ping_interval_s": self.ping_interval_s,
+                               "max_message_bytes": self.max_message_bytes}
+        if self.resume:
+            out["resume"] = self.resume
+        return out
 
     @classmethod
     def from_wire(cls, d: Mapping[str, Any]) -> Welcome:
@@ -207,7 +220,8 @@ class Welcome(Message):
                    role=read_str(d, t, "role", choices=ROLES),
                    server_time_us=read_int(d, t, "server_time_us"),
                    ping_interval_s=read_float(d, t, "ping_interval_s", lo=0.0, hi=3600.0),
-                   max_message_bytes=read_int(d, t, "max_message_bytes"))
+                   max_message_bytes=read_int(d, t, "max_message_bytes"),
+                   resume=read_str(d, t, "resume", max_len=64) if "resume" in d else "")
 
 
 @dataclass(frozen=True, slots=True)

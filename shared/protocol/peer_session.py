@@ -26,7 +26,7 @@ from collections import Counter, OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from shared.clocksync import ClockFilter, ClockSample
+from shared.clocksync import ClockFilter, ClockSample, sample_from_timestamps
 from shared.errors import (
     HandshakeTimeoutError,
     InputDataError,
@@ -197,6 +197,9 @@ class ClockSampled:
     t0_us: int
     t1_us: int
     sample: ClockSample
+    #: the sample revealed a clock step (the filter restarted from it; a ping burst and an
+    #: early ``stats`` follow, so the stations learn the new offset within the burst)
+    stepped: bool = False
 
 
 @dataclass(frozen=True, slots=True)
@@ -454,11 +457,23 @@ class PeerSession:
             self.counters["stray_pong"] += 1
             return
         try:
-            sample = self.clock.add_timestamps(t0, pong.t1_us, pong.t2_us, t3_us)
+            sample = sample_from_timestamps(t0, pong.t1_us, pong.t2_us, t3_us)
+            stepped = self.clock.add(sample)
         except InputDataError:
             self.counters["stray_pong"] += 1
             return
-        self._events.append(ClockSampled(t0, pong.t1_us, sample))
+        if stepped:
+            self.counters["clock_steps"] += 1
+            log.warning("%s: clock step detected (offset now %.0f us); re-measuring",
+                        self.where, sample.offset_us)
+            if self.settings.ping_burst:
+                self._burst_left, self._next_ping_us = self.settings.ping_burst, t3_us
+        self._events.append(ClockSampled(t0, pong.t1_us, sample, stepped))
+
+    def stats_soon(self, now_us: int) -> None:
+        """Push ``stats`` at the next tick (a station's clock changed: all must know)."""
+        if self._joined and self._next_stats_us is not None:
+            self._next_stats_us = min(self._next_stats_us, now_us)
 
     # ------------------------------------------------------------------ time
 
@@ -492,7 +507,9 @@ class PeerSession:
             elif self._burst_left == 1:  # the burst is over
                 self._burst_left = 0
                 self._next_ping_us = now_us + s.ping_burst_spacing_us + s.ping_interval_us
-                self._next_stats_us = now_us + s.ping_burst_spacing_us + s.stats_interval_us
+                # the first stats right after the burst: the stations need the offsets to
+                # age-check what they receive, and they refuse to act before they have them
+                self._next_stats_us = now_us + s.ping_burst_spacing_us
             else:
                 self._next_ping_us += s.ping_interval_us
                 if self._next_ping_us < now_us:

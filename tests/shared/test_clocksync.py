@@ -96,3 +96,74 @@ def test_filter_keeps_only_last_n_samples() -> None:
 def test_filter_rejects_bad_size() -> None:
     with pytest.raises(ValueError):
         ClockFilter(0)
+
+
+# --------------------------------------------------------------------------- bounds and steps
+
+@settings(max_examples=200)
+@given(offset=st.integers(-10**9, 10**9), seed=st.integers(0, 2**32 - 1),
+       n=st.integers(1, 20), max_delay=st.integers(0, 300_000))
+def test_true_offset_always_inside_the_reported_bound(offset: int, seed: int, n: int,
+                                                      max_delay: int) -> None:
+    """Whatever the (non-negative) path delays, |estimate - truth| <= uncertainty."""
+    rng = random.Random(seed)
+    filt = ClockFilter(8)
+    t0 = 10**12
+    for _ in range(n):
+        up, down = rng.randint(0, max_delay), rng.randint(0, max_delay)
+        stepped = filt.add(sample_from_timestamps(*exchange(offset, t0, up, rng.randint(0, 500),
+                                                            down)))
+        assert not stepped  # no step happened, none may be reported
+        est, unc = filt.offset_us, filt.uncertainty_us(t0 + 2 * max_delay)
+        assert est is not None and unc is not None
+        assert abs(est - offset) <= unc + 1e-6
+        best = filt.best  # never worse than the least-queued sample's own bound, aged
+        assert best is not None
+        latest = filt.latest
+        assert latest is not None
+        aged = max(t0 + 2 * max_delay, latest.t3_us) - best.t3_us
+        assert unc <= best.delay_us / 2 + 500e-6 * aged + 1e-6
+        t0 += rng.randint(1, 2_000_000)
+
+
+@settings(max_examples=200)
+@given(offset=st.integers(-10**9, 10**9), step=st.integers(-10**7, 10**7).filter(
+    lambda s: abs(s) > 2_000), seed=st.integers(0, 2**32 - 1))
+def test_a_clock_step_is_followed_at_the_next_exchange(offset: int, step: int,
+                                                       seed: int) -> None:
+    """8 samples before the step, then one after: the filter reports the step (when the
+    step is larger than the intervals can hide) and the new estimate bounds the new truth."""
+    rng = random.Random(seed)
+    filt = ClockFilter(8)
+    t0 = 10**12
+    for _ in range(8):
+        filt.add(sample_from_timestamps(*exchange(offset, t0, rng.randint(100, 400), 20,
+                                                  rng.randint(100, 400))))
+        t0 += 1_000_000
+    stepped = filt.add(sample_from_timestamps(*exchange(offset + step, t0,
+                                                        rng.randint(100, 400), 20,
+                                                        rng.randint(100, 400))))
+    assert stepped and filt.steps == 1 and len(filt) == 1
+    est, unc = filt.offset_us, filt.uncertainty_us()
+    assert est is not None and unc is not None
+    assert abs(est - (offset + step)) <= unc + 1e-6
+    assert unc <= 400  # one exchange of at most 800 us round trip
+
+
+def test_drift_within_the_bound_is_not_a_step() -> None:
+    """Clocks 400 ppm apart over 20 s, sampled each second on a 200 us path: no step."""
+    filt = ClockFilter(8, drift_ppm=500.0)
+    t0 = 10**12
+    for i in range(20):
+        off = 1000 + round(400e-6 * i * 1_000_000)
+        assert not filt.add(sample_from_timestamps(*exchange(off, t0, 100, 10, 100)))
+        t0 += 1_000_000
+        assert abs((filt.offset_us or 0) - off) <= (filt.uncertainty_us() or 0) + 1e-6
+
+
+def test_uncertainty_grows_with_time_since_the_last_exchange() -> None:
+    filt = ClockFilter(8, drift_ppm=100.0)
+    assert filt.uncertainty_us(0) is None and filt.interval() is None
+    filt.add(sample_from_timestamps(*exchange(0, 10**9, 500, 0, 500)))
+    assert filt.uncertainty_us() == pytest.approx(500)  # one exchange: half its round trip
+    assert filt.uncertainty_us(10**9 + 1000 + 10_000_000) == pytest.approx(500 + 1000)
