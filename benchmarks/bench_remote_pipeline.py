@@ -52,6 +52,7 @@ from remote_site.sensor.simulator import SimulatedSensor
 from remote_site.stiffness.estimator import StiffnessConfig, estimate_press
 from remote_site.tactile import TactileAssembler
 from shared.client import LinkCounters
+from shared.freshness import ClockView
 from shared.protocol import Message, PlatformState, TactileFrame
 from shared.report import emit, format_table
 from shared.timebase import now_us
@@ -70,6 +71,8 @@ class MemoryLink:
         self.inbox: asyncio.Queue[Message] = asyncio.Queue()
         self.is_connected = True
         self.clock_offsets_us: dict[str, int | None] = {"local": 0, "remote": 0}
+        # one process, one clock: exact offsets (zero error bound)
+        self.clock_view = ClockView(self.clock_offsets_us, {"local": 0, "remote": 0}, 0)
 
     def link_down_for_s(self, now_s: float | None = None) -> float:
         return 0.0

@@ -3,9 +3,10 @@
 With a relay: reads the platform (>= 500 Hz), sends platform_state to the relay, renders
 the tactile frames it receives on the ArrayTac pins at the refresh rate, answers the
 relay's clock pings and shows a live status line. Link loss longer than
---link-loss-timeout (default 100 ms) or no tactile frame for --stale-timeout puts the pins
-in their safe state (--safe-state flat|hold); the link reconnects with backoff and
-rendering resumes when frames arrive again.
+--link-loss-timeout (default 100 ms), no tactile frame for --stale-timeout, or a frame that
+may be older than --max-frame-age by its own capture stamp (clock-corrected with the relay's
+offsets and their error bound) puts the pins in their safe state (--safe-state flat|hold); the
+link reconnects with backoff and rendering resumes when fresh frames arrive again.
 
 Without a relay: --scene SHAPE|FILE.npz renders a virtual shape (hemisphere, cone, cube,
 bow, semi-ellipsoid, triangular-prism; "hemisphere:radius_mm=8,k=0.7", placed at the
@@ -68,6 +69,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                       help="safe state after the link is down this long (default 0.1)")
     tune.add_argument("--stale-timeout", type=float, metavar="S",
                       help="safe state after no tactile frame for this long (default 0.1)")
+    tune.add_argument("--max-frame-age", type=float, metavar="S",
+                      help="never render a tactile frame that may be older than this, by its "
+                           "own capture stamp (default 0.15)")
     tune.add_argument("--send-rate", type=float, metavar="HZ",
                       help="platform_state rate to the relay (default 250)")
     tune.add_argument("--render-rate", type=float, metavar="HZ",
@@ -93,7 +97,8 @@ def run(args: argparse.Namespace) -> int:
         "platform": args.platform, "display": args.display, "motion": args.motion,
         "scene": args.scene, "safe_state": args.safe_state,
         "link_loss_timeout_s": args.link_loss_timeout,
-        "stale_frame_timeout_s": args.stale_timeout, "platform_send_rate_hz": args.send_rate,
+        "stale_frame_timeout_s": args.stale_timeout, "max_frame_age_s": args.max_frame_age,
+        "platform_send_rate_hz": args.send_rate,
         "render_rate_hz": args.render_rate, "render_loop": args.render_loop,
         "record_max_frames": args.record_max_frames}
     config = resolve_config(LocalAgentConfig, "local.agent", explicit=agent_flags,

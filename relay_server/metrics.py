@@ -108,7 +108,8 @@ def session_metrics(session: Session, role: str) -> dict[str, Any]:
         forwarded[d] = ds.forwarded
         resets[d] = up.seq_resets
     return {"session": session.session_id, "role": role, "clock_offset_us": offsets,
-            "clock_uncertainty_us": uncertainty, "rtt_us": rtts, "delay_us": delay, "jitter_us": jitter, "rate_hz": rate,
+            "clock_uncertainty_us": uncertainty, "rtt_us": rtts, "delay_us": delay,
+            "jitter_us": jitter, "rate_hz": rate,
             "forwarded": forwarded, "drops": drops, "seq_resets": resets, "queue_depth": depth,
             "observers": len(session.observers)}
 

@@ -2,8 +2,12 @@
 
 :class:`StationLink` connects a station (``local``, ``remote`` or ``observer``) to the relay
 over WebSocket (``ws://``, ``wss://``) or length-prefixed TCP (``tcp://``) and keeps it up:
-it reconnects with exponential backoff and jitter (0.1 s doubling to 5 s by default) and
-resumes transparently; ``link_down_since`` tells the station how long it has been cut off
+it reconnects with exponential backoff and jitter (0.1 s doubling to 0.5 s by default: a
+connection attempt costs little, and fresh data must flow within a second of the relay's
+return) and resumes transparently: its hello carries the previous connection's ``resume``
+secret, so the relay replaces our old connection if it still holds it. Messages queued while
+the link was down are dropped at the next welcome, never delivered late;
+``link_down_since`` tells the station how long it has been cut off
 so it can go to its safe state (100 ms rule).
 
 The protocol itself (hello/welcome, pong answers, the ``station_rx`` hop stamp, the latest
@@ -13,10 +17,11 @@ for state streams, ordered and bounded for the rest) is
 :mod:`shared.transport`. This module only moves bytes, waits and retries.
 
 Refusals that retrying cannot fix are final: a wrong token (:class:`~shared.errors.AuthError`)
-and a role held by someone else (:class:`~shared.errors.RoleTakenError`, except within
-``role_taken_grace_s`` after our own connection dropped, when the relay may still hold our
-old connection). They are logged once and raised from ``wait_connected``, ``send`` and
-``recv``.
+and our connection replaced by another one proving our resume secret
+(:class:`~shared.errors.ReplacedError`). They are logged once and raised from
+``wait_connected``, ``send`` and ``recv``. A role held by another station
+(:class:`~shared.errors.RoleTakenError`) is not final: the other may leave, so the link logs
+it and keeps retrying (a station never gives up on a transient fault).
 
 Example::
 
@@ -41,7 +46,15 @@ from typing import Any
 
 from websockets.exceptions import WebSocketException
 
-from shared.errors import AuthError, ConfigError, ProtocolError, RoleTakenError, SessionError
+from shared.errors import (
+    AuthError,
+    ConfigError,
+    ProtocolError,
+    ReplacedError,
+    RoleTakenError,
+    SessionError,
+)
+from shared.freshness import ClockView, clock_view_from_stats
 from shared.link_settings import (
     StationLinkConfig,
     backoff_delay_s,
@@ -103,8 +116,6 @@ class StationLink:
         receive_queue_size: bound of ordered messages waiting in the inbox.
         write_buffer_bytes: bytes the socket may buffer before the link holds back; a small
             value keeps latest-wins effective when the link is slow.
-        role_taken_grace_s: after a connection loss, keep retrying a ``role_taken`` refusal
-            this long (the relay may not yet have noticed our old connection died).
         ssl_context: TLS context for ``wss://`` and ``tls://`` (the system default when
             None); :func:`~shared.link_settings.client_tls_context` makes one for a CA file.
         seed: seed of the backoff jitter (None: random).
@@ -114,12 +125,12 @@ class StationLink:
     """
 
     def __init__(self, url: str, *, session: str, role: str, token: str, name: str = "",
-                 reconnect_min_s: float = 0.1, reconnect_max_s: float = 5.0,
+                 reconnect_min_s: float = 0.1, reconnect_max_s: float = 0.5,
                  reconnect_jitter: float = 0.5, connect_timeout_s: float = 5.0,
-                 liveness_timeout_s: float = 5.0,
+                 liveness_timeout_s: float = 3.0,
                  max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
                  send_queue_size: int = 256, receive_queue_size: int = 1024,
-                 write_buffer_bytes: int = 16 * 1024, role_taken_grace_s: float = 10.0,
+                 write_buffer_bytes: int = 16 * 1024,
                  ssl_context: ssl.SSLContext | None = None, seed: int | None = None) -> None:
         self.scheme, self.host, self.port = parse_link_url(url)
         if role not in ROLES:
@@ -143,7 +154,6 @@ class StationLink:
         self._reconnect = (reconnect_min_s, reconnect_max_s, reconnect_jitter)
         self._connect_timeout_s = connect_timeout_s
         self._write_buffer_bytes = max(0, write_buffer_bytes)
-        self._role_taken_grace_s = role_taken_grace_s
         self._ssl_context = ssl_context
         self._rng = random.Random(seed)
 
@@ -164,6 +174,7 @@ class StationLink:
         self._task: asyncio.Task[None] | None = None
         self._closing = False
         self._down_logged = False
+        self._clock_view: tuple[Stats, ClockView] | None = None
 
     @classmethod
     def from_config(cls, config: StationLinkConfig, role: str, **overrides: Any) -> StationLink:
@@ -291,6 +302,18 @@ class StationLink:
                          else None) for k, v in raw.items()}
 
     @property
+    def clock_view(self) -> ClockView | None:
+        """The relay's clock offsets and their error bounds as last received on this
+        connection (None before the first ``stats`` of the current connection)."""
+        stats, rx_us = self._session.latest_stats, self._session.latest_stats_rx_us
+        if stats is None or rx_us is None:
+            return None
+        cached = self._clock_view
+        if cached is None or cached[0] is not stats:
+            cached = self._clock_view = (stats, clock_view_from_stats(stats.metrics, rx_us))
+        return cached[1]
+
+    @property
     def clock_offset_us(self) -> int | None:
         """This station's clock minus the relay's (None until the relay reports it)."""
         return self.clock_offsets_us.get(self.role)
@@ -376,20 +399,23 @@ class StationLink:
 
     async def _supervise(self) -> None:
         attempt = 0
-        lost_at: float | None = None
+        taken_logged = False
         while not self._closing:
             try:
                 await self._connect_once()
-            except (AuthError, RoleTakenError) as err:
-                if not (isinstance(err, RoleTakenError) and lost_at is not None
-                        and monotonic_s() - lost_at < self._role_taken_grace_s):
-                    self.final_error = err
-                    log.error("relay %s refused %s/%s for good (%s: %s); not retrying",
-                              self.url, self._session.hello.session, self.role,
-                              type(err).__name__, err)
-                    self._wake_all()
-                    return
-                log.info("relay still holds role %s; retrying", self.role)
+            except (AuthError, ReplacedError) as err:
+                self.final_error = err
+                log.error("relay %s refused %s/%s for good (%s: %s); not retrying",
+                          self.url, self._session.hello.session, self.role,
+                          type(err).__name__, err)
+                self._wake_all()
+                return
+            except RoleTakenError as err:
+                self.counters.role_taken_refusals += 1
+                if not taken_logged:
+                    log.warning("relay %s: %s; another station holds the role, retrying "
+                                "until it leaves", self.url, err)
+                    taken_logged = True
             except (OSError, TimeoutError, SessionError, ProtocolError,
                     WebSocketException) as err:
                 if not self._down_logged:
@@ -399,10 +425,10 @@ class StationLink:
                 elif log.isEnabledFor(logging.DEBUG):
                     log.debug("reconnect attempt %d failed: %s", attempt, err)
             if self.link_down_since is None:  # we had been welcomed: start afresh
-                attempt, lost_at = 0, None
+                attempt, taken_logged = 0, False
             if self._session.connection_lost() or self.connected.is_set():
                 self.connected.clear()
-                self.link_down_since = lost_at = monotonic_s()
+                self.link_down_since = monotonic_s()
             if self._closing:
                 return
             delay = backoff_delay_s(attempt, min_s=self._reconnect[0],

@@ -15,9 +15,10 @@ drift times the sample's age (Marzullo's idea with one source): the truth lies i
 intersection. The estimate is the least-queued sample's offset (the RFC 5905 minimum-delay
 idea: queueing only adds delay, the least-queued exchange is the most symmetric one),
 clamped into the intersection, and its distance to the far end of the intersection is a
-*bound* on its error: the uncertainty that the safety checks use. An empty intersection means a clock stepped (or
-drifted beyond the bound): the filter keeps only the samples consistent with the newest one
-and counts a step, so it follows a step with the next exchange instead of after the window.
+*bound* on its error: the uncertainty that the safety checks use. An empty intersection
+means a clock stepped (or drifted beyond the bound): the filter keeps only the samples
+consistent with the newest one and counts a step, so it follows a step with the next
+exchange instead of after the window.
 
 All times are integer microseconds. Convert a station timestamp to relay time with
 ``t_relay = t_station - offset_us``.

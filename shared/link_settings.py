@@ -114,8 +114,8 @@ class StationLinkConfig:
     token: str = ""
     name: str = ""
     reconnect_min_s: float = 0.1
-    reconnect_max_s: float = 5.0
+    reconnect_max_s: float = 0.5
     connect_timeout_s: float = 5.0
-    liveness_timeout_s: float = 5.0
+    liveness_timeout_s: float = 3.0
     max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
     ca_file: str | None = None

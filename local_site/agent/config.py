@@ -36,6 +36,10 @@ class LocalAgentConfig:
         safe_state: display safe state on link loss / stale scene / lost platform.
         link_loss_timeout_s: link down longer than this puts the display in its safe state.
         stale_frame_timeout_s: no tactile frame for this long (while linked) does the same.
+        max_frame_age_s: a tactile frame that may be older than this by its own capture
+            stamp (clock-corrected with the relay's offsets, their error bound included) is
+            never rendered; the pins go to their safe state instead.
+        max_offset_uncertainty_s: frames are not rendered while that error bound is wider.
         platform_send_rate_hz: platform_state messages per second to the relay (at most).
         render_rate_hz: display loop rate (the array refresh; >= 500 Hz required).
         render_loop: ``thread`` or ``asyncio`` (where the display loop runs).
@@ -66,6 +70,8 @@ class LocalAgentConfig:
     safe_state: str = "flat"
     link_loss_timeout_s: float = 0.1
     stale_frame_timeout_s: float = 0.1
+    max_frame_age_s: float = 0.15
+    max_offset_uncertainty_s: float = 0.03
     platform_send_rate_hz: float = 250.0
     render_rate_hz: float = 1000.0
     render_loop: str = "thread"
@@ -90,7 +96,8 @@ class LocalAgentConfig:
         if self.render_loop not in RENDER_LOOP_MODES:
             raise ConfigError(f"local.agent.render_loop must be one of {RENDER_LOOP_MODES}, "
                               f"got {self.render_loop!r}")
-        positive = ("link_loss_timeout_s", "stale_frame_timeout_s", "platform_send_rate_hz",
+        positive = ("link_loss_timeout_s", "stale_frame_timeout_s", "max_frame_age_s",
+                    "max_offset_uncertainty_s", "platform_send_rate_hz",
                     "render_rate_hz", "platform_read_timeout_s", "device_retry_min_s",
                     "device_retry_max_s", "display_keepalive_interval_s",
                     "status_interval_s")

@@ -7,9 +7,14 @@ One iteration (:meth:`DisplayLoop.tick`):
    out of range, malformed) is rejected and counted and the pins are not touched;
 2. decide whether the pins must be in their safe state, in this order: the platform is
    lost, the link has been down longer than ``link_loss_timeout_s``, no frame has
-   arrived yet, the last frame is older than ``stale_timeout_s`` (the last two only for the
-   remote stream). Entering the safe state sends ``safe_state(mode)`` once; while in it,
-   nothing else is sent (the board's watchdog is set to the same mode). It is left as
+   arrived yet, the clock offsets needed to age the frame are unknown or too uncertain
+   (``clock_uncertain``), the frame *may* be older than ``max_frame_age_s`` by its own
+   capture stamp (converted to our clock with the relay's offsets, error bound included:
+   :func:`shared.freshness.judge_age`), or no frame arrived for ``stale_timeout_s`` (the
+   last four only for the remote stream). So a frame held in a queue or a socket during an
+   outage, or frozen with a stopped process, is never rendered as fresh: its stamp says how
+   old it is, whenever it arrives. Entering the safe state sends ``safe_state(mode)`` once;
+   while in it, nothing else is sent (the board's watchdog is set to the same mode). It is left as
    soon as no reason remains (for the remote stream: a fresh frame arrived);
 3. render the scene at the newest platform position; the renderer returns the same
    object when nothing changed, in which case only the driver's keepalive runs;
@@ -40,6 +45,7 @@ from local_site.recording import SessionRecorder
 from local_site.render import PinCommand, Renderer
 from local_site.scenes import SceneSource, TactileFrameScene
 from shared.errors import ConfigError, DeviceError, DeviceInitError, InputDataError
+from shared.freshness import AgeVerdict, ClockView, judge_age
 from shared.motion_to_touch import MotionToTouchLedger
 from shared.protocol import Hop, TactileFrame
 from shared.timebase import monotonic_s, now_us
@@ -49,7 +55,8 @@ __all__ = ["SAFE_REASONS", "DisplayLoop", "DisplayLoopCounters", "FrameSlot", "L
 log = logging.getLogger(__name__)
 
 #: why the pins are in their safe state, in order of precedence
-SAFE_REASONS = ("platform_lost", "link_lost", "no_frames", "stale_scene", "shutdown")
+SAFE_REASONS = ("platform_lost", "link_lost", "no_frames", "clock_uncertain", "stale_frame",
+                "stale_scene", "shutdown")
 
 
 class LinkHealth(Protocol):
@@ -59,6 +66,9 @@ class LinkHealth(Protocol):
 
     @property
     def clock_offsets_us(self) -> Mapping[str, int | None]: ...
+
+    @property
+    def clock_view(self) -> ClockView | None: ...
 
 
 class FrameSlot:
@@ -103,6 +113,8 @@ class DisplayLoopCounters:
     display_errors: int = 0
     display_reconnects: int = 0
     last_reject_reason: str | None = None
+    #: the oldest clock-corrected capture age of a frame while it was on the pins (ms)
+    rendered_frame_age_max_ms: float = 0.0
 
 
 class DisplayLoop:
@@ -119,7 +131,11 @@ class DisplayLoop:
         frames: the frame hand-over (remote stream only).
         link: the relay link (remote stream only).
         link_loss_timeout_s: link down longer than this -> safe state.
-        stale_timeout_s: remote scene older than this -> safe state.
+        stale_timeout_s: no frame arrived for this long -> safe state.
+        max_frame_age_s: a frame that may be older than this (capture stamp, clock-corrected,
+            error bound included) is not rendered (safe state ``stale_frame``).
+        max_offset_uncertainty_s: frames are not rendered while the clock offsets' error
+            bound is wider than this (safe state ``clock_uncertain``).
         recorder: records every accepted frame (optional).
         ledger: motion-to-touch accounting (optional).
         retry_min_s: first delay before reopening a failed display.
@@ -134,13 +150,16 @@ class DisplayLoop:
                  platform_ok: Callable[[], bool], rate_hz: float = 1000.0,
                  safe_mode: SafeMode = "flat", frames: FrameSlot | None = None,
                  link: LinkHealth | None = None, link_loss_timeout_s: float = 0.1,
-                 stale_timeout_s: float = 0.1, recorder: SessionRecorder | None = None,
+                 stale_timeout_s: float = 0.1, max_frame_age_s: float = 0.15,
+                 max_offset_uncertainty_s: float = 0.03,
+                 recorder: SessionRecorder | None = None,
                  ledger: MotionToTouchLedger | None = None, retry_min_s: float = 0.2,
                  retry_max_s: float = 5.0) -> None:
         if frames is not None and not isinstance(scene, TactileFrameScene):
             raise ConfigError("a frame hand-over needs a TactileFrameScene")
-        if not rate_hz > 0 or not link_loss_timeout_s > 0 or not stale_timeout_s > 0:
-            raise ConfigError("rate and timeouts of the display loop must be > 0")
+        if not (rate_hz > 0 and link_loss_timeout_s > 0 and stale_timeout_s > 0
+                and max_frame_age_s > 0 and max_offset_uncertainty_s > 0):
+            raise ConfigError("rate, timeouts and age bounds of the display loop must be > 0")
         self.display = display
         self.renderer = renderer
         self.scene = scene
@@ -154,6 +173,12 @@ class DisplayLoop:
         self.link = link
         self._link_loss_timeout_s = link_loss_timeout_s
         self._stale_timeout_s = stale_timeout_s
+        self._max_frame_age_us = max_frame_age_s * 1e6
+        self._max_uncertainty_us = max_offset_uncertainty_s * 1e6
+        #: the current frame's capture stamp (sender clock) and (our clock minus the
+        #: sender's, error bound) when it was taken in; None: the clock was unknown
+        self._frame_stamp_us: int | None = None
+        self._frame_clock: tuple[float, float] | None = None
         self.recorder = recorder
         self.ledger = ledger
         self._retry_min_s = retry_min_s
@@ -162,6 +187,8 @@ class DisplayLoop:
         self.counters = DisplayLoopCounters()
         #: current safe-state reason (None: rendering)
         self.safe_reason: str | None = None
+        #: why the last frame was judged unusable (for the status line and logs)
+        self.last_frame_verdict: AgeVerdict | None = None
         self._safe_since_s: float | None = None
         self._last_command: PinCommand | None = None
         self._pending_hops: tuple[tuple[Hop, ...], int] | None = None
@@ -189,6 +216,9 @@ class DisplayLoop:
                 log.warning("tactile frame seq=%s rejected, pins untouched: %s", frame.seq, err)
             return
         self.counters.frames_accepted += 1
+        self._frame_stamp_us = frame.ts_us
+        view = self.link.clock_view if self.link is not None else None
+        self._frame_clock = None if view is None else view.relative("local", "remote", now_us())
         if self._pending_hops is not None:
             self.counters.frames_superseded_unrendered += 1
         self._pending_hops = (tuple(frame.hops), scene.version)
@@ -203,10 +233,19 @@ class DisplayLoop:
             return "link_lost"
         if self._stream is not None:
             age_s = self._stream.age_s(now_s)
-            if age_s is None:
+            if age_s is None or self._frame_stamp_us is None:
                 return "no_frames"
+            verdict = judge_age(self._frame_stamp_us, now_us(), self._frame_clock,
+                                max_age_us=self._max_frame_age_us,
+                                max_uncertainty_us=self._max_uncertainty_us)
+            if not verdict.fresh:
+                self.last_frame_verdict = verdict
+                return "stale_frame" if verdict.verdict == "stale" else "clock_uncertain"
             if age_s > self._stale_timeout_s:
                 return "stale_scene"
+            if verdict.age_us is not None:
+                self.counters.rendered_frame_age_max_ms = max(
+                    self.counters.rendered_frame_age_max_ms, verdict.age_us / 1000.0)
         return None
 
     def enter_safe_state(self, reason: str, now_s: float | None = None) -> None:

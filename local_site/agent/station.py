@@ -207,7 +207,8 @@ class LocalAgent:
             rate_hz=cfg.render_rate_hz, safe_mode=cfg.safe_state,  # type: ignore[arg-type]
             frames=self.frames if self.remote_mode else None, link=self.link,
             link_loss_timeout_s=cfg.link_loss_timeout_s,
-            stale_timeout_s=cfg.stale_frame_timeout_s, recorder=self.recorder,
+            stale_timeout_s=cfg.stale_frame_timeout_s, max_frame_age_s=cfg.max_frame_age_s,
+            max_offset_uncertainty_s=cfg.max_offset_uncertainty_s, recorder=self.recorder,
             ledger=self.ledger, retry_min_s=cfg.device_retry_min_s,
             retry_max_s=cfg.device_retry_max_s)
 
@@ -485,6 +486,7 @@ class LocalAgent:
             "frames_rendered": c.frames_rendered,
             "frames_rejected": c.frames_rejected,
             "frames_superseded": self.frames.superseded + c.frames_superseded_unrendered,
+            "rendered_frame_age_max_ms": round(c.rendered_frame_age_max_ms, 3),
             "motion_to_touch_ms": self.ledger.summary_ms(),
             "display_loop": {"mode": self.config.render_loop, **loop.periods.summary()},
             "platform": {"spec": self.config.platform, "reads": reader.reads,

@@ -28,8 +28,6 @@ class RemoteAgentConfig:
         arm_state_hz: rate of ``arm_state`` messages to the local station.
         link_loss_halt_ms: the arm is halted when the link has been down this long.
         sensor_max_age_ms: a sensor frame older than this is refused.
-        require_clock_offsets: drop platform states until the relay has reported both
-            stations' clock offsets (their age cannot be checked before).
         stiffness_cell_mm: cell size of the stiffness map.
         friction: value of the friction layer (0 for palpation).
         status_interval_s: how often the status line is refreshed.
@@ -42,7 +40,6 @@ class RemoteAgentConfig:
     arm_state_hz: float = 50.0
     link_loss_halt_ms: float = 100.0
     sensor_max_age_ms: float = 100.0
-    require_clock_offsets: bool = True
     stiffness_cell_mm: float = 2.0
     friction: float = 0.0
     status_interval_s: float = 1.0

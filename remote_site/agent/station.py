@@ -38,10 +38,11 @@ from remote_site.arm.safety import CommandResult, SafeArm
 from remote_site.tactile import AppliedCommand
 from shared.client import LinkCounters
 from shared.errors import InputDataError
+from shared.freshness import ClockView
 from shared.protocol.messages import ArmCommand, Message, PlatformState
 from shared.timebase import monotonic_s, now_us
 
-__all__ = ["RemoteStation", "StationCounters", "command_clock_offset_us", "percentiles_ms"]
+__all__ = ["RemoteStation", "StationCounters", "command_clock", "percentiles_ms"]
 
 log = logging.getLogger(__name__)
 
@@ -55,7 +56,7 @@ class _Link(Protocol):
     def is_connected(self) -> bool: ...
 
     @property
-    def clock_offsets_us(self) -> dict[str, int | None]: ...
+    def clock_view(self) -> ClockView | None: ...
 
     def link_down_for_s(self, now_s: float | None = None) -> float: ...
 
@@ -82,16 +83,10 @@ class StationCounters:
     stiffness_samples_rejected: int = 0
 
 
-def command_clock_offset_us(offsets_us: dict[str, int | None]) -> float | None:
-    """Our clock minus the local station's, from the relay's per-role offsets.
-
-    Each offset is a station's clock minus the relay's, so ``remote - local``; the command
-    age is then ``now_remote - (ts_local + offset)``. None when either is unknown.
-    """
-    off_remote, off_local = offsets_us.get("remote"), offsets_us.get("local")
-    if off_remote is None or off_local is None:
-        return None
-    return float(off_remote - off_local)
+def command_clock(view: ClockView | None) -> tuple[float, float] | None:
+    """Our clock minus the local station's, and its error bound, from the relay's offsets
+    (None when either is unknown: commands are then refused)."""
+    return None if view is None else view.relative("remote", "local", now_us())
 
 
 def percentiles_ms(samples_s: Any) -> dict[str, float] | None:
@@ -155,20 +150,19 @@ class RemoteStation:
             (clock offsets unknown, or an invalid position).
         """
         self.counters.platform_states += 1
-        offset_us = command_clock_offset_us(self.link.clock_offsets_us)
-        if offset_us is None:
-            if self.config.require_clock_offsets:
-                self.counters.platform_dropped_no_clock += 1
-                if not self._warned_no_clock:
-                    log.warning("clock offsets not reported by the relay yet: platform states "
-                                "are dropped until their age can be checked")
-                    self._warned_no_clock = True
-                return None
-            offset_us = 0.0
+        clock = command_clock(self.link.clock_view)
+        if clock is None:
+            self.counters.platform_dropped_no_clock += 1
+            if not self._warned_no_clock:
+                log.warning("clock offsets not reported by the relay yet: platform states "
+                            "are dropped until their age can be checked")
+                self._warned_no_clock = True
+            return None
         try:
             target = self.forward(state.position_mm)
             result = self.safe_arm.move(tuple(float(v) for v in target),
-                                        sent_ts_us=state.ts_us, clock_offset_us=offset_us)
+                                        sent_ts_us=state.ts_us, clock_offset_us=clock[0],
+                                        offset_uncertainty_us=clock[1])
         except InputDataError as err:
             self.counters.platform_invalid += 1
             log.warning("unusable platform_state %d: %s", state.seq, err)
@@ -185,8 +179,10 @@ class RemoteStation:
     def apply_arm_command(self, command: ArmCommand) -> CommandResult:
         """Apply an explicit arm command (stop always acts; the others are age-checked)."""
         self.counters.arm_commands += 1
-        offset_us = command_clock_offset_us(self.link.clock_offsets_us)
-        result = self.safe_arm.handle(command, clock_offset_us=offset_us or 0.0)
+        clock = command_clock(self.link.clock_view)
+        result = self.safe_arm.handle(command, clock_offset_us=None if clock is None
+                                      else clock[0],
+                                      offset_uncertainty_us=0.0 if clock is None else clock[1])
         if result.accepted:
             self.counters.arm_commands_applied += 1
         return result

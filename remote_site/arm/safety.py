@@ -21,7 +21,11 @@ conventions:
 
 Clock correction: a command stamped ``sent_ts_us`` on the sender's clock was sent at
 ``sent_ts_us + clock_offset_us`` on ours, where ``clock_offset_us`` is our clock minus the
-sender's (from the relay's clock-offset estimates of both stations).
+sender's (from the relay's clock-offset estimates of both stations), give or take
+``offset_uncertainty_us`` (their error bounds). The command is executed only when it is
+certainly younger than ``max_command_age_ms`` (:func:`shared.freshness.judge_age`): an
+unknown offset, a bound wider than ``max_offset_uncertainty_ms``, or a stamp later than now
+by more than the bound (a clock stepped since the offsets were measured) all refuse it.
 """
 
 from __future__ import annotations
@@ -34,6 +38,7 @@ from dataclasses import dataclass, field
 
 from remote_site.arm.base import Arm, ArmReading, Vec3, as_vec3
 from shared.errors import ConfigError
+from shared.freshness import judge_age
 from shared.protocol.messages import ArmCommand
 from shared.timebase import monotonic_s, now_us
 
@@ -47,7 +52,10 @@ class SafetyConfig:
     """Safety settings (resolve with ``shared.config.resolve_config(..., "arm.safety")``).
 
     Attributes:
-        max_command_age_ms: commands older than this (clock-corrected) are dropped.
+        max_command_age_ms: commands that may be older than this (clock-corrected, error
+            bound included) are dropped.
+        max_offset_uncertainty_ms: commands are dropped while the clock offsets' error bound
+            is wider than this (the age could not be judged finely enough).
         command_timeout_ms: no command for this long halts the arm.
         force_limit_n: the pressing force limit.
         force_release_ratio: the limit releases below this fraction of it.
@@ -56,6 +64,7 @@ class SafetyConfig:
     """
 
     max_command_age_ms: float = 100.0
+    max_offset_uncertainty_ms: float = 30.0
     command_timeout_ms: float = 100.0
     force_limit_n: float = 10.0
     force_release_ratio: float = 0.8
@@ -63,8 +72,8 @@ class SafetyConfig:
     max_press_step_mm: float = 0.3
 
     def __post_init__(self) -> None:
-        vals = (self.max_command_age_ms, self.command_timeout_ms, self.force_limit_n,
-                self.max_press_step_mm)
+        vals = (self.max_command_age_ms, self.max_offset_uncertainty_ms,
+                self.command_timeout_ms, self.force_limit_n, self.max_press_step_mm)
         if not all(math.isfinite(v) and v > 0 for v in vals):
             raise ConfigError("arm safety: ages, timeout and force limit must be finite and > 0")
         if not 0 < self.force_release_ratio <= 1:
@@ -83,6 +92,8 @@ class CommandResult:
         status: an ``ARM_STATUSES`` value describing the outcome.
         clamped: the target was changed by the workspace box or the force limit.
         age_ms: clock-corrected age of the command, when it carried a timestamp.
+        refused: why an age-checked command was refused (a
+            :data:`shared.freshness.Verdict` other than ``fresh``), else None.
     """
 
     accepted: bool
@@ -90,6 +101,7 @@ class CommandResult:
     status: str
     clamped: bool = False
     age_ms: float | None = None
+    refused: str | None = None
 
 
 @dataclass
@@ -99,6 +111,8 @@ class SafetyCounters:
     commands: int = 0
     applied: int = 0
     dropped_stale: int = 0
+    #: refused because the clock offsets were unknown, too uncertain or inconsistent
+    dropped_clock: int = 0
     clamped: int = 0
     force_limited: int = 0
     press_rate_limited: int = 0
@@ -158,13 +172,15 @@ class SafeArm:
     # --------------------------------------------------------------- commands
 
     def move(self, target_mm: Sequence[float], *, sent_ts_us: int | None = None,
-             clock_offset_us: float = 0.0) -> CommandResult:
+             clock_offset_us: float | None = 0.0,
+             offset_uncertainty_us: float = 0.0) -> CommandResult:
         """Apply a move target if fresh, clamped and force-limited.
 
         Args:
             target_mm: target (phantom mm).
             sent_ts_us: sender's timestamp of the command (None: not age-checked).
-            clock_offset_us: our clock minus the sender's.
+            clock_offset_us: our clock minus the sender's (None: unknown, refused).
+            offset_uncertainty_us: the error bound of ``clock_offset_us``.
 
         Returns:
             The outcome, with the applied target.
@@ -177,13 +193,26 @@ class SafeArm:
             self.counters.commands += 1
             age_ms = None
             if sent_ts_us is not None:
-                age_ms = (self._wall_us() - (sent_ts_us + clock_offset_us)) / 1000.0
-                self.counters.max_age_ms = max(self.counters.max_age_ms, age_ms)
-                if age_ms > self.config.max_command_age_ms:
-                    self.counters.dropped_stale += 1
+                cfg = self.config
+                verdict = judge_age(
+                    sent_ts_us, self._wall_us(),
+                    None if clock_offset_us is None
+                    else (clock_offset_us, offset_uncertainty_us),
+                    max_age_us=cfg.max_command_age_ms * 1000.0,
+                    max_uncertainty_us=cfg.max_offset_uncertainty_ms * 1000.0)
+                age_ms = None if verdict.age_us is None else verdict.age_us / 1000.0
+                if age_ms is not None:
+                    self.counters.max_age_ms = max(self.counters.max_age_ms, age_ms)
+                if not verdict.fresh:
+                    if verdict.verdict == "stale":
+                        self.counters.dropped_stale += 1
+                    else:
+                        self.counters.dropped_clock += 1
                     if log.isEnabledFor(logging.DEBUG):
-                        log.debug("dropped stale arm command (%.1f ms old)", age_ms)
-                    return CommandResult(False, None, "stale_command", False, age_ms)
+                        log.debug("dropped arm command: %s (age %s ms, +- %s us)",
+                                  verdict.verdict, age_ms, verdict.uncertainty_us)
+                    return CommandResult(False, None, "stale_command", False, age_ms,
+                                         verdict.verdict)
             self._last_command_s = self._mono()
             clamped_box = tuple(min(max(v, a), b)
                                 for v, a, b in zip(target, self._lo, self._hi, strict=True))
@@ -232,7 +261,8 @@ class SafeArm:
         with self._lock:
             self._force_limit_n = min(float(force_limit_n), self.config.force_limit_n)
 
-    def handle(self, command: ArmCommand, *, clock_offset_us: float = 0.0) -> CommandResult:
+    def handle(self, command: ArmCommand, *, clock_offset_us: float | None = 0.0,
+               offset_uncertainty_us: float = 0.0) -> CommandResult:
         """Apply a wire :class:`~shared.protocol.messages.ArmCommand`.
 
         ``move`` is age-checked like :meth:`move`; ``stop`` always acts (stopping is never
@@ -247,7 +277,8 @@ class SafeArm:
         target = command.target_mm if command.action == "move" else self.arm.limits.home_mm
         if target is None:
             return CommandResult(False, None, "fault")
-        return self.move(target, sent_ts_us=command.ts_us, clock_offset_us=clock_offset_us)
+        return self.move(target, sent_ts_us=command.ts_us, clock_offset_us=clock_offset_us,
+                         offset_uncertainty_us=offset_uncertainty_us)
 
     # --------------------------------------------------------------- watchdog
 

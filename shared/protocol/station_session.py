@@ -20,6 +20,7 @@ decision and the per-stream policy of the send queue and the inbox (``Message.PO
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections import deque
 from dataclasses import dataclass
@@ -29,6 +30,7 @@ from shared.errors import (
     HandshakeTimeoutError,
     ProtocolError,
     RemoteProtocolError,
+    ReplacedError,
     RoleTakenError,
     SessionError,
 )
@@ -69,7 +71,7 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-_REFUSALS = (AuthError, RoleTakenError, HandshakeTimeoutError)
+_REFUSALS = (AuthError, RoleTakenError, HandshakeTimeoutError, ReplacedError)
 _REFUSALS_BY_CODE: dict[str, type[SessionError]] = {c.code: c for c in _REFUSALS}
 _REFUSALS_BY_CLOSE: dict[int, type[SessionError]] = {c.close_code: c for c in _REFUSALS}
 _MAX_PENDING_PONGS = 16
@@ -91,8 +93,13 @@ class LinkCounters:
     messages_received: int = 0
     stale_dropped_tx: int = 0
     stale_dropped_rx: int = 0
+    #: messages queued while no connection was open, dropped at the next welcome
+    #: (data queued before an outage is stale: never delivered late)
+    dropped_on_reconnect: int = 0
     rejected_rx: int = 0
     pongs_sent: int = 0
+    #: hellos refused because another station held our role (retried)
+    role_taken_refusals: int = 0
 
 
 @dataclass(frozen=True, slots=True)
@@ -156,12 +163,15 @@ class StationSession:
         self.connect_timeout_us = connect_timeout_us
         self.liveness_timeout_us = liveness_timeout_us
         self.counters = LinkCounters()
-        #: encoded messages waiting for the relay (survive reconnections)
+        #: encoded messages waiting for the relay (what waits when a connection is welcomed
+        #: was queued while the link was down: it is dropped then, never delivered late)
         self.outbox: StreamQueue[bytes] = StreamQueue(send_queue_size)
         #: received messages waiting for the station
         self.inbox: StreamQueue[Message] = StreamQueue(receive_queue_size)
         self.welcome: Welcome | None = None
         self.latest_stats: Stats | None = None
+        #: when :attr:`latest_stats` arrived (our clock, us)
+        self.latest_stats_rx_us: int | None = None
         self._stamp_hops = hello.role in CLOCKS
         self._conn: ProtocolConnection | None = None
         self._open = False
@@ -234,6 +244,15 @@ class StationSession:
                 if isinstance(msg, Welcome):
                     self.welcome, self._open = msg, True
                     self.counters.connects += 1
+                    stale = len(self.outbox)
+                    if stale:
+                        self.outbox.clear()
+                        self.counters.dropped_on_reconnect += stale
+                    # offsets of the previous connection describe another clock exchange
+                    self.latest_stats = self.latest_stats_rx_us = None
+                    # our next hello proves we are this connection, so the relay can replace
+                    # it if it still holds it when we come back (session resumption)
+                    self.hello = dataclasses.replace(self.hello, resume=msg.resume)
                     self._events.append(Welcomed(msg))
                     continue
                 if isinstance(msg, Error):
@@ -255,7 +274,7 @@ class StationSession:
         if isinstance(msg, ClockPong | Welcome | Hello):
             return
         if isinstance(msg, Stats):
-            self.latest_stats = msg
+            self.latest_stats, self.latest_stats_rx_us = msg, now_us
         elif isinstance(msg, DataMessage) and self._stamp_hops:
             msg = msg.with_hop(self.role, "station_rx", now_us)
         elif isinstance(msg, Error) and log.isEnabledFor(logging.DEBUG):

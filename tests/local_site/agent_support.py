@@ -17,7 +17,7 @@ from shared.client import StationLink, StationLinkConfig
 from shared.protocol import Hop, PlatformState, TactileFrame
 from shared.timebase import now_us
 from tests.relay_server.relay_clients import SECRET
-from tests.support import async_wait_until
+from tests.support import async_wait_until, scaled
 
 SESSION = "agent-test"
 TOKEN = derive_token(SECRET, SESSION)
@@ -83,7 +83,10 @@ class FakeRemote:
 
 def relay_agent(url: str, tmp_path: Path | None = None, **overrides: Any) -> LocalAgent:
     """An in-process agent on the sim devices, platform held at (30, 30, 100) mm."""
-    settings: dict[str, Any] = dict(motion="hold:x=30,y=30,z=100", status_interval_s=0.25)
+    # frames made in this process are young unless the machine is loaded: the age bound is
+    # the subject of tests/local_site/test_display_loop_age.py, not of these
+    settings: dict[str, Any] = dict(motion="hold:x=30,y=30,z=100", status_interval_s=0.25,
+                                    max_frame_age_s=scaled(0.5))
     settings.update(overrides)
     link = StationLinkConfig(url=url, session=SESSION, token=TOKEN, reconnect_min_s=0.05,
                              reconnect_max_s=0.3)

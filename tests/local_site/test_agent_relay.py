@@ -82,7 +82,7 @@ async def test_platform_state_and_frames_flow_record_and_summary(tmp_path: Path)
 async def test_bad_frames_are_rejected_without_touching_the_pins() -> None:
     async with running_relay() as relay:
         url = f"ws://127.0.0.1:{relay.ws_port}/"
-        agent = relay_agent(url, stale_frame_timeout_s=30.0)
+        agent = relay_agent(url, stale_frame_timeout_s=30.0, max_frame_age_s=30.0)
         run = asyncio.create_task(agent.run())
         try:
             async with FakeRemote(url, height_mm=3.0) as remote:

@@ -26,7 +26,7 @@ from remote_site.agent.devices import (
     open_world_sensor,
 )
 from remote_site.agent.pipeline import FramePipeline
-from remote_site.agent.station import RemoteStation, command_clock_offset_us
+from remote_site.agent.station import RemoteStation, command_clock
 from remote_site.agent.stiffness_stage import StiffnessStage
 from remote_site.agent.world import SimWorld, build_world
 from remote_site.arm.safety import SafeArm, SafetyConfig
@@ -41,6 +41,7 @@ from remote_site.stiffness.estimator import StiffnessConfig
 from remote_site.tactile import TactileAssembler
 from shared.client import LinkCounters
 from shared.errors import CalibrationError, ConfigError
+from shared.freshness import ClockView
 from shared.protocol import ArmCommand, ArmState, Message, PlatformState, TactileFrame
 from shared.timebase import now_us
 from shared.workspace import WorkspaceMap
@@ -64,8 +65,8 @@ class FakeLink:
         return self.connected
 
     @property
-    def clock_offsets_us(self) -> dict[str, int | None]:
-        return dict(self.offsets)
+    def clock_view(self) -> ClockView | None:
+        return ClockView(dict(self.offsets), {k: 0 for k in self.offsets}, now_us())
 
     def link_down_for_s(self, now_s: float | None = None) -> float:
         return 0.0 if self.connected else self.down_s
@@ -112,10 +113,58 @@ def platform_state(seq: int, phantom_mm: tuple[float, float, float], ts_us: int 
     return PlatformState(seq=seq, ts_us=ts, position_mm=(float(p[0]), float(p[1]), float(p[2])))
 
 
-def test_clock_offset_is_remote_minus_local() -> None:
-    assert command_clock_offset_us({"local": 500, "remote": -200}) == -700
-    assert command_clock_offset_us({"local": None, "remote": 0}) is None
-    assert command_clock_offset_us({}) is None
+def test_clock_offset_is_remote_minus_local_with_both_bounds() -> None:
+    view = ClockView({"local": 500, "remote": -200}, {"local": 300, "remote": 40}, now_us())
+    clock = command_clock(view)
+    assert clock is not None and clock[0] == -700
+    assert 340 <= clock[1] < 345  # both bounds, plus drift since the view was received
+    assert command_clock(ClockView({"local": None, "remote": 0}, {"local": 1, "remote": 1},
+                                   now_us())) is None
+    assert command_clock(ClockView({"local": 1, "remote": 0}, {}, now_us())) is None
+    assert command_clock(None) is None
+
+
+def test_commands_are_refused_when_the_offset_is_too_uncertain() -> None:
+    """A command that is only 20 ms old is still refused while the offset's error bound is
+    wider than max_offset_uncertainty_ms (30 ms): its age cannot be judged."""
+    class Uncertain(FakeLink):
+        @property
+        def clock_view(self) -> ClockView | None:
+            return ClockView({"local": 0, "remote": 0}, {"local": 20_000, "remote": 15_000},
+                             now_us())
+
+    station = make_station(Uncertain(), realtime=False)
+    try:
+        res = station.apply_platform_state(platform_state(1, (0.0, 0.0, 5.0),
+                                                          ts_us=now_us() - 20_000))
+        assert res is not None and not res.accepted and res.refused == "uncertain_clock"
+        assert station.safe_arm.counters.dropped_clock == 1
+    finally:
+        close_station(station)
+
+
+def test_a_command_that_may_be_too_old_is_refused() -> None:
+    """80 ms old by the estimate, with a 25 ms bound: it may be 105 ms old, so refused."""
+    class Bounded(FakeLink):
+        @property
+        def clock_view(self) -> ClockView | None:
+            return ClockView({"local": 0, "remote": 0}, {"local": 12_500, "remote": 12_500},
+                             now_us())
+
+    station = make_station(Bounded(), realtime=False)
+    try:
+        res = station.apply_platform_state(platform_state(1, (0.0, 0.0, 5.0),
+                                                          ts_us=now_us() - 80_000))
+        assert res is not None and not res.accepted and res.refused == "stale"
+        res = station.apply_platform_state(platform_state(2, (0.0, 0.0, 5.0),
+                                                          ts_us=now_us() - 60_000))
+        assert res is not None and res.accepted
+        # a stamp from the future beyond the bound: the offsets are wrong (a clock stepped)
+        res = station.apply_platform_state(platform_state(3, (0.0, 0.0, 5.0),
+                                                          ts_us=now_us() + 40_000))
+        assert res is not None and not res.accepted and res.refused == "future"
+    finally:
+        close_station(station)
 
 
 def test_stale_platform_states_are_dropped_with_clock_correction() -> None:
@@ -368,6 +417,5 @@ def test_the_deploy_example_resolves_the_agent_settings() -> None:
     path = Path(__file__).resolve().parents[2] / "deploy" / "config" / "remote.toml"
     cfg = resolve_config(RemoteAgentConfig, "remote.agent", toml_path=path, environ={})
     assert cfg.frame_rate_hz == 60.0 and cfg.patch_size_mm == (0.0, 0.0)
-    assert cfg.require_clock_offsets
     with pytest.raises(ConfigError):
         RemoteAgentConfig(frame_rate_hz=0.0)

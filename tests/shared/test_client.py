@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from shared.client import LATEST_WINS_TYPES, StationLink, backoff_delay_s, parse_link_url
-from shared.errors import AuthError, ConfigError, LocalProtocolError, RoleTakenError
+from shared.errors import AuthError, ConfigError, LocalProtocolError
 from shared.protocol import (
     ArmCommand,
     ClockPing,
@@ -294,12 +294,15 @@ async def test_reconnects_after_the_relay_drops_and_resumes(relay: FakeRelay,
         assert link.link_down_since is not None
         await asyncio.sleep(0.01)
         assert link.link_down_for_s() > 0.0
-        # a command sent while down is delivered after the reconnect
+        # a command sent while down is stale by the time the link is back: dropped at the
+        # welcome, never delivered late; what is sent after the welcome goes through
         await link.send(ArmCommand(seq=1, ts_us=now_us(), action="stop"))
         await link.wait_connected(scaled(2.0))
         assert link.link_down_since is None and link.link_down_for_s() == 0.0
+        assert link.counters.dropped_on_reconnect == 1
+        await link.send(ArmCommand(seq=2, ts_us=now_us(), action="stop"))
         got = await relay.next_message(ArmCommand)
-        assert isinstance(got, ArmCommand) and got.seq == 1
+        assert isinstance(got, ArmCommand) and got.seq == 2
         assert link.counters.connects == 2 and link.counters.connection_losses == 1
         assert relay.hellos == 2
 
@@ -351,13 +354,16 @@ async def test_wrong_token_is_final_and_logged_once(relay: FakeRelay, scheme: st
     assert len(refusals) == 1
 
 
-async def test_role_taken_on_first_connect_is_final() -> None:
+async def test_role_taken_is_retried_not_final() -> None:
+    """Another station holds the role: it may leave, so the link keeps trying (a station
+    never gives up on a transient fault) and counts the refusals."""
     async with (FakeRelay(refuse_role_code="role_taken") as relay,
-                _link(relay.url("ws"), reconnect_min_s=0.01) as link):
-        with pytest.raises(RoleTakenError):
-            await link.wait_connected(scaled(2.0))
-        await asyncio.sleep(scaled(0.05))  # time for retries, had it retried
-        assert relay.hellos == 1
+                _link(relay.url("ws"), reconnect_min_s=0.01, reconnect_max_s=0.02) as link):
+        async with asyncio.timeout(scaled(2.0)):
+            while relay.hellos < 3:
+                await asyncio.sleep(0.005)
+        assert link.final_error is None and not link.is_connected
+        assert link.counters.role_taken_refusals >= 2
 
 
 async def test_latest_wins_on_a_stalled_socket(relay: FakeRelay) -> None:
@@ -494,10 +500,44 @@ async def test_real_relay_refusals_are_final() -> None:
         async with _link(url, role="local") as first:
             await first.wait_connected(scaled(2.0))
             async with _link(f"tcp://127.0.0.1:{relay.tcp_port}", role="local",
-                             reconnect_min_s=0.01) as second:
-                with pytest.raises(RoleTakenError):
-                    await second.wait_connected(scaled(2.0))
-            assert first.is_connected
+                             reconnect_min_s=0.01, reconnect_max_s=0.05) as second:
+                # another station's connection (no resume secret of ours): refused, retried
+                async with asyncio.timeout(scaled(2.0)):
+                    while second.counters.role_taken_refusals < 2:
+                        await asyncio.sleep(0.005)
+                assert second.final_error is None and first.is_connected
+                await first.close()
+                await second.wait_connected(scaled(2.0))  # the role is free: it joins
+
+
+async def test_real_relay_replaces_a_stations_own_silent_connection() -> None:
+    """The station's connection goes silent (blackholed) while the relay still holds it; the
+    station's new hello proves the old connection's resume secret and replaces it at once,
+    instead of being refused as role_taken until the relay notices the old one is dead."""
+    from lab.linkemu import LinkEmulator, LinkProfile
+
+    async with _real_relay() as relay:
+        emu = LinkEmulator(listen=("127.0.0.1", 0), target=("127.0.0.1", relay.tcp_port),
+                           profile=LinkProfile(name="test", delay_ms=0.0))
+        await emu.start()
+        try:
+            async with _link(f"tcp://127.0.0.1:{emu.port}", role="local",
+                             liveness_timeout_s=scaled(0.5), reconnect_min_s=0.02,
+                             reconnect_max_s=0.05) as link:
+                await link.wait_connected(scaled(2.0))
+                first_secret = link.welcome.resume if link.welcome else ""
+                assert len(first_secret) == 32
+                emu.start_outage(scaled(1.5))  # silent both ways; the relay keeps the peer
+                async with asyncio.timeout(scaled(3.0)):
+                    while link.is_connected:
+                        await asyncio.sleep(0.01)
+                await link.wait_connected(scaled(5.0))  # after the outage, at the first try
+                assert link.final_error is None and link.counters.role_taken_refusals == 0
+                assert link.welcome is not None and link.welcome.resume != first_secret
+                assert relay.counters["resumed"] == 1
+                assert len(relay.sessions["lab1"].stations) == 1
+        finally:
+            await emu.close()
 
 
 async def test_real_relay_restart_is_survived() -> None:

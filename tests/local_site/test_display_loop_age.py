@@ -1,0 +1,141 @@
+"""The display loop renders a tactile frame only while its capture stamp says it is fresh.
+
+Freshness is judged by the frame's own capture stamp on the remote clock, converted with the
+relay's offsets and their error bound (``shared.freshness``), never by when it arrived: a
+frame held in a socket or a queue through an outage, or one taken in after the local station
+was stopped for a while, is old whenever it arrives.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+
+from local_site.agent.display_loop import DisplayLoop, FrameSlot
+from local_site.devices import open_display
+from local_site.platform.base import PlatformSample
+from local_site.render import Renderer
+from local_site.scenes import TactileFrameScene
+from shared.freshness import ClockView
+from shared.protocol import TactileFrame
+from shared.timebase import now_us
+
+
+class FakeLink:
+    """Clock offsets as the relay would report them; the link itself is up."""
+
+    def __init__(self, local_us: int | None = 0, remote_us: int | None = 0,
+                 u_local_us: int = 500, u_remote_us: int = 500) -> None:
+        self.offsets = {"local": local_us, "remote": remote_us}
+        self.unc = {"local": u_local_us, "remote": u_remote_us}
+        self.view_received_us = now_us()
+
+    def link_down_for_s(self, now_s: float | None = None) -> float:
+        return 0.0
+
+    @property
+    def clock_offsets_us(self) -> dict[str, int | None]:
+        return dict(self.offsets)
+
+    @property
+    def clock_view(self) -> ClockView | None:
+        return ClockView(dict(self.offsets), dict(self.unc), self.view_received_us)
+
+
+SAMPLE = PlatformSample(position_mm=(30.0, 30.0, 100.0), velocity_mm_s=(0.0, 0.0, 0.0),
+                        t_us=0, seq=1, board_t_us=0)
+
+
+def frame(seq: int, ts_us: int) -> TactileFrame:
+    return TactileFrame(seq=seq, ts_us=ts_us, center_mm=(30.0, 30.0), pitch_mm=1.0,
+                        layers={"height_mm": np.full((9, 9), 2.0, np.float32)}, contact=True)
+
+
+Build = Callable[..., tuple[DisplayLoop, FrameSlot]]
+
+
+@pytest.fixture
+def make_loop() -> Iterator[Build]:
+    loops: list[DisplayLoop] = []
+
+    def build(link: FakeLink, **kw: Any) -> tuple[DisplayLoop, FrameSlot]:
+        slot = FrameSlot()
+        display = open_display("sim")
+        loop = DisplayLoop(display, Renderer(), TactileFrameScene(), positions=lambda: SAMPLE,
+                           platform_ok=lambda: True, frames=slot, link=link,
+                           stale_timeout_s=kw.pop("stale_timeout_s", 10.0), **kw)
+        loops.append(loop)
+        return loop, slot
+
+    yield build
+    for loop in loops:
+        loop.display.disconnect()
+
+
+def test_a_fresh_frame_is_rendered(make_loop: Build) -> None:
+    loop, slot = make_loop(FakeLink())
+    slot.put(frame(1, now_us() - 20_000), now_us())
+    loop.tick()
+    assert loop.safe_reason is None and loop.counters.commands_sent == 1
+    assert 20.0 <= loop.counters.rendered_frame_age_max_ms < 20.0 + 1000.0
+
+
+def test_a_frame_old_by_its_stamp_is_never_rendered_however_recently_it_arrived(
+        make_loop: Build) -> None:
+    loop, slot = make_loop(FakeLink())
+    slot.put(frame(1, now_us() - 2_000_000), now_us())  # held 2 s in a blackholed socket
+    loop.tick()
+    assert loop.safe_reason == "stale_frame" and loop.counters.commands_sent == 0
+    assert loop.last_frame_verdict is not None and loop.last_frame_verdict.verdict == "stale"
+
+
+def test_the_error_bound_counts_against_the_frame(make_loop: Build) -> None:
+    """120 ms old by the estimate, bound 2 x 20 ms: it may be 160 ms old (> 150): refused."""
+    loop, slot = make_loop(FakeLink(u_local_us=20_000, u_remote_us=20_000),
+                           max_offset_uncertainty_s=0.05)
+    slot.put(frame(1, now_us() - 120_000), now_us())
+    loop.tick()
+    assert loop.safe_reason == "stale_frame"
+
+
+def test_the_remote_clock_is_corrected_with_the_offsets(make_loop: Build) -> None:
+    """The remote clock runs 5 s ahead of the relay, ours on time: a stamp 5 s in our future
+    is a fresh frame; uncorrected, it would look 5 s from the future (or, the other way
+    round, 5 s old)."""
+    loop, slot = make_loop(FakeLink(local_us=0, remote_us=5_000_000))
+    slot.put(frame(1, now_us() + 5_000_000 - 10_000), now_us())
+    loop.tick()
+    assert loop.safe_reason is None
+    loop2, slot2 = make_loop(FakeLink(local_us=0, remote_us=0))
+    slot2.put(frame(1, now_us() + 5_000_000 - 10_000), now_us())
+    loop2.tick()
+    assert loop2.safe_reason == "clock_uncertain"  # from the future: the offsets are wrong
+    assert loop2.last_frame_verdict is not None and loop2.last_frame_verdict.verdict == "future"
+
+
+@pytest.mark.parametrize("link", [FakeLink(remote_us=None),
+                                  FakeLink(u_local_us=40_000, u_remote_us=1_000)])
+def test_unknown_or_uncertain_offsets_keep_the_pins_safe(make_loop: Build, link: FakeLink) -> None:
+    loop, slot = make_loop(link)
+    slot.put(frame(1, now_us()), now_us())
+    loop.tick()
+    assert loop.safe_reason == "clock_uncertain" and loop.counters.commands_sent == 0
+
+
+def test_a_frame_goes_stale_on_the_pins_when_no_newer_one_comes(make_loop: Build) -> None:
+    """Rendering stops when the frame on the pins ages past the bound, by its stamp (a
+    stopped sender, or a local station that was itself stopped): nothing newer is needed."""
+    loop, slot = make_loop(FakeLink(), max_frame_age_s=0.15)
+    t = now_us()
+    slot.put(frame(1, t - 140_000), now_us())
+    loop.tick()
+    assert loop.safe_reason is None
+    deadline = t + 2_000_000
+    while loop.safe_reason is None and now_us() < deadline:
+        loop.tick()
+    assert loop.safe_reason == "stale_frame"
+    age_us = now_us() - (t - 140_000)
+    assert age_us >= 150_000 - 1_000  # not before the bound (less the 2 x 500 us error bound)
