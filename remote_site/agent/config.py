@@ -27,6 +27,8 @@ class RemoteAgentConfig:
         arm_poll_hz: rate of the arm monitor (safety poll, stiffness samples, link check).
         arm_state_hz: rate of ``arm_state`` messages to the local station.
         link_loss_halt_ms: the arm is halted when the link has been down this long.
+        watchdog_period_s: period of the safety watchdog thread (command timeout, force
+            limit), independent of the event loop.
         sensor_max_age_ms: a sensor frame older than this is refused.
         stiffness_cell_mm: cell size of the stiffness map.
         friction: value of the friction layer (0 for palpation).
@@ -39,6 +41,7 @@ class RemoteAgentConfig:
     arm_poll_hz: float = 250.0
     arm_state_hz: float = 50.0
     link_loss_halt_ms: float = 100.0
+    watchdog_period_s: float = 0.005
     sensor_max_age_ms: float = 100.0
     stiffness_cell_mm: float = 2.0
     friction: float = 0.0
@@ -46,8 +49,8 @@ class RemoteAgentConfig:
 
     def __post_init__(self) -> None:
         positive = ("frame_rate_hz", "patch_pitch_mm", "arm_poll_hz", "arm_state_hz",
-                    "link_loss_halt_ms", "sensor_max_age_ms", "stiffness_cell_mm",
-                    "status_interval_s")
+                    "link_loss_halt_ms", "watchdog_period_s", "sensor_max_age_ms",
+                    "stiffness_cell_mm", "status_interval_s")
         for name in positive:
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):

@@ -331,6 +331,9 @@ class RemoteStation:
 
             raise ConfigError(f"duration must be finite and > 0, got {duration_s}")
         self._started_s = monotonic_s()
+        # the command timeout (no command for 100 ms halts the arm) runs in its own thread:
+        # a busy or stalled event loop cannot delay the halt (the arm loop polls too)
+        self.safe_arm.start_watchdog(self.config.watchdog_period_s)
         executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="remote-pipeline")
         tasks = [asyncio.create_task(self._receive_loop(), name="remote-receive"),
                  asyncio.create_task(self._arm_loop(), name="remote-arm"),
@@ -350,6 +353,7 @@ class RemoteStation:
                 with contextlib.suppress(asyncio.CancelledError, Exception):
                     await task
             self.safe_arm.stop()
+            self.safe_arm.close()  # the watchdog thread
             await asyncio.get_running_loop().run_in_executor(None, executor.shutdown, True)
             self.stiffness.flush()
             self._stopped_s = monotonic_s()

@@ -30,6 +30,7 @@ by more than the bound (a clock stepped since the offsets were measured) all ref
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import threading
@@ -329,8 +330,18 @@ class SafeArm:
         self._watchdog_stop.clear()
 
         def loop() -> None:
+            failing = False
             while not self._watchdog_stop.wait(period_s):
-                self.poll()
+                try:
+                    self.poll()
+                    failing = False
+                except Exception as err:  # a device fault must not end the watchdog
+                    if not failing:
+                        log.error("arm watchdog: reading the arm failed (%s); halting and "
+                                  "retrying", err)
+                        failing = True
+                    with contextlib.suppress(Exception):
+                        self.arm.stop()
 
         self._watchdog = threading.Thread(target=loop, name="arm-watchdog", daemon=True)
         self._watchdog.start()
