@@ -1,0 +1,45 @@
+"""Inputs the fuzzers found that broke a promise, each fixed in the product code.
+
+Each test fails on the code before its fix (the commit that adds it names the finding).
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+
+import msgpack
+import pytest
+
+from lab.fuzz.seeds import hello_for
+from shared.errors import FieldError
+from shared.protocol import Error, Welcome, decode, encode
+from shared.protocol.peer_session import PeerSession, PeerSettings
+
+
+def _platform_state(**over: object) -> bytes:
+    body = {"v": 1, "type": "platform_state", "seq": 1, "ts": 2, "hops": [],
+            "position_mm": [0, 0, 0], "velocity_mm_s": [0, 0, 0]}
+    body.update(over)
+    return msgpack.packb(body, use_bin_type=True)
+
+
+@pytest.mark.parametrize("clock", [[1], {"a": 1}, ["local"]])
+def test_a_hop_whose_clock_is_a_list_or_map_is_a_bad_field(clock: object) -> None:
+    """Found by both fuzzers (decoder target): ``hops: [[[...], "capture", 1]]`` raised
+    ``TypeError: unhashable type`` out of the decoder (the clock was looked up in a set)."""
+    with pytest.raises(FieldError, match=r"hops\[0\]"):
+        decode(_platform_state(hops=[[clock, "capture", 1]]))
+
+
+def test_the_relay_answers_such_a_hop_with_a_per_message_error() -> None:
+    """The same input after the hello: a non-fatal ``bad_field``, the connection kept (it
+    was an exception out of ``PeerSession.receive_data``, ending the relay's handler)."""
+    ps = PeerSession("ws", PeerSettings(), 0, Counter())
+    ps.receive_data(encode(hello_for("local")), 0)
+    ps.events_received()
+    ps.accept(Welcome(session="s1", role="local", max_message_bytes=1 << 20), 0)
+    ps.receive_data(_platform_state(hops=[[[1], "capture", 1]]), 1)
+    assert not ps.closing
+    errors = [decode(b) for b in ps.data_to_send(lambda: 2)]
+    errors = [e for e in errors if isinstance(e, Error)]
+    assert [(e.code, e.fatal) for e in errors] == [("bad_field", False)]
