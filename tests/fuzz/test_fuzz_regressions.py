@@ -43,3 +43,16 @@ def test_the_relay_answers_such_a_hop_with_a_per_message_error() -> None:
     errors = [decode(b) for b in ps.data_to_send(lambda: 2)]
     errors = [e for e in errors if isinstance(e, Error)]
     assert [(e.code, e.fatal) for e in errors] == [("bad_field", False)]
+
+
+@pytest.mark.parametrize("expiry", ["²³", "٣٣٣٣٣٣٣٣٣٣", "1²", "4000000000\u0663"])
+def test_a_v2_token_with_non_ascii_digits_is_auth(expiry: str) -> None:
+    """Found by the relay target (its mutator's dictionary holds such tokens): a v2 token whose
+    expiry is ``str.isdigit()`` but not ASCII (``"²³"``) raised ``ValueError`` out of the
+    token check, past the relay's handler, instead of ``auth``/4001."""
+    from relay_server.auth import TokenAuthority
+    from shared.errors import AuthError
+
+    auth = TokenAuthority({}, "secret")
+    with pytest.raises(AuthError):
+        auth.check("s1", f"v2.local.{expiry}.AAAA", "local")
