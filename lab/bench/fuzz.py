@@ -123,8 +123,8 @@ def run_atheris(targets: list[str], inputs: int, seed: int, jobs: int = 1
 def run(args: argparse.Namespace) -> int:
     """Run the fuzzers, print a summary, write the results file."""
     from lab.fuzz.engine import EngineResult, run_engine
+    from lab.fuzz.registry import TARGETS
     from lab.fuzz.smoke import SmokeResult, run_smoke
-    from lab.fuzz.targets import TARGETS
 
     load = os.getloadavg()
     started = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())

@@ -5,8 +5,9 @@
 * :mod:`~lab.fuzz.script`: the byte format of a fuzz input that drives a session (a list of
   operations: a message, raw bytes, time passing, a tick, a flush, a disconnect);
 * :mod:`~lab.fuzz.seeds`: the seed corpus, real encoded messages of every type;
-* :mod:`~lab.fuzz.targets`: one function per target, ``bytes -> None``, raising
-  :class:`~lab.fuzz.targets.Finding` when an input breaks a promise;
+* :mod:`~lab.fuzz.targets` and :mod:`~lab.fuzz.sessions`: one function per target,
+  ``bytes -> None``, raising :class:`~lab.fuzz.targets.Finding` when an input breaks a
+  promise (:mod:`~lab.fuzz.registry` lists them);
 * :mod:`~lab.fuzz.mutate` and :mod:`~lab.fuzz.engine`: a coverage-less mutation fuzzer of our
   own (byte-level and msgpack-structure mutations), used where atheris is not installed and
   beside it;

@@ -29,7 +29,7 @@ def main() -> None:
         import relay_server.server  # noqa: F401  (instrumented before the harness uses it)
         import shared.protocol  # noqa: F401
     from lab.fuzz.mutate import mutate_input
-    from lab.fuzz.targets import TARGETS
+    from lab.fuzz.registry import TARGETS
 
     fn = TARGETS[target]
     logging.disable(logging.CRITICAL)  # the code under test logs every refusal

@@ -154,12 +154,12 @@ class PeerModel:
             self.ordered_queued += 1
             self.replies.append(entry)
 
-    def _fatal(self, code: str, close_code: int | None = None) -> None:
+    def _fatal(self, code: str) -> None:
         rule = error_table()[code]
         check(rule.fatality is not Fatality.PER_MESSAGE or code == "too_many_errors",
               f"model: {code} is never fatal")
         self._reply(("error", code, True, None, None), force=True)
-        self.close_code = rule.close_code if close_code is None else close_code
+        self.close_code = rule.close_code
         self.events.append(("closing", self.close_code))
 
     def _per_message(self, code: str) -> None:
@@ -218,8 +218,8 @@ class PeerModel:
             self.hello = msg
             try:
                 self.auth.check(msg.session, msg.token, msg.role)
-            except SessionError as err:
-                self._fatal(err.code, err.close_code)
+            except SessionError as err:  # which refusal is the token check's; its close
+                self._fatal(err.code)      # code is the doc's
                 return
             self.joined = True
             self._reply(("welcome", msg.session, msg.role), force=True)

@@ -3,12 +3,12 @@
 A target is a function ``bytes -> None``. It returns when the input was handled as the doc
 says; it raises :class:`Finding` when an oracle disagrees, and any other exception that
 escapes it is a crash of the code under test (the harness catches nothing but the errors the
-doc promises). The session targets are in :mod:`lab.fuzz.sessions`.
+doc promises). The session targets are in :mod:`lab.fuzz.sessions`; all of them are
+listed in :mod:`lab.fuzz.registry`.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from typing import Any
 
 import msgpack
@@ -18,7 +18,7 @@ from shared.errors import MalformedMessageError, OversizeError, RemoteProtocolEr
 from shared.protocol import MESSAGE_TYPES, DataMessage, LengthPrefixDecoder, Message, decode, encode
 from shared.protocol.messages import MAX_HOPS
 
-__all__ = ["DECODER_LIMIT", "TARGETS", "Finding", "check", "check_error", "decoder", "framing",
+__all__ = ["DECODER_LIMIT", "Finding", "check", "check_error", "decoder", "framing",
            "reference_deframe", "reference_envelope", "same_message"]
 
 #: size limit of the decoder target (small, so that ``oversize`` is reachable)
@@ -169,14 +169,3 @@ def framing(data: bytes) -> None:
     check(got == want[:len(got)] and (err_code is not None or len(got) == len(want)),
           f"payloads {len(got)} != reference {len(want)}")
     check(err_code == want_err, f"framing ended with {err_code}, the reference with {want_err}")
-
-
-def _session_targets() -> dict[str, Callable[[bytes], None]]:
-    from lab.fuzz.sessions import peer, relay, station
-
-    return {"station": station, "peer": peer, "relay": relay}
-
-
-#: target name -> function (the session targets are imported on first use)
-TARGETS: dict[str, Callable[[bytes], None]] = {"decoder": decoder, "framing": framing}
-TARGETS.update(_session_targets())

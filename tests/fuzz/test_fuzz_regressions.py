@@ -40,8 +40,8 @@ def test_the_relay_answers_such_a_hop_with_a_per_message_error() -> None:
     ps.accept(Welcome(session="s1", role="local", max_message_bytes=1 << 20), 0)
     ps.receive_data(_platform_state(hops=[[[1], "capture", 1]]), 1)
     assert not ps.closing
-    errors = [decode(b) for b in ps.data_to_send(lambda: 2)]
-    errors = [e for e in errors if isinstance(e, Error)]
+    written = [decode(b) for b in ps.data_to_send(lambda: 2)]
+    errors = [e for e in written if isinstance(e, Error)]
     assert [(e.code, e.fatal) for e in errors] == [("bad_field", False)]
 
 
