@@ -587,11 +587,16 @@ def relay(data: bytes) -> None:
         for m in out:
             if isinstance(m, Error):
                 rule = rules.get(m.code)
-                check(rule is not None or m.code == "relay_full",
-                      f"error {m.code} is not in the doc")
+                check(rule is not None, f"error {m.code} is not in docs/protocol.md §6")
                 if rule is not None:
                     if not m.fatal:
                         check(rule.fatality is not Fatality.ALWAYS, f"{m.code} sent non-fatal")
+                    else:
+                        check(p.ps.close_code == rule.close_code, f"fatal {m.code} closed "
+                              f"with {p.ps.close_code}, the doc says {rule.close_code}")
+                    if m.code == "relay_full":
+                        check(len(server.sessions) >= cfg.max_sessions, "relay_full below "
+                              "max_sessions")
                     if m.code in ("no_peer", "queue_full"):
                         check(m.stream == "arm_command" and m.seq is not None
                               and p.arm_sent.get(m.seq), f"{m.code} names seq {m.seq} that "

@@ -56,3 +56,19 @@ def test_a_v2_token_with_non_ascii_digits_is_auth(expiry: str) -> None:
     auth = TokenAuthority({}, "secret")
     with pytest.raises(AuthError):
         auth.check("s1", f"v2.local.{expiry}.AAAA", "local")
+
+
+def test_relay_full_and_shutdown_are_documented_with_their_close_code() -> None:
+    """Found by the relay target (max_sessions = 1): the relay answered ``relay_full`` (and,
+    by reading ``_join``, ``shutdown``), close 4000, codes docs/protocol.md §6 did not list."""
+    from lab.fuzz.docspec import Fatality, error_table
+    from lab.fuzz.registry import TARGETS
+    from lab.fuzz.script import Kind, Op, dump
+
+    for code in ("relay_full", "shutdown"):
+        rule = error_table()[code]
+        assert (rule.close_code, rule.fatality) == (4000, Fatality.ALWAYS)
+    script = dump(32, [Op(Kind.MSG, 0, encode(hello_for("local", "s1"))),
+                       Op(Kind.MSG, 1, encode(hello_for("local", "s2"))),
+                       Op(Kind.FLUSH, 1)])
+    TARGETS["relay"](script)  # checks the answer against the doc's table
