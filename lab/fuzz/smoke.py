@@ -24,11 +24,12 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import msgpack
 from websockets.asyncio.client import connect
 
 from lab.fuzz.mutate import mutate_bytes, mutate_message
 from lab.fuzz.seeds import FUZZ_SECRET, hello_for, seed_messages
-from shared.protocol import PlatformState, ProtocolConnection, Welcome, decode, encode, frame
+from shared.protocol import Hello, PlatformState, ProtocolConnection, Welcome, decode, encode, frame
 
 __all__ = ["SmokeResult", "run_smoke"]
 
@@ -53,6 +54,20 @@ class SmokeResult:
     def passed(self) -> bool:
         return (self.relay_alive and self.good_session and self.status_ok
                 and not self.relay_log_errors)
+
+
+def _known_bad() -> list[list[bytes | str]]:
+    """Inputs that crashed a connection handler before their fix (one connection each, both
+    transports): a hop whose clock is a list, a v2 token with non-ASCII digits."""
+    state = msgpack.packb({"v": 1, "type": "platform_state", "seq": 1, "ts": 2,
+                           "hops": [[[1], "capture", 1]], "position_mm": [0, 0, 0],
+                           "velocity_mm_s": [0, 0, 0]})
+    token = encode(Hello(role="local", session="fz0", token="v2.local.²³.AAAA"))
+    hello = encode(hello_for("local", "fzk"))
+    return [[hello, state], [hello, state], [token], [token]]
+
+
+_KNOWN_BAD = _known_bad()
 
 
 def _free_port() -> int:
@@ -179,7 +194,9 @@ async def _run(connections: int, seed: int, result: SmokeResult, log_path: Path)
             await _wait_ready(tcp_port, 30.0)
             for i in range(connections):
                 payloads: list[bytes | str] = []
-                if rng.random() < 0.7:
+                if i < len(_KNOWN_BAD):  # what the fuzzers found, over real sockets too
+                    payloads = list(_KNOWN_BAD[i])
+                elif rng.random() < 0.7:
                     payloads.append(encode(hello_for(rng.choice(("local", "remote", "observer")),
                                                      f"fz{i % 5}")))
                 for _ in range(rng.randrange(1, 6)):
