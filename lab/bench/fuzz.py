@@ -231,7 +231,7 @@ def _report(args: argparse.Namespace, ath: list[AtherisResult], builtin: list[An
                   f"{smoke.connections} connections (half TCP, half WebSocket; 70% with a valid "
                   f"hello first), {smoke.frames_sent} fuzzed frames, {smoke.answers} messages "
                   f"answered, in {smoke.seconds:.0f} s.  ",
-                  "Error codes answered: " + (", ".join(
+                  "Error codes answered (transport:code): " + (", ".join(
                       f"`{k}` {v}" for k, v in sorted(smoke.error_codes.items())) or "none")
                   + ".  ",
                   f"Relay process alive afterwards: {smoke.relay_alive}; a good session "

@@ -58,13 +58,16 @@ class SmokeResult:
 
 def _known_bad() -> list[list[bytes | str]]:
     """Inputs that crashed a connection handler before their fix (one connection each, both
-    transports): a hop whose clock is a list, a v2 token with non-ASCII digits."""
+    transports): a hop whose clock is a list, a v2 token with non-ASCII digits; and a first
+    message over the hello limit, whose ``oversize`` must reach the TCP client (the issue
+    found it lost on TCP in 10 of 20 tries)."""
     state = msgpack.packb({"v": 1, "type": "platform_state", "seq": 1, "ts": 2,
                            "hops": [[[1], "capture", 1]], "position_mm": [0, 0, 0],
                            "velocity_mm_s": [0, 0, 0]})
     token = encode(Hello(role="local", session="fz0", token="v2.local.²³.AAAA"))
     hello = encode(hello_for("local", "fzk"))
-    return [[hello, state], [hello, state], [token], [token]]
+    big = bytes(70_000)
+    return [[hello, state], [hello, state], [token], [token], [big], [big]]
 
 
 _KNOWN_BAD = _known_bad()
@@ -89,13 +92,14 @@ async def _wait_ready(port: int, deadline_s: float) -> None:
             await asyncio.sleep(0.1)
 
 
-def _note(result: SmokeResult, data: bytes) -> None:
+def _note(result: SmokeResult, data: bytes, transport: str) -> None:
     with contextlib.suppress(Exception):
         msg = decode(data, max_message_bytes=2**31)
         result.answers += 1
         code = getattr(msg, "code", None)
         if code is not None:
-            result.error_codes[code] = result.error_codes.get(code, 0) + 1
+            key = f"{transport}:{code}"
+            result.error_codes[key] = result.error_codes.get(key, 0) + 1
 
 
 async def _fuzz_tcp(port: int, payloads: list[bytes | str], result: SmokeResult,
@@ -116,7 +120,8 @@ async def _fuzz_tcp(port: int, payloads: list[bytes | str], result: SmokeResult,
                     for ev in conn.events_received():
                         msg = getattr(ev, "message", None)
                         if msg is not None:
-                            _note(result, encode(msg, validate=False, max_message_bytes=2**31))
+                            _note(result, encode(msg, validate=False, max_message_bytes=2**31),
+                                  "tcp")
     finally:
         writer.close()
         with contextlib.suppress(OSError):
@@ -135,7 +140,7 @@ async def _fuzz_ws(port: int, payloads: list[bytes | str], result: SmokeResult,
             async with asyncio.timeout(read_s):
                 while True:
                     data = await ws.recv(decode=False)
-                    _note(result, data if isinstance(data, bytes) else data.encode())
+                    _note(result, data if isinstance(data, bytes) else data.encode(), "ws")
 
 
 async def _good_session(ws_port: int, tcp_port: int) -> bool:

@@ -15,3 +15,4 @@ def test_a_fuzzed_relay_process_still_serves_a_good_session() -> None:
     assert result.good_session, "no platform_state forwarded after the fuzzing"
     assert result.status_ok
     assert result.answers > 0 and result.error_codes, "the relay answered nothing"
+    assert result.error_codes.get("tcp:oversize"), result.error_codes  # delivered on TCP
