@@ -127,8 +127,11 @@ def mutate_message(rng: random.Random, data: bytes) -> bytes:
 def mutate_bytes(rng: random.Random, data: bytes, max_size: int = 65536) -> bytes:
     """One libFuzzer-like byte mutation."""
     b = bytearray(data)
-    op = rng.randrange(8)
-    if not b or op == 0:
+    op = rng.randrange(9)
+    if op == 8:  # deep nesting: msgpack allows 1024 levels, Python's repr() fewer
+        pos = rng.randrange(len(b) + 1)
+        b[pos:pos] = rng.choice((b"\x91", b"\x81\xa1a")) * rng.choice((100, 600, 1000, 1100))
+    elif not b or op == 0:
         pos = rng.randrange(len(b) + 1)
         b[pos:pos] = bytes(rng.randrange(256) for _ in range(rng.randrange(1, 9)))
     elif op == 1:

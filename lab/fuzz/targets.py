@@ -54,10 +54,17 @@ class _Pairs(list[tuple[Any, Any]]):
 
 
 def _keys_are_str(obj: Any) -> bool:
-    if isinstance(obj, _Pairs):
-        return all(isinstance(k, str) and _keys_are_str(k) and _keys_are_str(v) for k, v in obj)
-    if isinstance(obj, list):
-        return all(_keys_are_str(v) for v in obj)
+    """Every map key in ``obj``, at any depth, is a str (iterative: msgpack nests 1024 deep)."""
+    stack = [obj]
+    while stack:
+        node = stack.pop()
+        if isinstance(node, _Pairs):
+            for k, v in node:
+                if not isinstance(k, str):
+                    return False
+                stack.append(v)
+        elif isinstance(node, list):
+            stack.extend(node)
     return True
 
 

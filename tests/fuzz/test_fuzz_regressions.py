@@ -72,3 +72,30 @@ def test_relay_full_and_shutdown_are_documented_with_their_close_code() -> None:
                        Op(Kind.MSG, 1, encode(hello_for("local", "s2"))),
                        Op(Kind.FLUSH, 1)])
     TARGETS["relay"](script)  # checks the answer against the doc's table
+
+
+def _nested(depth: int) -> bytes:
+    return b"\x91" * depth + b"\x01"  # [[[...[1]...]]]
+
+
+@pytest.mark.parametrize("where", ["type", "dtype", "shape"])
+def test_a_deeply_nested_value_in_an_error_message_is_not_repr_d(where: str) -> None:
+    """Found by a depth probe of the decoder target (msgpack nests up to 1024 levels): the
+    error message quoted the received ``type`` (or ``dtype``/``shape``) with ``repr``, which
+    raised ``RecursionError`` out of ``decode`` for 1,000 nested arrays."""
+    from shared.errors import RemoteProtocolError
+
+    if where == "type":
+        data = b"\x82\xa1v\x01\xa4type" + _nested(1000)
+    else:
+        layer = {"dtype": "<f4", "shape": [1, 1], "data": b"\0" * 4}
+        body = msgpack.packb({"v": 1, "type": "tactile_frame", "seq": 1, "ts": 1,
+                              "center_mm": [0, 0], "pitch_mm": 1.0, "contact": False,
+                              "force_n": 0, "indentation_mm": 0,
+                              "layers": {"height_mm": {**layer, where: 0}}})
+        marker = msgpack.packb(where) + b"\x00"
+        data = body.replace(marker, msgpack.packb(where) + _nested(1000))
+        assert data != body
+    with pytest.raises(RemoteProtocolError) as info:
+        decode(data)
+    assert "a list" in str(info.value)
