@@ -116,11 +116,11 @@ def mutate_message(rng: random.Random, data: bytes) -> bytes:
         obj = msgpack.unpackb(data, raw=False, strict_map_key=False)
     except Exception:
         return mutate_bytes(rng, data)
-    for _ in range(1 + rng.randrange(2)):
-        obj = _mutate_obj(rng, obj)
     try:
+        for _ in range(1 + rng.randrange(2)):
+            obj = _mutate_obj(rng, obj)
         return msgpack.packb(obj, use_bin_type=True)
-    except Exception:  # e.g. an int that no longer fits: fall back to bytes
+    except Exception:  # an int that no longer fits, nesting too deep: mutate the bytes
         return mutate_bytes(rng, data)
 
 
