@@ -35,11 +35,15 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     """Flags of ``teletouch bench fuzz``."""
     parser.add_argument("--inputs", type=int, default=100_000,
                         help="inputs per target and engine (default 100000)")
-    parser.add_argument("--targets", nargs="+", choices=_TARGETS, default=list(_TARGETS))
+    parser.add_argument("--targets", nargs="+", choices=_TARGETS, default=list(_TARGETS),
+                        help="targets, run in this order (default: all)")
     parser.add_argument("--engine", choices=("atheris", "builtin", "both"), default="atheris",
                         help="atheris (coverage-guided, default), builtin (coverage-less) "
                              "or both")
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--max-seconds", type=int, default=None,
+                        help="stop each atheris target after this long (libFuzzer "
+                             "-max_total_time); the table shows the inputs actually run")
     parser.add_argument("--jobs", type=int, default=1,
                         help="atheris processes at once (default 1)")
     parser.add_argument("--smoke-connections", type=int, default=300,
@@ -65,8 +69,8 @@ class AtherisResult:
     extra: dict[str, Any] = field(default_factory=dict)
 
 
-def _start_atheris(target: str, inputs: int, seed: int, workdir: Path
-                   ) -> tuple[subprocess.Popen[str], float]:
+def _start_atheris(target: str, inputs: int, seed: int, workdir: Path,
+                   max_seconds: int | None = None) -> tuple[subprocess.Popen[str], float]:
     from lab.fuzz.engine import seeds_for
 
     corpus = workdir / target
@@ -77,6 +81,8 @@ def _start_atheris(target: str, inputs: int, seed: int, workdir: Path
            f"-seed={seed}", "-timeout=20", "-rss_limit_mb=2048",
            f"-max_len={_MAX_LEN.get(target, 4096)}", "-print_final_stats=1",
            f"-artifact_prefix={workdir}/{target}-", str(corpus)]
+    if max_seconds:
+        cmd.insert(-1, f"-max_total_time={max_seconds}")
     # libFuzzer's log goes to a file: a pipe that nobody reads while another target is
     # awaited fills up and stalls the process
     with open(workdir / f"{target}.log", "w") as log:
@@ -103,8 +109,8 @@ def _parse_atheris(target: str, output: str, returncode: int, seconds: float
     return res
 
 
-def run_atheris(targets: list[str], inputs: int, seed: int, jobs: int = 1
-                ) -> list[AtherisResult]:
+def run_atheris(targets: list[str], inputs: int, seed: int, jobs: int = 1,
+                max_seconds: int | None = None) -> list[AtherisResult]:
     """Run atheris over each target (``jobs`` processes at once)."""
     results: dict[str, AtherisResult] = {}
     with tempfile.TemporaryDirectory(prefix="teletouch-fuzz-") as tmp:
@@ -113,7 +119,7 @@ def run_atheris(targets: list[str], inputs: int, seed: int, jobs: int = 1
         while waiting or running:
             while waiting and len(running) < max(1, jobs):
                 t = waiting.pop(0)
-                running.append((t, *_start_atheris(t, inputs, seed, Path(tmp))))
+                running.append((t, *_start_atheris(t, inputs, seed, Path(tmp), max_seconds)))
             done = [r for r in running if r[1].poll() is not None]
             if not done:
                 time.sleep(0.5)
@@ -140,7 +146,7 @@ def run(args: argparse.Namespace) -> int:
     ath: list[AtherisResult] = []
     builtin: list[EngineResult] = []
     if args.engine in ("atheris", "both"):
-        ath = run_atheris(args.targets, args.inputs, args.seed, args.jobs)
+        ath = run_atheris(args.targets, args.inputs, args.seed, args.jobs, args.max_seconds)
     if args.engine in ("builtin", "both"):
         for t in args.targets:
             r = run_engine(t, TARGETS[t], args.inputs, seed=args.seed)
@@ -170,6 +176,8 @@ def _argv(args: argparse.Namespace) -> str:
         parts.append("--targets " + " ".join(args.targets))
     if args.jobs != 1:
         parts.append(f"--jobs {args.jobs}")
+    if args.max_seconds:
+        parts.append(f"--max-seconds {args.max_seconds}")
     if args.no_smoke:
         parts.append("--no-smoke")
     else:

@@ -545,6 +545,10 @@ def relay(data: bytes) -> None:
                 except (ProtocolError, SessionError) as err:
                     if err.code == "role_taken":  # the token is checked first
                         check(ev.hello.role in roles_before, "role_taken for a free role")
+                    if err.code == "relay_full":
+                        check(len(server.sessions) >= cfg.max_sessions
+                              and ev.hello.session not in server.sessions,
+                              "relay_full below max_sessions or for an existing session")
                     p.ps.fail(err)
                     continue
                 check(ev.hello.role == "observer" or ev.hello.role not in roles_before,
@@ -594,9 +598,6 @@ def relay(data: bytes) -> None:
                     else:
                         check(p.ps.close_code == rule.close_code, f"fatal {m.code} closed "
                               f"with {p.ps.close_code}, the doc says {rule.close_code}")
-                    if m.code == "relay_full":
-                        check(len(server.sessions) >= cfg.max_sessions, "relay_full below "
-                              "max_sessions")
                     if m.code in ("no_peer", "queue_full"):
                         check(m.stream == "arm_command" and m.seq is not None
                               and p.arm_sent.get(m.seq), f"{m.code} names seq {m.seq} that "
