@@ -44,6 +44,8 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
                   "random phantoms and link profiles, with motion-to-touch latency"),
     "reconstruction": ("lab.bench.reconstruction", "height-map time vs error"),
     "stiffness": ("lab.bench.stiffness", "stiffness error vs noise/samples, time"),
+    "fuzz": ("lab.bench.fuzz", "fuzz the decoder, session cores and relay (atheris and a "
+             "mutation engine; real-socket smoke)"),
 }
 
 log = logging.getLogger(__name__)

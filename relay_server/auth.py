@@ -151,7 +151,9 @@ class TokenAuthority:
 
     def _check_v2(self, session_id: str, token: str, role: str | None, now_s: float) -> None:
         parts = token.split(".")
-        if self._secret is None or len(parts) != 4 or not parts[2].isdigit():
+        # isdigit() alone admits "²" or "٣", which int() refuses or reads: ASCII digits only
+        if (self._secret is None or len(parts) != 4 or not parts[2].isascii()
+                or not parts[2].isdigit()):
             raise AuthError(f"wrong token for session {session_id!r}")
         _, token_role, expiry_text, mac = parts
         expiry_s = int(expiry_text)

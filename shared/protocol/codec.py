@@ -23,6 +23,7 @@ from shared.errors import (
     UnknownMessageTypeError,
     VersionError,
 )
+from shared.protocol.fields import describe
 from shared.protocol.messages import MAX_HOPS, MESSAGE_TYPES, Message
 
 __all__ = [
@@ -92,8 +93,7 @@ def message_from_map(obj: dict[str, Any]) -> Message:
     msg_type = obj.get("type")
     cls = MESSAGE_TYPES.get(msg_type) if isinstance(msg_type, str) else None
     if cls is None:
-        shown = msg_type[:40] if isinstance(msg_type, str) else msg_type
-        raise UnknownMessageTypeError(f"unknown message type {shown!r}; known: "
+        raise UnknownMessageTypeError(f"unknown message type {describe(msg_type)}; known: "
                                       f"{sorted(MESSAGE_TYPES)}")
     return cls.from_wire(obj)
 

@@ -22,6 +22,7 @@ __all__ = [
     "MAX_ARRAY_NDIM",
     "MAX_INT",
     "array_to_wire",
+    "describe",
     "read_array",
     "read_bool",
     "read_float",
@@ -46,6 +47,17 @@ ALLOWED_DTYPES: dict[str, np.dtype[Any]] = {
 }
 
 _MISSING = object()
+
+
+def describe(value: Any) -> str:
+    """A short, safe rendering of a received value for an error message: the repr of a scalar
+    (a string cut to 40 characters), else only the type (the repr of a received list or map
+    can be megabytes, or nest deeper than Python's recursion limit)."""
+    if isinstance(value, str):
+        return repr(value[:40])
+    if value is None or isinstance(value, bool | int | float):
+        return repr(value)
+    return f"a {type(value).__name__}"
 
 
 def _where(msg_type: str, name: str) -> str:
@@ -148,12 +160,13 @@ def read_array(value: Any, where: str, *, lo: float = -math.inf, hi: float = mat
         raise FieldError(f"{where} must be an array map with dtype, shape and data")
     dtype_s, shape, data = value.get("dtype"), value.get("shape"), value.get("data")
     if not isinstance(dtype_s, str) or dtype_s not in ALLOWED_DTYPES:
-        raise FieldError(f"{where}.dtype must be one of {sorted(ALLOWED_DTYPES)}, got {dtype_s!r}")
+        raise FieldError(f"{where}.dtype must be one of {sorted(ALLOWED_DTYPES)}, "
+                         f"got {describe(dtype_s)}")
     if (not isinstance(shape, list | tuple) or not 1 <= len(shape) <= MAX_ARRAY_NDIM
             or any(isinstance(s, bool) or not isinstance(s, int) or not 0 <= s <= MAX_ARRAY_DIM
                    for s in shape)):
         raise FieldError(f"{where}.shape must be 1-{MAX_ARRAY_NDIM} integers in "
-                         f"[0, {MAX_ARRAY_DIM}], got {shape!r}")
+                         f"[0, {MAX_ARRAY_DIM}], got {describe(shape)}")
     if ndim is not None and len(shape) != ndim:
         raise FieldError(f"{where} must have {ndim} dimensions, got shape {list(shape)}")
     if not isinstance(data, bytes | bytearray | memoryview):

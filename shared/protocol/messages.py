@@ -107,7 +107,8 @@ def _read_hops(d: Mapping[str, Any], msg_type: str) -> tuple[Hop, ...]:
         raise FieldError(f"{msg_type}.hops must be a list of at most {MAX_HOPS} stamps")
     hops = []
     for i, h in enumerate(raw):
-        if (not isinstance(h, list | tuple) or len(h) != 3 or h[0] not in CLOCKS
+        if (not isinstance(h, list | tuple) or len(h) != 3
+                or not isinstance(h[0], str) or h[0] not in CLOCKS  # a list is unhashable
                 or not isinstance(h[1], str) or not _STAGE_PATTERN.fullmatch(h[1])
                 or isinstance(h[2], bool) or not isinstance(h[2], int)
                 or not 0 <= h[2] <= MAX_INT):
