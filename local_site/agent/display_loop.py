@@ -120,7 +120,7 @@ class DisplayLoop:
         link: the relay link (remote stream only).
         link_loss_timeout_s: link down longer than this -> safe state.
         stale_timeout_s: remote scene older than this -> safe state.
-        recorder: records every accepted frame (optional).
+        recorder: records every accepted frame and the pins (optional).
         ledger: motion-to-touch accounting (optional).
         retry_min_s: first delay before reopening a failed display.
         retry_max_s: largest such delay.
@@ -244,6 +244,9 @@ class DisplayLoop:
             DeviceError: the display failed (the runner reopens it).
         """
         self._intake()
+        if self.recorder is not None:
+            feedback = self.display.latest_feedback() if self.display.is_connected else None
+            self.recorder.add_pins(self._last_command, feedback, self.safe_reason, now_us())
         now_s = monotonic_s()
         reason = self._safety_reason(now_s)
         if reason is not None:
