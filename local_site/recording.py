@@ -32,9 +32,9 @@ from numpy.typing import NDArray
 
 from shared.errors import InputDataError
 from shared.protocol import Message, PlatformState, TactileFrame
-from shared.recording import McapRecorder, RecordingFormatError, read_mcap
+from shared.recording import McapRecorder, McapRecording, RecordingFormatError, read_mcap
 
-__all__ = ["Recording", "SessionRecorder", "load_recording"]
+__all__ = ["Recording", "SessionRecorder", "load_recording", "recording_from_mcap"]
 
 log = logging.getLogger(__name__)
 
@@ -188,7 +188,15 @@ def load_recording(path: str | os.PathLike[str]) -> Recording:
         InputDataError: not a Tele-Touch recording (:class:`RecordingFormatError`), another
             station's recording, or inconsistent / non-finite data.
     """
-    rec = read_mcap(path)
+    return recording_from_mcap(read_mcap(path))
+
+
+def recording_from_mcap(rec: McapRecording) -> Recording:
+    """:func:`load_recording` of a recording already read with ``read_mcap``.
+
+    Raises:
+        InputDataError: another station's recording, or inconsistent / non-finite data.
+    """
     if rec.station != "local":
         raise RecordingFormatError(f"{rec.path} is the {rec.station!r} station's recording; "
                                    "the palpation analysis reads the local station's")
