@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from shared.errors import InputDataError
+from shared.errors import ConfigError, InputDataError
 from shared.protocol import Message, PlatformState, TactileFrame
 from shared.recording import McapRecorder, McapRecording, RecordingFormatError, read_mcap
 
@@ -99,6 +99,35 @@ class SessionRecorder:
                     "safe_reason": safe_reason}
 
         self.mcap.derived("pins", t_us, payload)
+
+    def add_findings(self, workspace: Any = None) -> int | None:
+        """Analyse what was recorded so far and record the findings (``/local/findings``).
+
+        Blocks (waits for the writer, reads the file, builds the maps): call it at a stop,
+        never from a loop.
+
+        Args:
+            workspace: the platform <-> phantom map (default: the recorded one).
+
+        Returns:
+            The number of findings recorded, or None when there was nothing to analyse
+            (no contact frame, a cut file); the reason is logged.
+        """
+        from local_site.palpation import analyse_recording  # the analysis reads Recording
+
+        if not self.mcap.sync():
+            log.warning("findings not recorded: the recording writer did not catch up")
+            return None
+        try:
+            findings = analyse_recording(load_recording(self.path), workspace)
+        except (InputDataError, ConfigError) as err:
+            log.info("no findings recorded: %s", err)
+            return None
+        self.mcap.derived("findings", time.time_ns() // 1000, {"findings": [
+            {"x_mm": f.center_mm[0], "y_mm": f.center_mm[1], "kind": f.kind,
+             "radius_mm": f.equivalent_radius_mm, "confidence": getattr(f, "confidence", None),
+             "severity_rank": f.severity_rank} for f in findings]})
+        return len(findings)
 
     def counts(self) -> dict[str, Any]:
         """Frames accepted, messages written and dropped so far."""

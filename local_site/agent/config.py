@@ -52,6 +52,8 @@ class LocalAgentConfig:
         record_queue_size: items the ``--record`` writer thread may fall behind by before
             new ones are dropped (counted; the loops never wait for the disk).
         record_pins_rate_hz: rate of the recording's ``/local/pins`` channel.
+        record_findings: at a clean stop of a relay session, run the palpation analysis on
+            the recording and add its findings (``/local/findings``) before closing it.
         motion_done_grace_s: with ``--until-motion-done``, keep running this long after the
             motion finished so the last tactile frames come back.
         gil_switch_interval_s: ``sys.setswitchinterval`` while the agent runs (restored
@@ -81,6 +83,7 @@ class LocalAgentConfig:
     status_interval_s: float = 0.25
     record_queue_size: int = 8192
     record_pins_rate_hz: float = 50.0
+    record_findings: bool = True
     motion_done_grace_s: float = 0.5
     gil_switch_interval_s: float = 0.0002
 

@@ -455,6 +455,9 @@ class LocalAgent:
         if self.status is not None:
             self.status.close()
         self.summary = self._build_summary(display_stats, platform_stats, feedback)
+        if self.recorder is not None and self.remote_mode and self.config.record_findings:
+            found = await asyncio.to_thread(self.recorder.add_findings)
+            self.summary["findings_recorded"] = found
         if self.recorder is not None:
             end = {k: self.summary[k] for k in ("exit_reason", "duration_s", "frames_received",
                                                 "frames_accepted", "frames_rendered",

@@ -188,6 +188,24 @@ class McapRecorder:
         derived_topic(self.station, name)
         return self._put(("derived", name, payload, int(t_us)))
 
+    def sync(self, timeout_s: float = 10.0) -> bool:
+        """Wait until everything queued so far is on disk (its chunk completed, file flushed).
+
+        For a reader of the file while the station still runs (the findings at shutdown).
+        Blocks the caller, so never call it from a loop that must not wait.
+
+        Returns:
+            False when the recorder is closed or the writer did not get there in time.
+        """
+        done = threading.Event()
+        if self._closed:
+            return False
+        try:
+            self._queue.put(("sync", done, None, 0), timeout=timeout_s)
+        except queue.Full:
+            return False
+        return done.wait(timeout_s)
+
     # ------------------------------------------------------------------ writer thread
 
     def _channel(self, topic: str, encoding: str, schema: dict[str, Any] | None,
@@ -266,6 +284,9 @@ class McapRecorder:
         kind, a, b, t_us = item
         if kind == "wire":
             self._write_wire(a, b, t_us)
+        elif kind == "sync":
+            self._writer.flush()
+            a.set()
         else:
             self._write_json(a, b() if callable(b) else b, t_us)
 

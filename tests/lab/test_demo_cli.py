@@ -54,6 +54,10 @@ def test_demo_headless_json_reports_the_felt_tumor(tmp_path: Path) -> None:
     assert local.complete and remote.complete
     assert local.station == "local" and remote.station == "remote"
     assert local.end["counts"]["dropped_queue_full"] == 0
+    # the station recorded the findings of its own recording: the ones the demo reports
+    recorded = [m.json()["findings"] for m in local.on("/local/findings")]
+    assert len(recorded) == 1 and len(recorded[0]) == len(report["findings"])
+    assert [f["kind"] for f in recorded[0]] == [f["kind"] for f in report["findings"]]
     assert report["report_html"] == str(tmp_path / "report.html")
     page = (tmp_path / "report.html").read_text()
     assert page.count("data:image/png;base64,") >= 5 and "<script" not in page
