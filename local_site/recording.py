@@ -74,21 +74,21 @@ class SessionRecorder:
         self.frames += 1
         self.mcap.derived("frame_accepted", rx_us, {"seq": frame.seq, "rx_us": rx_us})
 
-    def add_pins(self, commanded: Any, measured: Any, safe_reason: str | None,
-                 t_us: int) -> None:
-        """Offer the pins' state; recorded at most at ``pins_rate_hz``.
+    def add_pins(self, commanded: Any, display: Any, safe_reason: str | None) -> None:
+        """Offer the pins' state; recorded at most at ``pins_rate_hz`` (else returns at once).
 
         Args:
             commanded: the last :class:`~local_site.render.PinCommand` sent, or None.
-            measured: the board's latest :class:`~local_site.display.base.PinFeedback`, or
-                None.
+            display: the :class:`~local_site.display.base.ArrayTacDisplay` (its latest
+                feedback is the measured heights).
             safe_reason: why the pins are in their safe state (None: rendering).
-            t_us: wall-clock time.
         """
         now = time.monotonic()
         if now < self._next_pins_s or commanded is None:
             return
         self._next_pins_s = now + self._pins_period_s
+        measured = display.latest_feedback() if display.is_connected else None
+        t_us = time.time_ns() // 1000
 
         def payload() -> dict[str, Any]:
             h, k, f = commanded.arrays()

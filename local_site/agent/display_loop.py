@@ -245,8 +245,7 @@ class DisplayLoop:
         """
         self._intake()
         if self.recorder is not None:
-            feedback = self.display.latest_feedback() if self.display.is_connected else None
-            self.recorder.add_pins(self._last_command, feedback, self.safe_reason, now_us())
+            self.recorder.add_pins(self._last_command, self.display, self.safe_reason)
         now_s = monotonic_s()
         reason = self._safety_reason(now_s)
         if reason is not None:

@@ -213,13 +213,11 @@ def read_mcap(path: str | os.PathLike[str]) -> McapRecording:
             elif isinstance(record, Footer):
                 complete = True
     except InvalidMagic as err:
-        fh.close()
         if header is None:
             raise RecordingFormatError(f"{p} is not an MCAP file (it does not start with the "
                                        "MCAP magic bytes)") from err
         stop_reason = f"bad magic at the end: {err}"
     except RecordingFormatError:
-        fh.close()
         raise
     except (McapError, struct.error, EOFError, ValueError, OSError) as err:
         stop_reason = f"{type(err).__name__}: {err}" if str(err) else type(err).__name__

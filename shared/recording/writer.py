@@ -311,7 +311,7 @@ class McapRecorder:
                 last_flush = time.monotonic()
                 try:
                     self._writer.flush()
-                except OSError as err:
+                except Exception as err:  # keep the thread: close() still needs it
                     self.write_errors += 1
                     log.error("recording %s: flush failed: %s", self.path, err)
 
@@ -334,8 +334,15 @@ class McapRecorder:
         if self._closed:
             return self.counts()
         self._closed = True
-        self._queue.put(_CLOSE)  # blocks only until the thread has made room
-        self._thread.join()
+        try:
+            self._queue.put(_CLOSE, timeout=30.0)  # waits only while the thread drains
+        except queue.Full as err:
+            raise ConfigError(f"cannot finish the recording {self.path}: its writer thread "
+                              "is stuck") from err
+        self._thread.join(30.0)
+        if self._thread.is_alive():
+            raise ConfigError(f"cannot finish the recording {self.path}: its writer thread "
+                              "did not drain the queue within 30 s")
         try:
             self._writer.add_metadata(META_END, {
                 "ended_us": str(time.time_ns() // 1000),
