@@ -13,13 +13,12 @@ from __future__ import annotations
 
 import json
 import os
-import struct
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from mcap.exceptions import InvalidMagic, McapError
+from mcap.exceptions import InvalidMagic
 from mcap.records import Channel, Footer, Header, Metadata, Schema
 from mcap.records import Message as McapMessage
 from mcap.stream_reader import StreamReader
@@ -170,7 +169,6 @@ def read_mcap(path: str | os.PathLike[str]) -> McapRecording:
     header: Header | None = None
     rec: McapRecording | None = None
     channels: dict[int, Channel] = {}
-    schema_names: dict[int, str] = {}
     stop_reason: str | None = None
     complete = False
     try:
@@ -191,7 +189,6 @@ def read_mcap(path: str | os.PathLike[str]) -> McapRecording:
                     rec.end = {"counts": _meta_json(record, "counts_json", p),
                                "meta": _meta_json(record, "meta_json", p)}
             elif isinstance(record, Schema):
-                schema_names[record.id] = record.name
                 if rec is not None and record.encoding == "jsonschema":
                     try:
                         rec.schemas[record.name] = json.loads(record.data)
@@ -219,9 +216,9 @@ def read_mcap(path: str | os.PathLike[str]) -> McapRecording:
         stop_reason = f"bad magic at the end: {err}"
     except RecordingFormatError:
         raise
-    except (McapError, struct.error, EOFError, ValueError, OSError) as err:
-        stop_reason = f"{type(err).__name__}: {err}" if str(err) else type(err).__name__
-    except Exception as err:  # e.g. zstandard.ZstdError on a chunk cut in the middle
+    except Exception as err:
+        # the end of a cut file: EndOfFile, a short struct, a CRC mismatch, or the
+        # decompressor's error (zstandard.ZstdError) on a chunk cut in the middle
         stop_reason = f"{type(err).__name__}: {err}" if str(err) else type(err).__name__
     finally:
         fh.close()

@@ -101,7 +101,7 @@ class McapRecorder:
     """Writes one station's recording (see the module docstring).
 
     Args:
-        path: the ``.mcap`` file (created or replaced).
+        path: the ``.mcap`` file (created or replaced; another suffix is refused).
         station: ``local`` or ``remote`` (the topics' first part).
         meta: settings written into the start metadata (JSON-able).
         queue_size: items waiting for the thread before new ones are dropped.
@@ -109,7 +109,7 @@ class McapRecorder:
         flush_interval_s: a chunk is closed and the file flushed at least this often.
 
     Raises:
-        ConfigError: the file cannot be created, or bad settings.
+        ConfigError: the file cannot be created, is not named ``*.mcap``, or bad settings.
     """
 
     def __init__(self, path: str | os.PathLike[str], station: str, *,
@@ -120,6 +120,9 @@ class McapRecorder:
         if not station.isidentifier():
             raise ConfigError(f"station name {station!r} is not a valid topic part")
         self.path = Path(path)
+        if self.path.suffix != ".mcap":
+            raise ConfigError(f"a recording is an MCAP file: name it *.mcap (got {self.path}; "
+                              "the .npz recording format is gone)")
         self.station = station
         self.flush_interval_s = flush_interval_s
         try:

@@ -17,6 +17,7 @@ from hypothesis import strategies as st
 from mcap.writer import Writer
 
 from lab.cli import main
+from shared.errors import ConfigError
 from shared.protocol import (
     ArmState,
     Bye,
@@ -225,6 +226,21 @@ def test_a_full_queue_drops_and_counts_without_blocking(tmp_path: Path) -> None:
     assert out.complete and out.end["counts"]["dropped_queue_full"] == counts[
         "dropped_queue_full"]
     assert len(list(out.wire_messages())) == accepted
+
+
+def test_bad_settings_are_refused(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match=r"name it \*\.mcap"):
+        McapRecorder(tmp_path / "old.npz", "local")
+    with pytest.raises(ConfigError, match="cannot write"):
+        McapRecorder(tmp_path / "missing-dir" / "r.mcap", "local")
+    with pytest.raises(ConfigError, match="must be > 0"):
+        McapRecorder(tmp_path / "r.mcap", "local", queue_size=0)
+    rec = McapRecorder(tmp_path / "r.mcap", "local")
+    with pytest.raises(KeyError, match="unknown derived channel"):
+        rec.derived("nope", 1, {})
+    rec.close()
+    assert rec.close() == rec.counts()  # idempotent
+    assert not rec.wire("tx", Bye(reason="late"), 1)  # after close: refused, not queued
 
 
 def test_a_payload_that_fails_is_counted_and_the_recording_goes_on(tmp_path: Path) -> None:
