@@ -146,6 +146,8 @@ class McapRecorder:
         self.dropped = 0
         self.written = 0
         self.write_errors = 0
+        #: CPU time the writer thread used (seconds, updated as it runs)
+        self.writer_cpu_s = 0.0
         self.message_counts: dict[str, int] = {}
         self._closed = False
         self._thread = threading.Thread(target=self._run, name=f"mcap-{station}", daemon=True)
@@ -301,6 +303,7 @@ class McapRecorder:
                 item = self._queue.get(timeout=timeout)
             except queue.Empty:
                 item = None
+            self.writer_cpu_s = time.thread_time()
             if item is _CLOSE:
                 return
             if item is not None:
@@ -324,6 +327,7 @@ class McapRecorder:
         """What was written and dropped so far."""
         return {"path": str(self.path), "messages_written": self.written,
                 "dropped_queue_full": self.dropped, "write_errors": self.write_errors,
+                "writer_cpu_s": round(self.writer_cpu_s, 4),
                 "per_topic": dict(sorted(self.message_counts.items()))}
 
     def close(self, end_meta: Mapping[str, Any] | None = None) -> dict[str, Any]:
