@@ -131,7 +131,8 @@ def main(argv: list[str] | None = None) -> int:
         verdict = (f"Inconclusive at this load: no run reached the 1 kHz target (best "
                    f"{top_rate:.0f} Hz, off and on alike), so the machine set the loop's "
                    f"pace; the jitter p99 ratios on/off range {min(jr):.2f}-{max(jr):.2f} "
-                   "around 1 and do not separate a recording effect from that noise.")
+                   "(below 1: the recording run was the steadier one), which does not "
+                   "separate a recording effect from that noise.")
     else:
         verdict = (f"Jitter p99 ratio on/off: median {float(np.median(jr)):.2f} (range "
                    f"{min(jr):.2f}-{max(jr):.2f}) over {len(jr)} pair(s).")
