@@ -35,6 +35,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "remote": ("remote_site.cli", "run the remote palpation station (arm, sensor, tactile frames)"),
     "demo": ("lab.demo.cli", "run relay + both stations on this machine and report"),
     "check": ("lab.check_cli", "probe a station's devices before a session (local|remote)"),
+    "replay": ("lab.replay_cli", "play an MCAP recording back (or --summary of it)"),
+    "report": ("lab.report_cli", "write a self-contained HTML report of a recording"),
 }
 
 #: ``teletouch bench NAME`` -> (module, one-line help)

@@ -18,7 +18,7 @@ Settings: flags > TELETOUCH_LOCAL_AGENT_* / TELETOUCH_LOCAL_LINK_* > --config TO
 Examples:
   teletouch local --relay ws://127.0.0.1:8765/ --session lab1 --token T \\
       --platform sim --display sim --motion raster:x0=5,x1=55,y0=5,y1=55,spacing=2 \\
-      --until-motion-done --record run.npz --summary-json run.json
+      --until-motion-done --record run.mcap --summary-json run.json
   teletouch local --scene hemisphere:radius_mm=10 --platform sim --display sim --duration 10
 
 Exit: 0 on a clean stop (duration, motion done, SIGTERM/SIGINT), 1 when the relay refuses
@@ -59,7 +59,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     run_.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
     run_.add_argument("--until-motion-done", action="store_true",
                       help="stop when the sim platform's scripted motion has finished")
-    run_.add_argument("--record", metavar="PATH.npz", help="write the session recording")
+    run_.add_argument("--record", metavar="PATH.mcap",
+                      help="record the session to this MCAP file (docs/recording.md)")
     run_.add_argument("--summary-json", metavar="PATH", help="write the summary JSON at exit")
     run_.add_argument("--config", metavar="FILE", help="TOML settings file")
     run_.add_argument("--no-status", action="store_true", help="no live status line")
@@ -78,8 +79,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                       help="display loop rate (default 1000)")
     tune.add_argument("--render-loop", choices=["thread", "asyncio"],
                       help="where the display loop runs (default thread)")
-    tune.add_argument("--record-max-frames", type=int, metavar="N",
-                      help="tactile frames kept in the recording (default 20000)")
+    tune.add_argument("--record-pins-rate", type=float, metavar="HZ",
+                      help="rate of the recording's /local/pins channel (default 50)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -100,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
         "stale_frame_timeout_s": args.stale_timeout, "max_frame_age_s": args.max_frame_age,
         "platform_send_rate_hz": args.send_rate,
         "render_rate_hz": args.render_rate, "render_loop": args.render_loop,
-        "record_max_frames": args.record_max_frames}
+        "record_pins_rate_hz": args.record_pins_rate}
     config = resolve_config(LocalAgentConfig, "local.agent", explicit=agent_flags,
                             toml_path=args.config)
     link_config = resolve_config(StationLinkConfig, "local.link", explicit={

@@ -1,40 +1,28 @@
-"""The local station's recording (``teletouch local --record PATH.npz``).
+"""The local station's recording: written as MCAP while it runs, read back as arrays.
 
-What the lead's palpation analysis reads (the agents contract), written once at exit with
-``np.savez_compressed``:
+``teletouch local --record PATH.mcap`` writes, through
+:class:`shared.recording.McapRecorder`, every message the station sends and receives
+(``/local/tx/*``, ``/local/rx/*``), the derived JSON channels (trajectory, tactile,
+latency) and two of its own (``docs/recording.md``):
 
-==========================  ===============  ===========================================
-key                         shape, dtype     content
-==========================  ===============  ===========================================
-``platform_t_us``           (P,) int64       sample time of each platform_state sent
-``platform_mm``             (P, 3) float64   its position (platform frame)
-``frame_rx_us``             (N,) int64       arrival time (``local.station_rx`` stamp)
-``frame_seq``               (N,) int64       the tactile frame's ``seq``
-``frame_center_mm``         (N, 2) float64   grid centre (platform frame)
-``frame_pitch_mm``          (N,) float64     grid pitch
-``frame_contact``           (N,) bool        probe in contact
-``frame_force_n``           (N,) float64     measured normal force
-``frame_indentation_mm``    (N,) float64     measured indentation
-``frame_height_mm``         (N, H, W) f32    height layer
-``frame_stiffness_k``       (N, H, W) f32    display k (1.0 where the frame had none)
-``frame_stiffness_n_per_mm`` (N, H, W) f32   measured stiffness (0 where absent)
-``meta_json``               str              JSON: session, workspace, layer shape, counts
-==========================  ===============  ===========================================
+* ``/local/frame_accepted``: each received tactile frame the display loop accepted into its
+  scene (``seq``, ``rx_us``);
+* ``/local/pins``: the 16 pins commanded and measured, at ``record_pins_rate_hz``.
 
-Only frames the station ACCEPTED are recorded. All frames of a run share the first frame's
-(H, W); a frame of another shape is not recorded and counted in
-``frames_rejected_shape``. Memory is bounded: after ``max_frames`` frames (or
-``max_platform_samples`` samples) recording stops and the overflow is counted.
+:func:`load_recording` reads such a file into :class:`Recording`, the arrays the palpation
+analysis reads: the platform positions sent (``platform_state`` tx) and the tactile frames
+accepted (``tactile_frame`` rx named in ``/local/frame_accepted``). All frames of a
+recording share the first accepted frame's layer shape; a frame of another shape is left
+out and counted in ``meta["counts"]["frames_rejected_shape"]``. A file cut short (the
+station was killed) is read up to its last complete chunk (``meta["complete"]`` is False).
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import os
-import threading
-import zipfile
-from collections.abc import Mapping, Sequence
+import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -43,176 +31,116 @@ import numpy as np
 from numpy.typing import NDArray
 
 from shared.errors import ConfigError, InputDataError
-from shared.protocol import TactileFrame
-from shared.report import to_jsonable
+from shared.protocol import Message, PlatformState, TactileFrame
+from shared.recording import McapRecorder, McapRecording, RecordingFormatError, read_mcap
 
-__all__ = ["RECORD_KEYS", "Recording", "SessionRecorder", "load_recording"]
+__all__ = ["Recording", "SessionRecorder", "load_recording", "recording_from_mcap"]
 
 log = logging.getLogger(__name__)
 
-RECORD_KEYS = ("platform_t_us", "platform_mm", "frame_rx_us", "frame_seq", "frame_center_mm",
-               "frame_pitch_mm", "frame_contact", "frame_force_n", "frame_indentation_mm",
-               "frame_height_mm", "frame_stiffness_k", "frame_stiffness_n_per_mm",
-               "meta_json")
-
 
 class SessionRecorder:
-    """Collects platform samples and accepted tactile frames; writes the contract's ``.npz``.
+    """The local station's MCAP recorder (see the module docstring).
 
-    Thread-safe: platform samples and frames may be added from different threads.
+    Never blocks: every call is a bounded-queue put for the writer thread (drops counted).
 
     Args:
-        max_frames: tactile frames kept (then counted in ``frames_dropped_limit``).
-        max_platform_samples: platform samples kept (then ``platform_dropped_limit``).
+        path: the ``.mcap`` file.
+        meta: settings written into the recording's start metadata (workspace, scene, ...).
+        queue_size: see :class:`~shared.recording.McapRecorder`.
+        pins_rate_hz: rate of ``/local/pins``.
+        flush_interval_s: a chunk is completed at least this often.
 
     Raises:
-        ConfigError: negative limits.
+        ConfigError: the file cannot be created, or bad settings.
     """
 
-    def __init__(self, max_frames: int = 20_000, max_platform_samples: int = 1_000_000) -> None:
-        if max_frames < 0 or max_platform_samples < 0:
-            raise ConfigError("recording limits must be >= 0")
-        self.max_frames = int(max_frames)
-        self.max_platform_samples = int(max_platform_samples)
-        self._lock = threading.Lock()
-        self._platform_t: list[int] = []
-        self._platform_mm: list[tuple[float, float, float]] = []
-        self._frames: list[tuple[Any, ...]] = []
-        self._shape: tuple[int, int] | None = None
-        self.frames_dropped_limit = 0
-        self.frames_rejected_shape = 0
-        self.platform_dropped_limit = 0
+    def __init__(self, path: str | os.PathLike[str], meta: Mapping[str, Any] | None = None, *,
+                 queue_size: int = 8192, pins_rate_hz: float = 50.0,
+                 flush_interval_s: float = 1.0) -> None:
+        self.mcap = McapRecorder(path, "local", meta=meta, queue_size=queue_size,
+                                 flush_interval_s=flush_interval_s)
+        self.path = self.mcap.path
+        self._pins_period_s = 1.0 / pins_rate_hz
+        self._next_pins_s = 0.0
+        self.frames = 0
 
-    @property
-    def frames(self) -> int:
-        """Tactile frames recorded so far."""
-        return len(self._frames)
+    def tap(self, direction: str, msg: Message, t_us: int) -> None:
+        """Record a message the station link sent or received (a ``StationLink.tap``)."""
+        self.mcap.tap(direction, msg, t_us)
 
-    @property
-    def platform_samples(self) -> int:
-        """Platform samples recorded so far."""
-        return len(self._platform_t)
+    def add_frame(self, frame: TactileFrame, rx_us: int) -> None:
+        """Note that the display loop accepted ``frame`` (received at ``rx_us``)."""
+        self.frames += 1
+        self.mcap.derived("frame_accepted", rx_us, {"seq": frame.seq, "rx_us": rx_us})
 
-    @property
-    def layer_shape(self) -> tuple[int, int] | None:
-        """(H, W) of the recorded layers (the first frame's), None before any frame."""
-        return self._shape
-
-    def add_platform(self, t_us: int, position_mm: Sequence[float]) -> bool:
-        """Record one platform sample that was sent as a platform_state.
-
-        Returns:
-            False when the limit is reached (the sample is counted, not kept).
-        """
-        with self._lock:
-            if len(self._platform_t) >= self.max_platform_samples:
-                self.platform_dropped_limit += 1
-                return False
-            x, y, z = (float(v) for v in position_mm)
-            self._platform_t.append(int(t_us))
-            self._platform_mm.append((x, y, z))
-            return True
-
-    def add_frame(self, frame: TactileFrame, rx_us: int) -> bool:
-        """Record one accepted tactile frame (its layers are copied).
+    def add_pins(self, commanded: Any, display: Any, safe_reason: str | None) -> None:
+        """Offer the pins' state; recorded at most at ``pins_rate_hz`` (else returns at once).
 
         Args:
-            frame: the frame, already accepted by the scene.
-            rx_us: its arrival time (local wall clock, microseconds).
-
-        Returns:
-            False when it was not kept: limit reached, or a layer shape other than the
-            first frame's (counted in ``frames_dropped_limit`` / ``frames_rejected_shape``).
-
-        Raises:
-            InputDataError: the frame has no 2-D ``height_mm`` layer.
+            commanded: the last :class:`~local_site.render.PinCommand` sent, or None.
+            display: the :class:`~local_site.display.base.ArrayTacDisplay` (its latest
+                feedback is the measured heights).
+            safe_reason: why the pins are in their safe state (None: rendering).
         """
-        height = frame.layers.get("height_mm")
-        if not isinstance(height, np.ndarray) or height.ndim != 2:
-            raise InputDataError("a recorded tactile frame needs a 2-D height_mm layer")
-        shape = (int(height.shape[0]), int(height.shape[1]))
-        k = frame.layers.get("stiffness_k")
-        n = frame.layers.get("stiffness_n_per_mm")
-        with self._lock:
-            if len(self._frames) >= self.max_frames:
-                self.frames_dropped_limit += 1
-                return False
-            if self._shape is None:
-                self._shape = shape
-            elif shape != self._shape:
-                self.frames_rejected_shape += 1
-                return False
-            self._frames.append((
-                int(rx_us), int(frame.seq), tuple(float(c) for c in frame.center_mm),
-                float(frame.pitch_mm), bool(frame.contact), float(frame.force_n),
-                float(frame.indentation_mm), height.astype(np.float32),
-                (k.astype(np.float32) if isinstance(k, np.ndarray)
-                 else np.ones(shape, np.float32)),
-                (n.astype(np.float32) if isinstance(n, np.ndarray)
-                 else np.zeros(shape, np.float32))))
-            return True
+        now = time.monotonic()
+        if now < self._next_pins_s or commanded is None:
+            return
+        self._next_pins_s = now + self._pins_period_s
+        measured = display.latest_feedback() if display.is_connected else None
+        t_us = time.time_ns() // 1000
 
-    def counts(self) -> dict[str, int]:
-        """Recorded and dropped counts (for the summary and ``meta_json``)."""
-        return {"frames": self.frames, "platform_samples": self.platform_samples,
-                "frames_dropped_limit": self.frames_dropped_limit,
-                "frames_rejected_shape": self.frames_rejected_shape,
-                "platform_dropped_limit": self.platform_dropped_limit}
+        def payload() -> dict[str, Any]:
+            h, k, f = commanded.arrays()
+            pos = None if measured is None else measured.position_mm
+            return {"commanded_mm": np.ravel(h).tolist(), "stiffness_k": np.ravel(k).tolist(),
+                    "friction": np.ravel(f).tolist(),
+                    "measured_mm": None if pos is None else np.ravel(pos).tolist(),
+                    "safe_reason": safe_reason}
 
-    def arrays(self, meta: Mapping[str, Any] | None = None) -> dict[str, np.ndarray]:
-        """The recording as the contract's arrays (``meta`` goes into ``meta_json``)."""
-        with self._lock:
-            frames = list(self._frames)
-            p_t = np.asarray(self._platform_t, dtype=np.int64)
-            p_mm = np.asarray(self._platform_mm, dtype=np.float64).reshape(-1, 3)
-            shape = self._shape or (0, 0)
-            counts = self.counts()
-        cols = list(zip(*frames, strict=True)) if frames else [()] * 10
+        self.mcap.derived("pins", t_us, payload)
 
-        def stack(i: int) -> np.ndarray:
-            return (np.stack(cols[i]).astype(np.float32) if frames
-                    else np.zeros((0, *shape), np.float32))
+    def add_findings(self, workspace: Any = None) -> int | None:
+        """Analyse what was recorded so far and record the findings (``/local/findings``).
 
-        meta_doc = dict(meta or {})
-        meta_doc.update(layer_shape=list(shape), counts=counts)
-        return {
-            "platform_t_us": p_t, "platform_mm": p_mm,
-            "frame_rx_us": np.asarray(cols[0], dtype=np.int64),
-            "frame_seq": np.asarray(cols[1], dtype=np.int64),
-            "frame_center_mm": np.asarray(cols[2], dtype=np.float64).reshape(-1, 2),
-            "frame_pitch_mm": np.asarray(cols[3], dtype=np.float64),
-            "frame_contact": np.asarray(cols[4], dtype=bool),
-            "frame_force_n": np.asarray(cols[5], dtype=np.float64),
-            "frame_indentation_mm": np.asarray(cols[6], dtype=np.float64),
-            "frame_height_mm": stack(7), "frame_stiffness_k": stack(8),
-            "frame_stiffness_n_per_mm": stack(9),
-            "meta_json": np.asarray(json.dumps(to_jsonable(meta_doc), allow_nan=False,
-                                               sort_keys=True)),
-        }
-
-    def save(self, path: str | os.PathLike[str], meta: Mapping[str, Any] | None = None) -> Path:
-        """Write the recording with ``np.savez_compressed``.
+        Blocks (waits for the writer, reads the file, builds the maps): call it at a stop,
+        never from a loop.
 
         Args:
-            path: destination (``.npz`` is appended by numpy when missing).
-            meta: session, workspace and anything else for ``meta_json``.
+            workspace: the platform <-> phantom map (default: the recorded one).
 
         Returns:
-            The path written.
-
-        Raises:
-            ConfigError: the file cannot be written.
+            The number of findings recorded, or None when there was nothing to analyse
+            (no contact frame, a cut file); the reason is logged.
         """
-        out = Path(path)
-        if out.suffix != ".npz":
-            out = out.with_name(out.name + ".npz")
+        from local_site.palpation import analyse_recording  # the analysis reads Recording
+
+        if not self.mcap.sync():
+            log.warning("findings not recorded: the recording writer did not catch up")
+            return None
         try:
-            np.savez_compressed(out, **self.arrays(meta))  # type: ignore[arg-type]
-        except OSError as err:
-            raise ConfigError(f"cannot write the recording {out}: {err}") from err
-        log.info("recording written to %s (%d platform samples, %d tactile frames)", out,
-                 self.platform_samples, self.frames)
-        return out
+            findings = analyse_recording(load_recording(self.path), workspace)
+        except (InputDataError, ConfigError) as err:
+            log.info("no findings recorded: %s", err)
+            return None
+        self.mcap.derived("findings", time.time_ns() // 1000, {"findings": [
+            {"x_mm": f.center_mm[0], "y_mm": f.center_mm[1], "kind": f.kind,
+             "radius_mm": f.equivalent_radius_mm, "confidence": getattr(f, "confidence", None),
+             "severity_rank": f.severity_rank} for f in findings]})
+        return len(findings)
+
+    def counts(self) -> dict[str, Any]:
+        """Frames accepted, messages written and dropped so far."""
+        return {"frames": self.frames, **self.mcap.counts()}
+
+    def close(self, end_meta: Mapping[str, Any] | None = None) -> Path:
+        """Finish the file (idempotent); return its path.
+
+        Raises:
+            ConfigError: the file could not be finished.
+        """
+        self.mcap.close(end_meta)
+        return self.path
 
 
 @dataclass(frozen=True, eq=False)
@@ -277,37 +205,80 @@ class Recording:
         return int(self.frame_center_mm.shape[0])
 
 
+def _rx_us(frame: TactileFrame, fallback: int) -> int:
+    return next((h.t_us for h in reversed(frame.hops)
+                 if h.clock == "local" and h.stage == "station_rx"), fallback)
+
+
 def load_recording(path: str | os.PathLike[str]) -> Recording:
-    """Read and validate a recording written by :class:`SessionRecorder`.
+    """Read a local station's MCAP recording into :class:`Recording`.
 
     Raises:
-        InputDataError: an unreadable file, missing keys, inconsistent or non-finite arrays.
+        InputDataError: not a Tele-Touch recording (:class:`RecordingFormatError`), another
+            station's recording, or inconsistent / non-finite data.
     """
-    p = Path(path)
-    try:
-        with np.load(p, allow_pickle=False) as data:
-            missing = sorted(set(RECORD_KEYS) - set(data.files))
-            if missing:
-                raise InputDataError(f"{p}: not a local-station recording, missing {missing}")
-            raw: dict[str, Any] = {k: data[k] for k in RECORD_KEYS}
-    except (OSError, ValueError, zipfile.BadZipFile) as err:
-        raise InputDataError(f"cannot read the recording {p}: {err}") from err
-    try:
-        meta = json.loads(str(raw["meta_json"]))
-    except json.JSONDecodeError as err:
-        raise InputDataError(f"{p}: meta_json is not JSON: {err}") from err
+    return recording_from_mcap(read_mcap(path))
+
+
+def recording_from_mcap(rec: McapRecording) -> Recording:
+    """:func:`load_recording` of a recording already read with ``read_mcap``.
+
+    Raises:
+        InputDataError: another station's recording, or inconsistent / non-finite data.
+    """
+    if rec.station != "local":
+        raise RecordingFormatError(f"{rec.path} is the {rec.station!r} station's recording; "
+                                   "the palpation analysis reads the local station's")
+    accepted = {(int(m.json().get("seq", -1)), int(m.json().get("rx_us", -1)))
+                for m in rec.on("/local/frame_accepted")}
+    p_t: list[int] = []
+    p_mm: list[tuple[float, float, float]] = []
+    cols: list[tuple[Any, ...]] = []
+    shape: tuple[int, int] | None = None
+    rejected_shape = 0
+    for m, msg in rec.wire_messages():
+        if isinstance(msg, PlatformState) and m.topic == "/local/tx/platform_state":
+            p_t.append(msg.ts_us)
+            p_mm.append(msg.position_mm)
+        elif isinstance(msg, TactileFrame) and m.topic == "/local/rx/tactile_frame":
+            rx = _rx_us(msg, m.t_us)
+            if (msg.seq, rx) not in accepted:
+                continue
+            height = msg.layers["height_mm"]
+            hw = (int(height.shape[0]), int(height.shape[1]))
+            if shape is None:
+                shape = hw
+            elif hw != shape:
+                rejected_shape += 1
+                continue
+            k = msg.layers.get("stiffness_k")
+            n = msg.layers.get("stiffness_n_per_mm")
+            cols.append((rx, msg.seq, msg.center_mm, msg.pitch_mm, msg.contact, msg.force_n,
+                         msg.indentation_mm, height.astype(np.float32),
+                         np.ones(hw, np.float32) if k is None else k.astype(np.float32),
+                         np.zeros(hw, np.float32) if n is None else n.astype(np.float32)))
+    hw = shape or (0, 0)
+    z = list(zip(*cols, strict=True)) if cols else [()] * 10
+
+    def stack(i: int) -> NDArray[np.float32]:
+        return np.stack(z[i]).astype(np.float32) if cols else np.zeros((0, *hw), np.float32)
+
+    meta = dict(rec.meta)
+    meta.update(layer_shape=list(hw), complete=rec.complete, stop_reason=rec.stop_reason,
+                counts={"frames": len(cols), "platform_samples": len(p_t),
+                        "frames_accepted_recorded": len(accepted),
+                        "frames_rejected_shape": rejected_shape})
     return Recording(
-        platform_t_us=raw["platform_t_us"].astype(np.int64),
-        platform_mm=raw["platform_mm"].astype(np.float64).reshape(-1, 3),
-        frame_center_mm=raw["frame_center_mm"].astype(np.float64).reshape(-1, 2),
-        frame_pitch_mm=raw["frame_pitch_mm"].astype(np.float64),
-        frame_contact=raw["frame_contact"].astype(bool),
-        frame_force_n=raw["frame_force_n"].astype(np.float64),
-        frame_indentation_mm=raw["frame_indentation_mm"].astype(np.float64),
-        frame_height_mm=raw["frame_height_mm"].astype(np.float32),
-        frame_rx_us=raw["frame_rx_us"].astype(np.int64),
-        frame_seq=raw["frame_seq"].astype(np.int64),
-        frame_stiffness_k=raw["frame_stiffness_k"].astype(np.float32),
-        frame_stiffness_n_per_mm=raw["frame_stiffness_n_per_mm"].astype(np.float32),
-        meta=meta if isinstance(meta, dict) else {"meta": meta},
-    )
+        platform_t_us=np.asarray(p_t, np.int64),
+        platform_mm=np.asarray(p_mm, np.float64).reshape(-1, 3),
+        frame_center_mm=np.asarray(z[2], np.float64).reshape(-1, 2),
+        frame_pitch_mm=np.asarray(z[3], np.float64),
+        frame_contact=np.asarray(z[4], bool),
+        frame_force_n=np.asarray(z[5], np.float64),
+        frame_indentation_mm=np.asarray(z[6], np.float64),
+        frame_height_mm=stack(7),
+        frame_rx_us=np.asarray(z[0], np.int64),
+        frame_seq=np.asarray(z[1], np.int64),
+        frame_stiffness_k=stack(8),
+        frame_stiffness_n_per_mm=stack(9),
+        meta=meta)

@@ -61,6 +61,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--patch-pitch-mm", dest="patch_pitch_mm", type=float,
                         help="tactile patch pitch on the display side (default 0.5)")
     parser.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    parser.add_argument("--record", metavar="PATH.mcap",
+                        help="record the session to this MCAP file (docs/recording.md)")
     parser.add_argument("--summary-json", dest="summary_json", metavar="PATH",
                         help="write the run's counters and latencies here at exit")
     parser.add_argument("--config", help="TOML file ([remote.link], [remote.agent], "
@@ -88,7 +90,8 @@ def run(args: argparse.Namespace) -> int:
         stiffness_calibration=(Path(args.stiffness_calibration)
                                if args.stiffness_calibration else None),
         frame_rate_hz=args.frame_rate_hz, patch_pitch_mm=args.patch_pitch_mm,
-        duration_s=args.duration, config_path=Path(args.config) if args.config else None)
+        duration_s=args.duration, config_path=Path(args.config) if args.config else None,
+        record=Path(args.record) if args.record else None)
     status = StatusLine()
 
     def write_summary(summary: dict[str, Any]) -> None:

@@ -41,7 +41,7 @@ import logging
 import random
 import ssl
 from collections import deque
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from typing import Any
 
 from websockets.exceptions import WebSocketException
@@ -172,6 +172,9 @@ class StationLink:
         self._tx_room = asyncio.Event()  # the ordered send queue has room
         self._tx_room.set()
         self._task: asyncio.Task[None] | None = None
+        #: called with ("tx" | "rx", message, wall-clock us) for every message the station
+        #: queues with :meth:`send` or takes with :meth:`recv` (a recorder; must not block)
+        self.tap: Callable[[str, Message, int], None] | None = None
         self._closing = False
         self._down_logged = False
         self._clock_view: tuple[Stats, ClockView] | None = None
@@ -341,6 +344,8 @@ class StationLink:
             self._raise_if_unusable()
             queued = self._session.send(msg)
         self._tx_ready.set()
+        if self.tap is not None:
+            self.tap("tx", msg, now_us())
 
     @property
     def pending_sends(self) -> int:
@@ -363,6 +368,8 @@ class StationLink:
             msg = self._session.next_message()
             if msg is not None:
                 self._rx_room.set()
+                if self.tap is not None:
+                    self.tap("rx", msg, now_us())
                 return msg
             self._readable.clear()
             self._raise_if_unusable()

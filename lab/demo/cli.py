@@ -43,7 +43,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true",
                         help="print the report as one JSON object")
     parser.add_argument("--workdir", default=None,
-                        help="keep logs, recording and summaries in this directory")
+                        help="keep logs, recordings and summaries in this directory")
+    parser.add_argument("--record", metavar="DIR", default=None,
+                        help="write both stations' MCAP recordings, the ground truth and the "
+                             "HTML report into DIR (default: the work directory)")
 
 
 def _fmt(v: Any, digits: int = 2) -> str:
@@ -73,6 +76,10 @@ def format_report(report: dict[str, Any]) -> str:
         if isinstance(fig, dict):
             lines.append(f"    {stage:<32} {_fmt(fig.get('p50')):>7}  {_fmt(fig.get('p99')):>7}"
                          f"  {_fmt(fig.get('max')):>7}")
+    if report.get("recordings"):
+        lines.append(f"  recordings        {report['recordings']['local']}, "
+                     f"{report['recordings']['remote']}")
+    lines.append(f"  report            {report.get('report_html') or 'not written (see log)'}")
     return "\n".join(lines)
 
 
@@ -86,7 +93,8 @@ def run(args: argparse.Namespace) -> int:
     config = DemoConfig(scene=args.scene, seed=args.seed, link=args.link,
                         motion=args.motion or DEFAULT_MOTION, max_duration_s=args.duration,
                         frame_rate_hz=args.frame_rate_hz,
-                        workdir=Path(args.workdir) if args.workdir else None)
+                        workdir=Path(args.workdir) if args.workdir else None,
+                        record_dir=Path(args.record) if args.record else None)
     status = None if args.headless else StatusLine(min_interval_s=10.0)
 
     def progress(elapsed_s: float, relay: dict[str, Any] | None) -> None:

@@ -7,12 +7,16 @@
    named link profile;
 3. ``teletouch remote`` with the simulated arm, sensor and a phantom scene;
 4. ``teletouch local`` with the simulated platform (a scripted raster operator) and the
-   simulated ArrayTac display, recording what it receives.
+   simulated ArrayTac display.
+
+Both stations record the session to MCAP (``local.mcap``, ``remote.mcap``, with the ground
+truth beside them) in ``record_dir`` (default: the work directory).
 
 When the scripted operator has finished, the stations are stopped with SIGTERM, the
 recording is analysed with :mod:`local_site.palpation` (only what reached the local station),
 and the findings are scored against the phantom's ground truth (:mod:`lab.ground_truth`).
-The report includes the motion-to-touch latency ledger measured by the local station.
+The report includes the motion-to-touch latency ledger measured by the local station. The
+demo ends by writing the HTML session report (:mod:`lab.html_report`) and returns its path.
 """
 
 from __future__ import annotations
@@ -36,6 +40,7 @@ from pathlib import Path
 from typing import Any
 
 from lab.ground_truth import write_ground_truth
+from lab.html_report import write_report
 from lab.linkemu import get_profile
 from lab.scoring import score_findings
 from local_site.palpation import analyse_recording, load_recording
@@ -76,6 +81,9 @@ class DemoConfig:
         python: the interpreter running the ``teletouch`` processes.
         extra_local_args: more flags for ``teletouch local``.
         extra_remote_args: more flags for ``teletouch remote``.
+        record_dir: where the recordings, the ground truth and the HTML report go (None:
+            the work directory; the report is then kept in the system's temporary
+            directory when the work directory is deleted).
     """
 
     scene: str = "breast"
@@ -89,6 +97,7 @@ class DemoConfig:
     python: str = sys.executable
     extra_local_args: tuple[str, ...] = ()
     extra_remote_args: tuple[str, ...] = ()
+    record_dir: Path | None = None
 
 
 def free_port() -> int:
@@ -249,9 +258,16 @@ def run_demo(config: DemoConfig,
                             "--seed", str(config.seed * 2 + i))
                 _wait_for(functools.partial(_port_open, port), f"the {name} emulator", 20,
                           procs)
-        files = {k: workdir / v for k, v in {
-            "ground_truth": "ground_truth.json", "record": "record.npz",
-            "local_summary": "local_summary.json", "remote_summary": "remote_summary.json"}.items()}
+        rec_dir = Path(config.record_dir) if config.record_dir is not None else workdir
+        rec_dir.mkdir(parents=True, exist_ok=True)
+        files = {k: rec_dir / v for k, v in {
+            "ground_truth": "ground_truth.json", "record": "local.mcap",
+            "remote_record": "remote.mcap", "report": "report.html"}.items()}
+        if temp and config.record_dir is None and not config.keep_files:
+            files["report"] = Path(tempfile.gettempdir()) / \
+                f"teletouch-demo-report-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}.html"
+        files.update(local_summary=workdir / "local_summary.json",
+                     remote_summary=workdir / "remote_summary.json")
         # The truth of the phantom the remote station simulates: same scene and seed, the
         # workspace its settings give, the simulated probe's shipped stiffness calibration.
         remote_args = list(config.extra_remote_args)
@@ -264,7 +280,8 @@ def run_demo(config: DemoConfig,
             "remote", "remote", "--relay", f"ws://127.0.0.1:{remote_port}/", *common,
             "--arm", "sim", "--sensor", "sim", "--phantom", config.scene,
             "--seed", str(config.seed), "--frame-rate-hz", f"{config.frame_rate_hz:g}",
-            "--summary-json", str(files["remote_summary"]), *config.extra_remote_args)
+            "--summary-json", str(files["remote_summary"]), "--record",
+            str(files["remote_record"]), *config.extra_remote_args)
         local = procs.start(
             "local", "local", "--relay", f"ws://127.0.0.1:{local_port}/", *common,
             "--platform", "sim", "--display", "sim", "--motion", config.motion,
@@ -293,13 +310,28 @@ def run_demo(config: DemoConfig,
             raise DemoError(f"the remote station ended with code {remote_code}; its log ends "
                             f"with:\n{remote.log_tail()}")
         procs.stop_all()
-        return _report(config, files, relay_final, time.monotonic() - started, workdir)
+        report = _report(config, files, relay_final, time.monotonic() - started, workdir)
+        report["recordings"] = {"local": str(files["record"]),
+                                "remote": str(files["remote_record"])}
+        report["report_html"] = _write_html(files)
+        return report
     except (OSError, subprocess.SubprocessError, DeviceError) as err:
         raise DemoError(f"demo failed: {err}") from err
     finally:
         procs.stop_all()
         if temp and not config.keep_files:
             shutil.rmtree(workdir, ignore_errors=True)
+
+
+def _write_html(files: dict[str, Path]) -> str | None:
+    """Write the HTML session report; None (logged) when it cannot be made."""
+    try:
+        return str(write_report(files["record"], files["report"],
+                                truth_path=files["ground_truth"],
+                                remote_path=files["remote_record"]))
+    except TeleTouchError as err:
+        log.error("the HTML report was not written: %s", err)
+        return None
 
 
 def _report(config: DemoConfig, files: dict[str, Path], relay_final: dict[str, Any] | None,

@@ -53,8 +53,11 @@ class LocalAgentConfig:
         scene_center_x_mm: x where a shape without ``x_mm`` is placed (platform frame).
         scene_center_y_mm: y where a shape without ``y_mm`` is placed.
         status_interval_s: status line refresh period.
-        record_max_frames: tactile frames kept by ``--record`` (then recording stops).
-        record_max_platform_samples: platform samples kept by ``--record``.
+        record_queue_size: items the ``--record`` writer thread may fall behind by before
+            new ones are dropped (counted; the loops never wait for the disk).
+        record_pins_rate_hz: rate of the recording's ``/local/pins`` channel.
+        record_findings: at a clean stop of a relay session, run the palpation analysis on
+            the recording and add its findings (``/local/findings``) before closing it.
         motion_done_grace_s: with ``--until-motion-done``, keep running this long after the
             motion finished so the last tactile frames come back.
         gil_switch_interval_s: ``sys.setswitchinterval`` while the agent runs (restored
@@ -84,8 +87,9 @@ class LocalAgentConfig:
     scene_center_x_mm: float = 30.0
     scene_center_y_mm: float = 30.0
     status_interval_s: float = 0.25
-    record_max_frames: int = 20_000
-    record_max_platform_samples: int = 1_000_000
+    record_queue_size: int = 8192
+    record_pins_rate_hz: float = 50.0
+    record_findings: bool = True
     motion_done_grace_s: float = 0.5
     gil_switch_interval_s: float = 0.0002
 
@@ -115,8 +119,6 @@ class LocalAgentConfig:
             raise ConfigError("local.agent.device_retry_max_s must be >= device_retry_min_s")
         if self.interpolation_order not in (0, 1, 3):
             raise ConfigError("local.agent.interpolation_order must be 0, 1 or 3")
-        if self.record_max_frames < 0 or self.record_max_platform_samples < 0:
-            raise ConfigError("local.agent.record_max_* must be >= 0")
         if not (math.isfinite(self.motion_done_grace_s) and self.motion_done_grace_s >= 0):
             raise ConfigError("local.agent.motion_done_grace_s must be >= 0")
         if not (math.isfinite(self.gil_switch_interval_s)

@@ -136,7 +136,7 @@ class DisplayLoop:
             error bound included) is not rendered (safe state ``stale_frame``).
         max_offset_uncertainty_s: frames are not rendered while the clock offsets' error
             bound is wider than this (safe state ``clock_uncertain``).
-        recorder: records every accepted frame (optional).
+        recorder: records every accepted frame and the pins (optional).
         ledger: motion-to-touch accounting (optional).
         retry_min_s: first delay before reopening a failed display.
         retry_max_s: largest such delay.
@@ -283,6 +283,8 @@ class DisplayLoop:
             DeviceError: the display failed (the runner reopens it).
         """
         self._intake()
+        if self.recorder is not None:
+            self.recorder.add_pins(self._last_command, self.display, self.safe_reason)
         now_s = monotonic_s()
         reason = self._safety_reason(now_s)
         if reason is not None:

@@ -104,7 +104,7 @@ class LocalAgent:
         duration_s: stop after this long (None: run until stopped).
         until_motion_done: stop once the simulated platform's scripted motion finished
             (plus ``config.motion_done_grace_s``).
-        record_path: write the recording here at exit (None: no recording).
+        record_path: record the session to this MCAP file (None: no recording).
         summary_path: write the summary JSON here at exit (None: none).
         status: live status line (None: no status output).
         handle_signals: stop cleanly on SIGTERM/SIGINT (main thread only).
@@ -141,9 +141,7 @@ class LocalAgent:
         self.handle_signals = handle_signals
         self._platform_options = dict(platform_options or {})
         self._display_options = dict(display_options or {})
-        self.recorder = SessionRecorder(config.record_max_frames,
-                                        config.record_max_platform_samples) \
-            if self.record_path is not None else None
+        self.recorder: SessionRecorder | None = None
         self.ledger = MotionToTouchLedger()
         self.frames = FrameSlot()
         self.link: StationLink | None = None
@@ -201,6 +199,12 @@ class LocalAgent:
             retry_min_s=cfg.device_retry_min_s, retry_max_s=cfg.device_retry_max_s,
             motion_duration_s=motion_duration_s if self.until_motion_done else None)
         reader = self.reader
+        if self.record_path is not None and self.recorder is None:
+            self.recorder = SessionRecorder(
+                self.record_path, self._record_meta(), queue_size=cfg.record_queue_size,
+                pins_rate_hz=cfg.record_pins_rate_hz)
+            if self.link is not None:
+                self.link.tap = self.recorder.tap
         self.loop = DisplayLoop(
             display, Renderer(self.render_config), self.scene,
             positions=lambda: reader.latest, platform_ok=lambda: reader.healthy,
@@ -211,6 +215,15 @@ class LocalAgent:
             max_offset_uncertainty_s=cfg.max_offset_uncertainty_s, recorder=self.recorder,
             ledger=self.ledger, retry_min_s=cfg.device_retry_min_s,
             retry_max_s=cfg.device_retry_max_s)
+
+    def _record_meta(self) -> dict[str, Any]:
+        """What the recording's start metadata says about this run (read by the analysis)."""
+        return {"session": self.link_config.session if self.link_config else None,
+                "mode": "relay" if self.remote_mode else "scene",
+                "scene": self.config.scene or "remote", "platform": self.config.platform,
+                "display": self.config.display, "motion": self.config.motion,
+                "workspace": dataclasses.asdict(self.workspace),
+                "render": dataclasses.asdict(self.render_config)}
 
     def _require_open(self) -> tuple[DisplayLoop, PlatformReader]:
         if self.loop is None or self.reader is None:
@@ -266,8 +279,6 @@ class LocalAgent:
                         return  # link closed: shutting down
                     else:
                         self.platform_states_sent += 1
-                        if self.recorder is not None:
-                            self.recorder.add_platform(sample.t_us, sample.position_mm)
                 else:
                     self.platform_states_skipped_link_down += 1
             next_t += period_s
@@ -445,18 +456,16 @@ class LocalAgent:
         if self.status is not None:
             self.status.close()
         self.summary = self._build_summary(display_stats, platform_stats, feedback)
-        if self.recorder is not None and self.record_path is not None:
-            meta = {"session": self.link_config.session if self.link_config else None,
-                    "mode": "relay" if self.remote_mode else "scene",
-                    "scene": self.config.scene or "remote", "platform": self.config.platform,
-                    "display": self.config.display, "motion": self.config.motion,
-                    "workspace": dataclasses.asdict(self.workspace),
-                    "render": dataclasses.asdict(self.render_config),
-                    "summary": {k: self.summary[k] for k in
-                                ("frames_received", "frames_rendered", "frames_rejected")}}
+        if self.recorder is not None and self.remote_mode and self.config.record_findings:
+            found = await asyncio.to_thread(self.recorder.add_findings)
+            self.summary["findings_recorded"] = found
+        if self.recorder is not None:
+            end = {k: self.summary[k] for k in ("exit_reason", "duration_s", "frames_received",
+                                                "frames_accepted", "frames_rendered",
+                                                "frames_rejected", "motion_to_touch_ms")}
             try:
-                written = await asyncio.to_thread(self.recorder.save, self.record_path, meta)
-                self.summary["recording"]["path"] = str(written)
+                await asyncio.to_thread(self.recorder.close, end)
+                self.summary["recording"] = self.recorder.counts()
             except ConfigError as err:
                 log.error("%s", err)
                 self.exit_code = 1

@@ -15,6 +15,7 @@ Whatever happens, the arm is halted and the devices are closed on the way out.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -40,6 +41,7 @@ from remote_site.stiffness.stiffness_map import MapBounds
 from remote_site.tactile import TactileAssembler
 from shared.client import StationLink, StationLinkConfig
 from shared.config import resolve_config
+from shared.recording import McapRecorder
 from shared.workspace import load_workspace
 
 __all__ = ["AgentOptions", "run_agent", "sensor_options"]
@@ -73,6 +75,7 @@ class AgentOptions:
         patch_pitch_mm: tactile patch pitch on the display side.
         duration_s: stop after this many seconds (None: until stopped).
         config_path: TOML file (or ``$TELETOUCH_CONFIG``).
+        record: record the session to this MCAP file (None: no recording).
     """
 
     relay: str | None = None
@@ -93,6 +96,7 @@ class AgentOptions:
     patch_pitch_mm: float | None = None
     duration_s: float | None = None
     config_path: Path | None = None
+    record: Path | None = None
 
 
 def sensor_options(options: AgentOptions) -> dict[str, Any]:
@@ -161,6 +165,7 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
                                  friction=agent_cfg.friction)
     arm.connect()
     safe_arm: SafeArm | None = None
+    recorder: McapRecorder | None = None
     try:
         safe_arm = SafeArm(arm, safety, bounds_mm=workspace.phantom_bounds_mm)
         sensor.connect()
@@ -173,6 +178,12 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
                                  contact_force_n=stiffness_cfg.contact_force_n,
                                  background=background)
         link = StationLink.from_config(link_cfg, "remote")
+        if options.record is not None:
+            recorder = McapRecorder(options.record, "remote", meta={
+                "session": link_cfg.session, "arm": options.arm, "sensor": options.sensor,
+                "phantom": options.phantom, "seed": options.seed if world else None,
+                "workspace": dataclasses.asdict(workspace.config)})
+            link.tap = recorder.tap
         async with link:
             station = RemoteStation(link, safe_arm, pipeline, stiffness, workspace.forward,
                                     agent_cfg, status=status)
@@ -183,6 +194,8 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
                 summary.update(session=link_cfg.session, arm_backend=options.arm,
                                sensor_backend=options.sensor, phantom=options.phantom,
                                seed=options.seed if world else None)
+                if recorder is not None:
+                    summary["recording"] = await asyncio.to_thread(recorder.close, summary)
                 if on_summary is not None:
                     on_summary(summary)
         return summary

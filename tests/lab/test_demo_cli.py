@@ -6,8 +6,10 @@ import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 from lab.demo.cli import _relay_line, format_report
+from shared.recording import read_mcap
 from tests.support import scaled
 
 # breast seed 0: the benign tumor is at phantom (6.0, -10.1) = platform (36.0, 19.9). This
@@ -26,10 +28,11 @@ def _scaled_env() -> dict[str, str]:
                 TELETOUCH_ARM_SAFETY_COMMAND_TIMEOUT_MS=str(scaled(100.0)))
 
 
-def test_demo_headless_json_reports_the_felt_tumor() -> None:
+def test_demo_headless_json_reports_the_felt_tumor(tmp_path: Path) -> None:
     done = subprocess.run(
         [sys.executable, "-m", "lab.cli", "demo", "--headless", "--json", "--scene", "breast",
-         "--seed", "0", "--motion", SMALL_RASTER, "--duration", "45"],
+         "--seed", "0", "--motion", SMALL_RASTER, "--duration", "45", "--record",
+         str(tmp_path)],
         capture_output=True, text=True, timeout=scaled(120.0), check=False, env=_scaled_env())
     assert done.returncode == 0, done.stderr[-3000:]
     report = json.loads(done.stdout)
@@ -44,6 +47,21 @@ def test_demo_headless_json_reports_the_felt_tumor() -> None:
     e2e = report["latency_ms"]["end_to_end"]
     assert 0 < e2e["p50"] <= e2e["p99"]
     assert "tumors found" in format_report(report)
+    # both stations recorded into --record DIR; the HTML report was written there
+    assert report["recordings"] == {"local": str(tmp_path / "local.mcap"),
+                                    "remote": str(tmp_path / "remote.mcap")}
+    local, remote = read_mcap(tmp_path / "local.mcap"), read_mcap(tmp_path / "remote.mcap")
+    assert local.complete and remote.complete
+    assert local.station == "local" and remote.station == "remote"
+    assert local.end["counts"]["dropped_queue_full"] == 0
+    # the station recorded the findings of its own recording: the ones the demo reports
+    recorded = [m.json()["findings"] for m in local.on("/local/findings")]
+    assert len(recorded) == 1 and len(recorded[0]) == len(report["findings"])
+    assert [f["kind"] for f in recorded[0]] == [f["kind"] for f in report["findings"]]
+    assert report["report_html"] == str(tmp_path / "report.html")
+    page = (tmp_path / "report.html").read_text()
+    assert page.count("data:image/png;base64,") >= 5 and "<script" not in page
+    assert "Against the ground truth" in page and "benign" in page
 
 
 def test_status_line_shows_flow_and_latency() -> None:

@@ -91,7 +91,7 @@ def relay_agent(url: str, tmp_path: Path | None = None, **overrides: Any) -> Loc
     link = StationLinkConfig(url=url, session=SESSION, token=TOKEN, reconnect_min_s=0.05,
                              reconnect_max_s=0.3)
     return LocalAgent(LocalAgentConfig(**settings), link_config=link,
-                      record_path=None if tmp_path is None else tmp_path / "rec.npz",
+                      record_path=None if tmp_path is None else tmp_path / "rec.mcap",
                       summary_path=None if tmp_path is None else tmp_path / "summary.json")
 
 

@@ -43,7 +43,7 @@ async def test_relay_and_local_processes_sigterm_writes_record_and_summary(tmp_p
     try:
         url = f"ws://127.0.0.1:{port}/"
         from relay_server.auth import derive_token
-        summary, record = tmp_path / "summary.json", tmp_path / "run.npz"
+        summary, record = tmp_path / "summary.json", tmp_path / "run.mcap"
         local = await asyncio.create_subprocess_exec(
             *CMD, "local", "--relay", url, "--session", "agent-test",
             "--token", derive_token(SECRET, "agent-test"), "--platform", "sim", "--display",

@@ -11,6 +11,7 @@ import numpy as np
 from local_site.agent import LocalAgent
 from local_site.recording import load_recording
 from shared.protocol import TactileFrame
+from shared.recording import read_mcap
 from shared.timebase import monotonic_s, now_us
 from tests.local_site.agent_support import (
     FRAME_SHAPE,
@@ -62,7 +63,7 @@ async def test_platform_state_and_frames_flow_record_and_summary(tmp_path: Path)
     assert summary["display_loop"]["period_p50_ms"] is not None
     assert summary["link"]["connects"] == 1 and summary["uplink"]["platform_states_sent"] > 50
     assert summary["platform"]["read_rate_hz"] > 100
-    rec = load_recording(tmp_path / "rec.npz")
+    rec = load_recording(tmp_path / "rec.mcap")
     assert rec.frames > 0
     n = rec.frame_seq.size
     assert n == summary["frames_accepted"] and n > 0
@@ -77,6 +78,15 @@ async def test_platform_state_and_frames_flow_record_and_summary(tmp_path: Path)
     assert rec.platform_t_us.size == summary["uplink"]["platform_states_sent"]
     assert rec.meta["session"] == "agent-test" and rec.meta["layer_shape"] == [9, 9]
     assert "workspace" in rec.meta and rec.meta["counts"]["frames"] == n
+    assert rec.meta["complete"] and summary["recording"]["dropped_queue_full"] == 0
+    mcap = read_mcap(tmp_path / "rec.mcap")
+    pins = [m.json() for m in mcap.on("/local/pins")]
+    assert pins and all(len(p["commanded_mm"]) == 16 for p in pins)
+    assert any(p["measured_mm"] is not None and p["safe_reason"] is None for p in pins)
+    latency = [m.json() for m in mcap.on("/local/latency")]
+    assert latency and all(m["type"] == "tactile_frame" for m in latency)
+    assert {"capture_to_relay_in", "relay_in_to_relay_out", "relay_out_to_station_rx"} <= \
+        set(latency[-1]["stages_ms"])
 
 
 async def test_bad_frames_are_rejected_without_touching_the_pins() -> None:

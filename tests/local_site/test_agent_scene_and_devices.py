@@ -17,6 +17,7 @@ from local_site.platform.motion_spec import parse_motion_spec
 from local_site.recording import SessionRecorder, load_recording
 from shared.config import resolve_config
 from shared.errors import ConfigError
+from shared.protocol import Hop, PlatformState, TactileFrame
 from tests.local_site.agent_support import loop_of, make_frame, reader_of, wait_for
 from tests.support import scaled
 
@@ -100,29 +101,38 @@ def test_motion_spec_replay_file(tmp_path: Path) -> None:
         assert m.position_mm(0.5) == pytest.approx((5.0, 10.0, 15.0))
 
 
-def test_recorder_keeps_first_shape_and_its_limit(tmp_path: Path) -> None:
-    rec = SessionRecorder(max_frames=2, max_platform_samples=1)
-    assert rec.add_platform(5, (1.0, 2.0, 3.0)) and not rec.add_platform(6, (1.0, 2.0, 3.0))
+def test_recorder_keeps_accepted_frames_of_the_first_shape(tmp_path: Path) -> None:
+    rec = SessionRecorder(tmp_path / "r.mcap", {"session": "s"})
+    rec.tap("tx", PlatformState(seq=1, ts_us=5, hops=(Hop("local", "capture", 5),),
+                                position_mm=(1.0, 2.0, 3.0)), 5)
     frame = make_frame(1, None)
-    assert rec.add_frame(frame, 100)
     no_k = make_frame(2, None)
     del no_k.layers["stiffness_k"], no_k.layers["stiffness_n_per_mm"]
     other = make_frame(3, None)
     cast(dict[str, np.ndarray], other.layers).update(
-        {k: np.zeros((3, 3), np.float32) for k in other.layers})
-    assert not rec.add_frame(other, 101)
-    assert rec.add_frame(no_k, 102) and not rec.add_frame(frame, 103)
-    assert rec.counts() == {"frames": 2, "platform_samples": 1, "frames_dropped_limit": 1,
-                            "frames_rejected_shape": 1, "platform_dropped_limit": 1}
-    out = load_recording(rec.save(tmp_path / "r", {"session": "s"}))
+        {k: np.full((3, 3), 1.0 if k == "stiffness_k" else 0.0, np.float32)
+         for k in other.layers})
+    unaccepted = make_frame(4, None)
+    for i, f in enumerate((frame, other, no_k, unaccepted)):
+        rx = 100 + i
+        received = f.with_hop("local", "station_rx", rx)
+        assert isinstance(received, TactileFrame)
+        rec.tap("rx", received, rx)
+        if f is not unaccepted:
+            rec.add_frame(received, rx)
+    assert rec.close() == tmp_path / "r.mcap"
+    out = load_recording(tmp_path / "r.mcap")
     assert out.frame_seq.tolist() == [1, 2] and out.frame_rx_us.tolist() == [100, 102]
     assert out.frame_stiffness_k is not None and out.frame_stiffness_n_per_mm is not None
     assert np.all(out.frame_stiffness_k[1] == 1.0)
     assert np.all(out.frame_stiffness_n_per_mm[1] == 0.0)
-    assert out.platform_mm.tolist() == [[1.0, 2.0, 3.0]]
+    assert out.platform_mm.tolist() == [[1.0, 2.0, 3.0]] and out.platform_t_us.tolist() == [5]
     assert out.meta["session"] == "s" and out.meta["layer_shape"] == [9, 9]
-    empty = load_recording(SessionRecorder().save(tmp_path / "e.npz"))
-    assert empty.frame_height_mm.shape == (0, 0, 0) and empty.platform_mm.shape == (0, 3)
+    assert out.meta["counts"]["frames_rejected_shape"] == 1 and out.meta["complete"]
+    empty = SessionRecorder(tmp_path / "e.mcap")
+    empty.close()
+    loaded = load_recording(tmp_path / "e.mcap")
+    assert loaded.frame_height_mm.shape == (0, 0, 0) and loaded.platform_mm.shape == (0, 3)
 
 
 def test_period_stats_percentiles_against_numpy() -> None:

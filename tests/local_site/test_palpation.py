@@ -8,7 +8,6 @@ analysis is checked against ground truth without the network in between.
 from __future__ import annotations
 
 import functools
-import json
 from pathlib import Path
 
 import numpy as np
@@ -23,9 +22,12 @@ from local_site.palpation import (
     build_maps,
     load_recording,
 )
+from local_site.recording import SessionRecorder
 from remote_site.phantom.phantom import PixelGrid
 from remote_site.phantom.scenes import make_scene
 from shared.errors import InputDataError
+from shared.protocol import Hop, PlatformState, TactileFrame
+from shared.recording import McapRecorder
 from shared.workspace import WorkspaceMap
 
 GRID = PixelGrid(width_px=160, height_px=120, mm_per_px=0.1268)
@@ -123,24 +125,37 @@ def test_recording_validation() -> None:
 
 def test_load_recording_round_trip_and_errors(tmp_path: Path) -> None:
     rec, _ = synthetic("breast", 3)
-    path = tmp_path / "rec.npz"
-    np.savez(path, platform_t_us=rec.platform_t_us, platform_mm=rec.platform_mm,
-             frame_rx_us=np.arange(rec.frames), frame_seq=np.arange(rec.frames),
-             frame_center_mm=rec.frame_center_mm, frame_pitch_mm=rec.frame_pitch_mm,
-             frame_contact=rec.frame_contact, frame_force_n=rec.frame_force_n,
-             frame_indentation_mm=rec.frame_indentation_mm, frame_height_mm=rec.frame_height_mm,
-             frame_stiffness_k=np.ones_like(rec.frame_height_mm),
-             frame_stiffness_n_per_mm=np.zeros_like(rec.frame_height_mm),
-             meta_json=json.dumps({"session": "s"}))
+    path = tmp_path / "rec.mcap"
+    recorder = SessionRecorder(path, {"session": "s"})
+    for i, (t, pos) in enumerate(zip(rec.platform_t_us, rec.platform_mm, strict=True)):
+        recorder.tap("tx", PlatformState(seq=i + 1, ts_us=int(t),
+                                         position_mm=(float(pos[0]), float(pos[1]),
+                                                      float(pos[2]))), int(t))
+    for i in range(rec.frames):
+        rx = 1_000_000 + i
+        frame = TactileFrame(
+            seq=i + 1, ts_us=rx, hops=(Hop("local", "station_rx", rx),),
+            center_mm=(float(rec.frame_center_mm[i, 0]), float(rec.frame_center_mm[i, 1])),
+            pitch_mm=float(rec.frame_pitch_mm[i]),
+            layers={"height_mm": rec.frame_height_mm[i]}, contact=bool(rec.frame_contact[i]),
+            force_n=float(rec.frame_force_n[i]),
+            indentation_mm=float(rec.frame_indentation_mm[i]))
+        recorder.tap("rx", frame, rx)
+        recorder.add_frame(frame, rx)
+    recorder.close()
     loaded = load_recording(path)
-    assert loaded.frames == rec.frames and loaded.meta == {"session": "s"}
+    assert loaded.frames == rec.frames and loaded.meta["session"] == "s"
     np.testing.assert_array_equal(loaded.frame_height_mm, rec.frame_height_mm)
-    np.savez(tmp_path / "partial.npz", platform_mm=rec.platform_mm)
-    with pytest.raises(InputDataError, match="missing"):
-        load_recording(tmp_path / "partial.npz")
-    (tmp_path / "junk.npz").write_bytes(b"not a zip")
-    with pytest.raises(InputDataError, match="cannot read"):
-        load_recording(tmp_path / "junk.npz")
+    np.testing.assert_array_equal(loaded.platform_mm, rec.platform_mm)
+    np.testing.assert_array_equal(loaded.frame_force_n, rec.frame_force_n)
+    assert analyse_recording(loaded, WorkspaceMap()) == analyse_recording(rec, WorkspaceMap())
+    (tmp_path / "junk.mcap").write_bytes(b"not an mcap file at all")
+    with pytest.raises(InputDataError, match="not an MCAP file"):
+        load_recording(tmp_path / "junk.mcap")
+    remote = McapRecorder(tmp_path / "remote.mcap", "remote")
+    remote.close()
+    with pytest.raises(InputDataError, match="'remote' station's recording"):
+        load_recording(tmp_path / "remote.mcap")
 
 
 def finding(x: float, y: float, kind: str = "benign", rank: int = 1) -> Finding:

@@ -1,0 +1,254 @@
+"""Play a recording back (``teletouch replay``) and summarise one (``--summary``).
+
+:class:`Replayer` publishes every message of a recording, in recorded order and at the
+recorded pace scaled by ``speed``, to its subscribers (:class:`ReplayEvent`; a live view
+subscribes with :meth:`Replayer.subscribe`). A local station's recording is also played
+into a display through the local station's own path: the received tactile frames go into a
+:class:`~local_site.agent.display_loop.DisplayLoop` (scene, safety rules, renderer, display
+driver) at the recorded platform positions, on the simulated ArrayTac display by default.
+
+:func:`summarize` gives the streams, message counts, rates, duration and the latency per
+hop (p50/p99 from the stamps of the derived ``latency`` channel).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from local_site.agent.display_loop import DisplayLoop, FrameSlot
+from local_site.devices import open_display
+from local_site.platform.base import PlatformSample
+from local_site.render import Renderer
+from local_site.scenes import open_scene
+from shared.errors import ConfigError
+from shared.protocol import Message, PlatformState, TactileFrame
+from shared.recording import McapRecording, RecordedMessage
+from shared.timebase import now_us
+
+__all__ = ["ReplayEvent", "ReplayResult", "Replayer", "format_summary", "summarize"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, slots=True)
+class ReplayEvent:
+    """One recorded message as it is replayed.
+
+    Attributes:
+        topic: its channel (``/local/rx/tactile_frame``, ``/local/pins``, ...).
+        t_us: when it was recorded (wall clock of the recording station).
+        message: the protocol message of a wire channel, else None.
+        data: the object of a derived JSON channel, else None.
+    """
+
+    topic: str
+    t_us: int
+    message: Message | None
+    data: dict[str, Any] | None
+
+
+#: what :meth:`Replayer.subscribe` takes (called on the replay thread; must be quick)
+Subscriber = Callable[[ReplayEvent], None]
+
+
+@dataclass
+class ReplayResult:
+    """What a replay did."""
+
+    published: int = 0
+    duration_s: float = 0.0
+    recorded_duration_s: float = 0.0
+    frames_to_display: int = 0
+    display: dict[str, Any] = field(default_factory=dict)
+    subscriber_errors: int = 0
+
+
+class Replayer:
+    """Replays one recording (see the module docstring).
+
+    Args:
+        recording: the recording (:func:`shared.recording.read_mcap`).
+        speed: playback speed (2.0: twice as fast); > 0.
+        display: display spec for a local recording (``sim``; ``none``: publish only).
+        stale_timeout_s: the display loop's stale-frame rule at speed 1 (scaled by 1/speed).
+
+    Raises:
+        ConfigError: a bad speed or display spec.
+    """
+
+    def __init__(self, recording: McapRecording, *, speed: float = 1.0, display: str = "sim",
+                 stale_timeout_s: float = 0.1) -> None:
+        if not (np.isfinite(speed) and speed > 0):
+            raise ConfigError(f"replay speed must be > 0, got {speed}")
+        self.recording = recording
+        self.speed = float(speed)
+        self.display_spec = display
+        self.stale_timeout_s = stale_timeout_s / self.speed
+        self._subscribers: list[Subscriber] = []
+        self.loop: DisplayLoop | None = None
+
+    def subscribe(self, fn: Subscriber) -> None:
+        """Call ``fn`` with every replayed event (a live view plugs in here)."""
+        self._subscribers.append(fn)
+
+    @staticmethod
+    def event(m: RecordedMessage) -> ReplayEvent:
+        """The event of one recorded message (decoded).
+
+        Raises:
+            RecordingFormatError: a payload does not decode.
+        """
+        if m.wire is not None:
+            return ReplayEvent(m.topic, m.t_us, m.decode(), None)
+        data = m.json() if m.encoding == "json" else None
+        return ReplayEvent(m.topic, m.t_us, None, data)
+
+    def _build_loop(self) -> tuple[DisplayLoop, FrameSlot, list[PlatformSample | None]]:
+        position: list[PlatformSample | None] = [None]
+        slot = FrameSlot()
+        display = open_display(self.display_spec, connect=False)
+        loop = DisplayLoop(display, Renderer(), open_scene("remote"),
+                           positions=lambda: position[0], platform_ok=lambda: True,
+                           frames=slot, stale_timeout_s=self.stale_timeout_s)
+        return loop, slot, position
+
+    def run(self, stop: threading.Event | None = None) -> ReplayResult:
+        """Replay to the end (or until ``stop`` is set); blocking.
+
+        Raises:
+            RecordingFormatError: a payload does not decode.
+            DeviceError: the display cannot be opened.
+        """
+        stop = stop or threading.Event()
+        messages = sorted(self.recording.messages, key=lambda m: m.t_us)
+        result = ReplayResult()
+        if not messages:
+            return result
+        t0 = messages[0].t_us
+        result.recorded_duration_s = (messages[-1].t_us - t0) / 1e6
+        local = self.recording.station == "local" and self.display_spec != "none"
+        loop_stop = threading.Event()
+        thread: threading.Thread | None = None
+        slot: FrameSlot | None = None
+        position: list[PlatformSample | None] = [None]
+        if local:
+            self.loop, slot, position = self._build_loop()
+            self.loop.display.connect()
+            thread = threading.Thread(target=self.loop.run_in_thread, args=(loop_stop,),
+                                      name="replay-display", daemon=True)
+            thread.start()
+        start = time.perf_counter()
+        try:
+            for m in messages:
+                due = start + (m.t_us - t0) / 1e6 / self.speed
+                wait = due - time.perf_counter()
+                if wait > 0 and stop.wait(wait):
+                    break
+                if stop.is_set():
+                    break
+                ev = self.event(m)
+                if slot is not None and isinstance(ev.message, TactileFrame) \
+                        and m.topic.endswith("/rx/tactile_frame"):
+                    slot.put(ev.message, now_us())
+                    result.frames_to_display += 1
+                elif isinstance(ev.message, PlatformState) and \
+                        m.topic.endswith("/tx/platform_state"):
+                    position[0] = PlatformSample(position_mm=ev.message.position_mm,
+                                                 velocity_mm_s=ev.message.velocity_mm_s,
+                                                 t_us=now_us(), seq=ev.message.seq,
+                                                 board_t_us=ev.message.ts_us)
+                for fn in self._subscribers:
+                    try:
+                        fn(ev)
+                    except Exception as err:  # a subscriber must not end the replay
+                        result.subscriber_errors += 1
+                        if result.subscriber_errors == 1:
+                            log.warning("replay subscriber failed: %s", err)
+                result.published += 1
+        finally:
+            loop_stop.set()
+            if thread is not None and self.loop is not None:
+                thread.join()
+                self.loop.finish("replay_end")
+                c = self.loop.counters
+                result.display = {"frames_accepted": c.frames_accepted,
+                                  "frames_rendered": c.frames_rendered,
+                                  "frames_rejected": c.frames_rejected,
+                                  "commands_sent": c.commands_sent,
+                                  "safe_entries": dict(c.safe_entries),
+                                  **self.loop.periods.summary()}
+                self.loop.display.disconnect()
+        result.duration_s = time.perf_counter() - start
+        return result
+
+
+def _pcts(values: list[float | None]) -> dict[str, float | int | None]:
+    arr = np.asarray([v for v in values if v is not None], dtype=float)
+    if arr.size == 0:
+        return {"count": 0, "p50": None, "p99": None, "max": None}
+    return {"count": int(arr.size), "p50": float(np.percentile(arr, 50)),
+            "p99": float(np.percentile(arr, 99)), "max": float(arr.max())}
+
+
+def summarize(recording: McapRecording) -> dict[str, Any]:
+    """Streams, counts, rates, duration and per-hop latency of a recording (JSON-able)."""
+    msgs = recording.messages
+    t = np.asarray([m.t_us for m in msgs], dtype=np.int64)
+    duration_s = float(t.max() - t.min()) / 1e6 if t.size > 1 else 0.0
+    streams: dict[str, dict[str, Any]] = {}
+    for topic in sorted(recording.topics()):
+        tt = np.asarray([m.t_us for m in recording.on(topic)], dtype=np.int64)
+        span = float(tt.max() - tt.min()) / 1e6 if tt.size > 1 else 0.0
+        first = next(recording.on(topic))
+        streams[topic] = {"count": int(tt.size), "encoding": first.encoding,
+                          "rate_hz": (tt.size - 1) / span if span > 0 else None}
+    latency: dict[str, dict[str, dict[str, Any]]] = {}
+    for topic in streams:
+        if not topic.endswith("/latency"):
+            continue
+        per: dict[str, dict[str, list[float | None]]] = {}
+        for m in recording.on(topic):
+            obj = m.json()
+            stages = per.setdefault(str(obj.get("type")), {})
+            for name, v in dict(obj.get("stages_ms") or {}).items():
+                stages.setdefault(name, []).append(v)
+            stages.setdefault("end_to_end", []).append(obj.get("end_to_end_ms"))
+        for msg_type, stages in per.items():
+            latency[f"{topic} {msg_type}"] = {k: _pcts(v) for k, v in stages.items()}
+    return {"path": str(recording.path), "station": recording.station,
+            "complete": recording.complete, "stop_reason": recording.stop_reason,
+            "messages": len(msgs), "duration_s": duration_s, "streams": streams,
+            "latency_ms": latency, "end": recording.end.get("counts", {})}
+
+
+def _f(v: Any, digits: int = 2) -> str:
+    return "-" if v is None else f"{v:.{digits}f}" if isinstance(v, float) else str(v)
+
+
+def format_summary(s: dict[str, Any]) -> str:
+    """The human-readable summary."""
+    state = "complete" if s["complete"] else f"INCOMPLETE ({s['stop_reason']}): read up to " \
+        "the last complete chunk"
+    lines = [f"{s['path']}: {s['station']} station, {s['messages']} messages over "
+             f"{s['duration_s']:.2f} s, {state}"]
+    dropped = s["end"].get("dropped_queue_full")
+    if dropped is not None:
+        lines.append(f"  recorder: {s['end'].get('messages_written')} written, {dropped} "
+                     "dropped (queue full)")
+    lines.append(f"  {'stream':<34} {'encoding':<8} {'count':>7} {'rate Hz':>9}")
+    for topic, st in s["streams"].items():
+        lines.append(f"  {topic:<34} {st['encoding']:<8} {st['count']:>7} "
+                     f"{_f(st['rate_hz'], 1):>9}")
+    for name, stages in s["latency_ms"].items():
+        lines.append(f"  latency (ms) {name}:{'':<10}{'count':>7} {'p50':>8} {'p99':>8}")
+        for stage, fig in stages.items():
+            lines.append(f"    {stage:<40} {fig['count']:>7} {_f(fig['p50']):>8} "
+                         f"{_f(fig['p99']):>8}")
+    return "\n".join(lines)

@@ -1,0 +1,367 @@
+"""The MCAP writer a station feeds while it runs: a background thread behind a bounded queue.
+
+:class:`McapRecorder` never blocks its callers (the 1 kHz display loop among them): every
+``wire``/``derived`` call is one ``put_nowait`` on a bounded queue; when the queue is full the
+item is dropped and counted (``dropped``). The thread encodes, derives the JSON channels of
+:mod:`shared.recording.schemas` from the wire messages, and writes zstd-compressed chunks. It
+closes a chunk and flushes the file at least every ``flush_interval_s``, so a station killed
+with SIGKILL leaves a file readable up to its last complete chunk (at most that much is lost).
+
+The recorder lives as long as the station, not as long as a connection: reconnections and
+relay restarts go into the same file. :meth:`McapRecorder.close` drains the queue, writes the
+end metadata and the MCAP summary and footer.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import json
+import logging
+import os
+import queue
+import threading
+import time
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any, BinaryIO
+
+import numpy as np
+from mcap.writer import CompressionType, Writer
+
+from shared import __version__
+from shared.errors import ConfigError
+from shared.protocol import ArmState, DataMessage, Message, PlatformState, Stats, TactileFrame
+from shared.protocol.codec import encode
+from shared.recording.schemas import (
+    DERIVED_SCHEMAS,
+    FORMAT_VERSION,
+    META_END,
+    META_START,
+    PROFILE,
+    WIRE_ENCODING,
+    derived_topic,
+    wire_topic,
+)
+from shared.report import to_jsonable
+
+__all__ = ["McapRecorder", "hop_stages_ms"]
+
+log = logging.getLogger(__name__)
+
+_CLOSE = object()
+
+
+def hop_stages_ms(hops: Any, offsets_us: Mapping[str, int | None]) -> tuple[
+        dict[str, float | None], float | None]:
+    """Per-stage delays (ms) between consecutive hop stamps, and first-to-last.
+
+    Each stamp is converted to the relay clock (``t - offset[clock]``; the relay's offset is
+    0); a stage between two clocks whose offset is unknown is None (same-clock stages never
+    need one). Stage names are ``<stage>_to_<stage>`` (a repeated name gets ``_2``, ...).
+
+    Args:
+        hops: the message's :class:`~shared.protocol.Hop` stamps, in order.
+        offsets_us: station clock minus relay clock, per role (``stats.clock_offset_us``).
+    """
+    def on_relay(clock: str, t_us: int) -> int | None:
+        if clock == "relay":
+            return t_us
+        off = offsets_us.get(clock)
+        return None if off is None else t_us - off
+
+    stages: dict[str, float | None] = {}
+    for a, b in itertools.pairwise(hops):
+        name = f"{a.stage}_to_{b.stage}"
+        n = 2
+        while name in stages:
+            name, n = f"{a.stage}_to_{b.stage}_{n}", n + 1
+        if a.clock == b.clock:
+            stages[name] = (b.t_us - a.t_us) / 1e3
+        else:
+            ta, tb = on_relay(a.clock, a.t_us), on_relay(b.clock, b.t_us)
+            stages[name] = None if ta is None or tb is None else (tb - ta) / 1e3
+    total = None
+    if len(hops) >= 2:
+        first, last = hops[0], hops[-1]
+        if first.clock == last.clock:
+            total = (last.t_us - first.t_us) / 1e3
+        else:
+            ta, tb = on_relay(first.clock, first.t_us), on_relay(last.clock, last.t_us)
+            total = None if ta is None or tb is None else (tb - ta) / 1e3
+    return stages, total
+
+
+def _layer_max(frame: TactileFrame, name: str) -> float | None:
+    arr = frame.layers.get(name)
+    return float(np.max(arr)) if isinstance(arr, np.ndarray) and arr.size else None
+
+
+class McapRecorder:
+    """Writes one station's recording (see the module docstring).
+
+    Args:
+        path: the ``.mcap`` file (created or replaced; another suffix is refused).
+        station: ``local`` or ``remote`` (the topics' first part).
+        meta: settings written into the start metadata (JSON-able).
+        queue_size: items waiting for the thread before new ones are dropped.
+        chunk_bytes: uncompressed size at which a chunk is closed.
+        flush_interval_s: a chunk is closed and the file flushed at least this often.
+
+    Raises:
+        ConfigError: the file cannot be created, is not named ``*.mcap``, or bad settings.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], station: str, *,
+                 meta: Mapping[str, Any] | None = None, queue_size: int = 8192,
+                 chunk_bytes: int = 1 << 20, flush_interval_s: float = 1.0) -> None:
+        if queue_size < 1 or chunk_bytes < 1 or not flush_interval_s > 0:
+            raise ConfigError("recorder queue_size, chunk_bytes and flush_interval_s must be > 0")
+        if not station.isidentifier():
+            raise ConfigError(f"station name {station!r} is not a valid topic part")
+        self.path = Path(path)
+        if self.path.suffix != ".mcap":
+            raise ConfigError(f"a recording is an MCAP file: name it *.mcap (got {self.path}; "
+                              "the .npz recording format is gone)")
+        self.station = station
+        self.flush_interval_s = flush_interval_s
+        try:
+            self._file: BinaryIO = open(self.path, "wb")  # noqa: SIM115 - closed by close()
+        except OSError as err:
+            raise ConfigError(f"cannot write the recording {self.path}: {err}") from err
+        self._writer = Writer(self._file, chunk_size=chunk_bytes,
+                              compression=CompressionType.ZSTD)
+        self._writer.start(profile=PROFILE, library=f"teletouch {__version__}")
+        self._writer.add_metadata(META_START, {
+            "format_version": FORMAT_VERSION, "station": station,
+            "started_us": str(time.time_ns() // 1000),
+            "meta_json": json.dumps(to_jsonable(dict(meta or {})), sort_keys=True,
+                                    allow_nan=False)})
+        self._writer.flush()
+        self._queue: queue.Queue[Any] = queue.Queue(maxsize=queue_size)
+        self._channels: dict[str, int] = {}
+        self._schemas: dict[str, int] = {}
+        self._offsets_us: dict[str, int | None] = {}
+        self._seq = 0
+        self.dropped = 0
+        self.written = 0
+        self.write_errors = 0
+        #: CPU time the writer thread used (seconds, updated as it runs)
+        self.writer_cpu_s = 0.0
+        self.message_counts: dict[str, int] = {}
+        self._closed = False
+        self._thread = threading.Thread(target=self._run, name=f"mcap-{station}", daemon=True)
+        self._thread.start()
+
+    # ------------------------------------------------------------------ producers (any thread)
+
+    def _put(self, item: tuple[Any, ...]) -> bool:
+        if self._closed:
+            return False
+        try:
+            self._queue.put_nowait(item)
+        except queue.Full:
+            self.dropped += 1
+            return False
+        return True
+
+    def wire(self, direction: str, msg: Message, t_us: int) -> bool:
+        """Record a message sent (``tx``) or received (``rx``) at ``t_us`` (wall clock).
+
+        Returns:
+            False when it was dropped (queue full or recorder closed).
+        """
+        return self._put(("wire", direction, msg, int(t_us)))
+
+    def tap(self, direction: str, msg: Message, t_us: int) -> None:
+        """:meth:`wire` as a :class:`shared.client.StationLink` tap (result ignored)."""
+        self._put(("wire", direction, msg, int(t_us)))
+
+    def derived(self, name: str, t_us: int,
+                payload: Mapping[str, Any] | Callable[[], Mapping[str, Any]]) -> bool:
+        """Record one message of the derived channel ``name`` (JSON).
+
+        ``payload`` may be a callable, run on the writer thread (so the caller does not pay
+        for building it).
+
+        Returns:
+            False when it was dropped.
+
+        Raises:
+            KeyError: ``name`` is not a derived channel of the schema table.
+        """
+        derived_topic(self.station, name)
+        return self._put(("derived", name, payload, int(t_us)))
+
+    def sync(self, timeout_s: float = 10.0) -> bool:
+        """Wait until everything queued so far is on disk (its chunk completed, file flushed).
+
+        For a reader of the file while the station still runs (the findings at shutdown).
+        Blocks the caller, so never call it from a loop that must not wait.
+
+        Returns:
+            False when the recorder is closed or the writer did not get there in time.
+        """
+        done = threading.Event()
+        if self._closed:
+            return False
+        try:
+            self._queue.put(("sync", done, None, 0), timeout=timeout_s)
+        except queue.Full:
+            return False
+        return done.wait(timeout_s)
+
+    # ------------------------------------------------------------------ writer thread
+
+    def _channel(self, topic: str, encoding: str, schema: dict[str, Any] | None,
+                 metadata: dict[str, str]) -> int:
+        cid = self._channels.get(topic)
+        if cid is None:
+            sid = 0
+            if schema is not None:
+                name = str(schema["title"])
+                sid = self._schemas.get(name, 0)
+                if not sid:
+                    sid = self._writer.register_schema(
+                        name=name, encoding="jsonschema",
+                        data=json.dumps(schema, sort_keys=True).encode())
+                    self._schemas[name] = sid
+            cid = self._writer.register_channel(topic=topic, message_encoding=encoding,
+                                                schema_id=sid, metadata=metadata)
+            self._channels[topic] = cid
+        return cid
+
+    def _add(self, topic: str, cid: int, data: bytes, t_us: int) -> None:
+        self._seq += 1
+        t_ns = t_us * 1000
+        self._writer.add_message(channel_id=cid, log_time=t_ns, data=data, publish_time=t_ns,
+                                 sequence=self._seq & 0xFFFFFFFF)
+        self.written += 1
+        self.message_counts[topic] = self.message_counts.get(topic, 0) + 1
+
+    def _write_json(self, name: str, payload: Mapping[str, Any], t_us: int) -> None:
+        topic = derived_topic(self.station, name)
+        cid = self._channel(topic, "json", DERIVED_SCHEMAS[name], {"kind": "derived"})
+        self._add(topic, cid, json.dumps(to_jsonable(dict(payload)), allow_nan=False,
+                                         separators=(",", ":")).encode(), t_us)
+
+    def _write_wire(self, direction: str, msg: Message, t_us: int) -> None:
+        topic = wire_topic(self.station, direction, msg.TYPE)
+        cid = self._channel(topic, WIRE_ENCODING, None,
+                            {"kind": "wire", "station": self.station, "direction": direction})
+        self._add(topic, cid, encode(msg, validate=False, max_message_bytes=1 << 30), t_us)
+        for name, payload in self._derive(direction, msg):
+            self._write_json(name, payload, t_us)
+
+    def _derive(self, direction: str, msg: Message) -> list[tuple[str, dict[str, Any]]]:
+        out: list[tuple[str, dict[str, Any]]] = []
+        if isinstance(msg, Stats):
+            raw = msg.metrics.get("clock_offset_us")
+            if isinstance(raw, dict):
+                self._offsets_us = {str(k): int(v) if isinstance(v, int | float)
+                                    and not isinstance(v, bool) else None
+                                    for k, v in raw.items()}
+            return out
+        if not isinstance(msg, DataMessage):
+            return out
+        if direction == "rx" and len(msg.hops) >= 2:
+            stages, total = hop_stages_ms(msg.hops, self._offsets_us)
+            out.append(("latency", {"type": msg.TYPE, "seq": msg.seq, "end_to_end_ms": total,
+                                    "stages_ms": stages}))
+        if isinstance(msg, PlatformState) and direction == "tx":
+            x, y, z = msg.position_mm
+            out.append(("trajectory", {"seq": msg.seq, "x_mm": x, "y_mm": y, "z_mm": z}))
+        elif isinstance(msg, ArmState) and direction == "tx":
+            x, y, z = msg.position_mm
+            out.append(("arm", {"seq": msg.seq, "x_mm": x, "y_mm": y, "z_mm": z,
+                                "force_n": msg.force_n, "status": msg.status}))
+        elif isinstance(msg, TactileFrame):
+            out.append(("tactile", {
+                "seq": msg.seq, "center_x_mm": msg.center_mm[0],
+                "center_y_mm": msg.center_mm[1], "pitch_mm": msg.pitch_mm,
+                "contact": msg.contact, "force_n": msg.force_n,
+                "indentation_mm": msg.indentation_mm,
+                "height_max_mm": _layer_max(msg, "height_mm") or 0.0,
+                "stiffness_n_per_mm_max": _layer_max(msg, "stiffness_n_per_mm")}))
+        return out
+
+    def _handle(self, item: tuple[Any, ...]) -> None:
+        kind, a, b, t_us = item
+        if kind == "wire":
+            self._write_wire(a, b, t_us)
+        elif kind == "sync":
+            self._writer.flush()
+            a.set()
+        else:
+            self._write_json(a, b() if callable(b) else b, t_us)
+
+    def _run(self) -> None:
+        last_flush = time.monotonic()
+        while True:
+            timeout = max(0.0, self.flush_interval_s - (time.monotonic() - last_flush))
+            try:
+                item = self._queue.get(timeout=timeout)
+            except queue.Empty:
+                item = None
+            self.writer_cpu_s = time.thread_time()
+            if item is _CLOSE:
+                return
+            if item is not None:
+                try:
+                    self._handle(item)
+                except Exception as err:  # a bad item must not end the recording
+                    self.write_errors += 1
+                    if self.write_errors == 1:
+                        log.error("recording %s: an item was not written: %s", self.path, err)
+            if time.monotonic() - last_flush >= self.flush_interval_s:
+                last_flush = time.monotonic()
+                try:
+                    self._writer.flush()
+                except Exception as err:  # keep the thread: close() still needs it
+                    self.write_errors += 1
+                    log.error("recording %s: flush failed: %s", self.path, err)
+
+    # ------------------------------------------------------------------ closing
+
+    def counts(self) -> dict[str, Any]:
+        """What was written and dropped so far."""
+        return {"path": str(self.path), "messages_written": self.written,
+                "dropped_queue_full": self.dropped, "write_errors": self.write_errors,
+                "writer_cpu_s": round(self.writer_cpu_s, 4),
+                "per_topic": dict(sorted(self.message_counts.items()))}
+
+    def close(self, end_meta: Mapping[str, Any] | None = None) -> dict[str, Any]:
+        """Drain the queue, write the end metadata, summary and footer; close the file.
+
+        Idempotent. Returns :meth:`counts`.
+
+        Raises:
+            ConfigError: the file could not be finished.
+        """
+        if self._closed:
+            return self.counts()
+        self._closed = True
+        try:
+            self._queue.put(_CLOSE, timeout=30.0)  # waits only while the thread drains
+        except queue.Full as err:
+            raise ConfigError(f"cannot finish the recording {self.path}: its writer thread "
+                              "is stuck") from err
+        self._thread.join(30.0)
+        if self._thread.is_alive():
+            raise ConfigError(f"cannot finish the recording {self.path}: its writer thread "
+                              "did not drain the queue within 30 s")
+        try:
+            self._writer.add_metadata(META_END, {
+                "ended_us": str(time.time_ns() // 1000),
+                "counts_json": json.dumps(self.counts(), sort_keys=True),
+                "meta_json": json.dumps(to_jsonable(dict(end_meta or {})), sort_keys=True,
+                                        allow_nan=False)})
+            self._writer.finish()
+        except (OSError, ValueError) as err:
+            raise ConfigError(f"cannot finish the recording {self.path}: {err}") from err
+        finally:
+            with contextlib.suppress(OSError):
+                self._file.close()
+        log.info("recording written to %s (%d messages, %d dropped)", self.path, self.written,
+                 self.dropped)
+        return self.counts()
