@@ -15,6 +15,7 @@ examples:
 from __future__ import annotations
 
 import argparse
+import sys
 from typing import Any
 
 __all__ = ["configure_parser", "format_report", "run"]
@@ -42,6 +43,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="no live status line")
     parser.add_argument("--json", action="store_true",
                         help="print the report as one JSON object")
+    parser.add_argument("--view", metavar="HOST:PORT", default="127.0.0.1:0",
+                        help="the local station's live view in the browser (default "
+                             "127.0.0.1 on a free port; the URL is printed)")
+    parser.add_argument("--no-view", action="store_true", help="no live view")
     parser.add_argument("--workdir", default=None,
                         help="keep logs, recording and summaries in this directory")
 
@@ -86,7 +91,8 @@ def run(args: argparse.Namespace) -> int:
     config = DemoConfig(scene=args.scene, seed=args.seed, link=args.link,
                         motion=args.motion or DEFAULT_MOTION, max_duration_s=args.duration,
                         frame_rate_hz=args.frame_rate_hz,
-                        workdir=Path(args.workdir) if args.workdir else None)
+                        workdir=Path(args.workdir) if args.workdir else None,
+                        view=None if args.no_view else args.view)
     status = None if args.headless else StatusLine(min_interval_s=10.0)
 
     def progress(elapsed_s: float, relay: dict[str, Any] | None) -> None:
@@ -95,7 +101,8 @@ def run(args: argparse.Namespace) -> int:
         status.update(f"demo {elapsed_s:5.1f} s | {_relay_line(relay)}")
 
     try:
-        report = run_demo(config, progress)
+        report = run_demo(config, progress,
+                          lambda url: emit(f"live view: {url}", stream=sys.stderr))
     finally:
         if status is not None:
             status.close()

@@ -41,6 +41,7 @@ from lab.scoring import score_findings
 from local_site.palpation import analyse_recording, load_recording
 from remote_site.agent.world import build_world
 from shared.errors import ConfigError, DeviceError, TeleTouchError
+from shared.view import parse_view_address
 from shared.workspace import load_workspace
 
 __all__ = ["DemoConfig", "DemoError", "run_demo"]
@@ -76,6 +77,7 @@ class DemoConfig:
         python: the interpreter running the ``teletouch`` processes.
         extra_local_args: more flags for ``teletouch local``.
         extra_remote_args: more flags for ``teletouch remote``.
+        view: the local station's live view, ``HOST:PORT`` (port 0: a free port), or None.
     """
 
     scene: str = "breast"
@@ -89,6 +91,7 @@ class DemoConfig:
     python: str = sys.executable
     extra_local_args: tuple[str, ...] = ()
     extra_remote_args: tuple[str, ...] = ()
+    view: str | None = None
 
 
 def free_port() -> int:
@@ -196,13 +199,14 @@ def _read_json(path: Path, what: str) -> dict[str, Any]:
 
 
 def run_demo(config: DemoConfig,
-             progress: Callable[[float, dict[str, Any] | None], None] | None = None
-             ) -> dict[str, Any]:
+             progress: Callable[[float, dict[str, Any] | None], None] | None = None,
+             announce_view: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Run one demo session end to end and return its report.
 
     Args:
         config: what to run.
         progress: called about once a second with the elapsed time and the relay status.
+        announce_view: called with the live view's URL once the local station started.
 
     Returns:
         The report (see ``docs/demo.md``): scene, findings, score against ground truth,
@@ -260,6 +264,14 @@ def run_demo(config: DemoConfig,
         write_ground_truth(build_world(config.scene, config.seed), files["ground_truth"],
                            load_workspace(toml_path=remote_toml))
         common = ["--session", SESSION, "--token", token]
+        view_args: list[str] = []
+        view_url = None
+        if config.view:
+            address = parse_view_address(config.view)
+            port = address.port or free_port()
+            view_args = ["--view", f"{address.host}:{port}"]
+            host = f"[{address.host}]" if ":" in address.host else address.host
+            view_url = f"http://{host}:{port}/"
         remote = procs.start(
             "remote", "remote", "--relay", f"ws://127.0.0.1:{remote_port}/", *common,
             "--arm", "sim", "--sensor", "sim", "--phantom", config.scene,
@@ -270,7 +282,9 @@ def run_demo(config: DemoConfig,
             "--platform", "sim", "--display", "sim", "--motion", config.motion,
             "--until-motion-done", "--duration", f"{config.max_duration_s:g}", "--no-status",
             "--record", str(files["record"]), "--summary-json", str(files["local_summary"]),
-            *config.extra_local_args)
+            *view_args, *config.extra_local_args)
+        if view_url is not None and announce_view is not None:
+            announce_view(view_url)
         deadline = started + config.max_duration_s + 60.0
         while local.proc.poll() is None:
             for child in procs.children:
