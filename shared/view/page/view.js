@@ -126,6 +126,9 @@ function drawPins(pins) {
     return;
   }
   const cmd = pins.commanded_mm, meas = pins.measured_mm, k = pins.stiffness_k, f = pins.friction;
+  // bar scale: the smallest of 0.5, 1, 2, 5 mm that holds every height shown
+  const top = Math.max(...cmd.map((v) => v || 0), ...(meas || []).map((v) => v || 0));
+  const full = [0.5, 1, 2, 5].find((v) => top <= v) || 5;
   for (let i = 0; i < 16; i++) {
     const row = Math.floor(i / 4), col = i % 4;
     // row 0 is the pins' -y row: draw +y up
@@ -135,11 +138,11 @@ function drawPins(pins) {
     ctx.fillStyle = `rgb(${shade},${shade + 6},${shade + 14})`;
     ctx.fillRect(x + 2, y + 2, cell - 4, cell - 4);
     const bw = cell * 0.22, base = y + cell - 8, span = cell - 26;
-    const hc = Math.max(0, Math.min(5, cmd[i] || 0)) / 5 * span;
+    const hc = Math.max(0, Math.min(full, cmd[i] || 0)) / full * span;
     ctx.strokeStyle = "#58a6ff"; ctx.lineWidth = 2;
     ctx.strokeRect(x + cell * 0.25, base - hc, bw, hc);
     if (meas) {
-      const hm = Math.max(0, Math.min(5, meas[i] || 0)) / 5 * span;
+      const hm = Math.max(0, Math.min(full, meas[i] || 0)) / full * span;
       ctx.fillStyle = "#f0883e";
       ctx.fillRect(x + cell * 0.53, base - hm, bw, hm);
     }
@@ -150,7 +153,7 @@ function drawPins(pins) {
     ctx.fillText(`k ${k ? k[i].toFixed(2) : "?"} f ${f ? f[i].toFixed(2) : "?"}`, x + 6, y + 28);
   }
   const age = pins.measured_age_ms;
-  $("pins-age").textContent = age === null ? "no feedback" : (age > STALE_MS ? `feedback STALE ${age.toFixed(0)} ms` : `feedback ${age.toFixed(0)} ms old`);
+  $("pins-age").textContent = `bars 0-${full} mm; ` + (age === null ? "no feedback" : (age > STALE_MS ? `feedback STALE ${age.toFixed(0)} ms` : `feedback ${age.toFixed(0)} ms old`));
   cv.classList.toggle("stale", age === null || age > STALE_MS);
 }
 
