@@ -315,7 +315,8 @@ def main(argv: list[str] | None = None) -> int:
         row["jitter_p99_vs_no_view"] = row["jitter_p99_ms"] / max(1e-9, ref["jitter_p99_ms"])
     cols = ["round", "setting", "window_s", "rate_hz", "rate_vs_no_view", "period_p50_ms",
             "period_p99_ms", "period_max_ms", "jitter_p50_ms", "jitter_p99_ms",
-            "jitter_p99_vs_no_view", "overruns", "viewer_hz_min", "snapshots_skipped", "e2e_p50_ms", "load_1min_start"]
+            "jitter_p99_vs_no_view", "overruns", "viewer_hz_min", "snapshots_skipped",
+            "e2e_p50_ms", "load_1min_start"]
     summary = []
     for setting in settings:
         pts = [r for r in rows if r["setting"] == setting]
