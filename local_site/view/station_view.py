@@ -12,7 +12,6 @@ Every value that can go stale carries its age (``age_ms``), so the page shows ol
 
 from __future__ import annotations
 
-import base64
 import collections
 import math
 import threading
@@ -24,6 +23,7 @@ from local_site.render.pin_command import PIN_PITCH_MM
 from local_site.view.analysis import LiveAnalysis, LiveAnalysisConfig
 from shared.protocol import ArmState, TactileFrame
 from shared.timebase import monotonic_s, now_us
+from shared.view.encode import encode_patch, num, nums
 from shared.workspace import WorkspaceMap
 
 if TYPE_CHECKING:
@@ -33,44 +33,6 @@ __all__ = ["StationView"]
 
 _DEFAULT_ANALYSIS = LiveAnalysisConfig()
 _MAX_TRAIL = 50_000  # trajectory points kept: 50k-100k (20-40 min at 40 Hz); then the oldest go
-
-
-def _num(value: float | None, digits: int = 4) -> float | None:
-    if value is None or not math.isfinite(value):
-        return None
-    return round(float(value), digits)
-
-
-def _nums(values: Any, digits: int = 4) -> list[float | None]:
-    return [_num(float(v), digits) for v in np.asarray(values, dtype=np.float64).ravel()]
-
-
-def _patch(frame: TactileFrame, rx_us: int, position_mm: tuple[float, ...] | None,
-           pin_pitch_mm: float) -> dict[str, Any] | None:
-    height = frame.layers.get("height_mm")
-    if not isinstance(height, np.ndarray) or height.ndim != 2 or height.size == 0:
-        return None
-    h = np.asarray(height, dtype=np.float64)
-    finite = np.isfinite(h)
-    lo = float(h[finite].min()) if finite.any() else 0.0
-    hi = float(h[finite].max()) if finite.any() else 0.0
-    span = hi - lo if hi > lo else 1.0
-    q = np.where(finite, 1 + np.rint(np.clip((h - lo) / span, 0, 1) * 254), 0).astype(np.uint8)
-    rows, cols = h.shape
-    window = None
-    if position_mm is not None:
-        half = 2.0 * pin_pitch_mm  # the 4 x 4 pins' footprint: +-2 pitches around the centre
-        to_col = (position_mm[0] - frame.center_mm[0]) / frame.pitch_mm + (cols - 1) / 2.0
-        to_row = (position_mm[1] - frame.center_mm[1]) / frame.pitch_mm + (rows - 1) / 2.0
-        r = half / frame.pitch_mm
-        window = [_num(to_col - r, 3), _num(to_row - r, 3), _num(to_col + r, 3),
-                  _num(to_row + r, 3)]
-    return {"w": cols, "h": rows, "lo_mm": _num(lo), "hi_mm": _num(hi),
-            "data": base64.b64encode(q.tobytes()).decode("ascii"),
-            "pitch_mm": _num(frame.pitch_mm), "center_mm": _nums(frame.center_mm, 3),
-            "window": window, "seq": int(frame.seq), "contact": bool(frame.contact),
-            "force_n": _num(frame.force_n), "indentation_mm": _num(frame.indentation_mm),
-            "age_ms": _num((now_us() - rx_us) / 1e3, 1)}
 
 
 class StationView:
@@ -104,7 +66,7 @@ class StationView:
         self._loop_stats: dict[str, Any] = {}
         self._loop_stats_at = -math.inf
         lo, hi = self.workspace.phantom_bounds_mm
-        self._bounds = [_nums(lo[:2], 3), _nums(hi[:2], 3)]
+        self._bounds = [nums(lo[:2], 3), nums(hi[:2], 3)]
 
     # ------------------------------------------------------------------ display-loop side
 
@@ -145,46 +107,46 @@ class StationView:
         command = loop.last_command
         feedback = loop.display.latest_feedback() if loop.display.is_connected else None
         pins: dict[str, Any] = {
-            "commanded_mm": None if command is None else _nums(command.height_mm),
-            "stiffness_k": None if command is None else _nums(command.stiffness_k, 3),
-            "friction": None if command is None else _nums(command.friction, 3),
-            "measured_mm": None if feedback is None else _nums(feedback.position_mm),
+            "commanded_mm": None if command is None else nums(command.height_mm),
+            "stiffness_k": None if command is None else nums(command.stiffness_k, 3),
+            "friction": None if command is None else nums(command.friction, 3),
+            "measured_mm": None if feedback is None else nums(feedback.position_mm),
             "measured_age_ms": None if feedback is None
-            else _num((now_us() - feedback.t_us) / 1e3, 1),
+            else num((now_us() - feedback.t_us) / 1e3, 1),
             "board_safe_state": None if feedback is None else bool(feedback.safe_state),
             "commands_sent": loop.counters.commands_sent,
         }
         latest = self._latest
-        patch = None if latest is None else _patch(latest[0], latest[1], platform,
+        patch = None if latest is None else encode_patch(latest[0], latest[1], platform,
                                                    self._pin_pitch_mm)
         arm = agent.last_arm_state
         now_s = monotonic_s()
         if arm is not None and (self._arm is None or self._arm[0] is not arm):
             self._arm = (arm, now_s)
         probe = {
-            "platform_mm": None if platform is None else _nums(platform, 3),
-            "phantom_mm": None if phantom is None else _nums(phantom, 3),
-            "end_effector_mm": None if self._arm is None else _nums(self._arm[0].position_mm, 3),
-            "end_effector_force_n": None if self._arm is None else _num(self._arm[0].force_n),
+            "platform_mm": None if platform is None else nums(platform, 3),
+            "phantom_mm": None if phantom is None else nums(phantom, 3),
+            "end_effector_mm": None if self._arm is None else nums(self._arm[0].position_mm, 3),
+            "end_effector_force_n": None if self._arm is None else num(self._arm[0].force_n),
             "arm_status": None if self._arm is None else self._arm[0].status,
-            "arm_age_ms": None if self._arm is None else _num((now_s - self._arm[1]) * 1e3, 1),
+            "arm_age_ms": None if self._arm is None else num((now_s - self._arm[1]) * 1e3, 1),
         }
         link = agent.link
         link_doc = {"state": "none"} if link is None else {
             "state": "up" if link.is_connected else "down",
-            "down_s": _num(link.link_down_for_s(), 3)}
+            "down_s": num(link.link_down_for_s(), 3)}
         trace = loop.last_trace
         latency = None
         if trace is not None:
             stages, e2e_us, at_s = trace
-            latency = {"stages_ms": {name: _num(us / 1e3, 3) for name, us in stages},
-                       "end_to_end_ms": None if e2e_us is None else _num(e2e_us / 1e3, 3),
-                       "age_ms": _num((now_s - at_s) * 1e3, 1)}
+            latency = {"stages_ms": {name: num(us / 1e3, 3) for name, us in stages},
+                       "end_to_end_ms": None if e2e_us is None else num(e2e_us / 1e3, 3),
+                       "age_ms": num((now_s - at_s) * 1e3, 1)}
         if now_s - self._loop_stats_at >= 0.5:
             self._loop_stats_at = now_s
             summary = loop.periods.summary(last=500)
-            self._loop_stats = {"rate_hz": _num(summary.get("rate_hz"), 1),
-                                "period_p99_ms": _num(summary.get("period_p99_ms"), 3)}
+            self._loop_stats = {"rate_hz": num(summary.get("rate_hz"), 1),
+                                "period_p99_ms": num(summary.get("period_p99_ms"), 3)}
         analysis = None
         if self._analysis is not None:
             analysis = {"alive": self._analysis.alive, "frames_sent": self._analysis.frames_sent,

@@ -175,24 +175,31 @@ class ViewServer:
     """Serves the page and live snapshots of one :class:`ViewSource` (module docstring).
 
     Args:
-        source: what to show.
+        source: what to show (a station's view: one source, published all the time).
         config: rates and limits.
         authorize: checks a browser's hello (session, token); None: no hello required
             (a station's view, bound to loopback by default).
+        source_for: with ``authorize`` (the relay): the source of a session, or None when
+            the session is unknown; published only while a browser watches it.
     """
 
-    def __init__(self, source: ViewSource, config: ViewServerConfig | None = None, *,
-                 authorize: Callable[[str, str], bool] | None = None) -> None:
+    def __init__(self, source: ViewSource | None, config: ViewServerConfig | None = None, *,
+                 authorize: Callable[[str, str], bool] | None = None,
+                 source_for: Callable[[str], ViewSource | None] | None = None) -> None:
+        if (source is None) == (source_for is None) or (source_for is not None
+                                                        and authorize is None):
+            raise ConfigError("a view server needs one source, or source_for with authorize")
         self.source = source
         self.config = config or ViewServerConfig()
         self._authorize = authorize
+        self._source_for = source_for
         self._page = _page_bytes()
         self.counters: Counter[str] = Counter()
         self._server: Server | None = None
         self._publisher: asyncio.Task[None] | None = None
-        self._fresh: asyncio.Event | None = None
-        self._seq = 0
-        self._live_json = "{}"
+        self._feeds: dict[str, _Feed] = {}
+        if source is not None:
+            self._feeds[""] = _Feed(source, keep=True)
         self._clients = 0
         self._thread: threading.Thread | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -208,7 +215,6 @@ class ViewServer:
         Raises:
             ConfigError: the address cannot be bound.
         """
-        self._fresh = asyncio.Event()
         try:
             self._server = await serve(
                 self._handler, host, port, process_request=self._process_request,
@@ -301,34 +307,40 @@ class ViewServer:
         loop = asyncio.get_running_loop()
         next_t = loop.time()
         while True:
-            try:
-                live = dict(self.source.live())
-                live["view"] = {"clients": self._clients, "t_us": now_us()}
-                text = json.dumps(live, allow_nan=False, separators=(",", ":"))
-            except Exception as err:  # a view bug must never reach the station
-                self.counters["source_errors"] += 1
-                if not self._error_logged:
-                    self._error_logged = True
-                    log.exception("view snapshot failed (logged once): %s", err)
-            else:
-                self._live_json = text
-                self._seq += 1
-                self.counters["snapshots"] += 1
-                fresh = self._fresh
-                self._fresh = asyncio.Event()
-                if fresh is not None:
-                    fresh.set()
+            for key, feed in list(self._feeds.items()):
+                if feed.clients == 0 and not feed.keep:
+                    del self._feeds[key]
+                    continue
+                self._publish_feed(feed)
             next_t += period_s
             now = loop.time()
             if next_t < now:
                 next_t = now
             await asyncio.sleep(next_t - now)
 
+    def _publish_feed(self, feed: _Feed) -> None:
+        try:
+            live = dict(feed.source.live())
+            live["view"] = {"clients": feed.clients, "t_us": now_us()}
+            text = json.dumps(live, allow_nan=False, separators=(",", ":"))
+        except Exception as err:  # a view bug must never reach the station
+            self.counters["source_errors"] += 1
+            if not self._error_logged:
+                self._error_logged = True
+                log.exception("view snapshot failed (logged once): %s", err)
+            return
+        feed.live_json = text
+        feed.seq += 1
+        self.counters["snapshots"] += 1
+        fresh, feed.fresh = feed.fresh, asyncio.Event()
+        fresh.set()
+
     def _message(self, client: _Client) -> str:
-        first, points = self.source.trail_since(client.trail_next, self.config.trail_batch)
+        feed = client.feed
+        first, points = feed.source.trail_since(client.trail_next, self.config.trail_batch)
         client.trail_next = first + len(points)
-        version, analysis = self.source.analysis()
-        parts = [f'{{"type":"snapshot","seq":{self._seq},"live":{self._live_json}',
+        version, analysis = feed.source.analysis()
+        parts = [f'{{"type":"snapshot","seq":{feed.seq},"live":{feed.live_json}',
                  f',"trail":{{"from":{first},"points":'
                  f'{json.dumps(points, allow_nan=False, separators=(",", ":"))}}}']
         if version != client.analysis_version and analysis is not None:
@@ -370,23 +382,33 @@ class ViewServer:
         connection.teletouch_counted = True  # type: ignore[attr-defined]
         return None
 
-    async def _hello(self, ws: ServerConnection) -> bool:
+    async def _hello(self, ws: ServerConnection) -> _Feed | None:
+        """The feed this browser may watch (after its hello when tokens are needed)."""
         authorize = self._authorize
         if authorize is None:
-            return True
+            return self._feeds.get("")
         try:
             async with asyncio.timeout(self.config.hello_timeout_s):
                 raw = await ws.recv()
             doc = json.loads(raw)
         except (TimeoutError, ValueError, ConnectionClosed):
             doc = None
-        ok = (isinstance(doc, dict) and doc.get("type") == "hello"
-              and isinstance(doc.get("session"), str) and isinstance(doc.get("token"), str)
-              and authorize(doc["session"], doc["token"]))
-        if not ok:
+        session = doc.get("session") if isinstance(doc, dict) else None
+        token = doc.get("token") if isinstance(doc, dict) else None
+        feed = None
+        if (isinstance(doc, dict) and doc.get("type") == "hello" and isinstance(session, str)
+                and isinstance(token, str) and authorize(session, token)):
+            feed = self._feeds.get(session)
+            if feed is None and self._source_for is not None:
+                source = self._source_for(session)
+                if source is not None:
+                    feed = self._feeds[session] = _Feed(source, keep=False)
+            elif feed is None and self.source is not None:
+                feed = self._feeds.get("")
+        if feed is None:
             self.counters["clients_unauthorized"] += 1
             await ws.close(4001, "view needs a valid session and token")
-        return bool(ok)
+        return feed
 
     async def _drain(self, ws: ServerConnection) -> None:
         """Read and discard what the browser sends (so control frames keep flowing)."""
@@ -397,14 +419,17 @@ class ViewServer:
     async def _handler(self, ws: ServerConnection) -> None:
         counted = getattr(ws, "teletouch_counted", False)
         try:
-            if not await self._hello(ws):
+            feed = await self._hello(ws)
+            if feed is None:
                 return
             self.counters["clients_served"] += 1
-            client = _Client()
+            client = _Client(feed)
+            feed.clients += 1
             drain = asyncio.create_task(self._drain(ws), name="view-drain")
             try:
                 await self._send_loop(ws, client, drain)
             finally:
+                feed.clients -= 1
                 drain.cancel()
                 with contextlib.suppress(asyncio.CancelledError):
                     await drain
@@ -414,17 +439,17 @@ class ViewServer:
 
     async def _send_loop(self, ws: ServerConnection, client: _Client,
                          drain: asyncio.Task[None]) -> None:
+        feed = client.feed
         while not drain.done():
-            fresh = self._fresh
-            if client.seq == self._seq and fresh is not None:
-                waiter = asyncio.ensure_future(fresh.wait())
+            if client.seq == feed.seq:
+                waiter = asyncio.ensure_future(feed.fresh.wait())
                 await asyncio.wait({waiter, drain}, return_when=asyncio.FIRST_COMPLETED)
                 if not waiter.done():
                     waiter.cancel()
                     break
-            if client.seq and self._seq > client.seq + 1:
-                self.counters["snapshots_skipped"] += self._seq - client.seq - 1
-            client.seq = self._seq
+            if client.seq and feed.seq > client.seq + 1:
+                self.counters["snapshots_skipped"] += feed.seq - client.seq - 1
+            client.seq = feed.seq
             try:
                 text = self._message(client)
             except Exception as err:  # a view bug must never reach the station
@@ -446,12 +471,27 @@ class ViewServer:
             self.counters["messages_sent"] += 1
 
 
+class _Feed:
+    """One source's newest snapshot (JSON) and the event its browsers wait on."""
+
+    __slots__ = ("clients", "fresh", "keep", "live_json", "seq", "source")
+
+    def __init__(self, source: ViewSource, keep: bool) -> None:
+        self.source = source
+        self.keep = keep
+        self.seq = 0
+        self.live_json = "{}"
+        self.clients = 0
+        self.fresh = asyncio.Event()
+
+
 class _Client:
     """What one browser has had."""
 
-    __slots__ = ("analysis_version", "seq", "trail_next")
+    __slots__ = ("analysis_version", "feed", "seq", "trail_next")
 
-    def __init__(self) -> None:
+    def __init__(self, feed: _Feed) -> None:
+        self.feed = feed
         self.seq = 0
         self.trail_next = 0
         self.analysis_version = -1
