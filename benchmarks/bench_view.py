@@ -165,6 +165,13 @@ def _viewers_main(kind: str, port: int, count: int, seconds: float) -> int:
 
 # ---------------------------------------------------------------------- one run
 
+def _analysis_cpu_s(agent: LocalAgent) -> float | None:
+    """CPU seconds the live analysis process has used (its last report), or None."""
+    view = agent.view
+    result = view.analysis()[1] if view is not None else None
+    return None if result is None else float(result["cpu_s_total"])
+
+
 async def measure(setting: str, duration_s: float, warmup_s: float = 3.0) -> dict[str, Any]:
     """Run the full agent under one view setting; measure ``duration_s`` once viewers are on.
 
@@ -203,10 +210,19 @@ async def measure(setting: str, duration_s: float, warmup_s: float = 3.0) -> dic
         window["load"] = os.getloadavg()[0]
         n0 = loop.periods.iterations
         overruns0 = loop.periods.overruns
+        cpu0 = agent.view_server.cpu_s if agent.view_server is not None else 0.0
+        ana0 = _analysis_cpu_s(agent)
+        t0 = time.monotonic()
         skipped0 = agent.view_server.counters["snapshots_skipped"] if agent.view_server else 0
         await asyncio.sleep(duration_s)
         window["periods_s"] = loop.periods.periods_s(last=loop.periods.iterations - n0)
         window["overruns"] = loop.periods.overruns - overruns0
+        wall = time.monotonic() - t0
+        if agent.view_server is not None:
+            window["view_cpu_pct"] = 100.0 * (agent.view_server.cpu_s - cpu0) / wall
+        ana1 = _analysis_cpu_s(agent)
+        if ana0 is not None and ana1 is not None:
+            window["analysis_cpu_pct"] = 100.0 * (ana1 - ana0) / wall
         if agent.view_server is not None:
             window["skipped"] = agent.view_server.counters["snapshots_skipped"] - skipped0
         if viewers is not None:
@@ -245,6 +261,8 @@ async def measure(setting: str, duration_s: float, warmup_s: float = 3.0) -> dic
             "e2e_p50_ms": s["motion_to_touch_ms"].get("end_to_end", {}).get("p50"),
             "viewer_hz_min": min(viewer_rates) if viewer_rates else None,
             "snapshots_skipped": window.get("skipped"),
+            "view_cpu_pct": window.get("view_cpu_pct"),
+            "analysis_cpu_pct": window.get("analysis_cpu_pct"),
             "load_1min_start": window["load"], "periods_ms": periods * 1e3}
 
 
@@ -316,7 +334,7 @@ def main(argv: list[str] | None = None) -> int:
     cols = ["round", "setting", "window_s", "rate_hz", "rate_vs_no_view", "period_p50_ms",
             "period_p99_ms", "period_max_ms", "jitter_p50_ms", "jitter_p99_ms",
             "jitter_p99_vs_no_view", "overruns", "viewer_hz_min", "snapshots_skipped",
-            "e2e_p50_ms", "load_1min_start"]
+            "view_cpu_pct", "analysis_cpu_pct", "e2e_p50_ms", "load_1min_start"]
     summary = []
     for setting in settings:
         pts = [r for r in rows if r["setting"] == setting]
@@ -358,7 +376,12 @@ def main(argv: list[str] | None = None) -> int:
         "viewer's snapshots per second (the view publishes at 40 Hz; ws clients: messages "
         "read and JSON-parsed; chromium: messages the page handled and drew). "
         "snapshots_skipped = snapshots a viewer did not get because it was still busy with "
-        "an earlier one (latest wins, nothing queues).",
+        "an earlier one (latest wins, nothing queues). view_cpu_pct = CPU time of the view "
+        "server's thread (building, encoding and composing snapshots; thread CPU clock, so "
+        "other processes' load does not count) in % of one core over the window; "
+        "analysis_cpu_pct = the analysis process's CPU time (niced, reported at its runs) "
+        "in % of one core. These two do not depend on the machine's load the way the loop's "
+        "rate does.",
         "",
         "![periods](view.png)",
         ""])

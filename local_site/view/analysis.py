@@ -159,6 +159,7 @@ def _worker(inbox: Any, outbox: Any, workspace: WorkspaceConfig,
         runs += 1
         result["run"] = runs
         result["seconds"] = last_cost
+        result["cpu_s_total"] = time.process_time()
         outbox.put(result)
 
 

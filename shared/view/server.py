@@ -36,6 +36,7 @@ import ipaddress
 import json
 import logging
 import threading
+import time
 from collections import Counter
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -201,6 +202,8 @@ class ViewServer:
         if source is not None:
             self._feeds[""] = _Feed(source, keep=True)
         self._clients = 0
+        #: CPU seconds this server's thread spent building, encoding and composing snapshots
+        self.cpu_s = 0.0
         self._thread: threading.Thread | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._stopping: asyncio.Event | None = None
@@ -319,6 +322,13 @@ class ViewServer:
             await asyncio.sleep(next_t - now)
 
     def _publish_feed(self, feed: _Feed) -> None:
+        t0 = time.thread_time()
+        try:
+            self._build(feed)
+        finally:
+            self.cpu_s += time.thread_time() - t0
+
+    def _build(self, feed: _Feed) -> None:
         try:
             live = dict(feed.source.live())
             live["view"] = {"clients": feed.clients, "t_us": now_us()}
@@ -336,6 +346,13 @@ class ViewServer:
         fresh.set()
 
     def _message(self, client: _Client) -> str:
+        t0 = time.thread_time()
+        try:
+            return self._compose(client)
+        finally:
+            self.cpu_s += time.thread_time() - t0
+
+    def _compose(self, client: _Client) -> str:
         feed = client.feed
         first, points = feed.source.trail_since(client.trail_next, self.config.trail_batch)
         client.trail_next = first + len(points)
