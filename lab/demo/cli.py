@@ -102,7 +102,8 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         report = run_demo(config, progress,
-                          lambda url: emit(f"live view: {url}", stream=sys.stderr))
+                          lambda who, url: emit(f"live view ({who}): {url}",
+                                                stream=sys.stderr))
     finally:
         if status is not None:
             status.close()

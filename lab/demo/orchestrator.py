@@ -200,13 +200,14 @@ def _read_json(path: Path, what: str) -> dict[str, Any]:
 
 def run_demo(config: DemoConfig,
              progress: Callable[[float, dict[str, Any] | None], None] | None = None,
-             announce_view: Callable[[str], None] | None = None) -> dict[str, Any]:
+             announce_view: Callable[[str, str], None] | None = None) -> dict[str, Any]:
     """Run one demo session end to end and return its report.
 
     Args:
         config: what to run.
         progress: called about once a second with the elapsed time and the relay status.
-        announce_view: called with the live view's URL once the local station started.
+        announce_view: called with (who, URL) for each live view once it is started: the
+            local station's, and the relay's for observers (URL with an observer token).
 
     Returns:
         The report (see ``docs/demo.md``): scene, findings, score against ground truth,
@@ -231,8 +232,12 @@ def run_demo(config: DemoConfig,
     started = time.monotonic()
     try:
         ws_port, tcp_port = free_port(), free_port()
+        relay_view: list[str] = []
+        if config.view:
+            relay_view_host = parse_view_address(config.view).host
+            relay_view = ["--view", f"{relay_view_host}:{free_port()}"]
         procs.start("relay", "relay", "--host", "127.0.0.1", "--port", str(ws_port),
-                    "--tcp-port", str(tcp_port))
+                    "--tcp-port", str(tcp_port), *relay_view)
         _wait_for(lambda: relay_status(ws_port) is not None, "the relay's /status", 20, procs)
         token = subprocess.run(
             [config.python, "-m", "lab.cli", "relay", "--print-token", SESSION],
@@ -284,7 +289,15 @@ def run_demo(config: DemoConfig,
             "--record", str(files["record"]), "--summary-json", str(files["local_summary"]),
             *view_args, *config.extra_local_args)
         if view_url is not None and announce_view is not None:
-            announce_view(view_url)
+            announce_view("local station", view_url)
+            observer = subprocess.run(
+                [config.python, "-m", "lab.cli", "relay", "--print-token", SESSION, "--role",
+                 "observer", "--ttl-s", str(int(config.max_duration_s) + 3600)],
+                check=True, capture_output=True, text=True, timeout=30, env=env).stdout.strip()
+            obs_host, _, obs_port = relay_view[1].rpartition(":")
+            obs_host = f"[{obs_host}]" if ":" in obs_host else obs_host
+            announce_view("relay, for observers",
+                          f"http://{obs_host}:{obs_port}/#session={SESSION}&token={observer}")
         deadline = started + config.max_duration_s + 60.0
         while local.proc.poll() is None:
             for child in procs.children:

@@ -2,7 +2,9 @@
 
 The demo runs as real processes (relay, remote and local stations) with the local station's
 view on; chromium opens the page as a person would and the test waits for what a person
-would see: the pins change, the trajectory grows, findings appear, the latency chart moves.
+would see: the pins change, the trajectory grows, findings appear, the latency chart moves;
+then the relay's page for observers (with the observer token the demo prints) shows the
+patch and the trajectory, and without the token it is refused.
 A screenshot is kept: in ``$TELETOUCH_TEST_ARTIFACTS`` when set, else in pytest's tmp dir
 (the path is printed).
 
@@ -67,9 +69,16 @@ def _page_up(url: str) -> bool:
         return False
 
 
+def _relay_url(log: Path) -> str | None:
+    for line in log.read_text(errors="replace").splitlines():
+        if line.startswith("live view (relay, for observers): "):
+            return line.split(": ", 1)[1].strip()
+    return None
+
+
 @pytest.fixture
-def demo_view(tmp_path: Path) -> Iterator[str]:
-    """A demo session running with its live view on; yields the view's URL."""
+def demo_view(tmp_path: Path) -> Iterator[tuple[str, str]]:
+    """A demo session with its live views on; yields the station's and the relay's URLs."""
     port = free_tcp_port()
     log = (tmp_path / "demo.log").open("wb")
     proc = subprocess.Popen(
@@ -81,7 +90,9 @@ def demo_view(tmp_path: Path) -> Iterator[str]:
         wait_until(lambda: _page_up(url) or proc.poll() is not None, 90, "the demo's view")
         if proc.poll() is not None:
             pytest.fail(f"the demo ended early: {(tmp_path / 'demo.log').read_text()[-2000:]}")
-        yield url
+        wait_until(lambda: _relay_url(tmp_path / "demo.log") is not None, 30,
+                   "the relay's view URL printed")
+        yield url, str(_relay_url(tmp_path / "demo.log"))
     finally:
         if proc.poll() is None:
             proc.send_signal(signal.SIGINT)  # the demo stops its children on the way out
@@ -111,7 +122,9 @@ def _view(page: Any) -> dict[str, Any]:
                        li => li.dataset.kind)})"""))
 
 
-def test_the_live_view_shows_a_running_demo(demo_view: str, tmp_path: Path) -> None:
+def test_the_live_view_shows_a_running_demo(demo_view: tuple[str, str],
+                                            tmp_path: Path) -> None:
+    station_url, relay_url = demo_view
     chromium = _chromium()
     sync_playwright = _playwright()
     artifacts = Path(os.environ.get("TELETOUCH_TEST_ARTIFACTS") or tmp_path)
@@ -123,9 +136,27 @@ def test_the_live_view_shows_a_running_demo(demo_view: str, tmp_path: Path) -> N
         try:
             page = browser.new_page(viewport={"width": 1600, "height": 900})
             page.on("pageerror", lambda err: errors.append(str(err)))
-            page.goto(demo_view)
+            page.goto(station_url)
             page.wait_for_function("() => window.teletouchView && teletouchView.messages > 5",
                                    timeout=scaled(30) * 1e3)
+            # the relay's page for observers: patch and trajectory from the routed messages
+            observer = browser.new_page(viewport={"width": 1600, "height": 900})
+            observer.on("pageerror", lambda err: errors.append(f"relay page: {err}"))
+            observer.goto(relay_url)
+            observer.wait_for_function(
+                "() => teletouchView.messages > 5 && teletouchView.trail.length > 5"
+                " && teletouchView.live && teletouchView.live.patch",
+                timeout=scaled(30) * 1e3)
+            observer_station = observer.evaluate("() => teletouchView.live.station")
+            observer.screenshot(path=str(artifacts / "live_view_relay.png"), full_page=True)
+            # without the token the relay refuses the page's WebSocket
+            refused = browser.new_page()
+            refused.goto(relay_url.split("#", 1)[0])
+            refused.wait_for_function(
+                "() => document.getElementById('conn').textContent.includes('refused')",
+                timeout=scaled(30) * 1e3)
+            observer.close()
+            refused.close()
             first = _view(page)
             pins0 = _canvas_signature(page, "pins")
             lat0 = _canvas_signature(page, "chart-latency")
@@ -153,4 +184,5 @@ def test_the_live_view_shows_a_running_demo(demo_view: str, tmp_path: Path) -> N
     assert seen["trail"] > first["trail"] and seen["pins"] > first["pins"]
     assert badge is not None and "link" in badge
     assert shot.stat().st_size > 10_000
+    assert observer_station == "relay"
     assert errors == [], f"page errors: {errors}"

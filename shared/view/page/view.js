@@ -122,7 +122,8 @@ function drawPins(pins) {
   ctx.clearRect(0, 0, W, H);
   if (!pins || !pins.commanded_mm) {
     ctx.fillStyle = "#8a96a3"; ctx.font = "14px system-ui";
-    ctx.fillText(pins ? "no pin command (safe state or not started)" : "pins not available here", 10, H / 2);
+    ctx.fillText(pins ? "no pin command (safe state or not started)"
+      : "pins are rendered at the local station (not shown here)", 10, H / 2);
     return;
   }
   const cmd = pins.commanded_mm, meas = pins.measured_mm, k = pins.stiffness_k, f = pins.friction;
@@ -319,7 +320,9 @@ function onSnapshot(msg) {
   setBadge("link", link.state === "up" ? "link up" : link.state === "none" ? "no relay link" : `link DOWN ${(link.down_s || 0).toFixed(1)} s`,
     link.state === "up" ? "ok" : link.state === "none" ? "" : "bad");
   const safe = live.safe && live.safe.reason;
-  setBadge("safe", safe ? `SAFE STATE: ${safe}` : "rendering", safe ? "bad" : "ok");
+  if (live.safe && live.safe.known === false) setBadge("safe", "pins' safe state: known at the local station", "");
+  else setBadge("safe", safe ? `SAFE STATE: ${safe}` : "rendering", safe ? "bad" : "ok");
+  if (!live.analysis_state && !state.analysis) setBadge("analysis", "analysis: runs at the local station", "");
   const loop = live.display_loop || {};
   setBadge("rate", `view ${state.receivedAt.length} Hz, loop ${loop.rate_hz ?? "?"} Hz`, "");
   $("station").textContent = `${live.station}${live.session ? " session " + live.session : ""}, ${live.view ? live.view.clients : "?"} viewer(s)`;
