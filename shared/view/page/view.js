@@ -123,7 +123,7 @@ function drawPins(pins) {
   if (!pins || !pins.commanded_mm) {
     ctx.fillStyle = "#8a96a3"; ctx.font = "14px system-ui";
     ctx.fillText(pins ? "no pin command (safe state or not started)"
-      : "pins are rendered at the local station (not shown here)", 10, H / 2);
+      : "pins: shown at the local station only", 10, H / 2);
     return;
   }
   const cmd = pins.commanded_mm, meas = pins.measured_mm, k = pins.stiffness_k, f = pins.friction;
