@@ -64,6 +64,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     run_.add_argument("--summary-json", metavar="PATH", help="write the summary JSON at exit")
     run_.add_argument("--config", metavar="FILE", help="TOML settings file")
     run_.add_argument("--no-status", action="store_true", help="no live status line")
+    run_.add_argument("--view", metavar="HOST:PORT",
+                      help="serve the live view in the browser (e.g. 127.0.0.1:8780; port 0: "
+                           "any free port; the URL is printed). Bind loopback unless every "
+                           "host that can reach it may watch: docs/view.md")
     tune = parser.add_argument_group("tuning ([local.agent])")
     tune.add_argument("--safe-state", choices=["flat", "hold"], help="display safe state")
     tune.add_argument("--link-loss-timeout", type=float, metavar="S",
@@ -92,6 +96,7 @@ def run(args: argparse.Namespace) -> int:
     from shared.client import StationLinkConfig
     from shared.config import resolve_config
     from shared.report import StatusLine, emit
+    from shared.view import ViewServerConfig, parse_view_address
     from shared.workspace import WorkspaceConfig
 
     agent_flags: dict[str, Any] = {
@@ -101,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
         "stale_frame_timeout_s": args.stale_timeout, "max_frame_age_s": args.max_frame_age,
         "platform_send_rate_hz": args.send_rate,
         "render_rate_hz": args.render_rate, "render_loop": args.render_loop,
-        "record_pins_rate_hz": args.record_pins_rate}
+        "record_pins_rate_hz": args.record_pins_rate, "view": args.view}
     config = resolve_config(LocalAgentConfig, "local.agent", explicit=agent_flags,
                             toml_path=args.config)
     link_config = resolve_config(StationLinkConfig, "local.link", explicit={
@@ -115,7 +120,10 @@ def run(args: argparse.Namespace) -> int:
                        until_motion_done=args.until_motion_done, record_path=args.record,
                        summary_path=args.summary_json,
                        status=None if args.no_status else StatusLine(min_interval_s=5.0),
-                       handle_signals=True)
+                       handle_signals=True,
+                       view=parse_view_address(config.view) if config.view.strip() else None,
+                       view_config=ViewServerConfig(rate_hz=config.view_rate_hz),
+                       view_ready=lambda url: emit(f"live view: {url}"))
     agent.open()
     code = asyncio.run(agent.run())
     summary = agent.summary or {}

@@ -53,6 +53,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="clock_ping period per station (default 1)")
     parser.add_argument("--stats-interval-s", dest="stats_interval_s", type=float,
                         help="stats push period (default 1)")
+    parser.add_argument("--view", metavar="HOST:PORT",
+                        help="serve the live view to each session's observers (browser at "
+                             "http://HOST:PORT/#session=S&token=OBSERVER_TOKEN; docs/view.md)")
     parser.add_argument("--print-token", dest="print_token", metavar="SESSION",
                         help="print a token of SESSION for the secret and exit: v2 (role, "
                              "expiry) with --role, else the legacy per-session token")
@@ -77,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
 
     explicit = {name: getattr(args, name, None) for name in (
         "host", "port", "tcp_port", "secret", "token_file", "allow_any_token", "tls_cert",
-        "tls_key",
+        "tls_key", "view",
         "hello_timeout_s", "ping_interval_s", "stats_interval_s")}
     config = resolve_config(RelayConfig, "relay", explicit=explicit, toml_path=args.config)
     if args.print_token:

@@ -36,6 +36,8 @@ class RelayConfig:
         status_token: when set, ``GET /status`` and ``GET /metrics`` need the header
             ``Authorization: Bearer <status_token>`` (else 401); None = public (a WARNING
             at start says so).
+        view: serve the live view to the sessions' observers on ``HOST:PORT`` (a listener
+            of its own; a browser needs the session id and an observer token); empty: off.
         hello_timeout_s: a client must send a valid ``hello`` within this time.
         ping_interval_s: period of ``clock_ping`` to every station after the initial burst.
         ping_burst: number of ``clock_ping`` sent right after ``welcome``.
@@ -68,6 +70,7 @@ class RelayConfig:
     tls_cert: Path | None = None
     tls_key: Path | None = None
     status_token: str | None = None
+    view: str = ""
     hello_timeout_s: float = 5.0
     ping_interval_s: float = 1.0
     ping_burst: int = 5

@@ -41,7 +41,9 @@ from relay_server.auth import TokenAuthority, load_token_file
 from relay_server.config import RelayConfig
 from relay_server.metrics import prometheus_text, session_metrics, session_status
 from relay_server.session import Peer, Session
+from relay_server.view import RelayViewHub
 from shared.errors import (
+    AuthError,
     ConfigError,
     LimitError,
     ProtocolError,
@@ -60,6 +62,8 @@ from shared.protocol.peer_session import (
 )
 from shared.timebase import now_us
 from shared.transport import TcpTransport, Transport, TransportClosed, WsTransport, set_nodelay
+from shared.view import ViewAddress, ViewServer, ViewServerConfig, parse_view_address
+from shared.view.server import token_authorizer
 
 __all__ = ["RelayServer", "serve_forever"]
 
@@ -127,6 +131,9 @@ class RelayServer:
         self._per_ip: Counter[str] = Counter()
         self.tls = _server_tls_context(config)
         self._closing = False
+        #: the observers' live view (``config.view``), started by :meth:`start`
+        self.view_hub: RelayViewHub | None = None
+        self.view_server: ViewServer | None = None
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -154,6 +161,29 @@ class RelayServer:
             log.warning("relay serves plain ws:// and tcp:// on %s: tokens and data cross "
                         "the network in clear unless a TLS proxy is in front "
                         "(--tls-cert/--tls-key; docs/security.md)", cfg.host)
+        if cfg.view.strip():
+            try:
+                await self._start_view(parse_view_address(cfg.view))
+            except ConfigError:
+                await self.close()
+                raise
+
+    async def _start_view(self, address: ViewAddress) -> None:
+        """Serve the observers' live view (session + observer token per browser)."""
+        hub = RelayViewHub()
+
+        def check(session: str, token: str) -> None:
+            self.auth.check(session, token, "observer")
+
+        server = ViewServer(None, ViewServerConfig(), source_for=hub.source,
+                            authorize=token_authorizer(check, (AuthError,)))
+        await server.start(address.host, address.port)
+        self.view_hub, self.view_server = hub, server
+        log.info("relay live view for observers: http://%s:%d/#session=SESSION&token=TOKEN",
+                 address.host, server.port)
+        if self.tls is None and not address.is_loopback:
+            log.warning("the relay's live view on %s is plain http: observer tokens cross the "
+                        "network in clear unless a TLS proxy is in front", address.host)
 
     @property
     def ws_port(self) -> int:
@@ -172,6 +202,8 @@ class RelayServer:
     async def close(self) -> None:
         """Say bye to every peer, close all connections and listeners, wait for handlers."""
         self._closing = True
+        if self.view_server is not None:
+            await self.view_server.close()
         if self._tcp_server is not None:
             self._tcp_server.close()
         if self._ws_server is not None:
@@ -402,6 +434,8 @@ class _Connection:
                 if peer is None or session is None:
                     continue
                 reply = session.route(peer, ev.message, ev.t_in_us)
+                if self.relay.view_hub is not None:
+                    self.relay.view_hub.observe(session, ev.message, ev.t_in_us)
                 if reply is None:
                     continue
                 if reply.code == "wrong_direction":

@@ -15,6 +15,7 @@ examples:
 from __future__ import annotations
 
 import argparse
+import sys
 from typing import Any
 
 __all__ = ["configure_parser", "format_report", "run"]
@@ -42,6 +43,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="no live status line")
     parser.add_argument("--json", action="store_true",
                         help="print the report as one JSON object")
+    parser.add_argument("--view", metavar="HOST:PORT", default="127.0.0.1:0",
+                        help="the local station's live view in the browser (default "
+                             "127.0.0.1 on a free port; the URL is printed)")
+    parser.add_argument("--no-view", action="store_true", help="no live view")
     parser.add_argument("--workdir", default=None,
                         help="keep logs, recordings and summaries in this directory")
     parser.add_argument("--record", metavar="DIR", default=None,
@@ -94,7 +99,8 @@ def run(args: argparse.Namespace) -> int:
                         motion=args.motion or DEFAULT_MOTION, max_duration_s=args.duration,
                         frame_rate_hz=args.frame_rate_hz,
                         workdir=Path(args.workdir) if args.workdir else None,
-                        record_dir=Path(args.record) if args.record else None)
+                        record_dir=Path(args.record) if args.record else None,
+                        view=None if args.no_view else args.view)
     status = None if args.headless else StatusLine(min_interval_s=10.0)
 
     def progress(elapsed_s: float, relay: dict[str, Any] | None) -> None:
@@ -103,7 +109,9 @@ def run(args: argparse.Namespace) -> int:
         status.update(f"demo {elapsed_s:5.1f} s | {_relay_line(relay)}")
 
     try:
-        report = run_demo(config, progress)
+        report = run_demo(config, progress,
+                          lambda who, url: emit(f"live view ({who}): {url}",
+                                                stream=sys.stderr))
     finally:
         if status is not None:
             status.close()

@@ -46,6 +46,7 @@ from lab.scoring import score_findings
 from local_site.palpation import analyse_recording, load_recording
 from remote_site.agent.world import build_world
 from shared.errors import ConfigError, DeviceError, TeleTouchError
+from shared.view import parse_view_address
 from shared.workspace import load_workspace
 
 __all__ = ["DemoConfig", "DemoError", "run_demo"]
@@ -84,6 +85,7 @@ class DemoConfig:
         record_dir: where the recordings, the ground truth and the HTML report go (None:
             the work directory; the report is then kept in the system's temporary
             directory when the work directory is deleted).
+        view: the local station's live view, ``HOST:PORT`` (port 0: a free port), or None.
     """
 
     scene: str = "breast"
@@ -98,6 +100,7 @@ class DemoConfig:
     extra_local_args: tuple[str, ...] = ()
     extra_remote_args: tuple[str, ...] = ()
     record_dir: Path | None = None
+    view: str | None = None
 
 
 def free_port() -> int:
@@ -205,13 +208,15 @@ def _read_json(path: Path, what: str) -> dict[str, Any]:
 
 
 def run_demo(config: DemoConfig,
-             progress: Callable[[float, dict[str, Any] | None], None] | None = None
-             ) -> dict[str, Any]:
+             progress: Callable[[float, dict[str, Any] | None], None] | None = None,
+             announce_view: Callable[[str, str], None] | None = None) -> dict[str, Any]:
     """Run one demo session end to end and return its report.
 
     Args:
         config: what to run.
         progress: called about once a second with the elapsed time and the relay status.
+        announce_view: called with (who, URL) for each live view once it is started: the
+            local station's, and the relay's for observers (URL with an observer token).
 
     Returns:
         The report (see ``docs/demo.md``): scene, findings, score against ground truth,
@@ -236,8 +241,12 @@ def run_demo(config: DemoConfig,
     started = time.monotonic()
     try:
         ws_port, tcp_port = free_port(), free_port()
+        relay_view: list[str] = []
+        if config.view:
+            relay_view_host = parse_view_address(config.view).host
+            relay_view = ["--view", f"{relay_view_host}:{free_port()}"]
         procs.start("relay", "relay", "--host", "127.0.0.1", "--port", str(ws_port),
-                    "--tcp-port", str(tcp_port))
+                    "--tcp-port", str(tcp_port), *relay_view)
         _wait_for(lambda: relay_status(ws_port) is not None, "the relay's /status", 20, procs)
         token = subprocess.run(
             [config.python, "-m", "lab.cli", "relay", "--print-token", SESSION],
@@ -276,6 +285,14 @@ def run_demo(config: DemoConfig,
         write_ground_truth(build_world(config.scene, config.seed), files["ground_truth"],
                            load_workspace(toml_path=remote_toml))
         common = ["--session", SESSION, "--token", token]
+        view_args: list[str] = []
+        view_url = None
+        if config.view:
+            address = parse_view_address(config.view)
+            port = address.port or free_port()
+            view_args = ["--view", f"{address.host}:{port}"]
+            host = f"[{address.host}]" if ":" in address.host else address.host
+            view_url = f"http://{host}:{port}/"
         remote = procs.start(
             "remote", "remote", "--relay", f"ws://127.0.0.1:{remote_port}/", *common,
             "--arm", "sim", "--sensor", "sim", "--phantom", config.scene,
@@ -287,7 +304,17 @@ def run_demo(config: DemoConfig,
             "--platform", "sim", "--display", "sim", "--motion", config.motion,
             "--until-motion-done", "--duration", f"{config.max_duration_s:g}", "--no-status",
             "--record", str(files["record"]), "--summary-json", str(files["local_summary"]),
-            *config.extra_local_args)
+            *view_args, *config.extra_local_args)
+        if view_url is not None and announce_view is not None:
+            announce_view("local station", view_url)
+            observer = subprocess.run(
+                [config.python, "-m", "lab.cli", "relay", "--print-token", SESSION, "--role",
+                 "observer", "--ttl-s", str(int(config.max_duration_s) + 3600)],
+                check=True, capture_output=True, text=True, timeout=30, env=env).stdout.strip()
+            obs_host, _, obs_port = relay_view[1].rpartition(":")
+            obs_host = f"[{obs_host}]" if ":" in obs_host else obs_host
+            announce_view("relay, for observers",
+                          f"http://{obs_host}:{obs_port}/#session={SESSION}&token={observer}")
         deadline = started + config.max_duration_s + 60.0
         while local.proc.poll() is None:
             for child in procs.children:

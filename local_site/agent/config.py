@@ -64,6 +64,9 @@ class LocalAgentConfig:
             after). Python's 5 ms default lets a busy thread delay the display loop and the
             platform reader by up to 5 ms; benchmarks/results/display_loop_agent.md
             measures the effect. 0 leaves the interpreter's setting alone.
+        view: serve the live view in the browser on ``HOST:PORT`` (empty: no view;
+            ``127.0.0.1:8780`` keeps it on this machine, see docs/view.md).
+        view_rate_hz: the view's snapshot rate (the page's update rate).
     """
 
     platform: str = "sim"
@@ -92,6 +95,8 @@ class LocalAgentConfig:
     record_findings: bool = True
     motion_done_grace_s: float = 0.5
     gil_switch_interval_s: float = 0.0002
+    view: str = ""
+    view_rate_hz: float = 40.0
 
     def __post_init__(self) -> None:
         if self.safe_state not in SAFE_STATE_MODES:
@@ -124,6 +129,9 @@ class LocalAgentConfig:
         if not (math.isfinite(self.gil_switch_interval_s)
                 and 0.0 <= self.gil_switch_interval_s <= 0.1):
             raise ConfigError("local.agent.gil_switch_interval_s must lie in [0, 0.1] s")
+        if not (isinstance(self.view_rate_hz, int | float)
+                and 1.0 <= self.view_rate_hz <= 120.0):
+            raise ConfigError("local.agent.view_rate_hz must lie in [1, 120]")
         for name in ("scene_center_x_mm", "scene_center_y_mm"):
             if not math.isfinite(getattr(self, name)):
                 raise ConfigError(f"local.agent.{name} must be finite")

@@ -140,6 +140,8 @@ class DisplayLoop:
         ledger: motion-to-touch accounting (optional).
         retry_min_s: first delay before reopening a failed display.
         retry_max_s: largest such delay.
+        frame_listener: called with each accepted frame and its arrival time (the live
+            view's hand-over; must be as cheap as a ``deque.append``).
 
     Raises:
         ConfigError: ``frames`` given without a :class:`TactileFrameScene`, or bad values.
@@ -154,7 +156,8 @@ class DisplayLoop:
                  max_offset_uncertainty_s: float = 0.03,
                  recorder: SessionRecorder | None = None,
                  ledger: MotionToTouchLedger | None = None, retry_min_s: float = 0.2,
-                 retry_max_s: float = 5.0) -> None:
+                 retry_max_s: float = 5.0,
+                 frame_listener: Callable[[TactileFrame, int], None] | None = None) -> None:
         if frames is not None and not isinstance(scene, TactileFrameScene):
             raise ConfigError("a frame hand-over needs a TactileFrameScene")
         if not (rate_hz > 0 and link_loss_timeout_s > 0 and stale_timeout_s > 0
@@ -194,6 +197,14 @@ class DisplayLoop:
         self._pending_hops: tuple[tuple[Hop, ...], int] | None = None
         #: recent end-to-end latencies (ms) for the status line (the ledger is read at exit)
         self.recent_e2e_ms: collections.deque[float] = collections.deque(maxlen=2000)
+        #: the newest frame's stages and end-to-end (us) and when it was rendered (monotonic s)
+        self.last_trace: tuple[tuple[tuple[str, float], ...], float | None, float] | None = None
+        self.frame_listener = frame_listener
+
+    @property
+    def last_command(self) -> PinCommand | None:
+        """The pin command last sent (None in the safe state and before the first)."""
+        return self._last_command
 
     # ------------------------------------------------------------------ one iteration
 
@@ -224,6 +235,8 @@ class DisplayLoop:
         self._pending_hops = (tuple(frame.hops), scene.version)
         if self.recorder is not None:
             self.recorder.add_frame(frame, rx_us)
+        if self.frame_listener is not None:
+            self.frame_listener(frame, rx_us)
 
     def _safety_reason(self, now_s: float) -> str | None:
         if not self._platform_ok():
@@ -322,6 +335,7 @@ class DisplayLoop:
                                              offsets)
                 if trace.end_to_end_us is not None:
                     self.recent_e2e_ms.append(trace.end_to_end_us / 1e3)
+                self.last_trace = (trace.stages_us, trace.end_to_end_us, now_s)
 
     def _keepalive(self) -> None:
         if self.display.keepalive():

@@ -31,6 +31,7 @@ import os
 import signal
 import sys
 import threading
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -44,6 +45,7 @@ from local_site.recording import SessionRecorder
 from local_site.render import Renderer, RendererConfig
 from local_site.scenes import SceneSource, open_scene, parse_shape_spec
 from local_site.scenes.factory import REMOTE_SPECS
+from local_site.view import StationView
 from shared.client import StationLink, StationLinkConfig
 from shared.errors import (
     AuthError,
@@ -57,6 +59,7 @@ from shared.motion_to_touch import MotionToTouchLedger
 from shared.protocol import ArmState, Bye, Error, Hop, PlatformState, TactileFrame
 from shared.report import StatusLine, to_jsonable
 from shared.timebase import monotonic_s, now_us
+from shared.view import ViewAddress, ViewServer, ViewServerConfig
 from shared.workspace import WorkspaceConfig
 
 __all__ = ["LocalAgent", "place_shape_spec"]
@@ -110,6 +113,9 @@ class LocalAgent:
         handle_signals: stop cleanly on SIGTERM/SIGINT (main thread only).
         platform_options: extra keyword arguments for ``open_platform``.
         display_options: extra keyword arguments for ``open_display``.
+        view: serve the live view in the browser on ``HOST:PORT`` (None: no view).
+        view_config: the view's rates and limits.
+        view_ready: called with the view's URL once it listens.
 
     Raises:
         ConfigError: bad specs or settings (raised by :meth:`open` / :meth:`run`).
@@ -123,7 +129,9 @@ class LocalAgent:
                  summary_path: str | Path | None = None, status: StatusLine | None = None,
                  handle_signals: bool = False,
                  platform_options: dict[str, Any] | None = None,
-                 display_options: dict[str, Any] | None = None) -> None:
+                 display_options: dict[str, Any] | None = None,
+                 view: ViewAddress | None = None, view_config: ViewServerConfig | None = None,
+                 view_ready: Callable[[str], None] | None = None) -> None:
         if duration_s is not None and not (math.isfinite(duration_s) and duration_s > 0):
             raise ConfigError(f"duration must be > 0 s, got {duration_s}")
         self.config = config
@@ -161,6 +169,13 @@ class LocalAgent:
         self._thread_stop = threading.Event()
         self._started_s: float | None = None
         self._motion_done_at_s: float | None = None
+        self.view_address = view
+        self._view_config = view_config
+        self._view_ready = view_ready
+        self.view: StationView | None = None
+        self.view_server: ViewServer | None = None
+        #: the live view's URL once it listens
+        self.view_url: str | None = None
 
     # ------------------------------------------------------------------ building
 
@@ -397,6 +412,7 @@ class LocalAgent:
             sys.setswitchinterval(self.config.gil_switch_interval_s)
         self._started_s = monotonic_s()
         self._thread_stop.clear()
+        await self._start_view()
         reader.start()
         if self.link is not None:
             self.link.start()
@@ -435,8 +451,46 @@ class LocalAgent:
             sys.setswitchinterval(previous_switch_s)
         return self.exit_code
 
+    async def _start_view(self) -> None:
+        """Serve the live view in its own thread (and its analysis in a child process).
+
+        Raises:
+            ConfigError: the view's address cannot be bound.
+        """
+        address, loop = self.view_address, self.loop
+        if address is None or loop is None:
+            return
+        if not address.is_loopback:
+            log.warning("the live view listens on %s, not on loopback: whoever reaches it "
+                        "sees this session (the station's view has no token; "
+                        "see docs/view.md)", address.host)
+        self.view = StationView(self)
+        server = ViewServer(self.view, self._view_config)
+        try:
+            port = await asyncio.to_thread(server.start_thread, address.host, address.port)
+        except ConfigError:
+            self.view.close()
+            self.view = None
+            raise
+        self.view_server = server
+        loop.frame_listener = self.view.frame_accepted
+        host = f"[{address.host}]" if ":" in address.host else address.host
+        self.view_url = f"http://{host}:{port}/"
+        log.info("live view: %s", self.view_url)
+        if self._view_ready is not None:
+            self._view_ready(self.view_url)
+
+    async def _stop_view(self) -> None:
+        if self.loop is not None:
+            self.loop.frame_listener = None
+        if self.view_server is not None:
+            await asyncio.to_thread(self.view_server.stop_thread)
+        if self.view is not None:
+            await asyncio.to_thread(self.view.close)
+
     async def _shutdown(self) -> None:
         loop, reader = self._require_open()
+        await self._stop_view()
         display = loop.display
         loop.finish("shutdown")
         display_stats = display.stats()

@@ -1,0 +1,527 @@
+"""The view server: the static page over HTTP and live snapshots over a WebSocket.
+
+One ``websockets`` server answers three paths under ``prefix`` (``/`` for a station,
+``/view/`` at the relay):
+
+* ``GET {prefix}`` and ``GET {prefix}view.js``: the page (package data, no build step);
+* ``{prefix}ws``: the WebSocket. When the server has an ``authorize`` callback the browser's
+  first message must be ``{"type": "hello", "session": ..., "token": ...}`` (the page takes
+  them from its URL's fragment, which the browser never sends to a server, so the token
+  is not in any request line or log); anything else closes the connection (4001).
+
+Rates and back-pressure: a publisher task calls the :class:`ViewSource` ``rate_hz`` times a
+second and keeps only the newest snapshot (latest wins), JSON-encoded once. Each browser has
+one sender task that sends the newest snapshot whenever the previous send has completed, so
+a slow browser skips snapshots and nothing queues; a send stuck longer than
+``send_timeout_s`` closes that browser. What a browser sends is read and discarded (messages
+above ``max_message_bytes`` close it, 1009); more than ``max_clients`` browsers get
+HTTP 503 before the upgrade. None of this touches the station's own loops: the server runs
+in a thread of its own (:meth:`ViewServer.start_thread`) or, at the relay, as tasks of the
+relay's event loop (:meth:`ViewServer.start`).
+
+Each message to a browser::
+
+    {"type": "snapshot", "seq": N, "live": {...}, "trail": {"from": i, "points": [...]},
+     "analysis": {...}}            # "analysis" only when it changed since the last send
+
+``trail`` carries the trajectory points this browser has not had yet (at most
+``trail_batch`` per message), so a browser that skips snapshots still draws the whole path.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import ipaddress
+import json
+import logging
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from importlib import resources
+from typing import Any, Protocol
+
+from websockets.asyncio.server import Server, ServerConnection, serve
+from websockets.datastructures import Headers
+from websockets.exceptions import ConnectionClosed
+from websockets.http11 import Request, Response
+
+from shared.errors import ConfigError
+from shared.timebase import now_us
+
+__all__ = ["PAGE_FILES", "ViewAddress", "ViewServer", "ViewServerConfig", "ViewSource",
+           "parse_view_address"]
+
+log = logging.getLogger(__name__)
+
+#: file name -> content type of the page's files (package data of ``shared.view.page``)
+PAGE_FILES = {"index.html": "text/html; charset=utf-8",
+              "view.js": "text/javascript; charset=utf-8"}
+
+
+class ViewSource(Protocol):
+    """What a view shows; called from the view server's thread (or the relay's loop)."""
+
+    def live(self) -> Mapping[str, Any]:
+        """The current state (JSON-able, finite numbers): called ``rate_hz`` times a second."""
+        ...
+
+    def trail_since(self, start: int, limit: int) -> tuple[int, list[list[float]]]:
+        """Trajectory points from index ``start`` (or the oldest kept), at most ``limit``.
+
+        Returns:
+            The index of the first point returned and the points.
+        """
+        ...
+
+    def analysis(self) -> tuple[int, Mapping[str, Any] | None]:
+        """The latest analysis result and its version (changes when a new one is ready)."""
+        ...
+
+
+@dataclass(frozen=True)
+class ViewAddress:
+    """Where the view listens."""
+
+    host: str
+    port: int
+
+    @property
+    def is_loopback(self) -> bool:
+        """True for 127.0.0.0/8, ::1 and ``localhost``."""
+        if self.host == "localhost":
+            return True
+        try:
+            return ipaddress.ip_address(self.host).is_loopback
+        except ValueError:
+            return False
+
+
+def parse_view_address(text: str) -> ViewAddress:
+    """Parse ``HOST:PORT`` (``[::1]:PORT`` for IPv6; a bare ``PORT`` means loopback).
+
+    Raises:
+        ConfigError: a malformed address or a port outside 0..65535.
+    """
+    raw = text.strip()
+    host, sep, port_text = raw.rpartition(":")
+    if not sep:
+        host, port_text = "127.0.0.1", raw
+    host = host.strip("[]") or "127.0.0.1"
+    try:
+        port = int(port_text)
+    except ValueError as err:
+        raise ConfigError(f"--view wants HOST:PORT, got {text!r}") from err
+    if not 0 <= port <= 65535:
+        raise ConfigError(f"--view port must lie in 0..65535, got {port}")
+    return ViewAddress(host, port)
+
+
+@dataclass(frozen=True)
+class ViewServerConfig:
+    """Settings of a view server.
+
+    Attributes:
+        rate_hz: snapshots per second (the page's update rate; >= 30 for the pins).
+        max_clients: browsers at once; more get HTTP 503.
+        max_message_bytes: largest message a browser may send (larger closes it, 1009).
+        send_timeout_s: a send not finished in this time closes that browser.
+        trail_batch: most trajectory points in one message.
+        hello_timeout_s: with ``authorize``: the hello must arrive within this time.
+        prefix: path of the page (``/`` at a station, ``/view/`` at the relay).
+    """
+
+    rate_hz: float = 40.0
+    max_clients: int = 8
+    max_message_bytes: int = 4096
+    send_timeout_s: float = 5.0
+    trail_batch: int = 4000
+    hello_timeout_s: float = 5.0
+    prefix: str = "/"
+
+    def __post_init__(self) -> None:
+        if not 1.0 <= self.rate_hz <= 120.0:
+            raise ConfigError("view rate_hz must lie in [1, 120]")
+        if self.max_clients < 1 or self.max_message_bytes < 64 or self.trail_batch < 1:
+            raise ConfigError("view max_clients >= 1, max_message_bytes >= 64, "
+                              "trail_batch >= 1")
+        if not (self.send_timeout_s > 0 and self.hello_timeout_s > 0):
+            raise ConfigError("view timeouts must be > 0")
+        if not (self.prefix.startswith("/") and self.prefix.endswith("/")):
+            raise ConfigError("view prefix must start and end with '/'")
+
+
+def _page_bytes() -> dict[str, bytes]:
+    page = resources.files("shared.view") / "page"
+    return {name: (page / name).read_bytes() for name in PAGE_FILES}
+
+
+def _respond(connection: ServerConnection, status: int, body: bytes | str,
+             content_type: str) -> Response:
+    response = connection.respond(status, body if isinstance(body, str) else "")
+    headers = Headers(response.headers)
+    del headers["Content-Type"]
+    headers["Content-Type"] = content_type
+    headers["Cache-Control"] = "no-store"
+    headers["X-Content-Type-Options"] = "nosniff"
+    data = body if isinstance(body, bytes) else response.body
+    del headers["Content-Length"]
+    headers["Content-Length"] = str(len(data))
+    return Response(response.status_code, response.reason_phrase, headers, data)
+
+
+class ViewServer:
+    """Serves the page and live snapshots of one :class:`ViewSource` (module docstring).
+
+    Args:
+        source: what to show (a station's view: one source, published all the time).
+        config: rates and limits.
+        authorize: checks a browser's hello (session, token); None: no hello required
+            (a station's view, bound to loopback by default).
+        source_for: with ``authorize`` (the relay): the source of a session, or None when
+            the session is unknown; published only while a browser watches it.
+    """
+
+    def __init__(self, source: ViewSource | None, config: ViewServerConfig | None = None, *,
+                 authorize: Callable[[str, str], bool] | None = None,
+                 source_for: Callable[[str], ViewSource | None] | None = None) -> None:
+        if (source is None) == (source_for is None) or (source_for is not None
+                                                        and authorize is None):
+            raise ConfigError("a view server needs one source, or source_for with authorize")
+        self.source = source
+        self.config = config or ViewServerConfig()
+        self._authorize = authorize
+        self._source_for = source_for
+        self._page = _page_bytes()
+        self.counters: Counter[str] = Counter()
+        self._server: Server | None = None
+        self._publisher: asyncio.Task[None] | None = None
+        self._feeds: dict[str, _Feed] = {}
+        if source is not None:
+            self._feeds[""] = _Feed(source, keep=True)
+        self._clients = 0
+        #: CPU seconds this server's thread spent building, encoding and composing snapshots
+        self.cpu_s = 0.0
+        self._thread: threading.Thread | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._stopping: asyncio.Event | None = None
+        self._error_logged = False
+        self.port: int | None = None
+
+    # ------------------------------------------------------------------ life
+
+    async def start(self, host: str, port: int) -> None:
+        """Listen on ``host:port`` (0: any free port, see :attr:`port`) in the running loop.
+
+        Raises:
+            ConfigError: the address cannot be bound.
+        """
+        try:
+            self._server = await serve(
+                self._handler, host, port, process_request=self._process_request,
+                max_size=self.config.max_message_bytes, max_queue=4,
+                write_limit=64 * 1024, compression=None, ping_interval=20, ping_timeout=20)
+        except OSError as err:
+            raise ConfigError(f"the view cannot listen on {host}:{port}: {err}") from err
+        sock = next(iter(self._server.sockets))
+        self.port = int(sock.getsockname()[1])
+        self._publisher = asyncio.create_task(self._publish(), name="view-publisher")
+
+    async def close(self) -> None:
+        """Stop publishing, close every browser and the listener."""
+        if self._publisher is not None:
+            self._publisher.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._publisher
+            self._publisher = None
+        if self._server is not None:
+            self._server.close()
+            await self._server.wait_closed()
+            self._server = None
+
+    def start_thread(self, host: str, port: int, timeout_s: float = 10.0) -> int:
+        """Run the server in a thread of its own with its own event loop.
+
+        Returns:
+            The bound port.
+
+        Raises:
+            ConfigError: the address cannot be bound, or the thread did not start in time.
+        """
+        ready = threading.Event()
+        failure: list[BaseException] = []
+
+        async def main() -> None:
+            self._stopping = asyncio.Event()
+            try:
+                await self.start(host, port)
+            except ConfigError as err:
+                failure.append(err)
+                ready.set()
+                return
+            ready.set()
+            try:
+                await self._stopping.wait()
+            finally:
+                await self.close()
+
+        def run() -> None:
+            loop = asyncio.new_event_loop()
+            self._loop = loop
+            try:
+                loop.run_until_complete(main())
+            finally:
+                loop.close()
+
+        self._thread = threading.Thread(target=run, name="view-server", daemon=True)
+        self._thread.start()
+        if not ready.wait(timeout_s):
+            raise ConfigError("the view server did not start in time")
+        if failure:
+            self._thread.join(timeout_s)
+            raise ConfigError(str(failure[0]))
+        assert self.port is not None  # set by start() before ready
+        return self.port
+
+    def stop_thread(self, timeout_s: float = 10.0) -> None:
+        """Stop a server started with :meth:`start_thread` (idempotent)."""
+        loop, stopping, thread = self._loop, self._stopping, self._thread
+        if thread is None:
+            return
+        if loop is not None and stopping is not None and not loop.is_closed():
+            with contextlib.suppress(RuntimeError):
+                loop.call_soon_threadsafe(stopping.set)
+        thread.join(timeout_s)
+        if thread.is_alive():
+            log.warning("the view server thread did not stop within %.1f s", timeout_s)
+        self._thread = None
+
+    @property
+    def clients(self) -> int:
+        """Browsers connected now."""
+        return self._clients
+
+    # ------------------------------------------------------------------ publishing
+
+    async def _publish(self) -> None:
+        period_s = 1.0 / self.config.rate_hz
+        loop = asyncio.get_running_loop()
+        next_t = loop.time()
+        while True:
+            for key, feed in list(self._feeds.items()):
+                if feed.clients == 0 and not feed.keep:
+                    del self._feeds[key]
+                    continue
+                self._publish_feed(feed)
+            next_t += period_s
+            now = loop.time()
+            if next_t < now:
+                next_t = now
+            await asyncio.sleep(next_t - now)
+
+    def _publish_feed(self, feed: _Feed) -> None:
+        t0 = time.thread_time()
+        try:
+            self._build(feed)
+        finally:
+            self.cpu_s += time.thread_time() - t0
+
+    def _build(self, feed: _Feed) -> None:
+        try:
+            live = dict(feed.source.live())
+            live["view"] = {"clients": feed.clients, "t_us": now_us()}
+            text = json.dumps(live, allow_nan=False, separators=(",", ":"))
+        except Exception as err:  # a view bug must never reach the station
+            self.counters["source_errors"] += 1
+            if not self._error_logged:
+                self._error_logged = True
+                log.exception("view snapshot failed (logged once): %s", err)
+            return
+        feed.live_json = text
+        feed.seq += 1
+        self.counters["snapshots"] += 1
+        fresh, feed.fresh = feed.fresh, asyncio.Event()
+        fresh.set()
+
+    def _message(self, client: _Client) -> str:
+        t0 = time.thread_time()
+        try:
+            return self._compose(client)
+        finally:
+            self.cpu_s += time.thread_time() - t0
+
+    def _compose(self, client: _Client) -> str:
+        feed = client.feed
+        first, points = feed.source.trail_since(client.trail_next, self.config.trail_batch)
+        client.trail_next = first + len(points)
+        version, analysis = feed.source.analysis()
+        parts = [f'{{"type":"snapshot","seq":{feed.seq},"live":{feed.live_json}',
+                 f',"trail":{{"from":{first},"points":'
+                 f'{json.dumps(points, allow_nan=False, separators=(",", ":"))}}}']
+        if version != client.analysis_version and analysis is not None:
+            client.analysis_version = version
+            parts.append(',"analysis":' + json.dumps(analysis, allow_nan=False,
+                                                     separators=(",", ":")))
+        parts.append("}")
+        return "".join(parts)
+
+    # ------------------------------------------------------------------ HTTP and WebSocket
+
+    def _process_request(self, connection: ServerConnection, request: Request
+                         ) -> Response | None:
+        prefix = self.config.prefix
+        path = request.path.split("?", 1)[0].split("#", 1)[0]
+        if path == prefix.rstrip("/") and prefix != "/":
+            response = _respond(connection, 301, "", "text/plain; charset=utf-8")
+            response.headers["Location"] = prefix
+            return response
+        if path in (prefix, prefix + "index.html"):
+            return _respond(connection, 200, self._page["index.html"], PAGE_FILES["index.html"])
+        if path == prefix + "view.js":
+            return _respond(connection, 200, self._page["view.js"], PAGE_FILES["view.js"])
+        if path != prefix + "ws":
+            self.counters["http_not_found"] += 1
+            return _respond(connection, 404, "Tele-Touch view: not found\n",
+                            "text/plain; charset=utf-8")
+        if "upgrade" not in request.headers.get("Connection", "").lower():
+            return _respond(connection, 426, "Tele-Touch view: WebSocket endpoint\n",
+                            "text/plain; charset=utf-8")
+        if self._clients >= self.config.max_clients:
+            self.counters["clients_refused"] += 1
+            if self.counters["clients_refused"] == 1:
+                log.warning("view: %d browsers connected, refusing more (logged once)",
+                            self.config.max_clients)
+            return _respond(connection, 503, "Tele-Touch view: too many viewers\n",
+                            "text/plain; charset=utf-8")
+        self._clients += 1  # counted here so a burst of upgrades cannot overshoot the cap
+        connection.teletouch_counted = True  # type: ignore[attr-defined]
+        return None
+
+    async def _hello(self, ws: ServerConnection) -> _Feed | None:
+        """The feed this browser may watch (after its hello when tokens are needed)."""
+        authorize = self._authorize
+        if authorize is None:
+            return self._feeds.get("")
+        try:
+            async with asyncio.timeout(self.config.hello_timeout_s):
+                raw = await ws.recv()
+            doc = json.loads(raw)
+        except (TimeoutError, ValueError, ConnectionClosed):
+            doc = None
+        session = doc.get("session") if isinstance(doc, dict) else None
+        token = doc.get("token") if isinstance(doc, dict) else None
+        feed = None
+        if (isinstance(doc, dict) and doc.get("type") == "hello" and isinstance(session, str)
+                and isinstance(token, str) and authorize(session, token)):
+            feed = self._feeds.get(session)
+            if feed is None and self._source_for is not None:
+                source = self._source_for(session)
+                if source is not None:
+                    feed = self._feeds[session] = _Feed(source, keep=False)
+            elif feed is None and self.source is not None:
+                feed = self._feeds.get("")
+        if feed is None:
+            self.counters["clients_unauthorized"] += 1
+            await ws.close(4001, "view needs a valid session and token")
+        return feed
+
+    async def _drain(self, ws: ServerConnection) -> None:
+        """Read and discard what the browser sends (so control frames keep flowing)."""
+        with contextlib.suppress(ConnectionClosed):
+            async for _ in ws:
+                self.counters["client_messages_ignored"] += 1
+
+    async def _handler(self, ws: ServerConnection) -> None:
+        counted = getattr(ws, "teletouch_counted", False)
+        try:
+            feed = await self._hello(ws)
+            if feed is None:
+                return
+            self.counters["clients_served"] += 1
+            client = _Client(feed)
+            feed.clients += 1
+            drain = asyncio.create_task(self._drain(ws), name="view-drain")
+            try:
+                await self._send_loop(ws, client, drain)
+            finally:
+                feed.clients -= 1
+                drain.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await drain
+        finally:
+            if counted:
+                self._clients -= 1
+
+    async def _send_loop(self, ws: ServerConnection, client: _Client,
+                         drain: asyncio.Task[None]) -> None:
+        feed = client.feed
+        while not drain.done():
+            if client.seq == feed.seq:
+                waiter = asyncio.ensure_future(feed.fresh.wait())
+                await asyncio.wait({waiter, drain}, return_when=asyncio.FIRST_COMPLETED)
+                if not waiter.done():
+                    waiter.cancel()
+                    break
+            if client.seq and feed.seq > client.seq + 1:
+                self.counters["snapshots_skipped"] += feed.seq - client.seq - 1
+            client.seq = feed.seq
+            try:
+                text = self._message(client)
+            except Exception as err:  # a view bug must never reach the station
+                self.counters["source_errors"] += 1
+                log.warning("view message failed: %s", err)
+                await ws.close(1011, "view error")
+                return
+            try:
+                async with asyncio.timeout(self.config.send_timeout_s):
+                    await ws.send(text)
+            except TimeoutError:
+                self.counters["clients_too_slow"] += 1
+                log.info("view: a browser took > %.1f s for one snapshot; closing it",
+                         self.config.send_timeout_s)
+                ws.transport.abort()
+                return
+            except ConnectionClosed:
+                return
+            self.counters["messages_sent"] += 1
+
+
+class _Feed:
+    """One source's newest snapshot (JSON) and the event its browsers wait on."""
+
+    __slots__ = ("clients", "fresh", "keep", "live_json", "seq", "source")
+
+    def __init__(self, source: ViewSource, keep: bool) -> None:
+        self.source = source
+        self.keep = keep
+        self.seq = 0
+        self.live_json = "{}"
+        self.clients = 0
+        self.fresh = asyncio.Event()
+
+
+class _Client:
+    """What one browser has had."""
+
+    __slots__ = ("analysis_version", "feed", "seq", "trail_next")
+
+    def __init__(self, feed: _Feed) -> None:
+        self.feed = feed
+        self.seq = 0
+        self.trail_next = 0
+        self.analysis_version = -1
+
+
+def token_authorizer(check: Callable[[str, str], None],
+                     errors: tuple[type[BaseException], ...]) -> Callable[[str, str], bool]:
+    """Adapt a raising check(session, token) into the server's ``authorize`` callback."""
+    def authorize(session: str, token: str) -> bool:
+        try:
+            check(session, token)
+        except errors:
+            return False
+        return True
+    return authorize
+

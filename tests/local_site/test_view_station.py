@@ -1,0 +1,135 @@
+"""The local station's live view: the agent with --view against a relay and a fake remote."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+from typing import Any
+
+import numpy as np
+import pytest
+from websockets.asyncio.client import connect
+
+from local_site.view.analysis import LiveAnalysis, LiveAnalysisConfig, _confidence, encode_map
+from shared.errors import ConfigError
+from shared.protocol import TactileFrame
+from shared.view import ViewAddress
+from shared.workspace import WorkspaceConfig
+from tests.local_site.agent_support import FRAME_SHAPE, FakeRemote, loop_of, relay_agent
+from tests.relay_server.relay_clients import running_relay
+from tests.support import scaled, wait_until
+
+
+async def _until(ws: Any, predicate: Any, what: str, timeout_s: float = 10.0) -> dict[str, Any]:
+    try:
+        async with asyncio.timeout(scaled(timeout_s)):
+            while True:
+                msg = json.loads(await ws.recv())
+                if predicate(msg["live"]):
+                    return dict(msg)
+    except TimeoutError as err:
+        raise AssertionError(f"no snapshot with {what} in {scaled(timeout_s):.0f} s") from err
+
+
+async def test_the_view_shows_pins_patch_probe_link_and_latency_then_safe_state() -> None:
+    async with running_relay() as relay:
+        url = f"ws://127.0.0.1:{relay.ws_port}/"
+        agent = relay_agent(url)
+        agent.view_address = ViewAddress("127.0.0.1", 0)
+        async with FakeRemote(url, height_mm=2.0) as remote:
+            run = asyncio.create_task(agent.run())
+            try:
+                await asyncio.to_thread(wait_until, lambda: agent.view_url is not None, 10,
+                                        "the view listening")
+                assert agent.view_server is not None
+                async with connect(f"ws://127.0.0.1:{agent.view_server.port}/ws",
+                                   max_size=None) as ws:
+                    msg = await _until(ws, lambda live: live["pins"]["measured_mm"] is not None
+                                       and live["latency"] is not None
+                                       and live["patch"] is not None, "pins and a patch")
+                    live = msg["live"]
+                    assert live["station"] == "local" and live["link"]["state"] == "up"
+                    assert live["safe"]["reason"] is None
+                    # the fake remote's frames are a flat 2 mm: so are the commanded pins
+                    assert np.allclose(live["pins"]["commanded_mm"], 2.0, atol=0.05)
+                    assert np.allclose(live["pins"]["stiffness_k"], 0.8, atol=0.01)
+                    assert (live["patch"]["w"], live["patch"]["h"]) == FRAME_SHAPE[::-1]
+                    # platform held at (30, 30): the pins' window sits on the patch centre
+                    c0, r0, c1, r1 = live["patch"]["window"]
+                    assert math.isclose((c0 + c1) / 2, 4.0, abs_tol=0.2)
+                    assert math.isclose((r0 + r1) / 2, 4.0, abs_tol=0.2)
+                    assert np.allclose(live["probe"]["platform_mm"][:2], 30.0, atol=0.05)
+                    assert np.allclose(live["probe"]["phantom_mm"][:2], 0.0, atol=0.05)
+                    assert "render" in live["latency"]["stages_ms"]
+                    assert live["latency"]["end_to_end_ms"] > 0
+                    assert msg["trail"]["points"], "the trajectory has its first point"
+                    remote.paused = True  # no frames: the pins go safe, the view says so
+                    msg = await _until(ws, lambda live: live["safe"]["reason"] is not None,
+                                       "the safe state")
+                    assert msg["live"]["safe"]["reason"] == "stale_scene"
+                    assert msg["live"]["pins"]["commanded_mm"] is None
+                    assert msg["live"]["patch"]["age_ms"] > 100  # shown as old, not fresh
+            finally:
+                agent.request_stop()
+                await run
+        assert loop_of(agent).frame_listener is None
+        assert agent.view is not None and not agent.view._analysis.alive  # type: ignore[union-attr]
+
+
+async def test_a_busy_view_port_stops_the_agent_with_a_config_error() -> None:
+    async with running_relay() as relay:
+        agent = relay_agent(f"ws://127.0.0.1:{relay.ws_port}/")
+        agent.view_address = ViewAddress("127.0.0.1", relay.ws_port)
+        with pytest.raises(ConfigError, match="cannot listen"):
+            await agent.run()
+
+
+def _pad_frame(seq: int, x_mm: float, depth_mm: float) -> TactileFrame:
+    offs = (np.arange(15) - 7) * 0.5
+    pad = np.exp(-(offs[None, :] ** 2 + offs[:, None] ** 2) / 6.0).astype(np.float32)
+    return TactileFrame(seq=seq, ts_us=0, center_mm=(x_mm, 30.0), pitch_mm=0.5,
+                        layers={"height_mm": pad * depth_mm}, contact=depth_mm > 0,
+                        force_n=2.0 * depth_mm, indentation_mm=depth_mm)
+
+
+def test_live_analysis_waits_for_presses_then_builds_maps_in_its_process() -> None:
+    analysis = LiveAnalysis(WorkspaceConfig(), LiveAnalysisConfig(interval_s=0.1, nice=0))
+    try:
+        for i in range(5):
+            analysis.add(_pad_frame(i, 30.0, 0.0))  # touching, not pressed
+        wait_until(lambda: analysis.poll() or analysis.result is not None, 60,
+                   "the first analysis result")
+        assert analysis.result is not None and analysis.result["state"] == "waiting"
+        assert "nothing was palpated" in analysis.result["reason"]
+        for i in range(40):
+            analysis.add(_pad_frame(100 + i, 20.0 + i * 0.5, 1.5))
+        wait_until(lambda: analysis.poll() and analysis.result is not None
+                   and analysis.result["state"] == "ok", 60, "maps")
+        result = analysis.result
+        assert result["frames"] == 45 and result["frames_used"] == 40
+        relief = result["relief"]
+        assert relief["w"] > 0 and relief["h"] > 0
+        assert isinstance(result["findings"], list)
+    finally:
+        analysis.close()
+    assert not analysis.alive
+
+
+def test_confidence_is_the_share_of_recent_runs_that_found_it() -> None:
+    a = {"center_mm": [0.0, 0.0], "equivalent_radius_mm": 2.0}
+    near = {"center_mm": [2.5, 0.0], "equivalent_radius_mm": 2.0}
+    far = {"center_mm": [10.0, 0.0], "equivalent_radius_mm": 2.0}
+    current = [dict(a)]
+    _confidence(current, [[far], [near], [a]], history=5)
+    assert current[0]["confidence"] == pytest.approx(2 / 5)
+
+
+def test_encode_map_marks_missing_cells_and_spans_the_range() -> None:
+    values = np.array([[np.nan, 0.0], [1.0, 2.0]])
+    enc = encode_map(values)
+    import base64
+    raw = np.frombuffer(base64.b64decode(enc["data"]), np.uint8).reshape(2, 2)
+    assert raw[0, 0] == 0 and raw[0, 1] == 1 and raw[1, 1] == 255
+    assert enc["lo"] == pytest.approx(0.02) and enc["hi"] == pytest.approx(1.98)
+    assert encode_map(np.full((2, 3), np.nan))["lo"] is None
