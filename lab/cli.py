@@ -44,6 +44,8 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
                   "random phantoms and link profiles, with motion-to-touch latency"),
     "reconstruction": ("lab.bench.reconstruction", "height-map time vs error"),
     "stiffness": ("lab.bench.stiffness", "stiffness error vs noise/samples, time"),
+    "load": ("lab.bench.load", "realistic sessions stepped up until the relay's added p99 "
+             "exceeds 5 ms; soak"),
 }
 
 log = logging.getLogger(__name__)
