@@ -587,7 +587,8 @@ def run_load(settings: LoadSettings) -> dict[str, Any]:
     logging.getLogger("websockets").setLevel(logging.ERROR)
     load_start = os.getloadavg()
     started = time.monotonic()
-    relay = RelayUnderTest(settings.relay_workers, settings.nice, ledger_window=8192)
+    relay = RelayUnderTest(settings.relay_workers, settings.nice, ledger_window=8192,
+                           max_connections=100_000, max_connections_per_ip=100_000)
     steps: list[dict[str, Any]] = []
     held: dict[str, Any] | None = None
     soak = None
