@@ -44,6 +44,7 @@ import multiprocessing as mp
 import os
 import signal
 import socket
+import ssl
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -81,6 +82,7 @@ class ClusterLink:
         if config.nats_url is None:
             raise ConfigError("a cluster needs relay.nats_url")
         self.url = config.nats_url
+        self.ca_file = config.nats_ca_file
         self.prefix = config.nats_subject_prefix
         self.sessions = sessions
         self.counters = counters
@@ -107,12 +109,15 @@ class ClusterLink:
             self.counters["nats_errors"] += 1
             log.warning("NATS: %s", err)
 
+        tls = None
+        if self.url.startswith("tls://") or self.ca_file is not None:
+            tls = ssl.create_default_context(cafile=str(self.ca_file) if self.ca_file else None)
         try:
             self._nc = await nats.connect(
                 servers=[self.url], name=f"teletouch-relay-{self.worker_id}",
                 connect_timeout=5, allow_reconnect=True, max_reconnect_attempts=-1,
-                reconnect_time_wait=0.5, error_cb=on_error)
-        except (NoServersError, OSError, TimeoutError) as err:
+                reconnect_time_wait=0.5, error_cb=on_error, tls=tls)
+        except (NoServersError, OSError, TimeoutError, ssl.SSLError) as err:
             raise ConfigError(f"cannot reach the NATS server {self.url}: {err}") from err
         await self._nc.subscribe(f"{self.prefix}.hb", cb=self._on_heartbeat)
         await self._nc.subscribe(f"{self.prefix}.w.{self.worker_id}", cb=self._on_data)

@@ -62,6 +62,8 @@ class RelayConfig:
         nats_subject_prefix: NATS subject prefix of this cluster (relays with another prefix
             on the same NATS server are another cluster).
         reuse_port: bind with SO_REUSEPORT (set for the workers of ``--workers``).
+        nats_ca_file: PEM CA that signed the NATS server's certificate, for a ``tls://``
+            ``nats_url`` (None: the system's trust store).
     """
 
     host: str = "127.0.0.1"
@@ -94,6 +96,7 @@ class RelayConfig:
     workers: int = 0
     nats_subject_prefix: str = "teletouch"
     reuse_port: bool = False
+    nats_ca_file: Path | None = None
 
     def __post_init__(self) -> None:
         for name in ("port",):

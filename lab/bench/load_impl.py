@@ -27,6 +27,7 @@ from typing import Any
 
 import msgpack
 import numpy as np
+from websockets.exceptions import ConnectionClosed
 
 from shared.protocol import (
     ArmState,
@@ -59,7 +60,7 @@ _GENERATOR_LAG_LIMIT_US = 5000.0
 class LoadSettings:
     """What to run (see :mod:`lab.bench.load`)."""
 
-    steps: tuple[int, ...] = (10, 20, 30, 40, 50, 60, 70, 80, 100, 120)
+    steps: tuple[int, ...] = (2, 5, 10, 15, 20, 30, 40, 50, 60, 80, 100, 120)
     step_s: float = 8.0
     generators: int = 3
     transport: str = "ws"
@@ -249,6 +250,7 @@ class _Recorded:
     recv_lag: array[int] = field(default_factory=lambda: array("q"))
     send_lag: array[int] = field(default_factory=lambda: array("q"))
     window_us: tuple[int, int] = (0, 0)
+    lost_connections: list[str] = field(default_factory=list)
 
 
 class _Station:
@@ -260,6 +262,7 @@ class _Station:
         self.writer: asyncio.StreamWriter | None = None
         self.reader: asyncio.StreamReader | None = None
         self.task: asyncio.Task[None] | None = None
+        self.alive = True
 
     async def open(self) -> None:
         hello = encode(Hello(role=self.role, session=self.session, token="x",
@@ -267,8 +270,10 @@ class _Station:
         if self.job.transport == "ws":
             from websockets.asyncio.client import connect
 
+            # no WebSocket keepalive: the protocol's clock pings are the liveness check, and an
+            # overloaded relay must show as latency and drops, not as closed generators
             self.ws = await connect(f"ws://{self.job.host}:{self.job.port}", compression=None,
-                                    max_size=None, max_queue=None)
+                                    max_size=None, max_queue=None, ping_interval=None)
             set_nodelay(self.ws.transport)  # as the stations do
             await self.ws.send(hello)
             welcome = msgpack.unpackb(await self.ws.recv())
@@ -420,14 +425,20 @@ async def _pace(stations: list[tuple[_Station, _Station, float]], rec: _Recorded
         if lo_us <= ts < hi_us:
             rec.sent[kind] += 1
             rec.send_lag.append(round((loop.time() - due) * 1e6))
-        await station.send(data)
+        if station.alive:
+            try:
+                await station.send(data)
+            except (ConnectionError, OSError, ConnectionClosed) as err:
+                station.alive = False
+                rec.lost_connections.append(f"{station.role}@{station.session}: {err}")
 
 
 def _pack(rec: _Recorded) -> dict[str, Any]:
     return {"sent": rec.sent, "received": rec.received,
             "added": {k: v.tobytes() for k, v in rec.added.items()},
             "oneway": {k: v.tobytes() for k, v in rec.oneway.items()},
-            "recv_lag": rec.recv_lag.tobytes(), "send_lag": rec.send_lag.tobytes()}
+            "recv_lag": rec.recv_lag.tobytes(), "send_lag": rec.send_lag.tobytes(),
+            "lost_connections": rec.lost_connections}
 
 
 def _generator_main(job: _GenJob, pipe: Connection) -> None:
@@ -548,8 +559,10 @@ def _summarise(n: int, connected: int, measure_s: float, results: list[dict[str,
     recv_lag = _pcts(np.concatenate([_arr(r["recv_lag"]) for r in results]))
     a = _pcts(all_added)
     worst_gen_p99 = max((g["p99"] or 0.0) for g in gen_lag)
+    lost = [c for r in results for c in r["lost_connections"]]
     held = (a["p99"] is not None and a["p99"] <= settings.limit_p99_us
-            and min(delivered.values()) >= _MIN_DELIVERED and connected == 2 * n)
+            and min(delivered.values()) >= _MIN_DELIVERED and connected == 2 * n
+            and not lost)
     return {
         "sessions": n, "stations_connected": connected, "measure_s": measure_s,
         "held": held, "added_latency_us": a,
@@ -565,6 +578,7 @@ def _summarise(n: int, connected: int, measure_s: float, results: list[dict[str,
         "generator_send_lag_us": gen_lag, "generator_limited":
             worst_gen_p99 > _GENERATOR_LAG_LIMIT_US,
         "drops": _drops(status), "status_error": status.get("error"),
+        "lost_connections": lost,
     }
 
 
@@ -589,11 +603,16 @@ def run_load(settings: LoadSettings) -> dict[str, Any]:
     relay = RelayUnderTest(settings.relay_workers, ledger_window=8192,
                            max_connections=100_000, max_connections_per_ip=100_000)
     steps: list[dict[str, Any]] = []
+    failed: list[dict[str, Any]] = []
     held: dict[str, Any] | None = None
     soak = None
     try:
         for n in settings.steps:
-            step = _run_step(relay, n, settings, settings.step_s, f"s{n}")
+            try:
+                step = _run_step(relay, n, settings, settings.step_s, f"s{n}")
+            except RuntimeError as err:  # a generator hung or could not connect: the end
+                failed.append({"sessions": n, "error": str(err)})
+                break
             steps.append(step)
             log.info("%d sessions: added p99 %s us, held %s", n,
                      step["added_latency_us"]["p99"], step["held"])
@@ -611,14 +630,24 @@ def run_load(settings: LoadSettings) -> dict[str, Any]:
         "added_latency_us": None if best is None else best["added_latency_us"],
         "relay_cpu_cores": None if best is None else best["relay_cpu_cores"],
         "relay_rss_mb": None if best is None else best["relay_rss_mb"],
-        "steps": steps, "soak": soak, "settings": asdict(settings),
+        "steps": steps, "failed_steps": failed, "soak": soak, "settings": asdict(settings),
         "elapsed_s": time.monotonic() - started,
         "tactile_frame_bytes": len(encode(tactile_frame(), validate=False)),
         "machine": {"nproc": os.cpu_count(), "loadavg_start": load_start,
                     "niceness": os.nice(0),
+                    "autogroup": _autogroup(),
                     "loadavg_end": os.getloadavg(), "python": platform.python_version(),
                     "note": "shared with other agents' jobs while measuring"},
     }
+
+
+def _autogroup() -> str:
+    """This process's scheduler autogroup and its nice value (Linux), which is what other
+    sessions' jobs compete with; '' when unknown."""
+    try:
+        return Path("/proc/self/autogroup").read_text().strip()
+    except OSError:
+        return ""
 
 
 # --------------------------------------------------------------------------- report
@@ -663,12 +692,13 @@ def _markdown(r: dict[str, Any], argv: str) -> str:
             "gen_lag_p99_us": _f(max((g["p99"] or 0) for g in st["generator_send_lag_us"])),
             "recv_lag_p99_us": _f(st["receiver_lag_us"]["p99"]),
             "drops": ", ".join(f"{k} {v}" for k, v in sorted(st["drops"].items()) if v) or "0",
+            "conn_lost": len(st["lost_connections"]),
         })
     lines = [
         "# Load benchmark: realistic sessions through the relay", "",
         f"Command: `{argv}`. Relay: {relay}, {s['transport']} stations, "
-        f"{s['generators']} generator processes, all at niceness {m['niceness']}"
-        + (" (ahead of the other jobs)." if m["niceness"] < 0 else "."),
+        f"{s['generators']} generator processes, all at niceness {m['niceness']} in scheduler "
+        f"{m['autogroup'] or 'group ?'}.",
         f"Machine: {m['nproc']} cores, Python {m['python']}, load average "
         f"{m['loadavg_start'][0]:.2f} at the start and {m['loadavg_end'][0]:.2f} at the end; "
         "**the machine was shared with other agents' jobs (builds, tests, benchmarks) while "
@@ -690,6 +720,8 @@ def _markdown(r: dict[str, Any], argv: str) -> str:
         "by reason from the relay's /status (latest_wins = a newer state replaced an unsent "
         "one, the policy working; lost = sequence gaps seen at the relay).",
     ]
+    for f in r.get("failed_steps", []):
+        lines += ["", f"Step {f['sessions']} sessions failed: {f['error']}"]
     soak = r.get("soak")
     if soak:
         which = "the last held N" if r["sessions_held"] else "no step held: the first step's N"

@@ -13,7 +13,12 @@ import msgpack
 import numpy as np
 from websockets.asyncio.client import ClientConnection, connect
 
-from lab.bench.load_impl import RelayUnderTest, start_nats_server, tactile_frame
+from lab.bench.load_impl import (
+    RelayUnderTest,
+    _autogroup,
+    start_nats_server,
+    tactile_frame,
+)
 from shared.protocol import ClockPong, Hello, TactileFrame, encode
 from shared.report import emit, emit_json
 from shared.timebase import now_us
@@ -124,6 +129,7 @@ async def run_nats_hop(*, rate_hz: float, rounds: int, round_s: float) -> dict[s
             "target_hop_p50_us": 500.0,
             "machine": {"nproc": os.cpu_count(), "loadavg_start": load_start,
                         "niceness": os.nice(0),
+                    "autogroup": _autogroup(),
                         "loadavg_end": os.getloadavg(), "python": platform.python_version()}}
 
 
@@ -148,7 +154,8 @@ def _markdown(r: dict[str, Any], argv: str) -> str:
     ok = h["p50"] is not None and h["p50"] <= r["target_hop_p50_us"]
     return "\n".join([
         "# NATS hop: what a second relay worker on the path adds", "",
-        f"Command: `{argv}` at niceness {m['niceness']}. Machine: {m['nproc']} cores, Python "
+        f"Command: `{argv}` at niceness {m['niceness']} (scheduler {m['autogroup']}). "
+        f"Machine: {m['nproc']} cores, Python "
         f"{m['python']}, load average "
         f"{m['loadavg_start'][0]:.2f} at the start, {m['loadavg_end'][0]:.2f} at the end "
         "(**shared with other agents' jobs while measuring**).", "",
