@@ -8,8 +8,10 @@ import asyncio
 import contextlib
 import json
 import os
+import shutil
 import signal
 from collections.abc import AsyncIterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -18,6 +20,7 @@ from shared.client import StationLink
 from shared.protocol import ArmCommand, ArmState, Message, PlatformState
 from shared.timebase import now_us
 from tests.relay_server.test_relay_isolation_and_status import http_get
+from tests.relay_server.test_relay_tls import lab_pki  # noqa: F401 (a fixture)
 from tests.support import free_tcp_port, scaled, teletouch_cmd
 
 pytest.importorskip("nats", reason="the cluster needs nats-py (pip install -e '.[cluster]')")
@@ -27,9 +30,12 @@ pytestmark = pytest.mark.slow
 
 
 @contextlib.asynccontextmanager
-async def _process(*cmd: str) -> AsyncIterator[asyncio.subprocess.Process]:
+async def _process(*cmd: str, env: dict[str, str] | None = None
+                   ) -> AsyncIterator[asyncio.subprocess.Process]:
     proc = await asyncio.create_subprocess_exec(*cmd, stdout=asyncio.subprocess.DEVNULL,
-                                                stderr=asyncio.subprocess.DEVNULL)
+                                                stderr=asyncio.subprocess.DEVNULL,
+                                                env=None if env is None else
+                                                {**os.environ, **env})
     try:
         yield proc
     finally:
@@ -43,13 +49,13 @@ async def _process(*cmd: str) -> AsyncIterator[asyncio.subprocess.Process]:
 
 
 @contextlib.asynccontextmanager
-async def nats_server() -> AsyncIterator[str]:
+async def nats_server(*extra: str) -> AsyncIterator[str]:
     try:
         binary = nats_server_binary()
     except RuntimeError as err:
         pytest.skip(str(err))
     port = free_tcp_port()
-    async with _process(binary, "-a", "127.0.0.1", "-p", str(port)):
+    async with _process(binary, "-a", "127.0.0.1", "-p", str(port), *extra):
         async with asyncio.timeout(scaled(15.0)):
             while True:
                 try:
@@ -79,12 +85,14 @@ async def wait_workers(port: int, count: int) -> dict[str, Any]:
 
 
 @contextlib.asynccontextmanager
-async def relay(nats_url: str, workers: int = 1) -> AsyncIterator[int]:
+async def relay(nats_url: str, workers: int = 1, env: dict[str, str] | None = None
+                ) -> AsyncIterator[int]:
     """``teletouch relay --workers N --nats URL`` on fresh ports; yields the WebSocket port."""
     port, tcp_port = free_tcp_port(), free_tcp_port()
     async with _process(*teletouch_cmd(), "--log-level", "WARNING", "relay", "--host",
                         "127.0.0.1", "--port", str(port), "--tcp-port", str(tcp_port),
-                        "--allow-any-token", "--workers", str(workers), "--nats", nats_url):
+                        "--allow-any-token", "--workers", str(workers), "--nats", nats_url,
+                        env=env):
         yield port
 
 
@@ -211,3 +219,28 @@ async def test_killed_worker_stations_reconnect_and_session_resumes() -> None:
             doc = await status(port)
             pids = {w["pid"] for w in doc["cluster"]["workers"].values()}
             assert holder["pid"] not in pids
+
+
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="needs openssl")
+async def test_workers_join_over_tls_nats(lab_pki: dict[str, Path]) -> None:  # noqa: F811
+    """nats-server with TLS (the lab CA's certificate for 127.0.0.1); the relays verify it
+    with nats_ca_file and pair stations across workers as over plain NATS."""
+    tls = ("--tls", "--tlscert", str(lab_pki["relay.crt"]), "--tlskey", str(lab_pki["relay.key"]))
+    env = {"TELETOUCH_RELAY_NATS_CA_FILE": str(lab_pki["ca.crt"])}
+    async with nats_server(*tls) as url:
+        url = url.replace("nats://", "tls://")
+        async with relay(url, env=env) as port_a, relay(url, env=env) as port_b:
+            await wait_workers(port_a, 2)
+            await wait_workers(port_b, 2)
+            async with station(port_a, "local", "t1") as local, \
+                    station(port_b, "remote", "t1") as remote:
+                await local.wait_connected(scaled(10.0))
+                await remote.wait_connected(scaled(10.0))
+                await wait_paired(port_a, "t1")
+                await wait_paired(port_b, "t1")
+                await local.send(PlatformState(seq=7, ts_us=now_us()))
+                got = await recv_type(remote, "platform_state")
+                assert "nats_in" in [h.stage for h in got.hops]  # type: ignore[attr-defined]
+            doc = await status(port_a)
+            assert doc["cluster"]["nats_url"].startswith("tls://")
+            assert doc["cluster"]["nats_connected"] is True
