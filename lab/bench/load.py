@@ -15,11 +15,13 @@ How it measures (one machine; the relay runs as its own process or processes):
   the time its bytes waited for the relay to read them, and the relay's residence. The
   receiving generator's own lag (``arrival - relay_out``) is reported apart, not charged to
   the relay. Same host, same clock: no offsets are involved.
-* **Steps.** N sessions for ``--step-s`` seconds after a warm-up, N stepped up until the
-  added p99 exceeds 5 ms (or delivery collapses). *Sessions held* = the largest N whose p99
-  stayed within 5 ms. Per step: relay CPU (cores, from ``/proc``) and RSS, drops by reason
+* **Steps.** N sessions for ``--step-s`` seconds after a warm-up. *Sessions held* = the
+  largest N whose added p99 stayed within 5 ms with >= 95 % of every stream delivered and no
+  connection lost; *sustained* = the same with the added p50 within 5 ms (forwarding capacity
+  when a busy machine's scheduling spoils every p99). N steps up while sustained.
+  Per step: relay CPU (cores, from ``/proc``) and RSS, drops by reason
   from the relay's ``/status``, messages sent and received per stream.
-* **Soak.** ``--soak SECONDS`` holds the last held N that long and samples the relay's RSS
+* **Soak.** ``--soak SECONDS`` holds the largest sustained N that long, sampling the RSS
   (flat = last within +-5 % of the first sample after a 10 % warm-up).
 * **Priority.** On a machine shared with other jobs, Linux shares the CPU between session
   *autogroups* first; ``nice`` only ranks processes inside one. ``echo -10 >
