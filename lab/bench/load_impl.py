@@ -376,7 +376,7 @@ async def _generate(job: _GenJob, pipe: Connection) -> None:
             stations.append((local, remote, tactile_hz))
     except (OSError, ConnectionError) as err:
         error = f"{type(err).__name__}: {err}"
-    pipe.send(("ready", len(stations), error))
+    pipe.send(("ready", 2 * len(stations), error))  # stations, two per session
     loop = asyncio.get_running_loop()
     cmd = await loop.run_in_executor(None, pipe.recv)
     if cmd[0] == "go" and error is None:
