@@ -168,7 +168,16 @@ class ClusterLink:
                 "ports": self.ports(), "t": now_us(),
                 "sessions": {sid: [sorted(s.stations), len(s.observers)]
                              for sid, s in self.sessions.items()},
-                "counters": dict(self.counters)}
+                "counters": dict(self.counters), "drops": self._drops()}
+
+    def _drops(self) -> dict[str, int]:
+        """Messages this worker's sessions dropped, by reason (latest_wins, queue_full, ...)."""
+        out: Counter[str] = Counter()
+        for session in self.sessions.values():
+            for direction in session.directions.values():
+                for ledger in direction.uplink.values():
+                    out.update(ledger.dropped)
+        return dict(out)
 
     async def _heartbeat_loop(self) -> None:
         while True:
@@ -279,6 +288,7 @@ class ClusterLink:
 def _worker_doc(hb: dict[str, Any], age_s: float) -> dict[str, Any]:
     return {"pid": hb.get("pid"), "host": hb.get("host"), "ports": hb.get("ports"),
             "heartbeat_age_s": round(age_s, 3), "counters": hb.get("counters", {}),
+            "drops": hb.get("drops", {}),
             "sessions": {sid: {"stations": held[0], "observers": held[1]}
                          for sid, held in hb.get("sessions", {}).items()}}
 
