@@ -244,3 +244,27 @@ async def test_workers_join_over_tls_nats(lab_pki: dict[str, Path]) -> None:  # 
             doc = await status(port_a)
             assert doc["cluster"]["nats_url"].startswith("tls://")
             assert doc["cluster"]["nats_connected"] is True
+
+
+async def test_observer_on_another_worker_sees_the_session() -> None:
+    async with nats_server() as url, relay(url) as port_a, relay(url) as port_b:
+        await wait_workers(port_a, 2)
+        await wait_workers(port_b, 2)
+        async with station(port_b, "observer", "o1") as observer:
+            await observer.wait_connected(scaled(10.0))
+            async with asyncio.timeout(scaled(10.0)):  # worker A learns of the observer
+                while not any(w["sessions"].get("o1", {}).get("observers") for w in
+                              (await status(port_a))["cluster"]["workers"].values()):
+                    await asyncio.sleep(0.05)
+            async with station(port_a, "local", "o1") as local, \
+                    station(port_a, "remote", "o1") as remote:
+                await local.wait_connected(scaled(10.0))
+                await remote.wait_connected(scaled(10.0))
+                await local.send(PlatformState(seq=3, ts_us=now_us()))
+                seen = await recv_type(observer, "platform_state")
+                assert seen.seq == 3  # type: ignore[attr-defined]
+                assert [h.stage for h in seen.hops if h.clock == "relay"] == [  # type: ignore[attr-defined]
+                    "relay_in", "nats_out", "nats_in", "relay_out"]
+                # the stations, on one worker, still meet without NATS
+                direct = await recv_type(remote, "platform_state")
+                assert "nats_in" not in [h.stage for h in direct.hops]  # type: ignore[attr-defined]
