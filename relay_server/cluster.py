@@ -24,10 +24,12 @@ makes several of them one relay:
   clocks must agree (NTP) for the residence and NATS-leg figures; station offsets are each
   estimated against the worker the station is connected to, as before.
 * **Limits.** Envelopes wait in a bounded queue for the NATS connection (``nats_queue_full``
-  when NATS stalls); a message over the NATS server's max payload (1 MB by default) is not
-  forwarded across workers (``nats_too_large``); an ordered message refused by the receiving
-  worker (``queue_full``, ``no_peer``) is counted there (``nats_undelivered_<code>``), the
-  sender gets no ``error`` for it.
+  when NATS stalls); one that waited more than 0.5 s since it reached the relay is dropped
+  (``nats_stale``), and nothing is buffered while NATS reconnects (``nats_publish_failed``):
+  no frame is delivered late after a NATS outage. A message over the NATS server's max
+  payload (1 MB by default) is not forwarded across workers (``nats_too_large``). An ordered
+  message refused by the receiving worker (``queue_full``, ``no_peer``) is counted there
+  (``nats_undelivered_<code>``); the sender gets no ``error`` for it.
 
 ``run_workers`` runs N workers on one host, one process each, all bound to the same ports
 with SO_REUSEPORT (the kernel spreads new connections over them); a worker that dies is
@@ -65,6 +67,7 @@ log = logging.getLogger(__name__)
 HEARTBEAT_S = 0.5
 _EXPIRE_S = 3 * HEARTBEAT_S
 _OUT_QUEUE = 20_000  # envelopes waiting for the NATS connection
+_MAX_QUEUED_US = 500_000  # an envelope older than this (since relay_in) is not published
 
 
 class ClusterLink:
@@ -116,7 +119,8 @@ class ClusterLink:
             self._nc = await nats.connect(
                 servers=[self.url], name=f"teletouch-relay-{self.worker_id}",
                 connect_timeout=5, allow_reconnect=True, max_reconnect_attempts=-1,
-                reconnect_time_wait=0.5, error_cb=on_error, tls=tls)
+                reconnect_time_wait=0.5, error_cb=on_error, tls=tls,
+                pending_size=0)  # nothing buffered while reconnecting: no stale frames later
         except (NoServersError, OSError, TimeoutError, ssl.SSLError) as err:
             raise ConfigError(f"cannot reach the NATS server {self.url}: {err}") from err
         await self._nc.subscribe(f"{self.prefix}.hb", cb=self._on_heartbeat)
@@ -236,7 +240,11 @@ class ClusterLink:
 
         while True:
             worker, body = await self._out.get()
-            envelope = msgpack.packb([*body, now_us()])  # ..., nats_out
+            t_out = now_us()
+            if t_out - body[2] > _MAX_QUEUED_US:  # waited too long for NATS: stale, dropped
+                self.counters["nats_stale"] += 1
+                continue
+            envelope = msgpack.packb([*body, t_out])  # ..., nats_out
             try:
                 await self._nc.publish(f"{self.prefix}.w.{worker}", envelope)
                 self.counters["nats_sent"] += 1
