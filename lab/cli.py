@@ -48,6 +48,10 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
     "stiffness": ("lab.bench.stiffness", "stiffness error vs noise/samples, time"),
     "fuzz": ("lab.bench.fuzz", "fuzz the decoder, session cores and relay (atheris and a "
              "mutation engine; real-socket smoke)"),
+    "load": ("lab.bench.load", "realistic sessions stepped up until the relay's added p99 "
+             "exceeds 5 ms; soak"),
+    "nats-hop": ("lab.bench.nats_hop", "what a NATS hop between relay workers adds to a 19 kB "
+                 "frame"),
 }
 
 log = logging.getLogger(__name__)

@@ -18,6 +18,7 @@ examples:
   teletouch relay --host 0.0.0.0 --tls-cert relay.crt --tls-key relay.key  # wss://, tls://
   teletouch relay --port 8765 --token-file tokens.toml
   teletouch relay --print-token lab1 --role remote --ttl-s 604800
+  teletouch relay --host 0.0.0.0 --workers 2 --nats nats://nats:4222   # one host, 2 cores
   curl http://127.0.0.1:8765/status
 """
 
@@ -56,6 +57,13 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--view", metavar="HOST:PORT",
                         help="serve the live view to each session's observers (browser at "
                              "http://HOST:PORT/#session=S&token=OBSERVER_TOKEN; docs/view.md)")
+    parser.add_argument("--nats", dest="nats_url", metavar="URL",
+                        help="nats://HOST:PORT: join the relay workers on this NATS server into "
+                             "one relay (stations may connect to any worker or host; "
+                             "docs/operations.md)")
+    parser.add_argument("--workers", type=int, default=None,
+                        help="relay worker processes on this host, sharing the ports "
+                             "(SO_REUSEPORT); needs --nats; default with --nats: one per core")
     parser.add_argument("--print-token", dest="print_token", metavar="SESSION",
                         help="print a token of SESSION for the secret and exit: v2 (role, "
                              "expiry) with --role, else the legacy per-session token")
@@ -80,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
 
     explicit = {name: getattr(args, name, None) for name in (
         "host", "port", "tcp_port", "secret", "token_file", "allow_any_token", "tls_cert",
-        "tls_key", "view",
+        "tls_key", "view", "nats_url", "workers",
         "hello_timeout_s", "ping_interval_s", "stats_interval_s")}
     config = resolve_config(RelayConfig, "relay", explicit=explicit, toml_path=args.config)
     if args.print_token:
@@ -97,5 +105,11 @@ def run(args: argparse.Namespace) -> int:
         else:
             emit(derive_token(config.secret, args.print_token))
         return 0
-    asyncio.run(serve_forever(config))
+    from relay_server.cluster import run_workers, worker_count
+
+    workers = worker_count(config)
+    if workers > 1:
+        run_workers(config, workers)
+    else:
+        asyncio.run(serve_forever(config))
     return 0

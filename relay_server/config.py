@@ -57,6 +57,15 @@ class RelayConfig:
             bucket); excess messages are discarded with ``rate_limited``.
         rate_limit_burst: bucket size; more than this many discarded in one over-rate
             episode closes the connection (``rate_limited``, close 1008).
+        nats_url: ``nats://HOST:PORT`` of the NATS server that joins relay workers into one
+            cluster (:mod:`relay_server.cluster`); None = today's single-process relay.
+        workers: relay worker processes on this host, all on the same ports (SO_REUSEPORT);
+            0 = one per core when ``nats_url`` is set (1 without it).
+        nats_subject_prefix: NATS subject prefix of this cluster (relays with another prefix
+            on the same NATS server are another cluster).
+        reuse_port: bind with SO_REUSEPORT (set for the workers of ``--workers``).
+        nats_ca_file: PEM CA that signed the NATS server's certificate, for a ``tls://``
+            ``nats_url`` (None: the system's trust store).
     """
 
     host: str = "127.0.0.1"
@@ -86,6 +95,11 @@ class RelayConfig:
     max_hello_bytes: int = 64 * 1024
     rate_limit_per_s: float = 5000.0
     rate_limit_burst: int = 10_000
+    nats_url: str | None = None
+    workers: int = 0
+    nats_subject_prefix: str = "teletouch"
+    reuse_port: bool = False
+    nats_ca_file: Path | None = None
 
     def __post_init__(self) -> None:
         for name in ("port",):
@@ -105,6 +119,17 @@ class RelayConfig:
         for name in ints:
             if getattr(self, name) < 1:
                 raise ConfigError(f"relay.{name} must be >= 1")
+        if self.workers < 0:
+            raise ConfigError("relay.workers must be >= 0")
+        if self.workers > 1 and not self.nats_url:
+            raise ConfigError("relay.workers > 1 needs relay.nats_url (--nats nats://HOST:PORT):"
+                              " workers pair the stations of a session through NATS")
+        if self.nats_url is not None and not self.nats_url.startswith(
+                ("nats://", "tls://", "ws://", "wss://")):
+            raise ConfigError(f"relay.nats_url={self.nats_url!r} must be nats://HOST:PORT "
+                              "(or tls://, ws://, wss://)")
+        if not self.nats_subject_prefix.replace("_", "").replace("-", "").isalnum():
+            raise ConfigError("relay.nats_subject_prefix must be letters, digits, - and _")
         if self.ping_burst_spacing_s < 0:
             raise ConfigError("relay.ping_burst_spacing_s must be >= 0")
         if (self.tls_cert is None) != (self.tls_key is None):

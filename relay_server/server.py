@@ -31,7 +31,7 @@ import signal
 import ssl
 from collections import Counter
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from websockets.asyncio.server import Server, ServerConnection, serve
 from websockets.datastructures import Headers
@@ -64,6 +64,9 @@ from shared.timebase import now_us
 from shared.transport import TcpTransport, Transport, TransportClosed, WsTransport, set_nodelay
 from shared.view import ViewAddress, ViewServer, ViewServerConfig, parse_view_address
 from shared.view.server import token_authorizer
+
+if TYPE_CHECKING:
+    from relay_server.cluster import ClusterLink
 
 __all__ = ["RelayServer", "serve_forever"]
 
@@ -134,6 +137,8 @@ class RelayServer:
         #: the observers' live view (``config.view``), started by :meth:`start`
         self.view_hub: RelayViewHub | None = None
         self.view_server: ViewServer | None = None
+        #: the link to the other workers of a clustered relay (relay_server.cluster)
+        self.cluster: ClusterLink | None = None
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -145,9 +150,11 @@ class RelayServer:
         self._ws_server = await serve(
             self._ws_handler, cfg.host, cfg.port, compression=None,
             process_request=self._process_http, max_size=2 * self.peer_settings.max_hello_bytes,
-            max_queue=64, write_limit=256 * 1024, ssl=self.tls, logger=_WS_LOG)
+            max_queue=64, write_limit=256 * 1024, ssl=self.tls, logger=_WS_LOG,
+            reuse_port=cfg.reuse_port or None)
         self._tcp_server = await asyncio.start_server(
-            self._tcp_handler, cfg.host, cfg.resolved_tcp_port, limit=2**20, ssl=self.tls)
+            self._tcp_handler, cfg.host, cfg.resolved_tcp_port, limit=2**20, ssl=self.tls,
+            reuse_port=cfg.reuse_port or None)
         ws, tcp = ("wss", "tls") if self.tls is not None else ("ws", "tcp")
         log.info("relay listening: %s://%s:%d (status: /status, /metrics), %s://%s:%d",
                  ws, cfg.host, self.ws_port, tcp, cfg.host, self.tcp_port)
@@ -231,10 +238,13 @@ class RelayServer:
 
     def status(self) -> dict[str, Any]:
         """The ``/status`` document: every session with directions and percentiles."""
-        return {"time_us": now_us(), "sessions": {sid: session_status(s) for sid, s
-                                                  in sorted(self.sessions.items())},
-                "counters": dict(self.counters),
-                "ports": {"ws": self.ws_port, "tcp": self.tcp_port}}
+        doc = {"time_us": now_us(), "sessions": {sid: session_status(s) for sid, s
+                                                 in sorted(self.sessions.items())},
+               "counters": dict(self.counters),
+               "ports": {"ws": self.ws_port, "tcp": self.tcp_port}}
+        if self.cluster is not None:
+            doc["cluster"] = self.cluster.status()
+        return doc
 
     def _process_http(self, connection: ServerConnection, request: Request
                       ) -> Response | None:
@@ -318,12 +328,15 @@ class RelayServer:
         if self._closing:
             raise SessionError("relay shutting down", code="shutdown")
         self.auth.check(hello.session, hello.token, hello.role)
+        if self.cluster is not None:
+            self.cluster.check_role(hello.session, hello.role)
         session = self.sessions.get(hello.session)
         if session is None:
             if len(self.sessions) >= self.config.max_sessions:
                 raise SessionError(f"relay is full ({self.config.max_sessions} sessions)",
                                    code="relay_full")
             session = Session(hello.session, self.config.ledger_window)
+            session.remote = self.cluster
         peer = Peer(peer_id=next(self._peer_ids), session_id=hello.session, role=hello.role,
                     name=hello.name, transport=conn.transport.framing,
                     outbox=conn.protocol.outbox, window=self.config.ledger_window,
@@ -335,12 +348,16 @@ class RelayServer:
             log.info("session %s: %s reconnected; its previous connection (peer %d) replaced",
                      hello.session, hello.role, replaced.peer_id)
         self.sessions[hello.session] = session
+        if self.cluster is not None:
+            self.cluster.changed()
         return session, peer
 
     def _drop_peer(self, session: Session, peer: Peer) -> None:
         session.leave(peer)
         if session.empty and self.sessions.get(session.session_id) is session:
             del self.sessions[session.session_id]
+        if self.cluster is not None:
+            self.cluster.changed()
 
 
 def _server_tls_context(config: RelayConfig) -> ssl.SSLContext | None:
@@ -588,6 +605,16 @@ async def serve_forever(config: RelayConfig,
     """
     relay = RelayServer(config)
     await relay.start()
+    if config.nats_url:
+        from relay_server.cluster import ClusterLink
+
+        relay.cluster = ClusterLink(config, relay.sessions, relay.counters,
+                                    lambda: {"ws": relay.ws_port, "tcp": relay.tcp_port})
+        try:
+            await relay.cluster.start()
+        except BaseException:
+            await relay.close()
+            raise
     _tune_gc_for_latency()
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
@@ -602,3 +629,5 @@ async def serve_forever(config: RelayConfig,
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.remove_signal_handler(sig)
         await relay.close()
+        if relay.cluster is not None:
+            await relay.cluster.close()

@@ -13,7 +13,7 @@ import hmac
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 from shared.clocksync import ClockFilter
 from shared.errors import RoleTakenError
@@ -26,6 +26,7 @@ __all__ = [
     "STREAMS_OF",
     "DirectionStats",
     "Peer",
+    "RemoteForwarder",
     "RouteResult",
     "Session",
 ]
@@ -56,6 +57,7 @@ class DirectionStats:
         self.uplink: dict[str, LatencyLedger] = {}
         self.relay = LatencyLedger(window)
         self.end_to_end = LatencyLedger(window)
+        self.nats = LatencyLedger(window)  # NATS leg (nats_out -> nats_in) from other workers
         self.forwarded = 0
         self.unsynced = 0  # arrivals before the sender's clock offset was known
 
@@ -118,6 +120,16 @@ class Peer:
         return None if best is None else best.delay_us / 2.0
 
 
+class RemoteForwarder(Protocol):
+    """How a session reaches peers held by other workers of a clustered relay."""
+
+    def forward(self, session_id: str, sender_role: str, msg: DataMessage, t_in_us: int,
+                sent_ref_us: int | None, need_station: bool) -> bool:
+        """Send ``msg`` to the workers holding this session's observers and, with
+        ``need_station``, its receiving station; True when another worker holds that
+        station."""
+
+
 @dataclass(frozen=True, slots=True)
 class RouteResult:
     """What :meth:`Session.route` did with one message (for replies to the sender)."""
@@ -135,6 +147,8 @@ class Session:
         self.observers: dict[int, Peer] = {}
         self.directions = {d: DirectionStats(d, window)
                            for d in ("local_to_remote", "remote_to_local")}
+        #: a clustered relay's link to its other workers (None: this process is the relay)
+        self.remote: RemoteForwarder | None = None
 
     @property
     def empty(self) -> bool:
@@ -210,21 +224,49 @@ class Session:
             sent_ref_us = round(sent_station_us - offset)
             ledger.record(msg.seq, sent_ref_us, t_in_us)
         fwd = msg  # relay_in/relay_out hops are added when it is encoded for each receiver
-        latest = msg.POLICY is StreamPolicy.LATEST_WINS
-        key = f"{direction.name}:{stream}"
-        for obs in self.observers.values():
-            if latest:
-                if obs.outbox.put_latest(key, fwd, t_in_us) is not None:
-                    obs.observer_drops += 1
-            elif not obs.outbox.put_ordered(fwd, forwarded=True, t_in_us=t_in_us):
-                obs.observer_drops += 1
         receiver = self.stations.get(_OTHER[sender.role])
+        elsewhere = False  # the receiver is on another worker of a cluster
+        if self.remote is not None:
+            elsewhere = self.remote.forward(self.session_id, sender.role, fwd, t_in_us,
+                                            sent_ref_us, receiver is None)
+        if receiver is None and elsewhere:
+            self._to_observers(direction, fwd, t_in_us)
+            return None
+        return self.deliver(sender.role, fwd, t_in_us, sent_ref_us)
+
+    def deliver(self, sender_role: str, msg: DataMessage, t_in_us: int,
+                sent_ref_us: int | None, mid_hops: tuple[tuple[str, str, int], ...] = (),
+                to_station: bool = True) -> Error | None:
+        """Queue a station's message (already booked on its uplink) for this relay's peers:
+        the observers and, with ``to_station``, the other station, with the stream's policy.
+
+        Args:
+            sender_role: ``local`` or ``remote``.
+            msg: the message, without relay hops.
+            t_in_us: when it reached the relay (its ``relay_in`` stamp).
+            sent_ref_us: its send time on the relay clock, None when the sender's clock offset
+                is not known yet.
+            mid_hops: stamps between ``relay_in`` and ``relay_out`` (the NATS leg of a
+                message from another worker).
+            to_station: also to the receiving station (else observers only).
+
+        Returns:
+            An ``error`` for the sender (``no_peer``, ``queue_full``), or None.
+        """
+        stream = msg.TYPE
+        direction = self.directions[DIRECTION_OF[sender_role]]
+        ledger = direction.stream(stream)
+        self._to_observers(direction, msg, t_in_us, mid_hops)
+        if not to_station:
+            return None
+        latest = msg.POLICY is StreamPolicy.LATEST_WINS
+        receiver = self.stations.get(_OTHER[sender_role])
         if receiver is None:
             ledger.record_drop("no_peer")
             if latest:
                 return None
             return Error(code="no_peer", message=f"{stream} seq {msg.seq} not delivered: no "
-                         f"{_OTHER[sender.role]} station in session {self.session_id!r}",
+                         f"{_OTHER[sender_role]} station in session {self.session_id!r}",
                          stream=stream, seq=msg.seq)
 
         def on_send(pending: Pending, t_out_us: int) -> None:
@@ -234,10 +276,12 @@ class Session:
             if sent_ref_us is not None and down is not None:
                 direction.end_to_end.record(None, sent_ref_us, round(t_out_us + down))
 
+        key = f"{direction.name}:{stream}"
         if latest:
-            if receiver.outbox.put_latest(key, fwd, t_in_us, on_send) is not None:
+            if receiver.outbox.put_latest(key, msg, t_in_us, on_send, mid_hops) is not None:
                 ledger.record_drop("latest_wins")
-        elif not receiver.outbox.put_ordered(fwd, on_send, forwarded=True, t_in_us=t_in_us):
+        elif not receiver.outbox.put_ordered(msg, on_send, forwarded=True, t_in_us=t_in_us,
+                                             mid_hops=mid_hops):
             ledger.record_drop("queue_full")
             ledger.set_queue_depth(len(receiver.outbox))
             return Error(code="queue_full", message=f"{stream} seq {msg.seq} refused: the "
@@ -245,3 +289,18 @@ class Session:
                          stream=stream, seq=msg.seq)
         ledger.set_queue_depth(len(receiver.outbox))
         return None
+
+    def _to_observers(self, direction: DirectionStats, msg: DataMessage, t_in_us: int,
+                      mid_hops: tuple[tuple[str, str, int], ...] = ()) -> None:
+        if not self.observers:
+            return
+        key = f"{direction.name}:{msg.TYPE}"
+        if msg.POLICY is StreamPolicy.LATEST_WINS:
+            for obs in self.observers.values():
+                if obs.outbox.put_latest(key, msg, t_in_us, None, mid_hops) is not None:
+                    obs.observer_drops += 1
+        else:
+            for obs in self.observers.values():
+                if not obs.outbox.put_ordered(msg, forwarded=True, t_in_us=t_in_us,
+                                              mid_hops=mid_hops):
+                    obs.observer_drops += 1

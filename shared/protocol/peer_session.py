@@ -103,6 +103,8 @@ class Pending:
         build: for messages that carry the time they are written (``clock_ping``,
             ``clock_pong``): called with that time, returns the message to send.
         t_in_us: relay clock when a forwarded message arrived (its ``relay_in`` hop).
+        mid_hops: stamps between ``relay_in`` and ``relay_out`` (a clustered relay's NATS
+            leg: ``nats_out``, ``nats_in``).
     """
 
     message: Message
@@ -110,6 +112,7 @@ class Pending:
     on_send: OnSend | None = None
     build: Callable[[int], Message] | None = None
     t_in_us: int = 0
+    mid_hops: tuple[tuple[str, str, int], ...] = ()
 
 
 class Outbox:
@@ -136,9 +139,11 @@ class Outbox:
             self.wakeup()
 
     def put_latest(self, key: str, message: DataMessage, t_in_us: int,
-                   on_send: OnSend | None = None) -> Pending | None:
+                   on_send: OnSend | None = None,
+                   mid_hops: tuple[tuple[str, str, int], ...] = ()) -> Pending | None:
         """Put a forwarded ``message`` in slot ``key``; return the unsent entry it replaced."""
-        old = self._queue.put_latest(key, Pending(message, True, on_send, None, t_in_us))
+        old = self._queue.put_latest(key, Pending(message, True, on_send, None, t_in_us,
+                                                  mid_hops))
         self._woken()
         return old
 
@@ -152,10 +157,11 @@ class Outbox:
 
     def put_ordered(self, message: Message, on_send: OnSend | None = None, *,
                     forwarded: bool = False, force: bool = False,
-                    build: Callable[[int], Message] | None = None, t_in_us: int = 0) -> bool:
+                    build: Callable[[int], Message] | None = None, t_in_us: int = 0,
+                    mid_hops: tuple[tuple[str, str, int], ...] = ()) -> bool:
         """Append to the ordered queue; False (nothing queued) when full and not ``force``."""
-        if not self._queue.put_ordered(Pending(message, forwarded, on_send, build, t_in_us),
-                                       force=force):
+        if not self._queue.put_ordered(Pending(message, forwarded, on_send, build, t_in_us,
+                                               mid_hops), force=force):
             return False
         self._woken()
         return True
@@ -598,6 +604,7 @@ class PeerSession:
                 try:
                     data = encode(msg, validate=False, max_message_bytes=limit,
                                   extra_hops=(("relay", "relay_in", pending.t_in_us),
+                                              *pending.mid_hops,
                                               ("relay", "relay_out", t_out)))
                 except LocalProtocolError:
                     if log.isEnabledFor(logging.DEBUG):

@@ -55,7 +55,8 @@ def _tables(node: dict[str, Any], prefix: str = "") -> list[str]:
     return out
 
 
-@pytest.mark.parametrize("name", ["relay.toml", "local.toml", "remote.toml", "link.toml"])
+@pytest.mark.parametrize("name", ["relay.toml", "local.toml", "remote.toml", "link.toml",
+                                  "relay-cluster.toml"])
 def test_every_table_of_the_example_resolves(name: str) -> None:
     path = DEPLOY / "config" / name
     data = tomllib.loads(path.read_text())
@@ -110,7 +111,13 @@ def test_units_and_compose_call_existing_subcommands() -> None:
     calls = re.findall(r"bin/teletouch (\w+)", "\n".join(texts))
     calls += re.findall(r'"teletouch",\s*"(\w+)"', (DEPLOY / "compose.yaml").read_text())
     calls += re.findall(r'"teletouch",\s*"(\w+)"', (DEPLOY / "Dockerfile").read_text())
+    cluster = (DEPLOY / "compose.cluster.yaml").read_text()
+    calls += re.findall(r'"teletouch",\s*"(\w+)"', cluster)
     assert {"relay", "link", "local", "remote"} <= set(calls)
+    # the cluster's relays read a config that exists, and NATS its own
+    for config in re.findall(r"/etc/teletouch/([\w-]+\.toml)", cluster):
+        assert (DEPLOY / "config" / config).is_file(), config
+    assert (DEPLOY / "config" / "nats.conf").is_file()
     for sub in calls:
         assert sub in COMMANDS, sub
     configs = set(re.findall(r"/etc/teletouch/(\w+\.toml)", "\n".join(texts)))

@@ -1,0 +1,374 @@
+"""Relay workers joined by NATS: a station may connect to any worker of any host.
+
+Each relay process (a *worker*) serves its own connections exactly as the single-process
+relay does (:mod:`relay_server.server`, :mod:`relay_server.session`); this module adds what
+makes several of them one relay:
+
+* **Directory.** Every worker publishes a heartbeat on ``<prefix>.hb`` every
+  ``HEARTBEAT_S`` and at once when a peer joins or leaves: its id, pid, host, ports, and which
+  roles and how many observers of which sessions it holds, and its counters. A worker not heard
+  from for ``3 x HEARTBEAT_S`` is gone (a killed worker says nothing); a worker that closes
+  says so.
+* **Pairing.** A station may join any worker; a role held by another live worker is refused
+  (``role_taken``, as on one relay; a station whose worker died retries within its grace
+  window until the dead worker expires).
+* **Forwarding.** A station's message goes to the receiving station directly when it is on
+  the same worker (no NATS hop). Otherwise the worker publishes it once to each worker that
+  holds the receiver or observers of the session (``<prefix>.w.<worker id>``): an envelope
+  with the message as received (station hops only), its ``relay_in`` time, its send time on
+  the relay clock, and the ``nats_out`` time. The receiving worker queues it with the stream's
+  policy (latest-wins slot or ordered queue: NATS keeps one publisher's order) and its writer
+  stamps ``relay_in``, ``nats_out``, ``nats_in``, ``relay_out``. Books: the uplink ledger is
+  the sender's worker's; relay residence (``relay_in -> relay_out``), end-to-end and the NATS
+  leg (``nats_out -> nats_in``) are the receiver's worker's. Across hosts the workers' wall
+  clocks must agree (NTP) for the residence and NATS-leg figures; station offsets are each
+  estimated against the worker the station is connected to, as before.
+* **Limits.** Envelopes wait in a bounded queue for the NATS connection (``nats_queue_full``
+  when NATS stalls); one that waited more than 0.5 s since it reached the relay is dropped
+  (``nats_stale``), and nothing is buffered while NATS reconnects (``nats_publish_failed``):
+  no frame is delivered late after a NATS outage. A message over the NATS server's max
+  payload (1 MB by default) is not forwarded across workers (``nats_too_large``). An ordered
+  message refused by the receiving worker (``queue_full``, ``no_peer``) is counted there
+  (``nats_undelivered_<code>``); the sender gets no ``error`` for it.
+
+``run_workers`` runs N workers on one host, one process each, all bound to the same ports
+with SO_REUSEPORT (the kernel spreads new connections over them); a worker that dies is
+started again.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import logging
+import multiprocessing as mp
+import os
+import signal
+import socket
+import ssl
+import time
+from collections import Counter
+from collections.abc import Callable
+from typing import Any
+
+import msgpack
+
+from relay_server.config import RelayConfig
+from relay_server.session import Session
+from shared.errors import ConfigError, RemoteProtocolError, RoleTakenError
+from shared.protocol import DataMessage, decode, encode
+from shared.timebase import now_us
+
+__all__ = ["HEARTBEAT_S", "ClusterLink", "run_workers", "worker_count"]
+
+log = logging.getLogger(__name__)
+
+HEARTBEAT_S = 0.5
+_EXPIRE_S = 3 * HEARTBEAT_S
+_OUT_QUEUE = 20_000  # envelopes waiting for the NATS connection
+_MAX_QUEUED_US = 500_000  # an envelope older than this (since relay_in) is not published
+
+
+class ClusterLink:
+    """One worker's membership in a cluster (see the module docstring).
+
+    Args:
+        config: the relay settings (``nats_url``, ``nats_subject_prefix``).
+        sessions: the worker's sessions (the relay's dictionary, read live).
+        counters: the worker's counters (``nats_*`` are added).
+        ports: returns the worker's bound ``{"ws": port, "tcp": port}``.
+    """
+
+    def __init__(self, config: RelayConfig, sessions: dict[str, Session],
+                 counters: Counter[str], ports: Callable[[], dict[str, int]]) -> None:
+        if config.nats_url is None:
+            raise ConfigError("a cluster needs relay.nats_url")
+        self.url = config.nats_url
+        self.ca_file = config.nats_ca_file
+        self.prefix = config.nats_subject_prefix
+        self.sessions = sessions
+        self.counters = counters
+        self.ports = ports
+        self.worker_id = f"{socket.gethostname()}-{os.getpid()}".replace(".", "_")
+        self.workers: dict[str, tuple[float, dict[str, Any]]] = {}  # id -> (seen, heartbeat)
+        self._nc: Any = None
+        self._out: asyncio.Queue[tuple[str, tuple[Any, ...]]] = asyncio.Queue(_OUT_QUEUE)
+        self._changed = asyncio.Event()
+        self._tasks: list[asyncio.Task[None]] = []
+
+    # ------------------------------------------------------------------ lifecycle
+
+    async def start(self) -> None:
+        """Connect to NATS, subscribe, start the heartbeat and the publisher.
+
+        Raises:
+            ConfigError: the NATS server cannot be reached.
+        """
+        import nats
+        from nats.errors import NoServersError
+
+        async def on_error(err: Exception) -> None:
+            self.counters["nats_errors"] += 1
+            log.warning("NATS: %s", err)
+
+        tls = None
+        if self.url.startswith("tls://") or self.ca_file is not None:
+            tls = ssl.create_default_context(cafile=str(self.ca_file) if self.ca_file else None)
+        try:
+            self._nc = await nats.connect(
+                servers=[self.url], name=f"teletouch-relay-{self.worker_id}",
+                connect_timeout=5, allow_reconnect=True, max_reconnect_attempts=-1,
+                reconnect_time_wait=0.5, error_cb=on_error, tls=tls,
+                pending_size=0)  # nothing buffered while reconnecting: no stale frames later
+        except (NoServersError, OSError, TimeoutError, ssl.SSLError) as err:
+            raise ConfigError(f"cannot reach the NATS server {self.url}: {err}") from err
+        await self._nc.subscribe(f"{self.prefix}.hb", cb=self._on_heartbeat)
+        await self._nc.subscribe(f"{self.prefix}.w.{self.worker_id}", cb=self._on_data)
+        self._tasks = [asyncio.create_task(self._heartbeat_loop(), name="cluster-heartbeat"),
+                       asyncio.create_task(self._publish_loop(), name="cluster-publisher")]
+        log.info("relay worker %s joined the cluster on %s (subjects %s.*)", self.worker_id,
+                 self.url, self.prefix)
+
+    async def close(self) -> None:
+        """Say goodbye to the other workers and disconnect."""
+        for task in self._tasks:
+            task.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+        if self._nc is not None and not self._nc.is_closed:
+            with contextlib.suppress(Exception):
+                await self._nc.publish(f"{self.prefix}.hb", msgpack.packb(
+                    {"w": self.worker_id, "gone": True}))
+                await self._nc.flush(timeout=2)
+            with contextlib.suppress(Exception):
+                await self._nc.close()
+
+    # ------------------------------------------------------------------ directory
+
+    def _live(self) -> dict[str, dict[str, Any]]:
+        now = time.monotonic()
+        return {w: hb for w, (seen, hb) in self.workers.items() if now - seen < _EXPIRE_S}
+
+    def check_role(self, session_id: str, role: str) -> None:
+        """Refuse a station role that another live worker holds.
+
+        Raises:
+            RoleTakenError: it does.
+        """
+        if role == "observer":
+            return
+        for worker, hb in self._live().items():
+            held = hb.get("sessions", {}).get(session_id)
+            if held is not None and role in held[0]:
+                raise RoleTakenError(f"role {role!r} is already taken in session "
+                                     f"{session_id!r} (on relay worker {worker})")
+
+    def changed(self) -> None:
+        """A peer joined or left: publish a heartbeat now."""
+        self._changed.set()
+
+    def _heartbeat(self) -> dict[str, Any]:
+        return {"w": self.worker_id, "pid": os.getpid(), "host": socket.gethostname(),
+                "ports": self.ports(), "t": now_us(),
+                "sessions": {sid: [sorted(s.stations), len(s.observers)]
+                             for sid, s in self.sessions.items()},
+                "counters": dict(self.counters), "drops": self._drops()}
+
+    def _drops(self) -> dict[str, int]:
+        """Messages this worker's sessions dropped, by reason (latest_wins, queue_full, ...)."""
+        out: Counter[str] = Counter()
+        for session in self.sessions.values():
+            for direction in session.directions.values():
+                for ledger in direction.uplink.values():
+                    out.update(ledger.dropped)
+        return dict(out)
+
+    async def _heartbeat_loop(self) -> None:
+        while True:
+            self._changed.clear()
+            try:
+                await self._nc.publish(f"{self.prefix}.hb", msgpack.packb(self._heartbeat()))
+            except Exception as err:  # NATS down: keep serving local sessions, retry
+                self.counters["nats_heartbeat_failed"] += 1
+                log.debug("heartbeat not published: %s", err)
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(HEARTBEAT_S):
+                    await self._changed.wait()
+
+    async def _on_heartbeat(self, msg: Any) -> None:
+        try:
+            hb = msgpack.unpackb(msg.data, raw=False)
+            worker = hb["w"]
+        except (ValueError, KeyError, TypeError, msgpack.UnpackException):
+            self.counters["nats_bad_heartbeat"] += 1
+            return
+        if worker == self.worker_id:
+            return
+        if hb.get("gone"):
+            self.workers.pop(worker, None)
+        else:
+            self.workers[worker] = (time.monotonic(), hb)
+
+    # ------------------------------------------------------------------ forwarding
+
+    def forward(self, session_id: str, sender_role: str, msg: DataMessage, t_in_us: int,
+                sent_ref_us: int | None, need_station: bool) -> bool:
+        """Publish ``msg`` to the workers holding the session's observers and (when
+        ``need_station``) its receiving station; True when one holds that station."""
+        receiver = "remote" if sender_role == "local" else "local"
+        station_elsewhere = False
+        data: bytes | None = None
+        for worker, hb in self._live().items():
+            held = hb.get("sessions", {}).get(session_id)
+            if held is None:
+                continue
+            to_station = need_station and receiver in held[0]
+            if not to_station and not held[1]:
+                continue
+            station_elsewhere = station_elsewhere or to_station
+            if data is None:
+                data = encode(msg, validate=False)
+            try:
+                self._out.put_nowait((worker, (session_id, sender_role, t_in_us, sent_ref_us,
+                                               data, to_station)))
+            except asyncio.QueueFull:
+                self.counters["nats_queue_full"] += 1
+        return station_elsewhere
+
+    async def _publish_loop(self) -> None:
+        from nats.errors import MaxPayloadError
+
+        while True:
+            worker, body = await self._out.get()
+            t_out = now_us()
+            if t_out - body[2] > _MAX_QUEUED_US:  # waited too long for NATS: stale, dropped
+                self.counters["nats_stale"] += 1
+                continue
+            envelope = msgpack.packb([*body, t_out])  # ..., nats_out
+            try:
+                await self._nc.publish(f"{self.prefix}.w.{worker}", envelope)
+                self.counters["nats_sent"] += 1
+            except MaxPayloadError:
+                self.counters["nats_too_large"] += 1
+            except Exception as err:  # NATS down: the message is lost, like a dropped link
+                self.counters["nats_publish_failed"] += 1
+                log.debug("NATS publish failed: %s", err)
+
+    async def _on_data(self, msg: Any) -> None:
+        t_nats_in = now_us()
+        try:
+            sid, sender_role, t_in_us, sent_ref_us, data, to_station, t_out = \
+                msgpack.unpackb(msg.data, raw=False)
+            message = decode(data)
+        except (ValueError, TypeError, msgpack.UnpackException, RemoteProtocolError):
+            self.counters["nats_bad_envelope"] += 1
+            return
+        session = self.sessions.get(sid)
+        if session is None or not isinstance(message, DataMessage):
+            self.counters["nats_no_session"] += 1
+            return
+        self.counters["nats_received"] += 1
+        direction = session.directions["local_to_remote" if sender_role == "local"
+                                       else "remote_to_local"]
+        direction.nats.record(None, t_out, t_nats_in)
+        err = session.deliver(sender_role, message, t_in_us, sent_ref_us,
+                              (("relay", "nats_out", t_out), ("relay", "nats_in", t_nats_in)),
+                              to_station)
+        if err is not None:
+            self.counters[f"nats_undelivered_{err.code}"] += 1
+
+    # ------------------------------------------------------------------ status
+
+    def status(self) -> dict[str, Any]:
+        """The cluster as this worker sees it (every live worker, this one included)."""
+        now = time.monotonic()
+        workers: dict[str, Any] = {}
+        for worker, (seen, hb) in sorted(self.workers.items()):
+            if now - seen < _EXPIRE_S:
+                workers[worker] = _worker_doc(hb, now - seen)
+        workers[self.worker_id] = _worker_doc(self._heartbeat(), 0.0)
+        return {"worker": self.worker_id, "nats_url": self.url,
+                "nats_connected": bool(self._nc is not None and self._nc.is_connected),
+                "sessions": len({sid for doc in workers.values() for sid in doc["sessions"]}),
+                "workers": workers}
+
+
+def _worker_doc(hb: dict[str, Any], age_s: float) -> dict[str, Any]:
+    return {"pid": hb.get("pid"), "host": hb.get("host"), "ports": hb.get("ports"),
+            "heartbeat_age_s": round(age_s, 3), "counters": hb.get("counters", {}),
+            "drops": hb.get("drops", {}),
+            "sessions": {sid: {"stations": held[0], "observers": held[1]}
+                         for sid, held in hb.get("sessions", {}).items()}}
+
+
+# --------------------------------------------------------------------------- workers
+
+
+def worker_count(config: RelayConfig) -> int:
+    """Worker processes to run: ``workers``, else one per core when clustered, else 1."""
+    if config.workers:
+        return config.workers
+    return (os.cpu_count() or 1) if config.nats_url else 1
+
+
+def _worker_main(config: RelayConfig, log_level: int) -> None:
+    from relay_server.server import serve_forever
+
+    logging.basicConfig(level=log_level,
+                        format=f"%(asctime)s worker-{os.getpid()} %(levelname)s %(name)s: "
+                               "%(message)s")
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the supervisor says when (SIGTERM)
+    asyncio.run(serve_forever(config))
+
+
+def run_workers(config: RelayConfig, count: int) -> None:
+    """Run ``count`` relay workers on this host (one process each, SO_REUSEPORT) until
+    SIGINT or SIGTERM; restart a worker that dies.
+
+    Raises:
+        ConfigError: no ``nats_url``, or port 0 (the workers must share fixed ports).
+    """
+    if not config.nats_url:
+        raise ConfigError("--workers needs --nats nats://HOST:PORT")
+    if config.port == 0 or config.resolved_tcp_port == 0:
+        raise ConfigError("--workers needs fixed ports (not 0): the workers share them")
+    worker_config = dataclasses.replace(config, reuse_port=True)
+    ctx = mp.get_context("spawn")
+    level = logging.getLogger().getEffectiveLevel()
+    procs: list[mp.process.BaseProcess] = []
+    stopping = False
+
+    def stop(*_: object) -> None:
+        nonlocal stopping
+        stopping = True
+
+    old = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+
+    def spawn() -> mp.process.BaseProcess:
+        proc = ctx.Process(target=_worker_main, args=(worker_config, level),
+                           name="teletouch-relay-worker")
+        proc.start()
+        return proc
+
+    try:
+        procs = [spawn() for _ in range(count)]
+        log.info("relay: %d workers on ports %d/%d joined by %s", count, config.port,
+                 config.resolved_tcp_port, config.nats_url)
+        while not stopping:
+            time.sleep(0.2)
+            for i, proc in enumerate(procs):
+                if not proc.is_alive() and not stopping:
+                    log.warning("relay worker %s exited (code %s); starting another",
+                                proc.pid, proc.exitcode)
+                    procs[i] = spawn()
+    finally:
+        for proc in procs:
+            if proc.is_alive() and proc.pid is not None:
+                os.kill(proc.pid, signal.SIGTERM)
+        for proc in procs:
+            proc.join(10.0)
+            if proc.is_alive():
+                proc.kill()
+                proc.join()
+        for sig, handler in old.items():
+            signal.signal(sig, handler)

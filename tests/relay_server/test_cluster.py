@@ -1,0 +1,270 @@
+"""Relay workers joined by a real nats-server (subprocesses): pairing across workers, the
+NATS hop stamps, ordered streams kept in order, /status of the whole cluster, and a killed
+worker's stations coming back through another worker."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import os
+import shutil
+import signal
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from shared.client import StationLink
+from shared.protocol import ArmCommand, ArmState, Message, PlatformState
+from shared.timebase import now_us
+from tests.relay_server.test_relay_isolation_and_status import http_get
+from tests.relay_server.test_relay_tls import lab_pki  # noqa: F401 (a fixture)
+from tests.support import free_tcp_port, scaled, teletouch_cmd
+
+pytest.importorskip("nats", reason="the cluster needs nats-py (pip install -e '.[cluster]')")
+from lab.bench.load_impl import nats_server_binary
+
+pytestmark = pytest.mark.slow
+
+
+@contextlib.asynccontextmanager
+async def _process(*cmd: str, env: dict[str, str] | None = None
+                   ) -> AsyncIterator[asyncio.subprocess.Process]:
+    proc = await asyncio.create_subprocess_exec(*cmd, stdout=asyncio.subprocess.DEVNULL,
+                                                stderr=asyncio.subprocess.DEVNULL,
+                                                env=None if env is None else
+                                                {**os.environ, **env})
+    try:
+        yield proc
+    finally:
+        if proc.returncode is None:
+            proc.terminate()
+            try:
+                await asyncio.wait_for(proc.wait(), scaled(15.0))
+            except TimeoutError:
+                proc.kill()
+                await proc.wait()
+
+
+@contextlib.asynccontextmanager
+async def nats_server(*extra: str) -> AsyncIterator[str]:
+    try:
+        binary = nats_server_binary()
+    except RuntimeError as err:
+        pytest.skip(str(err))
+    port = free_tcp_port()
+    async with _process(binary, "-a", "127.0.0.1", "-p", str(port), *extra):
+        async with asyncio.timeout(scaled(15.0)):
+            while True:
+                try:
+                    _, w = await asyncio.open_connection("127.0.0.1", port)
+                    w.close()
+                    break
+                except OSError:
+                    await asyncio.sleep(0.05)
+        yield f"nats://127.0.0.1:{port}"
+
+
+async def status(port: int) -> dict[str, Any]:
+    code, _, body = await http_get(port, "/status")
+    assert code == 200
+    return dict(json.loads(body))
+
+
+async def wait_workers(port: int, count: int) -> dict[str, Any]:
+    """Wait until the relay on ``port`` answers and sees ``count`` live workers."""
+    async with asyncio.timeout(scaled(30.0)):
+        while True:
+            with contextlib.suppress(OSError, AssertionError, ValueError):
+                doc = await status(port)
+                if len(doc["cluster"]["workers"]) == count:
+                    return doc
+            await asyncio.sleep(0.1)
+
+
+@contextlib.asynccontextmanager
+async def relay(nats_url: str, workers: int = 1, env: dict[str, str] | None = None
+                ) -> AsyncIterator[int]:
+    """``teletouch relay --workers N --nats URL`` on fresh ports; yields the WebSocket port."""
+    port, tcp_port = free_tcp_port(), free_tcp_port()
+    async with _process(*teletouch_cmd(), "--log-level", "WARNING", "relay", "--host",
+                        "127.0.0.1", "--port", str(port), "--tcp-port", str(tcp_port),
+                        "--allow-any-token", "--workers", str(workers), "--nats", nats_url,
+                        env=env):
+        yield port
+
+
+async def recv_type(link: StationLink, kind: str) -> Message:
+    async with asyncio.timeout(scaled(10.0)):
+        while True:
+            msg = await link.recv()
+            if kind == msg.TYPE:
+                return msg
+
+
+def station(port: int, role: str, session: str = "c1") -> StationLink:
+    return StationLink(f"ws://127.0.0.1:{port}/", session=session, role=role, token="x",
+                       name=f"test-{role}")
+
+
+async def wait_paired(port: int, session: str) -> None:
+    """Until the worker on ``port`` sees both stations of ``session`` somewhere."""
+    async with asyncio.timeout(scaled(10.0)):
+        while True:
+            doc = await status(port)
+            roles = {r for w in doc["cluster"]["workers"].values()
+                     for r in w["sessions"].get(session, {}).get("stations", [])}
+            if roles == {"local", "remote"}:
+                return
+            await asyncio.sleep(0.05)
+
+
+async def test_stations_on_two_workers_exchange_messages() -> None:
+    async with nats_server() as url, relay(url) as port_a, relay(url) as port_b:
+        await wait_workers(port_a, 2)
+        await wait_workers(port_b, 2)
+        async with station(port_a, "local") as local, station(port_b, "remote") as remote:
+            await local.wait_connected(scaled(10.0))
+            await remote.wait_connected(scaled(10.0))
+            await wait_paired(port_a, "c1")
+            await wait_paired(port_b, "c1")
+            await local.send(PlatformState(seq=1, ts_us=now_us(), position_mm=(1.0, 2.0, 3.0)))
+            got = await recv_type(remote, "platform_state")
+            assert got.position_mm == (1.0, 2.0, 3.0)  # type: ignore[attr-defined]
+            stages = [h.stage for h in got.hops if h.clock == "relay"]  # type: ignore[attr-defined]
+            assert stages == ["relay_in", "nats_out", "nats_in", "relay_out"]
+            t = [h.t_us for h in got.hops if h.clock == "relay"]  # type: ignore[attr-defined]
+            assert t == sorted(t)  # one host, one clock: the stamps are in time order
+            await remote.send(ArmState(seq=1, ts_us=now_us(), position_mm=(4.0, 5.0, 6.0)))
+            back = await recv_type(local, "arm_state")
+            assert back.position_mm == (4.0, 5.0, 6.0)  # type: ignore[attr-defined]
+            # ordered stream across workers: every command, in order
+            for seq in range(1, 41):
+                await local.send(ArmCommand(seq=seq, ts_us=now_us(), action="stop"))
+            seqs = [(await recv_type(remote, "arm_command")).seq for _ in range(40)]  # type: ignore[attr-defined]
+            assert seqs == list(range(1, 41))
+            doc_a, doc_b = await status(port_a), await status(port_b)
+            assert doc_a["cluster"]["sessions"] == 1
+            assert set(doc_a["cluster"]["workers"]) == set(doc_b["cluster"]["workers"])
+            # books: uplink on the sender's worker, NATS leg on the receiver's
+            assert doc_b["sessions"]["c1"]["nats_us"]["local_to_remote"]["p50"] is not None
+            assert doc_b["sessions"]["c1"]["forwarded"]["local_to_remote"] >= 41
+
+
+async def test_same_worker_forwards_without_nats() -> None:
+    async with nats_server() as url, relay(url) as port_a, relay(url) as port_b:
+        await wait_workers(port_a, 2)
+        async with station(port_a, "local", "c2") as local, \
+                station(port_a, "remote", "c2") as remote:
+            await local.wait_connected(scaled(10.0))
+            await remote.wait_connected(scaled(10.0))
+            await local.send(PlatformState(seq=1, ts_us=now_us()))
+            got = await recv_type(remote, "platform_state")
+            stages = [h.stage for h in got.hops if h.clock == "relay"]  # type: ignore[attr-defined]
+            assert stages == ["relay_in", "relay_out"]
+            doc = await status(port_b)
+            counters = doc["cluster"]["workers"]
+            assert all(w["counters"].get("nats_sent", 0) == 0 for w in counters.values())
+
+
+async def test_role_held_on_another_worker_is_refused() -> None:
+    from shared.errors import RoleTakenError
+
+    async with nats_server() as url, relay(url) as port_a, relay(url) as port_b:
+        await wait_workers(port_a, 2)
+        await wait_workers(port_b, 2)
+        async with station(port_a, "local", "c3") as first:
+            await first.wait_connected(scaled(10.0))
+            async with asyncio.timeout(scaled(5.0)):
+                while "c3" not in str((await status(port_b))["cluster"]["workers"]):
+                    await asyncio.sleep(0.05)
+            async with station(port_b, "local", "c3") as second:
+                with pytest.raises(RoleTakenError, match="on relay worker"):
+                    await second.wait_connected(scaled(10.0))
+
+
+async def test_killed_worker_stations_reconnect_and_session_resumes() -> None:
+    async with nats_server() as url, relay(url, workers=2) as port:
+        doc = await wait_workers(port, 2)
+        async with station(port, "local", "c4") as local, \
+                station(port, "remote", "c4") as remote:
+            await local.wait_connected(scaled(10.0))
+            await remote.wait_connected(scaled(10.0))
+            await wait_paired(port, "c4")
+            await local.send(PlatformState(seq=1, ts_us=now_us()))
+            await recv_type(remote, "platform_state")
+            doc = await status(port)
+            holder = next(w for w in doc["cluster"]["workers"].values()
+                          if "local" in w["sessions"].get("c4", {}).get("stations", []))
+            os.kill(holder["pid"], signal.SIGKILL)
+            # the local station reconnects through the shared port to a live worker (the
+            # supervisor also starts a replacement) and the session carries on
+            async with asyncio.timeout(scaled(30.0)):
+                seq = 1
+                while True:
+                    seq += 1
+                    with contextlib.suppress(Exception):
+                        await local.send(PlatformState(seq=seq, ts_us=now_us()))
+                    try:
+                        async with asyncio.timeout(0.5):
+                            msg = await recv_type(remote, "platform_state")
+                        if msg.seq > 1:  # type: ignore[attr-defined]
+                            break
+                    except TimeoutError:
+                        pass
+            await remote.send(ArmState(seq=2, ts_us=now_us()))
+            assert (await recv_type(local, "arm_state")).seq == 2  # type: ignore[attr-defined]
+            doc = await status(port)
+            pids = {w["pid"] for w in doc["cluster"]["workers"].values()}
+            assert holder["pid"] not in pids
+
+
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="needs openssl")
+async def test_workers_join_over_tls_nats(lab_pki: dict[str, Path]) -> None:  # noqa: F811
+    """nats-server with TLS (the lab CA's certificate for 127.0.0.1); the relays verify it
+    with nats_ca_file and pair stations across workers as over plain NATS."""
+    tls = ("--tls", "--tlscert", str(lab_pki["relay.crt"]), "--tlskey", str(lab_pki["relay.key"]))
+    env = {"TELETOUCH_RELAY_NATS_CA_FILE": str(lab_pki["ca.crt"])}
+    async with nats_server(*tls) as url:
+        url = url.replace("nats://", "tls://")
+        async with relay(url, env=env) as port_a, relay(url, env=env) as port_b:
+            await wait_workers(port_a, 2)
+            await wait_workers(port_b, 2)
+            async with station(port_a, "local", "t1") as local, \
+                    station(port_b, "remote", "t1") as remote:
+                await local.wait_connected(scaled(10.0))
+                await remote.wait_connected(scaled(10.0))
+                await wait_paired(port_a, "t1")
+                await wait_paired(port_b, "t1")
+                await local.send(PlatformState(seq=7, ts_us=now_us()))
+                got = await recv_type(remote, "platform_state")
+                assert "nats_in" in [h.stage for h in got.hops]  # type: ignore[attr-defined]
+            doc = await status(port_a)
+            assert doc["cluster"]["nats_url"].startswith("tls://")
+            assert doc["cluster"]["nats_connected"] is True
+
+
+async def test_observer_on_another_worker_sees_the_session() -> None:
+    async with nats_server() as url, relay(url) as port_a, relay(url) as port_b:
+        await wait_workers(port_a, 2)
+        await wait_workers(port_b, 2)
+        async with station(port_b, "observer", "o1") as observer:
+            await observer.wait_connected(scaled(10.0))
+            async with asyncio.timeout(scaled(10.0)):  # worker A learns of the observer
+                while not any(w["sessions"].get("o1", {}).get("observers") for w in
+                              (await status(port_a))["cluster"]["workers"].values()):
+                    await asyncio.sleep(0.05)
+            async with station(port_a, "local", "o1") as local, \
+                    station(port_a, "remote", "o1") as remote:
+                await local.wait_connected(scaled(10.0))
+                await remote.wait_connected(scaled(10.0))
+                await local.send(PlatformState(seq=3, ts_us=now_us()))
+                seen = await recv_type(observer, "platform_state")
+                assert seen.seq == 3  # type: ignore[attr-defined]
+                assert [h.stage for h in seen.hops if h.clock == "relay"] == [  # type: ignore[attr-defined]
+                    "relay_in", "nats_out", "nats_in", "relay_out"]
+                # the stations, on one worker, still meet without NATS
+                direct = await recv_type(remote, "platform_state")
+                assert "nats_in" not in [h.stage for h in direct.hops]  # type: ignore[attr-defined]
