@@ -43,6 +43,9 @@ class RelayConfig:
         ping_burst: number of ``clock_ping`` sent right after ``welcome``.
         ping_burst_spacing_s: spacing of the burst pings.
         stats_interval_s: period of the ``stats`` push to every connected peer.
+        silence_timeout_s: a station that sends nothing (it answers every ping) for this long
+            is closed (``silent``/4005), freeing its role; a dead or blackholed connection
+            would otherwise hold it until TCP gives up, minutes later.
         max_message_bytes: largest accepted message (fatal ``oversize`` beyond).
         ordered_queue_len: per-peer bound of the ordered (command/control) queue.
         bad_message_budget: per-message errors tolerated per connection before it is closed.
@@ -85,6 +88,7 @@ class RelayConfig:
     ping_burst: int = 5
     ping_burst_spacing_s: float = 0.02
     stats_interval_s: float = 1.0
+    silence_timeout_s: float = 10.0
     max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
     ordered_queue_len: int = 256
     bad_message_budget: int = 20
@@ -109,7 +113,7 @@ class RelayConfig:
         if self.tcp_port is not None and not 0 <= self.tcp_port <= 65535:
             raise ConfigError(f"relay.tcp_port={self.tcp_port} is not a TCP port")
         positive = ("hello_timeout_s", "ping_interval_s", "stats_interval_s",
-                    "rate_limit_per_s")
+                    "silence_timeout_s", "rate_limit_per_s")
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ConfigError(f"relay.{name} must be > 0")

@@ -123,7 +123,8 @@ class RelayServer:
             hello_timeout_us=round(config.hello_timeout_s * 1e6),
             ping_interval_us=round(config.ping_interval_s * 1e6), ping_burst=config.ping_burst,
             ping_burst_spacing_us=round(config.ping_burst_spacing_s * 1e6),
-            stats_interval_us=round(config.stats_interval_s * 1e6))
+            stats_interval_us=round(config.stats_interval_s * 1e6),
+            silence_timeout_us=round(config.silence_timeout_s * 1e6))
         self._peer_ids = itertools.count(1)
         self._ws_server: Server | None = None
         self._tcp_server: asyncio.Server | None = None

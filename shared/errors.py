@@ -204,6 +204,14 @@ class ReplacedError(SessionError):
     close_code = 4004
 
 
+class PeerSilentError(SessionError):
+    """A station sent nothing (not even a ``clock_pong``) for the relay's silence limit: its
+    connection is dead or blackholed, and it would hold its role until TCP gives up."""
+
+    code = "silent"
+    close_code = 4005
+
+
 class HandshakeTimeoutError(SessionError):
     """The peer sent no ``hello`` within the deadline."""
 

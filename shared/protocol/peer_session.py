@@ -34,6 +34,7 @@ from shared.errors import (
     LocalProtocolError,
     MalformedMessageError,
     OversizeError,
+    PeerSilentError,
     ProtocolError,
     RemoteProtocolError,
     SessionError,
@@ -239,6 +240,9 @@ class PeerSettings:
     ping_burst: int = 5
     ping_burst_spacing_us: int = 20_000
     stats_interval_us: int = 1_000_000
+    #: a joined station that sends nothing for this long is closed (``silent``); it answers
+    #: a ping every ``ping_interval_us``, so only a dead or blackholed connection is this quiet
+    silence_timeout_us: int = 10_000_000
 
 
 # --------------------------------------------------------------------------- session
@@ -283,6 +287,7 @@ class PeerSession:
         self._ping_ids = itertools.count()
         self._hello_deadline_us = now_us + settings.hello_timeout_us
         self._next_ping_us: int | None = None
+        self._last_rx_us = now_us
         self._next_stats_us: int | None = None
         self._burst_left = 0
 
@@ -302,6 +307,7 @@ class PeerSession:
         """Take received bytes (TCP: any chunk; WebSocket: one message, text refused)."""
         if self.closing:
             return
+        self._last_rx_us = now_us
         if isinstance(data, str):  # WebSocket text frame: not our protocol
             events: list[Event] = [MessageRejected(MalformedMessageError(
                 "text WebSocket messages are not accepted; send binary msgpack"))]
@@ -505,6 +511,11 @@ class PeerSession:
                 self.fail(HandshakeTimeoutError(f"no hello within {timeout_s:g} s"))
             return False
         s = self.settings
+        if not self._observer and now_us - self._last_rx_us > s.silence_timeout_us:
+            # checked at least at every ping (ping_interval_us): late by at most one interval
+            self.fail(PeerSilentError(f"nothing received for "
+                                      f"{(now_us - self._last_rx_us) / 1e6:.1f} s"))
+            return False
         if self._next_ping_us is not None and now_us >= self._next_ping_us:
             self.outbox.put_control_latest("clock_ping", ClockPing(), build=self._ping)
             if self._burst_left > 1:

@@ -368,3 +368,34 @@ def test_token_bucket_never_grants_more_than_burst_plus_refill(
         assert 0 <= got <= count
         granted += got
     assert granted <= burst + rate * t / 1e6 + 1e-6
+
+
+def test_a_silent_station_is_closed_and_an_observer_is_not() -> None:
+    """A station answers every ping; one that sends nothing for silence_timeout_us is a dead
+    or blackholed connection and is closed (silent/4005), which frees its role."""
+    import dataclasses
+
+    quiet = dataclasses.replace(SETTINGS, silence_timeout_us=500)
+    station = StationSession(HELLO, send_queue_size=4, receive_queue_size=8)
+    peer = PeerSession("tcp", quiet, now_us=0)
+    peer.receive_data(station.connect("tcp", 0), 1)
+    peer.accept(WELCOME, 2)
+    peer.events_received()
+    for t in range(3, 480):
+        peer.tick(t)
+    assert not peer.closing
+    peer.receive_data(frame(encode(ClockPong(ping_id=0, t0_us=2, t1_us=3, t2_us=4))), 480)
+    for t in range(480, 981):
+        peer.tick(t)
+    assert not peer.closing  # 500 us since the last bytes, not more
+    peer.tick(1100)
+    assert peer.closing and peer.close_code == 4005
+    assert [e for e in peer.events_received() if isinstance(e, Closing)] == [
+        Closing(4005, "silent")]
+
+    observer = PeerSession("tcp", quiet, now_us=0)
+    observer.receive_data(frame(encode(Hello(role="observer", session="lab1", token="t"))), 1)
+    observer.accept(Welcome(session="lab1", role="observer"), 2)
+    for t in range(3, 5000, 7):
+        observer.tick(t)
+    assert not observer.closing
