@@ -67,6 +67,7 @@ log = logging.getLogger(__name__)
 HEARTBEAT_S = 0.5
 _EXPIRE_S = 3 * HEARTBEAT_S
 _OUT_QUEUE = 20_000  # envelopes waiting for the NATS connection
+_FIRST_CONNECT_S = 10.0
 _MAX_QUEUED_US = 500_000  # an envelope older than this (since relay_in) is not published
 
 
@@ -116,13 +117,17 @@ class ClusterLink:
         if self.url.startswith("tls://") or self.ca_file is not None:
             tls = ssl.create_default_context(cafile=str(self.ca_file) if self.ca_file else None)
         try:
-            self._nc = await nats.connect(
-                servers=[self.url], name=f"teletouch-relay-{self.worker_id}",
-                connect_timeout=5, allow_reconnect=True, max_reconnect_attempts=-1,
-                reconnect_time_wait=0.5, error_cb=on_error, tls=tls,
-                pending_size=0)  # nothing buffered while reconnecting: no stale frames later
+            # nats-py retries an unreachable server for ever when reconnects are unlimited:
+            # the first connection gets a deadline, later ones are retried
+            async with asyncio.timeout(_FIRST_CONNECT_S):
+                self._nc = await nats.connect(
+                    servers=[self.url], name=f"teletouch-relay-{self.worker_id}",
+                    connect_timeout=5, allow_reconnect=True, max_reconnect_attempts=-1,
+                    reconnect_time_wait=0.5, error_cb=on_error, tls=tls,
+                    pending_size=0)  # nothing buffered while reconnecting: no stale frames
         except (NoServersError, OSError, TimeoutError, ssl.SSLError) as err:
-            raise ConfigError(f"cannot reach the NATS server {self.url}: {err}") from err
+            raise ConfigError(f"cannot reach the NATS server {self.url} within "
+                              f"{_FIRST_CONNECT_S:g} s: {str(err) or type(err).__name__}") from err
         await self._nc.subscribe(f"{self.prefix}.hb", cb=self._on_heartbeat)
         await self._nc.subscribe(f"{self.prefix}.w.{self.worker_id}", cb=self._on_data)
         self._tasks = [asyncio.create_task(self._heartbeat_loop(), name="cluster-heartbeat"),

@@ -268,3 +268,15 @@ async def test_observer_on_another_worker_sees_the_session() -> None:
                 # the stations, on one worker, still meet without NATS
                 direct = await recv_type(remote, "platform_state")
                 assert "nats_in" not in [h.stage for h in direct.hops]  # type: ignore[attr-defined]
+
+
+async def test_unreachable_nats_is_a_clear_start_error() -> None:
+    port = free_tcp_port()
+    proc = await asyncio.create_subprocess_exec(
+        *teletouch_cmd(), "relay", "--host", "127.0.0.1", "--port", str(free_tcp_port()),
+        "--tcp-port", str(free_tcp_port()), "--allow-any-token", "--workers", "1", "--nats",
+        f"nats://127.0.0.1:{port}", stdout=asyncio.subprocess.DEVNULL,
+        stderr=asyncio.subprocess.PIPE)
+    _, err = await asyncio.wait_for(proc.communicate(), scaled(60.0))
+    assert proc.returncode != 0
+    assert f"cannot reach the NATS server nats://127.0.0.1:{port}" in err.decode()
