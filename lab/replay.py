@@ -13,6 +13,7 @@ hop (p50/p99 from the stamps of the derived ``latency`` channel).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
@@ -28,6 +29,7 @@ from local_site.platform.base import PlatformSample
 from local_site.render import Renderer
 from local_site.scenes import open_scene
 from shared.errors import ConfigError
+from shared.freshness import ClockView
 from shared.protocol import Message, PlatformState, TactileFrame
 from shared.recording import McapRecording, RecordedMessage
 from shared.timebase import now_us
@@ -110,13 +112,29 @@ class Replayer:
         data = m.json() if m.encoding == "json" else None
         return ReplayEvent(m.topic, m.t_us, None, data)
 
+    class _ReplayClock:
+        """The replay's stand-in for the relay link: always up, one clock (frames are
+        re-stamped when handed over, so the loop's age rule measures replay time)."""
+
+        def link_down_for_s(self, now_s: float | None = None) -> float:
+            return 0.0
+
+        @property
+        def clock_offsets_us(self) -> dict[str, int | None]:
+            return {"local": 0, "remote": 0}
+
+        @property
+        def clock_view(self) -> ClockView:
+            return ClockView({"local": 0, "remote": 0}, {"local": 0, "remote": 0}, now_us())
+
     def _build_loop(self) -> tuple[DisplayLoop, FrameSlot, list[PlatformSample | None]]:
         position: list[PlatformSample | None] = [None]
         slot = FrameSlot()
         display = open_display(self.display_spec, connect=False)
         loop = DisplayLoop(display, Renderer(), open_scene("remote"),
                            positions=lambda: position[0], platform_ok=lambda: True,
-                           frames=slot, stale_timeout_s=self.stale_timeout_s)
+                           frames=slot, link=self._ReplayClock(),
+                           stale_timeout_s=self.stale_timeout_s)
         return loop, slot, position
 
     def run(self, stop: threading.Event | None = None) -> ReplayResult:
@@ -156,7 +174,11 @@ class Replayer:
                 ev = self.event(m)
                 if slot is not None and isinstance(ev.message, TactileFrame) \
                         and m.topic.endswith("/rx/tactile_frame"):
-                    slot.put(ev.message, now_us())
+                    # captured "now" in replay time: the recorded capture stamps are on
+                    # another clock and from another day; the loop's age rule must judge
+                    # the replay's pacing, not the recording's date
+                    t = now_us()
+                    slot.put(dataclasses.replace(ev.message, ts_us=t), t)
                     result.frames_to_display += 1
                 elif isinstance(ev.message, PlatformState) and \
                         m.topic.endswith("/tx/platform_state"):
