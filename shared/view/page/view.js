@@ -122,6 +122,7 @@ function drawPins(pins) {
   ctx.clearRect(0, 0, W, H);
   if (!pins || !pins.commanded_mm) {
     ctx.fillStyle = "#8a96a3"; ctx.font = "14px system-ui";
+    $("pins-age").textContent = "";
     ctx.fillText(pins ? "no pin command (safe state or not started)"
       : "pins: shown at the local station only", 10, H / 2);
     return;
