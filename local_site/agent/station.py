@@ -490,7 +490,6 @@ class LocalAgent:
 
     async def _shutdown(self) -> None:
         loop, reader = self._require_open()
-        await self._stop_view()
         display = loop.display
         loop.finish("shutdown")
         display_stats = display.stats()
@@ -507,6 +506,7 @@ class LocalAgent:
             log.warning("platform close failed: %s", err)
         if self.link is not None:
             await self.link.close("local station stopping")
+        await self._stop_view()  # after the pins are safe and the devices closed
         if self.status is not None:
             self.status.close()
         self.summary = self._build_summary(display_stats, platform_stats, feedback)

@@ -222,8 +222,13 @@ class LiveAnalysis:
         """The analysis process is running."""
         return self._proc.is_alive()
 
-    def close(self, timeout_s: float = 5.0) -> None:
-        """Stop the process and release the queues (idempotent)."""
+    def close(self, timeout_s: float = 1.0) -> None:
+        """Stop the process and release the queues (idempotent).
+
+        The child finishes a run before it reads the stop request, and a run can take
+        seconds on a loaded machine: after ``timeout_s`` it is terminated (it keeps nothing
+        worth saving), so a station's shutdown is never held up by its view.
+        """
         if self._proc.is_alive():
             with contextlib.suppress(ValueError, OSError):
                 self._inbox.put(None)
@@ -232,10 +237,10 @@ class LiveAnalysis:
                 self._drain()  # a child blocked writing its last result cannot exit
                 self._proc.join(0.05)
             if self._proc.is_alive():
-                log.warning("the view's analysis process did not stop; terminating it")
+                log.info("the view's analysis process is busy; terminating it")
                 self._inbox.cancel_join_thread()
                 self._proc.terminate()
-                self._proc.join(timeout_s)
+                self._proc.join(5.0)
         self._drain()
         for q in (self._inbox, self._outbox):
             q.close()

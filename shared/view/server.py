@@ -389,15 +389,16 @@ class ViewServer:
             return _respond(connection, 426, "Tele-Touch view: WebSocket endpoint\n",
                             "text/plain; charset=utf-8")
         if self._clients >= self.config.max_clients:
-            self.counters["clients_refused"] += 1
-            if self.counters["clients_refused"] == 1:
-                log.warning("view: %d browsers connected, refusing more (logged once)",
-                            self.config.max_clients)
+            self._refuse_logged()
             return _respond(connection, 503, "Tele-Touch view: too many viewers\n",
                             "text/plain; charset=utf-8")
-        self._clients += 1  # counted here so a burst of upgrades cannot overshoot the cap
-        connection.teletouch_counted = True  # type: ignore[attr-defined]
         return None
+
+    def _refuse_logged(self) -> None:
+        self.counters["clients_refused"] += 1
+        if self.counters["clients_refused"] == 1:
+            log.warning("view: %d browsers connected, refusing more (logged once)",
+                        self.config.max_clients)
 
     async def _hello(self, ws: ServerConnection) -> _Feed | None:
         """The feed this browser may watch (after its hello when tokens are needed)."""
@@ -434,7 +435,13 @@ class ViewServer:
                 self.counters["client_messages_ignored"] += 1
 
     async def _handler(self, ws: ServerConnection) -> None:
-        counted = getattr(ws, "teletouch_counted", False)
+        # counted here, not before the upgrade: an upgrade that fails never holds a slot;
+        # a burst that passed the HTTP check together is cut here (no await in between)
+        if self._clients >= self.config.max_clients:
+            self._refuse_logged()
+            await ws.close(1013, "too many viewers")
+            return
+        self._clients += 1
         try:
             feed = await self._hello(ws)
             if feed is None:
@@ -451,8 +458,7 @@ class ViewServer:
                 with contextlib.suppress(asyncio.CancelledError):
                     await drain
         finally:
-            if counted:
-                self._clients -= 1
+            self._clients -= 1
 
     async def _send_loop(self, ws: ServerConnection, client: _Client,
                          drain: asyncio.Task[None]) -> None:

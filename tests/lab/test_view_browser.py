@@ -148,7 +148,8 @@ def test_the_live_view_shows_a_running_demo(demo_view: tuple[str, str],
                 " && teletouchView.live && teletouchView.live.patch",
                 timeout=scaled(30) * 1e3)
             observer_station = observer.evaluate("() => teletouchView.live.station")
-            observer.screenshot(path=str(artifacts / "live_view_relay.png"), full_page=True)
+            observer.screenshot(path=str(artifacts / "live_view_relay.png"), full_page=True,
+                                timeout=scaled(60) * 1e3)
             # without the token the relay refuses the page's WebSocket
             refused = browser.new_page()
             refused.goto(relay_url.split("#", 1)[0])
@@ -174,7 +175,7 @@ def test_the_live_view_shows_a_running_demo(demo_view: tuple[str, str],
             seen = _view(page)
             time.sleep(0.5)  # let the page draw the finding before the picture is taken
             shot = artifacts / "live_view.png"
-            page.screenshot(path=str(shot), full_page=True)
+            page.screenshot(path=str(shot), full_page=True, timeout=scaled(60) * 1e3)
             print(f"live view screenshot: {shot}; state {seen}")
             badge = page.text_content("#link")
         finally:

@@ -47,7 +47,10 @@ async def test_the_view_shows_pins_patch_probe_link_and_latency_then_safe_state(
                                    max_size=None) as ws:
                     msg = await _until(ws, lambda live: live["pins"]["measured_mm"] is not None
                                        and live["latency"] is not None
-                                       and live["patch"] is not None, "pins and a patch")
+                                       # every stamp usable once both clock offsets are known
+                                       and "render" in live["latency"]["stages_ms"]
+                                       and live["patch"] is not None, "pins and a patch",
+                                       timeout_s=20.0)
                     live = msg["live"]
                     assert live["station"] == "local" and live["link"]["state"] == "up"
                     assert live["safe"]["reason"] is None

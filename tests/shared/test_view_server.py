@@ -242,3 +242,24 @@ def test_parse_view_address(text: str, host: str, port: int, loopback: bool) -> 
 def test_parse_view_address_rejects_bad_input(text: str) -> None:
     with pytest.raises(ConfigError, match="--view"):
         parse_view_address(text)
+
+
+async def test_failed_upgrades_never_hold_a_viewer_slot() -> None:
+    server = await _server(FakeSource(), max_clients=2)
+    try:
+        for _ in range(5):  # an upgrade without a key fails the handshake (HTTP 400)
+            reader, writer = await asyncio.open_connection("127.0.0.1", server.port)
+            writer.write(b"GET /ws HTTP/1.1\r\nHost: x\r\nConnection: Upgrade\r\n"
+                         b"Upgrade: websocket\r\n\r\n")
+            await writer.drain()
+            status = await reader.readline()
+            assert b" 400 " in status
+            writer.close()
+            await writer.wait_closed()
+        url = f"ws://127.0.0.1:{server.port}/ws"
+        async with connect(url) as a, connect(url) as b:
+            await a.recv()
+            await b.recv()
+            assert server.clients == 2
+    finally:
+        await server.close()

@@ -122,6 +122,7 @@ function drawPins(pins) {
   ctx.clearRect(0, 0, W, H);
   if (!pins || !pins.commanded_mm) {
     ctx.fillStyle = "#8a96a3"; ctx.font = "14px system-ui";
+    $("pins-age").textContent = "";
     ctx.fillText(pins ? "no pin command (safe state or not started)"
       : "pins: shown at the local station only", 10, H / 2);
     return;
@@ -349,6 +350,7 @@ function connect() {
     const p = hashParams();
     if (p.token) ws.send(JSON.stringify({ type: "hello", session: p.session || "", token: p.token }));
     state.connected = true; setBadge("conn", "live", "ok");
+    for (const c of document.querySelectorAll("canvas")) c.classList.remove("stale");
   };
   ws.onmessage = (ev) => {
     let msg;
@@ -357,6 +359,8 @@ function connect() {
   };
   ws.onclose = (ev) => {
     state.connected = false;
+    // what is drawn is no longer live: dim it until fresh snapshots arrive
+    for (const c of document.querySelectorAll("canvas")) c.classList.add("stale");
     setBadge("conn", ev.code === 4001 ? "refused: session token needed (#session=S&token=T)" : "disconnected; retrying", "bad");
     if (ev.code !== 4001) setTimeout(connect, 1000);
   };
