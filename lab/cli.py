@@ -44,6 +44,8 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
                   "random phantoms and link profiles, with motion-to-touch latency"),
     "reconstruction": ("lab.bench.reconstruction", "height-map time vs error"),
     "stiffness": ("lab.bench.stiffness", "stiffness error vs noise/samples, time"),
+    "tactile-codec": ("lab.bench.tactile_codec", "compact tactile codec: bytes/s vs rendered "
+                      "height error over deadband settings"),
     "cpu": ("lab.bench.cpu", "demo CPU per process, thread and stage (py-spy), sim kept apart"),
 }
 

@@ -60,6 +60,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="tactile frames per second (default 60)")
     parser.add_argument("--patch-pitch-mm", dest="patch_pitch_mm", type=float,
                         help="tactile patch pitch on the display side (default 0.5)")
+    parser.add_argument("--tactile-codec", dest="tactile_codec", choices=("compact", "raw"),
+                        help="tactile frames as compact deltas (protocol v2, default) or raw "
+                             "float32 layers (version-1 peers)")
     parser.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
     parser.add_argument("--summary-json", dest="summary_json", metavar="PATH",
                         help="write the run's counters and latencies here at exit")
@@ -88,7 +91,8 @@ def run(args: argparse.Namespace) -> int:
         stiffness_calibration=(Path(args.stiffness_calibration)
                                if args.stiffness_calibration else None),
         frame_rate_hz=args.frame_rate_hz, patch_pitch_mm=args.patch_pitch_mm,
-        duration_s=args.duration, config_path=Path(args.config) if args.config else None)
+        tactile_codec=args.tactile_codec, duration_s=args.duration,
+        config_path=Path(args.config) if args.config else None)
     status = StatusLine()
 
     def write_summary(summary: dict[str, Any]) -> None:

@@ -30,6 +30,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="extra flag for `teletouch local` (repeat)")
     parser.add_argument("--remote-arg", action="append", default=[],
                         help="extra flag for `teletouch remote` (repeat)")
+    parser.add_argument("--keep-record", type=Path, default=None,
+                        help="copy the local station's recording (record.npz) here")
     parser.add_argument("--note", default="", help="a note saved with the run")
     parser.add_argument("--out-dir", type=Path, default=DEFAULT_OUT, help="results directory")
     parser.add_argument("--report-only", action="store_true",
@@ -52,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
     if not args.report_only:
         settings = CpuBenchSettings(scene=args.scene, link=args.link, warmup_s=args.warmup_s,
                                     window_s=args.window_s, rate_hz=args.rate_hz,
-                                    profile=not args.no_profile,
+                                    profile=not args.no_profile, keep_record=args.keep_record,
                                     extra_local_args=tuple(args.local_arg),
                                     extra_remote_args=tuple(args.remote_arg))
         figures = run_cpu_bench(settings)

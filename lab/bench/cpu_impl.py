@@ -42,7 +42,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from shared.errors import ConfigError
+from shared.errors import ConfigError, TeleTouchError
 
 __all__ = ["STAGE_RULES", "CpuBenchSettings", "CpuSnapshot", "classify_stack",
            "parse_raw_profile", "run_cpu_bench"]
@@ -87,7 +87,7 @@ _FRAME = re.compile(r"^(?P<func>.*) \((?P<file>[^()]*):(?P<line>\d+)\)$")
 #: a leaf line calling one of these is waiting, not computing
 _WAIT_CALL = re.compile(r"\b(sleep|wait|wait_for|select|poll|recv|recv_into|recvfrom|accept|"
                         r"join|acquire|_recv|read|readinto|run_forever|run_until_complete|"
-                        r"to_thread|communicate)\(")
+                        r"to_thread|communicate|asyncio\.run)\(|\.get\(block=True\)")
 
 
 @dataclass(frozen=True)
@@ -101,6 +101,7 @@ class CpuBenchSettings:
     rate_hz: int = 200
     max_duration_s: float = 100.0
     profile: bool = True
+    keep_record: Path | None = None
     extra_local_args: tuple[str, ...] = ()
     extra_remote_args: tuple[str, ...] = ()
 
@@ -265,7 +266,7 @@ class _Window:
                 for pid, name in self.names.items():
                     self.spies[pid] = subprocess.Popen(
                         [self.pyspy, "record", "--pid", str(pid), "--duration",
-                         str(max(1, round(self.settings.window_s))), "--rate",
+                         str(max(1, int(self.settings.window_s) - 1)), "--rate",
                          str(self.settings.rate_hz), "--format", "raw", "--threads", "--idle",
                          "--nonblocking", "--full-filenames", "-o",
                          str(self.workdir / f"profile-{name}.txt")],
@@ -306,12 +307,24 @@ def run_cpu_bench(settings: CpuBenchSettings) -> dict[str, Any]:
     win = _Window(settings, workdir, pyspy)
     load_start = os.getloadavg()
     try:
-        report = run_demo(DemoConfig(scene=settings.scene, link=settings.link,
-                                     max_duration_s=settings.max_duration_s,
-                                     workdir=workdir / "demo",
-                                     extra_local_args=settings.extra_local_args,
-                                     extra_remote_args=settings.extra_remote_args),
-                          progress=win.progress)
+        try:
+            report = run_demo(DemoConfig(scene=settings.scene, link=settings.link,
+                                         max_duration_s=settings.max_duration_s,
+                                         workdir=workdir / "demo",
+                                         extra_local_args=settings.extra_local_args,
+                                         extra_remote_args=settings.extra_remote_args),
+                              progress=win.progress)
+        except TeleTouchError as err:
+            # the operator was stopped after the window: the palpation analysis may find
+            # too little; the stations' summaries are all this benchmark needs
+            summary = workdir / "demo" / "local_summary.json"
+            if win.end is None or not summary.exists():
+                raise
+            local = json.loads(summary.read_text())
+            remote_path = workdir / "demo" / "remote_summary.json"
+            report = {"local": local, "latency_ms": local.get("motion_to_touch_ms", {}),
+                      "demo_error": str(err), "remote": json.loads(remote_path.read_text())
+                      if remote_path.exists() else None}
         for spy in win.spies.values():
             try:
                 spy.wait(timeout=30)
@@ -320,6 +333,8 @@ def run_cpu_bench(settings: CpuBenchSettings) -> dict[str, Any]:
         if win.start is None or win.end is None:
             raise ConfigError("the demo ended before the measured window did; lower "
                               "--window-s or --warmup-s (the default operator runs ~25 s)")
+        if settings.keep_record is not None and (workdir / "demo" / "record.npz").exists():
+            shutil.copyfile(workdir / "demo" / "record.npz", settings.keep_record)
         return _figures(win, report, load_start, pyspy)
     finally:
         shutil.rmtree(workdir, ignore_errors=True)
@@ -364,7 +379,10 @@ def _figures(win: _Window, report: dict[str, Any], load_start: tuple[float, floa
         "processes": processes, "stages": {k: dict(v) for k, v in stages.items()},
         "top": top, "display_loop": local.get("display_loop", {}),
         "latency_ms": report.get("latency_ms", {}), "frames_received": report.get(
-            "frames_received"), "settings": {k: v for k, v in vars(win.settings).items()},
+            "frames_received"), "demo_error": report.get("demo_error"),
+        "remote_frames": (report.get("remote") or {}).get("frames"),
+        "tactile_codec": local.get("tactile_codec"),
+        "settings": {k: v for k, v in vars(win.settings).items()},
     }
 
 

@@ -45,13 +45,20 @@ def write_report(runs: list[dict[str, Any]], out_dir: Path) -> None:
              "are simulated hardware and test infrastructure, not product code.", "",
              "**The machine was shared with other agents' test runs during every run: the load "
              "average is recorded per run; compare runs made back to back, and read figures "
-             "as upper bounds.**", ""]
+             "as upper bounds.** Where the processes were starved (display loop far below "
+             "1 kHz, frames below 120/s) CPU per wall second understates the cost; the last two "
+             "columns divide by the work done (session-average loop rate and achieved frame "
+             "rate), which holds better under load.", ""]
     rows = []
     for r in runs:
         product, sim = product_and_sim(r)
         dl = r.get("display_loop", {}) or {}
         lat = r.get("latency_ms", {}) or {}
         e2e = lat.get("end_to_end", lat) if isinstance(lat, dict) else {}
+        local_cores = r["processes"].get("local", {}).get("cores")
+        remote_cores = r["processes"].get("remote", {}).get("cores")
+        fps = (r.get("remote_frames") or {}).get("achieved_fps")
+        rate = dl.get("rate_hz")
         rows.append({
             "run": r["label"], "note": r.get("note", ""),
             "nproc": r.get("nproc"), "load avg at start": _fmt(r["load_start"][0], 2),
@@ -61,6 +68,10 @@ def write_report(runs: list[dict[str, Any]], out_dir: Path) -> None:
             "display loop Hz": _fmt(dl.get("rate_hz"), 0),
             "period jitter p99 ms": _fmt(dl.get("jitter_p99_ms"), 2),
             "motion-to-touch p99 ms": _fmt(e2e.get("p99") if isinstance(e2e, dict) else None, 1),
+            "local CPU us per loop iteration": _fmt(
+                1e6 * local_cores / rate if local_cores and rate else None, 0),
+            "remote CPU ms per tactile frame": _fmt(
+                1e3 * remote_cores / fps if remote_cores and fps else None, 2),
         })
     lines += ["## Runs", "", format_table(rows), ""]
     procs = sorted({p for r in runs for p in r["processes"]})
