@@ -552,7 +552,7 @@ def _read_compact_layer(raw: Any, where: str, key: bool,
         if q.ndim != 1 or q.shape != idx.shape:
             raise FieldError(f"{where}.q must be 1-D with one value per idx entry")
         if idx.size and (int(idx[0]) < 0 or int(idx[-1]) >= shape[0] * shape[1]
-                         or (idx.size > 1 and not bool((np.diff(idx) > 0).all()))):
+                         or (idx.size > 1 and not bool((idx[1:] > idx[:-1]).all()))):
             raise FieldError(f"{where}.idx must be strictly increasing flat indices in "
                              f"[0, {shape[0] * shape[1]})")
         return CompactLayer(q, idx=idx)
