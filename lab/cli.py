@@ -52,6 +52,9 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
              "exceeds 5 ms; soak"),
     "nats-hop": ("lab.bench.nats_hop", "what a NATS hop between relay workers adds to a 19 kB "
                  "frame"),
+    "tactile-codec": ("lab.bench.tactile_codec", "compact tactile codec: bytes/s vs rendered "
+                      "height error over deadband settings"),
+    "cpu": ("lab.bench.cpu", "demo CPU per process, thread and stage (py-spy), sim kept apart"),
 }
 
 log = logging.getLogger(__name__)

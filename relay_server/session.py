@@ -35,7 +35,7 @@ log = logging.getLogger(__name__)
 
 #: data streams each station role may send
 STREAMS_OF = {"local": frozenset({"platform_state", "arm_command"}),
-              "remote": frozenset({"arm_state", "tactile_frame"})}
+              "remote": frozenset({"arm_state", "tactile_frame", "tactile_compact"})}
 #: sender role -> direction name
 DIRECTION_OF = {"local": "local_to_remote", "remote": "remote_to_local"}
 _OTHER = {"local": "remote", "remote": "local"}

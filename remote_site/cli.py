@@ -60,6 +60,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="tactile frames per second (default 60)")
     parser.add_argument("--patch-pitch-mm", dest="patch_pitch_mm", type=float,
                         help="tactile patch pitch on the display side (default 0.5)")
+    parser.add_argument("--tactile-codec", dest="tactile_codec", choices=("compact", "raw"),
+                        help="tactile frames as compact deltas (protocol v2, default) or raw "
+                             "float32 layers (version-1 peers)")
     parser.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
     parser.add_argument("--record", metavar="PATH.mcap",
                         help="record the session to this MCAP file (docs/recording.md)")
@@ -90,7 +93,8 @@ def run(args: argparse.Namespace) -> int:
         stiffness_calibration=(Path(args.stiffness_calibration)
                                if args.stiffness_calibration else None),
         frame_rate_hz=args.frame_rate_hz, patch_pitch_mm=args.patch_pitch_mm,
-        duration_s=args.duration, config_path=Path(args.config) if args.config else None,
+        tactile_codec=args.tactile_codec, duration_s=args.duration,
+        config_path=Path(args.config) if args.config else None,
         record=Path(args.record) if args.record else None)
     status = StatusLine()
 

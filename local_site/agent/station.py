@@ -51,12 +51,22 @@ from shared.errors import (
     AuthError,
     ConfigError,
     DeviceError,
+    InputDataError,
     LocalProtocolError,
     RoleTakenError,
     SessionError,
 )
 from shared.motion_to_touch import MotionToTouchLedger
-from shared.protocol import ArmState, Bye, Error, Hop, PlatformState, TactileFrame
+from shared.protocol import (
+    ArmState,
+    Bye,
+    Error,
+    Hop,
+    PlatformState,
+    TactileCompact,
+    TactileFrame,
+)
+from shared.protocol.tactile_codec import TactileDecoder
 from shared.report import StatusLine, to_jsonable
 from shared.timebase import monotonic_s, now_us
 from shared.view import ViewAddress, ViewServer, ViewServerConfig
@@ -152,6 +162,8 @@ class LocalAgent:
         self.recorder: SessionRecorder | None = None
         self.ledger = MotionToTouchLedger()
         self.frames = FrameSlot()
+        #: key frame state of the compact tactile codec (protocol v2)
+        self.tactile_decoder = TactileDecoder()
         self.link: StationLink | None = None
         self.reader: PlatformReader | None = None
         self.loop: DisplayLoop | None = None
@@ -302,12 +314,28 @@ class LocalAgent:
                 next_t = now
             await asyncio.sleep(max(0.0, next_t - now))
 
+    def _decode_compact(self, msg: TactileCompact) -> TactileFrame | None:
+        """The frame of a compact message; None while its key frame is missing (nothing is
+        rendered: the scene ages into the safe state) or when it does not decode."""
+        try:
+            return self.tactile_decoder.decode(msg)
+        except InputDataError as err:
+            if self.tactile_decoder.counters.rejected <= 3 or log.isEnabledFor(logging.DEBUG):
+                log.warning("compact tactile frame seq=%d refused, pins untouched: %s",
+                            msg.seq, err)
+            return None
+
     async def _receive(self) -> None:
         link = self.link
         if link is None:
             return
         try:
             async for msg in link.messages():
+                if isinstance(msg, TactileCompact):
+                    decoded = self._decode_compact(msg)
+                    if decoded is None:
+                        continue
+                    msg = decoded
                 if isinstance(msg, TactileFrame):
                     rx_us = next((h.t_us for h in reversed(msg.hops)
                                   if h.clock == "local" and h.stage == "station_rx"), None)
@@ -551,6 +579,7 @@ class LocalAgent:
             "frames_superseded": self.frames.superseded + c.frames_superseded_unrendered,
             "rendered_frame_age_max_ms": round(c.rendered_frame_age_max_ms, 3),
             "motion_to_touch_ms": self.ledger.summary_ms(),
+            "tactile_codec": dataclasses.asdict(self.tactile_decoder.counters),
             "display_loop": {"mode": self.config.render_loop, **loop.periods.summary()},
             "platform": {"spec": self.config.platform, "reads": reader.reads,
                          "read_rate_hz": reader.reads / elapsed,

@@ -25,6 +25,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 from shared.errors import ConfigError, InputDataError
@@ -153,6 +154,16 @@ class GridLayers:
         Raises:
             ConfigError: an unsupported order.
         """
+        v = self.values
+        if (order == 1 and v.dtype == np.float64 and points_xy_mm.dtype == np.float64
+                and points_xy_mm.ndim == 2 and points_xy_mm.shape[1] == 2):
+            # the renderer's path at 1 kHz: one compiled call instead of ~30 numpy calls on
+            # 16 points (same arithmetic, same results: tests/local_site/test_bilinear_kernel)
+            out = np.empty((v.shape[0], points_xy_mm.shape[0]))
+            inside_out = np.empty(points_xy_mm.shape[0], dtype=np.bool_)
+            _bilinear_kernel(v, points_xy_mm, self.x0_mm, self.y0_mm, self.dx_mm, self.dy_mm,
+                             _INSIDE_TOL_CELLS, out, inside_out)
+            return out, inside_out
         ny, nx = self.shape
         fx = (points_xy_mm[:, 0] - self.x0_mm) / self.dx_mm
         fy = (points_xy_mm[:, 1] - self.y0_mm) / self.dy_mm
@@ -184,3 +195,33 @@ class GridLayers:
             return np.einsum("lpij,pi,pj->lp", taps, wy, wx), inside
         raise ConfigError(f"interpolation order must be one of {INTERPOLATION_ORDERS}, "
                           f"got {order!r}")
+
+
+@njit(cache=True, nogil=True)
+def _bilinear_kernel(v: NDArray[np.float64], pts: NDArray[np.float64], x0: float, y0: float,
+                     dx: float, dy: float, tol: float, out: NDArray[np.float64],
+                     inside: NDArray[np.bool_]) -> None:  # pragma: no cover - compiled
+    """:meth:`GridLayers.sample` at order 1, fused: the numpy path's operations in order."""
+    n_layers, ny, nx = v.shape
+    for p in range(pts.shape[0]):
+        fx = (pts[p, 0] - x0) / dx
+        fy = (pts[p, 1] - y0) / dy
+        inside[p] = (fx >= -tol) and (fx <= nx - 1 + tol) and (fy >= -tol) \
+            and (fy <= ny - 1 + tol)
+        fx = min(max(fx, 0.0), nx - 1.0)
+        fy = min(max(fy, 0.0), ny - 1.0)
+        ix = min(int(fx), nx - 2)
+        iy = min(int(fy), ny - 2)
+        tx = fx - ix
+        ty = fy - iy
+        for layer in range(n_layers):
+            top = v[layer, iy, ix] * (1.0 - tx) + v[layer, iy, ix + 1] * tx
+            bottom = v[layer, iy + 1, ix] * (1.0 - tx) + v[layer, iy + 1, ix + 1] * tx
+            out[layer, p] = top * (1.0 - ty) + bottom * ty
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) the bilinear kernel now, not in the first
+    display-loop iteration that renders."""
+    grid = GridLayers(np.zeros((1, 2, 2)), x0_mm=0.0, y0_mm=0.0, dx_mm=1.0, dy_mm=1.0)
+    grid.sample(np.zeros((1, 2)), order=1)

@@ -31,6 +31,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from local_site.render.interpolation import warm_up
 from local_site.render.pin_command import PIN_PITCH_MM, STROKE_MM, PinCommand, pin_offsets_mm
 from shared.errors import ConfigError, InputDataError
 from shared.hardness import K_MAX, K_MIN
@@ -154,6 +155,7 @@ class Renderer:
         self._last_scene: SceneSource | None = None
         self._last_version = -1
         self._last_xy = (math.nan, math.nan)
+        warm_up()  # compile the 1 kHz path's kernel before the loop needs it
 
     @property
     def last_command(self) -> PinCommand | None:
@@ -219,18 +221,22 @@ class Renderer:
         sample = scene.sample(self._offsets + centre)
         h, k, f = sample.height_mm, sample.stiffness_k, sample.friction
         name = type(scene).__name__
-        for label, arr in (("height_mm", h), ("stiffness_k", k), ("friction", f)):
-            if not np.isfinite(arr).all():
+        # NaN and +-Inf reach min/max: one pair of reductions per layer checks both
+        (hmin, hmax), (kmin, kmax), (fmin, fmax) = (
+            (float(a.min()), float(a.max())) for a in (h, k, f))
+        for label, lo, hi in (("height_mm", hmin, hmax), ("stiffness_k", kmin, kmax),
+                              ("friction", fmin, fmax)):
+            if not (math.isfinite(lo) and math.isfinite(hi)):
                 raise InputDataError(f"scene {name} gave NaN/Inf {label}; pins not updated")
-        if np.abs(h).max() > _MAX_SCENE_HEIGHT_MM:
+        if max(-hmin, hmax) > _MAX_SCENE_HEIGHT_MM:
             raise InputDataError(f"scene {name} height beyond +-{_MAX_SCENE_HEIGHT_MM} mm")
-        if k.min() < K_MIN - _RANGE_TOL or k.max() > K_MAX + _RANGE_TOL:
+        if kmin < K_MIN - _RANGE_TOL or kmax > K_MAX + _RANGE_TOL:
             raise InputDataError(f"scene {name} stiffness k outside [{K_MIN}, {K_MAX}]: "
-                                 f"[{k.min():.6g}, {k.max():.6g}]")
-        if f.min() < -_RANGE_TOL or f.max() > 1.0 + _RANGE_TOL:
+                                 f"[{kmin:.6g}, {kmax:.6g}]")
+        if fmin < -_RANGE_TOL or fmax > 1.0 + _RANGE_TOL:
             raise InputDataError(f"scene {name} friction outside [0, 1]: "
-                                 f"[{f.min():.6g}, {f.max():.6g}]")
-        ref = float(h.min()) if cfg.height_mode == "relative" else 0.0
+                                 f"[{fmin:.6g}, {fmax:.6g}]")
+        ref = hmin if cfg.height_mode == "relative" else 0.0
         target = cfg.height_offset_mm + cfg.height_gain * (h - ref)
         height = np.clip(target, 0.0, cfg.stroke_mm)
         clamped = int(np.count_nonzero(np.abs(target - height) > _RANGE_TOL))

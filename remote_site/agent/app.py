@@ -73,6 +73,7 @@ class AgentOptions:
             (a real sensor has none).
         frame_rate_hz: tactile frames per second.
         patch_pitch_mm: tactile patch pitch on the display side.
+        tactile_codec: ``compact`` or ``raw`` (default from the config: compact).
         duration_s: stop after this many seconds (None: until stopped).
         config_path: TOML file (or ``$TELETOUCH_CONFIG``).
         record: record the session to this MCAP file (None: no recording).
@@ -94,6 +95,7 @@ class AgentOptions:
     stiffness_calibration: Path | None = None
     frame_rate_hz: float | None = None
     patch_pitch_mm: float | None = None
+    tactile_codec: str | None = None
     duration_s: float | None = None
     config_path: Path | None = None
     record: Path | None = None
@@ -141,7 +143,8 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
     safety = resolve_config(SafetyConfig, "arm.safety", toml_path=toml)
     stiffness_cfg = resolve_config(StiffnessConfig, "stiffness", toml_path=toml)
     agent_cfg = resolve_config(RemoteAgentConfig, "remote.agent", toml_path=toml, explicit={
-        "frame_rate_hz": options.frame_rate_hz, "patch_pitch_mm": options.patch_pitch_mm})
+        "frame_rate_hz": options.frame_rate_hz, "patch_pitch_mm": options.patch_pitch_mm,
+        "tactile_codec": options.tactile_codec})
     background_cfg = resolve_config(BackgroundSettings, "remote.background", toml_path=toml)
     workspace = load_workspace(toml_path=toml)
     stiffness_calibration = load_stiffness_calibration(options.sensor,

@@ -33,6 +33,13 @@ class RemoteAgentConfig:
         stiffness_cell_mm: cell size of the stiffness map.
         friction: value of the friction layer (0 for palpation).
         status_interval_s: how often the status line is refreshed.
+        tactile_codec: ``compact`` (protocol v2 ``tactile_compact``: int16 layers, deltas
+            against key frames, Weber deadband; docs/protocol.md) or ``raw``
+            (``tactile_frame``, float32 layers, understood by version-1 peers).
+        tactile_weber: the compact codec's deadband, a fraction of the key frame's value.
+        tactile_floor_um: the compact codec's absolute deadband on heights (um).
+        tactile_key_every: the compact codec sends a key frame at least every this many
+            frames (a late joiner or a lost key frame waits at most this long).
     """
 
     frame_rate_hz: float = 60.0
@@ -46,6 +53,10 @@ class RemoteAgentConfig:
     stiffness_cell_mm: float = 2.0
     friction: float = 0.0
     status_interval_s: float = 1.0
+    tactile_codec: str = "compact"
+    tactile_weber: float = 0.0
+    tactile_floor_um: float = 2.0
+    tactile_key_every: int = 30
 
     def __post_init__(self) -> None:
         positive = ("frame_rate_hz", "patch_pitch_mm", "arm_poll_hz", "arm_state_hz",
@@ -62,3 +73,10 @@ class RemoteAgentConfig:
             raise ConfigError("remote.agent.patch_size_mm must be two numbers >= 0")
         if not 0.0 <= self.friction <= 1.0:
             raise ConfigError("remote.agent.friction must lie in [0, 1]")
+        if self.tactile_codec not in ("compact", "raw"):
+            raise ConfigError("remote.agent.tactile_codec must be 'compact' or 'raw', got "
+                              f"{self.tactile_codec!r}")
+        if not (0.0 <= self.tactile_weber < 1.0 and 0.0 <= self.tactile_floor_um <= 1000.0
+                and 1 <= self.tactile_key_every <= 10000):
+            raise ConfigError("remote.agent: tactile_weber in [0, 1), tactile_floor_um in "
+                              "[0, 1000], tactile_key_every in [1, 10000]")

@@ -40,6 +40,7 @@ from shared.client import LinkCounters
 from shared.errors import InputDataError
 from shared.freshness import ClockView
 from shared.protocol.messages import ArmCommand, Message, PlatformState
+from shared.protocol.tactile_codec import CodecSettings, TactileEncoder
 from shared.timebase import monotonic_s, now_us
 
 __all__ = ["RemoteStation", "StationCounters", "command_clock", "percentiles_ms"]
@@ -139,6 +140,11 @@ class RemoteStation:
         self.assemble_s: deque[float] = deque(maxlen=window)
         self.dispatch_s: deque[float] = deque(maxlen=window)
         self.frame_period_s: deque[float] = deque(maxlen=window)
+        cfg = self.config
+        #: the compact tactile codec (None: raw tactile_frame messages)
+        self.encoder = TactileEncoder(CodecSettings(
+            weber=cfg.tactile_weber, floor={"height_mm": cfg.tactile_floor_um * 1e-3},
+            key_every=cfg.tactile_key_every)) if cfg.tactile_codec == "compact" else None
 
     # ------------------------------------------------------------------ commands
 
@@ -261,10 +267,15 @@ class RemoteStation:
                 self._frame_seq += 1
                 self._record(outcome)
                 if self.link.is_connected:
-                    await self.link.send(outcome.frame)
+                    msg: Message = outcome.frame
+                    if self.encoder is not None:
+                        msg = self.encoder.encode(outcome.frame)
+                    await self.link.send(msg)
                     self.counters.frames_sent += 1
                 else:
                     self.counters.frames_not_sent_link_down += 1
+                    if self.encoder is not None:
+                        self.encoder.reset()  # a key frame first when the link is back
             next_t += period
             now = loop.time()
             if now > next_t:
@@ -380,6 +391,9 @@ class RemoteStation:
                 "repeated": p.repeated,
                 "skipped_integration_no_contact": p.skipped_integration,
                 "late": c.frames_late,
+                "codec": self.config.tactile_codec,
+                "key_frames": None if self.encoder is None else self.encoder.keys_sent,
+                "delta_frames": None if self.encoder is None else self.encoder.deltas_sent,
                 "achieved_fps": p.processed / elapsed if elapsed > 0 else 0.0,
                 "patch_pitch_mm": p.patch_pitch_mm / p.assembler.scale_xy,
             },

@@ -41,6 +41,7 @@ from shared.protocol.messages import (
     PlatformState,
     Stats,
     StreamPolicy,
+    TactileCompact,
     TactileFrame,
     Welcome,
 )
@@ -75,6 +76,7 @@ __all__ = [
     "Stats",
     "StreamPolicy",
     "StreamQueue",
+    "TactileCompact",
     "TactileFrame",
     "Welcome",
     "decode",

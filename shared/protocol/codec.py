@@ -36,8 +36,11 @@ __all__ = [
     "message_from_map",
 ]
 
-PROTOCOL_VERSION = 1
-SUPPORTED_VERSIONS = frozenset({1})
+#: the newest version; a message carries the first version defining its type
+#: (``MIN_VERSION``: 1 for every type but ``tactile_compact``, 2), so a version-1 peer
+#: still reads everything else
+PROTOCOL_VERSION = 2
+SUPPORTED_VERSIONS = frozenset({1, 2})
 #: default size limit of one encoded message (a 320 x 240 float32 layer is 300 KiB)
 DEFAULT_MAX_MESSAGE_BYTES = 4 * 1024 * 1024
 
@@ -95,6 +98,9 @@ def message_from_map(obj: dict[str, Any]) -> Message:
     if cls is None:
         raise UnknownMessageTypeError(f"unknown message type {describe(msg_type)}; known: "
                                       f"{sorted(MESSAGE_TYPES)}")
+    if obj.get("v", 1) < cls.MIN_VERSION:
+        raise VersionError(f"{msg_type} needs protocol version {cls.MIN_VERSION}, the message "
+                           f"says {obj.get('v')}")
     return cls.from_wire(obj)
 
 
@@ -132,7 +138,7 @@ def encode(message: Message, *, validate: bool = True,
         hops.extend(extra_hops)  # tuples pack as msgpack arrays, like the lists of to_wire
         if len(hops) > MAX_HOPS:
             body["hops"] = hops[-MAX_HOPS:]
-    wire = {"v": PROTOCOL_VERSION, "type": message.TYPE, **body}
+    wire = {"v": message.MIN_VERSION, "type": message.TYPE, **body}
     if validate:
         try:
             type(message).from_wire(wire)

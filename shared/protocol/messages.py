@@ -51,6 +51,7 @@ __all__ = [
     "Bye",
     "ClockPing",
     "ClockPong",
+    "CompactLayer",
     "DataMessage",
     "Error",
     "Hello",
@@ -59,6 +60,7 @@ __all__ = [
     "PlatformState",
     "Stats",
     "StreamPolicy",
+    "TactileCompact",
     "TactileFrame",
     "Welcome",
 ]
@@ -125,6 +127,8 @@ class Message(ABC):
 
     TYPE: ClassVar[str] = ""
     POLICY: ClassVar[StreamPolicy] = StreamPolicy.ORDERED
+    #: the first protocol version that defines the type (its messages carry ``v`` = this)
+    MIN_VERSION: ClassVar[int] = 1
 
     @abstractmethod
     def to_wire(self) -> dict[str, Any]:
@@ -523,11 +527,156 @@ class TactileFrame(DataMessage):
                    else None)
 
 
+class CompactLayer(NamedTuple):
+    """One layer of a ``tactile_compact`` frame: quantized values ``q`` (int16; value =
+    ``offset + scale * q``). In a key frame ``q`` is 2-D and ``scale``/``offset`` are set; in
+    a delta ``q`` is either 2-D (every sample) or 1-D with ``idx`` (flat row-major indices,
+    strictly increasing) and the key frame's ``scale``/``offset`` apply."""
+
+    q: np.ndarray
+    scale: float | None = None
+    offset: float | None = None
+    idx: np.ndarray | None = None
+
+
+_MAX_SCALE = 1.0e3
+_MAX_OFFSET = 1.0e5
+
+
+def _read_compact_layer(raw: Any, where: str, key: bool,
+                        shape: tuple[int, int]) -> CompactLayer:
+    if not isinstance(raw, Mapping):
+        raise FieldError(f"{where} must be a map with q (and scale/offset or idx)")
+    q = read_array(raw.get("q"), f"{where}.q")
+    if q.dtype != np.dtype("<i2"):
+        raise FieldError(f"{where}.q must be <i2 (int16), got {q.dtype.str}")
+    if key:
+        scale = read_float(raw, where, "scale", lo=0.0, hi=_MAX_SCALE)
+        if scale <= 0.0:
+            raise FieldError(f"{where}.scale must be > 0")
+        offset = read_float(raw, where, "offset", lo=-_MAX_OFFSET, hi=_MAX_OFFSET)
+        if q.shape != shape:
+            raise FieldError(f"{where}.q has shape {list(q.shape)}, the frame's is {list(shape)}")
+        return CompactLayer(q, scale, offset)
+    if "scale" in raw or "offset" in raw:
+        raise FieldError(f"{where}: a delta layer uses the key frame's scale and offset")
+    if read_optional(raw, "idx"):
+        idx = read_array(raw["idx"], f"{where}.idx", ndim=1)
+        if idx.dtype != np.dtype("<i4"):
+            raise FieldError(f"{where}.idx must be <i4, got {idx.dtype.str}")
+        if q.ndim != 1 or q.shape != idx.shape:
+            raise FieldError(f"{where}.q must be 1-D with one value per idx entry")
+        if idx.size and (int(idx[0]) < 0 or int(idx[-1]) >= shape[0] * shape[1]
+                         or (idx.size > 1 and not bool((idx[1:] > idx[:-1]).all()))):
+            raise FieldError(f"{where}.idx must be strictly increasing flat indices in "
+                             f"[0, {shape[0] * shape[1]})")
+        return CompactLayer(q, idx=idx)
+    if q.shape != shape:
+        raise FieldError(f"{where}.q has shape {list(q.shape)}, the frame's is {list(shape)}")
+    return CompactLayer(q)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class TactileCompact(DataMessage):
+    """Remote -> local (protocol version 2): a tactile frame with quantized layers, as a
+    key frame or as a delta against the key frame ``key_seq``.
+
+    Same header and scalar fields as :class:`TactileFrame`. A key frame (``key``) carries
+    every layer in full; a delta carries only the layers with samples outside the sender's
+    deadband, each dense or as (flat index, value) pairs; a receiver builds the frame from
+    the key frame ``key_seq`` and this delta only (never from earlier deltas), and renders
+    nothing from a delta whose key frame it does not hold. :mod:`shared.protocol.tactile_codec`
+    encodes and decodes; ``docs/protocol.md`` specifies the bytes.
+    """
+
+    TYPE: ClassVar[str] = "tactile_compact"
+    POLICY: ClassVar[StreamPolicy] = StreamPolicy.LATEST_WINS
+    MIN_VERSION: ClassVar[int] = 2
+    center_mm: tuple[float, float] = (0.0, 0.0)
+    pitch_mm: float = 1.7
+    key: bool = True
+    key_seq: int = 0
+    shape: tuple[int, int] = (0, 0)
+    layers: Mapping[str, CompactLayer] = field(default_factory=dict)
+    contact: bool = False
+    force_n: float = 0.0
+    indentation_mm: float = 0.0
+    source_seq: int | None = None
+    source_ts_us: int | None = None
+
+    def to_wire(self) -> dict[str, Any]:
+        out = self._head()
+        layers: dict[str, Any] = {}
+        for name, layer in self.layers.items():
+            m: dict[str, Any] = {"q": array_to_wire(layer.q)}
+            if layer.scale is not None:
+                m["scale"] = layer.scale
+                m["offset"] = layer.offset
+            if layer.idx is not None:
+                m["idx"] = array_to_wire(layer.idx)
+            layers[name] = m
+        out.update(center_mm=list(self.center_mm), pitch_mm=self.pitch_mm, key=self.key,
+                   key_seq=self.key_seq, shape=list(self.shape), layers=layers,
+                   contact=self.contact, force_n=self.force_n,
+                   indentation_mm=self.indentation_mm)
+        if self.source_seq is not None:
+            out["source_seq"] = self.source_seq
+        if self.source_ts_us is not None:
+            out["source_ts"] = self.source_ts_us
+        return out
+
+    @classmethod
+    def from_wire(cls, d: Mapping[str, Any]) -> TactileCompact:
+        t = cls.TYPE
+        head = cls._read_head(d, t)
+        key = read_bool(d, t, "key")
+        key_seq = read_int(d, t, "key_seq")
+        if key and key_seq != head["seq"]:
+            raise FieldError(f"{t}.key_seq must equal seq in a key frame")
+        if not key and key_seq >= head["seq"]:
+            raise FieldError(f"{t}.key_seq must be < seq in a delta")
+        rows, cols = (int(v) for v in read_vector(d, t, "shape", 2, lo=1, hi=4096))
+        shape_raw = d["shape"]
+        if any(isinstance(v, bool) or not isinstance(v, int) for v in shape_raw):
+            raise FieldError(f"{t}.shape must be two integers")
+        raw_layers = d.get("layers")
+        if not isinstance(raw_layers, Mapping):
+            raise FieldError(f"{t}.layers must be a map of layer name -> layer map")
+        unknown = sorted(str(k) for k in raw_layers if k not in LAYER_RANGES)
+        if unknown:
+            raise FieldError(f"{t}.layers has unknown layer(s) {unknown}; known: "
+                             f"{sorted(LAYER_RANGES)}")
+        if key and "height_mm" not in raw_layers:
+            raise FieldError(f"{t}.layers.height_mm is missing from a key frame")
+        layers = {name: _read_compact_layer(raw, f"{t}.layers.{name}", key, (rows, cols))
+                  for name, raw in raw_layers.items()}
+        for name, layer in layers.items():
+            if key and layer.scale is not None and layer.offset is not None:
+                lo, hi = LAYER_RANGES[name]
+                vmin = layer.offset + layer.scale * float(layer.q.min())
+                vmax = layer.offset + layer.scale * float(layer.q.max())
+                if vmin < lo - layer.scale or vmax > hi + layer.scale:
+                    raise FieldError(f"{t}.layers.{name} decodes to [{vmin:.6g}, {vmax:.6g}], "
+                                     f"allowed [{lo}, {hi}]")
+        lim = _WORKSPACE_LIMIT_MM
+        return cls(**head,
+                   center_mm=read_vector(d, t, "center_mm", 2, lo=-lim, hi=lim),  # type: ignore[arg-type]
+                   pitch_mm=read_float(d, t, "pitch_mm", lo=1e-4, hi=100.0),
+                   key=key, key_seq=key_seq, shape=(rows, cols), layers=layers,
+                   contact=read_bool(d, t, "contact"),
+                   force_n=read_float(d, t, "force_n", lo=-1000.0, hi=1000.0),
+                   indentation_mm=read_float(d, t, "indentation_mm", lo=-100.0, hi=100.0),
+                   source_seq=read_int(d, t, "source_seq") if read_optional(d, "source_seq")
+                   else None,
+                   source_ts_us=read_int(d, t, "source_ts") if read_optional(d, "source_ts")
+                   else None)
+
+
 #: wire ``type`` -> message class
 MESSAGE_TYPES: dict[str, type[Message]] = {
     cls.TYPE: cls
     for cls in (Hello, Welcome, ClockPing, ClockPong, Stats, Error, Bye, PlatformState,
-                ArmCommand, ArmState, TactileFrame)
+                ArmCommand, ArmState, TactileFrame, TactileCompact)
 }
 #: wire ``type`` of every latest-wins stream (derived from ``POLICY``)
 LATEST_WINS_TYPES = frozenset(t for t, cls in MESSAGE_TYPES.items()

@@ -159,3 +159,46 @@ async def test_link_loss_goes_safe_then_reconnects_and_resumes() -> None:
     entries = summary["safe_state"]["entries"]
     assert entries.get("link_lost", 0) + entries.get("stale_scene", 0) >= 1
     assert summary["safe_state"]["link_loss_to_safe_ms"]["max"] < 100 + scaled(150)
+
+
+async def test_compact_frames_render_only_once_their_key_frame_arrived() -> None:
+    # a remote sending protocol-v2 compact frames, whose key frame the local station missed
+    # (joined late): its deltas must render nothing until the next key frame
+    from shared.client import StationLink
+    from shared.protocol.tactile_codec import CodecSettings, TactileEncoder
+    from tests.local_site.agent_support import SESSION, TOKEN
+
+    async with running_relay() as relay:
+        url = f"ws://127.0.0.1:{relay.ws_port}/"
+        remote = StationLink(url, session=SESSION, role="remote", token=TOKEN)
+        remote.start()
+        await remote.wait_connected(timeout_s=scaled(10.0))
+        agent = relay_agent(url, stale_frame_timeout_s=30.0)
+        run = asyncio.create_task(agent.run())
+        try:
+            await wait_for(lambda: agent.loop is not None and agent.link is not None
+                           and agent.link.is_connected, 10.0, "the local station's link")
+            enc = TactileEncoder(CodecSettings(key_every=1000))
+            enc.encode(make_frame(1, None, 3.0))  # the key frame the local never sees
+            for seq in range(2, 12):
+                frame = make_frame(seq, None, 3.0)
+                frame.layers["height_mm"][4, 4] = 2.5  # a small change: a delta
+                msg = enc.encode(frame)
+                assert not msg.key
+                await remote.send(msg)
+                await asyncio.sleep(0.01)
+            await wait_for(lambda: agent.tactile_decoder.counters.waiting_for_key >= 10, 5.0,
+                           "the deltas to arrive")
+            loop = loop_of(agent)
+            assert loop.counters.frames_accepted == 0
+            assert loop.safe_reason == "no_frames"
+            enc.reset()
+            key = enc.encode(make_frame(20, None, 2.0))
+            assert key.key
+            await remote.send(key)
+            await wait_for(lambda: _pins_near(agent, 2.0), 6.0, "pins at the key frame's 2 mm")
+            assert agent.tactile_decoder.counters.keys == 1
+        finally:
+            await remote.close()
+            agent.request_stop("test")
+            assert await run == 0

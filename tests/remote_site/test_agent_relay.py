@@ -24,7 +24,8 @@ from remote_site.agent.app import AgentOptions, run_agent
 from remote_site.agent.world import build_world
 from remote_site.phantom.scenes import make_scene
 from shared.client import StationLink
-from shared.protocol import ArmState, PlatformState, TactileFrame
+from shared.protocol import ArmState, PlatformState, TactileCompact, TactileFrame
+from shared.protocol.tactile_codec import TactileDecoder
 from shared.timebase import now_us
 from shared.workspace import WorkspaceMap
 from tests.support import free_tcp_port, scaled
@@ -51,7 +52,8 @@ async def fake_local(url: str, target_xy_mm: tuple[float, float], duration_s: fl
                      token: str = TOKEN) -> dict[str, list[Any]]:
     """Press ``target_xy_mm`` (phantom) through the relay; collect what comes back."""
     ws = WorkspaceMap()
-    got: dict[str, list[Any]] = {"frames": [], "arm_states": []}
+    got: dict[str, list[Any]] = {"frames": [], "arm_states": [], "compact": []}
+    decoder = TactileDecoder()  # the remote sends compact frames (protocol v2) by default
     async with StationLink(url, session=SESSION, role="local", token=token) as link:
         await link.wait_connected(timeout_s=scaled(10.0))
 
@@ -83,6 +85,12 @@ async def fake_local(url: str, target_xy_mm: tuple[float, float], duration_s: fl
                     msg = await link.recv(timeout_s=0.2)
                 except TimeoutError:
                     continue
+                if isinstance(msg, TactileCompact):
+                    got["compact"].append(msg)
+                    decoded = decoder.decode(msg)
+                    if decoded is None:
+                        continue
+                    msg = decoded
                 if isinstance(msg, TactileFrame):
                     if end is None:
                         end = time.monotonic() + duration_s
@@ -167,6 +175,11 @@ async def test_agent_follows_a_press_and_streams_tactile_frames(
         stop.set()
         summary = await asyncio.wait_for(agent, scaled(10.0))
     check_press_result(got, truth, "malignant")
+    # compact frames through the real relay: key frames and deltas, every one decoded
+    compact = got["compact"]
+    assert summary["frames"]["codec"] == "compact"
+    assert any(m.key for m in compact) and sum(not m.key for m in compact) > len(compact) // 2
+    assert len(got["frames"]) == len(compact) - next(i for i, m in enumerate(compact) if m.key)
     phantom = make_scene("breast", 5)
     assert truth["tumors"][1]["stiffness_n_per_mm"] == pytest.approx(
         phantom.tissue_stiffness_n_per_mm(*phantom.tumors[1].center_mm))

@@ -42,7 +42,14 @@ from remote_site.tactile import TactileAssembler
 from shared.client import LinkCounters
 from shared.errors import CalibrationError, ConfigError
 from shared.freshness import ClockView
-from shared.protocol import ArmCommand, ArmState, Message, PlatformState, TactileFrame
+from shared.protocol import (
+    ArmCommand,
+    ArmState,
+    Message,
+    PlatformState,
+    TactileCompact,
+    TactileFrame,
+)
 from shared.timebase import now_us
 from shared.workspace import WorkspaceMap
 from tests.support import scaled
@@ -211,7 +218,7 @@ async def test_arm_halts_when_commands_stop() -> None:
         # the arm stopped short of the target: it was halted 100 ms after the command
         x = station.safe_arm.arm.state().position_mm[0]
         assert 0.0 < x < 10.0
-        frames = [m for m in link.sent if isinstance(m, TactileFrame)]
+        frames = [m for m in link.sent if isinstance(m, TactileFrame | TactileCompact)]
         assert frames and frames[-1].source_seq == 1
     finally:
         close_station(station)

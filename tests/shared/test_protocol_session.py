@@ -84,7 +84,7 @@ def test_policy_is_declared_on_the_message_types() -> None:
     assert PlatformState.POLICY is StreamPolicy.LATEST_WINS
     assert TactileFrame.POLICY is StreamPolicy.LATEST_WINS
     assert ArmCommand.POLICY is StreamPolicy.ORDERED and Stats.POLICY is StreamPolicy.ORDERED
-    assert {"platform_state", "arm_state", "tactile_frame"} == LATEST_WINS_TYPES
+    assert {"platform_state", "arm_state", "tactile_frame", "tactile_compact"} == LATEST_WINS_TYPES
 
 
 def test_stream_queue_arrival_order_latest_and_bound() -> None:

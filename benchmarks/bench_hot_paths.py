@@ -1,0 +1,145 @@
+"""Paired CPU cost of the hot paths, old tree against new tree, on one machine in one session.
+
+Run from the repository root::
+
+    git archive main | tar -x -C /tmp/teletouch-main      # the tree to compare against
+    python benchmarks/bench_hot_paths.py --old /tmp/teletouch-main
+
+Each measurement runs in a fresh child process with ``PYTHONPATH`` set to one tree, old and
+new alternating ``--pairs`` times, and reports the thread CPU time (``time.thread_time``, so
+time spent preempted by other jobs on a loaded machine is not counted) per operation: the best
+of 5 repetitions inside each process, then the median over the pairs and the new/old ratio.
+
+Operations: one render of the 4 x 4 pins from a 30 x 40 tactile frame while the platform
+moves (the 1 kHz display path); a tactile frame's per-hop wire cost (encode with validation +
+decode with validation, as the remote, the relay and the local station each do) as sent by
+each tree's default (old: ``tactile_frame`` float32; new: ``tactile_compact`` delta, plus the
+sender's encoder and the receiver's decoder); a ``platform_state`` encode + decode.
+Writes ``benchmarks/results/hot_paths.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "benchmarks" / "results"
+
+_CHILD = r'''
+import json, time
+import numpy as np
+from local_site.render import Renderer
+from local_site.scenes import TactileFrameScene
+from shared.protocol import Hop, PlatformState, TactileFrame, decode, encode
+
+def cost(fn, n):
+    best = float("inf")
+    for _ in range(5):
+        t = time.thread_time()
+        for _ in range(n):
+            fn()
+        best = min(best, (time.thread_time() - t) / n)
+    return best * 1e6
+
+rng = np.random.default_rng(0)
+h = np.clip(rng.normal(0.5, 0.3, (30, 40)), 0, 3).astype(np.float32)
+k = np.full((30, 40), 0.8, np.float32)
+hops = tuple(Hop("remote", f"s{i}", i) for i in range(6))
+frame = TactileFrame(seq=1, center_mm=(30.0, 30.0), pitch_mm=0.5, hops=hops,
+                     layers={"height_mm": h, "stiffness_k": k})
+scene = TactileFrameScene()
+scene.update(frame)
+renderer = Renderer()
+pos = [25.0]
+
+def render():
+    pos[0] = pos[0] + 0.045 if pos[0] < 38 else 22.0
+    renderer.render(scene, (pos[0], 30.0, 10.0))
+
+out = {"render_us": cost(render, 2000)}
+h2 = h.copy()
+h2[10:14, 10:14] += 0.05  # the next frame: a small local change
+frame2 = TactileFrame(seq=2, center_mm=(30.1, 30.0), pitch_mm=0.5, hops=hops,
+                      layers={"height_mm": h2, "stiffness_k": k})
+try:
+    from shared.protocol.tactile_codec import TactileDecoder, TactileEncoder
+except ImportError:  # the old tree: raw frames
+    data = encode(frame2)
+    out["tactile_hop_us"] = cost(lambda: decode(encode(frame2)), 300)
+    out["tactile_bytes"] = len(data)
+else:
+    enc = TactileEncoder()
+    dec = TactileDecoder()
+    dec.decode(decode(encode(enc.encode(frame))))
+    msg = enc.encode(frame2)
+    data = encode(msg)
+    out["tactile_hop_us"] = cost(lambda: decode(encode(msg)), 300)
+    out["tactile_bytes"] = len(data)
+    probe = TactileEncoder()
+    probe.encode(frame)
+    out["tactile_encoder_us"] = cost(lambda: (probe.reset(), probe.encode(frame),
+                                              probe.encode(frame2)), 300) / 2
+    out["tactile_decoder_us"] = cost(lambda: dec.decode(msg), 300)
+ps = PlatformState(seq=5, ts_us=123456789, hops=(Hop("local", "capture", 123456789),),
+                   position_mm=(1.0, 2.0, 3.0), velocity_mm_s=(0.1, 0.2, 0.3))
+out["platform_state_hop_us"] = cost(lambda: decode(encode(ps)), 3000)
+print(json.dumps(out))
+'''
+
+
+def _measure(tree: Path) -> dict[str, float]:
+    env = {**os.environ, "PYTHONPATH": str(tree), "OPENBLAS_NUM_THREADS": "1"}
+    proc = subprocess.run([sys.executable, "-c", _CHILD], env=env, capture_output=True,
+                          text=True, check=True, cwd="/")
+    return dict(json.loads(proc.stdout.strip().splitlines()[-1]))
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--old", type=Path, required=True, help="the tree to compare against")
+    parser.add_argument("--pairs", type=int, default=5)
+    args = parser.parse_args()
+    load = os.getloadavg()[0]
+    old_runs, new_runs = [], []
+    for _ in range(args.pairs):
+        old_runs.append(_measure(args.old.resolve()))
+        new_runs.append(_measure(ROOT))
+    keys = sorted(set(old_runs[0]) | set(new_runs[0]))
+    lines = ["# Hot paths: CPU per operation, old tree vs this tree (paired)", "",
+             f"Command: `python benchmarks/bench_hot_paths.py --old {args.old} --pairs "
+             f"{args.pairs}`. {args.pairs} pairs of fresh processes, old and new alternating; "
+             "thread CPU time per operation (best of 5 repetitions per process), median over "
+             f"the pairs. Machine: nproc {os.cpu_count()}, load average {load:.1f} at start "
+             "(shared with other agents' jobs: even CPU time inflates under load, compare the "
+             "ratio).", "",
+             "| operation | old (median) | new (median) | new / old | old runs | new runs |",
+             "|---|---|---|---|---|---|"]
+    for key in keys:
+        o = [r[key] for r in old_runs if key in r]
+        n = [r[key] for r in new_runs if key in r]
+        om = statistics.median(o) if o else None
+        nm = statistics.median(n) if n else None
+        ratio = f"{nm / om:.2f}" if om and nm else "n/a"
+        lines.append(f"| {key} | {om if om is None else f'{om:.1f}'} | "
+                     f"{nm if nm is None else f'{nm:.1f}'} | {ratio} | "
+                     f"{', '.join(f'{v:.0f}' for v in o)} | {', '.join(f'{v:.0f}' for v in n)} |")
+    lines += ["", "`_us`: microseconds of CPU; `tactile_bytes`: bytes of one tactile frame on "
+              "the wire (old: `tactile_frame`, new: a `tactile_compact` delta with a 4 x 4 "
+              "change). `tactile_hop_us` is one encode + decode with validation (each hop does "
+              "about this: sender, relay, receiver); the new tree adds the sender's "
+              "`tactile_encoder_us` and the receiver's `tactile_decoder_us` once per frame."]
+    text = "\n".join(lines) + "\n"
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / "hot_paths.md").write_text(text)
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

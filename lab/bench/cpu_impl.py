@@ -1,0 +1,391 @@
+"""CPU budget of the demo: CPU seconds per wall second per process, thread and stage.
+
+How it measures (``teletouch bench cpu``):
+
+1. :func:`lab.demo.orchestrator.run_demo` starts the demo's processes as usual (relay, the
+   link emulators when a profile is given, the remote and the local station).
+2. Once the relay has forwarded data both ways, and after a warm-up, a window of
+   ``window_s`` seconds starts. At its start and end the CPU time (user + system) of every
+   child process and of each of its threads is read from ``/proc/<pid>/task/<tid>/stat``:
+   these per-process and per-thread figures are exact (kernel accounting).
+3. During the window every process is sampled by py-spy (``--nonblocking``: the process is
+   never paused; ``--idle --threads``: every thread, every sample). py-spy's idle detection
+   is unreliable in this container (a sleeping thread is reported as running), so a sample
+   is judged idle by its innermost Python line instead: a line that calls a blocking wait
+   (``sleep(``, ``wait(``, ``select(``, ``poll(``, ``recv(`` ... see :data:`_WAIT_CALL`).
+   Each busy sample is given a stage by the files on its stack (:data:`STAGE_RULES`); a
+   thread's exact CPU time is then split over stages in proportion to its busy samples.
+   The stage split is therefore an estimate (sampling error ~ 1/sqrt(samples), and work
+   in C that releases the thread between Python lines is charged to the line that called
+   it), while each process' and thread's total is exact.
+
+Simulated hardware (the ArrayTac plant and firmware emulator, the encoder board and the
+scripted operator, the sensor and phantom simulation, the simulated arm, the link
+emulators) is classified as ``sim:`` stages so that the product's own cost stands apart.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import linecache
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from collections import Counter, defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from shared.errors import ConfigError, TeleTouchError
+
+__all__ = ["STAGE_RULES", "CpuBenchSettings", "CpuSnapshot", "classify_stack",
+           "parse_raw_profile", "run_cpu_bench"]
+
+_CLK_TCK = os.sysconf("SC_CLK_TCK")
+
+#: (stage, path fragments): the first rule with a fragment in a frame's file wins. ``sim:``
+#: stages win over product stages anywhere on the stack (work done for the simulation);
+#: among product stages the innermost frame decides.
+STAGE_RULES: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("sim: ArrayTac plant + firmware", ("local_site/arraytac_sim/", "local_site/display/emulator",
+                                        "local_site/display/firmware", "local_site/display/sim")),
+    ("sim: platform board + operator", ("local_site/platform/sim", "local_site/platform/motion")),
+    ("sim: sensor + phantom", ("remote_site/sensor/simulator", "remote_site/sensor/shading",
+                               "remote_site/sensor/shapes", "remote_site/sensor/sim_",
+                               "remote_site/phantom/")),
+    ("sim: arm", ("remote_site/arm/sim",)),
+    ("sim: link emulator", ("lab/linkemu",)),
+    ("bench/profiler", ("lab/bench/",)),
+    ("platform read", ("local_site/agent/platform_reader", "local_site/platform/")),
+    ("render", ("local_site/render/", "local_site/scenes/")),
+    ("display drive", ("local_site/display/", "local_site/agent/display_loop",
+                       "local_site/agent/period_stats", "/can/")),
+    ("recording", ("local_site/recording",)),
+    ("motion-to-touch ledger", ("shared/motion_to_touch", "shared/ledger")),
+    ("reconstruction", ("remote_site/reconstruction/",)),
+    ("stiffness", ("remote_site/stiffness/", "remote_site/agent/stiffness_stage")),
+    ("tactile frame assembly", ("remote_site/tactile",)),
+    ("arm control + safety", ("remote_site/arm/",)),
+    ("sensor read (driver)", ("remote_site/sensor/",)),
+    ("encode/validate", ("shared/protocol/codec", "shared/protocol/messages",
+                         "shared/protocol/fields", "shared/protocol/tactile_codec", "msgpack")),
+    ("relay forwarding", ("relay_server/", "shared/protocol/peer_session",
+                          "shared/protocol/queues", "shared/protocol/ratelimit")),
+    ("link client (uplink/downlink)", ("shared/client", "shared/transport",
+                                       "shared/protocol/", "websockets/")),
+    ("station control", ("local_site/agent/", "remote_site/agent/", "local_site/", "remote_site/")),
+    ("event loop / runtime", ("asyncio/", "threading", "selectors", "logging/", "shared/")),
+)
+_SIM_PREFIXES = ("sim:", "bench/")
+_FRAME = re.compile(r"^(?P<func>.*) \((?P<file>[^()]*):(?P<line>\d+)\)$")
+#: a leaf line calling one of these is waiting, not computing
+_WAIT_CALL = re.compile(r"\b(sleep|wait|wait_for|select|poll|recv|recv_into|recvfrom|accept|"
+                        r"join|acquire|_recv|read|readinto|run_forever|run_until_complete|"
+                        r"to_thread|communicate|asyncio\.run)\(|\.get\(block=True\)")
+
+
+@dataclass(frozen=True)
+class CpuBenchSettings:
+    """What to run: the demo's scene and link, the warm-up and the measured window."""
+
+    scene: str = "breast"
+    link: str | None = None
+    warmup_s: float = 3.0
+    window_s: float = 12.0
+    rate_hz: int = 200
+    max_duration_s: float = 100.0
+    profile: bool = True
+    keep_record: Path | None = None
+    extra_local_args: tuple[str, ...] = ()
+    extra_remote_args: tuple[str, ...] = ()
+
+
+@dataclass
+class CpuSnapshot:
+    """CPU seconds of every thread of every watched process at one instant."""
+
+    wall_s: float
+    threads: dict[int, dict[int, float]] = field(default_factory=dict)  # pid -> tid -> cpu s
+
+
+def _task_cpu_s(pid: int, tid: int) -> float | None:
+    try:
+        with open(f"/proc/{pid}/task/{tid}/stat") as f:
+            stat = f.read()
+    except OSError:
+        return None
+    fields = stat[stat.rfind(")") + 2:].split()
+    return (int(fields[11]) + int(fields[12])) / _CLK_TCK  # utime, stime
+
+
+def snapshot(pids: list[int]) -> CpuSnapshot:
+    """Read the CPU time of every thread of ``pids`` now."""
+    snap = CpuSnapshot(time.perf_counter())
+    for pid in pids:
+        per: dict[int, float] = {}
+        try:
+            tids = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
+        except OSError:
+            continue
+        for tid in tids:
+            cpu = _task_cpu_s(pid, tid)
+            if cpu is not None:
+                per[tid] = cpu
+        snap.threads[pid] = per
+    return snap
+
+
+def _children(parent: int) -> dict[int, str]:
+    """Direct child processes of ``parent`` running ``lab.cli``: pid -> subcommand."""
+    out: dict[int, str] = {}
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat") as f:
+                stat = f.read()
+            ppid = int(stat[stat.rfind(")") + 2:].split()[1])
+            if ppid != parent:
+                continue
+            with open(f"/proc/{entry}/cmdline", "rb") as f:
+                argv = f.read().decode(errors="replace").split("\0")
+        except (OSError, ValueError):
+            continue
+        if "lab.cli" in argv:
+            rest = argv[argv.index("lab.cli") + 1:]
+            cmd = next((a for a in rest if a in ("relay", "link", "local", "remote")), "?")
+            out[int(entry)] = cmd
+    names: dict[int, str] = {}
+    links = sorted(p for p, c in out.items() if c == "link")
+    for pid, cmd in out.items():
+        names[pid] = (f"link-{'local' if pid == links[0] else 'remote'}" if cmd == "link"
+                      else cmd)
+    return names
+
+
+def classify_stack(frames: list[tuple[str, str, int]]) -> str:
+    """The stage of one sample: ``frames`` are (function, file, line), outermost first."""
+    product: str | None = None
+    for _func, file, _line in frames:
+        norm = file.replace("\\", "/")
+        for stage, fragments in STAGE_RULES:
+            if any(fr in norm for fr in fragments):
+                if stage.startswith(_SIM_PREFIXES):
+                    return stage
+                product = stage  # innermost product match wins
+                break
+    return product or "other (interpreter, libraries)"
+
+
+def _is_wait(frames: list[tuple[str, str, int]]) -> bool:
+    if not frames:
+        return True
+    _func, file, line = frames[-1]
+    text = linecache.getline(file, line)
+    return bool(text) and _WAIT_CALL.search(text) is not None
+
+
+def parse_raw_profile(text: str) -> dict[int, Counter[str]]:
+    """py-spy ``--format raw --threads`` output -> tid -> Counter(stage or ``idle``)."""
+    out: dict[int, Counter[str]] = defaultdict(Counter)
+    for raw in text.splitlines():
+        raw = raw.strip()
+        if not raw:
+            continue
+        stack_s, _, count_s = raw.rpartition(" ")
+        try:
+            count = int(count_s)
+        except ValueError:
+            continue
+        parts = stack_s.split(";")
+        head = re.match(r"thread \((?:0x)?([0-9a-fA-F]+)\)", parts[0])
+        if head is None:
+            continue
+        tid = int(head.group(1), 16 if parts[0].startswith("thread (0x") else 10)
+        frames = []
+        for p in parts[1:]:
+            m = _FRAME.match(p)
+            if m:
+                frames.append((m["func"], m["file"], int(m["line"])))
+        out[tid]["idle" if _is_wait(frames) else classify_stack(frames)] += count
+    return out
+
+
+def _top_functions(text: str, n: int = 12) -> list[tuple[str, int]]:
+    """Busy samples per innermost project function (self time), most first."""
+    c: Counter[str] = Counter()
+    for raw in text.splitlines():
+        stack_s, _, count_s = raw.strip().rpartition(" ")
+        if not count_s.isdigit():
+            continue
+        frames = []
+        for p in stack_s.split(";")[1:]:
+            m = _FRAME.match(p)
+            if m:
+                frames.append((m["func"], m["file"], int(m["line"])))
+        if not frames or _is_wait(frames):
+            continue
+        # innermost frame in the repository (library frames are charged to their caller)
+        own = [f for f in frames if any(d in f[1] for d in ("local_site/", "remote_site/",
+                                                           "relay_server/", "shared/", "lab/"))]
+        func, file, _ = (own or frames)[-1]
+        short = file.split("/wt/")[-1].split("/", 1)[-1] if "/wt/" in file else file
+        c[f"{func} ({short.rsplit('site-packages/', 1)[-1]})"] += int(count_s)
+    return c.most_common(n)
+
+
+@dataclass
+class _Window:
+    settings: CpuBenchSettings
+    workdir: Path
+    pyspy: str | None
+    ready_at: float | None = None
+    start: CpuSnapshot | None = None
+    end: CpuSnapshot | None = None
+    names: dict[int, str] = field(default_factory=dict)
+    spies: dict[int, subprocess.Popen[bytes]] = field(default_factory=dict)
+    local_loop: dict[str, Any] | None = None
+
+    def progress(self, _elapsed: float, status: dict[str, Any] | None) -> None:
+        now = time.perf_counter()
+        if self.ready_at is None:
+            fwd = ((status or {}).get("sessions", {}).get("demo", {}) or {}).get("forwarded", {})
+            if fwd and all((v or 0) > 0 for v in fwd.values()) and len(fwd) == 2:
+                self.ready_at = now
+            return
+        if self.start is None and now - self.ready_at >= self.settings.warmup_s:
+            self.names = _children(os.getpid())
+            self.start = snapshot(list(self.names))
+            if self.pyspy and self.settings.profile:
+                for pid, name in self.names.items():
+                    self.spies[pid] = subprocess.Popen(
+                        [self.pyspy, "record", "--pid", str(pid), "--duration",
+                         str(max(1, int(self.settings.window_s) - 1)), "--rate",
+                         str(self.settings.rate_hz), "--format", "raw", "--threads", "--idle",
+                         "--nonblocking", "--full-filenames", "-o",
+                         str(self.workdir / f"profile-{name}.txt")],
+                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            return
+        if self.start is not None and self.end is None \
+                and now - self.start.wall_s >= self.settings.window_s:
+            self.end = snapshot(list(self.names))
+            # the window is measured: stop the operator early (the station exits 0 on
+            # SIGTERM after writing its summary), the demo then finishes as usual
+            for pid, name in self.names.items():
+                if name == "local":
+                    with contextlib.suppress(OSError):
+                        os.kill(pid, signal.SIGTERM)
+
+
+def _pyspy_path() -> str | None:
+    found = shutil.which("py-spy")
+    if found:
+        return found
+    candidate = Path(sys.executable).parent / "py-spy"
+    return str(candidate) if candidate.exists() else None
+
+
+def run_cpu_bench(settings: CpuBenchSettings) -> dict[str, Any]:
+    """Run the demo once, measure the window, and return the figures (JSON-able).
+
+    Raises:
+        ConfigError: bad settings, or the demo ended before the window did.
+        DemoError: the demo failed.
+    """
+    from lab.demo.orchestrator import DemoConfig, run_demo
+
+    if settings.window_s <= 0 or settings.warmup_s < 0:
+        raise ConfigError("window_s must be > 0 and warmup_s >= 0")
+    workdir = Path(tempfile.mkdtemp(prefix="teletouch-cpu-"))
+    pyspy = _pyspy_path() if settings.profile else None
+    win = _Window(settings, workdir, pyspy)
+    load_start = os.getloadavg()
+    try:
+        try:
+            report = run_demo(DemoConfig(scene=settings.scene, link=settings.link,
+                                         max_duration_s=settings.max_duration_s,
+                                         workdir=workdir / "demo",
+                                         extra_local_args=settings.extra_local_args,
+                                         extra_remote_args=settings.extra_remote_args),
+                              progress=win.progress)
+        except TeleTouchError as err:
+            # the operator was stopped after the window: the palpation analysis may find
+            # too little; the stations' summaries are all this benchmark needs
+            summary = workdir / "demo" / "local_summary.json"
+            if win.end is None or not summary.exists():
+                raise
+            local = json.loads(summary.read_text())
+            remote_path = workdir / "demo" / "remote_summary.json"
+            report = {"local": local, "latency_ms": local.get("motion_to_touch_ms", {}),
+                      "demo_error": str(err), "remote": json.loads(remote_path.read_text())
+                      if remote_path.exists() else None}
+        for spy in win.spies.values():
+            try:
+                spy.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                spy.kill()
+        if win.start is None or win.end is None:
+            raise ConfigError("the demo ended before the measured window did; lower "
+                              "--window-s or --warmup-s (the default operator runs ~25 s)")
+        if settings.keep_record is not None and (workdir / "demo" / "record.npz").exists():
+            shutil.copyfile(workdir / "demo" / "record.npz", settings.keep_record)
+        return _figures(win, report, load_start, pyspy)
+    finally:
+        shutil.rmtree(workdir, ignore_errors=True)
+
+
+def _figures(win: _Window, report: dict[str, Any], load_start: tuple[float, float, float],
+             pyspy: str | None) -> dict[str, Any]:
+    assert win.start is not None and win.end is not None
+    wall = win.end.wall_s - win.start.wall_s
+    processes: dict[str, Any] = {}
+    stages: dict[str, dict[str, float]] = defaultdict(dict)
+    top: dict[str, list[tuple[str, int]]] = {}
+    for pid, name in sorted(win.names.items(), key=lambda kv: kv[1]):
+        t0, t1 = win.start.threads.get(pid, {}), win.end.threads.get(pid, {})
+        thread_cpu = {tid: t1[tid] - t0.get(tid, 0.0) for tid in t1}
+        total = sum(thread_cpu.values())
+        processes[name] = {"cores": total / wall, "threads": len(t1)}
+        path = win.workdir / f"profile-{name}.txt"
+        text = path.read_text() if path.exists() else ""
+        per_thread = parse_raw_profile(text) if text else {}
+        if name.startswith("link"):
+            stages[name]["sim: link emulator"] = total / wall
+            top[name] = _top_functions(text) if text else []
+            continue
+        unattributed = 0.0
+        for tid, cpu in thread_cpu.items():
+            counts = per_thread.get(tid)
+            busy = {s: c for s, c in (counts or {}).items() if s != "idle"}
+            n = sum(busy.values())
+            if not n:
+                unattributed += cpu
+                continue
+            for stage, c in busy.items():
+                stages[name][stage] = stages[name].get(stage, 0.0) + cpu * c / n / wall
+        if unattributed > 0:
+            stages[name]["(threads without busy samples)"] = unattributed / wall
+        top[name] = _top_functions(text) if text else []
+    local = report.get("local", {})
+    return {
+        "wall_s": wall, "nproc": os.cpu_count(), "load_start": load_start,
+        "load_end": os.getloadavg(), "profiler": "py-spy" if pyspy else "none",
+        "processes": processes, "stages": {k: dict(v) for k, v in stages.items()},
+        "top": top, "display_loop": local.get("display_loop", {}),
+        "latency_ms": report.get("latency_ms", {}), "frames_received": report.get(
+            "frames_received"), "demo_error": report.get("demo_error"),
+        "remote_frames": (report.get("remote") or {}).get("frames"),
+        "tactile_codec": local.get("tactile_codec"),
+        "settings": {k: v for k, v in vars(win.settings).items()},
+    }
+
+
+def to_json(figures: dict[str, Any]) -> str:
+    """The figures as indented JSON."""
+    return json.dumps(figures, indent=1, default=str)

@@ -1,0 +1,48 @@
+"""The CPU benchmark's stage attribution: simulated hardware apart, innermost product stage,
+waits recognised by their line, py-spy raw lines parsed per thread."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from lab.bench.cpu_impl import classify_stack, parse_raw_profile
+from lab.bench.cpu_report import product_and_sim
+
+
+def test_sim_frames_win_anywhere_on_the_stack() -> None:
+    stack = [("run", "/x/local_site/display/emulator.py", 10),
+             ("send", "/venv/site-packages/can/interfaces/virtual.py", 5)]
+    assert classify_stack(stack) == "sim: ArrayTac plant + firmware"
+
+
+def test_the_innermost_product_stage_wins() -> None:
+    stack = [("tick", "/x/local_site/agent/display_loop.py", 1),
+             ("render", "/x/local_site/render/renderer.py", 2),
+             ("clip", "/venv/site-packages/numpy/core/fromnumeric.py", 3)]
+    assert classify_stack(stack) == "render"
+    assert classify_stack([("f", "/usr/lib/python3.11/json/decoder.py", 1)]) == \
+        "other (interpreter, libraries)"
+
+
+def test_raw_profile_lines_by_thread_with_waits_apart(tmp_path: Path) -> None:
+    src = tmp_path / "mod.py"
+    src.write_text("import time\ntime.sleep(1)\nx = sum(range(10))\n")
+    render = tmp_path / "local_site" / "render" / "renderer.py"
+    render.parent.mkdir(parents=True)
+    render.write_text("def render():\n    return 1 + 1\n")
+    text = "\n".join([
+        f"thread (101): MainThread;<module> ({src}:2) 7",
+        f"thread (101): MainThread;<module> ({src}:3);render ({render}:2) 5",
+        f"thread (0x1f): Thread-1;<module> ({src}:3) 2",
+        "garbage line",
+    ])
+    out = parse_raw_profile(text)
+    assert out[101]["idle"] == 7 and out[101]["render"] == 5
+    assert out[0x1F]["other (interpreter, libraries)"] == 2
+
+
+def test_product_and_sim_totals() -> None:
+    run = {"stages": {"local": {"render": 0.1, "sim: ArrayTac plant + firmware": 0.3},
+                      "relay": {"relay forwarding": 0.05}}}
+    product, sim = product_and_sim(run)
+    assert abs(product - 0.15) < 1e-12 and abs(sim - 0.3) < 1e-12
