@@ -28,9 +28,10 @@ from local_site.devices import open_display
 from local_site.platform.base import PlatformSample
 from local_site.render import Renderer
 from local_site.scenes import open_scene
-from shared.errors import ConfigError
+from shared.errors import ConfigError, InputDataError
 from shared.freshness import ClockView
-from shared.protocol import Message, PlatformState, TactileFrame
+from shared.protocol import Message, PlatformState, TactileCompact, TactileFrame
+from shared.protocol.tactile_codec import TactileDecoder
 from shared.recording import McapRecording, RecordedMessage
 from shared.timebase import now_us
 
@@ -163,6 +164,7 @@ class Replayer:
                                       name="replay-display", daemon=True)
             thread.start()
         start = time.perf_counter()
+        decoder = TactileDecoder()
         try:
             for m in messages:
                 due = start + (m.t_us - t0) / 1e6 / self.speed
@@ -172,13 +174,19 @@ class Replayer:
                 if stop.is_set():
                     break
                 ev = self.event(m)
-                if slot is not None and isinstance(ev.message, TactileFrame) \
-                        and m.topic.endswith("/rx/tactile_frame"):
+                frame = ev.message
+                if isinstance(frame, TactileCompact) and m.topic.endswith("/rx/tactile_compact"):
+                    try:  # in order, as the station decoded them
+                        frame = decoder.decode(frame)
+                    except InputDataError:
+                        frame = None
+                if slot is not None and isinstance(frame, TactileFrame) \
+                        and m.topic.endswith(("/rx/tactile_frame", "/rx/tactile_compact")):
                     # captured "now" in replay time: the recorded capture stamps are on
                     # another clock and from another day; the loop's age rule must judge
                     # the replay's pacing, not the recording's date
                     t = now_us()
-                    slot.put(dataclasses.replace(ev.message, ts_us=t), t)
+                    slot.put(dataclasses.replace(frame, ts_us=t), t)
                     result.frames_to_display += 1
                 elif isinstance(ev.message, PlatformState) and \
                         m.topic.endswith("/tx/platform_state"):

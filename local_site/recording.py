@@ -11,7 +11,8 @@ latency) and two of its own (``docs/recording.md``):
 
 :func:`load_recording` reads such a file into :class:`Recording`, the arrays the palpation
 analysis reads: the platform positions sent (``platform_state`` tx) and the tactile frames
-accepted (``tactile_frame`` rx named in ``/local/frame_accepted``). All frames of a
+accepted (``tactile_frame`` rx named in ``/local/frame_accepted``; ``tactile_compact``
+messages are decoded in order, as the station decodes them). All frames of a
 recording share the first accepted frame's layer shape; a frame of another shape is left
 out and counted in ``meta["counts"]["frames_rejected_shape"]``. A file cut short (the
 station was killed) is read up to its last complete chunk (``meta["complete"]`` is False).
@@ -31,7 +32,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from shared.errors import ConfigError, InputDataError
-from shared.protocol import Message, PlatformState, TactileFrame
+from shared.protocol import Message, PlatformState, TactileCompact, TactileFrame
+from shared.protocol.tactile_codec import TactileDecoder
 from shared.recording import McapRecorder, McapRecording, RecordingFormatError, read_mcap
 
 __all__ = ["Recording", "SessionRecorder", "load_recording", "recording_from_mcap"]
@@ -236,11 +238,21 @@ def recording_from_mcap(rec: McapRecording) -> Recording:
     cols: list[tuple[Any, ...]] = []
     shape: tuple[int, int] | None = None
     rejected_shape = 0
-    for m, msg in rec.wire_messages():
+    decoder = TactileDecoder()  # compact frames decode in order, as the station did
+    for m, wire in rec.wire_messages():
+        msg: Message | None = wire
+        if isinstance(wire, TactileCompact) and m.topic == "/local/rx/tactile_compact":
+            try:
+                msg = decoder.decode(wire)
+            except InputDataError:
+                msg = None  # the station refused it too
+            if msg is None:
+                continue
         if isinstance(msg, PlatformState) and m.topic == "/local/tx/platform_state":
             p_t.append(msg.ts_us)
             p_mm.append(msg.position_mm)
-        elif isinstance(msg, TactileFrame) and m.topic == "/local/rx/tactile_frame":
+        elif isinstance(msg, TactileFrame) and m.topic in ("/local/rx/tactile_frame",
+                                                           "/local/rx/tactile_compact"):
             rx = _rx_us(msg, m.t_us)
             if (msg.seq, rx) not in accepted:
                 continue

@@ -109,7 +109,10 @@ def test_session_recording_spans_a_relay_restart_a_sigkill_and_replays(tmp_path:
     procs: list[subprocess.Popen[bytes]] = [relay]
     try:
         remote = _start(["remote", *common, "--arm", "sim", "--sensor", "sim", "--phantom",
-                         "breast", "--frame-rate-hz", "30", "--record", str(remote_rec)],
+                         "breast", "--frame-rate-hz", "30", "--record", str(remote_rec),
+                         # plain frames: this test compares sent and received frames one by
+                         # one (the compact codec's recordings are read by the demo's test)
+                         "--tactile-codec", "raw"],
                         tmp_path / "remote.log", env)
         local = _start(["local", *common, "--platform", "sim", "--display", "sim", "--motion",
                         MOTION, "--no-status", "--record", str(local_rec)],
