@@ -7,7 +7,8 @@ tactile frame with stiffness layers; arm state goes out at 50 Hz. SIGTERM / SIGI
 cleanly (arm halted) and write --summary-json.
 
 With --phantom SCENE --seed N the simulated arm and sensor act on that phantom (scenes:
-localization, severity, breast).
+localization, severity, breast); --phantom FILE.toml reads a phantom file instead
+(docs/phantoms.md).
 
 examples:
   TELETOUCH_REMOTE_LINK_TOKEN=... teletouch remote --relay ws://127.0.0.1:8765/ \\
@@ -47,7 +48,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                              "rate; a live camera paces itself)")
     parser.add_argument("--sensor-loop", dest="sensor_loop", action="store_true",
                         help="restart a video file at its end (default: it ends, reported once)")
-    parser.add_argument("--phantom", help="simulated world: a phantom scene for sim backends")
+    parser.add_argument("--phantom",
+                        help="simulated world for sim backends: a phantom scene (breast, "
+                             "severity, localization) or a phantom FILE.toml")
     parser.add_argument("--seed", type=int, default=0, help="phantom placement seed (default 0)")
     parser.add_argument("--calibration", metavar="PATH.npz",
                         help="sensor calibration (default: the shipped one for --sensor sim)")

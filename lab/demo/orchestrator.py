@@ -64,7 +64,8 @@ class DemoConfig:
     """What to run.
 
     Attributes:
-        scene: phantom scene (``breast``, ``severity``, ``localization``).
+        scene: phantom scene (``breast``, ``severity``, ``localization``) or a phantom
+            ``FILE.toml`` (:mod:`remote_site.phantom.phantom_file`).
         seed: phantom placement seed.
         link: link-emulator profile of the path between the two sites, or None; each
             station <-> relay leg gets half its one-way delay and jitter.
@@ -257,12 +258,15 @@ def run_demo(config: DemoConfig,
         remote_args = list(config.extra_remote_args)
         remote_toml = (Path(remote_args[remote_args.index("--config") + 1])
                        if "--config" in remote_args[:-1] else None)
-        write_ground_truth(build_world(config.scene, config.seed), files["ground_truth"],
+        # a phantom file is passed by absolute path: the stations run in the work directory
+        phantom = (str(Path(config.scene).resolve()) if Path(config.scene).suffix == ".toml"
+                   else config.scene)
+        write_ground_truth(build_world(phantom, config.seed), files["ground_truth"],
                            load_workspace(toml_path=remote_toml))
         common = ["--session", SESSION, "--token", token]
         remote = procs.start(
             "remote", "remote", "--relay", f"ws://127.0.0.1:{remote_port}/", *common,
-            "--arm", "sim", "--sensor", "sim", "--phantom", config.scene,
+            "--arm", "sim", "--sensor", "sim", "--phantom", phantom,
             "--seed", str(config.seed), "--frame-rate-hz", f"{config.frame_rate_hz:g}",
             "--summary-json", str(files["remote_summary"]), *config.extra_remote_args)
         local = procs.start(

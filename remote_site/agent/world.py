@@ -1,7 +1,8 @@
 """The simulated world of the remote station (simulator code): a phantom for sim backends.
 
-With ``--phantom SCENE --seed N`` the sim arm feels that phantom (force at every 1 kHz step)
-and the sim sensor renders that phantom's gel contact depth map at the arm's current pose.
+With ``--phantom SCENE|FILE.toml --seed N`` the sim arm feels that phantom (force at every
+1 kHz step) and the sim sensor renders that phantom's gel contact depth map at the arm's
+current pose.
 The station reaches this module only by name, through
 :data:`remote_site.agent.devices.WORLDS` (``"phantom"`` -> :func:`build_world`), and uses
 the world through the :class:`remote_site.agent.devices.World` protocol: product code never
@@ -18,7 +19,7 @@ import numpy as np
 
 from remote_site.arm.base import Arm
 from remote_site.phantom.phantom import Phantom, PixelGrid
-from remote_site.phantom.scenes import make_scene
+from remote_site.phantom.phantom_file import resolve_phantom
 from remote_site.sensor.base import TactileSensor
 
 __all__ = ["SimWorld", "build_world"]
@@ -63,9 +64,9 @@ class SimWorld:
 
 
 def build_world(scene: str, seed: int = 0) -> SimWorld:
-    """The simulated world for ``--phantom SCENE --seed N``.
+    """The simulated world for ``--phantom SCENE|FILE.toml --seed N``.
 
     Raises:
-        ConfigError: an unknown scene name.
+        ConfigError: an unknown scene name, or an unreadable or invalid phantom file.
     """
-    return SimWorld(make_scene(scene, seed))
+    return SimWorld(resolve_phantom(scene, seed))

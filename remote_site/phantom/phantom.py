@@ -65,17 +65,25 @@ class SiliconeLayer:
     Attributes:
         size_mm: (width along x, depth along y) of the footprint.
         thickness_mm: layer thickness h (bonded to a rigid base).
-        modulus_kpa: Young's modulus of the background silicone (tens of kPa).
+        modulus_kpa: small-strain Young's modulus of the background silicone (tens of kPa).
+        nonlinearity: strain stiffening ``beta``: the tissue's contact stiffness at approach
+            ``d`` is ``k0 (1 + beta d / h)`` (0 = linear). Soft silicones (Ecoflex, Dragon
+            Skin) and breast tissue stiffen with strain; a neo-Hookean / Fung fit of
+            indentation data of a finite layer gives beta of order 1-3 at these strains
+            (Samani & Plewes 2004 report a 2-4x tangent-modulus rise at 20 % strain).
     """
 
     size_mm: tuple[float, float] = (100.0, 100.0)
     thickness_mm: float = 20.0
     modulus_kpa: float = 50.0
+    nonlinearity: float = 0.0
 
     def __post_init__(self) -> None:
         vals = (*self.size_mm, self.thickness_mm, self.modulus_kpa)
         if not all(math.isfinite(v) and v > 0 for v in vals):
             raise ConfigError("silicone layer: size, thickness and modulus must be finite and > 0")
+        if not (math.isfinite(self.nonlinearity) and self.nonlinearity >= 0):
+            raise ConfigError("silicone layer: nonlinearity must be finite and >= 0")
 
 
 @dataclass(frozen=True)
@@ -317,11 +325,18 @@ class Phantom:
         x, y, _ = _check_pose((x_mm, y_mm, 0.0))
         return self._stiffness_lookup(x, y)
 
-    def measured_stiffness_n_per_mm(self, x_mm: float, y_mm: float) -> float:
-        """Stiffness the arm sees at (x, y): tissue and gel in series."""
+    def measured_stiffness_n_per_mm(self, x_mm: float, y_mm: float,
+                                    approach_mm: float = 0.0) -> float:
+        """Secant stiffness the arm sees at (x, y) and approach ``d``: tissue and gel in series.
+
+        With a non-linear layer the tissue's stiffness is ``k0 (1 + beta d / h)`` (first
+        order: evaluated at the whole approach, not at the tissue's share of it).
+        """
         k_t = self.tissue_stiffness_n_per_mm(x_mm, y_mm)
         if k_t <= 0.0:
             return 0.0
+        if self.layer.nonlinearity > 0 and approach_mm > 0:
+            k_t *= 1.0 + self.layer.nonlinearity * approach_mm / self.layer.thickness_mm
         return 1.0 / (1.0 / k_t + 1.0 / self.pad.gel_stiffness_n_per_mm)
 
     def force_n(self, position_mm: Sequence[float]) -> float:
@@ -333,7 +348,7 @@ class Phantom:
         x, y, z = _check_pose(position_mm)
         if z >= 0.0:
             return 0.0
-        return self.measured_stiffness_n_per_mm(x, y) * (-z)
+        return self.measured_stiffness_n_per_mm(x, y, -z) * (-z)
 
     # ------------------------------------------------------------------ contact
 
@@ -400,7 +415,8 @@ class Phantom:
             load *= np.float32(force / (total * px_area * self.pad.gel_stiffness_per_area))
             depth = load
         local = total / weight_sum if weight_sum > 0 else 0.0
-        return Contact(depth, force, approach, force / k_t, local, k_t)
+        k_eff = k_t * (1.0 + self.layer.nonlinearity * approach / self.layer.thickness_mm)
+        return Contact(depth, force, approach, force / k_eff, local, k_t)
 
     # ------------------------------------------------------------------ ground truth
 
