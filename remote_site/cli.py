@@ -51,7 +51,12 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--phantom",
                         help="simulated world for sim backends: a phantom scene (breast, "
                              "severity, localization) or a phantom FILE.toml")
-    parser.add_argument("--seed", type=int, default=0, help="phantom placement seed (default 0)")
+    parser.add_argument("--seed", type=int, default=0,
+                        help="phantom placement and simulated-noise seed (default 0)")
+    parser.add_argument("--ideal", action="store_true",
+                        help="noise-free simulated world: perfectly registered phantom, no "
+                             "force/position noise, linear tissue (default: realistic, see "
+                             "docs/simulated-world.md)")
     parser.add_argument("--calibration", metavar="PATH.npz",
                         help="sensor calibration (default: the shipped one for --sensor sim)")
     parser.add_argument("--stiffness-calibration", dest="stiffness_calibration",
@@ -86,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
         ca_file=args.ca_file,
         arm=args.arm, sensor=args.sensor, sensor_preset=args.sensor_preset,
         sensor_fps=args.sensor_fps, sensor_loop=args.sensor_loop, phantom=args.phantom,
-        seed=args.seed,
+        seed=args.seed, ideal=args.ideal,
         calibration=Path(args.calibration) if args.calibration else None,
         stiffness_calibration=(Path(args.stiffness_calibration)
                                if args.stiffness_calibration else None),

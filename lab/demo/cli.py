@@ -30,6 +30,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--phantom", metavar="FILE.toml", default=None,
                         help="a phantom file instead of --scene (docs/phantoms.md)")
     parser.add_argument("--seed", type=int, default=0, help="phantom placement seed (default 0)")
+    parser.add_argument("--ideal", action="store_true",
+                        help="noise-free simulated world (default: realistic noise and an "
+                             "unknown arm <-> phantom registration error per seed)")
     parser.add_argument("--link", choices=LINKS, default=None,
                         help="put the link emulator with this profile between the stations "
                              "and the relay (default: direct)")
@@ -85,7 +88,8 @@ def run(args: argparse.Namespace) -> int:
     from lab.demo.orchestrator import DEFAULT_MOTION, DemoConfig, run_demo
     from shared.report import StatusLine, emit, emit_json
 
-    config = DemoConfig(scene=args.phantom or args.scene, seed=args.seed, link=args.link,
+    config = DemoConfig(scene=args.phantom or args.scene, seed=args.seed, ideal=args.ideal,
+                        link=args.link,
                         motion=args.motion or DEFAULT_MOTION, max_duration_s=args.duration,
                         frame_rate_hz=args.frame_rate_hz,
                         workdir=Path(args.workdir) if args.workdir else None)

@@ -70,6 +70,8 @@ class DemoConfig:
         link: link-emulator profile of the path between the two sites, or None; each
             station <-> relay leg gets half its one-way delay and jitter.
         motion: the scripted operator (``teletouch local --motion`` spec).
+        ideal: the noise-free simulated world (default: the realistic one, with an unknown
+            registration error drawn from ``seed``).
         max_duration_s: stop the operator after this long whatever happens.
         frame_rate_hz: remote sensor frame rate.
         workdir: where logs and files go (a temporary directory when None).
@@ -83,6 +85,7 @@ class DemoConfig:
     seed: int = 0
     link: str | None = None
     motion: str = DEFAULT_MOTION
+    ideal: bool = False
     max_duration_s: float = 100.0
     frame_rate_hz: float = 120.0
     workdir: Path | None = None
@@ -261,13 +264,15 @@ def run_demo(config: DemoConfig,
         # a phantom file is passed by absolute path: the stations run in the work directory
         phantom = (str(Path(config.scene).resolve()) if Path(config.scene).suffix == ".toml"
                    else config.scene)
-        write_ground_truth(build_world(phantom, config.seed), files["ground_truth"],
+        write_ground_truth(build_world(phantom, config.seed, ideal=config.ideal),
+                           files["ground_truth"],
                            load_workspace(toml_path=remote_toml))
         common = ["--session", SESSION, "--token", token]
         remote = procs.start(
             "remote", "remote", "--relay", f"ws://127.0.0.1:{remote_port}/", *common,
             "--arm", "sim", "--sensor", "sim", "--phantom", phantom,
-            "--seed", str(config.seed), "--frame-rate-hz", f"{config.frame_rate_hz:g}",
+            "--seed", str(config.seed), *(["--ideal"] if config.ideal else []),
+            "--frame-rate-hz", f"{config.frame_rate_hz:g}",
             "--summary-json", str(files["remote_summary"]), *config.extra_remote_args)
         local = procs.start(
             "local", "local", "--relay", f"ws://127.0.0.1:{local_port}/", *common,

@@ -64,7 +64,8 @@ class AgentOptions:
         sensor_fps: pace a camera source at this rate (None: a video file's own rate).
         sensor_loop: restart a video file at its end.
         phantom: scene name of the simulated world (None: no world).
-        seed: placement seed of the phantom.
+        seed: placement seed of the phantom (and the simulated session's noise).
+        ideal: the noise-free simulated world instead of the realistic default.
         calibration: the sensor calibration (.npz); the backend's default when None.
         stiffness_calibration: the probe's stiffness calibration (.json, made by
             ``teletouch sensor calibrate-stiffness``); the backend's default when None
@@ -87,6 +88,7 @@ class AgentOptions:
     sensor_loop: bool = False
     phantom: str | None = None
     seed: int = 0
+    ideal: bool = False
     calibration: Path | None = None
     stiffness_calibration: Path | None = None
     frame_rate_hz: float | None = None
@@ -146,7 +148,8 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
         stiffness_cfg = stiffness_cfg.with_calibration(stiffness_calibration)
     stiffness_to_k = stiffness_calibration.stiffness_to_k()
 
-    world = open_world("phantom", options.phantom, options.seed) if options.phantom else None
+    world = open_world("phantom", options.phantom, options.seed,
+                       ideal=options.ideal) if options.phantom else None
 
     arm = open_world_arm(options.arm, world)
     sensor = open_world_sensor(options.sensor, world, arm, **sensor_options(options))
