@@ -24,7 +24,33 @@ from __future__ import annotations
 
 import argparse
 
-__all__ = ["configure_parser", "run"]
+__all__ = ["configure_parser", "parse_fiducials", "run"]
+
+
+def parse_fiducials(text: str | None) -> tuple[tuple[float, float], ...]:
+    """``"x,y;x,y;..."`` -> ((x, y), ...); None or empty -> ().
+
+    Raises:
+        ConfigError: not pairs of finite numbers, or fewer than 2 of them.
+    """
+    import math
+
+    from shared.errors import ConfigError
+
+    if not text:
+        return ()
+    out = []
+    for part in text.split(";"):
+        try:
+            x, y = (float(v) for v in part.split(","))
+        except ValueError as err:
+            raise ConfigError(f"--fiducials: {part!r} is not 'x,y'") from err
+        if not (math.isfinite(x) and math.isfinite(y)):
+            raise ConfigError(f"--fiducials: {part!r} is not finite")
+        out.append((x, y))
+    if len(out) < 2:
+        raise ConfigError("--fiducials: a registration needs at least 2 fiducials")
+    return tuple(out)
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -53,6 +79,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                              "severity, localization) or a phantom FILE.toml")
     parser.add_argument("--seed", type=int, default=0,
                         help="phantom placement and simulated-noise seed (default 0)")
+    parser.add_argument("--fiducials", default=None, metavar="X,Y;X,Y;...",
+                        help="design positions (phantom mm) of the phantom's fiducials: "
+                             "measure the arm <-> phantom registration on them at start-up "
+                             "(docs/registration.md)")
     parser.add_argument("--ideal", action="store_true",
                         help="noise-free simulated world: perfectly registered phantom, no "
                              "force/position noise, linear tissue (default: realistic, see "
@@ -91,7 +121,7 @@ def run(args: argparse.Namespace) -> int:
         ca_file=args.ca_file,
         arm=args.arm, sensor=args.sensor, sensor_preset=args.sensor_preset,
         sensor_fps=args.sensor_fps, sensor_loop=args.sensor_loop, phantom=args.phantom,
-        seed=args.seed, ideal=args.ideal,
+        seed=args.seed, ideal=args.ideal, fiducials=parse_fiducials(args.fiducials),
         calibration=Path(args.calibration) if args.calibration else None,
         stiffness_calibration=(Path(args.stiffness_calibration)
                                if args.stiffness_calibration else None),

@@ -51,6 +51,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="--ood: comma-separated families (default: all)")
     parser.add_argument("--ideal", action="store_true",
                         help="--ood: the noise-free world (default: realistic)")
+    parser.add_argument("--no-register", dest="register", action="store_false",
+                        help="--ood: no fiducial registration (analyse in the designed map)")
     parser.add_argument("--cache", default=None, metavar="DIR",
                         help="--ood: keep simulated recordings here and reuse them")
 
@@ -163,14 +165,15 @@ def _run_ood(args: argparse.Namespace) -> int:
     cache = Path(args.cache) if args.cache else None
     command = (f"teletouch bench palpation --ood --runs {n} --first-seed {args.first_seed}"
                + (f" --families {args.families}" if args.families else "")
-               + (" --ideal" if args.ideal else ""))
+               + (" --ideal" if args.ideal else "")
+               + ("" if args.register else " --no-register"))
     load_start = os.getloadavg()[0]
     started = time.monotonic()
     runs: list[dict[str, Any]] = []
     for i in range(n):  # indices outermost: an interrupted run covers every family
         for family in families:
             case = make_case(family, i, n, args.first_seed + i, ideal=args.ideal)
-            result = run_case(case, cache)
+            result = run_case(case, cache, register=args.register)
             runs.append(result)
             emit(f"[{time.monotonic() - started:6.0f} s] {family} #{i} factor "
                  f"{case.factor:.3g}: " + (result.get("error", "") or

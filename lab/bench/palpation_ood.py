@@ -42,12 +42,13 @@ from typing import Any
 
 import numpy as np
 
-from lab.bench.palpation_session import Operator, simulate_session
+from lab.bench.palpation_session import Operator, simulate_registration, simulate_session
 from lab.scoring import score_findings
 from local_site.palpation import analyse_recording
 from local_site.recording import Recording
 from remote_site.agent.world import IDEAL, REALISTIC, Realism, Registration, world_for
 from remote_site.phantom.phantom_file import phantom_from_dict
+from remote_site.registration import RegistrationEstimate
 from shared.errors import InputDataError
 from shared.workspace import WorkspaceMap
 
@@ -57,6 +58,9 @@ LAYER = {"size_mm": [100.0, 100.0], "thickness_mm": 20.0, "modulus_kpa": 50.0}
 E_BG = 50.0
 #: the workspace reaches +-29 mm of the phantom centre; inclusions stay inside +-22 mm
 PLACE = {"half_mm": 22.0, "min_separation_mm": 18.0}
+#: the phantom's registration markers (design positions), as in the shipped scenes
+FIDUCIALS = [{"center_mm": [x, y]} for x, y in ((-42.0, -42.0), (42.0, -42.0), (42.0, 42.0),
+                                                 (-42.0, 42.0))]
 #: the issue's detection target: radius >= 3 mm, depth <= 12 mm, contrast >= 2x
 TARGET = {"radius_mm": 3.0, "depth_mm": 12.0, "contrast": 2.0}
 
@@ -162,7 +166,8 @@ def make_case(family: str, index: int, n: int, seed: int, ideal: bool = False) -
     else:
         raise KeyError(family)
     phantom = {"name": f"ood-{family}-{index}", "layer": LAYER, "placement": PLACE,
-               "inclusion": [{"id": f"T{k + 1}", **inc} for k, inc in enumerate(incs)]}
+               "inclusion": [{"id": f"T{k + 1}", **inc} for k, inc in enumerate(incs)],
+               "fiducial": FIDUCIALS}
     return Case(family, index, seed, factor, phantom, operator, realism, registration)
 
 
@@ -190,13 +195,35 @@ Analyse = Callable[[Recording, dict[str, Any]], list[Any]]
 
 
 def default_analysis(rec: Recording, context: dict[str, Any]) -> list[Any]:
-    """The local station's analysis, in the workspace map the recording says it used."""
-    return analyse_recording(rec)
+    """The local station's analysis, in the workspace map the recording says it used,
+    corrected by the session's fiducial registration when one was made."""
+    est = context.get("registration")
+    if est is None:
+        return analyse_recording(rec)
+    # platform -> arm (the recorded map) -> phantom (the estimated rigid motion)
+    return analyse_recording(rec, WorkspaceMap().registered(est.dx_mm, est.dy_mm, est.yaw_deg))
 
 
-def run_case(case: Case, cache: Path | None = None,
-             analyse: Analyse = default_analysis) -> dict[str, Any]:
-    """Simulate (or load) the case's session, analyse and score it."""
+def _registration(world: Any, path: Path | None) -> RegistrationEstimate:
+    if path is not None and path.exists():
+        data: dict[str, Any] = json.loads(path.read_text())
+        data["measured_arm_mm"] = tuple(tuple(p) for p in data["measured_arm_mm"])
+        return RegistrationEstimate(**data)
+    est = simulate_registration(world)
+    if path is not None:
+        path.write_text(json.dumps(est.to_dict()))
+    return est
+
+
+def run_case(case: Case, cache: Path | None = None, analyse: Analyse = default_analysis,
+             register: bool = True) -> dict[str, Any]:
+    """Simulate (or load) the case's session, analyse and score it.
+
+    With ``register`` the fiducial registration is simulated too and the analysis maps the
+    recording through it. (The live station puts the registration into its workspace map
+    before palpation, so the operator's strokes land where meant; here the session is
+    recorded through the designed map and corrected afterwards, which shifts the palpated
+    area by the registration error but scores the same positions.)"""
     phantom = phantom_from_dict(case.phantom, case.seed, source=case.key)
     world = world_for(phantom, case.realism, case.seed, case.registration)
     path = cache / f"{case.key}.npz" if cache is not None else None
@@ -210,8 +237,11 @@ def run_case(case: Case, cache: Path | None = None,
             _save(rec, path)
     t1 = time.monotonic()
     truth = world.phantom.ground_truth()
+    est = None
+    if register:
+        est = _registration(world, path.with_suffix(".reg.json") if path is not None else None)
     try:
-        findings = analyse(rec, {"world": world, "case": case})
+        findings = analyse(rec, {"world": world, "case": case, "registration": est})
     except InputDataError as err:
         return {"family": case.family, "index": case.index, "seed": case.seed,
                 "factor": case.factor, "error": str(err)}
@@ -233,6 +263,7 @@ def run_case(case: Case, cache: Path | None = None,
     return {"family": case.family, "index": case.index, "seed": case.seed,
             "factor": case.factor, "frames": rec.frames,
             "registration": world.registration.to_dict(),
+            "registration_estimate": est.to_dict() if est is not None else None,
             "inclusions": inclusions, "false_positives": score["false_positives"],
             "kendall_tau": score["kendall_tau"],
             "findings": [f.to_dict() for f in findings],

@@ -36,6 +36,7 @@ from remote_site.arm.base import ArmLimits
 from remote_site.arm.sim import SimArm, SimArmConfig
 from remote_site.phantom.reference_presses import sim_stiffness_calibration
 from remote_site.reconstruction.reconstructor import Reconstructor
+from remote_site.registration import RegistrationEstimate, calibrate_with_fiducials
 from remote_site.sensor.sim_calibration import simulated_calibration
 from remote_site.sensor.simulator import SimulatedSensor
 from remote_site.stiffness.estimator import StiffnessConfig
@@ -44,7 +45,7 @@ from shared.errors import ConfigError
 from shared.protocol.messages import TactileFrame
 from shared.workspace import WorkspaceMap
 
-__all__ = ["Operator", "operator_path", "simulate_session"]
+__all__ = ["Operator", "operator_path", "simulate_registration", "simulate_session"]
 
 
 @dataclass(frozen=True)
@@ -198,3 +199,29 @@ def simulate_session(world: SimWorld, operator: Operator, *,
                                   "frame_rate_hz": frame_rate_hz,
                                   "rejected": dict(pipeline.rejected)}}
     return _recording(frames, platform, dt, meta)
+
+
+def simulate_registration(world: SimWorld) -> RegistrationEstimate:
+    """The station's fiducial registration (:mod:`remote_site.registration`) on ``world``.
+
+    The same procedure the remote station runs at start-up, with the simulated arm stepped
+    in simulated time.
+
+    Raises:
+        CalibrationError: the phantom has fewer than 2 fiducials, or they were not found.
+    """
+    arm = SimArm(config=SimArmConfig(realtime=False, loop_hz=250.0, seed=world.seed),
+                 limits=ArmLimits(), **world.arm_options())
+    holder: list[SimulatedSensor] = []
+    sensor = SimulatedSensor(**world.sensor_options(arm, lambda: holder[0]))
+    holder.append(sensor)
+    world.prepare_sensor(sensor)
+    arm.connect()
+    sensor.connect()
+    try:
+        return calibrate_with_fiducials(arm, sensor, Reconstructor(simulated_calibration()),
+                                        [f.center_mm for f in world.phantom.fiducials],
+                                        wait=arm.advance)
+    finally:
+        sensor.disconnect()
+        arm.disconnect()

@@ -72,6 +72,8 @@ class DemoConfig:
         motion: the scripted operator (``teletouch local --motion`` spec).
         ideal: the noise-free simulated world (default: the realistic one, with an unknown
             registration error drawn from ``seed``).
+        register: let the remote station measure the registration on the phantom's
+            fiducials before palpation (when it has any).
         max_duration_s: stop the operator after this long whatever happens.
         frame_rate_hz: remote sensor frame rate.
         workdir: where logs and files go (a temporary directory when None).
@@ -86,6 +88,7 @@ class DemoConfig:
     link: str | None = None
     motion: str = DEFAULT_MOTION
     ideal: bool = False
+    register: bool = True
     max_duration_s: float = 100.0
     frame_rate_hz: float = 120.0
     workdir: Path | None = None
@@ -264,14 +267,18 @@ def run_demo(config: DemoConfig,
         # a phantom file is passed by absolute path: the stations run in the work directory
         phantom = (str(Path(config.scene).resolve()) if Path(config.scene).suffix == ".toml"
                    else config.scene)
-        write_ground_truth(build_world(phantom, config.seed, ideal=config.ideal),
-                           files["ground_truth"],
-                           load_workspace(toml_path=remote_toml))
+        world = build_world(phantom, config.seed, ideal=config.ideal)
+        write_ground_truth(world, files["ground_truth"], load_workspace(toml_path=remote_toml))
+        # the fiducials' DESIGN positions are part of the phantom's description (a lab knows
+        # where it put them); where the phantom really lies is what the station measures
+        fiducials = ";".join(f"{f.center_mm[0]:g},{f.center_mm[1]:g}"
+                             for f in world.phantom.fiducials)
         common = ["--session", SESSION, "--token", token]
         remote = procs.start(
             "remote", "remote", "--relay", f"ws://127.0.0.1:{remote_port}/", *common,
             "--arm", "sim", "--sensor", "sim", "--phantom", phantom,
             "--seed", str(config.seed), *(["--ideal"] if config.ideal else []),
+            *([f"--fiducials={fiducials}"] if fiducials and config.register else []),
             "--frame-rate-hz", f"{config.frame_rate_hz:g}",
             "--summary-json", str(files["remote_summary"]), *config.extra_remote_args)
         local = procs.start(
@@ -332,6 +339,8 @@ def _report(config: DemoConfig, files: dict[str, Path], relay_final: dict[str, A
         "frames_received": recording.frames,
         "latency_ms": latency,
         "local": local_summary,
+        "registration": {"true": truth.get("world", {}).get("registration"),
+                         "estimated": remote_summary.get("registration")},
         "remote": remote_summary,
         "relay": relay_final,
         "workdir": str(workdir) if (config.keep_files or config.workdir) else None,

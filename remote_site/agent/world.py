@@ -285,9 +285,8 @@ def world_for(phantom: Phantom, realism: Realism, seed: int,
     """A world around ``phantom``: the realism's tissue stiffening (for a linear layer) and
     the session's registration error (drawn from ``seed`` unless given)."""
     if realism.tissue_nonlinearity > 0 and phantom.layer.nonlinearity == 0:
-        phantom = Phantom(layer=replace(phantom.layer, nonlinearity=realism.tissue_nonlinearity),
-                          tumors=phantom.tumors, pad=phantom.pad, name=phantom.name,
-                          seed=phantom.seed)
+        phantom = replace(phantom, layer=replace(phantom.layer,
+                                                 nonlinearity=realism.tissue_nonlinearity))
     if registration is None:
         registration = Registration.draw(realism, seed)
     return SimWorld(phantom, realism, registration, seed)

@@ -209,6 +209,8 @@ class Phantom:
     Args:
         layer: the silicone body.
         tumors: the inclusions (must lie inside the footprint).
+        fiducials: registration markers (small rigid beads just under the surface, at
+            positions known by design); felt like inclusions, listed apart in the truth.
         pad: the sensor's gel pad.
         name: scene name for the ground truth.
         seed: placement seed for the ground truth.
@@ -218,6 +220,7 @@ class Phantom:
 
     layer: SiliconeLayer = field(default_factory=SiliconeLayer)
     tumors: tuple[Tumor, ...] = ()
+    fiducials: tuple[Tumor, ...] = ()
     pad: SensorPad = field(default_factory=SensorPad)
     name: str = "custom"
     seed: int | None = None
@@ -231,8 +234,9 @@ class Phantom:
 
     def __post_init__(self) -> None:
         self.tumors = tuple(self.tumors)
+        self.fiducials = tuple(self.fiducials)
         half_x, half_y = self.layer.size_mm[0] / 2, self.layer.size_mm[1] / 2
-        for t in self.tumors:
+        for t in self.inclusions:
             if abs(t.center_mm[0]) > half_x or abs(t.center_mm[1]) > half_y:
                 raise ConfigError(f"tumor {t.tumor_id} lies outside the phantom footprint")
             if t.depth_mm > self.layer.thickness_mm:
@@ -241,6 +245,11 @@ class Phantom:
             raise ConfigError("table_step_mm must be finite and > 0")
         if int(self.modulus_oversample) != self.modulus_oversample or self.modulus_oversample < 1:
             raise ConfigError("modulus_oversample must be an integer >= 1")
+
+    @property
+    def inclusions(self) -> tuple[Tumor, ...]:
+        """Everything stiffer than the layer: tumors, then fiducials."""
+        return self.tumors + self.fiducials
 
     # ------------------------------------------------------------------ modulus field
 
@@ -267,7 +276,7 @@ class Phantom:
         compliance = np.ones((ys.size, xs.size))
         a = self.pad.effective_radius_mm
         h = self.layer.thickness_mm
-        for t in self.tumors:
+        for t in self.inclusions:
             cx, cy = t.center_mm
             reach = t.reach_mm
             i0, i1 = np.searchsorted(ys, [cy - reach, cy + reach])
@@ -367,7 +376,8 @@ class Phantom:
         if table is None:
             table = ColumnModulusTable(self.layer.size_mm, self.layer.modulus_kpa,
                                        self.layer.thickness_mm, self.pad.effective_radius_mm,
-                                       self.tumors, mm_per_px, int(self.modulus_oversample))
+                                       self.inclusions, mm_per_px,
+                                       int(self.modulus_oversample))
             self._modulus_tables[mm_per_px] = table
         return table
 
@@ -439,6 +449,9 @@ class Phantom:
                     "gel_stiffness_n_per_mm": self.pad.gel_stiffness_n_per_mm},
             "background_stiffness_n_per_mm": k_bg,
             "tumors": tumors,
+            "fiducials": [{"id": f.tumor_id, "center_mm": [float(c) for c in f.center_mm],
+                           "depth_mm": f.depth_mm, "radius_mm": f.radius_mm}
+                          for f in self.fiducials],
         }
 
     def write_ground_truth(self, path: str | Path) -> Path:

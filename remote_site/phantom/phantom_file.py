@@ -30,6 +30,12 @@ A lab mirrors its physical phantom in the simulator by writing one file::
     surface_phase_rad = 0.0            # optional: random per seed if absent
     severity_rank = 1                  # optional: 1 = least severe
 
+    [[fiducial]]                       # registration markers: rigid beads at design positions
+    center_mm = [42.0, 42.0]           # outside the palpated area
+    depth_mm = 1.5                     # optional (1.5), centre depth
+    radius_mm = 1.5                    # optional (1.5)
+    modulus_kpa = 3.5e6                # optional (rigid: PLA / steel)
+
 Every value is checked; a bad one raises :class:`~shared.errors.ConfigError` naming the file,
 the inclusion and the field. The random draws happen in a fixed order (centres, shuffle,
 then per inclusion its outline amplitudes and phases), so a file and a seed always give the
@@ -48,13 +54,14 @@ from typing import Any
 import numpy as np
 
 from remote_site.phantom.phantom import Phantom, SensorPad, SiliconeLayer
-from remote_site.phantom.tumor import TUMOR_KINDS, Tumor
+from remote_site.phantom.tumor import FIDUCIAL, TUMOR_KINDS, Tumor
 from shared.errors import ConfigError
 
 __all__ = ["load_phantom", "phantom_from_dict", "read_phantom_file", "resolve_phantom",
            "scene_file", "shipped_scene_names"]
 
-_TOP_KEYS = {"name", "layer", "placement", "inclusion"}
+_TOP_KEYS = {"name", "layer", "placement", "inclusion", "fiducial"}
+_FIDUCIAL_KEYS = {"id", "center_mm", "depth_mm", "radius_mm", "modulus_kpa"}
 _LAYER_KEYS = {"size_mm", "thickness_mm", "modulus_kpa", "nonlinearity"}
 _PLACEMENT_KEYS = {"half_mm", "min_separation_mm", "shuffle"}
 _INCLUSION_KEYS = {"id", "kind", "material", "center_mm", "depth_mm", "radius_mm",
@@ -271,8 +278,28 @@ def phantom_from_dict(data: Mapping[str, Any], seed: int = 0, *, source: str = "
             harmonics=harmonics, surface_roughness=rough, surface_phase_rad=phase,
             severity_rank=rank))
     name = top.text("name", default_name)
-    return Phantom(layer=layer, tumors=tuple(tumors), pad=pad or SensorPad(), name=name,
-                   seed=seed)
+    return Phantom(layer=layer, tumors=tuple(tumors), fiducials=_fiducials(data, top.where, layer),
+                   pad=pad or SensorPad(), name=name, seed=seed)
+
+
+def _fiducials(data: Mapping[str, Any], where: str, layer: SiliconeLayer) -> tuple[Tumor, ...]:
+    raw = data.get("fiducial", [])
+    if not isinstance(raw, list):
+        raise ConfigError(f"{where}: fiducial must be an array of tables ([[fiducial]])")
+    out = []
+    for i, table in enumerate(raw):
+        f = _Fields(table, f"{where}: fiducial {i + 1}", _FIDUCIAL_KEYS)
+        centre = f.pair("center_mm", positive=False)
+        if centre is None:
+            raise ConfigError(f"{f.where}: missing required field 'center_mm'")
+        if abs(centre[0]) > layer.size_mm[0] / 2 or abs(centre[1]) > layer.size_mm[1] / 2:
+            raise ConfigError(f"{f.where}: center_mm {list(centre)} lies outside the layer")
+        depth = f.number("depth_mm", 1.5, low=0, high=layer.thickness_mm)
+        out.append(Tumor(f.text("id", f"F{i + 1}"), FIDUCIAL, centre, depth_mm=depth,
+                         radius_mm=f.number("radius_mm", 1.5, low=0, low_open=True),
+                         modulus_kpa=f.number("modulus_kpa", 3.5e6, low=0, low_open=True),
+                         material="fiducial"))
+    return tuple(out)
 
 
 def read_phantom_file(path: str | Path) -> dict[str, Any]:

@@ -11,6 +11,8 @@ the same loader as ``--phantom FILE.toml``; the seed drives its random placement
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 from remote_site.phantom.phantom import Phantom, SensorPad, SiliconeLayer
 from remote_site.phantom.phantom_file import load_phantom, scene_file, shipped_scene_names
 
@@ -41,5 +43,4 @@ def make_scene(name: str, seed: int = 0, *, layer: SiliconeLayer | None = None,
     phantom = load_phantom(scene_file(name), seed, pad=pad)
     if layer is None:
         return phantom
-    return Phantom(layer=layer, tumors=phantom.tumors, pad=phantom.pad, name=phantom.name,
-                   seed=seed)
+    return replace(phantom, layer=layer)
