@@ -35,7 +35,7 @@ from shared.errors import CalibrationError, DeviceError, InputDataError
 from shared.workspace import WorkspaceMap
 
 __all__ = ["RegistrationEstimate", "calibrate_with_fiducials", "fit_registration",
-           "locate_bump"]
+           "locate_bump", "robust_fit"]
 
 
 @dataclass(frozen=True)
@@ -184,6 +184,7 @@ def locate_bump(height_mm: ArrayLike, pitch_mm: float, *, min_prominence_mm: flo
 
 def _move_and_wait(arm: Arm, target: tuple[float, float, float], wait: Callable[[float], object],
                    tolerance_mm: float, timeout_s: float) -> None:
+    target = arm.limits.clamp(target)
     arm.move_to(target)
     waited = 0.0
     while waited < timeout_s:
@@ -200,12 +201,17 @@ def calibrate_with_fiducials(arm: Arm, sensor: TactileSensor, reconstructor: Rec
                              press_mm: float = 1.5, hover_mm: float = 5.0,
                              settle_s: float = 0.2, pitch_mm: float = 0.5,
                              wait: Callable[[float], object] = time.sleep,
-                             timeout_s: float = 10.0) -> RegistrationEstimate:
-    """Press each fiducial's design position, find the bead, fit the registration.
+                             timeout_s: float = 10.0, outlier_mm: float = 0.5,
+                             centred_mm: float = 3.0,
+                             ring_mm: float = 5.0) -> RegistrationEstimate:
+    """Press each fiducial, find the bead, fit the registration.
 
-    The arm moves above the design position, lowers the pad ``press_mm`` into the surface,
-    waits ``settle_s``, takes one sensor frame, finds the bead and lifts again. The arm is
-    commanded in its own frame (the designed map's phantom coordinates).
+    For each fiducial the arm presses where the fiducials found so far predict it (the
+    design position for the first), lowering the pad ``press_mm`` into the surface, waiting
+    ``settle_s`` and taking one sensor frame. A bead felt more than ``centred_mm`` off the
+    pad centre is pressed again, centred; a bead not felt at all is searched on a ring of
+    ``ring_mm`` around the prediction. The arm is commanded in its own frame (the designed
+    map's phantom coordinates).
 
     Args:
         arm: the connected arm (or its safety wrapper).
@@ -218,6 +224,10 @@ def calibrate_with_fiducials(arm: Arm, sensor: TactileSensor, reconstructor: Rec
         pitch_mm: height-map pitch used to find the bead.
         wait: sleeps (realtime arm) or advances the simulated arm by the given seconds.
         timeout_s: longest wait for one move.
+        outlier_mm: residual rms above which the worst fiducial is dropped (see
+            :func:`robust_fit`).
+        centred_mm: a bead felt further off the pad centre is pressed again on it.
+        ring_mm: radius of the search ring when a bead is not felt.
 
     Raises:
         CalibrationError: a move times out, fewer than 2 fiducials are found, or the
@@ -226,9 +236,12 @@ def calibrate_with_fiducials(arm: Arm, sensor: TactileSensor, reconstructor: Rec
     found_arm: list[tuple[float, float]] = []
     found_design: list[tuple[float, float]] = []
     misses = []
-    for fx, fy in ((float(f[0]), float(f[1])) for f in fiducials_mm):
-        _move_and_wait(arm, (fx, fy, hover_mm), wait, 0.5, timeout_s)
-        _move_and_wait(arm, (fx, fy, -press_mm), wait, 0.05, timeout_s)
+
+    def press(xy: tuple[float, float]) -> tuple[float, float, float] | None:
+        """Press at arm (x, y); the bead's arm position and its distance from the pad
+        centre, or None when no bead is felt."""
+        _move_and_wait(arm, (xy[0], xy[1], hover_mm), wait, 0.5, timeout_s)
+        _move_and_wait(arm, (xy[0], xy[1], -press_mm), wait, 0.05, timeout_s)
         wait(settle_s)
         try:
             frame = sensor.read_latest(max_age_ms=1e9)
@@ -236,14 +249,54 @@ def calibrate_with_fiducials(arm: Arm, sensor: TactileSensor, reconstructor: Rec
             hm = reconstructor.height_map(frame.rgb, out_pitch_mm=pitch_mm)
             ox, oy = locate_bump(hm.height_mm, hm.mm_per_px)
         except InputDataError as err:
-            misses.append(f"({fx:g}, {fy:g}): {err}")
+            misses.append(f"({xy[0]:.1f}, {xy[1]:.1f}): {err}")
+            return None
         except DeviceError as err:
             raise CalibrationError(f"sensor failed during the registration: {err}") from err
+        finally:
+            _move_and_wait(arm, (xy[0], xy[1], hover_mm), wait, 0.5, timeout_s)
+        return pose[0] + ox, pose[1] + oy, math.hypot(ox, oy)
+
+    for fx, fy in ((float(f[0]), float(f[1])) for f in fiducials_mm):
+        # where to press: the design position through what was measured so far
+        if len(found_arm) >= 2:
+            guess = fit_registration(found_arm, found_design)
+            th = math.radians(-guess.yaw_deg)
+            px, py = fx - guess.dx_mm, fy - guess.dy_mm
+            start_xy = (math.cos(th) * px - math.sin(th) * py,
+                        math.sin(th) * px + math.cos(th) * py)
+        elif found_arm:
+            start_xy = (fx + found_arm[0][0] - found_design[0][0],
+                        fy + found_arm[0][1] - found_design[0][1])
         else:
-            found_arm.append((pose[0] + ox, pose[1] + oy))
-            found_design.append((fx, fy))
-        _move_and_wait(arm, (fx, fy, hover_mm), wait, 0.5, timeout_s)
+            start_xy = (fx, fy)
+        ring = [(start_xy[0] + ring_mm * math.cos(k * math.pi / 3),
+                 start_xy[1] + ring_mm * math.sin(k * math.pi / 3)) for k in range(6)]
+        for xy in [start_xy, *ring]:
+            hit = press(xy)
+            if hit is not None and hit[2] > centred_mm:  # felt off-centre: press on it
+                hit = press((hit[0], hit[1]))
+            if hit is not None and hit[2] <= centred_mm:
+                found_arm.append((hit[0], hit[1]))
+                found_design.append((fx, fy))
+                break
     if len(found_arm) < 2:
         raise CalibrationError(f"registration: only {len(found_arm)} of {len(fiducials_mm)} "
                                f"fiducials found ({'; '.join(misses)})")
-    return fit_registration(found_arm, found_design)
+    return robust_fit(found_arm, found_design, outlier_mm=outlier_mm)
+
+
+def robust_fit(arm_xy_mm: Sequence[Sequence[float]], phantom_xy_mm: Sequence[Sequence[float]],
+               *, outlier_mm: float = 0.5) -> RegistrationEstimate:
+    """:func:`fit_registration`, dropping the worst-fitting fiducial while the residual rms
+    exceeds ``outlier_mm`` and more than 3 remain (a bead mislocated, e.g. by a tumor or
+    the phantom's edge in the sensor's view)."""
+    a = [tuple(p) for p in arm_xy_mm]
+    q = [tuple(p) for p in phantom_xy_mm]
+    est = fit_registration(a, q)
+    while est.residual_rms_mm > outlier_mm and len(a) > 3:
+        resid = np.linalg.norm(est.arm_to_phantom(a) - np.asarray(q, float), axis=1)
+        worst = int(np.argmax(resid))
+        del a[worst], q[worst]
+        est = fit_registration(a, q)
+    return est

@@ -59,8 +59,8 @@ E_BG = 50.0
 #: the workspace reaches +-29 mm of the phantom centre; inclusions stay inside +-22 mm
 PLACE = {"half_mm": 22.0, "min_separation_mm": 18.0}
 #: the phantom's registration markers (design positions), as in the shipped scenes
-FIDUCIALS = [{"center_mm": [x, y]} for x, y in ((-42.0, -42.0), (42.0, -42.0), (42.0, 42.0),
-                                                 (-42.0, 42.0))]
+FIDUCIALS = [{"center_mm": [x, y]} for x, y in ((-42.0, 0.0), (0.0, -42.0), (42.0, 0.0),
+                                                 (0.0, 42.0))]
 #: the issue's detection target: radius >= 3 mm, depth <= 12 mm, contrast >= 2x
 TARGET = {"radius_mm": 3.0, "depth_mm": 12.0, "contrast": 2.0}
 

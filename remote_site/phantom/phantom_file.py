@@ -31,7 +31,7 @@ A lab mirrors its physical phantom in the simulator by writing one file::
     severity_rank = 1                  # optional: 1 = least severe
 
     [[fiducial]]                       # registration markers: rigid beads at design positions
-    center_mm = [42.0, 42.0]           # outside the palpated area
+    center_mm = [42.0, 0.0]            # outside the palpated area
     depth_mm = 1.5                     # optional (1.5), centre depth
     radius_mm = 1.5                    # optional (1.5)
     modulus_kpa = 3.5e6                # optional (rigid: PLA / steel)
