@@ -290,6 +290,7 @@ def summarise_ood(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
                                       and i["found_kind"] == f)
                 for t in ("benign", "malignant") for f in ("benign", "malignant")}
         typed = sum(conf.values())
+        uncertain = sum(1 for i in found if i["found_kind"] == "uncertain")
         taus = [r["kendall_tau"] for r in ok if r["kendall_tau"] is not None]
         rows.append({
             "family": family, "phantoms": len(rs), "failed": len(rs) - len(ok),
@@ -298,9 +299,11 @@ def summarise_ood(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
             "detection_target": (sum(i["found"] for i in target) / len(target)
                                  if target else None),
             "fp_per_phantom": (sum(r["false_positives"] for r in ok) / len(ok)) if ok else None,
-            "type_accuracy": (conf["b->b"] + conf["m->m"]) / typed if typed else None,
+            "type_accuracy": ((conf["b->b"] + conf["m->m"]) / (typed + uncertain)
+                              if typed + uncertain else None),
             "confusion b->b b->m m->b m->m": " ".join(str(conf[k]) for k in
                                                     ("b->b", "b->m", "m->b", "m->m")),
+            "uncertain": uncertain,
             "loc_mean_mm": float(np.mean(errors)) if errors else None,
             "loc_p95_mm": _pct(errors, 95),
             "tau_mean": float(np.mean(taus)) if taus else None,
