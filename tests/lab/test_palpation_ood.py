@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 
@@ -63,7 +65,7 @@ def test_operator_paths() -> None:
 def test_summary_counts_and_confusion() -> None:
     inc = {"kind": "benign", "target": True, "found": True, "error_mm": 1.0,
            "found_kind": "malignant"}
-    runs = [{"family": "type", "inclusions": [inc, {**inc, "found": False, "error_mm": None,
+    runs: list[dict[str, Any]] = [{"family": "type", "inclusions": [inc, {**inc, "found": False, "error_mm": None,
                                                     "found_kind": None}],
              "false_positives": 1, "kendall_tau": None},
             {"family": "type", "error": "boom"}]
