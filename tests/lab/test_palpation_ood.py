@@ -65,8 +65,9 @@ def test_operator_paths() -> None:
 def test_summary_counts_and_confusion() -> None:
     inc = {"kind": "benign", "target": True, "found": True, "error_mm": 1.0,
            "found_kind": "malignant"}
-    runs: list[dict[str, Any]] = [{"family": "type", "inclusions": [inc, {**inc, "found": False, "error_mm": None,
-                                                    "found_kind": None}],
+    missed = {**inc, "found": False, "error_mm": None, "found_kind": None}
+    runs: list[dict[str, Any]] = [
+            {"family": "type", "inclusions": [inc, missed],
              "false_positives": 1, "kendall_tau": None},
             {"family": "type", "error": "boom"}]
     row = summarise_ood(runs)[0]
