@@ -49,7 +49,7 @@ from local_site.recording import Recording
 from remote_site.agent.world import IDEAL, REALISTIC, Realism, Registration, world_for
 from remote_site.phantom.phantom_file import phantom_from_dict
 from remote_site.registration import RegistrationEstimate
-from shared.errors import InputDataError
+from shared.errors import CalibrationError, InputDataError
 from shared.workspace import WorkspaceMap
 
 __all__ = ["FAMILIES", "Case", "make_case", "run_case", "summarise_ood"]
@@ -238,8 +238,13 @@ def run_case(case: Case, cache: Path | None = None, analyse: Analyse = default_a
     t1 = time.monotonic()
     truth = world.phantom.ground_truth()
     est = None
+    registration_error = None
     if register:
-        est = _registration(world, path.with_suffix(".reg.json") if path is not None else None)
+        try:
+            est = _registration(world, path.with_suffix(".reg.json") if path is not None
+                                else None)
+        except CalibrationError as err:  # scored without registration, and said so
+            registration_error = str(err)
     try:
         findings = analyse(rec, {"world": world, "case": case, "registration": est})
     except InputDataError as err:
@@ -264,6 +269,7 @@ def run_case(case: Case, cache: Path | None = None, analyse: Analyse = default_a
             "factor": case.factor, "frames": rec.frames,
             "registration": world.registration.to_dict(),
             "registration_estimate": est.to_dict() if est is not None else None,
+            "registration_error": registration_error,
             "inclusions": inclusions, "false_positives": score["false_positives"],
             "kendall_tau": score["kendall_tau"],
             "findings": [f.to_dict() for f in findings],
