@@ -28,8 +28,9 @@ def write_ground_truth(world: SimWorld, path: str | Path, workspace: WorkspaceMa
     ``center_mm`` (phantom), ``depth_mm``, ``radius_mm``, ``modulus_kpa``,
     ``severity_rank``, ``stiffness_n_per_mm``, ...) plus, per tumor, ``center_platform_mm``
     and ``display_k``, and at the top ``severity_order`` (tumor ids, least severe first;
-    empty when the scene does not rank), ``background_display_k`` and ``workspace`` (the
-    map used).
+    empty when the scene does not rank), ``background_display_k``, ``world`` (the simulated
+    world's noise levels and the session's hidden registration error) and ``workspace``
+    (the map used).
 
     Args:
         world: the simulated world.
@@ -50,6 +51,7 @@ def write_ground_truth(world: SimWorld, path: str | Path, workspace: WorkspaceMa
     ranked = [t for t in truth["tumors"] if t.get("severity_rank") is not None]
     truth["severity_order"] = [t["id"] for t in sorted(ranked, key=lambda t: t["severity_rank"])]
     truth["background_display_k"] = float(to_k.k(truth["background_stiffness_n_per_mm"]))
+    truth["world"] = world.describe()
     truth["workspace"] = {k: list(v) if isinstance(v, tuple) else v
                           for k, v in asdict(workspace.config).items()}
     out = Path(path)

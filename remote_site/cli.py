@@ -7,7 +7,8 @@ tactile frame with stiffness layers; arm state goes out at 50 Hz. SIGTERM / SIGI
 cleanly (arm halted) and write --summary-json.
 
 With --phantom SCENE --seed N the simulated arm and sensor act on that phantom (scenes:
-localization, severity, breast).
+localization, severity, breast); --phantom FILE.toml reads a phantom file instead
+(docs/phantoms.md).
 
 examples:
   TELETOUCH_REMOTE_LINK_TOKEN=... teletouch remote --relay ws://127.0.0.1:8765/ \\
@@ -23,7 +24,33 @@ from __future__ import annotations
 
 import argparse
 
-__all__ = ["configure_parser", "run"]
+__all__ = ["configure_parser", "parse_fiducials", "run"]
+
+
+def parse_fiducials(text: str | None) -> tuple[tuple[float, float], ...]:
+    """``"x,y;x,y;..."`` -> ((x, y), ...); None or empty -> ().
+
+    Raises:
+        ConfigError: not pairs of finite numbers, or fewer than 2 of them.
+    """
+    import math
+
+    from shared.errors import ConfigError
+
+    if not text:
+        return ()
+    out = []
+    for part in text.split(";"):
+        try:
+            x, y = (float(v) for v in part.split(","))
+        except ValueError as err:
+            raise ConfigError(f"--fiducials: {part!r} is not 'x,y'") from err
+        if not (math.isfinite(x) and math.isfinite(y)):
+            raise ConfigError(f"--fiducials: {part!r} is not finite")
+        out.append((x, y))
+    if len(out) < 2:
+        raise ConfigError("--fiducials: a registration needs at least 2 fiducials")
+    return tuple(out)
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -47,8 +74,19 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                              "rate; a live camera paces itself)")
     parser.add_argument("--sensor-loop", dest="sensor_loop", action="store_true",
                         help="restart a video file at its end (default: it ends, reported once)")
-    parser.add_argument("--phantom", help="simulated world: a phantom scene for sim backends")
-    parser.add_argument("--seed", type=int, default=0, help="phantom placement seed (default 0)")
+    parser.add_argument("--phantom",
+                        help="simulated world for sim backends: a phantom scene (breast, "
+                             "severity, localization) or a phantom FILE.toml")
+    parser.add_argument("--seed", type=int, default=0,
+                        help="phantom placement and simulated-noise seed (default 0)")
+    parser.add_argument("--fiducials", default=None, metavar="X,Y;X,Y;...",
+                        help="design positions (phantom mm) of the phantom's fiducials: "
+                             "measure the arm <-> phantom registration on them at start-up "
+                             "(docs/registration.md)")
+    parser.add_argument("--ideal", action="store_true",
+                        help="noise-free simulated world: perfectly registered phantom, no "
+                             "force/position noise, linear tissue (default: realistic, see "
+                             "docs/simulated-world.md)")
     parser.add_argument("--calibration", metavar="PATH.npz",
                         help="sensor calibration (default: the shipped one for --sensor sim)")
     parser.add_argument("--stiffness-calibration", dest="stiffness_calibration",
@@ -88,7 +126,7 @@ def run(args: argparse.Namespace) -> int:
         ca_file=args.ca_file,
         arm=args.arm, sensor=args.sensor, sensor_preset=args.sensor_preset,
         sensor_fps=args.sensor_fps, sensor_loop=args.sensor_loop, phantom=args.phantom,
-        seed=args.seed,
+        seed=args.seed, ideal=args.ideal, fiducials=parse_fiducials(args.fiducials),
         calibration=Path(args.calibration) if args.calibration else None,
         stiffness_calibration=(Path(args.stiffness_calibration)
                                if args.stiffness_calibration else None),

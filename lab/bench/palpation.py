@@ -5,9 +5,16 @@ link-emulator and station processes over real sockets). Per scene and link profi
 reports detection rate, localization error (mean, p95), type accuracy, Kendall's tau and
 the motion-to-touch latency (p50/p99 of the per-run p50/p99, and the worst p99).
 
+With ``--ood`` it runs the out-of-distribution benchmark instead
+(:mod:`lab.bench.palpation_ood`): phantom families varying one factor at a time, each session
+simulated in-process (the station's pipeline in simulated time, no network), scored in
+phantom coordinates; results in ``palpation_ood.md`` / ``.json`` / ``.png``.
+
 examples:
   teletouch bench palpation --runs 20 --write-results benchmarks/results
   teletouch bench palpation --quick --json
+  teletouch bench palpation --ood --runs 10 --first-seed 2000 --write-results benchmarks/results
+  teletouch bench palpation --ood --quick
 """
 
 from __future__ import annotations
@@ -36,7 +43,18 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quick", action="store_true", help="2 runs per cell")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
     parser.add_argument("--write-results", default=None, metavar="DIR",
-                        help="write palpation.md, palpation.json and palpation.png there")
+                        help="write palpation.md, palpation.json and palpation.png there "
+                             "(--ood: palpation_ood.*)")
+    parser.add_argument("--ood", action="store_true",
+                        help="out-of-distribution families, simulated in-process (fast)")
+    parser.add_argument("--families", default=None,
+                        help="--ood: comma-separated families (default: all)")
+    parser.add_argument("--ideal", action="store_true",
+                        help="--ood: the noise-free world (default: realistic)")
+    parser.add_argument("--no-register", dest="register", action="store_false",
+                        help="--ood: no fiducial registration (analyse in the designed map)")
+    parser.add_argument("--cache", default=None, metavar="DIR",
+                        help="--ood: keep simulated recordings here and reuse them")
 
 
 def _pct(values: list[float], q: float) -> float | None:
@@ -120,8 +138,79 @@ def _write(out: Path, runs: list[dict[str, Any]], command: str, elapsed_s: float
     _plot(rows, out / "palpation.png")
 
 
+def _run_ood(args: argparse.Namespace) -> int:
+    import logging
+    import os
+
+    for name in ("shared.devices", "remote_site"):  # one line per session is enough
+        logging.getLogger(name).setLevel(logging.WARNING)
+
+    from lab.bench.palpation_ood import (
+        FAMILIES,
+        failures,
+        make_case,
+        plot_ood,
+        run_case,
+        summarise_ood,
+    )
+    from shared.report import emit, emit_json, format_table
+
+    n = 2 if args.quick else args.runs
+    families = args.families.split(",") if args.families else list(FAMILIES)
+    unknown = sorted(set(families) - set(FAMILIES))
+    if unknown:
+        from shared.errors import ConfigError
+
+        raise ConfigError(f"unknown OOD families {unknown}; known: {list(FAMILIES)}")
+    cache = Path(args.cache) if args.cache else None
+    command = (f"teletouch bench palpation --ood --runs {n} --first-seed {args.first_seed}"
+               + (f" --families {args.families}" if args.families else "")
+               + (" --ideal" if args.ideal else "")
+               + ("" if args.register else " --no-register"))
+    load_start = os.getloadavg()[0]
+    started = time.monotonic()
+    runs: list[dict[str, Any]] = []
+    for i in range(n):  # indices outermost: an interrupted run covers every family
+        for family in families:
+            case = make_case(family, i, n, args.first_seed + i, ideal=args.ideal)
+            result = run_case(case, cache, register=args.register)
+            runs.append(result)
+            emit(f"[{time.monotonic() - started:6.0f} s] {family} #{i} factor "
+                 f"{case.factor:.3g}: " + (result.get("error", "") or
+                 f"found {sum(x['found'] for x in result['inclusions'])}/"
+                 f"{len(result['inclusions'])}, fp {result['false_positives']}"))
+    rows = summarise_ood(runs)
+    if args.write_results:
+        from shared.report import format_table as table
+
+        out = Path(args.write_results)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "palpation_ood.json").write_text(json.dumps({"rows": rows, "runs": runs},
+                                                          indent=1, default=str))
+        elapsed = time.monotonic() - started
+        lines = "\n".join(f"- {f}" for f in failures(runs)) or "- none"
+        (out / "palpation_ood.md").write_text(
+            "# Out-of-distribution palpation benchmark\n\n"
+            f"Command: `{command}` ({len(runs)} sessions, {elapsed:.0f} s). Machine: "
+            f"{platform.machine()} {platform.system()}, {os.cpu_count()} cores shared with "
+            f"other agents, load average {load_start:.1f} at start. Each session is simulated "
+            "in-process (lab/bench/palpation_session.py: the station's pipeline in simulated "
+            "time, no network) and analysed with the local station's analysis; errors are in "
+            "PHANTOM coordinates. Families: lab/bench/palpation_ood.py. `detection_target`: "
+            "inclusions with radius >= 3 mm, depth <= 12 mm, contrast >= 2x.\n\n"
+            + table(rows) + "\n\n## Failures\n\n" + lines + "\n")
+        plot_ood(runs, out / "palpation_ood.png")
+    if args.json:
+        emit_json({"rows": rows})
+    else:
+        emit(format_table(rows))
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
     """Run the benchmark."""
+    if args.ood:
+        return _run_ood(args)
     from lab.demo.orchestrator import DemoConfig, DemoError, run_demo
     from shared.report import emit, emit_json, format_table
 

@@ -28,7 +28,14 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     """Add the demo's flags."""
     parser.add_argument("--scene", choices=SCENES, default="breast",
                         help="phantom scene (default breast: one benign, one malignant tumor)")
+    parser.add_argument("--phantom", metavar="FILE.toml", default=None,
+                        help="a phantom file instead of --scene (docs/phantoms.md)")
     parser.add_argument("--seed", type=int, default=0, help="phantom placement seed (default 0)")
+    parser.add_argument("--ideal", action="store_true",
+                        help="noise-free simulated world (default: realistic noise and an "
+                             "unknown arm <-> phantom registration error per seed)")
+    parser.add_argument("--no-register", dest="register", action="store_false",
+                        help="skip the fiducial registration before palpation")
     parser.add_argument("--link", choices=LINKS, default=None,
                         help="put the link emulator with this profile between the stations "
                              "and the relay (default: direct)")
@@ -72,6 +79,15 @@ def format_report(report: dict[str, Any]) -> str:
         f"  severity (tau)    {_fmt(report['kendall_tau'])}",
         "  per tumor:",
     ]
+    reg = report.get("registration") or {}
+    true, est = reg.get("true"), reg.get("estimated")
+    if true:
+        line = (f"  registration      true dx {true['dx_mm']:.2f} dy {true['dy_mm']:.2f} mm, "
+                f"yaw {true['yaw_deg']:.2f} deg; ")
+        line += (f"estimated dx {est['dx_mm']:.2f} dy {est['dy_mm']:.2f} mm, yaw "
+                 f"{est['yaw_deg']:.2f} deg (+-{est['std_dx_mm']:.2f} mm, "
+                 f"+-{est['std_yaw_deg']:.2f} deg)" if est else "not estimated")
+        lines.insert(-1, line)
     for m in report["matches"]:
         lines.append(f"    {m['id']:<10} true {m['true_kind']:<9} found {m['found_kind']:<9} "
                      f"error {m['error_mm']:.2f} mm  rank true {m['true_severity_rank']} "
@@ -95,7 +111,9 @@ def run(args: argparse.Namespace) -> int:
     from lab.demo.orchestrator import DEFAULT_MOTION, DemoConfig, run_demo
     from shared.report import StatusLine, emit, emit_json
 
-    config = DemoConfig(scene=args.scene, seed=args.seed, link=args.link,
+    config = DemoConfig(scene=args.phantom or args.scene, seed=args.seed, ideal=args.ideal,
+                        register=args.register,
+                        link=args.link,
                         motion=args.motion or DEFAULT_MOTION, max_duration_s=args.duration,
                         frame_rate_hz=args.frame_rate_hz,
                         workdir=Path(args.workdir) if args.workdir else None,

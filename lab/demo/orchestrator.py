@@ -70,11 +70,16 @@ class DemoConfig:
     """What to run.
 
     Attributes:
-        scene: phantom scene (``breast``, ``severity``, ``localization``).
+        scene: phantom scene (``breast``, ``severity``, ``localization``) or a phantom
+            ``FILE.toml`` (:mod:`remote_site.phantom.phantom_file`).
         seed: phantom placement seed.
         link: link-emulator profile of the path between the two sites, or None; each
             station <-> relay leg gets half its one-way delay and jitter.
         motion: the scripted operator (``teletouch local --motion`` spec).
+        ideal: the noise-free simulated world (default: the realistic one, with an unknown
+            registration error drawn from ``seed``).
+        register: let the remote station measure the registration on the phantom's
+            fiducials before palpation (when it has any).
         max_duration_s: stop the operator after this long whatever happens.
         frame_rate_hz: remote sensor frame rate.
         workdir: where logs and files go (a temporary directory when None).
@@ -92,6 +97,8 @@ class DemoConfig:
     seed: int = 0
     link: str | None = None
     motion: str = DEFAULT_MOTION
+    ideal: bool = False
+    register: bool = True
     max_duration_s: float = 100.0
     frame_rate_hz: float = 120.0
     workdir: Path | None = None
@@ -282,8 +289,15 @@ def run_demo(config: DemoConfig,
         remote_args = list(config.extra_remote_args)
         remote_toml = (Path(remote_args[remote_args.index("--config") + 1])
                        if "--config" in remote_args[:-1] else None)
-        write_ground_truth(build_world(config.scene, config.seed), files["ground_truth"],
-                           load_workspace(toml_path=remote_toml))
+        # a phantom file is passed by absolute path: the stations run in the work directory
+        phantom = (str(Path(config.scene).resolve()) if Path(config.scene).suffix == ".toml"
+                   else config.scene)
+        world = build_world(phantom, config.seed, ideal=config.ideal)
+        write_ground_truth(world, files["ground_truth"], load_workspace(toml_path=remote_toml))
+        # the fiducials' DESIGN positions are part of the phantom's description (a lab knows
+        # where it put them); where the phantom really lies is what the station measures
+        fiducials = ";".join(f"{f.center_mm[0]:g},{f.center_mm[1]:g}"
+                             for f in world.phantom.fiducials)
         common = ["--session", SESSION, "--token", token]
         view_args: list[str] = []
         view_url = None
@@ -295,8 +309,10 @@ def run_demo(config: DemoConfig,
             view_url = f"http://{host}:{port}/"
         remote = procs.start(
             "remote", "remote", "--relay", f"ws://127.0.0.1:{remote_port}/", *common,
-            "--arm", "sim", "--sensor", "sim", "--phantom", config.scene,
-            "--seed", str(config.seed), "--frame-rate-hz", f"{config.frame_rate_hz:g}",
+            "--arm", "sim", "--sensor", "sim", "--phantom", phantom,
+            "--seed", str(config.seed), *(["--ideal"] if config.ideal else []),
+            *([f"--fiducials={fiducials}"] if fiducials and config.register else []),
+            "--frame-rate-hz", f"{config.frame_rate_hz:g}",
             "--summary-json", str(files["remote_summary"]), "--record",
             str(files["remote_record"]), *config.extra_remote_args)
         local = procs.start(
@@ -382,6 +398,8 @@ def _report(config: DemoConfig, files: dict[str, Path], relay_final: dict[str, A
         "frames_received": recording.frames,
         "latency_ms": latency,
         "local": local_summary,
+        "registration": {"true": truth.get("world", {}).get("registration"),
+                         "estimated": remote_summary.get("registration")},
         "remote": remote_summary,
         "relay": relay_final,
         "workdir": str(workdir) if (config.keep_files or config.workdir) else None,

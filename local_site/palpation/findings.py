@@ -1,15 +1,30 @@
-"""Tumors found in the palpation maps: detection, location, type and severity.
+"""Tumors found in the palpation maps: detection, location, type, severity, confidence.
 
-* **Detection**: the relief map is smoothed (Gaussian, ``smooth_mm``), its background and
-  noise are estimated robustly over the touched cells (median and MAD), and cells above
-  ``max(min_relief, background + noise_k * MAD)`` form connected regions; regions smaller than
-  ``min_area_mm2`` are noise.
+* **Coverage**: a cell is covered when at least ``min_samples`` relief samples fell in it;
+  ``PalpationMaps.relief_count`` is the coverage map.
+* **Detection**: the relief map is smoothed with a Gaussian (``smooth_mm``) WEIGHTED BY
+  EACH CELL'S SAMPLE COUNT (normalized convolution: untouched cells carry no weight and are
+  not filled with anything). The healthy level and the cell-to-cell noise come from the
+  LOWER part of the distribution (20th and 40th percentiles, :func:`_background`), so
+  inclusions may cover most of the touched area. A cell is a candidate when its excess
+  exceeds ``max(min_relief, noise_k * max(cell noise, standard error))``, the standard
+  error being the within-cell sample spread over the square root of the samples under the
+  kernel: sparsely sampled cells (the scan's edge) need a larger excess. Connected
+  candidates form regions; regions smaller than ``min_area_mm2`` are noise.
 * **Location**: the centroid of each region weighted by its relief excess (phantom mm).
-* **Type**: benign tumors are round with a distinct boundary; malignant ones have an irregular
-  outline and a graded boundary. Two dimensionless measures: *boundary sharpness*, the mean
-  relief gradient on the region's edge divided by its peak excess (1/mm), and *outline
-  irregularity*, the coefficient of variation of the half-peak contour's radius around the
-  centroid. A region is malignant when it is soft-edged or irregular beyond the thresholds.
+* **Type**: from the boundary and the stiffness. *Boundary sharpness* is the mean relief
+  gradient on the region's edge over its peak excess (1/mm): a graded (infiltrating)
+  boundary is soft. *Stiffness* is seen twice: the relief peak (the gel bulges more over
+  stiffer tissue) and the measured secant-stiffness contrast (region's 90th percentile of
+  the smoothed force/indentation map over the healthy median). The malignant score is
+  ``(sharp_ref / sharpness)^2 sqrt(peak / relief_ref) sqrt((1 + contrast) / ratio_ref)``;
+  above 1 means malignant. Outline irregularity is reported but not used: lobulated benign
+  tumors exist. The reference levels were set on development phantoms (OOD ``type``
+  family, seeds 1000-1005), never on the benchmark's held-out seeds.
+* **Uncertain**: a finding whose disc (equivalent radius + ``coverage_margin_mm``) is less
+  than ``min_coverage`` covered is typed ``uncertain`` (its best guess is ``likely_kind``).
+* **Confidence** in [0, 1]: coverage x detection margin (peak over threshold) x typing
+  margin (distance of the malignant score from 1, in log).
 * **Severity**: the integrated relief excess over the region (mm^2), which grows with both
   the size and the hardness of the inclusion; rank 1 = least severe.
 """
@@ -30,14 +45,19 @@ __all__ = ["DetectionConfig", "Finding", "find_tumors"]
 
 @dataclass(frozen=True)
 class DetectionConfig:
-    """Detection and typing thresholds (see the module docstring)."""
+    """Detection and typing settings (see the module docstring)."""
 
     smooth_mm: float = 0.5
     min_relief: float = 0.05
     noise_k: float = 6.0
     min_area_mm2: float = 8.0
-    malignant_max_sharpness_per_mm: float = 0.1
-    malignant_min_irregularity: float = 0.15
+    min_samples: int = 3
+    stiffness_smooth_mm: float = 2.0
+    coverage_margin_mm: float = 2.0
+    min_coverage: float = 0.9
+    malignant_ref_relief: float = 1.0
+    malignant_ref_sharpness_per_mm: float = 0.22
+    malignant_ref_stiffness_ratio: float = 1.35
 
 
 @dataclass(frozen=True)
@@ -54,6 +74,10 @@ class Finding:
     stiffness_n_per_mm: float | None
     kind: str
     severity_rank: int = 0
+    stiffness_contrast: float = 0.0
+    coverage: float = 1.0
+    confidence: float = 0.0
+    likely_kind: str = ""
 
     def to_dict(self) -> dict[str, object]:
         """Plain JSON."""
@@ -64,6 +88,8 @@ class Finding:
             "boundary_sharpness_per_mm": self.boundary_sharpness_per_mm,
             "irregularity": self.irregularity, "stiffness_n_per_mm": self.stiffness_n_per_mm,
             "kind": self.kind, "severity_rank": self.severity_rank,
+            "stiffness_contrast": self.stiffness_contrast, "coverage": self.coverage,
+            "confidence": self.confidence, "likely_kind": self.likely_kind,
         }
 
 
@@ -79,6 +105,35 @@ def _irregularity(excess: NDArray[np.float64], region: NDArray[np.bool_], peak: 
     return float(r.std() / mean) if mean > 0 else 0.0
 
 
+def _background(values: NDArray[np.float64]) -> tuple[float, float]:
+    """Healthy level and cell noise from the LOWER part of the relief distribution.
+
+    Stiff inclusions only raise the relief, so the healthy tissue is the lower part of the
+    distribution even when inclusions cover most of the touched area. The lower half's
+    median-to-20th-percentile spread gives sigma (for a normal distribution the 20th
+    percentile is 0.84 sigma below the mean); the level is the 20th percentile plus
+    0.84 sigma. Needs only the lowest ~40 % of the touched cells to be healthy.
+    """
+    p20, p40 = (float(v) for v in np.percentile(values, [20, 40]))
+    sigma = max((p40 - p20) / (0.842 - 0.253), 1e-6)
+    return p20 + 0.842 * sigma, sigma
+
+
+def _normalized_smooth(values: NDArray[np.float64], counts: NDArray[np.float64],
+                       sigma_cells: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Sample-count-weighted Gaussian smoothing; untouched cells carry no weight (they are
+    not filled with anything). Returns the smoothed values and the smoothed counts."""
+    weight = ndimage.gaussian_filter(counts, sigma_cells)
+    total = ndimage.gaussian_filter(np.where(counts > 0, values, 0.0) * counts, sigma_cells)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(weight > 1e-9, total / weight, np.nan), weight
+
+
+def _disc(maps: PalpationMaps, cx_mm: float, cy_mm: float, r_mm: float) -> NDArray[np.bool_]:
+    return ((maps.x_mm[None, :] - cx_mm) ** 2 + (maps.y_mm[:, None] - cy_mm) ** 2
+            <= r_mm ** 2)
+
+
 def find_tumors(maps: PalpationMaps, config: DetectionConfig | None = None) -> list[Finding]:
     """Detect and characterise tumors in the maps.
 
@@ -91,18 +146,33 @@ def find_tumors(maps: PalpationMaps, config: DetectionConfig | None = None) -> l
     """
     cfg = config or DetectionConfig()
     cell = maps.cell_mm
-    touched = np.isfinite(maps.relief)
-    if not touched.any():
+    counts = maps.relief_count.astype(np.float64)
+    covered = maps.relief_count >= cfg.min_samples
+    if not covered.any():
         return []
-    background = float(np.median(maps.relief[touched]))
-    mad = float(np.median(np.abs(maps.relief[touched] - background)))
-    filled = np.where(touched, maps.relief, background)
-    smooth = ndimage.gaussian_filter(filled, cfg.smooth_mm / cell)
-    excess = smooth - background
-    threshold = max(cfg.min_relief, cfg.noise_k * 1.4826 * mad)
-    labels, count = ndimage.label((excess > threshold) & touched)
+    s_cells = cfg.smooth_mm / cell
+    smooth, weight = _normalized_smooth(np.nan_to_num(maps.relief), counts, s_cells)
+    valid = covered & np.isfinite(smooth)
+    background, cell_sigma = _background(smooth[valid])
+    # per-sample noise: the median within-cell spread; the smoothed mean's standard error
+    # falls with the samples under the kernel (effective kernel area 4 pi s^2 cells)
+    spread = maps.relief_sample_std[np.isfinite(maps.relief_sample_std)
+                                    & (maps.relief_count >= 5)]
+    sample_sigma = float(np.median(spread)) if spread.size else cell_sigma
+    with np.errstate(divide="ignore"):
+        std_error = sample_sigma / np.sqrt(np.maximum(weight * 4 * np.pi * s_cells ** 2, 1.0))
+    excess = np.where(valid, smooth - background, 0.0)
+    threshold = np.maximum(cfg.min_relief, cfg.noise_k * np.maximum(cell_sigma, std_error))
+    labels, count = ndimage.label((excess > threshold) & valid)
     grad_y, grad_x = np.gradient(excess, cell)
     grad = np.hypot(grad_x, grad_y)
+    k_map, _ = _normalized_smooth(np.nan_to_num(maps.stiffness_n_per_mm),
+                                  np.isfinite(maps.stiffness_n_per_mm).astype(float),
+                                  cfg.stiffness_smooth_mm / cell)
+    lesion = labels > 0
+    healthy_k = k_map[np.isfinite(k_map) & ~ndimage.binary_dilation(lesion, iterations=8)]
+    k_background = (float(np.median(healthy_k)) if healthy_k.size
+                    else maps.background_stiffness_n_per_mm)
     findings: list[Finding] = []
     for label in range(1, count + 1):
         region = labels == label
@@ -117,16 +187,32 @@ def find_tumors(maps: PalpationMaps, config: DetectionConfig | None = None) -> l
         irregularity = _irregularity(excess, region, peak, cx, cy, cell)
         x_mm = float(np.interp(cx, np.arange(maps.x_mm.size), maps.x_mm))
         y_mm = float(np.interp(cy, np.arange(maps.y_mm.size), maps.y_mm))
-        k_cells = maps.stiffness_n_per_mm[region]
-        k_cells = k_cells[np.isfinite(k_cells)]
+        radius = math.sqrt(area / math.pi)
+        k_cells = k_map[region & np.isfinite(k_map)]
         stiffness = float(np.percentile(k_cells, 90)) if k_cells.size else None
-        malignant = (sharpness < cfg.malignant_max_sharpness_per_mm
-                     or irregularity > cfg.malignant_min_irregularity)
+        contrast = (stiffness / k_background - 1.0
+                    if stiffness is not None and k_background > 0 else 0.0)
+        around = _disc(maps, x_mm, y_mm, radius + cfg.coverage_margin_mm)
+        coverage = float(covered[around].mean()) if around.any() else 0.0
+        significance = peak / max(float(threshold[region].max()), 1e-9)
+        # a graded boundary (low sharpness) is the main cue; stiffer (relief peak, measured
+        # stiffness contrast) adds to it: the product of the ratios to reference levels,
+        # the boundary's squared, the stiffness cues' square-rooted (they grow with size
+        # and depth too)
+        malignant_score = ((cfg.malignant_ref_sharpness_per_mm / max(sharpness, 1e-3)) ** 2
+                           * math.sqrt(peak / cfg.malignant_ref_relief)
+                           * math.sqrt((1.0 + max(contrast, -0.9))
+                                       / cfg.malignant_ref_stiffness_ratio))
+        guess = "malignant" if malignant_score > 1.0 else "benign"
+        type_margin = abs(math.log(max(malignant_score, 1e-6)))
+        confidence = (coverage * (1.0 - math.exp(-max(significance - 1.0, 0.0) * 2.0))
+                      * (1.0 - math.exp(-3.0 * type_margin)))
+        kind = guess if coverage >= cfg.min_coverage else "uncertain"
         findings.append(Finding(
-            center_mm=(x_mm, y_mm), area_mm2=area,
-            equivalent_radius_mm=math.sqrt(area / math.pi), peak_relief=peak,
-            severity_score=float(weights.sum()) * cell * cell,
+            center_mm=(x_mm, y_mm), area_mm2=area, equivalent_radius_mm=radius,
+            peak_relief=peak, severity_score=float(weights.sum()) * cell * cell,
             boundary_sharpness_per_mm=sharpness, irregularity=irregularity,
-            stiffness_n_per_mm=stiffness, kind="malignant" if malignant else "benign"))
+            stiffness_n_per_mm=stiffness, kind=kind, stiffness_contrast=contrast,
+            coverage=coverage, confidence=confidence, likely_kind=guess))
     findings.sort(key=lambda f: f.severity_score)
     return [Finding(**{**f.__dict__, "severity_rank": i + 1}) for i, f in enumerate(findings)]

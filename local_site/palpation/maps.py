@@ -57,7 +57,8 @@ class PalpationMaps:
         x_mm: cell-centre x of each column (phantom).
         y_mm: cell-centre y of each row (phantom).
         relief: mean relative relief (0 = like the pad's average); NaN where never touched.
-        relief_count: samples per cell.
+        relief_count: samples per cell (the coverage map).
+        relief_sample_std: standard deviation of the samples within each cell (NaN below 2).
         stiffness_n_per_mm: mean secant stiffness of frames centred in the cell; NaN if none.
         frames_used: contact frames that went into the maps.
         background_stiffness_n_per_mm: median secant stiffness over all used frames.
@@ -67,6 +68,7 @@ class PalpationMaps:
     y_mm: NDArray[np.float64]
     relief: NDArray[np.float64]
     relief_count: NDArray[np.int64]
+    relief_sample_std: NDArray[np.float64]
     stiffness_n_per_mm: NDArray[np.float64]
     frames_used: int
     background_stiffness_n_per_mm: float
@@ -142,6 +144,7 @@ def build_maps(rec: Recording, workspace: WorkspaceMap,
     x_mm = np.arange(lo[0] - cfg.margin_mm, hi[0] + cfg.margin_mm + cell / 2, cell)
     y_mm = np.arange(lo[1] - cfg.margin_mm, hi[1] + cfg.margin_mm + cell / 2, cell)
     acc = np.zeros((y_mm.size, x_mm.size))
+    acc2 = np.zeros_like(acc)
     cnt = np.zeros((y_mm.size, x_mm.size), np.int64)
     k_acc = np.zeros_like(acc)
     k_cnt = np.zeros_like(cnt)
@@ -165,6 +168,7 @@ def build_maps(rec: Recording, workspace: WorkspaceMap,
         cj = np.rint((ph[:, 0] - x_mm[0]) / cell).astype(np.intp)
         inside = (ci >= 0) & (ci < y_mm.size) & (cj >= 0) & (cj < x_mm.size)
         np.add.at(acc, (ci[inside], cj[inside]), rel[inside])
+        np.add.at(acc2, (ci[inside], cj[inside]), rel[inside] ** 2)
         np.add.at(cnt, (ci[inside], cj[inside]), 1)
         centre = workspace.forward_unclamped(
             np.array([[cx, cy, workspace.config.z_surface_mm]]))[0]
@@ -175,7 +179,10 @@ def build_maps(rec: Recording, workspace: WorkspaceMap,
             k_cnt[ki, kj] += 1
     with np.errstate(invalid="ignore", divide="ignore"):
         relief = np.where(cnt > 0, acc / np.maximum(cnt, 1), np.nan)
+        var = (acc2 - cnt * np.nan_to_num(relief) ** 2) / np.maximum(cnt - 1, 1)
+        sample_std = np.where(cnt > 1, np.sqrt(np.maximum(var, 0.0)), np.nan)
         stiffness = np.where(k_cnt > 0, k_acc / np.maximum(k_cnt, 1), np.nan)
     return PalpationMaps(x_mm=x_mm, y_mm=y_mm, relief=relief, relief_count=cnt,
+                         relief_sample_std=sample_std,
                          stiffness_n_per_mm=stiffness, frames_used=int(idx.size),
                          background_stiffness_n_per_mm=float(np.median(secant)))

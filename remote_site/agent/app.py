@@ -36,6 +36,7 @@ from remote_site.agent.station import RemoteStation
 from remote_site.agent.stiffness_stage import StiffnessStage
 from remote_site.arm.safety import SafeArm, SafetyConfig
 from remote_site.reconstruction.reconstructor import Reconstructor
+from remote_site.registration import calibrate_with_fiducials
 from remote_site.stiffness.estimator import StiffnessConfig
 from remote_site.stiffness.stiffness_map import MapBounds
 from remote_site.tactile import TactileAssembler
@@ -66,7 +67,11 @@ class AgentOptions:
         sensor_fps: pace a camera source at this rate (None: a video file's own rate).
         sensor_loop: restart a video file at its end.
         phantom: scene name of the simulated world (None: no world).
-        seed: placement seed of the phantom.
+        seed: placement seed of the phantom (and the simulated session's noise).
+        ideal: the noise-free simulated world instead of the realistic default.
+        fiducials: design (x, y) positions of the phantom's fiducials (phantom mm); when
+            given, the arm <-> phantom registration is measured on them at start-up
+            (:mod:`remote_site.registration`) and put into the workspace map.
         calibration: the sensor calibration (.npz); the backend's default when None.
         stiffness_calibration: the probe's stiffness calibration (.json, made by
             ``teletouch sensor calibrate-stiffness``); the backend's default when None
@@ -91,6 +96,8 @@ class AgentOptions:
     sensor_loop: bool = False
     phantom: str | None = None
     seed: int = 0
+    ideal: bool = False
+    fiducials: tuple[tuple[float, float], ...] = ()
     calibration: Path | None = None
     stiffness_calibration: Path | None = None
     frame_rate_hz: float | None = None
@@ -153,7 +160,8 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
         stiffness_cfg = stiffness_cfg.with_calibration(stiffness_calibration)
     stiffness_to_k = stiffness_calibration.stiffness_to_k()
 
-    world = open_world("phantom", options.phantom, options.seed) if options.phantom else None
+    world = open_world("phantom", options.phantom, options.seed,
+                       ideal=options.ideal) if options.phantom else None
 
     arm = open_world_arm(options.arm, world)
     sensor = open_world_sensor(options.sensor, world, arm, **sensor_options(options))
@@ -175,6 +183,21 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
         # the arm is at its home pose (pad lifted) and nothing has moved it yet
         background = BackgroundTracker(reconstructor, background_cfg)
         background.capture(sensor, safe_arm.arm.state().force_n)
+        registration = None
+        if options.fiducials:
+            registration = await asyncio.to_thread(
+                calibrate_with_fiducials, arm, sensor, reconstructor, options.fiducials)
+            log.info("registration from %d fiducials: dx %.2f +- %.2f mm, dy %.2f +- %.2f mm, "
+                     "yaw %.2f +- %.2f deg (residual rms %.2f mm)", registration.fiducials,
+                     registration.dx_mm, registration.std_dx_mm, registration.dy_mm,
+                     registration.std_dy_mm, registration.yaw_deg, registration.std_yaw_deg,
+                     registration.residual_rms_mm)
+            workspace = registration.workspace_to_arm(workspace)
+            assembler = TactileAssembler(workspace, stiffness_to_k=stiffness_to_k,
+                                         patch_size_mm=agent_cfg.patch_size_mm,
+                                         friction=agent_cfg.friction)
+            safe_arm.close()
+            safe_arm = SafeArm(arm, safety, bounds_mm=workspace.phantom_bounds_mm)
         pipeline = FramePipeline(sensor, reconstructor, assembler, stiffness, safe_arm.arm.state,
                                  platform_pitch_mm=agent_cfg.patch_pitch_mm,
                                  sensor_max_age_ms=agent_cfg.sensor_max_age_ms,
@@ -196,7 +219,8 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
                 summary = station.summary()
                 summary.update(session=link_cfg.session, arm_backend=options.arm,
                                sensor_backend=options.sensor, phantom=options.phantom,
-                               seed=options.seed if world else None)
+                               seed=options.seed if world else None,
+                               registration=registration.to_dict() if registration else None)
                 if recorder is not None:
                     summary["recording"] = await asyncio.to_thread(recorder.close, summary)
                 if on_summary is not None:

@@ -40,7 +40,7 @@ __all__ = ["DEFAULT_CALIBRATIONS", "DEFAULT_STIFFNESS_CALIBRATIONS", "WORLDS", "
 
 log = logging.getLogger(__name__)
 
-#: world kind -> "module:function(scene, seed) -> World"
+#: world kind -> "module:function(scene, seed, *, ideal) -> World"
 WORLDS: dict[str, str] = {
     "phantom": "remote_site.agent.world:build_world",
 }
@@ -80,8 +80,10 @@ def _resolve(target: str, what: str) -> Any:
     return load_object(target, what)
 
 
-def open_world(kind: str, scene: str, seed: int = 0) -> World:
+def open_world(kind: str, scene: str, seed: int = 0, *, ideal: bool = False) -> World:
     """Build the world ``kind`` (see :data:`WORLDS`) for ``scene`` and ``seed``.
+
+    ``ideal`` asks for the noise-free world instead of the realistic default.
 
     Raises:
         ConfigError: an unknown world kind or scene.
@@ -90,7 +92,7 @@ def open_world(kind: str, scene: str, seed: int = 0) -> World:
     target = WORLDS.get(kind, kind if ":" in kind else None)
     if target is None:
         raise ConfigError(f"unknown world {kind!r}; known: {sorted(WORLDS)}")
-    world: World = _resolve(target, "world")(scene, seed)
+    world: World = _resolve(target, "world")(scene, seed, ideal=ideal)
     return world
 
 

@@ -23,16 +23,25 @@ import math
 import threading
 import time
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
 from remote_site.arm.base import Arm, ArmLimits, ArmReading, Vec3
-from remote_site.phantom.phantom import Phantom
 from shared.errors import ConfigError, DeviceInitError
 
-__all__ = ["FRANKA_LIMITS", "SimArm", "SimArmConfig"]
+__all__ = ["FRANKA_LIMITS", "ArmNoise", "ForceField", "SimArm", "SimArmConfig"]
+
+
+class ForceField(Protocol):
+    """What the pad presses: the normal force at a pad pose (arm frame, mm)."""
+
+    def force_n(self, position_mm: Sequence[float]) -> float:
+        """Normal force (N) on the pad at ``position_mm``."""
+        ...
 
 log = logging.getLogger(__name__)
 
@@ -76,24 +85,52 @@ class SimArmConfig:
             raise ConfigError(f"sim arm: limits exceed the Franka's {FRANKA_LIMITS}")
         if not (math.isfinite(self.force_noise_n) and self.force_noise_n >= 0):
             raise ConfigError("sim arm: force_noise_n must be >= 0")
+
         if self.sample_buffer < 1:
             raise ConfigError("sim arm: sample_buffer must be >= 1")
+
+
+@dataclass(frozen=True)
+class ArmNoise:
+    """A simulated world's imperfections of the arm's sensing (see ``remote_site.agent.world``).
+
+    Attributes:
+        force_noise_n: white noise of the force reading (per control step).
+        force_bias_n: constant offset of the force reading (what a tare leaves behind).
+        force_drift_n_per_min: linear drift of that offset with time.
+        position_noise_mm: noise of the reported position around the true one (encoder /
+            kinematic noise; the dynamics' own tracking lag comes on top).
+    """
+
+    force_noise_n: float = 0.0
+    force_bias_n: float = 0.0
+    force_drift_n_per_min: float = 0.0
+    position_noise_mm: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not all(math.isfinite(v) for v in self.__dict__.values()):
+            raise ConfigError("sim arm noise: values must be finite")
+        if self.force_noise_n < 0 or self.position_noise_mm < 0:
+            raise ConfigError("sim arm noise: noise levels must be >= 0")
 
 
 class SimArm(Arm):
     """The simulated arm backend (name ``sim``).
 
     Args:
-        phantom: what the pad presses (None: free space, force 0).
+        phantom: what the pad presses, a :class:`ForceField` such as a phantom (None: free
+            space, force 0).
         config: dynamics and loop settings.
         limits: Cartesian box and home pose; the arm starts at home.
+        noise: the simulated world's sensing imperfections (none by default).
     """
 
-    def __init__(self, phantom: Phantom | None = None, config: SimArmConfig | None = None, *,
-                 limits: ArmLimits | None = None) -> None:
+    def __init__(self, phantom: ForceField | None = None, config: SimArmConfig | None = None, *,
+                 limits: ArmLimits | None = None, noise: ArmNoise | None = None) -> None:
         super().__init__(limits=limits)
         self.phantom = phantom
         self.config = config or SimArmConfig()
+        self.noise = noise or ArmNoise()
         self._dt = 1.0 / self.config.loop_hz
         self._lock = threading.Lock()
         self._pos = np.array(self.limits.home_mm, dtype=float)
@@ -150,6 +187,10 @@ class SimArm(Arm):
         force = self.phantom.force_n(self._pos.tolist()) if self.phantom is not None else 0.0
         if cfg.force_noise_n > 0:
             force += float(self._rng.normal(0.0, cfg.force_noise_n))
+        nz = self.noise
+        if nz.force_noise_n > 0 or nz.force_bias_n or nz.force_drift_n_per_min:
+            force += (nz.force_bias_n + nz.force_drift_n_per_min * self._t_s / 60.0
+                      + float(self._rng.normal(0.0, nz.force_noise_n)))
         self._force_n = force
         self._samples.append((self._t_s, *self._pos.tolist(), force))
 
@@ -217,12 +258,20 @@ class SimArm(Arm):
             moving = (float(np.linalg.norm(self._vel)) > 1e-3
                       or float(np.linalg.norm(self._target - self._pos)) > 1e-3)
             status = "halted" if self._halting else ("moving" if moving else "ok")
-            pos = (float(self._pos[0]), float(self._pos[1]), float(self._pos[2]))
+            seen = self._pos
+            if self.noise.position_noise_mm > 0:
+                seen = seen + self._rng.normal(0.0, self.noise.position_noise_mm, 3)
+            pos = (float(seen[0]), float(seen[1]), float(seen[2]))
             vel = (float(self._vel[0]), float(self._vel[1]), float(self._vel[2]))
             tgt = (float(self._target[0]), float(self._target[1]), float(self._target[2]))
             return ArmReading(pos, vel, self._force_n, status, tgt, self._t_s)
 
     # --------------------------------------------------------------- extras
+
+    def true_position_mm(self) -> Vec3:
+        """Where the pad really is (the reading carries ``position_noise_mm``)."""
+        with self._lock:
+            return (float(self._pos[0]), float(self._pos[1]), float(self._pos[2]))
 
     @property
     def sim_time_s(self) -> float:

@@ -65,17 +65,25 @@ class SiliconeLayer:
     Attributes:
         size_mm: (width along x, depth along y) of the footprint.
         thickness_mm: layer thickness h (bonded to a rigid base).
-        modulus_kpa: Young's modulus of the background silicone (tens of kPa).
+        modulus_kpa: small-strain Young's modulus of the background silicone (tens of kPa).
+        nonlinearity: strain stiffening ``beta``: the tissue's contact stiffness at approach
+            ``d`` is ``k0 (1 + beta d / h)`` (0 = linear). Soft silicones (Ecoflex, Dragon
+            Skin) and breast tissue stiffen with strain; a neo-Hookean / Fung fit of
+            indentation data of a finite layer gives beta of order 1-3 at these strains
+            (Samani & Plewes 2004 report a 2-4x tangent-modulus rise at 20 % strain).
     """
 
     size_mm: tuple[float, float] = (100.0, 100.0)
     thickness_mm: float = 20.0
     modulus_kpa: float = 50.0
+    nonlinearity: float = 0.0
 
     def __post_init__(self) -> None:
         vals = (*self.size_mm, self.thickness_mm, self.modulus_kpa)
         if not all(math.isfinite(v) and v > 0 for v in vals):
             raise ConfigError("silicone layer: size, thickness and modulus must be finite and > 0")
+        if not (math.isfinite(self.nonlinearity) and self.nonlinearity >= 0):
+            raise ConfigError("silicone layer: nonlinearity must be finite and >= 0")
 
 
 @dataclass(frozen=True)
@@ -201,6 +209,8 @@ class Phantom:
     Args:
         layer: the silicone body.
         tumors: the inclusions (must lie inside the footprint).
+        fiducials: registration markers (small rigid beads just under the surface, at
+            positions known by design); felt like inclusions, listed apart in the truth.
         pad: the sensor's gel pad.
         name: scene name for the ground truth.
         seed: placement seed for the ground truth.
@@ -210,6 +220,7 @@ class Phantom:
 
     layer: SiliconeLayer = field(default_factory=SiliconeLayer)
     tumors: tuple[Tumor, ...] = ()
+    fiducials: tuple[Tumor, ...] = ()
     pad: SensorPad = field(default_factory=SensorPad)
     name: str = "custom"
     seed: int | None = None
@@ -223,8 +234,9 @@ class Phantom:
 
     def __post_init__(self) -> None:
         self.tumors = tuple(self.tumors)
+        self.fiducials = tuple(self.fiducials)
         half_x, half_y = self.layer.size_mm[0] / 2, self.layer.size_mm[1] / 2
-        for t in self.tumors:
+        for t in self.inclusions:
             if abs(t.center_mm[0]) > half_x or abs(t.center_mm[1]) > half_y:
                 raise ConfigError(f"tumor {t.tumor_id} lies outside the phantom footprint")
             if t.depth_mm > self.layer.thickness_mm:
@@ -233,6 +245,11 @@ class Phantom:
             raise ConfigError("table_step_mm must be finite and > 0")
         if int(self.modulus_oversample) != self.modulus_oversample or self.modulus_oversample < 1:
             raise ConfigError("modulus_oversample must be an integer >= 1")
+
+    @property
+    def inclusions(self) -> tuple[Tumor, ...]:
+        """Everything stiffer than the layer: tumors, then fiducials."""
+        return self.tumors + self.fiducials
 
     # ------------------------------------------------------------------ modulus field
 
@@ -259,7 +276,7 @@ class Phantom:
         compliance = np.ones((ys.size, xs.size))
         a = self.pad.effective_radius_mm
         h = self.layer.thickness_mm
-        for t in self.tumors:
+        for t in self.inclusions:
             cx, cy = t.center_mm
             reach = t.reach_mm
             i0, i1 = np.searchsorted(ys, [cy - reach, cy + reach])
@@ -317,11 +334,18 @@ class Phantom:
         x, y, _ = _check_pose((x_mm, y_mm, 0.0))
         return self._stiffness_lookup(x, y)
 
-    def measured_stiffness_n_per_mm(self, x_mm: float, y_mm: float) -> float:
-        """Stiffness the arm sees at (x, y): tissue and gel in series."""
+    def measured_stiffness_n_per_mm(self, x_mm: float, y_mm: float,
+                                    approach_mm: float = 0.0) -> float:
+        """Secant stiffness the arm sees at (x, y) and approach ``d``: tissue and gel in series.
+
+        With a non-linear layer the tissue's stiffness is ``k0 (1 + beta d / h)`` (first
+        order: evaluated at the whole approach, not at the tissue's share of it).
+        """
         k_t = self.tissue_stiffness_n_per_mm(x_mm, y_mm)
         if k_t <= 0.0:
             return 0.0
+        if self.layer.nonlinearity > 0 and approach_mm > 0:
+            k_t *= 1.0 + self.layer.nonlinearity * approach_mm / self.layer.thickness_mm
         return 1.0 / (1.0 / k_t + 1.0 / self.pad.gel_stiffness_n_per_mm)
 
     def force_n(self, position_mm: Sequence[float]) -> float:
@@ -333,7 +357,7 @@ class Phantom:
         x, y, z = _check_pose(position_mm)
         if z >= 0.0:
             return 0.0
-        return self.measured_stiffness_n_per_mm(x, y) * (-z)
+        return self.measured_stiffness_n_per_mm(x, y, -z) * (-z)
 
     # ------------------------------------------------------------------ contact
 
@@ -352,7 +376,8 @@ class Phantom:
         if table is None:
             table = ColumnModulusTable(self.layer.size_mm, self.layer.modulus_kpa,
                                        self.layer.thickness_mm, self.pad.effective_radius_mm,
-                                       self.tumors, mm_per_px, int(self.modulus_oversample))
+                                       self.inclusions, mm_per_px,
+                                       int(self.modulus_oversample))
             self._modulus_tables[mm_per_px] = table
         return table
 
@@ -400,7 +425,8 @@ class Phantom:
             load *= np.float32(force / (total * px_area * self.pad.gel_stiffness_per_area))
             depth = load
         local = total / weight_sum if weight_sum > 0 else 0.0
-        return Contact(depth, force, approach, force / k_t, local, k_t)
+        k_eff = k_t * (1.0 + self.layer.nonlinearity * approach / self.layer.thickness_mm)
+        return Contact(depth, force, approach, force / k_eff, local, k_t)
 
     # ------------------------------------------------------------------ ground truth
 
@@ -423,6 +449,9 @@ class Phantom:
                     "gel_stiffness_n_per_mm": self.pad.gel_stiffness_n_per_mm},
             "background_stiffness_n_per_mm": k_bg,
             "tumors": tumors,
+            "fiducials": [{"id": f.tumor_id, "center_mm": [float(c) for c in f.center_mm],
+                           "depth_mm": f.depth_mm, "radius_mm": f.radius_mm}
+                          for f in self.fiducials],
         }
 
     def write_ground_truth(self, path: str | Path) -> Path:

@@ -24,9 +24,11 @@ from scipy.special import erfc
 from remote_site.phantom.mechanics import depth_weight_integral
 from shared.errors import ConfigError
 
-__all__ = ["TUMOR_KINDS", "Tumor", "tumor_column_fraction"]
+__all__ = ["FIDUCIAL", "TUMOR_KINDS", "Tumor", "tumor_column_fraction"]
 
 TUMOR_KINDS = frozenset({"benign", "malignant"})
+#: a registration marker (see :attr:`remote_site.phantom.phantom.Phantom.fiducials`)
+FIDUCIAL = "fiducial"
 _SQRT2 = math.sqrt(2.0)
 
 
@@ -63,7 +65,7 @@ class Tumor:
     severity_rank: int | None = None
 
     def __post_init__(self) -> None:
-        if self.kind not in TUMOR_KINDS:
+        if self.kind not in TUMOR_KINDS | {FIDUCIAL}:
             raise ConfigError(f"tumor kind must be one of {sorted(TUMOR_KINDS)}, got {self.kind!r}")
         nums = (*self.center_mm, self.depth_mm, self.radius_mm, self.modulus_kpa,
                 self.boundary_width_mm, self.surface_roughness)

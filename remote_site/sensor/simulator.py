@@ -10,6 +10,7 @@ Each :meth:`read_latest` renders a fresh frame (seq + 1, timestamp = now).
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Callable
 
 import numpy as np
@@ -31,12 +32,24 @@ class SimulatedSensor(TactileSensor):
         depth_provider: returns the current depth map (mm); None = flat gel until
             :meth:`set_depth` is called.
         settings: optical parameters (GelSight Mini-like defaults, 320 x 240, 0.0634 mm/px).
-        seed: camera-noise seed.
+        seed: camera-noise seed (and of the LED drift rates).
+        led_drift_per_min: standard deviation of each colour channel's brightness drift
+            rate (relative gain change per minute; 0 = none). Each channel drifts linearly,
+            ``gain_c(t) = 1 + r_c t``, ``r_c ~ N(0, led_drift_per_min)`` drawn once.
+        clock_s: the time the drift follows (seconds; default: since connect, wall clock).
     """
 
     def __init__(self, depth_provider: DepthProvider | None = None,
-                 settings: PhotometricSettings | None = None, seed: int = 0) -> None:
+                 settings: PhotometricSettings | None = None, seed: int = 0, *,
+                 led_drift_per_min: float = 0.0,
+                 clock_s: Callable[[], float] | None = None) -> None:
+        if not (np.isfinite(led_drift_per_min) and led_drift_per_min >= 0):
+            raise InputDataError(f"led_drift_per_min must be >= 0, got {led_drift_per_min}")
         self.model = PhotometricModel(settings, seed=seed)
+        rates = np.random.default_rng([seed, 1]).normal(0.0, led_drift_per_min, 3)
+        self._drift_per_s = rates.astype(np.float32) / np.float32(60.0)
+        self._clock = clock_s
+        self._t0 = time.monotonic()
         super().__init__(self.model.settings.shape_hw, self.model.settings.mm_per_px)
         self._provider = depth_provider
         self._depth = np.zeros(self.shape_hw, np.float32)
@@ -63,6 +76,12 @@ class SimulatedSensor(TactileSensor):
 
     def _connect(self) -> None:
         self._seq = 0
+        self._t0 = time.monotonic()
+
+    def led_gain(self) -> np.ndarray:
+        """The current per-channel brightness gain (1 without drift)."""
+        t = self._clock() if self._clock is not None else time.monotonic() - self._t0
+        return np.float32(1.0) + self._drift_per_s * np.float32(t)
 
     def _disconnect(self) -> None:
         pass
@@ -73,6 +92,13 @@ class SimulatedSensor(TactileSensor):
             rgb = self.model.render(depth)
         except InputDataError as err:
             raise DeviceOperationError(f"depth provider returned an unusable map: {err}") from err
+        if self._drift_per_s.any():
+            import cv2
+
+            g = self.led_gain()
+            scalar = (float(g[0]), float(g[1]), float(g[2]), 0.0)  # per channel, saturating
+            rgb = np.asarray(cv2.multiply(rgb, scalar, dtype=cv2.CV_8U),  # type: ignore[call-overload]
+                             np.uint8)
         with self._lock:
             self._seq += 1
             seq = self._seq

@@ -79,7 +79,8 @@ def test_severity_ranking_matches_truth() -> None:
     score = score_findings(findings, truth)
     assert score["tumors_found"] == 4
     assert score["kendall_tau"] == 1.0
-    assert all(f.kind == "benign" for f in findings)
+    # no assertion on the kinds: the scene labels every inclusion benign, rigid PLA ones
+    # included, which is no physical claim; typing is scored in the OOD benchmark
 
 
 def test_localization_identical_tumors() -> None:

@@ -54,12 +54,12 @@ async def test_relay_and_remote_as_processes(tmp_path: Path) -> None:
     try:
         await wait_relay_ready(port)
         truth_path, summary_path = tmp_path / "truth.json", tmp_path / "summary.json"
-        write_ground_truth(build_world("severity", 2), truth_path, WorkspaceMap())
+        write_ground_truth(build_world("severity", 2, ideal=True), truth_path, WorkspaceMap())
         remote_env = dict(os.environ, TELETOUCH_REMOTE_LINK_TOKEN=token)
         remote = await asyncio.create_subprocess_exec(
             *cmd, "remote", "--relay", f"tcp://127.0.0.1:{tcp_port}", "--session", SESSION,
             "--arm", "sim", "--sensor", "sim", "--phantom", "severity", "--seed", "2",
-            "--frame-rate-hz", "60",
+            "--ideal", "--frame-rate-hz", "60",
             "--summary-json", str(summary_path), env=remote_env,
             stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
         async with asyncio.timeout(scaled(30.0)):  # the remote has opened its devices

@@ -155,8 +155,9 @@ async def test_agent_follows_a_press_and_streams_tactile_frames(
     monkeypatch.setenv("TELETOUCH_ARM_SAFETY_COMMAND_TIMEOUT_MS", str(scaled(100.0)))
     url = f"ws://127.0.0.1:{relay.ws_port}/"
     truth_path = tmp_path / "truth.json"
-    write_ground_truth(build_world("breast", 5), truth_path, WorkspaceMap())
+    write_ground_truth(build_world("breast", 5, ideal=True), truth_path, WorkspaceMap())
     options = AgentOptions(relay=url, session=SESSION, token=TOKEN, phantom="breast", seed=5,
+                           ideal=True,
                            frame_rate_hz=60.0)
     stop = asyncio.Event()
     agent = asyncio.create_task(run_agent(options, stop))

@@ -371,7 +371,7 @@ def test_worlds_are_opened_by_name() -> None:
 
 
 def test_a_world_is_refused_by_real_hardware() -> None:
-    world = build_world("breast", 0)
+    world = build_world("breast", 0, ideal=True)
     with pytest.raises(ConfigError, match="real hardware"):
         open_world_arm("franka", world)
     arm = open_world_arm("sim", world)

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import cmath
+import math
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -68,3 +71,42 @@ def test_bad_input_and_config(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("TELETOUCH_WORKSPACE_SCALE_XY", "0.5")
     ws = load_workspace(explicit={"offset_mm": (5.0, 0.0)})
     np.testing.assert_allclose(ws.forward((60, 30, 40)), (20.0, 0.0, 0.0))
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.floats(-180, 180), st.floats(0.5, 2.0), st.floats(-10, 10), st.floats(-10, 10),
+       st.tuples(st.floats(0, 60), st.floats(0, 60), st.floats(0, 185)))
+def test_rotated_map_matches_an_independent_rotation(angle: float, scale: float, ox: float,
+                                                     oy: float,
+                                                     p: tuple[float, float, float]) -> None:
+    ws = WorkspaceMap(WorkspaceConfig(rotation_deg=angle, scale_xy=scale, offset_mm=(ox, oy)))
+    got = ws.forward_unclamped(list(p))
+    # reference: complex multiplication is a rotation
+    u = complex(p[0] - 30.0, p[1] - 30.0) * scale * cmath.exp(1j * math.radians(angle))
+    assert got[0] == pytest.approx(u.real + ox, abs=1e-9)
+    assert got[1] == pytest.approx(u.imag + oy, abs=1e-9)
+    assert got[2] == pytest.approx(0.1 * (p[2] - 40.0))
+    back = ws.inverse(got)
+    if np.allclose(ws.clamp_phantom(got), got):
+        assert np.allclose(back, p, atol=1e-9)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.floats(-5, 5), st.floats(-5, 5), st.floats(-10, 10), st.floats(-30, 30),
+       st.tuples(st.floats(0, 60), st.floats(0, 60)))
+def test_registered_map_is_the_map_followed_by_the_rigid_motion(
+        dx: float, dy: float, yaw: float, base_angle: float, p: tuple[float, float]) -> None:
+    ws = WorkspaceMap(WorkspaceConfig(rotation_deg=base_angle, offset_mm=(2.0, -1.0)))
+    reg = ws.registered(dx, dy, yaw)
+    q = ws.forward_unclamped([p[0], p[1], 40.0])
+    expect = complex(q[0], q[1]) * cmath.exp(1j * math.radians(yaw)) + complex(dx, dy)
+    a = reg.forward_unclamped([p[0], p[1], 40.0])
+    assert (a[0], a[1]) == (pytest.approx(expect.real, abs=1e-9),
+                            pytest.approx(expect.imag, abs=1e-9))
+
+
+def test_rotation_is_validated() -> None:
+    with pytest.raises(ConfigError, match="rotation_deg"):
+        WorkspaceConfig(rotation_deg=200.0)
+    with pytest.raises(ConfigError, match="finite"):
+        WorkspaceConfig(rotation_deg=float("nan"))

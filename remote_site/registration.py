@@ -1,0 +1,306 @@
+"""Arm <-> phantom registration from fiducials felt with the tactile sensor.
+
+A phantom carries small rigid beads (fiducials) just under its surface at positions known by
+design, in phantom coordinates, outside the palpated area. Placed on the table by hand, the
+phantom sits a few millimetres and degrees away from where the workspace map assumes. The
+procedure (:func:`calibrate_with_fiducials`) presses the pad gently onto each fiducial's
+DESIGN position, finds the bead in the reconstructed height map (it pushes the gel in more
+than the soft tissue around it, :func:`locate_bump`), and so measures where each fiducial
+really is in the arm's frame. A least-squares rigid fit of the plane
+(:func:`fit_registration`, 2-D Kabsch) gives the registration ``q = R(yaw) a + d`` from arm
+positions ``a`` to phantom positions ``q``, with its uncertainty from the fit's residuals:
+``cov = s^2 (J^T J)^-1`` with ``s^2`` the residual variance (2n - 3 degrees of freedom) and
+``J`` the fit's Jacobian, floored by the per-fiducial localization noise ``sigma_floor_mm``.
+
+The result goes into the workspace map (:meth:`shared.workspace.WorkspaceMap.registered`),
+so the arm then goes where the operator means on the real phantom and every tactile frame is
+reported where it was really taken.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy import ndimage
+
+from remote_site.arm.base import Arm
+from remote_site.reconstruction.reconstructor import Reconstructor
+from remote_site.sensor.base import TactileSensor
+from shared.errors import CalibrationError, DeviceError, InputDataError
+from shared.workspace import WorkspaceMap
+
+__all__ = ["RegistrationEstimate", "calibrate_with_fiducials", "fit_registration",
+           "locate_bump", "robust_fit"]
+
+
+@dataclass(frozen=True)
+class RegistrationEstimate:
+    """``q_phantom = R(yaw) a_arm + (dx, dy)`` with its uncertainty.
+
+    Attributes:
+        dx_mm, dy_mm, yaw_deg: the rigid motion.
+        std_dx_mm, std_dy_mm, std_yaw_deg: one-sigma uncertainties.
+        residual_rms_mm: rms distance between fitted and measured fiducials.
+        fiducials: how many fiducials were used.
+        measured_arm_mm: where each fiducial was found (arm frame).
+    """
+
+    dx_mm: float
+    dy_mm: float
+    yaw_deg: float
+    std_dx_mm: float
+    std_dy_mm: float
+    std_yaw_deg: float
+    residual_rms_mm: float
+    fiducials: int
+    measured_arm_mm: tuple[tuple[float, float], ...] = ()
+
+    def arm_to_phantom(self, xy_mm: ArrayLike) -> NDArray[np.float64]:
+        """Arm-frame (x, y) point(s) to phantom (x, y)."""
+        p = np.asarray(xy_mm, float)
+        th = math.radians(self.yaw_deg)
+        rot = np.array([[math.cos(th), -math.sin(th)], [math.sin(th), math.cos(th)]])
+        return np.asarray(p @ rot.T + np.array([self.dx_mm, self.dy_mm]), float)
+
+    def position_std_mm(self, radius_mm: float) -> float:
+        """One-sigma position uncertainty of a point ``radius_mm`` from the origin."""
+        return math.sqrt(self.std_dx_mm ** 2 + self.std_dy_mm ** 2
+                         + (math.radians(self.std_yaw_deg) * radius_mm) ** 2)
+
+    def workspace_to_arm(self, workspace: WorkspaceMap) -> WorkspaceMap:
+        """The platform -> ARM map that makes the arm reach ``workspace``'s phantom points.
+
+        ``a = R(-yaw) (q - d)``: the inverse rigid motion after the designed map.
+        """
+        th = math.radians(-self.yaw_deg)
+        rot = np.array([[math.cos(th), -math.sin(th)], [math.sin(th), math.cos(th)]])
+        shift = -(rot @ np.array([self.dx_mm, self.dy_mm]))
+        return workspace.registered(float(shift[0]), float(shift[1]), -self.yaw_deg)
+
+    def to_dict(self) -> dict[str, object]:
+        """Plain JSON."""
+        return {k: (list(map(list, v)) if k == "measured_arm_mm" else v)
+                for k, v in self.__dict__.items()}
+
+
+def fit_registration(arm_xy_mm: ArrayLike, phantom_xy_mm: ArrayLike, *,
+                     sigma_floor_mm: float = 0.1) -> RegistrationEstimate:
+    """Least-squares rigid motion (rotation + translation) taking arm points to phantom points.
+
+    Args:
+        arm_xy_mm: (n, 2) measured positions in the arm frame.
+        phantom_xy_mm: (n, 2) the same points' design positions on the phantom.
+        sigma_floor_mm: smallest per-point noise assumed for the uncertainty (with 2
+            points there are no residual degrees of freedom at all).
+
+    Raises:
+        InputDataError: fewer than 2 points, shapes that differ, non-finite values, or all
+            points at one place.
+    """
+    a = np.asarray(arm_xy_mm, float)
+    q = np.asarray(phantom_xy_mm, float)
+    if a.ndim != 2 or a.shape[1] != 2 or a.shape != q.shape:
+        raise InputDataError(f"need two (n, 2) point sets of equal shape, got {a.shape}, "
+                             f"{q.shape}")
+    n = a.shape[0]
+    if n < 2:
+        raise InputDataError("a registration needs at least 2 fiducials")
+    if not (np.isfinite(a).all() and np.isfinite(q).all()):
+        raise InputDataError("fiducial positions must be finite")
+    ca, cq = a.mean(axis=0), q.mean(axis=0)
+    a0, q0 = a - ca, q - cq
+    if float((a0 ** 2).sum()) < 1e-12:
+        raise InputDataError("the fiducials must not all be at one place")
+    # 2-D Kabsch: the angle maximising sum q0 . R a0
+    h = a0.T @ q0
+    yaw = math.atan2(h[0, 1] - h[1, 0], h[0, 0] + h[1, 1])
+    rot = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
+    d = cq - rot @ ca
+    resid = q - (a @ rot.T + d)
+    dof = 2 * n - 3
+    s2 = float((resid ** 2).sum()) / dof if dof > 0 else 0.0
+    s2 = max(s2, sigma_floor_mm ** 2)
+    # Jacobian of the residuals w.r.t. (dx, dy, yaw) at the solution
+    jac = np.zeros((2 * n, 3))
+    jac[0::2, 0] = 1.0
+    jac[1::2, 1] = 1.0
+    drot = np.array([[-math.sin(yaw), -math.cos(yaw)], [math.cos(yaw), -math.sin(yaw)]])
+    jac[:, 2] = (a @ drot.T).reshape(-1)
+    cov = s2 * np.linalg.pinv(jac.T @ jac)
+    return RegistrationEstimate(
+        dx_mm=float(d[0]), dy_mm=float(d[1]), yaw_deg=math.degrees(yaw),
+        std_dx_mm=math.sqrt(max(cov[0, 0], 0.0)), std_dy_mm=math.sqrt(max(cov[1, 1], 0.0)),
+        std_yaw_deg=math.degrees(math.sqrt(max(cov[2, 2], 0.0))),
+        residual_rms_mm=float(np.sqrt((resid ** 2).sum(axis=1).mean())), fiducials=n,
+        measured_arm_mm=tuple((float(x), float(y)) for x, y in a))
+
+
+def locate_bump(height_mm: ArrayLike, pitch_mm: float, *, min_prominence_mm: float = 0.035,
+                smooth_px: float = 1.0, window_mm: float = 6.0,
+                search_radius_mm: float = 5.5) -> tuple[float, float]:
+    """Offset (x, y) mm of the most prominent bump from the height map's centre.
+
+    The pad's own pressure plateau is removed by a white top-hat (the map minus its
+    morphological opening with a ``window_mm`` disc, wider than a bead, narrower than the
+    pad); the bump is searched within ``search_radius_mm`` of the centre (the pad's rim
+    leaves top-hat residue further out); it is the connected region above half the highest
+    remaining point there, and its prominence-weighted centroid is returned (sub-pixel).
+    Rows run along +y, columns along +x.
+
+    Raises:
+        InputDataError: a non-2-D or non-finite map, a bad pitch, or no bump above
+            ``min_prominence_mm``.
+    """
+    h = np.asarray(height_mm, float)
+    if h.ndim != 2 or min(h.shape) < 3 or not np.isfinite(h).all():
+        raise InputDataError(f"need a finite 2-D height map, got shape {h.shape}")
+    if not (math.isfinite(pitch_mm) and pitch_mm > 0):
+        raise InputDataError(f"pitch must be > 0, got {pitch_mm}")
+    smooth = ndimage.gaussian_filter(h, smooth_px) if smooth_px > 0 else h
+    r_px = max(1, round(window_mm / 2.0 / pitch_mm))
+    yy, xx = np.mgrid[-r_px:r_px + 1, -r_px:r_px + 1]
+    excess = smooth - ndimage.grey_opening(smooth, footprint=xx ** 2 + yy ** 2 <= r_px ** 2)
+    rows, cols = h.shape
+    ry, rx = np.mgrid[0:rows, 0:cols]
+    near = np.hypot((rx - (cols - 1) / 2.0) * pitch_mm,
+                    (ry - (rows - 1) / 2.0) * pitch_mm) <= search_radius_mm
+    excess = np.where(near, excess, 0.0)
+    peak = float(excess.max())
+    if not peak >= min_prominence_mm:
+        raise InputDataError(f"no bump: highest point {peak:.4f} mm above the median "
+                             f"(< {min_prominence_mm} mm)")
+    labels, _ = ndimage.label(excess >= peak / 2.0)
+    i, j = np.unravel_index(int(np.argmax(excess)), excess.shape)
+    region = labels == labels[i, j]
+    weights = np.where(region, excess - peak / 2.0, 0.0)
+    cy, cx = ndimage.center_of_mass(weights)
+    return (float((cx - (cols - 1) / 2.0) * pitch_mm), float((cy - (rows - 1) / 2.0) * pitch_mm))
+
+
+def _move_and_wait(arm: Arm, target: tuple[float, float, float], wait: Callable[[float], object],
+                   tolerance_mm: float, timeout_s: float) -> None:
+    target = arm.limits.clamp(target)
+    arm.move_to(target)
+    waited = 0.0
+    while waited < timeout_s:
+        wait(0.02)
+        waited += 0.02
+        reading = arm.state()
+        dist = float(np.linalg.norm(np.asarray(reading.position_mm, float) - np.asarray(target)))
+        speed = float(np.linalg.norm(reading.velocity_mm_s))
+        # a noisy position reading may never come within the tolerance: at rest within 1 mm
+        # counts as arrived
+        if dist <= tolerance_mm or (speed < 0.5 and dist < 1.0):
+            return
+    raise CalibrationError(f"the arm did not reach {target} within {timeout_s:.1f} s")
+
+
+def calibrate_with_fiducials(arm: Arm, sensor: TactileSensor, reconstructor: Reconstructor,
+                             fiducials_mm: Sequence[Sequence[float]], *,
+                             press_mm: float = 1.5, hover_mm: float = 5.0,
+                             settle_s: float = 0.2, pitch_mm: float = 0.5,
+                             wait: Callable[[float], object] = time.sleep,
+                             timeout_s: float = 10.0, outlier_mm: float = 0.5,
+                             centred_mm: float = 3.0,
+                             ring_mm: float = 5.0) -> RegistrationEstimate:
+    """Press each fiducial, find the bead, fit the registration.
+
+    For each fiducial the arm presses where the fiducials found so far predict it (the
+    design position for the first), lowering the pad ``press_mm`` into the surface, waiting
+    ``settle_s`` and taking one sensor frame. A bead felt more than ``centred_mm`` off the
+    pad centre is pressed again, centred; a bead not felt at all is searched on a ring of
+    ``ring_mm`` around the prediction. The arm is commanded in its own frame (the designed
+    map's phantom coordinates).
+
+    Args:
+        arm: the connected arm (or its safety wrapper).
+        sensor: the connected sensor.
+        reconstructor: with the sensor's calibration and a current background.
+        fiducials_mm: (x, y) design positions on the phantom.
+        press_mm: press depth below the designed surface.
+        hover_mm: height of the moves between fiducials.
+        settle_s: wait after reaching the press depth.
+        pitch_mm: height-map pitch used to find the bead.
+        wait: sleeps (realtime arm) or advances the simulated arm by the given seconds.
+        timeout_s: longest wait for one move.
+        outlier_mm: residual rms above which the worst fiducial is dropped (see
+            :func:`robust_fit`).
+        centred_mm: a bead felt further off the pad centre is pressed again on it.
+        ring_mm: radius of the search ring when a bead is not felt.
+
+    Raises:
+        CalibrationError: a move times out, fewer than 2 fiducials are found, or the
+            sensor fails.
+    """
+    found_arm: list[tuple[float, float]] = []
+    found_design: list[tuple[float, float]] = []
+    misses = []
+
+    def press(xy: tuple[float, float]) -> tuple[float, float, float] | None:
+        """Press at arm (x, y); the bead's arm position and its distance from the pad
+        centre, or None when no bead is felt."""
+        _move_and_wait(arm, (xy[0], xy[1], hover_mm), wait, 0.5, timeout_s)
+        _move_and_wait(arm, (xy[0], xy[1], -press_mm), wait, 0.05, timeout_s)
+        wait(settle_s)
+        try:
+            frame = sensor.read_latest(max_age_ms=1e9)
+            pose = arm.state().position_mm
+            hm = reconstructor.height_map(frame.rgb, out_pitch_mm=pitch_mm)
+            ox, oy = locate_bump(hm.height_mm, hm.mm_per_px)
+        except InputDataError as err:
+            misses.append(f"({xy[0]:.1f}, {xy[1]:.1f}): {err}")
+            return None
+        except DeviceError as err:
+            raise CalibrationError(f"sensor failed during the registration: {err}") from err
+        finally:
+            _move_and_wait(arm, (xy[0], xy[1], hover_mm), wait, 0.5, timeout_s)
+        return pose[0] + ox, pose[1] + oy, math.hypot(ox, oy)
+
+    for fx, fy in ((float(f[0]), float(f[1])) for f in fiducials_mm):
+        # where to press: the design position through what was measured so far
+        if len(found_arm) >= 2:
+            guess = fit_registration(found_arm, found_design)
+            th = math.radians(-guess.yaw_deg)
+            px, py = fx - guess.dx_mm, fy - guess.dy_mm
+            start_xy = (math.cos(th) * px - math.sin(th) * py,
+                        math.sin(th) * px + math.cos(th) * py)
+        elif found_arm:
+            start_xy = (fx + found_arm[0][0] - found_design[0][0],
+                        fy + found_arm[0][1] - found_design[0][1])
+        else:
+            start_xy = (fx, fy)
+        ring = [(start_xy[0] + ring_mm * math.cos(k * math.pi / 3),
+                 start_xy[1] + ring_mm * math.sin(k * math.pi / 3)) for k in range(6)]
+        for xy in [start_xy, *ring]:
+            hit = press(xy)
+            if hit is not None and hit[2] > centred_mm:  # felt off-centre: press on it
+                hit = press((hit[0], hit[1]))
+            if hit is not None and hit[2] <= centred_mm:
+                found_arm.append((hit[0], hit[1]))
+                found_design.append((fx, fy))
+                break
+    if len(found_arm) < 2:
+        raise CalibrationError(f"registration: only {len(found_arm)} of {len(fiducials_mm)} "
+                               f"fiducials found ({'; '.join(misses)})")
+    return robust_fit(found_arm, found_design, outlier_mm=outlier_mm)
+
+
+def robust_fit(arm_xy_mm: Sequence[Sequence[float]], phantom_xy_mm: Sequence[Sequence[float]],
+               *, outlier_mm: float = 0.5) -> RegistrationEstimate:
+    """:func:`fit_registration`, dropping the worst-fitting fiducial while the residual rms
+    exceeds ``outlier_mm`` and more than 3 remain (a bead mislocated, e.g. by a tumor or
+    the phantom's edge in the sensor's view)."""
+    a = [tuple(p) for p in arm_xy_mm]
+    q = [tuple(p) for p in phantom_xy_mm]
+    est = fit_registration(a, q)
+    while est.residual_rms_mm > outlier_mm and len(a) > 3:
+        resid = np.linalg.norm(est.arm_to_phantom(a) - np.asarray(q, float), axis=1)
+        worst = int(np.argmax(resid))
+        del a[worst], q[worst]
+        est = fit_registration(a, q)
+    return est
