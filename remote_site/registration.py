@@ -19,23 +19,26 @@ reported where it was really taken.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
 
-from remote_site.arm.base import Arm
+from remote_site.arm.base import Arm, ArmLimits, ArmReading
+from remote_site.arm.safety import SafeArm, SafetyConfig
 from remote_site.reconstruction.reconstructor import Reconstructor
 from remote_site.sensor.base import TactileSensor
 from shared.errors import CalibrationError, DeviceError, InputDataError
 from shared.workspace import WorkspaceMap
 
-__all__ = ["RegistrationEstimate", "calibrate_with_fiducials", "fit_registration",
-           "locate_bump", "robust_fit"]
+__all__ = ["GuardedMotion", "RegistrationEstimate", "SafeMotion", "calibrate_with_fiducials",
+           "fit_registration", "guarded", "locate_bump", "robust_fit"]
 
 
 @dataclass(frozen=True)
@@ -182,8 +185,59 @@ def locate_bump(height_mm: ArrayLike, pitch_mm: float, *, min_prominence_mm: flo
     return (float((cx - (cols - 1) / 2.0) * pitch_mm), float((cy - (rows - 1) / 2.0) * pitch_mm))
 
 
-def _move_and_wait(arm: Arm, target: tuple[float, float, float], wait: Callable[[float], object],
-                   tolerance_mm: float, timeout_s: float) -> None:
+class GuardedMotion(Protocol):
+    """What the registration needs of an arm: its box, a move and a reading. The station
+    passes :class:`SafeMotion` (the safety layer's force limit and box), never the raw arm."""
+
+    @property
+    def limits(self) -> ArmLimits: ...
+
+    def move_to(self, target_mm: Sequence[float]) -> object: ...
+
+    def state(self) -> ArmReading: ...
+
+
+class SafeMotion:
+    """An arm seen through :class:`~remote_site.arm.safety.SafeArm` for scripted moves:
+    every target is clamped, force-limited and, in the press zone, stepped down at the safety
+    layer's press rate, like a stream of operator commands: each reading re-issues the
+    current target, so a deep target is reached in safe steps. Build the ``SafeArm`` with a
+    command timeout longer than one scripted move (:func:`guarded`)."""
+
+    def __init__(self, safe: SafeArm) -> None:
+        self.safe = safe
+        self._target: tuple[float, float, float] | None = None
+
+    @property
+    def limits(self) -> ArmLimits:
+        return self.safe.arm.limits
+
+    def move_to(self, target_mm: Sequence[float]) -> object:
+        target = (float(target_mm[0]), float(target_mm[1]), float(target_mm[2]))
+        result = self.safe.move(target)  # no stamp: a local script, not a remote command
+        if not result.accepted:
+            raise CalibrationError(f"the safety layer refused the move to {target}: "
+                                   f"{result.status}")
+        self._target = target
+        return result.applied_mm
+
+    def state(self) -> ArmReading:
+        reading = self.safe.poll()
+        if self._target is not None:
+            self.safe.move(self._target)  # the next safe step towards the target
+        return reading
+
+
+def guarded(arm: Arm, safety: SafetyConfig | None = None) -> SafeMotion:
+    """``arm`` behind a :class:`SafeArm` made for scripted moves (the given safety settings,
+    with a command timeout of a minute: the moves are not a command stream)."""
+    cfg = dataclasses.replace(safety or SafetyConfig(), command_timeout_ms=60_000.0)
+    return SafeMotion(SafeArm(arm, cfg))
+
+
+def _move_and_wait(arm: GuardedMotion, target: tuple[float, float, float],
+                   wait: Callable[[float], object], tolerance_mm: float,
+                   timeout_s: float) -> None:
     target = arm.limits.clamp(target)
     arm.move_to(target)
     waited = 0.0
@@ -200,7 +254,8 @@ def _move_and_wait(arm: Arm, target: tuple[float, float, float], wait: Callable[
     raise CalibrationError(f"the arm did not reach {target} within {timeout_s:.1f} s")
 
 
-def calibrate_with_fiducials(arm: Arm, sensor: TactileSensor, reconstructor: Reconstructor,
+def calibrate_with_fiducials(arm: GuardedMotion, sensor: TactileSensor,
+                             reconstructor: Reconstructor,
                              fiducials_mm: Sequence[Sequence[float]], *,
                              press_mm: float = 1.5, hover_mm: float = 5.0,
                              settle_s: float = 0.2, pitch_mm: float = 0.5,
@@ -218,7 +273,7 @@ def calibrate_with_fiducials(arm: Arm, sensor: TactileSensor, reconstructor: Rec
     map's phantom coordinates).
 
     Args:
-        arm: the connected arm (or its safety wrapper).
+        arm: the connected arm behind its safety layer (:class:`SafeMotion`).
         sensor: the connected sensor.
         reconstructor: with the sensor's calibration and a current background.
         fiducials_mm: (x, y) design positions on the phantom.

@@ -36,7 +36,7 @@ from remote_site.arm.base import ArmLimits
 from remote_site.arm.sim import SimArm, SimArmConfig
 from remote_site.phantom.reference_presses import sim_stiffness_calibration
 from remote_site.reconstruction.reconstructor import Reconstructor
-from remote_site.registration import RegistrationEstimate, calibrate_with_fiducials
+from remote_site.registration import RegistrationEstimate, calibrate_with_fiducials, guarded
 from remote_site.sensor.sim_calibration import simulated_calibration
 from remote_site.sensor.simulator import SimulatedSensor
 from remote_site.stiffness.estimator import StiffnessConfig
@@ -219,7 +219,8 @@ def simulate_registration(world: SimWorld) -> RegistrationEstimate:
     arm.connect()
     sensor.connect()
     try:
-        return calibrate_with_fiducials(arm, sensor, Reconstructor(simulated_calibration()),
+        return calibrate_with_fiducials(guarded(arm), sensor,
+                                        Reconstructor(simulated_calibration()),
                                         [f.center_mm for f in world.phantom.fiducials],
                                         wait=arm.advance)
     finally:

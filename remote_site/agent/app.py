@@ -36,7 +36,7 @@ from remote_site.agent.station import RemoteStation
 from remote_site.agent.stiffness_stage import StiffnessStage
 from remote_site.arm.safety import SafeArm, SafetyConfig
 from remote_site.reconstruction.reconstructor import Reconstructor
-from remote_site.registration import calibrate_with_fiducials
+from remote_site.registration import calibrate_with_fiducials, guarded
 from remote_site.stiffness.estimator import StiffnessConfig
 from remote_site.stiffness.stiffness_map import MapBounds
 from remote_site.tactile import TactileAssembler
@@ -185,8 +185,14 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
         background.capture(sensor, safe_arm.arm.state().force_n)
         registration = None
         if options.fiducials:
-            registration = await asyncio.to_thread(
-                calibrate_with_fiducials, arm, sensor, reconstructor, options.fiducials)
+            # the presses go through the safety layer (force limit, the arm's box), with a
+            # command timeout longer than one scripted move (they are not a command stream)
+            motion = guarded(arm, safety)
+            try:
+                registration = await asyncio.to_thread(
+                    calibrate_with_fiducials, motion, sensor, reconstructor, options.fiducials)
+            finally:
+                motion.safe.close()
             log.info("registration from %d fiducials: dx %.2f +- %.2f mm, dy %.2f +- %.2f mm, "
                      "yaw %.2f +- %.2f deg (residual rms %.2f mm)", registration.fiducials,
                      registration.dx_mm, registration.std_dx_mm, registration.dy_mm,

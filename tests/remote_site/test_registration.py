@@ -17,7 +17,12 @@ from remote_site.cli import parse_fiducials
 from remote_site.phantom import make_scene
 from remote_site.phantom.phantom_file import phantom_from_dict
 from remote_site.reconstruction.reconstructor import Reconstructor
-from remote_site.registration import calibrate_with_fiducials, fit_registration, locate_bump
+from remote_site.registration import (
+    calibrate_with_fiducials,
+    fit_registration,
+    guarded,
+    locate_bump,
+)
 from remote_site.sensor.sim_calibration import simulated_calibration
 from remote_site.sensor.simulator import SimulatedSensor
 from shared.errors import CalibrationError, ConfigError, InputDataError
@@ -110,7 +115,7 @@ def test_procedure_measures_the_hidden_registration(seed: int) -> None:
     arm.connect()
     sensor.connect()
     try:
-        est = calibrate_with_fiducials(arm, sensor, Reconstructor(simulated_calibration()),
+        est = calibrate_with_fiducials(guarded(arm), sensor, Reconstructor(simulated_calibration()),
                                        [f.center_mm for f in world.phantom.fiducials],
                                        wait=arm.advance)
     finally:
@@ -139,7 +144,7 @@ def test_procedure_fails_clearly_without_fiducials() -> None:
     sensor.connect()
     try:
         with pytest.raises(CalibrationError, match="only 0 of 2 fiducials"):
-            calibrate_with_fiducials(arm, sensor, Reconstructor(simulated_calibration()),
+            calibrate_with_fiducials(guarded(arm), sensor, Reconstructor(simulated_calibration()),
                                      [(0.0, 0.0), (20.0, 0.0)], wait=arm.advance)
     finally:
         sensor.disconnect()
