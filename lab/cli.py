@@ -44,6 +44,8 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
                   "random phantoms and link profiles, with motion-to-touch latency"),
     "reconstruction": ("lab.bench.reconstruction", "height-map time vs error"),
     "stiffness": ("lab.bench.stiffness", "stiffness error vs noise/samples, time"),
+    "faults": ("lab.bench.faults", "fault suite with real processes: relay kills, outages, "
+               "SIGKILL/SIGSTOP, clock steps, CPU load; halt/safe/recovery/stale figures"),
 }
 
 log = logging.getLogger(__name__)
