@@ -162,6 +162,7 @@ def run(args: argparse.Namespace) -> int:
     import json
     import os
     import platform
+    import signal
     import sys
     import tempfile
     import time
@@ -170,6 +171,10 @@ def run(args: argparse.Namespace) -> int:
     from lab.faults import iter_results, scenarios
     from shared.report import emit, emit_json
 
+    def interrupt(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt  # the running scenario stops its processes on the way out
+
+    signal.signal(signal.SIGTERM, interrupt)
     repeats = args.repeats or (1 if args.quick else 3)
     items = scenarios(long=not args.short)
     if args.only:
@@ -181,7 +186,29 @@ def run(args: argparse.Namespace) -> int:
                "jobs, so every process here competes for the cores.")
     root = Path(args.workdir) if args.workdir else Path(tempfile.mkdtemp(prefix="tt-faults-"))
     started = time.monotonic()
-    results = []
+    parts = ["teletouch bench faults"] + (["--quick"] if args.quick else []) \
+        + (["--short"] if args.short else []) \
+        + ([f"--repeats {args.repeats}"] if args.repeats else []) \
+        + [f"--only '{t}'" for t in (args.only or [])]
+    results: list[dict[str, Any]] = []
+    md = ""
+
+    def write(partial: bool) -> None:
+        nonlocal md
+        now = os.getloadavg()[0]
+        note = (f" Load average {now:.1f} when this file was written."
+                + (f" **Partial: {len(results)} of {len(items)} scenarios so far.**"
+                   if partial else ""))
+        md = report_markdown(results, command=" ".join(parts), machine=machine + note,
+                             elapsed_s=time.monotonic() - started)
+        if args.write_results:
+            out = Path(args.write_results)
+            out.mkdir(parents=True, exist_ok=True)
+            (out / "faults.md").write_text(md)
+            (out / "faults.json").write_text(json.dumps(
+                {"machine": machine, "load_average_start": load, "partial": partial,
+                 "results": results}, indent=1, default=str) + "\n")
+
     for r in iter_results(items, root, repeats=repeats,
                           progress=lambda m: print(m, file=sys.stderr, flush=True)):
         results.append(r)
@@ -190,19 +217,8 @@ def run(args: argparse.Namespace) -> int:
               f"{_fmt(r['fresh_after_ms']['max'])} ms, stale cmds "
               f"{r['stale_commands_executed']}, stale frames {r['stale_frames_rendered']}, "
               f"exits {len(r['exits'])}", file=sys.stderr, flush=True)
-    elapsed = time.monotonic() - started
-    parts = ["teletouch bench faults"] + (["--quick"] if args.quick else []) \
-        + (["--short"] if args.short else []) \
-        + ([f"--repeats {args.repeats}"] if args.repeats else []) \
-        + [f"--only '{t}'" for t in (args.only or [])]
-    md = report_markdown(results, command=" ".join(parts), machine=machine, elapsed_s=elapsed)
-    if args.write_results:
-        out = Path(args.write_results)
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "faults.md").write_text(md)
-        (out / "faults.json").write_text(json.dumps(
-            {"machine": machine, "load_average": load, "results": results}, indent=1,
-            default=str) + "\n")
+        write(partial=len(results) < len(items))  # a long run leaves its table as it goes
+    write(partial=False)
     if args.json:
         emit_json({"machine": machine, "results": results})
     else:
