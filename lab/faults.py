@@ -35,6 +35,7 @@ import contextlib
 import functools
 import json
 import logging
+import math
 import os
 import signal
 import subprocess
@@ -58,6 +59,9 @@ SESSION = "faults"
 #: an endless raster pressed 3 mm into the phantom (see lab/demo/orchestrator.py)
 MOTION = ("raster:x0=1,x1=59,y0=1,y1=59,spacing=4,speed=45,z=10,press_depth=0,"
           "press_every=0,pause=1,loop=1")
+#: "the flow is back" for the harness's waits: a frame rendered at most this old (a loaded
+#: machine may never render one within the 100 ms bound; the figures use the strict bound)
+FLOW_BOUND_MS = 1000.0
 FAULT_KINDS = ("none", "relay_kill", "blackhole", "reset", "kill", "stop", "clock_step")
 
 
@@ -330,10 +334,10 @@ class FaultRig:
                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
         self.start_station("remote")
         self.start_station("local")
-        if not self.wait_flowing(0.0, timeout_s):
+        if not self.wait_flowing(0.0, timeout_s, FLOW_BOUND_MS):
             tails = "\n".join(f"--- {p.name}:\n{p.tail()}" for p in self._all)
-            raise RigError(f"no fresh frames and executed commands within {timeout_s:.0f} s "
-                           f"of the start:\n{tails}")
+            raise RigError(f"no frames rendered and commands executed within "
+                           f"{timeout_s:.0f} s of the start:\n{tails}")
 
     # ------------------------------------------------------------------ observation
 
@@ -594,12 +598,14 @@ def analyse(rig: FaultRig, injections: list[tuple[float, float]], *,
     per_fault = []
     for t_fault, t_rec in injections:
         fresh = rig.fresh_render_after(t_rec, frame_bound_ms)
+        anyf = rig.fresh_render_after(t_rec, math.inf)
         cmd = rig.command_after(t_rec)
         halt = next(((t, ms) for t, ms in halts if t >= t_fault - 0.2), None)
         safe = next(((t, ms) for t, ms in safes if t >= t_fault - 0.2), None)
         per_fault.append({
             "fault_s": t_fault, "recovered_s": t_rec,
             "fresh_frames_after_ms": None if fresh is None else (fresh - t_rec) * 1e3,
+            "any_frame_after_ms": None if anyf is None else (anyf - t_rec) * 1e3,
             "commands_after_ms": None if cmd is None else (cmd - t_rec) * 1e3,
             "halt_ms": None if halt is None else halt[1],
             "safe_ms": None if safe is None else safe[1]})
@@ -608,6 +614,8 @@ def analyse(rig: FaultRig, injections: list[tuple[float, float]], *,
         "safe_ms": _pct([ms for _, ms in safes]),
         "fresh_after_ms": _pct([f["fresh_frames_after_ms"] for f in per_fault
                                 if f["fresh_frames_after_ms"] is not None]),
+        "any_frame_after_ms": _pct([f["any_frame_after_ms"] for f in per_fault
+                                    if f["any_frame_after_ms"] is not None]),
         "recoveries_missing": sum(1 for f in per_fault if f["fresh_frames_after_ms"] is None),
         "commands_executed": executed,
         "stale_commands_executed": len(stale_exec),
@@ -679,7 +687,7 @@ def run_scenario(scenario: Scenario, workdir: Path, *, repeats: int = 1,
             if f.kind in ("none", "clock_step"):
                 rig._sleep_polling(t_rec + scenario.observe_s)
             else:
-                ok = rig.wait_flowing(t_rec, recovery_timeout_s, frame_bound_ms)
+                ok = rig.wait_flowing(t_rec, recovery_timeout_s, FLOW_BOUND_MS)
                 if progress is not None:
                     progress(f"  {scenario.name}: injection {i + 1}/{repeats} "
                              f"{'recovered' if ok else 'NOT recovered'}")
