@@ -250,6 +250,7 @@ class FaultRig:
         self.wall_minus_mono_us = time.time_ns() / 1e3 - time.monotonic() * 1e6
         self._all: list[_Proc] = []
         self._stopping = False
+        self._killed: set[tuple[str, int]] = set()  # (role, instance) the harness SIGKILLed
 
     # ------------------------------------------------------------------ processes
 
@@ -354,8 +355,9 @@ class FaultRig:
         for role, proc in self.stations.items():
             code = proc.proc.poll()
             n = self.instances[role]
-            if code is not None and not any(e.role == role and e.instance == n
-                                            for e in self.exits):
+            if code is None or (role, n) in self._killed:
+                continue
+            if not any(e.role == role and e.instance == n for e in self.exits):
                 self.exits.append(Exit(role, n, code, time.monotonic()))
 
     def true_wall_us(self, mono: float) -> float:
@@ -456,10 +458,7 @@ class FaultRig:
         if kind == "kill":
             station.proc.send_signal(signal.SIGKILL)
             station.proc.wait(10)
-            self.poll()  # the killed instance's exit is noted, then forgiven below
-            self.exits = [e for e in self.exits if not (
-                e.role == fault.target and e.instance == self.instances[fault.target]
-                and e.code == -signal.SIGKILL)]
+            self._killed.add((fault.target, self.instances[fault.target]))
             self._sleep_polling(t0 + d)
             t1 = time.monotonic()
             self.start_station(fault.target)
@@ -687,7 +686,9 @@ def run_scenario(scenario: Scenario, workdir: Path, *, repeats: int = 1,
             if f.kind in ("none", "clock_step"):
                 rig._sleep_polling(t_rec + scenario.observe_s)
             else:
-                ok = rig.wait_flowing(t_rec, recovery_timeout_s, FLOW_BOUND_MS)
+                # a restarted station first imports and calibrates: tens of seconds when loaded
+                wait_s = recovery_timeout_s * (3 if f.kind == "kill" else 1)
+                ok = rig.wait_flowing(t_rec, wait_s, FLOW_BOUND_MS)
                 if progress is not None:
                     progress(f"  {scenario.name}: injection {i + 1}/{repeats} "
                              f"{'recovered' if ok else 'NOT recovered'}")
