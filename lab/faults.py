@@ -655,7 +655,7 @@ def _summary_figures(summaries: dict[str, Any]) -> dict[str, Any]:
 
 def run_scenario(scenario: Scenario, workdir: Path, *, repeats: int = 1,
                  recovery_timeout_s: float = 20.0, settle_s: float = 1.0,
-                 start_timeout_s: float = 90.0, steady_timeout_s: float = 20.0,
+                 start_timeout_s: float = 150.0, steady_timeout_s: float = 20.0,
                  frame_bound_ms: float = 100.0,
                  command_bound_ms: float = 100.0,
                  progress: Callable[[str], None] | None = None) -> dict[str, Any]:
