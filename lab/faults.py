@@ -594,7 +594,14 @@ def analyse(rig: FaultRig, injections: list[tuple[float, float]], *,
                 age = rig.age_ms("remote", m, ts)
                 if age > frame_bound_ms:
                     stale_rend.append(age)
-    per_fault = []
+    def stale_window(t0: float, t1: float) -> dict[str, Any]:
+        ages = [rig.age_ms("remote", m, ts) for p in rig.probes if p.role == "local"
+                for m, ts in p.rendered if t0 <= m <= t1]
+        stale = [a for a in ages if a > frame_bound_ms]
+        return {"rendered": len(ages), "stale": len(stale),
+                "max_age_ms": max(stale) if stale else None}
+
+    per_fault: list[dict[str, Any]] = []
     for t_fault, t_rec in injections:
         fresh = rig.fresh_render_after(t_rec, frame_bound_ms)
         anyf = rig.fresh_render_after(t_rec, math.inf)
@@ -607,7 +614,11 @@ def analyse(rig: FaultRig, injections: list[tuple[float, float]], *,
             "any_frame_after_ms": None if anyf is None else (anyf - t_rec) * 1e3,
             "commands_after_ms": None if cmd is None else (cmd - t_rec) * 1e3,
             "halt_ms": None if halt is None else halt[1],
-            "safe_ms": None if safe is None else safe[1]})
+            "safe_ms": None if safe is None else safe[1],
+            # frames rendered in the 5 s before the fault (what the load alone does) and in
+            # the 5 s after the recovery (what the fault adds)
+            "frames_before": stale_window(t_fault - 5.0, t_fault),
+            "frames_after": stale_window(t_rec, t_rec + 5.0)})
     return {
         "halt_ms": _pct([ms for _, ms in halts]),
         "safe_ms": _pct([ms for _, ms in safes]),

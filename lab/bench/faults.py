@@ -121,6 +121,21 @@ def _summaries_table(results: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def _windows_table(results: list[dict[str, Any]]) -> str:
+    lines = ["| scenario | injection | frames rendered in the 5 s before the fault: stale / all "
+             "(max age ms) | in the 5 s after the recovery: stale / all (max age ms) |",
+             "|---|---|---|---|"]
+    for r in results:
+        for i, f in enumerate(r["faults"]):
+            b, a = f.get("frames_before"), f.get("frames_after")
+            if b is None or a is None:
+                continue
+            lines.append(f"| {r['scenario']} | {i + 1} | {b['stale']} / {b['rendered']} "
+                         f"({_fmt(b['max_age_ms'])}) | {a['stale']} / {a['rendered']} "
+                         f"({_fmt(a['max_age_ms'])}) |")
+    return "\n".join(lines)
+
+
 def report_markdown(results: list[dict[str, Any]], *, command: str, machine: str,
                     elapsed_s: float) -> str:
     """The whole results file."""
@@ -160,6 +175,11 @@ display live in its process, so the halt of a stopped remote station is counted 
 The stations' own summaries (last instance of each, written at SIGTERM; `-` = not written):
 
 {_summaries_table(results)}
+
+Stale frames around each injection, to tell the load's share from the fault's (runs made
+before this split was added have no rows here):
+
+{_windows_table(results)}
 """
 
 
