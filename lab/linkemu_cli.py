@@ -175,10 +175,6 @@ def run(args: argparse.Namespace) -> int:
         status = StatusLine(min_interval_s=settings.stats_interval_s)
         async with LinkEmulator(listen=listen, target=target, profile=profile,
                                 seed=settings.seed) as emu:
-            emit(f"link emulator listening on {listen[0]}:{emu.port} -> "
-                 f"{target[0]}:{target[1]} ({profile.name}: one-way {profile.delay_ms} ms "
-                 f"+/- {profile.jitter_ms} ms, loss {profile.loss:g}, "
-                 f"bandwidth {profile.bandwidth_mbps or 'unlimited'} Mbit/s)")
             loop = asyncio.get_running_loop()
             if settings.outage_on_signal_s is not None:
                 signal_outage_s = settings.outage_on_signal_s
@@ -189,7 +185,11 @@ def run(args: argparse.Namespace) -> int:
                     emu.start_outage(signal_outage_s,
                                      close_connections=bool(settings.outage_close))
 
-                loop.add_signal_handler(signal.SIGUSR1, on_signal)
+                loop.add_signal_handler(signal.SIGUSR1, on_signal)  # before "listening"
+            emit(f"link emulator listening on {listen[0]}:{emu.port} -> "
+                 f"{target[0]}:{target[1]} ({profile.name}: one-way {profile.delay_ms} ms "
+                 f"+/- {profile.jitter_ms} ms, loss {profile.loss:g}, "
+                 f"bandwidth {profile.bandwidth_mbps or 'unlimited'} Mbit/s)")
             end_s = None if settings.duration_s is None else loop.time() + settings.duration_s
             with contextlib.suppress(asyncio.CancelledError):
                 while end_s is None or loop.time() < end_s:

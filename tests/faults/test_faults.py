@@ -45,12 +45,20 @@ def rig_factory(tmp_path: Path) -> Iterator[RigFactory]:
         rig.close()
 
 
-def _halts_after(rig: FaultRig, t: float) -> list[float]:
-    return [m for p in rig.probes if p.role == "remote" for m, _ in p.halts if m >= t]
+def _arm_halted_at(rig: FaultRig, t: float) -> bool:
+    """The newest arm event before ``t`` is a halt (not an executed command)."""
+    p = rig.probe("remote")
+    halts = [m for m, _ in p.halts if m <= t]
+    moves = [m for m, _, acc, _ in p.commands if acc and m <= t]
+    return bool(halts) and (not moves or halts[-1] >= moves[-1])
 
 
-def _safe_after(rig: FaultRig, t: float) -> list[float]:
-    return [m for p in rig.probes if p.role == "local" for m, _ in p.safe if m >= t]
+def _display_safe_at(rig: FaultRig, t: float) -> bool:
+    """The newest display state change before ``t`` entered the safe state."""
+    p = rig.probe("local")
+    safe = [m for m, _ in p.safe if m <= t]
+    resumed = [m for m in p.resumed if m <= t]
+    return bool(safe) and (not resumed or safe[-1] >= resumed[-1])
 
 
 def _stale_rendered_after(rig: FaultRig, t: float) -> list[float]:
@@ -63,13 +71,13 @@ def _stale_rendered_after(rig: FaultRig, t: float) -> list[float]:
 def test_relay_sigkill_restart_after_half_a_second_both_stations_come_back(
         rig_factory: RigFactory) -> None:
     rig: FaultRig = rig_factory()
-    t_fault, t_back = rig.inject(FaultSpec("relay_kill", "remote", 0.5))
+    _, t_back = rig.inject(FaultSpec("relay_kill", "remote", 0.5))
     assert rig.wait_flowing(t_back, scaled(20.0), FLOW_BOUND_MS), (
         "fresh frames and executed commands did not come back after the relay's restart")
     rig.poll()
     assert rig.exits == [], f"stations exited: {rig.exits}"
-    assert _halts_after(rig, t_fault), "the arm was not halted while the relay was down"
-    assert _safe_after(rig, t_fault), "the display did not go safe while the relay was down"
+    assert _arm_halted_at(rig, t_back), "the arm was not halted while the relay was down"
+    assert _display_safe_at(rig, t_back), "the display was not safe while the relay was down"
     summaries = rig.stop()
     for role in ("local", "remote"):
         s = summaries[role]
@@ -79,12 +87,10 @@ def test_relay_sigkill_restart_after_half_a_second_both_stations_come_back(
 def test_two_second_blackhole_on_the_remote_leg_halts_goes_safe_and_recovers(
         rig_factory: RigFactory) -> None:
     rig: FaultRig = rig_factory(outage_s=2.0)
-    t_fault, t_end = rig.inject(FaultSpec("blackhole", "remote", 2.0))
+    _, t_end = rig.inject(FaultSpec("blackhole", "remote", 2.0))
     rig.poll()
-    halts = [m for m in _halts_after(rig, t_fault) if m <= t_end]
-    safes = [m for m in _safe_after(rig, t_fault) if m <= t_end]
-    assert halts, "the arm was not halted during the blackhole"
-    assert safes, "the display did not go safe during the blackhole"
+    assert _arm_halted_at(rig, t_end), "the arm was not halted at the blackhole's end"
+    assert _display_safe_at(rig, t_end), "the display was not safe at the blackhole's end"
     assert rig.wait_flowing(t_end, scaled(20.0), FLOW_BOUND_MS), \
         "fresh frames and executed commands did not come back after the blackhole"
     rig.poll()
