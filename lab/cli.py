@@ -55,6 +55,8 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
     "tactile-codec": ("lab.bench.tactile_codec", "compact tactile codec: bytes/s vs rendered "
                       "height error over deadband settings"),
     "cpu": ("lab.bench.cpu", "demo CPU per process, thread and stage (py-spy), sim kept apart"),
+    "faults": ("lab.bench.faults", "fault suite with real processes: relay kills, outages, "
+               "SIGKILL/SIGSTOP, clock steps, CPU load; halt/safe/recovery/stale figures"),
 }
 
 log = logging.getLogger(__name__)

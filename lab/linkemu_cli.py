@@ -40,6 +40,10 @@ class LinkSettings:
         outage_every_s: mean gap between random outages (None = none).
         outage_duration_s: mean duration of random outages (None = profile's).
         outage_close: reset connections at each outage.
+        outage_on_signal_s: SIGUSR1 starts an outage of this many seconds (None = SIGUSR1
+            is not handled); ``outage_close`` applies to it too. The fault suite
+            (``lab/faults.py``) injects its blackholes and resets this way, so it knows to
+            the millisecond when each began.
         seed: random seed of the impairments.
         duration_s: stop after this many seconds (None = until Ctrl-C).
         stats_interval_s: live status period.
@@ -58,6 +62,7 @@ class LinkSettings:
     outage_every_s: float | None = None
     outage_duration_s: float | None = None
     outage_close: bool = False
+    outage_on_signal_s: float | None = None
     seed: int | None = None
     duration_s: float | None = None
     stats_interval_s: float = 5.0
@@ -121,6 +126,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         metavar="S", help="mean duration of random outages")
     parser.add_argument("--outage-close", dest="outage_close", action="store_true",
                         default=None, help="reset connections when an outage starts")
+    parser.add_argument("--outage-on-signal", dest="outage_on_signal_s", type=float,
+                        metavar="S", help="SIGUSR1 starts an outage of S seconds "
+                                          "(with --outage-close: a reset)")
     parser.add_argument("--seed", type=int, help="random seed of the impairments")
     parser.add_argument("--duration", dest="duration_s", type=float, metavar="S",
                         help="stop after S seconds (default: run until Ctrl-C)")
@@ -134,14 +142,19 @@ def run(args: argparse.Namespace) -> int:
     """Resolve the settings, run the proxy, print its statistics at the end."""
     import asyncio
     import contextlib
+    import logging
+    import math
+    import signal
 
     from lab.linkemu import LinkEmulator, get_profile
     from shared.config import resolve_config
+    from shared.errors import ConfigError
     from shared.report import StatusLine, emit, emit_json
 
     names = ("listen", "target", "profile", "delay_ms", "jitter_ms", "loss", "loss_burst_len",
              "loss_penalty_ms", "bandwidth_mbps", "outages", "outage_every_s",
-             "outage_duration_s", "outage_close", "seed", "duration_s", "stats_interval_s")
+             "outage_duration_s", "outage_close", "outage_on_signal_s", "seed", "duration_s",
+             "stats_interval_s")
     explicit = {n: getattr(args, n, None) for n in names}
     settings = resolve_config(LinkSettings, "link", explicit=explicit,
                               toml_path=getattr(args, "config", None))
@@ -152,6 +165,9 @@ def run(args: argparse.Namespace) -> int:
         outage_duration_s=settings.outage_duration_s,
         outages=tuple(_parse_outage(o) for o in settings.outages) or None,
         close_on_outage=settings.outage_close or None)
+    if settings.outage_on_signal_s is not None and not (
+            math.isfinite(settings.outage_on_signal_s) and settings.outage_on_signal_s > 0):
+        raise ConfigError("--outage-on-signal needs a finite duration > 0 s")
     listen = parse_host_port(settings.listen)
     target = parse_host_port(settings.target)
 
@@ -159,11 +175,21 @@ def run(args: argparse.Namespace) -> int:
         status = StatusLine(min_interval_s=settings.stats_interval_s)
         async with LinkEmulator(listen=listen, target=target, profile=profile,
                                 seed=settings.seed) as emu:
+            loop = asyncio.get_running_loop()
+            if settings.outage_on_signal_s is not None:
+                signal_outage_s = settings.outage_on_signal_s
+
+                def on_signal() -> None:
+                    log.info("link emulator: outage of %.3f s (SIGUSR1)%s", signal_outage_s,
+                             ", connections reset" if settings.outage_close else "")
+                    emu.start_outage(signal_outage_s,
+                                     close_connections=bool(settings.outage_close))
+
+                loop.add_signal_handler(signal.SIGUSR1, on_signal)  # before "listening"
             emit(f"link emulator listening on {listen[0]}:{emu.port} -> "
                  f"{target[0]}:{target[1]} ({profile.name}: one-way {profile.delay_ms} ms "
                  f"+/- {profile.jitter_ms} ms, loss {profile.loss:g}, "
                  f"bandwidth {profile.bandwidth_mbps or 'unlimited'} Mbit/s)")
-            loop = asyncio.get_running_loop()
             end_s = None if settings.duration_s is None else loop.time() + settings.duration_s
             with contextlib.suppress(asyncio.CancelledError):
                 while end_s is None or loop.time() < end_s:
@@ -178,6 +204,7 @@ def run(args: argparse.Namespace) -> int:
                                   f"link {'up' if s['link_up'] else 'DOWN'}")
             return emu.stats()
 
+    log = logging.getLogger("lab.linkemu")
     stats = asyncio.run(main())
     if args.json:
         emit_json(stats)

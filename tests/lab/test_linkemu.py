@@ -311,3 +311,47 @@ def test_cli_runs_for_a_duration_and_prints_json(capsys: pytest.CaptureFixture[s
     stats = json.loads(out[-1])
     assert stats["profile"] == "city-1000km" and stats["outages_started"] == 1
     assert "listening" in out[0] and "12.0 ms" in out[0]
+
+
+def test_cli_sigusr1_starts_an_outage_of_the_given_length() -> None:
+    import signal
+    import subprocess
+    import sys
+
+    from tests.support import wait_until
+
+    port = free_tcp_port()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "lab.cli", "link", "--listen", f"127.0.0.1:{port}", "--target",
+         "127.0.0.1:1", "--outage-on-signal", "0.05", "--outage-close",
+         "--duration", f"{scaled(3.0):g}", "--json"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None
+        assert "listening" in proc.stdout.readline()  # the handler is set right after
+        wait_until(lambda: _port_accepts(port), 10.0, "the emulator's port")
+        proc.send_signal(signal.SIGUSR1)
+        out, err = proc.communicate(timeout=scaled(20.0))
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert "outage of 0.050 s (SIGUSR1), connections reset" in err
+    assert json.loads(out.strip().splitlines()[-1])["outages_started"] == 1
+
+
+def _port_accepts(port: int) -> bool:
+    import socket
+
+    try:
+        with socket.create_connection(("127.0.0.1", port), timeout=0.2):
+            return True
+    except OSError:
+        return False
+
+
+def test_cli_refuses_a_non_positive_signal_outage() -> None:
+    from lab.cli import main
+
+    assert main(["link", "--listen", f"127.0.0.1:{free_tcp_port()}", "--target",
+                 "127.0.0.1:1", "--outage-on-signal", "0", "--duration", "0.1"]) == 1

@@ -1,0 +1,182 @@
+"""Run a ``teletouch`` station with the fault suite's probe (lab instrumentation, not product).
+
+``python -m lab.faults_probe local|remote ARGS...`` runs ``teletouch local|remote ARGS...`` in
+this process after wrapping a few product methods so that what the station *does* is written,
+with the host's monotonic clock (the same in every process on one machine), to the file named
+by ``$TELETOUCH_FAULT_PROBE``, one event a line:
+
+* ``A mono seq ts_us`` - the display loop accepted a tactile frame (``ts_us``: its capture
+  stamp, the remote station's wall clock);
+* ``R mono seq ts_us`` - the first pin command rendered from that frame went to the display;
+* ``S mono reason`` / ``U mono`` - the display entered / left its safe state;
+* ``C mono ts_us accepted age_ms`` - the safety layer judged a timestamped arm command
+  (``ts_us``: the local station's wall clock; ``age_ms``: the age the station computed);
+* ``H mono why`` - the arm was halted (``watchdog``: no command for the timeout; ``stop``: a
+  stop call, e.g. the link-loss halt);
+* ``K mono offset_us`` - the station's wall clock was stepped (see below).
+
+The fault suite (``lab/faults.py``) turns these into true ages (on one host the sender's stamp
+is the true time, minus the clock step it injected) and into halt / safe-state latencies after
+the last valid input. The product code paths run unchanged: the wrappers call the originals and
+only record their outcome.
+
+Clock steps: when ``$TELETOUCH_FAULT_CLOCK`` names a file, ``time.time`` and ``time.time_ns``
+of this process return the real wall clock plus the offset (seconds, a float) read from that
+file on each SIGUSR2. The monotonic clock is untouched, as in a real NTP step. (libfaketime was
+tried first: Debian's 0.9.10 with ``DONT_FAKE_MONOTONIC=1`` makes every ``time.sleep`` of
+Python 3.11 fail with EINVAL, and without that flag a step moves the monotonic clock too.)
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import sys
+import threading
+import time
+from typing import Any, TextIO
+
+__all__ = ["main"]
+
+_lock = threading.RLock()  # the SIGUSR2 handler may run while the main thread writes
+_out: TextIO | None = None
+_real_time_ns = time.time_ns
+_offset_ns = 0
+
+
+def _emit(*fields: object) -> None:
+    if _out is None:
+        return
+    line = " ".join(str(f) for f in fields) + "\n"
+    with _lock:
+        _out.write(line)
+
+
+def _mono() -> str:
+    return f"{time.monotonic():.6f}"
+
+
+def _install_clock(path: str) -> None:
+    def fake_time_ns() -> int:
+        return _real_time_ns() + _offset_ns
+
+    def fake_time() -> float:
+        return fake_time_ns() / 1e9
+
+    def on_step(signum: int, frame: Any) -> None:
+        global _offset_ns
+        try:
+            with open(path) as f:
+                _offset_ns = round(float(f.read().strip() or "0") * 1e9)
+        except (OSError, ValueError) as err:
+            print(f"faults_probe: cannot read the clock offset {path}: {err}", file=sys.stderr)
+            return
+        _emit("K", _mono(), _offset_ns // 1000)
+
+    time.time_ns = fake_time_ns
+    time.time = fake_time
+    signal.signal(signal.SIGUSR2, on_step)
+
+
+def _install_local() -> None:
+    from local_site.agent import display_loop as dl
+
+    orig_take = dl.FrameSlot.take
+    orig_tick = dl.DisplayLoop.tick
+
+    def take(self: dl.FrameSlot) -> Any:
+        item = orig_take(self)
+        if item is not None:
+            self._probe_taken = item[0]  # type: ignore[attr-defined]
+        return item
+
+    def tick(self: dl.DisplayLoop) -> None:
+        c = self.counters
+        accepted, rendered, safe = c.frames_accepted, c.frames_rendered, self.safe_reason
+        try:
+            orig_tick(self)
+        finally:
+            now = _mono()
+            if c.frames_accepted > accepted and self.frames is not None:
+                frame = getattr(self.frames, "_probe_taken", None)
+                if frame is not None:
+                    self._probe_frame = frame  # type: ignore[attr-defined]
+                    _emit("A", now, frame.seq, frame.ts_us)
+            if safe is not None and self.safe_reason is None:
+                _emit("U", now)
+            if c.frames_rendered > rendered:
+                frame = getattr(self, "_probe_frame", None)
+                if frame is not None:
+                    _emit("R", now, frame.seq, frame.ts_us)
+            if safe is None and self.safe_reason is not None:
+                _emit("S", now, self.safe_reason)
+
+    dl.FrameSlot.take = take  # type: ignore[method-assign]
+    dl.DisplayLoop.tick = tick  # type: ignore[method-assign]
+
+
+def _install_remote() -> None:
+    from remote_site.arm import safety
+
+    orig_move = safety.SafeArm.move
+    orig_poll = safety.SafeArm.poll
+    orig_stop = safety.SafeArm.stop
+
+    def move(self: safety.SafeArm, target_mm: Any, *, sent_ts_us: int | None = None,
+             clock_offset_us: float = 0.0) -> safety.CommandResult:
+        result = orig_move(self, target_mm, sent_ts_us=sent_ts_us,
+                           clock_offset_us=clock_offset_us)
+        if sent_ts_us is not None:
+            age = "nan" if result.age_ms is None else f"{result.age_ms:.3f}"
+            _emit("C", _mono(), sent_ts_us, int(result.accepted), age)
+        return result
+
+    def poll(self: safety.SafeArm) -> Any:
+        before = self.halted
+        reading = orig_poll(self)
+        if not before and self.halted:
+            _emit("H", _mono(), "watchdog")
+        return reading
+
+    def stop(self: safety.SafeArm) -> None:
+        before = self.halted
+        orig_stop(self)
+        if not before:
+            _emit("H", _mono(), "stop")
+
+    safety.SafeArm.move = move  # type: ignore[method-assign]
+    safety.SafeArm.poll = poll  # type: ignore[method-assign]
+    safety.SafeArm.stop = stop  # type: ignore[method-assign]
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Install the probe for the station named first in ``argv`` and run ``teletouch``."""
+    global _out
+    args = list(sys.argv[1:] if argv is None else argv)
+    # the station's subcommand may follow global flags such as --log-level LEVEL
+    role = next((a for a in args if a in ("local", "remote")), None)
+    path = os.environ.get("TELETOUCH_FAULT_PROBE")
+    if role is None or not path:
+        print("usage: TELETOUCH_FAULT_PROBE=FILE python -m lab.faults_probe "
+              "[--log-level L] local|remote ARGS...", file=sys.stderr)
+        return 2
+    _out = open(path, "a", buffering=1)  # noqa: SIM115 - open for the process's life
+    clock = os.environ.get("TELETOUCH_FAULT_CLOCK")
+    if clock:
+        _install_clock(clock)
+    if role == "local":
+        _install_local()
+    else:
+        _install_remote()
+    from lab.cli import main as teletouch_main
+
+    try:
+        return teletouch_main(args)
+    finally:
+        with _lock:
+            _out.close()
+            _out = None
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,127 @@
+"""Short fault scenarios with real processes (relay, link emulators, both stations).
+
+Each test starts its own rig (``lab/faults.py``), waits for a steady flow, injects one fault
+and waits on the probe files' events, never on fixed sleeps; every wait is scaled by
+``TELETOUCH_TEST_TIMEOUT_SCALE``. The long cases and the figures are in
+``teletouch bench faults`` (benchmarks/results/faults.md). Promises today's main breaks are
+``xfail(strict=True)`` with the figure measured, so the fix that keeps them flips the test.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+
+from lab.faults import FaultRig, FaultSpec
+from tests.support import scaled
+
+pytestmark = pytest.mark.slow
+
+RigFactory = Callable[..., FaultRig]
+
+#: a frame or command older than this is stale (the display's and the arm's bound)
+BOUND_MS = 100.0
+#: "fresh" while waiting for the flow to come back: the bound, scaled on a loaded machine
+#: (the figures against the strict bound are the benchmark's)
+FLOW_BOUND_MS = scaled(BOUND_MS)
+
+
+@pytest.fixture
+def rig_factory(tmp_path: Path) -> Iterator[RigFactory]:
+    rigs: list[FaultRig] = []
+
+    def make(outage_s: float | None = None) -> FaultRig:
+        rig = FaultRig(tmp_path / f"rig{len(rigs)}", outage_s=outage_s)
+        rigs.append(rig)
+        rig.start(scaled(90.0))
+        assert rig.wait_steady(1.0, scaled(30.0), FLOW_BOUND_MS), \
+            "the rig never reached a steady flow"
+        return rig
+
+    yield make
+    for rig in rigs:
+        rig.close()
+
+
+def _arm_halted_at(rig: FaultRig, t: float) -> bool:
+    """The newest arm event before ``t`` is a halt (not an executed command)."""
+    p = rig.probe("remote")
+    halts = [m for m, _ in p.halts if m <= t]
+    moves = [m for m, _, acc, _ in p.commands if acc and m <= t]
+    return bool(halts) and (not moves or halts[-1] >= moves[-1])
+
+
+def _display_safe_at(rig: FaultRig, t: float) -> bool:
+    """The newest display state change before ``t`` entered the safe state."""
+    p = rig.probe("local")
+    safe = [m for m, _ in p.safe if m <= t]
+    resumed = [m for m in p.resumed if m <= t]
+    return bool(safe) and (not resumed or safe[-1] >= resumed[-1])
+
+
+def _stale_rendered_after(rig: FaultRig, t: float) -> list[float]:
+    """True ages (ms) of frames rendered after ``t`` that were older than the bound."""
+    ages = [rig.age_ms("remote", m, ts) for p in rig.probes if p.role == "local"
+            for m, ts in p.rendered if m >= t]
+    return [a for a in ages if a > BOUND_MS]
+
+
+def test_relay_sigkill_restart_after_half_a_second_both_stations_come_back(
+        rig_factory: RigFactory) -> None:
+    rig: FaultRig = rig_factory()
+    _, t_back = rig.inject(FaultSpec("relay_kill", "remote", 0.5))
+    assert rig.wait_flowing(t_back, scaled(20.0), FLOW_BOUND_MS), (
+        "fresh frames and executed commands did not come back after the relay's restart")
+    rig.poll()
+    assert rig.exits == [], f"stations exited: {rig.exits}"
+    assert _arm_halted_at(rig, t_back), "the arm was not halted while the relay was down"
+    assert _display_safe_at(rig, t_back), "the display was not safe while the relay was down"
+    summaries = rig.stop()
+    for role in ("local", "remote"):
+        s = summaries[role]
+        assert s is not None and s["link"]["connects"] >= 2, f"{role} did not reconnect: {s}"
+
+
+def test_two_second_blackhole_on_the_remote_leg_halts_goes_safe_and_recovers(
+        rig_factory: RigFactory) -> None:
+    rig: FaultRig = rig_factory(outage_s=2.0)
+    _, t_end = rig.inject(FaultSpec("blackhole", "remote", 2.0))
+    rig.poll()
+    assert _arm_halted_at(rig, t_end), "the arm was not halted at the blackhole's end"
+    assert _display_safe_at(rig, t_end), "the display was not safe at the blackhole's end"
+    assert rig.wait_flowing(t_end, scaled(20.0), FLOW_BOUND_MS), \
+        "fresh frames and executed commands did not come back after the blackhole"
+    rig.poll()
+    assert rig.exits == [], f"stations exited: {rig.exits}"
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "today the display judges freshness by arrival time: after the 2 s blackhole the frames "
+    "held on the link are rendered (measured on main, load average ~30 on 2 cores: 19 of 20 "
+    "frames rendered in the 5 s after it were stale, up to 2,329 ms old; the load alone made "
+    "18 of 18 stale in the 5 s before it; benchmarks/results/faults.md)"))
+def test_no_stale_frame_rendered_after_a_two_second_blackhole(rig_factory: RigFactory) -> None:
+    rig: FaultRig = rig_factory(outage_s=2.0)
+    _, t_end = rig.inject(FaultSpec("blackhole", "remote", 2.0))
+    assert rig.wait_flowing(t_end, scaled(20.0), FLOW_BOUND_MS)
+    stale = _stale_rendered_after(rig, t_end)
+    assert not stale, f"{len(stale)} stale frames rendered, up to {max(stale):.0f} ms old"
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "today frames queued while the local station was stopped are rendered after SIGCONT "
+    "(freshness by arrival time; measured on main, load average ~30 on 2 cores: 6 of 7 frames "
+    "rendered in the 5 s after SIGCONT were stale, up to 452 ms old; "
+    "benchmarks/results/faults.md)"))
+def test_local_station_sigstop_three_seconds_renders_no_stale_frame_after_sigcont(
+        rig_factory: RigFactory) -> None:
+    rig: FaultRig = rig_factory()
+    _, t_cont = rig.inject(FaultSpec("stop", "local", 3.0))
+    assert rig.wait_flowing(t_cont, scaled(20.0), FLOW_BOUND_MS), \
+        "fresh frames and executed commands did not come back after SIGCONT"
+    rig.poll()
+    assert rig.exits == [], f"stations exited: {rig.exits}"
+    stale = _stale_rendered_after(rig, t_cont)
+    assert not stale, f"{len(stale)} stale frames rendered, up to {max(stale):.0f} ms old"

@@ -1,0 +1,120 @@
+"""The fault harness's own arithmetic and its probe's fake clock (no stations started)."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from lab.faults import FaultRig, FaultSpec, ProbeLog, _latencies, scenarios
+from tests.support import scaled
+
+
+def test_probe_log_reads_complete_lines_only_and_incrementally(tmp_path: Path) -> None:
+    path = tmp_path / "probe.txt"
+    log = ProbeLog(path, "remote", 1)
+    log.poll()  # no file yet: nothing, no error
+    path.write_text("C 1.5 1000 1 12.5\nH 1.7 watchdog\nC 1.8 2000 0 1")
+    log.poll()
+    assert log.commands == [(1.5, 1000, True, 12.5)] and log.halts == [(1.7, "watchdog")]
+    with open(path, "a") as f:
+        f.write("50.000\nS 2.0 stale_scene\nA 2.1 7 3000\nR 2.2 7 3000\nU 2.3\nK 2.4 300000\n")
+    log.poll()
+    assert log.commands[-1] == (1.8, 2000, False, 150.0)
+    assert log.safe == [(2.0, "stale_scene")] and log.accepted == [(2.1, 3000)]
+    assert log.rendered == [(2.2, 3000)] and log.resumed == [2.3]
+    assert log.steps == [(2.4, 300000)]
+
+
+def test_latency_is_measured_from_the_last_input_before_each_event() -> None:
+    inputs = [1.0, 1.01, 1.02, 5.0]
+    events = [1.12, 1.5, 5.1, 0.5]  # 1.5 repeats 1.12's input; 0.5 has no input before it
+    got = _latencies(sorted(events), inputs)
+    assert got == [(1.12, pytest.approx(100.0)), (5.1, pytest.approx(100.0))]
+
+
+@given(st.lists(st.floats(0, 100), min_size=1, max_size=30),
+       st.lists(st.floats(0, 100), min_size=1, max_size=30))
+def test_latencies_agree_with_a_brute_force_reference(inputs: list[float],
+                                                      events: list[float]) -> None:
+    inputs, events = sorted(inputs), sorted(events)
+    expected = []
+    used = set()
+    for t in events:
+        before = [i for i in inputs if i <= t]
+        if before and before[-1] not in used:
+            used.add(before[-1])
+            expected.append((t, (t - before[-1]) * 1e3))
+    assert _latencies(events, inputs) == expected
+
+
+def test_true_age_removes_the_clock_step_the_harness_injected(tmp_path: Path) -> None:
+    rig = FaultRig(tmp_path)
+    rig.wall_minus_mono_us = 1_000_000_000.0
+    rig.clock_steps["local"] = [(10.0, 300_000)]
+    # sent at true wall 1_000_000_000 + 9.94e6 us, received 50 ms later, before the step
+    assert rig.age_ms("local", 9.99, 1_000_000_000 + 9_940_000) == pytest.approx(50.0)
+    # after the step the sender's stamps are 300 ms ahead; the true age is still 50 ms
+    assert rig.age_ms("local", 20.0, 1_000_000_000 + 19_950_000 + 300_000) == \
+        pytest.approx(50.0)
+    assert rig.age_ms("remote", 20.0, 1_000_000_000 + 19_950_000) == pytest.approx(50.0)
+
+
+def test_the_suite_covers_the_issue_s_faults() -> None:
+    names = [s.name for s in scenarios()]
+    kinds = {(s.fault.kind, s.fault.target, s.fault.duration_s) for s in scenarios()}
+    for d in (0.5, 2.0, 10.0):
+        assert ("relay_kill", "remote", d) in kinds
+    for kind in ("blackhole", "reset"):
+        for leg in ("local", "remote"):
+            for d in (0.2, 2.0, 20.0, 60.0):
+                assert (kind, leg, d) in kinds
+    for role in ("local", "remote"):
+        assert {("kill", role, 0.5), ("stop", role, 3.0), ("clock_step", role, 0.3)} <= kinds
+    assert sum(s.cpu_burners == 2 for s in scenarios()) >= 3
+    assert len(set(names)) == len(names)
+    assert not any(s.fault.duration_s > 2.0 for s in scenarios(long=False)
+                   if s.fault.kind in ("blackhole", "reset"))
+    with pytest.raises(ValueError, match="unknown fault"):
+        FaultSpec("meteor")
+
+
+def test_probe_clock_steps_the_wall_clock_not_the_monotonic_one(tmp_path: Path) -> None:
+    offset = tmp_path / "clock.txt"
+    offset.write_text("0\n")
+    code = (
+        "import sys, time\n"
+        "import lab.faults_probe as p\n"
+        f"p._install_clock({str(offset)!r})\n"
+        "print('ready', flush=True)\n"
+        "sys.stdin.readline()\n"
+        "w, m = time.time(), time.monotonic()\n"
+        "print(w - m, time.time_ns() / 1e9 - time.monotonic(), flush=True)\n"
+        "sys.stdin.readline()\n"
+        "print(time.time() - time.monotonic(), flush=True)\n")
+    proc = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdin is not None and proc.stdout is not None
+        assert proc.stdout.readline().strip() == "ready"
+        proc.stdin.write("\n")
+        proc.stdin.flush()
+        before = [float(v) for v in proc.stdout.readline().split()]
+        offset.write_text("2.5\n")
+        proc.send_signal(signal.SIGUSR2)
+        proc.stdin.write("\n")
+        proc.stdin.flush()
+        after = float(proc.stdout.readline())
+        proc.wait(scaled(10.0))
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert abs(before[0] - before[1]) < 0.05
+    assert after - before[0] == pytest.approx(2.5, abs=0.05)
+
