@@ -123,9 +123,9 @@ def _install_remote() -> None:
     orig_stop = safety.SafeArm.stop
 
     def move(self: safety.SafeArm, target_mm: Any, *, sent_ts_us: int | None = None,
-             clock_offset_us: float = 0.0) -> safety.CommandResult:
-        result = orig_move(self, target_mm, sent_ts_us=sent_ts_us,
-                           clock_offset_us=clock_offset_us)
+             **kw: Any) -> safety.CommandResult:
+        # every other argument (offsets and their error bound) passes through unchanged
+        result = orig_move(self, target_mm, sent_ts_us=sent_ts_us, **kw)
         if sent_ts_us is not None:
             age = "nan" if result.age_ms is None else f"{result.age_ms:.3f}"
             _emit("C", _mono(), sent_ts_us, int(result.accepted), age)
