@@ -24,8 +24,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from shared.errors import InputDataError
 from shared.motion_to_touch import trace_hops
-from shared.protocol import ArmState, DataMessage, PlatformState, TactileFrame
+from shared.protocol import ArmState, DataMessage, PlatformState, TactileCompact, TactileFrame
+from shared.protocol.tactile_codec import TactileDecoder
 from shared.timebase import now_us
 from shared.view.encode import encode_patch, num, nums
 from shared.workspace import WorkspaceMap
@@ -49,6 +51,11 @@ class SessionViewSource:
         self.session: Session | None = None
         self._platform: tuple[PlatformState, int] | None = None
         self._frame: tuple[TactileFrame, int] | None = None
+        #: compact frames (protocol v2): the newest key frame and the newest message, decoded
+        #: only when a viewer asks (never per routed message on the relay's loop)
+        self._key: TactileCompact | None = None
+        self._compact: tuple[TactileCompact, int] | None = None
+        self._decoded_of: TactileCompact | None = None
         self._arm: tuple[ArmState, int] | None = None
         self._trail: list[list[float]] = []
         self._trail_first = 0
@@ -63,16 +70,39 @@ class SessionViewSource:
             if t_in_us - self._last_trail_us >= _TRAIL_PERIOD_US:
                 self._last_trail_us = t_in_us
                 ph = self.workspace.forward(np.asarray(msg.position_mm, dtype=np.float64))
-                contact = self._frame is not None and bool(self._frame[0].contact)
+                contact = (self._compact is not None and bool(self._compact[0].contact)) or (
+                    self._frame is not None and bool(self._frame[0].contact))
                 if len(self._trail) >= 2 * _MAX_TRAIL:
                     del self._trail[:_MAX_TRAIL]
                     self._trail_first += _MAX_TRAIL
                 self._trail.append([round(float(ph[0]), 2), round(float(ph[1]), 2),
                                     round(float(ph[2]), 2), 1.0 if contact else 0.0])
         elif isinstance(msg, TactileFrame):
-            self._frame = (msg, t_in_us)
+            self._frame, self._compact = (msg, t_in_us), None
+        elif isinstance(msg, TactileCompact):
+            if msg.key:
+                self._key = msg
+            self._compact = (msg, t_in_us)
         elif isinstance(msg, ArmState):
             self._arm = (msg, t_in_us)
+
+    def _decode_compact(self) -> None:
+        """Turn the newest compact message into the current frame (with its key frame);
+        a delta whose key frame the relay did not see leaves the previous frame."""
+        item = self._compact  # one read: observe() may replace it meanwhile
+        if item is None or item[0] is self._decoded_of:
+            return
+        msg, t_in_us = item
+        self._decoded_of = msg
+        decoder = TactileDecoder()
+        try:
+            if not msg.key and self._key is not None and self._key.seq == msg.key_seq:
+                decoder.decode(self._key)
+            frame = decoder.decode(msg)
+        except InputDataError:
+            frame = None
+        if frame is not None:
+            self._frame = (frame, t_in_us)
 
     def _offsets(self) -> dict[str, float | None]:
         session = self.session
@@ -87,6 +117,7 @@ class SessionViewSource:
         phantom = None if platform is None else self.workspace.forward(
             np.asarray(platform, dtype=np.float64))
         patch = latency = None
+        self._decode_compact()
         if self._frame is not None:
             frame, rx_us = self._frame
             patch = encode_patch(frame, rx_us, None, None)

@@ -242,7 +242,10 @@ function drawWorkspace() {
   }
   for (const f of state.findings) {
     const r = Math.max(4, f.equivalent_radius_mm * T.s);
-    ctx.strokeStyle = f.kind === "malignant" ? "#f85149" : "#3fb950"; ctx.lineWidth = 2.5;
+    // malignant red, benign green, "uncertain" (a finding not fully covered) amber
+    ctx.strokeStyle = f.kind === "malignant" ? "#f85149"
+      : f.kind === "uncertain" ? "#d29922" : "#3fb950";
+    ctx.lineWidth = 2.5;
     ctx.beginPath(); ctx.arc(T.X(f.center_mm[0]), T.Y(f.center_mm[1]), r, 0, 2 * Math.PI); ctx.stroke();
     ctx.fillStyle = ctx.strokeStyle; ctx.font = "bold 12px system-ui";
     ctx.fillText(`${f.kind} ${(100 * (f.confidence ?? 0)).toFixed(0)}%`, T.X(f.center_mm[0]) + r + 3, T.Y(f.center_mm[1]) - 3);
