@@ -89,21 +89,26 @@ class ProtocolConnection:
         """Take received bytes (TCP: any chunk; WebSocket: one whole message)."""
         if self.failed:
             return
+        failure: RemoteProtocolError | None = None
         if self._decoder is None:
             payloads = [bytes(data)]
         else:
+            payloads = []
             try:
                 payloads = self._decoder.feed(data)
+                if payloads:  # a broken header right behind them raises now
+                    self._decoder.feed(b"")
             except RemoteProtocolError as err:
-                self.failed = True
-                self._events.append(ConnectionFailed(err))
-                return
-        for payload in payloads:
+                failure = err
+        for payload in payloads:  # the messages before a broken header count
             try:
                 self._events.append(MessageReceived(
                     decode(payload, max_message_bytes=self._receive_limit), len(payload)))
             except RemoteProtocolError as err:
                 self._events.append(MessageRejected(err))
+        if failure is not None:
+            self.failed = True
+            self._events.append(ConnectionFailed(failure))
 
     def events_received(self) -> list[Event]:
         """Return and clear the events produced by :meth:`receive_data`."""

@@ -42,6 +42,9 @@ class LengthPrefixDecoder:
     def feed(self, data: bytes | bytearray | memoryview) -> list[bytes]:
         """Add received bytes; return every payload now complete, in order.
 
+        A broken header right behind complete payloads does not take them with it: they are
+        returned, and the header raises at the next call (``feed(b"")`` will do).
+
         Raises:
             OversizeError: a header announces more than ``max_message_bytes``.
             MalformedMessageError: a header announces an empty payload.
@@ -53,6 +56,8 @@ class LengthPrefixDecoder:
                 if len(self._buffer) < HEADER.size:
                     return out
                 (length,) = HEADER.unpack_from(self._buffer)
+                if out and (length > self.max_message_bytes or length == 0):
+                    return out  # deliver what came before it; the header raises next call
                 if length > self.max_message_bytes:
                     raise OversizeError(f"frame announces {length} bytes, limit is "
                                         f"{self.max_message_bytes}")

@@ -99,3 +99,32 @@ def test_a_deeply_nested_value_in_an_error_message_is_not_repr_d(where: str) -> 
     with pytest.raises(RemoteProtocolError) as info:
         decode(data)
     assert "a list" in str(info.value)
+
+
+@pytest.mark.parametrize("bad_header", [b"\xff\xff\xff\xff", b"\x00\x00\x00\x00"])
+def test_messages_before_a_broken_tcp_header_in_the_same_chunk_are_handled(
+        bad_header: bytes) -> None:
+    """Found by atheris (peer target): a TCP chunk holding complete frames and then a broken
+    length prefix lost those frames (the decoder raised with them unreturned), so the relay
+    neither answered nor forwarded them; the doc has each message handled, then the fatal
+    framing error."""
+    from shared.protocol import ArmCommand, ProtocolConnection, frame
+    from shared.protocol.connection import ConnectionFailed, MessageReceived, MessageRejected
+
+    conn = ProtocolConnection("tcp", 4096)
+    good = encode(ArmCommand(seq=5, ts_us=1, action="stop"))
+    conn.receive_data(frame(good) + frame(b"\xc1") + bad_header)
+    events = conn.events_received()
+    assert [type(e) for e in events] == [MessageReceived, MessageRejected, ConnectionFailed]
+    assert events[0].message.seq == 5  # type: ignore[union-attr]
+
+    ps = PeerSession("tcp", PeerSettings(), 0, Counter())
+    ps.receive_data(frame(encode(hello_for("local"))), 0)
+    ps.events_received()
+    ps.accept(Welcome(session="s1", role="local", max_message_bytes=1 << 20), 0)
+    ps.receive_data(frame(b"\xc1") + bad_header, 1)
+    written = ProtocolConnection("tcp", 1 << 20)
+    written.receive_data(b"".join(ps.data_to_send(lambda: 2)))
+    errors = [(e.message.code, e.message.fatal) for e in written.events_received()  # type: ignore[union-attr]
+              if isinstance(e.message, Error)]  # type: ignore[union-attr]
+    assert errors == [("malformed", False), ("oversize" if bad_header[0] else "malformed", True)]
