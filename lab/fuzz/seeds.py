@@ -27,6 +27,7 @@ from shared.protocol import (
     Welcome,
     encode,
 )
+from shared.protocol.tactile_codec import TactileEncoder
 
 __all__ = ["FUZZ_SECRET", "SESSIONS", "hello_for", "sample_messages", "seed_messages",
            "seed_scripts"]
@@ -77,6 +78,13 @@ def sample_messages() -> list[Message]:
                      layers={"height_mm": height, "stiffness_k": stiff}, contact=True,
                      force_n=2.0, indentation_mm=0.4, source_seq=1, source_ts_us=ts),
     ]
+    # the compact codec's key frame and a delta against it (protocol v2)
+    encoder = TactileEncoder()
+    for seq, h in ((7, height), (8, height + np.float32(0.05))):
+        msgs.append(encoder.encode(TactileFrame(
+            seq=seq, ts_us=ts, hops=hops, center_mm=(1.5, -2.0), pitch_mm=1.7,
+            layers={"height_mm": h, "stiffness_k": stiff}, contact=True, force_n=2.0,
+            indentation_mm=0.4, source_seq=1, source_ts_us=ts)))
     missing = set(MESSAGE_TYPES) - {m.TYPE for m in msgs}
     assert not missing, f"seed corpus lacks {sorted(missing)}"
     return msgs

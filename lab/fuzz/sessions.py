@@ -39,6 +39,7 @@ from relay_server.session import STREAMS_OF
 from shared.errors import (
     ProtocolError,
     RemoteProtocolError,
+    ReplacedError,
     SessionError,
 )
 from shared.ledger import DEFAULT_MAX_SEQ_JUMP
@@ -141,6 +142,7 @@ class PeerModel:
     pings: dict[int, int] = field(default_factory=dict)  # ping_id -> t0 of pings written
     _stream: bytearray = field(default_factory=bytearray)
     _framing_dead: bool = False
+    last_rx_us: int | None = None  # §6 `silent`: when the peer last sent anything
 
     @property
     def observer(self) -> bool:
@@ -179,6 +181,7 @@ class PeerModel:
         """One receive: a TCP chunk, a WebSocket binary message, or a text message."""
         if self.close_code is not None:
             return
+        self.last_rx_us = t_us
         if isinstance(data, str):
             items: list[bytes | str] = [data]
         elif self.framing == "ws":
@@ -254,6 +257,10 @@ class PeerModel:
         if (self.close_code is None and self.hello is None
                 and now_us >= self.start_us + PEER_SETTINGS.hello_timeout_us):
             self._fatal("hello_timeout")
+        last = self.start_us if self.last_rx_us is None else self.last_rx_us
+        if (self.close_code is None and self.joined and not self.observer
+                and now_us - last > PEER_SETTINGS.silence_timeout_us):
+            self._fatal("silent")  # §6: a station that sends nothing for the limit
 
     def written(self, messages: list[Message]) -> None:
         """The relay flushed: check what it wrote against the predicted answers."""
@@ -508,11 +515,17 @@ class _RelayPeer:
     def __init__(self, relay: RelayServer, framing: Literal["tcp", "ws"], now: int) -> None:
         self.framing = framing
         self.ps = PeerSession(framing, relay.peer_settings, now, relay.counters)
-        self.conn = SimpleNamespace(transport=SimpleNamespace(framing=framing), protocol=self.ps)
+        self.conn = SimpleNamespace(transport=SimpleNamespace(framing=framing), protocol=self.ps,
+                                    evict=self._evicted, request_stats=lambda: None)
         self.session: Any = None
         self.peer: Any = None
         self.hello: Hello | None = None
         self.arm_sent: dict[int, int] = {}  # seq -> times sent while this peer was local
+
+    def _evicted(self) -> None:
+        """The relay replaced this connection (a reconnect proved its resume secret)."""
+        self.session = self.peer = None
+        self.ps.fail(ReplacedError("a newer connection of this station resumed the session"))
 
 
 def relay(data: bytes) -> None:

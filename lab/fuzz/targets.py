@@ -83,11 +83,13 @@ def reference_envelope(data: bytes, limit: int) -> str | None:
         return "malformed"
     top = dict(obj)  # a repeated key: the last one counts, as in any msgpack map reader
     v = top.get("v")
-    if type(v) is not int or v != 1:
+    if type(v) is not int or v not in (1, 2):  # §2: versions 1 and 2
         return "version"
     t = top.get("type")
     if type(t) is not str or t not in MESSAGE_TYPES:
         return "unknown_type"
+    if t == "tactile_compact" and v < 2:  # §4.1: a version-2 message
+        return "version"
     return None
 
 

@@ -49,12 +49,12 @@ def test_short_atheris_run_finds_no_crash() -> None:
     assert r.cov and r.cov > 50, f"{r.target}: no coverage reported ({r.cov})"
 
 
-def test_the_decoder_oracle_fails_on_a_decoder_that_accepts_version_2(
+def test_the_decoder_oracle_fails_on_a_decoder_that_accepts_version_3(
         monkeypatch: pytest.MonkeyPatch) -> None:
     import shared.protocol.codec as codec
 
-    monkeypatch.setattr(codec, "SUPPORTED_VERSIONS", frozenset({1, 2}))
-    body = msgpack.packb({"v": 2, "type": "bye"})
+    monkeypatch.setattr(codec, "SUPPORTED_VERSIONS", frozenset({1, 2, 3}))
+    body = msgpack.packb({"v": 3, "type": "bye"})
     with pytest.raises(Finding, match="version"):
         TARGETS["decoder"](body)
 
