@@ -57,7 +57,9 @@ class SafetyConfig:
             bound included) are dropped.
         max_offset_uncertainty_ms: commands are dropped while the clock offsets' error bound
             is wider than this (the age could not be judged finely enough).
-        command_timeout_ms: no command for this long halts the arm.
+        command_timeout_ms: the arm halts when the newest command it executed is this old
+            (by its stamp, clock-corrected, error bound included; unstamped commands count
+            from their arrival), i.e. no fresh command for this long.
         force_limit_n: the pressing force limit.
         force_release_ratio: the limit releases below this fraction of it.
         press_zone_z_mm: below this phantom z, downward targets are rate-limited.
@@ -193,6 +195,10 @@ class SafeArm:
         with self._lock:
             self.counters.commands += 1
             age_ms = None
+            #: how long ago (s) the command was sent, at most: the watchdog's clock starts
+            #: then, not at arrival, so the arm halts when the newest command it executed is
+            #: command_timeout_ms old by its own stamp (the delay on the way counts)
+            sent_ago_s = 0.0
             if sent_ts_us is not None:
                 cfg = self.config
                 verdict = judge_age(
@@ -214,7 +220,9 @@ class SafeArm:
                                   verdict.verdict, age_ms, verdict.uncertainty_us)
                     return CommandResult(False, None, "stale_command", False, age_ms,
                                          verdict.verdict)
-            self._last_command_s = self._mono()
+                if verdict.age_us is not None and verdict.uncertainty_us is not None:
+                    sent_ago_s = max(0.0, verdict.age_us + verdict.uncertainty_us) / 1e6
+            self._last_command_s = self._mono() - sent_ago_s
             clamped_box = tuple(min(max(v, a), b)
                                 for v, a, b in zip(target, self._lo, self._hi, strict=True))
             applied: Vec3 = (clamped_box[0], clamped_box[1], clamped_box[2])

@@ -139,3 +139,14 @@ def test_config_validation() -> None:
         SafetyConfig(force_limit_n=0.0)
     with pytest.raises(ConfigError):
         SafetyConfig(force_release_ratio=1.5)
+
+
+def test_the_command_timeout_counts_from_the_commands_stamp() -> None:
+    """A command 60 ms old on arrival leaves 40 ms before the halt, not 100: the delay on
+    the way counts against the 100 ms (no fresh command for 100 ms halts the arm)."""
+    safe, _, clock = make()
+    assert safe.move((30.0, 0.0, 10.0), sent_ts_us=clock.wall_us() - 60_000).accepted
+    clock.t_s += 0.035
+    assert safe.poll().status != "halted"
+    clock.t_s += 0.01
+    assert safe.poll().status == "halted" and safe.counters.watchdog_halts == 1
