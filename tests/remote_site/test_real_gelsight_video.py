@@ -38,7 +38,8 @@ from relay_server.auth import derive_token
 from remote_site.reconstruction.frames import load_rgb
 from remote_site.reconstruction.labels import BallLabel, labels_from_npz, write_labels_csv
 from shared.client import StationLink
-from shared.protocol import TactileFrame
+from shared.protocol import TactileCompact, TactileFrame
+from shared.protocol.tactile_codec import TactileDecoder
 from shared.workspace import WorkspaceMap
 from tests.relay_server.test_relay_isolation_and_status import wait_relay_ready
 from tests.support import REPO_ROOT, free_tcp_port, kit_path, require_kit, scaled, teletouch_cmd
@@ -188,14 +189,16 @@ def render_press(frame: TactileFrame, label: BallLabel, scale_xy: float) -> Pres
 async def _collect(url: str, token: str, n_presses: int, timeout_s: float
                    ) -> list[TactileFrame]:
     frames: list[TactileFrame] = []
+    decoder = TactileDecoder()  # the remote's default codec is the compact one (protocol v2)
     async with StationLink(url, session=SESSION, role="local", token=token) as link:
         await link.wait_connected(timeout_s=scaled(10.0))
         async with asyncio.timeout(timeout_s):
             while press_segments(frames, n_presses) is None:
                 with contextlib.suppress(TimeoutError):
                     msg = await link.recv(timeout_s=0.2)
-                    if isinstance(msg, TactileFrame):
-                        frames.append(msg)
+                    frame = decoder.decode(msg) if isinstance(msg, TactileCompact) else msg
+                    if isinstance(frame, TactileFrame):
+                        frames.append(frame)
     return frames
 
 
