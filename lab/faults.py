@@ -367,9 +367,14 @@ class FaultRig:
         return mono * 1e6 + self.wall_minus_mono_us
 
     def offset_us(self, role: str, mono: float) -> int:
-        """The clock step the harness had applied to ``role`` at ``mono``."""
+        """How far ``role``'s stamps had been moved by the clock steps at ``mono``: what
+        the probe measured on the station's stamp clock when the step arrived (a station
+        whose stamps do not follow the wall clock is not moved at all), else the step the
+        harness injected."""
+        measured = sorted(st for pr in self.probes if pr.role == role for st in pr.steps)
+        steps = measured or self.clock_steps[role]
         off = 0
-        for t, o in self.clock_steps[role]:
+        for t, o in steps:
             if t <= mono:
                 off = o
         return off

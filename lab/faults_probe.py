@@ -13,7 +13,8 @@ by ``$TELETOUCH_FAULT_PROBE``, one event a line:
   (``ts_us``: the local station's wall clock; ``age_ms``: the age the station computed);
 * ``H mono why`` - the arm was halted (``watchdog``: no command for the timeout; ``stop``: a
   stop call, e.g. the link-loss halt);
-* ``K mono offset_us`` - the station's wall clock was stepped (see below).
+* ``K mono offset_us`` - the station's wall clock was stepped (see below); ``offset_us`` is
+  how far the step moved the station's *stamps* (``shared.timebase.now_us``), measured.
 
 The fault suite (``lab/faults.py``) turns these into true ages (on one host the sender's stamp
 is the true time, minus the clock step it injected) and into halt / safe-state latencies after
@@ -42,6 +43,7 @@ _lock = threading.RLock()  # the SIGUSR2 handler may run while the main thread w
 _out: TextIO | None = None
 _real_time_ns = time.time_ns
 _offset_ns = 0
+_base_stamp_offset_us = 0
 
 
 def _emit(*fields: object) -> None:
@@ -71,8 +73,17 @@ def _install_clock(path: str) -> None:
         except (OSError, ValueError) as err:
             print(f"faults_probe: cannot read the clock offset {path}: {err}", file=sys.stderr)
             return
-        _emit("K", _mono(), _offset_ns // 1000)
+        # what the step did to the station's *stamp* clock, measured, not assumed: the
+        # stamps come from shared.timebase.now_us, which may not follow the wall clock
+        from shared.timebase import now_us
 
+        _emit("K", _mono(), now_us() - _real_time_ns() // 1000 - _base_stamp_offset_us)
+
+    from shared.timebase import now_us
+
+    global _base_stamp_offset_us
+    # the stamp clock's own offset from the true clock before any step (0 or a few us)
+    _base_stamp_offset_us = now_us() - _real_time_ns() // 1000
     time.time_ns = fake_time_ns
     time.time = fake_time
     signal.signal(signal.SIGUSR2, on_step)
