@@ -191,7 +191,9 @@ async def test_compact_frames_render_only_once_their_key_frame_arrived() -> None
                            "the deltas to arrive")
             loop = loop_of(agent)
             assert loop.counters.frames_accepted == 0
-            assert loop.safe_reason == "no_frames"
+            # the pins are safe: no frame was ever taken in (a loaded machine may also have
+            # lost the platform for a moment, which takes precedence as the reason)
+            assert loop.safe_reason in ("no_frames", "platform_lost")
             enc.reset()
             key = enc.encode(make_frame(20, None, 2.0))
             assert key.key
