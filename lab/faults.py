@@ -147,6 +147,8 @@ class ProbeLog:
     instance: int
     accepted: list[tuple[float, int]] = field(default_factory=list)  # (mono, ts_us)
     rendered: list[tuple[float, int]] = field(default_factory=list)
+    #: pin commands sent while their frame turned stale, withdrawn at once (mono, ts_us)
+    withdrawn: list[tuple[float, int]] = field(default_factory=list)
     safe: list[tuple[float, str]] = field(default_factory=list)
     resumed: list[float] = field(default_factory=list)
     commands: list[tuple[float, int, bool, float]] = field(default_factory=list)
@@ -170,8 +172,9 @@ class ProbeLog:
                 continue
             mono = float(p[1])
             kind = p[0]
-            if kind in ("A", "R") and len(p) == 4:
-                (self.accepted if kind == "A" else self.rendered).append((mono, int(p[3])))
+            if kind in ("A", "R", "W") and len(p) == 4:
+                {"A": self.accepted, "R": self.rendered,
+                 "W": self.withdrawn}[kind].append((mono, int(p[3])))
             elif kind == "S" and len(p) == 3:
                 self.safe.append((mono, p[2]))
             elif kind == "U":
@@ -582,6 +585,7 @@ def analyse(rig: FaultRig, injections: list[tuple[float, float]], *,
     executed = 0
     stale_rend: list[float] = []
     rendered = 0
+    withdrawn = 0
     for p in rig.probes:
         if p.role == "remote":
             accepted_t = [m for m, _, acc, _ in p.commands if acc]
@@ -596,6 +600,7 @@ def analyse(rig: FaultRig, injections: list[tuple[float, float]], *,
             fresh_t = [m for m, ts in p.accepted
                        if rig.age_ms("remote", m, ts) <= frame_bound_ms]
             safes += _latencies([m for m, _ in p.safe], fresh_t)
+            withdrawn += len(p.withdrawn)
             for m, ts in p.rendered:
                 rendered += 1
                 age = rig.age_ms("remote", m, ts)
@@ -640,6 +645,7 @@ def analyse(rig: FaultRig, injections: list[tuple[float, float]], *,
         "frames_rendered": rendered,
         "stale_frames_rendered": len(stale_rend),
         "stale_frame_max_age_ms": max(stale_rend) if stale_rend else None,
+        "late_sends_withdrawn": withdrawn,
         "exits": [{"role": e.role, "instance": e.instance, "code": e.code} for e in rig.exits],
         "faults": per_fault,
     }

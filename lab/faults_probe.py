@@ -7,7 +7,11 @@ by ``$TELETOUCH_FAULT_PROBE``, one event a line:
 
 * ``A mono seq ts_us`` - the display loop accepted a tactile frame (``ts_us``: its capture
   stamp, the remote station's wall clock);
-* ``R mono seq ts_us`` - the first pin command rendered from that frame went to the display;
+* ``R mono seq ts_us`` - the first pin command rendered from that frame went to the display
+  (``mono``: when the display's ``send_command`` returned, the latest the command can have
+  reached the pins; not the end of the tick, which a stopped process may reach much later);
+* ``W mono seq ts_us`` - a pin command went out while its frame turned stale (the process was
+  stopped or starved during the send) and the loop withdrew it at once by the safe state;
 * ``S mono reason`` / ``U mono`` - the display entered / left its safe state;
 * ``C mono ts_us accepted age_ms`` - the safety layer judged a timestamped arm command
   (``ts_us``: the local station's wall clock; ``age_ms``: the age the station computed);
@@ -101,13 +105,30 @@ def _install_local() -> None:
             self._probe_taken = item[0]  # type: ignore[attr-defined]
         return item
 
+    def watch_sends(loop: dl.DisplayLoop) -> None:
+        display = loop.display
+        if getattr(display, "_probe_send_watched", False):
+            return
+        orig_send = display.send_command
+
+        def send_command(*args: Any, **kw: Any) -> Any:
+            result = orig_send(*args, **kw)
+            display._probe_sent_mono = _mono()  # type: ignore[attr-defined]
+            return result
+
+        display.send_command = send_command  # type: ignore[method-assign]
+        display._probe_send_watched = True  # type: ignore[attr-defined]
+
     def tick(self: dl.DisplayLoop) -> None:
         c = self.counters
+        watch_sends(self)
         accepted, rendered, safe = c.frames_accepted, c.frames_rendered, self.safe_reason
+        withdrawn = c.late_sends_withdrawn
         try:
             orig_tick(self)
         finally:
             now = _mono()
+            sent = getattr(self.display, "_probe_sent_mono", now)
             if c.frames_accepted > accepted and self.frames is not None:
                 frame = getattr(self.frames, "_probe_taken", None)
                 if frame is not None:
@@ -115,10 +136,11 @@ def _install_local() -> None:
                     _emit("A", now, frame.seq, frame.ts_us)
             if safe is not None and self.safe_reason is None:
                 _emit("U", now)
-            if c.frames_rendered > rendered:
+            if c.frames_rendered > rendered or c.late_sends_withdrawn > withdrawn:
                 frame = getattr(self, "_probe_frame", None)
                 if frame is not None:
-                    _emit("R", now, frame.seq, frame.ts_us)
+                    kind = "R" if c.frames_rendered > rendered else "W"
+                    _emit(kind, sent, frame.seq, frame.ts_us)
             if safe is None and self.safe_reason is not None:
                 _emit("S", now, self.safe_reason)
 

@@ -99,6 +99,11 @@ class AgeVerdict:
         """True when the stamp may be acted on."""
         return self.verdict == "fresh"
 
+    @property
+    def age_ms(self) -> float | None:
+        """The estimated age in milliseconds (None when the clock is unknown)."""
+        return None if self.age_us is None else self.age_us / 1000.0
+
 
 def judge_age(stamp_us: int, now_us: int, relative: tuple[float, float] | None, *,
               max_age_us: float, max_uncertainty_us: float) -> AgeVerdict:

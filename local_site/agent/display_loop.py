@@ -17,7 +17,10 @@ One iteration (:meth:`DisplayLoop.tick`):
    while in it, nothing else is sent (the board's watchdog is set to the same mode). It is left as
    soon as no reason remains (for the remote stream: a fresh frame arrived);
 3. render the scene at the newest platform position; the renderer returns the same
-   object when nothing changed, in which case only the driver's keepalive runs;
+   object when nothing changed, in which case only the driver's keepalive runs; the frame's
+   age is judged again just before the command is sent and just after (a process stopped
+   or starved between the check and the send must not put an old frame on the pins: after
+   the send, a frame found stale is withdrawn at once by the safe state, and counted);
 4. when the first command rendered from a new frame goes to the display, stamp
    ``local.rendered`` and account the frame's hops in the motion-to-touch ledger.
 
@@ -113,6 +116,9 @@ class DisplayLoopCounters:
     display_errors: int = 0
     display_reconnects: int = 0
     last_reject_reason: str | None = None
+    #: pin commands that went out while their frame turned stale (process stopped or
+    #: starved during the send); each was followed at once by the safe state
+    late_sends_withdrawn: int = 0
     #: the oldest clock-corrected capture age of a frame while it was on the pins (ms)
     rendered_frame_age_max_ms: float = 0.0
 
@@ -248,9 +254,7 @@ class DisplayLoop:
             age_s = self._stream.age_s(now_s)
             if age_s is None or self._frame_stamp_us is None:
                 return "no_frames"
-            verdict = judge_age(self._frame_stamp_us, now_us(), self._frame_clock,
-                                max_age_us=self._max_frame_age_us,
-                                max_uncertainty_us=self._max_uncertainty_us)
+            verdict = self._frame_verdict()
             if not verdict.fresh:
                 self.last_frame_verdict = verdict
                 return "stale_frame" if verdict.verdict == "stale" else "clock_uncertain"
@@ -260,6 +264,24 @@ class DisplayLoop:
                 self.counters.rendered_frame_age_max_ms = max(
                     self.counters.rendered_frame_age_max_ms, verdict.age_us / 1000.0)
         return None
+
+    def _frame_verdict(self) -> AgeVerdict:
+        """The current frame's age, judged now (capture stamp, clock-corrected, bounded)."""
+        if self._frame_stamp_us is None:
+            return AgeVerdict("unknown_clock")
+        return judge_age(self._frame_stamp_us, now_us(), self._frame_clock,
+                         max_age_us=self._max_frame_age_us,
+                         max_uncertainty_us=self._max_uncertainty_us)
+
+    def _frame_went_stale(self) -> bool:
+        """The remote stream's frame is no longer fresh (re-checked around the send)."""
+        if self._stream is None:
+            return False
+        verdict = self._frame_verdict()
+        if verdict.fresh:
+            return False
+        self.last_frame_verdict = verdict
+        return True
 
     def enter_safe_state(self, reason: str, now_s: float | None = None) -> None:
         """Put the pins in the safe state now (idempotent while already safe).
@@ -319,8 +341,22 @@ class DisplayLoop:
         if command is self._last_command:
             self._keepalive()
             return
+        # the age again at the moment of sending: rendering took time since the check, and
+        # a stopped or starved process may have slept anywhere in between
+        if self._frame_went_stale():
+            self.enter_safe_state("stale_frame")
+            return
         applied = self.display.send_command(*command.arrays())
         self._last_command = command
+        if self._frame_went_stale():
+            # the process was stopped or starved *during* the send: the command may have
+            # reached the pins with an old frame; it is withdrawn at once (safe state) and
+            # counted, never counted as rendered
+            self.counters.late_sends_withdrawn += 1
+            log.warning("a pin command was sent late (frame no longer fresh); withdrawn")
+            self._pending_hops = None
+            self.enter_safe_state("stale_frame")
+            return
         if applied.sent:
             self.counters.commands_sent += 1
         else:

@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 
 from remote_site.arm.base import Arm, ArmReading, Vec3, as_vec3
 from shared.errors import ConfigError
-from shared.freshness import judge_age
+from shared.freshness import AgeVerdict, judge_age
 from shared.protocol.messages import ArmCommand
 from shared.timebase import monotonic_s, now_us
 
@@ -116,6 +116,9 @@ class SafetyCounters:
     dropped_stale: int = 0
     #: refused because the clock offsets were unknown, too uncertain or inconsistent
     dropped_clock: int = 0
+    #: of the refused: fresh on arrival, stale by the time the arm would have moved (the
+    #: process was stopped or starved in between; judged again right before the move)
+    dropped_late: int = 0
     clamped: int = 0
     force_limited: int = 0
     press_rate_limited: int = 0
@@ -192,37 +195,15 @@ class SafeArm:
             InputDataError: a non-finite or malformed target.
         """
         target = as_vec3(target_mm)
+        clock = None if clock_offset_us is None else (clock_offset_us, offset_uncertainty_us)
         with self._lock:
             self.counters.commands += 1
             age_ms = None
-            #: how long ago (s) the command was sent, at most: the watchdog's clock starts
-            #: then, not at arrival, so the arm halts when the newest command it executed is
-            #: command_timeout_ms old by its own stamp (the delay on the way counts)
-            sent_ago_s = 0.0
             if sent_ts_us is not None:
-                cfg = self.config
-                verdict = judge_age(
-                    sent_ts_us, self._wall_us(),
-                    None if clock_offset_us is None
-                    else (clock_offset_us, offset_uncertainty_us),
-                    max_age_us=cfg.max_command_age_ms * 1000.0,
-                    max_uncertainty_us=cfg.max_offset_uncertainty_ms * 1000.0)
-                age_ms = None if verdict.age_us is None else verdict.age_us / 1000.0
-                if age_ms is not None:
-                    self.counters.max_age_ms = max(self.counters.max_age_ms, age_ms)
+                verdict = self._judge(sent_ts_us, clock)
+                age_ms = verdict.age_ms
                 if not verdict.fresh:
-                    if verdict.verdict == "stale":
-                        self.counters.dropped_stale += 1
-                    else:
-                        self.counters.dropped_clock += 1
-                    if log.isEnabledFor(logging.DEBUG):
-                        log.debug("dropped arm command: %s (age %s ms, +- %s us)",
-                                  verdict.verdict, age_ms, verdict.uncertainty_us)
-                    return CommandResult(False, None, "stale_command", False, age_ms,
-                                         verdict.verdict)
-                if verdict.age_us is not None and verdict.uncertainty_us is not None:
-                    sent_ago_s = max(0.0, verdict.age_us + verdict.uncertainty_us) / 1e6
-            self._last_command_s = self._mono() - sent_ago_s
+                    return self._refused(verdict)
             clamped_box = tuple(min(max(v, a), b)
                                 for v, a, b in zip(target, self._lo, self._hi, strict=True))
             applied: Vec3 = (clamped_box[0], clamped_box[1], clamped_box[2])
@@ -242,12 +223,48 @@ class SafeArm:
                 clamped = True
                 status = "force_limit"
                 self.counters.force_limited += 1
+            #: how long ago (s) the command was sent, at most: the watchdog's clock starts
+            #: then, not at arrival, so the arm halts when the newest command it executed is
+            #: command_timeout_ms old by its own stamp (the delay on the way counts)
+            sent_ago_s = 0.0
+            if sent_ts_us is not None:
+                # judged again right before the move: reading the arm's state took time,
+                # and a stopped or starved process may have slept since the first check
+                verdict = self._judge(sent_ts_us, clock)
+                age_ms = verdict.age_ms
+                if not verdict.fresh:
+                    self.counters.dropped_late += 1
+                    return self._refused(verdict)
+                if verdict.age_us is not None and verdict.uncertainty_us is not None:
+                    sent_ago_s = max(0.0, verdict.age_us + verdict.uncertainty_us) / 1e6
             if clamped:
                 self.counters.clamped += 1
+            self._last_command_s = self._mono() - sent_ago_s
             applied = self.arm.move_to(applied)
             self._halted = False
             self.counters.applied += 1
             return CommandResult(True, applied, status, clamped, age_ms)
+
+    def _judge(self, sent_ts_us: int, clock: tuple[float, float] | None) -> AgeVerdict:
+        """A command's age now, by its stamp (error bound included); the worst age is kept."""
+        cfg = self.config
+        verdict = judge_age(sent_ts_us, self._wall_us(), clock,
+                            max_age_us=cfg.max_command_age_ms * 1000.0,
+                            max_uncertainty_us=cfg.max_offset_uncertainty_ms * 1000.0)
+        if verdict.age_us is not None:
+            self.counters.max_age_ms = max(self.counters.max_age_ms, verdict.age_us / 1000.0)
+        return verdict
+
+    def _refused(self, verdict: AgeVerdict) -> CommandResult:
+        if verdict.verdict == "stale":
+            self.counters.dropped_stale += 1
+        else:
+            self.counters.dropped_clock += 1
+        age_ms = verdict.age_ms
+        if log.isEnabledFor(logging.DEBUG):
+            log.debug("dropped arm command: %s (age %s ms, +- %s us)",
+                      verdict.verdict, age_ms, verdict.uncertainty_us)
+        return CommandResult(False, None, "stale_command", False, age_ms, verdict.verdict)
 
     def stop(self) -> None:
         """Halt the arm now."""

@@ -139,3 +139,78 @@ def test_a_frame_goes_stale_on_the_pins_when_no_newer_one_comes(make_loop: Build
     assert loop.safe_reason == "stale_frame"
     age_us = now_us() - (t - 140_000)
     assert age_us >= 150_000 - 1_000  # not before the bound (less the 2 x 500 us error bound)
+
+
+class SteppedClock:
+    """The loop's wall clock, moved on by the test (a process stopped at a chosen point)."""
+
+    def __init__(self) -> None:
+        self.t_us = now_us()
+
+    def __call__(self) -> int:
+        return self.t_us
+
+
+@pytest.fixture
+def clock(monkeypatch: pytest.MonkeyPatch) -> SteppedClock:
+    c = SteppedClock()
+    monkeypatch.setattr("local_site.agent.display_loop.now_us", c)
+    return c
+
+
+def test_a_frame_that_ages_out_between_the_check_and_the_send_is_not_sent(
+        make_loop: Build, clock: SteppedClock) -> None:
+    """The process stops for 3 s after the safety check, while rendering (a SIGSTOP, a
+    starved thread): the age is judged again before the send, so nothing goes out."""
+    loop, slot = make_loop(FakeLink())
+    orig_render = loop.renderer.render
+
+    def slow_render(*args: Any, **kw: Any) -> Any:
+        clock.t_us += 3_000_000
+        return orig_render(*args, **kw)
+
+    loop.renderer.render = slow_render  # type: ignore[method-assign]
+    slot.put(frame(1, clock.t_us - 20_000), clock.t_us)
+    loop.tick()
+    assert loop.safe_reason == "stale_frame"
+    assert loop.counters.commands_sent == 0 and loop.counters.frames_rendered == 0
+
+
+def test_a_command_sent_while_its_frame_aged_out_is_withdrawn_at_once(
+        make_loop: Build, clock: SteppedClock) -> None:
+    """The process stops for 3 s inside the send: the command may have reached the pins with
+    a frame that is now 3 s old; the loop sends the safe state right after, counts it as
+    withdrawn and never as rendered."""
+    loop, slot = make_loop(FakeLink())
+    display = loop.display
+    orig_send = display.send_command
+    calls: list[str] = []
+    orig_safe = display.safe_state
+
+    def stopped_in_send(*args: Any, **kw: Any) -> Any:
+        out = orig_send(*args, **kw)
+        calls.append("command")
+        clock.t_us += 3_000_000
+        return out
+
+    def safe_state(*args: Any, **kw: Any) -> None:
+        calls.append("safe")
+        orig_safe(*args, **kw)
+
+    display.send_command = stopped_in_send  # type: ignore[method-assign]
+    display.safe_state = safe_state  # type: ignore[method-assign]
+    slot.put(frame(1, clock.t_us - 20_000), clock.t_us)
+    loop.tick()
+    assert calls == ["command", "safe"]
+    assert loop.safe_reason == "stale_frame"
+    assert loop.counters.late_sends_withdrawn == 1 and loop.counters.frames_rendered == 0
+
+
+def test_a_fresh_frame_is_rendered_once_the_clock_is_injected(
+        make_loop: Build, clock: SteppedClock) -> None:
+    """The control case of the two above: the same frame, no stop, is rendered."""
+    loop, slot = make_loop(FakeLink())
+    slot.put(frame(1, clock.t_us - 20_000), clock.t_us)
+    loop.tick()
+    assert loop.safe_reason is None and loop.counters.frames_rendered == 1
+    assert loop.counters.late_sends_withdrawn == 0

@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 
 from remote_site.arm import SafeArm, SafetyConfig
+from remote_site.arm.base import ArmReading
 from remote_site.arm.sim import SimArm, SimArmConfig
 from remote_site.phantom import make_scene
 from shared.errors import ConfigError, InputDataError
@@ -50,6 +51,29 @@ def test_age_is_clock_corrected() -> None:
     sent_on_sender = clock.wall_us() - 300_000 - 20_000
     assert safe.move((0.0, 0.0, 5.0), sent_ts_us=sent_on_sender, clock_offset_us=300_000).accepted
     assert not safe.move((0.0, 0.0, 5.0), sent_ts_us=sent_on_sender).accepted
+
+
+def test_a_command_that_ages_out_before_the_move_is_refused() -> None:
+    """Fresh at the first check (50 ms), then the process stops for 3 s while the arm's
+    state is read (SIGSTOP, a starved thread): the age is judged again right before the
+    move, so the arm does not execute a 3 s old command, and the watchdog's clock is not
+    restarted by it."""
+    safe, arm, clock = make()
+    orig_state = arm.state
+
+    def stopped_state() -> ArmReading:
+        clock.t_s += 3.0
+        return orig_state()
+
+    safe.move((1.0, 2.0, 5.0))  # unstamped: applied, the arm holds this target
+    arm.state = stopped_state  # type: ignore[method-assign]
+    res = safe.move((9.0, 9.0, 9.0), sent_ts_us=clock.wall_us() - 50_000)
+    assert not res.accepted and res.status == "stale_command" and res.refused == "stale"
+    assert res.age_ms == pytest.approx(3050)
+    assert safe.counters.dropped_late == 1 and safe.counters.dropped_stale == 1
+    arm.state = orig_state  # type: ignore[method-assign]
+    assert arm.state().target_mm == (1.0, 2.0, 5.0)
+    assert safe.poll().status == "halted"  # 3 s without an executed command
 
 
 def test_no_command_for_100_ms_halts() -> None:
