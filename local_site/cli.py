@@ -73,7 +73,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     tune.add_argument("--link-loss-timeout", type=float, metavar="S",
                       help="safe state after the link is down this long (default 0.1)")
     tune.add_argument("--stale-timeout", type=float, metavar="S",
-                      help="safe state after no tactile frame for this long (default 0.1)")
+                      help="safe state after no tactile frame for this long (default 0.08: "
+                           "safe within 100 ms of the last frame, 20 ms left for a late tick)")
     tune.add_argument("--max-frame-age", type=float, metavar="S",
                       help="never render a tactile frame that may be older than this, by its "
                            "own capture stamp (default 0.15)")

@@ -465,8 +465,13 @@ class _Connection:
                 peer, session = self.peer, self.session
             elif isinstance(ev, ClockSampled) and peer is not None:
                 peer.record_clock_exchange(ev.t0_us, ev.t1_us, ev.sample.delay_us)
-                if ev.stepped and session is not None:
+                if ev.stepped:
                     self._restart_ticker()  # the burst starts now
+                # while this station's offset is being (re)measured, every sample goes to
+                # everyone in the session at once: the other station needs it to age-check
+                # what it receives and would otherwise wait for its periodic stats (1 s)
+                if session is not None and (ev.stepped or len(ps.clock) <= max(
+                        1, self.relay.config.ping_burst)):
                     for other in (*session.stations.values(), *session.observers.values()):
                         if other.request_stats is not None:
                             other.request_stats()

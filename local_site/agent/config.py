@@ -75,7 +75,7 @@ class LocalAgentConfig:
     scene: str = ""
     safe_state: str = "flat"
     link_loss_timeout_s: float = 0.1
-    stale_frame_timeout_s: float = 0.1
+    stale_frame_timeout_s: float = 0.08
     max_frame_age_s: float = 0.15
     max_offset_uncertainty_s: float = 0.03
     platform_send_rate_hz: float = 250.0

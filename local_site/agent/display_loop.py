@@ -158,7 +158,7 @@ class DisplayLoop:
                  platform_ok: Callable[[], bool], rate_hz: float = 1000.0,
                  safe_mode: SafeMode = "flat", frames: FrameSlot | None = None,
                  link: LinkHealth | None = None, link_loss_timeout_s: float = 0.1,
-                 stale_timeout_s: float = 0.1, max_frame_age_s: float = 0.15,
+                 stale_timeout_s: float = 0.08, max_frame_age_s: float = 0.15,
                  max_offset_uncertainty_s: float = 0.03,
                  recorder: SessionRecorder | None = None,
                  ledger: MotionToTouchLedger | None = None, retry_min_s: float = 0.2,

@@ -438,13 +438,15 @@ async def test_silent_link_is_detected_and_reconnected(relay: FakeRelay) -> None
 
 
 @contextlib.asynccontextmanager
-async def _real_relay(port: int = 0, tcp_port: int = 0) -> AsyncIterator[Any]:
+async def _real_relay(port: int = 0, tcp_port: int = 0, stats_interval_s: float = 0.1,
+                      ping_interval_s: float = 0.1) -> AsyncIterator[Any]:
     from relay_server.config import RelayConfig
     from relay_server.server import RelayServer
 
     relay = RelayServer(RelayConfig(host="127.0.0.1", port=port, tcp_port=tcp_port,
-                                    tokens={"lab1": TOKEN}, stats_interval_s=0.1,
-                                    ping_interval_s=0.1, ping_burst_spacing_s=0.005,
+                                    tokens={"lab1": TOKEN}, stats_interval_s=stats_interval_s,
+                                    ping_interval_s=ping_interval_s,
+                                    ping_burst_spacing_s=0.005,
                                     hello_timeout_s=scaled(2.0)))
     await relay.start()
     try:
@@ -489,6 +491,29 @@ async def test_real_relay_forwards_both_ways_with_hops_and_offsets() -> None:
                 await local.recv()
         assert abs(local.clock_offset_us or 0) < 5_000
         assert local.counters.pongs_sent >= 1 and remote.counters.pongs_sent >= 1
+
+
+async def test_a_station_learns_the_other_stations_offset_as_soon_as_it_is_measured() -> None:
+    """The local station is connected; the remote one joins (a relay restart, a reconnect).
+    The local station needs the remote's offset to age-check frames, and it gets it from the
+    remote's ping burst at once, not at its own next periodic stats (here 60 s away)."""
+    async with _real_relay(stats_interval_s=60.0, ping_interval_s=60.0) as relay:
+        url = f"ws://127.0.0.1:{relay.ws_port}/"
+        async with _link(url, role="local") as local:
+            await local.wait_connected(scaled(2.0))
+            async with asyncio.timeout(scaled(3.0)):
+                while local.clock_offsets_us.get("local") is None:
+                    await local.recv()
+            assert local.clock_offsets_us.get("remote") is None
+            async with _link(f"tcp://127.0.0.1:{relay.tcp_port}", role="remote") as remote:
+                await remote.wait_connected(scaled(2.0))
+                async with asyncio.timeout(scaled(3.0)):
+                    while local.clock_offsets_us.get("remote") is None:
+                        await local.recv()
+                view = local.clock_view
+                assert view is not None
+                rel = view.relative("local", "remote", now_us())
+                assert rel is not None and rel[1] < 30_000  # usable by the 30 ms rule
 
 
 async def test_real_relay_refusals_are_final() -> None:
