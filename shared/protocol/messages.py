@@ -456,6 +456,45 @@ class ArmState(DataMessage):
                    else None)
 
 
+def _tactile_scalars_to_wire(m: TactileFrame | TactileCompact, out: dict[str, Any]) -> None:
+    """Write the fields both tactile messages share (read by :func:`_read_tactile_scalars`)."""
+    out.update(center_mm=list(m.center_mm), pitch_mm=m.pitch_mm, contact=m.contact,
+               force_n=m.force_n, indentation_mm=m.indentation_mm)
+    if m.source_seq is not None:
+        out["source_seq"] = m.source_seq
+    if m.source_ts_us is not None:
+        out["source_ts"] = m.source_ts_us
+
+
+def _read_tactile_scalars(d: Mapping[str, Any], t: str) -> dict[str, Any]:
+    """Validate the fields both tactile messages share (placement, contact, provenance)."""
+    lim = _WORKSPACE_LIMIT_MM
+    return {"center_mm": read_vector(d, t, "center_mm", 2, lo=-lim, hi=lim),
+            "pitch_mm": read_float(d, t, "pitch_mm", lo=1e-4, hi=100.0),
+            "contact": read_bool(d, t, "contact"),
+            "force_n": read_float(d, t, "force_n", lo=-1000.0, hi=1000.0),
+            "indentation_mm": read_float(d, t, "indentation_mm", lo=-100.0, hi=100.0),
+            "source_seq": read_int(d, t, "source_seq") if read_optional(d, "source_seq")
+            else None,
+            "source_ts_us": read_int(d, t, "source_ts") if read_optional(d, "source_ts")
+            else None}
+
+
+def _read_layer_map(d: Mapping[str, Any], t: str, what: str,
+                    need_height: str | None) -> Mapping[str, Any]:
+    """The ``layers`` map with known names only; ``need_height``: where height_mm is required."""
+    raw_layers = d.get("layers")
+    if not isinstance(raw_layers, Mapping):
+        raise FieldError(f"{t}.layers must be a map of layer name -> {what}")
+    unknown = sorted(str(k) for k in raw_layers if k not in LAYER_RANGES)
+    if unknown:
+        raise FieldError(f"{t}.layers has unknown layer(s) {unknown}; known: "
+                         f"{sorted(LAYER_RANGES)}")
+    if need_height is not None and "height_mm" not in raw_layers:
+        raise FieldError(f"{t}.layers.height_mm is missing{need_height}")
+    return raw_layers
+
+
 @dataclass(frozen=True, slots=True, eq=False)
 class TactileFrame(DataMessage):
     """Remote -> local: what the probe feels, as layers on a metric grid.
@@ -481,28 +520,14 @@ class TactileFrame(DataMessage):
 
     def to_wire(self) -> dict[str, Any]:
         out = self._head()
-        out.update(center_mm=list(self.center_mm), pitch_mm=self.pitch_mm,
-                   layers={k: array_to_wire(v) for k, v in self.layers.items()},
-                   contact=self.contact, force_n=self.force_n,
-                   indentation_mm=self.indentation_mm)
-        if self.source_seq is not None:
-            out["source_seq"] = self.source_seq
-        if self.source_ts_us is not None:
-            out["source_ts"] = self.source_ts_us
+        out["layers"] = {k: array_to_wire(v) for k, v in self.layers.items()}
+        _tactile_scalars_to_wire(self, out)
         return out
 
     @classmethod
     def from_wire(cls, d: Mapping[str, Any]) -> TactileFrame:
         t = cls.TYPE
-        raw_layers = d.get("layers")
-        if not isinstance(raw_layers, Mapping):
-            raise FieldError(f"{t}.layers must be a map of layer name -> array")
-        unknown = sorted(str(k) for k in raw_layers if k not in LAYER_RANGES)
-        if unknown:
-            raise FieldError(f"{t}.layers has unknown layer(s) {unknown}; known: "
-                             f"{sorted(LAYER_RANGES)}")
-        if "height_mm" not in raw_layers:
-            raise FieldError(f"{t}.layers.height_mm is missing")
+        raw_layers = _read_layer_map(d, t, "array", need_height="")
         layers: dict[str, np.ndarray] = {}
         shape = None
         for name, raw in raw_layers.items():
@@ -514,17 +539,7 @@ class TactileFrame(DataMessage):
                 raise FieldError(f"{t}.layers.{name} has shape {arr.shape}, height_mm has {shape}")
             shape = arr.shape
             layers[name] = arr
-        lim = _WORKSPACE_LIMIT_MM
-        return cls(**cls._read_head(d, t),
-                   center_mm=read_vector(d, t, "center_mm", 2, lo=-lim, hi=lim),  # type: ignore[arg-type]
-                   pitch_mm=read_float(d, t, "pitch_mm", lo=1e-4, hi=100.0),
-                   layers=layers, contact=read_bool(d, t, "contact"),
-                   force_n=read_float(d, t, "force_n", lo=-1000.0, hi=1000.0),
-                   indentation_mm=read_float(d, t, "indentation_mm", lo=-100.0, hi=100.0),
-                   source_seq=read_int(d, t, "source_seq") if read_optional(d, "source_seq")
-                   else None,
-                   source_ts_us=read_int(d, t, "source_ts") if read_optional(d, "source_ts")
-                   else None)
+        return cls(**cls._read_head(d, t), layers=layers, **_read_tactile_scalars(d, t))
 
 
 class CompactLayer(NamedTuple):
@@ -615,14 +630,8 @@ class TactileCompact(DataMessage):
             if layer.idx is not None:
                 m["idx"] = array_to_wire(layer.idx)
             layers[name] = m
-        out.update(center_mm=list(self.center_mm), pitch_mm=self.pitch_mm, key=self.key,
-                   key_seq=self.key_seq, shape=list(self.shape), layers=layers,
-                   contact=self.contact, force_n=self.force_n,
-                   indentation_mm=self.indentation_mm)
-        if self.source_seq is not None:
-            out["source_seq"] = self.source_seq
-        if self.source_ts_us is not None:
-            out["source_ts"] = self.source_ts_us
+        out.update(key=self.key, key_seq=self.key_seq, shape=list(self.shape), layers=layers)
+        _tactile_scalars_to_wire(self, out)
         return out
 
     @classmethod
@@ -639,15 +648,8 @@ class TactileCompact(DataMessage):
         shape_raw = d["shape"]
         if any(isinstance(v, bool) or not isinstance(v, int) for v in shape_raw):
             raise FieldError(f"{t}.shape must be two integers")
-        raw_layers = d.get("layers")
-        if not isinstance(raw_layers, Mapping):
-            raise FieldError(f"{t}.layers must be a map of layer name -> layer map")
-        unknown = sorted(str(k) for k in raw_layers if k not in LAYER_RANGES)
-        if unknown:
-            raise FieldError(f"{t}.layers has unknown layer(s) {unknown}; known: "
-                             f"{sorted(LAYER_RANGES)}")
-        if key and "height_mm" not in raw_layers:
-            raise FieldError(f"{t}.layers.height_mm is missing from a key frame")
+        raw_layers = _read_layer_map(d, t, "layer map",
+                                     need_height=" from a key frame" if key else None)
         layers = {name: _read_compact_layer(raw, f"{t}.layers.{name}", key, (rows, cols))
                   for name, raw in raw_layers.items()}
         for name, layer in layers.items():
@@ -658,18 +660,8 @@ class TactileCompact(DataMessage):
                 if vmin < lo - layer.scale or vmax > hi + layer.scale:
                     raise FieldError(f"{t}.layers.{name} decodes to [{vmin:.6g}, {vmax:.6g}], "
                                      f"allowed [{lo}, {hi}]")
-        lim = _WORKSPACE_LIMIT_MM
-        return cls(**head,
-                   center_mm=read_vector(d, t, "center_mm", 2, lo=-lim, hi=lim),  # type: ignore[arg-type]
-                   pitch_mm=read_float(d, t, "pitch_mm", lo=1e-4, hi=100.0),
-                   key=key, key_seq=key_seq, shape=(rows, cols), layers=layers,
-                   contact=read_bool(d, t, "contact"),
-                   force_n=read_float(d, t, "force_n", lo=-1000.0, hi=1000.0),
-                   indentation_mm=read_float(d, t, "indentation_mm", lo=-100.0, hi=100.0),
-                   source_seq=read_int(d, t, "source_seq") if read_optional(d, "source_seq")
-                   else None,
-                   source_ts_us=read_int(d, t, "source_ts") if read_optional(d, "source_ts")
-                   else None)
+        return cls(**head, key=key, key_seq=key_seq, shape=(rows, cols), layers=layers,
+                   **_read_tactile_scalars(d, t))
 
 
 #: wire ``type`` -> message class
