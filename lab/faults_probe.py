@@ -14,7 +14,9 @@ by ``$TELETOUCH_FAULT_PROBE``, one event a line:
   stopped or starved during the send) and the loop withdrew it at once by the safe state;
 * ``S mono reason`` / ``U mono`` - the display entered / left its safe state;
 * ``C mono ts_us accepted age_ms`` - the safety layer judged a timestamped arm command
-  (``ts_us``: the local station's wall clock; ``age_ms``: the age the station computed);
+  (``ts_us``: the local station's wall clock; ``age_ms``: the age the station computed;
+  ``mono``: for an executed command, when the arm backend's ``_move_to`` was called, after
+  the arm's own deadline check);
 * ``H mono why`` - the arm was halted (``watchdog``: no command for the timeout; ``stop``: a
   stop call, e.g. the link-loss halt);
 * ``K mono offset_us`` - the station's wall clock was stepped (see below); ``offset_us`` is
@@ -155,13 +157,32 @@ def _install_remote() -> None:
     orig_poll = safety.SafeArm.poll
     orig_stop = safety.SafeArm.stop
 
+    def watch_moves(safe: safety.SafeArm) -> None:
+        arm = safe.arm
+        if getattr(arm, "_probe_move_watched", False):
+            return
+        orig_move_to = arm._move_to  # the backend hook: called once the arm will move
+
+        def _move_to(*args: Any, **kw: Any) -> Any:
+            arm._probe_move_mono = _mono()  # type: ignore[attr-defined]
+            return orig_move_to(*args, **kw)
+
+        arm._move_to = _move_to  # type: ignore[method-assign]
+        arm._probe_move_watched = True  # type: ignore[attr-defined]
+
     def move(self: safety.SafeArm, target_mm: Any, *, sent_ts_us: int | None = None,
              **kw: Any) -> safety.CommandResult:
+        watch_moves(self)
+        self.arm._probe_move_mono = None  # type: ignore[attr-defined]
         # every other argument (offsets and their error bound) passes through unchanged
         result = orig_move(self, target_mm, sent_ts_us=sent_ts_us, **kw)
         if sent_ts_us is not None:
             age = "nan" if result.age_ms is None else f"{result.age_ms:.3f}"
-            _emit("C", _mono(), sent_ts_us, int(result.accepted), age)
+            # an executed command is timed when the arm backend was told (after the arm's
+            # own deadline check), not when the wrapper returned (a starved process may
+            # get back much later)
+            when = getattr(self.arm, "_probe_move_mono", None) if result.accepted else None
+            _emit("C", when or _mono(), sent_ts_us, int(result.accepted), age)
         return result
 
     def poll(self: safety.SafeArm) -> Any:

@@ -263,6 +263,10 @@ class SafetyError(TeleTouchError):
     """A command was refused for safety: too old, out of bounds, over the force limit."""
 
 
+class CommandExpiredError(SafetyError):
+    """A device was handed a command after the deadline it came with (it did not act)."""
+
+
 # --------------------------------------------------------------------------- numerics
 
 

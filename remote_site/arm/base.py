@@ -19,8 +19,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from shared.devices import Device
-from shared.errors import ConfigError, InputDataError
+from shared.errors import CommandExpiredError, ConfigError, InputDataError
 from shared.protocol.messages import ARM_STATUSES, ArmState
+from shared.timebase import monotonic_s
 
 __all__ = ["Arm", "ArmLimits", "ArmReading", "Vec3", "as_vec3"]
 
@@ -131,16 +132,29 @@ class Arm(Device):
 
     # --------------------------------------------------------------- commands
 
-    def move_to(self, target_mm: Sequence[float]) -> Vec3:
+    def move_to(self, target_mm: Sequence[float], *, not_after_s: float | None = None) -> Vec3:
         """Track a Cartesian target; returns the target applied after clamping.
+
+        Args:
+            target_mm: the target (phantom mm).
+            not_after_s: a deadline on :func:`shared.timebase.monotonic_s`: the move is not
+                started after it (checked at the last moment before the backend is told, so
+                a process stopped or starved between the caller's age check and here does
+                not move the arm with an old command).
 
         Raises:
             InputDataError: not three finite numbers.
             DeviceNotConnectedError: not connected.
+            CommandExpiredError: ``not_after_s`` had passed; the arm was not told.
         """
         self._require()
         applied = self.limits.clamp(as_vec3(target_mm))
         with self._operation("move"):
+            if not_after_s is not None:
+                late_s = monotonic_s() - not_after_s
+                if late_s > 0:
+                    raise CommandExpiredError(f"{self.name}: move {late_s * 1e3:.1f} ms past "
+                                              "its deadline; not started")
             self._move_to(applied)
         return applied
 

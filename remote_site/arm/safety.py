@@ -38,7 +38,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 from remote_site.arm.base import Arm, ArmReading, Vec3, as_vec3
-from shared.errors import ConfigError
+from shared.errors import CommandExpiredError, ConfigError
 from shared.freshness import AgeVerdict, judge_age
 from shared.protocol.messages import ArmCommand
 from shared.timebase import monotonic_s, now_us
@@ -227,6 +227,7 @@ class SafeArm:
             #: then, not at arrival, so the arm halts when the newest command it executed is
             #: command_timeout_ms old by its own stamp (the delay on the way counts)
             sent_ago_s = 0.0
+            deadline_s = None
             if sent_ts_us is not None:
                 # judged again right before the move: reading the arm's state took time,
                 # and a stopped or starved process may have slept since the first check
@@ -237,10 +238,20 @@ class SafeArm:
                     return self._refused(verdict)
                 if verdict.age_us is not None and verdict.uncertainty_us is not None:
                     sent_ago_s = max(0.0, verdict.age_us + verdict.uncertainty_us) / 1e6
+                # and the arm itself refuses to start the move once the command may be
+                # older than the limit (the time left, on the arm's monotonic clock)
+                deadline_s = monotonic_s() + cfg.max_command_age_ms / 1e3 - sent_ago_s
             if clamped:
                 self.counters.clamped += 1
+            try:
+                applied = self.arm.move_to(applied, not_after_s=deadline_s)
+            except CommandExpiredError as err:
+                self.counters.dropped_late += 1
+                self.counters.dropped_stale += 1
+                if log.isEnabledFor(logging.DEBUG):
+                    log.debug("dropped arm command at the arm: %s", err)
+                return CommandResult(False, None, "stale_command", False, age_ms, "stale")
             self._last_command_s = self._mono() - sent_ago_s
-            applied = self.arm.move_to(applied)
             self._halted = False
             self.counters.applied += 1
             return CommandResult(True, applied, status, clamped, age_ms)

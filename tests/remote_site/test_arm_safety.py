@@ -76,6 +76,25 @@ def test_a_command_that_ages_out_before_the_move_is_refused() -> None:
     assert safe.poll().status == "halted"  # 3 s without an executed command
 
 
+def test_the_arm_does_not_start_a_move_past_the_commands_deadline(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The process is stopped after SafeArm's last age check, inside the arm's move_to: the
+    arm checks the deadline it was given (the time left before the command is 100 ms old)
+    at the last moment and does not move."""
+    safe, arm, clock = make()
+    safe.move((1.0, 2.0, 5.0))
+    import remote_site.arm.base as arm_base
+
+    real = arm_base.monotonic_s
+    monkeypatch.setattr(arm_base, "monotonic_s", lambda: real() + 3.0)  # 3 s stop
+    res = safe.move((9.0, 9.0, 9.0), sent_ts_us=clock.wall_us() - 50_000)
+    assert not res.accepted and res.status == "stale_command" and res.refused == "stale"
+    assert safe.counters.dropped_late == 1 and safe.counters.applied == 1
+    assert arm.state().target_mm == (1.0, 2.0, 5.0)
+    monkeypatch.setattr(arm_base, "monotonic_s", real)
+    assert safe.move((9.0, 9.0, 9.0), sent_ts_us=clock.wall_us() - 50_000).accepted  # control
+
+
 def test_no_command_for_100_ms_halts() -> None:
     safe, arm, clock = make()
     safe.move((30.0, 0.0, 10.0))

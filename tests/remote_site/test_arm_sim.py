@@ -160,3 +160,15 @@ def test_reading_to_wire_message() -> None:
     arm = manual_arm()
     msg = arm.state().to_message(seq=4, ts_us=123, source_seq=2)
     assert msg.seq == 4 and msg.source_seq == 2 and msg.status == "ok"
+
+
+def test_a_move_past_its_deadline_is_not_started() -> None:
+    from shared.errors import CommandExpiredError
+    from shared.timebase import monotonic_s
+
+    arm = SimArm(make_scene("localization", 0), SimArmConfig(realtime=False))
+    with arm:
+        arm.move_to((1.0, 2.0, 5.0), not_after_s=monotonic_s() + 10.0)
+        with pytest.raises(CommandExpiredError, match="past its deadline"):
+            arm.move_to((9.0, 9.0, 9.0), not_after_s=monotonic_s() - 0.001)
+        assert arm.state().target_mm == (1.0, 2.0, 5.0)
