@@ -470,8 +470,7 @@ class _Connection:
                 # while this station's offset is being (re)measured, every sample goes to
                 # everyone in the session at once: the other station needs it to age-check
                 # what it receives and would otherwise wait for its periodic stats (1 s)
-                if session is not None and (ev.stepped or len(ps.clock) <= max(
-                        1, self.relay.config.ping_burst)):
+                if session is not None and (ev.stepped or ev.settling):
                     for other in (*session.stations.values(), *session.observers.values()):
                         if other.request_stats is not None:
                             other.request_stats()

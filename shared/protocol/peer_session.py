@@ -207,6 +207,9 @@ class ClockSampled:
     #: the sample revealed a clock step (the filter restarted from it; a ping burst and an
     #: early ``stats`` follow, so the stations learn the new offset within the burst)
     stepped: bool = False
+    #: the ping was one of a burst (the offset is being measured: the other stations of the
+    #: session need each such sample at once, not at their next periodic ``stats``)
+    settling: bool = False
 
 
 @dataclass(frozen=True, slots=True)
@@ -239,6 +242,10 @@ class PeerSettings:
     ping_interval_us: int = 1_000_000
     ping_burst: int = 5
     ping_burst_spacing_us: int = 20_000
+    #: a burst goes on past ``ping_burst`` pings while the offset's error bound is wider
+    #: than this (a loaded host or path: slow pongs), up to ``settle_max_pings`` in all
+    settle_uncertainty_us: int = 10_000
+    settle_max_pings: int = 25
     stats_interval_us: int = 1_000_000
     #: a joined station that sends nothing for this long is closed (``silent``); it answers
     #: a ping every ``ping_interval_us``, so only a dead or blackholed connection is this quiet
@@ -290,6 +297,9 @@ class PeerSession:
         self._last_rx_us = now_us
         self._next_stats_us: int | None = None
         self._burst_left = 0
+        self._burst_sent = 0
+        self._burst_ping_ids: set[int] = set()
+        self._burst_ping_queued = False  # the ping queued (built when sent) is a burst's
 
     @property
     def where(self) -> str:
@@ -390,7 +400,7 @@ class PeerSession:
         s = self.settings
         if welcome.role != "observer" and s.ping_burst:
             # stats wait for the burst; then periodic pings and stats start together
-            self._burst_left, self._next_ping_us = s.ping_burst, now_us
+            self._start_burst(now_us)
         else:
             if welcome.role != "observer":
                 self._next_ping_us = now_us + s.ping_interval_us
@@ -456,15 +466,32 @@ class PeerSession:
 
     # ------------------------------------------------------------------ clock exchange
 
+    def _start_burst(self, now_us: int) -> None:
+        self._burst_left, self._burst_sent, self._next_ping_us = \
+            self.settings.ping_burst, 0, now_us
+
     def _ping(self, t0_us: int) -> ClockPing:
         ping_id = next(self._ping_ids)
         self._pings[ping_id] = t0_us
+        if self._burst_ping_queued:
+            self._burst_ping_queued = False
+            self._burst_ping_ids.add(ping_id)
         while len(self._pings) > _MAX_OUTSTANDING_PINGS:
-            self._pings.popitem(last=False)
+            self._burst_ping_ids.discard(self._pings.popitem(last=False)[0])
         return ClockPing(ping_id=ping_id, t0_us=t0_us)
+
+    def _settled(self, now_us: int) -> bool:
+        """The burst may end: the offset's bound is narrow enough, or enough was tried."""
+        s = self.settings
+        if self._burst_sent >= max(s.settle_max_pings, s.ping_burst):
+            return True
+        bound = self.clock.uncertainty_us(now_us)
+        return bound is not None and bound <= s.settle_uncertainty_us
 
     def _on_pong(self, pong: ClockPong, t3_us: int) -> None:
         t0 = self._pings.pop(pong.ping_id, None)
+        settling = pong.ping_id in self._burst_ping_ids
+        self._burst_ping_ids.discard(pong.ping_id)
         if t0 is None or t0 != pong.t0_us:
             self.counters["stray_pong"] += 1
             return
@@ -479,8 +506,8 @@ class PeerSession:
             log.warning("%s: clock step detected (offset now %.0f us); re-measuring",
                         self.where, sample.offset_us)
             if self.settings.ping_burst:
-                self._burst_left, self._next_ping_us = self.settings.ping_burst, t3_us
-        self._events.append(ClockSampled(t0, pong.t1_us, sample, stepped))
+                self._start_burst(t3_us)
+        self._events.append(ClockSampled(t0, pong.t1_us, sample, stepped, settling))
 
     def stats_soon(self, now_us: int) -> None:
         """Push ``stats`` at the next tick (a station's clock changed: all must know)."""
@@ -517,8 +544,15 @@ class PeerSession:
                                       f"{(now_us - self._last_rx_us) / 1e6:.1f} s"))
             return False
         if self._next_ping_us is not None and now_us >= self._next_ping_us:
+            self._burst_ping_queued = self._burst_left > 0
             self.outbox.put_control_latest("clock_ping", ClockPing(), build=self._ping)
-            if self._burst_left > 1:
+            if self._burst_left > 0:
+                self._burst_sent += 1
+            if self._burst_left == 1 and not self._settled(now_us):
+                # slow pongs (a loaded host or path): the bound is still wide; measure on
+                # rather than wait a whole ping interval for the next sample
+                self._next_ping_us = now_us + s.ping_burst_spacing_us
+            elif self._burst_left > 1:
                 self._burst_left -= 1
                 self._next_ping_us = now_us + s.ping_burst_spacing_us
             elif self._burst_left == 1:  # the burst is over

@@ -53,7 +53,7 @@ WELCOME = Welcome(session="lab1", role="local", server_time_us=5, ping_interval_
                   max_message_bytes=1 << 22)
 SETTINGS = PeerSettings(hello_timeout_us=1000, ping_burst=2, ping_burst_spacing_us=10,
                         ping_interval_us=100, stats_interval_us=50, bad_message_budget=3,
-                        ordered_queue_len=4)
+                        ordered_queue_len=4, settle_max_pings=2)
 
 
 
@@ -197,6 +197,59 @@ def test_ping_burst_then_interval_and_stats_due() -> None:
     assert pings == [2, 12, 122, 222, 322]
     # the first stats right after the burst (the stations wait for offsets), then every 50
     assert stats_due == [22, 72, 122, 172, 222, 272, 322, 372]
+
+
+def _burst_pings(peer: PeerSession, station: StationSession | None, rtt_us: int,
+                 until_us: int) -> list[int]:
+    """Send times of the relay's pings; the station answers each after ``rtt_us``."""
+    pings: list[int] = []
+    in_flight: list[tuple[int, bytes]] = []
+    for t in range(2, until_us):
+        peer.tick(t)
+        for data in peer.data_to_send(itertools.repeat(t).__next__):
+            msg = decode(data[4:])
+            if isinstance(msg, ClockPing):
+                pings.append(t)
+                if station is not None:
+                    station.receive_data(data, t + rtt_us // 2)
+                    in_flight += [(t + rtt_us, d) for d in pump(station, t + rtt_us // 2)]
+        for due, d in [x for x in in_flight if x[0] == t]:
+            peer.receive_data(d, due)
+        in_flight = [x for x in in_flight if x[0] != t]
+    return pings
+
+
+def test_the_burst_goes_on_while_the_offset_is_uncertain() -> None:
+    """Pongs 40 ms round trip (a loaded host): each bounds the offset to +-20 ms, wider
+    than the 10 ms wanted, so the burst goes on (to settle_max_pings) instead of leaving
+    the stations without a usable offset until the next periodic ping; with 2 ms round
+    trips it ends after ping_burst pings, as before."""
+    settings = PeerSettings(ping_burst=3, ping_burst_spacing_us=20_000,
+                            ping_interval_us=1_000_000, settle_uncertainty_us=10_000,
+                            settle_max_pings=8)
+
+    def pair() -> tuple[StationSession, PeerSession]:
+        station = StationSession(HELLO, send_queue_size=4, receive_queue_size=8)
+        peer = PeerSession("tcp", settings, now_us=0)
+        peer.receive_data(station.connect("tcp", 0), 1)
+        peer.events_received()
+        peer.accept(WELCOME, 2)
+        for data in peer.data_to_send(lambda: 3):
+            station.receive_data(data, 4)
+        station.events_received()
+        return station, peer
+
+    station, peer = pair()
+    slow = _burst_pings(peer, station, 40_000, 900_000)
+    assert len(slow) == 8 and slow[-1] - slow[0] == 7 * 20_000
+    events = peer.events_received()
+    assert [type(e).__name__ for e in events] == ["ClockSampled"] * 8, events
+    assert all(isinstance(e, ClockSampled) and e.settling for e in events)
+    station, peer = pair()
+    fast = _burst_pings(peer, station, 2_000, 900_000)
+    assert len(fast) == 3
+    _, peer = pair()  # nobody answers: the cap holds
+    assert len(_burst_pings(peer, None, 0, 900_000)) == 8
 
 
 # --------------------------------------------------------------------------- streams
