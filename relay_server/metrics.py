@@ -131,6 +131,7 @@ def session_status(session: Session) -> dict[str, Any]:
         streams[d] = {name: lg.snapshot().as_dict() for name, lg in ds.uplink.items()}
         streams[d]["unsynced"] = ds.unsynced
     out["streams"] = streams
+    out["compact_keys_resent"] = session.compact_keys_resent
     # the NATS leg of messages from other workers of a clustered relay (nats_out -> nats_in)
     out["nats_us"] = {d: _pcts(session.directions[d].nats.snapshot()) for d in _DIRECTIONS}
     out["peers"] = [_peer_status(p) for p in (*session.stations.values(),

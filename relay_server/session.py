@@ -18,7 +18,7 @@ from typing import Any, Protocol
 from shared.clocksync import ClockFilter
 from shared.errors import RoleTakenError
 from shared.ledger import LatencyLedger, LedgerSnapshot, merge_snapshots
-from shared.protocol import DataMessage, Error, StreamPolicy
+from shared.protocol import DataMessage, Error, StreamPolicy, TactileCompact
 from shared.protocol.peer_session import Outbox, Pending
 
 __all__ = [
@@ -101,6 +101,9 @@ class Peer:
     #: pushes ``stats`` to this peer at once (a station's clock offset changed)
     request_stats: Callable[[], None] | None = field(default=None, repr=False)
     reported: dict[str, Any] = field(default_factory=dict)
+    #: per direction, the seq of the newest ``tactile_compact`` key frame queued to this
+    #: peer (a delta needs its key frame: see :meth:`Session.deliver`)
+    compact_key_seq: dict[str, int] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.downlink = LatencyLedger(self.window)
@@ -149,6 +152,12 @@ class Session:
                            for d in ("local_to_remote", "remote_to_local")}
         #: a clustered relay's link to its other workers (None: this process is the relay)
         self.remote: RemoteForwarder | None = None
+        #: per direction, the newest ``tactile_compact`` key frame that reached this relay
+        #: process, with its arrival time and mid hops (for peers that joined after it)
+        self._compact_keys: dict[str, tuple[TactileCompact, int,
+                                            tuple[tuple[str, str, int], ...]]] = {}
+        #: key frames queued again for a peer that had not received the one a delta needs
+        self.compact_keys_resent = 0
 
     @property
     def empty(self) -> bool:
@@ -256,14 +265,19 @@ class Session:
         stream = msg.TYPE
         direction = self.directions[DIRECTION_OF[sender_role]]
         ledger = direction.stream(stream)
+        if isinstance(msg, TactileCompact) and msg.key:
+            self._compact_keys[direction.name] = (msg, t_in_us, mid_hops)
         self._to_observers(direction, msg, t_in_us, mid_hops)
         if not to_station:
             return None
-        latest = msg.POLICY is StreamPolicy.LATEST_WINS
+        # a compact key frame is never superseded in a latest-wins slot by the deltas that
+        # need it: it goes in the ordered queue
+        latest = msg.POLICY is StreamPolicy.LATEST_WINS and not (
+            isinstance(msg, TactileCompact) and msg.key)
         receiver = self.stations.get(_OTHER[sender_role])
         if receiver is None:
             ledger.record_drop("no_peer")
-            if latest:
+            if msg.POLICY is StreamPolicy.LATEST_WINS:
                 return None
             return Error(code="no_peer", message=f"{stream} seq {msg.seq} not delivered: no "
                          f"{_OTHER[sender_role]} station in session {self.session_id!r}",
@@ -278,25 +292,48 @@ class Session:
 
         key = f"{direction.name}:{stream}"
         if latest:
+            self._key_frame_first(direction.name, msg, receiver)
             if receiver.outbox.put_latest(key, msg, t_in_us, on_send, mid_hops) is not None:
                 ledger.record_drop("latest_wins")
         elif not receiver.outbox.put_ordered(msg, on_send, forwarded=True, t_in_us=t_in_us,
                                              mid_hops=mid_hops):
             ledger.record_drop("queue_full")
             ledger.set_queue_depth(len(receiver.outbox))
+            if msg.POLICY is StreamPolicy.LATEST_WINS:
+                return None
             return Error(code="queue_full", message=f"{stream} seq {msg.seq} refused: the "
                          f"{receiver.role} station's queue is full", fatal=False,
                          stream=stream, seq=msg.seq)
+        elif isinstance(msg, TactileCompact):
+            receiver.compact_key_seq[direction.name] = msg.seq
         ledger.set_queue_depth(len(receiver.outbox))
         return None
+
+    def _key_frame_first(self, direction: str, msg: DataMessage, peer: Peer) -> None:
+        """Before a ``tactile_compact`` delta, queue its key frame to a peer that was not
+        given it (it joined, or rejoined, after the key frame passed): otherwise the peer
+        renders nothing until the sender's next key frame, up to ``key_every`` frames
+        later. The key frame keeps its own stamps, so the receiver ages it as what it is."""
+        if not isinstance(msg, TactileCompact) or msg.key \
+                or peer.compact_key_seq.get(direction) == msg.key_seq:
+            return
+        cached = self._compact_keys.get(direction)
+        if cached is None or cached[0].seq != msg.key_seq:
+            return  # not seen by this relay process (restarted, or another worker's)
+        key, t_in_us, mid_hops = cached
+        if peer.outbox.put_ordered(key, forwarded=True, t_in_us=t_in_us, mid_hops=mid_hops):
+            peer.compact_key_seq[direction] = key.seq
+            self.compact_keys_resent += 1
 
     def _to_observers(self, direction: DirectionStats, msg: DataMessage, t_in_us: int,
                       mid_hops: tuple[tuple[str, str, int], ...] = ()) -> None:
         if not self.observers:
             return
         key = f"{direction.name}:{msg.TYPE}"
-        if msg.POLICY is StreamPolicy.LATEST_WINS:
+        if msg.POLICY is StreamPolicy.LATEST_WINS and not (
+                isinstance(msg, TactileCompact) and msg.key):
             for obs in self.observers.values():
+                self._key_frame_first(direction.name, msg, obs)
                 if obs.outbox.put_latest(key, msg, t_in_us, None, mid_hops) is not None:
                     obs.observer_drops += 1
         else:
@@ -304,3 +341,5 @@ class Session:
                 if not obs.outbox.put_ordered(msg, forwarded=True, t_in_us=t_in_us,
                                               mid_hops=mid_hops):
                     obs.observer_drops += 1
+                elif isinstance(msg, TactileCompact):
+                    obs.compact_key_seq[direction.name] = msg.seq

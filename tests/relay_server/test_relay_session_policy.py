@@ -87,3 +87,60 @@ def test_forwarded_encoding_appends_two_hops_and_keeps_the_hop_limit() -> None:
     full = PlatformState(seq=1, ts_us=1, hops=tuple(Hop("local", "s", i) for i in range(MAX_HOPS)))
     hops = decode(encode(full, validate=False, extra_hops=relay_hops)).hops  # type: ignore[attr-defined]
     assert len(hops) == MAX_HOPS and hops[-1] == Hop("relay", "relay_out", 30)
+
+
+def _compact_stream(n: int) -> list[object]:
+    """``n`` tactile frames through the real compact encoder (key frame first, then deltas)."""
+    import numpy as np
+
+    from shared.protocol import TactileFrame
+    from shared.protocol.tactile_codec import TactileEncoder
+
+    enc = TactileEncoder()
+    out = []
+    base = np.linspace(0.0, 2.0, 36, dtype=np.float32).reshape(6, 6)
+    for seq in range(1, n + 1):
+        h = base.copy()
+        h[seq % 6, 0] += 0.5  # one pin changes: a sparse delta
+        out.append(enc.encode(TactileFrame(seq=seq, ts_us=seq * 1000, layers={"height_mm": h})))
+    assert [m.key for m in out] == [True] + [False] * (n - 1)
+    return out
+
+
+def test_a_late_joiner_gets_the_key_frame_before_the_first_delta() -> None:
+    """The remote sent its key frame while no local station was there (a relay restart:
+    the remote came back first). The local joins: before the first delta it is given the
+    cached key frame, so it decodes at once instead of waiting for the next key frame."""
+    from shared.protocol import TactileCompact, TactileFrame
+    from shared.protocol.tactile_codec import TactileDecoder
+
+    session = Session("s", 64)
+    remote = make_peer(2, "remote", limit=8)
+    session.join(remote)
+    key, d1, d2 = _compact_stream(3)
+    assert isinstance(key, TactileCompact) and key.key and isinstance(d1, TactileCompact)
+    assert session.route(remote, key, 10) is None  # nobody to deliver to: cached
+    local = make_peer(1, "local", limit=8)
+    session.join(local)
+    session.route(remote, d1, 20)
+    got = [p.message for p in local.outbox.take()]
+    assert [(m.seq, m.key) for m in got] == [(1, True), (2, False)]  # type: ignore[attr-defined]
+    decoder = TactileDecoder()
+    frames = [decoder.decode(m) for m in got]  # type: ignore[arg-type]
+    assert isinstance(frames[-1], TactileFrame) and frames[-1].seq == 2
+    assert session.compact_keys_resent == 1
+    session.route(remote, d2, 30)  # the key is not sent twice
+    assert [p.message.seq for p in local.outbox.take()] == [3]  # type: ignore[attr-defined]
+
+
+def test_a_key_frame_is_not_superseded_by_its_deltas_in_the_queue() -> None:
+    """Latest-wins would let a delta replace the unsent key frame it needs: key frames go in
+    the ordered queue, deltas replace each other only."""
+    session = Session("s", 64)
+    local, remote = make_peer(1, "local", limit=8), make_peer(2, "remote")
+    session.join(local)
+    session.join(remote)
+    for seq, msg in enumerate(_compact_stream(4)):
+        assert session.route(remote, msg, 10 + seq) is None  # type: ignore[arg-type]
+    assert [p.message.seq for p in local.outbox.take()] == [1, 4]  # type: ignore[attr-defined]
+    assert session.compact_keys_resent == 0
