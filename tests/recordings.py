@@ -21,10 +21,11 @@ T0 = 1_790_000_000_000_000  # 2026-09-21, a fixed recording date
 
 def write_local_recording(path: Path, seconds: float = 6.0, *, frame_hz: float = 30.0,
                           platform_hz: float = 50.0, patch: int = 24,
-                          image_hz: float | None = None) -> dict[str, int]:
+                          image_hz: float | None = None,
+                          chunk_bytes: int = 1 << 20) -> dict[str, int]:
     """Write the recording; return the number of messages per kind written."""
     rec = McapRecorder(path, "local", meta={"session": "synthetic"},
-                       image_rate_hz=image_hz)
+                       image_rate_hz=image_hz, chunk_bytes=chunk_bytes)
     rng = np.random.default_rng(7)
     counts = {"platform": 0, "frames": 0, "pins": 0}
     rec.wire("rx", Stats(metrics={"clock_offset_us": {"local": 0, "remote": 250}}), T0)
