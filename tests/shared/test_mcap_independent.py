@@ -33,6 +33,7 @@ from mcap.reader import make_reader
 
 from shared.recording import RecordingFormatError, read_mcap
 from shared.recording.schemas import DERIVED_SCHEMAS
+from shared.recording.writer import patch_png
 from tests.recordings import write_local_recording
 from tests.support import REPO_ROOT, scaled
 
@@ -121,6 +122,22 @@ def test_the_tactile_image_is_foxglove_compressed_image_with_pngs(recorded: Path
         img = cv2.imdecode(np.frombuffer(base64.b64decode(doc["data"]), np.uint8),
                            cv2.IMREAD_UNCHANGED)
         assert img is not None and img.shape == (24, 24, 3)
+
+
+def test_the_image_channel_is_off_by_default_and_png_keeps_the_layer_order(
+        tmp_path: Path) -> None:
+    write_local_recording(tmp_path / "plain.mcap", seconds=0.5)
+    assert "/local/tactile_image" not in read_mcap(tmp_path / "plain.mcap").topics()
+    # row 0 of a layer is its lowest y: the image's bottom row; colour rises with height
+    h = np.zeros((4, 3), np.float32)
+    h[0, :] = 1.0
+    png = patch_png(h)
+    assert png is not None
+    img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+    assert img.shape == (4, 3, 3)
+    bottom, top = img[-1].astype(int).sum(), img[0].astype(int).sum()
+    assert bottom > top  # viridis: yellow (high) is brighter than dark purple (low)
+    assert patch_png(np.full((3, 3), np.nan)) is None and patch_png(np.zeros(5)) is None
 
 
 def test_a_cut_file_reads_as_the_same_prefix_in_both_libraries(recorded: Path,
