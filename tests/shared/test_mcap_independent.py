@@ -134,7 +134,7 @@ def test_the_image_channel_is_off_by_default_and_png_keeps_the_layer_order(
     png = patch_png(h)
     assert png is not None
     img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
-    assert img.shape == (4, 3, 3)
+    assert img is not None and img.shape == (4, 3, 3)
     bottom, top = img[-1].astype(int).sum(), img[0].astype(int).sum()
     assert bottom > top  # viridis: yellow (high) is brighter than dark purple (low)
     assert patch_png(np.full((3, 3), np.nan)) is None and patch_png(np.zeros(5)) is None
