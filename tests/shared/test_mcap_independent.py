@@ -40,11 +40,17 @@ from tests.support import REPO_ROOT, scaled
 CHECKER = REPO_ROOT / "tests" / "mcap_reader"
 
 
-def _node() -> str:
+def node_for_check() -> str | None:
+    """``node`` when it and the checker's npm packages are installed, else None."""
     node = shutil.which("node") or shutil.which("nodejs")
-    installed = (CHECKER / "node_modules" / "@mcap" / "core").is_dir()
-    if node and installed:
+    return node if node and (CHECKER / "node_modules" / "@mcap" / "core").is_dir() else None
+
+
+def _node() -> str:
+    node = node_for_check()
+    if node:
         return node
+    installed = (CHECKER / "node_modules" / "@mcap" / "core").is_dir()
     message = ("the independent MCAP check needs node and `npm ci --prefix tests/mcap_reader` "
                f"(node: {node}, packages installed: {installed}); .ci/run installs both")
     if os.environ.get("CI", "").strip().lower() in ("true", "1", "yes"):
@@ -52,7 +58,8 @@ def _node() -> str:
     pytest.skip(message)
 
 
-def _check(path: Path) -> dict[str, Any]:
+def check_mcap(path: Path) -> dict[str, Any]:
+    """What Foxglove's reader makes of ``path`` (see ``tests/mcap_reader/check_mcap.mjs``)."""
     out = subprocess.run([_node(), str(CHECKER / "check_mcap.mjs"), str(path)],
                          capture_output=True, timeout=scaled(120), check=False)
     assert out.returncode == 0, out.stderr.decode()[-2000:]
@@ -76,7 +83,7 @@ def recorded(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_foxglove_reader_reads_every_message_with_crcs_and_json_schemas(recorded: Path) -> None:
     rec = read_mcap(recorded)
     ours = rec.topics()
-    got = _check(recorded)
+    got = check_mcap(recorded)
     stream, indexed = got["stream"], got["indexed"]
     # front to back: every chunk's CRC checked, the footer reached
     assert stream["error"] is None and stream["done"], stream
@@ -150,7 +157,7 @@ def test_a_cut_file_reads_as_the_same_prefix_in_both_libraries(recorded: Path,
             ours = len(read_mcap(cut).messages)
         except RecordingFormatError:
             ours = 0
-        got = _check(cut)
+        got = check_mcap(cut)
         assert not got["stream"]["done"]  # no footer: the reader says it is not complete
         assert got["stream"]["messages"] == ours > 0
         assert got["indexed"]["error"] is not None  # no summary: Studio reads it unindexed
