@@ -35,7 +35,8 @@ from shared.protocol.tactile_codec import TactileDecoder
 from shared.recording import McapRecording, RecordedMessage
 from shared.timebase import now_us
 
-__all__ = ["ReplayEvent", "ReplayResult", "Replayer", "format_summary", "summarize"]
+__all__ = ["PlaybackClock", "ReplayEvent", "ReplayResult", "Replayer", "format_summary",
+           "summarize"]
 
 log = logging.getLogger(__name__)
 
@@ -73,6 +74,98 @@ class ReplayResult:
     subscriber_errors: int = 0
 
 
+class PlaybackClock:
+    """The replay's position in recorded time, with pause and play (thread-safe).
+
+    While playing, the position advances ``speed`` recorded microseconds per wall-clock
+    microsecond from where it was last anchored; while paused it stands still. It never
+    passes ``end_us``.
+
+    Args:
+        start_us: the recorded time the replay starts at.
+        end_us: the recorded time of the last message.
+        speed: playback speed (> 0).
+        paused: start paused (:meth:`play` starts it).
+    """
+
+    def __init__(self, start_us: int, end_us: int, speed: float, *, paused: bool = False) -> None:
+        self.start_us = int(start_us)
+        self.end_us = max(int(end_us), self.start_us)
+        self.speed = float(speed)
+        self._cond = threading.Condition()
+        self._anchor_us = float(start_us)
+        self._anchor_s = time.perf_counter()
+        self._paused = paused
+        #: :meth:`start` was called (before it, the position stands at the start)
+        self.started = False
+        self.finished = False
+
+    def _position(self, now_s: float) -> float:
+        if self._paused or self.finished or not self.started:
+            return self._anchor_us
+        return self._anchor_us + (now_s - self._anchor_s) * 1e6 * self.speed
+
+    def position_us(self) -> int:
+        """The recorded time the replay has reached now."""
+        with self._cond:
+            return int(min(self._position(time.perf_counter()), self.end_us))
+
+    @property
+    def paused(self) -> bool:
+        """True while paused."""
+        return self._paused
+
+    def start(self) -> None:
+        """Start counting from now (from the start position; a paused clock waits for
+        :meth:`play`)."""
+        with self._cond:
+            self._anchor_us = float(self.start_us)
+            self._anchor_s = time.perf_counter()
+            self.started = True
+            self.finished = False
+            self._cond.notify_all()
+
+    def pause(self) -> None:
+        """Stop the position where it is (idempotent)."""
+        with self._cond:
+            if not self._paused:
+                self._anchor_us = min(self._position(time.perf_counter()), self.end_us)
+                self._paused = True
+                self._cond.notify_all()
+
+    def play(self) -> None:
+        """Go on from where it stands (idempotent)."""
+        with self._cond:
+            if self._paused:
+                self._anchor_s = time.perf_counter()
+                self._paused = False
+                self._cond.notify_all()
+
+    def finish(self) -> None:
+        """The replay ended: the position stands at the end from now on."""
+        with self._cond:
+            self._anchor_us = float(self.end_us)
+            self.finished = True
+            self._cond.notify_all()
+
+    def wait_until(self, t_us: int, stop: threading.Event) -> bool:
+        """Block until the position reaches ``t_us`` (recorded time).
+
+        Returns:
+            False when ``stop`` was set first.
+        """
+        with self._cond:
+            while not stop.is_set():
+                now_s = time.perf_counter()
+                if not self._paused and self._position(now_s) >= t_us:
+                    return True
+                # paused: poll the stop event now and then; playing: sleep until due
+                wait = 0.1 if self._paused else min(
+                    0.1, (t_us - self._position(now_s)) / 1e6 / self.speed)
+                self._cond.wait(wait)
+        return False
+
+
 class Replayer:
     """Replays one recording (see the module docstring).
 
@@ -81,13 +174,15 @@ class Replayer:
         speed: playback speed (2.0: twice as fast); > 0.
         display: display spec for a local recording (``sim``; ``none``: publish only).
         stale_timeout_s: the display loop's stale-frame rule at speed 1 (scaled by 1/speed).
+        start_paused: wait for :meth:`PlaybackClock.play` (``replayer.clock.play()``) before
+            the first message.
 
     Raises:
         ConfigError: a bad speed or display spec.
     """
 
     def __init__(self, recording: McapRecording, *, speed: float = 1.0, display: str = "sim",
-                 stale_timeout_s: float = 0.1) -> None:
+                 stale_timeout_s: float = 0.1, start_paused: bool = False) -> None:
         if not (np.isfinite(speed) and speed > 0):
             raise ConfigError(f"replay speed must be > 0, got {speed}")
         self.recording = recording
@@ -96,6 +191,11 @@ class Replayer:
         self.stale_timeout_s = stale_timeout_s / self.speed
         self._subscribers: list[Subscriber] = []
         self.loop: DisplayLoop | None = None
+        self._messages = sorted(recording.messages, key=lambda m: m.t_us)
+        first = self._messages[0].t_us if self._messages else 0
+        last = self._messages[-1].t_us if self._messages else 0
+        #: the replay's position in recorded time; pause() / play() from any thread
+        self.clock = PlaybackClock(first, last, self.speed, paused=start_paused)
 
     def subscribe(self, fn: Subscriber) -> None:
         """Call ``fn`` with every replayed event (a live view plugs in here)."""
@@ -146,9 +246,10 @@ class Replayer:
             DeviceError: the display cannot be opened.
         """
         stop = stop or threading.Event()
-        messages = sorted(self.recording.messages, key=lambda m: m.t_us)
+        messages = self._messages
         result = ReplayResult()
         if not messages:
+            self.clock.finish()
             return result
         t0 = messages[0].t_us
         result.recorded_duration_s = (messages[-1].t_us - t0) / 1e6
@@ -164,14 +265,12 @@ class Replayer:
                                       name="replay-display", daemon=True)
             thread.start()
         start = time.perf_counter()
+        clock = self.clock
+        clock.start()  # the pace counts from here, not from construction
         decoder = TactileDecoder()
         try:
             for m in messages:
-                due = start + (m.t_us - t0) / 1e6 / self.speed
-                wait = due - time.perf_counter()
-                if wait > 0 and stop.wait(wait):
-                    break
-                if stop.is_set():
+                if not clock.wait_until(m.t_us, stop):
                     break
                 ev = self.event(m)
                 frame = ev.message
@@ -203,6 +302,7 @@ class Replayer:
                             log.warning("replay subscriber failed: %s", err)
                 result.published += 1
         finally:
+            clock.finish()
             loop_stop.set()
             if thread is not None and self.loop is not None:
                 thread.join()

@@ -86,6 +86,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                       help="where the display loop runs (default thread)")
     tune.add_argument("--record-pins-rate", type=float, metavar="HZ",
                       help="rate of the recording's /local/pins channel (default 50)")
+    tune.add_argument("--record-images", type=float, metavar="HZ",
+                      help="also record the tactile patch as a PNG image channel "
+                      "(foxglove.CompressedImage) at most HZ times a second (default 0: off)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -107,7 +110,8 @@ def run(args: argparse.Namespace) -> int:
         "stale_frame_timeout_s": args.stale_timeout, "max_frame_age_s": args.max_frame_age,
         "platform_send_rate_hz": args.send_rate,
         "render_rate_hz": args.render_rate, "render_loop": args.render_loop,
-        "record_pins_rate_hz": args.record_pins_rate, "view": args.view}
+        "record_pins_rate_hz": args.record_pins_rate,
+        "record_image_rate_hz": args.record_images, "view": args.view}
     config = resolve_config(LocalAgentConfig, "local.agent", explicit=agent_flags,
                             toml_path=args.config)
     link_config = resolve_config(StationLinkConfig, "local.link", explicit={

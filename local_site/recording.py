@@ -52,6 +52,7 @@ class SessionRecorder:
         queue_size: see :class:`~shared.recording.McapRecorder`.
         pins_rate_hz: rate of ``/local/pins``.
         flush_interval_s: a chunk is completed at least this often.
+        image_rate_hz: rate of the ``/local/tactile_image`` channel; None: none.
 
     Raises:
         ConfigError: the file cannot be created, or bad settings.
@@ -59,9 +60,9 @@ class SessionRecorder:
 
     def __init__(self, path: str | os.PathLike[str], meta: Mapping[str, Any] | None = None, *,
                  queue_size: int = 8192, pins_rate_hz: float = 50.0,
-                 flush_interval_s: float = 1.0) -> None:
+                 flush_interval_s: float = 1.0, image_rate_hz: float | None = None) -> None:
         self.mcap = McapRecorder(path, "local", meta=meta, queue_size=queue_size,
-                                 flush_interval_s=flush_interval_s)
+                                 flush_interval_s=flush_interval_s, image_rate_hz=image_rate_hz)
         self.path = self.mcap.path
         self._pins_period_s = 1.0 / pins_rate_hz
         self._next_pins_s = 0.0

@@ -56,6 +56,9 @@ class LocalAgentConfig:
         record_queue_size: items the ``--record`` writer thread may fall behind by before
             new ones are dropped (counted; the loops never wait for the disk).
         record_pins_rate_hz: rate of the recording's ``/local/pins`` channel.
+        record_image_rate_hz: also record the tactile patch as a ``foxglove.CompressedImage``
+            PNG (``/local/tactile_image``) at most this often; 0: off (the default; the PNG
+            encoding costs the writer thread CPU, benchmarks/results/recording_image.md).
         record_findings: at a clean stop of a relay session, run the palpation analysis on
             the recording and add its findings (``/local/findings``) before closing it.
         motion_done_grace_s: with ``--until-motion-done``, keep running this long after the
@@ -92,6 +95,7 @@ class LocalAgentConfig:
     status_interval_s: float = 0.25
     record_queue_size: int = 8192
     record_pins_rate_hz: float = 50.0
+    record_image_rate_hz: float = 0.0
     record_findings: bool = True
     motion_done_grace_s: float = 0.5
     gil_switch_interval_s: float = 0.0002

@@ -229,7 +229,8 @@ class LocalAgent:
         if self.record_path is not None and self.recorder is None:
             self.recorder = SessionRecorder(
                 self.record_path, self._record_meta(), queue_size=cfg.record_queue_size,
-                pins_rate_hz=cfg.record_pins_rate_hz)
+                pins_rate_hz=cfg.record_pins_rate_hz,
+                image_rate_hz=cfg.record_image_rate_hz or None)
             if self.link is not None:
                 self.link.tap = self.recorder.tap
         self.loop = DisplayLoop(

@@ -241,6 +241,11 @@ class LiveAnalysis:
                 self._inbox.cancel_join_thread()
                 self._proc.terminate()
                 self._proc.join(5.0)
+                # batches the child never read fill the pipe and block the queue's feeder
+                # thread on its write: read them back here so that thread can finish
+                with contextlib.suppress(queue.Empty, OSError, ValueError, EOFError):
+                    while True:
+                        self._inbox.get(timeout=0.1)
         self._drain()
         for q in (self._inbox, self._outbox):
             q.close()

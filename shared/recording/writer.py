@@ -14,6 +14,7 @@ end metadata and the MCAP summary and footer.
 
 from __future__ import annotations
 
+import base64
 import contextlib
 import itertools
 import json
@@ -26,6 +27,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any, BinaryIO
 
+import cv2
 import numpy as np
 from mcap.writer import CompressionType, Writer
 
@@ -92,6 +94,24 @@ def hop_stages_ms(hops: Any, offsets_us: Mapping[str, int | None]) -> tuple[
     return stages, total
 
 
+def patch_png(height: Any) -> bytes | None:
+    """A height layer as a colour PNG (viridis, normalised per frame from its minimum to its
+    maximum; +y up, so row 0 of the layer is the image's bottom row); None without a 2-D
+    finite layer."""
+    h = np.asarray(height, dtype=np.float64)
+    if h.ndim != 2 or h.size == 0:
+        return None
+    finite = np.isfinite(h)
+    if not finite.any():
+        return None
+    lo, hi = float(h[finite].min()), float(h[finite].max())
+    q = np.where(finite, np.rint(np.clip((h - lo) / (hi - lo if hi > lo else 1.0), 0, 1)
+                                 * 255), 0).astype(np.uint8)
+    img = cv2.applyColorMap(q[::-1], cv2.COLORMAP_VIRIDIS)
+    ok, buf = cv2.imencode(".png", img)
+    return bytes(buf) if ok else None
+
+
 def _layer_max(frame: TactileFrame, name: str) -> float | None:
     arr = frame.layers.get(name)
     return float(np.max(arr)) if isinstance(arr, np.ndarray) and arr.size else None
@@ -107,6 +127,9 @@ class McapRecorder:
         queue_size: items waiting for the thread before new ones are dropped.
         chunk_bytes: uncompressed size at which a chunk is closed.
         flush_interval_s: a chunk is closed and the file flushed at least this often.
+        image_rate_hz: also write the tactile patch as a ``foxglove.CompressedImage`` PNG
+            (``/<station>/tactile_image``) at most this often (recorded time, on the writer
+            thread); None: no image channel.
 
     Raises:
         ConfigError: the file cannot be created, is not named ``*.mcap``, or bad settings.
@@ -114,9 +137,16 @@ class McapRecorder:
 
     def __init__(self, path: str | os.PathLike[str], station: str, *,
                  meta: Mapping[str, Any] | None = None, queue_size: int = 8192,
-                 chunk_bytes: int = 1 << 20, flush_interval_s: float = 1.0) -> None:
+                 chunk_bytes: int = 1 << 20, flush_interval_s: float = 1.0,
+                 image_rate_hz: float | None = None) -> None:
         if queue_size < 1 or chunk_bytes < 1 or not flush_interval_s > 0:
             raise ConfigError("recorder queue_size, chunk_bytes and flush_interval_s must be > 0")
+        if image_rate_hz is not None and not 0 < image_rate_hz <= 1000:
+            raise ConfigError(f"recorder image_rate_hz must lie in (0, 1000], got {image_rate_hz}")
+        self._image_period_us = None if image_rate_hz is None else int(1e6 / image_rate_hz)
+        self._last_image_us: int | None = None
+        #: CPU seconds the writer thread spent encoding images (the image channel's cost)
+        self.image_cpu_s = 0.0
         if not station.isidentifier():
             raise ConfigError(f"station name {station!r} is not a valid topic part")
         self.path = Path(path)
@@ -252,6 +282,22 @@ class McapRecorder:
         self._add(topic, cid, encode(msg, validate=False, max_message_bytes=1 << 30), t_us)
         for name, payload in self._derive(direction, msg):
             self._write_json(name, payload, t_us)
+        if self._image_period_us is not None and isinstance(msg, TactileFrame) and (
+                self._last_image_us is None
+                or t_us - self._last_image_us >= self._image_period_us):
+            self._write_image(msg, t_us)
+
+    def _write_image(self, frame: TactileFrame, t_us: int) -> None:
+        t0 = time.thread_time()
+        png = patch_png(frame.layers.get("height_mm"))
+        self.image_cpu_s += time.thread_time() - t0
+        if png is None:
+            return
+        self._last_image_us = t_us
+        self._write_json("tactile_image", {
+            "timestamp": {"sec": t_us // 1_000_000, "nsec": (t_us % 1_000_000) * 1000},
+            "frame_id": "tactile_patch", "format": "png",
+            "data": base64.b64encode(png).decode("ascii")}, t_us)
 
     def _derive(self, direction: str, msg: Message) -> list[tuple[str, dict[str, Any]]]:
         out: list[tuple[str, dict[str, Any]]] = []
@@ -328,6 +374,7 @@ class McapRecorder:
         return {"path": str(self.path), "messages_written": self.written,
                 "dropped_queue_full": self.dropped, "write_errors": self.write_errors,
                 "writer_cpu_s": round(self.writer_cpu_s, 4),
+                "image_cpu_s": round(self.image_cpu_s, 4),
                 "per_topic": dict(sorted(self.message_counts.items()))}
 
     def close(self, end_meta: Mapping[str, Any] | None = None) -> dict[str, Any]:

@@ -182,11 +182,15 @@ class ViewServer:
             (a station's view, bound to loopback by default).
         source_for: with ``authorize`` (the relay): the source of a session, or None when
             the session is unknown; published only while a browser watches it.
+        control: called (on the server's loop; must be quick) with each
+            ``{"type": "control", ...}`` object a browser sends (a replay's play / pause);
+            None: what browsers send is ignored (a station's and the relay's view).
     """
 
     def __init__(self, source: ViewSource | None, config: ViewServerConfig | None = None, *,
                  authorize: Callable[[str, str], bool] | None = None,
-                 source_for: Callable[[str], ViewSource | None] | None = None) -> None:
+                 source_for: Callable[[str], ViewSource | None] | None = None,
+                 control: Callable[[Mapping[str, Any]], None] | None = None) -> None:
         if (source is None) == (source_for is None) or (source_for is not None
                                                         and authorize is None):
             raise ConfigError("a view server needs one source, or source_for with authorize")
@@ -194,6 +198,7 @@ class ViewServer:
         self.config = config or ViewServerConfig()
         self._authorize = authorize
         self._source_for = source_for
+        self._control = control
         self._page = _page_bytes()
         self.counters: Counter[str] = Counter()
         self._server: Server | None = None
@@ -429,10 +434,29 @@ class ViewServer:
         return feed
 
     async def _drain(self, ws: ServerConnection) -> None:
-        """Read and discard what the browser sends (so control frames keep flowing)."""
+        """Read what the browser sends (so control frames keep flowing): control messages go
+        to the ``control`` callback when there is one, anything else is discarded."""
         with contextlib.suppress(ConnectionClosed):
-            async for _ in ws:
-                self.counters["client_messages_ignored"] += 1
+            async for raw in ws:
+                if self._control is None or not self._controlled(raw):
+                    self.counters["client_messages_ignored"] += 1
+
+    def _controlled(self, raw: str | bytes) -> bool:
+        try:
+            doc = json.loads(raw)
+        except ValueError:
+            return False
+        if not (isinstance(doc, dict) and doc.get("type") == "control"):
+            return False
+        assert self._control is not None
+        try:
+            self._control(doc)
+        except Exception as err:  # a bad control message must not end the server
+            self.counters["control_errors"] += 1
+            log.info("view: control message refused: %s", err)
+            return False
+        self.counters["control_messages"] += 1
+        return True
 
     async def _handler(self, ws: ServerConnection) -> None:
         # counted here, not before the upgrade: an upgrade that fails never holds a slot;

@@ -235,6 +235,9 @@ def test_bad_settings_are_refused(tmp_path: Path) -> None:
         McapRecorder(tmp_path / "missing-dir" / "r.mcap", "local")
     with pytest.raises(ConfigError, match="must be > 0"):
         McapRecorder(tmp_path / "r.mcap", "local", queue_size=0)
+    for bad in (0.0, -5.0, float("nan"), 5000.0):
+        with pytest.raises(ConfigError, match="image_rate_hz"):
+            McapRecorder(tmp_path / "r.mcap", "local", image_rate_hz=bad)
     rec = McapRecorder(tmp_path / "r.mcap", "local")
     with pytest.raises(KeyError, match="unknown derived channel"):
         rec.derived("nope", 1, {})

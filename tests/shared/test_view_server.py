@@ -263,3 +263,36 @@ async def test_failed_upgrades_never_hold_a_viewer_slot() -> None:
             assert server.clients == 2
     finally:
         await server.close()
+
+
+async def test_control_messages_reach_the_callback_only_where_one_is_given() -> None:
+    got: list[dict[str, Any]] = []
+
+    def control(doc: Any) -> None:
+        if doc.get("action") == "explode":
+            raise ValueError("unknown control")
+        got.append(dict(doc))
+
+    source = FakeSource()
+    server = ViewServer(source, ViewServerConfig(rate_hz=60.0), control=control)
+    await server.start("127.0.0.1", 0)
+    plain = await _server(FakeSource())  # a station's view: no callback
+    try:
+        async with connect(f"ws://127.0.0.1:{server.port}/ws") as ws, \
+                connect(f"ws://127.0.0.1:{plain.port}/ws") as ws_plain:
+            await ws.send(json.dumps({"type": "control", "action": "pause"}))
+            await ws.send(json.dumps({"type": "control", "action": "explode"}))
+            await ws.send(json.dumps({"type": "hello"}))  # not a control: ignored
+            await ws.send("{not json")
+            await ws_plain.send(json.dumps({"type": "control", "action": "pause"}))
+            await async_wait_until(lambda: server.counters["client_messages_ignored"] >= 3
+                                   and plain.counters["client_messages_ignored"] >= 1, 5,
+                                   "the messages read")
+            assert got == [{"type": "control", "action": "pause"}]
+            assert server.counters["control_messages"] == 1
+            assert server.counters["control_errors"] == 1
+            assert plain.counters["control_messages"] == 0
+            assert json.loads(await ws.recv())["type"] == "snapshot"  # still served
+    finally:
+        await server.close()
+        await plain.close()

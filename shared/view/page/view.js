@@ -14,7 +14,7 @@ const STAGE_COLOURS = ["#58a6ff", "#3fb950", "#d29922", "#bc8cff", "#ff7b72", "#
 const state = {
   messages: 0, pinUpdates: 0, lastPins: "", trail: [], trailNext: 0, analysis: null,
   findings: [], latencySamples: 0, live: null, mapLayer: "relief", connected: false,
-  stageNames: [], receivedAt: [],
+  stageNames: [], receivedAt: [], replay: null, ws: null,
 };
 window.teletouchView = state;
 
@@ -116,7 +116,7 @@ const charts = {
 
 // ------------------------------------------------------------------ panels
 
-function drawPins(pins) {
+function drawPins(pins, replay) {
   const cv = $("pins"), ctx = cv.getContext("2d");
   const W = cv.width, H = cv.height, cell = Math.min(W, H) / 4;
   ctx.clearRect(0, 0, W, H);
@@ -124,7 +124,7 @@ function drawPins(pins) {
     ctx.fillStyle = "#8a96a3"; ctx.font = "14px system-ui";
     $("pins-age").textContent = "";
     ctx.fillText(pins ? "no pin command (safe state or not started)"
-      : "pins: shown at the local station only", 10, H / 2);
+      : replay ? "no pins recorded yet" : "pins: shown at the local station only", 10, H / 2);
     return;
   }
   const cmd = pins.commanded_mm, meas = pins.measured_mm, k = pins.stiffness_k, f = pins.friction;
@@ -300,11 +300,32 @@ function updateCharts(live, now) {
   for (const c of Object.values(charts)) c.draw(now);
 }
 
+// a replay: the page says so (title, banner, badges) and offers play / pause
+function updateReplay(rp) {
+  state.replay = rp;
+  $("replay-bar").hidden = false;
+  document.title = "Tele-Touch REPLAY (not live)";
+  document.querySelector("header h1").textContent = "Tele-Touch replay";
+  const status = rp.ended ? "ended" : rp.paused ? "paused" : rp.started ? "playing" : "starting";
+  setBadge("conn", `REPLAY ${status}, not live`, "warn");
+  const btn = $("replay-toggle");
+  btn.textContent = rp.paused ? "play" : "pause";
+  btn.disabled = !!rp.ended;
+  $("replay-position").textContent = `${(rp.position_s ?? 0).toFixed(1)} / ${(rp.duration_s ?? 0).toFixed(1)} s` +
+    ` at ${rp.speed}x` + (rp.ended ? " (ended)" : rp.paused ? " (paused)" : "");
+  $("replay-progress").value = rp.duration_s ? Math.min(1, rp.position_s / rp.duration_s) : 1;
+  const when = new Date(rp.recorded_at_us / 1000);
+  $("replay-info").textContent = `${rp.file}: ${rp.station} station, recorded ${when.toISOString().replace("T", " ").slice(0, 19)} UTC` +
+    (rp.complete ? "" : " (file cut short: played to its last complete chunk)") + "; ages are in recorded time";
+}
+
 function onSnapshot(msg) {
-  const now = performance.now() / 1000;
+  const wall = performance.now() / 1000;
+  // charts run on the replay's recorded time in a replay (they stand still while paused)
+  const now = msg.live && msg.live.replay ? msg.live.replay.position_s : wall;
   state.messages++;
-  state.receivedAt.push(now);
-  while (state.receivedAt.length && state.receivedAt[0] < now - 1) state.receivedAt.shift();
+  state.receivedAt.push(wall);
+  while (state.receivedAt.length && state.receivedAt[0] < wall - 1) state.receivedAt.shift();
   const live = msg.live;
   state.live = live;
   if (msg.trail) {
@@ -316,20 +337,24 @@ function onSnapshot(msg) {
   if (msg.analysis) updateFindings(msg.analysis);
   const pinsKey = live.pins && live.pins.commanded_mm ? live.pins.commanded_mm.join(",") + "|" + (live.pins.measured_mm || []).join(",") : "";
   if (pinsKey && pinsKey !== state.lastPins) { state.pinUpdates++; state.lastPins = pinsKey; }
-  drawPins(live.pins);
+  drawPins(live.pins, !!live.replay);
   drawPatch(live.patch);
   drawWorkspace();
   updateCharts(live, now);
+  if (live.replay) updateReplay(live.replay); else setBadge("conn", "live", "ok");
   const link = live.link || {};
+  if (link.state === "replay") setBadge("link", "link: recorded session", "warn"); else
   setBadge("link", link.state === "up" ? "link up" : link.state === "none" ? "no relay link" : `link DOWN ${(link.down_s || 0).toFixed(1)} s`,
     link.state === "up" ? "ok" : link.state === "none" ? "" : "bad");
   const safe = live.safe && live.safe.reason;
-  if (live.safe && live.safe.known === false) setBadge("safe", "pins' safe state: known at the local station", "");
+  if (live.replay && live.safe && live.safe.known === false) setBadge("safe", "recorded safe state: none recorded yet", "");
+  else if (live.safe && live.safe.known === false) setBadge("safe", "pins' safe state: known at the local station", "");
+  else if (live.replay) setBadge("safe", safe ? `recorded SAFE STATE: ${safe}` : "recorded: rendering", safe ? "bad" : "");
   else setBadge("safe", safe ? `SAFE STATE: ${safe}` : "rendering", safe ? "bad" : "ok");
   if (!live.analysis_state && !state.analysis) setBadge("analysis", "analysis: runs at the local station", "");
   const loop = live.display_loop || {};
-  setBadge("rate", `view ${state.receivedAt.length} Hz, loop ${loop.rate_hz ?? "?"} Hz`, "");
-  $("station").textContent = `${live.station}${live.session ? " session " + live.session : ""}, ${live.view ? live.view.clients : "?"} viewer(s)`;
+  setBadge("rate", live.replay ? `view ${state.receivedAt.length} Hz` : `view ${state.receivedAt.length} Hz, loop ${loop.rate_hz ?? "?"} Hz`, "");
+  $("station").textContent = `${live.replay ? "replay of the " : ""}${live.station}${live.session ? " session " + live.session : ""}, ${live.view ? live.view.clients : "?"} viewer(s)`;
 }
 
 // ------------------------------------------------------------------ connection
@@ -349,10 +374,11 @@ function connect() {
   url.protocol = location.protocol === "https:" ? "wss:" : "ws:";
   url.hash = ""; url.search = "";
   const ws = new WebSocket(url);
+  state.ws = ws;
   ws.onopen = () => {
     const p = hashParams();
     if (p.token) ws.send(JSON.stringify({ type: "hello", session: p.session || "", token: p.token }));
-    state.connected = true; setBadge("conn", "live", "ok");
+    state.connected = true; setBadge("conn", "connected", "");
     for (const c of document.querySelectorAll("canvas")) c.classList.remove("stale");
   };
   ws.onmessage = (ev) => {
@@ -377,4 +403,9 @@ for (const [id, layer] of [["show-relief", "relief"], ["show-stiffness", "stiffn
     drawWorkspace();
   });
 }
+$("replay-toggle").addEventListener("click", () => {
+  const rp = state.replay;
+  if (!rp || !state.ws || state.ws.readyState !== WebSocket.OPEN) return;
+  state.ws.send(JSON.stringify({ type: "control", action: rp.paused ? "play" : "pause" }));
+});
 connect();

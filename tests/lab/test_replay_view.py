@@ -1,0 +1,122 @@
+"""A replay as a live-view source: what it shows against the recording, pause and play."""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lab.replay import PlaybackClock, Replayer
+from lab.replay_view import ReplayViewSource
+from local_site.view.analysis import LiveAnalysisConfig
+from shared.protocol import PlatformState, TactileFrame
+from shared.recording import read_mcap
+from tests.recordings import write_local_recording
+from tests.support import wait_until
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("rec") / "local.mcap"
+    write_local_recording(path, seconds=3.0)
+    return path
+
+
+def test_the_clock_stands_still_while_paused_and_never_passes_the_end() -> None:
+    clock = PlaybackClock(1_000_000, 1_400_000, speed=2.0)
+    assert clock.position_us() == 1_000_000  # not started: at the start
+    t0 = time.perf_counter()
+    clock.start()
+    time.sleep(0.05)
+    pos = clock.position_us()
+    elapsed = time.perf_counter() - t0
+    assert 1_000_000 + 0.05e6 * 2.0 <= pos <= 1_000_000 + elapsed * 1e6 * 2.0 + 1
+    clock.pause()
+    held = clock.position_us()
+    time.sleep(0.05)
+    assert clock.position_us() == held and clock.paused
+    clock.play()
+    stop = threading.Event()
+    assert clock.wait_until(1_400_000, stop)
+    time.sleep(0.01)
+    assert clock.position_us() == 1_400_000  # clamped at the end
+    clock.finish()
+    assert clock.finished and clock.position_us() == 1_400_000
+    paused = PlaybackClock(0, 10_000_000, 1.0, paused=True)
+    paused.start()
+    stop.set()
+    assert not paused.wait_until(1, stop)  # a stop ends the wait of a paused clock
+
+
+def test_after_the_replay_the_view_shows_the_recordings_last_state(recording: Path) -> None:
+    rec = read_mcap(recording)
+    replayer = Replayer(rec, speed=10.0, display="none")
+    source = ReplayViewSource(replayer, LiveAnalysisConfig(interval_s=0.2, nice=0))
+    try:
+        replayer.run()
+        live = source.live()
+        end = replayer.clock.end_us
+        frames = list(rec.on("/local/rx/tactile_frame"))
+        pins = list(rec.on("/local/pins"))
+        rp = live["replay"]
+        assert rp["ended"] and not rp["paused"] and rp["position_us"] == end
+        start = min(m.t_us for m in rec.messages)
+        assert rp["duration_s"] == pytest.approx((end - start) / 1e6, abs=1e-3)
+        assert rp["file"] == "local.mcap" and rp["station"] == "local" and rp["complete"]
+        # the newest frame and pins, with their ages in recorded time at the end
+        last = frames[-1].decode()
+        assert isinstance(last, TactileFrame)
+        assert live["patch"]["seq"] == last.seq
+        assert live["patch"]["age_ms"] == pytest.approx((end - frames[-1].t_us) / 1e3, abs=0.1)
+        assert live["pins"]["commanded_mm"] == pins[-1].json()["commanded_mm"]
+        assert live["link"] == {"state": "replay"}
+        # the trajectory: recorded platform positions through the workspace, in order
+        first, points = source.trail_since(0, 10_000)
+        assert first == 0 and len(points) >= 10
+        p0 = next(m for m, _ in rec.wire_messages("tx", "platform_state"))
+        msg = p0.decode()
+        assert isinstance(msg, PlatformState)
+        ph = source.workspace.forward(np.asarray(msg.position_mm))
+        assert points[0][:3] == pytest.approx([round(float(v), 2) for v in ph], abs=0.01)
+        # every accepted frame went to the re-run analysis (frames and acceptances matched)
+        assert source._analysis is not None
+        assert source._analysis.frames_sent == sum(1 for _ in rec.on("/local/frame_accepted"))
+    finally:
+        source.close()
+
+
+def test_pause_and_play_from_the_page_hold_and_resume_the_replay(recording: Path) -> None:
+    rec = read_mcap(recording)
+    replayer = Replayer(rec, speed=1.0, display="none", start_paused=True)
+    source = ReplayViewSource(replayer, analysis=None)
+    published: list[int] = []
+    replayer.subscribe(lambda ev: published.append(ev.t_us))
+    stop = threading.Event()
+    thread = threading.Thread(target=replayer.run, args=(stop,), daemon=True)
+    thread.start()
+    try:
+        wait_until(lambda: replayer.clock.started, 10, "the replay started")
+        live = source.live()
+        assert live["replay"]["paused"] and live["replay"]["position_s"] == 0
+        assert live["patch"] is None  # nothing before play
+        source.control({"type": "control", "action": "play"})
+        wait_until(lambda: source.live()["patch"] is not None, 10, "a frame shown")
+        source.control({"type": "control", "action": "pause"})
+        held = source.live()
+        count = len(published)
+        time.sleep(0.2)
+        again = source.live()
+        assert len(published) == count
+        assert again["replay"]["position_us"] == held["replay"]["position_us"]
+        assert again["patch"]["age_ms"] == held["patch"]["age_ms"]  # ages stand still too
+        with pytest.raises(ValueError, match="unknown replay control"):
+            source.control({"type": "control", "action": "rewind"})
+        source.control({"type": "control", "action": "play"})
+        wait_until(lambda: len(published) > count, 10, "the replay going on")
+    finally:
+        stop.set()
+        thread.join(10)
+        source.close()
