@@ -62,6 +62,12 @@ class BoardEvents:
                 self._out.flush()
                 self._last_flush = now
 
+    def flush(self) -> None:
+        """Write out what is buffered (``R`` lines wait up to ``FLUSH_PERIOD_S`` otherwise)."""
+        with self._lock:
+            if self._out is not None:
+                self._out.flush()
+
     def close(self) -> None:
         """Flush and close (idempotent)."""
         with self._lock:
@@ -137,7 +143,8 @@ def run_board(stop: threading.Event, *, host: str = "127.0.0.1", port: int = 0,
     try:
         if on_ready is not None:
             on_ready(transport.url)
-        while not stop.wait(0.1):
+        while not stop.wait(FLUSH_PERIOD_S):
+            events.flush()  # the last R lines before a silence
             if emulator.error is not None:
                 break
     finally:

@@ -148,13 +148,17 @@ class TcpFirmwareTransport(FirmwareTransport):
         port: TCP port (0: a free one, see :attr:`address`).
         out_buffer_bytes: feedback queued while the host does not read, at most; beyond it
             frames are dropped whole (``dropped``), as a board drops on a congested link.
+        send_buffer_bytes: the connection's kernel send buffer (``SO_SNDBUF``): small, so a
+            host that stops reading (a frozen station) finds a short backlog of old feedback
+            when it resumes, as behind a UART's FIFO, not the megabytes loopback TCP would
+            otherwise queue (the host's own receive buffer still holds some).
 
     Raises:
         DeviceInitError: the port cannot be bound.
     """
 
     def __init__(self, host: str = "127.0.0.1", port: int = 0, *,
-                 out_buffer_bytes: int = 4096) -> None:
+                 out_buffer_bytes: int = 4096, send_buffer_bytes: int = 16384) -> None:
         try:
             self._server = socket.create_server((host, port))
         except OSError as err:
@@ -169,6 +173,7 @@ class TcpFirmwareTransport(FirmwareTransport):
         self._pending: collections.deque[tuple[int, bytes]] = collections.deque()
         self._out = bytearray()
         self._out_limit = out_buffer_bytes
+        self._sndbuf = send_buffer_bytes
         self.dropped = 0
         self.connects = 0
         self.disconnects = 0
@@ -246,6 +251,7 @@ class TcpFirmwareTransport(FirmwareTransport):
             return
         conn.setblocking(False)
         conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        conn.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self._sndbuf)
         if self._conn is not None:
             self.replaced += 1
             self._drop_connection("replaced by a new connection")

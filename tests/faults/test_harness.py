@@ -11,7 +11,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from lab.faults import FaultRig, FaultSpec, ProbeLog, _latencies, scenarios
+from lab.faults import BoardLog, FaultRig, FaultSpec, ProbeLog, _latencies, scenarios
 from tests.support import scaled
 
 
@@ -29,6 +29,74 @@ def test_probe_log_reads_complete_lines_only_and_incrementally(tmp_path: Path) -
     assert log.safe == [(2.0, "stale_scene")] and log.accepted == [(2.1, 3000)]
     assert log.rendered == [(2.2, 3000)] and log.resumed == [2.3]
     assert log.steps == [(2.4, 300000)]
+    with open(path, "a") as f:
+        f.write("P 2.5 17 4000\nP 2.6 18 -1\nP 2.7 19\n")  # the last one is malformed
+    log.poll()
+    assert log.sent == [(2.5, 17, 4000), (2.6, 18, -1)]
+
+
+def test_board_log_reads_the_board_events_and_knows_the_state_at_a_time(
+        tmp_path: Path) -> None:
+    path = tmp_path / "board.txt"
+    log = BoardLog(path)
+    log.poll()
+    path.write_text("R 1.0 1\nR 1.02 2\nS 1.13 watchdog\nU 2.0\nR 2.0 1\nS 2.5 safe_state_frame\n"
+                    "R 2.6")
+    log.poll()
+    assert log.applied == [(1.0, 1), (1.02, 2), (2.0, 1)]
+    assert log.safe == [(1.13, "watchdog"), (2.5, "safe_state_frame")]
+    assert log.resumed == [2.0]
+    assert [log.safe_at(t) for t in (0.5, 1.1, 1.13, 1.5, 2.0, 2.2, 3.0)] == \
+        [False, False, True, True, False, False, True]
+    with open(path, "a") as f:
+        f.write(" 3\n")
+    log.poll()
+    assert log.applied[-1] == (2.6, 3)
+
+
+def _rig_with_board(tmp_path: Path, sent: list[tuple[float, int, int]],
+                    applied: list[tuple[float, int]]) -> FaultRig:
+    rig = FaultRig(tmp_path, board_process=True)
+    rig.wall_minus_mono_us = 0.0  # wall clock == monotonic clock, in us
+    probe = ProbeLog(tmp_path / "p.txt", "local", 1)
+    probe.sent = sent
+    rig.probes.append(probe)
+    rig.board_log = BoardLog(tmp_path / "b.txt")
+    rig.board_log.applied = applied
+    return rig
+
+
+def test_pin_ages_join_the_board_s_commands_to_the_latest_send_of_that_number(
+        tmp_path: Path) -> None:
+    # the display reconnected at t=5 and its sequence numbers restarted at 1
+    sent = [(1.0, 1, 900_000), (1.01, 2, 950_000), (5.0, 1, 4_990_000), (5.02, 2, 4_000_000)]
+    applied = [(1.002, 1), (1.3, 2), (5.001, 1), (5.021, 2), (6.0, 9)]
+    rig = _rig_with_board(tmp_path, sent, applied)
+    got = rig.pin_ages()
+    assert [(m, s) for m, s, _ in got] == applied
+    ages = [a for _, _, a in got]
+    assert ages[:4] == [pytest.approx(102.0), pytest.approx(350.0), pytest.approx(11.0),
+                        pytest.approx(1021.0)]
+    assert ages[4] is None  # no send with that number: unmatched, not guessed
+    assert [m for m, _, _ in rig.pin_ages(1.1, 5.01)] == [1.3, 5.001]
+
+
+@given(st.lists(st.tuples(st.floats(0, 10), st.integers(0, 3), st.integers(0, 10_000_000)),
+                max_size=25),
+       st.lists(st.tuples(st.floats(0, 10), st.integers(0, 3)), max_size=25))
+def test_pin_ages_agree_with_a_brute_force_reference(
+        tmp_path_factory: pytest.TempPathFactory, sent: list[tuple[float, int, int]],
+        applied: list[tuple[float, int]]) -> None:
+    rig = _rig_with_board(tmp_path_factory.mktemp("rig"), sent, applied)
+    expected = []
+    for mono, seq in applied:
+        before = [(m, ts) for m, s, ts in sent if s == seq and m <= mono]
+        ts = max(before)[1] if before else None
+        expected.append((mono, seq, None if ts is None else (mono * 1e6 - ts) / 1e3))
+    got = rig.pin_ages()
+    assert [(m, s) for m, s, _ in got] == [(m, s) for m, s, _ in expected]
+    for (_, _, a), (_, _, b) in zip(got, expected, strict=True):
+        assert (a is None and b is None) or a == pytest.approx(b)
 
 
 def test_latency_is_measured_from_the_last_input_before_each_event() -> None:
