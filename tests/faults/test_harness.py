@@ -186,3 +186,45 @@ def test_probe_clock_steps_the_wall_clock_not_the_monotonic_one(tmp_path: Path) 
     assert abs(before[0] - before[1]) < 0.05
     assert after - before[0] == pytest.approx(2.5, abs=0.05)
 
+
+
+def test_analysis_with_the_board_process_takes_the_safe_state_and_the_ages_from_the_board(
+        tmp_path: Path) -> None:
+    from lab.bench.faults import _verdict, report_markdown
+    from lab.faults import analyse
+
+    # a station renders fresh frames (10 ms old) until it is stopped at t=1.5; the board's
+    # watchdog parks the pins 100 ms after the last command it applied; after SIGCONT at 4.5
+    # the station renders again, and one command carries a frame 300 ms old to the pins
+    frames = [1.0 + 0.02 * i for i in range(26)] + [4.6 + 0.02 * i for i in range(10)]
+    sent = [(m, i + 1, round(m * 1e6) - 10_000) for i, m in enumerate(frames)]
+    sent[-1] = (sent[-1][0], sent[-1][1], round(sent[-1][0] * 1e6) - 300_000)
+    applied = [(m + 0.001, seq) for m, seq, _ in sent]
+    rig = _rig_with_board(tmp_path, sent, applied)
+    probe = rig.probe("local")
+    probe.accepted = [(m, ts) for m, _, ts in sent[:-1]]
+    probe.rendered = list(probe.accepted)
+    assert rig.board_log is not None
+    rig.board_log.safe = [(1.501 + 0.1, "watchdog")]
+    rig.board_log.resumed = [4.601]
+    rig.poll = lambda: None  # type: ignore[method-assign]  # the lists above are the files
+    r = analyse(rig, [(1.5, 4.5)])
+    assert r["safe_source"] == "board" and r["station_safe_ms"]["n"] == 0
+    assert r["safe_ms"]["n"] == 1 and r["safe_ms"]["max"] == pytest.approx(101.0)
+    assert r["board_safe_reasons"] == {"watchdog": 1}
+    assert (r["pins_applied"], r["stale_at_pins"], r["pins_unmatched"]) == (36, 1, 0)
+    assert r["stale_at_pins_max_age_ms"] == pytest.approx(301.0)
+    fault = r["faults"][0]
+    assert fault["board_safe_at_recovery"] is True
+    assert fault["pins_after"]["stale_at_pins"] == 1 and fault["safe_ms"] == pytest.approx(101.0)
+    r.update({"scenario": "local station SIGSTOP 3 s", "kind": "stop", "repeats": 1,
+              "error": None, "board_process": True, "injected_unsteady": 0,
+              "summaries": {"board": {"commands_applied": 36, "commands_rejected": 0,
+                                      "watchdog_trips": 1, "niceness": -10,
+                                      "link": {"connects": 1, "disconnects": 0,
+                                               "feedback_dropped": 7}}}})
+    assert "stale at the pins" in _verdict(r)
+    md = report_markdown([r], command="x", machine="y", elapsed_s=1.0)
+    assert "the drive board as its own process" in md
+    assert "| local station SIGSTOP 3 s | watchdog 1 | -/-/- (0) | 36 / 0 | 1 (301) / 0 | 1 | " \
+        "1 / 0 / 7 | yes | -10 |" in md
