@@ -29,6 +29,8 @@ __all__ = ["BENCHMARKS", "COMMANDS", "build_parser", "main"]
 COMMANDS: dict[str, tuple[str, str]] = {
     "relay": ("relay_server.cli", "run the cloud relay (WebSocket + TCP) with latency accounting"),
     "display": ("lab.display_cli", "ArrayTac display tools (characterize the simulator)"),
+    "board": ("lab.board_cli", "run the emulated ArrayTac drive board as its own process "
+              "(TCP, serial framing)"),
     "link": ("lab.linkemu_cli", "emulate a long-haul link (delay, jitter, loss, outages)"),
     "sensor": ("remote_site.sensor_cli", "calibrate a GelSight-style sensor; reconstruct heights"),
     "local": ("local_site.cli", "run the local haptic station (platform, ArrayTac, relay link)"),

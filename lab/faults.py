@@ -6,7 +6,11 @@ relay, ``remote`` = remote station <-> relay) that starts a blackhole (or, with
 ``--outage-close``, a reset) on SIGUSR1; ``teletouch remote`` (simulated arm, sensor and
 phantom) and ``teletouch local`` (simulated platform on an endless raster, simulated display),
 both through :mod:`lab.faults_probe`, each writing ``--summary-json``; optionally two CPU
-burners (``python -c "while True: pass"``).
+burners (``python -c "while True: pass"``). With ``board_process=True`` the local station's
+display is not simulated inside it: ``teletouch board`` (:mod:`lab.board`) runs the emulated
+drive board as a process of its own, reached with ``--display socket://127.0.0.1:PORT``, and
+its event file (:class:`BoardLog`) is the truth of what the pins did, so a frozen station's
+display still goes safe, by the board's own watchdog.
 
 Faults (:meth:`FaultRig.inject`): the relay SIGKILLed and restarted on the same ports after a
 pause; a blackhole or a reset of either leg; a station SIGKILLed and restarted; a station
@@ -19,7 +23,9 @@ monotonic clock is shared by all processes; on one host the senders' wall-clock 
 true time, less any clock step the harness injected):
 
 * ``halt_ms``: arm halt minus the last command the arm accepted before it (every halt);
-* ``safe_ms``: display safe state minus the last fresh frame accepted before it (every entry);
+* ``safe_ms``: display safe state minus the last fresh frame accepted before it (every entry;
+  with the board process, the board's safe-state entries, and the station's own in
+  ``station_safe_ms``);
 * ``fresh_after_ms``: first fresh frame rendered after the recovery minus the recovery;
 * ``stale_executed``: commands executed older than ``command_bound_ms`` (true age);
 * ``stale_rendered``: frames rendered older than ``frame_bound_ms`` (true age at render);
@@ -31,6 +37,8 @@ them all and writes the table; ``tests/faults/`` runs a few short ones.
 
 from __future__ import annotations
 
+import bisect
+import collections
 import contextlib
 import functools
 import json
@@ -50,7 +58,7 @@ import numpy as np
 
 from lab.demo.orchestrator import free_port, relay_status
 
-__all__ = ["FaultRig", "FaultSpec", "ProbeLog", "RigError", "Scenario", "analyse",
+__all__ = ["BoardLog", "FaultRig", "FaultSpec", "ProbeLog", "RigError", "Scenario", "analyse",
            "run_scenario", "scenarios"]
 
 log = logging.getLogger(__name__)
@@ -138,6 +146,49 @@ def scenarios(*, long: bool = True) -> list[Scenario]:
 # ---------------------------------------------------------------------------- probe files
 
 
+def _new_lines(path: Path, offset: int) -> tuple[list[list[str]], int]:
+    """The complete lines of ``path`` after byte ``offset``, split; and the new offset (a
+    partial last line waits for the next call; a missing file is empty)."""
+    try:
+        with open(path, "rb") as f:
+            f.seek(offset)
+            data = f.read()
+    except FileNotFoundError:
+        return [], offset
+    end = data.rfind(b"\n") + 1
+    lines = [raw.split() for raw in data[:end].decode(errors="replace").splitlines()]
+    return [p for p in lines if len(p) >= 2], offset + end
+
+
+@dataclass
+class BoardLog:
+    """Events of the board process (``teletouch board --events``), read incrementally."""
+
+    path: Path
+    safe: list[tuple[float, str]] = field(default_factory=list)  # (mono, reason)
+    resumed: list[float] = field(default_factory=list)
+    applied: list[tuple[float, int]] = field(default_factory=list)  # (mono, command seq)
+    _offset: int = 0
+
+    def poll(self) -> None:
+        """Read the lines written since the last call."""
+        lines, self._offset = _new_lines(self.path, self._offset)
+        for p in lines:
+            mono = float(p[1])
+            if p[0] == "S" and len(p) == 3:
+                self.safe.append((mono, p[2]))
+            elif p[0] == "U":
+                self.resumed.append(mono)
+            elif p[0] == "R" and len(p) == 3:
+                self.applied.append((mono, int(p[2])))
+
+    def safe_at(self, t: float) -> bool:
+        """The pins were in the safe state at ``t`` (the last change before it entered it)."""
+        entered = [m for m, _ in self.safe if m <= t]
+        left = [m for m in self.resumed if m <= t]
+        return bool(entered) and (not left or entered[-1] >= left[-1])
+
+
 @dataclass
 class ProbeLog:
     """Events of one station process, read incrementally from its probe file."""
@@ -149,6 +200,8 @@ class ProbeLog:
     rendered: list[tuple[float, int]] = field(default_factory=list)
     #: pin commands sent while their frame turned stale, withdrawn at once (mono, ts_us)
     withdrawn: list[tuple[float, int]] = field(default_factory=list)
+    #: pin command frames sent (mono before the send, command seq, newest frame's ts_us)
+    sent: list[tuple[float, int, int]] = field(default_factory=list)
     safe: list[tuple[float, str]] = field(default_factory=list)
     resumed: list[float] = field(default_factory=list)
     commands: list[tuple[float, int, bool, float]] = field(default_factory=list)
@@ -158,18 +211,8 @@ class ProbeLog:
 
     def poll(self) -> None:
         """Read the lines written since the last call (a partial last line waits)."""
-        try:
-            with open(self.path, "rb") as f:
-                f.seek(self._offset)
-                data = f.read()
-        except FileNotFoundError:
-            return
-        end = data.rfind(b"\n") + 1
-        self._offset += end
-        for raw in data[:end].decode(errors="replace").splitlines():
-            p = raw.split()
-            if len(p) < 2:
-                continue
+        lines, self._offset = _new_lines(self.path, self._offset)
+        for p in lines:
             mono = float(p[1])
             kind = p[0]
             if kind in ("A", "R", "W") and len(p) == 4:
@@ -179,6 +222,8 @@ class ProbeLog:
                 self.safe.append((mono, p[2]))
             elif kind == "U":
                 self.resumed.append(mono)
+            elif kind == "P" and len(p) == 4:
+                self.sent.append((mono, int(p[2]), int(p[3])))
             elif kind == "C" and len(p) == 5:
                 self.commands.append((mono, int(p[2]), p[3] == "1", float(p[4])))
             elif kind == "H" and len(p) == 3:
@@ -223,18 +268,29 @@ class FaultRig:
         outage_reset: the cut is a reset (connections closed, new ones refused).
         cpu_burners: CPU-bound processes to start beside the stations.
         frame_rate_hz: the remote station's frame rate.
+        board_process: run the local station's drive board as a process of its own
+            (``teletouch board``) instead of the simulator inside the station.
+        board_nice: the board process's niceness increment (``--nice``; -10 by default: a
+            real board's MCU is not slowed by the host's load; refused without the
+            privilege, then the board runs at normal priority and its summary says so).
         python: the interpreter of every process.
     """
 
     def __init__(self, workdir: Path, *, outage_s: float | None = None,
                  outage_reset: bool = False, cpu_burners: int = 0,
-                 frame_rate_hz: float = 60.0, python: str = sys.executable) -> None:
+                 frame_rate_hz: float = 60.0, board_process: bool = False,
+                 board_nice: int = -10, python: str = sys.executable) -> None:
         self.workdir = Path(workdir)
         self.workdir.mkdir(parents=True, exist_ok=True)
         self.outage_s = outage_s or 1.0
         self.outage_reset = outage_reset
         self.cpu_burners = cpu_burners
         self.frame_rate_hz = frame_rate_hz
+        self.board_process = board_process
+        self.board_nice = board_nice
+        self.board: _Proc | None = None
+        self.board_port = 0
+        self.board_log: BoardLog | None = None
         self.python = python
         self.env = {**os.environ, "TELETOUCH_RELAY_SECRET": os.urandom(16).hex(),
                     "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
@@ -309,11 +365,27 @@ class FaultRig:
             args = ["remote", *common, "--arm", "sim", "--sensor", "sim", "--phantom", "breast",
                     "--frame-rate-hz", f"{self.frame_rate_hz:g}"]
         else:
-            args = ["local", *common, "--platform", "sim", "--display", "sim",
+            display = (f"socket://127.0.0.1:{self.board_port}" if self.board_process
+                       else "sim")
+            args = ["local", *common, "--platform", "sim", "--display", display,
                     "--motion", MOTION, "--no-status"]
         p = self._spawn(f"{role}-{n}", args, module="lab.faults_probe", env=env)
         self.stations[role] = p
         return p
+
+    def start_board(self, timeout_s: float = 60.0) -> _Proc:
+        """Start the drive-board process on a free port and wait until it listens."""
+        self.board_port = free_port()
+        events = self.workdir / "board-events.txt"
+        self.board_log = BoardLog(events)
+        self.board = self._spawn("board", [
+            "board", "--listen", f"127.0.0.1:{self.board_port}", "--events", str(events),
+            "--summary-json", str(self.workdir / "summary-board.json"),
+            "--nice", str(self.board_nice)])
+        board = self.board
+        self._wait(functools.partial(_logged, board, "board listening"), "the drive board",
+                   timeout_s, (board,))
+        return board
 
     def start(self, timeout_s: float = 90.0) -> None:
         """Start everything and wait until frames and commands flow (fresh)."""
@@ -338,6 +410,8 @@ class FaultRig:
             self.burners.append(subprocess.Popen(
                 [self.python, "-c", "while True: pass"], stdin=subprocess.DEVNULL,
                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        if self.board_process:
+            self.start_board(timeout_s)
         self.start_station("remote")
         self.start_station("local")
         if not self.wait_flowing(0.0, timeout_s, FLOW_BOUND_MS):
@@ -355,8 +429,13 @@ class FaultRig:
         """Read new probe lines and note stations that exited (before :meth:`stop`)."""
         for p in self.probes:
             p.poll()
+        if self.board_log is not None:
+            self.board_log.poll()
         if self._stopping:
             return
+        if self.board is not None and self.board.proc.poll() is not None \
+                and not any(e.role == "board" for e in self.exits):
+            self.exits.append(Exit("board", 1, self.board.proc.returncode, time.monotonic()))
         for role, proc in self.stations.items():
             code = proc.proc.poll()
             n = self.instances[role]
@@ -385,6 +464,32 @@ class FaultRig:
     def age_ms(self, sender: str, mono: float, ts_us: int) -> float:
         """True age at ``mono`` of a stamp on ``sender``'s (possibly stepped) wall clock."""
         return (self.true_wall_us(mono) - (ts_us - self.offset_us(sender, mono))) / 1e3
+
+    def pin_ages(self, since: float = -math.inf, until: float = math.inf) \
+            -> list[tuple[float, int, float | None]]:
+        """What the board's pins showed (board process only, else empty): for each command
+        the board applied in [since, until], ``(board mono, command seq, true age in ms of
+        the touch it carried when the board applied it)``; the age is None when no command
+        the station sent matches (the probe's ``P`` line with that sequence number, the
+        latest one before the board applied it: sequence numbers restart at each connect)."""
+        if self.board_log is None:
+            return []
+        by_seq: dict[int, list[tuple[float, int]]] = {}
+        for p in self.probes:
+            if p.role == "local":
+                for mono, seq, ts in p.sent:
+                    by_seq.setdefault(seq, []).append((mono, ts))
+        for sends in by_seq.values():
+            sends.sort()
+        out: list[tuple[float, int, float | None]] = []
+        for mono, seq in self.board_log.applied:
+            if not since <= mono <= until:
+                continue
+            sends = by_seq.get(seq, [])
+            i = bisect.bisect_right(sends, (mono, math.inf))
+            ts = sends[i - 1][1] if i > 0 else -1
+            out.append((mono, seq, self.age_ms("remote", mono, ts) if ts >= 0 else None))
+        return out
 
     def fresh_render_after(self, t: float, bound_ms: float) -> float | None:
         """Monotonic time of the first frame rendered after ``t`` that was fresh."""
@@ -507,7 +612,12 @@ class FaultRig:
                 summaries[role] = json.loads(path.read_text())
             except (OSError, json.JSONDecodeError):
                 summaries[role] = None
-        self.close()
+        self.close()  # the board last: it writes its summary at SIGTERM
+        if self.board_process:
+            try:
+                summaries["board"] = json.loads((self.workdir / "summary-board.json").read_text())
+            except (OSError, json.JSONDecodeError):
+                summaries["board"] = None
         return summaries
 
     def close(self) -> None:
@@ -580,7 +690,7 @@ def analyse(rig: FaultRig, injections: list[tuple[float, float]], *,
     """The figures of one run (see the module docstring)."""
     rig.poll()
     halts: list[tuple[float, float]] = []
-    safes: list[tuple[float, float]] = []
+    safes: list[tuple[float, float]] = []  # the station's own entries (the probe's S lines)
     stale_exec: list[float] = []
     executed = 0
     stale_rend: list[float] = []
@@ -606,6 +716,15 @@ def analyse(rig: FaultRig, injections: list[tuple[float, float]], *,
                 age = rig.age_ms("remote", m, ts)
                 if age > frame_bound_ms:
                     stale_rend.append(age)
+    station_safes = safes
+    board = rig.board_log
+    if board is not None:
+        # the board is the truth of what the pins do: its entries, after the last fresh frame
+        # any local station instance accepted (the board outlives a restarted station)
+        fresh_all = sorted(m for p in rig.probes if p.role == "local" for m, ts in p.accepted
+                           if rig.age_ms("remote", m, ts) <= frame_bound_ms)
+        safes = _latencies([m for m, _ in board.safe], fresh_all)
+
     def stale_window(t0: float, t1: float) -> dict[str, Any]:
         ages = [rig.age_ms("remote", m, ts) for p in rig.probes if p.role == "local"
                 for m, ts in p.rendered if t0 <= m <= t1]
@@ -627,13 +746,21 @@ def analyse(rig: FaultRig, injections: list[tuple[float, float]], *,
             "commands_after_ms": None if cmd is None else (cmd - t_rec) * 1e3,
             "halt_ms": None if halt is None else halt[1],
             "safe_ms": None if safe is None else safe[1],
+            # the pins' state at the recovery moment (board process only; None without it)
+            "board_safe_at_recovery": None if board is None else board.safe_at(t_rec),
             # frames rendered in the 5 s before the fault (what the load alone does) and in
             # the 5 s after the recovery (what the fault adds)
             "frames_before": stale_window(t_fault - 5.0, t_fault),
-            "frames_after": stale_window(t_rec, t_rec + 5.0)})
+            "frames_after": stale_window(t_rec, t_rec + 5.0),
+            "pins_after": None if board is None else _pins_figures(
+                rig.pin_ages(t_rec, t_rec + 5.0), frame_bound_ms, True)})
     return {
         "halt_ms": _pct([ms for _, ms in halts]),
         "safe_ms": _pct([ms for _, ms in safes]),
+        "safe_source": "board" if board is not None else "station",
+        "station_safe_ms": _pct([ms for _, ms in station_safes]),
+        "board_safe_reasons": None if board is None
+        else dict(sorted(collections.Counter(why for _, why in board.safe).items())),
         "fresh_after_ms": _pct([f["fresh_frames_after_ms"] for f in per_fault
                                 if f["fresh_frames_after_ms"] is not None]),
         "any_frame_after_ms": _pct([f["any_frame_after_ms"] for f in per_fault
@@ -646,9 +773,23 @@ def analyse(rig: FaultRig, injections: list[tuple[float, float]], *,
         "stale_frames_rendered": len(stale_rend),
         "stale_frame_max_age_ms": max(stale_rend) if stale_rend else None,
         "late_sends_withdrawn": withdrawn,
+        **_pins_figures(rig.pin_ages(), frame_bound_ms, board is not None),
         "exits": [{"role": e.role, "instance": e.instance, "code": e.code} for e in rig.exits],
         "faults": per_fault,
     }
+
+
+def _pins_figures(ages: list[tuple[float, int, float | None]], bound_ms: float,
+                  board: bool) -> dict[str, Any]:
+    """Commands the board applied, how many carried touch older than ``bound_ms`` when
+    applied, and how many matched no command the station sent (None without a board)."""
+    if not board:
+        return {"pins_applied": None, "stale_at_pins": None, "stale_at_pins_max_age_ms": None,
+                "pins_unmatched": None}
+    stale = [a for _, _, a in ages if a is not None and a > bound_ms]
+    return {"pins_applied": len(ages), "stale_at_pins": len(stale),
+            "stale_at_pins_max_age_ms": max(stale) if stale else None,
+            "pins_unmatched": sum(1 for _, _, a in ages if a is None)}
 
 
 def _pick(d: dict[str, Any], *keys: str) -> dict[str, Any]:
@@ -664,6 +805,10 @@ def _summary_figures(summaries: dict[str, Any]) -> dict[str, Any]:
         out["local"] = {"exit_reason": loc.get("exit_reason"), "exit_code": loc.get("exit_code"),
                         "safe_entries": (loc.get("safe_state") or {}).get("entries"),
                         "link": _pick(link, "connects", "connection_losses")}
+    board = summaries.get("board")
+    if isinstance(board, dict):
+        out["board"] = _pick(board, "commands_applied", "commands_rejected", "watchdog_trips",
+                             "overruns", "error", "link", "niceness")
     if isinstance(rem, dict):
         arm = rem.get("arm") or {}
         plat = rem.get("platform_states") or {}
@@ -681,7 +826,7 @@ def run_scenario(scenario: Scenario, workdir: Path, *, repeats: int = 1,
                  recovery_timeout_s: float = 20.0, settle_s: float = 1.0,
                  start_timeout_s: float = 150.0, steady_timeout_s: float = 20.0,
                  frame_bound_ms: float = 150.0,
-                 command_bound_ms: float = 100.0,
+                 command_bound_ms: float = 100.0, board_process: bool = False,
                  progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Start a rig, inject the scenario's fault ``repeats`` times, stop, analyse.
 
@@ -693,7 +838,8 @@ def run_scenario(scenario: Scenario, workdir: Path, *, repeats: int = 1,
     """
     f = scenario.fault
     rig = FaultRig(workdir, outage_s=f.duration_s if f.kind in ("blackhole", "reset") else None,
-                   outage_reset=f.kind == "reset", cpu_burners=scenario.cpu_burners)
+                   outage_reset=f.kind == "reset", cpu_burners=scenario.cpu_burners,
+                   board_process=board_process)
     injections: list[tuple[float, float]] = []
     unsteady = 0
     started = time.monotonic()
@@ -727,16 +873,19 @@ def run_scenario(scenario: Scenario, workdir: Path, *, repeats: int = 1,
                    "duration_s": f.duration_s, "cpu_burners": scenario.cpu_burners,
                    "repeats": len(injections), "injected_unsteady": unsteady,
                    "wall_s": time.monotonic() - started,
+                   "board_process": board_process,
                    "error": error, "summaries": _summary_figures(summaries),
                    "workdir": str(workdir)})
     return result
 
 
 def iter_results(items: list[Scenario], root: Path, *, repeats: int,
+                 board_process: bool = False,
                  progress: Callable[[str], None] | None = None) -> Iterator[dict[str, Any]]:
     """Run each scenario in its own directory under ``root``, yielding its result."""
     for i, sc in enumerate(items):
         if progress is not None:
             progress(f"[{i + 1}/{len(items)}] {sc.name}")
-        yield run_scenario(sc, root / f"{i:02d}", repeats=repeats, progress=progress)
+        yield run_scenario(sc, root / f"{i:02d}", repeats=repeats, board_process=board_process,
+                           progress=progress)
 

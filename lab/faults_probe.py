@@ -12,6 +12,12 @@ by ``$TELETOUCH_FAULT_PROBE``, one event a line:
   reached the pins; not the end of the tick, which a stopped process may reach much later);
 * ``W mono seq ts_us`` - a pin command went out while its frame turned stale (the process was
   stopped or starved during the send) and the loop withdrew it at once by the safe state;
+* ``P mono cmd_seq ts_us`` - a pin command frame went to the display (every one sent,
+  keepalives included; ``mono``: just before the send; ``cmd_seq``: the command frame's
+  sequence number, which the drive board echoes; ``ts_us``: the capture stamp of the newest
+  frame the loop had accepted, -1 before any): with a drive board in its own process
+  (``teletouch board``), the fault suite joins the board's applied commands to these lines to
+  know how old the touch was that the pins actually showed;
 * ``S mono reason`` / ``U mono`` - the display entered / left its safe state;
 * ``C mono ts_us accepted age_ms`` - the safety layer judged a timestamped arm command
   (``ts_us``: the local station's wall clock; ``age_ms``: the age the station computed;
@@ -114,8 +120,12 @@ def _install_local() -> None:
         orig_send = display.send_command
 
         def send_command(*args: Any, **kw: Any) -> Any:
+            before = _mono()
             result = orig_send(*args, **kw)
             display._probe_sent_mono = _mono()  # type: ignore[attr-defined]
+            if result.sent:
+                stamp = loop._frame_stamp_us
+                _emit("P", before, result.seq, -1 if stamp is None else stamp)
             return result
 
         display.send_command = send_command  # type: ignore[method-assign]

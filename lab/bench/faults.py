@@ -40,8 +40,13 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--merge", metavar="JSON", nargs="+", default=None,
                         help="run nothing: one table from the faults.json of several runs "
                              "(e.g. parts run side by side); the last run of a scenario wins")
+    parser.add_argument("--board-process", action="store_true",
+                        help="run the local station's drive board as a process of its own "
+                             "(teletouch board, reached over socket://); the display's safe "
+                             "state is then the board's; results go to faults_board.md/json")
     parser.add_argument("--write-results", metavar="DIR", default="benchmarks/results",
-                        help="write faults.md and faults.json to DIR ('' = do not write)")
+                        help="write faults.md and faults.json (faults_board.* with "
+                             "--board-process) to DIR ('' = do not write)")
 
 
 def _fmt(x: object, digits: int = 0) -> str:
@@ -63,6 +68,8 @@ def _verdict(r: dict[str, Any]) -> list[str]:
         missed.append("stale commands")
     if r["stale_frames_rendered"]:
         missed.append("stale frames")
+    if r.get("stale_at_pins"):
+        missed.append("stale at the pins")
     fresh = r["fresh_after_ms"]["max"]
     if r["kind"] not in ("none", "clock_step") and (
             r["recoveries_missing"] or (fresh is not None and fresh > FRESH_AFTER_MS)):
@@ -136,10 +143,54 @@ def _windows_table(results: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def _board_table(results: list[dict[str, Any]]) -> str:
+    lines = ["| scenario | board safe entries by reason | station-logged safe ms p50/p99/max "
+             "(count) | board commands applied / rejected | commands applied with touch older "
+             "than 150 ms (max age ms) / matching no station send | board watchdog trips | "
+             "board link connects / disconnects / feedback frames dropped | pins safe at each "
+             "recovery moment | board niceness |", "|" + "---|" * 9]
+    for r in results:
+        b = (r["summaries"].get("board") or {})
+        link = b.get("link") or {}
+        s = r.get("station_safe_ms") or {}
+        reasons = ", ".join(f"{k} {v}" for k, v in (r.get("board_safe_reasons") or {}).items())
+        at_rec = ", ".join("yes" if f.get("board_safe_at_recovery") else "no"
+                           for f in r["faults"]) or "-"
+        lines.append(
+            f"| {r['scenario']} | {reasons or '0'} | {_fmt(s.get('p50'))}/{_fmt(s.get('p99'))}/"
+            f"{_fmt(s.get('max'))} ({_fmt(s.get('n'))}) | {_fmt(b.get('commands_applied'))} / "
+            f"{_fmt(b.get('commands_rejected'))} | {_fmt(r.get('stale_at_pins'))} "
+            f"({_fmt(r.get('stale_at_pins_max_age_ms'))}) / {_fmt(r.get('pins_unmatched'))} | "
+            f"{_fmt(b.get('watchdog_trips'))} | "
+            f"{_fmt(link.get('connects'))} / {_fmt(link.get('disconnects'))} / "
+            f"{_fmt(link.get('feedback_dropped'))} | {at_rec} | {_fmt(b.get('niceness'))} |")
+    return "\n".join(lines)
+
+
 def report_markdown(results: list[dict[str, Any]], *, command: str, machine: str,
                     elapsed_s: float) -> str:
     """The whole results file."""
-    return f"""# Fault suite (issue 11 item 6)
+    board = any(r.get("board_process") for r in results)
+    board_text = f"""
+**Board process.** The local station's drive board is not simulated inside the station here:
+`teletouch board` (lab/board.py) runs the emulated firmware and plant as a process of its own,
+which the station reaches over TCP with its ordinary serial driver (`--display
+socket://127.0.0.1:PORT`). The **safe** column is the *board's* safe-state entries (its event
+file: watchdog or safe-state frame) after the last fresh frame the station accepted, so a
+frozen station's display is measured, not assumed. The station's own safe-state log is in the
+second table for comparison. The board runs at niceness -10 when the machine allows it (a real
+board's MCU is not slowed by the host's load; an emulator starved by it applies buffered
+commands late and trips its watchdog late, which the table would then count). The probe
+logs every pin command the station sends with its sequence number and the stamp of the newest
+frame (`P` lines); the board logs every command it applies with the same number, so the table
+also says how old the touch was that the pins *actually* showed (true age when the board
+applied the command; bound 150 ms).
+
+{_board_table(results)}
+""" if board else ""
+    title = "Fault suite (issue 11 item 6)" + (", the drive board as its own process"
+                                               if board else "")
+    return f"""# {title}
 
 Command: `{command}`. {machine} Run took {elapsed_s / 60:.1f} min.
 
@@ -172,7 +223,7 @@ display live in its process, so the halt of a stopped remote station is counted 
 (what a real arm's own watchdog would prevent), and a killed one has none.
 
 {table(results)}
-
+{board_text}
 The stations' own summaries (last instance of each, written at SIGTERM; `-` = not written):
 
 {_summaries_table(results)}
@@ -217,10 +268,12 @@ def run(args: argparse.Namespace) -> int:
     started = time.monotonic()
     parts = ["teletouch bench faults"] + (["--quick"] if args.quick else []) \
         + (["--short"] if args.short else []) \
+        + (["--board-process"] if args.board_process else []) \
         + ([f"--repeats {args.repeats}"] if args.repeats else []) \
         + [f"--only '{t}'" for t in (args.only or [])]
     results: list[dict[str, Any]] = []
     md = ""
+    name = "faults_board" if args.board_process else "faults"
 
     def write(partial: bool) -> None:
         nonlocal md
@@ -233,12 +286,12 @@ def run(args: argparse.Namespace) -> int:
         if args.write_results:
             out = Path(args.write_results)
             out.mkdir(parents=True, exist_ok=True)
-            (out / "faults.md").write_text(md)
-            (out / "faults.json").write_text(json.dumps(
+            (out / f"{name}.md").write_text(md)
+            (out / f"{name}.json").write_text(json.dumps(
                 {"machine": machine, "load_average_start": load, "partial": partial,
                  "results": results}, indent=1, default=str) + "\n")
 
-    for r in iter_results(items, root, repeats=repeats,
+    for r in iter_results(items, root, repeats=repeats, board_process=args.board_process,
                           progress=lambda m: print(m, file=sys.stderr, flush=True)):
         results.append(r)
         print(f"  -> halt p99 {_fmt(r['halt_ms']['p99'])} ms, safe p99 "

@@ -3,7 +3,9 @@
 :class:`FirmwareEmulator` is the drive board's main loop in a thread: it applies every frame
 as soon as it arrives, advances the plant on a fixed tick (2 ms by default) and sends the
 feedback the firmware produces. The link is a :class:`FirmwareTransport`: the other end of
-a python-can bus (:class:`CanFirmwareTransport`) or of a pty (:class:`PtyFirmwareTransport`).
+a python-can bus (:class:`CanFirmwareTransport`), of a pty (:class:`PtyFirmwareTransport`) or
+a TCP port the host opens as ``socket://host:port`` (:class:`TcpFirmwareTransport`, the board
+as a process of its own: ``teletouch board``).
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import contextlib
 import logging
 import os
 import select
+import socket
 import threading
 import time
 from abc import ABC, abstractmethod
@@ -22,11 +25,15 @@ import can
 
 from local_site.display import frames as fr
 from local_site.display.firmware import ArrayTacFirmware
-from local_site.display.serial_framing import LinkFrameDecoder, encode_link_frame
+from local_site.display.serial_framing import (
+    LinkDecoderStats,
+    LinkFrameDecoder,
+    encode_link_frame,
+)
 from shared.errors import DeviceInitError
 
 __all__ = ["CanFirmwareTransport", "FirmwareEmulator", "FirmwareTransport",
-           "PtyFirmwareTransport"]
+           "PtyFirmwareTransport", "TcpFirmwareTransport"]
 
 log = logging.getLogger(__name__)
 
@@ -123,6 +130,177 @@ class PtyFirmwareTransport(FirmwareTransport):
     def close(self) -> None:
         with contextlib.suppress(OSError):
             os.close(self._fd)
+
+
+class TcpFirmwareTransport(FirmwareTransport):
+    """The board behind a TCP port; the host's serial driver opens ``socket://host:port``.
+
+    The serial framing of :mod:`local_site.display.serial_framing` on a byte stream, like a
+    UART or USB CDC link, so the host needs nothing but a pyserial URL. One host at a time, as
+    on a serial port: a new connection replaces the current one (a restarted host whose old
+    connection was never closed), and when the host goes away the board runs on and waits for
+    the next one. Connecting or disconnecting never moves the pins: the firmware's watchdog
+    does, as on a real board whose cable is pulled. Everything runs in the emulator's thread.
+
+    Args:
+        host: address to listen on (an emulator belongs on ``127.0.0.1``: any peer that
+            connects commands the pins).
+        port: TCP port (0: a free one, see :attr:`address`).
+        out_buffer_bytes: feedback queued while the host does not read, at most; beyond it
+            frames are dropped whole (``dropped``), as a board drops on a congested link.
+        send_buffer_bytes: the connection's kernel send buffer (``SO_SNDBUF``): small, so a
+            host that stops reading (a frozen station) finds a short backlog of old feedback
+            when it resumes, as behind a UART's FIFO, not the megabytes loopback TCP would
+            otherwise queue (the host's own receive buffer still holds some).
+
+    Raises:
+        DeviceInitError: the port cannot be bound.
+    """
+
+    def __init__(self, host: str = "127.0.0.1", port: int = 0, *,
+                 out_buffer_bytes: int = 4096, send_buffer_bytes: int = 16384) -> None:
+        try:
+            self._server = socket.create_server((host, port))
+        except OSError as err:
+            raise DeviceInitError(f"emulated ArrayTac board: cannot listen on {host}:{port}: "
+                                  f"{err}") from err
+        self._server.setblocking(False)
+        bound = self._server.getsockname()
+        self.address: tuple[str, int] = (str(bound[0]), int(bound[1]))
+        self._conn: socket.socket | None = None
+        self._decoder = LinkFrameDecoder()
+        self._retired = LinkDecoderStats()
+        self._pending: collections.deque[tuple[int, bytes]] = collections.deque()
+        self._out = bytearray()
+        self._out_limit = out_buffer_bytes
+        self._sndbuf = send_buffer_bytes
+        self.dropped = 0
+        self.connects = 0
+        self.disconnects = 0
+        self.replaced = 0
+
+    @property
+    def url(self) -> str:
+        """The pyserial URL a host opens to reach this board."""
+        return f"socket://{self.address[0]}:{self.address[1]}"
+
+    @property
+    def decoder(self) -> LinkFrameDecoder:
+        """The stream decoder of the current connection (its counters)."""
+        return self._decoder
+
+    @property
+    def connected(self) -> bool:
+        """A host is connected."""
+        return self._conn is not None
+
+    def stream_stats(self) -> LinkDecoderStats:
+        """The stream counters over every connection so far."""
+        now = self._decoder.stats
+        old = self._retired
+        return LinkDecoderStats(bytes_in=old.bytes_in + now.bytes_in,
+                                frames_ok=old.frames_ok + now.frames_ok,
+                                bad_frames=old.bad_frames + now.bad_frames,
+                                garbage_bytes=old.garbage_bytes + now.garbage_bytes)
+
+    def recv(self, timeout_s: float) -> tuple[int, bytes] | None:
+        if self._pending:
+            return self._pending.popleft()
+        conn = self._conn
+        readers = [self._server] if conn is None else [self._server, conn]
+        writers = [conn] if conn is not None and self._out else []
+        try:
+            readable, writable, _ = select.select(readers, writers, [], max(0.0, timeout_s))
+        except (OSError, ValueError):  # a descriptor closed under us: drop the connection
+            self._drop_connection("select failed")
+            return None
+        if self._server in readable:
+            self._accept()
+        if conn is not None and conn is self._conn:
+            if conn in writable:
+                self._flush()
+            if conn in readable:
+                self._read(conn)
+        return self._pending.popleft() if self._pending else None
+
+    def send(self, arb_id: int, payload: bytes) -> None:
+        if self._conn is None:
+            self.dropped += 1  # nobody on the line: the bytes are lost, as on a UART
+            return
+        frame = encode_link_frame(arb_id, payload)
+        if len(self._out) + len(frame) > self._out_limit:
+            self.dropped += 1  # the host does not read: drop whole frames, never a part
+            return
+        self._out += frame
+        self._flush()
+
+    def close(self) -> None:
+        self._drop_connection(None)
+        with contextlib.suppress(OSError):
+            self._server.close()
+
+    # ------------------------------------------------------------------ internals
+
+    def _accept(self) -> None:
+        try:
+            conn, peer = self._server.accept()
+        except (BlockingIOError, InterruptedError, ConnectionAbortedError):
+            return
+        except OSError as err:
+            log.warning("emulated board: accept failed: %s", err)
+            return
+        conn.setblocking(False)
+        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        conn.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self._sndbuf)
+        if self._conn is not None:
+            self.replaced += 1
+            self._drop_connection("replaced by a new connection")
+        self._conn = conn
+        self._retire_decoder()  # a new stream: no half frame carries over
+        self._pending.clear()
+        self.connects += 1
+        log.info("emulated board: host connected from %s:%s", peer[0], peer[1])
+
+    def _retire_decoder(self) -> None:
+        self._retired = self.stream_stats()
+        self._decoder = LinkFrameDecoder()
+
+    def _read(self, conn: socket.socket) -> None:
+        try:
+            data = conn.recv(4096)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError as err:
+            self._drop_connection(f"read failed: {err}")
+            return
+        if not data:
+            self._drop_connection("host closed the connection")
+            return
+        self._pending.extend(self._decoder.feed(data))
+
+    def _flush(self) -> None:
+        conn = self._conn
+        if conn is None or not self._out:
+            return
+        try:
+            sent = conn.send(self._out)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError as err:
+            self._drop_connection(f"write failed: {err}")
+            return
+        del self._out[:sent]
+
+    def _drop_connection(self, why: str | None) -> None:
+        conn, self._conn = self._conn, None
+        self._out.clear()
+        if conn is None:
+            return
+        with contextlib.suppress(OSError):
+            conn.close()
+        if why is not None:
+            self.disconnects += 1
+            log.info("emulated board: host gone (%s); the watchdog keeps the pins", why)
 
 
 class FirmwareEmulator:

@@ -16,7 +16,8 @@ from pathlib import Path
 import pytest
 
 from lab.faults import FaultRig, FaultSpec
-from tests.support import scaled
+from local_site.agent.config import LocalAgentConfig
+from tests.support import scaled, wait_until
 
 pytestmark = pytest.mark.slow
 
@@ -26,6 +27,8 @@ RigFactory = Callable[..., FaultRig]
 BOUND_MS = 100.0
 #: a frame older than this is stale (the display's bound, ``max_frame_age_s``)
 FRAME_BOUND_MS = 150.0
+#: the drive board's link-loss watchdog the local station configures (every command frame)
+BOARD_WATCHDOG_S = LocalAgentConfig().display_watchdog_ms / 1000.0
 #: "fresh" while waiting for the flow to come back: the bound, scaled on a loaded machine
 #: (the figures against the strict bound are the benchmark's)
 FLOW_BOUND_MS = scaled(BOUND_MS)
@@ -35,8 +38,9 @@ FLOW_BOUND_MS = scaled(BOUND_MS)
 def rig_factory(tmp_path: Path) -> Iterator[RigFactory]:
     rigs: list[FaultRig] = []
 
-    def make(outage_s: float | None = None) -> FaultRig:
-        rig = FaultRig(tmp_path / f"rig{len(rigs)}", outage_s=outage_s)
+    def make(outage_s: float | None = None, board_process: bool = False) -> FaultRig:
+        rig = FaultRig(tmp_path / f"rig{len(rigs)}", outage_s=outage_s,
+                       board_process=board_process)
         rigs.append(rig)
         rig.start(scaled(90.0))
         assert rig.wait_steady(1.0, scaled(30.0), FLOW_BOUND_MS), \
@@ -116,5 +120,49 @@ def test_local_station_sigstop_three_seconds_renders_no_stale_frame_after_sigcon
         "fresh frames and executed commands did not come back after SIGCONT"
     rig.poll()
     assert rig.exits == [], f"stations exited: {rig.exits}"
+    stale = _stale_rendered_after(rig, t_cont)
+    assert not stale, f"{len(stale)} stale frames rendered, up to {max(stale):.0f} ms old"
+
+
+def test_local_station_sigstop_three_seconds_the_board_process_parks_the_pins_by_itself(
+        rig_factory: RigFactory) -> None:
+    # The drive board is a process of its own (``teletouch board``): the frozen station
+    # cannot park the pins, only the board's own watchdog can. The board's event file is the
+    # truth of what the pins did; before the board process, the display's safe state of a
+    # stopped station could only be logged after SIGCONT (faults_after.md: safe p99 2962 ms).
+    rig: FaultRig = rig_factory(board_process=True)
+    board = rig.board_log
+    assert board is not None
+    _, t_cont = rig.inject(FaultSpec("stop", "local", 3.0))
+    rig.poll()
+    # the last command the board applied before SIGCONT (commands in flight at the stop may
+    # land just after it); no command can reach it while the station is stopped
+    last = max(m for m, _ in board.applied if m < t_cont)
+    deadline = last + BOARD_WATCHDOG_S + scaled(0.05)
+    assert deadline < t_cont, f"the board applied a command {t_cont - last:.3f} s before " \
+        f"SIGCONT: the station was not stopped"
+    assert board.safe_at(deadline), (
+        f"the pins were not safe {(deadline - last) * 1e3:.0f} ms after the last command the "
+        f"board applied; its safe-state entries after it: "
+        f"{[(round((m - last) * 1e3), why) for m, why in board.safe if m > last]}")
+    assert board.safe_at(t_cont), "the pins left the safe state while the station was stopped"
+    # after SIGCONT: fresh frames flow again, the board applies commands again, and none of
+    # them carried touch older than the bound (the probe's sends joined to the board's)
+    assert rig.wait_flowing(t_cont, scaled(20.0), FLOW_BOUND_MS), \
+        "fresh frames and executed commands did not come back after SIGCONT"
+    def back() -> bool:
+        rig.poll()
+        return bool([m for m in board.resumed if m > t_cont] and rig.pin_ages(t_cont))
+
+    wait_until(back, 10.0,
+               "the board to leave the safe state and apply commands after SIGCONT")
+    rig.poll()
+    assert rig.exits == [], f"processes exited: {rig.exits}"
+    ages = rig.pin_ages(t_cont)
+    assert ages and all(a is not None for _, _, a in ages), \
+        f"board commands matching no station send: {[s for _, s, a in ages if a is None]}"
+    stale_pins = [a for _, _, a in ages if a is not None and a > FRAME_BOUND_MS]
+    assert not stale_pins, (f"{len(stale_pins)} commands with touch older than the bound "
+                            f"reached the pins, up to {max(stale_pins):.0f} ms old")
     stale = _stale_rendered_after(rig, t_cont)
     assert not stale, f"{len(stale)} stale frames rendered, up to {max(stale):.0f} ms old"

@@ -11,7 +11,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from lab.faults import FaultRig, FaultSpec, ProbeLog, _latencies, scenarios
+from lab.faults import BoardLog, FaultRig, FaultSpec, ProbeLog, _latencies, scenarios
 from tests.support import scaled
 
 
@@ -29,6 +29,74 @@ def test_probe_log_reads_complete_lines_only_and_incrementally(tmp_path: Path) -
     assert log.safe == [(2.0, "stale_scene")] and log.accepted == [(2.1, 3000)]
     assert log.rendered == [(2.2, 3000)] and log.resumed == [2.3]
     assert log.steps == [(2.4, 300000)]
+    with open(path, "a") as f:
+        f.write("P 2.5 17 4000\nP 2.6 18 -1\nP 2.7 19\n")  # the last one is malformed
+    log.poll()
+    assert log.sent == [(2.5, 17, 4000), (2.6, 18, -1)]
+
+
+def test_board_log_reads_the_board_events_and_knows_the_state_at_a_time(
+        tmp_path: Path) -> None:
+    path = tmp_path / "board.txt"
+    log = BoardLog(path)
+    log.poll()
+    path.write_text("R 1.0 1\nR 1.02 2\nS 1.13 watchdog\nU 2.0\nR 2.0 1\nS 2.5 safe_state_frame\n"
+                    "R 2.6")
+    log.poll()
+    assert log.applied == [(1.0, 1), (1.02, 2), (2.0, 1)]
+    assert log.safe == [(1.13, "watchdog"), (2.5, "safe_state_frame")]
+    assert log.resumed == [2.0]
+    assert [log.safe_at(t) for t in (0.5, 1.1, 1.13, 1.5, 2.0, 2.2, 3.0)] == \
+        [False, False, True, True, False, False, True]
+    with open(path, "a") as f:
+        f.write(" 3\n")
+    log.poll()
+    assert log.applied[-1] == (2.6, 3)
+
+
+def _rig_with_board(tmp_path: Path, sent: list[tuple[float, int, int]],
+                    applied: list[tuple[float, int]]) -> FaultRig:
+    rig = FaultRig(tmp_path, board_process=True)
+    rig.wall_minus_mono_us = 0.0  # wall clock == monotonic clock, in us
+    probe = ProbeLog(tmp_path / "p.txt", "local", 1)
+    probe.sent = sent
+    rig.probes.append(probe)
+    rig.board_log = BoardLog(tmp_path / "b.txt")
+    rig.board_log.applied = applied
+    return rig
+
+
+def test_pin_ages_join_the_board_s_commands_to_the_latest_send_of_that_number(
+        tmp_path: Path) -> None:
+    # the display reconnected at t=5 and its sequence numbers restarted at 1
+    sent = [(1.0, 1, 900_000), (1.01, 2, 950_000), (5.0, 1, 4_990_000), (5.02, 2, 4_000_000)]
+    applied = [(1.002, 1), (1.3, 2), (5.001, 1), (5.021, 2), (6.0, 9)]
+    rig = _rig_with_board(tmp_path, sent, applied)
+    got = rig.pin_ages()
+    assert [(m, s) for m, s, _ in got] == applied
+    ages = [a for _, _, a in got]
+    assert ages[:4] == [pytest.approx(102.0), pytest.approx(350.0), pytest.approx(11.0),
+                        pytest.approx(1021.0)]
+    assert ages[4] is None  # no send with that number: unmatched, not guessed
+    assert [m for m, _, _ in rig.pin_ages(1.1, 5.01)] == [1.3, 5.001]
+
+
+@given(st.lists(st.tuples(st.floats(0, 10), st.integers(0, 3), st.integers(0, 10_000_000)),
+                max_size=25),
+       st.lists(st.tuples(st.floats(0, 10), st.integers(0, 3)), max_size=25))
+def test_pin_ages_agree_with_a_brute_force_reference(
+        tmp_path_factory: pytest.TempPathFactory, sent: list[tuple[float, int, int]],
+        applied: list[tuple[float, int]]) -> None:
+    rig = _rig_with_board(tmp_path_factory.mktemp("rig"), sent, applied)
+    expected = []
+    for mono, seq in applied:
+        before = [(m, ts) for m, s, ts in sent if s == seq and m <= mono]
+        ts = max(before)[1] if before else None
+        expected.append((mono, seq, None if ts is None else (mono * 1e6 - ts) / 1e3))
+    got = rig.pin_ages()
+    assert [(m, s) for m, s, _ in got] == [(m, s) for m, s, _ in expected]
+    for (_, _, a), (_, _, b) in zip(got, expected, strict=True):
+        assert (a is None and b is None) or a == pytest.approx(b)
 
 
 def test_latency_is_measured_from_the_last_input_before_each_event() -> None:
@@ -118,3 +186,45 @@ def test_probe_clock_steps_the_wall_clock_not_the_monotonic_one(tmp_path: Path) 
     assert abs(before[0] - before[1]) < 0.05
     assert after - before[0] == pytest.approx(2.5, abs=0.05)
 
+
+
+def test_analysis_with_the_board_process_takes_the_safe_state_and_the_ages_from_the_board(
+        tmp_path: Path) -> None:
+    from lab.bench.faults import _verdict, report_markdown
+    from lab.faults import analyse
+
+    # a station renders fresh frames (10 ms old) until it is stopped at t=1.5; the board's
+    # watchdog parks the pins 100 ms after the last command it applied; after SIGCONT at 4.5
+    # the station renders again, and one command carries a frame 300 ms old to the pins
+    frames = [1.0 + 0.02 * i for i in range(26)] + [4.6 + 0.02 * i for i in range(10)]
+    sent = [(m, i + 1, round(m * 1e6) - 10_000) for i, m in enumerate(frames)]
+    sent[-1] = (sent[-1][0], sent[-1][1], round(sent[-1][0] * 1e6) - 300_000)
+    applied = [(m + 0.001, seq) for m, seq, _ in sent]
+    rig = _rig_with_board(tmp_path, sent, applied)
+    probe = rig.probe("local")
+    probe.accepted = [(m, ts) for m, _, ts in sent[:-1]]
+    probe.rendered = list(probe.accepted)
+    assert rig.board_log is not None
+    rig.board_log.safe = [(1.501 + 0.1, "watchdog")]
+    rig.board_log.resumed = [4.601]
+    rig.poll = lambda: None  # type: ignore[method-assign]  # the lists above are the files
+    r = analyse(rig, [(1.5, 4.5)])
+    assert r["safe_source"] == "board" and r["station_safe_ms"]["n"] == 0
+    assert r["safe_ms"]["n"] == 1 and r["safe_ms"]["max"] == pytest.approx(101.0)
+    assert r["board_safe_reasons"] == {"watchdog": 1}
+    assert (r["pins_applied"], r["stale_at_pins"], r["pins_unmatched"]) == (36, 1, 0)
+    assert r["stale_at_pins_max_age_ms"] == pytest.approx(301.0)
+    fault = r["faults"][0]
+    assert fault["board_safe_at_recovery"] is True
+    assert fault["pins_after"]["stale_at_pins"] == 1 and fault["safe_ms"] == pytest.approx(101.0)
+    r.update({"scenario": "local station SIGSTOP 3 s", "kind": "stop", "repeats": 1,
+              "error": None, "board_process": True, "injected_unsteady": 0,
+              "summaries": {"board": {"commands_applied": 36, "commands_rejected": 0,
+                                      "watchdog_trips": 1, "niceness": -10,
+                                      "link": {"connects": 1, "disconnects": 0,
+                                               "feedback_dropped": 7}}}})
+    assert "stale at the pins" in _verdict(r)
+    md = report_markdown([r], command="x", machine="y", elapsed_s=1.0)
+    assert "the drive board as its own process" in md
+    assert "| local station SIGSTOP 3 s | watchdog 1 | -/-/- (0) | 36 / 0 | 1 (301) / 0 | 1 | " \
+        "1 / 0 / 7 | yes | -10 |" in md
