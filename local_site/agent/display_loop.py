@@ -17,10 +17,12 @@ One iteration (:meth:`DisplayLoop.tick`):
    while in it, nothing else is sent (the board's watchdog is set to the same mode). It is left as
    soon as no reason remains (for the remote stream: a fresh frame arrived);
 3. render the scene at the newest platform position; the renderer returns the same
-   object when nothing changed, in which case only the driver's keepalive runs; the frame's
-   age is judged again just before the command is sent and just after (a process stopped
-   or starved between the check and the send must not put an old frame on the pins: after
-   the send, a frame found stale is withdrawn at once by the safe state, and counted);
+   object when nothing changed, in which case only the driver's keepalive runs; the
+   command (and a keepalive) carries the moment the frame may turn too old, and the driver
+   checks it right before it writes (a process stopped or starved since the check must not
+   put an old frame on the pins: refused, safe state, counted ``late_sends_refused``); a
+   frame found stale just after the send (stopped during the write) is withdrawn at once by
+   the safe state and counted (``late_sends_withdrawn``);
 4. when the first command rendered from a new frame goes to the display, stamp
    ``local.rendered`` and account the frame's hops in the motion-to-touch ledger.
 
@@ -47,7 +49,13 @@ from local_site.platform.base import PlatformSample
 from local_site.recording import SessionRecorder
 from local_site.render import PinCommand, Renderer
 from local_site.scenes import SceneSource, TactileFrameScene
-from shared.errors import ConfigError, DeviceError, DeviceInitError, InputDataError
+from shared.errors import (
+    CommandExpiredError,
+    ConfigError,
+    DeviceError,
+    DeviceInitError,
+    InputDataError,
+)
 from shared.freshness import AgeVerdict, ClockView, judge_age
 from shared.motion_to_touch import MotionToTouchLedger
 from shared.protocol import Hop, TactileFrame
@@ -119,6 +127,9 @@ class DisplayLoopCounters:
     #: pin commands that went out while their frame turned stale (process stopped or
     #: starved during the send); each was followed at once by the safe state
     late_sends_withdrawn: int = 0
+    #: pin commands (keepalives included) the display driver refused to write because the
+    #: frame's deadline had passed since the loop's check (nothing reached the pins)
+    late_sends_refused: int = 0
     #: the oldest clock-corrected capture age of a frame while it was on the pins (ms)
     rendered_frame_age_max_ms: float = 0.0
 
@@ -188,6 +199,8 @@ class DisplayLoop:
         #: sender's, error bound) when it was taken in; None: the clock was unknown
         self._frame_stamp_us: int | None = None
         self._frame_clock: tuple[float, float] | None = None
+        #: when the current frame may turn too old (monotonic s; None: local scene)
+        self._frame_deadline_s: float | None = None
         self.recorder = recorder
         self.ledger = ledger
         self._retry_min_s = retry_min_s
@@ -263,6 +276,9 @@ class DisplayLoop:
             if verdict.age_us is not None:
                 self.counters.rendered_frame_age_max_ms = max(
                     self.counters.rendered_frame_age_max_ms, verdict.age_us / 1000.0)
+                # the moment the frame may turn too old, for the display driver's own check
+                self._frame_deadline_s = now_s + (self._max_frame_age_us - verdict.age_us
+                                                  - (verdict.uncertainty_us or 0.0)) / 1e6
         return None
 
     def _frame_verdict(self) -> AgeVerdict:
@@ -342,11 +358,14 @@ class DisplayLoop:
             self._keepalive()
             return
         # the age again at the moment of sending: rendering took time since the check, and
-        # a stopped or starved process may have slept anywhere in between
-        if self._frame_went_stale():
-            self.enter_safe_state("stale_frame")
+        # a stopped or starved process may have slept anywhere in between; the driver
+        # checks the frame's deadline once more right before it writes the bytes
+        try:
+            applied = self.display.send_command(*command.arrays(),
+                                                not_after_s=self._deadline())
+        except CommandExpiredError as err:
+            self._refuse_late(err)
             return
-        applied = self.display.send_command(*command.arrays())
         self._last_command = command
         if self._frame_went_stale():
             # the process was stopped or starved *during* the send: the command may have
@@ -373,9 +392,21 @@ class DisplayLoop:
                     self.recent_e2e_ms.append(trace.end_to_end_us / 1e3)
                 self.last_trace = (trace.stages_us, trace.end_to_end_us, now_s)
 
+    def _deadline(self) -> float | None:
+        return self._frame_deadline_s if self._stream is not None else None
+
+    def _refuse_late(self, err: CommandExpiredError) -> None:
+        """The driver refused a pin command past its frame's deadline (nothing was sent)."""
+        self.counters.late_sends_refused += 1
+        log.warning("%s", err)
+        self.enter_safe_state("stale_frame")
+
     def _keepalive(self) -> None:
-        if self.display.keepalive():
-            self.counters.keepalives_sent += 1
+        try:
+            if self.display.keepalive(not_after_s=self._deadline()):
+                self.counters.keepalives_sent += 1
+        except CommandExpiredError as err:
+            self._refuse_late(err)
 
     # ------------------------------------------------------------------ device recovery
 

@@ -580,6 +580,7 @@ class LocalAgent:
             "frames_superseded": self.frames.superseded + c.frames_superseded_unrendered,
             "rendered_frame_age_max_ms": round(c.rendered_frame_age_max_ms, 3),
             "late_sends_withdrawn": c.late_sends_withdrawn,
+            "late_sends_refused": c.late_sends_refused,
             "motion_to_touch_ms": self.ledger.summary_ms(),
             "tactile_codec": dataclasses.asdict(self.tactile_decoder.counters),
             "display_loop": {"mode": self.config.render_loop, **loop.periods.summary()},

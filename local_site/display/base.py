@@ -26,6 +26,7 @@ import numpy as np
 from local_site.display import frames as fr
 from shared.devices import Device
 from shared.errors import (
+    CommandExpiredError,
     ConfigError,
     DeviceInitError,
     DeviceNotConnectedError,
@@ -237,7 +238,8 @@ class ArrayTacDisplay(Device):
     # ------------------------------------------------------------------ commands
 
     def send_command(self, height_mm: np.ndarray | float, stiffness_k: np.ndarray | float = 1.0,
-                     friction: np.ndarray | float = 0.0) -> AppliedPinCommand:
+                     friction: np.ndarray | float = 0.0, *,
+                     not_after_s: float | None = None) -> AppliedPinCommand:
         """Command the 16 pins; return what was actually applied.
 
         Values are clamped to height [0, 5] mm, k [0.5, 1], f [0, 1] and quantised to the
@@ -248,12 +250,17 @@ class ArrayTacDisplay(Device):
             height_mm: pin heights, shape (4, 4), (16,) or scalar.
             stiffness_k: stiffness k, same shapes.
             friction: friction f, same shapes.
+            not_after_s: a deadline on :func:`shared.timebase.monotonic_s` (the moment the
+                touch this command renders becomes too old): checked right before the bytes
+                are written, so a process stopped or starved since its caller's age check
+                does not put old touch on the pins.
 
         Returns:
             The applied command (shape (16,) arrays).
 
         Raises:
             InputDataError: a wrong shape or a NaN/Inf value; nothing is sent.
+            CommandExpiredError: ``not_after_s`` had passed; nothing is sent.
             DeviceNotConnectedError: not connected.
             DeviceOperationError: the link refused the frame.
         """
@@ -284,6 +291,11 @@ class ArrayTacDisplay(Device):
             if unchanged and not keepalive:
                 self._n_skipped += 1
                 return self._applied(h_codes, k_codes, f_codes, clamped, sent=False)
+            if not_after_s is not None:
+                late_s = monotonic_s() - not_after_s
+                if late_s > 0:
+                    raise CommandExpiredError(f"{self.name}: pin command {late_s * 1e3:.1f} ms "
+                                              "past its deadline; not sent")
             frame = fr.CommandFrame(seq=self._next_seq(),
                                     flags=self._flags | (fr.FLAG_KEEPALIVE if keepalive else 0),
                                     height_codes=h_codes, k_codes=k_codes, f_codes=f_codes,
@@ -299,18 +311,24 @@ class ArrayTacDisplay(Device):
             return self._applied(h_codes, k_codes, f_codes, clamped, sent=True,
                                  keepalive=keepalive)
 
-    def keepalive(self) -> bool:
+    def keepalive(self, not_after_s: float | None = None) -> bool:
         """Re-send the last command if the keepalive interval has passed.
+
+        Args:
+            not_after_s: as for :meth:`send_command` (a keepalive re-sends old touch too).
 
         Returns:
             True when a frame was sent.
+
+        Raises:
+            CommandExpiredError: ``not_after_s`` had passed; nothing is sent.
         """
         with self._send_lock:
             last = self._last_codes
         if last is None:
             return False
         applied = self.send_command(last[0] * fr.HEIGHT_LSB_MM, fr.K_MIN + last[1] * fr.K_LSB,
-                                    last[2] * fr.F_LSB)
+                                    last[2] * fr.F_LSB, not_after_s=not_after_s)
         return applied.sent
 
     def safe_state(self, mode: SafeMode = "flat") -> None:

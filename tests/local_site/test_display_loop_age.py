@@ -8,6 +8,7 @@ was stopped for a while, is old whenever it arrives.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -153,8 +154,17 @@ class SteppedClock:
 
 @pytest.fixture
 def clock(monkeypatch: pytest.MonkeyPatch) -> SteppedClock:
+    """The loop's wall clock and the monotonic clock of the loop and the display driver,
+    moved together (a stopped process sees both jump)."""
     c = SteppedClock()
     monkeypatch.setattr("local_site.agent.display_loop.now_us", c)
+    mono0, t0 = time.monotonic(), c.t_us
+
+    def mono() -> float:
+        return mono0 + (c.t_us - t0) / 1e6
+
+    monkeypatch.setattr("local_site.agent.display_loop.monotonic_s", mono)
+    monkeypatch.setattr("local_site.display.base.monotonic_s", mono)
     return c
 
 
@@ -174,6 +184,27 @@ def test_a_frame_that_ages_out_between_the_check_and_the_send_is_not_sent(
     loop.tick()
     assert loop.safe_reason == "stale_frame"
     assert loop.counters.commands_sent == 0 and loop.counters.frames_rendered == 0
+    assert loop.counters.late_sends_refused == 1 and loop.display.stats().frames_sent == 0
+
+
+def test_a_keepalive_past_the_frames_deadline_is_not_sent(
+        make_loop: Build, clock: SteppedClock) -> None:
+    """The frame was rendered; the pins hold it and the driver re-sends it as a keepalive
+    (the board's watchdog needs one). Stopped after the tick's check, the keepalive would
+    re-send old touch (and, on a separate board, undo the safe state its watchdog took):
+    the driver refuses it."""
+    loop, slot = make_loop(FakeLink())
+    slot.put(frame(1, clock.t_us - 20_000), clock.t_us)
+    loop.tick()
+    assert loop.counters.frames_rendered == 1
+    before = loop.display.stats()
+    loop._frame_deadline_s = 0.0  # as if the process slept past it after the tick's check
+    clock.t_us += 300_000  # past the driver's keepalive interval
+    loop._keepalive()
+    assert loop.counters.late_sends_refused == 1 and loop.safe_reason == "stale_frame"
+    after = loop.display.stats()
+    assert after.frames_sent == before.frames_sent  # no keepalive went out
+    assert after.safe_states_sent == before.safe_states_sent + 1
 
 
 def test_a_command_sent_while_its_frame_aged_out_is_withdrawn_at_once(
