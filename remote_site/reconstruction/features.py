@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from remote_site.reconstruction.kernels import change_kernel, gain_kernel
 from shared.errors import InputDataError
 
 __all__ = ["brightness_gain", "pixel_position", "relative_change"]
@@ -27,6 +28,10 @@ _STAT_STEP = 4
 def brightness_gain(frame: np.ndarray, background: np.ndarray) -> np.ndarray:
     """Per-channel gain that best maps the background onto the unchanged part of a frame.
 
+    The median ratio frame/background on a subsample, refined once on the pixels within
+    ``_GAIN_TOLERANCE`` of it (one compiled pass; ``lab/reconstruction_reference.py`` has the
+    numpy form).
+
     Args:
         frame: float32 (H, W, 3), validated.
         background: float32 (H, W, 3), validated, same shape.
@@ -39,13 +44,9 @@ def brightness_gain(frame: np.ndarray, background: np.ndarray) -> np.ndarray:
             background are not from the same sensor/lighting.
     """
     step = max(1, min(_STAT_STEP, min(frame.shape[:2]) // 60))
-    f = frame[::step, ::step].reshape(-1, 3)
-    b = np.maximum(background[::step, ::step].reshape(-1, 3), 1.0)
-    ratio = f / b
-    gain = np.median(ratio, axis=0)
-    unchanged = (np.abs(ratio - gain) < _GAIN_TOLERANCE * gain).all(axis=1)
-    if unchanged.sum() >= 0.1 * len(ratio):
-        gain = np.median(ratio[unchanged], axis=0)
+    bg_sub = np.ascontiguousarray(np.maximum(background[::step, ::step], np.float32(1.0)),
+                                  dtype=np.float32)
+    gain = gain_kernel(np.asarray(frame, np.float32), bg_sub, step, _GAIN_TOLERANCE)
     if not (np.isfinite(gain).all() and (gain > 0.2).all() and (gain < 5.0).all()):
         raise InputDataError(f"brightness gain {gain} between frame and background is "
                              "implausible: is the background from this sensor?")
@@ -73,10 +74,10 @@ def relative_change(frame: np.ndarray, background: np.ndarray,
     gain = brightness_gain(frame, background)
     if inv_background_pct is None:
         inv_background_pct = inverse_background_pct(background)
-    # 100 * (I / (g * B) - 1), computed in place on one temporary
-    change = frame * (1.0 / gain).astype(np.float32)
-    change *= inv_background_pct
-    change -= np.float32(100.0)
+    # 100 * (I / (g * B) - 1) in one fused pass (same float32 operations as
+    # frame * (1 / g) * inv_background_pct - 100)
+    change = change_kernel(np.asarray(frame, np.float32), (1.0 / gain).astype(np.float32),
+                           inv_background_pct)
     if blur_sigma_px > 0:
         change = cv2.GaussianBlur(change, (0, 0), blur_sigma_px)
     return change

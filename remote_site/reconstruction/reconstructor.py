@@ -34,6 +34,13 @@ from remote_site.reconstruction.features import (
 )
 from remote_site.reconstruction.frames import validate_frame
 from remote_site.reconstruction.grid_predict import GridPredictor
+from remote_site.reconstruction.kernels import (
+    evidence_kernel,
+    free_subsample_kernel,
+    plane_normal_equations,
+    subtract_plane_kernel,
+    threshold_kernel,
+)
 from remote_site.reconstruction.poisson import SOLVERS, PoissonSolver
 from shared.errors import ConfigError, InputDataError
 
@@ -106,12 +113,6 @@ class HeightMap:
     def max_height_mm(self) -> float:
         """Largest height (indentation) in the map, mm."""
         return float(self.height_mm.max()) if self.height_mm.size else 0.0
-
-
-def _abs_max(change: np.ndarray) -> np.ndarray:
-    """max over channels of |change| (much faster than ``np.abs(c).max(axis=2)``)."""
-    return np.maximum(np.maximum(np.abs(change[..., 0]), np.abs(change[..., 1])),
-                      np.abs(change[..., 2]))
 
 
 def _pool(image: np.ndarray, factor: int) -> np.ndarray:
@@ -243,9 +244,12 @@ class Reconstructor:
         else:
             change = relative_change(frame, bg, calib.blur_sigma_px, inv_background_pct=inv_bg)
         noise = max(calib.noise_pct, 1e-3)
-        magnitude_full = _abs_max(change)
-        evidence = int(np.count_nonzero(magnitude_full > self.settings.contact_evidence_sigmas
-                                        * noise))
+        # one pass: count of evidence pixels and the mask of pixels above the dead zone
+        # (float32 thresholds, as numpy compares a float32 array with a Python float)
+        evidence, active = evidence_kernel(
+            np.ascontiguousarray(change, np.float32),
+            np.float32(self.settings.contact_evidence_sigmas * noise),
+            np.float32(self.settings.dead_zone_sigmas * noise))
         grid_pitch_mm = calib.mm_per_px * (factor if pool_change else 1)
         min_px = self.settings.min_contact_area_mm2 / grid_pitch_mm**2
         has_contact = evidence >= max(min_px, 1.0)
@@ -253,7 +257,6 @@ class Reconstructor:
         gx = np.zeros(grid, np.float32)
         gy = np.zeros(grid, np.float32)
         if has_contact:
-            active = magnitude_full > self.settings.dead_zone_sigmas * noise
             predictor = self._grid_predictor(factor if pool_change else 1, grid)
             predictor.predict_into(change, active, gx, gy)
             if factor > 1 and not pool_change:
@@ -285,35 +288,35 @@ class Reconstructor:
             zeros = np.zeros(gx.shape, np.float32)
             return HeightMap(zeros, np.zeros(gx.shape, bool), pitch_mm, skipped=True)
         height = self._solver.integrate(gx, gy, pitch_mm)
-        height = self._apply_zero_level(height, pitch_mm)
-        if not np.isfinite(height).all():  # cannot happen with finite slopes; never pass it on
+        height, mask, finite = self._zero_level_and_mask(height, pitch_mm)
+        if not finite:  # cannot happen with finite slopes; never pass it on
             raise InputDataError("reconstruction produced non-finite heights")
-        mask = height > self.settings.contact_threshold_mm
         return HeightMap(height, mask, pitch_mm, skipped=False)
 
-    def _apply_zero_level(self, height: np.ndarray, pitch_mm: float) -> np.ndarray:
-        import cv2
+    def _zero_level_and_mask(self, height: np.ndarray,
+                             pitch_mm: float) -> tuple[np.ndarray, np.ndarray, bool]:
+        """Height minus the zero level, its contact mask and whether it is all finite.
 
+        The free gel is judged on the grid subsampled by ``step`` (the raised region dilated
+        by ``zero_exclusion_mm``, evaluated only at the subsampled pixels); the plane is the
+        least-squares fit through the free subsampled heights.
+        """
+        threshold = np.float32(self.settings.contact_threshold_mm)
         mode = self.settings.zero_level
         if mode == "none":
-            return height
+            mask, finite = threshold_kernel(height, threshold)
+            return height, mask, bool(finite)
         step = max(1, min(height.shape) // 60)
-        base = float(np.median(height[::step, ::step]))
-        raised = ((height - base) > self.settings.contact_threshold_mm).astype(np.uint8)
-        radius_px = round(self.settings.zero_exclusion_mm / pitch_mm)
-        if radius_px > 0:
-            kernel = np.ones((2 * radius_px + 1, 2 * radius_px + 1), np.uint8)
-            raised = np.asarray(cv2.dilate(raised, kernel), np.uint8)
-        free = raised[::step, ::step] == 0
         sub = height[::step, ::step]
-        if free.sum() < 10:
-            return height - np.float32(base)
-        if mode == "median":
-            return height - np.float32(np.median(sub[free]))
-        rows, cols = np.nonzero(free)
-        design = np.stack([np.ones(len(rows)), cols * step, rows * step], axis=1)
-        coef, *_ = np.linalg.lstsq(design, sub[free].astype(np.float64), rcond=None)
-        r = np.arange(height.shape[0], dtype=np.float32)[:, None]
-        c = np.arange(height.shape[1], dtype=np.float32)[None, :]
-        plane = np.float32(coef[0]) + np.float32(coef[1]) * c + np.float32(coef[2]) * r
-        return (height - plane).astype(np.float32, copy=False)
+        base = np.float32(np.median(sub))
+        radius_px = round(self.settings.zero_exclusion_mm / pitch_mm)
+        free = free_subsample_kernel(height, base, threshold, radius_px, step)
+        if np.count_nonzero(free) < 10:
+            c0, c1, c2 = base, np.float32(0.0), np.float32(0.0)
+        elif mode == "median":
+            c0, c1, c2 = np.float32(np.median(sub[free])), np.float32(0.0), np.float32(0.0)
+        else:
+            coef = plane_normal_equations(sub, free, step)
+            c0, c1, c2 = np.float32(coef[0]), np.float32(coef[1]), np.float32(coef[2])
+        out, mask, finite = subtract_plane_kernel(height, c0, c1, c2, threshold)
+        return out, mask, bool(finite)
