@@ -70,8 +70,9 @@ def reference_relative_change(frame: np.ndarray, background: np.ndarray,
 
 
 def reference_abs_max(change: np.ndarray) -> np.ndarray:
-    """max over channels of |change|."""
-    return np.abs(change).max(axis=2)
+    """max over channels of |change| (channel by channel, as the old reconstructor did)."""
+    return np.maximum(np.maximum(np.abs(change[..., 0]), np.abs(change[..., 1])),
+                      np.abs(change[..., 2]))
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=True)

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from remote_site.reconstruction.kernels import change_kernel, gain_kernel
+from remote_site.reconstruction.kernels import change_kernel, ratio_kernel, unchanged_kernel
 from shared.errors import InputDataError
 
 __all__ = ["brightness_gain", "pixel_position", "relative_change"]
@@ -46,11 +46,25 @@ def brightness_gain(frame: np.ndarray, background: np.ndarray) -> np.ndarray:
     step = max(1, min(_STAT_STEP, min(frame.shape[:2]) // 60))
     bg_sub = np.ascontiguousarray(np.maximum(background[::step, ::step], np.float32(1.0)),
                                   dtype=np.float32)
-    gain = gain_kernel(np.asarray(frame, np.float32), bg_sub, step, _GAIN_TOLERANCE)
+    ratio = ratio_kernel(np.asarray(frame, np.float32), bg_sub, step)
+    gain = _row_medians(ratio)
+    unchanged = unchanged_kernel(ratio, gain, _GAIN_TOLERANCE)
+    if unchanged.shape[1] >= 0.1 * ratio.shape[1]:
+        gain = _row_medians(unchanged)
     if not (np.isfinite(gain).all() and (gain > 0.2).all() and (gain < 5.0).all()):
         raise InputDataError(f"brightness gain {gain} between frame and background is "
                              "implausible: is the background from this sensor?")
     return gain.astype(np.float32)
+
+
+def _row_medians(values: np.ndarray) -> np.ndarray:
+    """Median of each row of a float32 (3, n) array, n >= 1: ``np.median(values, axis=1)``
+    through numpy's (vectorised) sort, several times faster than its selection here."""
+    ordered = np.sort(values, axis=1)
+    n = ordered.shape[1]
+    if n % 2:
+        return ordered[:, n // 2].copy()
+    return (ordered[:, n // 2 - 1] + ordered[:, n // 2]) / np.float32(2.0)
 
 
 def inverse_background_pct(background: np.ndarray) -> np.ndarray:

@@ -22,10 +22,11 @@ __all__ = [
     "divergence_kernel",
     "evidence_kernel",
     "free_subsample_kernel",
-    "gain_kernel",
     "plane_normal_equations",
+    "ratio_kernel",
     "subtract_plane_kernel",
     "threshold_kernel",
+    "unchanged_kernel",
 ]
 
 #: solver codes of :func:`divergence_kernel`
@@ -33,54 +34,44 @@ DIV_DCT, DIV_DST, DIV_FFT = 0, 1, 2
 
 
 @njit(cache=True, nogil=True)
-def gain_kernel(frame: np.ndarray, bg_sub: np.ndarray, step: int,
-                tolerance: float) -> np.ndarray:  # pragma: no cover - compiled
-    """Median ratio frame/background per channel on a subsample, refined on unchanged pixels.
-
-    Args:
-        frame: float32 (H, W, 3).
-        bg_sub: float32 ``max(background[::step, ::step], 1)``.
-        step: subsampling step of ``frame`` matching ``bg_sub``.
-        tolerance: a pixel is unchanged if every channel's ratio is within this fraction of
-            the first gain.
-
-    Returns:
-        float32 (3,) gains (not yet checked for plausibility).
-    """
+def ratio_kernel(frame: np.ndarray, bg_sub: np.ndarray,
+                 step: int) -> np.ndarray:  # pragma: no cover - compiled
+    """``frame[::step, ::step] / bg_sub`` as a (3, n) float32 array (one row per channel)."""
     nr, nc = bg_sub.shape[0], bg_sub.shape[1]
-    n = nr * nc
-    ratio = np.empty((3, n), np.float32)
+    ratio = np.empty((3, nr * nc), np.float32)
     k = 0
     for i in range(nr):
         for j in range(nc):
             for v in range(3):
                 ratio[v, k] = frame[i * step, j * step, v] / bg_sub[i, j, v]
             k += 1
-    gain = np.empty(3, np.float32)
-    for v in range(3):
-        gain[v] = np.median(ratio[v])
+    return ratio
+
+
+@njit(cache=True, nogil=True)
+def unchanged_kernel(ratio: np.ndarray, gain: np.ndarray,
+                     tolerance: float) -> np.ndarray:  # pragma: no cover - compiled
+    """The columns of ``ratio`` whose every channel is within ``tolerance * gain`` of the gain
+    (``|ratio - gain| < tolerance * gain``, float32), as a (3, m) array."""
+    n = ratio.shape[1]
     tol = np.empty(3, np.float32)
     for v in range(3):
         tol[v] = np.float32(tolerance) * gain[v]
     keep = np.empty(n, np.bool_)
     count = 0
     for k in range(n):
-        ok = True
-        for v in range(3):
-            if not abs(ratio[v, k] - gain[v]) < tol[v]:
-                ok = False
+        ok = (abs(ratio[0, k] - gain[0]) < tol[0]) & (abs(ratio[1, k] - gain[1]) < tol[1]) \
+            & (abs(ratio[2, k] - gain[2]) < tol[2])
         keep[k] = ok
         count += ok
-    if count >= 0.1 * n:
-        sel = np.empty(count, np.float32)
-        for v in range(3):
-            m = 0
-            for k in range(n):
-                if keep[k]:
-                    sel[m] = ratio[v, k]
-                    m += 1
-            gain[v] = np.median(sel)
-    return gain
+    out = np.empty((3, count), np.float32)
+    m = 0
+    for k in range(n):
+        if keep[k]:
+            for v in range(3):
+                out[v, m] = ratio[v, k]
+            m += 1
+    return out
 
 
 @njit(cache=True, nogil=True)
@@ -102,15 +93,18 @@ def evidence_kernel(change: np.ndarray, evidence_threshold: np.float32,
                     active_threshold: np.float32
                     ) -> tuple[int, np.ndarray]:  # pragma: no cover - compiled
     """Count of pixels whose max-channel |change| exceeds ``evidence_threshold``, and the
-    mask of those above ``active_threshold``."""
+    mask of those above ``active_threshold`` (a pixel with a NaN channel is neither, as
+    with numpy's NaN-propagating maximum)."""
     rows, cols = change.shape[0], change.shape[1]
     active = np.empty((rows, cols), np.bool_)
     count = 0
     for i in range(rows):
         for j in range(cols):
-            m = max(max(abs(change[i, j, 0]), abs(change[i, j, 1])), abs(change[i, j, 2]))
-            count += m > evidence_threshold
-            active[i, j] = m > active_threshold
+            a0, a1, a2 = abs(change[i, j, 0]), abs(change[i, j, 1]), abs(change[i, j, 2])
+            m = max(max(a0, a1), a2)
+            valid = (a0 == a0) & (a1 == a1) & (a2 == a2)
+            count += valid & (m > evidence_threshold)
+            active[i, j] = valid & (m > active_threshold)
     return count, active
 
 
