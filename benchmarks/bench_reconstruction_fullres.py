@@ -178,7 +178,7 @@ def main(args: argparse.Namespace) -> int:
     rows.append(_stage_row("whole height_map", whole))
     load_end, elapsed = _load(), time.perf_counter() - t_start
 
-    summary = []
+    summary: list[dict[str, Any]] = []
     for tag, label, err in (("b", "before (reference)", err_before),
                             ("a", "after (this tree)", err_after)):
         cpu50 = float(np.median(whole[f"{tag}_cpu"]))
@@ -188,7 +188,7 @@ def main(args: argparse.Namespace) -> int:
                         "frames_per_s_cpu": 1e3 / cpu50, "wall_ms_p50": wall50,
                         "frames_per_s_wall": 1e3 / wall50, **err})
     speedup = float(np.median(whole["b_cpu"]) / np.median(whole["a_cpu"]))
-    fps_after = summary[1]["frames_per_s_cpu"]
+    fps_after = float(summary[1]["frames_per_s_cpu"])
     verdict = ("meets" if fps_after >= TARGET_FPS else "does NOT meet")
     cmd = ("OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 python "
            "benchmarks/bench_reconstruction_fullres.py" +
