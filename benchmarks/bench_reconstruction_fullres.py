@@ -4,9 +4,10 @@ A/B in one process: the frozen pre-change pipeline (``lab/reconstruction_referen
 "before") and the product's ``Reconstructor.height_map`` ("after") are called alternately on
 the same frame, per stage and end to end, so machine load hits both alike. Data: the real
 GelSight Mini ball presses (default poly5 calibration fitted on the 40 train presses,
-measured on the 11 test presses, DST solver). Times: wall clock and the thread's CPU time
-(``time.thread_time``: what one core spends; on a loaded machine wall time also counts the
-waits for a core). Error: the same metrics as ``bench_reconstruction.py`` for both
+measured on the 11 test presses, DST solver). Times: wall clock and the CPU time
+(``time.process_time``: what the process spends on all its threads, i.e. on one core when
+everything is single-threaded; on a loaded machine wall time also counts the waits for a
+core). Error: the same metrics as ``bench_reconstruction.py`` for both
 pipelines, and the largest height difference between them. Writes
 benchmarks/results/reconstruction_fullres.md.
 
@@ -62,9 +63,9 @@ def _paired(before: Fn, after: Fn, n_inputs: int, repeats: int) -> dict[str, np.
             order = ((before, "b"), (after, "a")) if (rep + i) % 2 == 0 else (
                 (after, "a"), (before, "b"))
             for fn, tag in order:
-                c0, w0 = time.thread_time(), time.perf_counter()
+                c0, w0 = time.process_time(), time.perf_counter()
                 fn(i)
-                w1, c1 = time.perf_counter(), time.thread_time()
+                w1, c1 = time.perf_counter(), time.process_time()
                 out[f"{tag}_wall"].append(w1 - w0)
                 out[f"{tag}_cpu"].append(c1 - c0)
     return {k: np.array(v) * 1e3 for k, v in out.items()}
@@ -164,8 +165,10 @@ def main(args: argparse.Namespace) -> int:
          .brightness_gain(valid[i], bg)),
         ("evidence count + active mask", ref_evidence,
          lambda i: evidence_kernel(change[i], ev_thr, dz_thr)),
-        ("model on active pixels (unchanged kernel)",
-         lambda i: predictor.predict_into(change[i], active[i], gx_buf, gy_buf),
+        ("model on active pixels",
+         lambda i: ref._predict_active(change[i], active[i], predictor.inv_scale,
+                                       predictor.exponents, predictor.coeffs,
+                                       predictor.max_slope, gx_buf, gy_buf),
          lambda i: predictor.predict_into(change[i], active[i], gx_buf, gy_buf)),
         ("Poisson (DST)", lambda i: ref.reference_integrate(*slopes[i], MM_PER_PX),
          lambda i: rec._solver.integrate(*slopes[i], MM_PER_PX)),
@@ -208,9 +211,9 @@ def main(args: argparse.Namespace) -> int:
         "`Reconstructor.height_map` of this tree. Both are called alternately on the same "
         f"frame (order swapped every call), {args.repeats} passes over the {n} real GelSight "
         "Mini test presses (default poly5 calibration fitted on the 40 train presses, DST "
-        "solver, no `out_pitch_mm` pooling). `cpu` = the thread's CPU time, `wall` = elapsed "
-        "time; p50/p90 over all calls. Error metrics as in `reconstruction.md` (mean over the "
-        "test presses).",
+        "solver, no `out_pitch_mm` pooling). `cpu` = the process's CPU time (all threads), "
+        "`wall` = elapsed time; p50/p90 over all calls. Error metrics as in "
+        "`reconstruction.md` (mean over the test presses).",
         "",
         "## Run time against error (whole frame)",
         "",

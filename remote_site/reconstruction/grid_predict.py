@@ -73,6 +73,59 @@ def _predict_active(change: np.ndarray, active: np.ndarray, inv_scale: np.ndarra
             gy[i, j] = min(max(sy, -limit), limit)
 
 
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=True)
+def _predict_active_complete(change: np.ndarray, active: np.ndarray, inv_scale: np.ndarray,
+                             max_deg: int, coeffs: np.ndarray, max_slope: float,
+                             gx: np.ndarray, gy: np.ndarray) -> None:  # pragma: no cover
+    """:func:`_predict_active` when the colour terms are *all* monomials of degree <= max_deg
+    in lexicographic order (the polynomial models): nested loops walk the terms in table
+    order without exponent lookups, on 1-D power tables and the flat (pixels, 2 x terms)
+    coefficient rows. Same products, same order of the sums: the same result, bit for bit
+    (checked in the tests), about 15 % less time."""
+    rows, cols = active.shape
+    p0 = np.empty(max_deg + 1, np.float32)
+    p1 = np.empty(max_deg + 1, np.float32)
+    p2 = np.empty(max_deg + 1, np.float32)
+    limit = np.float32(max_slope)
+    s0, s1, s2 = inv_scale[0], inv_scale[1], inv_scale[2]
+    for i in range(rows):
+        for j in range(cols):
+            if not active[i, j]:
+                continue
+            r = change[i, j, 0] * s0
+            g = change[i, j, 1] * s1
+            b = change[i, j, 2] * s2
+            p0[0] = np.float32(1.0)
+            p1[0] = np.float32(1.0)
+            p2[0] = np.float32(1.0)
+            for d in range(1, max_deg + 1):
+                p0[d] = p0[d - 1] * r
+                p1[d] = p1[d - 1] * g
+                p2[d] = p2[d - 1] * b
+            row = coeffs[i * cols + j]
+            sx = np.float32(0.0)
+            sy = np.float32(0.0)
+            m = 0
+            for a in range(max_deg + 1):
+                for e in range(max_deg + 1 - a):
+                    pae = p0[a] * p1[e]
+                    for c in range(max_deg + 1 - a - e):
+                        mono = pae * p2[c]
+                        sx += mono * row[m]
+                        sy += mono * row[m + 1]
+                        m += 2
+            gx[i, j] = min(max(sx, -limit), limit)
+            gy[i, j] = min(max(sy, -limit), limit)
+
+
+def _complete_degree(exponents: np.ndarray) -> int | None:
+    """The degree if ``exponents`` are all colour monomials up to it in lexicographic order."""
+    degree = int(exponents.sum(axis=1).max()) if len(exponents) else 0
+    complete = [(a, b, c) for a in range(degree + 1) for b in range(degree + 1 - a)
+                for c in range(degree + 1 - a - b)]
+    return degree if [tuple(int(v) for v in e) for e in exponents] == complete else None
+
+
 class BakedPolyPredictor:
     """A position-aware polynomial with its position part evaluated once per grid pixel.
 
@@ -100,6 +153,7 @@ class BakedPolyPredictor:
         self.coeffs = np.ascontiguousarray(coeffs, dtype=np.float32)
         self.inv_scale = (1.0 / np.asarray(scale[:3], np.float64)).astype(np.float32)
         self.max_slope = float(max_slope)
+        self._complete_degree = _complete_degree(self.exponents)
         if log.isEnabledFor(logging.DEBUG):
             log.debug("baked polynomial for a %s grid: %d colour terms, %.1f MB", self.shape,
                       len(colour_exps), self.coeffs.nbytes / 1e6)
@@ -119,9 +173,15 @@ class BakedPolyPredictor:
             active: (rows, cols) bool.
             gx, gy: (rows, cols) float32 outputs.
         """
-        _predict_active(np.ascontiguousarray(change, dtype=np.float32),
-                        np.ascontiguousarray(active), self.inv_scale, self.exponents,
-                        self.coeffs, self.max_slope, gx, gy)
+        change = np.ascontiguousarray(change, dtype=np.float32)
+        active = np.ascontiguousarray(active)
+        if self._complete_degree is not None:
+            _predict_active_complete(change, active, self.inv_scale, self._complete_degree,
+                                     self.coeffs.reshape(len(self.coeffs), -1),
+                                     self.max_slope, gx, gy)
+        else:
+            _predict_active(change, active, self.inv_scale, self.exponents, self.coeffs,
+                            self.max_slope, gx, gy)
 
 
 class PlainGridPredictor:

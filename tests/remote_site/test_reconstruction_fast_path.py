@@ -204,3 +204,30 @@ def test_height_map_equals_reference_on_rendered_presses(
     np.testing.assert_allclose(got.height_mm, expected.height_mm, rtol=0, atol=1e-5)
     near = np.abs(expected.height_mm - rec.settings.contact_threshold_mm) < 1e-5
     np.testing.assert_array_equal(got.mask[~near], expected.mask[~near])
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31), degree=st.sampled_from([1, 3, 5]),
+       shape=st.tuples(st.integers(2, 40), st.integers(2, 40)), spread=st.floats(0.1, 30.0),
+       density=st.floats(0.0, 1.0))
+def test_baked_predictor_equals_the_reference_kernel(seed: int, degree: int,
+                                                     shape: tuple[int, int], spread: float,
+                                                     density: float) -> None:
+    from remote_site.reconstruction.features import pixel_position
+    from remote_site.reconstruction.grid_predict import BakedPolyPredictor
+    from remote_site.reconstruction.models import PolyGradientModel, _exponents
+
+    rng = np.random.default_rng(seed)
+    coef = rng.normal(0.0, 0.3, (len(_exponents(5, degree)), 2))
+    scale = np.concatenate([rng.uniform(5.0, 20.0, 3), [0.5, 0.5]])
+    x, y = pixel_position(shape)
+    predictor = PolyGradientModel(coef, scale, degree, True).grid_predictor(x, y)
+    assert isinstance(predictor, BakedPolyPredictor)
+    change = rng.normal(0.0, spread, (*shape, 3)).astype(np.float32)
+    active = rng.random(shape) < density
+    got = np.full((2, *shape), 7.0, np.float32)
+    expected = got.copy()
+    predictor.predict_into(change, active, got[0], got[1])
+    ref._predict_active(change, active, predictor.inv_scale, predictor.exponents,
+                        predictor.coeffs, predictor.max_slope, expected[0], expected[1])
+    np.testing.assert_array_equal(got, expected)
