@@ -41,6 +41,7 @@ from lab.reconstruction_metrics import evaluate_press  # noqa: E402
 from remote_site.reconstruction.calibration import fit_calibration  # noqa: E402
 from remote_site.reconstruction.features import relative_change  # noqa: E402
 from remote_site.reconstruction.frames import load_rgb, validate_frame  # noqa: E402
+from remote_site.reconstruction.grid_predict import BakedPolyPredictor  # noqa: E402
 from remote_site.reconstruction.kernels import evidence_kernel  # noqa: E402
 from remote_site.reconstruction.reconstructor import Reconstructor  # noqa: E402
 from shared.report import emit, format_table  # noqa: E402
@@ -140,6 +141,8 @@ def main(args: argparse.Namespace) -> int:
     slopes = [rec.slopes(f)[:2] for f in frames]
     raw = [ref.reference_integrate(gx, gy, MM_PER_PX) for gx, gy in slopes]
     predictor = rec._grid_predictor(1, rec.shape_hw)
+    if not isinstance(predictor, BakedPolyPredictor):
+        raise SystemExit("the default calibration should bake its polynomial per pixel")
     gx_buf = np.zeros(rec.shape_hw, np.float32)
     gy_buf = np.zeros(rec.shape_hw, np.float32)
     s = rec.settings
