@@ -16,7 +16,7 @@ import numpy as np
 from remote_site.reconstruction.kernels import change_kernel, ratio_kernel, unchanged_kernel
 from shared.errors import InputDataError
 
-__all__ = ["brightness_gain", "pixel_position", "relative_change"]
+__all__ = ["brightness_gain", "pixel_position", "relative_change", "row_medians"]
 
 #: pixels whose ratio differs from the first gain estimate by more than this are "changed"
 _GAIN_TOLERANCE = 0.05
@@ -44,22 +44,21 @@ def brightness_gain(frame: np.ndarray, background: np.ndarray) -> np.ndarray:
             background are not from the same sensor/lighting.
     """
     step = max(1, min(_STAT_STEP, min(frame.shape[:2]) // 60))
-    bg_sub = np.ascontiguousarray(np.maximum(background[::step, ::step], np.float32(1.0)),
-                                  dtype=np.float32)
-    ratio = ratio_kernel(np.asarray(frame, np.float32), bg_sub, step)
-    gain = _row_medians(ratio)
+    ratio = ratio_kernel(np.asarray(frame, np.float32), np.asarray(background, np.float32), step)
+    gain = row_medians(ratio)
     unchanged = unchanged_kernel(ratio, gain, _GAIN_TOLERANCE)
     if unchanged.shape[1] >= 0.1 * ratio.shape[1]:
-        gain = _row_medians(unchanged)
+        gain = row_medians(unchanged)
     if not (np.isfinite(gain).all() and (gain > 0.2).all() and (gain < 5.0).all()):
         raise InputDataError(f"brightness gain {gain} between frame and background is "
                              "implausible: is the background from this sensor?")
     return gain.astype(np.float32)
 
 
-def _row_medians(values: np.ndarray) -> np.ndarray:
-    """Median of each row of a float32 (3, n) array, n >= 1: ``np.median(values, axis=1)``
-    through numpy's (vectorised) sort, several times faster than its selection here."""
+def row_medians(values: np.ndarray) -> np.ndarray:
+    """Median of each row of a 2-D array with n >= 1 columns, equal to
+    ``np.median(values, axis=1)``, through numpy's vectorised sort (several times faster than
+    its selection on these sizes, which are full of ties)."""
     ordered = np.sort(values, axis=1)
     n = ordered.shape[1]
     if n % 2:

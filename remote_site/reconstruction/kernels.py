@@ -34,16 +34,20 @@ DIV_DCT, DIV_DST, DIV_FFT = 0, 1, 2
 
 
 @njit(cache=True, nogil=True)
-def ratio_kernel(frame: np.ndarray, bg_sub: np.ndarray,
+def ratio_kernel(frame: np.ndarray, background: np.ndarray,
                  step: int) -> np.ndarray:  # pragma: no cover - compiled
-    """``frame[::step, ::step] / bg_sub`` as a (3, n) float32 array (one row per channel)."""
-    nr, nc = bg_sub.shape[0], bg_sub.shape[1]
+    """``frame[::step, ::step] / max(background[::step, ::step], 1)`` as a (3, n) float32
+    array (one row per channel)."""
+    nr = (frame.shape[0] + step - 1) // step
+    nc = (frame.shape[1] + step - 1) // step
     ratio = np.empty((3, nr * nc), np.float32)
+    one = np.float32(1.0)
     k = 0
     for i in range(nr):
         for j in range(nc):
             for v in range(3):
-                ratio[v, k] = frame[i * step, j * step, v] / bg_sub[i, j, v]
+                ratio[v, k] = frame[i * step, j * step, v] / max(background[i * step, j * step, v],
+                                                                 one)
             k += 1
     return ratio
 

@@ -31,6 +31,7 @@ from remote_site.reconstruction.features import (
     inverse_background_pct,
     pixel_position,
     relative_change,
+    row_medians,
 )
 from remote_site.reconstruction.frames import validate_frame
 from remote_site.reconstruction.grid_predict import GridPredictor
@@ -308,13 +309,14 @@ class Reconstructor:
             return height, mask, bool(finite)
         step = max(1, min(height.shape) // 60)
         sub = height[::step, ::step]
-        base = np.float32(np.median(sub))
+        base = np.float32(row_medians(sub.reshape(1, -1))[0])
         radius_px = round(self.settings.zero_exclusion_mm / pitch_mm)
         free = free_subsample_kernel(height, base, threshold, radius_px, step)
         if np.count_nonzero(free) < 10:
             c0, c1, c2 = base, np.float32(0.0), np.float32(0.0)
         elif mode == "median":
-            c0, c1, c2 = np.float32(np.median(sub[free])), np.float32(0.0), np.float32(0.0)
+            c0 = np.float32(row_medians(sub[free].reshape(1, -1))[0])
+            c1, c2 = np.float32(0.0), np.float32(0.0)
         else:
             coef = plane_normal_equations(sub, free, step)
             c0, c1, c2 = np.float32(coef[0]), np.float32(coef[1]), np.float32(coef[2])

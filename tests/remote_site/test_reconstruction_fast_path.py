@@ -231,3 +231,16 @@ def test_baked_predictor_equals_the_reference_kernel(seed: int, degree: int,
     ref._predict_active(change, active, predictor.inv_scale, predictor.exponents,
                         predictor.coeffs, predictor.max_slope, expected[0], expected[1])
     np.testing.assert_array_equal(got, expected)
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**31), rows=st.integers(1, 4), n=st.integers(1, 300),
+       levels=st.sampled_from([2, 7, 10_000]))
+def test_row_medians_equal_numpy(seed: int, rows: int, n: int, levels: int) -> None:
+    from remote_site.reconstruction.features import row_medians
+
+    rng = np.random.default_rng(seed)
+    values = (rng.integers(0, levels, (rows, n)) / rng.uniform(1, 300)).astype(np.float32)
+    got = row_medians(values)
+    assert got.dtype == np.float32
+    np.testing.assert_array_equal(got, np.median(values, axis=1))
