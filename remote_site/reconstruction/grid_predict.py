@@ -9,7 +9,10 @@ whose coefficients are polynomials in the position:
 On a fixed grid (the sensor frame, or a pooled one) the positions never change, so ``C`` is
 computed once per grid (56 colour monomials x 2 slopes per pixel for degree 5, instead of 252
 terms) and a fused numba loop evaluates only the pixels above the dead zone, writing the slope
-maps in place (no gather/scatter). The result equals :meth:`PolyGradientModel.predict` up to
+maps in place (no gather/scatter). When the colour terms are all monomials up to the degree
+(the polynomial models), the generated straight-line kernel of that degree
+(``poly_kernels``, about 40 % faster than the loop over terms, same result bit for bit) runs
+instead of the loop. The result equals :meth:`PolyGradientModel.predict` up to
 float32 rounding order (checked in the tests).
 """
 
@@ -20,6 +23,8 @@ from typing import Protocol
 
 import numpy as np
 from numba import njit
+
+from remote_site.reconstruction.poly_kernels import KERNELS
 
 __all__ = ["MAX_BAKED_BYTES", "BakedPolyPredictor", "GridPredictor", "PlainGridPredictor"]
 
@@ -69,51 +74,6 @@ def _predict_active(change: np.ndarray, active: np.ndarray, inv_scale: np.ndarra
                         * powers[2, exponents[m, 2]])
                 sx += mono * coeffs[p, m, 0]
                 sy += mono * coeffs[p, m, 1]
-            gx[i, j] = min(max(sx, -limit), limit)
-            gy[i, j] = min(max(sy, -limit), limit)
-
-
-@njit(cache=True, nogil=True, error_model="numpy", fastmath=True)
-def _predict_active_complete(change: np.ndarray, active: np.ndarray, inv_scale: np.ndarray,
-                             max_deg: int, coeffs: np.ndarray, max_slope: float,
-                             gx: np.ndarray, gy: np.ndarray) -> None:  # pragma: no cover
-    """:func:`_predict_active` when the colour terms are *all* monomials of degree <= max_deg
-    in lexicographic order (the polynomial models): nested loops walk the terms in table
-    order without exponent lookups, on 1-D power tables and the flat (pixels, 2 x terms)
-    coefficient rows. Same products, same order of the sums: the same result, bit for bit
-    (checked in the tests), about 15 % less time."""
-    rows, cols = active.shape
-    p0 = np.empty(max_deg + 1, np.float32)
-    p1 = np.empty(max_deg + 1, np.float32)
-    p2 = np.empty(max_deg + 1, np.float32)
-    limit = np.float32(max_slope)
-    s0, s1, s2 = inv_scale[0], inv_scale[1], inv_scale[2]
-    for i in range(rows):
-        for j in range(cols):
-            if not active[i, j]:
-                continue
-            r = change[i, j, 0] * s0
-            g = change[i, j, 1] * s1
-            b = change[i, j, 2] * s2
-            p0[0] = np.float32(1.0)
-            p1[0] = np.float32(1.0)
-            p2[0] = np.float32(1.0)
-            for d in range(1, max_deg + 1):
-                p0[d] = p0[d - 1] * r
-                p1[d] = p1[d - 1] * g
-                p2[d] = p2[d - 1] * b
-            row = coeffs[i * cols + j]
-            sx = np.float32(0.0)
-            sy = np.float32(0.0)
-            m = 0
-            for a in range(max_deg + 1):
-                for e in range(max_deg + 1 - a):
-                    pae = p0[a] * p1[e]
-                    for c in range(max_deg + 1 - a - e):
-                        mono = pae * p2[c]
-                        sx += mono * row[m]
-                        sy += mono * row[m + 1]
-                        m += 2
             gx[i, j] = min(max(sx, -limit), limit)
             gy[i, j] = min(max(sy, -limit), limit)
 
@@ -175,10 +135,10 @@ class BakedPolyPredictor:
         """
         change = np.ascontiguousarray(change, dtype=np.float32)
         active = np.ascontiguousarray(active)
-        if self._complete_degree is not None:
-            _predict_active_complete(change, active, self.inv_scale, self._complete_degree,
-                                     self.coeffs.reshape(len(self.coeffs), -1),
-                                     self.max_slope, gx, gy)
+        kernel = KERNELS.get(self._complete_degree or -1)
+        if kernel is not None:
+            kernel(change, active, self.inv_scale, self.coeffs.reshape(len(self.coeffs), -1),
+                   self.max_slope, gx, gy)
         else:
             _predict_active(change, active, self.inv_scale, self.exponents, self.coeffs,
                             self.max_slope, gx, gy)

@@ -244,3 +244,9 @@ def test_row_medians_equal_numpy(seed: int, rows: int, n: int, levels: int) -> N
     got = row_medians(values)
     assert got.dtype == np.float32
     np.testing.assert_array_equal(got, np.median(values, axis=1))
+
+
+def test_generated_poly_kernels_are_up_to_date() -> None:
+    from lab.gen_poly_kernels import TARGET, generate
+
+    assert TARGET.read_text() == generate(), "run: python -m lab.gen_poly_kernels"
