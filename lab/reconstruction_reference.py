@@ -13,6 +13,8 @@ settings.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import scipy.fft as sfft
 from numba import njit
@@ -155,6 +157,7 @@ def reference_divergence(px: np.ndarray, py: np.ndarray, solver: str) -> np.ndar
             + np.diff(_edge_slopes(py, 0, solver), axis=0))
 
 
+@functools.lru_cache(maxsize=8)
 def _denominator(shape: tuple[int, int], solver: str) -> np.ndarray:
     rows, cols = shape
     if solver == "dct":

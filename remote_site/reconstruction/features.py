@@ -73,7 +73,9 @@ def inverse_background_pct(background: np.ndarray) -> np.ndarray:
 
 def relative_change(frame: np.ndarray, background: np.ndarray,
                     blur_sigma_px: float = 1.0,
-                    inv_background_pct: np.ndarray | None = None) -> np.ndarray:
+                    inv_background_pct: np.ndarray | None = None,
+                    out: np.ndarray | None = None, work: np.ndarray | None = None
+                    ) -> np.ndarray:
     """Brightness-normalised relative colour change in percent, (H, W, 3) float32.
 
     Args:
@@ -81,6 +83,8 @@ def relative_change(frame: np.ndarray, background: np.ndarray,
         background: float32 (H, W, 3), validated, same shape.
         blur_sigma_px: Gaussian smoothing of the change (0 = none).
         inv_background_pct: :func:`inverse_background_pct` of ``background`` if cached.
+        out, work: float32 (H, W, 3) scratch arrays to reuse for the result and (when
+            blurring) the unblurred change; new arrays if None.
     """
     import cv2
 
@@ -89,10 +93,18 @@ def relative_change(frame: np.ndarray, background: np.ndarray,
         inv_background_pct = inverse_background_pct(background)
     # 100 * (I / (g * B) - 1) in one fused pass (same float32 operations as
     # frame * (1 / g) * inv_background_pct - 100)
-    change = change_kernel(np.asarray(frame, np.float32), (1.0 / gain).astype(np.float32),
-                           inv_background_pct)
+    shape = (*frame.shape[:2], 3)
     if blur_sigma_px > 0:
-        change = cv2.GaussianBlur(change, (0, 0), blur_sigma_px)
+        change = work if work is not None else np.empty(shape, np.float32)
+    else:
+        change = out if out is not None else np.empty(shape, np.float32)
+    change_kernel(np.asarray(frame, np.float32), (1.0 / gain).astype(np.float32),
+                  inv_background_pct, change)
+    if blur_sigma_px > 0:
+        if out is None:
+            return np.asarray(cv2.GaussianBlur(change, (0, 0), blur_sigma_px))
+        cv2.GaussianBlur(change, (0, 0), blur_sigma_px, dst=out)
+        return out
     return change
 
 

@@ -25,7 +25,6 @@ __all__ = [
     "plane_normal_equations",
     "ratio_kernel",
     "subtract_plane_kernel",
-    "threshold_kernel",
     "unchanged_kernel",
 ]
 
@@ -79,17 +78,15 @@ def unchanged_kernel(ratio: np.ndarray, gain: np.ndarray,
 
 
 @njit(cache=True, nogil=True)
-def change_kernel(frame: np.ndarray, inv_gain: np.ndarray,
-                  inv_bg_pct: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
-    """``frame * inv_gain * inv_bg_pct - 100`` per channel, float32, one pass."""
+def change_kernel(frame: np.ndarray, inv_gain: np.ndarray, inv_bg_pct: np.ndarray,
+                  out: np.ndarray) -> None:  # pragma: no cover - compiled
+    """``out = frame * inv_gain * inv_bg_pct - 100`` per channel, float32, one pass."""
     rows, cols = frame.shape[0], frame.shape[1]
-    out = np.empty((rows, cols, 3), np.float32)
     hundred = np.float32(100.0)
     for i in range(rows):
         for j in range(cols):
             for v in range(3):
                 out[i, j, v] = frame[i, j, v] * inv_gain[v] * inv_bg_pct[i, j, v] - hundred
-    return out
 
 
 @njit(cache=True, nogil=True)
@@ -177,15 +174,18 @@ def divergence_kernel(gx: np.ndarray, gy: np.ndarray, pitch: np.floating, solver
 
 @njit(cache=True, nogil=True)
 def free_subsample_kernel(height: np.ndarray, base: np.float32, threshold: np.float32,
-                          radius: int, step: int) -> np.ndarray:  # pragma: no cover - compiled
+                          radius: int, step: int,
+                          integral: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
     """Subsampled (``[::step, ::step]``) mask of pixels with no raised pixel within
     ``radius`` (a (2r+1)^2 square, clipped at the border): the free gel of the zero level.
 
     Raised = ``height - base > threshold``. Same as dilating the raised mask with a square
-    kernel (OpenCV's default border adds nothing) and subsampling, via an integral image.
+    kernel (OpenCV's default border adds nothing) and subsampling, via an integral image
+    written into ``integral`` (int32, (rows + 1, cols + 1), scratch).
     """
     rows, cols = height.shape
-    integral = np.zeros((rows + 1, cols + 1), np.int32)
+    integral[0, :] = 0
+    integral[:, 0] = 0
     for i in range(rows):
         run = 0
         for j in range(cols):
@@ -277,17 +277,3 @@ def subtract_plane_kernel(height: np.ndarray, c0: np.float32, c1: np.float32, c2
             mask[i, j] = value > threshold
             finite = finite and np.isfinite(value)
     return out, mask, finite
-
-
-@njit(cache=True, nogil=True)
-def threshold_kernel(height: np.ndarray, threshold: np.float32
-                     ) -> tuple[np.ndarray, bool]:  # pragma: no cover - compiled
-    """``height > threshold`` and whether every value is finite, in one pass."""
-    rows, cols = height.shape
-    mask = np.empty((rows, cols), np.bool_)
-    finite = True
-    for i in range(rows):
-        for j in range(cols):
-            mask[i, j] = height[i, j] > threshold
-            finite = finite and np.isfinite(height[i, j])
-    return mask, finite

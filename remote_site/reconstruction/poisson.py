@@ -82,13 +82,17 @@ class PoissonSolver:
         self.solver = solver
         self.dtype = np.dtype(dtype)
 
-    def integrate(self, gx: np.ndarray, gy: np.ndarray, pitch_mm: float) -> np.ndarray:
+    def integrate(self, gx: np.ndarray, gy: np.ndarray, pitch_mm: float,
+                  work: np.ndarray | None = None) -> np.ndarray:
         """Return the least-squares height (mm) whose slopes are ``gx``, ``gy``.
 
         Args:
             gx: dh/dx along columns, dimensionless (mm per mm), shape (H, W).
             gy: dh/dy along rows, same shape.
             pitch_mm: pixel pitch in mm.
+            work: scratch array of shape (H, W) and this solver's dtype for the divergence
+                and the (in-place) transforms: the height returned may then *be* ``work``
+                (reuse it only once the height is consumed). A new array if None.
 
         Returns:
             Height in mm, shape (H, W). For ``dct``/``fft`` it has zero mean.
@@ -106,7 +110,9 @@ class PoissonSolver:
             raise InputDataError(f"gradient maps must be at least 2 x 2, got {gx.shape}")
         if not (np.isfinite(pitch_mm) and pitch_mm > 0):
             raise InputDataError(f"pitch_mm must be positive and finite, got {pitch_mm}")
-        div = np.empty(gx.shape, self.dtype)
+        if work is None or work.shape != gx.shape or work.dtype != self.dtype:
+            work = np.empty(gx.shape, self.dtype)
+        div = work
         # one pass: slopes x pitch -> edge slopes -> divergence (a NaN/Inf slope spreads to it)
         divergence_kernel(gx, gy, self.dtype.type(pitch_mm), _DIVERGENCE_CODE[self.solver], div)
         if not np.isfinite(div).all():

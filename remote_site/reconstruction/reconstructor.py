@@ -40,9 +40,9 @@ from remote_site.reconstruction.kernels import (
     free_subsample_kernel,
     plane_normal_equations,
     subtract_plane_kernel,
-    threshold_kernel,
 )
 from remote_site.reconstruction.poisson import SOLVERS, PoissonSolver
+from remote_site.reconstruction.workspace import Workspace
 from shared.errors import ConfigError, InputDataError
 
 __all__ = ["HeightMap", "ReconstructionSettings", "Reconstructor"]
@@ -143,6 +143,7 @@ class Reconstructor:
         self._last_bg: tuple[np.ndarray, np.ndarray] | None = None
         self._predictors: dict[int, GridPredictor] = {}
         self._pooled_bg: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+        self._workspace = Workspace()
 
     @classmethod
     def from_file(cls, path: str | os.PathLike[str],
@@ -232,8 +233,21 @@ class Reconstructor:
         Raises:
             InputDataError: the frame or background fails validation.
         """
+        return self._slopes(frame_rgb, background, factor, reuse=False)
+
+    def _slopes(self, frame_rgb: np.ndarray, background: np.ndarray | None, factor: int,
+                reuse: bool) -> tuple[np.ndarray, np.ndarray, bool]:
+        """:meth:`slopes`; with ``reuse`` the intermediates *and the slope maps* are this
+        thread's workspace arrays (valid until its next call)."""
         calib = self.calibration
-        frame = validate_frame(frame_rgb, self.shape_hw)
+        ws = self._workspace if reuse else None
+
+        def scratch(name: str, shape: tuple[int, ...], dtype: type = np.float32
+                    ) -> np.ndarray | None:
+            return None if ws is None else ws.get(name, shape, dtype)
+
+        shape3 = (*self.shape_hw, 3)
+        frame = validate_frame(frame_rgb, self.shape_hw, out=scratch("frame", shape3))
         bg, inv_bg = self._background_for(background)
         pool_change = factor > 1 and self.settings.pool == "change"
         if pool_change:
@@ -241,9 +255,12 @@ class Reconstructor:
             # ratio for a smooth background); pooling smooths more than the calibration blur.
             frame = _pool(frame, factor)
             bg, inv_bg = self._pooled_background(bg, factor)
-            change = relative_change(frame, bg, 0.0, inv_background_pct=inv_bg)
+            change = relative_change(frame, bg, 0.0, inv_background_pct=inv_bg,
+                                     out=scratch("change", frame.shape))
         else:
-            change = relative_change(frame, bg, calib.blur_sigma_px, inv_background_pct=inv_bg)
+            change = relative_change(frame, bg, calib.blur_sigma_px, inv_background_pct=inv_bg,
+                                     out=scratch("change", shape3),
+                                     work=scratch("unblurred", shape3))
         noise = max(calib.noise_pct, 1e-3)
         # one pass: count of evidence pixels and the mask of pixels above the dead zone
         # (float32 thresholds, as numpy compares a float32 array with a Python float)
@@ -255,14 +272,17 @@ class Reconstructor:
         min_px = self.settings.min_contact_area_mm2 / grid_pitch_mm**2
         has_contact = evidence >= max(min_px, 1.0)
         grid = change.shape[:2]
-        gx = np.zeros(grid, np.float32)
-        gy = np.zeros(grid, np.float32)
+        gx = scratch("gx", grid)
+        gy = scratch("gy", grid)
+        if gx is None or gy is None:
+            gx, gy = np.zeros(grid, np.float32), np.zeros(grid, np.float32)
+        else:
+            gx.fill(0.0)
+            gy.fill(0.0)
         if has_contact:
             predictor = self._grid_predictor(factor if pool_change else 1, grid)
             predictor.predict_into(change, active, gx, gy)
-            if factor > 1 and not pool_change:
-                gx, gy = _pool(gx, factor), _pool(gy, factor)
-        elif factor > 1 and not pool_change:
+        if factor > 1 and not pool_change:
             gx, gy = _pool(gx, factor), _pool(gy, factor)
         return gx, gy, has_contact
 
@@ -284,11 +304,12 @@ class Reconstructor:
         """
         factor = self.pool_factor(out_pitch_mm)
         pitch_mm = self.calibration.mm_per_px * factor
-        gx, gy, has_contact = self.slopes(frame_rgb, background, factor)
+        gx, gy, has_contact = self._slopes(frame_rgb, background, factor, reuse=True)
         if not has_contact:
             zeros = np.zeros(gx.shape, np.float32)
             return HeightMap(zeros, np.zeros(gx.shape, bool), pitch_mm, skipped=True)
-        height = self._solver.integrate(gx, gy, pitch_mm)
+        work = self._workspace.get("poisson", gx.shape, self._solver.dtype)
+        height = self._solver.integrate(gx, gy, pitch_mm, work=work)
         height, mask, finite = self._zero_level_and_mask(height, pitch_mm)
         if not finite:  # cannot happen with finite slopes; never pass it on
             raise InputDataError("reconstruction produced non-finite heights")
@@ -298,25 +319,30 @@ class Reconstructor:
                              pitch_mm: float) -> tuple[np.ndarray, np.ndarray, bool]:
         """Height minus the zero level, its contact mask and whether it is all finite.
 
+        The height and mask returned are new arrays (``height`` may be workspace memory).
+
         The free gel is judged on the grid subsampled by ``step`` (the raised region dilated
         by ``zero_exclusion_mm``, evaluated only at the subsampled pixels); the plane is the
         least-squares fit through the free subsampled heights.
         """
         threshold = np.float32(self.settings.contact_threshold_mm)
         mode = self.settings.zero_level
-        if mode == "none":
-            mask, finite = threshold_kernel(height, threshold)
-            return height, mask, bool(finite)
+        zero = np.float32(0.0)
+        if mode == "none":  # h - 0 == h exactly: the kernel just copies, masks and checks
+            out, mask, finite = subtract_plane_kernel(height, zero, zero, zero, threshold)
+            return out, mask, bool(finite)
         step = max(1, min(height.shape) // 60)
         sub = height[::step, ::step]
         base = np.float32(row_medians(sub.reshape(1, -1))[0])
         radius_px = round(self.settings.zero_exclusion_mm / pitch_mm)
-        free = free_subsample_kernel(height, base, threshold, radius_px, step)
+        integral = self._workspace.get("integral", (height.shape[0] + 1, height.shape[1] + 1),
+                                       np.int32)
+        free = free_subsample_kernel(height, base, threshold, radius_px, step, integral)
         if np.count_nonzero(free) < 10:
-            c0, c1, c2 = base, np.float32(0.0), np.float32(0.0)
+            c0, c1, c2 = base, zero, zero
         elif mode == "median":
             c0 = np.float32(row_medians(sub[free].reshape(1, -1))[0])
-            c1, c2 = np.float32(0.0), np.float32(0.0)
+            c1, c2 = zero, zero
         else:
             coef = plane_normal_equations(sub, free, step)
             c0, c1, c2 = np.float32(coef[0]), np.float32(coef[1]), np.float32(coef[2])

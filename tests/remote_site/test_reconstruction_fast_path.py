@@ -157,7 +157,8 @@ def test_free_subsample_equals_dilation(seed: int, shape: tuple[int, int], radiu
     raised = (height > 0.5).astype(np.uint8)
     kernel = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
     expected = cv2.dilate(raised, kernel)[::step, ::step] == 0
-    got = free_subsample_kernel(height, np.float32(0.0), np.float32(0.5), radius, step)
+    integral = np.full((shape[0] + 1, shape[1] + 1), 99, np.int32)  # garbage: must be reset
+    got = free_subsample_kernel(height, np.float32(0.0), np.float32(0.5), radius, step, integral)
     np.testing.assert_array_equal(got, expected)
 
 
@@ -250,3 +251,67 @@ def test_generated_poly_kernels_are_up_to_date() -> None:
     from lab.gen_poly_kernels import TARGET, generate
 
     assert TARGET.read_text() == generate(), "run: python -m lab.gen_poly_kernels"
+
+
+def test_results_are_never_workspace_memory(sim: tuple[PhotometricModel, Reconstructor]) -> None:
+    """Scratch arrays are reused between frames: what a caller holds must not change."""
+    model, rec = sim
+    rows, cols = model.settings.shape_hw
+    p = model.settings.mm_per_px
+    frames = [model.render(ball_depth_mm((rows, cols), p, cols * x, rows * 0.5, 3.0, 0.4))
+              for x in (0.3, 0.7)]
+    first = rec.height_map(frames[0])
+    kept = first.height_mm.copy(), first.mask.copy()
+    gx, _gy, _ = rec.slopes(frames[0])
+    gx_kept = gx.copy()
+    second = rec.height_map(frames[1])
+    rec.slopes(frames[1])
+    np.testing.assert_array_equal(first.height_mm, kept[0])
+    np.testing.assert_array_equal(first.mask, kept[1])
+    np.testing.assert_array_equal(gx, gx_kept)
+    assert not np.shares_memory(first.height_mm, second.height_mm)
+    again = rec.height_map(frames[0])
+    np.testing.assert_array_equal(again.height_mm, first.height_mm)
+
+
+def test_reconstructor_threads_do_not_share_scratch(
+        sim: tuple[PhotometricModel, Reconstructor]) -> None:
+    import threading
+
+    model, rec = sim
+    rows, cols = model.settings.shape_hw
+    p = model.settings.mm_per_px
+    frames = [model.render(ball_depth_mm((rows, cols), p, cols * x, rows * 0.5, 3.0, 0.4))
+              for x in (0.3, 0.7)]
+    expected = [rec.height_map(f).height_mm for f in frames]
+    failures: list[str] = []
+
+    def worker(k: int) -> None:
+        for _ in range(15):
+            if not np.array_equal(rec.height_map(frames[k]).height_mm, expected[k]):
+                failures.append(f"thread {k}")
+
+    threads = [threading.Thread(target=worker, args=(k,)) for k in (0, 1)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not failures
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**31), dtype=st.sampled_from([np.uint8, np.float32, np.float64]),
+       blur=st.sampled_from([0.0, 1.0]))
+def test_scratch_outputs_equal_fresh_ones(seed: int, dtype: type, blur: float) -> None:
+    from remote_site.reconstruction.frames import validate_frame
+
+    rng = np.random.default_rng(seed)
+    raw = rng.integers(20, 230, (24, 31, 3)).astype(dtype)
+    garbage = np.full((24, 31, 3), np.nan, np.float32)
+    frame = validate_frame(raw, out=garbage)
+    assert frame is garbage
+    np.testing.assert_array_equal(frame, validate_frame(raw))
+    background = rng.uniform(20, 230, (24, 31, 3)).astype(np.float32)
+    out, work = np.full_like(garbage, 7.0), np.full_like(garbage, 7.0)
+    np.testing.assert_array_equal(relative_change(frame, background, blur, out=out, work=work),
+                                  relative_change(frame, background, blur))
