@@ -306,7 +306,7 @@ def test_scratch_outputs_equal_fresh_ones(seed: int, dtype: type, blur: float) -
     from remote_site.reconstruction.frames import validate_frame
 
     rng = np.random.default_rng(seed)
-    raw = rng.integers(20, 230, (24, 31, 3)).astype(dtype)
+    raw: np.ndarray = rng.integers(20, 230, (24, 31, 3)).astype(dtype)
     garbage = np.full((24, 31, 3), np.nan, np.float32)
     frame = validate_frame(raw, out=garbage)
     assert frame is garbage
