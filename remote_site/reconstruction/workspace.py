@@ -1,10 +1,13 @@
 """Scratch arrays reused from frame to frame, one set per thread.
 
 A 320 x 240 frame passes through several ~1 MB intermediates (float frame, colour change,
-its blur, slopes, divergence, transform). Allocated afresh per frame, each one is mapped from
-the kernel and page-faulted in on first write: about 640 faults, 40 % of the run time of a
-frame on the test machine. Reused buffers are faulted in once. Only intermediates live here:
-every array a caller receives is its own.
+its blur, slopes, divergence, transform). Allocated afresh per frame they may come back from
+the kernel as fresh pages, faulted in on first write: whether they do depends on the
+allocator's state (numpy's own temporaries were mostly recycled by malloc; the same arrays
+allocated inside the compiled kernels were not: about 640 faults per frame, 40 % of a
+frame's time, in an intermediate version of this change). Reused buffers are faulted in
+once, whatever else the process does. Only intermediates live here: every array a caller
+receives is its own.
 """
 
 from __future__ import annotations
