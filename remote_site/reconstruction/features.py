@@ -29,8 +29,8 @@ def brightness_gain(frame: np.ndarray, background: np.ndarray) -> np.ndarray:
     """Per-channel gain that best maps the background onto the unchanged part of a frame.
 
     The median ratio frame/background on a subsample, refined once on the pixels within
-    ``_GAIN_TOLERANCE`` of it (one compiled pass; ``lab/reconstruction_reference.py`` has the
-    numpy form).
+    ``_GAIN_TOLERANCE`` of it (compiled ratio and selection passes, medians by sort;
+    ``lab/reconstruction_reference.py`` has the numpy form, with the same result).
 
     Args:
         frame: float32 (H, W, 3), validated.

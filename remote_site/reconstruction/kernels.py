@@ -2,8 +2,8 @@
 
 Each kernel does exactly the float32 operations, in the same order, as the numpy expression
 it replaces (no ``fastmath``, so no reassociation or fused multiply-add), so the results are
-the same bit for bit except where noted (the medians, and the zero-level plane solved from
-its 3 x 3 normal equations instead of an SVD least squares: float64 rounding, ~1e-12 mm).
+the same bit for bit, except the zero-level plane, solved from its 3 x 3 normal equations
+instead of an SVD least squares (float64 rounding; after the cast to float32, ~1e-7 mm).
 The straightforward numpy versions are kept as the independent reference in
 ``lab/reconstruction_reference.py``; tests/remote_site/test_reconstruction_fast_path.py
 checks each kernel against it over random inputs.

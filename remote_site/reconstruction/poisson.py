@@ -15,7 +15,9 @@ what they assume beyond the frame:
 * ``"fft"`` (periodic, Frankot-Chellappa): the frame wraps around. Fast but it leaks the
   slope of one border into the opposite one; kept as a reference variant.
 
-Eigenvalue denominators are cached per (shape, solver). All work is in float32 by default
+Eigenvalue denominators are cached per (shape, solver); scipy's pocketfft caches its plans.
+The divergence is one compiled pass (``kernels.divergence_kernel``) into a buffer the caller
+may supply, and the transforms run in place on it. All work is in float32 by default
 (heights of a few mm with ~1e-7 relative rounding are far below the sensor noise).
 """
 
