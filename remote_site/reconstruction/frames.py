@@ -35,16 +35,18 @@ MAX_CLIPPED_FRACTION = 0.25
 
 
 def validate_frame(frame: object, expected_hw: tuple[int, int] | None = None,
-                   name: str = "frame") -> np.ndarray:
+                   name: str = "frame", out: np.ndarray | None = None) -> np.ndarray:
     """Check a camera/simulator frame and return it as a float32 (H, W, 3) array.
 
     Args:
         frame: RGB image, ``uint8`` or float in [0, 255].
         expected_hw: required (rows, cols), e.g. the calibration's shape; None to skip.
         name: used in error messages (file name, "background", ...).
+        out: a float32 array of the frame's shape to write the result into (reused scratch
+            memory); a new array if None or of another shape.
 
     Returns:
-        float32 array (H, W, 3), values in [0, 255].
+        float32 array (H, W, 3), values in [0, 255] (``out`` when it was used).
 
     Raises:
         InputDataError: wrong type, shape or dtype; NaN/Inf; out-of-range values; a frame
@@ -59,17 +61,18 @@ def validate_frame(frame: object, expected_hw: tuple[int, int] | None = None,
     if expected_hw is not None and tuple(frame.shape[:2]) != tuple(expected_hw):
         raise InputDataError(f"{name}: size {frame.shape[1]}x{frame.shape[0]} (W x H) does not "
                              f"match the calibration's {expected_hw[1]}x{expected_hw[0]}")
-    if frame.dtype == np.uint8:
+    if frame.dtype != np.uint8 and not np.issubdtype(frame.dtype, np.floating):
+        raise InputDataError(f"{name}: dtype {frame.dtype} not supported (uint8 or float)")
+    if out is None or out.shape != frame.shape or out.dtype != np.float32:
         out = frame.astype(np.float32)
-    elif np.issubdtype(frame.dtype, np.floating):
-        out = frame.astype(np.float32)
+    else:
+        np.copyto(out, frame, casting="unsafe")  # the same conversion as astype(float32)
+    if frame.dtype != np.uint8:
         if not np.isfinite(out).all():
             raise InputDataError(f"{name}: contains NaN or Inf")
         if out.min() < 0.0 or out.max() > 255.0:
             raise InputDataError(f"{name}: float values must lie in [0, 255], got "
                                  f"[{out.min():.3g}, {out.max():.3g}]")
-    else:
-        raise InputDataError(f"{name}: dtype {frame.dtype} not supported (uint8 or float)")
     sub = out[::4, ::4]
     saturated = np.mean((sub[..., 0] >= SATURATION_LEVEL) | (sub[..., 1] >= SATURATION_LEVEL)
                         | (sub[..., 2] >= SATURATION_LEVEL))

@@ -15,7 +15,9 @@ what they assume beyond the frame:
 * ``"fft"`` (periodic, Frankot-Chellappa): the frame wraps around. Fast but it leaks the
   slope of one border into the opposite one; kept as a reference variant.
 
-Eigenvalue denominators are cached per (shape, solver). All work is in float32 by default
+Eigenvalue denominators are cached per (shape, solver); scipy's pocketfft caches its plans.
+The divergence is one compiled pass (``kernels.divergence_kernel``) into a buffer the caller
+may supply, and the transforms run in place on it. All work is in float32 by default
 (heights of a few mm with ~1e-7 relative rounding are far below the sensor noise).
 """
 
@@ -27,6 +29,7 @@ from typing import Literal
 import numpy as np
 import scipy.fft as sfft
 
+from remote_site.reconstruction.kernels import DIV_DCT, DIV_DST, DIV_FFT, divergence_kernel
 from shared.errors import InputDataError
 
 __all__ = ["SOLVERS", "PoissonSolver", "integrate_gradients"]
@@ -61,29 +64,7 @@ def _denominator(shape: tuple[int, int], solver: str, dtype_name: str) -> np.nda
     return out
 
 
-def _edge_slopes(g: np.ndarray, axis: int, solver: str) -> np.ndarray:
-    """Slopes on the edges between pixels along ``axis``, padded for ``solver``.
-
-    Returns an array one longer than ``g`` along ``axis`` (N+1 edges for N pixels) so that
-    ``np.diff`` of it is the divergence contribution.
-    """
-    g = np.moveaxis(g, axis, -1)
-    inner = 0.5 * (g[..., :-1] + g[..., 1:])
-    if solver == "dct":
-        first = np.zeros_like(g[..., :1])
-        last = first
-    elif solver == "dst":
-        first, last = g[..., :1], g[..., -1:]
-    else:  # fft: the edge between the last and the first pixel wraps
-        wrap = 0.5 * (g[..., -1:] + g[..., :1])
-        first, last = wrap, wrap
-    edges = np.concatenate([first, inner, last], axis=-1)
-    return np.moveaxis(edges, -1, axis)
-
-
-def _divergence(gx: np.ndarray, gy: np.ndarray, solver: str) -> np.ndarray:
-    return (np.diff(_edge_slopes(gx, 1, solver), axis=1)
-            + np.diff(_edge_slopes(gy, 0, solver), axis=0))
+_DIVERGENCE_CODE = {"dct": DIV_DCT, "dst": DIV_DST, "fft": DIV_FFT}
 
 
 class PoissonSolver:
@@ -103,13 +84,17 @@ class PoissonSolver:
         self.solver = solver
         self.dtype = np.dtype(dtype)
 
-    def integrate(self, gx: np.ndarray, gy: np.ndarray, pitch_mm: float) -> np.ndarray:
+    def integrate(self, gx: np.ndarray, gy: np.ndarray, pitch_mm: float,
+                  work: np.ndarray | None = None) -> np.ndarray:
         """Return the least-squares height (mm) whose slopes are ``gx``, ``gy``.
 
         Args:
             gx: dh/dx along columns, dimensionless (mm per mm), shape (H, W).
             gy: dh/dy along rows, same shape.
             pitch_mm: pixel pitch in mm.
+            work: scratch array of shape (H, W) and this solver's dtype for the divergence
+                and the (in-place) transforms: the height returned may then *be* ``work``
+                (reuse it only once the height is consumed). A new array if None.
 
         Returns:
             Height in mm, shape (H, W). For ``dct``/``fft`` it has zero mean.
@@ -127,21 +112,26 @@ class PoissonSolver:
             raise InputDataError(f"gradient maps must be at least 2 x 2, got {gx.shape}")
         if not (np.isfinite(pitch_mm) and pitch_mm > 0):
             raise InputDataError(f"pitch_mm must be positive and finite, got {pitch_mm}")
-        if not (np.isfinite(gx).all() and np.isfinite(gy).all()):
+        if work is None or work.shape != gx.shape or work.dtype != self.dtype:
+            work = np.empty(gx.shape, self.dtype)
+        div = work
+        # one pass: slopes x pitch -> edge slopes -> divergence (a NaN/Inf slope spreads to it)
+        divergence_kernel(gx, gy, self.dtype.type(pitch_mm), _DIVERGENCE_CODE[self.solver], div)
+        if not np.isfinite(div).all():
+            if np.isfinite(gx).all() and np.isfinite(gy).all():
+                raise InputDataError(f"slopes x pitch overflow {self.dtype.name}")
             raise InputDataError("gradient maps contain NaN or Inf")
-        px = gx.astype(self.dtype, copy=False) * self.dtype.type(pitch_mm)
-        py = gy.astype(self.dtype, copy=False) * self.dtype.type(pitch_mm)
-        div = _divergence(px, py, self.solver)
         denom = _denominator(gx.shape, self.solver, self.dtype.name)
+        # the transforms work in place on buffers this call owns (no copies)
         if self.solver == "dct":
-            spec = sfft.dctn(div, type=2, workers=1)
+            spec = sfft.dctn(div, type=2, workers=1, overwrite_x=True)
             spec /= denom
             spec[0, 0] = 0.0
-            height = sfft.idctn(spec, type=2, workers=1)
+            height = sfft.idctn(spec, type=2, workers=1, overwrite_x=True)
         elif self.solver == "dst":
-            spec = sfft.dstn(div, type=2, workers=1)
+            spec = sfft.dstn(div, type=2, workers=1, overwrite_x=True)
             spec /= denom
-            height = sfft.idstn(spec, type=2, workers=1)
+            height = sfft.idstn(spec, type=2, workers=1, overwrite_x=True)
         else:
             spec = sfft.rfft2(div, workers=1)
             spec /= denom

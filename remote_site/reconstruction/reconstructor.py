@@ -31,10 +31,18 @@ from remote_site.reconstruction.features import (
     inverse_background_pct,
     pixel_position,
     relative_change,
+    row_medians,
 )
 from remote_site.reconstruction.frames import validate_frame
 from remote_site.reconstruction.grid_predict import GridPredictor
+from remote_site.reconstruction.kernels import (
+    evidence_kernel,
+    free_subsample_kernel,
+    plane_normal_equations,
+    subtract_plane_kernel,
+)
 from remote_site.reconstruction.poisson import SOLVERS, PoissonSolver
+from remote_site.reconstruction.workspace import Workspace
 from shared.errors import ConfigError, InputDataError
 
 __all__ = ["HeightMap", "ReconstructionSettings", "Reconstructor"]
@@ -108,12 +116,6 @@ class HeightMap:
         return float(self.height_mm.max()) if self.height_mm.size else 0.0
 
 
-def _abs_max(change: np.ndarray) -> np.ndarray:
-    """max over channels of |change| (much faster than ``np.abs(c).max(axis=2)``)."""
-    return np.maximum(np.maximum(np.abs(change[..., 0]), np.abs(change[..., 1])),
-                      np.abs(change[..., 2]))
-
-
 def _pool(image: np.ndarray, factor: int) -> np.ndarray:
     import cv2
 
@@ -141,6 +143,7 @@ class Reconstructor:
         self._last_bg: tuple[np.ndarray, np.ndarray] | None = None
         self._predictors: dict[int, GridPredictor] = {}
         self._pooled_bg: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+        self._workspace = Workspace()
 
     @classmethod
     def from_file(cls, path: str | os.PathLike[str],
@@ -230,8 +233,21 @@ class Reconstructor:
         Raises:
             InputDataError: the frame or background fails validation.
         """
+        return self._slopes(frame_rgb, background, factor, reuse=False)
+
+    def _slopes(self, frame_rgb: np.ndarray, background: np.ndarray | None, factor: int,
+                reuse: bool) -> tuple[np.ndarray, np.ndarray, bool]:
+        """:meth:`slopes`; with ``reuse`` the intermediates *and the slope maps* are this
+        thread's workspace arrays (valid until its next call)."""
         calib = self.calibration
-        frame = validate_frame(frame_rgb, self.shape_hw)
+        ws = self._workspace if reuse else None
+
+        def scratch(name: str, shape: tuple[int, ...], dtype: type = np.float32
+                    ) -> np.ndarray | None:
+            return None if ws is None else ws.get(name, shape, dtype)
+
+        shape3 = (*self.shape_hw, 3)
+        frame = validate_frame(frame_rgb, self.shape_hw, out=scratch("frame", shape3))
         bg, inv_bg = self._background_for(background)
         pool_change = factor > 1 and self.settings.pool == "change"
         if pool_change:
@@ -239,26 +255,34 @@ class Reconstructor:
             # ratio for a smooth background); pooling smooths more than the calibration blur.
             frame = _pool(frame, factor)
             bg, inv_bg = self._pooled_background(bg, factor)
-            change = relative_change(frame, bg, 0.0, inv_background_pct=inv_bg)
+            change = relative_change(frame, bg, 0.0, inv_background_pct=inv_bg,
+                                     out=scratch("change", frame.shape))
         else:
-            change = relative_change(frame, bg, calib.blur_sigma_px, inv_background_pct=inv_bg)
+            change = relative_change(frame, bg, calib.blur_sigma_px, inv_background_pct=inv_bg,
+                                     out=scratch("change", shape3),
+                                     work=scratch("unblurred", shape3))
         noise = max(calib.noise_pct, 1e-3)
-        magnitude_full = _abs_max(change)
-        evidence = int(np.count_nonzero(magnitude_full > self.settings.contact_evidence_sigmas
-                                        * noise))
+        # one pass: count of evidence pixels and the mask of pixels above the dead zone
+        # (float32 thresholds, as numpy compares a float32 array with a Python float)
+        evidence, active = evidence_kernel(
+            np.ascontiguousarray(change, np.float32),
+            np.float32(self.settings.contact_evidence_sigmas * noise),
+            np.float32(self.settings.dead_zone_sigmas * noise))
         grid_pitch_mm = calib.mm_per_px * (factor if pool_change else 1)
         min_px = self.settings.min_contact_area_mm2 / grid_pitch_mm**2
         has_contact = evidence >= max(min_px, 1.0)
         grid = change.shape[:2]
-        gx = np.zeros(grid, np.float32)
-        gy = np.zeros(grid, np.float32)
+        gx = scratch("gx", grid)
+        gy = scratch("gy", grid)
+        if gx is None or gy is None:
+            gx, gy = np.zeros(grid, np.float32), np.zeros(grid, np.float32)
+        else:
+            gx.fill(0.0)
+            gy.fill(0.0)
         if has_contact:
-            active = magnitude_full > self.settings.dead_zone_sigmas * noise
             predictor = self._grid_predictor(factor if pool_change else 1, grid)
             predictor.predict_into(change, active, gx, gy)
-            if factor > 1 and not pool_change:
-                gx, gy = _pool(gx, factor), _pool(gy, factor)
-        elif factor > 1 and not pool_change:
+        if factor > 1 and not pool_change:
             gx, gy = _pool(gx, factor), _pool(gy, factor)
         return gx, gy, has_contact
 
@@ -280,40 +304,47 @@ class Reconstructor:
         """
         factor = self.pool_factor(out_pitch_mm)
         pitch_mm = self.calibration.mm_per_px * factor
-        gx, gy, has_contact = self.slopes(frame_rgb, background, factor)
+        gx, gy, has_contact = self._slopes(frame_rgb, background, factor, reuse=True)
         if not has_contact:
             zeros = np.zeros(gx.shape, np.float32)
             return HeightMap(zeros, np.zeros(gx.shape, bool), pitch_mm, skipped=True)
-        height = self._solver.integrate(gx, gy, pitch_mm)
-        height = self._apply_zero_level(height, pitch_mm)
-        if not np.isfinite(height).all():  # cannot happen with finite slopes; never pass it on
+        work = self._workspace.get("poisson", gx.shape, self._solver.dtype)
+        height = self._solver.integrate(gx, gy, pitch_mm, work=work)
+        height, mask, finite = self._zero_level_and_mask(height, pitch_mm)
+        if not finite:  # cannot happen with finite slopes; never pass it on
             raise InputDataError("reconstruction produced non-finite heights")
-        mask = height > self.settings.contact_threshold_mm
         return HeightMap(height, mask, pitch_mm, skipped=False)
 
-    def _apply_zero_level(self, height: np.ndarray, pitch_mm: float) -> np.ndarray:
-        import cv2
+    def _zero_level_and_mask(self, height: np.ndarray,
+                             pitch_mm: float) -> tuple[np.ndarray, np.ndarray, bool]:
+        """Height minus the zero level, its contact mask and whether it is all finite.
 
+        The height and mask returned are new arrays (``height`` may be workspace memory).
+
+        The free gel is judged on the grid subsampled by ``step`` (the raised region dilated
+        by ``zero_exclusion_mm``, evaluated only at the subsampled pixels); the plane is the
+        least-squares fit through the free subsampled heights.
+        """
+        threshold = np.float32(self.settings.contact_threshold_mm)
         mode = self.settings.zero_level
-        if mode == "none":
-            return height
+        zero = np.float32(0.0)
+        if mode == "none":  # h - 0 == h exactly: the kernel just copies, masks and checks
+            out, mask, finite = subtract_plane_kernel(height, zero, zero, zero, threshold)
+            return out, mask, bool(finite)
         step = max(1, min(height.shape) // 60)
-        base = float(np.median(height[::step, ::step]))
-        raised = ((height - base) > self.settings.contact_threshold_mm).astype(np.uint8)
-        radius_px = round(self.settings.zero_exclusion_mm / pitch_mm)
-        if radius_px > 0:
-            kernel = np.ones((2 * radius_px + 1, 2 * radius_px + 1), np.uint8)
-            raised = np.asarray(cv2.dilate(raised, kernel), np.uint8)
-        free = raised[::step, ::step] == 0
         sub = height[::step, ::step]
-        if free.sum() < 10:
-            return height - np.float32(base)
-        if mode == "median":
-            return height - np.float32(np.median(sub[free]))
-        rows, cols = np.nonzero(free)
-        design = np.stack([np.ones(len(rows)), cols * step, rows * step], axis=1)
-        coef, *_ = np.linalg.lstsq(design, sub[free].astype(np.float64), rcond=None)
-        r = np.arange(height.shape[0], dtype=np.float32)[:, None]
-        c = np.arange(height.shape[1], dtype=np.float32)[None, :]
-        plane = np.float32(coef[0]) + np.float32(coef[1]) * c + np.float32(coef[2]) * r
-        return (height - plane).astype(np.float32, copy=False)
+        base = np.float32(row_medians(sub.reshape(1, -1))[0])
+        radius_px = round(self.settings.zero_exclusion_mm / pitch_mm)
+        integral = self._workspace.get("integral", (height.shape[0] + 1, height.shape[1] + 1),
+                                       np.int32)
+        free = free_subsample_kernel(height, base, threshold, radius_px, step, integral)
+        if np.count_nonzero(free) < 10:
+            c0, c1, c2 = base, zero, zero
+        elif mode == "median":
+            c0 = np.float32(row_medians(sub[free].reshape(1, -1))[0])
+            c1, c2 = zero, zero
+        else:
+            coef = plane_normal_equations(sub, free, step)
+            c0, c1, c2 = np.float32(coef[0]), np.float32(coef[1]), np.float32(coef[2])
+        out, mask, finite = subtract_plane_kernel(height, c0, c1, c2, threshold)
+        return out, mask, bool(finite)
