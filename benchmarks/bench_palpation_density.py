@@ -30,6 +30,9 @@ Usage::
 
     python benchmarks/bench_palpation_density.py --cache /tmp/density-cache \\
         --write benchmarks/results/palpation_density.md
+
+writes ``palpation_density.md`` (the tables), ``.json`` (every finding's figures) and
+``.png`` (the scores against the frame rate and the lag).
 """
 
 from __future__ import annotations
@@ -196,6 +199,55 @@ def lag_table(lags_ms: list[float], rate_hz: float,
     return "\n".join(lines), rows
 
 
+def plot(demo: list[dict[str, Any]], dev: list[dict[str, Any]], lag: list[dict[str, Any]],
+         path: Path) -> None:
+    """Malignant score against the frame rate (demo, development phantoms) and the lag."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
+    ax = axes[0]
+    for key, style, label in (("before_score", "rs--", "before"), ("after_score", "go-",
+                                                                   "after")):
+        pts = [(r["rate_hz"], t[key]) for r in demo for t in r["tumors"]
+               if t["id"] == "benign" and t["found"]]
+        ax.plot(*zip(*pts, strict=True), style, label=label)
+    ax.set_title("demo's benign tumor", fontsize=9)
+    ax.set_xscale("log")
+    ax.set_xlabel("frames/s")
+    ax.set_ylabel("malignant score (> 1: malignant)")
+    ax.legend(fontsize=8)
+    ax = axes[1]
+    for key, marker, label in (("before_score", "s", "before"), ("after_score", "o", "after")):
+        for kind, colour in (("benign", "tab:blue"), ("malignant", "tab:red")):
+            pts = [(r["rate_hz"] * (0.93 if key == "before_score" else 1.07), t[key])
+                   for r in dev for t in r["inclusions"]
+                   if t["found"] and t["kind"] == kind and math.isfinite(t[key])]
+            ax.plot(*zip(*pts, strict=True), marker, color=colour, mfc="none"
+                    if key == "before_score" else colour, ms=4, alpha=0.7,
+                    label=f"{label}: {kind}")
+    ax.set_title("development phantoms (seeds 1000-1011)", fontsize=9)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("frames/s")
+    ax.legend(fontsize=7)
+    ax = axes[2]
+    for key, style, label in (("before_score", "rs--", "before"), ("after_score", "go-",
+                                                                   "after")):
+        pts = [(r["lag_ms"], t[key]) for r in lag for t in r["tumors"]
+               if t["id"] == "benign" and t["found"]]
+        ax.plot(*zip(*pts, strict=True), style, label=label)
+    ax.set_title("demo's benign tumor, position lagging the image", fontsize=9)
+    ax.set_xlabel("lag, ms (45 mm/s)")
+    for a in axes:
+        a.axhline(1.0, color="k", lw=0.8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--cache", required=True, help="simulated recordings are kept here")
@@ -229,6 +281,7 @@ def main(argv: list[str] | None = None) -> int:
         out.with_suffix(".json").write_text(json.dumps(
             {"demo": demo, "dev": dev, "lag": lag, "command": command}, indent=1,
             default=float))
+        plot(demo, dev, lag, out.with_suffix(".png"))
     return 0
 
 
