@@ -6,14 +6,16 @@ simulated in-process (:func:`lab.bench.palpation_session.simulate_session`, the 
 own pipeline in simulated time) at several frame rates and analysed by the local station's
 analysis. Each finding is typed twice from the same analysis run:
 
-* ``before``: the typing of commit 836b4a8 (malignant score
+* ``before``: the typing of commit 836b4a8, from an analysis without the lag correction
+  (malignant score
   ``(0.22 / sharpness)^2 sqrt(peak) sqrt((1 + contrast) / 1.35)``, sharpness = mean
   gradient of the smoothed relief on the region's edge over its peak), recomputed from the
   fields the findings still report (``boundary_sharpness_per_mm``, ``peak_relief``,
   ``stiffness_contrast``, ``coverage``); detection is unchanged, so this is that commit's
   result;
 * ``after``: the finding's own ``kind`` (edge width and rim relief, see
-  ``local_site/palpation/findings.py``).
+  ``local_site/palpation/findings.py``), from the analysis as it is now (with the lag
+  correction of ``local_site/palpation/lag.py``).
 
 Three tables:
 
@@ -24,7 +26,8 @@ Three tables:
    with the rate? (the held-out check is the OOD ``frame-rate`` family, seeds 2000-2009);
 3. the demo's 120 frames/s session with each frame's position lagging its image by 0-25 ms
    (at 45 mm/s): a timing skew between the arm's pose and the image, which a loaded
-   station also produces, widens the boundary and is NOT corrected by this change.
+   station also produces, widens the boundary; the new typing without and with the lag
+   correction.
 
 Usage::
 
@@ -77,21 +80,41 @@ def before_kind(f: Finding) -> str:
     return "malignant" if before_score(f) > 1.0 else "benign"
 
 
-def _typed(findings: list[Finding], truth: dict[str, Any]) -> list[dict[str, Any]]:
-    """Per true tumor: the matched finding's before/after kind and scores."""
+def _match(findings: list[Finding], truth: dict[str, Any]) -> dict[str, Finding]:
     score = score_findings(findings, truth)
+    return {m["id"]: min(findings, key=lambda f: math.dist(f.center_mm, m["found_center_mm"]))
+            for m in score["matches"]}
+
+
+def _typed(before: list[Finding], after: list[Finding], truth: dict[str, Any],
+           unlagged: list[Finding] | None = None) -> list[dict[str, Any]]:
+    """Per true tumor: the before / after kinds and scores (``unlagged``: the after typing
+    without the lag correction, when given)."""
+    mb, ma = _match(before, truth), _match(after, truth)
+    mu = _match(unlagged, truth) if unlagged is not None else {}
     out = []
     for t in truth["tumors"]:
-        m = next((m for m in score["matches"] if m["id"] == t["id"]), None)
-        row: dict[str, Any] = {"id": t["id"], "kind": t["kind"], "found": m is not None}
-        if m is not None:
-            f = min(findings, key=lambda f: math.dist(f.center_mm, m["found_center_mm"]))
-            row.update(before=before_kind(f), after=f.kind, before_score=before_score(f),
-                       after_score=f.malignant_score, edge_mm=f.edge_width_mm,
-                       edge_se_mm=f.edge_width_se_mm, sharpness=f.boundary_sharpness_per_mm,
-                       coverage=f.coverage)
+        row: dict[str, Any] = {"id": t["id"], "kind": t["kind"], "found": t["id"] in ma}
+        if t["id"] in mb:
+            fb = mb[t["id"]]
+            row.update(before=before_kind(fb), before_score=before_score(fb),
+                       sharpness=fb.boundary_sharpness_per_mm)
+        if t["id"] in ma:
+            f = ma[t["id"]]
+            row.update(after=f.kind, after_score=f.malignant_score, edge_mm=f.edge_width_mm,
+                       edge_se_mm=f.edge_width_se_mm, coverage=f.coverage)
+        if t["id"] in mu:
+            row.update(after_no_lag_correction=mu[t["id"]].kind,
+                       after_no_lag_correction_score=mu[t["id"]].malignant_score)
         out.append(row)
     return out
+
+
+def _both(rec: Recording, ws: WorkspaceMap, truth: dict[str, Any],
+          unlagged: bool = False) -> list[dict[str, Any]]:
+    """Analyse ``rec`` as commit 836b4a8 did (no lag correction) and as now."""
+    before = analyse_recording(rec, ws, lag_correction=False)
+    return _typed(before, analyse_recording(rec, ws), truth, before if unlagged else None)
 
 
 def _demo_session(rate_hz: float, cache: Path) -> tuple[Recording, dict[str, Any]]:
@@ -116,8 +139,8 @@ def demo_table(rates: list[float], cache: Path) -> tuple[str, list[dict[str, Any
     rows: list[dict[str, Any]] = []
     for hz in rates:
         rec, truth = _demo_session(hz, cache)
-        typed = _typed(analyse_recording(rec, WorkspaceMap()), truth)
-        rows.append({"rate_hz": hz, "frames": rec.frames, "tumors": typed})
+        rows.append({"rate_hz": hz, "frames": rec.frames,
+                     "tumors": _both(rec, WorkspaceMap(), truth)})
     lines = ["| frames/s | frames | benign: before score | before | after edge mm | "
              "after score | after | malignant: before | after |", "|" + "---|" * 9]
     for r in rows:
@@ -146,12 +169,11 @@ def dev_table(seeds: list[int], rates: list[float],
                 est = ctx["registration"]
                 ws = (WorkspaceMap().registered(est.dx_mm, est.dy_mm, est.yaw_deg)
                       if est is not None else WorkspaceMap())
-                got["findings"] = analyse_recording(rec, ws)
-                got["truth"] = ctx["world"].phantom.ground_truth()
-                return list(got["findings"])
+                got["typed"] = _both(rec, ws, ctx["world"].phantom.ground_truth())
+                return []
 
             run_case(case, cache, analyse)
-            incs += _typed(got["findings"], got["truth"])
+            incs += got["typed"]
         rows.append({"rate_hz": hz, "inclusions": incs})
     lines = ["| frames/s | inclusions | before: b->b b->m m->b m->m unc. | after: b->b b->m "
              "m->b m->m unc. | before score benign / malignant (median) | after score "
@@ -185,15 +207,18 @@ def lag_table(lags_ms: list[float], rate_hz: float,
         centres = rec.frame_center_mm.copy()
         if k:
             centres[k:] = rec.frame_center_mm[:-k]
-        typed = _typed(analyse_recording(replace(rec, frame_center_mm=centres),
-                                         WorkspaceMap()), truth)
+        typed = _both(replace(rec, frame_center_mm=centres), WorkspaceMap(), truth,
+                      unlagged=True)
         rows.append({"lag_ms": k * 1000.0 / rate_hz, "tumors": typed})
-    lines = ["| lag ms | lag at 45 mm/s, mm | benign: before score | before | after edge mm | "
-             "after score | after |", "|" + "---|" * 7]
+    lines = ["| lag ms | lag at 45 mm/s, mm | benign: before score | before | after without "
+             "lag correction: score | kind | after edge mm | after score | after |",
+             "|" + "---|" * 9]
     for r in rows:
         b = next(t for t in r["tumors"] if t["id"] == "benign")
         lines.append(f"| {r['lag_ms']:.1f} | {r['lag_ms'] * 0.045:.2f} | "
                      f"{_fmt(b.get('before_score'))} | {b.get('before', 'missed')} | "
+                     f"{_fmt(b.get('after_no_lag_correction_score'))} | "
+                     f"{b.get('after_no_lag_correction', 'missed')} | "
                      f"{_fmt(b.get('edge_mm'), 3)} | {_fmt(b.get('after_score'))} | "
                      f"{b.get('after', 'missed')} |")
     return "\n".join(lines), rows
