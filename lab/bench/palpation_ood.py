@@ -24,6 +24,8 @@ coverage       the type phantoms, a raster over 40 .. 100 % of the workspace are
 registration   the type phantoms, registration error 0 .. 4 mm and 0 .. 6 degrees
 noise          the type phantoms, sensing noise (camera, LED drift, force, position) 0 .. 3x
                the realistic level, registration error zero
+frame-rate     the type phantoms, tactile frames at 4 .. 60 Hz (log spaced; the others
+               at 20 Hz): how many frames reach the analysis, as on a loaded machine
 =============  ====================================================================
 
 Recordings are cached (``--cache DIR``) by family, index, seed and world so the analysis can
@@ -63,6 +65,8 @@ FIDUCIALS = [{"center_mm": [x, y]} for x, y in ((-42.0, 0.0), (0.0, -42.0), (42.
                                                  (0.0, 42.0))]
 #: the issue's detection target: radius >= 3 mm, depth <= 12 mm, contrast >= 2x
 TARGET = {"radius_mm": 3.0, "depth_mm": 12.0, "contrast": 2.0}
+#: tactile frames per simulated second of every family but ``frame-rate``
+FRAME_RATE_HZ = 20.0
 
 
 @dataclass(frozen=True)
@@ -77,11 +81,13 @@ class Case:
     operator: Operator
     realism: Realism
     registration: Registration | None = None
+    frame_rate_hz: float = FRAME_RATE_HZ
 
     @property
     def key(self) -> str:
         world = "ideal" if self.realism == IDEAL else f"r{hash(self.realism) & 0xFFFFFF:06x}"
-        return f"{self.family}-{self.index:02d}-s{self.seed}-{world}"
+        rate = "" if self.frame_rate_hz == FRAME_RATE_HZ else f"-{self.frame_rate_hz:.3g}hz"
+        return f"{self.family}-{self.index:02d}-s{self.seed}-{world}{rate}"
 
 
 def _inclusion(rng: np.random.Generator, kind: str, radius: float, depth: float) -> dict[str, Any]:
@@ -131,6 +137,7 @@ def make_case(family: str, index: int, n: int, seed: int, ideal: bool = False) -
     realism = IDEAL if ideal else REALISTIC
     operator = Operator(seed=seed)
     registration: Registration | None = None
+    frame_rate_hz = FRAME_RATE_HZ
     factor = float(index)
     if family == "size":
         factor = _lin(index, n, 2.5, 8.0)
@@ -145,9 +152,12 @@ def make_case(family: str, index: int, n: int, seed: int, ideal: bool = False) -
         factor = float(index % 5)
         incs = [_base(radius_mm=3.5 + 0.9 * k, modulus_kpa=E_BG * 3.0 * 1.7 ** k,
                       severity_rank=k + 1) for k in range(int(factor))]
-    elif family in ("type", "free-operator", "coverage", "registration", "noise"):
+    elif family in ("type", "free-operator", "coverage", "registration", "noise",
+                    "frame-rate"):
         incs = _typed_pair(rng)
-        if family == "free-operator":
+        if family == "frame-rate":
+            factor = frame_rate_hz = _geom(index, n, 4.0, 60.0)
+        elif family == "free-operator":
             operator = Operator(kind="free", seed=seed)
         elif family == "coverage":
             factor = _lin(index, n, 0.4, 1.0)
@@ -168,11 +178,12 @@ def make_case(family: str, index: int, n: int, seed: int, ideal: bool = False) -
     phantom = {"name": f"ood-{family}-{index}", "layer": LAYER, "placement": PLACE,
                "inclusion": [{"id": f"T{k + 1}", **inc} for k, inc in enumerate(incs)],
                "fiducial": FIDUCIALS}
-    return Case(family, index, seed, factor, phantom, operator, realism, registration)
+    return Case(family, index, seed, factor, phantom, operator, realism, registration,
+                frame_rate_hz)
 
 
 FAMILIES: tuple[str, ...] = ("size", "depth", "contrast", "type", "count", "free-operator",
-                             "coverage", "registration", "noise")
+                             "coverage", "registration", "noise", "frame-rate")
 
 
 def _save(rec: Recording, path: Path) -> None:
@@ -231,7 +242,8 @@ def run_case(case: Case, cache: Path | None = None, analyse: Analyse = default_a
     if path is not None and path.exists():
         rec = _load(path)
     else:
-        rec = simulate_session(world, case.operator, workspace=WorkspaceMap(), frame_rate_hz=20.0)
+        rec = simulate_session(world, case.operator, workspace=WorkspaceMap(),
+                               frame_rate_hz=case.frame_rate_hz)
         if path is not None:
             path.parent.mkdir(parents=True, exist_ok=True)
             _save(rec, path)

@@ -5,19 +5,30 @@ same information the operator had. See :mod:`local_site.palpation.maps` and
 :mod:`local_site.palpation.findings` for the method.
 """
 
+import logging
+
 from local_site.palpation.findings import DetectionConfig, Finding, find_tumors
+from local_site.palpation.lag import correct_lag, estimate_lag_mm
 from local_site.palpation.maps import MapConfig, PalpationMaps, build_maps, pad_profile
 from local_site.recording import Recording, load_recording
 from shared.workspace import WorkspaceMap, load_workspace
 
 __all__ = ["DetectionConfig", "Finding", "MapConfig", "PalpationMaps", "Recording",
-           "analyse_recording", "build_maps", "find_tumors", "load_recording", "pad_profile"]
+           "analyse_recording", "build_maps", "correct_lag", "estimate_lag_mm", "find_tumors",
+           "load_recording", "pad_profile"]
+
+log = logging.getLogger(__name__)
 
 
 def analyse_recording(recording: Recording, workspace: WorkspaceMap | None = None,
                       map_config: MapConfig | None = None,
-                      detection: DetectionConfig | None = None) -> list[Finding]:
+                      detection: DetectionConfig | None = None, *,
+                      lag_correction: bool = True) -> list[Finding]:
     """Build the maps of ``recording`` and return the tumors found in them.
+
+    With ``lag_correction`` a lag between the frames' images and their stamped positions
+    is estimated from passes in opposite directions and corrected first
+    (:mod:`local_site.palpation.lag`; nothing is corrected when it cannot be estimated).
 
     Args:
         recording: what the local station received.
@@ -25,6 +36,7 @@ def analyse_recording(recording: Recording, workspace: WorkspaceMap | None = Non
             its metadata (``meta["workspace"]``), else the configured default.
         map_config: map settings.
         detection: detection and typing thresholds.
+        lag_correction: estimate and correct the image <-> position lag first.
 
     Raises:
         InputDataError: nothing was palpated.
@@ -33,4 +45,10 @@ def analyse_recording(recording: Recording, workspace: WorkspaceMap | None = Non
     if workspace is None:
         recorded = recording.meta.get("workspace")
         workspace = load_workspace(explicit=recorded if isinstance(recorded, dict) else None)
+    if lag_correction:
+        lag = estimate_lag_mm(recording, workspace, map_config)
+        if lag is not None:
+            log.info("frame positions lag their images by %.3f mm along the motion: "
+                     "corrected", lag)
+            recording = correct_lag(recording, lag)
     return find_tumors(build_maps(recording, workspace, map_config), detection)

@@ -12,19 +12,29 @@
   kernel: sparsely sampled cells (the scan's edge) need a larger excess. Connected
   candidates form regions; regions smaller than ``min_area_mm2`` are noise.
 * **Location**: the centroid of each region weighted by its relief excess (phantom mm).
-* **Type**: from the boundary and the stiffness. *Boundary sharpness* is the mean relief
-  gradient on the region's edge over its peak excess (1/mm): a graded (infiltrating)
-  boundary is soft. *Stiffness* is seen twice: the relief peak (the gel bulges more over
-  stiffer tissue) and the measured secant-stiffness contrast (region's 90th percentile of
-  the smoothed force/indentation map over the healthy median). The malignant score is
-  ``(sharp_ref / sharpness)^2 sqrt(peak / relief_ref) sqrt((1 + contrast) / ratio_ref)``;
-  above 1 means malignant. Outline irregularity is reported but not used: lobulated benign
-  tumors exist. The reference levels were set on development phantoms (OOD ``type``
-  family, seeds 1000-1005), never on the benchmark's held-out seeds.
+* **Type**: from the boundary and the stiffness, with features whose expectation does not
+  depend on how many frames were taken (a loaded machine delivers fewer; see
+  :mod:`local_site.palpation.edge`). *Edge width* (mm): a blurred step fitted, by least
+  squares weighted by each cell's sample count, to the RAW cell means against their signed
+  distance from the finding's half-maximum contour, over the outer fall (1 mm inside to
+  4 mm outside): a graded (infiltrating) boundary is wide. *Rim relief*: the
+  sample-weighted mean relief just inside the contour (0.5-2.5 mm): the gel bulges more
+  over stiffer tissue. The malignant score is
+  ``(edge_width / ref_edge)^2 * rim_relief / ref_rim``; above 1 means malignant. Both
+  carry a standard error; when the score is within ``type_uncertain_k`` standard errors
+  of 1, or the edge could not be fitted, the finding is typed ``uncertain`` (its best
+  guess is ``likely_kind``, itself ``uncertain`` when nothing could be measured: a finding
+  seen only at its edge has no rim to measure). The measured secant-stiffness contrast
+  (region's 90th percentile of the smoothed force/indentation map over the healthy
+  median) and the older *boundary sharpness* (mean relief gradient on the region's edge
+  over its peak, 1/mm; it drifts with the sampling density, which is why it no longer
+  types) are reported. Outline irregularity is reported but not used: lobulated benign tumors
+  exist. The reference levels were set on development phantoms (OOD ``type`` family,
+  seeds 1000-1011 at 20 frames/s), never on the benchmark's held-out seeds.
 * **Uncertain**: a finding whose disc (equivalent radius + ``coverage_margin_mm``) is less
   than ``min_coverage`` covered is typed ``uncertain`` (its best guess is ``likely_kind``).
 * **Confidence** in [0, 1]: coverage x detection margin (peak over threshold) x typing
-  margin (distance of the malignant score from 1, in log).
+  margin (distance of the malignant score from 1, in log, over its standard error).
 * **Severity**: the integrated relief excess over the region (mm^2), which grows with both
   the size and the hardness of the inclusion; rank 1 = least severe.
 """
@@ -38,6 +48,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
+from local_site.palpation.edge import EdgeFit, edge_distance_mm, fit_edge, rim_level
 from local_site.palpation.maps import PalpationMaps
 
 __all__ = ["DetectionConfig", "Finding", "find_tumors"]
@@ -55,9 +66,11 @@ class DetectionConfig:
     stiffness_smooth_mm: float = 2.0
     coverage_margin_mm: float = 2.0
     min_coverage: float = 0.9
-    malignant_ref_relief: float = 1.0
-    malignant_ref_sharpness_per_mm: float = 0.22
-    malignant_ref_stiffness_ratio: float = 1.35
+    edge_band_mm: tuple[float, float] = (-1.0, 4.0)
+    rim_band_mm: tuple[float, float] = (-2.5, -0.5)
+    malignant_ref_edge_mm: float = 0.75
+    malignant_ref_rim_relief: float = 1.0
+    type_uncertain_k: float = 2.0
 
 
 @dataclass(frozen=True)
@@ -78,6 +91,10 @@ class Finding:
     coverage: float = 1.0
     confidence: float = 0.0
     likely_kind: str = ""
+    edge_width_mm: float = math.nan
+    edge_width_se_mm: float = math.inf
+    rim_relief: float = math.nan
+    malignant_score: float = math.nan
 
     def to_dict(self) -> dict[str, object]:
         """Plain JSON."""
@@ -90,7 +107,16 @@ class Finding:
             "kind": self.kind, "severity_rank": self.severity_rank,
             "stiffness_contrast": self.stiffness_contrast, "coverage": self.coverage,
             "confidence": self.confidence, "likely_kind": self.likely_kind,
+            "edge_width_mm": _finite(self.edge_width_mm),
+            "edge_width_se_mm": _finite(self.edge_width_se_mm),
+            "rim_relief": _finite(self.rim_relief),
+            "malignant_score": _finite(self.malignant_score),
         }
+
+
+def _finite(v: float) -> float | None:
+    """JSON has no NaN or Inf: an unknown figure is null."""
+    return float(v) if math.isfinite(v) else None
 
 
 def _irregularity(excess: NDArray[np.float64], region: NDArray[np.bool_], peak: float,
@@ -103,6 +129,40 @@ def _irregularity(excess: NDArray[np.float64], region: NDArray[np.bool_], peak: 
     r = np.hypot(cols - cx, rows - cy) * cell
     mean = float(r.mean())
     return float(r.std() / mean) if mean > 0 else 0.0
+
+
+@dataclass(frozen=True)
+class _Boundary:
+    edge: EdgeFit
+    rim: float
+    rim_se: float
+
+
+def _boundary(excess: NDArray[np.float64], raw_excess: NDArray[np.float64],
+              counts: NDArray[np.float64], region: NDArray[np.bool_],
+              lesion: NDArray[np.bool_], peak: float, cell: float,
+              cfg: DetectionConfig) -> _Boundary:
+    """Edge width and rim relief of one region (cells near other regions left out)."""
+    inside = ndimage.binary_fill_holes((excess >= peak / 2.0) & region)
+    if inside is None or not inside.any():
+        inside = region
+    others = lesion & ~region
+    reach = max(-cfg.edge_band_mm[0], cfg.edge_band_mm[1], -cfg.rim_band_mm[0])
+    if others.any():
+        others = ndimage.binary_dilation(others, iterations=max(1, round(reach / cell)))
+    distance = edge_distance_mm(inside, cell)
+    edge = fit_edge(raw_excess, counts, distance, ~others, cfg.edge_band_mm)
+    rim, rim_se = rim_level(raw_excess, counts, distance, ~others, cfg.rim_band_mm)
+    return _Boundary(edge, rim, rim_se)
+
+
+def _type(b: _Boundary, cfg: DetectionConfig) -> tuple[float, float]:
+    """The malignant score and the standard error of its log (inf when unmeasured)."""
+    w, rim = b.edge.width_mm, b.rim
+    if not (math.isfinite(w) and w > 0 and math.isfinite(rim) and rim > 0):
+        return math.nan, math.inf
+    score = (w / cfg.malignant_ref_edge_mm) ** 2 * rim / cfg.malignant_ref_rim_relief
+    return score, math.hypot(2.0 * b.edge.relative_se, b.rim_se / rim)
 
 
 def _background(values: NDArray[np.float64]) -> tuple[float, float]:
@@ -170,6 +230,7 @@ def find_tumors(maps: PalpationMaps, config: DetectionConfig | None = None) -> l
                                   np.isfinite(maps.stiffness_n_per_mm).astype(float),
                                   cfg.stiffness_smooth_mm / cell)
     lesion = labels > 0
+    raw_excess = np.where(maps.relief_count > 0, maps.relief - background, np.nan)
     healthy_k = k_map[np.isfinite(k_map) & ~ndimage.binary_dilation(lesion, iterations=8)]
     k_background = (float(np.median(healthy_k)) if healthy_k.size
                     else maps.background_stiffness_n_per_mm)
@@ -182,9 +243,10 @@ def find_tumors(maps: PalpationMaps, config: DetectionConfig | None = None) -> l
         weights = np.where(region, excess, 0.0)
         cy, cx = ndimage.center_of_mass(weights)
         peak = float(excess[region].max())
-        edge = region & ~ndimage.binary_erosion(region)
-        sharpness = float(grad[edge].mean() / peak) if edge.any() and peak > 0 else 0.0
+        rim = region & ~ndimage.binary_erosion(region)
+        sharpness = float(grad[rim].mean() / peak) if rim.any() and peak > 0 else 0.0
         irregularity = _irregularity(excess, region, peak, cx, cy, cell)
+        boundary = _boundary(excess, raw_excess, counts, region, lesion, peak, cell, cfg)
         x_mm = float(np.interp(cx, np.arange(maps.x_mm.size), maps.x_mm))
         y_mm = float(np.interp(cy, np.arange(maps.y_mm.size), maps.y_mm))
         radius = math.sqrt(area / math.pi)
@@ -195,24 +257,25 @@ def find_tumors(maps: PalpationMaps, config: DetectionConfig | None = None) -> l
         around = _disc(maps, x_mm, y_mm, radius + cfg.coverage_margin_mm)
         coverage = float(covered[around].mean()) if around.any() else 0.0
         significance = peak / max(float(threshold[region].max()), 1e-9)
-        # a graded boundary (low sharpness) is the main cue; stiffer (relief peak, measured
-        # stiffness contrast) adds to it: the product of the ratios to reference levels,
-        # the boundary's squared, the stiffness cues' square-rooted (they grow with size
-        # and depth too)
-        malignant_score = ((cfg.malignant_ref_sharpness_per_mm / max(sharpness, 1e-3)) ** 2
-                           * math.sqrt(peak / cfg.malignant_ref_relief)
-                           * math.sqrt((1.0 + max(contrast, -0.9))
-                                       / cfg.malignant_ref_stiffness_ratio))
-        guess = "malignant" if malignant_score > 1.0 else "benign"
-        type_margin = abs(math.log(max(malignant_score, 1e-6)))
+        # a graded boundary (wide edge) is the main cue, a stiffer inclusion (higher rim
+        # relief) adds to it; a score within k standard errors of 1 is not a type
+        malignant_score, log_se = _type(boundary, cfg)
+        guess = ("uncertain" if not math.isfinite(malignant_score)
+                 else "malignant" if malignant_score > 1.0 else "benign")
+        type_margin = (abs(math.log(malignant_score)) / log_se
+                       if math.isfinite(log_se) and log_se > 0 else 0.0)
+        typed = math.isfinite(log_se) and type_margin >= cfg.type_uncertain_k
         confidence = (coverage * (1.0 - math.exp(-max(significance - 1.0, 0.0) * 2.0))
-                      * (1.0 - math.exp(-3.0 * type_margin)))
-        kind = guess if coverage >= cfg.min_coverage else "uncertain"
+                      * (1.0 - math.exp(-type_margin / cfg.type_uncertain_k)))
+        kind = guess if coverage >= cfg.min_coverage and typed else "uncertain"
         findings.append(Finding(
             center_mm=(x_mm, y_mm), area_mm2=area, equivalent_radius_mm=radius,
             peak_relief=peak, severity_score=float(weights.sum()) * cell * cell,
             boundary_sharpness_per_mm=sharpness, irregularity=irregularity,
             stiffness_n_per_mm=stiffness, kind=kind, stiffness_contrast=contrast,
-            coverage=coverage, confidence=confidence, likely_kind=guess))
+            coverage=coverage, confidence=confidence, likely_kind=guess,
+            edge_width_mm=boundary.edge.width_mm,
+            edge_width_se_mm=boundary.edge.width_se_mm, rim_relief=boundary.rim,
+            malignant_score=malignant_score))
     findings.sort(key=lambda f: f.severity_score)
     return [Finding(**{**f.__dict__, "severity_rank": i + 1}) for i, f in enumerate(findings)]

@@ -43,7 +43,12 @@ def test_demo_headless_json_reports_the_felt_tumor(tmp_path: Path) -> None:
     assert report["false_positives"] == 0
     benign = report["localization_error_mm"]["per_tumor"]["benign"]
     assert benign < 1.5
-    assert [m["found_kind"] for m in report["matches"] if m["id"] == "benign"] == ["benign"]
+    # typed from features that do not drift with the frames received (issue 10); the demo's
+    # benign tumor (5x stiffer, 6 mm) lies near the typing threshold, and where the score is
+    # within two standard errors of it the honest answer is "uncertain". Never malignant.
+    # (Deterministic typing at reduced frame rates: test_palpation_frame_rate.py.)
+    assert [m["found_kind"] for m in report["matches"] if m["id"] == "benign"] in (
+        ["benign"], ["uncertain"])
     e2e = report["latency_ms"]["end_to_end"]
     assert 0 < e2e["p50"] <= e2e["p99"]
     assert "tumors found" in format_report(report)

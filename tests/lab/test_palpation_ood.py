@@ -23,7 +23,8 @@ def test_every_case_is_a_valid_phantom(family: str) -> None:
         assert len(ph.fiducials) == 4
         assert all(abs(t.center_mm[0]) <= 22 and abs(t.center_mm[1]) <= 22 for t in ph.tumors)
     factors = [c.factor for c in cases]
-    if family in ("size", "depth", "contrast", "coverage", "registration", "noise"):
+    if family in ("size", "depth", "contrast", "coverage", "registration", "noise",
+                  "frame-rate"):
         assert factors == sorted(factors) and factors[0] < factors[-1]
     assert len({c.key for c in cases}) == n
 
@@ -43,6 +44,12 @@ def test_families_span_the_issue_ranges() -> None:
     seen = {(inc["kind"], "outline" in inc) for i in range(40)
             for inc in make_case("type", i, 40, 7 + i).phantom["inclusion"]}
     assert seen == {(k, lob) for k in ("benign", "malignant") for lob in (True, False)}
+    rates = [make_case("frame-rate", i, n, 1).frame_rate_hz for i in range(n)]
+    assert (min(rates), max(rates)) == pytest.approx((4.0, 60.0))
+    assert {make_case(f, 0, n, 1).frame_rate_hz for f in FAMILIES if f != "frame-rate"} == {20.0}
+    # the same phantoms as the type family: only the frame rate differs
+    assert make_case("frame-rate", 3, n, 1).phantom["inclusion"] == make_case(
+        "type", 3, n, 1).phantom["inclusion"]
     assert make_case("noise", 0, n, 1).realism.camera_noise_dn == 0.0
     assert make_case("size", 0, n, 1).realism == REALISTIC
     assert make_case("size", 0, n, 1, ideal=True).realism == IDEAL
