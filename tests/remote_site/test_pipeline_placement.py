@@ -1,0 +1,76 @@
+"""A tactile frame is placed where the pad was when its image was captured.
+
+The arm is read before the sensor frame is taken; on a loaded machine the two moments are
+tens of ms apart, and at palpation speeds that moves the frame by most of a millimetre (it
+smeared a tumor's edge and changed its type). The pipeline keeps the arm readings with
+their read times and takes the position interpolated at the frame's capture stamp.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from remote_site.agent.pipeline import FramePipeline
+from remote_site.agent.stiffness_stage import StiffnessStage
+from remote_site.arm.base import ArmReading
+from remote_site.sensor.base import SensorFrame
+from remote_site.stiffness.estimator import StiffnessConfig
+from remote_site.tactile import TactileAssembler
+from shared.timebase import now_us
+from tests.remote_site.test_agent_safety import CALIB, STIFFNESS_CALIB, WS
+
+SPEED_MM_PER_S = 45.0
+
+
+class MovingArm:
+    """The pad slides along +x at a constant speed; readings carry the true position."""
+
+    def __init__(self) -> None:
+        self.t0_us = now_us()
+
+    def x_at(self, t_us: int) -> float:
+        return SPEED_MM_PER_S * (t_us - self.t0_us) / 1e6
+
+    def state(self) -> ArmReading:
+        x = self.x_at(now_us())
+        return ArmReading((x, 0.0, 1.0), (SPEED_MM_PER_S, 0.0, 0.0), 0.5, "moving", None, 0.0)
+
+
+class LateSensor:
+    """A sensor whose frame was captured ``delay_us`` after it is asked for, as happens
+    when the capture thread runs later than the arm read (the stamp says when)."""
+
+    def __init__(self, arm: MovingArm, delay_us: int) -> None:
+        self.arm = arm
+        self.delay_us = delay_us
+        self.captured_us: int | None = None
+        self.rgb = CALIB.background_rgb.copy()  # no contact: the placement is the point
+
+    def read_latest(self, max_age_ms: float) -> SensorFrame:
+        t = now_us()
+        while now_us() < t + self.delay_us:  # the capture happens later (a busy wait: the
+            pass                              # arm keeps moving meanwhile)
+        self.captured_us = now_us()
+        return SensorFrame(rgb=self.rgb, timestamp_us=self.captured_us, seq=1)
+
+
+@pytest.mark.parametrize("delay_us", [0, 20_000])
+def test_the_frame_is_placed_at_the_capture_time_position(delay_us: int) -> None:
+    from remote_site.reconstruction.reconstructor import Reconstructor
+
+    arm = MovingArm()
+    sensor = LateSensor(arm, delay_us)
+    assembler = TactileAssembler(WS, stiffness_to_k=STIFFNESS_CALIB.stiffness_to_k())
+    stiffness = StiffnessStage(StiffnessConfig().with_calibration(STIFFNESS_CALIB))
+    pipeline = FramePipeline(sensor, Reconstructor(CALIB), assembler,  # type: ignore[arg-type]
+                             stiffness, arm.state)
+    outcome = pipeline.process(1, None)
+    assert outcome.frame is not None and pipeline.placed_at_capture == 1
+    assert sensor.captured_us is not None
+    want = WS.inverse([arm.x_at(sensor.captured_us), 0.0, 1.0])
+    # the interpolation error of a uniform motion is the readings' time resolution (1 us)
+    assert outcome.frame.center_mm[0] == pytest.approx(float(want[0]), abs=1e-3)
+    if delay_us:
+        # what the read before the capture would have given: 0.9 mm behind
+        first = WS.inverse([0.0, 0.0, 1.0])
+        assert abs(outcome.frame.center_mm[0] - float(first[0])) > 0.5
