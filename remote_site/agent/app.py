@@ -209,6 +209,8 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
                                  sensor_max_age_ms=agent_cfg.sensor_max_age_ms,
                                  contact_force_n=stiffness_cfg.contact_force_n,
                                  background=background)
+        warm_s = await asyncio.to_thread(pipeline.warm_up)
+        log.info("reconstruction warmed up in %.0f ms", warm_s * 1e3)
         link = StationLink.from_config(link_cfg, "remote")
         if options.record is not None:
             recorder = McapRecorder(options.record, "remote", meta={

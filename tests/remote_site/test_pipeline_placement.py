@@ -74,3 +74,28 @@ def test_the_frame_is_placed_at_the_capture_time_position(delay_us: int) -> None
         # what the read before the capture would have given: 0.9 mm behind
         first = WS.inverse([0.0, 0.0, 1.0])
         assert abs(outcome.frame.center_mm[0] - float(first[0])) > 0.5
+
+
+def test_the_warm_up_runs_the_whole_reconstruction_before_the_session() -> None:
+    """A synthetic press goes through evidence, model, Poisson and zero level at both
+    resolutions, so no kernel loads in the first frames of a session (the fault suite
+    measures what that stall did to the arm's watchdog)."""
+    from remote_site.reconstruction.reconstructor import Reconstructor
+
+    arm = MovingArm()
+    assembler = TactileAssembler(WS, stiffness_to_k=STIFFNESS_CALIB.stiffness_to_k())
+    stiffness = StiffnessStage(StiffnessConfig().with_calibration(STIFFNESS_CALIB))
+    pipeline = FramePipeline(LateSensor(arm, 0), Reconstructor(CALIB),  # type: ignore[arg-type]
+                             assembler, stiffness, arm.state)
+    calls: list[tuple[object, bool]] = []
+    orig = pipeline.reconstructor.height_map
+
+    def spy(rgb: object, out_pitch_mm: float | None = None) -> object:
+        hm = orig(rgb, out_pitch_mm=out_pitch_mm)  # type: ignore[arg-type]
+        calls.append((out_pitch_mm, hm.contact and not hm.skipped))
+        return hm
+
+    pipeline.reconstructor.height_map = spy  # type: ignore[method-assign,assignment]
+    assert pipeline.warm_up() > 0.0
+    assert calls == [(pipeline.phantom_pitch_mm, True), (None, True)]
+    assert pipeline.process(1, None).frame is not None
