@@ -19,7 +19,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from remote_site.agent.background import BackgroundTracker
-from remote_site.agent.pose_history import PoseHistory
 from remote_site.agent.stiffness_stage import StiffnessStage
 from remote_site.arm.base import ArmReading
 from remote_site.reconstruction.reconstructor import Reconstructor
@@ -27,7 +26,6 @@ from remote_site.sensor.base import TactileSensor
 from remote_site.tactile import AppliedCommand, TactileAssembler
 from shared.errors import DeviceError, DeviceTimeoutError, InputDataError
 from shared.protocol.messages import TactileFrame
-from shared.timebase import now_us
 
 __all__ = ["FrameOutcome", "FramePipeline"]
 
@@ -94,11 +92,6 @@ class FramePipeline:
         self.repeated = 0
         self.processed = 0
         self._last_sensor_seq: int | None = None
-        #: arm positions by read time (this pipeline's reads and the station's arm monitor's)
-        self.poses = PoseHistory()
-        #: frames placed at the position interpolated at their capture time (else: the
-        #: position read before the capture)
-        self.placed_at_capture = 0
 
     def warm_up(self) -> float:
         """Run the reconstruction once on a synthetic press before the session starts.
@@ -152,7 +145,6 @@ class FramePipeline:
         """
         t0 = time.perf_counter()
         reading = self.read_arm()
-        self.poses.add(now_us(), reading.position_mm)
         try:
             sensor_frame = self.sensor.read_latest(self.sensor_max_age_ms)
         except DeviceError as err:
@@ -174,21 +166,13 @@ class FramePipeline:
         if self.background is not None:
             self.background.offer(sensor_frame.rgb, reading.force_n, height_map.contact)
         contact = height_map.contact or reading.force_n >= self.contact_force_n
-        # the frame is placed where the pad was when the image was captured, not where it
-        # was when the arm was read (they differ by scheduling delays: tens of ms under load)
-        self.poses.add(now_us(), self.read_arm().position_mm)
-        probe_mm = self.poses.at(sensor_frame.timestamp_us)
-        if probe_mm is None:
-            probe_mm = reading.position_mm
-        else:
-            self.placed_at_capture += 1
         with self.stiffness.lock:
             current = self.stiffness.current_n_per_mm
             try:
                 frame = self.assembler.assemble(
                     seq=seq, frame_ts_us=sensor_frame.timestamp_us,
                     height_mm=height_map.height_mm, pitch_mm=height_map.mm_per_px,
-                    probe_mm=probe_mm, force_n=reading.force_n, contact=contact,
+                    probe_mm=reading.position_mm, force_n=reading.force_n, contact=contact,
                     stiffness_map=self.stiffness.map, current_n_per_mm=current,
                     source=source)
             except InputDataError as err:

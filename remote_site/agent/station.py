@@ -225,7 +225,6 @@ class RemoteStation:
         next_state_t = next_t
         while True:
             reading = self.safe_arm.poll()
-            self.pipeline.poses.add(now_us(), reading.position_mm)
             self.last_reading = reading
             try:
                 self.stiffness.add_sample(reading.t_s, reading.position_mm, reading.force_n)
@@ -385,7 +384,6 @@ class RemoteStation:
             "frames": {
                 "frame_rate_hz": self.config.frame_rate_hz,
                 "processed": p.processed,
-                "placed_at_capture": p.placed_at_capture,
                 "sent": c.frames_sent,
                 "not_sent_link_down": c.frames_not_sent_link_down,
                 "rejected": dict(p.rejected),

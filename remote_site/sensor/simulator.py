@@ -87,9 +87,6 @@ class SimulatedSensor(TactileSensor):
         pass
 
     def _latest(self) -> SensorFrame:
-        # the capture stamp is the "exposure": when the depth (the pad's pose) is sampled,
-        # not when rendering the image is done
-        t_capture_us = now_us()
         depth = self._provider() if self._provider is not None else self._depth
         try:
             rgb = self.model.render(depth)
@@ -105,4 +102,4 @@ class SimulatedSensor(TactileSensor):
         with self._lock:
             self._seq += 1
             seq = self._seq
-        return SensorFrame(rgb=rgb, timestamp_us=t_capture_us, seq=seq)
+        return SensorFrame(rgb=rgb, timestamp_us=now_us(), seq=seq)

@@ -1,14 +1,6 @@
-"""A tactile frame is placed where the pad was when its image was captured.
-
-The arm is read before the sensor frame is taken; on a loaded machine the two moments are
-tens of ms apart, and at palpation speeds that moves the frame by most of a millimetre (it
-smeared a tumor's edge and changed its type). The pipeline keeps the arm readings with
-their read times and takes the position interpolated at the frame's capture stamp.
-"""
+"""The remote station's frame pipeline: its reconstruction warm-up before a session."""
 
 from __future__ import annotations
-
-import pytest
 
 from remote_site.agent.pipeline import FramePipeline
 from remote_site.agent.stiffness_stage import StiffnessStage
@@ -52,28 +44,6 @@ class LateSensor:
             pass                              # arm keeps moving meanwhile)
         self.captured_us = now_us()
         return SensorFrame(rgb=self.rgb, timestamp_us=self.captured_us, seq=1)
-
-
-@pytest.mark.parametrize("delay_us", [0, 20_000])
-def test_the_frame_is_placed_at_the_capture_time_position(delay_us: int) -> None:
-    from remote_site.reconstruction.reconstructor import Reconstructor
-
-    arm = MovingArm()
-    sensor = LateSensor(arm, delay_us)
-    assembler = TactileAssembler(WS, stiffness_to_k=STIFFNESS_CALIB.stiffness_to_k())
-    stiffness = StiffnessStage(StiffnessConfig().with_calibration(STIFFNESS_CALIB))
-    pipeline = FramePipeline(sensor, Reconstructor(CALIB), assembler,  # type: ignore[arg-type]
-                             stiffness, arm.state)
-    outcome = pipeline.process(1, None)
-    assert outcome.frame is not None and pipeline.placed_at_capture == 1
-    assert sensor.captured_us is not None
-    want = WS.inverse([arm.x_at(sensor.captured_us), 0.0, 1.0])
-    # the interpolation error of a uniform motion is the readings' time resolution (1 us)
-    assert outcome.frame.center_mm[0] == pytest.approx(float(want[0]), abs=1e-3)
-    if delay_us:
-        # what the read before the capture would have given: 0.9 mm behind
-        first = WS.inverse([0.0, 0.0, 1.0])
-        assert abs(outcome.frame.center_mm[0] - float(first[0])) > 0.5
 
 
 def test_the_warm_up_runs_the_whole_reconstruction_before_the_session() -> None:
