@@ -372,7 +372,11 @@ class DisplayLoop:
             # reached the pins with an old frame; it is withdrawn at once (safe state) and
             # counted, never counted as rendered
             self.counters.late_sends_withdrawn += 1
-            log.warning("a pin command was sent late (frame no longer fresh); withdrawn")
+            late_ms = self._overshoot_ms()
+            # a frame that just crossed its bound during the write is routine (the next tick
+            # would have gone safe); one far past it means this process was stopped or starved
+            log.log(logging.WARNING if late_ms > 5.0 else logging.DEBUG,
+                    "a pin command went out %.1f ms after its frame's bound; withdrawn", late_ms)
             self._pending_hops = None
             self.enter_safe_state("stale_frame")
             return
@@ -391,6 +395,13 @@ class DisplayLoop:
                 if trace.end_to_end_us is not None:
                     self.recent_e2e_ms.append(trace.end_to_end_us / 1e3)
                 self.last_trace = (trace.stages_us, trace.end_to_end_us, now_s)
+
+    def _overshoot_ms(self) -> float:
+        """How far past its bound the current frame may be now (0 when unknown)."""
+        v = self.last_frame_verdict
+        if v is None or v.age_us is None:
+            return 0.0
+        return max(0.0, (v.age_us + (v.uncertainty_us or 0.0) - self._max_frame_age_us) / 1e3)
 
     def _deadline(self) -> float | None:
         return self._frame_deadline_s if self._stream is not None else None
