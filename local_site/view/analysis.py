@@ -107,11 +107,14 @@ def _worker(inbox: Any, outbox: Any, workspace: WorkspaceConfig,
     last_cost = 0.0
     runs = 0
     dirty = False
+    parent = mp.parent_process()
     while True:
         try:
             batch = inbox.get(timeout=0.2)
         except queue.Empty:
             batch = {}
+            if parent is not None and not parent.is_alive():
+                return  # the station died (SIGKILL): no one will send the end; do not linger
         if batch is None:
             return
         for item in batch.get("frames", ()):

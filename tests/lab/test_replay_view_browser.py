@@ -49,7 +49,8 @@ def test_a_replay_is_shown_in_the_live_view_and_labelled_as_a_replay(tmp_path: P
     proc = subprocess.Popen(
         [sys.executable, "-m", "lab.cli", "replay", str(path), "--view", f"127.0.0.1:{port}",
          "--paused", "--speed", "2", "--display", "none"],
-        cwd=REPO_ROOT, stdout=subprocess.PIPE, stderr=log)
+        cwd=REPO_ROOT, stdout=subprocess.PIPE, stderr=log,
+        start_new_session=True)  # its analysis child too can be killed as a group
     url = f"http://127.0.0.1:{port}/"
     artifacts = Path(os.environ.get("TELETOUCH_TEST_ARTIFACTS") or tmp_path)
     artifacts.mkdir(parents=True, exist_ok=True)
@@ -109,8 +110,11 @@ def test_a_replay_is_shown_in_the_live_view_and_labelled_as_a_replay(tmp_path: P
         try:
             out, _ = proc.communicate(timeout=scaled(30))
         except subprocess.TimeoutExpired:
-            proc.kill()
-            out, _ = proc.communicate()
+            # a child holding stdout would make an unbounded communicate() hang: kill the
+            # whole group and read what is there
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(proc.pid, signal.SIGKILL)
+            out, _ = proc.communicate(timeout=scaled(10))
         log.close()
     assert seen["seq"] == last.seq  # the recording's last frame reached the page
     assert seen["trail"] > 10
