@@ -54,6 +54,10 @@ __all__ = ["DemoConfig", "DemoError", "run_demo"]
 log = logging.getLogger(__name__)
 
 SESSION = "demo"
+#: how long the remote station may take to join: it registers the phantom (four fiducial
+#: presses, about 8 s) and warms its reconstruction up (about 1 s; longer on a cold
+#: checkout, whose kernels compile on first use) before it joins
+REMOTE_JOIN_TIMEOUT_S = 180.0
 #: the scripted operator: slides pressed 3 mm into the phantom (platform z 10 with the
 #: default workspace map) over the whole reachable phantom, lines 4 mm apart at 45 mm/s
 #: (about 25 s; the patches are 20 x 15 mm, so every point is felt several times)
@@ -194,6 +198,13 @@ def _port_open(port: int) -> bool:
         return False
 
 
+def _peer_joined(status: dict[str, Any] | None, role: str) -> bool:
+    """Whether the relay's /status shows a station of ``role`` in the demo's session."""
+    session = (status or {}).get("sessions", {}).get(SESSION)
+    peers = session.get("peers", []) if isinstance(session, dict) else []
+    return any(isinstance(p, dict) and p.get("role") == role for p in peers)
+
+
 def relay_status(port: int) -> dict[str, Any] | None:
     """The relay's /status JSON, or None when it does not answer."""
     try:
@@ -315,6 +326,13 @@ def run_demo(config: DemoConfig,
             "--frame-rate-hz", f"{config.frame_rate_hz:g}",
             "--summary-json", str(files["remote_summary"]), "--record",
             str(files["remote_record"]), *config.extra_remote_args)
+        # The scripted operator starts once the remote station is in the session, as a
+        # person at the haptic station would: before that the remote is still registering
+        # the phantom and warming up (seconds, more on a cold checkout or a busy machine),
+        # and a sweep started earlier is felt only in part (its first lines lost).
+        _wait_for(lambda: _peer_joined(relay_status(ws_port), "remote"),
+                  "the remote station to join the session (registration, warm-up)",
+                  REMOTE_JOIN_TIMEOUT_S, procs)
         local = procs.start(
             "local", "local", "--relay", f"ws://127.0.0.1:{local_port}/", *common,
             "--platform", "sim", "--display", "sim", "--motion", config.motion,
@@ -331,7 +349,7 @@ def run_demo(config: DemoConfig,
             obs_host = f"[{obs_host}]" if ":" in obs_host else obs_host
             announce_view("relay, for observers",
                           f"http://{obs_host}:{obs_port}/#session={SESSION}&token={observer}")
-        deadline = started + config.max_duration_s + 60.0
+        deadline = time.monotonic() + config.max_duration_s + 60.0
         while local.proc.poll() is None:
             for child in procs.children:
                 if child is not local and child.proc.poll() is not None:

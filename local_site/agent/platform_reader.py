@@ -103,7 +103,6 @@ class PlatformReader:
                     log.info("platform %s is back", self.platform.name)
                 ever_connected = True
                 self.healthy, self.lost_since_s = True, None
-                self._first_board_t_us = None
             try:
                 sample = self.platform.read_state(timeout_s=self._read_timeout_s)
             except DeviceError as err:
@@ -120,7 +119,9 @@ class PlatformReader:
             self.latest = sample
             self.reads += 1
             if self._motion_duration_s is not None:
-                if self._first_board_t_us is None:
+                # a reopened link to a running board continues its clock (the scripted
+                # motion went on meanwhile); a board that restarted begins again
+                if self._first_board_t_us is None or sample.board_t_us < self._first_board_t_us:
                     self._first_board_t_us = sample.board_t_us
                 elif (sample.board_t_us - self._first_board_t_us) * 1e-6 \
                         >= self._motion_duration_s:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import time
 import tty
 
 from local_site.platform.motion import MotionSource, make_motion
@@ -52,6 +53,7 @@ class SimulatedPlatform(SerialEncoderPlatform):
         self._start_board_t_us = start_board_t_us
         self._master_fd: int | None = None
         self.board: SimulatedEncoderBoard | None = None
+        self._powered_at_s: float | None = None  # perf_counter when the board powered up
 
     @property
     def name(self) -> str:
@@ -71,10 +73,15 @@ class SimulatedPlatform(SerialEncoderPlatform):
             os.close(slave_fd)
             raise DeviceInitError(f"cannot configure the simulated board's pty: {err}") from err
         self._master_fd = master_fd
+        # The platform and the hand on it do not stop when the link drops: a reopened link
+        # finds the board (and the scripted operator) where they are now, not at the start.
+        if self._powered_at_s is None:
+            self._powered_at_s = time.perf_counter()
+        start_sample = int((time.perf_counter() - self._powered_at_s) * self._sample_rate_hz)
         self.board = SimulatedEncoderBoard(
             self.motion, lambda data: os.write(master_fd, data), geometry=self.geometry,
             sample_rate_hz=self._sample_rate_hz, initial_counts=self._initial_counts,
-            start_board_t_us=self._start_board_t_us)
+            start_board_t_us=self._start_board_t_us, start_sample=start_sample)
         try:
             super()._connect()
         except DeviceInitError:

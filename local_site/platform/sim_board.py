@@ -47,14 +47,20 @@ class SimulatedEncoderBoard:
         start_seq: first sequence number.
         start_board_t_us: board clock at the first sample (near 2^32 exercises wrap-around).
         info_period_s: how often the board repeats its info frame.
+        start_sample: the sample number streaming starts at (0 for a board just powered up;
+            a link reopened to a board that kept running starts where that board is now:
+            its motion, sequence numbers and clock continue, they do not restart).
     """
 
     def __init__(self, motion: MotionSource, write: Callable[[bytes], object], *,
                  geometry: PlatformGeometry | None = None, sample_rate_hz: float = 1000.0,
                  initial_counts: tuple[int, int, int] = (0, 0, 0), start_seq: int = 0,
-                 start_board_t_us: int = 0, info_period_s: float = 1.0) -> None:
+                 start_board_t_us: int = 0, info_period_s: float = 1.0,
+                 start_sample: int = 0) -> None:
         if not 1.0 <= sample_rate_hz <= 20_000.0:
             raise ConfigError(f"sample_rate_hz must be in [1, 20000], got {sample_rate_hz}")
+        if start_sample < 0:
+            raise ConfigError(f"start_sample must be >= 0, got {start_sample}")
         self.motion = motion
         self.geometry = geometry or PlatformGeometry()
         self.sample_rate_hz = sample_rate_hz
@@ -63,6 +69,7 @@ class SimulatedEncoderBoard:
         self._start_seq = start_seq
         self._start_board_t_us = start_board_t_us
         self._info_every = max(1, round(info_period_s * sample_rate_hz))
+        self._start_sample = start_sample
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._inject: list[bytes] = []
@@ -94,7 +101,7 @@ class SimulatedEncoderBoard:
             self._inject.append(bytes(data))
 
     def start(self) -> None:
-        """Start streaming from sample 0, in real time."""
+        """Start streaming from sample ``start_sample``, in real time."""
         if self._thread is not None:
             return
         self._stop.clear()
@@ -130,8 +137,8 @@ class SimulatedEncoderBoard:
 
     def _run(self) -> None:
         period_s = 1.0 / self.sample_rate_hz
-        t0 = time.perf_counter()
-        n = 0
+        n = first = self._start_sample
+        t0 = time.perf_counter() - n * period_s  # sample n is due now
         while not self._stop.is_set():
             due = int((time.perf_counter() - t0) / period_s) + 1
             chunks: list[bytes] = []
@@ -139,7 +146,7 @@ class SimulatedEncoderBoard:
                 chunks.extend(self._inject)
                 self._inject.clear()
             for k in range(n, due):
-                if k % self._info_every == 0:
+                if k % self._info_every == 0 or k == first:  # the link opens with its info
                     chunks.append(encode_info_frame(self.info))
                 chunks.append(self.frame(k))
             if chunks:

@@ -14,18 +14,22 @@ from tests.support import scaled
 
 # breast seed 0: the benign tumor is at phantom (6.0, -10.1) = platform (36.0, 19.9). This
 # 32 mm sweep around it is mostly healthy tissue, as the detector's background estimate needs,
-# and takes seconds rather than the full sweep. It first holds 3 s pressed at its start point,
-# so a cold start (first-use kernel compiles in a fresh checkout) is over before the tumor.
+# and takes seconds rather than the full sweep. The demo starts it once the remote station has
+# joined (after registering the phantom and warming up); it first holds 3 s pressed at its
+# start point, so the local station's own cold start is over before the tumor. The malignant
+# tumor lies at the sweep's edge, half felt: it is found a few mm off and typed uncertain.
 SMALL_RASTER = ("raster:x0=20,x1=52,y0=4,y1=36,spacing=4,speed=45,z=10,press_depth=0,"
                 "press_every=0,pause=3,loop=0")
 
 
 def _scaled_env() -> dict[str, str]:
     """The stations' environment: the remote arm's command age limit and command timeout
-    (product timeouts under test) scaled, so load-delayed commands still move the arm."""
+    and the local station's platform silence limit (product timeouts under test) scaled, so
+    load-delayed commands still move the arm and a starved simulated board is not lost."""
     return dict(os.environ,
                 TELETOUCH_ARM_SAFETY_MAX_COMMAND_AGE_MS=str(scaled(100.0)),
-                TELETOUCH_ARM_SAFETY_COMMAND_TIMEOUT_MS=str(scaled(100.0)))
+                TELETOUCH_ARM_SAFETY_COMMAND_TIMEOUT_MS=str(scaled(100.0)),
+                TELETOUCH_LOCAL_AGENT_PLATFORM_READ_TIMEOUT_S=str(scaled(0.25)))
 
 
 def test_demo_headless_json_reports_the_felt_tumor(tmp_path: Path) -> None:

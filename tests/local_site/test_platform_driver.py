@@ -182,6 +182,33 @@ def test_pty_device_disappearing_is_reported_and_connect_retries() -> None:
         platform.disconnect()
 
 
+def test_a_reopened_link_finds_the_motion_where_it_is_now_not_at_its_start() -> None:
+    # the hand on the platform keeps moving while the station reopens a silent link (the
+    # station's recovery): before, every reopen restarted the scripted motion from t = 0,
+    # so a busy machine's repeated reopenings kept the demo's operator at the sweep's start
+    motion = _line(speed_mm_s=10.0)  # x = 10 + 10 t mm for 3 s
+    platform = SimulatedPlatform(motion)
+    platform.connect()
+    try:
+        first = platform.read_state(scaled(0.5))
+        platform.disconnect()
+        reopened = time.perf_counter()
+        gap_s = 0.3
+        time.sleep(gap_s)  # the link stays closed a known minimum time
+        platform.connect()
+        after = platform.read_state(scaled(0.5))
+        read = time.perf_counter()
+        dt_s = (after.board_t_us - first.board_t_us) * 1e-6
+        # the board clock went on through the gap; the position is the motion's at that time
+        assert dt_s >= gap_s
+        assert dt_s <= (read - reopened) + (first.board_t_us * 1e-6) + scaled(0.5)
+        assert after.position_mm[0] == pytest.approx(
+            float(_expected_position(motion, after.board_t_us)[0]), abs=RES_MM)
+        assert after.position_mm[0] >= 10.0 + 10.0 * gap_s - RES_MM
+    finally:
+        platform.disconnect()
+
+
 def test_pty_raw_board_hangup_gives_operation_error() -> None:
     master, slave = os.openpty()
     import tty
