@@ -330,3 +330,30 @@ def test_display_counts_a_descheduled_command_sent_and_still_refuses_an_expired_
         assert fr.decode_command(payload).seq == 1
     finally:
         display.disconnect()
+
+
+def test_display_on_a_peer_that_stopped_reading_fails_within_the_timeout_and_still_closes(
+        peer: _TcpPeer | _PtyPeer) -> None:
+    # the safe behaviour of a stuck link: the command fails with a clear error within the
+    # write timeout (the display loop then reopens the display, the board's own watchdog
+    # parks the pins), and disconnect's best-effort safe state does not hang either
+    timeout_s = 0.05
+    display = SerialArrayTacDisplay(peer.url, write_timeout_s=timeout_s,
+                                    require_feedback=False, disconnect_mode="flat")
+    display.connect()
+    try:
+        if isinstance(peer, _TcpPeer):
+            peer.accept()
+            with socket.fromfd(_port_fd(display._link), socket.AF_INET,
+                               socket.SOCK_STREAM) as dup:
+                dup.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4096)
+        with pytest.raises(DeviceOperationError,
+                           match=r"ArrayTac on serial .*: write timed out: \d+ of \d+ bytes"):
+            for i in range(100_000):  # ~6.8 MB of commands: far more than any buffer
+                t0 = monotonic_s()
+                display.send_command(_pins(1.0 + (i % 2)))
+        assert monotonic_s() - t0 < timeout_s + scaled(1.0)
+    finally:
+        t0 = monotonic_s()
+        display.disconnect()
+        assert monotonic_s() - t0 < timeout_s + scaled(2.0)
