@@ -491,6 +491,19 @@ class FaultRig:
             out.append((mono, seq, self.age_ms("remote", mono, ts) if ts >= 0 else None))
         return out
 
+    def sends_logged_until(self) -> float:
+        """The newest local send the probe has logged (its ``P`` mono; -inf before any).
+
+        The probe writes a ``P`` line only once ``send_command`` has returned, so the board
+        may apply a command before its line exists (a station preempted right after its
+        write). The display loop sends from one thread, one command at a time: every
+        command written before this moment already has its line. Judge
+        :meth:`pin_ages` up to here while the stations run; an applied command without a
+        line *before* it is a send the probe truly missed.
+        """
+        return max((m for p in self.probes if p.role == "local" for m, _, _ in p.sent),
+                   default=-math.inf)
+
     def fresh_render_after(self, t: float, bound_ms: float) -> float | None:
         """Monotonic time of the first frame rendered after ``t`` that was fresh."""
         for p in self.probes:

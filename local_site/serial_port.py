@@ -5,18 +5,32 @@ The platform's encoder board and the ArrayTac serial link both open a port by UR
 daemon thread (:class:`~shared.devices.reader.ReaderThread`) that hands every chunk to a
 callback, and close it so that a blocked read
 returns at once. Only their byte protocols differ, and those stay in the drivers.
+
+Writes: pyserial 3.5's ``write`` on a device/pty and on ``socket://`` checks its write
+timeout *after* a send that already put every byte out, so a writer descheduled for longer
+than the timeout (a loaded machine) gets ``SerialTimeoutException('Write timeout')`` for a
+frame that went out: the caller would treat a sent command as unsent. Those two backends are
+written here on their non-blocking descriptor instead: bytes the kernel took count as
+sent, and only bytes it would not take within the timeout make the write fail
+(:func:`_write_all`). Other ports (``loop://``, ``spy://``, ...) keep pyserial's own write.
 """
 
 from __future__ import annotations
 
 import contextlib
 import logging
+import math
+import os
+import queue
+import select
 from collections.abc import Callable
 
 import serial
+from serial.urlhandler import protocol_socket
 
 from shared.devices import ReaderThread
 from shared.errors import DeviceInitError, DeviceOperationError
+from shared.timebase import monotonic_s
 
 __all__ = ["SerialPortReader"]
 
@@ -24,6 +38,67 @@ log = logging.getLogger(__name__)
 
 #: what pyserial may raise while a port is read or closed concurrently
 _READ_ERRORS = (serial.SerialException, OSError, TypeError, AttributeError)
+#: pyserial writes that loop over a non-blocking descriptor and raise a write timeout even
+#: after a send that put everything out (pyserial 3.5: ``serialposix.Serial.write`` and
+#: ``protocol_socket.Serial.write``); a port whose class overrides them (``spy://``) is
+#: left to its own write
+_DESCRIPTOR_WRITES = (serial.Serial.write, protocol_socket.Serial.write)
+#: what pyserial may raise from a write: loop:// lets ``queue.Full`` out of a full buffer
+_WRITE_ERRORS = (serial.SerialException, OSError, queue.Full)
+
+
+def _descriptor(port: serial.SerialBase) -> int | None:
+    """The port's non-blocking descriptor when its write is one of pyserial's descriptor
+    writes (device, pty, ``socket://``), else None."""
+    if type(port).write not in _DESCRIPTOR_WRITES:
+        return None
+    try:
+        fd = port.fileno()
+        if not isinstance(fd, int) or os.get_blocking(fd):
+            return None  # a blocking descriptor (VTIMESerial) would block in os.write
+    except (serial.SerialException, OSError, AttributeError):
+        return None  # closed: pyserial's own write says so
+    return fd
+
+
+def _write_all(port: serial.SerialBase, data: bytes, timeout_s: float | None) -> int:
+    """Write ``data`` to ``port``; return how many bytes went out (all, unless timed out).
+
+    On a device, pty or ``socket://`` port the bytes are written on its non-blocking
+    descriptor: every byte the kernel accepted counts as sent, however late this thread
+    gets to look at the clock again. The write stops short only when the kernel would not
+    take the rest within ``timeout_s`` (a peer that stopped reading, a full buffer); one
+    more non-blocking attempt is made at the deadline, so the call returns within
+    ``timeout_s`` plus one system call. Other ports use pyserial's ``write``.
+
+    Args:
+        port: an open pyserial port.
+        data: the bytes.
+        timeout_s: how long the write may wait for the port to take bytes (None: forever).
+
+    Raises:
+        serial.SerialException | OSError | queue.Full: the write failed.
+    """
+    fd = _descriptor(port)
+    if fd is None:
+        port.write(data)  # raises SerialTimeoutException when it took too long
+        return len(data)
+    view = memoryview(data)
+    written = 0
+    deadline = math.inf if timeout_s is None else monotonic_s() + timeout_s
+    poller: select.poll | None = None
+    while True:
+        with contextlib.suppress(BlockingIOError):
+            written += os.write(fd, view[written:])
+        if written == len(data):
+            return written
+        left_s = deadline - monotonic_s()
+        if left_s <= 0:
+            return written
+        if poller is None:
+            poller = select.poll()
+            poller.register(fd, select.POLLOUT)
+        poller.poll(-1 if math.isinf(left_s) else math.ceil(left_s * 1e3))
 
 
 class SerialPortReader:
@@ -98,7 +173,9 @@ class SerialPortReader:
         if reader is not None:
             reader.request_stop()
         if port is not None and hasattr(port, "cancel_read"):
-            with contextlib.suppress(serial.SerialException, OSError):
+            # loop:// wakes its reader with a queue item: Full when its buffer is full (the
+            # reader then sees the stop request after its next read)
+            with contextlib.suppress(*_WRITE_ERRORS):
                 port.cancel_read()
         if reader is not None:
             reader.join(timeout_s=2.0)
@@ -118,9 +195,14 @@ class SerialPortReader:
         if port is None:
             raise DeviceOperationError(f"{self.name}: port is closed")
         try:
-            port.write(data)
-        except (serial.SerialException, OSError) as err:
+            written = _write_all(port, data, self._write_timeout_s)
+        except _WRITE_ERRORS as err:
             raise DeviceOperationError(f"{self.name}: write failed: {err}") from err
+        if written < len(data):
+            raise DeviceOperationError(
+                f"{self.name}: write timed out: {written} of {len(data)} bytes went out in "
+                f"{(self._write_timeout_s or 0.0) * 1e3:.0f} ms (the other end does not "
+                "take them)")
 
     def _read_once(self, port: serial.SerialBase, reader: ReaderThread) -> bool:
         try:

@@ -150,15 +150,18 @@ def test_local_station_sigstop_three_seconds_the_board_process_parks_the_pins_by
     # them carried touch older than the bound (the probe's sends joined to the board's)
     assert rig.wait_flowing(t_cont, scaled(20.0), FLOW_BOUND_MS), \
         "fresh frames and executed commands did not come back after SIGCONT"
+    # judged up to the newest send the probe has logged: a command the board applied
+    # after it may still be waiting for its line (the station preempted after its write)
     def back() -> bool:
         rig.poll()
-        return bool([m for m in board.resumed if m > t_cont] and rig.pin_ages(t_cont))
+        return bool([m for m in board.resumed if m > t_cont]
+                    and rig.pin_ages(t_cont, rig.sends_logged_until()))
 
     wait_until(back, 10.0,
                "the board to leave the safe state and apply commands after SIGCONT")
     rig.poll()
     assert rig.exits == [], f"processes exited: {rig.exits}"
-    ages = rig.pin_ages(t_cont)
+    ages = rig.pin_ages(t_cont, rig.sends_logged_until())
     assert ages and all(a is not None for _, _, a in ages), \
         f"board commands matching no station send: {[s for _, s, a in ages if a is None]}"
     stale_pins = [a for _, _, a in ages if a is not None and a > FRAME_BOUND_MS]

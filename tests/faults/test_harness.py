@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import signal
 import subprocess
 import sys
@@ -79,6 +80,20 @@ def test_pin_ages_join_the_board_s_commands_to_the_latest_send_of_that_number(
                         pytest.approx(1021.0)]
     assert ages[4] is None  # no send with that number: unmatched, not guessed
     assert [m for m, _, _ in rig.pin_ages(1.1, 5.01)] == [1.3, 5.001]
+
+
+def test_commands_applied_after_the_newest_logged_send_wait_for_its_line(
+        tmp_path: Path) -> None:
+    # seq 3 was written and applied at 1.03, but the probe writes its line after the send
+    # returns: at this moment its line is not there yet; seq 9 is a send truly missed
+    sent = [(1.0, 1, 900_000), (1.01, 2, 950_000), (1.02, 4, 960_000)]
+    applied = [(1.002, 1), (1.012, 2), (1.015, 9), (1.022, 4), (1.03, 3)]
+    rig = _rig_with_board(tmp_path, sent, applied)
+    assert rig.sends_logged_until() == 1.02
+    got = rig.pin_ages(1.0, rig.sends_logged_until())
+    assert [(m, s) for m, s, _ in got] == [(1.002, 1), (1.012, 2), (1.015, 9)]
+    assert [a is None for _, _, a in got] == [False, False, True]
+    assert FaultRig(tmp_path / "none").sends_logged_until() == -math.inf
 
 
 @given(st.lists(st.tuples(st.floats(0, 10), st.integers(0, 3), st.integers(0, 10_000_000)),
