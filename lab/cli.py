@@ -17,7 +17,9 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import signal
 import sys
+import threading
 from collections.abc import Sequence
 
 from shared import __version__
@@ -94,6 +96,23 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _ctrl_c_stops() -> None:
+    """Make SIGINT (Ctrl-C) raise KeyboardInterrupt here even when it came in ignored.
+
+    A process started in the background by a shell without job control (``cmd &`` in a
+    script, a CI step, a test runner started that way) inherits SIGINT *ignored*, and
+    Python then installs no KeyboardInterrupt handler: ``teletouch replay --view`` and the
+    demo, which stop cleanly on KeyboardInterrupt, ignored Ctrl-C and ran on until killed
+    (issue 9: a two-burner test run started in the background). Ctrl-C is how these
+    commands are ended (the asyncio stations and the relay take it with their own signal
+    handlers, which override an inherited ignore as well), so it always stops them.
+    """
+    if threading.current_thread() is threading.main_thread() \
+            and signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        log.debug("SIGINT came in ignored; Ctrl-C stops this command all the same")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``teletouch`` console script."""
     parser = build_parser()
@@ -104,6 +123,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if run is None:
         parser.print_help(sys.stderr)
         return 2
+    _ctrl_c_stops()
     try:
         return int(run(args) or 0)
     except KeyboardInterrupt:

@@ -259,8 +259,9 @@ class ReplayViewSource:
             raise ValueError(f"unknown replay control {action!r} (pause, play)")
 
     def close(self) -> None:
-        """Stop the analysis process (a replay's end may wait for it a little longer than a
-        station's stop: it gets 3 s to finish its run)."""
+        """Stop the analysis process (as a station's view does: a run still going after
+        a second is cut short, its result is not kept anyway; Ctrl-C must end the replay
+        promptly on a busy machine too)."""
         if self._analysis is not None:
-            self._analysis.close(timeout_s=3.0)
+            self._analysis.close()
 

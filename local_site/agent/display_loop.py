@@ -61,13 +61,33 @@ from shared.motion_to_touch import MotionToTouchLedger
 from shared.protocol import Hop, TactileFrame
 from shared.timebase import monotonic_s, now_us
 
-__all__ = ["SAFE_REASONS", "DisplayLoop", "DisplayLoopCounters", "FrameSlot", "LinkHealth"]
+__all__ = ["SAFE_REASONS", "DisplayLoop", "DisplayLoopCounters", "FrameSlot", "LinkHealth",
+           "PinState"]
 
 log = logging.getLogger(__name__)
 
 #: why the pins are in their safe state, in order of precedence
 SAFE_REASONS = ("platform_lost", "link_lost", "no_frames", "clock_uncertain", "stale_frame",
                 "stale_scene", "shutdown")
+
+
+@dataclass(frozen=True, slots=True)
+class PinState:
+    """What the pins are doing, as one object the loop replaces whole (never edits).
+
+    Another thread (the live view) reads :attr:`DisplayLoop.pin_state` once and gets the
+    command and the safe-state reason of the same moment: never the last command together
+    with the safe state that withdrew it, nor the reverse.
+
+    Attributes:
+        command: the pin command last sent (None in the safe state and before the first).
+        safe_reason: why the pins are in their safe state (None: rendering).
+        seq: counts the changes of this state (a reader can tell a newer one).
+    """
+
+    command: PinCommand | None = None
+    safe_reason: str | None = None
+    seq: int = 0
 
 
 class LinkHealth(Protocol):
@@ -207,12 +227,11 @@ class DisplayLoop:
         self._retry_max_s = retry_max_s
         self.periods = PeriodStats(self.period_s)
         self.counters = DisplayLoopCounters()
-        #: current safe-state reason (None: rendering)
-        self.safe_reason: str | None = None
+        #: the command on the pins and the safe-state reason, replaced whole (:class:`PinState`)
+        self.pin_state = PinState()
         #: why the last frame was judged unusable (for the status line and logs)
         self.last_frame_verdict: AgeVerdict | None = None
         self._safe_since_s: float | None = None
-        self._last_command: PinCommand | None = None
         self._pending_hops: tuple[tuple[Hop, ...], int] | None = None
         #: recent end-to-end latencies (ms) for the status line (the ledger is read at exit)
         self.recent_e2e_ms: collections.deque[float] = collections.deque(maxlen=2000)
@@ -223,7 +242,18 @@ class DisplayLoop:
     @property
     def last_command(self) -> PinCommand | None:
         """The pin command last sent (None in the safe state and before the first)."""
-        return self._last_command
+        return self.pin_state.command
+
+    @property
+    def safe_reason(self) -> str | None:
+        """Why the pins are in their safe state now (None: rendering)."""
+        return self.pin_state.safe_reason
+
+    def _set_pins(self, command: PinCommand | None, safe_reason: str | None) -> None:
+        """Publish a new pin state (one assignment: readers in other threads see it whole)."""
+        old = self.pin_state
+        if old.command is not command or old.safe_reason != safe_reason:
+            self.pin_state = PinState(command, safe_reason, old.seq + 1)
 
     # ------------------------------------------------------------------ one iteration
 
@@ -308,15 +338,20 @@ class DisplayLoop:
         now_s = monotonic_s() if now_s is None else now_s
         if self.safe_reason is not None:
             return
-        self.display.safe_state(self.safe_mode)
-        self.safe_reason = reason
+        # published before the board is told: from the decision on, no reader (the live
+        # view) may show the withdrawn command as current
+        self._set_pins(None, reason)
+        try:
+            self.display.safe_state(self.safe_mode)
+        except DeviceError:
+            self._set_pins(None, None)  # not safe yet: the next tick tries again
+            raise
         self._safe_since_s = now_s
         self.counters.safe_entries[reason] = self.counters.safe_entries.get(reason, 0) + 1
         if self.link is not None:
             down_s = self.link.link_down_for_s(now_s)
             if down_s > 0 and len(self.counters.link_loss_to_safe_ms) < 1000:
                 self.counters.link_loss_to_safe_ms.append(down_s * 1e3)
-        self._last_command = None
         self.renderer.invalidate()
         log.info("display to safe state %r (%s)", self.safe_mode, reason)
 
@@ -324,7 +359,7 @@ class DisplayLoop:
         if self._safe_since_s is not None:
             self.counters.safe_time_s += now_s - self._safe_since_s
         log.info("display resumes rendering (was safe: %s)", self.safe_reason)
-        self.safe_reason = None
+        self._set_pins(None, None)
         self._safe_since_s = None
 
     def tick(self) -> None:
@@ -335,7 +370,8 @@ class DisplayLoop:
         """
         self._intake()
         if self.recorder is not None:
-            self.recorder.add_pins(self._last_command, self.display, self.safe_reason)
+            pins = self.pin_state
+            self.recorder.add_pins(pins.command, self.display, pins.safe_reason)
         now_s = monotonic_s()
         reason = self._safety_reason(now_s)
         if reason is not None:
@@ -354,7 +390,7 @@ class DisplayLoop:
                 log.warning("render refused, pins keep their last command: %s", err)
             self._keepalive()
             return
-        if command is self._last_command:
+        if command is self.pin_state.command:
             self._keepalive()
             return
         # the age again at the moment of sending: rendering took time since the check, and
@@ -366,7 +402,7 @@ class DisplayLoop:
         except CommandExpiredError as err:
             self._refuse_late(err)
             return
-        self._last_command = command
+        self._set_pins(command, None)
         if self._frame_went_stale():
             # the process was stopped or starved *during* the send: the command may have
             # reached the pins with an old frame; it is withdrawn at once (safe state) and
@@ -437,9 +473,8 @@ class DisplayLoop:
             if stop(delay):
                 return False
             delay = min(self._retry_max_s, delay * 2.0)
-        self.safe_reason = None
+        self._set_pins(None, None)
         self._safe_since_s = None
-        self._last_command = None
         self.renderer.invalidate()
         self.periods.restart()
         return True
@@ -532,4 +567,4 @@ class DisplayLoop:
         except DeviceError as err:
             log.warning("safe state at shutdown failed: %s", err)
             return
-        self.safe_reason = reason
+        self._set_pins(None, reason)

@@ -26,6 +26,7 @@ import math
 import multiprocessing as mp
 import os
 import queue
+import signal
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -94,6 +95,10 @@ def _worker(inbox: Any, outbox: Any, workspace: WorkspaceConfig,
     from shared.errors import InputDataError
     from shared.workspace import WorkspaceMap
 
+    # Ctrl-C at a terminal reaches the whole process group: the parent stops this process
+    # (None in the inbox) and it exits by itself when the parent dies; a KeyboardInterrupt
+    # here would only print a traceback over the parent's clean exit
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     if config.nice:
         with contextlib.suppress(OSError):
             os.nice(config.nice)
@@ -185,7 +190,15 @@ class LiveAnalysis:
         self._proc = ctx.Process(target=_worker, name="teletouch-view-analysis",
                                  args=(self._inbox, self._outbox, workspace, self.config),
                                  daemon=True)
-        self._proc.start()
+        # started with SIGINT blocked (the mask is inherited through fork and exec): a
+        # terminal's Ctrl-C reaches the whole process group, and a child still importing
+        # would die of it with a traceback, leaving its queue unread. Here a Ctrl-C
+        # meanwhile stays pending and is delivered when the mask is restored: not lost.
+        old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        try:
+            self._proc.start()
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)
         self._pending: list[tuple[Any, ...]] = []
         self.version = 0
         self.result: dict[str, Any] | None = None
@@ -241,14 +254,19 @@ class LiveAnalysis:
                 self._proc.join(0.05)
             if self._proc.is_alive():
                 log.info("the view's analysis process is busy; terminating it")
-                self._inbox.cancel_join_thread()
                 self._proc.terminate()
                 self._proc.join(5.0)
-                # batches the child never read fill the pipe and block the queue's feeder
-                # thread on its write: read them back here so that thread can finish
-                with contextlib.suppress(queue.Empty, OSError, ValueError, EOFError):
-                    while True:
-                        self._inbox.get(timeout=0.1)
+        elif self._proc.exitcode not in (None, 0):
+            log.info("the view's analysis process ended with code %s", self._proc.exitcode)
+        # the child is gone (stopped, terminated, or dead of its own: killed, crashed while
+        # starting): no one reads the inbox any more. Batches it never read fill the pipe
+        # and block the queue's feeder thread in its write, and joining that thread would
+        # hang this process for ever (issue 9: a replay's Ctrl-C). Read back what is there,
+        # then do not wait for the feeder.
+        self._inbox.cancel_join_thread()
+        with contextlib.suppress(queue.Empty, OSError, ValueError, EOFError):
+            while True:
+                self._inbox.get(timeout=0.05)
         self._drain()
         for q in (self._inbox, self._outbox):
             q.close()

@@ -104,7 +104,10 @@ class StationView:
                         self._trail_first += _MAX_TRAIL
                     self._trail.append([round(float(phantom[0]), 2), round(float(phantom[1]), 2),
                                         round(float(phantom[2]), 2), 1.0 if contact else 0.0])
-        command = loop.last_command
+        # the command and the safe-state reason of one moment (read once, never separately:
+        # the loop may withdraw the command between two reads, see PinState)
+        pin_state = loop.pin_state
+        command = pin_state.command
         feedback = loop.display.latest_feedback() if loop.display.is_connected else None
         pins: dict[str, Any] = {
             "commanded_mm": None if command is None else nums(command.height_mm),
@@ -153,7 +156,8 @@ class StationView:
                         "version": self._analysis.version}
         return {"station": "local", "t_us": now_us(), "workspace_mm": self._bounds,
                 "pins": pins, "patch": patch, "probe": probe, "link": link_doc,
-                "safe": {"reason": loop.safe_reason}, "latency": latency,
+                "safe": {"reason": pin_state.safe_reason, "seq": pin_state.seq},
+                "latency": latency,
                 "display_loop": self._loop_stats, "analysis_state": analysis}
 
     def trail_since(self, start: int, limit: int) -> tuple[int, list[list[float]]]:

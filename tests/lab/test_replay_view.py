@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -14,8 +17,9 @@ from lab.replay_view import ReplayViewSource
 from local_site.view.analysis import LiveAnalysisConfig
 from shared.protocol import PlatformState, TactileFrame
 from shared.recording import read_mcap
+from tests.lab.browser_support import interrupt
 from tests.recordings import write_local_recording
-from tests.support import wait_until
+from tests.support import REPO_ROOT, wait_until
 
 
 @pytest.fixture(scope="module")
@@ -120,3 +124,53 @@ def test_pause_and_play_from_the_page_hold_and_resume_the_replay(recording: Path
         stop.set()
         thread.join(10)
         source.close()
+
+
+# started the way a background job of a shell without job control is: SIGINT ignored
+_SIGINT_IGNORED = ("import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_IGN); "
+                   "os.execv(sys.executable, [sys.executable, '-m', 'lab.cli', *sys.argv[1:]])")
+
+
+def _group(pgid: int) -> list[int]:
+    """The live (not zombie) processes of a process group."""
+    found = []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat") as f:
+                fields = f.read().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[2]) == pgid and fields[0] != "Z":
+            found.append(int(entry))
+    return found
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc"), reason="lists a process group via /proc")
+@pytest.mark.parametrize("whole_group", [False, True], ids=["sigint", "terminal_ctrl_c"])
+def test_ctrl_c_ends_a_replay_view_promptly_and_cleanly_even_if_sigint_came_in_ignored(
+        recording: Path, tmp_path: Path, whole_group: bool) -> None:
+    # issue 9: started in the background by a shell without job control, the replay
+    # inherited SIGINT ignored and never ended on Ctrl-C (killed after 90 s in the test)
+    log_path = tmp_path / "replay.log"
+    with log_path.open("wb") as log:
+        proc = subprocess.Popen(
+            [sys.executable, "-c", _SIGINT_IGNORED, "replay", str(recording), "--view",
+             "127.0.0.1:0", "--speed", "4", "--display", "none"],
+            cwd=REPO_ROOT, stdout=subprocess.PIPE, stderr=log, start_new_session=True)
+        try:
+            wait_until(lambda: "the view stays up" in log_path.read_text()
+                       or proc.poll() is not None, 60, "the replay's end")
+            assert proc.poll() is None, log_path.read_text()[-2000:]
+            before = _group(proc.pid)
+            assert len(before) >= 2, "the replay and its analysis process"
+        finally:
+            # whole_group: a terminal's Ctrl-C reaches every process of the group
+            ended = interrupt(proc, timeout_s=30.0, group=whole_group)
+    print(f"exit {ended.seconds:.2f} s after SIGINT; group before: {len(before)} processes")
+    text = log_path.read_text()
+    assert not ended.killed and proc.returncode == 0, text[-2000:]
+    assert b"replayed " in ended.stdout
+    assert "Traceback" not in text, text[-2000:]
+    wait_until(lambda: not _group(proc.pid), 10, "every process of the replay gone")

@@ -5,15 +5,24 @@ from __future__ import annotations
 import asyncio
 import json
 import math
-from typing import Any
+from types import SimpleNamespace
+from typing import Any, cast
 
 import numpy as np
 import pytest
 from websockets.asyncio.client import connect
 
+from local_site.agent.display_loop import DisplayLoop, FrameSlot, PinState
+from local_site.devices import open_display
+from local_site.platform.base import PlatformSample
+from local_site.render import Renderer
+from local_site.scenes import TactileFrameScene
+from local_site.view import StationView
 from local_site.view.analysis import LiveAnalysis, LiveAnalysisConfig, _confidence, encode_map
 from shared.errors import ConfigError
+from shared.freshness import ClockView
 from shared.protocol import TactileFrame
+from shared.timebase import now_us
 from shared.view import ViewAddress
 from shared.workspace import WorkspaceConfig
 from tests.local_site.agent_support import FRAME_SHAPE, FakeRemote, loop_of, relay_agent
@@ -26,7 +35,12 @@ async def _until(ws: Any, predicate: Any, what: str, timeout_s: float = 10.0) ->
         async with asyncio.timeout(scaled(timeout_s)):
             while True:
                 msg = json.loads(await ws.recv())
-                if predicate(msg["live"]):
+                live = msg["live"]
+                # every snapshot is of one moment: never a command beside the safe state
+                # that withdrew it (issue 9 under load)
+                assert live["safe"]["reason"] is None or live["pins"]["commanded_mm"] is None, \
+                    f"snapshot {msg['seq']}: commanded pins in the safe state {live['safe']}"
+                if predicate(live):
                     return dict(msg)
     except TimeoutError as err:
         raise AssertionError(f"no snapshot with {what} in {scaled(timeout_s):.0f} s") from err
@@ -141,3 +155,94 @@ def test_encode_map_marks_missing_cells_and_spans_the_range() -> None:
     assert raw[0, 0] == 0 and raw[0, 1] == 1 and raw[1, 1] == 255
     assert enc["lo"] == pytest.approx(0.02) and enc["hi"] == pytest.approx(1.98)
     assert encode_map(np.full((2, 3), np.nan))["lo"] is None
+
+
+# ---------------------------------------------------------------- one pin state per snapshot
+# (issue 9: under load a snapshot showed the commanded pins together with the safe state)
+
+
+class _Link:
+    is_connected = True
+
+    def link_down_for_s(self, now_s: float | None = None) -> float:
+        return 0.0
+
+    @property
+    def clock_offsets_us(self) -> dict[str, int | None]:
+        return {"local": 0, "remote": 0}
+
+    @property
+    def clock_view(self) -> ClockView:
+        return ClockView({"local": 0, "remote": 0}, {"local": 500, "remote": 500}, now_us())
+
+
+def _rendering_view() -> tuple[DisplayLoop, StationView]:
+    """A display loop rendering a fresh frame, and a station view over it (no analysis)."""
+    sample = PlatformSample(position_mm=(30.0, 30.0, 100.0), velocity_mm_s=(0.0, 0.0, 0.0),
+                            t_us=0, seq=1, board_t_us=0)
+    slot = FrameSlot()
+    link = _Link()
+    loop = DisplayLoop(open_display("sim"), Renderer(), TactileFrameScene(),
+                       positions=lambda: sample, platform_ok=lambda: True, frames=slot,
+                       link=link, stale_timeout_s=10.0)
+    slot.put(TactileFrame(seq=1, ts_us=now_us(), center_mm=(30.0, 30.0), pitch_mm=1.0,
+                          layers={"height_mm": np.full((9, 9), 2.0, np.float32)},
+                          contact=True), now_us())
+    loop.tick()
+    assert loop.last_command is not None and loop.safe_reason is None
+    agent = SimpleNamespace(loop=loop, reader=SimpleNamespace(latest=sample),
+                            workspace=WorkspaceConfig(), render_config=None,
+                            remote_mode=False, last_arm_state=None, link=link)
+    return loop, StationView(cast(Any, agent), analysis=None)
+
+
+def test_a_snapshot_taken_while_the_loop_goes_safe_shows_one_consistent_pin_state() -> None:
+    # the display loop runs in its own thread: it can go safe while the view's thread is
+    # half-way through a snapshot. Make it happen there, deterministically: the view reads
+    # the board's feedback after the command and before the safe reason
+    loop, view = _rendering_view()
+    try:
+        read_feedback = loop.display.latest_feedback
+
+        def going_safe_meanwhile() -> Any:
+            loop.enter_safe_state("stale_scene")
+            return read_feedback()
+
+        cast(Any, loop.display).latest_feedback = going_safe_meanwhile
+        during = view.live()
+        cast(Any, loop.display).latest_feedback = read_feedback
+        after = view.live()
+    finally:
+        loop.display.disconnect()
+    # the snapshot is of the moment before the safe state, whole: a command, no reason
+    assert during["safe"]["reason"] is None and during["pins"]["commanded_mm"] is not None
+    assert after["safe"]["reason"] == "stale_scene"
+    assert after["pins"]["commanded_mm"] is None
+    assert after["safe"]["seq"] > during["safe"]["seq"]  # the snapshot says which state
+
+
+def test_the_loop_withdraws_the_command_before_it_tells_the_board() -> None:
+    # what another thread could read at each step of entering the safe state: never the
+    # command together with the reason, and no command from the moment the board is told
+    loop, _ = _rendering_view()
+    seen: list[PinState] = []
+    try:
+        send_safe = loop.display.safe_state
+        read_link = cast(_Link, loop.link).link_down_for_s
+
+        def safe_state(mode: Any) -> Any:
+            seen.append(loop.pin_state)
+            return send_safe(mode)
+
+        def link_down_for_s(now_s: float | None = None) -> float:
+            seen.append(loop.pin_state)
+            return read_link(now_s)
+
+        cast(Any, loop.display).safe_state = safe_state
+        cast(Any, loop.link).link_down_for_s = link_down_for_s
+        loop.enter_safe_state("stale_scene")
+        seen.append(loop.pin_state)
+    finally:
+        loop.display.disconnect()
+    assert seen and all(s.command is None and s.safe_reason == "stale_scene" for s in seen)
+    assert loop.last_command is None and loop.safe_reason == "stale_scene"
