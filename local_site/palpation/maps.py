@@ -39,12 +39,18 @@ class MapConfig:
     Attributes:
         cell_mm: grid spacing of the maps (phantom mm).
         min_indentation_mm: frames pressed less than this are not used (secant too noisy).
+        min_signal_fraction: frames whose pad signal (median core height over the pad
+            profile) is below this fraction of the session's median are not used: the
+            relief is that signal's relative variation, so its noise grows as 1 / signal
+            (an arm lagging its target in z, under load, grazes the phantom and such frames
+            drew findings out of noise at the scan's edge).
         core_fraction: pad-profile level defining the pad core used for relief.
         margin_mm: the maps extend this far beyond the phantom bounds of the workspace.
     """
 
     cell_mm: float = 0.5
     min_indentation_mm: float = 0.5
+    min_signal_fraction: float = 0.25
     core_fraction: float = 0.7
     margin_mm: float = 10.0
 
@@ -152,17 +158,24 @@ def build_maps(rec: Recording, workspace: WorkspaceMap,
     secant = rec.frame_force_n[idx] / rec.frame_indentation_mm[idx]
     rows, cols = np.nonzero(core)
     inv_profile = 1.0 / profile[rows, cols]
+    ratios = patches[:, rows, cols] * inv_profile  # (N, core pixels)
+    signal = np.median(ratios, axis=1)
+    positive = signal[signal > 0]
+    min_signal = (cfg.min_signal_fraction * float(np.median(positive)) if positive.size
+                  else 0.0)
+    used = 0
     for n, i in enumerate(idx):
+        s = float(signal[n])
+        if not (s > 0 and s >= min_signal):
+            continue
+        used += 1
         pitch = float(rec.frame_pitch_mm[i])
         cx, cy = rec.frame_center_mm[i]
         u = (cols - (w_px - 1) / 2.0) * pitch + cx
         v = (rows - (h_px - 1) / 2.0) * pitch + cy
         pts = np.column_stack([u, v, np.full(u.size, workspace.config.z_surface_mm)])
         ph = workspace.forward_unclamped(pts)
-        ratio = patches[n][rows, cols] * inv_profile
-        s = float(np.median(ratio))
-        if not s > 0:
-            continue
+        ratio = ratios[n]
         rel = ratio / s - 1.0
         ci = np.rint((ph[:, 1] - y_mm[0]) / cell).astype(np.intp)
         cj = np.rint((ph[:, 0] - x_mm[0]) / cell).astype(np.intp)
@@ -184,5 +197,5 @@ def build_maps(rec: Recording, workspace: WorkspaceMap,
         stiffness = np.where(k_cnt > 0, k_acc / np.maximum(k_cnt, 1), np.nan)
     return PalpationMaps(x_mm=x_mm, y_mm=y_mm, relief=relief, relief_count=cnt,
                          relief_sample_std=sample_std,
-                         stiffness_n_per_mm=stiffness, frames_used=int(idx.size),
+                         stiffness_n_per_mm=stiffness, frames_used=used,
                          background_stiffness_n_per_mm=float(np.median(secant)))
