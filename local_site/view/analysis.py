@@ -267,7 +267,12 @@ class LiveAnalysis:
         with contextlib.suppress(queue.Empty, OSError, ValueError, EOFError):
             while True:
                 self._inbox.get(timeout=0.05)
-        self._drain()
+        # The outbox is read back only after a clean exit: a child terminated (or dead) in
+        # the middle of writing a result leaves half a message in the pipe, and reading it
+        # would wait for ever for the rest (this process holds the pipe's write end too, so
+        # no end-of-file comes). What is there is discarded anyway.
+        if self._proc.exitcode == 0:
+            self._drain()
         for q in (self._inbox, self._outbox):
             q.close()
             q.join_thread()

@@ -5,6 +5,9 @@ from __future__ import annotations
 import asyncio
 import json
 import math
+import os
+import struct
+import threading
 from types import SimpleNamespace
 from typing import Any, cast
 
@@ -136,6 +139,26 @@ def test_live_analysis_waits_for_presses_then_builds_maps_in_its_process() -> No
     finally:
         analysis.close()
     assert not analysis.alive
+
+
+def test_closing_after_the_child_died_mid_result_does_not_wait_for_the_rest() -> None:
+    # issue 9: a replay's Ctrl-C hung after "the view's analysis process is busy;
+    # terminating it": the child, cut short while writing a large result, left half a
+    # message in the result pipe, and close() read it back, waiting for the rest for ever
+    # (this process holds the pipe's write end too: no end-of-file)
+    analysis = LiveAnalysis(WorkspaceConfig(), LiveAnalysisConfig(interval_s=0.1, nice=0))
+    child = analysis._proc  # type: ignore[attr-defined]
+    child.terminate()  # as close() does to a busy child (it may still be starting)
+    child.join(scaled(10.0))
+    assert not analysis.alive and child.exitcode != 0
+    # the tail of its last result: a length header promising 1 MB, then 3 bytes
+    writer = analysis._outbox._writer  # type: ignore[attr-defined]
+    os.write(writer.fileno(), struct.pack("!i", 1 << 20) + b"abc")
+    closer = threading.Thread(target=analysis.close, name="close-after-half-result",
+                              daemon=True)
+    closer.start()
+    closer.join(scaled(10.0))
+    assert not closer.is_alive(), "close() waits for the rest of a half-written result"
 
 
 def test_confidence_is_the_share_of_recent_runs_that_found_it() -> None:
