@@ -147,7 +147,7 @@ def test_closing_after_the_child_died_mid_result_does_not_wait_for_the_rest() ->
     # message in the result pipe, and close() read it back, waiting for the rest for ever
     # (this process holds the pipe's write end too: no end-of-file)
     analysis = LiveAnalysis(WorkspaceConfig(), LiveAnalysisConfig(interval_s=0.1, nice=0))
-    child = analysis._proc  # type: ignore[attr-defined]
+    child = analysis._proc
     child.terminate()  # as close() does to a busy child (it may still be starting)
     child.join(scaled(10.0))
     assert not analysis.alive and child.exitcode != 0
