@@ -451,7 +451,7 @@ class _Connection:
             if isinstance(ev, DataReceived):
                 if peer is None or session is None:
                     continue
-                reply = session.route(peer, ev.message, ev.t_in_us)
+                reply = session.route(peer, ev.message, ev.t_in_us, ev.wire)
                 if self.relay.view_hub is not None:
                     self.relay.view_hub.observe(session, ev.message, ev.t_in_us)
                 if reply is None:
