@@ -66,12 +66,28 @@ def cpu_ms_per_1k(relay_cpu_cores: float, forwarded: int, measure_s: float) -> f
     return relay_cpu_cores * measure_s / forwarded * 1e6
 
 
+def _user_system_s(pids: list[int]) -> tuple[float, float]:
+    """User and system CPU seconds used so far by ``pids`` (from ``/proc``)."""
+    user = system = 0.0
+    tick = os.sysconf("SC_CLK_TCK")
+    for pid in pids:
+        try:
+            fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+            user += int(fields[11]) / tick
+            system += int(fields[12]) / tick
+        except (OSError, ValueError, IndexError):
+            pass
+    return user, system
+
+
 def _measure(relay: RelayUnderTest, settings: CpuSettings, mix: str, tag: str
              ) -> dict[str, Any]:
     streams = STREAMS if mix == "all" else (mix,)
     load = LoadSettings(steps=(settings.sessions,), step_s=settings.step_s,
                         generators=settings.generators, streams=streams)
+    u0, s0 = _user_system_s(relay.pids())
     step = _run_step(relay, settings.sessions, load, settings.step_s, tag)
+    u1, s1 = _user_system_s(relay.pids())
     forwarded = sum(step["received"][k] for k in streams)
     cores = step["relay_cpu_cores"]
     return {"mix": mix, "relay_cpu_cores": cores,
@@ -79,6 +95,9 @@ def _measure(relay: RelayUnderTest, settings: CpuSettings, mix: str, tag: str
             "forwarded": forwarded, "forwarded_per_s": forwarded / settings.step_s,
             "sent": sum(step["sent"][k] for k in streams),
             "cpu_ms_per_1k": cpu_ms_per_1k(cores, forwarded, settings.step_s),
+            # of the whole step (connections, warm-up and window): kernel work is the share
+            # no Python change removes but fewer system calls
+            "system_share": (s1 - s0) / (u1 - u0 + s1 - s0) if u1 - u0 + s1 - s0 > 0 else None,
             "added_p50_us": step["added_latency_us"]["p50"],
             "added_p99_us": step["added_latency_us"]["p99"],
             "delivered_min": min(step["delivered"].values()),
@@ -215,6 +234,7 @@ def markdown(r: dict[str, Any], argv: str) -> str:
              "mix": x["mix"], "msgs_s": round(x["forwarded_per_s"]),
              "relay_cores": f"{x['relay_cpu_cores']:.3f}",
              "ms/1k msgs": _f(x["cpu_ms_per_1k"]),
+             "system_share": _f(x.get("system_share"), 2),
              "added_p50_us": _f(x["added_p50_us"], 0), "added_p99_us": _f(x["added_p99_us"], 0),
              "delivered_min": f"{x['delivered_min']:.3f}",
              "drops": ", ".join(f"{k} {v}" for k, v in sorted(x["drops"].items()) if v) or "0",
@@ -239,7 +259,9 @@ def markdown(r: dict[str, Any], argv: str) -> str:
         "receiving stations got in it x 1,000, so it charges the relay's fixed costs (clock "
         "pings, stats) to the messages too. Mixes: each stream alone at its load-benchmark "
         "rate per session (platform_state 250 Hz, arm_state 50 Hz, tactile_frame 19 kB at "
-        "60-120 Hz), and `all` = the realistic session (all three).", "",
+        "60-120 Hz), and `all` = the realistic session (all three). system_share (every run "
+        "below): the relay's system (kernel) CPU over its user + system CPU during the whole "
+        "step (connects, warm-up and window).", "",
         format_table(rows), "",
         "Every run:", "", format_table(runs),
     ]
