@@ -688,8 +688,10 @@ def _autogroup() -> str:
 # --------------------------------------------------------------------------- report
 
 
-def report(results: dict[str, Any], *, as_json: bool, out_dir: str | None, argv: str) -> None:
-    """Print the results; optionally write ``load.md`` and ``load.png``."""
+def report(results: dict[str, Any], *, as_json: bool, out_dir: str | None, argv: str,
+           name: str | None = None) -> None:
+    """Print the results; optionally write ``load.md`` and ``load.png`` (``name``: another
+    file name stem)."""
     if as_json:
         emit_json(results)
     else:
@@ -697,8 +699,8 @@ def report(results: dict[str, Any], *, as_json: bool, out_dir: str | None, argv:
     if out_dir is not None:
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
-        stem = "load" if not results["settings"]["relay_workers"] else \
-            f"load_workers{results['settings']['relay_workers']}"
+        workers = results["settings"]["relay_workers"]
+        stem = name or ("load" if not workers else f"load_workers{workers}")
         (out / f"{stem}.md").write_text(_markdown(results, argv) + "\n")
         (out / f"{stem}.json").write_text(json.dumps(results, indent=1, default=str) + "\n")
         _plot(results, out / f"{stem}.png")
