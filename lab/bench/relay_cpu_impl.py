@@ -116,10 +116,10 @@ def run_relay_cpu(settings: CpuSettings) -> dict[str, Any]:
         relays: list[tuple[str, Path | None]] = [(CURRENT, None)]
         baseline_commit = None
         if settings.baseline_rev is not None:
-            tree = Path(tmp) / "baseline"
-            tree.mkdir()
-            baseline_commit = extract_revision(settings.baseline_rev, tree)
-            relays.insert(0, (settings.baseline_rev, tree))
+            baseline = Path(tmp) / "baseline"
+            baseline.mkdir()
+            baseline_commit = extract_revision(settings.baseline_rev, baseline)
+            relays.insert(0, (settings.baseline_rev, baseline))
         for rnd in range(settings.rounds):
             # both relays run through the round (an idle one costs nothing); each mix runs
             # on one then the other, so a pair is measured seconds apart

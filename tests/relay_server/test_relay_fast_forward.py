@@ -71,6 +71,7 @@ async def test_a_forwarded_frame_is_the_senders_bytes_with_the_relay_stamps(kind
         assert got[:wire.hops_start] == sent[:wire.hops_start]
         assert got.endswith(sent[wire.hops_end:])  # the 19 kB of layers, untouched
         fwd = decode(got)
+        assert isinstance(fwd, TactileFrame)
         assert fwd.hops[0] == msg.hops[0]
         (_, s_in, t_in), (_, s_out, t_out) = fwd.hops[1:]
         # and nothing else was added: the two stamps are the only new bytes
@@ -90,7 +91,7 @@ async def test_bad_headers_get_their_error_and_are_not_forwarded(kind: str) -> N
            ({**body, "position_mm": [float("nan"), 0.0, 0.0]}, "non_finite")]
     async with running_relay() as relay, clients((kind, 0), (kind, 0)) as (local, remote):
         await join_pair(relay, f"bad-{kind}", local, remote)
-        dec, pending = LengthPrefixDecoder(2**24), []
+        dec, pending = LengthPrefixDecoder(2**24), list[bytes]()
         for obj, code in bad:
             await _send_bytes(local, msgpack.packb(obj))
             err = decode(await _next_raw(local, dec, pending))

@@ -39,6 +39,12 @@ def data_messages(draw: st.DrawFn) -> DataMessage:
                         contact=True)
 
 
+def _decoded(data: bytes) -> DataMessage:
+    msg = decode(data)
+    assert isinstance(msg, DataMessage)
+    return msg
+
+
 def _located(data: bytes) -> WireMessage:
     wire = locate_hops(data, decode_map(data))
     assert wire is not None
@@ -58,8 +64,8 @@ def test_spliced_bytes_decode_like_a_re_encoded_message(msg: DataMessage,
         assert out is None  # the caller encodes, keeping the newest MAX_HOPS
         return
     assert out is not None
-    reference = decode(encode(msg, validate=False, extra_hops=extra))
-    got = decode(out)
+    reference = _decoded(encode(msg, validate=False, extra_hops=extra))
+    got = _decoded(out)
     assert got.to_wire().keys() == reference.to_wire().keys()
     assert got.hops == reference.hops == (*msg.hops, *(Hop(*h) for h in extra))
     assert msgpack.unpackb(out) == {**msgpack.unpackb(data),
@@ -86,7 +92,7 @@ def test_a_sixteen_bit_hops_header_and_unknown_keys_pass_through() -> None:
     assert obj["hops"] == [["local", "send", 5], ["local", "tx", 6], ["relay", "relay_in", 7],
                            ["relay", "relay_out", 8]]
     assert obj["x_future"] == {"a": b"\x00\x01"}  # unknown keys are the receiver's to ignore
-    assert decode(out).hops[-1] == Hop("relay", "relay_out", 8)
+    assert _decoded(out).hops[-1] == Hop("relay", "relay_out", 8)
 
 
 def test_no_hops_key_or_a_duplicated_key_is_left_to_the_encoder() -> None:
@@ -112,7 +118,7 @@ def test_the_relay_session_splices_and_falls_back_past_max_hops() -> None:
         data = encode(msg)
         ps.outbox.put_latest("p", msg, 100, wire=_located(data))
         (out,) = ps.data_to_send(lambda: 200)
-        got = decode(out)
+        got = _decoded(out)
         assert got.hops[-2:] == (Hop("relay", "relay_in", 100), Hop("relay", "relay_out", 200))
         assert len(got.hops) == min(n_hops + 2, MAX_HOPS)
         if n_hops + 2 <= MAX_HOPS:
