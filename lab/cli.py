@@ -54,6 +54,8 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
              "mutation engine; real-socket smoke)"),
     "load": ("lab.bench.load", "realistic sessions stepped up until the relay's added p99 "
              "exceeds 5 ms; soak"),
+    "relay-cpu": ("lab.bench.relay_cpu", "relay CPU per 1,000 forwarded messages per stream, "
+                  "this tree against another revision, same run"),
     "nats-hop": ("lab.bench.nats_hop", "what a NATS hop between relay workers adds to a 19 kB "
                  "frame"),
     "tactile-codec": ("lab.bench.tactile_codec", "compact tactile codec: bytes/s vs rendered "

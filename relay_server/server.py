@@ -132,6 +132,9 @@ class RelayServer:
         #: fire-and-forget tasks (closing replaced connections), kept referenced
         self._background: set[asyncio.Task[Any]] = set()
         self._connections: set[_Connection] = set()
+        #: connections with something queued to write directly (see _Connection._queued)
+        self._to_flush: dict[_Connection, None] = {}
+        self._flush_scheduled = False
         self._per_ip: Counter[str] = Counter()
         self.tls = _server_tls_context(config)
         self._closing = False
@@ -325,6 +328,26 @@ class RelayServer:
                               close_code=1013)
         return None
 
+    def flush_soon(self, conn: _Connection) -> None:
+        """Write ``conn``'s outbox directly at the next :meth:`flush`: right after the
+        batch of messages being routed, or from the event loop when the put came from
+        elsewhere (a ticker's ping or stats)."""
+        self._to_flush[conn] = None
+        if not self._flush_scheduled:
+            self._flush_scheduled = True
+            asyncio.get_running_loop().call_soon(self._scheduled_flush)
+
+    def _scheduled_flush(self) -> None:
+        self._flush_scheduled = False
+        self.flush()
+
+    def flush(self) -> None:
+        """Write every outbox given to :meth:`flush_soon` since the last flush."""
+        if self._to_flush:
+            conns, self._to_flush = self._to_flush, {}
+            for conn in conns:
+                conn.flush_now()
+
     def _join(self, hello: Hello, conn: _Connection) -> tuple[Session, Peer]:
         if self._closing:
             raise SessionError("relay shutting down", code="shutdown")
@@ -404,7 +427,9 @@ class _Connection:
         self.protocol = PeerSession(transport.framing, relay.peer_settings, now_us(),
                                     relay.counters)
         self.wake = asyncio.Event()
-        self.protocol.outbox.wakeup = self.wake.set
+        self.protocol.outbox.wakeup = self._queued
+        #: the writer task took frames and is writing them (a direct write must wait)
+        self._writing = False
         self.session: Session | None = None
         self.peer: Peer | None = None
         self.writer: asyncio.Task[None] | None = None
@@ -428,13 +453,18 @@ class _Connection:
                 events = ps.events_received()
                 for start in range(0, len(events), _EVENTS_PER_SLICE):
                     self._handle(events[start:start + _EVENTS_PER_SLICE])
+                    self.relay.flush()  # what they queued for idle peers, written now
                     if start + _EVENTS_PER_SLICE < len(events):
                         await asyncio.sleep(0)  # let writers and other sessions run
                 # websockets returns buffered messages without suspending: yield now and
                 # then so one busy reader cannot starve the writers (fairness, bounded
-                # residence time), at most every _YIELD_EVERY_S
+                # residence time), at most every _YIELD_EVERY_S; not when nothing is
+                # buffered (the next recv() suspends and the others run then: a yield per
+                # message would be an extra turn of the event loop for each)
                 t_now = loop.time()
-                if t_now - last_yield > _YIELD_EVERY_S:
+                if not self.transport.buffered():
+                    last_yield = t_now
+                elif t_now - last_yield > _YIELD_EVERY_S:
                     last_yield = t_now
                     await asyncio.sleep(0)
         finally:
@@ -451,7 +481,7 @@ class _Connection:
             if isinstance(ev, DataReceived):
                 if peer is None or session is None:
                     continue
-                reply = session.route(peer, ev.message, ev.t_in_us)
+                reply = session.route(peer, ev.message, ev.t_in_us, ev.wire)
                 if self.relay.view_hub is not None:
                     self.relay.view_hub.observe(session, ev.message, ev.t_in_us)
                 if reply is None:
@@ -513,15 +543,48 @@ class _Connection:
                 ps.send_stats(Stats(scope="relay", time_us=now_us(),
                                     metrics=session_metrics(self.session, self.peer.role)))
 
+    def _queued(self) -> None:
+        """Something was put in the outbox. When the writer task is idle and the socket
+        took everything before (the common case), the relay writes it directly once the
+        current batch of received messages is routed (:meth:`RelayServer.flush`: no task
+        switch per forwarded message, and several messages for this peer in one write);
+        else the writer task is woken: it waits for the socket (flow control) while newer
+        state messages replace unsent ones in their latest-wins slots."""
+        if self._writing or self.protocol.outbox.closed or not self.transport.ready():
+            self.wake.set()
+        else:
+            self.relay.flush_soon(self)
+
+    def flush_now(self) -> None:
+        """Write what the outbox holds without waiting (see :meth:`_queued`)."""
+        if self._writing or self.protocol.outbox.closed or not self.transport.ready():
+            self.wake.set()
+            return
+        frames = self.protocol.data_to_send(now_us)
+        if not frames:
+            return
+        try:
+            self.transport.write_nowait(frames)
+        except Exception as err:  # not expected once ready(): handled as a failed write
+            log.error("%s: direct write failed: %r", self.protocol.where, err)
+            self.protocol.outbox.closed = True
+            self.wake.set()
+            task = asyncio.get_running_loop().create_task(
+                self.transport.close(1011, "write failed"))
+            self.relay._background.add(task)
+            task.add_done_callback(self.relay._background.discard)
+
     async def _write_loop(self) -> None:
         ps, outbox = self.protocol, self.protocol.outbox
         try:
             while True:
                 await self.wake.wait()
                 self.wake.clear()
+                self._writing = True
                 frames = ps.data_to_send(now_us)
                 if frames:
                     await self.transport.write(frames)
+                self._writing = False
                 if outbox.closed and not len(outbox):
                     break
         except asyncio.CancelledError:

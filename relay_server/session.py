@@ -19,6 +19,7 @@ from shared.clocksync import ClockFilter
 from shared.errors import RoleTakenError
 from shared.ledger import LatencyLedger, LedgerSnapshot, merge_snapshots
 from shared.protocol import DataMessage, Error, StreamPolicy, TactileCompact
+from shared.protocol.forward import WireMessage
 from shared.protocol.peer_session import Outbox, Pending
 
 __all__ = [
@@ -202,13 +203,16 @@ class Session:
         elif self.stations.get(peer.role) is peer:
             del self.stations[peer.role]
 
-    def route(self, sender: Peer, msg: DataMessage, t_in_us: int) -> Error | None:
+    def route(self, sender: Peer, msg: DataMessage, t_in_us: int,
+              wire: WireMessage | None = None) -> Error | None:
         """Forward one data message from a station with the stream's policy.
 
         Args:
             sender: the station that sent it.
             msg: the validated message (without the relay_in hop yet).
             t_in_us: relay clock when its bytes arrived.
+            wire: its bytes as received, forwarded as they are with the relay's hops
+                spliced in (None: ``msg`` is encoded for each receiver).
 
         Returns:
             An ``error`` to send back to the sender (non-fatal), or None.
@@ -239,13 +243,13 @@ class Session:
             elsewhere = self.remote.forward(self.session_id, sender.role, fwd, t_in_us,
                                             sent_ref_us, receiver is None)
         if receiver is None and elsewhere:
-            self._to_observers(direction, fwd, t_in_us)
+            self._to_observers(direction, fwd, t_in_us, wire=wire)
             return None
-        return self.deliver(sender.role, fwd, t_in_us, sent_ref_us)
+        return self.deliver(sender.role, fwd, t_in_us, sent_ref_us, wire=wire)
 
     def deliver(self, sender_role: str, msg: DataMessage, t_in_us: int,
                 sent_ref_us: int | None, mid_hops: tuple[tuple[str, str, int], ...] = (),
-                to_station: bool = True) -> Error | None:
+                to_station: bool = True, wire: WireMessage | None = None) -> Error | None:
         """Queue a station's message (already booked on its uplink) for this relay's peers:
         the observers and, with ``to_station``, the other station, with the stream's policy.
 
@@ -258,6 +262,8 @@ class Session:
             mid_hops: stamps between ``relay_in`` and ``relay_out`` (the NATS leg of a
                 message from another worker).
             to_station: also to the receiving station (else observers only).
+            wire: the message's bytes as received (forwarded as they are, with the hops
+                spliced in), or None.
 
         Returns:
             An ``error`` for the sender (``no_peer``, ``queue_full``), or None.
@@ -267,7 +273,7 @@ class Session:
         ledger = direction.stream(stream)
         if isinstance(msg, TactileCompact) and msg.key:
             self._compact_keys[direction.name] = (msg, t_in_us, mid_hops)
-        self._to_observers(direction, msg, t_in_us, mid_hops)
+        self._to_observers(direction, msg, t_in_us, mid_hops, wire)
         if not to_station:
             return None
         # a compact key frame is never superseded in a latest-wins slot by the deltas that
@@ -293,10 +299,11 @@ class Session:
         key = f"{direction.name}:{stream}"
         if latest:
             self._key_frame_first(direction.name, msg, receiver)
-            if receiver.outbox.put_latest(key, msg, t_in_us, on_send, mid_hops) is not None:
+            if receiver.outbox.put_latest(key, msg, t_in_us, on_send, mid_hops,
+                                          wire) is not None:
                 ledger.record_drop("latest_wins")
         elif not receiver.outbox.put_ordered(msg, on_send, forwarded=True, t_in_us=t_in_us,
-                                             mid_hops=mid_hops):
+                                             mid_hops=mid_hops, wire=wire):
             ledger.record_drop("queue_full")
             ledger.set_queue_depth(len(receiver.outbox))
             if msg.POLICY is StreamPolicy.LATEST_WINS:
@@ -326,7 +333,8 @@ class Session:
             self.compact_keys_resent += 1
 
     def _to_observers(self, direction: DirectionStats, msg: DataMessage, t_in_us: int,
-                      mid_hops: tuple[tuple[str, str, int], ...] = ()) -> None:
+                      mid_hops: tuple[tuple[str, str, int], ...] = (),
+                      wire: WireMessage | None = None) -> None:
         if not self.observers:
             return
         key = f"{direction.name}:{msg.TYPE}"
@@ -334,12 +342,12 @@ class Session:
                 isinstance(msg, TactileCompact) and msg.key):
             for obs in self.observers.values():
                 self._key_frame_first(direction.name, msg, obs)
-                if obs.outbox.put_latest(key, msg, t_in_us, None, mid_hops) is not None:
+                if obs.outbox.put_latest(key, msg, t_in_us, None, mid_hops, wire) is not None:
                     obs.observer_drops += 1
         else:
             for obs in self.observers.values():
                 if not obs.outbox.put_ordered(msg, forwarded=True, t_in_us=t_in_us,
-                                              mid_hops=mid_hops):
+                                              mid_hops=mid_hops, wire=wire):
                     obs.observer_drops += 1
                 elif isinstance(msg, TactileCompact):
                     obs.compact_key_seq[direction.name] = msg.seq

@@ -100,6 +100,9 @@ class ClockFilter:
             raise ValueError("drift_ppm must be finite and >= 0")
         self._samples: deque[ClockSample] = deque(maxlen=size)
         self._drift = drift_ppm * 1e-6
+        #: (best, offset_us) of the current samples: both depend on the samples only, and
+        #: the relay reads them for every forwarded message (None: not computed yet)
+        self._estimate: tuple[ClockSample | None, float | None] | None = None
         #: clock steps detected (samples inconsistent with all earlier ones)
         self.steps = 0
         #: ``t3_us`` of the sample that revealed the last step (None: no step yet)
@@ -114,6 +117,7 @@ class ClockFilter:
         """
         if not (math.isfinite(sample.offset_us) and math.isfinite(sample.delay_us)):
             raise InputDataError("clock sample is not finite")
+        self._estimate = None
         self._samples.append(sample)
         if self._interval(self._samples, sample.t3_us) is not None:
             return False
@@ -155,23 +159,29 @@ class ClockFilter:
     def __len__(self) -> int:
         return len(self._samples)
 
+    def _estimated(self) -> tuple[ClockSample | None, float | None]:
+        """(best, offset_us), computed once per change of the samples."""
+        if self._estimate is None:
+            best: ClockSample | None = None
+            for s in self._samples:
+                if best is None or s.delay_us <= best.delay_us:
+                    best = s
+            iv = self.interval()
+            offset = None if iv is None or best is None else \
+                min(max(best.offset_us, iv[0]), iv[1])
+            self._estimate = (best, offset)
+        return self._estimate
+
     @property
     def best(self) -> ClockSample | None:
         """The kept sample with the smallest delay (the newest among equals), or None."""
-        best: ClockSample | None = None
-        for s in self._samples:
-            if best is None or s.delay_us <= best.delay_us:
-                best = s
-        return best
+        return self._estimated()[0]
 
     @property
     def offset_us(self) -> float | None:
         """Offset estimate (station minus reference, us): the least-queued sample's offset,
         clamped into the intersection; None before any sample."""
-        iv, best = self.interval(), self.best
-        if iv is None or best is None:
-            return None
-        return min(max(best.offset_us, iv[0]), iv[1])
+        return self._estimated()[1]
 
     def uncertainty_us(self, now_us: int | None = None) -> float | None:
         """Bound on the error of :attr:`offset_us` at reference time ``now_us`` (default:

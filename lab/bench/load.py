@@ -60,6 +60,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                              "(0: today's single-process relay)")
     parser.add_argument("--write-results", metavar="DIR", default=None,
                         help="write load.md and load.png to DIR")
+    parser.add_argument("--name", default=None,
+                        help="file name stem of the results (default load, or "
+                             "load_workersK with --relay-workers K)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -73,7 +76,8 @@ def run(args: argparse.Namespace) -> int:
         transport=args.transport, limit_p99_us=args.limit_p99_us, soak_s=args.soak,
         relay_workers=args.relay_workers)
     results = run_load(settings)
-    report(results, as_json=args.json, out_dir=args.write_results, argv=_argv(args))
+    report(results, as_json=args.json, out_dir=args.write_results, argv=_argv(args),
+           name=args.name)
     return 0
 
 
@@ -97,4 +101,6 @@ def _argv(args: argparse.Namespace) -> str:
         import os
 
         parts.append(f"--write-results {os.path.relpath(args.write_results)}")
+    if args.name:
+        parts.append(f"--name {args.name}")
     return " ".join(parts)

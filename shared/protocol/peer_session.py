@@ -24,7 +24,7 @@ import itertools
 import logging
 from collections import Counter, OrderedDict
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from shared.clocksync import ClockFilter, ClockSample, sample_from_timestamps
 from shared.errors import (
@@ -48,6 +48,7 @@ from shared.protocol.connection import (
     MessageRejected,
     ProtocolConnection,
 )
+from shared.protocol.forward import WireMessage, with_hops
 from shared.protocol.framing import frame
 from shared.protocol.messages import (
     MESSAGE_TYPES,
@@ -106,6 +107,8 @@ class Pending:
         t_in_us: relay clock when a forwarded message arrived (its ``relay_in`` hop).
         mid_hops: stamps between ``relay_in`` and ``relay_out`` (a clustered relay's NATS
             leg: ``nats_out``, ``nats_in``).
+        wire: a forwarded message's bytes as received: sent as they are with the hops
+            spliced in (:mod:`shared.protocol.forward`); None: encoded from ``message``.
     """
 
     message: Message
@@ -114,6 +117,7 @@ class Pending:
     build: Callable[[int], Message] | None = None
     t_in_us: int = 0
     mid_hops: tuple[tuple[str, str, int], ...] = ()
+    wire: WireMessage | None = None
 
 
 class Outbox:
@@ -141,10 +145,11 @@ class Outbox:
 
     def put_latest(self, key: str, message: DataMessage, t_in_us: int,
                    on_send: OnSend | None = None,
-                   mid_hops: tuple[tuple[str, str, int], ...] = ()) -> Pending | None:
+                   mid_hops: tuple[tuple[str, str, int], ...] = (),
+                   wire: WireMessage | None = None) -> Pending | None:
         """Put a forwarded ``message`` in slot ``key``; return the unsent entry it replaced."""
         old = self._queue.put_latest(key, Pending(message, True, on_send, None, t_in_us,
-                                                  mid_hops))
+                                                  mid_hops, wire))
         self._woken()
         return old
 
@@ -159,10 +164,11 @@ class Outbox:
     def put_ordered(self, message: Message, on_send: OnSend | None = None, *,
                     forwarded: bool = False, force: bool = False,
                     build: Callable[[int], Message] | None = None, t_in_us: int = 0,
-                    mid_hops: tuple[tuple[str, str, int], ...] = ()) -> bool:
+                    mid_hops: tuple[tuple[str, str, int], ...] = (),
+                    wire: WireMessage | None = None) -> bool:
         """Append to the ordered queue; False (nothing queued) when full and not ``force``."""
         if not self._queue.put_ordered(Pending(message, forwarded, on_send, build, t_in_us,
-                                               mid_hops), force=force):
+                                               mid_hops, wire), force=force):
             return False
         self._woken()
         return True
@@ -184,10 +190,12 @@ class HelloReceived:
 
 @dataclass(slots=True)  # not frozen: built once per forwarded message (frozen init is slower)
 class DataReceived:
-    """A data message from a station, to route; ``t_in_us`` is its arrival time."""
+    """A data message from a station, to route; ``t_in_us`` is its arrival time; ``wire``
+    its received bytes, to forward as they are (None: encode ``message``)."""
 
     message: DataMessage
     t_in_us: int
+    wire: WireMessage | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True, slots=True)
@@ -278,7 +286,7 @@ class PeerSession:
         self.bad_messages = 0
         self.close_code: int | None = None
         self.close_reason = ""
-        self._conn = ProtocolConnection(framing, settings.max_message_bytes)
+        self._conn = ProtocolConnection(framing, settings.max_message_bytes, keep_wire=True)
         self._conn.set_receive_limit(min(settings.max_hello_bytes, settings.max_message_bytes))
         self._bucket = TokenBucket(settings.rate_limit_per_s, settings.rate_limit_burst, now_us)
         self._over_rate = 0  # messages refused in the current over-rate episode
@@ -419,7 +427,8 @@ class PeerSession:
                 self.reject(SessionError(f"observers are read-only; {event.message.TYPE} "
                                          "refused", code="read_only"))
             else:
-                self._events.append(DataReceived(event.message, t_in_us))  # type: ignore[arg-type]
+                self._events.append(DataReceived(event.message, t_in_us,  # type: ignore[arg-type]
+                                                 event.wire))
             return
         if isinstance(event, MessageRejected):
             if isinstance(event.error, _FATAL_AFTER_HELLO):
@@ -438,7 +447,7 @@ class PeerSession:
                 self.reject(SessionError(f"observers are read-only; {msg.TYPE} refused",
                                          code="read_only"))
             else:
-                self._events.append(DataReceived(msg, t_in_us))
+                self._events.append(DataReceived(msg, t_in_us, event.wire))
         elif isinstance(msg, ClockPong):
             self._on_pong(msg, t_in_us)
         elif isinstance(msg, ClockPing):
@@ -634,7 +643,8 @@ class PeerSession:
 
         Forwarded data messages get their ``relay_in`` and ``relay_out`` hops, the latter
         read from ``clock`` just before encoding, and their ``on_send`` callback; one
-        that grew past the size limit is skipped.
+        that grew past the size limit is skipped. One received with its bytes
+        (``Pending.wire``) is sent as those bytes with the hops spliced in, not re-encoded.
 
         Args:
             clock: the relay clock in microseconds (read once per timed message).
@@ -646,12 +656,19 @@ class PeerSession:
             msg = pending.message
             if pending.forwarded:
                 t_out = clock()
-                try:
-                    data = encode(msg, validate=False, max_message_bytes=limit,
-                                  extra_hops=(("relay", "relay_in", pending.t_in_us),
-                                              *pending.mid_hops,
-                                              ("relay", "relay_out", t_out)))
-                except LocalProtocolError:
+                hops = (("relay", "relay_in", pending.t_in_us), *pending.mid_hops,
+                        ("relay", "relay_out", t_out))
+                # the sender's bytes with the stamps spliced in, when they allow it
+                spliced = None if pending.wire is None else with_hops(pending.wire, hops)
+                if spliced is not None:
+                    data = spliced
+                else:
+                    try:
+                        data = encode(msg, validate=False, max_message_bytes=limit,
+                                      extra_hops=hops)
+                    except LocalProtocolError:
+                        data = b""
+                if not data or len(data) > limit:
                     if log.isEnabledFor(logging.DEBUG):
                         log.debug("forwarded %s too large after hops", msg.TYPE)
                     continue
