@@ -15,7 +15,9 @@ import socket
 import ssl
 from typing import Any, Protocol
 
+from websockets.asyncio.connection import Connection
 from websockets.exceptions import ConnectionClosed
+from websockets.protocol import Protocol as WsProtocol
 from websockets.protocol import State
 
 from shared.errors import TlsCertificateError
@@ -29,6 +31,10 @@ __all__ = [
     "open_client_transport",
     "set_nodelay",
 ]
+
+#: websockets' asyncio connection has what :meth:`WsTransport.write_nowait` uses
+_WS_DIRECT_WRITE = callable(getattr(Connection, "send_data", None)) and \
+    callable(getattr(WsProtocol, "send_binary", None))
 
 _CLOSE_TIMEOUT_S = 2.0
 _TCP_READ_BYTES = 64 * 1024
@@ -186,8 +192,11 @@ class WsTransport:
 
     def ready(self) -> bool:
         ws = self.ws
-        return ws.protocol.state is State.OPEN and not ws.transport.is_closing() and \
-            ws.transport.get_write_buffer_size() == 0
+        # the direct write drives websockets' connection below its ``send`` (its protocol
+        # object and ``send_data``, websockets 13-17): a release without them gets the
+        # writer task's ordinary ``send`` instead of a failed write
+        return _WS_DIRECT_WRITE and ws.protocol.state is State.OPEN \
+            and not ws.transport.is_closing() and ws.transport.get_write_buffer_size() == 0
 
     def write_nowait(self, frames: list[bytes]) -> None:
         # what ``send`` does inside its send context, for all frames at once: the frames
