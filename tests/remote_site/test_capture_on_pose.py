@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import math
+from collections.abc import Sequence
 
 import pytest
 
@@ -45,7 +46,7 @@ def test_pose_settings_are_checked() -> None:
         RemoteAgentConfig(pose_wait_max_ms=math.inf)
 
 
-def _frames(sent: list[object]) -> list[TactileFrame | TactileCompact]:
+def _frames(sent: Sequence[object]) -> list[TactileFrame | TactileCompact]:
     return [m for m in sent if isinstance(m, TactileFrame | TactileCompact)]
 
 
