@@ -46,8 +46,10 @@ class RemoteAgentConfig:
             the frame clock; ``frame_rate_hz`` stays the highest frame rate.
         pose_tolerance_mm: the pose counts as reached within this distance of the target
             (or when the arm is no longer moving: settled, blocked or halted).
-        pose_wait_max_ms: a frame is taken at most this long after the command was applied,
-            reached or not (an arm tracking a moving target lags it all the time).
+        pose_wait_max_ms: the arm is waited for only if, at its current speed towards the
+            target, it gets there within this long of the command; otherwise the frame is
+            taken at once (an arm tracking a moving hand lags it all the time: waiting would
+            only add latency).
     """
 
     frame_rate_hz: float = 60.0
@@ -67,7 +69,7 @@ class RemoteAgentConfig:
     tactile_key_every: int = 30
     capture_on_pose: bool = True
     pose_tolerance_mm: float = 0.25
-    pose_wait_max_ms: float = 4.0
+    pose_wait_max_ms: float = 10.0
 
     def __post_init__(self) -> None:
         positive = ("frame_rate_hz", "patch_pitch_mm", "arm_poll_hz", "arm_state_hz",

@@ -13,8 +13,10 @@ Four asyncio tasks share one :class:`RemoteStation`:
   (numpy releases the GIL, so the receive path stays responsive), then ``tactile_frame`` out.
   With a sensor that captures on demand (the simulator) and ``capture_on_pose``, a frame is
   taken as soon as the arm has reached the pose of the latest applied command (within
-  ``pose_tolerance_mm``, or no longer moving; at most ``pose_wait_max_ms`` after the
-  command), never sooner than one frame period after the previous one; without a new
+  ``pose_tolerance_mm``, or no longer moving), never sooner than one frame period after the
+  previous one; an arm that will not get there within ``pose_wait_max_ms`` of the command
+  at its current speed (tracking a moving hand, it lags all the time) is not waited for;
+  without a new
   command, a frame every two periods keeps the touch fresh. A streaming camera keeps the
   frame clock: the newest frame at each tick (:func:`pose_reached`, :class:`CaptureCounters`).
 * **status**: one status line per ``status_interval_s``.
@@ -96,13 +98,15 @@ class CaptureCounters:
 
     Attributes:
         on_pose: the arm had reached the latest command's pose.
-        pose_wait_expired: ``pose_wait_max_ms`` passed first (the arm still moving).
+        moving: the arm was still on its way and would not get there within
+            ``pose_wait_max_ms`` of the command at its speed (an arm tracking a moving hand
+            lags it all the time): taken at once rather than waited for.
         idle: no new command for a period (refresh).
         clock: the frame clock (a streaming sensor, or ``capture_on_pose`` off).
     """
 
     on_pose: int = 0
-    pose_wait_expired: int = 0
+    moving: int = 0
     idle: int = 0
     clock: int = 0
 
@@ -113,6 +117,18 @@ def pose_reached(reading: ArmReading, tolerance_mm: float) -> bool:
     if reading.target_mm is None or reading.status != "moving":
         return True
     return math.dist(reading.position_mm, reading.target_mm) <= tolerance_mm
+
+
+def pose_eta_s(reading: ArmReading, tolerance_mm: float) -> float:
+    """When the arm will be within ``tolerance_mm`` of its target at its current speed
+    towards it (0 when reached; ``inf`` when it is not closing in)."""
+    if pose_reached(reading, tolerance_mm):
+        return 0.0
+    assert reading.target_mm is not None
+    gap = [t - p for t, p in zip(reading.target_mm, reading.position_mm, strict=True)]
+    dist = math.hypot(*gap)
+    closing = sum(v * g for v, g in zip(reading.velocity_mm_s, gap, strict=True)) / dist
+    return (dist - tolerance_mm) / closing if closing > 1e-9 else math.inf
 
 
 def command_clock(view: ClockView | None) -> tuple[float, float] | None:
@@ -289,19 +305,24 @@ class RemoteStation:
         return self.config.capture_on_pose and self.pipeline.sensor.captures_on_demand
 
     async def _until_pose(self, command: AppliedCommand) -> None:
-        """Return once the arm has reached ``command``'s pose or its pose wait has expired."""
+        """Return once the arm has reached ``command``'s pose, or at once when it will not
+        reach it within ``pose_wait_max_ms`` of the command at its current speed (an arm
+        still at rest is given until then to start)."""
         loop = asyncio.get_running_loop()
         tolerance_mm = self.config.pose_tolerance_mm
         wait_s = self.config.pose_wait_max_ms / 1000.0 - (now_us() - command.arm_command_us) / 1e6
-        deadline = loop.time() + max(0.0, wait_s)
+        deadline = loop.time() + wait_s
         while True:
-            if pose_reached(self.pipeline.read_arm(), tolerance_mm):
+            reading = self.pipeline.read_arm()
+            eta_s = pose_eta_s(reading, tolerance_mm)
+            if eta_s == 0.0:
                 self.captures.on_pose += 1
                 return
-            if loop.time() >= deadline:
-                self.captures.pose_wait_expired += 1
+            starting = math.hypot(*reading.velocity_mm_s) < 1.0
+            if loop.time() >= deadline or (loop.time() + eta_s > deadline and not starting):
+                self.captures.moving += 1
                 return
-            await asyncio.sleep(min(0.001, max(0.0, deadline - loop.time())))
+            await asyncio.sleep(0.001)
 
     async def _next_capture(self, earliest_s: float, period: float,
                             captured: AppliedCommand | None) -> None:

@@ -10,7 +10,7 @@ from collections.abc import Sequence
 import pytest
 
 from remote_site.agent.config import RemoteAgentConfig
-from remote_site.agent.station import pose_reached
+from remote_site.agent.station import pose_eta_s, pose_reached
 from remote_site.arm.base import ArmReading
 from shared.errors import ConfigError
 from shared.protocol import TactileCompact, TactileFrame
@@ -37,6 +37,17 @@ def test_pose_reached_within_tolerance_or_when_the_arm_stopped() -> None:
     assert pose_reached(reading((0, 0, 10), (1, 0, 10), "halted"), 0.25)  # will not get there
     assert pose_reached(reading((0, 0, 10), (1, 0, 10), "ok"), 0.25)
     assert pose_reached(reading((0, 0, 10), None), 0.25)
+
+
+def test_pose_eta_from_the_speed_towards_the_target() -> None:
+    def moving(velocity: tuple[float, float, float]) -> ArmReading:
+        return ArmReading((0.0, 0.0, 10.0), velocity, 0.0, "moving", (1.25, 0.0, 10.0), 0.0)
+
+    assert pose_eta_s(moving((100.0, 0.0, 0.0)), 0.25) == pytest.approx(0.01)
+    assert pose_eta_s(moving((100.0, 100.0, 0.0)), 0.25) == pytest.approx(0.01)  # sideways
+    assert pose_eta_s(moving((-5.0, 0.0, 0.0)), 0.25) == math.inf  # moving away
+    assert pose_eta_s(moving((0.0, 3.0, 0.0)), 0.25) == math.inf
+    assert pose_eta_s(reading((1.0, 0.0, 10.0), (1.25, 0.0, 10.0)), 0.25) == 0.0
 
 
 def test_pose_settings_are_checked() -> None:
@@ -76,7 +87,7 @@ async def test_frames_are_taken_once_the_arm_reached_the_commanded_pose() -> Non
         await hold(start, scaled(1.0))
         await async_wait_until(lambda: math.dist(station.safe_arm.arm.state().position_mm,
                                                  start) < 0.01, 10.0, "the arm at the start")
-        station.captures.on_pose = station.captures.pose_wait_expired = 0
+        station.captures.on_pose = station.captures.moving = 0
         before = len(_frames(link.sent))
         step_seq = seq + 1
         await hold(target, scaled(1.5))
@@ -92,7 +103,7 @@ async def test_frames_are_taken_once_the_arm_reached_the_commanded_pose() -> Non
         target_platform = WS.inverse(list(target))
         assert math.dist(first.center_mm, target_platform[:2]) <= tolerance_mm * 1.05 + 1e-3
         assert station.captures.on_pose >= 1
-        assert station.captures.pose_wait_expired == 0
+        assert station.captures.moving <= 1
 
     try:
         task = asyncio.create_task(operator())
