@@ -159,6 +159,7 @@ def main() -> int:
     parser.add_argument("--rounds", type=int, default=2, help="runs per side and profile")
     parser.add_argument("--duration-s", type=float, default=60.0,
                         help="the demo operator's time limit (the default sweep ends sooner)")
+    parser.add_argument("--tag", default="", help="results file suffix: motion_to_touch_TAG")
     parser.add_argument("--no-write", action="store_true", help="print only")
     args = parser.parse_args()
     roots = {"before": args.before.resolve(), "after": args.after.resolve()}
@@ -186,8 +187,8 @@ def main() -> int:
         "",
         f"Command: `python benchmarks/bench_motion_to_touch.py --before "
         f"{os.path.relpath(roots['before'])} --after {os.path.relpath(roots['after'])} "
-        f"--rounds {args.rounds}` (the default demo: breast scene, raster operator, 120 Hz "
-        "sensor frames, 1 kHz display loop).",
+        f"--rounds {args.rounds}{' --tag ' + args.tag if args.tag else ''}` (the default "
+        "demo: breast scene, raster operator, 120 Hz sensor frames, 1 kHz display loop).",
         "",
         f"Machine: {platform.machine()}, nproc {os.cpu_count()}, Python "
         f"{platform.python_version()}. **Shared with other agents' jobs**: 1-min load average "
@@ -220,11 +221,12 @@ def main() -> int:
     print(text)
     if not args.no_write:
         RESULTS.mkdir(parents=True, exist_ok=True)
-        (RESULTS / "motion_to_touch.json").write_text(json.dumps(
+        stem = "motion_to_touch" + (f"_{args.tag}" if args.tag else "")
+        (RESULTS / f"{stem}.json").write_text(json.dumps(
             {"load_start": load_start, "figures": figures, "runs": runs}, indent=1))
-        plot(figures, runs, RESULTS / "motion_to_touch.png")
-        text += "\n![motion-to-touch per run against the floor](motion_to_touch.png)\n"
-        (RESULTS / "motion_to_touch.md").write_text(text)
+        plot(figures, runs, RESULTS / f"{stem}.png")
+        text += f"\n![motion-to-touch per run against the floor]({stem}.png)\n"
+        (RESULTS / f"{stem}.md").write_text(text)
     return 0
 
 
