@@ -16,9 +16,9 @@ Four asyncio tasks share one :class:`RemoteStation`:
   ``pose_tolerance_mm``, or no longer moving), never sooner than one frame period after the
   previous one; an arm that will not get there within ``pose_wait_max_ms`` of the command
   at its current speed (tracking a moving hand, it lags all the time) is not waited for;
-  without a new
-  command, a frame every two periods keeps the touch fresh. A streaming camera keeps the
-  frame clock: the newest frame at each tick (:func:`pose_reached`, :class:`CaptureCounters`).
+  without a new command, a frame every two periods keeps the touch fresh. A streaming camera
+  keeps the frame clock: the newest frame at each tick (:func:`pose_reached`,
+  :class:`CaptureCounters`).
 * **status**: one status line per ``status_interval_s``.
 
 The StationLink answers clock pings and reconnects with backoff by itself.
