@@ -11,8 +11,15 @@ Profiles (one-way delay / jitter / loss / bandwidth):
   bad-wifi          8 ms   / 5 ms    / 3 %, bursts of ~5 segments / 20 Mbit/s
 Flags override single values of the profile.
 
+--listen may be repeated: one process then serves several legs towards the same target (the
+demo's local <-> relay and remote <-> relay legs), each an independent emulated link with its
+own connections, statistics and impairment seed (``--seed`` + the leg's index); the outage
+schedule and SIGUSR1 apply to every leg. One process for both legs halves the emulators'
+processes (and the scheduler's wake-ups) on a busy machine.
+
 examples:
   teletouch link --listen 127.0.0.1:9765 --target 127.0.0.1:8765 --profile city-1000km
+  teletouch link --listen :9765 --listen :9766 --target 127.0.0.1:8765 --delay-ms 5
   teletouch link --listen :9766 --target relay.example:8766 --profile lan --delay-ms 25 \\
       --outage 30:2 --outage-every 60 --outage-duration 0.5 --outage-close --seed 1
 """
@@ -31,7 +38,8 @@ class LinkSettings:
     """Settings of ``teletouch link`` (TOML table ``[link]``, env ``TELETOUCH_LINK_*``).
 
     Attributes:
-        listen: ``HOST:PORT`` to listen on (``:PORT`` = 127.0.0.1).
+        listen: ``HOST:PORT`` to listen on (``:PORT`` = 127.0.0.1); several: one leg each,
+            all in this process (a TOML string with commas or a list).
         target: ``HOST:PORT`` to forward to.
         profile: a named profile (see ``--help``).
         delay_ms, jitter_ms, loss, loss_burst_len, loss_penalty_ms, bandwidth_mbps:
@@ -44,12 +52,12 @@ class LinkSettings:
             is not handled); ``outage_close`` applies to it too. The fault suite
             (``lab/faults.py``) injects its blackholes and resets this way, so it knows to
             the millisecond when each began.
-        seed: random seed of the impairments.
+        seed: random seed of the impairments (leg ``i`` uses ``seed + i``).
         duration_s: stop after this many seconds (None = until Ctrl-C).
         stats_interval_s: live status period.
     """
 
-    listen: str = "127.0.0.1:9765"
+    listen: tuple[str, ...] = ("127.0.0.1:9765",)
     target: str = "127.0.0.1:8765"
     profile: str = "lan"
     delay_ms: float | None = None
@@ -103,7 +111,9 @@ def _parse_outage(text: str) -> tuple[float, float]:
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     """Add the link emulator's flags (None = not given, so env/TOML/defaults apply)."""
-    parser.add_argument("--listen", help="HOST:PORT to listen on (default 127.0.0.1:9765)")
+    parser.add_argument("--listen", action="append",
+                        help="HOST:PORT to listen on (default 127.0.0.1:9765); repeat it "
+                             "for more legs served by this one process")
     parser.add_argument("--target", help="HOST:PORT to forward to (default 127.0.0.1:8765)")
     parser.add_argument("--profile", help="lan, city-1000km, intercontinental, bad-wifi "
                                           "(default lan)")
@@ -156,6 +166,8 @@ def run(args: argparse.Namespace) -> int:
              "outage_duration_s", "outage_close", "outage_on_signal_s", "seed", "duration_s",
              "stats_interval_s")
     explicit = {n: getattr(args, n, None) for n in names}
+    if explicit["listen"] is not None:
+        explicit["listen"] = tuple(explicit["listen"])
     settings = resolve_config(LinkSettings, "link", explicit=explicit,
                               toml_path=getattr(args, "config", None))
     profile = get_profile(settings.profile).replace(
@@ -168,13 +180,18 @@ def run(args: argparse.Namespace) -> int:
     if settings.outage_on_signal_s is not None and not (
             math.isfinite(settings.outage_on_signal_s) and settings.outage_on_signal_s > 0):
         raise ConfigError("--outage-on-signal needs a finite duration > 0 s")
-    listen = parse_host_port(settings.listen)
+    if not settings.listen:
+        raise ConfigError("--listen: at least one HOST:PORT")
+    listens = [parse_host_port(text) for text in settings.listen]
     target = parse_host_port(settings.target)
 
-    async def main() -> dict[str, Any]:
+    async def main() -> list[dict[str, Any]]:
         status = StatusLine(min_interval_s=settings.stats_interval_s)
-        async with LinkEmulator(listen=listen, target=target, profile=profile,
-                                seed=settings.seed) as emu:
+        async with contextlib.AsyncExitStack() as stack:
+            emus = [await stack.enter_async_context(LinkEmulator(
+                listen=listen, target=target, profile=profile,
+                seed=None if settings.seed is None else settings.seed + i))
+                for i, listen in enumerate(listens)]
             loop = asyncio.get_running_loop()
             if settings.outage_on_signal_s is not None:
                 signal_outage_s = settings.outage_on_signal_s
@@ -182,14 +199,16 @@ def run(args: argparse.Namespace) -> int:
                 def on_signal() -> None:
                     log.info("link emulator: outage of %.3f s (SIGUSR1)%s", signal_outage_s,
                              ", connections reset" if settings.outage_close else "")
-                    emu.start_outage(signal_outage_s,
-                                     close_connections=bool(settings.outage_close))
+                    for emu in emus:
+                        emu.start_outage(signal_outage_s,
+                                         close_connections=bool(settings.outage_close))
 
                 loop.add_signal_handler(signal.SIGUSR1, on_signal)  # before "listening"
-            emit(f"link emulator listening on {listen[0]}:{emu.port} -> "
-                 f"{target[0]}:{target[1]} ({profile.name}: one-way {profile.delay_ms} ms "
-                 f"+/- {profile.jitter_ms} ms, loss {profile.loss:g}, "
-                 f"bandwidth {profile.bandwidth_mbps or 'unlimited'} Mbit/s)")
+            for emu in emus:
+                emit(f"link emulator listening on {emu.host}:{emu.port} -> "
+                     f"{target[0]}:{target[1]} ({profile.name}: one-way {profile.delay_ms} ms "
+                     f"+/- {profile.jitter_ms} ms, loss {profile.loss:g}, "
+                     f"bandwidth {profile.bandwidth_mbps or 'unlimited'} Mbit/s)")
             end_s = None if settings.duration_s is None else loop.time() + settings.duration_s
             with contextlib.suppress(asyncio.CancelledError):
                 while end_s is None or loop.time() < end_s:
@@ -197,20 +216,25 @@ def run(args: argparse.Namespace) -> int:
                     if end_s is not None:
                         step = min(step, max(0.0, end_s - loop.time()))
                     await asyncio.sleep(step)
-                    s = emu.stats()
-                    status.update(f"conns {s['connections_open']} open | up "
-                                  f"{s['up']['bytes']} B p50 {s['up']['actual_delay_ms']['p50']}"
-                                  f" ms | down {s['down']['bytes']} B | "
-                                  f"link {'up' if s['link_up'] else 'DOWN'}")
-            return emu.stats()
+                    status.update(" || ".join(_status_text(emu.port, emu.stats())
+                                              for emu in emus))
+            return [{"listen": f"{emu.host}:{emu.port}", **emu.stats()} for emu in emus]
 
     log = logging.getLogger("lab.linkemu")
-    stats = asyncio.run(main())
+    legs = asyncio.run(main())
     if args.json:
-        emit_json(stats)
+        # one leg: its statistics as before; several: {"legs": [...]} in --listen order
+        emit_json(legs[0] if len(legs) == 1 else {"legs": legs})
     else:
-        for direction in ("up", "down"):
-            d = stats[direction]
-            emit(f"{direction}: {d['bytes']} B in {d['chunks']} chunks, "
-                 f"{d['lost_segments']} segments lost, delay ms {d['actual_delay_ms']}")
+        for leg in legs:
+            for direction in ("up", "down"):
+                d = leg[direction]
+                emit(f"{leg['listen']} {direction}: {d['bytes']} B in {d['chunks']} chunks, "
+                     f"{d['lost_segments']} segments lost, delay ms {d['actual_delay_ms']}")
     return 0
+
+
+def _status_text(port: int, s: dict[str, Any]) -> str:
+    return (f":{port} conns {s['connections_open']} open | up {s['up']['bytes']} B p50 "
+            f"{s['up']['actual_delay_ms']['p50']} ms | down {s['down']['bytes']} B | "
+            f"link {'up' if s['link_up'] else 'DOWN'}")

@@ -101,6 +101,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tactile-codec", dest="tactile_codec", choices=("compact", "raw"),
                         help="tactile frames as compact deltas (protocol v2, default) or raw "
                              "float32 layers (version-1 peers)")
+    parser.add_argument("--capture", choices=("pose", "clock"),
+                        help="take a sensor frame as soon as the arm reached the commanded pose "
+                             "(pose, default; a sensor that captures on demand, e.g. sim) or "
+                             "on the frame clock (clock; what a streaming camera always does)")
     parser.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
     parser.add_argument("--record", metavar="PATH.mcap",
                         help="record the session to this MCAP file (docs/recording.md)")
@@ -131,7 +135,9 @@ def run(args: argparse.Namespace) -> int:
         stiffness_calibration=(Path(args.stiffness_calibration)
                                if args.stiffness_calibration else None),
         frame_rate_hz=args.frame_rate_hz, patch_pitch_mm=args.patch_pitch_mm,
-        tactile_codec=args.tactile_codec, duration_s=args.duration,
+        tactile_codec=args.tactile_codec,
+        capture_on_pose=None if args.capture is None else args.capture == "pose",
+        duration_s=args.duration,
         config_path=Path(args.config) if args.config else None,
         record=Path(args.record) if args.record else None)
     status = StatusLine()

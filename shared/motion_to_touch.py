@@ -23,8 +23,16 @@ stamp                       taken when
 Each stamp is converted to the relay's clock with the stations' clock offsets
 (``t_relay = t - offset[clock]``; the relay's own offset is 0) and the differences between
 consecutive stamps are the **stages**; ``rendered - capture`` is the end-to-end latency.
-Stamps that are missing or whose clock has no offset yet are skipped (the stage spanning them
-is then reported under the combined name), never guessed.
+The stages of a frame are counted only when every clock among its stamps has a known offset
+(the remote station's offset reaches the local station a few seconds after joining) and every
+pair of consecutive stamps is a documented stage: such a frame is **aligned**. The others are
+never guessed and never reported under a made-up stage name: the ledger counts them apart,
+as ``unaligned`` (a clock offset not yet known) or ``incomplete`` (a stamp missing, so two
+stamps that are not neighbours in the table above would meet; a frame may lack a leading
+part, e.g. one taken while no command was applied starts at ``remote.sensor_frame``).
+``end_to_end`` needs only the
+local clock (both of its stamps are the local station's) and is counted for every frame that
+has both ``local.capture`` and ``local.rendered``.
 """
 
 from __future__ import annotations
@@ -36,36 +44,49 @@ from dataclasses import dataclass
 from shared.ledger import LatencyLedger
 from shared.protocol import Hop
 
-__all__ = ["END_TO_END", "STAGE_NAMES", "MotionToTouchLedger", "StageTrace", "trace_hops"]
+__all__ = ["END_TO_END", "INCOMPLETE", "SEQUENCE", "STAGES", "UNALIGNED", "MotionToTouchLedger",
+           "StageTrace", "trace_hops"]
 
-#: (from stamp, to stamp) -> stage name, for the documented sequence
-STAGE_NAMES: dict[tuple[str, str], str] = {
-    ("local.capture", "relay.relay_in"): "uplink_local_to_relay",
-    ("relay.relay_in", "relay.relay_out"): "relay_forward_platform",
-    ("relay.relay_out", "remote.station_rx"): "relay_to_remote",
-    ("remote.station_rx", "remote.arm_command"): "remote_dispatch",
-    ("remote.arm_command", "remote.sensor_frame"): "arm_and_sensor",
-    ("remote.sensor_frame", "remote.tactile_ready"): "reconstruction_and_stiffness",
-    ("remote.tactile_ready", "relay.relay_in"): "uplink_remote_to_relay",
-    ("relay.relay_out", "local.station_rx"): "relay_to_local",
-    ("local.station_rx", "local.rendered"): "render",
-}
+#: the documented stamps of one loop, in order
+SEQUENCE: tuple[str, ...] = (
+    "local.capture", "relay.relay_in", "relay.relay_out", "remote.station_rx",
+    "remote.arm_command", "remote.sensor_frame", "remote.tactile_ready", "relay.relay_in",
+    "relay.relay_out", "local.station_rx", "local.rendered")
+
 END_TO_END = "end_to_end"
+#: frames whose stages were not counted: a clock offset was not known yet
+UNALIGNED = "unaligned"
+#: frames whose stages were not counted: a stamp was missing
+INCOMPLETE = "incomplete"
 
 
 @dataclass(frozen=True, slots=True)
 class StageTrace:
-    """Stage durations of one tactile frame, in microseconds (relay clock)."""
+    """Stage durations of one tactile frame, in microseconds (relay clock).
+
+    ``stages_us`` is empty when the frame is not aligned; ``skipped`` then says why
+    (:data:`UNALIGNED` or :data:`INCOMPLETE`), else it is None.
+    """
 
     stages_us: tuple[tuple[str, float], ...]
     end_to_end_us: float | None
+    skipped: str | None = None
 
 
-def _stage_name(a: str, b: str, relay_seen: int) -> str:
-    name = STAGE_NAMES.get((a, b))
-    if name == "relay_forward_platform" and relay_seen > 1:
-        return "relay_forward_tactile"
-    return name if name is not None else f"{a}>{b}"
+#: the stage between SEQUENCE[i] and SEQUENCE[i + 1]
+STAGES: tuple[str, ...] = (
+    "uplink_local_to_relay", "relay_forward_platform", "relay_to_remote", "remote_dispatch",
+    "arm_and_sensor", "reconstruction_and_stiffness", "uplink_remote_to_relay",
+    "relay_forward_tactile", "relay_to_local", "render")
+
+
+def _start_in_sequence(names: Sequence[str]) -> int | None:
+    """Where ``names`` starts as an unbroken run of :data:`SEQUENCE`, or None (a frame
+    without the platform part, taken while no command was applied, starts at
+    ``remote.sensor_frame``)."""
+    n = len(names)
+    return next((k for k in range(len(SEQUENCE) - n + 1)
+                 if tuple(names) == SEQUENCE[k:k + n]), None)
 
 
 def trace_hops(hops: Sequence[Hop], offsets_us: Mapping[str, float | None]) -> StageTrace:
@@ -77,25 +98,30 @@ def trace_hops(hops: Sequence[Hop], offsets_us: Mapping[str, float | None]) -> S
             ``remote``); the relay's offset is 0 whatever is given.
 
     Returns:
-        The stages between consecutive usable stamps, and end-to-end from the first
-        ``local.capture`` to the last ``local.rendered`` (None when either is missing).
+        The stages between consecutive stamps when the frame is aligned (every clock's
+        offset known, every pair a documented stage; else no stages and ``skipped`` says
+        why), and end-to-end from the first ``local.capture`` to the last ``local.rendered``
+        (None when either is missing or the local offset is unknown).
     """
     points: list[tuple[str, float]] = []
+    unaligned = False
     for hop in hops:
         offset = 0.0 if hop.clock == "relay" else offsets_us.get(hop.clock)
         if offset is None:
+            unaligned = True
             continue
         points.append((f"{hop.clock}.{hop.stage}", hop.t_us - offset))
-    stages: list[tuple[str, float]] = []
-    relay_seen = 0
-    for (a, ta), (b, tb) in itertools.pairwise(points):
-        if a == "relay.relay_in":
-            relay_seen += 1
-        stages.append((_stage_name(a, b, relay_seen), tb - ta))
     start = next((t for name, t in points if name == "local.capture"), None)
     end = next((t for name, t in reversed(points) if name == "local.rendered"), None)
     e2e = end - start if start is not None and end is not None else None
-    return StageTrace(tuple(stages), e2e)
+    if unaligned:
+        return StageTrace((), e2e, UNALIGNED)
+    start_k = _start_in_sequence([name for name, _ in points])
+    if start_k is None:
+        return StageTrace((), e2e, INCOMPLETE)
+    stages = tuple((STAGES[start_k + i], tb - ta)
+                   for i, ((_, ta), (_, tb)) in enumerate(itertools.pairwise(points)))
+    return StageTrace(stages, e2e)
 
 
 class MotionToTouchLedger:
@@ -108,6 +134,7 @@ class MotionToTouchLedger:
     def __init__(self, window: int = 8192) -> None:
         self._window = window
         self._ledgers: dict[str, LatencyLedger] = {}
+        self._skipped: dict[str, int] = {}
 
     def _ledger(self, name: str) -> LatencyLedger:
         ledger = self._ledgers.get(name)
@@ -116,7 +143,9 @@ class MotionToTouchLedger:
         return ledger
 
     def add(self, trace: StageTrace) -> None:
-        """Account the stages of one frame."""
+        """Account the stages of one frame (a skipped frame counts under its reason)."""
+        if trace.skipped is not None:
+            self._skipped[trace.skipped] = self._skipped.get(trace.skipped, 0) + 1
         for name, duration in trace.stages_us:
             self._ledger(name).record(None, 0, round(duration))
         if trace.end_to_end_us is not None:
@@ -135,7 +164,11 @@ class MotionToTouchLedger:
         return 0 if ledger is None else ledger.received
 
     def summary_ms(self) -> dict[str, dict[str, float | int | None]]:
-        """Per stage (and ``end_to_end``): ``p50``, ``p99``, ``max`` in ms and the count."""
+        """Per stage (and ``end_to_end``): ``p50``, ``p99``, ``max`` in ms and the count.
+
+        Frames whose stages were not counted appear as :data:`UNALIGNED` and
+        :data:`INCOMPLETE` with their ``count`` only (their figures are None).
+        """
         out: dict[str, dict[str, float | int | None]] = {}
         for name, ledger in self._ledgers.items():
             snap = ledger.snapshot()
@@ -145,4 +178,6 @@ class MotionToTouchLedger:
                 "max": None if snap.delay_max_us is None else snap.delay_max_us / 1000.0,
                 "count": snap.received,
             }
+        for name, count in self._skipped.items():
+            out[name] = {"p50": None, "p99": None, "max": None, "count": count}
         return out

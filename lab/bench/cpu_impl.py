@@ -164,8 +164,9 @@ def _children(parent: int) -> dict[int, str]:
     names: dict[int, str] = {}
     links = sorted(p for p, c in out.items() if c == "link")
     for pid, cmd in out.items():
-        names[pid] = (f"link-{'local' if pid == links[0] else 'remote'}" if cmd == "link"
-                      else cmd)
+        # the demo runs one emulator for both legs; two (older runs) are told apart by pid
+        names[pid] = (f"link-{'local' if pid == links[0] else 'remote'}"
+                      if cmd == "link" and len(links) > 1 else cmd)
     return names
 
 

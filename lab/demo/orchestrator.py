@@ -3,8 +3,8 @@
 :func:`run_demo` starts, as separate processes talking over real sockets on 127.0.0.1:
 
 1. ``teletouch relay`` (HMAC tokens from a random per-run secret);
-2. optionally two ``teletouch link`` emulators (local <-> relay and remote <-> relay) with a
-   named link profile;
+2. optionally one ``teletouch link`` emulator serving both legs (local <-> relay and
+   remote <-> relay, one port each) with a named link profile;
 3. ``teletouch remote`` with the simulated arm, sensor and a phantom scene;
 4. ``teletouch local`` with the simulated platform (a scripted raster operator) and the
    simulated ArrayTac display.
@@ -278,13 +278,13 @@ def run_demo(config: DemoConfig,
             leg = get_profile(config.link)
             leg_delay = ["--delay-ms", f"{leg.delay_ms / 2:g}", "--jitter-ms",
                          f"{leg.jitter_ms / 2:g}"]
-            for i, (name, port) in enumerate((("link-local", local_port),
-                                              ("link-remote", remote_port))):
-                procs.start(name, "link", "--listen", f"127.0.0.1:{port}", "--target",
-                            f"127.0.0.1:{ws_port}", "--profile", config.link, *leg_delay,
-                            "--seed", str(config.seed * 2 + i))
-                _wait_for(functools.partial(_port_open, port), f"the {name} emulator", 20,
-                          procs)
+            # one process serves both legs (two ports, each leg its own emulated link and
+            # seed: seed * 2 for the local leg, + 1 for the remote one)
+            procs.start("link", "link", "--listen", f"127.0.0.1:{local_port}", "--listen",
+                        f"127.0.0.1:{remote_port}", "--target", f"127.0.0.1:{ws_port}",
+                        "--profile", config.link, *leg_delay, "--seed", str(config.seed * 2))
+            for port in (local_port, remote_port):
+                _wait_for(functools.partial(_port_open, port), "the link emulator", 20, procs)
         rec_dir = Path(config.record_dir) if config.record_dir is not None else workdir
         rec_dir.mkdir(parents=True, exist_ok=True)
         files = {k: rec_dir / v for k, v in {

@@ -79,6 +79,8 @@ class AgentOptions:
         frame_rate_hz: tactile frames per second.
         patch_pitch_mm: tactile patch pitch on the display side.
         tactile_codec: ``compact`` or ``raw`` (default from the config: compact).
+        capture_on_pose: frames on pose reached (True) or on the frame clock (False); None:
+            the config's (default True; a streaming camera always uses the frame clock).
         duration_s: stop after this many seconds (None: until stopped).
         config_path: TOML file (or ``$TELETOUCH_CONFIG``).
         record: record the session to this MCAP file (None: no recording).
@@ -103,6 +105,7 @@ class AgentOptions:
     frame_rate_hz: float | None = None
     patch_pitch_mm: float | None = None
     tactile_codec: str | None = None
+    capture_on_pose: bool | None = None
     duration_s: float | None = None
     config_path: Path | None = None
     record: Path | None = None
@@ -151,7 +154,7 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
     stiffness_cfg = resolve_config(StiffnessConfig, "stiffness", toml_path=toml)
     agent_cfg = resolve_config(RemoteAgentConfig, "remote.agent", toml_path=toml, explicit={
         "frame_rate_hz": options.frame_rate_hz, "patch_pitch_mm": options.patch_pitch_mm,
-        "tactile_codec": options.tactile_codec})
+        "tactile_codec": options.tactile_codec, "capture_on_pose": options.capture_on_pose})
     background_cfg = resolve_config(BackgroundSettings, "remote.background", toml_path=toml)
     workspace = load_workspace(toml_path=toml)
     stiffness_calibration = load_stiffness_calibration(options.sensor,

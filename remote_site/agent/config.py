@@ -40,6 +40,16 @@ class RemoteAgentConfig:
         tactile_floor_um: the compact codec's absolute deadband on heights (um).
         tactile_key_every: the compact codec sends a key frame at least every this many
             frames (a late joiner or a lost key frame waits at most this long).
+        capture_on_pose: with a sensor that captures on demand (the simulator; a camera
+            streams on its own clock and keeps the frame clock), take the next frame as soon
+            as the arm has reached the latest command's pose, instead of on the next tick of
+            the frame clock; ``frame_rate_hz`` stays the highest frame rate.
+        pose_tolerance_mm: the pose counts as reached within this distance of the target
+            (or when the arm is no longer moving: settled, blocked or halted).
+        pose_wait_max_ms: the arm is waited for only if, at its current speed towards the
+            target, it gets there within this long of the command; otherwise the frame is
+            taken at once (an arm tracking a moving hand lags it all the time: waiting would
+            only add latency).
     """
 
     frame_rate_hz: float = 60.0
@@ -57,15 +67,21 @@ class RemoteAgentConfig:
     tactile_weber: float = 0.0
     tactile_floor_um: float = 2.0
     tactile_key_every: int = 30
+    capture_on_pose: bool = True
+    pose_tolerance_mm: float = 0.25
+    pose_wait_max_ms: float = 10.0
 
     def __post_init__(self) -> None:
         positive = ("frame_rate_hz", "patch_pitch_mm", "arm_poll_hz", "arm_state_hz",
                     "link_loss_halt_ms", "watchdog_period_s", "sensor_max_age_ms",
-                    "stiffness_cell_mm", "status_interval_s")
+                    "stiffness_cell_mm", "status_interval_s", "pose_tolerance_mm")
         for name in positive:
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
                 raise ConfigError(f"remote.agent.{name} must be finite and > 0, got {value!r}")
+        if not (math.isfinite(self.pose_wait_max_ms) and 0.0 <= self.pose_wait_max_ms <= 1000.0):
+            raise ConfigError("remote.agent.pose_wait_max_ms must lie in [0, 1000], got "
+                              f"{self.pose_wait_max_ms!r}")
         if self.frame_rate_hz > 1000.0 or self.arm_poll_hz > 2000.0:
             raise ConfigError("remote.agent: frame_rate_hz <= 1000 and arm_poll_hz <= 2000")
         if len(self.patch_size_mm) != 2 or not all(

@@ -9,8 +9,16 @@ Four asyncio tasks share one :class:`RemoteStation`:
 * **arm monitor** (``arm_poll_hz``): :meth:`SafeArm.poll` (no command for 100 ms halts, the
   force limit), every reading to the stiffness stage, the link-loss halt (link down for more
   than ``link_loss_halt_ms``), and ``arm_state`` at ``arm_state_hz``.
-* **frames** (``frame_rate_hz``): :meth:`FramePipeline.process` in a worker thread (numpy
-  releases the GIL, so the receive path stays responsive), then ``tactile_frame`` out.
+* **frames** (at most ``frame_rate_hz``): :meth:`FramePipeline.process` in a worker thread
+  (numpy releases the GIL, so the receive path stays responsive), then ``tactile_frame`` out.
+  With a sensor that captures on demand (the simulator) and ``capture_on_pose``, a frame is
+  taken as soon as the arm has reached the pose of the latest applied command (within
+  ``pose_tolerance_mm``, or no longer moving), never sooner than one frame period after the
+  previous one; an arm that will not get there within ``pose_wait_max_ms`` of the command
+  at its current speed (tracking a moving hand, it lags all the time) is not waited for;
+  without a new command, a frame every two periods keeps the touch fresh. A streaming camera
+  keeps the frame clock: the newest frame at each tick (:func:`pose_reached`,
+  :class:`CaptureCounters`).
 * **status**: one status line per ``status_interval_s``.
 
 The StationLink answers clock pings and reconnects with backoff by itself.
@@ -84,6 +92,45 @@ class StationCounters:
     stiffness_samples_rejected: int = 0
 
 
+@dataclass
+class CaptureCounters:
+    """Why each frame was taken (capture on pose; see the module docstring).
+
+    Attributes:
+        on_pose: the arm had reached the latest command's pose.
+        moving: the arm was still on its way and would not get there within
+            ``pose_wait_max_ms`` of the command at its speed (an arm tracking a moving hand
+            lags it all the time): taken at once rather than waited for.
+        idle: no new command for a period (refresh).
+        clock: the frame clock (a streaming sensor, or ``capture_on_pose`` off).
+    """
+
+    on_pose: int = 0
+    moving: int = 0
+    idle: int = 0
+    clock: int = 0
+
+
+def pose_reached(reading: ArmReading, tolerance_mm: float) -> bool:
+    """Whether the arm has reached its commanded pose: within ``tolerance_mm`` of its target,
+    or not moving any more (settled, blocked, halted, no target)."""
+    if reading.target_mm is None or reading.status != "moving":
+        return True
+    return math.dist(reading.position_mm, reading.target_mm) <= tolerance_mm
+
+
+def pose_eta_s(reading: ArmReading, tolerance_mm: float) -> float:
+    """When the arm will be within ``tolerance_mm`` of its target at its current speed
+    towards it (0 when reached; ``inf`` when it is not closing in)."""
+    if pose_reached(reading, tolerance_mm):
+        return 0.0
+    assert reading.target_mm is not None
+    gap = [t - p for t, p in zip(reading.target_mm, reading.position_mm, strict=True)]
+    dist = math.hypot(*gap)
+    closing = sum(v * g for v, g in zip(reading.velocity_mm_s, gap, strict=True)) / dist
+    return (dist - tolerance_mm) / closing if closing > 1e-9 else math.inf
+
+
 def command_clock(view: ClockView | None) -> tuple[float, float] | None:
     """Our clock minus the local station's, and its error bound, from the relay's offsets
     (None when either is unknown: commands are then refused)."""
@@ -127,6 +174,9 @@ class RemoteStation:
         self.counters = StationCounters()
         self.latest: AppliedCommand | None = None
         self.last_reading: ArmReading | None = None
+        self.captures = CaptureCounters()
+        #: set when a platform_state is applied to the arm (wakes a frame capture on pose)
+        self._command_applied = asyncio.Event()
         self._frame_seq = 0
         self._arm_state_seq = 0
         self._link_halted = False
@@ -176,6 +226,7 @@ class RemoteStation:
         if result.accepted:
             t_us = now_us()
             self.latest = AppliedCommand(state, t_us)
+            self._command_applied.set()
             self.counters.platform_applied += 1
             rx = [h.t_us for h in state.hops if h.clock == "remote" and h.stage == "station_rx"]
             if rx:
@@ -248,21 +299,70 @@ class RemoteStation:
                 next_t = loop.time()
             await asyncio.sleep(max(0.0, delay))
 
+    @property
+    def captures_on_pose(self) -> bool:
+        """Whether frames are taken on pose reached (else on the frame clock)."""
+        return self.config.capture_on_pose and self.pipeline.sensor.captures_on_demand
+
+    async def _until_pose(self, command: AppliedCommand) -> None:
+        """Return once the arm has reached ``command``'s pose, or at once when it will not
+        reach it within ``pose_wait_max_ms`` of the command at its current speed (an arm
+        still at rest is given until then to start)."""
+        loop = asyncio.get_running_loop()
+        tolerance_mm = self.config.pose_tolerance_mm
+        wait_s = self.config.pose_wait_max_ms / 1000.0 - (now_us() - command.arm_command_us) / 1e6
+        deadline = loop.time() + wait_s
+        while True:
+            reading = self.pipeline.read_arm()
+            eta_s = pose_eta_s(reading, tolerance_mm)
+            if eta_s == 0.0:
+                self.captures.on_pose += 1
+                return
+            starting = math.hypot(*reading.velocity_mm_s) < 1.0
+            if loop.time() >= deadline or (loop.time() + eta_s > deadline and not starting):
+                self.captures.moving += 1
+                return
+            await asyncio.sleep(0.001)
+
+    async def _next_capture(self, earliest_s: float, period: float,
+                            captured: AppliedCommand | None) -> None:
+        """Wait for the moment of the next frame (capture on pose, see the module doc)."""
+        loop = asyncio.get_running_loop()
+        delay = earliest_s - loop.time()
+        if delay > 0:
+            await asyncio.sleep(delay)
+        if self.latest is captured:  # nothing new: wait for a command, at most a period
+            self._command_applied.clear()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._command_applied.wait(), period)
+        command = self.latest
+        if command is captured or command is None:
+            self.captures.idle += 1
+            return
+        await self._until_pose(command)
+
     async def _frame_loop(self, executor: ThreadPoolExecutor) -> None:
         period = 1.0 / self.config.frame_rate_hz
+        on_pose = self.captures_on_pose
         loop = asyncio.get_running_loop()
         next_t = loop.time()
         last_start: float | None = None
+        captured: AppliedCommand | None = None
         while True:
-            delay = next_t - loop.time()
-            if delay > 0:
-                await asyncio.sleep(delay)
+            if on_pose:
+                await self._next_capture(next_t, period, captured)
+            else:
+                delay = next_t - loop.time()
+                if delay > 0:
+                    await asyncio.sleep(delay)
+                self.captures.clock += 1
             start = loop.time()
             if last_start is not None:
                 self.frame_period_s.append(start - last_start)
             last_start = start
+            captured = self.latest
             outcome: FrameOutcome = await loop.run_in_executor(
-                executor, self.pipeline.process, self._frame_seq + 1, self.latest)
+                executor, self.pipeline.process, self._frame_seq + 1, captured)
             if outcome.frame is not None:
                 self._frame_seq += 1
                 self._record(outcome)
@@ -276,6 +376,9 @@ class RemoteStation:
                     self.counters.frames_not_sent_link_down += 1
                     if self.encoder is not None:
                         self.encoder.reset()  # a key frame first when the link is back
+            if on_pose:  # the next frame no sooner than a period after this one began
+                next_t = start + period
+                continue
             next_t += period
             now = loop.time()
             if now > next_t:
@@ -383,6 +486,8 @@ class RemoteStation:
             "elapsed_s": elapsed,
             "frames": {
                 "frame_rate_hz": self.config.frame_rate_hz,
+                "capture": "on_pose" if self.captures_on_pose else "clock",
+                "captures": asdict(self.captures),
                 "processed": p.processed,
                 "sent": c.frames_sent,
                 "not_sent_link_down": c.frames_not_sent_link_down,

@@ -73,7 +73,14 @@ class TactileSensor(Device):
     Args:
         shape_hw: (rows, cols) of the frames delivered.
         mm_per_px: pixel pitch of the delivered frames on the gel.
+
+    Attributes:
+        captures_on_demand: every :meth:`read_latest` captures a new frame now (a renderer,
+            a triggered camera); False for a source that streams on its own clock, where
+            the newest frame is whatever was captured last.
     """
+
+    captures_on_demand: bool = False
 
     def __init__(self, shape_hw: tuple[int, int], mm_per_px: float) -> None:
         super().__init__()

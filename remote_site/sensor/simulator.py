@@ -39,6 +39,8 @@ class SimulatedSensor(TactileSensor):
         clock_s: the time the drift follows (seconds; default: since connect, wall clock).
     """
 
+    captures_on_demand = True  # every read renders the gel as it is now
+
     def __init__(self, depth_provider: DepthProvider | None = None,
                  settings: PhotometricSettings | None = None, seed: int = 0, *,
                  led_drift_per_min: float = 0.0,

@@ -79,3 +79,30 @@ def test_status_line_shows_flow_and_latency() -> None:
         "forwarded": {"local_to_remote": 5000, "remote_to_local": 300},
         "delay_us": {"local_to_remote": {"end_to_end": {"p50": 2300}}}}}})
     assert "5000" in line and "300" in line and "2.3 ms" in line
+
+
+def test_demo_over_one_link_emulator_has_no_merged_stage_names(tmp_path: Path) -> None:
+    """--link: one emulator process serves both legs; the ledger names only documented
+    stages (frames before both clock offsets are known are counted apart); the simulated
+    sensor's frames are taken on pose."""
+    from shared.motion_to_touch import END_TO_END, INCOMPLETE, STAGES, UNALIGNED
+
+    workdir = tmp_path / "work"
+    done = subprocess.run(
+        [sys.executable, "-m", "lab.cli", "demo", "--headless", "--json", "--no-view",
+         "--link", "lan", "--motion", SMALL_RASTER, "--duration", "30", "--workdir",
+         str(workdir)],
+        capture_output=True, text=True, timeout=scaled(120.0), check=False, env=_scaled_env())
+    assert done.returncode == 0, done.stderr[-3000:]
+    report = json.loads(done.stdout)
+    names = set(report["latency_ms"])
+    assert not [n for n in names if ">" in n], names
+    assert names <= {*STAGES, END_TO_END, UNALIGNED, INCOMPLETE}
+    assert {"relay_to_remote", "arm_and_sensor", "render"} <= names
+    assert report["latency_ms"][END_TO_END]["count"] > 0
+    logs = sorted(p.name for p in workdir.glob("link*.log"))
+    assert logs == ["link.log"]
+    assert (workdir / "link.log").read_text().count("link emulator listening on") == 2
+    frames = report["remote"]["frames"]
+    assert frames["capture"] == "on_pose"
+    assert frames["captures"]["clock"] == 0 and frames["processed"] > 0

@@ -355,3 +355,67 @@ def test_cli_refuses_a_non_positive_signal_outage() -> None:
 
     assert main(["link", "--listen", f"127.0.0.1:{free_tcp_port()}", "--target",
                  "127.0.0.1:1", "--outage-on-signal", "0", "--duration", "0.1"]) == 1
+
+
+def test_one_process_serves_both_legs_each_with_its_own_delay_and_stats() -> None:
+    """Two --listen ports in one ``teletouch link`` process: the demo's two legs."""
+    import socket
+    import socketserver
+    import subprocess
+    import sys
+    import threading
+    import time
+
+    class Echo(socketserver.BaseRequestHandler):
+        def handle(self) -> None:
+            while data := self.request.recv(4096):
+                self.request.sendall(data)
+
+    server = socketserver.ThreadingTCPServer(("127.0.0.1", 0), Echo)
+    server.daemon_threads = True
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    ports = [free_tcp_port(), free_tcp_port()]
+    one_way_ms = 15.0
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "lab.cli", "link", "--listen", f"127.0.0.1:{ports[0]}",
+         "--listen", f"127.0.0.1:{ports[1]}", "--target",
+         f"127.0.0.1:{server.server_address[1]}", "--delay-ms", f"{one_way_ms:g}",
+         "--jitter-ms", "0", "--seed", "4", "--duration", f"{scaled(4.0):g}", "--json"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None
+        listening = [proc.stdout.readline(), proc.stdout.readline()]
+        assert all("listening" in line for line in listening)
+        assert [f":{p} ->" in line for p, line in zip(ports, listening, strict=True)] == \
+            [True, True]
+        round_trips: dict[int, list[float]] = {}
+        clients = [socket.create_connection(("127.0.0.1", p), timeout=scaled(5.0))
+                   for p in ports]
+        for i in range(3):
+            for port, client in zip(ports, clients, strict=True):
+                payload = f"leg {port} ping {i}".encode()
+                t0 = time.monotonic()
+                client.sendall(payload)
+                got = b""
+                while len(got) < len(payload):
+                    got += client.recv(4096)
+                round_trips.setdefault(port, []).append((time.monotonic() - t0) * 1e3)
+                assert got == payload
+        for client in clients:
+            client.close()
+        out, _err = proc.communicate(timeout=scaled(20.0))
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        server.shutdown()
+        server.server_close()
+    # each leg delays both directions: one round trip through a leg is 2 x one-way
+    for port in ports:
+        assert min(round_trips[port]) >= 2 * one_way_ms - 1.0, round_trips
+    legs = json.loads(out.strip().splitlines()[-1])["legs"]
+    assert [leg["listen"] for leg in legs] == [f"127.0.0.1:{p}" for p in ports]
+    for leg in legs:  # independent links: one connection and three requests each
+        assert leg["connections_total"] == 1
+        assert leg["up"]["chunks"] == 3 and leg["down"]["chunks"] == 3
+

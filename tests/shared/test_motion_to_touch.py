@@ -5,7 +5,13 @@ from __future__ import annotations
 from hypothesis import given
 from hypothesis import strategies as st
 
-from shared.motion_to_touch import END_TO_END, MotionToTouchLedger, trace_hops
+from shared.motion_to_touch import (
+    END_TO_END,
+    INCOMPLETE,
+    UNALIGNED,
+    MotionToTouchLedger,
+    trace_hops,
+)
 from shared.protocol import Hop
 
 # true times on the relay clock (us) of each stamp of one loop
@@ -33,11 +39,28 @@ def test_offsets_are_removed(off_local: int, off_remote: int) -> None:
     assert sum(d for _, d in trace.stages_us) == trace.end_to_end_us
 
 
-def test_unknown_offset_skips_stamps_and_merges_stage() -> None:
+def test_unknown_offset_counts_the_frame_apart_without_merged_stages() -> None:
     offsets = {"local": 5, "remote": None}
     trace = trace_hops(stamped({"local": 5, "remote": 777}), offsets)
-    names = [n for n, _ in trace.stages_us]
-    assert "relay.relay_out>relay.relay_in" in names
+    assert trace.stages_us == ()
+    assert trace.skipped == UNALIGNED
+    assert trace.end_to_end_us == 51_000  # both of its stamps are on the local clock
+    ledger = MotionToTouchLedger()
+    ledger.add(trace)
+    ledger.add_hops(stamped({"local": 5, "remote": 777}), {"local": 5, "remote": 777})
+    summary = ledger.summary_ms()
+    assert summary[UNALIGNED]["count"] == 1
+    assert summary["render"]["count"] == 1
+    assert summary[END_TO_END]["count"] == 2
+    assert not [name for name in summary if ">" in name]
+
+
+@given(st.sets(st.integers(1, len(TRUE) - 2), min_size=1))
+def test_a_missing_stamp_never_yields_a_merged_stage(dropped: set[int]) -> None:
+    hops = [h for i, h in enumerate(stamped({"local": 0, "remote": 0})) if i not in dropped]
+    trace = trace_hops(hops, {"local": 0, "remote": 0})
+    assert trace.stages_us == ()
+    assert trace.skipped == INCOMPLETE
     assert trace.end_to_end_us == 51_000
 
 
@@ -57,3 +80,12 @@ def test_ledger_summary_in_ms() -> None:
     p50 = summary[END_TO_END]["p50"]
     assert p50 is not None and 51.4 <= p50 <= 51.6
     assert summary["relay_to_local"]["p99"] == 10.0
+
+
+def test_a_frame_without_its_platform_part_still_has_stages() -> None:
+    hops = stamped({"local": 0, "remote": 0})[5:]  # from remote.sensor_frame on
+    trace = trace_hops(hops, {"local": 0, "remote": 0})
+    assert trace.skipped is None and trace.end_to_end_us is None
+    assert [n for n, _ in trace.stages_us] == [
+        "reconstruction_and_stiffness", "uplink_remote_to_relay", "relay_forward_tactile",
+        "relay_to_local", "render"]

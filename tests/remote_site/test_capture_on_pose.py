@@ -1,0 +1,143 @@
+"""Capture on pose: with the simulated sensor a frame is taken once the arm has reached the
+commanded pose, not on an unrelated frame clock; a streaming sensor keeps the clock."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from collections.abc import Sequence
+
+import pytest
+
+from remote_site.agent.config import RemoteAgentConfig
+from remote_site.agent.station import pose_eta_s, pose_reached
+from remote_site.arm.base import ArmReading
+from shared.errors import ConfigError
+from shared.protocol import TactileCompact, TactileFrame
+from shared.timebase import now_us
+from tests.remote_site.test_agent_safety import (
+    WS,
+    FakeLink,
+    ScriptedSensor,
+    close_station,
+    make_station,
+    platform_state,
+)
+from tests.support import async_wait_until, scaled
+
+
+def reading(position: tuple[float, float, float], target: tuple[float, float, float] | None,
+            status: str = "moving") -> ArmReading:
+    return ArmReading(position, (0.0, 0.0, 0.0), 0.0, status, target, 0.0)
+
+
+def test_pose_reached_within_tolerance_or_when_the_arm_stopped() -> None:
+    assert not pose_reached(reading((0, 0, 10), (1, 0, 10)), 0.25)
+    assert pose_reached(reading((0.8, 0, 10), (1, 0, 10)), 0.25)
+    assert pose_reached(reading((0, 0, 10), (1, 0, 10), "halted"), 0.25)  # will not get there
+    assert pose_reached(reading((0, 0, 10), (1, 0, 10), "ok"), 0.25)
+    assert pose_reached(reading((0, 0, 10), None), 0.25)
+
+
+def test_pose_eta_from_the_speed_towards_the_target() -> None:
+    def moving(velocity: tuple[float, float, float]) -> ArmReading:
+        return ArmReading((0.0, 0.0, 10.0), velocity, 0.0, "moving", (1.25, 0.0, 10.0), 0.0)
+
+    assert pose_eta_s(moving((100.0, 0.0, 0.0)), 0.25) == pytest.approx(0.01)
+    assert pose_eta_s(moving((100.0, 100.0, 0.0)), 0.25) == pytest.approx(0.01)  # sideways
+    assert pose_eta_s(moving((-5.0, 0.0, 0.0)), 0.25) == math.inf  # moving away
+    assert pose_eta_s(moving((0.0, 3.0, 0.0)), 0.25) == math.inf
+    assert pose_eta_s(reading((1.0, 0.0, 10.0), (1.25, 0.0, 10.0)), 0.25) == 0.0
+
+
+def test_pose_settings_are_checked() -> None:
+    with pytest.raises(ConfigError, match="pose_tolerance_mm"):
+        RemoteAgentConfig(pose_tolerance_mm=0.0)
+    with pytest.raises(ConfigError, match="pose_wait_max_ms"):
+        RemoteAgentConfig(pose_wait_max_ms=math.inf)
+
+
+def _frames(sent: Sequence[object]) -> list[TactileFrame | TactileCompact]:
+    return [m for m in sent if isinstance(m, TactileFrame | TactileCompact)]
+
+
+async def test_frames_are_taken_once_the_arm_reached_the_commanded_pose() -> None:
+    """A 10 mm step takes the sim arm about 0.3 s. With a slow frame clock (5 Hz) and a long
+    pose wait, every frame answering the step is taken with the pad within the tolerance of
+    the target (on the frame clock the first one shows the pad on its way)."""
+    tolerance_mm = 0.05
+    link = FakeLink()
+    station = make_station(link, config=RemoteAgentConfig(
+        frame_rate_hz=5.0, status_interval_s=10.0, pose_tolerance_mm=tolerance_mm,
+        pose_wait_max_ms=1000.0))
+    assert station.captures_on_pose
+    start, target = (0.0, 0.0, 12.0), (10.0, 0.0, 12.0)
+    stop = asyncio.Event()
+    seq = 0
+
+    async def hold(position: tuple[float, float, float], seconds: float) -> None:
+        nonlocal seq
+        end = asyncio.get_running_loop().time() + seconds
+        while asyncio.get_running_loop().time() < end:  # a held hand: fresh states at 50 Hz
+            seq += 1
+            link.inbox.put_nowait(platform_state(seq, position))
+            await asyncio.sleep(0.02)
+
+    async def operator() -> None:
+        await hold(start, scaled(1.0))
+        await async_wait_until(lambda: math.dist(station.safe_arm.arm.state().position_mm,
+                                                 start) < 0.01, 10.0, "the arm at the start")
+        station.captures.on_pose = station.captures.moving = 0
+        before = len(_frames(link.sent))
+        step_seq = seq + 1
+        await hold(target, scaled(1.5))
+        stop.set()
+        answered = [f for f in _frames(link.sent)[before:]
+                    if f.source_seq is not None and f.source_seq >= step_seq]
+        assert answered, "no frame answered the step"
+        first = answered[0]
+        stamps = {h.stage: h.t_us for h in first.hops if h.clock == "remote"}
+        step_applied_us = min(stamps["arm_command"], now_us())
+        assert stamps["sensor_frame"] >= step_applied_us
+        # the frame shows the pad where it was commanded (platform coordinates)
+        target_platform = WS.inverse(list(target))
+        assert math.dist(first.center_mm, target_platform[:2]) <= tolerance_mm * 1.05 + 1e-3
+        assert station.captures.on_pose >= 1
+        assert station.captures.moving <= 1
+
+    try:
+        task = asyncio.create_task(operator())
+        await station.run(stop, duration_s=scaled(20.0))
+        await task
+        assert station.summary()["frames"]["capture"] == "on_pose"
+    finally:
+        close_station(station)
+
+
+async def test_a_streaming_sensor_keeps_the_frame_clock() -> None:
+    """A sensor that does not capture on demand (a camera) is read on the frame clock."""
+    import numpy as np
+
+    from remote_site.sensor.simulator import SimulatedSensor
+
+    good = SimulatedSensor().render(np.zeros((240, 320)))
+    sensor = ScriptedSensor([good] * 400)
+    assert not sensor.captures_on_demand
+    link = FakeLink()
+    station = make_station(link, sensor=sensor, config=RemoteAgentConfig(
+        frame_rate_hz=50.0, status_interval_s=10.0))
+    stop = asyncio.Event()
+
+    async def stopper() -> None:
+        await async_wait_until(lambda: station.captures.clock >= 5, 20.0, "5 clocked frames")
+        stop.set()
+
+    try:
+        task = asyncio.create_task(stopper())
+        await station.run(stop, duration_s=scaled(30.0))
+        await task
+        assert not station.captures_on_pose
+        assert station.captures.on_pose == station.captures.idle == 0
+        assert station.summary()["frames"]["capture"] == "clock"
+    finally:
+        close_station(station)
