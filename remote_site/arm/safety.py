@@ -162,6 +162,8 @@ class SafeArm:
         self._lock = threading.RLock()
         self._watchdog: threading.Thread | None = None
         self._watchdog_stop = threading.Event()
+        #: the watchdog's check period (ms): a check halts when the next one would be late
+        self._check_period_ms = 0.0
 
     # --------------------------------------------------------------- properties
 
@@ -345,9 +347,12 @@ class SafeArm:
                 x, y, _ = reading.target_mm
                 self.arm.move_to((x, y, self._limit_hold_z))
                 self.counters.force_limited += 1
+            # with the watchdog thread checking every period, a check halts when the
+            # command will be past the timeout at the next check: the halt then comes
+            # within the timeout, not up to one period after it
             if (not self._halted and self._last_command_s is not None
                     and (self._mono() - self._last_command_s) * 1000.0
-                    > self.config.command_timeout_ms):
+                    > self.config.command_timeout_ms - self._check_period_ms):
                 self.arm.stop()
                 self._halted = True
                 self.counters.watchdog_halts += 1
@@ -360,9 +365,14 @@ class SafeArm:
             return reading
 
     def start_watchdog(self, period_s: float = 0.005) -> None:
-        """Run :meth:`poll` every ``period_s`` in a daemon thread until :meth:`close`."""
+        """Run :meth:`poll` every ``period_s`` in a daemon thread until :meth:`close`.
+
+        From then on :meth:`poll` halts the arm once the newest command is older than
+        ``command_timeout_ms - period``: the check after that would come too late.
+        """
         if self._watchdog is not None:
             return
+        self._check_period_ms = period_s * 1000.0
         self._watchdog_stop.clear()
 
         def loop() -> None:

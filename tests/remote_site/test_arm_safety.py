@@ -164,6 +164,22 @@ def test_wire_commands() -> None:
     assert res.applied_mm == arm.limits.home_mm
 
 
+def test_with_the_watchdog_thread_the_halt_comes_within_the_timeout() -> None:
+    # checked every 20 ms, a halt decided only once the command is 100 ms old could come up
+    # to 120 ms after it (the fault suite measured 100.3 ms with a 5 ms period): the check
+    # halts when the next one would be late
+    safe, _, clock = make()
+    safe.move((30.0, 0.0, 10.0))
+    safe.start_watchdog(0.02)
+    try:
+        clock.t_s += 0.079
+        assert safe.poll().status != "halted"  # 79 + 20 < 100: the next check is in time
+        clock.t_s += 0.002
+        assert safe.poll().status == "halted" and safe.counters.watchdog_halts == 1
+    finally:
+        safe.close()
+
+
 def test_watchdog_thread_halts_a_real_clock_arm() -> None:
     arm = SimArm(PHANTOM, SimArmConfig(realtime=False))
     arm.connect()
