@@ -237,7 +237,6 @@ before this split was added have no rows here):
 
 def run(args: argparse.Namespace) -> int:
     """Run the suite and report."""
-    import json
     import os
     import platform
     import signal
@@ -246,6 +245,7 @@ def run(args: argparse.Namespace) -> int:
     import time
     from pathlib import Path
 
+    from lab.bench.results import write_results
     from lab.faults import iter_results, scenarios
     from shared.report import emit, emit_json
 
@@ -284,12 +284,9 @@ def run(args: argparse.Namespace) -> int:
         md = report_markdown(results, command=" ".join(parts), machine=machine + note,
                              elapsed_s=time.monotonic() - started)
         if args.write_results:
-            out = Path(args.write_results)
-            out.mkdir(parents=True, exist_ok=True)
-            (out / f"{name}.md").write_text(md)
-            (out / f"{name}.json").write_text(json.dumps(
-                {"machine": machine, "load_average_start": load, "partial": partial,
-                 "results": results}, indent=1, default=str) + "\n")
+            write_results(args.write_results, name, md, data={
+                "machine": machine, "load_average_start": load, "partial": partial,
+                "results": results})
 
     for r in iter_results(items, root, repeats=repeats, board_process=args.board_process,
                           progress=lambda m: print(m, file=sys.stderr, flush=True)):
@@ -308,11 +305,12 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _merge(paths: list[str], write_results: str) -> int:
+def _merge(paths: list[str], out_dir: str | None) -> int:
     """Write one faults.md / faults.json from several runs' faults.json, in suite order."""
     import json
     from pathlib import Path
 
+    from lab.bench.results import write_results
     from lab.faults import scenarios
     from shared.report import emit
 
@@ -332,12 +330,8 @@ def _merge(paths: list[str], write_results: str) -> int:
         "than one run alone). " + " ".join(machines)
     md = report_markdown(results, command="teletouch bench faults --merge " + " ".join(paths),
                          machine=machine, elapsed_s=sum(float(r["wall_s"]) for r in results))
-    if write_results:
-        out = Path(write_results)
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "faults.md").write_text(md)
-        (out / "faults.json").write_text(json.dumps(
-            {"machine": machine, "partial": False, "results": results}, indent=1,
-            default=str) + "\n")
+    if out_dir:
+        write_results(out_dir, "faults", md, data={
+            "machine": machine, "partial": False, "results": results})
     emit(md)
     return 0

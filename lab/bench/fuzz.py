@@ -136,6 +136,7 @@ def run_atheris(targets: list[str], inputs: int, seed: int, jobs: int = 1,
 
 def run(args: argparse.Namespace) -> int:
     """Run the fuzzers, print a summary, write the results file."""
+    from lab.bench.results import write_results
     from lab.fuzz.engine import EngineResult, run_engine
     from lab.fuzz.registry import TARGETS
     from lab.fuzz.smoke import SmokeResult, run_smoke
@@ -161,9 +162,7 @@ def run(args: argparse.Namespace) -> int:
     text = _report(args, ath, builtin, smoke, load, started, time.perf_counter() - t_start)
     print(text)
     if args.write_results:
-        out = Path(args.write_results)
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "fuzz.md").write_text(text)
+        write_results(args.write_results, "fuzz", text)
     failed = (any(r.crash for r in ath) or any(r.crash_count or r.hangs for r in builtin)
               or (smoke is not None and not smoke.passed))
     return 1 if failed else 0

@@ -29,6 +29,7 @@ import msgpack
 import numpy as np
 from websockets.exceptions import ConnectionClosed
 
+from lab.bench.results import publish
 from shared.protocol import (
     ArmState,
     ClockPong,
@@ -39,7 +40,7 @@ from shared.protocol import (
     encode,
     frame,
 )
-from shared.report import emit, emit_json, format_table
+from shared.report import format_table
 from shared.timebase import now_us
 from shared.transport import set_nodelay
 
@@ -692,18 +693,10 @@ def report(results: dict[str, Any], *, as_json: bool, out_dir: str | None, argv:
            name: str | None = None) -> None:
     """Print the results; optionally write ``load.md`` and ``load.png`` (``name``: another
     file name stem)."""
-    if as_json:
-        emit_json(results)
-    else:
-        emit(_markdown(results, argv))
-    if out_dir is not None:
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        workers = results["settings"]["relay_workers"]
-        stem = name or ("load" if not workers else f"load_workers{workers}")
-        (out / f"{stem}.md").write_text(_markdown(results, argv) + "\n")
-        (out / f"{stem}.json").write_text(json.dumps(results, indent=1, default=str) + "\n")
-        _plot(results, out / f"{stem}.png")
+    workers = results["settings"]["relay_workers"]
+    stem = name or ("load" if not workers else f"load_workers{workers}")
+    publish(results, _markdown(results, argv), as_json=as_json, out_dir=out_dir, stem=stem,
+            plot=lambda path: _plot(results, path))
 
 
 def _f(v: float | None, digits: int = 0) -> str:

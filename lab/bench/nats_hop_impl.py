@@ -6,7 +6,6 @@ import asyncio
 import contextlib
 import os
 import platform
-from pathlib import Path
 from typing import Any
 
 import msgpack
@@ -19,8 +18,8 @@ from lab.bench.load_impl import (
     start_nats_server,
     tactile_frame,
 )
+from lab.bench.results import publish
 from shared.protocol import ClockPong, Hello, TactileFrame, encode
-from shared.report import emit, emit_json
 from shared.timebase import now_us
 from shared.transport import set_nodelay
 
@@ -176,11 +175,5 @@ def _markdown(r: dict[str, Any], argv: str) -> str:
 
 
 def report(results: dict[str, Any], *, as_json: bool, out_dir: str | None, argv: str) -> None:
-    """Print the results; optionally write ``nats_hop.md``."""
-    if as_json:
-        emit_json(results)
-    else:
-        emit(_markdown(results, argv))
-    if out_dir is not None:
-        Path(out_dir).mkdir(parents=True, exist_ok=True)
-        (Path(out_dir) / "nats_hop.md").write_text(_markdown(results, argv) + "\n")
+    """Print the results; optionally write ``nats_hop.md`` and ``nats_hop.json``."""
+    publish(results, _markdown(results, argv), as_json=as_json, out_dir=out_dir, stem="nats_hop")

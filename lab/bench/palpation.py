@@ -20,7 +20,6 @@ examples:
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import platform
 import time
@@ -122,20 +121,18 @@ def _plot(rows: list[dict[str, Any]], path: Path) -> None:
 
 
 def _write(out: Path, runs: list[dict[str, Any]], command: str, elapsed_s: float) -> None:
+    from lab.bench.results import write_results
     from shared.report import format_table
 
     rows = summarise(runs)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "palpation.json").write_text(json.dumps({"rows": rows, "runs": runs}, indent=1,
-                                                   default=str))
-    (out / "palpation.md").write_text(
+    write_results(out, "palpation", (
         "# Palpation benchmark\n\n"
         f"Machine: {platform.machine()} {platform.system()}, 2 cores shared, no GPU. "
         f"Command: `{command}` ({len(runs)} runs, {elapsed_s:.0f} s). Each run is a full "
         "`teletouch demo` session (relay, link emulators, both stations as processes); "
         "latency is the local station's motion-to-touch ledger, per run p50/p99, then the "
-        "median (or worst) over runs.\n\n" + format_table(rows) + "\n")
-    _plot(rows, out / "palpation.png")
+        "median (or worst) over runs.\n\n" + format_table(rows)),
+        data={"rows": rows, "runs": runs}, plot=lambda path: _plot(rows, path))
 
 
 def _run_ood(args: argparse.Namespace) -> int:
@@ -181,15 +178,12 @@ def _run_ood(args: argparse.Namespace) -> int:
                  f"{len(result['inclusions'])}, fp {result['false_positives']}"))
     rows = summarise_ood(runs)
     if args.write_results:
+        from lab.bench.results import write_results
         from shared.report import format_table as table
 
-        out = Path(args.write_results)
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "palpation_ood.json").write_text(json.dumps({"rows": rows, "runs": runs},
-                                                          indent=1, default=str))
         elapsed = time.monotonic() - started
         lines = "\n".join(f"- {f}" for f in failures(runs)) or "- none"
-        (out / "palpation_ood.md").write_text(
+        write_results(args.write_results, "palpation_ood", (
             "# Out-of-distribution palpation benchmark\n\n"
             f"Command: `{command}` ({len(runs)} sessions, {elapsed:.0f} s). Machine: "
             f"{platform.machine()} {platform.system()}, {os.cpu_count()} cores shared with "
@@ -198,8 +192,8 @@ def _run_ood(args: argparse.Namespace) -> int:
             "time, no network) and analysed with the local station's analysis; errors are in "
             "PHANTOM coordinates. Families: lab/bench/palpation_ood.py. `detection_target`: "
             "inclusions with radius >= 3 mm, depth <= 12 mm, contrast >= 2x.\n\n"
-            + table(rows) + "\n\n## Failures\n\n" + lines + "\n")
-        plot_ood(runs, out / "palpation_ood.png")
+            + table(rows) + "\n\n## Failures\n\n" + lines),
+            data={"rows": rows, "runs": runs}, plot=lambda path: plot_ood(runs, path))
     if args.json:
         emit_json({"rows": rows})
     else:

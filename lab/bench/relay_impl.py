@@ -20,6 +20,7 @@ import numpy as np
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.asyncio.server import ServerConnection, serve
 
+from lab.bench.results import publish
 from shared.protocol import (
     ArmCommand,
     ArmState,
@@ -30,7 +31,7 @@ from shared.protocol import (
     encode,
     frame,
 )
-from shared.report import emit, emit_json, format_table
+from shared.report import format_table
 from shared.timebase import now_us
 
 __all__ = ["report", "run_benchmark_async"]
@@ -362,16 +363,9 @@ async def run_benchmark_async(*, sessions: list[int], rate_hz: float, duration_s
 
 
 def report(results: dict[str, Any], *, as_json: bool, out_dir: str | None, argv: str) -> None:
-    """Print the results; optionally write ``relay.md`` and ``relay.png``."""
-    if as_json:
-        emit_json({k: v for k, v in results.items()})
-    else:
-        emit(_markdown(results, argv))
-    if out_dir is not None:
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "relay.md").write_text(_markdown(results, argv) + "\n")
-        _plot(results, out / "relay.png")
+    """Print the results; optionally write ``relay.md``, ``relay.json`` and ``relay.png``."""
+    publish(results, _markdown(results, argv), as_json=as_json, out_dir=out_dir, stem="relay",
+            plot=lambda path: _plot(results, path))
 
 
 def _fmt(v: float | None) -> str:

@@ -126,6 +126,7 @@ def run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
+    from lab.bench.results import write_results
     from shared.protocol import encode
     from shared.report import emit, format_table
 
@@ -165,9 +166,8 @@ def run(args: argparse.Namespace) -> int:
         "msgpack and validation; machine shared with other agents "
         f"(nproc {os.cpu_count()}, load {os.getloadavg()[0]:.1f}), so times are upper bounds.",
         "", format_table(rows), ""])
-    args.out_dir.mkdir(parents=True, exist_ok=True)
-    (args.out_dir / "tactile_codec.md").write_text(text)
-    _plot(results, raw, rate, args.out_dir / "tactile_codec.png")
+    write_results(args.out_dir, "tactile_codec", text,
+                  plot=lambda path: _plot(results, raw, rate, path))
     emit(text)
     return 0
 
