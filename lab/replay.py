@@ -23,13 +23,12 @@ from typing import Any
 
 import numpy as np
 
-from local_site.agent.display_loop import DisplayLoop, FrameSlot
+from local_site.agent.display_loop import DisplayLoop, FrameSlot, SameClockLink
 from local_site.devices import open_display
 from local_site.platform.base import PlatformSample
 from local_site.render import Renderer
 from local_site.scenes import open_scene
 from shared.errors import ConfigError, InputDataError
-from shared.freshness import ClockView
 from shared.protocol import Message, PlatformState, TactileCompact, TactileFrame
 from shared.protocol.tactile_codec import TactileDecoder
 from shared.recording import McapRecording, RecordedMessage
@@ -213,28 +212,13 @@ class Replayer:
         data = m.json() if m.encoding == "json" else None
         return ReplayEvent(m.topic, m.t_us, None, data)
 
-    class _ReplayClock:
-        """The replay's stand-in for the relay link: always up, one clock (frames are
-        re-stamped when handed over, so the loop's age rule measures replay time)."""
-
-        def link_down_for_s(self, now_s: float | None = None) -> float:
-            return 0.0
-
-        @property
-        def clock_offsets_us(self) -> dict[str, int | None]:
-            return {"local": 0, "remote": 0}
-
-        @property
-        def clock_view(self) -> ClockView:
-            return ClockView({"local": 0, "remote": 0}, {"local": 0, "remote": 0}, now_us())
-
     def _build_loop(self) -> tuple[DisplayLoop, FrameSlot, list[PlatformSample | None]]:
         position: list[PlatformSample | None] = [None]
         slot = FrameSlot()
         display = open_display(self.display_spec, connect=False)
         loop = DisplayLoop(display, Renderer(), open_scene("remote"),
                            positions=lambda: position[0], platform_ok=lambda: True,
-                           frames=slot, link=self._ReplayClock(),
+                           frames=slot, link=SameClockLink(),
                            stale_timeout_s=self.stale_timeout_s)
         return loop, slot, position
 

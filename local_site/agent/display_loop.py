@@ -62,7 +62,7 @@ from shared.protocol import Hop, TactileFrame
 from shared.timebase import monotonic_s, now_us
 
 __all__ = ["SAFE_REASONS", "DisplayLoop", "DisplayLoopCounters", "FrameSlot", "LinkHealth",
-           "PinState"]
+           "PinState", "SameClockLink"]
 
 log = logging.getLogger(__name__)
 
@@ -100,6 +100,32 @@ class LinkHealth(Protocol):
 
     @property
     def clock_view(self) -> ClockView | None: ...
+
+
+class SameClockLink:
+    """A :class:`LinkHealth` without a relay: always up, every party on this process's clock.
+
+    For a replay of a recording (its frames are re-stamped when handed over, so the loop's age
+    rule measures replay time) and for tests. ``offset_bound_us``: the error bound reported
+    for the (zero) clock offsets.
+    """
+
+    is_connected = True
+
+    def __init__(self, offset_bound_us: int = 0) -> None:
+        self._bound_us = offset_bound_us
+
+    def link_down_for_s(self, now_s: float | None = None) -> float:
+        return 0.0
+
+    @property
+    def clock_offsets_us(self) -> dict[str, int | None]:
+        return {"local": 0, "remote": 0}
+
+    @property
+    def clock_view(self) -> ClockView:
+        return ClockView({"local": 0, "remote": 0},
+                         {"local": self._bound_us, "remote": self._bound_us}, now_us())
 
 
 class FrameSlot:

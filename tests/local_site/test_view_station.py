@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from websockets.asyncio.client import connect
 
-from local_site.agent.display_loop import DisplayLoop, FrameSlot, PinState
+from local_site.agent.display_loop import DisplayLoop, FrameSlot, PinState, SameClockLink
 from local_site.devices import open_display
 from local_site.platform.base import PlatformSample
 from local_site.render import Renderer
@@ -23,7 +23,6 @@ from local_site.scenes import TactileFrameScene
 from local_site.view import StationView
 from local_site.view.analysis import LiveAnalysis, LiveAnalysisConfig, _confidence, encode_map
 from shared.errors import ConfigError
-from shared.freshness import ClockView
 from shared.protocol import TactileFrame
 from shared.timebase import now_us
 from shared.view import ViewAddress
@@ -184,27 +183,12 @@ def test_encode_map_marks_missing_cells_and_spans_the_range() -> None:
 # (issue 9: under load a snapshot showed the commanded pins together with the safe state)
 
 
-class _Link:
-    is_connected = True
-
-    def link_down_for_s(self, now_s: float | None = None) -> float:
-        return 0.0
-
-    @property
-    def clock_offsets_us(self) -> dict[str, int | None]:
-        return {"local": 0, "remote": 0}
-
-    @property
-    def clock_view(self) -> ClockView:
-        return ClockView({"local": 0, "remote": 0}, {"local": 500, "remote": 500}, now_us())
-
-
 def _rendering_view() -> tuple[DisplayLoop, StationView]:
     """A display loop rendering a fresh frame, and a station view over it (no analysis)."""
     sample = PlatformSample(position_mm=(30.0, 30.0, 100.0), velocity_mm_s=(0.0, 0.0, 0.0),
                             t_us=0, seq=1, board_t_us=0)
     slot = FrameSlot()
-    link = _Link()
+    link = SameClockLink(offset_bound_us=500)
     loop = DisplayLoop(open_display("sim"), Renderer(), TactileFrameScene(),
                        positions=lambda: sample, platform_ok=lambda: True, frames=slot,
                        link=link, stale_timeout_s=10.0)
@@ -251,7 +235,7 @@ def test_the_loop_withdraws_the_command_before_it_tells_the_board() -> None:
     seen: list[PinState] = []
     try:
         send_safe = loop.display.safe_state
-        read_link = cast(_Link, loop.link).link_down_for_s
+        read_link = cast(SameClockLink, loop.link).link_down_for_s
 
         def safe_state(mode: Any) -> Any:
             seen.append(loop.pin_state)
