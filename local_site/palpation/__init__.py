@@ -7,7 +7,7 @@ same information the operator had. See :mod:`local_site.palpation.maps` and
 
 import logging
 
-from local_site.palpation.findings import DetectionConfig, Finding, find_tumors
+from local_site.palpation.findings import DetectionConfig, Finding, find_tumors, rank_by_severity
 from local_site.palpation.lag import correct_lag, estimate_lag_mm
 from local_site.palpation.maps import MapConfig, PalpationMaps, build_maps, pad_profile
 from local_site.recording import Recording, load_recording
@@ -15,7 +15,7 @@ from shared.workspace import WorkspaceMap, load_workspace
 
 __all__ = ["DetectionConfig", "Finding", "MapConfig", "PalpationMaps", "Recording",
            "analyse_recording", "build_maps", "correct_lag", "estimate_lag_mm", "find_tumors",
-           "load_recording", "pad_profile"]
+           "load_recording", "pad_profile", "rank_by_severity"]
 
 log = logging.getLogger(__name__)
 

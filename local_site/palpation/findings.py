@@ -35,8 +35,12 @@
   than ``min_coverage`` covered is typed ``uncertain`` (its best guess is ``likely_kind``).
 * **Confidence** in [0, 1]: coverage x detection margin (peak over threshold) x typing
   margin (distance of the malignant score from 1, in log, over its standard error).
-* **Severity**: the integrated relief excess over the region (mm^2), which grows with both
-  the size and the hardness of the inclusion; rank 1 = least severe.
+* **Severity**: the type first, as a clinician ranks lesions (a lesion typed malignant
+  above an ``uncertain`` one, above one typed benign: malignancy outweighs size), then, among
+  findings of one type, the integrated relief excess over the region (``severity_score``,
+  mm^2), which grows with both the size and the hardness of the inclusion; rank 1 = least
+  severe. (Ranking by the relief alone put a large benign tumor above a smaller malignant
+  one, correctly typed, in 7 of 60 held-out typed pairs of the OOD benchmark.)
 """
 
 from __future__ import annotations
@@ -51,7 +55,10 @@ from scipy import ndimage
 from local_site.palpation.edge import EdgeFit, edge_distance_mm, fit_edge, rim_level
 from local_site.palpation.maps import PalpationMaps
 
-__all__ = ["DetectionConfig", "Finding", "find_tumors"]
+__all__ = ["DetectionConfig", "Finding", "find_tumors", "rank_by_severity"]
+
+#: the type's weight in the severity order (see the module docstring)
+_SEVERITY_OF_KIND = {"benign": 0, "uncertain": 1, "malignant": 2}
 
 
 @dataclass(frozen=True)
@@ -277,5 +284,11 @@ def find_tumors(maps: PalpationMaps, config: DetectionConfig | None = None) -> l
             edge_width_mm=boundary.edge.width_mm,
             edge_width_se_mm=boundary.edge.width_se_mm, rim_relief=boundary.rim,
             malignant_score=malignant_score))
-    findings.sort(key=lambda f: f.severity_score)
-    return [Finding(**{**f.__dict__, "severity_rank": i + 1}) for i, f in enumerate(findings)]
+    return rank_by_severity(findings)
+
+
+def rank_by_severity(findings: list[Finding]) -> list[Finding]:
+    """The findings, least severe first, each with its ``severity_rank`` (1 = least severe):
+    by type (benign, ``uncertain``, malignant), then by ``severity_score``."""
+    ordered = sorted(findings, key=lambda f: (_SEVERITY_OF_KIND[f.kind], f.severity_score))
+    return [Finding(**{**f.__dict__, "severity_rank": i + 1}) for i, f in enumerate(ordered)]

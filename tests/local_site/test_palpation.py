@@ -8,6 +8,7 @@ analysis is checked against ground truth without the network in between.
 from __future__ import annotations
 
 import functools
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +23,7 @@ from local_site.palpation import (
     analyse_recording,
     build_maps,
     load_recording,
+    rank_by_severity,
 )
 from local_site.recording import SessionRecorder
 from remote_site.phantom.phantom import PixelGrid
@@ -82,6 +84,17 @@ def test_severity_ranking_matches_truth() -> None:
     assert score["kendall_tau"] == 1.0
     # no assertion on the kinds: the scene labels every inclusion benign, rigid PLA ones
     # included, which is no physical claim; typing is scored in the OOD benchmark
+
+
+def test_a_malignant_finding_ranks_above_a_larger_benign_one() -> None:
+    """Severity is the type first, then the integrated relief (size x hardness)."""
+    def found(kind: str, relief: float) -> Finding:
+        return replace(finding(0.0, 0.0, kind), severity_score=relief)
+
+    ranked = rank_by_severity([found("malignant", 40.0), found("benign", 66.0),
+                               found("uncertain", 10.0), found("benign", 20.0)])
+    assert [(f.kind, f.severity_score, f.severity_rank) for f in ranked] == [
+        ("benign", 20.0, 1), ("benign", 66.0, 2), ("uncertain", 10.0, 3), ("malignant", 40.0, 4)]
 
 
 def test_localization_identical_tumors() -> None:
