@@ -93,7 +93,7 @@ def kit_files(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     assert cli_main(["sensor", "calibrate", "--background", str(DATA / "background.png"),
                      "--images", str(DATA), "--labels", str(labels_csv),
                      "--ball-diameter-mm", "9.47", "--mm-per-px", str(MM_PER_PX),
-                     "--out", str(calib)]) == 0
+                     "--relief", "rim", "--out", str(calib)]) == 0
     video = tmp / "presses.avi"
     writer = cv2.VideoWriter(str(video), cv2.VideoWriter.fourcc(*"FFV1"), FPS, (320, 240))
     assert writer.isOpened()
