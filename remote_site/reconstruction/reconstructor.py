@@ -44,7 +44,12 @@ from remote_site.reconstruction.kernels import (
     subtract_plane_kernel,
 )
 from remote_site.reconstruction.poisson import SOLVERS, PoissonSolver
-from remote_site.reconstruction.relief import RELIEF_MODES, extension_for_factor, rim_level
+from remote_site.reconstruction.relief import (
+    RELIEF_MODES,
+    extension_for_factor,
+    rim_level,
+    rim_step,
+)
 from remote_site.reconstruction.workspace import Workspace
 from shared.errors import ConfigError, InputDataError
 
@@ -336,7 +341,7 @@ class Reconstructor:
         """Heights above the detected contact rim (in place) and their mask; see :mod:`.relief`."""
         threshold = self.settings.contact_threshold_mm
         extension = extension_for_factor(self.calibration.rim_extension_mm, factor)
-        level = rim_level(height, gx, gy, threshold, extension)
+        level = rim_level(height, gx, gy, threshold, extension, step=rim_step(height.shape))
         if level > 0.0:
             np.subtract(height, np.float32(level), out=height)
             np.maximum(height, np.float32(0.0), out=height)

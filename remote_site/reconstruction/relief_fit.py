@@ -18,7 +18,7 @@ import numpy as np
 from remote_site.reconstruction.calibration import Calibration
 from remote_site.reconstruction.labels import BallLabel
 from remote_site.reconstruction.reconstructor import ReconstructionSettings, Reconstructor
-from remote_site.reconstruction.relief import RimStats, fit_rim_extension, rim_stats
+from remote_site.reconstruction.relief import RimStats, fit_rim_extension, rim_stats, rim_step
 from shared.errors import CalibrationError
 
 __all__ = ["DEFAULT_RIM_FACTORS", "fit_rim_relief"]
@@ -68,7 +68,8 @@ def fit_rim_relief(calibration: Calibration, presses: Sequence[tuple[np.ndarray,
             if hm.skipped:
                 continue
             gx, gy, _ = rec.slopes(frame, factor=rec.pool_factor(pitch))
-            st = rim_stats(hm.height_mm, gx, gy, settings.contact_threshold_mm)
+            st = rim_stats(hm.height_mm, gx, gy, settings.contact_threshold_mm,
+                           step=rim_step(hm.height_mm.shape))
             if st is not None:
                 stats.append(st)
                 used.append(depth)

@@ -26,6 +26,7 @@ from remote_site.reconstruction.relief import (
     fit_rim_extension,
     rim_level,
     rim_stats,
+    rim_step,
 )
 from remote_site.sensor.photometric import PhotometricModel
 from remote_site.sensor.shapes import ball_depth_mm
@@ -135,6 +136,21 @@ def test_rim_level_is_between_the_free_gel_and_the_peak(rng: np.random.Generator
         assert 0 <= st_.slope <= np.hypot(gx, gy)[h > threshold].max() + 1e-12
 
 
+@settings(max_examples=30, deadline=None)
+@given(_maps)
+def test_subsampled_rim_is_close_to_the_full_one(rng: np.random.Generator) -> None:
+    """The reconstructor estimates the rim on every rim_step-th pixel (speed)."""
+    a = rng.uniform(1.2, 2.5)
+    h, gx, gy, _ = hertz_press(a, rng.uniform(0, 3), shape=(240, 320), pitch=0.0634,
+                               centre=(rng.uniform(-3, 3), rng.uniform(-2, 2)))
+    full = rim_stats(h, gx, gy, 0.03)
+    sub = rim_stats(h, gx, gy, 0.03, step=rim_step(h.shape))
+    assert full is not None and sub is not None
+    assert sub.peak_mm == full.peak_mm
+    assert sub.height_mm == pytest.approx(full.height_mm, abs=0.01)
+    assert sub.slope == pytest.approx(full.slope, rel=0.03)
+
+
 @settings(max_examples=60, deadline=None)
 @given(_maps, st.floats(0.1, 10.0), st.floats(0.0, 1.0))
 def test_rim_level_scales_with_the_map_and_ignores_pixel_order(
@@ -175,6 +191,8 @@ def test_rim_functions_reject_what_they_cannot_use() -> None:
     assert rim_stats(raised_flat, flat, flat, 0.03) is None
     with pytest.raises(ValueError, match="differ"):
         rim_stats(flat, flat[:5], flat, 0.03)
+    with pytest.raises(ValueError, match="step"):
+        rim_stats(flat, flat, flat, 0.03, step=0)
     with pytest.raises(CalibrationError):
         fit_rim_extension([], [])
     with pytest.raises(CalibrationError):
