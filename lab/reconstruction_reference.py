@@ -8,7 +8,8 @@ run. Product code never imports this (lab is evaluation code); do not optimise i
 
 ``reference_height_map(rec, frame)`` reproduces ``Reconstructor.height_map(frame)`` at full
 resolution (no ``out_pitch_mm`` pooling) with the reconstructor's calibration, background and
-settings.
+settings, for the free-gel zero level (``relief="plane"``); the rim relief is a step after it,
+with its own references (tests/remote_site/test_reconstruction_rim_relief.py).
 """
 
 from __future__ import annotations

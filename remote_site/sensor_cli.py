@@ -10,7 +10,8 @@ labels.csv has columns image,center_x,center_y,radius_px (center_x = column, cen
 row, pixels; image relative to --images). heights.npz holds one float32 array per frame,
 keyed by the frame's file name, in mm, positive where the object presses into the gel, the
 same shape as the frame (unless --out-pitch-mm asks for a coarser grid). Height 0 is the
-undeformed gel (a plane fitted outside the contact region).
+undeformed gel (a plane fitted outside the contact region), or the detected contact rim for
+a calibration made with ``--relief rim`` (the object's relief without the gel's drape).
 
 presses.csv (for calibrate-stiffness) has columns sample,shore00,force_n,indentation_mm:
 presses of the pad on reference blocks of known Shore 00 (``rigid`` for a rigid block); see
@@ -42,6 +43,12 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     cal.add_argument("--degree", type=int, default=5, help="polynomial degree (default 5)")
     cal.add_argument("--trim-px", type=float, default=4.0,
                      help="pixels trimmed off each labelled radius (default 4, as gs_sdk)")
+    cal.add_argument("--relief", choices=["plane", "rim"], default="plane",
+                     help="height reference saved for this sensor: plane = above the free gel "
+                          "(default; palpation, pad flat on tissue), rim = the object's relief "
+                          "above its contact rim, without the gel's drape (objects smaller "
+                          "than the pad; fits one parameter on these presses, "
+                          "see docs/reconstruction.md)")
     cal.add_argument("--json", action="store_true", help="print a JSON summary")
 
     rec = sub.add_parser("reconstruct", help="turn frames into height maps (mm)")
@@ -82,16 +89,23 @@ def _calibrate(args: argparse.Namespace) -> int:
     presses = [(load_rgb(images_dir / label.image), label) for label in labels]
     calib = fit_calibration(background, presses, args.ball_diameter_mm, args.mm_per_px,
                             model=args.model, degree=args.degree, trim_px=args.trim_px)
+    if args.relief == "rim":
+        from remote_site.reconstruction.relief_fit import fit_rim_relief
+
+        calib = fit_rim_relief(calib, presses)
     calib.save(args.out)
     summary = {"out": str(args.out), "model": args.model, "presses": len(presses),
-               "shape_hw": list(calib.shape_hw), "noise_pct": calib.noise_pct, **calib.stats}
+               "shape_hw": list(calib.shape_hw), "noise_pct": calib.noise_pct,
+               "relief": calib.relief,
+               "rim_extension_mm": {str(k): v for k, v in calib.rim_extension_mm.items()},
+               **calib.stats}
     if args.json:
         emit_json(summary)
     else:
         emit(f"calibrated {args.model} model on {len(presses)} presses "
              f"({calib.shape_hw[1]}x{calib.shape_hw[0]}): training slope RMSE "
-             f"{calib.stats['train_slope_rmse']:.4f}, flat-gel noise {calib.noise_pct:.2f} % "
-             f"-> {args.out}")
+             f"{calib.stats['train_slope_rmse']:.4f}, flat-gel noise {calib.noise_pct:.2f} %, "
+             f"relief {calib.relief} -> {args.out}")
     return 0
 
 

@@ -170,6 +170,9 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
     sensor = open_world_sensor(options.sensor, world, arm, **sensor_options(options))
     calibration = load_calibration(options.sensor, options.calibration, sensor)
     reconstructor = Reconstructor(calibration)
+    log.info("reconstruction relief: %s (%s)", reconstructor.relief,
+             "heights above the contact rim" if reconstructor.relief == "rim"
+             else "heights above the free gel")
 
     lo, hi = workspace.phantom_bounds_mm
     bounds = MapBounds(lo[0], hi[0], lo[1], hi[1], agent_cfg.stiffness_cell_mm)

@@ -58,6 +58,9 @@ class Calibration:
         ball_radius_mm: radius of the calibration ball.
         trim_px: pixels trimmed off the labelled radius for training.
         stats: fit diagnostics (training slope RMSE, number of pixels, ...).
+        relief: ``"plane"`` (heights above the free gel, default) or ``"rim"`` (above the
+            contact rim, see :mod:`.relief`): the reconstruction's default for this sensor.
+        rim_extension_mm: pooling factor -> fitted rim tangent extension (``"rim"`` only).
     """
 
     model: GradientModel
@@ -68,6 +71,8 @@ class Calibration:
     ball_radius_mm: float = 0.0
     trim_px: float = 0.0
     stats: dict[str, float] = field(default_factory=dict)
+    relief: str = "plane"
+    rim_extension_mm: dict[int, float] = field(default_factory=dict)
 
     @property
     def shape_hw(self) -> tuple[int, int]:
@@ -85,7 +90,11 @@ class Calibration:
             shape_hw=np.array(self.shape_hw), mm_per_px=np.array(self.mm_per_px),
             blur_sigma_px=np.array(self.blur_sigma_px), noise_pct=np.array(self.noise_pct),
             ball_radius_mm=np.array(self.ball_radius_mm), trim_px=np.array(self.trim_px),
-            stats_keys=stats_keys, stats_vals=stats_vals, **arrays)
+            stats_keys=stats_keys, stats_vals=stats_vals, relief=np.array(self.relief),
+            rim_factors=np.array(sorted(self.rim_extension_mm), dtype=np.int64),
+            rim_extension_mm=np.array([self.rim_extension_mm[k]
+                                       for k in sorted(self.rim_extension_mm)], np.float64),
+            **arrays)
 
     @classmethod
     def load(cls, path: str | os.PathLike[str]) -> Calibration:
@@ -122,14 +131,36 @@ class Calibration:
                         blur_sigma_px=float(arrays["blur_sigma_px"]),
                         noise_pct=float(arrays["noise_pct"]),
                         ball_radius_mm=float(arrays["ball_radius_mm"]),
-                        trim_px=float(arrays["trim_px"]), stats=stats)
+                        trim_px=float(arrays["trim_px"]), stats=stats,
+                        # optional (files written before the rim relief: the free-gel plane)
+                        relief=str(arrays.get("relief", "plane")),
+                        rim_extension_mm={
+                            int(f): float(e) for f, e in zip(
+                                arrays.get("rim_factors", np.zeros(0, np.int64)),
+                                arrays.get("rim_extension_mm", np.zeros(0)), strict=True)})
         except KeyError as err:
             raise CalibrationError(f"{path}: not a Tele-Touch calibration (missing {err})") from err
+        except ValueError as err:  # e.g. rim factors and extensions of different lengths
+            raise CalibrationError(f"{path}: inconsistent calibration arrays: {err}") from err
         for name in ("mm_per_px", "blur_sigma_px", "noise_pct"):
             value = getattr(calib, name)
             if not np.isfinite(value) or value < 0 or (name == "mm_per_px" and value == 0):
                 raise CalibrationError(f"{path}: invalid {name} = {value}")
+        try:
+            calib.check_relief()
+        except CalibrationError as err:
+            raise CalibrationError(f"{path}: {err}") from err
         return calib
+
+    def check_relief(self) -> None:
+        """Raise :class:`CalibrationError` for an unknown relief or a bad rim table."""
+        if self.relief not in ("plane", "rim"):
+            raise CalibrationError(f"relief must be 'plane' or 'rim', got {self.relief!r}")
+        for factor, ext in self.rim_extension_mm.items():
+            if factor < 1 or not np.isfinite(ext):
+                raise CalibrationError(f"invalid rim extension {ext} for pooling factor {factor}")
+        if self.relief == "rim" and not self.rim_extension_mm:
+            raise CalibrationError("relief 'rim' without a fitted rim extension")
 
 
 def _training_pixels(change: np.ndarray, label: BallLabel, ball_radius_mm: float,

@@ -1,11 +1,13 @@
-"""Frame -> height map: colour change -> slopes -> Poisson integration -> zero level -> mask.
+"""Frame -> height map: colour change -> slopes -> Poisson -> zero level -> (relief) -> mask.
 
 Zero level (stated once, used everywhere): height 0 is the *undeformed gel*, estimated as a
 least-squares plane through the reconstructed heights outside the region that rises above
 the contact threshold, dilated by ``zero_exclusion_mm`` (so most of the drape around a
 contact is excluded too). Positive heights are where the object presses into the gel. The
 gel drapes beyond the contact circle, so the rim of a press sits above zero and heights in a
-contact are offset upwards against a rigid sphere cap whose rim is at zero.
+contact are offset upwards against a rigid sphere cap whose rim is at zero. With
+``relief="rim"`` (a calibration setting, see :mod:`.relief`) the heights are then referenced
+to the detected contact rim instead: the object's relief, without the drape.
 
 Skips: a frame without contact evidence (fewer than ``min_contact_area_mm2`` of pixels whose
 colour change exceeds ``contact_evidence_sigmas`` x the calibrated flat-gel noise) returns an
@@ -42,6 +44,12 @@ from remote_site.reconstruction.kernels import (
     subtract_plane_kernel,
 )
 from remote_site.reconstruction.poisson import SOLVERS, PoissonSolver
+from remote_site.reconstruction.relief import (
+    RELIEF_MODES,
+    extension_for_factor,
+    rim_level,
+    rim_step,
+)
 from remote_site.reconstruction.workspace import Workspace
 from shared.errors import ConfigError, InputDataError
 
@@ -64,6 +72,9 @@ class ReconstructionSettings:
         contact_evidence_sigmas: a pixel counts as contact evidence above this many sigmas.
         min_contact_area_mm2: less evidence than this area means "no contact" (skip).
         pool: ``"change"`` (pool colour change before the model, fastest) or ``"slopes"``.
+        relief: ``"plane"`` (heights above the free gel), ``"rim"`` (above the detected
+            contact rim, :mod:`.relief`; needs a calibration with a fitted rim extension) or
+            None (default): the calibration's ``relief``.
     """
 
     solver: str = "dst"
@@ -74,6 +85,7 @@ class ReconstructionSettings:
     contact_evidence_sigmas: float = 6.0
     min_contact_area_mm2: float = 0.1
     pool: str = "change"
+    relief: str | None = None
 
     def __post_init__(self) -> None:
         if self.solver not in SOLVERS:
@@ -82,6 +94,9 @@ class ReconstructionSettings:
             raise ConfigError(f"zero_level must be plane, median or none, got {self.zero_level!r}")
         if self.pool not in ("change", "slopes"):
             raise ConfigError(f"pool must be 'change' or 'slopes', got {self.pool!r}")
+        if self.relief is not None and self.relief not in RELIEF_MODES:
+            raise ConfigError(f"relief must be one of {RELIEF_MODES} or None, "
+                              f"got {self.relief!r}")
         for name in ("contact_threshold_mm", "zero_exclusion_mm", "dead_zone_sigmas",
                      "contact_evidence_sigmas", "min_contact_area_mm2"):
             value = getattr(self, name)
@@ -137,6 +152,10 @@ class Reconstructor:
         self.calibration = calibration
         self.settings = settings or ReconstructionSettings()
         self._solver = PoissonSolver(self.settings.solver)
+        #: "plane" or "rim": the settings' choice, else the calibration's
+        self.relief = self.settings.relief or calibration.relief
+        if self.relief == "rim":
+            extension_for_factor(calibration.rim_extension_mm, 1)  # ConfigError when unfitted
         background = validate_frame(calibration.background_rgb, name="calibration background")
         self._background = (background, inverse_background_pct(background))
         self._last_bg_id: int | None = None
@@ -313,7 +332,20 @@ class Reconstructor:
         height, mask, finite = self._zero_level_and_mask(height, pitch_mm)
         if not finite:  # cannot happen with finite slopes; never pass it on
             raise InputDataError("reconstruction produced non-finite heights")
+        if self.relief == "rim" and mask.any():
+            height, mask = self._rim_relief(height, gx, gy, factor)
         return HeightMap(height, mask, pitch_mm, skipped=False)
+
+    def _rim_relief(self, height: np.ndarray, gx: np.ndarray, gy: np.ndarray,
+                    factor: int) -> tuple[np.ndarray, np.ndarray]:
+        """Heights above the detected contact rim (in place) and their mask; see :mod:`.relief`."""
+        threshold = self.settings.contact_threshold_mm
+        extension = extension_for_factor(self.calibration.rim_extension_mm, factor)
+        level = rim_level(height, gx, gy, threshold, extension, step=rim_step(height.shape))
+        if level > 0.0:
+            np.subtract(height, np.float32(level), out=height)
+            np.maximum(height, np.float32(0.0), out=height)
+        return height, height > np.float32(threshold)
 
     def _zero_level_and_mask(self, height: np.ndarray,
                              pitch_mm: float) -> tuple[np.ndarray, np.ndarray, bool]:

@@ -13,7 +13,9 @@ sits on the press centre (where an operator feeling for the peak puts it).
 
 Targets (the issue): peak rendered height within 0.05 mm of the press depth derived from
 the label (ball radius 4.735 mm, labelled contact radius a: d = R - sqrt(R^2 - a^2)); cap
-shape within 0.05 mm RMS over the pins inside the contact.
+shape within 0.05 mm RMS over the pins inside the contact. The calibration is made with
+``--relief rim``: heights are the object's relief above its contact rim, not above the free
+gel (which would add the gel's drape, ~0.1 mm here; see docs/reconstruction.md).
 """
 
 from __future__ import annotations
@@ -93,7 +95,7 @@ def kit_files(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     assert cli_main(["sensor", "calibrate", "--background", str(DATA / "background.png"),
                      "--images", str(DATA), "--labels", str(labels_csv),
                      "--ball-diameter-mm", "9.47", "--mm-per-px", str(MM_PER_PX),
-                     "--out", str(calib)]) == 0
+                     "--relief", "rim", "--out", str(calib)]) == 0
     video = tmp / "presses.avi"
     writer = cv2.VideoWriter(str(video), cv2.VideoWriter.fourcc(*"FFV1"), FPS, (320, 240))
     assert writer.isOpened()
@@ -285,28 +287,34 @@ def test_the_video_plays_like_a_camera_and_the_station_captures_its_background(
 
 def test_every_real_press_reaches_the_pins(
         session: tuple[dict[str, Any], list[PressResult], str]) -> None:
-    """What is achieved (measured 2026-11 on the 11 test presses, see the report):
-    peak error +0.03..+0.16 mm (mean ~+0.10), shape RMS up to ~0.16 mm, almost all of it
-    a constant offset; without it the shape is within 0.065 mm (median ~0.02)."""
+    """What is achieved (measured 2026-11-23 on the 11 test presses, calibration made with
+    ``--relief rim`` on the train presses, see the report): peak error -0.046..+0.034 mm,
+    shape RMS 0.013..0.074 mm (9 of 11 within 0.05); without the constant offset within
+    0.064 mm. Before the rim relief: peak +0.03..+0.16 mm, shape RMS up to 0.16 mm."""
     _, results, report = session
     peak_err = np.array([r.peak_mm - r.depth_mm for r in results])
     assert (np.array([r.peak_mm for r in results]) > PRESS_HEIGHT_MM).all(), report
-    assert (peak_err > -PEAK_TOLERANCE_MM).all(), report  # never shallower than the cap
-    assert (peak_err < 0.2).all(), report
-    assert max(r.shape_rms_mm for r in results) <= 0.2, report
+    assert (np.abs(peak_err) < 0.1).all(), report
+    assert max(r.shape_rms_mm for r in results) <= 0.1, report
     assert max(r.shape_rms_without_offset_mm for r in results) <= 0.08, report
     assert all(r.pins_inside >= 2 for r in results), report
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "issue 14 targets not met: the pins sit ~0.1 mm above the sphere cap. The reconstruction's "
-    "zero level is the undeformed gel, and the gel drapes beyond the labelled contact circle, "
-    "so heights inside the contact carry the drape offset (the reconstruction tests measure it "
-    "as offset_mm, 0..0.4 mm); removing it is reconstruction work (zero level / drape model), "
-    "not camera or background work"))
-def test_issue_targets_peak_and_shape(
-        session: tuple[dict[str, Any], list[PressResult], str]) -> None:
+def test_issue_target_peak(session: tuple[dict[str, Any], list[PressResult], str]) -> None:
+    """Issue 14: the peak rendered height within 0.05 mm of the labelled press depth."""
     _, results, report = session
     peak_err = np.array([r.peak_mm - r.depth_mm for r in results])
     assert np.abs(peak_err).max() <= PEAK_TOLERANCE_MM, report
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "issue 14 shape target not met on 2 of 11 test presses: with the rim relief the shape RMS "
+    "over the pins in the contact is 0.013..0.040 mm on 9 presses but 0.069 (press_43) and "
+    "0.074 mm (press_47). There the reconstructed cap is centred 3-4 px (0.2 mm) from the "
+    "hand-labelled centre, where the pins are placed (the colour change's centroid moves "
+    "with the reconstruction, not the label); with the centre refitted the reconstruction "
+    "matches the R = 4.735 mm sphere within 0.009 mm RMS (benchmarks/results/"
+    "reconstruction.md, shape_rmse_centred_mm)"))
+def test_issue_target_shape(session: tuple[dict[str, Any], list[PressResult], str]) -> None:
+    _, results, report = session
     assert max(r.shape_rms_mm for r in results) <= SHAPE_RMS_TOLERANCE_MM, report

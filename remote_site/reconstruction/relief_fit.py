@@ -1,0 +1,85 @@
+"""Fit the rim relief's one parameter on labelled calibration presses (see :mod:`.relief`).
+
+For every pooling factor in ``factors`` the training presses are reconstructed with the
+calibration (free-gel zero level), the soft rim of each is measured, and the tangent
+extension that makes the relief peak equal the press depth derived from the label
+(d = R - sqrt(R^2 - a^2), the *labelled* contact radius a) is the median over presses.
+Only the presses passed in are used: give it the training split, measure on the test split.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import Sequence
+
+import numpy as np
+
+from remote_site.reconstruction.calibration import Calibration
+from remote_site.reconstruction.labels import BallLabel
+from remote_site.reconstruction.reconstructor import ReconstructionSettings, Reconstructor
+from remote_site.reconstruction.relief import RimStats, fit_rim_extension, rim_stats, rim_step
+from shared.errors import CalibrationError
+
+__all__ = ["DEFAULT_RIM_FACTORS", "fit_rim_relief"]
+
+log = logging.getLogger(__name__)
+
+#: pooling factors fitted (full resolution up to ~2 mm cells on a 0.06 mm/px sensor)
+DEFAULT_RIM_FACTORS = (1, 2, 4, 8, 16, 32)
+
+
+def label_depth_mm(label: BallLabel, ball_radius_mm: float, mm_per_px: float) -> float:
+    """Indentation of the ball for the labelled contact radius: R - sqrt(R^2 - a^2)."""
+    a = label.radius_px * mm_per_px
+    if a >= ball_radius_mm:
+        raise CalibrationError(f"{label.image}: contact radius {a:.3g} mm is not smaller "
+                               f"than the ball radius {ball_radius_mm} mm")
+    return float(ball_radius_mm - np.sqrt(ball_radius_mm**2 - a**2))
+
+
+def fit_rim_relief(calibration: Calibration, presses: Sequence[tuple[np.ndarray, BallLabel]],
+                   factors: Sequence[int] = DEFAULT_RIM_FACTORS) -> Calibration:
+    """A copy of ``calibration`` set to ``relief="rim"`` with the extension fitted per factor.
+
+    Args:
+        calibration: a fitted calibration (with ``ball_radius_mm``).
+        presses: labelled ball presses (the training split).
+        factors: pooling factors to fit; a factor whose grid has no usable rim is left out.
+
+    Raises:
+        CalibrationError: no ball radius, or no factor could be fitted.
+    """
+    if not calibration.ball_radius_mm > 0:
+        raise CalibrationError("the rim relief needs the calibration ball's radius")
+    settings = ReconstructionSettings(relief="plane")
+    rec = Reconstructor(calibration, settings)
+    depths = [label_depth_mm(lb, calibration.ball_radius_mm, calibration.mm_per_px)
+              for _, lb in presses]
+    table: dict[int, float] = {}
+    for factor in factors:
+        if factor < 1 or factor > min(calibration.shape_hw) // 2:
+            continue
+        pitch = None if factor == 1 else factor * calibration.mm_per_px
+        stats: list[RimStats] = []
+        used: list[float] = []
+        for (frame, _), depth in zip(presses, depths, strict=True):
+            hm = rec.height_map(frame, out_pitch_mm=pitch)
+            if hm.skipped:
+                continue
+            gx, gy, _ = rec.slopes(frame, factor=rec.pool_factor(pitch))
+            st = rim_stats(hm.height_mm, gx, gy, settings.contact_threshold_mm,
+                           step=rim_step(hm.height_mm.shape))
+            if st is not None:
+                stats.append(st)
+                used.append(depth)
+        try:
+            table[rec.pool_factor(pitch)] = fit_rim_extension(stats, used)
+        except CalibrationError as err:
+            log.info("rim relief: pooling factor %d not fitted (%s)", factor, err)
+    if not table:
+        raise CalibrationError("no press gave a usable contact rim; cannot fit the rim relief")
+    log.info("rim relief fitted on %d presses: extension mm by pooling factor %s",
+             len(presses), {f: round(e, 4) for f, e in table.items()})
+    return dataclasses.replace(calibration, relief="rim", rim_extension_mm=table,
+                               stats={**calibration.stats, "rim_presses": float(len(presses))})
