@@ -21,6 +21,7 @@ demo ends by writing the HTML session report (:mod:`lab.html_report`) and return
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import logging
@@ -175,8 +176,20 @@ class _Processes:
         return child.proc.returncode
 
     def stop_all(self) -> None:
-        for child in reversed(self.children):
-            self.stop(child)
+        """SIGTERM each child, newest first, and wait for it. A second Ctrl-C while this
+        runs kills the children still running at once (never leaves them behind) and is
+        then raised."""
+        try:
+            for child in reversed(self.children):
+                self.stop(child)
+        except KeyboardInterrupt:
+            for child in self.children:
+                if child.proc.poll() is None:
+                    child.proc.kill()
+            for child in self.children:
+                with contextlib.suppress(subprocess.TimeoutExpired):
+                    child.proc.wait(5)
+            raise
 
 
 def _wait_for(predicate: Callable[[], bool], what: str, timeout_s: float,
