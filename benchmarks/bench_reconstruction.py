@@ -38,6 +38,7 @@ from remote_site.reconstruction.reconstructor import (  # noqa: E402
     ReconstructionSettings,
     Reconstructor,
 )
+from remote_site.reconstruction.sphere import cap_depth_mm  # noqa: E402
 from remote_site.sensor.photometric import PhotometricModel  # noqa: E402
 from remote_site.sensor.shapes import ball_depth_mm, cone_depth_mm  # noqa: E402
 from remote_site.sensor.sim_calibration import simulated_calibration  # noqa: E402
@@ -150,6 +151,14 @@ RELIEF_OUTPUTS = [("full", None), ("1/2", 2 * MM_PER_PX), ("1/4", 4 * MM_PER_PX)
                   ("station 0.5 mm", 0.5), ("display 1.7 mm", DISPLAY_PITCH_MM)]
 
 
+def _extension(calib: Calibration, factor: int) -> float | str:
+    """The rim extension the reconstructor applies at this pooling factor."""
+    from remote_site.reconstruction.relief import extension_for_factor
+
+    ext = extension_for_factor(calib.rim_extension_mm, factor)
+    return "none (too coarse: free gel)" if ext is None else ext
+
+
 def relief(data: Path, repeats: int) -> tuple[list[dict], list[dict], list[dict]]:
     """Zero level vs rim relief (poly5, DST) on the test presses, and the examples set.
 
@@ -174,8 +183,7 @@ def relief(data: Path, repeats: int) -> tuple[list[dict], list[dict], list[dict]
             metrics, peaks = [], []
             for lb in test:
                 hm = rec.height_map(frames[lb.image], out_pitch_mm=pitch)
-                a_mm = lb.radius_px * MM_PER_PX
-                depth = BALL_RADIUS_MM - np.sqrt(BALL_RADIUS_MM**2 - a_mm**2)
+                depth = cap_depth_mm(BALL_RADIUS_MM, lb.radius_px * MM_PER_PX)
                 peaks.append(hm.max_height_mm - depth)
                 if hm.mm_per_px < 0.3:  # enough grid points inside the contact for a shape
                     metrics.append(evaluate_press(hm.height_mm, hm.mm_per_px, lb, MM_PER_PX,
@@ -193,8 +201,7 @@ def relief(data: Path, repeats: int) -> tuple[list[dict], list[dict], list[dict]
             f = rec.pool_factor(pitch)
             rows.append({
                 "relief": name, "output": label, "grid": f"{240 // f}x{320 // f}",
-                "extension_mm": (calib.rim_extension_mm.get(f, float("nan"))
-                                 if name == "rim" else float("nan")),
+                "extension_mm": (_extension(calib, f) if name == "rim" else "n/a"),
                 "peak_err_mean_mm": float(peak.mean()),
                 "peak_err_max_abs_mm": float(np.abs(peak).max()),
                 "within_0.05": f"{int((np.abs(peak) <= 0.05).sum())}/{len(peak)}",

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from remote_site.reconstruction.labels import BallLabel
-from remote_site.reconstruction.sphere import cap_height_mm, fit_sphere_radius_mm
+from remote_site.reconstruction.sphere import cap_depth_mm, cap_height_mm, fit_sphere_radius_mm
 from shared.errors import InputDataError
 
 __all__ = ["PressMetrics", "evaluate_press"]
@@ -82,8 +82,7 @@ def evaluate_press(height_mm: np.ndarray, grid_mm_per_px: float, label: BallLabe
     offset = float(err.mean())
     far = r > 2.0 * label.radius_px * sensor_mm_per_px
     flat_p99 = float(np.percentile(np.abs(height_mm[far]), 99)) if far.any() else float("nan")
-    label_a_mm = label.radius_px * sensor_mm_per_px
-    depth = ball_radius_mm - np.sqrt(max(ball_radius_mm**2 - label_a_mm**2, 0.0))
+    depth = cap_depth_mm(ball_radius_mm, label.radius_px * sensor_mm_per_px)
     centred, shift_mm = _centred_shape_rmse(dx[inside], dy[inside],
                                             height_mm[inside].astype(np.float64),
                                             ball_radius_mm)

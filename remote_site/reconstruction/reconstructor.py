@@ -110,7 +110,8 @@ class HeightMap:
 
     Attributes:
         height_mm: (rows, cols) float32 heights, mm, positive into the gel.
-        mask: (rows, cols) bool contact mask (height above the contact threshold).
+        mask: (rows, cols) bool contact mask: the gel deformed beyond the contact threshold
+            (measured above the free gel, whatever the relief reference).
         mm_per_px: pitch of this grid (a multiple of the sensor pixel when pooled).
         skipped: True when no contact evidence was found and integration was skipped.
     """
@@ -154,6 +155,9 @@ class Reconstructor:
         self._solver = PoissonSolver(self.settings.solver)
         #: "plane" or "rim": the settings' choice, else the calibration's
         self.relief = self.settings.relief or calibration.relief
+        if self.relief not in RELIEF_MODES:
+            raise ConfigError(f"relief must be one of {', '.join(RELIEF_MODES)}, got "
+                              f"{self.relief!r} (from the calibration)")
         if self.relief == "rim":
             extension_for_factor(calibration.rim_extension_mm, 1)  # ConfigError when unfitted
         background = validate_frame(calibration.background_rgb, name="calibration background")
@@ -333,19 +337,23 @@ class Reconstructor:
         if not finite:  # cannot happen with finite slopes; never pass it on
             raise InputDataError("reconstruction produced non-finite heights")
         if self.relief == "rim" and mask.any():
-            height, mask = self._rim_relief(height, gx, gy, factor)
+            # only the heights move: the contact (mask) stays what the gel's deformation
+            # says, so a light touch whose cap lies under the threshold is still a contact
+            # (the station's background tracker must never take it for the pad lifted)
+            self._rim_relief(height, gx, gy, factor)
         return HeightMap(height, mask, pitch_mm, skipped=False)
 
     def _rim_relief(self, height: np.ndarray, gx: np.ndarray, gy: np.ndarray,
-                    factor: int) -> tuple[np.ndarray, np.ndarray]:
-        """Heights above the detected contact rim (in place) and their mask; see :mod:`.relief`."""
+                    factor: int) -> None:
+        """Heights above the detected contact rim, in place; see :mod:`.relief`."""
         threshold = self.settings.contact_threshold_mm
         extension = extension_for_factor(self.calibration.rim_extension_mm, factor)
+        if extension is None:  # the grid is too coarse for a rim: heights above the free gel
+            return
         level = rim_level(height, gx, gy, threshold, extension, step=rim_step(height.shape))
         if level > 0.0:
             np.subtract(height, np.float32(level), out=height)
             np.maximum(height, np.float32(0.0), out=height)
-        return height, height > np.float32(threshold)
 
     def _zero_level_and_mask(self, height: np.ndarray,
                              pitch_mm: float) -> tuple[np.ndarray, np.ndarray, bool]:

@@ -47,7 +47,8 @@ import numpy as np
 
 from shared.errors import CalibrationError, ConfigError
 
-__all__ = ["RELIEF_MODES", "RIM_SLOPE_POWER", "RimStats", "extension_for_factor",
+__all__ = ["MAX_FACTOR_BEYOND_FIT", "RELIEF_MODES", "RIM_SLOPE_POWER", "RimStats",
+           "extension_for_factor",
            "fit_rim_extension", "rim_level", "rim_stats", "rim_step"]
 
 #: ``"plane"``: heights above the free gel (default); ``"rim"``: above the contact rim.
@@ -142,8 +143,14 @@ def fit_rim_extension(stats: Sequence[RimStats], depths_mm: Sequence[float]) -> 
     return float(np.median(values))
 
 
-def extension_for_factor(table: Mapping[int, float], factor: int) -> float:
-    """The fitted extension for a pooling factor: the entry nearest in log(factor).
+#: a factor coarser than the coarsest fitted one by more than this ratio has no rim reference
+MAX_FACTOR_BEYOND_FIT = 1.5
+
+
+def extension_for_factor(table: Mapping[int, float], factor: int) -> float | None:
+    """The fitted extension for a pooling factor: the entry nearest in log(factor); None
+    for a grid coarser than the coarsest fitted one (by more than ``MAX_FACTOR_BEYOND_FIT``):
+    there the contact spans too few cells for a rim, and heights stay above the free gel.
 
     Raises:
         ConfigError: an empty table.
@@ -151,5 +158,7 @@ def extension_for_factor(table: Mapping[int, float], factor: int) -> float:
     if not table:
         raise ConfigError("relief 'rim' needs a fitted rim extension; recalibrate with "
                           "`teletouch sensor calibrate --relief rim`")
+    if factor > MAX_FACTOR_BEYOND_FIT * max(table):
+        return None
     best = min(table, key=lambda f: (abs(math.log(f) - math.log(max(factor, 1))), f))
     return float(table[best])

@@ -19,23 +19,27 @@ from remote_site.reconstruction.calibration import Calibration
 from remote_site.reconstruction.labels import BallLabel
 from remote_site.reconstruction.reconstructor import ReconstructionSettings, Reconstructor
 from remote_site.reconstruction.relief import RimStats, fit_rim_extension, rim_stats, rim_step
+from remote_site.reconstruction.sphere import cap_depth_mm
 from shared.errors import CalibrationError
 
-__all__ = ["DEFAULT_RIM_FACTORS", "fit_rim_relief"]
+__all__ = ["DEFAULT_RIM_FACTORS", "MIN_CELLS_ACROSS", "fit_rim_relief", "label_depth_mm"]
 
 log = logging.getLogger(__name__)
 
-#: pooling factors fitted (full resolution up to ~2 mm cells on a 0.06 mm/px sensor)
+#: pooling factors tried (full resolution up to ~2 mm cells on a 0.06 mm/px sensor)
 DEFAULT_RIM_FACTORS = (1, 2, 4, 8, 16, 32)
+#: a factor is fitted only where the median labelled contact spans this many cells across:
+#: on a coarser grid the pooled peak falls below the cap and the fit chases a rim level
+#: below the free gel that the relief can never use (it is clamped to 0)
+MIN_CELLS_ACROSS = 6.0
 
 
 def label_depth_mm(label: BallLabel, ball_radius_mm: float, mm_per_px: float) -> float:
     """Indentation of the ball for the labelled contact radius: R - sqrt(R^2 - a^2)."""
-    a = label.radius_px * mm_per_px
-    if a >= ball_radius_mm:
-        raise CalibrationError(f"{label.image}: contact radius {a:.3g} mm is not smaller "
-                               f"than the ball radius {ball_radius_mm} mm")
-    return float(ball_radius_mm - np.sqrt(ball_radius_mm**2 - a**2))
+    try:
+        return cap_depth_mm(ball_radius_mm, label.radius_px * mm_per_px)
+    except CalibrationError as err:
+        raise CalibrationError(f"{label.image}: {err}") from err
 
 
 def fit_rim_relief(calibration: Calibration, presses: Sequence[tuple[np.ndarray, BallLabel]],
@@ -57,8 +61,13 @@ def fit_rim_relief(calibration: Calibration, presses: Sequence[tuple[np.ndarray,
     depths = [label_depth_mm(lb, calibration.ball_radius_mm, calibration.mm_per_px)
               for _, lb in presses]
     table: dict[int, float] = {}
+    diameter_px = 2.0 * float(np.median([lb.radius_px for _, lb in presses])) if presses else 0.0
     for factor in factors:
         if factor < 1 or factor > min(calibration.shape_hw) // 2:
+            continue
+        if diameter_px / factor < MIN_CELLS_ACROSS:
+            log.info("rim relief: pooling factor %d not fitted (the contact spans %.1f cells)",
+                     factor, diameter_px / factor)
             continue
         pitch = None if factor == 1 else factor * calibration.mm_per_px
         stats: list[RimStats] = []

@@ -12,7 +12,20 @@ import numpy as np
 
 from shared.errors import CalibrationError
 
-__all__ = ["cap_height_mm", "cap_slopes", "fit_sphere_radius_mm"]
+__all__ = ["cap_depth_mm", "cap_height_mm", "cap_slopes", "fit_sphere_radius_mm"]
+
+
+def cap_depth_mm(ball_radius_mm: float, contact_radius_mm: float) -> float:
+    """The cap's height at its centre, i.e. the ball's indentation for a contact circle of
+    radius ``a``: ``R - sqrt(R^2 - a^2)``.
+
+    Raises:
+        CalibrationError: the contact circle is not smaller than the ball.
+    """
+    if not 0.0 <= contact_radius_mm < ball_radius_mm:
+        raise CalibrationError(f"contact radius {contact_radius_mm:.4g} mm is not in "
+                               f"[0, ball radius {ball_radius_mm:.4g} mm)")
+    return float(ball_radius_mm - np.sqrt(ball_radius_mm**2 - contact_radius_mm**2))
 
 
 def cap_height_mm(r_mm: np.ndarray, ball_radius_mm: float, contact_radius_mm: float) -> np.ndarray:

@@ -39,6 +39,7 @@ from local_site.scenes.remote_stream import TactileFrameScene
 from relay_server.auth import derive_token
 from remote_site.reconstruction.frames import load_rgb
 from remote_site.reconstruction.labels import BallLabel, labels_from_npz, write_labels_csv
+from remote_site.reconstruction.sphere import cap_depth_mm, cap_height_mm
 from shared.client import StationLink
 from shared.protocol import TactileCompact, TactileFrame
 from shared.protocol.tactile_codec import TactileDecoder
@@ -70,17 +71,14 @@ def _split(name: str) -> list[BallLabel]:
     return labels_from_npz(DATA, [f"press_{int(e.rsplit('/', 1)[1]):02d}.png" for e in entries])
 
 
-def cap_depth_mm(radius_px: float) -> float:
+def label_depth_mm(radius_px: float) -> float:
     """Indentation of the ball for a labelled contact radius."""
-    a = radius_px * MM_PER_PX
-    return float(BALL_RADIUS_MM - np.sqrt(BALL_RADIUS_MM**2 - a**2))
+    return cap_depth_mm(BALL_RADIUS_MM, radius_px * MM_PER_PX)
 
 
-def cap_height_mm(r_mm: np.ndarray, radius_px: float) -> np.ndarray:
+def label_cap_mm(r_mm: np.ndarray, radius_px: float) -> np.ndarray:
     """Sphere-cap height at distance ``r_mm`` from the press centre (0 outside)."""
-    a = radius_px * MM_PER_PX
-    z = np.sqrt(np.clip(BALL_RADIUS_MM**2 - r_mm**2, 0, None)) - np.sqrt(BALL_RADIUS_MM**2 - a**2)
-    return np.clip(z, 0.0, None)
+    return cap_height_mm(r_mm, BALL_RADIUS_MM, radius_px * MM_PER_PX)
 
 
 @pytest.fixture(scope="module")
@@ -179,12 +177,12 @@ def render_press(frame: TactileFrame, label: BallLabel, scale_xy: float) -> Pres
     # pins in the contact circle and over the sensor image (a press at the image's edge
     # leaves some of its circle outside the frame: the pins there have no data)
     inside = (r_mm < label.radius_px * MM_PER_PX) & scene.sample(pins_xy).inside
-    expected = cap_height_mm(r_mm, label.radius_px)
+    expected = label_cap_mm(r_mm, label.radius_px)
     error = heights[inside] - expected[inside]
     rms = float(np.sqrt(np.mean(error**2)))
     offset = float(error.mean())
     rms_centred = float(np.sqrt(np.mean((error - offset) ** 2)))
-    return PressResult(label.image, cap_depth_mm(label.radius_px), float(heights.max()), rms,
+    return PressResult(label.image, label_depth_mm(label.radius_px), float(heights.max()), rms,
                        offset, rms_centred, int(inside.sum()))
 
 

@@ -21,6 +21,7 @@ from remote_site.reconstruction.frames import load_rgb
 from remote_site.reconstruction.labels import BallLabel, labels_from_npz, write_labels_csv
 from remote_site.reconstruction.reconstructor import ReconstructionSettings, Reconstructor
 from remote_site.reconstruction.relief import (
+    MAX_FACTOR_BEYOND_FIT,
     RimStats,
     extension_for_factor,
     fit_rim_extension,
@@ -178,7 +179,10 @@ def test_fit_rim_extension_recovers_a_known_extension(
 @given(st.dictionaries(st.integers(1, 64), st.floats(-1, 1), min_size=1), st.integers(1, 128))
 def test_extension_for_factor_picks_a_table_entry(table: dict[int, float], factor: int) -> None:
     value = extension_for_factor(table, factor)
-    assert value in table.values()
+    if factor > MAX_FACTOR_BEYOND_FIT * max(table):
+        assert value is None  # too coarse for the fitted rims: no rim reference
+    else:
+        assert value in table.values()
     if factor in table:
         assert value == table[factor]
 
@@ -222,11 +226,37 @@ def test_palpation_calibration_keeps_the_free_gel_zero() -> None:
         assert np.array_equal(a.height_mm, b.height_mm) and np.array_equal(a.mask, b.mask)
 
 
+def test_rim_relief_moves_the_heights_not_the_contact() -> None:
+    """The rim reference lowers heights; the contact mask stays the gel's deformation above
+    the free gel, so a light touch whose cap lies under the threshold once the drape is
+    taken off is still a contact (else the station's background tracker could adopt it as
+    the pad lifted). Kit-free: the simulated sensor with a rim setting."""
+    plane = simulated_calibration()
+    # a short extension: the simulated gel barely drapes, so the fitted 0.41 mm would put
+    # the rim level at the free gel (clamped to 0) and move nothing
+    rim = dataclasses.replace(plane, relief="rim", rim_extension_mm={1: 0.02, 8: 0.02})
+    model = PhotometricModel(seed=3)
+    h, w = model.settings.shape_hw
+    lowered = 0
+    for depth in (0.04, 0.1, 0.4):
+        frame = model.render(ball_depth_mm((h, w), model.settings.mm_per_px, w / 2, h / 2,
+                                           3.0, depth))
+        for pitch in (None, 0.5):
+            a = Reconstructor(plane).height_map(frame, out_pitch_mm=pitch)
+            b = Reconstructor(rim).height_map(frame, out_pitch_mm=pitch)
+            assert np.array_equal(a.mask, b.mask) and a.contact == b.contact
+            assert (b.height_mm <= np.maximum(a.height_mm, 0.0) + 1e-6).all()
+            lowered += int((b.height_mm < a.height_mm - 1e-4).any())
+    assert lowered >= 3  # the rim level did move the heights of those presses
+
+
 def test_rim_relief_needs_a_fitted_calibration() -> None:
     with pytest.raises(ConfigError, match="--relief rim"):
         Reconstructor(simulated_calibration(), ReconstructionSettings(relief="rim"))
     with pytest.raises(ConfigError, match="relief"):
         ReconstructionSettings(relief="drape")
+    with pytest.raises(ConfigError, match="from the calibration"):  # one built in code
+        Reconstructor(dataclasses.replace(simulated_calibration(), relief="drape"))
 
 
 def test_relief_round_trips_and_old_files_read_as_plane(tmp_path: Path) -> None:
