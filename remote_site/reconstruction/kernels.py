@@ -25,6 +25,7 @@ __all__ = [
     "plane_normal_equations",
     "ratio_kernel",
     "subtract_plane_kernel",
+    "tridiagonal_columns_kernel",
     "unchanged_kernel",
 ]
 
@@ -170,6 +171,34 @@ def divergence_kernel(gx: np.ndarray, gy: np.ndarray, pitch: np.floating, solver
                 first = dtype(gy[0, j]) * pitch
                 bottom = _border_edges(first, cur[j], half, zero, solver)[1]
                 out[i, j] = (ex[j + 1] - ex[j]) + (bottom - top[j])
+
+
+@njit(cache=True, nogil=True)
+def tridiagonal_columns_kernel(rhs: np.ndarray,
+                               inv_pivot: np.ndarray) -> None:  # pragma: no cover - compiled
+    """Solve ``(T + k_j I) x = rhs[:, j]`` for every column ``j`` in place (float64 inside).
+
+    ``T`` is the tridiagonal second difference along the rows (off-diagonals 1) whose
+    diagonal ``inv_pivot`` was factorised for: the Thomas algorithm with unit off-diagonals
+    needs only the inverse pivots ``inv_pivot[i, j] = 1 / (b[i, j] - inv_pivot[i - 1, j])``
+    (``poisson._column_factors``). Forward: ``y_i = (rhs_i - y_(i-1)) * inv_pivot_i``;
+    back: ``x_i = y_i - inv_pivot_i * x_(i+1)``. The recurrences run down the rows with the
+    columns as the inner, independent (vectorisable) loop.
+    """
+    rows, cols = rhs.shape
+    acc = np.zeros(cols, np.float64)
+    for i in range(rows):
+        for j in range(cols):
+            value = (np.float64(rhs[i, j]) - acc[j]) * inv_pivot[i, j]
+            acc[j] = value
+            rhs[i, j] = value
+    for j in range(cols):
+        acc[j] = 0.0
+    for i in range(rows - 1, -1, -1):
+        for j in range(cols):
+            value = np.float64(rhs[i, j]) - inv_pivot[i, j] * acc[j]
+            acc[j] = value
+            rhs[i, j] = value
 
 
 @njit(cache=True, nogil=True)
