@@ -81,13 +81,22 @@ def unchanged_kernel(ratio: np.ndarray, gain: np.ndarray,
 @njit(cache=True, nogil=True)
 def change_kernel(frame: np.ndarray, inv_gain: np.ndarray, inv_bg_pct: np.ndarray,
                   out: np.ndarray) -> None:  # pragma: no cover - compiled
-    """``out = frame * inv_gain * inv_bg_pct - 100`` per channel, float32, one pass."""
-    rows, cols = frame.shape[0], frame.shape[1]
+    """``out = frame * inv_gain * inv_bg_pct - 100`` per channel, float32, one pass.
+
+    All three (H, W, 3) arrays must be C-contiguous: the loop runs over the flat arrays
+    (the 3-D indexing kept LLVM from vectorising it: 1.5x slower).
+    """
+    n = frame.shape[0] * frame.shape[1]
+    src = frame.reshape(n * 3)
+    inv_bg = inv_bg_pct.reshape(n * 3)
+    dst = out.reshape(n * 3)
     hundred = np.float32(100.0)
-    for i in range(rows):
-        for j in range(cols):
-            for v in range(3):
-                out[i, j, v] = frame[i, j, v] * inv_gain[v] * inv_bg_pct[i, j, v] - hundred
+    g0, g1, g2 = inv_gain[0], inv_gain[1], inv_gain[2]
+    for p in range(n):
+        k = 3 * p
+        dst[k] = src[k] * g0 * inv_bg[k] - hundred
+        dst[k + 1] = src[k + 1] * g1 * inv_bg[k + 1] - hundred
+        dst[k + 2] = src[k + 2] * g2 * inv_bg[k + 2] - hundred
 
 
 @njit(cache=True, nogil=True)
@@ -96,18 +105,20 @@ def evidence_kernel(change: np.ndarray, evidence_threshold: np.float32,
                     ) -> tuple[int, np.ndarray]:  # pragma: no cover - compiled
     """Count of pixels whose max-channel |change| exceeds ``evidence_threshold``, and the
     mask of those above ``active_threshold`` (a pixel with a NaN channel is neither, as
-    with numpy's NaN-propagating maximum)."""
+    with numpy's NaN-propagating maximum). ``change`` must be C-contiguous (flat loop, as
+    in :func:`change_kernel`: half the time of the 3-D indexed one)."""
     rows, cols = change.shape[0], change.shape[1]
-    active = np.empty((rows, cols), np.bool_)
+    n = rows * cols
+    flat = change.reshape(n * 3)
+    active = np.empty(n, np.bool_)
     count = 0
-    for i in range(rows):
-        for j in range(cols):
-            a0, a1, a2 = abs(change[i, j, 0]), abs(change[i, j, 1]), abs(change[i, j, 2])
-            m = max(max(a0, a1), a2)
-            valid = (a0 == a0) & (a1 == a1) & (a2 == a2)
-            count += valid & (m > evidence_threshold)
-            active[i, j] = valid & (m > active_threshold)
-    return count, active
+    for p in range(n):
+        a0, a1, a2 = abs(flat[3 * p]), abs(flat[3 * p + 1]), abs(flat[3 * p + 2])
+        m = max(max(a0, a1), a2)
+        valid = (a0 == a0) & (a1 == a1) & (a2 == a2)
+        count += np.int32(valid & (m > evidence_threshold))
+        active[p] = valid & (m > active_threshold)
+    return count, active.reshape(rows, cols)
 
 
 @njit(cache=True, nogil=True)
@@ -293,16 +304,19 @@ def subtract_plane_kernel(height: np.ndarray, c0: np.float32, c1: np.float32, c2
                           threshold: np.float32
                           ) -> tuple[np.ndarray, np.ndarray, bool]:  # pragma: no cover
     """``height - ((c0 + c1 * col) + c2 * row)`` in float32, its ``> threshold`` mask and
-    whether every value is finite, in one pass."""
+    whether every value is finite, in one pass. The finite check is an integer OR of
+    ``value - value != 0`` (NaN for NaN and +-Inf), which vectorises; a float running check
+    was one dependent operation per pixel (a third of the kernel's time)."""
     rows, cols = height.shape
     out = np.empty((rows, cols), np.float32)
     mask = np.empty((rows, cols), np.bool_)
-    finite = True
+    bad = 0
+    zero = np.float32(0.0)
     for i in range(rows):
         ri = c2 * np.float32(i)
         for j in range(cols):
             value = height[i, j] - ((c0 + c1 * np.float32(j)) + ri)
             out[i, j] = value
             mask[i, j] = value > threshold
-            finite = finite and np.isfinite(value)
-    return out, mask, finite
+            bad |= np.int32((value - value) != zero)
+    return out, mask, bad == 0
