@@ -111,14 +111,14 @@ def evidence_kernel(change: np.ndarray, evidence_threshold: np.float32,
     n = rows * cols
     flat = change.reshape(n * 3)
     active = np.empty(n, np.bool_)
-    count = 0
+    count = np.int64(0)
     for p in range(n):
         a0, a1, a2 = abs(flat[3 * p]), abs(flat[3 * p + 1]), abs(flat[3 * p + 2])
         m = max(max(a0, a1), a2)
         valid = (a0 == a0) & (a1 == a1) & (a2 == a2)
-        count += np.int32(valid & (m > evidence_threshold))
+        count += np.int64(valid & (m > evidence_threshold))
         active[p] = valid & (m > active_threshold)
-    return count, active.reshape(rows, cols)
+    return int(count), active.reshape(rows, cols)
 
 
 @njit(cache=True, nogil=True)
@@ -310,7 +310,7 @@ def subtract_plane_kernel(height: np.ndarray, c0: np.float32, c1: np.float32, c2
     rows, cols = height.shape
     out = np.empty((rows, cols), np.float32)
     mask = np.empty((rows, cols), np.bool_)
-    bad = 0
+    bad = np.int32(0)
     zero = np.float32(0.0)
     for i in range(rows):
         ri = c2 * np.float32(i)
