@@ -19,6 +19,7 @@ __all__ = [
     "DIV_DST",
     "DIV_FFT",
     "change_kernel",
+    "clipped_counts",
     "divergence_kernel",
     "evidence_kernel",
     "free_subsample_kernel",
@@ -76,6 +77,24 @@ def unchanged_kernel(ratio: np.ndarray, gain: np.ndarray,
                 out[v, m] = ratio[v, k]
             m += 1
     return out
+
+
+@njit(cache=True, nogil=True)
+def clipped_counts(image: np.ndarray, step: int, saturation: np.float32,
+                   black: np.float32) -> tuple[int, int, int]:  # pragma: no cover - compiled
+    """On ``image[::step, ::step]`` ((H, W, 3) float32): the number of pixels with a channel
+    ``>= saturation``, of pixels with every channel ``<= black``, and of pixels."""
+    rows, cols = image.shape[0], image.shape[1]
+    saturated = np.int64(0)
+    dark = np.int64(0)
+    n = np.int64(0)
+    for i in range(0, rows, step):
+        for j in range(0, cols, step):
+            r, g, b = image[i, j, 0], image[i, j, 1], image[i, j, 2]
+            saturated += np.int64((r >= saturation) | (g >= saturation) | (b >= saturation))
+            dark += np.int64((r <= black) & (g <= black) & (b <= black))
+            n += 1
+    return int(saturated), int(dark), int(n)
 
 
 @njit(cache=True, nogil=True)

@@ -21,6 +21,7 @@ from remote_site.reconstruction.kernels import (
     DIV_DCT,
     DIV_DST,
     DIV_FFT,
+    clipped_counts,
     divergence_kernel,
     evidence_kernel,
     free_subsample_kernel,
@@ -136,6 +137,64 @@ def test_poisson_inverts_the_discrete_gradient(seed: int, shape: tuple[int, int]
     expected = ref.reference_integrate(gx, gy, pitch, solver)
     tol = 1e-5 * max(1.0, float(np.abs(expected).max()))
     np.testing.assert_allclose(h32, expected, rtol=0, atol=tol)
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**31), rows=st.integers(2, 260), cols=st.integers(2, 340),
+       radius=st.floats(0.05, 0.6), noise=st.sampled_from([0.0, 1e-3, 0.1]))
+def test_dst_column_solve_is_as_accurate_as_the_2d_transform(
+        seed: int, rows: int, cols: int, radius: float, noise: float) -> None:
+    """The DST solver's tridiagonal column solve (float32 transforms, float64 recurrence)
+    against the float64 2-D DST solve of the frozen reference, on up to full-frame sizes
+    with a smooth bump (the ill-conditioned low frequencies dominate): no further from it
+    than the float32 2-D DST solve it replaced, up to rounding."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:rows, 0:cols]
+    r2 = ((yy - rows * rng.uniform(0.3, 0.7)) ** 2 + (xx - cols * rng.uniform(0.3, 0.7)) ** 2
+          ) / (radius * max(rows, cols)) ** 2
+    h = np.exp(-r2)
+    gx = np.gradient(h, axis=1) + rng.normal(0, noise, h.shape)
+    gy = np.gradient(h, axis=0) + rng.normal(0, noise, h.shape)
+    pitch = 0.0634
+    gx, gy = (gx / pitch).astype(np.float32), (gy / pitch).astype(np.float32)
+    exact = _float64_dst_solve(gx, gy, pitch)
+    got = PoissonSolver("dst").integrate(gx, gy, pitch)
+    old = ref.reference_integrate(gx, gy, pitch, "dst")
+    scale = max(1.0, float(np.abs(exact).max()))
+    assert got.dtype == np.float32 and got.shape == gx.shape
+    assert np.abs(got - exact).max() <= 2.0 * np.abs(old - exact).max() + 1e-6 * scale
+
+
+def _float64_dst_solve(gx: np.ndarray, gy: np.ndarray, pitch: float) -> np.ndarray:
+    """The 2-D DST-II solve of the reference, in float64."""
+    import scipy.fft as sfft
+
+    rows, cols = gx.shape
+    div = ref.reference_divergence(gx.astype(np.float64) * pitch, gy.astype(np.float64) * pitch,
+                                   "dst")
+    ky = 2.0 * np.cos(np.pi * np.arange(1, rows + 1) / rows) - 2.0
+    kx = 2.0 * np.cos(np.pi * np.arange(1, cols + 1) / cols) - 2.0
+    spec = sfft.dstn(div, type=2) / (ky[:, None] + kx[None, :])
+    return np.asarray(sfft.idstn(spec, type=2))
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31), shape=st.tuples(st.integers(1, 40), st.integers(1, 40)),
+       step=st.integers(1, 5), clipped=st.floats(0.0, 1.0))
+def test_clipped_counts_equal_numpy(seed: int, shape: tuple[int, int], step: int,
+                                    clipped: float) -> None:
+    from remote_site.reconstruction.frames import BLACK_LEVEL, SATURATION_LEVEL
+
+    rng = np.random.default_rng(seed)
+    image = rng.uniform(0, 255, (*shape, 3)).astype(np.float32)
+    pick = rng.random((*shape, 3)) < clipped
+    image[pick] = rng.choice(np.array([0.0, 3.0, 3.5, 254.0, 254.5, 255.0], np.float32),
+                             int(pick.sum()))
+    sub = image[::step, ::step]
+    saturated = (sub >= SATURATION_LEVEL).any(axis=2)
+    black = (sub <= BLACK_LEVEL).all(axis=2)
+    got = clipped_counts(image, step, np.float32(SATURATION_LEVEL), np.float32(BLACK_LEVEL))
+    assert got == (int(saturated.sum()), int(black.sum()), saturated.size)
 
 
 @pytest.mark.parametrize("bad", [np.nan, np.inf])
