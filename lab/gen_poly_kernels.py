@@ -68,7 +68,8 @@ def _kernel(degree: int) -> list[str]:
            "            r = change[i, j, 0] * s0",
            "            g = change[i, j, 1] * s1",
            "            b = change[i, j, 2] * s2"]
-    index = {}  # (a, b, c) -> position of r^a g^b b^c in the lexicographic term order
+    # (a, b, c) -> position of r^a g^b b^c in the lexicographic term order
+    index: dict[tuple[int, int, int], int] = {}
     for a in range(degree + 1):
         for b in range(degree + 1 - a):
             for c in range(degree + 1 - a - b):
