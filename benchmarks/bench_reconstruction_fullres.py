@@ -199,14 +199,22 @@ def _tree_stages(calib_path: Path, data: Path, args: argparse.Namespace,
                     str(max(5, args.repeats // 3))]
             done = subprocess.run(argv, capture_output=True, text=True, check=True)
             runs[which].append(json.loads(done.stdout.strip().splitlines()[-1]))
+    starts: dict[str, list[dict[str, float]]] = {"previous": [], "this": []}
+    for _ in range(rounds):  # start-up, numba cache warm (the stage runs above filled it)
+        for which, tree in (("previous", Path(args.baseline_tree)), ("this", ROOT)):
+            argv = [sys.executable, str(child), "--startup", "--tree", str(tree),
+                    "--calibration", str(calib_path), "--data", str(data)]
+            done = subprocess.run(argv, capture_output=True, text=True, check=True)
+            starts[which].append(json.loads(done.stdout.strip().splitlines()[-1]))
     rows = []
-    for stage in runs["this"][0]:
-        prev = float(np.median([r[stage] for r in runs["previous"]]))
-        this = float(np.median([r[stage] for r in runs["this"]]))
-        rows.append({"stage": stage, "previous_cpu_ms_p50": prev, "this_cpu_ms_p50": this,
-                     "this/previous": this / prev,
-                     "previous runs": ", ".join(f"{r[stage]:.3f}" for r in runs["previous"]),
-                     "this runs": ", ".join(f"{r[stage]:.3f}" for r in runs["this"])})
+    for table, unit in ((runs, "cpu ms p50"), (starts, "wall s")):
+        for stage in table["this"][0]:
+            prev = float(np.median([r[stage] for r in table["previous"]]))
+            this = float(np.median([r[stage] for r in table["this"]]))
+            rows.append({"stage": stage.replace("_s", "").replace("_", " "), "unit": unit,
+                         "previous": prev, "this tree": this, "this/previous": this / prev,
+                         "previous runs": ", ".join(f"{r[stage]:.3g}" for r in table["previous"]),
+                         "this runs": ", ".join(f"{r[stage]:.3g}" for r in table["this"])})
     whole = "whole height_map"
     fps = {which: 1e3 / float(np.median([r[whole] for r in runs[which]]))
            for which in ("previous", "this")}
@@ -223,7 +231,9 @@ def _tree_section(args: argparse.Namespace, rows: list[dict[str, Any]],
         "reconstruction_stage_child.py --tree`), the two alternating, 3 processes each; "
         "every stage many times in a row on the same inputs (warm caches), then whole "
         "`height_map` calls in a row; CPU ms p50 per process, the median of the processes "
-        "(each process's figure in the last columns).",
+        "(each process's figure in the last columns). Start-up (`--startup`, wall seconds, "
+        "numba's cache already filled): imports, building the reconstructor, the first frame "
+        "(kernels loaded from the cache, the per-pixel table baked) and the second.",
         "",
         format_table(rows),
         "",
@@ -299,7 +309,8 @@ def main(args: argparse.Namespace) -> int:
         return h, h > s.contact_threshold_mm, np.isfinite(h).all()
 
     stages: list[tuple[str, Fn, Fn]] = [
-        ("validate frame (unchanged)", lambda i: validate_frame(frames[i], rec.shape_hw),
+        ("validate frame (the product's in both)",
+         lambda i: validate_frame(frames[i], rec.shape_hw),
          lambda i: validate_frame(frames[i], rec.shape_hw)),
         ("colour change: gain + change + blur",
          lambda i: ref.reference_relative_change(valid[i], bg, calib.blur_sigma_px, inv_bg),

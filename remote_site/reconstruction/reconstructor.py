@@ -325,7 +325,6 @@ class Reconstructor:
         by ``zero_exclusion_mm``, evaluated only at the subsampled pixels); the plane is the
         least-squares fit through the free subsampled heights.
         """
-        height = np.ascontiguousarray(height)
         threshold = np.float32(self.settings.contact_threshold_mm)
         mode = self.settings.zero_level
         zero = np.float32(0.0)
