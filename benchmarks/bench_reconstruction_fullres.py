@@ -231,9 +231,11 @@ def _tree_section(args: argparse.Namespace, rows: list[dict[str, Any]],
         "reconstruction_stage_child.py --tree`), the two alternating, 3 processes each; "
         "every stage many times in a row on the same inputs (warm caches), then whole "
         "`height_map` calls in a row; CPU ms p50 per process, the median of the processes "
-        "(each process's figure in the last columns). Start-up (`--startup`, wall seconds, "
-        "numba's cache already filled): imports, building the reconstructor, the first frame "
-        "(kernels loaded from the cache, the per-pixel table baked) and the second.",
+        "(each process's figure in the last columns). The previous tree is an unpacked "
+        "commit (`mkdir DIR && git archive <commit> | tar -x -C DIR`). Start-up "
+        "(`--startup`, wall seconds, numba's cache already filled): imports, building the "
+        "reconstructor, the first frame (kernels loaded from the cache, the per-pixel table "
+        "baked) and the second.",
         "",
         format_table(rows),
         "",
