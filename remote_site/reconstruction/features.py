@@ -84,7 +84,8 @@ def relative_change(frame: np.ndarray, background: np.ndarray,
         blur_sigma_px: Gaussian smoothing of the change (0 = none).
         inv_background_pct: :func:`inverse_background_pct` of ``background`` if cached.
         out, work: float32 (H, W, 3) scratch arrays to reuse for the result and (when
-            blurring) the unblurred change; new arrays if None.
+            blurring) the unblurred change; new arrays if None (or, for the unblurred
+            change, not C-contiguous float32 of that shape).
     """
     import cv2
 
@@ -94,12 +95,12 @@ def relative_change(frame: np.ndarray, background: np.ndarray,
     # 100 * (I / (g * B) - 1) in one fused pass (same float32 operations as
     # frame * (1 / g) * inv_background_pct - 100)
     shape = (*frame.shape[:2], 3)
-    if blur_sigma_px > 0:
-        change = work if work is not None else np.empty(shape, np.float32)
-    else:
-        change = out if out is not None else np.empty(shape, np.float32)
-    change_kernel(np.asarray(frame, np.float32), (1.0 / gain).astype(np.float32),
-                  inv_background_pct, change)
+    change = work if blur_sigma_px > 0 else out
+    if change is None or change.shape != shape or change.dtype != np.float32 \
+            or not change.flags.c_contiguous:  # the kernel loops over flat arrays
+        change = np.empty(shape, np.float32)
+    change_kernel(np.ascontiguousarray(frame, np.float32), (1.0 / gain).astype(np.float32),
+                  np.ascontiguousarray(inv_background_pct, np.float32), change)
     if blur_sigma_px > 0:
         if out is None:
             return np.asarray(cv2.GaussianBlur(change, (0, 0), blur_sigma_px))
