@@ -440,9 +440,7 @@ class _Connection:
         reason = "peer closed"
         try:
             if not ps.closing:
-                # received messages are handled in the callback that read them (_received);
-                # what they queue for the other peers is written once per event-loop
-                # iteration (RelayServer.flush_soon)
+                # received messages are handled in the callback that read them (_received)
                 self.transport.receive(self._received)
                 await self.transport.ended.wait()
         finally:
@@ -458,6 +456,12 @@ class _Connection:
         ps = self.protocol
         ps.receive_data(data, now_us())
         self._handle(ps.events_received())
+        # what they queued for idle peers, written now: one write per peer for the message
+        # (TCP: the chunk), as the old reader loop did. Deferring it to the end of the
+        # event-loop iteration, to batch several senders' messages in one write, let a newer
+        # state in the same read replace an unsent one (latest-wins drops: 150 in 4 s at 5
+        # sessions, 3 % of the platform states) for a few % of CPU
+        self.relay.flush()
         if ps.closing:
             self.transport.stop()
 
