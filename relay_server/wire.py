@@ -21,6 +21,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import struct
 from collections.abc import Callable, Coroutine
 from typing import Any
 
@@ -29,6 +30,11 @@ from websockets.frames import Frame, Opcode
 from websockets.http11 import Request, Response
 from websockets.protocol import State
 from websockets.server import ServerProtocol
+
+try:  # websockets' C helper (its pure-Python one when the extension is not built)
+    from websockets.speedups import apply_mask
+except ImportError:  # pragma: no cover
+    from websockets.utils import apply_mask
 
 from shared.protocol.connection import Framing
 from shared.transport import TransportClosed, set_nodelay
@@ -49,6 +55,10 @@ _CLEAN_CLOSE_CODES = frozenset({1000, 1001})
 #: handled a slice per event-loop iteration, reading paused, so one busy peer cannot hold
 #: the loop (the other sessions' residence time) for thousands of messages at once
 _SLICE_BYTES = 16 * 1024
+#: the header of a server's (unmasked) final binary frame, by payload length
+_HEADS = [bytes((0x82, n)) for n in range(126)]
+_HEAD16 = struct.Struct("!BBH")
+_HEAD64 = struct.Struct("!BBQ")
 
 
 class Wire(asyncio.Protocol):
@@ -350,6 +360,14 @@ class WsWire(Wire):
         self._write_limit = write_limit
         self._open_timeout_s = open_timeout_s
         self.ws = ServerProtocol(max_size=max_size, logger=logger)
+        self._max_size = max_size
+        #: received bytes not yet parsed (the fast path: see _data)
+        self._inbuf = bytearray()
+        #: the fast path is off for good (the connection is closing, or a frame was one
+        #: the protocol fails the connection for)
+        self._protocol_only = False
+        #: the fragments of a message so far (while there are, every frame goes to the
+        #: protocol)
         self._fragments: list[bytes] = []
         self._fragment_text = False
         self._open_timer: asyncio.TimerHandle | None = None
@@ -376,6 +394,66 @@ class WsWire(Wire):
         return super().eof_received()
 
     def _data(self, data: bytes) -> None:
+        """Received bytes. Once the connection is open, a complete, unfragmented, masked
+        binary frame within the size limit (every message of a station) is unmasked and
+        handed on here, without websockets' frame parser; any other frame (ping, close,
+        text, fragments, anything malformed or too long) goes to the Sans-I/O protocol,
+        always from a frame boundary, which answers or fails the connection as it would
+        have anyway. Closing, everything goes to the protocol."""
+        if self._protocol_only or self.ws.state is not State.OPEN or self._mid_frame():
+            if self._inbuf:
+                data, self._inbuf = bytes(self._inbuf) + data, bytearray()
+            self._protocol_data(data)
+            return
+        buf = self._inbuf
+        buf += data
+        pos, n = 0, len(buf)
+        while n - pos >= 2:
+            b0, b1 = buf[pos], buf[pos + 1]
+            length, head = b1 & 0x7F, 2
+            if length == 126:
+                if n - pos < 4:
+                    break
+                length, head = int.from_bytes(buf[pos + 2:pos + 4], "big"), 4
+            elif length == 127:
+                if n - pos < 10:
+                    break
+                length, head = int.from_bytes(buf[pos + 2:pos + 10], "big"), 10
+            masked = b1 & 0x80
+            if not masked or length > self._max_size:
+                self._protocol_only = True  # the protocol fails the connection (1002, 1009)
+                break
+            head += 4
+            end = pos + head + length
+            if end > n:
+                break  # the rest of the frame is still to come
+            if b0 == 0x82 and not self._fragments:  # FIN, no RSV bits, binary
+                payload = apply_mask(buf[pos + head:end], buf[pos + head - 4:pos + head])
+                pos = end
+                self._deliver(payload)
+                continue
+            frame_bytes = bytes(buf[pos:end])
+            pos = end
+            self._protocol_data(frame_bytes)
+            if self.ws.state is not State.OPEN:
+                self._protocol_only = True
+                break
+        rest = bytes(buf[pos:])
+        buf.clear()
+        if self._protocol_only:
+            if rest:
+                self._protocol_data(rest)
+        else:
+            buf += rest
+
+    def _mid_frame(self) -> bool:
+        """True when the protocol holds part of a frame (the bytes that came with the
+        opening handshake ended inside one): it parses on until a frame boundary. Also
+        when that cannot be told (a websockets release without ``reader.buffer``)."""
+        buffer = getattr(getattr(self.ws, "reader", None), "buffer", None)
+        return buffer is None or len(buffer) > 0
+
+    def _protocol_data(self, data: bytes) -> None:
         ws = self.ws
         ws.receive_data(data)
         events = ws.events_received()
@@ -447,13 +525,24 @@ class WsWire(Wire):
         return self.ws.state is State.OPEN
 
     def write_nowait(self, frames: list[bytes]) -> None:
-        ws = self.ws
+        """Each frame as one unmasked binary WebSocket frame (the server's), written here:
+        what ``send_binary`` and its serializer produce, without their per-frame objects."""
+        if self.ws.state is not State.OPEN:
+            raise InvalidState(f"WebSocket connection is {self.ws.state.name}")
+        self._send()  # whatever the protocol queued (a pong) goes first
+        assert self.transport is not None
+        out: list[bytes] = []
         for data in frames:
-            ws.send_binary(data)
-        self._send()
+            n = len(data)
+            out.append(_HEADS[n] if n < 126 else
+                       _HEAD16.pack(0x82, 126, n) if n < 65536 else
+                       _HEAD64.pack(0x82, 127, n))
+            out.append(data)
+        self.transport.write(b"".join(out))
 
     def set_receive_limit(self, max_bytes: int) -> None:
         """Messages up to ``max_bytes`` from now on (the hello limit is over)."""
+        self._max_size = max_bytes
         self.ws.max_message_size = max_bytes
 
     async def close(self, code: int = 1000, reason: str = "") -> None:

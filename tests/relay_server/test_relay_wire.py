@@ -63,6 +63,7 @@ class RawStation:
         self.decoder = LengthPrefixDecoder(2**24)
         self.received: list[bytes] = []
         self.close_code: int | None = None
+        self.pongs = 0
 
     async def connect(self, relay: RelayServer) -> RawStation:
         port = relay.ws_port if self.kind == "ws" else relay.tcp_port
@@ -110,6 +111,8 @@ class RawStation:
         for event in self.ws.events_received():
             if isinstance(event, Frame) and event.opcode is Opcode.BINARY:
                 self.received.append(bytes(event.data))
+            elif isinstance(event, Frame) and event.opcode is Opcode.PONG:
+                self.pongs += 1
             elif isinstance(event, Frame) and event.opcode is Opcode.CLOSE:
                 self.close_code = Close.parse(event.data).code
             elif isinstance(event, Response) and event.status_code != 101:
@@ -358,3 +361,51 @@ async def test_status_404_and_a_client_that_never_upgrades() -> None:
         await ok.connect(relay)
         await ok.hello("local", "after-404")
         await ok.close()
+
+
+def _client_frame(opcode: Opcode, data: bytes, fin: bool = True) -> bytes:
+    return Frame(opcode, data, fin=fin).serialize(mask=True)
+
+
+async def test_websocket_fragments_pings_text_and_a_hello_in_the_upgrade_write() -> None:
+    """Frames the relay's fast path leaves to websockets' protocol: the hello (and half of
+    the next frame) in the same write as the upgrade request, a message in fragments with a
+    ping between them, a text message; the binary messages around them still go fast."""
+    async with running_relay() as relay, clients(("tcp", 0)) as (remote,):
+        await remote.connect(relay)
+        await remote.hello("remote", "frag")
+        reader, writer = await asyncio.open_connection("127.0.0.1", relay.ws_port)
+        station = RawStation("ws")
+        station.reader, station.writer = reader, writer
+        station.ws = ClientProtocol(parse_uri(f"ws://127.0.0.1:{relay.ws_port}/"),
+                                    max_size=None)
+        station.ws.send_request(station.ws.connect())
+        request = b"".join(station.ws.data_to_send())
+        first = _client_frame(Opcode.BINARY, _platform(1, 11))
+        try:
+            writer.write(request + _client_frame(Opcode.BINARY, _hello("local", "frag"))
+                         + first[:5])
+            await writer.drain()
+            async with asyncio.timeout(scaled(3.0)):
+                while station.ws.state is State.CONNECTING:
+                    await station._read()
+            fragmented = _platform(2, 12)
+            writer.write(first[5:]
+                         + _client_frame(Opcode.BINARY, fragmented[:7], fin=False)
+                         + _client_frame(Opcode.PING, b"are you there")
+                         + _client_frame(Opcode.CONT, fragmented[7:20], fin=False)
+                         + _client_frame(Opcode.CONT, fragmented[20:])
+                         + _client_frame(Opcode.TEXT, b"hello as text")
+                         + _client_frame(Opcode.BINARY, _platform(3, 13)))
+            await writer.drain()
+            for seq in (1, 2, 3):
+                got = await remote.expect("platform_state")
+                assert (got.seq, got.ts_us) == (seq, 10 + seq)
+            err = msgpack.unpackb(await station.next_message())
+            assert (err["type"], err["code"], err["fatal"]) == ("error", "malformed", False)
+            async with asyncio.timeout(scaled(3.0)):
+                while not station.pongs:  # the protocol answered the ping
+                    await station._read()
+        finally:
+            writer.close()
+
