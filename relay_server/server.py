@@ -8,9 +8,13 @@ and close codes) is ``docs/protocol.md``. Who decides what:
   outbox (latest-wins slots and a bounded ordered queue, ``Message.POLICY``);
 * :class:`relay_server.session.Session`: routing between the peers of a session, with
   the latency ledgers; :class:`relay_server.auth.TokenAuthority`: tokens;
+* :mod:`relay_server.wire`: each socket as an asyncio protocol (WebSocket through
+  websockets' Sans-I/O protocol, length-prefixed TCP); received messages are handled in the
+  callback that read them;
 * this module: listeners (WebSocket on ``port``, which also answers ``GET /status`` and
-  ``GET /metrics``; length-prefixed TCP on ``tcp_port``), and per connection one reader
-  (this handler), one writer task (so a slow peer only fills its own outbox) and one
+  ``GET /metrics``; length-prefixed TCP on ``tcp_port``), and per connection the handling of
+  what it receives (:meth:`_Connection._received`), direct writes of the forwards, one writer
+  task (for a peer whose socket is behind: a slow peer only fills its own outbox) and one
   ticker task (hello timeout, clock pings, the ``stats`` push).
 
 Each bad connection is logged once at WARNING, without a traceback. WebSocket messages
