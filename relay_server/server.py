@@ -8,9 +8,13 @@ and close codes) is ``docs/protocol.md``. Who decides what:
   outbox (latest-wins slots and a bounded ordered queue, ``Message.POLICY``);
 * :class:`relay_server.session.Session`: routing between the peers of a session, with
   the latency ledgers; :class:`relay_server.auth.TokenAuthority`: tokens;
+* :mod:`relay_server.wire`: each socket as an asyncio protocol (WebSocket through
+  websockets' Sans-I/O protocol, length-prefixed TCP); received messages are handled in the
+  callback that read them;
 * this module: listeners (WebSocket on ``port``, which also answers ``GET /status`` and
-  ``GET /metrics``; length-prefixed TCP on ``tcp_port``), and per connection one reader
-  (this handler), one writer task (so a slow peer only fills its own outbox) and one
+  ``GET /metrics``; length-prefixed TCP on ``tcp_port``), and per connection the handling of
+  what it receives (:meth:`_Connection._received`), direct writes of the forwards, one writer
+  task (for a peer whose socket is behind: a slow peer only fills its own outbox) and one
   ticker task (hello timeout, clock pings, the ``stats`` push).
 
 Each bad connection is logged once at WARNING, without a traceback. WebSocket messages
@@ -33,7 +37,6 @@ from collections import Counter
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from websockets.asyncio.server import Server, ServerConnection, serve
 from websockets.datastructures import Headers
 from websockets.http11 import Request, Response
 
@@ -42,6 +45,7 @@ from relay_server.config import RelayConfig
 from relay_server.metrics import prometheus_text, session_metrics, session_status
 from relay_server.session import Peer, Session
 from relay_server.view import RelayViewHub
+from relay_server.wire import TcpWire, Wire, WsWire
 from shared.errors import (
     AuthError,
     ConfigError,
@@ -61,12 +65,12 @@ from shared.protocol.peer_session import (
     StatsReported,
 )
 from shared.timebase import now_us
-from shared.transport import TcpTransport, Transport, TransportClosed, WsTransport, set_nodelay
 from shared.view import ViewAddress, ViewServer, ViewServerConfig, parse_view_address
 from shared.view.server import token_authorizer
 
 if TYPE_CHECKING:
     from relay_server.cluster import ClusterLink
+    from relay_server.wire import _Responder
 
 __all__ = ["RelayServer", "serve_forever"]
 
@@ -91,8 +95,11 @@ _WS_LOG.addFilter(_RedactAuthorization())
 #: after a fatal error on TCP, read (and discard) the client's input this long before the
 #: close, so the error is not destroyed by a reset (less than _CLOSE_TIMEOUT_S)
 _TCP_LINGER_S = 1.0
-_EVENTS_PER_SLICE = 32  # messages handled before yielding, for big TCP chunks
-_YIELD_EVERY_S = 0.0002
+_EVENTS_PER_FLUSH = 32  # messages of one TCP chunk routed before their forwards are written
+#: the WebSocket opening handshake must be done within this time
+_OPEN_TIMEOUT_S = 10.0
+#: high-water mark of a WebSocket connection's write buffer
+_WS_WRITE_LIMIT = 256 * 1024
 
 
 class RelayServer:
@@ -126,8 +133,10 @@ class RelayServer:
             stats_interval_us=round(config.stats_interval_s * 1e6),
             silence_timeout_us=round(config.silence_timeout_s * 1e6))
         self._peer_ids = itertools.count(1)
-        self._ws_server: Server | None = None
+        self._ws_server: asyncio.Server | None = None
         self._tcp_server: asyncio.Server | None = None
+        #: every accepted socket (also those still in the WebSocket handshake)
+        self._wires: set[Wire] = set()
         self._handlers: set[asyncio.Task[Any]] = set()
         #: fire-and-forget tasks (closing replaced connections), kept referenced
         self._background: set[asyncio.Task[Any]] = set()
@@ -151,13 +160,22 @@ class RelayServer:
         cfg = self.config
         if cfg.allow_any_token:
             log.warning("relay accepts ANY token (--allow-any-token): development only")
-        self._ws_server = await serve(
-            self._ws_handler, cfg.host, cfg.port, compression=None,
-            process_request=self._process_http, max_size=2 * self.peer_settings.max_hello_bytes,
-            max_queue=64, write_limit=256 * 1024, ssl=self.tls, logger=_WS_LOG,
-            reuse_port=cfg.reuse_port or None)
-        self._tcp_server = await asyncio.start_server(
-            self._tcp_handler, cfg.host, cfg.resolved_tcp_port, limit=2**20, ssl=self.tls,
+        loop = asyncio.get_running_loop()
+        hello_limit = 2 * self.peer_settings.max_hello_bytes
+
+        def ws_wire() -> WsWire:
+            return WsWire(self._serve, self._wires, http=self._process_http,
+                          serving=lambda: not self._closing, max_size=hello_limit,
+                          write_limit=_WS_WRITE_LIMIT, open_timeout_s=_OPEN_TIMEOUT_S,
+                          logger=_WS_LOG)
+
+        def tcp_wire() -> TcpWire:
+            return TcpWire(self._serve, self._wires, linger_s=_TCP_LINGER_S)
+
+        self._ws_server = await loop.create_server(
+            ws_wire, cfg.host, cfg.port, ssl=self.tls, reuse_port=cfg.reuse_port or None)
+        self._tcp_server = await loop.create_server(
+            tcp_wire, cfg.host, cfg.resolved_tcp_port, ssl=self.tls,
             reuse_port=cfg.reuse_port or None)
         ws, tcp = ("wss", "tls") if self.tls is not None else ("ws", "tcp")
         log.info("relay listening: %s://%s:%d (status: /status, /metrics), %s://%s:%d",
@@ -201,7 +219,7 @@ class RelayServer:
         """The bound WebSocket port."""
         if self._ws_server is None:
             raise RuntimeError("relay not started")
-        return int(next(iter(self._ws_server.sockets)).getsockname()[1])
+        return int(self._ws_server.sockets[0].getsockname()[1])
 
     @property
     def tcp_port(self) -> int:
@@ -218,7 +236,7 @@ class RelayServer:
         if self._tcp_server is not None:
             self._tcp_server.close()
         if self._ws_server is not None:
-            self._ws_server.close(close_connections=False)
+            self._ws_server.close()
         await asyncio.gather(*(conn.shutdown() for conn in list(self._connections)),
                              return_exceptions=True)
         if self._handlers:
@@ -226,6 +244,8 @@ class RelayServer:
             for task in pending:
                 task.cancel()
             await asyncio.gather(*pending, return_exceptions=True)
+        for wire in list(self._wires):  # still in the handshake, or a handler that hung
+            wire.abort()
         if self._ws_server is not None:
             await self._ws_server.wait_closed()
         if self._tcp_server is not None:
@@ -250,8 +270,7 @@ class RelayServer:
             doc["cluster"] = self.cluster.status()
         return doc
 
-    def _process_http(self, connection: ServerConnection, request: Request
-                      ) -> Response | None:
+    def _process_http(self, connection: _Responder, request: Request) -> Response | None:
         path = request.path.split("?", 1)[0]
         if path in ("/status", "/metrics") and not self._status_allowed(request):
             self.counters["status_unauthorized"] += 1
@@ -283,19 +302,8 @@ class RelayServer:
 
     # ------------------------------------------------------------------ connections
 
-    async def _ws_handler(self, ws: ServerConnection) -> None:
-        set_nodelay(ws.transport)
-        await self._serve(WsTransport(ws), _host_of(ws.remote_address))
-
-    async def _tcp_handler(self, reader: asyncio.StreamReader,
-                           writer: asyncio.StreamWriter) -> None:
-        transport = TcpTransport(reader, writer, linger_s=_TCP_LINGER_S)
-        try:
-            await self._serve(transport, _host_of(writer.get_extra_info("peername")))
-        finally:
-            await transport.close()
-
-    async def _serve(self, transport: Transport, host: str) -> None:
+    async def _serve(self, transport: Wire, host: str) -> None:
+        """Serve one open connection (a :class:`Wire`'s task) until it ends."""
         task = asyncio.current_task()
         if task is not None:
             self._handlers.add(task)
@@ -315,6 +323,7 @@ class RelayServer:
                 del self._per_ip[host]
             if task is not None:
                 self._handlers.discard(task)
+            await transport.close()
 
     def _connection_limit(self, host: str) -> LimitError | None:
         """The refusal of a new connection from ``host`` (already counted), or None."""
@@ -402,14 +411,7 @@ def _server_tls_context(config: RelayConfig) -> ssl.SSLContext | None:
     return ctx
 
 
-def _host_of(address: object) -> str:
-    """The host part of a socket address (``?`` when unknown)."""
-    if isinstance(address, tuple) and address:
-        return str(address[0])
-    return "?"
-
-
-def _http_response(connection: ServerConnection, status: int, body: str,
+def _http_response(connection: _Responder, status: int, body: str,
                    content_type: str) -> Response:
     response = connection.respond(status, body)
     headers = Headers(response.headers)
@@ -421,7 +423,7 @@ def _http_response(connection: ServerConnection, status: int, body: str,
 class _Connection:
     """The life of one connection: reader, writer task, ticker task, teardown."""
 
-    def __init__(self, relay: RelayServer, transport: Transport) -> None:
+    def __init__(self, relay: RelayServer, transport: Wire) -> None:
         self.relay = relay
         self.transport = transport
         self.protocol = PeerSession(transport.framing, relay.peer_settings, now_us(),
@@ -441,32 +443,11 @@ class _Connection:
         self.writer = asyncio.create_task(self._write_loop(), name="relay-writer")
         self._restart_ticker()
         reason = "peer closed"
-        loop = asyncio.get_running_loop()
-        last_yield = loop.time()
         try:
-            while not ps.closing:
-                try:
-                    data = await self.transport.recv()
-                except TransportClosed:
-                    break
-                ps.receive_data(data, now_us())
-                events = ps.events_received()
-                for start in range(0, len(events), _EVENTS_PER_SLICE):
-                    self._handle(events[start:start + _EVENTS_PER_SLICE])
-                    self.relay.flush()  # what they queued for idle peers, written now
-                    if start + _EVENTS_PER_SLICE < len(events):
-                        await asyncio.sleep(0)  # let writers and other sessions run
-                # websockets returns buffered messages without suspending: yield now and
-                # then so one busy reader cannot starve the writers (fairness, bounded
-                # residence time), at most every _YIELD_EVERY_S; not when nothing is
-                # buffered (the next recv() suspends and the others run then: a yield per
-                # message would be an extra turn of the event loop for each)
-                t_now = loop.time()
-                if not self.transport.buffered():
-                    last_yield = t_now
-                elif t_now - last_yield > _YIELD_EVERY_S:
-                    last_yield = t_now
-                    await asyncio.sleep(0)
+            if not ps.closing:
+                # received messages are handled in the callback that read them (_received)
+                self.transport.receive(self._received)
+                await self.transport.ended.wait()
         finally:
             if self.ticker is not None:
                 self.ticker.cancel()
@@ -474,6 +455,27 @@ class _Connection:
             if ps.closing:
                 reason = ps.close_reason
             await self._teardown(ps.close_code or 1000, reason)
+
+    def _received(self, data: bytes | str) -> None:
+        """One WebSocket message or TCP chunk: parse, check, route (see :meth:`_handle`)."""
+        ps = self.protocol
+        ps.receive_data(data, now_us())
+        events = ps.events_received()
+        # what they queued for idle peers is written now, every _EVENTS_PER_FLUSH messages
+        # (a TCP chunk can hold hundreds: an ordered burst must not fill a queue before
+        # the socket takes any of it). Deferring the write to the end of the event-loop
+        # iteration, to batch several senders' messages in one write, let a newer state in
+        # the same read replace an unsent one (latest-wins drops: 150 in 4 s at 5 sessions,
+        # 3 % of the platform states) for a few % of CPU
+        if len(events) <= _EVENTS_PER_FLUSH:
+            self._handle(events)
+            self.relay.flush()
+        else:
+            for start in range(0, len(events), _EVENTS_PER_FLUSH):
+                self._handle(events[start:start + _EVENTS_PER_FLUSH])
+                self.relay.flush()
+        if ps.closing:
+            self.transport.stop()
 
     def _handle(self, events: list[PeerEvent]) -> None:
         ps, peer, session = self.protocol, self.peer, self.session
@@ -524,8 +526,8 @@ class _Connection:
                                      ping_interval_s=cfg.ping_interval_s,
                                      max_message_bytes=cfg.max_message_bytes,
                                      resume=self.peer.resume_secret), now_us())
-        if isinstance(self.transport, WsTransport):  # the hello limit is over: full size now
-            self.transport.ws.protocol.max_message_size = 2 * cfg.max_message_bytes
+        # the hello limit is over: full size now (WebSocket; TCP's parser is the session's)
+        self.transport.set_receive_limit(2 * cfg.max_message_bytes)
         self._restart_ticker()  # the schedule changed: pings and stats instead of the timeout
         # what the peer sent behind its hello has been processed by accept()
         self._handle(self.protocol.events_received())

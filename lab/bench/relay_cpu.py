@@ -41,6 +41,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="rounds; each runs every relay once (default 3)")
     parser.add_argument("--mixes", nargs="+", choices=MIXES, default=list(MIXES),
                         help="stream mixes to run (default: each stream alone, then all)")
+    parser.add_argument("--transport", choices=("ws", "tcp"), default="ws",
+                        help="how the stations connect (default ws)")
     parser.add_argument("--generators", type=int, default=3,
                         help="load generator processes (default 3)")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
@@ -57,11 +59,14 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("--sessions and --rounds must be >= 1 and --step-s > 0")
     settings = CpuSettings(baseline_rev=args.baseline_rev, sessions=args.sessions,
                            step_s=args.step_s, rounds=args.rounds, mixes=tuple(args.mixes),
-                           generators=args.generators)
+                           generators=args.generators, transport=args.transport)
     results = run_relay_cpu(settings)
     argv = " ".join(["teletouch bench relay-cpu",
                      *([f"--baseline-rev {args.baseline_rev}"] if args.baseline_rev else []),
                      f"--sessions {args.sessions} --step-s {args.step_s:g} "
-                     f"--rounds {args.rounds}"])
+                     f"--rounds {args.rounds}",
+                     *([f"--mixes {' '.join(args.mixes)}"] if tuple(args.mixes) != MIXES
+                       else []),
+                     *([f"--transport {args.transport}"] if args.transport != "ws" else [])])
     report(results, as_json=args.json, out_dir=args.write_results, argv=argv)
     return 0

@@ -38,6 +38,7 @@ class CpuSettings:
     rounds: int = 3
     mixes: tuple[str, ...] = ("platform_state", "arm_state", "tactile_frame", "all")
     generators: int = 3
+    transport: str = "ws"
 
 
 def extract_revision(rev: str, into: Path) -> str:
@@ -84,7 +85,8 @@ def _measure(relay: RelayUnderTest, settings: CpuSettings, mix: str, tag: str
              ) -> dict[str, Any]:
     streams = STREAMS if mix == "all" else (mix,)
     load = LoadSettings(steps=(settings.sessions,), step_s=settings.step_s,
-                        generators=settings.generators, streams=streams)
+                        generators=settings.generators, streams=streams,
+                        transport=settings.transport)
     u0, s0 = _user_system_s(relay.pids())
     step = _run_step(relay, settings.sessions, load, settings.step_s, tag)
     u1, s1 = _user_system_s(relay.pids())
@@ -261,8 +263,9 @@ def markdown(r: dict[str, Any], argv: str) -> str:
     lines = [
         "# Relay CPU per forwarded message", "",
         f"Command: `{argv}`. {which}. {s['sessions']} sessions per step, "
-        f"{s['generators']} generator processes, ws stations, {s['step_s']:g} s measured per "
-        f"mix after 1 s warm-up, {s['rounds']} rounds; in each round both relays run, and "
+        f"{s['generators']} generator processes, {s.get('transport', 'ws')} stations, "
+        f"{s['step_s']:g} s measured per mix after 1 s warm-up, {s['rounds']} rounds; "
+        "in each round both relays run, and "
         "each mix runs on one then the other (seconds apart), the order alternating.",
         f"Machine: {m['nproc']} cores, Python {m['python']}, load average "
         f"{m['loadavg_start'][0]:.2f} at the start and {m['loadavg_end'][0]:.2f} at the end "
