@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import io
-import json
 import logging
 import os
 import platform
@@ -17,8 +16,9 @@ from pathlib import Path
 from typing import Any
 
 from lab.bench.load_impl import STREAMS, LoadSettings, RelayUnderTest, _autogroup, _run_step
+from lab.bench.results import publish
 from shared.errors import ConfigError
-from shared.report import emit, emit_json, format_table
+from shared.report import format_table
 
 __all__ = ["CpuSettings", "cpu_ms_per_1k", "report", "run_relay_cpu", "summarise"]
 
@@ -211,15 +211,7 @@ def summarise(runs: list[dict[str, Any]], settings: CpuSettings) -> list[dict[st
 
 def report(results: dict[str, Any], *, as_json: bool, out_dir: str | None, argv: str) -> None:
     """Print the results; optionally write ``relay_cpu.md`` and ``relay_cpu.json``."""
-    if as_json:
-        emit_json(results)
-    else:
-        emit(markdown(results, argv))
-    if out_dir is not None:
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "relay_cpu.md").write_text(markdown(results, argv) + "\n")
-        (out / "relay_cpu.json").write_text(json.dumps(results, indent=1, default=str) + "\n")
+    publish(results, markdown(results, argv), as_json=as_json, out_dir=out_dir, stem="relay_cpu")
 
 
 def _f(v: float | None, digits: int = 3) -> str:
