@@ -8,11 +8,14 @@ analysis is checked against ground truth without the network in between.
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from lab.scoring import score_findings
 from local_site.palpation import (
@@ -25,6 +28,7 @@ from local_site.palpation import (
     load_recording,
     rank_by_severity,
 )
+from local_site.palpation.findings import malignant_score
 from local_site.recording import SessionRecorder
 from remote_site.phantom.phantom import PixelGrid
 from remote_site.phantom.scenes import make_scene
@@ -243,3 +247,55 @@ def test_grazing_frames_at_the_scan_edge_draw_no_finding() -> None:
     assert near_spot(MapConfig()) == []
     score = score_findings(analyse_recording(grazed, ws), truth)
     assert score["tumors_found"] == 2 and score["false_positives"] == 0
+
+
+_POS = st.floats(0.05, 5.0)
+_SE = st.floats(0.0, 0.5)
+
+
+@given(_POS, _SE, _POS, _SE, st.floats(0.0, 2.0))
+def test_malignant_score_matches_its_formula_and_error_propagation(
+        w: float, w_se: float, rim: float, rim_se: float, exponent: float) -> None:
+    """Independent reference: the log score is a linear combination of log w and log rim,
+    so its standard error is the first-order propagation of the two relative errors."""
+    cfg = DetectionConfig(malignant_ref_edge_mm=0.8, malignant_ref_rim_relief=0.9,
+                          malignant_rim_exponent=exponent)
+    score, log_se = malignant_score(w, w_se, rim, rim_se, cfg)
+    log_ref = 2.0 * math.log(w / 0.8) + exponent * math.log(rim / 0.9)
+    assert math.log(score) == pytest.approx(log_ref, rel=1e-9, abs=1e-9)
+    assert log_se == pytest.approx(math.sqrt((2 * w_se / w) ** 2 + (exponent * rim_se / rim) ** 2),
+                                   rel=1e-9, abs=1e-12)
+
+
+@given(_POS, _POS, _POS)
+def test_malignant_score_grows_with_the_edge_and_saturates_in_the_rim(
+        w: float, rim: float, factor: float) -> None:
+    """A wider edge always raises the score; scaling the rim by ``factor`` raises it by
+    only ``factor ** 0.5`` (default exponent), while scaling the edge width by ``factor``
+    raises it by ``factor ** 2``."""
+    base, _ = malignant_score(w, 0.01, rim, 0.01)
+    wider, _ = malignant_score(w * (1 + factor), 0.01, rim, 0.01)
+    stiffer, _ = malignant_score(w, 0.01, rim * factor, 0.01)
+    assert wider > base
+    assert stiffer / base == pytest.approx(factor ** DetectionConfig().malignant_rim_exponent,
+                                           rel=1e-9)
+
+
+@pytest.mark.parametrize("w, rim", [(math.nan, 1.0), (0.0, 1.0), (-1.0, 1.0), (0.8, math.nan),
+                                    (0.8, 0.0), (0.8, -0.2), (math.inf, 1.0)])
+def test_unmeasured_features_give_no_score(w: float, rim: float) -> None:
+    score, log_se = malignant_score(w, 0.01, rim, 0.01)
+    assert math.isnan(score) and log_se == math.inf
+
+
+def test_boundary_only_score_needs_no_rim() -> None:
+    cfg = DetectionConfig(malignant_ref_edge_mm=1.0, malignant_rim_exponent=0.0)
+    assert malignant_score(2.0, 0.1, math.nan, math.inf, cfg) == pytest.approx((4.0, 0.1))
+
+
+def test_exponent_one_is_the_previous_rule() -> None:
+    """``(w / 0.75)^2 * rim`` with the log errors added in quadrature (the former rule)."""
+    cfg = DetectionConfig(malignant_ref_edge_mm=0.75, malignant_rim_exponent=1.0)
+    score, log_se = malignant_score(0.9, 0.03, 1.2, 0.06, cfg)
+    assert score == pytest.approx((0.9 / 0.75) ** 2 * 1.2)
+    assert log_se == pytest.approx(math.hypot(2 * 0.03 / 0.9, 0.06 / 1.2))
