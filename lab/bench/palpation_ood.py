@@ -34,6 +34,7 @@ be re-scored without simulating again.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import time
@@ -87,7 +88,11 @@ class Case:
     def key(self) -> str:
         world = "ideal" if self.realism == IDEAL else f"r{hash(self.realism) & 0xFFFFFF:06x}"
         rate = "" if self.frame_rate_hz == FRAME_RATE_HZ else f"-{self.frame_rate_hz:.3g}hz"
-        return f"{self.family}-{self.index:02d}-s{self.seed}-{world}{rate}"
+        # the phantom itself is in the key: a family's varied value depends on how many
+        # phantoms it has (``--runs``), and another --runs must not reuse these sessions
+        phantom = hashlib.sha256(json.dumps(self.phantom, sort_keys=True, default=str)
+                                 .encode()).hexdigest()[:8]
+        return f"{self.family}-{self.index:02d}-s{self.seed}-{world}{rate}-p{phantom}"
 
 
 def _inclusion(rng: np.random.Generator, kind: str, radius: float, depth: float) -> dict[str, Any]:

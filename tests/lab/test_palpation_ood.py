@@ -29,6 +29,13 @@ def test_every_case_is_a_valid_phantom(family: str) -> None:
     assert len({c.key for c in cases}) == n
 
 
+def test_the_cache_key_tells_phantoms_of_another_run_count_apart() -> None:
+    """``--cache`` reuses a session by its key: the size family's 2nd of 10 phantoms is not
+    its 2nd of 30 (another radius), so it must not share the key; the same case does."""
+    assert make_case("size", 1, 10, 2001).key != make_case("size", 1, 30, 2001).key
+    assert make_case("size", 1, 10, 2001).key == make_case("size", 1, 10, 2001).key
+
+
 def test_families_span_the_issue_ranges() -> None:
     n = 10
     size = [make_case("size", i, n, 1).phantom["inclusion"][0]["radius_mm"] for i in range(n)]
