@@ -9,8 +9,9 @@ the recovery, commands older than 100 ms executed, frames older than 150 ms (the
 bound) rendered, and the stations that exited. ``--quick``: one injection per scenario (all
 scenarios, the 60 s outages too); ``--short`` also leaves out the 20 s and 60 s outages.
 
-The results table goes to ``benchmarks/results/faults.md`` (``--write-results DIR``), with the
-machine's load at the start: the other jobs on this machine slow every process here.
+The results table goes to ``benchmarks/results/faults.md`` (``--write-results DIR``; a partial
+run with ``--only`` writes nowhere unless told), with the machine's load at the start: the
+other jobs on this machine slow every process here.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-__all__ = ["configure_parser", "run"]
+__all__ = ["configure_parser", "results_dir", "run"]
 
 #: the issue's targets
 HALT_P99_MS = 100.0
@@ -44,9 +45,19 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="run the local station's drive board as a process of its own "
                              "(teletouch board, reached over socket://); the display's safe "
                              "state is then the board's; results go to faults_board.md/json")
-    parser.add_argument("--write-results", metavar="DIR", default="benchmarks/results",
+    parser.add_argument("--write-results", metavar="DIR", default=None,
                         help="write faults.md and faults.json (faults_board.* with "
-                             "--board-process) to DIR ('' = do not write)")
+                             "--board-process) to DIR ('' = do not write; default "
+                             "benchmarks/results, but nowhere for a partial run with --only, "
+                             "which must not replace the whole suite's table)")
+
+
+def results_dir(write_results: str | None, only: list[str] | None) -> str:
+    """Where the tables go ('' = nowhere): as given, else ``benchmarks/results`` for the whole
+    suite and nowhere for a partial run (``--only``), which must not replace its table."""
+    if write_results is not None:
+        return write_results
+    return "" if only else "benchmarks/results"
 
 
 def _fmt(x: object, digits: int = 0) -> str:
@@ -253,6 +264,7 @@ def run(args: argparse.Namespace) -> int:
         raise KeyboardInterrupt  # the running scenario stops its processes on the way out
 
     signal.signal(signal.SIGTERM, interrupt)
+    args.write_results = results_dir(args.write_results, args.only)
     if args.merge:
         return _merge(args.merge, args.write_results)
     repeats = args.repeats or (1 if args.quick else 3)

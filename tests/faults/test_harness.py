@@ -243,3 +243,12 @@ def test_analysis_with_the_board_process_takes_the_safe_state_and_the_ages_from_
     assert "the drive board as its own process" in md
     assert "| local station SIGSTOP 3 s | watchdog 1 | -/-/- (0) | 36 / 0 | 1 (301) / 0 | 1 | " \
         "1 / 0 / 7 | yes | -10 |" in md
+
+
+def test_a_partial_run_does_not_replace_the_committed_table_unless_told() -> None:
+    from lab.bench.faults import results_dir
+
+    assert results_dir(None, None) == "benchmarks/results"  # the whole suite
+    assert results_dir(None, ["remote station SIGKILL"]) == ""  # --only: nowhere
+    assert results_dir("/tmp/x", ["relay"]) == "/tmp/x"  # told where
+    assert results_dir("", None) == ""
