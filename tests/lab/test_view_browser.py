@@ -22,6 +22,7 @@ from typing import Any
 
 import pytest
 
+from lab.demo.orchestrator import DEFAULT_MOTION
 from tests.lab.browser_support import Browser, interrupt, page_up, start_cli
 from tests.support import free_tcp_port, scaled, wait_until
 
@@ -40,8 +41,13 @@ def demo_view(tmp_path: Path) -> Iterator[tuple[str, str]]:
     """A demo session with its live views on; yields the station's and the relay's URLs."""
     port = free_tcp_port()
     log = (tmp_path / "demo.log").open("wb")
+    # the demo's own sweep at 20 mm/s instead of 45 (about 60 s instead of 25): the demo ends
+    # with the sweep, and beside two CPU burners the page's first checks took longer than
+    # 25 s, after which nothing moved on it any more
+    motion = DEFAULT_MOTION.replace("speed=45", "speed=20")
+    assert motion != DEFAULT_MOTION
     proc = start_cli(["demo", "--headless", "--workdir", str(tmp_path / "demo"), "--view",
-                      f"127.0.0.1:{port}"], log, stdout=log)
+                      f"127.0.0.1:{port}", "--motion", motion], log, stdout=log)
     url = f"http://127.0.0.1:{port}/"
     try:
         wait_until(lambda: page_up(url) or proc.poll() is not None, 90, "the demo's view")
@@ -76,7 +82,7 @@ def _view(page: Any) -> dict[str, Any]:
 
 
 def test_the_live_view_shows_a_running_demo(demo_view: tuple[str, str],
-                                            browser: Browser) -> None:
+                                            browser: Browser, tmp_path: Path) -> None:
     station_url, relay_url = demo_view
     errors = browser.errors
     artifacts = browser.artifacts
@@ -84,6 +90,24 @@ def test_the_live_view_shows_a_running_demo(demo_view: tuple[str, str],
     page.goto(station_url)
     page.wait_for_function("() => window.teletouchView && teletouchView.messages > 5",
                            timeout=scaled(30) * 1e3)
+    first = _view(page)
+    pins0 = _canvas_signature(page, "pins")
+    lat0 = _canvas_signature(page, "chart-latency")
+    # pins change, the trajectory grows, the latency chart moves
+    try:
+        page.wait_for_function(
+            f"""() => teletouchView.pinUpdates >= {first['pins'] + 10}
+                   && teletouchView.trail.length >= {first['trail'] + 20}
+                   && teletouchView.latencySamples >= {first['latency'] + 10}""",
+            timeout=scaled(60) * 1e3)
+    except Exception as err:  # say which one stood still
+        logs = {name: (tmp_path / "demo" / f"{name}.log").read_text(errors="replace")[-1500:]
+                for name in ("local", "remote") if (tmp_path / "demo" / f"{name}.log").exists()}
+        pytest.fail(f"the view did not move: {first} -> {_view(page)} ({err}); demo log: "
+                    f"{(tmp_path / 'demo.log').read_text(errors='replace')[-1500:]}; {logs}")
+    wait_until(lambda: _canvas_signature(page, "pins") != pins0, 30, "the pins redrawn")
+    wait_until(lambda: _canvas_signature(page, "chart-latency") != lat0, 30,
+               "the latency chart moved")
     # the relay's page for observers: patch and trajectory from the routed messages
     observer = browser.new_page("relay page")
     observer.goto(relay_url)
@@ -102,18 +126,6 @@ def test_the_live_view_shows_a_running_demo(demo_view: tuple[str, str],
         timeout=scaled(30) * 1e3)
     observer.close()
     refused.close()
-    first = _view(page)
-    pins0 = _canvas_signature(page, "pins")
-    lat0 = _canvas_signature(page, "chart-latency")
-    # pins change, the trajectory grows, the latency chart moves
-    page.wait_for_function(
-        f"""() => teletouchView.pinUpdates >= {first['pins'] + 10}
-               && teletouchView.trail.length >= {first['trail'] + 20}
-               && teletouchView.latencySamples >= {first['latency'] + 10}""",
-        timeout=scaled(60) * 1e3)
-    wait_until(lambda: _canvas_signature(page, "pins") != pins0, 30, "the pins redrawn")
-    wait_until(lambda: _canvas_signature(page, "chart-latency") != lat0, 30,
-               "the latency chart moved")
     # findings appear once the operator has palpated a tumor
     page.wait_for_selector("#findings li", timeout=scaled(150) * 1e3)
     seen = _view(page)

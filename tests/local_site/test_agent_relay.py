@@ -42,6 +42,9 @@ async def test_platform_state_and_frames_flow_record_and_summary(tmp_path: Path)
                            "pins at the frames' 2 mm")
             await wait_for(lambda: agent.ledger.frames >= 5, 3.0, "end-to-end latencies")
             await wait_for(lambda: loop_of(agent).periods.iterations > 300, 3.0, "loop iterations")
+            # asserted below: wait for it too (beside two CPU burners the other conditions
+            # were met after 45 states)
+            await wait_for(lambda: agent.platform_states_sent > 50, 3.0, "platform states sent")
             agent.request_stop("test")
             assert await run == 0
     # platform_state: capture hop = ts, then the relay's stamps, then the remote's receipt
