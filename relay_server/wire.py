@@ -18,6 +18,7 @@ the socket to take the data: flow control), :meth:`Wire.ready` / :meth:`Wire.wri
 
 from __future__ import annotations
 
+import abc
 import asyncio
 import contextlib
 import logging
@@ -63,7 +64,7 @@ _HEAD16 = struct.Struct("!BBH")
 _HEAD64 = struct.Struct("!BBQ")
 
 
-class Wire(asyncio.Protocol):
+class Wire(asyncio.Protocol, abc.ABC):
     """One accepted connection (the parts TCP and WebSocket share).
 
     Args:
@@ -146,8 +147,9 @@ class Wire(asyncio.Protocol):
             self.stop()
             self.abort()
 
+    @abc.abstractmethod
     def _data(self, data: bytes) -> None:
-        raise NotImplementedError
+        """Parse received bytes (the framing of this wire)."""
 
     def eof_received(self) -> bool | None:
         self.ended.set()
@@ -221,16 +223,16 @@ class Wire(asyncio.Protocol):
     def _writable(self) -> bool:
         return True
 
+    @abc.abstractmethod
     def write_nowait(self, frames: list[bytes]) -> None:
         """Hand framed messages to the socket now (see :meth:`ready`)."""
-        raise NotImplementedError
 
     def set_receive_limit(self, max_bytes: int) -> None:
         """The size limit of received messages from now on (the hello's is over)."""
 
+    @abc.abstractmethod
     async def close(self, code: int = 1000, reason: str = "") -> None:
         """Close (``code`` is a WebSocket close code); never raises."""
-        raise NotImplementedError
 
     async def write(self, frames: list[bytes]) -> None:
         """Write framed messages and wait until the socket's buffer is under its limit.
