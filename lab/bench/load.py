@@ -55,6 +55,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="added p99 a step may reach and still count as held (us)")
     parser.add_argument("--soak", type=float, default=0.0, metavar="SECONDS",
                         help="then hold the last held N this long (memory flat check)")
+    parser.add_argument("--tactile", choices=("raw", "compact"), default="raw",
+                        help="tactile stream: raw 19 kB tactile_frame (the issue's mix, "
+                             "default) or tactile_compact as the remote station sends by "
+                             "default (about 1 kB)")
     parser.add_argument("--relay-workers", type=int, default=0,
                         help="run the relay as K workers joined by a local nats-server "
                              "(0: today's single-process relay)")
@@ -74,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
         steps=tuple(args.steps or (2, 5, 10, 15, 20, 30, 40, 50, 60, 80, 100, 120)),
         step_s=args.step_s or (3.0 if quick else 8.0), generators=args.generators,
         transport=args.transport, limit_p99_us=args.limit_p99_us, soak_s=args.soak,
-        relay_workers=args.relay_workers)
+        relay_workers=args.relay_workers, tactile=args.tactile)
     results = run_load(settings)
     report(results, as_json=args.json, out_dir=args.write_results, argv=_argv(args),
            name=args.name)
@@ -97,6 +101,8 @@ def _argv(args: argparse.Namespace) -> str:
         parts.append(f"--soak {args.soak:g}")
     if args.relay_workers:
         parts.append(f"--relay-workers {args.relay_workers}")
+    if args.tactile != "raw":
+        parts.append(f"--tactile {args.tactile}")
     if args.write_results:
         import os
 

@@ -40,6 +40,7 @@ from shared.protocol import (
     encode,
     frame,
 )
+from shared.protocol.tactile_codec import CodecSettings, TactileEncoder
 from shared.report import format_table
 from shared.timebase import now_us
 from shared.transport import set_nodelay
@@ -52,6 +53,7 @@ PLATFORM_HZ = 250.0
 ARM_STATE_HZ = 50.0
 TACTILE_HZ = (60.0, 120.0)  # session i gets a rate spread over this range
 STREAMS = ("platform_state", "tactile_frame", "arm_state")
+TACTILE_FORMS = ("raw", "compact")
 _WARMUP_S = 1.0
 _MIN_DELIVERED = 0.95  # share of each stream's messages a held step must deliver
 _GENERATOR_LAG_LIMIT_US = 5000.0
@@ -70,6 +72,13 @@ class LoadSettings:
     relay_workers: int = 0
     #: the streams each session sends (``teletouch bench relay-cpu`` measures one at a time)
     streams: tuple[str, ...] = STREAMS
+    #: the tactile stream's form: ``raw`` (``tactile_frame``, two 49 x 49 float32 layers,
+    #: 19.3 kB) or ``compact`` (``tactile_compact`` as the remote station sends by default)
+    tactile: str = "raw"
+
+    def __post_init__(self) -> None:
+        if self.tactile not in TACTILE_FORMS:
+            raise ValueError(f"tactile must be one of {TACTILE_FORMS}, got {self.tactile!r}")
 
 
 def tactile_frame(seq: int = 0, ts_us: int = 0) -> TactileFrame:
@@ -81,6 +90,50 @@ def tactile_frame(seq: int = 0, ts_us: int = 0) -> TactileFrame:
     return TactileFrame(seq=seq, ts_us=ts_us, center_mm=(10.0, 20.0), pitch_mm=1.7,
                         layers={"height_mm": height, "stiffness_k": stiff}, contact=True,
                         force_n=1.5, indentation_mm=0.8, source_seq=seq, source_ts_us=ts_us)
+
+
+def compact_layers(n_frames: int = 60, seed: int = 0) -> list[dict[str, np.ndarray]]:
+    """Layers of a press moving over the phantom, shaped like the demo's frames: 30 x 40
+    samples at 0.5 mm, a 4 mm-radius cap up to 1 mm high sliding 0.05 mm per frame, the
+    stiffness layer raised under it, and 1 um of reconstruction noise on the heights (what
+    the compact codec's 2 um floor mostly removes). Encoded, about 2.5 kB per frame on
+    average: more than the 1.15 kB of the demo's recorded stream (docs/speed.md), so the
+    relay is not flattered."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:30, 0:40] * 0.5
+    out = []
+    for i in range(n_frames):
+        cx, cy = 8.0 + 0.05 * i, 7.5
+        r2 = (xx - cx) ** 2 + (yy - cy) ** 2
+        cap = np.sqrt(np.clip(16.0 - r2, 0.0, None)) - 3.0
+        height = np.clip(cap, 0.0, None) + rng.normal(0.0, 0.001, cap.shape)
+        stiff = 0.55 + 0.1 * (cap > 0)
+        out.append({"height_mm": height.astype(np.float32),
+                    "stiffness_k": stiff.astype(np.float32)})
+    return out
+
+
+class _TactileStream:
+    """One remote station's tactile stream: ``raw`` frames of :func:`tactile_frame`, or the
+    compact codec (the remote's default settings) over :func:`compact_layers`."""
+
+    def __init__(self, form: str) -> None:
+        self.raw = tactile_frame() if form == "raw" else None
+        self.layers = compact_layers() if form == "compact" else []
+        self.encoder = TactileEncoder(CodecSettings(floor={"height_mm": 0.002}, key_every=30))
+
+    def message(self, seq: int) -> bytes:
+        ts = now_us()
+        if self.raw is not None:
+            return encode(TactileFrame(seq=seq, ts_us=ts, center_mm=self.raw.center_mm,
+                                       pitch_mm=self.raw.pitch_mm, layers=self.raw.layers,
+                                       contact=True, force_n=1.5, indentation_mm=0.8,
+                                       source_seq=seq, source_ts_us=ts), validate=False)
+        frame_ = TactileFrame(seq=seq, ts_us=ts, center_mm=(10.0, 20.0), pitch_mm=0.5,
+                              layers=self.layers[seq % len(self.layers)], contact=True,
+                              force_n=1.5, indentation_mm=0.8, source_seq=seq,
+                              source_ts_us=ts)
+        return encode(self.encoder.encode(frame_), validate=False)
 
 
 # --------------------------------------------------------------------------- the relay
@@ -242,6 +295,7 @@ class _GenJob:
     port: int
     sessions: list[tuple[str, float]]  # (session id, tactile rate)
     streams: tuple[str, ...] = STREAMS
+    tactile: str = "raw"
 
 
 @dataclass
@@ -256,6 +310,7 @@ class _Recorded:
         default_factory=lambda: {s: array("q") for s in STREAMS})
     recv_lag: array[int] = field(default_factory=lambda: array("q"))
     send_lag: array[int] = field(default_factory=lambda: array("q"))
+    tactile_bytes: int = 0  # sent in the window
     window_us: tuple[int, int] = (0, 0)
     lost_connections: list[str] = field(default_factory=list)
 
@@ -324,6 +379,8 @@ class _Station:
         t_rx = now_us()
         obj = msgpack.unpackb(data, raw=False)
         kind = obj.get("type")
+        if kind == "tactile_compact":
+            kind = "tactile_frame"  # one stream, whichever form
         if kind == "clock_ping":
             t = now_us()
             await self.send(encode(ClockPong(ping_id=obj["ping_id"], t0_us=obj["t0_us"],
@@ -356,18 +413,15 @@ class _Station:
             await asyncio.gather(self.task, return_exceptions=True)
 
 
-def _message(kind: str, seq: int, tactile: TactileFrame) -> bytes:
-    ts = now_us()
+def _message(kind: str, seq: int, tactile: _TactileStream | None) -> bytes:
     if kind == "platform_state":
-        return encode(PlatformState(seq=seq, ts_us=ts, position_mm=(1.0, 2.0, 3.0),
+        return encode(PlatformState(seq=seq, ts_us=now_us(), position_mm=(1.0, 2.0, 3.0),
                                     velocity_mm_s=(0.5, 0.0, -0.5)), validate=False)
     if kind == "arm_state":
-        return encode(ArmState(seq=seq, ts_us=ts, position_mm=(1.0, 2.0, 3.0), force_n=1.5,
-                               source_seq=seq), validate=False)
-    return encode(TactileFrame(seq=seq, ts_us=ts, center_mm=tactile.center_mm,
-                               pitch_mm=tactile.pitch_mm, layers=tactile.layers, contact=True,
-                               force_n=1.5, indentation_mm=0.8, source_seq=seq,
-                               source_ts_us=ts), validate=False)
+        return encode(ArmState(seq=seq, ts_us=now_us(), position_mm=(1.0, 2.0, 3.0),
+                               force_n=1.5, source_seq=seq), validate=False)
+    assert tactile is not None, "a tactile stream for every remote station"
+    return tactile.message(seq)
 
 
 async def _generate(job: _GenJob, pipe: Connection) -> None:
@@ -390,7 +444,7 @@ async def _generate(job: _GenJob, pipe: Connection) -> None:
         _, t0_us, warmup_s, measure_s = cmd
         rec.window_us = (t0_us + round(warmup_s * 1e6),
                          t0_us + round((warmup_s + measure_s) * 1e6))
-        await _pace(stations, rec, t0_us, warmup_s + measure_s, job.streams)
+        await _pace(stations, rec, t0_us, warmup_s + measure_s, job.streams, job.tactile)
         await asyncio.sleep(0.3)  # the last messages in flight
     pipe.send(("result", _pack(rec)))
     await loop.run_in_executor(None, pipe.recv)  # close: the parent has read /status
@@ -400,13 +454,14 @@ async def _generate(job: _GenJob, pipe: Connection) -> None:
 
 
 async def _pace(stations: list[tuple[_Station, _Station, float]], rec: _Recorded,
-                t0_us: int, duration_s: float, streams: tuple[str, ...] = STREAMS) -> None:
+                t0_us: int, duration_s: float, streams: tuple[str, ...] = STREAMS,
+                tactile_form: str = "raw") -> None:
     """One drift-free schedule for every stream of this generator (a heap of due times)."""
     loop = asyncio.get_running_loop()
     start = loop.time() + (t0_us - now_us()) / 1e6
     end = start + duration_s
     rng = random.Random(len(stations))
-    tactile = tactile_frame()
+    tactile = {3 * i + 1: _TactileStream(tactile_form) for i in range(len(stations))}
     heap: list[tuple[float, int, str, _Station, float]] = []
     for i, (local, remote, tactile_hz) in enumerate(stations):
         for j, (kind, station, period) in enumerate((
@@ -429,10 +484,12 @@ async def _pace(stations: list[tuple[_Station, _Station, float]], rec: _Recorded
             continue
         heapq.heapreplace(heap, (due + period, key, kind, station, period))
         seq = seqs[key] = seqs.get(key, 0) + 1
-        data = _message(kind, seq, tactile)
+        data = _message(kind, seq, tactile.get(key))
         ts = now_us()
         if lo_us <= ts < hi_us:
             rec.sent[kind] += 1
+            if kind == "tactile_frame":
+                rec.tactile_bytes += len(data)
             rec.send_lag.append(round((loop.time() - due) * 1e6))
         if station.alive:
             try:
@@ -447,7 +504,7 @@ def _pack(rec: _Recorded) -> dict[str, Any]:
             "added": {k: v.tobytes() for k, v in rec.added.items()},
             "oneway": {k: v.tobytes() for k, v in rec.oneway.items()},
             "recv_lag": rec.recv_lag.tobytes(), "send_lag": rec.send_lag.tobytes(),
-            "lost_connections": rec.lost_connections}
+            "tactile_bytes": rec.tactile_bytes, "lost_connections": rec.lost_connections}
 
 
 def _generator_main(job: _GenJob, pipe: Connection) -> None:
@@ -505,7 +562,7 @@ def _generators(relay: RelayUnderTest, n: int, settings: LoadSettings, tag: str
         for gi in range(g):
             parent, child = ctx.Pipe()
             job = _GenJob(gi, settings.transport, "127.0.0.1", port, sessions[gi::g],
-                          settings.streams)
+                          settings.streams, settings.tactile)
             gen = ctx.Process(target=_generator_main, args=(job, child),
                               daemon=True)
             gen.start()
@@ -587,8 +644,9 @@ def _summarise(n: int, connected: int, measure_s: float, results: list[dict[str,
         "receiver_lag_us": recv_lag,
         "sent": sent, "received": received, "delivered": delivered,
         "offered_msgs_s": sum(sent.values()) / measure_s,
-        "offered_mb_s": sent["tactile_frame"] * len(encode(tactile_frame(), validate=False))
-        / measure_s / 1e6,
+        "offered_mb_s": sum(r.get("tactile_bytes", 0) for r in results) / measure_s / 1e6,
+        "tactile_bytes_per_frame": (sum(r.get("tactile_bytes", 0) for r in results)
+                                    / sent["tactile_frame"] if sent["tactile_frame"] else None),
         "relay_cpu_cores": relay_cpu, "generator_cpu_cores": gen_cpu,
         "relay_rss_mb": rss[1] / 1e6, "relay_rss_start_mb": rss[0] / 1e6,
         "generator_send_lag_us": gen_lag, "generator_limited":
@@ -668,13 +726,21 @@ def run_load(settings: LoadSettings) -> dict[str, Any]:
         "relay_rss_mb": None if best is None else best["relay_rss_mb"],
         "steps": steps, "failed_steps": failed, "soak": soak, "settings": asdict(settings),
         "elapsed_s": time.monotonic() - started,
-        "tactile_frame_bytes": len(encode(tactile_frame(), validate=False)),
+        "tactile_frame_bytes": _mean_tactile_bytes(steps),
         "machine": {"nproc": os.cpu_count(), "loadavg_start": load_start,
                     "niceness": os.nice(0),
                     "autogroup": _autogroup(),
                     "loadavg_end": os.getloadavg(), "python": platform.python_version(),
-                    "note": "shared with other agents' jobs while measuring"},
+                    "note": "other jobs may share the machine: see the load averages"},
     }
+
+
+def _mean_tactile_bytes(steps: list[dict[str, Any]]) -> float | None:
+    """Bytes per tactile message as sent, over every step (compact frames vary in size)."""
+    frames = sum(st["sent"]["tactile_frame"] for st in steps)
+    total = sum((st["tactile_bytes_per_frame"] or 0.0) * st["sent"]["tactile_frame"]
+                for st in steps)
+    return total / frames if frames else None
 
 
 def _autogroup() -> str:
@@ -733,10 +799,16 @@ def _markdown(r: dict[str, Any], argv: str) -> str:
         f"{m['autogroup'] or 'group ?'}.",
         f"Machine: {m['nproc']} cores, Python {m['python']}, load average "
         f"{m['loadavg_start'][0]:.2f} at the start and {m['loadavg_end'][0]:.2f} at the end; "
-        "**the machine was shared with other agents' jobs (builds, tests, benchmarks) while "
-        "this ran**, and the load generators run on the same 2 cores as the relay.", "",
-        f"Per session: platform_state {PLATFORM_HZ:g} Hz (local -> remote); tactile_frame "
-        f"{r['tactile_frame_bytes']} bytes at {TACTILE_HZ[0]:g}-{TACTILE_HZ[1]:g} Hz and "
+        + ("**other jobs were running on the machine when this started**"
+           if m["loadavg_start"][0] > 1.0 else
+           "the machine was quiet when this started (the end figure includes this benchmark)")
+        + f", and the load generators run on the same {m['nproc']} cores as the relay.", "",
+        f"Per session: platform_state {PLATFORM_HZ:g} Hz (local -> remote); "
+        + ("tactile_frame (raw float32 layers) " if s.get("tactile", "raw") == "raw" else
+           "tactile_compact (the remote station's default codec: key frames every 30, deltas "
+           "with a 2 um floor, over a press sliding across 30 x 40 samples) ")
+        + f"{_f(r['tactile_frame_bytes'])} bytes on average at "
+        f"{TACTILE_HZ[0]:g}-{TACTILE_HZ[1]:g} Hz and "
         f"arm_state {ARM_STATE_HZ:g} Hz (remote -> local). Each step: {_WARMUP_S:g} s warm-up, "
         f"{s['step_s']:g} s measured. Added latency = relay_out stamp - sender's ts (socket "
         "hop in + wait to be read + relay residence); receiver lag = arrival - relay_out (the "

@@ -50,10 +50,31 @@ def test_the_tactile_frame_is_about_19_kb() -> None:
     assert 18_500 <= len(encode(tactile_frame())) <= 20_000  # validated: a real frame
 
 
+def test_the_compact_stream_is_the_remote_codec_key_frames_then_small_deltas() -> None:
+    from lab.bench.load_impl import _TactileStream
+    from shared.protocol import TactileCompact, decode
+    from shared.protocol.tactile_codec import TactileDecoder
+
+    stream, decoder = _TactileStream("compact"), TactileDecoder()
+    decoded = [decode(stream.message(seq)) for seq in range(1, 62)]  # validated on decode
+    messages = [m for m in decoded if isinstance(m, TactileCompact)]
+    assert len(messages) == 61
+    keys = [m for m in messages if m.key]
+    assert [m.seq for m in keys] == [1, 32]  # a key frame, then 30 deltas against it
+    sizes = [len(stream.message(seq)) for seq in range(62, 122)]
+    assert max(sizes) < 8_000 and sum(sizes) / len(sizes) < 4_000  # far below 19 kB raw
+    frames = [decoder.decode(m) for m in messages]
+    assert all(f is not None for f in frames)  # every delta refers to a key frame it has
+    with pytest.raises(ValueError, match="tactile must be one of"):
+        LoadSettings(tactile="jpeg")
+
+
 @pytest.mark.slow
-def test_a_tiny_real_run_reports_json() -> None:
+@pytest.mark.parametrize("tactile", ["raw", "compact"])
+def test_a_tiny_real_run_reports_json(tactile: str) -> None:
     out = subprocess.run([*teletouch_cmd(), "--log-level", "WARNING", "bench", "load",
-                          "--steps", "1", "--step-s", "1", "--generators", "1", "--json"],
+                          "--steps", "1", "--step-s", "1", "--generators", "1", "--json",
+                          "--tactile", tactile],
                          capture_output=True, text=True, timeout=scaled(120.0), check=True)
     doc = json.loads(out.stdout)
     assert {"sessions_held", "sessions_sustained", "added_latency_us",
@@ -64,3 +85,5 @@ def test_a_tiny_real_run_reports_json() -> None:
     assert step["received"]["platform_state"] > 0 and step["received"]["tactile_frame"] > 0
     assert step["added_latency_us"]["p50"] > 0
     assert doc["relay_cpu_cores"] > 0
+    frame_bytes = doc["tactile_frame_bytes"]
+    assert (frame_bytes > 18_500) if tactile == "raw" else (200 < frame_bytes < 4_000)
