@@ -56,6 +56,7 @@ from typing import Any
 
 import numpy as np
 
+from lab.child import module_argv
 from lab.demo.orchestrator import free_port, relay_status
 
 __all__ = ["BoardLog", "FaultRig", "FaultSpec", "ProbeLog", "RigError", "Scenario", "analyse",
@@ -318,7 +319,7 @@ class FaultRig:
     def _spawn(self, name: str, args: list[str], *, module: str = "lab.cli",
                env: dict[str, str] | None = None) -> _Proc:
         log_path = self.workdir / f"{name}.log"
-        cmd = [self.python, "-m", module, "--log-level", "INFO", *args]
+        cmd = [*module_argv(module, self.python), "--log-level", "INFO", *args]
         with open(log_path, "ab") as out:
             proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT,
                                     stdin=subprocess.DEVNULL, cwd=self.workdir,
@@ -392,7 +393,7 @@ class FaultRig:
         self.ws_port, self.tcp_port = free_port(), free_port()
         self.start_relay()
         self.token = subprocess.run(
-            [self.python, "-m", "lab.cli", "relay", "--print-token", SESSION], check=True,
+            [*module_argv(python=self.python), "relay", "--print-token", SESSION], check=True,
             capture_output=True, text=True, timeout=60, env=self.env).stdout.strip()
         for leg in ("local", "remote"):
             port = free_port()

@@ -25,6 +25,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from lab.child import module_argv
+
 __all__ = ["AtherisResult", "configure_parser", "run", "run_atheris"]
 
 _TARGETS = ("decoder", "framing", "station", "peer", "relay")
@@ -77,7 +79,7 @@ def _start_atheris(target: str, inputs: int, seed: int, workdir: Path,
     corpus.mkdir(parents=True)
     for i, data in enumerate(seeds_for(target)):
         (corpus / f"seed{i:03d}").write_bytes(data)
-    cmd = [sys.executable, "-m", "lab.fuzz.atheris_main", target, f"-runs={inputs}",
+    cmd = [*module_argv("lab.fuzz.atheris_main"), target, f"-runs={inputs}",
            f"-seed={seed}", "-timeout=20", "-rss_limit_mb=2048",
            f"-max_len={_MAX_LEN.get(target, 4096)}", "-print_final_stats=1",
            f"-artifact_prefix={workdir}/{target}-", str(corpus)]

@@ -30,6 +30,7 @@ import numpy as np
 from websockets.exceptions import ConnectionClosed
 
 from lab.bench.results import publish
+from lab.child import module_argv
 from shared.protocol import (
     ArmState,
     ClockPong,
@@ -188,7 +189,7 @@ class RelayUnderTest:
             env[f"TELETOUCH_RELAY_{key.upper()}"] = str(value)
         if tree is not None:  # another revision's source tree (the same interpreter)
             env["PYTHONPATH"] = os.pathsep.join([str(tree), env.get("PYTHONPATH", "")])
-        cmd = [sys.executable, "-m", "lab.cli", "--log-level", "WARNING", "relay",
+        cmd = [*module_argv(), "--log-level", "WARNING", "relay",
                "--host", "127.0.0.1", "--port", str(self.ws_port),
                "--tcp-port", str(self.tcp_port), "--allow-any-token"]
         if workers:

@@ -9,7 +9,6 @@ import logging
 import os
 import platform
 import socket
-import sys
 import time
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -21,6 +20,7 @@ from websockets.asyncio.client import ClientConnection, connect
 from websockets.asyncio.server import ServerConnection, serve
 
 from lab.bench.results import publish
+from lab.child import module_argv
 from shared.protocol import (
     ArmCommand,
     ArmState,
@@ -54,7 +54,7 @@ async def relay_process(**settings: Any) -> AsyncIterator[tuple[int, int, int]]:
     for key, value in settings.items():
         env[f"TELETOUCH_RELAY_{key.upper()}"] = str(value)
     proc = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "lab.cli", "--log-level", "WARNING", "relay",
+        *module_argv(), "--log-level", "WARNING", "relay",
         "--host", "127.0.0.1", "--port", str(port), "--tcp-port", str(tcp_port),
         "--allow-any-token", env=env, stdout=asyncio.subprocess.DEVNULL,
         stderr=asyncio.subprocess.DEVNULL)

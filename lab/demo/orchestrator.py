@@ -40,6 +40,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from lab.child import module_argv
 from lab.ground_truth import write_ground_truth
 from lab.html_report import write_report
 from lab.linkemu import get_profile
@@ -147,7 +148,7 @@ class _Processes:
 
     def start(self, name: str, *args: str) -> _Child:
         log_path = self.workdir / f"{name}.log"
-        cmd = [self.python, "-m", "lab.cli", "--log-level", "INFO", *args]
+        cmd = [*module_argv(python=self.python), "--log-level", "INFO", *args]
         log.debug("starting %s: %s", name, " ".join(cmd))
         with open(log_path, "wb") as out:
             proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT,
@@ -280,7 +281,7 @@ def run_demo(config: DemoConfig,
                     "--tcp-port", str(tcp_port), *relay_view)
         _wait_for(lambda: relay_status(ws_port) is not None, "the relay's /status", 20, procs)
         token = subprocess.run(
-            [config.python, "-m", "lab.cli", "relay", "--print-token", SESSION],
+            [*module_argv(python=config.python), "relay", "--print-token", SESSION],
             check=True, capture_output=True, text=True, timeout=30, env=env).stdout.strip()
         local_port = remote_port = ws_port
         if config.link:
@@ -355,7 +356,7 @@ def run_demo(config: DemoConfig,
         if view_url is not None and announce_view is not None:
             announce_view("local station", view_url)
             observer = subprocess.run(
-                [config.python, "-m", "lab.cli", "relay", "--print-token", SESSION, "--role",
+                [*module_argv(python=config.python), "relay", "--print-token", SESSION, "--role",
                  "observer", "--ttl-s", str(int(config.max_duration_s) + 3600)],
                 check=True, capture_output=True, text=True, timeout=30, env=env).stdout.strip()
             obs_host, _, obs_port = relay_view[1].rpartition(":")

@@ -18,7 +18,6 @@ import random
 import signal
 import socket
 import subprocess
-import sys
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -27,6 +26,7 @@ from pathlib import Path
 import msgpack
 from websockets.asyncio.client import connect
 
+from lab.child import module_argv
 from lab.fuzz.mutate import mutate_bytes, mutate_message
 from lab.fuzz.seeds import FUZZ_SECRET, hello_for, seed_messages
 from shared.protocol import Hello, PlatformState, ProtocolConnection, Welcome, decode, encode, frame
@@ -187,7 +187,7 @@ async def _status_ok(port: int) -> bool:
 
 async def _run(connections: int, seed: int, result: SmokeResult, log_path: Path) -> None:
     ws_port, tcp_port = _free_port(), _free_port()
-    cmd = [sys.executable, "-m", "lab.cli", "--log-level", "WARNING", "relay", "--host",
+    cmd = [*module_argv(), "--log-level", "WARNING", "relay", "--host",
            "127.0.0.1", "--port", str(ws_port), "--tcp-port", str(tcp_port), "--secret",
            FUZZ_SECRET, "--hello-timeout-s", "2"]
     rng = random.Random(seed)
