@@ -42,7 +42,12 @@ __all__ = ["CALIBRATION_VERSION", "Calibration", "fit_calibration"]
 
 log = logging.getLogger(__name__)
 
-CALIBRATION_VERSION = 1
+#: the newest format. A file carries the lowest version that describes it: 1 for the free-gel
+#: plane relief, 2 for the rim relief (``relief``, ``rim_factors``, ``rim_extension_mm``), so
+#: a reader of version 1 refuses a rim calibration ("recalibrate") instead of silently
+#: measuring heights from the free gel with it
+CALIBRATION_VERSION = 2
+SUPPORTED_VERSIONS = frozenset({1, 2})
 
 
 @dataclass
@@ -85,7 +90,8 @@ class Calibration:
         stats_keys = np.array(sorted(self.stats), dtype=str)
         stats_vals = np.array([self.stats[k] for k in stats_keys], dtype=np.float64)
         np.savez_compressed(
-            path, version=np.array(CALIBRATION_VERSION), model_kind=np.array(self.model.kind),
+            path, version=np.array(2 if self.relief == "rim" else 1),
+            model_kind=np.array(self.model.kind),
             background_rgb=self.background_rgb.astype(np.uint8),
             shape_hw=np.array(self.shape_hw), mm_per_px=np.array(self.mm_per_px),
             blur_sigma_px=np.array(self.blur_sigma_px), noise_pct=np.array(self.noise_pct),
@@ -113,9 +119,13 @@ class Calibration:
             raise CalibrationError(f"{path} is not a readable .npz calibration: {err}") from err
         try:
             version = int(arrays["version"])
-            if version != CALIBRATION_VERSION:
+            if version not in SUPPORTED_VERSIONS:
                 raise CalibrationError(f"{path}: calibration format version {version}, this code "
-                                       f"reads version {CALIBRATION_VERSION}; recalibrate")
+                                       f"reads versions {sorted(SUPPORTED_VERSIONS)}; "
+                                       "recalibrate")
+            if version == 1 and str(arrays.get("relief", "plane")) != "plane":
+                raise CalibrationError(f"{path}: a version 1 calibration has the free-gel "
+                                       "relief only; recalibrate")
             background = arrays["background_rgb"]
             shape_hw = tuple(int(v) for v in arrays["shape_hw"])
             if background.ndim != 3 or background.shape[2] != 3 or background.shape[:2] != shape_hw:

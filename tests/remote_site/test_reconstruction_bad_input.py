@@ -159,6 +159,20 @@ def test_wrong_version_rejected(tmp_path: Path) -> None:
         Calibration.load(path)
 
 
+def test_a_rim_calibration_says_version_2_and_version_1_cannot_claim_it(tmp_path: Path) -> None:
+    calib = Calibration.load(SIM_CALIBRATION_PATH)
+    calib.save(tmp_path / "plane.npz")
+    assert int(np.load(tmp_path / "plane.npz")["version"]) == 1  # older readers read it
+    rim = _rewrite(tmp_path, version=np.array(1), relief=np.array("rim"),
+                   rim_factors=np.array([1], np.int64), rim_extension_mm=np.array([0.01]))
+    with pytest.raises(CalibrationError, match="version 1"):
+        Calibration.load(rim)
+    calib.relief, calib.rim_extension_mm = "rim", {1: 0.01}
+    calib.save(tmp_path / "rim.npz")
+    assert int(np.load(tmp_path / "rim.npz")["version"]) == 2
+    assert Calibration.load(tmp_path / "rim.npz").relief == "rim"
+
+
 def test_mismatched_background_shape_rejected(tmp_path: Path) -> None:
     path = _rewrite(tmp_path, background_rgb=np.zeros((10, 10, 3), np.uint8))
     with pytest.raises(CalibrationError, match="shape"):
