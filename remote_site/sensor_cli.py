@@ -43,6 +43,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     cal.add_argument("--degree", type=int, default=5, help="polynomial degree (default 5)")
     cal.add_argument("--trim-px", type=float, default=4.0,
                      help="pixels trimmed off each labelled radius (default 4, as gs_sdk)")
+    # the choices are relief.RELIEF_MODES, spelled out: importing the package here would load
+    # the whole reconstruction for every teletouch command
     cal.add_argument("--relief", choices=["plane", "rim"], default="plane",
                      help="height reference saved for this sensor: plane = above the free gel "
                           "(default; palpation, pad flat on tissue), rim = the object's relief "

@@ -35,6 +35,7 @@ from remote_site.reconstruction.features import pixel_position, relative_change
 from remote_site.reconstruction.frames import validate_frame
 from remote_site.reconstruction.labels import BallLabel, validate_label
 from remote_site.reconstruction.models import GradientModel, model_from_arrays
+from remote_site.reconstruction.relief import RELIEF_MODES
 from remote_site.reconstruction.sphere import cap_slopes
 from shared.errors import CalibrationError, InputDataError
 
@@ -164,8 +165,8 @@ class Calibration:
 
     def check_relief(self) -> None:
         """Raise :class:`CalibrationError` for an unknown relief or a bad rim table."""
-        if self.relief not in ("plane", "rim"):
-            raise CalibrationError(f"relief must be 'plane' or 'rim', got {self.relief!r}")
+        if self.relief not in RELIEF_MODES:
+            raise CalibrationError(f"relief must be one of {RELIEF_MODES}, got {self.relief!r}")
         for factor, ext in self.rim_extension_mm.items():
             if factor < 1 or not np.isfinite(ext):
                 raise CalibrationError(f"invalid rim extension {ext} for pooling factor {factor}")

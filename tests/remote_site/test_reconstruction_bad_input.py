@@ -260,3 +260,18 @@ def test_load_rgb_errors(tmp_path: Path) -> None:
 def test_validate_frame_returns_float32(background: np.ndarray) -> None:
     out = validate_frame(background)
     assert out.dtype == np.float32 and out.shape == background.shape
+
+
+def test_the_sensor_cli_offers_every_relief_mode() -> None:
+    import argparse
+
+    from remote_site.reconstruction.relief import RELIEF_MODES
+    from remote_site.sensor_cli import configure_parser
+
+    parser = argparse.ArgumentParser()
+    configure_parser(parser)
+    for mode in RELIEF_MODES:
+        args = parser.parse_args(["calibrate", "--background", "b.png", "--images", "i",
+                                  "--labels", "l.csv", "--ball-diameter-mm", "4",
+                                  "--mm-per-px", "0.06", "--out", "c.npz", "--relief", mode])
+        assert args.relief == mode
