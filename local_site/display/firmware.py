@@ -151,7 +151,7 @@ class ArrayTacFirmware:
         position = np.asarray(self.plant.position_mm, dtype=float)
         voltage = np.asarray(self.plant.drive_voltage_v, dtype=float)
         saturated = np.asarray(self.plant.saturated, dtype=bool)
-        if not (np.all(np.isfinite(position)) and np.all(np.isfinite(voltage))):
+        if not (np.isfinite(position).all() and np.isfinite(voltage).all()):
             self._fault_since_feedback = True  # never put NaN on the wire: report 0 + fault
             position = np.nan_to_num(position, nan=0.0, posinf=0.0, neginf=0.0)
             voltage = np.nan_to_num(voltage, nan=0.0, posinf=0.0, neginf=0.0)
@@ -165,7 +165,7 @@ class ArrayTacFirmware:
         return fr.FeedbackFrame(
             status=status, seq_echo=self.seq_echo, board_t_us=board_t_us & 0xFFFFFFFF,
             position_codes=_codes(position, fr.HEIGHT_LSB_MM),
-            saturated_mask=int(np.sum(saturated.astype(np.uint32) << np.arange(fr.N_PINS))),
+            saturated_mask=int(saturated @ _PIN_BITS),
             commands_rejected=self.commands_rejected & 0xFFFF,
             watchdog_trips=self.watchdog_trips & 0xFFFF,
             voltage_codes=_codes(voltage, fr.VOLTAGE_LSB_V))
@@ -220,6 +220,10 @@ class ArrayTacFirmware:
             log.error("firmware: plant produced non-finite state; reset and safe state (flat)")
             self.plant.reset()
             self._enter_safe(hold=False, by_watchdog=False)
+
+
+#: bit i of the saturation mask is pin i
+_PIN_BITS = 1 << np.arange(fr.N_PINS, dtype=np.int64)
 
 
 def _codes(values: np.ndarray, lsb: float) -> np.ndarray:

@@ -138,8 +138,8 @@ def unpack12(data: bytes | bytearray | memoryview) -> np.ndarray:
 
 def _check_codes(name: str, codes: np.ndarray, max_code: int) -> np.ndarray:
     arr = np.asarray(codes)
-    if arr.shape != (N_PINS,) or arr.dtype.kind not in "iu" or arr.min() < 0 \
-            or arr.max() > max_code:
+    if arr.shape != (N_PINS,) or arr.dtype.kind not in "iu" \
+            or (arr.dtype.kind == "i" and arr.min() < 0) or arr.max() > max_code:
         raise ValueError(f"{name} must be {N_PINS} integer codes in [0, {max_code}]")
     return arr
 

@@ -17,6 +17,7 @@ import os
 import threading
 import tty
 from collections.abc import Iterator
+from typing import Any
 
 import numpy as np
 import pytest
@@ -61,7 +62,7 @@ def test_board_streams_block_frames_in_order_over_a_pty() -> None:
     platform = SimulatedPlatform(motion)
     platform.connect()
     try:
-        seqs = []
+        seqs: list[int] = []
         while len(seqs) < 3 * BLOCK_SAMPLES:
             sample = platform.read_state(timeout_s=scaled(1.0))
             seqs.append(sample.seq)
@@ -98,7 +99,7 @@ class _CaptureDisplay(ArrayTacDisplay):
         self.sent.append((arb_id, payload))
 
 
-def _reference(h: object, k: object, f: object) -> tuple[np.ndarray, bool]:
+def _reference(h: Any, k: Any, f: Any) -> tuple[np.ndarray, bool]:
     """The per-layer quantisation, written independently: codes (3, 16) and clamped."""
     rows, clamped = [], False
     for value, low, high, lsb, offset in ((h, 0.0, 5.0, 1.25e-3, 0.0),
@@ -170,6 +171,7 @@ def test_keepalive_returns_early_until_due_and_counts_as_before() -> None:
     assert stats.commands == 2 and stats.skipped_unchanged == 1
     wait_until(lambda: display.keepalive(), 1.0, "a keepalive once the interval passed")
     arb_id, payload = display.sent[-1]
+    assert arb_id == fr.ARB_ID_COMMAND
     frame = fr.decode_command(payload)
     first = fr.decode_command(display.sent[0][1])
     assert frame.flags & fr.FLAG_KEEPALIVE and frame.seq == first.seq + 1
