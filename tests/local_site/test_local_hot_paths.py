@@ -8,7 +8,9 @@
 - the firmware hands the targets to the plant once per tick: several commands within a tick
   leave the plant where the last one alone leaves it, and are each counted;
 - the serial reader takes a burst in one wake-up (one callback), where ``read(1)`` took two;
-- the platform reader's ``latest`` is the driver's newest sample, not one 5 ms old.
+- the platform reader's ``latest`` is the driver's newest sample, not one 5 ms old;
+- the display loop thread's priority is raised for the loop and restored, or left alone
+  with a log line when the OS refuses.
 """
 
 from __future__ import annotations
@@ -24,6 +26,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from local_site.agent import LocalAgentConfig
+from local_site.agent.display_loop import thread_priority
 from local_site.agent.platform_reader import PlatformReader
 from local_site.arraytac_sim.plant import ArrayTacPlant
 from local_site.display import frames as fr
@@ -290,3 +294,32 @@ def test_platform_reader_latest_is_the_drivers_newest_sample() -> None:
 def test_platform_reader_poll_must_be_shorter_than_the_read_timeout() -> None:
     with pytest.raises(ConfigError, match="poll_s"):
         PlatformReader(SimulatedPlatform("hold"), read_timeout_s=0.1, poll_s=0.1)
+
+
+# ---------------------------------------------------------------- display thread priority
+
+
+def test_thread_priority_applies_and_restores_or_says_it_was_refused(
+        monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    tid = threading.get_native_id()
+    before = os.getpriority(os.PRIO_PROCESS, tid)
+    with thread_priority(0) as applied:
+        assert applied is None and os.getpriority(os.PRIO_PROCESS, tid) == before
+    target = min(before + 1, 19)  # lowering the priority is always permitted
+    with thread_priority(target) as applied:
+        assert applied == target and os.getpriority(os.PRIO_PROCESS, tid) == target
+    assert os.getpriority(os.PRIO_PROCESS, tid) == before
+
+    def refuse(*_args: object) -> None:
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(os, "setpriority", refuse)
+    with caplog.at_level("INFO"), thread_priority(-10) as applied:
+        assert applied is None
+    assert "keeps its priority (nice -10 refused" in caplog.text
+
+
+@pytest.mark.parametrize("nice", [-21, 20, 1.5, True])
+def test_display_thread_nice_is_checked(nice: object) -> None:
+    with pytest.raises(ConfigError, match="display_thread_nice"):
+        LocalAgentConfig(display_thread_nice=nice)  # type: ignore[arg-type]
