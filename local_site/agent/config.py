@@ -71,7 +71,10 @@ class LocalAgentConfig:
             Linux, per thread). Negative asks the OS to run the 1 kHz loop before ordinary
             work when it wakes (a loaded machine otherwise makes it wait for a core); it
             needs the right to raise priority (root or ``CAP_SYS_NICE``), else the thread
-            keeps its priority and the summary says so. 0 leaves the priority alone.
+            keeps its priority and the summary says so. 0 (the default) leaves the priority
+            alone: in the demo, where both stations share two cores, -10 raised the loop to
+            ~790-950 Hz but the remote station then stalled (0.3-4.4 s) in 5 of 6 runs
+            (docs/speed.md section 7), so it is for a station on a machine of its own.
         view: serve the live view in the browser on ``HOST:PORT`` (empty: no view;
             ``127.0.0.1:8780`` keeps it on this machine, see docs/view.md).
         view_rate_hz: the view's snapshot rate (the page's update rate).
@@ -104,7 +107,7 @@ class LocalAgentConfig:
     record_findings: bool = True
     motion_done_grace_s: float = 0.5
     gil_switch_interval_s: float = 0.0002
-    display_thread_nice: int = -10
+    display_thread_nice: int = 0
     view: str = ""
     view_rate_hz: float = 40.0
 
