@@ -18,6 +18,7 @@ sent, and only bytes it would not take within the timeout make the write fail
 from __future__ import annotations
 
 import contextlib
+import errno
 import logging
 import math
 import os
@@ -36,8 +37,8 @@ __all__ = ["SerialPortReader"]
 
 log = logging.getLogger(__name__)
 
-#: what pyserial may raise while a port is read or closed concurrently
-_READ_ERRORS = (serial.SerialException, OSError, TypeError, AttributeError)
+#: what pyserial (or the descriptor read) may raise while a port is read or closed concurrently
+_READ_ERRORS = (serial.SerialException, OSError, TypeError, AttributeError, ValueError)
 #: pyserial writes that loop over a non-blocking descriptor and raise a write timeout even
 #: after a send that put everything out (pyserial 3.5: ``serialposix.Serial.write`` and
 #: ``protocol_socket.Serial.write``); a port whose class overrides them (``spy://``) is
@@ -45,6 +46,54 @@ _READ_ERRORS = (serial.SerialException, OSError, TypeError, AttributeError)
 _DESCRIPTOR_WRITES = (serial.Serial.write, protocol_socket.Serial.write)
 #: what pyserial may raise from a write: loop:// lets ``queue.Full`` out of a full buffer
 _WRITE_ERRORS = (serial.SerialException, OSError, queue.Full)
+#: the read of pyserial's POSIX port (device, pty): :func:`_read_available` does the same on
+#: its descriptor, in one wake-up per burst (None where that module does not exist)
+try:
+    from serial import serialposix as _serialposix
+    _POSIX_READ = _serialposix.Serial.read
+except ImportError:  # pragma: no cover - not POSIX
+    _POSIX_READ = None
+#: errors of a non-blocking read that mean "nothing yet", as pyserial treats them
+_RETRY_ERRNOS = (errno.EAGAIN, errno.EALREADY, errno.EWOULDBLOCK, errno.EINPROGRESS,
+                 errno.EINTR)
+_READ_CHUNK_BYTES = 4096
+
+
+def _read_available(port: serial.SerialBase) -> bytes | None:
+    """Wait up to the port's timeout for data and return every byte there (one wake-up).
+
+    pyserial's ``read(n)`` returns after ``n`` bytes or its timeout: ``read(1)`` wakes the
+    reader for the first byte of a frame and again for the rest, and a larger ``n`` would
+    hold a frame back until the timeout. On a POSIX device or pty this does what pyserial's
+    read does (select on the descriptor and on its cancel pipe, then read), but returns
+    whatever the kernel holds as soon as anything arrived. Returns None when the port's
+    read is not pyserial's POSIX read (the caller uses ``read`` then).
+
+    Raises:
+        serial.SerialException: the read failed or the device is gone (ready, no data).
+    """
+    if _POSIX_READ is None or type(port).read is not _POSIX_READ:
+        return None
+    if not port.is_open:
+        raise serial.PortNotOpenError()
+    fd, abort = port.fd, port.pipe_abort_read_r
+    try:
+        ready, _, _ = select.select([fd, abort], [], [], port.timeout)
+        if abort in ready:
+            os.read(abort, 1000)
+            return b""
+        if not ready:
+            return b""
+        data = os.read(fd, _READ_CHUNK_BYTES)
+    except OSError as err:
+        if err.errno in _RETRY_ERRNOS:
+            return b""
+        raise serial.SerialException(f"read failed: {err}") from err
+    if not data:
+        # as pyserial: a disconnected device is ready to read but returns nothing
+        raise serial.SerialException("device reports readiness to read but returned no data "
+                                     "(device disconnected or multiple access on port?)")
+    return data
 
 
 def _descriptor(port: serial.SerialBase) -> int | None:
@@ -206,8 +255,10 @@ class SerialPortReader:
 
     def _read_once(self, port: serial.SerialBase, reader: ReaderThread) -> bool:
         try:
-            waiting = port.in_waiting
-            data = port.read(waiting if waiting else 1)
+            data = _read_available(port)
+            if data is None:
+                waiting = port.in_waiting
+                data = port.read(waiting if waiting else 1)
         except _READ_ERRORS as err:  # Type/AttributeError: pyserial after a close
             if not reader.stopping:
                 self._on_error(err)

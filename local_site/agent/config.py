@@ -67,6 +67,14 @@ class LocalAgentConfig:
             after). Python's 5 ms default lets a busy thread delay the display loop and the
             platform reader by up to 5 ms; benchmarks/results/display_loop_agent.md
             measures the effect. 0 leaves the interpreter's setting alone.
+        display_thread_nice: the display loop thread's nice value while it runs (-20..19;
+            Linux, per thread). Negative asks the OS to run the 1 kHz loop before ordinary
+            work when it wakes (a loaded machine otherwise makes it wait for a core); it
+            needs the right to raise priority (root or ``CAP_SYS_NICE``), else the thread
+            keeps its priority and the summary says so. 0 (the default) leaves the priority
+            alone: in the demo, where both stations share two cores, -10 raised the loop to
+            ~790-950 Hz but the remote station then stalled (0.3-4.4 s) in 5 of 6 runs
+            (docs/speed.md section 7), so it is for a station on a machine of its own.
         view: serve the live view in the browser on ``HOST:PORT`` (empty: no view;
             ``127.0.0.1:8780`` keeps it on this machine, see docs/view.md).
         view_rate_hz: the view's snapshot rate (the page's update rate).
@@ -99,6 +107,7 @@ class LocalAgentConfig:
     record_findings: bool = True
     motion_done_grace_s: float = 0.5
     gil_switch_interval_s: float = 0.0002
+    display_thread_nice: int = 0
     view: str = ""
     view_rate_hz: float = 40.0
 
@@ -133,6 +142,10 @@ class LocalAgentConfig:
         if not (math.isfinite(self.gil_switch_interval_s)
                 and 0.0 <= self.gil_switch_interval_s <= 0.1):
             raise ConfigError("local.agent.gil_switch_interval_s must lie in [0, 0.1] s")
+        if isinstance(self.display_thread_nice, bool) \
+                or not isinstance(self.display_thread_nice, int) \
+                or not -20 <= self.display_thread_nice <= 19:
+            raise ConfigError("local.agent.display_thread_nice must be an integer in [-20, 19]")
         if not (isinstance(self.view_rate_hz, int | float)
                 and 1.0 <= self.view_rate_hz <= 120.0):
             raise ConfigError("local.agent.view_rate_hz must lie in [1, 120]")

@@ -36,10 +36,12 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import contextlib
 import logging
+import os
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -62,7 +64,7 @@ from shared.protocol import Hop, TactileFrame
 from shared.timebase import monotonic_s, now_us
 
 __all__ = ["SAFE_REASONS", "DisplayLoop", "DisplayLoopCounters", "FrameSlot", "LinkHealth",
-           "PinState", "SameClockLink"]
+           "PinState", "SameClockLink", "thread_priority"]
 
 log = logging.getLogger(__name__)
 
@@ -126,6 +128,32 @@ class SameClockLink:
     def clock_view(self) -> ClockView:
         return ClockView({"local": 0, "remote": 0},
                          {"local": self._bound_us, "remote": self._bound_us}, now_us())
+
+
+@contextlib.contextmanager
+def thread_priority(nice: int) -> Iterator[int | None]:
+    """Give the calling thread the nice value ``nice`` for the block (Linux: per thread).
+
+    Yields the value applied, or None when ``nice`` is 0 or the OS refused (raising the
+    priority needs root or ``CAP_SYS_NICE``; logged once, the thread keeps its priority).
+    The previous value is restored after the block (lowering is always permitted).
+    """
+    tid = threading.get_native_id()
+    if nice == 0 or not hasattr(os, "setpriority"):
+        yield None
+        return
+    try:
+        before = os.getpriority(os.PRIO_PROCESS, tid)
+        os.setpriority(os.PRIO_PROCESS, tid, nice)
+    except OSError as err:
+        log.info("display loop thread keeps its priority (nice %d refused: %s)", nice, err)
+        yield None
+        return
+    try:
+        yield nice
+    finally:
+        with contextlib.suppress(OSError):
+            os.setpriority(os.PRIO_PROCESS, tid, before)
 
 
 class FrameSlot:
@@ -264,6 +292,8 @@ class DisplayLoop:
         #: the newest frame's stages and end-to-end (us) and when it was rendered (monotonic s)
         self.last_trace: tuple[tuple[tuple[str, float], ...], float | None, float] | None = None
         self.frame_listener = frame_listener
+        #: the nice value the loop's thread got (None: left alone or not permitted)
+        self.priority_applied: int | None = None
 
     @property
     def last_command(self) -> PinCommand | None:
@@ -522,14 +552,24 @@ class DisplayLoop:
 
     # ------------------------------------------------------------------ runners
 
-    def run_in_thread(self, stop: threading.Event) -> None:
+    def run_in_thread(self, stop: threading.Event, nice: int = 0) -> None:
         """Run at ``rate_hz`` until ``stop`` is set (blocking; call from a thread).
 
         The schedule is absolute (sleep overshoot does not accumulate); when an iteration
         is late by more than a period the schedule is re-anchored (counted as an overrun)
         rather than bursting. The thread always sleeps, never spins, so it cannot starve
         the other threads of the GIL.
+
+        Args:
+            stop: ends the loop when set.
+            nice: this thread's nice value while the loop runs (0: unchanged; see
+                :func:`thread_priority`); its previous value is restored on return.
         """
+        with thread_priority(nice) as applied:
+            self.priority_applied = applied
+            self._run_in_thread(stop)
+
+    def _run_in_thread(self, stop: threading.Event) -> None:
         if not self.display.is_connected and not self._reopen_display(stop.wait):
             return
         period = self.period_s

@@ -448,7 +448,8 @@ class LocalAgent:
         display_task: asyncio.Future[None]
         async_stop = asyncio.Event()
         if self.config.render_loop == "thread":
-            display_task = aio.run_in_executor(None, loop.run_in_thread, self._thread_stop)
+            display_task = aio.run_in_executor(None, loop.run_in_thread, self._thread_stop,
+                                               self.config.display_thread_nice)
         else:
             display_task = aio.create_task(loop.run_async(async_stop), name="display-loop")
         tasks = [aio.create_task(coro, name=name) for name, coro in (
@@ -583,7 +584,8 @@ class LocalAgent:
             "late_sends_refused": c.late_sends_refused,
             "motion_to_touch_ms": self.ledger.summary_ms(),
             "tactile_codec": dataclasses.asdict(self.tactile_decoder.counters),
-            "display_loop": {"mode": self.config.render_loop, **loop.periods.summary()},
+            "display_loop": {"mode": self.config.render_loop,
+                             "thread_nice": loop.priority_applied, **loop.periods.summary()},
             "platform": {"spec": self.config.platform, "reads": reader.reads,
                          "read_rate_hz": reader.reads / elapsed,
                          "decoded_rate_hz": platform_stats.frames_ok / elapsed,

@@ -55,6 +55,11 @@ K_RANGE = (0.5, 1.0)
 FRICTION_RANGE = (0.0, 1.0)
 SafeMode = Literal["flat", "hold"]
 _SAFE_CODES = {"flat": fr.SAFE_FLAT, "hold": fr.SAFE_HOLD}
+#: per layer (rows: height, k, f): range, and value = code * lsb + offset on the wire
+_LOW = np.array([[HEIGHT_RANGE_MM[0]], [K_RANGE[0]], [FRICTION_RANGE[0]]])
+_HIGH = np.array([[HEIGHT_RANGE_MM[1]], [K_RANGE[1]], [FRICTION_RANGE[1]]])
+_CODE_LSB = np.array([[fr.HEIGHT_LSB_MM], [fr.K_LSB], [fr.F_LSB]])
+_CODE_OFFSET = np.array([[0.0], [fr.K_MIN], [0.0]])
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -151,7 +156,7 @@ class ArrayTacDisplay(Device):
     """
 
     _seq: int
-    _last_codes: tuple[np.ndarray, np.ndarray, np.ndarray] | None
+    _last_codes: np.ndarray | None
     _last_send_s: float
     _force_next: bool
     _feedback: PinFeedback | None
@@ -267,30 +272,25 @@ class ArrayTacDisplay(Device):
         if not self._connected:
             raise DeviceNotConnectedError(f"{self.name}: send_command() before connect()")
         try:
-            h = self._as_pins("height_mm", height_mm)
-            k = self._as_pins("stiffness_k", stiffness_k)
-            f = self._as_pins("friction", friction)
+            values = self._as_pins3(height_mm, stiffness_k, friction)
         except InputDataError:
             self._n_rejected += 1
             raise
-        h_codes = np.rint(np.clip(h, *HEIGHT_RANGE_MM) / fr.HEIGHT_LSB_MM).astype(np.uint16)
-        k_codes = np.rint((np.clip(k, *K_RANGE) - fr.K_MIN) / fr.K_LSB).astype(np.uint16)
-        f_codes = np.rint(np.clip(f, *FRICTION_RANGE) / fr.F_LSB).astype(np.uint16)
-        clamped = bool(np.any(h < HEIGHT_RANGE_MM[0]) or np.any(h > HEIGHT_RANGE_MM[1])
-                       or np.any(k < K_RANGE[0]) or np.any(k > K_RANGE[1])
-                       or np.any(f < FRICTION_RANGE[0]) or np.any(f > FRICTION_RANGE[1]))
+        # one array op per step for the three layers (rows: height, k, f)
+        codes = np.rint((np.clip(values, _LOW, _HIGH) - _CODE_OFFSET) / _CODE_LSB) \
+            .astype(np.uint16)
+        clamped = bool((values < _LOW).any() or (values > _HIGH).any())
         with self._send_lock:
             self._n_commands += 1
             self._n_clamped += clamped
             now_s = monotonic_s()
             last = self._last_codes
             unchanged = (last is not None and not self._force_next
-                         and np.array_equal(last[0], h_codes) and np.array_equal(last[1], k_codes)
-                         and np.array_equal(last[2], f_codes))
+                         and np.array_equal(last, codes))
             keepalive = unchanged and now_s - self._last_send_s >= self._keepalive_interval_s
             if unchanged and not keepalive:
                 self._n_skipped += 1
-                return self._applied(h_codes, k_codes, f_codes, clamped, sent=False)
+                return self._applied(codes, clamped, sent=False)
             if not_after_s is not None:
                 late_s = monotonic_s() - not_after_s
                 if late_s > 0:
@@ -298,18 +298,17 @@ class ArrayTacDisplay(Device):
                                               "past its deadline; not sent")
             frame = fr.CommandFrame(seq=self._next_seq(),
                                     flags=self._flags | (fr.FLAG_KEEPALIVE if keepalive else 0),
-                                    height_codes=h_codes, k_codes=k_codes, f_codes=f_codes,
+                                    height_codes=codes[0], k_codes=codes[1], f_codes=codes[2],
                                     watchdog_ms=self._watchdog_ms)
             self._send_frame(fr.ARB_ID_COMMAND, fr.encode_command(frame))
-            self._last_codes = (h_codes, k_codes, f_codes)
+            self._last_codes = codes
             self._last_send_s = now_s
             self._force_next = False
             self._n_frames += 1
             self._n_keepalives += keepalive
             if log.isEnabledFor(logging.DEBUG):
                 log.debug("%s: command seq %d keepalive=%s", self.name, frame.seq, keepalive)
-            return self._applied(h_codes, k_codes, f_codes, clamped, sent=True,
-                                 keepalive=keepalive)
+            return self._applied(codes, clamped, sent=True, keepalive=keepalive)
 
     def keepalive(self, not_after_s: float | None = None) -> bool:
         """Re-send the last command if the keepalive interval has passed.
@@ -325,10 +324,16 @@ class ArrayTacDisplay(Device):
         """
         with self._send_lock:
             last = self._last_codes
-        if last is None:
-            return False
-        applied = self.send_command(last[0] * fr.HEIGHT_LSB_MM, fr.K_MIN + last[1] * fr.K_LSB,
-                                    last[2] * fr.F_LSB, not_after_s=not_after_s)
+            if last is None:
+                return False
+            if not self._force_next and \
+                    monotonic_s() - self._last_send_s < self._keepalive_interval_s:
+                # not due: counted as send_command would count it, without re-quantising
+                self._n_commands += 1
+                self._n_skipped += 1
+                return False
+        values = last * _CODE_LSB + _CODE_OFFSET
+        applied = self.send_command(values[0], values[1], values[2], not_after_s=not_after_s)
         return applied.sent
 
     def safe_state(self, mode: SafeMode = "flat") -> None:
@@ -432,25 +437,31 @@ class ArrayTacDisplay(Device):
         self._seq = (self._seq + 1) & 0xFFFF
         return self._seq
 
-    def _applied(self, h: np.ndarray, k: np.ndarray, f: np.ndarray, clamped: bool, *,
-                 sent: bool, keepalive: bool = False) -> AppliedPinCommand:
-        return AppliedPinCommand(height_mm=h * fr.HEIGHT_LSB_MM,
-                                 stiffness_k=fr.K_MIN + k * fr.K_LSB, friction=f * fr.F_LSB,
+    def _applied(self, codes: np.ndarray, clamped: bool, *, sent: bool,
+                 keepalive: bool = False) -> AppliedPinCommand:
+        values = codes * _CODE_LSB + _CODE_OFFSET
+        return AppliedPinCommand(height_mm=values[0], stiffness_k=values[1], friction=values[2],
                                  seq=self._seq, clamped=clamped, sent=sent, keepalive=keepalive)
 
-    @staticmethod
-    def _as_pins(name: str, value: np.ndarray | float) -> np.ndarray:
-        try:
-            arr = np.asarray(value, dtype=float)
-        except (TypeError, ValueError) as err:
-            raise InputDataError(f"{name}: not numeric: {err}") from err
-        if arr.ndim == 0:
-            arr = np.full(fr.N_PINS, float(arr))
-        elif arr.shape in ((4, 4), (fr.N_PINS,)):
-            arr = arr.reshape(fr.N_PINS)
-        else:
-            raise InputDataError(f"{name}: shape {arr.shape}, expected (4, 4), (16,) or scalar")
-        if not np.all(np.isfinite(arr)):
+    def _as_pins3(self, height_mm: np.ndarray | float, stiffness_k: np.ndarray | float,
+                  friction: np.ndarray | float) -> np.ndarray:
+        """The three layers as one (3, 16) float array (rows: height, k, f), validated."""
+        out = np.empty((3, fr.N_PINS))
+        for row, (name, value) in enumerate((("height_mm", height_mm),
+                                             ("stiffness_k", stiffness_k),
+                                             ("friction", friction))):
+            try:
+                arr = np.asarray(value, dtype=float)
+            except (TypeError, ValueError) as err:
+                raise InputDataError(f"{name}: not numeric: {err}") from err
+            if arr.ndim and arr.shape not in ((4, 4), (fr.N_PINS,)):
+                raise InputDataError(f"{name}: shape {arr.shape}, expected (4, 4), (16,) or "
+                                     "scalar")
+            out[row] = arr.reshape(fr.N_PINS) if arr.ndim else arr
+        if not np.isfinite(out).all():
+            row = int(np.flatnonzero(~np.isfinite(out).all(axis=1))[0])
+            name = ("height_mm", "stiffness_k", "friction")[row]
             raise InputDataError(f"{name}: NaN or Inf at pin(s) "
-                                 f"{np.flatnonzero(~np.isfinite(arr)).tolist()}; nothing sent")
-        return arr
+                                 f"{np.flatnonzero(~np.isfinite(out[row])).tolist()}; "
+                                 "nothing sent")
+        return out

@@ -1,8 +1,9 @@
 """Runs :class:`~local_site.display.firmware.ArrayTacFirmware` in real time on a link.
 
-:class:`FirmwareEmulator` is the drive board's main loop in a thread: it applies every frame
-as soon as it arrives, advances the plant on a fixed tick (2 ms by default) and sends the
-feedback the firmware produces. The link is a :class:`FirmwareTransport`: the other end of
+:class:`FirmwareEmulator` is the drive board's main loop in a thread: on a fixed tick (2 ms
+by default) it applies every frame that arrived since the last tick (the MCU latches new
+commands at its control period), advances the plant and sends the feedback the firmware
+produces. The link is a :class:`FirmwareTransport`: the other end of
 a python-can bus (:class:`CanFirmwareTransport`), of a pty (:class:`PtyFirmwareTransport`) or
 a TCP port the host opens as ``socket://host:port`` (:class:`TcpFirmwareTransport`, the board
 as a process of its own: ``teletouch board``).
@@ -358,13 +359,18 @@ class FirmwareEmulator:
         next_tick = clock()
         try:
             while not self._stop.is_set():
-                item = link.recv(max(0.0, next_tick - clock()))
-                while item is not None:
-                    fw.receive(item[0], item[1], clock())
-                    item = link.recv(0.0)
+                # like the MCU, which latches what arrived at its next control period: the
+                # thread sleeps to the tick and takes every frame that came meanwhile (one
+                # wake-up per tick, not one per frame; the feedback and the plant see the
+                # frames exactly when they did before, at that tick)
+                wait_s = next_tick - clock()
+                if wait_s > 0:
+                    time.sleep(wait_s)
                 now = clock()
-                if now < next_tick:
-                    continue
+                item = link.recv(0.0)
+                while item is not None:
+                    fw.receive(item[0], item[1], now)
+                    item = link.recv(0.0)
                 with self._lock:
                     force, self._finger_force_n = self._finger_force_n, None
                 if force is not None:

@@ -89,6 +89,8 @@ class ArrayTacFirmware:
         self.k = np.ones(fr.N_PINS)
         self.targets_mm = np.zeros(fr.N_PINS)
         self.friction = np.zeros(fr.N_PINS)
+        #: targets set since the plant last advanced (handed over when it next does)
+        self._targets_pending = False
         self.safe_state = False
         self.safe_hold = False
         self.watchdog_tripped = False
@@ -107,7 +109,10 @@ class ArrayTacFirmware:
         """Handle one frame from the host at time ``now_s`` (seconds, any monotonic origin).
 
         Like the MCU, which latches a new command at its next control period, the plant sees
-        the new targets from the next :meth:`poll` on (latch delay <= one emulator tick).
+        the new targets from the next :meth:`poll` on (latch delay <= one emulator tick): they
+        are handed to the plant once, when it next advances, so of several commands within
+        one tick only the last costs a plant update (each is still decoded, checked and
+        counted).
         """
         if self._t0_s is None:
             self._advance_to(now_s)
@@ -146,7 +151,7 @@ class ArrayTacFirmware:
         position = np.asarray(self.plant.position_mm, dtype=float)
         voltage = np.asarray(self.plant.drive_voltage_v, dtype=float)
         saturated = np.asarray(self.plant.saturated, dtype=bool)
-        if not (np.all(np.isfinite(position)) and np.all(np.isfinite(voltage))):
+        if not (np.isfinite(position).all() and np.isfinite(voltage).all()):
             self._fault_since_feedback = True  # never put NaN on the wire: report 0 + fault
             position = np.nan_to_num(position, nan=0.0, posinf=0.0, neginf=0.0)
             voltage = np.nan_to_num(voltage, nan=0.0, posinf=0.0, neginf=0.0)
@@ -160,7 +165,7 @@ class ArrayTacFirmware:
         return fr.FeedbackFrame(
             status=status, seq_echo=self.seq_echo, board_t_us=board_t_us & 0xFFFFFFFF,
             position_codes=_codes(position, fr.HEIGHT_LSB_MM),
-            saturated_mask=int(np.sum(saturated.astype(np.uint32) << np.arange(fr.N_PINS))),
+            saturated_mask=int(saturated @ _PIN_BITS),
             commands_rejected=self.commands_rejected & 0xFFFF,
             watchdog_trips=self.watchdog_trips & 0xFFFF,
             voltage_codes=_codes(voltage, fr.VOLTAGE_LSB_V))
@@ -171,7 +176,7 @@ class ArrayTacFirmware:
         self.targets_mm = frame.height_mm
         self.k = frame.stiffness_k
         self.friction = frame.friction
-        self.plant.set_targets(self.targets_mm, self.k, self.friction)
+        self._targets_pending = True
         self.seq_echo = frame.seq
         self._last_command_s = now_s
         self._watchdog_s = (frame.watchdog_ms / 1000.0) if frame.watchdog_ms \
@@ -187,7 +192,7 @@ class ArrayTacFirmware:
         else:
             self.targets_mm = np.zeros(fr.N_PINS)
         self.friction = np.zeros(fr.N_PINS)
-        self.plant.set_targets(self.targets_mm, self.k, self.friction)
+        self._targets_pending = True
         self.safe_state = True
         self.safe_hold = hold
         self.watchdog_tripped = by_watchdog
@@ -202,6 +207,9 @@ class ArrayTacFirmware:
         if step_s > self._max_step_s:
             self.overruns += 1
             step_s = self._max_step_s
+        if self._targets_pending:
+            self.plant.set_targets(self.targets_mm, self.k, self.friction)
+            self._targets_pending = False
         self.plant.advance(step_s)
         self._last_s = now_s
         if not (np.all(np.isfinite(self.plant.position_mm))
@@ -212,6 +220,10 @@ class ArrayTacFirmware:
             log.error("firmware: plant produced non-finite state; reset and safe state (flat)")
             self.plant.reset()
             self._enter_safe(hold=False, by_watchdog=False)
+
+
+#: bit i of the saturation mask is pin i
+_PIN_BITS = 1 << np.arange(fr.N_PINS, dtype=np.int64)
 
 
 def _codes(values: np.ndarray, lsb: float) -> np.ndarray:

@@ -105,6 +105,7 @@ _FB_HEAD = struct.Struct("<BBHI")          # type, status, seq_echo, board_t_us
 _FB_MID = struct.Struct("<HHH")            # saturated mask, rejected, watchdog trips
 _SAFE = struct.Struct("<BBHHH")            # type, mode, seq, reserved, crc
 _CRC = struct.Struct("<H")
+_PIN_BITS = np.arange(N_PINS)
 
 
 def frame_crc(data: bytes | bytearray | memoryview) -> int:
@@ -129,15 +130,16 @@ def pack12(codes: np.ndarray) -> bytes:
 def unpack12(data: bytes | bytearray | memoryview) -> np.ndarray:
     """Inverse of :func:`pack12`: 24 bytes -> 16 codes (uint16)."""
     raw = np.frombuffer(bytes(data), dtype=np.uint8).reshape(-1, 3).astype(np.uint16)
-    a = raw[:, 0] | ((raw[:, 1] & 0x0F) << 8)
-    b = (raw[:, 1] >> 4) | (raw[:, 2] << 4)
-    return np.stack([a, b], axis=1).reshape(-1)
+    out = np.empty((raw.shape[0], 2), dtype=np.uint16)
+    out[:, 0] = raw[:, 0] | ((raw[:, 1] & 0x0F) << 8)
+    out[:, 1] = (raw[:, 1] >> 4) | (raw[:, 2] << 4)
+    return out.reshape(-1)
 
 
 def _check_codes(name: str, codes: np.ndarray, max_code: int) -> np.ndarray:
     arr = np.asarray(codes)
-    if arr.shape != (N_PINS,) or arr.dtype.kind not in "iu" or arr.min() < 0 \
-            or arr.max() > max_code:
+    if arr.shape != (N_PINS,) or arr.dtype.kind not in "iu" \
+            or (arr.dtype.kind == "i" and arr.min() < 0) or arr.max() > max_code:
         raise ValueError(f"{name} must be {N_PINS} integer codes in [0, {max_code}]")
     return arr
 
@@ -255,7 +257,7 @@ class FeedbackFrame:
     @property
     def saturated(self) -> np.ndarray:
         """Saturation flags, bool, shape (16,)."""
-        return (self.saturated_mask >> np.arange(N_PINS)) & 1 == 1
+        return (self.saturated_mask >> _PIN_BITS) & 1 == 1
 
     @property
     def drive_voltage_v(self) -> np.ndarray:

@@ -120,6 +120,7 @@ class XYZPlatform(Device):
             if not value > 0:
                 raise ConfigError(f"{name} must be > 0, got {value}")
         self.geometry = geometry or PlatformGeometry()
+        self._mm_per_count = self.geometry.mm_per_count  # the geometry is immutable
         self._velocity_window_us = int(velocity_window_s * 1e6)
         self._stale_timeout_s = stale_timeout_s
         self._connect_timeout_s = connect_timeout_s
@@ -300,9 +301,9 @@ class XYZPlatform(Device):
         else:
             self._clock_offset_us += max(1, (candidate - self._clock_offset_us) // 1000)
         with self._cond:
-            rel = tuple(c - z for c, z in zip(counts, self._zero_counts, strict=True))
-            raw_mm = tuple(m + a for m, a in zip(self.geometry.counts_to_mm(rel),  # type: ignore[arg-type]
-                                                 self._zero_at_mm, strict=True))
+            # counts -> mm as geometry.counts_to_mm, without rebuilding its scale per sample
+            raw_mm = tuple((c - z) * s + a for c, z, s, a in zip(
+                counts, self._zero_counts, self._mm_per_count, self._zero_at_mm, strict=True))
             position, clamped = self.geometry.clamp(raw_mm)  # type: ignore[arg-type]
             previous = self._latest
             if previous is not None and seq - previous.seq > 1:

@@ -1,0 +1,325 @@
+"""The local station's cheaper hot paths behave exactly as the per-sample code they replace.
+
+- the simulated encoder board computes its frames a block at a time: the same bytes as
+  :meth:`SimulatedEncoderBoard.frame` sample by sample (hypothesis, wrap-arounds included);
+- ``ArrayTacDisplay.send_command`` validates and quantises the three layers as one array:
+  the same wire codes, applied values, clamping flag and refusals as an independent
+  per-layer reference; ``keepalive`` returns early when not due and counts as before;
+- the firmware hands the targets to the plant once per tick: several commands within a tick
+  leave the plant where the last one alone leaves it, and are each counted;
+- the serial reader takes a burst in one wake-up (one callback), where ``read(1)`` took two;
+- the platform reader's ``latest`` is the driver's newest sample, not one 5 ms old;
+- the display loop thread's priority is raised for the loop and restored, or left alone
+  with a log line when the OS refuses.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import tty
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from local_site.agent import LocalAgentConfig
+from local_site.agent.display_loop import thread_priority
+from local_site.agent.platform_reader import PlatformReader
+from local_site.arraytac_sim.plant import ArrayTacPlant
+from local_site.display import frames as fr
+from local_site.display.base import ArrayTacDisplay
+from local_site.display.firmware import ArrayTacFirmware
+from local_site.platform.motion import HoldMotion, RandomWalk, make_motion
+from local_site.platform.motion_spec import parse_motion_spec
+from local_site.platform.sim import SimulatedPlatform
+from local_site.platform.sim_board import BLOCK_SAMPLES, SimulatedEncoderBoard
+from local_site.serial_port import SerialPortReader
+from shared.errors import ConfigError, InputDataError
+from tests.support import scaled, wait_until
+
+# ---------------------------------------------------------------- simulated encoder board
+
+
+@settings(max_examples=60, deadline=None)
+@given(spec=st.sampled_from(["raster", "random:seed=3", "random:seed=11", "hold"]),
+       first=st.integers(0, 200_000), count=st.integers(1, 3 * BLOCK_SAMPLES),
+       initial=st.tuples(*[st.integers(-2**31, 2**31 - 1)] * 3),
+       start_t=st.integers(0, 2**32 - 1), start_seq=st.integers(0, 2**32 - 1),
+       rate=st.sampled_from([250.0, 1000.0, 1234.5]))
+def test_block_frames_are_the_per_sample_frames(spec: str, first: int, count: int,
+                                                initial: tuple[int, int, int], start_t: int,
+                                                start_seq: int, rate: float) -> None:
+    board = SimulatedEncoderBoard(make_motion(parse_motion_spec(spec)), lambda _d: None,
+                                  sample_rate_hz=rate, initial_counts=initial,
+                                  start_board_t_us=start_t, start_seq=start_seq)
+    block = board.frames(first, count)
+    assert block == [board.frame(first + i) for i in range(count)]
+
+
+def test_board_streams_block_frames_in_order_over_a_pty() -> None:
+    """End to end: the driver decodes consecutive samples at the motion's positions."""
+    motion = RandomWalk(seed=5)
+    platform = SimulatedPlatform(motion)
+    platform.connect()
+    try:
+        seqs: list[int] = []
+        while len(seqs) < 3 * BLOCK_SAMPLES:
+            sample = platform.read_state(timeout_s=scaled(1.0))
+            seqs.append(sample.seq)
+            expected = platform.geometry.counts_to_mm(platform.geometry.mm_to_counts(
+                motion.position_mm(sample.board_t_us * 1e-6)))
+            assert np.allclose(sample.position_mm, expected, atol=1e-9)
+        assert seqs == sorted(seqs) and platform.stats().samples_missed == 0
+        assert platform.stats().crc_errors == 0 and platform.stats().garbage_bytes == 0
+    finally:
+        platform.disconnect()
+
+
+# ---------------------------------------------------------------- display command path
+
+
+class _CaptureDisplay(ArrayTacDisplay):
+    """A display whose link is a list: every frame sent is kept."""
+
+    def __init__(self, **kwargs: object) -> None:
+        super().__init__(require_feedback=False, **kwargs)  # type: ignore[arg-type]
+        self.sent: list[tuple[int, bytes]] = []
+
+    @property
+    def name(self) -> str:
+        return "capture"
+
+    def _connect(self) -> None:
+        pass
+
+    def _disconnect(self) -> None:
+        pass
+
+    def _send_frame(self, arb_id: int, payload: bytes) -> None:
+        self.sent.append((arb_id, payload))
+
+
+def _reference(h: Any, k: Any, f: Any) -> tuple[np.ndarray, bool]:
+    """The per-layer quantisation, written independently: codes (3, 16) and clamped."""
+    rows, clamped = [], False
+    for value, low, high, lsb, offset in ((h, 0.0, 5.0, 1.25e-3, 0.0),
+                                          (k, 0.5, 1.0, 0.002, 0.5),
+                                          (f, 0.0, 1.0, 0.004, 0.0)):
+        arr = np.broadcast_to(np.asarray(value, dtype=float).reshape(-1), (16,)) \
+            if np.ndim(value) == 0 else np.asarray(value, dtype=float).reshape(16)
+        clamped |= bool(np.any(arr < low) or np.any(arr > high))
+        rows.append([round((min(max(v, low), high) - offset) / lsb) for v in arr.tolist()])
+    return np.asarray(rows, dtype=np.int64), clamped
+
+
+layer = st.one_of(
+    st.floats(-1.0, 6.0, allow_nan=False),
+    st.lists(st.floats(-1.0, 6.0, allow_nan=False), min_size=16, max_size=16)
+    .map(np.asarray),
+    st.lists(st.floats(-1.0, 6.0, allow_nan=False), min_size=16, max_size=16)
+    .map(lambda v: np.asarray(v).reshape(4, 4)))
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(h=layer, k=layer, f=layer)
+def test_send_command_matches_the_per_layer_reference(h: object, k: object, f: object) -> None:
+    display = _CaptureDisplay()
+    display.connect()
+    applied = display.send_command(h, k, f)  # type: ignore[arg-type]
+    codes, clamped = _reference(h, k, f)
+    assert applied.sent and applied.clamped == clamped
+    ((arb_id, payload),) = display.sent
+    frame = fr.decode_command(payload)
+    assert arb_id == fr.ARB_ID_COMMAND
+    assert frame.height_codes.tolist() == codes[0].tolist()
+    assert frame.k_codes.tolist() == codes[1].tolist()
+    assert frame.f_codes.tolist() == codes[2].tolist()
+    assert np.array_equal(applied.height_mm, codes[0] * fr.HEIGHT_LSB_MM)
+    assert np.array_equal(applied.stiffness_k, fr.K_MIN + codes[1] * fr.K_LSB)
+    assert np.array_equal(applied.friction, codes[2] * fr.F_LSB)
+    # the same command again: not re-sent, same applied values
+    again = display.send_command(h, k, f)  # type: ignore[arg-type]
+    assert not again.sent and np.array_equal(again.height_mm, applied.height_mm)
+    assert len(display.sent) == 1
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    ((np.ones(15), 1.0, 0.0), "height_mm: shape (15,)"),
+    ((1.0, np.ones((2, 8)), 0.0), "stiffness_k: shape (2, 8)"),
+    ((1.0, 1.0, np.ones(1)), "friction: shape (1,)"),
+    ((np.r_[np.ones(15), np.nan], 1.0, 0.0), "height_mm: NaN or Inf at pin(s) [15]"),
+    ((1.0, 1.0, np.r_[np.inf, np.zeros(15)]), "friction: NaN or Inf at pin(s) [0]"),
+    ((1.0, "stiff", 0.0), "stiffness_k: not numeric"),
+])
+def test_send_command_refuses_bad_input_naming_the_layer(args: tuple[object, ...],
+                                                         message: str) -> None:
+    display = _CaptureDisplay()
+    display.connect()
+    with pytest.raises(InputDataError) as err:
+        display.send_command(*args)  # type: ignore[arg-type]
+    assert message in str(err.value)
+    assert display.sent == [] and display.stats().rejected_inputs == 1
+
+
+def test_keepalive_returns_early_until_due_and_counts_as_before() -> None:
+    display = _CaptureDisplay(keepalive_interval_s=0.05)
+    display.connect()
+    assert display.keepalive() is False  # nothing sent yet: nothing to keep alive
+    display.send_command(np.linspace(0, 4, 16), 0.75, 0.5)
+    assert display.keepalive() is False and len(display.sent) == 1
+    stats = display.stats()
+    assert stats.commands == 2 and stats.skipped_unchanged == 1
+    wait_until(lambda: display.keepalive(), 1.0, "a keepalive once the interval passed")
+    arb_id, payload = display.sent[-1]
+    assert arb_id == fr.ARB_ID_COMMAND
+    frame = fr.decode_command(payload)
+    first = fr.decode_command(display.sent[0][1])
+    assert frame.flags & fr.FLAG_KEEPALIVE and frame.seq == first.seq + 1
+    assert np.array_equal(frame.height_codes, first.height_codes)
+    assert np.array_equal(frame.k_codes, first.k_codes)
+    assert np.array_equal(frame.f_codes, first.f_codes)
+    # after a safe state the next keepalive goes out at once (the board is parked)
+    display.safe_state("flat")
+    n = len(display.sent)
+    assert display.keepalive() is True and len(display.sent) == n + 1
+
+
+# ---------------------------------------------------------------- firmware
+
+
+def _command(height_mm: float, seq: int) -> bytes:
+    return fr.encode_command(fr.CommandFrame(
+        seq=seq, flags=0, height_codes=np.full(16, round(height_mm / fr.HEIGHT_LSB_MM),
+                                               np.uint16),
+        k_codes=np.full(16, 200, np.uint16), f_codes=np.zeros(16, np.uint16),
+        watchdog_ms=100))
+
+
+def test_commands_within_one_tick_leave_the_plant_where_the_last_alone_does() -> None:
+    many = ArrayTacFirmware(ArrayTacPlant(), feedback_period_s=0.002)
+    last_only = ArrayTacFirmware(ArrayTacPlant(), feedback_period_s=0.002)
+    for fw in (many, last_only):
+        fw.poll(0.0)
+    t = 0.0
+    for tick in range(200):
+        t += 0.002
+        heights = [1.0 + 0.01 * tick, 4.0 - 0.01 * tick, 2.0 + 0.005 * tick]
+        for i, h in enumerate(heights):
+            many.receive(fr.ARB_ID_COMMAND, _command(h, 3 * tick + i + 1), t)
+        last_only.receive(fr.ARB_ID_COMMAND, _command(heights[-1], 3 * tick + 3), t)
+        out_many, out_last = many.poll(t), last_only.poll(t)
+        assert out_many == out_last  # the same feedback bytes, seq echo included
+    assert np.array_equal(many.plant.position_mm, last_only.plant.position_mm)
+    assert many.commands_applied == 600 and last_only.commands_applied == 200
+
+
+# ---------------------------------------------------------------- serial reader
+
+
+@pytest.fixture
+def pty_pair() -> Iterator[tuple[int, str]]:
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    path = os.ttyname(slave)
+    yield master, path
+    os.close(master)
+    os.close(slave)
+
+
+def test_a_burst_reaches_the_callback_in_one_piece(pty_pair: tuple[int, int | str]) -> None:
+    master, path = pty_pair
+    chunks: list[bytes] = []
+    got = threading.Event()
+    errors: list[BaseException] = []
+
+    def on_data(data: bytes) -> None:
+        chunks.append(data)
+        if sum(map(len, chunks)) >= 78:
+            got.set()
+
+    reader = SerialPortReader(str(path), name="test pty", thread_name="test-pty-rx",
+                              on_data=on_data, on_error=errors.append, timeout_s=0.05)
+    reader.open()
+    try:
+        burst = bytes(range(78))
+        os.write(int(master), burst)
+        assert got.wait(scaled(2.0)), "the burst never arrived"
+        assert chunks == [burst]  # one wake-up, one callback (read(1) made it two)
+        assert errors == []
+    finally:
+        reader.close()
+
+
+def test_the_peer_going_away_is_reported_once(pty_pair: tuple[int, int | str]) -> None:
+    master, path = pty_pair
+    errors: list[BaseException] = []
+    reader = SerialPortReader(str(path), name="test pty", thread_name="test-pty-rx",
+                              on_data=lambda _d: None, on_error=errors.append, timeout_s=0.05)
+    reader.open()
+    try:
+        os.close(int(master))
+        wait_until(lambda: errors, 2.0, "the read error")
+        assert len(errors) == 1
+    finally:
+        reader.close()
+        os.dup2(os.open(os.devnull, os.O_RDONLY), int(master))  # the fixture closes it
+
+
+# ---------------------------------------------------------------- platform reader
+
+
+def test_platform_reader_latest_is_the_drivers_newest_sample() -> None:
+    platform = SimulatedPlatform(HoldMotion((20.0, 30.0, 100.0)))
+    # polls far slower than the 1 kHz board; a long read timeout keeps it healthy below
+    reader = PlatformReader(platform, poll_s=0.05, read_timeout_s=scaled(5.0))
+    reader.start()
+    try:
+        wait_until(lambda: reader.healthy and reader.latest is not None, 3.0, "a sample")
+        wait_until(lambda: reader.reads >= 100, 2.0, "reads counting the board's samples")
+        assert platform.board is not None
+        platform.board.stop()  # no sample after this one
+        newest = platform.latest()
+        assert newest is not None and reader.latest is newest
+        assert reader.healthy
+    finally:
+        reader.stop()
+        platform.disconnect()
+    assert reader.latest is not None  # the last sample stays readable after a stop
+
+
+def test_platform_reader_poll_must_be_shorter_than_the_read_timeout() -> None:
+    with pytest.raises(ConfigError, match="poll_s"):
+        PlatformReader(SimulatedPlatform("hold"), read_timeout_s=0.1, poll_s=0.1)
+
+
+# ---------------------------------------------------------------- display thread priority
+
+
+def test_thread_priority_applies_and_restores_or_says_it_was_refused(
+        monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    tid = threading.get_native_id()
+    before = os.getpriority(os.PRIO_PROCESS, tid)
+    with thread_priority(0) as applied:
+        assert applied is None and os.getpriority(os.PRIO_PROCESS, tid) == before
+    target = min(before + 1, 19)  # lowering the priority is always permitted
+    with thread_priority(target) as applied:
+        assert applied == target and os.getpriority(os.PRIO_PROCESS, tid) == target
+    assert os.getpriority(os.PRIO_PROCESS, tid) == before
+
+    def refuse(*_args: object) -> None:
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(os, "setpriority", refuse)
+    with caplog.at_level("INFO"), thread_priority(-10) as applied:
+        assert applied is None
+    assert "keeps its priority (nice -10 refused" in caplog.text
+
+
+@pytest.mark.parametrize("nice", [-21, 20, 1.5, True])
+def test_display_thread_nice_is_checked(nice: object) -> None:
+    with pytest.raises(ConfigError, match="display_thread_nice"):
+        LocalAgentConfig(display_thread_nice=nice)  # type: ignore[arg-type]
