@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["shade_frame"]
+__all__ = ["finish_frame", "shade_frame", "shaded_values"]
 
 
 @njit(cache=True, nogil=True, inline="always", error_model="numpy", fastmath=True)
@@ -35,6 +35,34 @@ def _pixel(gx: float, gy: float, i: int, j: int, base: np.ndarray, coef: np.ndar
             value += noise[i, j, c]
         value = np.floor(value + np.float32(0.5))
         out[i, j, c] = np.uint8(min(max(value, zero), np.float32(255.0)))
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=True)
+def _flat_values(base: np.ndarray, coef: np.ndarray, lights: np.ndarray,
+                 out: np.ndarray) -> None:  # pragma: no cover - compiled
+    # _pixel with zero slopes (norm 1), before noise and rounding
+    zero = np.float32(0.0)
+    s0 = max(lights[0, 2], zero)
+    s1 = max(lights[1, 2], zero)
+    s2 = max(lights[2, 2], zero)
+    rows, cols = base.shape[0], base.shape[1]
+    for i in range(rows):
+        for j in range(cols):
+            for c in range(3):
+                out[i, j, c] = base[i, j, c] + coef[i, j, 0, c] * s0 \
+                    + coef[i, j, 1, c] * s1 + coef[i, j, 2, c] * s2
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=True)
+def _finish(values: np.ndarray, noise: np.ndarray,
+            out: np.ndarray) -> None:  # pragma: no cover - compiled
+    zero = np.float32(0.0)
+    rows, cols = values.shape[0], values.shape[1]
+    for i in range(rows):
+        for j in range(cols):
+            for c in range(3):
+                value = np.floor(values[i, j, c] + noise[i, j, c] + np.float32(0.5))
+                out[i, j, c] = np.uint8(min(max(value, zero), np.float32(255.0)))
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=True)
@@ -86,4 +114,25 @@ def shade_frame(surface_mm: np.ndarray, pitch_mm: float, base: np.ndarray, coef:
     use_noise = noise is not None
     noise_arr = noise if noise is not None else np.zeros((1, 1, 3), np.float32)
     _shade(surface, float(1.0 / pitch_mm), base, coef, lights, noise_arr, use_noise, out)
+    return out
+
+
+def shaded_values(base: np.ndarray, coef: np.ndarray, lights: np.ndarray) -> np.ndarray:
+    """The colour of the flat gel (zero slopes) before noise and rounding, (H, W, 3) float32.
+
+    :func:`finish_frame` of these values with a frame's noise gives the frame
+    :func:`shade_frame` renders for a flat surface with that noise (the same float32
+    arithmetic, so equal except where the two compilations round a sum differently in its
+    last bit and the value then lies on the .5 between two digital numbers: practically never).
+    """
+    out = np.empty(base.shape, np.float32)
+    _flat_values(base, coef, lights, out)
+    return out
+
+
+def finish_frame(values: np.ndarray, noise: np.ndarray | None) -> np.ndarray:
+    """``values`` (H, W, 3 float32) plus ``noise``, rounded half-up and clipped to uint8."""
+    out = np.empty(values.shape, np.uint8)
+    noise_arr = noise if noise is not None else np.zeros(values.shape, np.float32)
+    _finish(values, noise_arr, out)
     return out
