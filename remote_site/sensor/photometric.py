@@ -152,8 +152,12 @@ class PhotometricModel:
                                                 borderType=cv2.BORDER_REPLICATE), np.float32)
         return depth, False
 
-    def render(self, depth_mm: np.ndarray, noise: bool = True) -> np.ndarray:
+    def render(self, depth_mm: np.ndarray, noise: bool = True,
+               gain: np.ndarray | None = None) -> np.ndarray:
         """Render one RGB uint8 frame from a contact depth map (mm, >= 0, sensor shape).
+
+        ``gain`` (per channel, e.g. an LED drift) scales the 8-bit frame as
+        ``cv2.multiply(frame, gain, dtype=cv2.CV_8U)`` would, in the same pass.
 
         Without contact (an all-zero map) the shading is the same every frame: it is
         computed once and only the frame's noise is added (:func:`finish_frame`).
@@ -169,11 +173,11 @@ class PhotometricModel:
         if flat:
             if self._flat_values is None:
                 self._flat_values = shaded_values(self._base, self._coef, self._lights)
-            return finish_frame(self._flat_values, camera_noise)
+            return finish_frame(self._flat_values, camera_noise, gain)
         # Unit normal of the surface z = h(x, y), seen from the camera side:
         # (-h_x, -h_y, 1) / sqrt(1 + h_x^2 + h_y^2); one fused pass with the static terms.
         return shade_frame(surface, s.mm_per_px, self._base, self._coef, self._lights,
-                           camera_noise)
+                           camera_noise, gain)
 
     def _noise_sample(self) -> np.ndarray:
         """Camera noise for one frame: a random window of a pre-drawn pool (fast)."""

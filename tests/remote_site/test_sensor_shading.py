@@ -89,3 +89,25 @@ def test_flat_gel_fast_path_equals_the_fused_kernel_with_the_same_noise() -> Non
     press = np.zeros((240, 320), np.float32)
     press[100:140, 140:180] = 0.5
     assert not np.array_equal(fast.render(press, noise=False), fast.render(flat, noise=False))
+
+
+@settings(max_examples=10, deadline=None)
+@given(gain=st.tuples(st.floats(0.9, 1.1), st.floats(0.9, 1.1), st.floats(0.9, 1.1)),
+       pressed=st.booleans(), seed=st.integers(0, 100))
+def test_brightness_gain_in_the_kernel_equals_cv2_multiply(
+        gain: tuple[float, float, float], pressed: bool, seed: int) -> None:
+    # the LED drift used to be a cv2.multiply of the rendered frame; the kernels apply it in
+    # their pass and must give the same bytes (float32 gain as the simulator computes it)
+    import cv2
+
+    g32 = np.asarray(gain, np.float32)
+    settings_ = PhotometricSettings(noise_dn=2.1)
+    a, b = PhotometricModel(settings_, seed=seed), PhotometricModel(settings_, seed=seed)
+    depth = np.zeros((240, 320), np.float32)
+    if pressed:
+        depth[80:160, 100:220] = 0.4
+    got = a.render(depth, gain=g32.astype(np.float64))
+    plain = b.render(depth)
+    want = cv2.multiply(plain, (float(g32[0]), float(g32[1]), float(g32[2]), 0.0),
+                        dtype=cv2.CV_8U)
+    np.testing.assert_array_equal(got, np.asarray(want))
