@@ -34,7 +34,8 @@ SIDES = ("before", "after")
 _SIM = ("sim:", "bench/")
 
 
-def _run(root: Path, label: str, window_s: float, out_dir: Path) -> dict[str, Any]:
+def _run(root: Path, label: str, window_s: float, out_dir: Path, keep: Path | None = None,
+         note: str = "") -> dict[str, Any]:
     env = {**os.environ, "PYTHONPATH": str(root)}
     cmd = [sys.executable, "-m", "lab.cli", "bench", "cpu", "--label", label, "--window-s",
            f"{window_s:g}", "--out-dir", str(out_dir)]
@@ -46,6 +47,9 @@ def _run(root: Path, label: str, window_s: float, out_dir: Path) -> dict[str, An
         return {"label": label, "error": f"exit {proc.returncode}: {proc.stderr[-1500:]}",
                 "load_1min": load}
     run = json.loads(path.read_text())
+    if keep is not None:  # the full run beside the others, for cpu.md (--report-only)
+        run["note"] = note
+        (keep / f"cpu-{label}.json").write_text(json.dumps(run, indent=1, default=str))
     remote = run["stages"].get("remote", {})
     fps = (run.get("remote_frames") or {}).get("achieved_fps") or 0.0
     cores = run["processes"]["remote"]["cores"]
@@ -142,6 +146,8 @@ def main() -> int:
     ap.add_argument("--window-s", type=float, default=12.0)
     ap.add_argument("--tag", default="")
     ap.add_argument("--no-write", action="store_true")
+    ap.add_argument("--keep-runs", action="store_true",
+                    help="also save each run's full JSON as results/cpu-LABEL.json (cpu.md)")
     args = ap.parse_args()
     roots = {"before": args.before.resolve(), "after": args.after.resolve()}
     runs: dict[str, list[dict[str, Any]]] = {s: [] for s in SIDES}
@@ -150,7 +156,9 @@ def main() -> int:
         for i in range(args.rounds):
             for side in (SIDES if i % 2 == 0 else SIDES[::-1]):
                 label = f"{args.tag + '-' if args.tag else ''}{side}-{i + 1}"
-                run = _run(roots[side], label, args.window_s, Path(tmp))
+                note = args.before_note if side == "before" else args.after_note
+                run = _run(roots[side], label, args.window_s, Path(tmp),
+                           RESULTS if args.keep_runs else None, note)
                 run["order"] = n
                 n += 1
                 runs[side].append(run)
