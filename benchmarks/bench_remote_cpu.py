@@ -166,11 +166,11 @@ def main() -> int:
                       f"{_f(run.get('remote_cores'))} cores, "
                       f"{_f(run.get('remote_ms_per_frame'), 2)} ms/frame", flush=True)
     text = _report(runs, args)
-    print(text)
     if not args.no_write:
         stem = f"remote_cpu{'_' + args.tag if args.tag else ''}"
         (RESULTS / f"{stem}.md").write_text(text)
         (RESULTS / f"{stem}.json").write_text(json.dumps(runs, indent=1, default=str))
+    print(text)  # after writing: a closed pipe must not lose the results
     return 0
 
 

@@ -304,11 +304,11 @@ def main() -> int:
                      f"{run['cores']:.3f} cores, {_f(run['ms_per_frame'], 2)} ms/frame, "
                      f"{run['frames_per_s']:.0f} fps"), flush=True)
     text = _report(runs, args)
-    print(text)
     if not args.no_write:
         stem = f"remote_station_cpu{'_' + args.tag if args.tag else ''}"
         (RESULTS / f"{stem}.md").write_text(text)
         (RESULTS / f"{stem}.json").write_text(json.dumps(runs, indent=1, default=str))
+    print(text)  # after writing: a closed pipe must not lose the results
     return 0
 
 
