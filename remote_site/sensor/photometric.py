@@ -130,7 +130,8 @@ class PhotometricModel:
         Raises:
             InputDataError: wrong shape, NaN/Inf or negative depth.
         """
-        return self._surface(depth_mm)[0]
+        surface, flat = self._surface(depth_mm)
+        return surface.copy() if flat else surface  # never the caller's own array
 
     def _surface(self, depth_mm: np.ndarray) -> tuple[np.ndarray, bool]:
         """:meth:`gel_surface_mm`, and whether the gel is flat (no contact: all zeros)."""
