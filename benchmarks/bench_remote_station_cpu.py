@@ -92,8 +92,10 @@ def _child(duration_s: float, seed: int) -> dict[str, Any]:
             self.sent = 0
             self.inbox: asyncio.Queue[Message] = asyncio.Queue()
             self.is_connected = True
-            self.clock_view = ClockView({"local": 0, "remote": 0}, {"local": 0, "remote": 0},
-                                        now_us())
+
+        @property
+        def clock_view(self) -> ClockView:  # exact offsets, reported just now (not aged)
+            return ClockView({"local": 0, "remote": 0}, {"local": 0, "remote": 0}, now_us())
 
         def link_down_for_s(self, now_s: float | None = None) -> float:
             return 0.0
