@@ -252,7 +252,10 @@ class SimArm(Arm):
 
         After a gap longer than :data:`_MAX_CATCH_UP_S` (the process was stopped or starved)
         only that much is run and the clock resynchronises: simulated time then lags the
-        wall clock (the 1 kHz thread this replaces resynchronised after 50 ms behind).
+        wall clock (the 1 kHz thread this replaces resynchronised after 50 ms behind). Unlike
+        the thread, a gap in which nobody looked at the arm is cut too: a caller that needs
+        longer spans simulated must look at least every 0.1 s (the station's watchdog does,
+        every 5 ms).
         """
         if self._origin_s is None:
             return
