@@ -142,7 +142,7 @@ class SimArm(Arm):
         self._dt = 1.0 / self.config.loop_hz
         self._lock = threading.Lock()
         # the state as plain floats: a step is ~40 scalar operations, which numpy arrays of
-        # three made ~10x slower (per-call overhead)
+        # three made several times slower (per-call overhead)
         self._pos = [float(v) for v in self.limits.home_mm]
         self._vel = [0.0, 0.0, 0.0]
         self._acc = [0.0, 0.0, 0.0]
