@@ -71,8 +71,13 @@ class MemoryLink:
         self.inbox: asyncio.Queue[Message] = asyncio.Queue()
         self.is_connected = True
         self.clock_offsets_us: dict[str, int | None] = {"local": 0, "remote": 0}
-        # one process, one clock: exact offsets (zero error bound)
-        self.clock_view = ClockView(self.clock_offsets_us, {"local": 0, "remote": 0}, 0)
+
+    @property
+    def clock_view(self) -> ClockView:
+        """One process, one clock: exact offsets (zero error bound), reported just now (a
+        view received at time 0 had aged by the drift bound into hours of uncertainty, and
+        the station refused every command)."""
+        return ClockView(self.clock_offsets_us, {"local": 0, "remote": 0}, now_us())
 
     def link_down_for_s(self, now_s: float | None = None) -> float:
         return 0.0

@@ -218,6 +218,26 @@ def parse_raw_profile(text: str) -> dict[int, Counter[str]]:
     return out
 
 
+def thread_roots(text: str) -> dict[int, str]:
+    """py-spy ``--format raw --threads`` output -> tid -> the thread's name as py-spy saw it
+    (``thread (101): MainThread``) and the outermost function below the threading bootstrap
+    in most of its samples (``arm-watchdog: loop (safety.py)``)."""
+    roots: dict[int, Counter[str]] = defaultdict(Counter)
+    for raw in text.splitlines():
+        stack_s, _, count_s = raw.strip().rpartition(" ")
+        if not count_s.isdigit():
+            continue
+        parts = stack_s.split(";")
+        head = re.match(r"thread \((?:0x)?([0-9a-fA-F]+)\)(?::\s*(.*))?", parts[0])
+        if head is None:
+            continue
+        tid = int(head.group(1), 16 if parts[0].startswith("thread (0x") else 10)
+        root = next((f"{m['func']} ({Path(m['file']).name})" for m in map(_FRAME.match, parts[1:])
+                     if m and not m["file"].endswith("threading.py")), "?")
+        roots[tid][f"{head.group(2)}: {root}" if head.group(2) else root] += int(count_s)
+    return {tid: c.most_common(1)[0][0] for tid, c in roots.items() if c}
+
+
 def _top_functions(text: str, n: int = 12) -> list[tuple[str, int]]:
     """Busy samples per innermost project function (self time), most first."""
     c: Counter[str] = Counter()
@@ -346,6 +366,7 @@ def _figures(win: _Window, report: dict[str, Any], load_start: tuple[float, floa
     assert win.start is not None and win.end is not None
     wall = win.end.wall_s - win.start.wall_s
     processes: dict[str, Any] = {}
+    threads: dict[str, list[dict[str, Any]]] = {}
     stages: dict[str, dict[str, float]] = defaultdict(dict)
     top: dict[str, list[tuple[str, int]]] = {}
     for pid, name in sorted(win.names.items(), key=lambda kv: kv[1]):
@@ -356,6 +377,10 @@ def _figures(win: _Window, report: dict[str, Any], load_start: tuple[float, floa
         path = win.workdir / f"profile-{name}.txt"
         text = path.read_text() if path.exists() else ""
         per_thread = parse_raw_profile(text) if text else {}
+        roots = thread_roots(text) if text else {}
+        threads[name] = sorted(({"tid": tid, "runs": roots.get(tid, "?"), "cores": cpu / wall}
+                                for tid, cpu in thread_cpu.items()),
+                               key=lambda t: -float(t["cores"]))
         if name.startswith("link"):
             stages[name]["sim: link emulator"] = total / wall
             top[name] = _top_functions(text) if text else []
@@ -377,11 +402,14 @@ def _figures(win: _Window, report: dict[str, Any], load_start: tuple[float, floa
     return {
         "wall_s": wall, "nproc": os.cpu_count(), "load_start": load_start,
         "load_end": os.getloadavg(), "profiler": "py-spy" if pyspy else "none",
-        "processes": processes, "stages": {k: dict(v) for k, v in stages.items()},
+        "processes": processes, "threads": threads,
+        "stages": {k: dict(v) for k, v in stages.items()},
         "top": top, "display_loop": local.get("display_loop", {}),
         "latency_ms": report.get("latency_ms", {}), "frames_received": report.get(
             "frames_received"), "demo_error": report.get("demo_error"),
         "remote_frames": (report.get("remote") or {}).get("frames"),
+        "remote_platform_states": (report.get("remote") or {}).get("platform_states"),
+        "remote_elapsed_s": (report.get("remote") or {}).get("elapsed_s"),
         "tactile_codec": local.get("tactile_codec"),
         "settings": {k: v for k, v in vars(win.settings).items()},
     }

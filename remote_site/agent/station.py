@@ -333,8 +333,10 @@ class RemoteStation:
             await asyncio.sleep(delay)
         if self.latest is captured:  # nothing new: wait for a command, at most a period
             self._command_applied.clear()
+            # asyncio.timeout, not wait_for: no task is created per frame
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._command_applied.wait(), period)
+                async with asyncio.timeout(period):
+                    await self._command_applied.wait()
         command = self.latest
         if command is captured or command is None:
             self.captures.idle += 1

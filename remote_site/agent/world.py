@@ -190,8 +190,10 @@ class SimWorld:
 
         def provide() -> np.ndarray:
             pose = self.true_pose(where())
-            depth = self.phantom.contact(pose, grid()).depth_map_mm
-            if self.registration.yaw_deg:
+            contact = self.phantom.contact(pose, grid())
+            depth = contact.depth_map_mm
+            # without contact the map is all zeros, and so is its rotation
+            if self.registration.yaw_deg and contact.in_contact:
                 depth = _rotate(depth, self.registration.yaw_deg)
             return depth
 

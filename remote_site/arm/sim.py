@@ -1,16 +1,21 @@
 """Simulated arm: a Cartesian point with Franka-like velocity/acceleration/jerk limits.
 
-A 1 kHz loop moves the pad towards its target with a time-optimal braking profile
+A 1 kHz control law moves the pad towards its target with a time-optimal braking profile
 (``v_des = min(v_max, sqrt(2 m a_max d), K_p d)`` along the line to the target, with a braking
 margin ``m`` < 1 that absorbs the jerk-limited ramp and a proportional gain ``K_p`` for the
 final, exponential approach), then limits acceleration and jerk. At every step the pad
 feels the phantom: the measured force is
 ``phantom.force_n(position)`` plus optional Gaussian noise.
 
-Time is injectable: with ``realtime=True`` a thread runs the loop against the wall clock;
-with ``realtime=False`` nothing moves until the caller calls :meth:`SimArm.advance`, which
-makes tests deterministic and fast. Every step's (t, x, y, z, force) is kept in a bounded
-buffer for the stiffness stage (:meth:`SimArm.drain_samples`).
+Time is injectable: with ``realtime=True`` the arm follows the wall clock: every call that
+looks at or changes the arm (a reading, a move, a stop, the samples) first runs the 1 kHz
+steps that have fallen due since the last call, so what is seen is the state at the last
+step boundary, exactly as a thread stepping every millisecond would have left it (a target
+set between two boundaries takes effect at the next, as it did there), without a thread
+waking 1000 times a second. With ``realtime=False`` nothing moves until the caller calls
+:meth:`SimArm.advance`, which makes tests deterministic and fast. Every step's
+(t, x, y, z, force) is kept in a bounded buffer for the stiffness stage
+(:meth:`SimArm.drain_samples`).
 
 Franka Research 3 Cartesian limits (translation): 1.7 m/s, 13 m/s^2, 6500 m/s^3; the
 defaults below are a slower palpation profile within them.
@@ -31,7 +36,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from remote_site.arm.base import Arm, ArmLimits, ArmReading, Vec3
-from shared.errors import ConfigError, DeviceInitError
+from shared.errors import ConfigError
 
 __all__ = ["FRANKA_LIMITS", "ArmNoise", "ForceField", "SimArm", "SimArmConfig"]
 
@@ -48,6 +53,8 @@ log = logging.getLogger(__name__)
 #: Franka Cartesian translation limits (mm/s, mm/s^2, mm/s^3)
 FRANKA_LIMITS = (1700.0, 13000.0, 6.5e6)
 _BRAKE_MARGIN = 0.6
+#: realtime: the most simulated time one call runs to catch up with the wall clock (s)
+_MAX_CATCH_UP_S = 0.1
 
 
 @dataclass(frozen=True)
@@ -62,7 +69,8 @@ class SimArmConfig:
         position_gain_1_s: gain of the final approach (time constant 1 / gain).
         force_noise_n: standard deviation of the force sensor noise.
         seed: noise seed.
-        realtime: run the loop in a thread on the wall clock (else :meth:`SimArm.advance`).
+        realtime: follow the wall clock (steps run when due, on the next call that looks at
+            the arm; else only in :meth:`SimArm.advance`).
         sample_buffer: how many 1 kHz samples :meth:`SimArm.drain_samples` keeps.
     """
 
@@ -133,18 +141,23 @@ class SimArm(Arm):
         self.noise = noise or ArmNoise()
         self._dt = 1.0 / self.config.loop_hz
         self._lock = threading.Lock()
-        self._pos = np.array(self.limits.home_mm, dtype=float)
-        self._vel = np.zeros(3)
-        self._acc = np.zeros(3)
-        self._target = self._pos.copy()
+        # the state as plain floats: a step is ~40 scalar operations, which numpy arrays of
+        # three made several times slower (per-call overhead)
+        self._pos = [float(v) for v in self.limits.home_mm]
+        self._vel = [0.0, 0.0, 0.0]
+        self._acc = [0.0, 0.0, 0.0]
+        self._target = list(self._pos)
         self._halting = False
         self._t_s = 0.0
         self._force_n = 0.0
+        #: the phantom force at the last stepped position (the arm at rest feels the same)
+        self._felt: tuple[tuple[float, float, float], float] | None = None
         self._rng = np.random.default_rng(self.config.seed)
         self._samples: deque[tuple[float, float, float, float, float]] = deque(
             maxlen=self.config.sample_buffer)
-        self._thread: threading.Thread | None = None
-        self._running = threading.Event()
+        #: realtime: wall-clock origin of step 0 and the steps run since (None: not running)
+        self._origin_s: float | None = None
+        self._due_steps = 0
         self._step_count = 0
 
     # --------------------------------------------------------------- plant
@@ -152,39 +165,49 @@ class SimArm(Arm):
     def _step(self) -> None:
         """One control period (call with the lock held)."""
         cfg, dt = self.config, self._dt
-        err = self._target - self._pos
-        dist = float(np.linalg.norm(err))
-        if self._halting:
-            v_des = np.zeros(3)
-        elif dist > 1e-12:
+        px, py, pz = self._pos
+        vx, vy, vz = self._vel
+        ax, ay, az = self._acc
+        ex, ey, ez = self._target[0] - px, self._target[1] - py, self._target[2] - pz
+        dist = math.sqrt(ex * ex + ey * ey + ez * ez)
+        if not self._halting and dist > 1e-12:
             speed = min(cfg.max_velocity_mm_s,
                         math.sqrt(2.0 * _BRAKE_MARGIN * cfg.max_acceleration_mm_s2 * dist),
                         cfg.position_gain_1_s * dist)
-            v_des = err / dist * speed
+            k = speed / dist
+            dvx, dvy, dvz = ex * k - vx, ey * k - vy, ez * k - vz
         else:
-            v_des = np.zeros(3)
-        a_des = (v_des - self._vel) / dt
-        a_norm = float(np.linalg.norm(a_des))
+            dvx, dvy, dvz = -vx, -vy, -vz
+        # desired acceleration, limited in norm
+        adx, ady, adz = dvx / dt, dvy / dt, dvz / dt
+        a_norm = math.sqrt(adx * adx + ady * ady + adz * adz)
         if a_norm > cfg.max_acceleration_mm_s2:
-            a_des *= cfg.max_acceleration_mm_s2 / a_norm
-        da = a_des - self._acc
-        da_norm = float(np.linalg.norm(da))
+            k = cfg.max_acceleration_mm_s2 / a_norm
+            adx, ady, adz = adx * k, ady * k, adz * k
+        # its change limited by the jerk
+        dax, day, daz = adx - ax, ady - ay, adz - az
+        da_norm = math.sqrt(dax * dax + day * day + daz * daz)
         da_max = cfg.max_jerk_mm_s3 * dt
         if da_norm > da_max:
-            da *= da_max / da_norm
-        self._acc = self._acc + da
-        self._vel = self._vel + self._acc * dt
-        v_norm = float(np.linalg.norm(self._vel))
+            k = da_max / da_norm
+            dax, day, daz = dax * k, day * k, daz * k
+        ax, ay, az = ax + dax, ay + day, az + daz
+        vx, vy, vz = vx + ax * dt, vy + ay * dt, vz + az * dt
+        v_norm = math.sqrt(vx * vx + vy * vy + vz * vz)
         if v_norm > cfg.max_velocity_mm_s:
-            self._vel *= cfg.max_velocity_mm_s / v_norm
-        self._pos = self._pos + self._vel * dt
+            k = cfg.max_velocity_mm_s / v_norm
+            vx, vy, vz = vx * k, vy * k, vz * k
+            v_norm = cfg.max_velocity_mm_s
+        px, py, pz = px + vx * dt, py + vy * dt, pz + vz * dt
         self._t_s += dt
         self._step_count += 1
-        if self._halting and float(np.linalg.norm(self._vel)) < 1e-6:
-            self._vel[:] = 0.0
-            self._acc[:] = 0.0
-            self._target = self._pos.copy()
-        force = self.phantom.force_n(self._pos.tolist()) if self.phantom is not None else 0.0
+        if self._halting and v_norm < 1e-6:
+            vx = vy = vz = ax = ay = az = 0.0
+            self._target = [px, py, pz]
+        self._pos = [px, py, pz]
+        self._vel = [vx, vy, vz]
+        self._acc = [ax, ay, az]
+        force = self._feel((px, py, pz))
         if cfg.force_noise_n > 0:
             force += float(self._rng.normal(0.0, cfg.force_noise_n))
         nz = self.noise
@@ -192,7 +215,17 @@ class SimArm(Arm):
             force += (nz.force_bias_n + nz.force_drift_n_per_min * self._t_s / 60.0
                       + float(self._rng.normal(0.0, nz.force_noise_n)))
         self._force_n = force
-        self._samples.append((self._t_s, *self._pos.tolist(), force))
+        self._samples.append((self._t_s, px, py, pz, force))
+
+    def _feel(self, pos: tuple[float, float, float]) -> float:
+        """The phantom's force at ``pos`` (computed again only when the pad moved)."""
+        if self.phantom is None:
+            return 0.0
+        if self._felt is not None and self._felt[0] == pos:
+            return self._felt[1]
+        force = float(self.phantom.force_n(pos))
+        self._felt = (pos, force)
+        return force
 
     def advance(self, seconds: float) -> int:
         """Run the loop for ``seconds`` of simulated time (``realtime=False`` mode).
@@ -201,10 +234,11 @@ class SimArm(Arm):
             The number of control steps run.
 
         Raises:
-            ConfigError: called while the realtime thread owns the loop, or a negative time.
+            ConfigError: called on a realtime arm (the wall clock drives it), or a negative
+                time.
         """
-        if self._thread is not None:
-            raise ConfigError("advance() is for realtime=False; the loop thread is running")
+        if self.config.realtime:
+            raise ConfigError("advance() is for realtime=False; the wall clock drives this arm")
         if not (math.isfinite(seconds) and seconds >= 0):
             raise ConfigError("advance: seconds must be finite and >= 0")
         steps = round(seconds / self._dt)
@@ -213,80 +247,97 @@ class SimArm(Arm):
                 self._step()
         return steps
 
-    def _loop(self) -> None:
-        next_t = time.monotonic()
-        while self._running.is_set():
-            now = time.monotonic()
-            behind = int((now - next_t) / self._dt) + 1
-            with self._lock:
-                for _ in range(min(behind, 50)):  # catch up, but never spiral
-                    self._step()
-            next_t += behind * self._dt
-            if now - next_t > 0.05:
-                next_t = now  # fell far behind (loaded machine): resynchronise
-            time.sleep(max(0.0, next_t - time.monotonic()))
+    def _catch_up(self) -> None:
+        """Realtime: run the steps due by now (call with the lock held).
+
+        After a gap longer than :data:`_MAX_CATCH_UP_S` (the process was stopped or starved)
+        only that much is run and the clock resynchronises: simulated time then lags the
+        wall clock (the 1 kHz thread this replaces resynchronised after 50 ms behind). Unlike
+        the thread, a gap in which nobody looked at the arm is cut too: a caller that needs
+        longer spans simulated must look at least every 0.1 s (the station's watchdog does,
+        every 5 ms).
+        """
+        if self._origin_s is None:
+            return
+        due = int((time.monotonic() - self._origin_s) / self._dt)
+        behind = due - self._due_steps
+        if behind <= 0:
+            return
+        most = max(1, round(_MAX_CATCH_UP_S / self._dt))
+        if behind > most:
+            self._origin_s += (behind - most) * self._dt
+            behind = most
+            due = self._due_steps + behind
+        for _ in range(behind):
+            self._step()
+        self._due_steps = due
 
     # --------------------------------------------------------------- backend hooks
 
     def _connect(self) -> None:
         if self.config.realtime:
-            self._running.set()
-            self._thread = threading.Thread(target=self._loop, name="sim-arm-1khz", daemon=True)
-            try:
-                self._thread.start()
-            except RuntimeError as err:
-                self._thread = None
-                raise DeviceInitError("could not start the sim arm loop") from err
+            with self._lock:
+                self._origin_s = time.monotonic()
+                self._due_steps = 0
 
     def _disconnect(self) -> None:
-        self._running.clear()
-        if self._thread is not None:
-            self._thread.join(timeout=1.0)
-            self._thread = None
+        with self._lock:
+            self._catch_up()
+            self._origin_s = None
 
     def _move_to(self, target_mm: Vec3) -> None:
         with self._lock:
-            self._target = np.asarray(target_mm, dtype=float)
+            self._catch_up()
+            self._target = [float(target_mm[0]), float(target_mm[1]), float(target_mm[2])]
             self._halting = False
 
     def _stop(self) -> None:
         with self._lock:
+            self._catch_up()
             self._halting = True
 
     def _read(self) -> ArmReading:
         with self._lock:
-            moving = (float(np.linalg.norm(self._vel)) > 1e-3
-                      or float(np.linalg.norm(self._target - self._pos)) > 1e-3)
+            self._catch_up()
+            px, py, pz = self._pos
+            vx, vy, vz = self._vel
+            tx, ty, tz = self._target
+            ex, ey, ez = tx - px, ty - py, tz - pz
+            moving = (math.sqrt(vx * vx + vy * vy + vz * vz) > 1e-3
+                      or math.sqrt(ex * ex + ey * ey + ez * ez) > 1e-3)
             status = "halted" if self._halting else ("moving" if moving else "ok")
-            seen = self._pos
             if self.noise.position_noise_mm > 0:
-                seen = seen + self._rng.normal(0.0, self.noise.position_noise_mm, 3)
-            pos = (float(seen[0]), float(seen[1]), float(seen[2]))
-            vel = (float(self._vel[0]), float(self._vel[1]), float(self._vel[2]))
-            tgt = (float(self._target[0]), float(self._target[1]), float(self._target[2]))
-            return ArmReading(pos, vel, self._force_n, status, tgt, self._t_s)
+                nx, ny, nz = self._rng.normal(0.0, self.noise.position_noise_mm, 3).tolist()
+                px, py, pz = px + nx, py + ny, pz + nz
+            return ArmReading((px, py, pz), (vx, vy, vz), self._force_n, status, (tx, ty, tz),
+                              self._t_s)
 
     # --------------------------------------------------------------- extras
 
     def true_position_mm(self) -> Vec3:
         """Where the pad really is (the reading carries ``position_noise_mm``)."""
         with self._lock:
-            return (float(self._pos[0]), float(self._pos[1]), float(self._pos[2]))
+            self._catch_up()
+            return (self._pos[0], self._pos[1], self._pos[2])
 
     @property
     def sim_time_s(self) -> float:
         """Simulated time since creation."""
-        return self._t_s
+        with self._lock:
+            self._catch_up()
+            return self._t_s
 
     @property
     def acceleration_mm_s2(self) -> Vec3:
         """The current commanded acceleration (for limit tests)."""
         with self._lock:
-            return (float(self._acc[0]), float(self._acc[1]), float(self._acc[2]))
+            self._catch_up()
+            return (self._acc[0], self._acc[1], self._acc[2])
 
     def drain_samples(self) -> NDArray[np.float64]:
         """Return and clear the buffered 1 kHz samples as an (n, 5) array: t_s, x, y, z, force_n."""
         with self._lock:
+            self._catch_up()
             out = np.asarray(self._samples, dtype=float).reshape(-1, 5)
             self._samples.clear()
         return out

@@ -87,6 +87,8 @@ class PhotometricModel:
             raise InputDataError(f"bad sensor geometry {s.shape_hw}, {s.mm_per_px} mm/px")
         self._rng = np.random.default_rng(seed)
         self._noise_pool: np.ndarray | None = None
+        #: the flat gel's shading before noise (computed on the first frame without contact)
+        self._flat_values: np.ndarray | None = None
         yy, xx = np.mgrid[0:rows, 0:cols].astype(np.float32)
         u = (xx + 0.5) / cols - 0.5
         v = (yy + 0.5) / rows - 0.5
@@ -128,6 +130,11 @@ class PhotometricModel:
         Raises:
             InputDataError: wrong shape, NaN/Inf or negative depth.
         """
+        surface, flat = self._surface(depth_mm)
+        return surface.copy() if flat else surface  # never the caller's own array
+
+    def _surface(self, depth_mm: np.ndarray) -> tuple[np.ndarray, bool]:
+        """:meth:`gel_surface_mm`, and whether the gel is flat (no contact: all zeros)."""
         import cv2
 
         s = self.settings
@@ -138,27 +145,40 @@ class PhotometricModel:
             raise InputDataError("depth map contains NaN or Inf")
         if depth.min() < 0:
             raise InputDataError("depth map must be >= 0 (mm into the gel)")
+        if not depth.any():
+            return depth, True  # the drape kernel leaves a flat gel flat
         sigma_px = s.drape_sigma_mm / s.mm_per_px
         if sigma_px > 0.1:
             depth = np.asarray(cv2.GaussianBlur(depth, (0, 0), sigma_px,
                                                 borderType=cv2.BORDER_REPLICATE), np.float32)
-        return depth
+        return depth, False
 
-    def render(self, depth_mm: np.ndarray, noise: bool = True) -> np.ndarray:
+    def render(self, depth_mm: np.ndarray, noise: bool = True,
+               gain: np.ndarray | None = None) -> np.ndarray:
         """Render one RGB uint8 frame from a contact depth map (mm, >= 0, sensor shape).
+
+        ``gain`` (per channel, e.g. an LED drift) scales the 8-bit frame as
+        ``cv2.multiply(frame, gain, dtype=cv2.CV_8U)`` would, in the same pass.
+
+        Without contact (an all-zero map) the shading is the same every frame: it is
+        computed once and only the frame's noise is added (:func:`finish_frame`).
 
         Raises:
             InputDataError: wrong shape, NaN/Inf or negative depth.
         """
-        from remote_site.sensor.shading import shade_frame
+        from remote_site.sensor.shading import finish_frame, shade_frame, shaded_values
 
         s = self.settings
-        surface = self.gel_surface_mm(depth_mm)
+        surface, flat = self._surface(depth_mm)
+        camera_noise = self._noise_sample() if noise and s.noise_dn > 0 else None
+        if flat:
+            if self._flat_values is None:
+                self._flat_values = shaded_values(self._base, self._coef, self._lights)
+            return finish_frame(self._flat_values, camera_noise, gain)
         # Unit normal of the surface z = h(x, y), seen from the camera side:
         # (-h_x, -h_y, 1) / sqrt(1 + h_x^2 + h_y^2); one fused pass with the static terms.
-        camera_noise = self._noise_sample() if noise and s.noise_dn > 0 else None
         return shade_frame(surface, s.mm_per_px, self._base, self._coef, self._lights,
-                           camera_noise)
+                           camera_noise, gain)
 
     def _noise_sample(self) -> np.ndarray:
         """Camera noise for one frame: a random window of a pre-drawn pool (fast)."""

@@ -16,13 +16,13 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["shade_frame"]
+__all__ = ["finish_frame", "shade_frame", "shaded_values"]
 
 
 @njit(cache=True, nogil=True, inline="always", error_model="numpy", fastmath=True)
 def _pixel(gx: float, gy: float, i: int, j: int, base: np.ndarray, coef: np.ndarray,
-           lights: np.ndarray, noise: np.ndarray, use_noise: bool,
-           out: np.ndarray) -> None:  # pragma: no cover - compiled
+           lights: np.ndarray, noise: np.ndarray, use_noise: bool, gain: np.ndarray,
+           use_gain: bool, out: np.ndarray) -> None:  # pragma: no cover - compiled
     zero = np.float32(0.0)
     norm = np.float32(1.0) / np.sqrt(np.float32(1.0) + gx * gx + gy * gy)
     s0 = max(lights[0, 2] - lights[0, 0] * gx - lights[0, 1] * gy, zero) * norm
@@ -34,13 +34,53 @@ def _pixel(gx: float, gy: float, i: int, j: int, base: np.ndarray, coef: np.ndar
         if use_noise:
             value += noise[i, j, c]
         value = np.floor(value + np.float32(0.5))
-        out[i, j, c] = np.uint8(min(max(value, zero), np.float32(255.0)))
+        out[i, j, c] = _gained(min(max(value, zero), np.float32(255.0)), gain, c, use_gain)
+
+
+@njit(cache=True, nogil=True, inline="always", error_model="numpy", fastmath=True)
+def _gained(value: float, gain: np.ndarray, c: int,
+            use_gain: bool) -> np.uint8:  # pragma: no cover - compiled
+    # the LED brightness gain on the 8-bit value as cv2.multiply(frame, gain, dtype=CV_8U)
+    # applies it: in double precision, rounded half to even, saturated
+    if not use_gain:
+        return np.uint8(value)
+    scaled = np.rint(np.float64(value) * gain[c])
+    return np.uint8(min(max(scaled, 0.0), 255.0))
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=True)
+def _flat_values(base: np.ndarray, coef: np.ndarray, lights: np.ndarray,
+                 out: np.ndarray) -> None:  # pragma: no cover - compiled
+    # _pixel with zero slopes (norm 1), before noise and rounding
+    zero = np.float32(0.0)
+    s0 = max(lights[0, 2], zero)
+    s1 = max(lights[1, 2], zero)
+    s2 = max(lights[2, 2], zero)
+    rows, cols = base.shape[0], base.shape[1]
+    for i in range(rows):
+        for j in range(cols):
+            for c in range(3):
+                out[i, j, c] = base[i, j, c] + coef[i, j, 0, c] * s0 \
+                    + coef[i, j, 1, c] * s1 + coef[i, j, 2, c] * s2
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=True)
+def _finish(values: np.ndarray, noise: np.ndarray, gain: np.ndarray, use_gain: bool,
+            out: np.ndarray) -> None:  # pragma: no cover - compiled
+    zero = np.float32(0.0)
+    rows, cols = values.shape[0], values.shape[1]
+    for i in range(rows):
+        for j in range(cols):
+            for c in range(3):
+                value = np.floor(values[i, j, c] + noise[i, j, c] + np.float32(0.5))
+                out[i, j, c] = _gained(min(max(value, zero), np.float32(255.0)), gain, c,
+                                       use_gain)
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=True)
 def _shade(surface: np.ndarray, inv_pitch: float, base: np.ndarray, coef: np.ndarray,
-           lights: np.ndarray, noise: np.ndarray, use_noise: bool,
-           out: np.ndarray) -> None:  # pragma: no cover - compiled
+           lights: np.ndarray, noise: np.ndarray, use_noise: bool, gain: np.ndarray,
+           use_gain: bool, out: np.ndarray) -> None:  # pragma: no cover - compiled
     rows, cols = surface.shape
     half = np.float32(0.5 * inv_pitch)
     full = np.float32(inv_pitch)
@@ -51,19 +91,20 @@ def _shade(surface: np.ndarray, inv_pitch: float, base: np.ndarray, coef: np.nda
         scale_y = half if (up - down) == 2 else full
         left_gx = (surface[i, 1] - surface[i, 0]) * full
         _pixel(left_gx, (surface[up, 0] - surface[down, 0]) * scale_y, i, 0, base, coef,
-               lights, noise, use_noise, out)
+               lights, noise, use_noise, gain, use_gain, out)
         for j in range(1, cols - 1):
             gx = (surface[i, j + 1] - surface[i, j - 1]) * half
             gy = (surface[up, j] - surface[down, j]) * scale_y
-            _pixel(gx, gy, i, j, base, coef, lights, noise, use_noise, out)
+            _pixel(gx, gy, i, j, base, coef, lights, noise, use_noise, gain, use_gain, out)
         last = cols - 1
         right_gx = (surface[i, last] - surface[i, last - 1]) * full
         _pixel(right_gx, (surface[up, last] - surface[down, last]) * scale_y, i, last, base,
-               coef, lights, noise, use_noise, out)
+               coef, lights, noise, use_noise, gain, use_gain, out)
 
 
 def shade_frame(surface_mm: np.ndarray, pitch_mm: float, base: np.ndarray, coef: np.ndarray,
-                lights: np.ndarray, noise: np.ndarray | None) -> np.ndarray:
+                lights: np.ndarray, noise: np.ndarray | None,
+                gain: np.ndarray | None = None) -> np.ndarray:
     """Shade one frame (see the module docstring for the formula).
 
     Rounding is half-up (``floor(v + 0.5)``) where numpy's ``rint`` rounds half to even: the
@@ -76,6 +117,9 @@ def shade_frame(surface_mm: np.ndarray, pitch_mm: float, base: np.ndarray, coef:
         coef: (H, W, 3 lights, 3 channels) float32 static shading weights.
         lights: (3, 3) float32 unit light directions (x, y, z) per light.
         noise: (H, W, 3) float32 camera noise, or None.
+        gain: per-channel brightness gain applied to the 8-bit frame (as
+            ``cv2.multiply(frame, gain, dtype=cv2.CV_8U)``: double precision, rounded half to
+            even, saturated), or None.
 
     Returns:
         (H, W, 3) uint8 frame.
@@ -85,5 +129,34 @@ def shade_frame(surface_mm: np.ndarray, pitch_mm: float, base: np.ndarray, coef:
     surface = np.ascontiguousarray(surface_mm, dtype=np.float32)
     use_noise = noise is not None
     noise_arr = noise if noise is not None else np.zeros((1, 1, 3), np.float32)
-    _shade(surface, float(1.0 / pitch_mm), base, coef, lights, noise_arr, use_noise, out)
+    gain_arr = _gain_array(gain)
+    _shade(surface, float(1.0 / pitch_mm), base, coef, lights, noise_arr, use_noise, gain_arr,
+           gain is not None, out)
+    return out
+
+
+def _gain_array(gain: np.ndarray | None) -> np.ndarray:
+    return np.ones(3) if gain is None else np.asarray(gain, np.float64).reshape(3)
+
+
+def shaded_values(base: np.ndarray, coef: np.ndarray, lights: np.ndarray) -> np.ndarray:
+    """The colour of the flat gel (zero slopes) before noise and rounding, (H, W, 3) float32.
+
+    :func:`finish_frame` of these values with a frame's noise gives the frame
+    :func:`shade_frame` renders for a flat surface with that noise (the same float32
+    arithmetic, so equal except where the two compilations round a sum differently in its
+    last bit and the value then lies on the .5 between two digital numbers: practically never).
+    """
+    out = np.empty(base.shape, np.float32)
+    _flat_values(base, coef, lights, out)
+    return out
+
+
+def finish_frame(values: np.ndarray, noise: np.ndarray | None,
+                 gain: np.ndarray | None = None) -> np.ndarray:
+    """``values`` (H, W, 3 float32) plus ``noise``, rounded half-up and clipped to uint8, then
+    ``gain`` applied as in :func:`shade_frame`."""
+    out = np.empty(values.shape, np.uint8)
+    noise_arr = noise if noise is not None else np.zeros(values.shape, np.float32)
+    _finish(values, noise_arr, _gain_array(gain), gain is not None, out)
     return out

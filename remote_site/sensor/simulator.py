@@ -90,17 +90,12 @@ class SimulatedSensor(TactileSensor):
 
     def _latest(self) -> SensorFrame:
         depth = self._provider() if self._provider is not None else self._depth
+        # the LED drift scales the 8-bit frame per channel, saturating, in the render's pass
+        gain = self.led_gain().astype(np.float64) if self._drift_per_s.any() else None
         try:
-            rgb = self.model.render(depth)
+            rgb = self.model.render(depth, gain=gain)
         except InputDataError as err:
             raise DeviceOperationError(f"depth provider returned an unusable map: {err}") from err
-        if self._drift_per_s.any():
-            import cv2
-
-            g = self.led_gain()
-            scalar = (float(g[0]), float(g[1]), float(g[2]), 0.0)  # per channel, saturating
-            rgb = np.asarray(cv2.multiply(rgb, scalar, dtype=cv2.CV_8U),  # type: ignore[call-overload]
-                             np.uint8)
         with self._lock:
             self._seq += 1
             seq = self._seq

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from lab.bench.cpu_impl import classify_stack, parse_raw_profile
+from lab.bench.cpu_impl import classify_stack, parse_raw_profile, thread_roots
 from lab.bench.cpu_report import product_and_sim
 
 
@@ -39,6 +39,8 @@ def test_raw_profile_lines_by_thread_with_waits_apart(tmp_path: Path) -> None:
     out = parse_raw_profile(text)
     assert out[101]["idle"] == 7 and out[101]["render"] == 5
     assert out[0x1F]["other (interpreter, libraries)"] == 2
+    roots = thread_roots(text)
+    assert roots == {101: "MainThread: <module> (mod.py)", 0x1F: "Thread-1: <module> (mod.py)"}
 
 
 def test_product_and_sim_totals() -> None:

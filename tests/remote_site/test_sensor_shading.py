@@ -65,3 +65,49 @@ def test_flat_gel_renders_the_background_and_noise_is_zero_mean() -> None:
     np.testing.assert_array_equal(model.render(flat, noise=False), model.background_rgb)
     noisy = model.render(flat).astype(float) - model.background_rgb
     assert abs(noisy.mean()) < 0.05 and 1.5 < noisy.std() < 2.5
+
+
+def test_flat_gel_fast_path_equals_the_fused_kernel_with_the_same_noise() -> None:
+    # without contact the shading is computed once and only the noise added per frame: the
+    # frames must be those the fused kernel renders for a flat surface with that noise
+    from remote_site.sensor.shading import shade_frame
+
+    settings_ = PhotometricSettings(noise_dn=2.1, marker_pitch_mm=1.2, brightness=(1.1, 0.9, 1.0))
+    fast, fused = PhotometricModel(settings_, seed=5), PhotometricModel(settings_, seed=5)
+    flat = np.zeros((240, 320), np.float32)
+    for _ in range(5):
+        got = fast.render(flat).astype(int)
+        noise = fused._noise_sample()
+        want = shade_frame(flat, settings_.mm_per_px, fused._base, fused._coef, fused._lights,
+                           noise).astype(int)
+        diff = np.abs(got - want)
+        assert diff.max() <= 1 and np.count_nonzero(diff) <= 1e-5 * diff.size
+    np.testing.assert_array_equal(fast.render(flat, noise=False),
+                                  shade_frame(flat, settings_.mm_per_px, fused._base,
+                                              fused._coef, fused._lights, None))
+    # a press after flat frames still goes through the full shading
+    press = np.zeros((240, 320), np.float32)
+    press[100:140, 140:180] = 0.5
+    assert not np.array_equal(fast.render(press, noise=False), fast.render(flat, noise=False))
+
+
+@settings(max_examples=10, deadline=None)
+@given(gain=st.tuples(st.floats(0.9, 1.1), st.floats(0.9, 1.1), st.floats(0.9, 1.1)),
+       pressed=st.booleans(), seed=st.integers(0, 100))
+def test_brightness_gain_in_the_kernel_equals_cv2_multiply(
+        gain: tuple[float, float, float], pressed: bool, seed: int) -> None:
+    # the LED drift used to be a cv2.multiply of the rendered frame; the kernels apply it in
+    # their pass and must give the same bytes (float32 gain as the simulator computes it)
+    import cv2
+
+    g32 = np.asarray(gain, np.float32)
+    settings_ = PhotometricSettings(noise_dn=2.1)
+    a, b = PhotometricModel(settings_, seed=seed), PhotometricModel(settings_, seed=seed)
+    depth = np.zeros((240, 320), np.float32)
+    if pressed:
+        depth[80:160, 100:220] = 0.4
+    got = a.render(depth, gain=g32.astype(np.float64))
+    plain = b.render(depth)
+    want = cv2.multiply(plain, (float(g32[0]), float(g32[1]), float(g32[2]), 0.0),  # type: ignore[call-overload]
+                        dtype=cv2.CV_8U)
+    np.testing.assert_array_equal(got, np.asarray(want))

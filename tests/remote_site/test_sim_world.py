@@ -77,3 +77,20 @@ def test_realism_is_validated_and_scales() -> None:
     assert REALISTIC.scaled(0.0) == Realism()
     assert REALISTIC.scaled(2.0).camera_noise_dn == pytest.approx(2 * REALISTIC.camera_noise_dn)
     assert IDEAL.camera_noise_dn == 1.0
+
+
+def test_depth_provider_turns_a_contact_and_leaves_no_contact_flat() -> None:
+    from remote_site.agent.world import _rotate
+    from remote_site.phantom.phantom import PixelGrid
+
+    world = build_world("breast", 4)
+    assert world.registration.yaw_deg != 0.0
+    grid = PixelGrid(width_px=320, height_px=240, mm_per_px=0.0634)
+    pose = [0.0, 0.0, 5.0]
+    provide = world.depth_provider(None, lambda: grid, lambda: pose)  # type: ignore[arg-type]
+    above = provide()
+    assert above.shape == (240, 320) and not above.any()
+    pose[2] = -1.5
+    pressed = world.phantom.contact(world.true_pose(pose), grid).depth_map_mm
+    assert pressed.any()
+    np.testing.assert_array_equal(provide(), _rotate(pressed, world.registration.yaw_deg))
