@@ -215,9 +215,11 @@ async def test_arm_halts_when_commands_stop() -> None:
         assert station.safe_arm.counters.watchdog_halts == 1
         states = [m for m in link.sent if isinstance(m, ArmState)]
         assert states and states[-1].status == "halted" and states[-1].source_seq == 1
-        # the arm stopped short of the target: it was halted 100 ms after the command
+        # the arm stopped short of the target: it was halted 100 ms after the command (how far
+        # it got depends on the scheduler: a simulated arm whose process was descheduled for
+        # over 0.1 s skips that gap, so on a loaded machine it may not have moved at all)
         x = station.safe_arm.arm.state().position_mm[0]
-        assert 0.0 < x < 10.0
+        assert 0.0 <= x < 10.0
         frames = [m for m in link.sent if isinstance(m, TactileFrame | TactileCompact)]
         assert frames and frames[-1].source_seq == 1
     finally:
