@@ -38,8 +38,8 @@ from remote_site.agent.world import world_for
 from remote_site.phantom.phantom_file import phantom_from_dict
 from shared.workspace import WorkspaceMap
 
-__all__ = ["apply_rule", "collect", "family_table", "reliability_table", "sweep_table",
-           "uncertain_table"]
+__all__ = ["apply_rule", "collect", "family_table", "reliability_table", "se_scale",
+           "sweep_table", "uncertain_table"]
 
 TYPED_FAMILIES = ("type", "free-operator", "coverage", "registration", "noise", "frame-rate")
 
@@ -126,6 +126,27 @@ def sweep_table(records: list[dict[str, Any]],
         lines.append(f"| {c:g} | {a:g} | {k:g} | {_pct(ok, len(found))} | {unc} | "
                      f"{len(found) - ok - unc} | {_pct(new_ok, len(new))} |")
     return "\n".join(lines)
+
+
+def se_scale(records: list[dict[str, Any]]) -> tuple[int, float, float]:
+    """How far the stated standard error of the log score is from the real scatter.
+
+    The typed families palpate the SAME phantom per index and seed (the pair depends only on
+    them), so one inclusion is measured in up to six sessions. For every pair of its
+    sessions, ``z = (log s1 - log s2) / sqrt(se1^2 + se2^2)`` would be standard normal if the
+    standard errors were right. Returns (pairs, RMS of z, robust scale 1.4826 * median |z|).
+    """
+    by_inclusion: dict[tuple[int, str], list[tuple[float, float]]] = {}
+    for r in records:
+        if r["kind"] is not None and r.get("score") and r.get("log_se"):
+            by_inclusion.setdefault((r["seed"], r["id"]), []).append(
+                (math.log(r["score"]), float(r["log_se"])))
+    zs = [(a[0] - b[0]) / math.hypot(a[1], b[1])
+          for ms in by_inclusion.values() for a, b in itertools.combinations(ms, 2)]
+    if not zs:
+        return 0, math.nan, math.nan
+    rms = math.sqrt(sum(z * z for z in zs) / len(zs))
+    return len(zs), rms, 1.4826 * float(sorted(abs(z) for z in zs)[len(zs) // 2])
 
 
 def _pct(n: int, d: int) -> str:

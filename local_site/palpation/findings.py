@@ -89,15 +89,15 @@ class DetectionConfig:
     min_samples: int = 3
     stiffness_smooth_mm: float = 2.0
     coverage_margin_mm: float = 2.0
-    min_coverage: float = 0.9
+    min_coverage: float = 0.5
     edge_band_mm: tuple[float, float] = (-1.0, 4.0)
     rim_band_mm: tuple[float, float] = (-2.5, -0.5)
     malignant_ref_edge_mm: float = 0.75
     malignant_ref_rim_relief: float = 1.0
     malignant_rim_exponent: float = 1.0
     type_uncertain_k: float = 2.0
-    min_boundary_coverage: float = 0.0
-    type_se_scale: float = 1.0
+    min_boundary_coverage: float = 0.5
+    type_se_scale: float = 1.5
     edge_sampled_arc_only: bool = False
 
 
@@ -324,12 +324,13 @@ def find_tumors(maps: PalpationMaps, config: DetectionConfig | None = None) -> l
         malignant_score, log_se = _type(boundary, cfg)
         guess = ("uncertain" if not math.isfinite(malignant_score)
                  else "malignant" if malignant_score > 1.0 else "benign")
-        type_margin = (abs(math.log(malignant_score)) / log_se
+        # the margin in CALIBRATED standard errors (the fit's are type_se_scale too small)
+        type_margin = (abs(math.log(malignant_score)) / (log_se * cfg.type_se_scale)
                        if math.isfinite(log_se) and log_se > 0 else 0.0)
         typed = math.isfinite(log_se) and type_margin >= cfg.type_uncertain_k
         confidence = (coverage * (1.0 - math.exp(-max(significance - 1.0, 0.0) * 2.0))
                       * (1.0 - math.exp(-type_margin / cfg.type_uncertain_k)))
-        type_confidence = type_probability(type_margin, cfg.type_se_scale)
+        type_confidence = type_probability(type_margin)
         enough = coverage >= cfg.min_coverage and boundary.arc >= cfg.min_boundary_coverage
         kind = guess if enough and typed else "uncertain"
         findings.append(Finding(
