@@ -42,9 +42,21 @@
   exist. The reference levels were set on development phantoms (OOD ``type`` family,
   seeds 1000-1011 at 20 frames/s), never on the benchmark's held-out seeds.
 * **Uncertain**: a finding whose disc (equivalent radius + ``coverage_margin_mm``) is less
-  than ``min_coverage`` covered is typed ``uncertain`` (its best guess is ``likely_kind``).
+  than ``min_coverage`` covered, or whose outer fall was sampled on less than
+  ``min_boundary_coverage`` of its outline (``boundary_coverage``,
+  :func:`local_site.palpation.edge.sampled_arc`; 0 by default: not used), is typed
+  ``uncertain`` (its best guess is ``likely_kind``). Measured on development seeds 6000-6029
+  and fresh seeds 7000-7029 (benchmarks/results/palpation_typing_coverage.md): the guesses
+  withheld for coverage alone are right 93 %, but typing them (half the disc, half the
+  outline) together with the calibrated margin below did not beat this rule on the fresh
+  seeds, so the defaults stay.
 * **Confidence** in [0, 1]: coverage x detection margin (peak over threshold) x typing
-  margin (distance of the malignant score from 1, in log, over its standard error).
+  margin (distance of the malignant score from 1, in log, over its standard error): a
+  ranking aid, not a probability. ``type_confidence`` is one: the probability that the
+  best guess's sign is right, ``Phi(margin / type_se_scale)``
+  (:func:`type_probability`); the fit's standard error is ``type_se_scale`` (1.5, from the
+  session-to-session scatter of one inclusion's score on development seeds) too small, and
+  the resulting reliability table is in palpation_typing_coverage.md.
 * **Severity**: the type first, as a clinician ranks lesions (a lesion typed malignant
   above an ``uncertain`` one, above one typed benign: malignancy outweighs size), then, among
   findings of one type, the integrated relief excess over the region (``severity_score``,
@@ -89,14 +101,14 @@ class DetectionConfig:
     min_samples: int = 3
     stiffness_smooth_mm: float = 2.0
     coverage_margin_mm: float = 2.0
-    min_coverage: float = 0.5
+    min_coverage: float = 0.9
     edge_band_mm: tuple[float, float] = (-1.0, 4.0)
     rim_band_mm: tuple[float, float] = (-2.5, -0.5)
     malignant_ref_edge_mm: float = 0.75
     malignant_ref_rim_relief: float = 1.0
     malignant_rim_exponent: float = 1.0
     type_uncertain_k: float = 2.0
-    min_boundary_coverage: float = 0.5
+    min_boundary_coverage: float = 0.0
     type_se_scale: float = 1.5
     edge_sampled_arc_only: bool = False
 
@@ -324,13 +336,13 @@ def find_tumors(maps: PalpationMaps, config: DetectionConfig | None = None) -> l
         malignant_score, log_se = _type(boundary, cfg)
         guess = ("uncertain" if not math.isfinite(malignant_score)
                  else "malignant" if malignant_score > 1.0 else "benign")
-        # the margin in CALIBRATED standard errors (the fit's are type_se_scale too small)
-        type_margin = (abs(math.log(malignant_score)) / (log_se * cfg.type_se_scale)
+        type_margin = (abs(math.log(malignant_score)) / log_se
                        if math.isfinite(log_se) and log_se > 0 else 0.0)
         typed = math.isfinite(log_se) and type_margin >= cfg.type_uncertain_k
         confidence = (coverage * (1.0 - math.exp(-max(significance - 1.0, 0.0) * 2.0))
                       * (1.0 - math.exp(-type_margin / cfg.type_uncertain_k)))
-        type_confidence = type_probability(type_margin)
+        # the fit's standard error is type_se_scale too small (session-to-session scatter)
+        type_confidence = type_probability(type_margin, cfg.type_se_scale)
         enough = coverage >= cfg.min_coverage and boundary.arc >= cfg.min_boundary_coverage
         kind = guess if enough and typed else "uncertain"
         findings.append(Finding(
