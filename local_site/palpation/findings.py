@@ -49,7 +49,9 @@
   and fresh seeds 7000-7029 (benchmarks/results/palpation_typing_coverage.md): the guesses
   withheld for coverage alone are right 93 %, but typing them (half the disc, half the
   outline) together with the calibrated margin below did not beat this rule on the fresh
-  seeds, so the defaults stay.
+  seeds, so the defaults stay. ``edge_sampled_arc_only`` fits the edge and the rim on the
+  sampled sectors only (measured: little change, the fit already uses touched cells only;
+  off).
 * **Confidence** in [0, 1]: coverage x detection margin (peak over threshold) x typing
   margin (distance of the malignant score from 1, in log, over its standard error): a
   ranking aid, not a probability. ``type_confidence`` is one: the probability that the
