@@ -27,7 +27,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage, optimize, special
 
-__all__ = ["EdgeFit", "edge_distance_mm", "fit_edge", "rim_level", "step_model"]
+__all__ = ["EdgeFit", "arc_coverage", "edge_distance_mm", "fit_edge", "rim_level", "sampled_arc",
+           "step_model"]
 
 _SQRT2 = math.sqrt(2.0)
 
@@ -141,3 +142,49 @@ def rim_level(values: NDArray[np.float64], counts: NDArray[np.float64],
     spread = float(np.sqrt(np.average((y - level) ** 2, weights=n)))
     n_eff = float(n.sum() ** 2 / (n ** 2).sum())
     return level, spread / math.sqrt(max(n_eff - 1.0, 1.0))
+
+
+def _sector_map(shape: tuple[int, ...], center_rc: tuple[float, float],
+                sectors: int) -> NDArray[np.int64]:
+    rows, cols = np.indices(shape)
+    angle = np.arctan2(rows - center_rc[0], cols - center_rc[1])
+    return np.minimum(((angle + math.pi) / (2 * math.pi) * sectors).astype(np.int64),
+                      sectors - 1)
+
+
+def sampled_arc(covered: NDArray[np.bool_], distance_mm: NDArray[np.float64],
+                use: NDArray[np.bool_], center_rc: tuple[float, float],
+                band_mm: tuple[float, float] = (0.0, 4.0), sectors: int = 16,
+                min_share: float = 0.5) -> tuple[float, NDArray[np.bool_]]:
+    """Where a finding's outer fall was sampled: the share of its outline, and the cells
+    of the sampled angular sectors.
+
+    The cells ``use`` whose signed distance from the outline lies in ``band_mm`` (by default
+    the outer fall, where the relief drops to the healthy level) are split into ``sectors``
+    equal angular sectors about ``center_rc`` (row, column); a sector counts as sampled when
+    at least ``min_share`` of its band cells are ``covered``. A sector holding no band cell
+    is left out of the share (a small outline has fewer band cells than sectors).
+
+    Returns:
+        (sampled sectors over the sectors holding band cells, in [0, 1] and 0 when the band
+        holds no cell; a mask of every cell, at any distance, lying in a sampled sector).
+    """
+    lo, hi = band_mm
+    sector = _sector_map(covered.shape, center_rc, sectors)
+    band = use & (distance_mm > lo) & (distance_mm <= hi)
+    if not band.any():
+        return 0.0, np.zeros(covered.shape, bool)
+    total = np.bincount(sector[band], minlength=sectors)
+    hit = np.bincount(sector[band], weights=covered[band].astype(float), minlength=sectors)
+    present = total > 0
+    sampled = present & (hit >= min_share * total)
+    return float(sampled.sum() / present.sum()), np.asarray(sampled[sector], bool)
+
+
+def arc_coverage(covered: NDArray[np.bool_], distance_mm: NDArray[np.float64],
+                 use: NDArray[np.bool_], center_rc: tuple[float, float],
+                 band_mm: tuple[float, float] = (0.0, 4.0), sectors: int = 16,
+                 min_share: float = 0.5) -> float:
+    """The share of a finding's outline around which its outer fall was sampled
+    (:func:`sampled_arc`'s first value)."""
+    return sampled_arc(covered, distance_mm, use, center_rc, band_mm, sectors, min_share)[0]

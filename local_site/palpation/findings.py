@@ -42,9 +42,23 @@
   exist. The reference levels were set on development phantoms (OOD ``type`` family,
   seeds 1000-1011 at 20 frames/s), never on the benchmark's held-out seeds.
 * **Uncertain**: a finding whose disc (equivalent radius + ``coverage_margin_mm``) is less
-  than ``min_coverage`` covered is typed ``uncertain`` (its best guess is ``likely_kind``).
+  than ``min_coverage`` covered, or whose outer fall was sampled on less than
+  ``min_boundary_coverage`` of its outline (``boundary_coverage``,
+  :func:`local_site.palpation.edge.sampled_arc`; 0 by default: not used), is typed
+  ``uncertain`` (its best guess is ``likely_kind``). Measured on development seeds 6000-6029
+  and fresh seeds 7000-7029 (benchmarks/results/palpation_typing_coverage.md): the guesses
+  withheld for coverage alone are right 93 %, but typing them (half the disc, half the
+  outline) together with the calibrated margin below did not beat this rule on the fresh
+  seeds, so the defaults stay. ``edge_sampled_arc_only`` fits the edge and the rim on the
+  sampled sectors only (measured: little change, the fit already uses touched cells only;
+  off).
 * **Confidence** in [0, 1]: coverage x detection margin (peak over threshold) x typing
-  margin (distance of the malignant score from 1, in log, over its standard error).
+  margin (distance of the malignant score from 1, in log, over its standard error): a
+  ranking aid, not a probability. ``type_confidence`` is one: the probability that the
+  best guess's sign is right, ``Phi(margin / type_se_scale)``
+  (:func:`type_probability`); the fit's standard error is ``type_se_scale`` (1.5, from the
+  session-to-session scatter of one inclusion's score on development seeds) too small, and
+  the resulting reliability table is in palpation_typing_coverage.md.
 * **Severity**: the type first, as a clinician ranks lesions (a lesion typed malignant
   above an ``uncertain`` one, above one typed benign: malignancy outweighs size), then, among
   findings of one type, the integrated relief excess over the region (``severity_score``,
@@ -62,10 +76,17 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
-from local_site.palpation.edge import EdgeFit, edge_distance_mm, fit_edge, rim_level
+from local_site.palpation.edge import (
+    EdgeFit,
+    edge_distance_mm,
+    fit_edge,
+    rim_level,
+    sampled_arc,
+)
 from local_site.palpation.maps import PalpationMaps
 
-__all__ = ["DetectionConfig", "Finding", "find_tumors", "malignant_score", "rank_by_severity"]
+__all__ = ["DetectionConfig", "Finding", "find_tumors", "malignant_score", "rank_by_severity",
+           "type_probability"]
 
 #: the type's weight in the severity order (see the module docstring)
 _SEVERITY_OF_KIND = {"benign": 0, "uncertain": 1, "malignant": 2}
@@ -89,6 +110,9 @@ class DetectionConfig:
     malignant_ref_rim_relief: float = 1.0
     malignant_rim_exponent: float = 1.0
     type_uncertain_k: float = 2.0
+    min_boundary_coverage: float = 0.0
+    type_se_scale: float = 1.5
+    edge_sampled_arc_only: bool = False
 
 
 @dataclass(frozen=True)
@@ -113,6 +137,9 @@ class Finding:
     edge_width_se_mm: float = math.inf
     rim_relief: float = math.nan
     malignant_score: float = math.nan
+    malignant_score_log_se: float = math.inf
+    boundary_coverage: float = 0.0
+    type_confidence: float = 0.5
 
     def to_dict(self) -> dict[str, object]:
         """Plain JSON."""
@@ -129,6 +156,9 @@ class Finding:
             "edge_width_se_mm": _finite(self.edge_width_se_mm),
             "rim_relief": _finite(self.rim_relief),
             "malignant_score": _finite(self.malignant_score),
+            "malignant_score_log_se": _finite(self.malignant_score_log_se),
+            "boundary_coverage": self.boundary_coverage,
+            "type_confidence": self.type_confidence,
         }
 
 
@@ -154,12 +184,13 @@ class _Boundary:
     edge: EdgeFit
     rim: float
     rim_se: float
+    arc: float
 
 
 def _boundary(excess: NDArray[np.float64], raw_excess: NDArray[np.float64],
               counts: NDArray[np.float64], region: NDArray[np.bool_],
-              lesion: NDArray[np.bool_], peak: float, cell: float,
-              cfg: DetectionConfig) -> _Boundary:
+              lesion: NDArray[np.bool_], covered: NDArray[np.bool_], peak: float,
+              center_rc: tuple[float, float], cell: float, cfg: DetectionConfig) -> _Boundary:
     """Edge width and rim relief of one region (cells near other regions left out)."""
     inside = ndimage.binary_fill_holes((excess >= peak / 2.0) & region)
     if inside is None or not inside.any():
@@ -169,9 +200,12 @@ def _boundary(excess: NDArray[np.float64], raw_excess: NDArray[np.float64],
     if others.any():
         others = ndimage.binary_dilation(others, iterations=max(1, round(reach / cell)))
     distance = edge_distance_mm(inside, cell)
-    edge = fit_edge(raw_excess, counts, distance, ~others, cfg.edge_band_mm)
-    rim, rim_se = rim_level(raw_excess, counts, distance, ~others, cfg.rim_band_mm)
-    return _Boundary(edge, rim, rim_se)
+    arc, in_sampled_arc = sampled_arc(covered, distance, ~others, center_rc,
+                                      (0.0, cfg.edge_band_mm[1]))
+    use = ~others & in_sampled_arc if cfg.edge_sampled_arc_only and arc > 0 else ~others
+    edge = fit_edge(raw_excess, counts, distance, use, cfg.edge_band_mm)
+    rim, rim_se = rim_level(raw_excess, counts, distance, use, cfg.rim_band_mm)
+    return _Boundary(edge, rim, rim_se, arc)
 
 
 def malignant_score(width_mm: float, width_se_mm: float, rim: float, rim_se: float,
@@ -195,6 +229,15 @@ def malignant_score(width_mm: float, width_se_mm: float, rim: float, rim_se: flo
 def _type(b: _Boundary, cfg: DetectionConfig) -> tuple[float, float]:
     """The malignant score and the standard error of its log (inf when unmeasured)."""
     return malignant_score(b.edge.width_mm, b.edge.width_se_mm, b.rim, b.rim_se, cfg)
+
+
+def type_probability(margin: float, se_scale: float = 1.0) -> float:
+    """The probability that the sign of the log malignant score is right, for a score
+    ``margin`` standard errors from 1 whose standard error is ``se_scale`` times too small:
+    ``Phi(margin / se_scale)``, in [0.5, 1] (0.5 for a margin of 0: a coin toss)."""
+    if not (math.isfinite(margin) and margin > 0):
+        return 0.5
+    return 0.5 * math.erfc(-margin / (se_scale * math.sqrt(2.0)))
 
 
 def _background(values: NDArray[np.float64]) -> tuple[float, float]:
@@ -278,7 +321,8 @@ def find_tumors(maps: PalpationMaps, config: DetectionConfig | None = None) -> l
         rim = region & ~ndimage.binary_erosion(region)
         sharpness = float(grad[rim].mean() / peak) if rim.any() and peak > 0 else 0.0
         irregularity = _irregularity(excess, region, peak, cx, cy, cell)
-        boundary = _boundary(excess, raw_excess, counts, region, lesion, peak, cell, cfg)
+        boundary = _boundary(excess, raw_excess, counts, region, lesion, covered, peak,
+                             (cy, cx), cell, cfg)
         x_mm = float(np.interp(cx, np.arange(maps.x_mm.size), maps.x_mm))
         y_mm = float(np.interp(cy, np.arange(maps.y_mm.size), maps.y_mm))
         radius = math.sqrt(area / math.pi)
@@ -299,7 +343,10 @@ def find_tumors(maps: PalpationMaps, config: DetectionConfig | None = None) -> l
         typed = math.isfinite(log_se) and type_margin >= cfg.type_uncertain_k
         confidence = (coverage * (1.0 - math.exp(-max(significance - 1.0, 0.0) * 2.0))
                       * (1.0 - math.exp(-type_margin / cfg.type_uncertain_k)))
-        kind = guess if coverage >= cfg.min_coverage and typed else "uncertain"
+        # the fit's standard error is type_se_scale too small (session-to-session scatter)
+        type_confidence = type_probability(type_margin, cfg.type_se_scale)
+        enough = coverage >= cfg.min_coverage and boundary.arc >= cfg.min_boundary_coverage
+        kind = guess if enough and typed else "uncertain"
         findings.append(Finding(
             center_mm=(x_mm, y_mm), area_mm2=area, equivalent_radius_mm=radius,
             peak_relief=peak, severity_score=float(weights.sum()) * cell * cell,
@@ -308,7 +355,8 @@ def find_tumors(maps: PalpationMaps, config: DetectionConfig | None = None) -> l
             coverage=coverage, confidence=confidence, likely_kind=guess,
             edge_width_mm=boundary.edge.width_mm,
             edge_width_se_mm=boundary.edge.width_se_mm, rim_relief=boundary.rim,
-            malignant_score=malignant_score))
+            malignant_score=malignant_score, malignant_score_log_se=log_se,
+            boundary_coverage=boundary.arc, type_confidence=type_confidence))
     return rank_by_severity(findings)
 
 

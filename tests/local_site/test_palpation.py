@@ -299,3 +299,37 @@ def test_exponent_one_is_the_previous_rule() -> None:
     score, log_se = malignant_score(0.9, 0.03, 1.2, 0.06, cfg)
     assert score == pytest.approx((0.9 / 0.75) ** 2 * 1.2)
     assert log_se == pytest.approx(math.hypot(2 * 0.03 / 0.9, 0.06 / 1.2))
+
+
+def test_half_palpated_finding_has_half_its_outline_sampled() -> None:
+    """A tumor felt only up to its centre line (the frames whose patch reached beyond
+    dropped) is reported with about half its outline sampled, and a rule asking for more
+    outline types it ``uncertain`` without changing its best guess; fully felt, the
+    outline is whole and the type confidence is the normal CDF of the margin in calibrated
+    standard errors."""
+    rec, _ = synthetic("breast", 3)
+    ws = WorkspaceMap()
+    full = analyse_recording(rec, ws)
+    assert all(f.boundary_coverage == 1.0 for f in full)
+    for f in full:
+        margin = abs(math.log(f.malignant_score)) / f.malignant_score_log_se
+        assert f.type_confidence == pytest.approx(
+            0.5 * math.erfc(-margin / (DetectionConfig().type_se_scale * math.sqrt(2))))
+        assert f.to_dict()["boundary_coverage"] == 1.0
+    target = full[0]
+    cut_x = float(ws.inverse([target.center_mm[0], target.center_mm[1], 0.0])[0])
+    # a patch reaches half its width past its centre: no cell beyond the tumor's centre line
+    keep = rec.frame_center_mm[:, 0] <= cut_x - GRID.width_px * GRID.mm_per_px / 2.0
+    half = replace(rec, frame_center_mm=rec.frame_center_mm[keep],
+                   frame_pitch_mm=rec.frame_pitch_mm[keep], frame_contact=rec.frame_contact[keep],
+                   frame_force_n=rec.frame_force_n[keep],
+                   frame_indentation_mm=rec.frame_indentation_mm[keep],
+                   frame_height_mm=rec.frame_height_mm[keep])
+    found = [f for f in analyse_recording(half, ws)
+             if math.dist(f.center_mm, target.center_mm) < 6.0]
+    assert len(found) == 1
+    assert 0.25 <= found[0].boundary_coverage <= 0.75
+    strict = [f for f in analyse_recording(half, ws, detection=DetectionConfig(
+        min_coverage=0.0, min_boundary_coverage=0.8))
+        if math.dist(f.center_mm, target.center_mm) < 6.0]
+    assert strict[0].kind == "uncertain" and strict[0].likely_kind == found[0].likely_kind

@@ -10,9 +10,16 @@ import math
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from scipy import special
+from scipy import special, stats
 
-from local_site.palpation.edge import edge_distance_mm, fit_edge, rim_level
+from local_site.palpation.edge import (
+    arc_coverage,
+    edge_distance_mm,
+    fit_edge,
+    rim_level,
+    sampled_arc,
+)
+from local_site.palpation.findings import type_probability
 
 CELL = 0.5
 N = 48  # cells per side: 24 mm
@@ -122,3 +129,74 @@ def test_too_few_cells_is_no_estimate() -> None:
     assert fit.width_se_mm == math.inf and fit.relative_se == math.inf
     level, se = rim_level(values, counts, d, np.ones((N, N), bool))
     assert math.isnan(level) and se == math.inf
+
+
+def _disc_distance(radius: float) -> np.ndarray:
+    return edge_distance_mm(_radius_mm() <= radius, CELL)
+
+
+_CENTER = ((N - 1) / 2.0, (N - 1) / 2.0)
+
+
+def _angle() -> np.ndarray:
+    rows, cols = np.indices((N, N))
+    return np.arctan2(rows - _CENTER[0], cols - _CENTER[1])
+
+
+@given(radius=st.floats(3.0, 7.0), start=st.floats(-math.pi, math.pi),
+       extent=st.floats(0.0, 2 * math.pi))
+@settings(max_examples=60, deadline=None)
+def test_arc_coverage_is_the_sampled_share_of_the_outline(radius: float, start: float,
+                                                          extent: float) -> None:
+    """Independent reference: a scan that covered a wedge of ``extent`` radians around the
+    disc's centre sampled ``extent / 2 pi`` of its outline, to within the two sectors the
+    wedge's sides cut (16 sectors)."""
+    covered = np.mod(_angle() - start, 2 * math.pi) < extent
+    share, mask = sampled_arc(covered, _disc_distance(radius), np.ones((N, N), bool), _CENTER)
+    assert abs(share - extent / (2 * math.pi)) <= 2.0 / 16 + 1e-9
+    assert share == arc_coverage(covered, _disc_distance(radius), np.ones((N, N), bool),
+                                 _CENTER)
+    # the sampled sectors' cells are (mostly) the covered ones: a sector is sampled when at
+    # least half of its band is covered
+    if share > 0:
+        assert covered[mask].mean() >= 0.5
+
+
+@given(radius=st.floats(3.0, 7.0), seed=st.integers(0, 2**32 - 1),
+       share=st.floats(0.0, 1.0))
+@settings(max_examples=40, deadline=None)
+def test_arc_coverage_never_falls_when_cells_are_added(radius: float, seed: int,
+                                                       share: float) -> None:
+    rng = np.random.default_rng(seed)
+    covered = rng.random((N, N)) < share
+    more = covered | (rng.random((N, N)) < 0.2)
+    d = _disc_distance(radius)
+    use = np.ones((N, N), bool)
+    assert arc_coverage(more, d, use, _CENTER) >= arc_coverage(covered, d, use, _CENTER)
+    assert 0.0 <= arc_coverage(covered, d, use, _CENTER) <= 1.0
+
+
+def test_arc_coverage_limits() -> None:
+    d = _disc_distance(5.0)
+    use = np.ones((N, N), bool)
+    assert arc_coverage(np.ones((N, N), bool), d, use, _CENTER) == 1.0
+    assert arc_coverage(np.zeros((N, N), bool), d, use, _CENTER) == 0.0
+    # no band cell usable (another finding's cells): nothing was sampled
+    share, mask = sampled_arc(np.ones((N, N), bool), d, np.zeros((N, N), bool), _CENTER)
+    assert share == 0.0 and not mask.any()
+
+
+@given(margin=st.floats(0.0, 20.0), scale=st.floats(0.2, 5.0))
+def test_type_probability_is_the_normal_cdf(margin: float, scale: float) -> None:
+    """Independent reference: scipy's normal CDF of the margin in (scaled) standard errors."""
+    p = type_probability(margin, scale)
+    assert p == (0.5 if margin == 0 else p)
+    assert abs(p - float(stats.norm.cdf(margin / scale))) < 1e-9
+    assert 0.5 <= p <= 1.0
+    assert type_probability(margin + 0.5, scale) >= p
+    assert type_probability(margin, scale * 2) <= p
+
+
+def test_type_probability_of_an_unmeasured_score_is_a_coin_toss() -> None:
+    for margin in (math.nan, math.inf * 0, -1.0, 0.0):
+        assert type_probability(margin) == 0.5
