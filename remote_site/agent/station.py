@@ -125,10 +125,21 @@ def pose_eta_s(reading: ArmReading, tolerance_mm: float) -> float:
     if pose_reached(reading, tolerance_mm):
         return 0.0
     assert reading.target_mm is not None
+    closing = closing_speed_mm_s(reading)
+    dist = math.dist(reading.target_mm, reading.position_mm)
+    return (dist - tolerance_mm) / closing if closing > 1e-9 else math.inf
+
+
+def closing_speed_mm_s(reading: ArmReading) -> float:
+    """The arm's speed towards its target (negative: moving away; 0 without a target or at
+    it)."""
+    if reading.target_mm is None:
+        return 0.0
     gap = [t - p for t, p in zip(reading.target_mm, reading.position_mm, strict=True)]
     dist = math.hypot(*gap)
-    closing = sum(v * g for v, g in zip(reading.velocity_mm_s, gap, strict=True)) / dist
-    return (dist - tolerance_mm) / closing if closing > 1e-9 else math.inf
+    if dist == 0.0:
+        return 0.0
+    return sum(v * g for v, g in zip(reading.velocity_mm_s, gap, strict=True)) / dist
 
 
 def command_clock(view: ClockView | None) -> tuple[float, float] | None:
@@ -318,7 +329,12 @@ class RemoteStation:
             if eta_s == 0.0:
                 self.captures.on_pose += 1
                 return
-            starting = math.hypot(*reading.velocity_mm_s) < 1.0
+            # an arm not yet on its way to this target - at rest, or still settling from its
+            # previous move (its speed is not towards this target) - is given until the
+            # deadline to start; only an arm already closing in, too slowly to arrive in time
+            # (tracking a moving hand), is captured at once. (Judged by the absolute speed, a
+            # 10 mm step was captured 2 ms after its command with the pad still at the start.)
+            starting = closing_speed_mm_s(reading) < 1.0
             if loop.time() >= deadline or (loop.time() + eta_s > deadline and not starting):
                 self.captures.moving += 1
                 return

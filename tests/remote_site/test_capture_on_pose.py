@@ -10,7 +10,7 @@ from collections.abc import Sequence
 import pytest
 
 from remote_site.agent.config import RemoteAgentConfig
-from remote_site.agent.station import pose_eta_s, pose_reached
+from remote_site.agent.station import closing_speed_mm_s, pose_eta_s, pose_reached
 from remote_site.arm.base import ArmReading
 from remote_site.arm.safety import SafetyConfig
 from shared.errors import ConfigError
@@ -49,6 +49,20 @@ def test_pose_eta_from_the_speed_towards_the_target() -> None:
     assert pose_eta_s(moving((-5.0, 0.0, 0.0)), 0.25) == math.inf  # moving away
     assert pose_eta_s(moving((0.0, 3.0, 0.0)), 0.25) == math.inf
     assert pose_eta_s(reading((1.0, 0.0, 10.0), (1.25, 0.0, 10.0)), 0.25) == 0.0
+
+
+def test_closing_speed_is_the_speed_towards_the_target() -> None:
+    def arm(velocity: tuple[float, float, float],
+            target: tuple[float, float, float] | None = (10.0, 0.0, 10.0)) -> ArmReading:
+        return ArmReading((0.0, 0.0, 10.0), velocity, 0.0, "moving", target, 0.0)
+
+    assert closing_speed_mm_s(arm((30.0, 0.0, 0.0))) == pytest.approx(30.0)
+    assert closing_speed_mm_s(arm((30.0, 40.0, 0.0))) == pytest.approx(30.0)
+    assert closing_speed_mm_s(arm((-2.0, 0.0, 0.0))) == pytest.approx(-2.0)
+    # settling from the previous move, sideways: not on its way (given time to start)
+    assert closing_speed_mm_s(arm((0.0, 3.0, 0.0))) == 0.0
+    assert closing_speed_mm_s(arm((5.0, 0.0, 0.0), None)) == 0.0
+    assert closing_speed_mm_s(arm((5.0, 0.0, 0.0), (0.0, 0.0, 10.0))) == 0.0  # at the target
 
 
 def test_pose_settings_are_checked() -> None:
