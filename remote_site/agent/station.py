@@ -317,24 +317,29 @@ class RemoteStation:
 
     async def _until_pose(self, command: AppliedCommand) -> None:
         """Return once the arm has reached ``command``'s pose, or at once when it will not
-        reach it within ``pose_wait_max_ms`` of the command at its current speed (an arm
-        still at rest is given until then to start)."""
+        reach it within ``pose_wait_max_ms`` of the command at its current, steady speed
+        (an arm still at rest, settling or speeding up is given until then)."""
         loop = asyncio.get_running_loop()
         tolerance_mm = self.config.pose_tolerance_mm
         wait_s = self.config.pose_wait_max_ms / 1000.0 - (now_us() - command.arm_command_us) / 1e6
         deadline = loop.time() + wait_s
+        prev_closing: float | None = None
         while True:
             reading = self.pipeline.read_arm()
             eta_s = pose_eta_s(reading, tolerance_mm)
             if eta_s == 0.0:
                 self.captures.on_pose += 1
                 return
-            # an arm not yet on its way to this target - at rest, or still settling from its
-            # previous move (its speed is not towards this target) - is given until the
-            # deadline to start; only an arm already closing in, too slowly to arrive in time
-            # (tracking a moving hand), is captured at once. (Judged by the absolute speed, a
-            # 10 mm step was captured 2 ms after its command with the pad still at the start.)
-            starting = closing_speed_mm_s(reading) < 1.0
+            # an arm not yet on its way to this target (at rest, or still settling from its
+            # previous move: its speed is not towards this target) or still speeding up
+            # towards it is given until the deadline: its speed now says little about when
+            # it arrives. Only an arm closing in at a steady speed, too slowly to arrive in
+            # time (tracking a moving hand), is captured at once. (Judged by the absolute
+            # speed, a 10 mm step was captured 2 ms after its command, the pad at the start.)
+            closing = closing_speed_mm_s(reading)
+            starting = (closing < 1.0 or prev_closing is None
+                        or closing > prev_closing * 1.001)
+            prev_closing = closing
             if loop.time() >= deadline or (loop.time() + eta_s > deadline and not starting):
                 self.captures.moving += 1
                 return

@@ -122,7 +122,9 @@ async def test_frames_are_taken_once_the_arm_reached_the_commanded_pose() -> Non
         target_platform = WS.inverse(list(target))
         counters = station.safe_arm.counters
         assert math.dist(first.center_mm, target_platform[:2]) <= tolerance_mm * 1.05 + 1e-3, (
-            f"first answering frame at {first.center_mm}; arm commands refused as stale "
+            f"first answering frame at {first.center_mm}, "
+            f"{(stamps['sensor_frame'] - stamps['arm_command']) / 1e3:.1f} ms after its "
+            f"command; {station.captures}; arm commands refused as stale "
             f"{counters.dropped_stale}, watchdog halts {counters.watchdog_halts}")
         assert station.captures.on_pose >= 1
         assert station.captures.moving <= 1
