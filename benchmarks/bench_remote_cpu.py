@@ -29,6 +29,8 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+from lab.bench.results import write_results
+
 RESULTS = Path(__file__).resolve().parent / "results"
 SIDES = ("before", "after")
 _SIM = ("sim:", "bench/")
@@ -167,9 +169,8 @@ def main() -> int:
                       f"{_f(run.get('remote_ms_per_frame'), 2)} ms/frame", flush=True)
     text = _report(runs, args)
     if not args.no_write:
-        stem = f"remote_cpu{'_' + args.tag if args.tag else ''}"
-        (RESULTS / f"{stem}.md").write_text(text)
-        (RESULTS / f"{stem}.json").write_text(json.dumps(runs, indent=1, default=str))
+        write_results(RESULTS, f"remote_cpu{'_' + args.tag if args.tag else ''}", text,
+                      data=runs)
     print(text)  # after writing: a closed pipe must not lose the results
     return 0
 

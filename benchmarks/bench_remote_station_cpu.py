@@ -36,6 +36,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from lab.bench.results import write_results
+
 RESULTS = Path(__file__).resolve().parent / "results"
 SIDES = ("before", "after")
 _CLK = os.sysconf("SC_CLK_TCK")
@@ -307,9 +309,8 @@ def main() -> int:
                      f"{run['frames_per_s']:.0f} fps"), flush=True)
     text = _report(runs, args)
     if not args.no_write:
-        stem = f"remote_station_cpu{'_' + args.tag if args.tag else ''}"
-        (RESULTS / f"{stem}.md").write_text(text)
-        (RESULTS / f"{stem}.json").write_text(json.dumps(runs, indent=1, default=str))
+        write_results(RESULTS, f"remote_station_cpu{'_' + args.tag if args.tag else ''}", text,
+                      data=runs)
     print(text)  # after writing: a closed pipe must not lose the results
     return 0
 

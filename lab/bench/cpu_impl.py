@@ -38,6 +38,7 @@ import sys
 import tempfile
 import time
 from collections import Counter, defaultdict
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -192,37 +193,10 @@ def _is_wait(frames: list[tuple[str, str, int]]) -> bool:
     return bool(text) and _WAIT_CALL.search(text) is not None
 
 
-def parse_raw_profile(text: str) -> dict[int, Counter[str]]:
-    """py-spy ``--format raw --threads`` output -> tid -> Counter(stage or ``idle``)."""
-    out: dict[int, Counter[str]] = defaultdict(Counter)
-    for raw in text.splitlines():
-        raw = raw.strip()
-        if not raw:
-            continue
-        stack_s, _, count_s = raw.rpartition(" ")
-        try:
-            count = int(count_s)
-        except ValueError:
-            continue
-        parts = stack_s.split(";")
-        head = re.match(r"thread \((?:0x)?([0-9a-fA-F]+)\)", parts[0])
-        if head is None:
-            continue
-        tid = int(head.group(1), 16 if parts[0].startswith("thread (0x") else 10)
-        frames = []
-        for p in parts[1:]:
-            m = _FRAME.match(p)
-            if m:
-                frames.append((m["func"], m["file"], int(m["line"])))
-        out[tid]["idle" if _is_wait(frames) else classify_stack(frames)] += count
-    return out
-
-
-def thread_roots(text: str) -> dict[int, str]:
-    """py-spy ``--format raw --threads`` output -> tid -> the thread's name as py-spy saw it
-    (``thread (101): MainThread``) and the outermost function below the threading bootstrap
-    in most of its samples (``arm-watchdog: loop (safety.py)``)."""
-    roots: dict[int, Counter[str]] = defaultdict(Counter)
+def _raw_samples(text: str
+                 ) -> Iterator[tuple[int, str | None, list[tuple[str, str, int]], int]]:
+    """py-spy ``--format raw --threads`` lines -> (tid, thread name or None, frames outermost
+    first as (function, file, line), sample count); lines of another shape are skipped."""
     for raw in text.splitlines():
         stack_s, _, count_s = raw.strip().rpartition(" ")
         if not count_s.isdigit():
@@ -232,9 +206,28 @@ def thread_roots(text: str) -> dict[int, str]:
         if head is None:
             continue
         tid = int(head.group(1), 16 if parts[0].startswith("thread (0x") else 10)
-        root = next((f"{m['func']} ({Path(m['file']).name})" for m in map(_FRAME.match, parts[1:])
-                     if m and not m["file"].endswith("threading.py")), "?")
-        roots[tid][f"{head.group(2)}: {root}" if head.group(2) else root] += int(count_s)
+        frames = [(m["func"], m["file"], int(m["line"]))
+                  for m in map(_FRAME.match, parts[1:]) if m]
+        yield tid, head.group(2), frames, int(count_s)
+
+
+def parse_raw_profile(text: str) -> dict[int, Counter[str]]:
+    """py-spy ``--format raw --threads`` output -> tid -> Counter(stage or ``idle``)."""
+    out: dict[int, Counter[str]] = defaultdict(Counter)
+    for tid, _name, frames, count in _raw_samples(text):
+        out[tid]["idle" if _is_wait(frames) else classify_stack(frames)] += count
+    return out
+
+
+def thread_roots(text: str) -> dict[int, str]:
+    """py-spy ``--format raw --threads`` output -> tid -> the thread's name as py-spy saw it
+    (``thread (101): MainThread``) and the outermost function below the threading bootstrap
+    in most of its samples (``arm-watchdog: loop (safety.py)``)."""
+    roots: dict[int, Counter[str]] = defaultdict(Counter)
+    for tid, name, frames, count in _raw_samples(text):
+        root = next((f"{func} ({Path(file).name})" for func, file, _ in frames
+                     if not file.endswith("threading.py")), "?")
+        roots[tid][f"{name}: {root}" if name else root] += count
     return {tid: c.most_common(1)[0][0] for tid, c in roots.items() if c}
 
 
