@@ -29,7 +29,7 @@ if str(ROOT) not in sys.path:
 
 import numpy as np  # noqa: E402
 
-from benchmarks.gelsight_labels import DEFAULT_DATA, split_labels  # noqa: E402
+from benchmarks.gelsight_labels import DEFAULT_DATA, split_labels, train_labels  # noqa: E402
 from lab.reconstruction_metrics import evaluate_press  # noqa: E402
 from remote_site.reconstruction.calibration import Calibration, fit_calibration  # noqa: E402
 from remote_site.reconstruction.frames import load_rgb  # noqa: E402
@@ -73,7 +73,7 @@ def _pool(a: np.ndarray, f: int) -> np.ndarray:
 def real_data(data: Path, repeats: int) -> tuple[list[dict], list[dict], list[dict], dict]:
     """Model x solver on the real test presses; per-press table; resolution sweep."""
     background = load_rgb(data / "background.png")
-    train, test = split_labels(data, "train"), split_labels(data, "test")
+    train, test = train_labels(data), split_labels(data, "test")
     frames = {lb.image: load_rgb(data / lb.image) for lb in train + test}
     presses = [(frames[lb.image], lb) for lb in train]
     calibs: dict[str, Calibration] = {}
@@ -168,7 +168,7 @@ def relief(data: Path, repeats: int) -> tuple[list[dict], list[dict], list[dict]
     from remote_site.reconstruction.relief_fit import fit_rim_relief
 
     background = load_rgb(data / "background.png")
-    train, test = split_labels(data, "train"), split_labels(data, "test")
+    train, test = train_labels(data), split_labels(data, "test")
     frames = {lb.image: load_rgb(data / lb.image) for lb in train + test}
     presses = [(frames[lb.image], lb) for lb in train]
     plane = fit_calibration(background, presses, 2 * BALL_RADIUS_MM, MM_PER_PX)
@@ -239,7 +239,7 @@ def stage_breakdown(data: Path, repeats: int) -> list[dict]:
     from remote_site.reconstruction.frames import validate_frame
 
     background = load_rgb(data / "background.png")
-    train, test = split_labels(data, "train"), split_labels(data, "test")
+    train, test = train_labels(data), split_labels(data, "test")
     calib = fit_calibration(background, [(load_rgb(data / lb.image), lb) for lb in train],
                             2 * BALL_RADIUS_MM, MM_PER_PX)
     rec = Reconstructor(calib)
@@ -385,8 +385,9 @@ def main(args: argparse.Namespace) -> int:
         f"Repeats per frame: {repeats}. Run time {elapsed:.0f} s.",
         f"Reproduce: `{cmd}` (or `teletouch bench reconstruction`).",
         "",
-        "Real data: GelSight Mini, 9.47 mm ball, 0.0634 mm/px, calibrated on the 40 train "
-        "presses, measured on the 11 test presses (team kit gsmini_ball_9.47mm). Inside = "
+        "Real data: GelSight Mini, 9.47 mm ball, 0.0634 mm/px, calibrated on the 39 train "
+        "presses whose label passes the label check (press_50 carries press_49's circle), "
+        "measured on the 11 test presses (team kit gsmini_ball_9.47mm). Inside = "
         "labelled contact circle minus 4 px. Zero level: a plane through the heights outside "
         "the dilated raised region (undeformed gel). `offset_mm` = mean(reconstruction - rigid "
         "sphere cap) inside: the gel drapes beyond the contact, so the whole press sits lower "
@@ -403,7 +404,7 @@ def main(args: argparse.Namespace) -> int:
         "",
         "`plane`: heights above the free gel (default). `rim`: above the detected contact rim "
         "(`teletouch sensor calibrate --relief rim`; its one parameter, the tangent extension "
-        "per pooling factor, fitted on the 40 train presses). `peak_err`: highest point minus "
+        "per pooling factor, fitted on the 39 train presses). `peak_err`: highest point minus "
         "the depth from the *untrimmed* label, d = R - sqrt(R^2 - a^2) (issue 14's peak "
         "target: within 0.05 mm). `offset_mm`: against the cap on the 4-px-trimmed circle, "
         "as above, so it is about -0.1 mm when the peak is right (the trimmed cap is that much "

@@ -22,6 +22,7 @@ presses of the pad on reference blocks of known Shore 00 (``rigid`` for a rigid 
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 __all__ = ["configure_parser", "run"]
@@ -51,6 +52,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                           "above its contact rim, without the gel's drape (objects smaller "
                           "than the pad; fits one parameter on these presses, "
                           "see docs/reconstruction.md)")
+    cal.add_argument("--drop-bad-labels", action="store_true",
+                     help="calibrate without the presses whose label does not sit on their "
+                          "contact (named in a warning) instead of refusing them")
     cal.add_argument("--json", action="store_true", help="print a JSON summary")
 
     rec = sub.add_parser("reconstruct", help="turn frames into height maps (mm)")
@@ -89,6 +93,15 @@ def _calibrate(args: argparse.Namespace) -> int:
     labels = read_labels_csv(args.labels)
     background = load_rgb(args.background)
     presses = [(load_rgb(images_dir / label.image), label) for label in labels]
+    dropped: list[str] = []
+    if args.drop_bad_labels:
+        from remote_site.reconstruction.label_check import screen_presses
+
+        presses, problems = screen_presses(background, presses)
+        for problem in problems:
+            emit(f"warning: calibrating without {problem.image}: {problem.reason}",
+                 stream=sys.stderr)
+        dropped = [p.image for p in problems]
     calib = fit_calibration(background, presses, args.ball_diameter_mm, args.mm_per_px,
                             model=args.model, degree=args.degree, trim_px=args.trim_px)
     if args.relief == "rim":
@@ -98,14 +111,15 @@ def _calibrate(args: argparse.Namespace) -> int:
     calib.save(args.out)
     summary = {"out": str(args.out), "model": args.model, "presses": len(presses),
                "shape_hw": list(calib.shape_hw), "noise_pct": calib.noise_pct,
-               "relief": calib.relief,
+               "relief": calib.relief, "dropped_presses": dropped,
                "rim_extension_mm": {str(k): v for k, v in calib.rim_extension_mm.items()},
                **calib.stats}
     if args.json:
         emit_json(summary)
     else:
         emit(f"calibrated {args.model} model on {len(presses)} presses "
-             f"({calib.shape_hw[1]}x{calib.shape_hw[0]}): training slope RMSE "
+             + (f"(dropped {', '.join(dropped)}: label not on the contact) " if dropped else "")
+             + f"({calib.shape_hw[1]}x{calib.shape_hw[0]}): training slope RMSE "
              f"{calib.stats['train_slope_rmse']:.4f}, flat-gel noise {calib.noise_pct:.2f} %, "
              f"relief {calib.relief} -> {args.out}")
     return 0

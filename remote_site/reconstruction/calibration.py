@@ -33,13 +33,14 @@ import numpy as np
 
 from remote_site.reconstruction.features import pixel_position, relative_change
 from remote_site.reconstruction.frames import validate_frame
+from remote_site.reconstruction.label_check import LabelProblem, label_problem
 from remote_site.reconstruction.labels import BallLabel, validate_label
 from remote_site.reconstruction.models import GradientModel, model_from_arrays
 from remote_site.reconstruction.relief import RELIEF_MODES
 from remote_site.reconstruction.sphere import cap_slopes
 from shared.errors import CalibrationError, InputDataError
 
-__all__ = ["CALIBRATION_VERSION", "Calibration", "fit_calibration"]
+__all__ = ["CALIBRATION_VERSION", "Calibration", "bad_labels_message", "fit_calibration"]
 
 log = logging.getLogger(__name__)
 
@@ -196,6 +197,14 @@ def _training_pixels(change: np.ndarray, label: BallLabel, ball_radius_mm: float
     return change[sel], x[sel], y[sel], slopes[sel], change[far]
 
 
+def bad_labels_message(problems: Sequence[LabelProblem], total: int) -> str:
+    """One error text naming every labelled press that disagrees with its image."""
+    lines = "; ".join(f"{p.image}: {p.reason}" for p in problems)
+    return (f"{len(problems)} of {total} labelled presses do not show their contact where the "
+            f"label puts it ({lines}). Fix or remove these labels, or calibrate without them "
+            "(teletouch sensor calibrate --drop-bad-labels)")
+
+
 def fit_calibration(background_rgb: np.ndarray, presses: Sequence[tuple[np.ndarray, BallLabel]],
                     ball_diameter_mm: float, mm_per_px: float, *, model: str = "poly",
                     trim_px: float = 4.0, far_factor: float = 2.0, far_fraction: float = 0.03,
@@ -222,7 +231,9 @@ def fit_calibration(background_rgb: np.ndarray, presses: Sequence[tuple[np.ndarr
         The fitted :class:`Calibration`.
 
     Raises:
-        CalibrationError: bad scale/diameter, no presses, an unknown model, a degenerate fit.
+        CalibrationError: bad scale/diameter, no presses, an unknown model, a degenerate fit,
+            a label that does not sit on its press (every such press named; see
+            :mod:`.label_check`, whose :func:`~.label_check.screen_presses` drops them).
         InputDataError: a frame or a label does not fit the background's image size.
     """
     from remote_site.reconstruction.models import LutGradientModel, PolyGradientModel
@@ -245,6 +256,7 @@ def fit_calibration(background_rgb: np.ndarray, presses: Sequence[tuple[np.ndarr
     shape_hw = background.shape[:2]
     rng = np.random.default_rng(seed)
     parts: list[tuple[np.ndarray, ...]] = []
+    problems: list[LabelProblem] = []
     for frame, label in presses:
         validate_label(label, shape_hw, trim_px)
         contact_mm = label.radius_px * mm_per_px
@@ -253,8 +265,14 @@ def fit_calibration(background_rgb: np.ndarray, presses: Sequence[tuple[np.ndarr
                                    f"smaller than the ball radius {ball_radius_mm} mm")
         image = validate_frame(frame, shape_hw, name=label.image)
         change = relative_change(image, background, blur_sigma_px)
+        reason = label_problem(change, label)
+        if reason is not None:
+            problems.append(LabelProblem(label.image, reason))
+            continue
         parts.append(_training_pixels(change, label, ball_radius_mm, mm_per_px, trim_px,
                                       far_factor, far_fraction, rng))
+    if problems:
+        raise CalibrationError(bad_labels_message(problems, len(presses)))
     change_all, x_all, y_all, slopes_all, far_change = (np.concatenate(p) for p in zip(*parts,
                                                                                      strict=True))
     fitted = model_cls.fit(change_all, x_all, y_all, slopes_all, **options)

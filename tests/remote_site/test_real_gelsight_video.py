@@ -93,7 +93,7 @@ def kit_files(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     assert cli_main(["sensor", "calibrate", "--background", str(DATA / "background.png"),
                      "--images", str(DATA), "--labels", str(labels_csv),
                      "--ball-diameter-mm", "9.47", "--mm-per-px", str(MM_PER_PX),
-                     "--relief", "rim", "--out", str(calib)]) == 0
+                     "--drop-bad-labels", "--relief", "rim", "--out", str(calib)]) == 0
     video = tmp / "presses.avi"
     writer = cv2.VideoWriter(str(video), cv2.VideoWriter.fourcc(*"FFV1"), FPS, (320, 240))
     assert writer.isOpened()
@@ -286,9 +286,10 @@ def test_the_video_plays_like_a_camera_and_the_station_captures_its_background(
 def test_every_real_press_reaches_the_pins(
         session: tuple[dict[str, Any], list[PressResult], str]) -> None:
     """What is achieved (measured 2026-11-23 on the 11 test presses, calibration made with
-    ``--relief rim`` on the train presses, see the report): peak error -0.046..+0.034 mm,
-    shape RMS 0.013..0.074 mm (9 of 11 within 0.05); without the constant offset within
-    0.064 mm. Before the rim relief: peak +0.03..+0.16 mm, shape RMS up to 0.16 mm."""
+    ``--relief rim --drop-bad-labels`` on the train presses, see the report): peak error
+    -0.061..+0.027 mm, shape RMS 0.014..0.075 mm (9 of 11 within 0.05); without the
+    constant offset within 0.061 mm. Before the rim relief: peak +0.03..+0.16 mm, shape RMS
+    up to 0.16 mm."""
     _, results, report = session
     peak_err = np.array([r.peak_mm - r.depth_mm for r in results])
     assert (np.array([r.peak_mm for r in results]) > PRESS_HEIGHT_MM).all(), report
@@ -298,6 +299,12 @@ def test_every_real_press_reaches_the_pins(
     assert all(r.pins_inside >= 2 for r in results), report
 
 
+@pytest.mark.xfail(strict=True, reason=(
+    "issue 14 peak target not met on 1 of 11 test presses since the calibration refuses the "
+    "kit's miscopied press_50 label: press_17, whose contact crosses the image's left edge "
+    "(4 pins inside), renders 0.061 mm below the labelled depth; the other 10 are within "
+    "-0.047..+0.027 mm. With the bad label in the training set all 11 were within 0.05 "
+    "(press_17 -0.046)"))
 def test_issue_target_peak(session: tuple[dict[str, Any], list[PressResult], str]) -> None:
     """Issue 14: the peak rendered height within 0.05 mm of the labelled press depth."""
     _, results, report = session
@@ -307,8 +314,8 @@ def test_issue_target_peak(session: tuple[dict[str, Any], list[PressResult], str
 
 @pytest.mark.xfail(strict=True, reason=(
     "issue 14 shape target not met on 2 of 11 test presses: with the rim relief the shape RMS "
-    "over the pins in the contact is 0.013..0.040 mm on 9 presses but 0.069 (press_43) and "
-    "0.074 mm (press_47). There the reconstructed cap is centred 3-4 px (0.2 mm) from the "
+    "over the pins in the contact is 0.014..0.042 mm on 9 presses but 0.069 (press_43) and "
+    "0.075 mm (press_47). There the reconstructed cap is centred 3-4 px (0.2 mm) from the "
     "hand-labelled centre, where the pins are placed (the colour change's centroid moves "
     "with the reconstruction, not the label); with the centre refitted the reconstruction "
     "matches the R = 4.735 mm sphere within 0.009 mm RMS (benchmarks/results/"

@@ -17,8 +17,10 @@ from lab.cli import main as cli_main
 from lab.reconstruction_metrics import evaluate_press
 from remote_site.reconstruction.calibration import Calibration, fit_calibration
 from remote_site.reconstruction.frames import load_rgb
+from remote_site.reconstruction.label_check import screen_presses
 from remote_site.reconstruction.labels import BallLabel, labels_from_npz, write_labels_csv
 from remote_site.reconstruction.reconstructor import Reconstructor
+from shared.errors import CalibrationError
 from tests.support import kit_path, require_kit
 
 DATA = kit_path("data", "gelsight", "gsmini_ball_9.47mm")
@@ -49,7 +51,7 @@ def calib_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp / "calib.npz"
     rc = cli_main(["sensor", "calibrate", "--background", str(DATA / "background.png"),
                    "--images", str(DATA), "--labels", str(labels_csv),
-                   "--ball-diameter-mm", "9.47", "--mm-per-px", str(MM_PER_PX),
+                   "--ball-diameter-mm", "9.47", "--mm-per-px", str(MM_PER_PX), "--drop-bad-labels",
                    "--out", str(out)])
     assert rc == 0
     return out
@@ -110,7 +112,8 @@ def test_indentation_depth_is_plausible(test_metrics: list) -> None:
 
 def test_polynomial_beats_lut_baseline(calib_path: Path, test_metrics: list) -> None:
     background = load_rgb(DATA / "background.png")
-    presses = [(load_rgb(DATA / lb.image), lb) for lb in _split("train")]
+    presses, _ = screen_presses(background, [(load_rgb(DATA / lb.image), lb)
+                                             for lb in _split("train")])
     lut = Reconstructor(fit_calibration(background, presses, 9.47, MM_PER_PX, model="lut"))
     base = [evaluate_press(lut.height_map(load_rgb(DATA / lb.image)).height_mm, MM_PER_PX, lb,
                            MM_PER_PX, BALL_RADIUS_MM) for lb in _split("test")]
@@ -155,3 +158,16 @@ def test_cli_reports_bad_calibration_as_error(tmp_path: Path) -> None:
     rc = cli_main(["sensor", "reconstruct", "--calibration", str(tmp_path / "missing.npz"),
                    str(DATA / "press_17.png"), "--out", str(tmp_path / "h.npz")])
     assert rc == 1
+
+
+def test_the_kits_copied_label_is_refused_and_named() -> None:
+    """press_50's label is press_49's circle (same centre, on flat gel): the calibration refuses
+    to train on it, names it, and ``screen_presses`` drops exactly that press."""
+    background = load_rgb(DATA / "background.png")
+    presses = [(load_rgb(DATA / lb.image), lb) for lb in _split("train")]
+    kept, problems = screen_presses(background, presses)
+    assert [p.image for p in problems] == ["press_50.png"]
+    assert "centred near (17" in problems[0].reason  # the real press is at x ~ 174 px
+    assert len(kept) == len(presses) - 1
+    with pytest.raises(CalibrationError, match=r"1 of 40 labelled presses.*press_50\.png"):
+        fit_calibration(background, presses, 9.47, MM_PER_PX)
