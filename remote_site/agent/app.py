@@ -111,6 +111,18 @@ class AgentOptions:
     record: Path | None = None
 
 
+def _set_opencv_threads(threads: int | None) -> int | None:
+    """``cv2.setNumThreads(threads)`` (None or 0: unchanged); the count it replaced (None
+    when unchanged). See ``RemoteAgentConfig.opencv_threads``."""
+    if not threads:
+        return None
+    import cv2
+
+    before = int(cv2.getNumThreads())
+    cv2.setNumThreads(threads)
+    return before
+
+
 def sensor_options(options: AgentOptions) -> dict[str, Any]:
     """The camera options given on the command line (only those given: a simulated sensor
     refuses them with a ConfigError)."""
@@ -183,6 +195,7 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
     arm.connect()
     safe_arm: SafeArm | None = None
     recorder: McapRecorder | None = None
+    opencv_before = _set_opencv_threads(agent_cfg.opencv_threads)
     try:
         safe_arm = SafeArm(arm, safety, bounds_mm=workspace.phantom_bounds_mm)
         sensor.connect()
@@ -246,3 +259,4 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
             safe_arm.close()
         sensor.disconnect()
         arm.disconnect()
+        _set_opencv_threads(opencv_before)

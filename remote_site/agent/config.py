@@ -50,6 +50,12 @@ class RemoteAgentConfig:
             target, it gets there within this long of the command; otherwise the frame is
             taken at once (an arm tracking a moving hand lags it all the time: waiting would
             only add latency).
+        opencv_threads: OpenCV's thread count while the station runs (``cv2.setNumThreads``;
+            restored after). 1 (default) runs its resizes and blurs in the calling thread:
+            on sensor-sized frames (320 x 240) its worker pool saved nothing per frame but
+            spun in ``sched_yield`` between frames (about 16,000 calls/s, 0.05 of a core in
+            the demo; docs/speed.md section 9). 0 leaves OpenCV's own setting (one worker
+            per core).
     """
 
     frame_rate_hz: float = 60.0
@@ -70,6 +76,7 @@ class RemoteAgentConfig:
     capture_on_pose: bool = True
     pose_tolerance_mm: float = 0.25
     pose_wait_max_ms: float = 10.0
+    opencv_threads: int = 1
 
     def __post_init__(self) -> None:
         positive = ("frame_rate_hz", "patch_pitch_mm", "arm_poll_hz", "arm_state_hz",
@@ -82,6 +89,10 @@ class RemoteAgentConfig:
         if not (math.isfinite(self.pose_wait_max_ms) and 0.0 <= self.pose_wait_max_ms <= 1000.0):
             raise ConfigError("remote.agent.pose_wait_max_ms must lie in [0, 1000], got "
                               f"{self.pose_wait_max_ms!r}")
+        if isinstance(self.opencv_threads, bool) or not isinstance(self.opencv_threads, int) \
+                or not 0 <= self.opencv_threads <= 256:
+            raise ConfigError("remote.agent.opencv_threads must be an integer in [0, 256], "
+                              f"got {self.opencv_threads!r}")
         if self.frame_rate_hz > 1000.0 or self.arm_poll_hz > 2000.0:
             raise ConfigError("remote.agent: frame_rate_hz <= 1000 and arm_poll_hz <= 2000")
         if len(self.patch_size_mm) != 2 or not all(

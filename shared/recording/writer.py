@@ -1,8 +1,11 @@
 """The MCAP writer a station feeds while it runs: a background thread behind a bounded queue.
 
 :class:`McapRecorder` never blocks its callers (the 1 kHz display loop among them): every
-``wire``/``derived`` call is one ``put_nowait`` on a bounded queue; when the queue is full the
-item is dropped and counted (``dropped``). The thread encodes, derives the JSON channels of
+``wire``/``derived`` call is one append to a bounded deque, without a lock or a wake-up of the
+writer thread (a ``queue.Queue`` notified the thread on every item: hundreds of thread
+switches per second per station, docs/speed.md section 9); when the deque is full the item is
+dropped and counted (``dropped``). The thread drains it every ``DRAIN_INTERVAL_S`` (a
+``sync`` or ``close`` wakes it at once), encodes, derives the JSON channels of
 :mod:`shared.recording.schemas` from the wire messages, and writes zstd-compressed chunks. It
 closes a chunk and flushes the file at least every ``flush_interval_s``, so a station killed
 with SIGKILL leaves a file readable up to its last complete chunk (at most that much is lost).
@@ -15,12 +18,12 @@ end metadata and the MCAP summary and footer.
 from __future__ import annotations
 
 import base64
+import collections
 import contextlib
 import itertools
 import json
 import logging
 import os
-import queue
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -51,7 +54,8 @@ __all__ = ["McapRecorder", "hop_stages_ms"]
 
 log = logging.getLogger(__name__)
 
-_CLOSE = object()
+#: the writer thread drains the items queued since its last pass this often
+DRAIN_INTERVAL_S = 0.02
 
 
 def hop_stages_ms(hops: Any, offsets_us: Mapping[str, int | None]) -> tuple[
@@ -168,7 +172,12 @@ class McapRecorder:
             "meta_json": json.dumps(to_jsonable(dict(meta or {})), sort_keys=True,
                                     allow_nan=False)})
         self._writer.flush()
-        self._queue: queue.Queue[Any] = queue.Queue(maxsize=queue_size)
+        #: items for the writer thread: appended by any thread, popped by the writer only
+        #: (deque append/popleft are atomic); at most ``queue_size`` wait
+        self._items: collections.deque[tuple[Any, ...]] = collections.deque()
+        self._queue_size = queue_size
+        self._wake = threading.Event()  # a sync or close: drain now
+        self._stopping = False
         self._channels: dict[str, int] = {}
         self._schemas: dict[str, int] = {}
         self._offsets_us: dict[str, int | None] = {}
@@ -188,11 +197,10 @@ class McapRecorder:
     def _put(self, item: tuple[Any, ...]) -> bool:
         if self._closed:
             return False
-        try:
-            self._queue.put_nowait(item)
-        except queue.Full:
+        if len(self._items) >= self._queue_size:
             self.dropped += 1
             return False
+        self._items.append(item)
         return True
 
     def wire(self, direction: str, msg: Message, t_us: int) -> bool:
@@ -235,10 +243,8 @@ class McapRecorder:
         done = threading.Event()
         if self._closed:
             return False
-        try:
-            self._queue.put(("sync", done, None, 0), timeout=timeout_s)
-        except queue.Full:
-            return False
+        self._items.append(("sync", done, None, 0))  # beyond the bound: it is not data
+        self._wake.set()
         return done.wait(timeout_s)
 
     # ------------------------------------------------------------------ writer thread
@@ -343,22 +349,22 @@ class McapRecorder:
 
     def _run(self) -> None:
         last_flush = time.monotonic()
+        items = self._items
         while True:
             timeout = max(0.0, self.flush_interval_s - (time.monotonic() - last_flush))
-            try:
-                item = self._queue.get(timeout=timeout)
-            except queue.Empty:
-                item = None
-            self.writer_cpu_s = time.thread_time()
-            if item is _CLOSE:
-                return
-            if item is not None:
+            self._wake.wait(min(DRAIN_INTERVAL_S, timeout))
+            self._wake.clear()  # before draining: a later sync's item is drained next pass
+            stopping = self._stopping  # read before the last drain: nothing is left behind
+            while items:
                 try:
-                    self._handle(item)
+                    self._handle(items.popleft())
                 except Exception as err:  # a bad item must not end the recording
                     self.write_errors += 1
                     if self.write_errors == 1:
                         log.error("recording %s: an item was not written: %s", self.path, err)
+            self.writer_cpu_s = time.thread_time()
+            if stopping:
+                return
             if time.monotonic() - last_flush >= self.flush_interval_s:
                 last_flush = time.monotonic()
                 try:
@@ -388,11 +394,8 @@ class McapRecorder:
         if self._closed:
             return self.counts()
         self._closed = True
-        try:
-            self._queue.put(_CLOSE, timeout=30.0)  # waits only while the thread drains
-        except queue.Full as err:
-            raise ConfigError(f"cannot finish the recording {self.path}: its writer thread "
-                              "is stuck") from err
+        self._stopping = True
+        self._wake.set()
         self._thread.join(30.0)
         if self._thread.is_alive():
             raise ConfigError(f"cannot finish the recording {self.path}: its writer thread "

@@ -15,6 +15,7 @@ from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
+import cv2
 import pytest
 
 from lab.ground_truth import write_ground_truth
@@ -160,12 +161,15 @@ async def test_agent_follows_a_press_and_streams_tactile_frames(
                            ideal=True,
                            frame_rate_hz=60.0)
     stop = asyncio.Event()
+    cv2.setNumThreads(2)  # OpenCV's pool, as a process with 2 cores starts with
     agent = asyncio.create_task(run_agent(options, stop))
     try:
         async with asyncio.timeout(scaled(20.0)):  # the station has opened its devices
             while not any(p["role"] == "remote" for p in relay.status()["sessions"].get(
                     SESSION, {}).get("peers", [])):
                 await asyncio.sleep(0.05)
+        # while the station runs, OpenCV works in the calling thread (opencv_threads = 1)
+        assert cv2.getNumThreads() == 1
         truth = json.loads(truth_path.read_text())
         malignant = next(t for t in truth["tumors"] if t["id"] == "malignant")
         got = await fake_local(url, tuple(malignant["center_mm"]), duration_s=scaled(3.2))
@@ -175,6 +179,7 @@ async def test_agent_follows_a_press_and_streams_tactile_frames(
     finally:
         stop.set()
         summary = await asyncio.wait_for(agent, scaled(10.0))
+    assert cv2.getNumThreads() == 2  # and gets its pool back when it stops
     check_press_result(got, truth, "malignant")
     # compact frames through the real relay: key frames and deltas, every one decoded
     compact = got["compact"]
@@ -209,3 +214,13 @@ async def test_agent_with_a_wrong_token_stops_with_auth_error(relay: RelayServer
         await asyncio.wait_for(run_agent(options, asyncio.Event(), on_summary=summaries.append),
                                scaled(10.0))
     assert summaries and summaries[0]["frames"]["sent"] == 0
+
+
+@pytest.mark.parametrize("threads", [-1, 257, 1.5, True, "2"])
+def test_opencv_threads_must_be_a_small_integer(threads: Any) -> None:
+    from remote_site.agent.config import RemoteAgentConfig
+    from shared.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="opencv_threads"):
+        RemoteAgentConfig(opencv_threads=threads)
+    assert RemoteAgentConfig(opencv_threads=0).opencv_threads == 0  # 0: OpenCV's own setting
