@@ -43,9 +43,10 @@ def write_report(runs: list[dict[str, Any]], out_dir: Path) -> None:
              "idle judged by the innermost Python line, each thread's CPU shared out in "
              "proportion to its busy samples (method: `lab/bench/cpu_impl.py`). `sim:` stages "
              "are simulated hardware and test infrastructure, not product code.", "",
-             "**The machine was shared with other agents' test runs during every run: the load "
-             "average is recorded per run; compare runs made back to back, and read figures "
-             "as upper bounds.** Where the processes were starved (display loop far below "
+             "**The 1-minute load average at the start of each run is recorded: other jobs on "
+             "the machine (in earlier sessions, other agents' test suites at load 20-35) raise "
+             "the figures, so compare runs made back to back, and read figures as upper "
+             "bounds.** Where the processes were starved (display loop far below "
              "1 kHz, frames below 120/s) CPU per wall second understates the cost; the last two "
              "columns divide by the work done (session-average loop rate and achieved frame "
              "rate), which holds better under load.", ""]

@@ -64,9 +64,13 @@ class LocalAgentConfig:
         motion_done_grace_s: with ``--until-motion-done``, keep running this long after the
             motion finished so the last tactile frames come back.
         gil_switch_interval_s: ``sys.setswitchinterval`` while the agent runs (restored
-            after). Python's 5 ms default lets a busy thread delay the display loop and the
-            platform reader by up to 5 ms; benchmarks/results/display_loop_agent.md
-            measures the effect. 0 leaves the interpreter's setting alone.
+            after). 1 ms (default) bounds how long a busy thread can hold the display loop
+            and the platform reader off the GIL to one display period; Python's 5 ms
+            default would allow five. The earlier 0.2 ms forced a GIL hand-over (futex
+            calls, thread switches: about 28,000 futex calls/s in the demo's local station)
+            so often that the demo used more CPU and ran its loop slower than at 1 or 5 ms
+            (docs/speed.md section 9, benchmarks/results/cpu_gil_switch/). 0 leaves the
+            interpreter's setting alone.
         display_thread_nice: the display loop thread's nice value while it runs (-20..19;
             Linux, per thread). Negative asks the OS to run the 1 kHz loop before ordinary
             work when it wakes (a loaded machine otherwise makes it wait for a core); it
@@ -106,7 +110,7 @@ class LocalAgentConfig:
     record_image_rate_hz: float = 0.0
     record_findings: bool = True
     motion_done_grace_s: float = 0.5
-    gil_switch_interval_s: float = 0.0002
+    gil_switch_interval_s: float = 0.001
     display_thread_nice: int = 0
     view: str = ""
     view_rate_hz: float = 40.0
