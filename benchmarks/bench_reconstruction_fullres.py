@@ -369,8 +369,8 @@ def main(args: argparse.Namespace) -> int:
         f"Run {started}, commit {_commit()}, {platform.machine()}, nproc {os.cpu_count()}, "
         f"Python {platform.python_version()}, OPENBLAS_NUM_THREADS="
         f"{os.environ.get('OPENBLAS_NUM_THREADS', 'unset')}. **Machine load average at start "
-        f"{load_start}, at end {load_end}** (shared with other agents' jobs: every figure is "
-        "inflated against a quiet machine, CPU time less than wall time; compare the ratio). "
+        f"{load_start}, at end {load_end}** (other jobs on the machine inflate every figure "
+        "against a quiet machine, CPU time less than wall time; compare the ratio). "
         f"Run time {elapsed:.0f} s.",
         f"Reproduce: `{cmd}`.",
         "",

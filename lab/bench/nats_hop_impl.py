@@ -157,7 +157,7 @@ def _markdown(r: dict[str, Any], argv: str) -> str:
         f"Machine: {m['nproc']} cores, Python "
         f"{m['python']}, load average "
         f"{m['loadavg_start'][0]:.2f} at the start, {m['loadavg_end'][0]:.2f} at the end "
-        "(**shared with other agents' jobs while measuring**).", "",
+        "(other jobs on the machine raise these figures).", "",
         f"One session, tactile_frame {r['frame_bytes']} bytes at {r['rate_hz']:g} Hz, "
         f"{r['rounds']} rounds of {r['round_s']:g} s per phase (same worker / across two "
         "workers via a local nats-server), alternating. Added = relay_out stamp - sender ts.",

@@ -355,7 +355,9 @@ class McapRecorder:
             self._wake.wait(min(DRAIN_INTERVAL_S, timeout))
             self._wake.clear()  # before draining: a later sync's item is drained next pass
             stopping = self._stopping  # read before the last drain: nothing is left behind
-            while items:
+            # the items present now (not "until empty": producers faster than the writer
+            # must not starve the periodic flush below)
+            for _ in range(len(items)):
                 try:
                     self._handle(items.popleft())
                 except Exception as err:  # a bad item must not end the recording
@@ -363,7 +365,7 @@ class McapRecorder:
                     if self.write_errors == 1:
                         log.error("recording %s: an item was not written: %s", self.path, err)
             self.writer_cpu_s = time.thread_time()
-            if stopping:
+            if stopping and not items:
                 return
             if time.monotonic() - last_flush >= self.flush_interval_s:
                 last_flush = time.monotonic()

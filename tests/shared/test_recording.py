@@ -32,7 +32,7 @@ from shared.protocol.codec import encode
 from shared.recording import McapRecorder, RecordingFormatError, read_mcap
 from shared.recording.schemas import DERIVED_SCHEMAS
 from shared.recording.writer import hop_stages_ms
-from tests.support import scaled, teletouch_cmd
+from tests.support import scaled, teletouch_cmd, wait_until
 
 
 def _messages(n: int = 50) -> list[tuple[str, Message, int]]:
@@ -226,6 +226,37 @@ def test_a_full_queue_drops_and_counts_without_blocking(tmp_path: Path) -> None:
     assert out.complete and out.end["counts"]["dropped_queue_full"] == counts[
         "dropped_queue_full"]
     assert len(list(out.wire_messages())) == accepted
+
+
+def test_a_steady_stream_does_not_hold_off_the_periodic_flush(tmp_path: Path) -> None:
+    """Producers that never let the queue run empty (a thread appending as fast as it can,
+    faster than the writer encodes) must not starve the periodic flush: a station killed
+    mid-session keeps what was recorded up to the last flush."""
+    path = tmp_path / "s.mcap"
+    # chunks far larger than the test writes: only the periodic flush puts one in the file
+    rec = McapRecorder(path, "local", flush_interval_s=0.05, chunk_bytes=1 << 30)
+    size_at_start = path.stat().st_size
+    stop = threading.Event()
+    items = _messages(50)
+
+    def produce() -> None:
+        while not stop.is_set():
+            for direction, msg, t_us in items:
+                rec.wire(direction, msg, t_us)
+
+    producer = threading.Thread(target=produce)
+    producer.start()
+    try:
+        wait_until(lambda: path.stat().st_size > size_at_start, 10.0,
+                   "a chunk in the file while producers keep the writer busy")
+        assert rec.sync(scaled(10.0))  # and a sync gets through the stream
+    finally:
+        stop.set()
+        producer.join()
+    counts = rec.close()
+    out = read_mcap(path)
+    assert out.complete and counts["messages_written"] == len(out.messages) > 0
+    assert counts["dropped_queue_full"] == rec.dropped  # the overflow, counted
 
 
 def test_bad_settings_are_refused(tmp_path: Path) -> None:
