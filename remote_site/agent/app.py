@@ -37,6 +37,7 @@ from remote_site.agent.stiffness_stage import StiffnessStage
 from remote_site.arm.safety import SafeArm, SafetyConfig
 from remote_site.reconstruction.reconstructor import Reconstructor
 from remote_site.registration import calibrate_with_fiducials, guarded
+from remote_site.sensor.registry import check_sensor_source
 from remote_site.stiffness.estimator import StiffnessConfig
 from remote_site.stiffness.stiffness_map import MapBounds
 from remote_site.tactile import TactileAssembler
@@ -158,6 +159,7 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
         DeviceInitError: a device could not be opened.
         AuthError, RoleTakenError: the relay refused the station for good.
     """
+    check_sensor_source(options.sensor)  # a mistyped --sensor is named before anything else
     toml = options.config_path
     link_cfg = resolve_config(StationLinkConfig, "remote.link", toml_path=toml, explicit={
         "url": options.relay, "session": options.session, "token": options.token,

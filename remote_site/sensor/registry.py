@@ -10,13 +10,14 @@ points in the group ``teletouch.sensor`` and accepts a ``"module:Class"`` path.
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 from remote_site.sensor.base import TactileSensor
 from shared.devices.registry import is_backend_name, is_class_path, load_backend, register_kind
 from shared.errors import ConfigError
 
-__all__ = ["SENSORS", "open_sensor", "sensor_class"]
+__all__ = ["SENSORS", "check_sensor_source", "open_sensor", "sensor_class"]
 
 SENSORS: dict[str, str] = {
     "sim": "remote_site.sensor.simulator:SimulatedSensor",
@@ -38,6 +39,30 @@ def sensor_class(name: str) -> type[TactileSensor]:
     return cls
 
 
+def _is_camera_source(name: str) -> bool:
+    return name.isdigit() or "://" in name or "/" in name or "." in name
+
+
+def check_sensor_source(name_or_camera: str | int) -> None:
+    """Check what a user typed for ``--sensor`` before anything else is loaded or opened, so
+    a typo is named first (not after, say, a missing calibration for that sensor).
+
+    Raises:
+        ConfigError: an unknown name, or a video file path that does not exist.
+    """
+    if isinstance(name_or_camera, int):
+        return
+    name = name_or_camera
+    if is_backend_name("sensor", name) or is_class_path(name):
+        return
+    if not _is_camera_source(name):
+        raise ConfigError(f"unknown sensor {name!r}; known: {sorted(SENSORS)} or a camera "
+                          "index / URL / video file")
+    if not name.isdigit() and "://" not in name and not Path(name).exists():
+        raise ConfigError(f"sensor {name!r}: no such video file (a camera index, a URL such as "
+                          "rtsp://..., or an existing video file)")
+
+
 def open_sensor(name_or_camera: str | int, **options: Any) -> TactileSensor:
     """Build (not connect) a sensor source.
 
@@ -57,9 +82,8 @@ def open_sensor(name_or_camera: str | int, **options: Any) -> TactileSensor:
     if isinstance(name_or_camera, str) and (is_backend_name("sensor", name_or_camera)
                                             or is_class_path(name_or_camera)):
         cls = sensor_class(name_or_camera)
-    elif isinstance(name_or_camera, int) or (isinstance(name_or_camera, str) and (
-            name_or_camera.isdigit() or "://" in name_or_camera or "/" in name_or_camera
-            or "." in name_or_camera)):
+    elif isinstance(name_or_camera, int) or (isinstance(name_or_camera, str)
+                                             and _is_camera_source(name_or_camera)):
         cls = sensor_class("camera")
         options = {"source": name_or_camera, **options}
     else:

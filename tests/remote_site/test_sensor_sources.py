@@ -219,3 +219,30 @@ def test_registry_names_and_camera_strings() -> None:
         open_sensor("gelsight9000")
     with pytest.raises(ConfigError):
         open_sensor("sim", no_such_option=1)
+
+
+def test_a_mistyped_sensor_is_named_before_anything_is_loaded(tmp_path: Path) -> None:
+    from remote_site.sensor.registry import check_sensor_source
+
+    video = tmp_path / "presses.avi"
+    video.write_bytes(b"")  # exists: whether it decodes is the camera's business at connect
+    for fine in ("sim", "camera", "0", 0, "rtsp://host/stream", str(video),
+                 "remote_site.sensor.simulator:SimulatedSensor"):
+        check_sensor_source(fine)
+    with pytest.raises(ConfigError, match="no such video file"):
+        check_sensor_source(str(tmp_path / "missing.avi"))
+    with pytest.raises(ConfigError, match="unknown sensor 'simm'"):
+        check_sensor_source("simm")
+
+
+def test_the_remote_cli_names_a_missing_video_file_first(tmp_path: Path,
+                                                        caplog: pytest.LogCaptureFixture) -> None:
+    """Before, a missing video file was reported as a missing stiffness calibration (the
+    first thing loaded), which sent the user after the wrong file."""
+    from lab.cli import main
+
+    missing = tmp_path / "missing.avi"
+    assert main(["remote", "--relay", "ws://127.0.0.1:9/", "--session", "s", "--token", "t",
+                 "--arm", "sim", "--sensor", str(missing)]) != 0
+    assert f"sensor '{missing}': no such video file" in caplog.text
+    assert "stiffness" not in caplog.text
