@@ -116,24 +116,34 @@ def frame_crc(data: bytes | bytearray | memoryview) -> int:
 def pack12(codes: np.ndarray) -> bytes:
     """Pack 16 unsigned 12-bit codes into 24 bytes, two codes per three bytes.
 
-    For a pair (a, b): byte0 = a[7:0], byte1 = a[11:8] | b[3:0] << 4, byte2 = b[11:4].
+    For a pair (a, b): byte0 = a[7:0], byte1 = a[11:8] | b[3:0] << 4, byte2 = b[11:4]. So
+    the bytes, read as one little-endian integer, hold code i at bits 12 i .. 12 i + 11:
+    packed with Python integers (a few us; the numpy version's ten array operations on 16
+    values cost 3x more, at 1,500-3,000 calls/s in the display path).
+
+    Raises:
+        ValueError: an odd number of codes.
     """
-    c = np.asarray(codes, dtype=np.uint16).reshape(-1, 2)
-    a, b = c[:, 0], c[:, 1]
-    out = np.empty((c.shape[0], 3), dtype=np.uint8)
-    out[:, 0] = a & 0xFF
-    out[:, 1] = ((a >> 8) & 0x0F) | ((b & 0x0F) << 4)
-    out[:, 2] = (b >> 4) & 0xFF
-    return out.tobytes()
+    values = np.asarray(codes, dtype=np.uint16).ravel().tolist()
+    if len(values) % 2:
+        raise ValueError(f"pack12 needs an even number of codes, got {len(values)}")
+    word = 0
+    for i, code in enumerate(values):
+        word |= (code & 0xFFF) << (12 * i)
+    return word.to_bytes(len(values) * 3 // 2, "little")
 
 
 def unpack12(data: bytes | bytearray | memoryview) -> np.ndarray:
-    """Inverse of :func:`pack12`: 24 bytes -> 16 codes (uint16)."""
-    raw = np.frombuffer(bytes(data), dtype=np.uint8).reshape(-1, 3).astype(np.uint16)
-    out = np.empty((raw.shape[0], 2), dtype=np.uint16)
-    out[:, 0] = raw[:, 0] | ((raw[:, 1] & 0x0F) << 8)
-    out[:, 1] = (raw[:, 1] >> 4) | (raw[:, 2] << 4)
-    return out.reshape(-1)
+    """Inverse of :func:`pack12`: 24 bytes -> 16 codes (uint16).
+
+    Raises:
+        ValueError: a length that is not a multiple of 3.
+    """
+    if len(data) % 3:
+        raise ValueError(f"unpack12 needs a multiple of 3 bytes, got {len(data)}")
+    word = int.from_bytes(data, "little")
+    return np.array([(word >> shift) & 0xFFF for shift in range(0, len(data) * 8, 12)],
+                    dtype=np.uint16)
 
 
 def _check_codes(name: str, codes: np.ndarray, max_code: int) -> np.ndarray:

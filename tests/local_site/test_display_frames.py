@@ -106,11 +106,30 @@ def test_feedback_round_trip_over_the_whole_range(status: int, seq: int, t: int,
     np.testing.assert_array_equal(back.voltage_codes, v)
 
 
+def _pack12_reference(codes: np.ndarray) -> bytes:
+    """The layout as docs/arraytac_can.md states it, byte by byte, for each pair (a, b)."""
+    out = bytearray()
+    for a, b in np.asarray(codes, dtype=np.int64).reshape(-1, 2).tolist():
+        out += bytes((a & 0xFF, ((a >> 8) & 0x0F) | ((b & 0x0F) << 4), (b >> 4) & 0xFF))
+    return bytes(out)
+
+
 @given(codes=_codes(0xFFF))
 def test_pack12_round_trip(codes: np.ndarray) -> None:
     packed = fr.pack12(codes)
     assert len(packed) == 24
-    np.testing.assert_array_equal(fr.unpack12(packed), codes)
+    assert packed == _pack12_reference(codes)  # an independent reference of the layout
+    unpacked = fr.unpack12(packed)
+    assert unpacked.dtype == np.uint16
+    np.testing.assert_array_equal(unpacked, codes)
+    np.testing.assert_array_equal(fr.unpack12(memoryview(b"head" + packed)[4:]), codes)
+
+
+def test_pack12_refuses_odd_lengths() -> None:
+    with pytest.raises(ValueError, match="even number"):
+        fr.pack12(np.zeros(3, np.uint16))
+    with pytest.raises(ValueError, match="multiple of 3"):
+        fr.unpack12(b"\x00" * 23)
 
 
 @settings(max_examples=300)
