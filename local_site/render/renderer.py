@@ -30,6 +30,8 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
+from numba import njit
+from numpy.typing import NDArray
 
 from local_site.render.interpolation import warm_up
 from local_site.render.pin_command import PIN_PITCH_MM, STROKE_MM, PinCommand, pin_offsets_mm
@@ -120,6 +122,55 @@ class RenderStats:
     skipped: int = 0
     rejected: int = 0
     clamped_pins: int = 0
+
+
+#: what :func:`_finish_kernel` found wrong (0: nothing), in the order it checks
+_BAD_HEIGHT_NAN, _BAD_K_NAN, _BAD_F_NAN, _BAD_HEIGHT, _BAD_K, _BAD_F = range(1, 7)
+
+
+@njit(cache=True, nogil=True)
+def _finish_kernel(h: NDArray[np.float64], k: NDArray[np.float64], f: NDArray[np.float64],
+                   relative: bool, offset: float, gain: float, stroke: float, k_lo: float,
+                   k_hi: float, floor: float, max_height: float, tol: float,
+                   out: NDArray[np.float64]
+                   ) -> tuple[int, int, NDArray[np.float64]]:  # pragma: no cover - compiled
+    """Check the sampled layers and turn them into pin values in one pass (the numpy
+    version was about 20 array calls on 16 values each, most of a render's cost).
+
+    ``out`` (3, n) gets height, k and friction. Returns (status, clamped pins, the six
+    extremes hmin, hmax, kmin, kmax, fmin, fmax for the error message); status 0 = valid,
+    else one of the ``_BAD_*`` codes (then ``out`` is garbage). NaN/Inf in any layer is
+    reported before any range, layers in the order height, k, friction.
+    """
+    ext = np.empty(6)
+    for layer in range(3):
+        values = h if layer == 0 else (k if layer == 1 else f)
+        lo, hi = np.inf, -np.inf
+        for v in values:
+            if not np.isfinite(v):
+                return layer + 1, 0, ext  # _BAD_HEIGHT_NAN, _BAD_K_NAN, _BAD_F_NAN
+            lo = min(lo, v)
+            hi = max(hi, v)
+        ext[2 * layer] = lo
+        ext[2 * layer + 1] = hi
+    if max(-ext[0], ext[1]) > max_height:
+        return 4, 0, ext  # _BAD_HEIGHT
+    if ext[2] < k_lo - tol or ext[3] > k_hi + tol:
+        return 5, 0, ext  # _BAD_K
+    if ext[4] < -tol or ext[5] > 1.0 + tol:
+        return 6, 0, ext  # _BAD_F
+    ref = ext[0] if relative else 0.0
+    clamped = 0
+    for i in range(h.size):
+        target = offset + gain * (h[i] - ref)
+        height = min(max(target, 0.0), stroke)
+        if abs(target - height) > tol:
+            clamped += 1
+        out[0, i] = height
+        out[1, i] = min(max(k[i], k_lo), k_hi)
+        fi = min(max(f[i], 0.0), 1.0)
+        out[2, i] = 0.0 if fi < floor else fi
+    return 0, clamped, ext
 
 
 def _position_xy(position_mm: Sequence[float] | np.ndarray) -> tuple[float, float]:
@@ -219,30 +270,33 @@ class Renderer:
         cfg = self.config
         centre = np.array([x + cfg.window_offset_x_mm, y + cfg.window_offset_y_mm])
         sample = scene.sample(self._offsets + centre)
-        h, k, f = sample.height_mm, sample.stiffness_k, sample.friction
-        name = type(scene).__name__
-        # NaN and +-Inf reach min/max: one pair of reductions per layer checks both
-        (hmin, hmax), (kmin, kmax), (fmin, fmax) = (
-            (float(a.min()), float(a.max())) for a in (h, k, f))
-        for label, lo, hi in (("height_mm", hmin, hmax), ("stiffness_k", kmin, kmax),
-                              ("friction", fmin, fmax)):
-            if not (math.isfinite(lo) and math.isfinite(hi)):
-                raise InputDataError(f"scene {name} gave NaN/Inf {label}; pins not updated")
-        if max(-hmin, hmax) > _MAX_SCENE_HEIGHT_MM:
-            raise InputDataError(f"scene {name} height beyond +-{_MAX_SCENE_HEIGHT_MM} mm")
-        if kmin < K_MIN - _RANGE_TOL or kmax > K_MAX + _RANGE_TOL:
-            raise InputDataError(f"scene {name} stiffness k outside [{K_MIN}, {K_MAX}]: "
-                                 f"[{kmin:.6g}, {kmax:.6g}]")
-        if fmin < -_RANGE_TOL or fmax > 1.0 + _RANGE_TOL:
-            raise InputDataError(f"scene {name} friction outside [0, 1]: "
-                                 f"[{fmin:.6g}, {fmax:.6g}]")
-        ref = hmin if cfg.height_mode == "relative" else 0.0
-        target = cfg.height_offset_mm + cfg.height_gain * (h - ref)
-        height = np.clip(target, 0.0, cfg.stroke_mm)
-        clamped = int(np.count_nonzero(np.abs(target - height) > _RANGE_TOL))
-        stiffness = np.clip(k, K_MIN, K_MAX)
-        friction = np.clip(f, 0.0, 1.0)
-        friction[friction < cfg.friction_floor] = 0.0
-        return PinCommand(height, stiffness, friction, position_mm=(x, y),
-                          scene_version=version, clamped_pins=clamped,
-                          outside_pins=int(np.count_nonzero(~sample.inside)))
+        shape = sample.height_mm.shape
+        out = np.empty((3, sample.height_mm.size))
+        status, clamped, ext = _finish_kernel(
+            sample.height_mm.ravel(), sample.stiffness_k.ravel(), sample.friction.ravel(),
+            cfg.height_mode == "relative", cfg.height_offset_mm, cfg.height_gain,
+            cfg.stroke_mm, K_MIN, K_MAX, cfg.friction_floor, _MAX_SCENE_HEIGHT_MM, _RANGE_TOL,
+            out)
+        if status:
+            raise InputDataError(_bad_sample_message(type(scene).__name__, status, ext))
+        out.setflags(write=False)  # the command's layers are read-only views of it
+        height, stiffness, friction = (row.reshape(shape) for row in out)
+        # the kernel checked what PinCommand's constructor would (finite, in range; the
+        # shape is the pin window's), so the command is built without checking it again
+        return PinCommand.checked(height, stiffness, friction, position_mm=(x, y),
+                                  scene_version=version, clamped_pins=int(clamped),
+                                  outside_pins=int(np.count_nonzero(~sample.inside)))
+
+
+def _bad_sample_message(name: str, status: int, ext: NDArray[np.float64]) -> str:
+    """The error for a :func:`_finish_kernel` status."""
+    if status in (_BAD_HEIGHT_NAN, _BAD_K_NAN, _BAD_F_NAN):
+        label = {_BAD_HEIGHT_NAN: "height_mm", _BAD_K_NAN: "stiffness_k",
+                 _BAD_F_NAN: "friction"}[status]
+        return f"scene {name} gave NaN/Inf {label}; pins not updated"
+    if status == _BAD_HEIGHT:
+        return f"scene {name} height beyond +-{_MAX_SCENE_HEIGHT_MM} mm"
+    if status == _BAD_K:
+        return (f"scene {name} stiffness k outside [{K_MIN}, {K_MAX}]: "
+                f"[{ext[2]:.6g}, {ext[3]:.6g}]")
+    return f"scene {name} friction outside [0, 1]: [{ext[4]:.6g}, {ext[5]:.6g}]"

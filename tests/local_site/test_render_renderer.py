@@ -327,12 +327,36 @@ def test_random_layers_and_positions_give_valid_commands(height, k_unit, frictio
     cfg = RendererConfig(height_mode=mode, height_gain=gain, height_offset_mm=offset)
     near = (data.draw(st.floats(-span, span)), data.draw(st.floats(-span, span)))
     for pos in ((x, y), near):
-        cmd = Renderer(cfg).render(scene, pos)
+        renderer = Renderer(cfg)
+        cmd = renderer.render(scene, pos)
         for arr in (cmd.height_mm, cmd.stiffness_k, cmd.friction):
             assert np.isfinite(arr).all()
+            assert arr.shape == (4, 4) and arr.dtype == np.float64 and not arr.flags.writeable
         assert cmd.height_mm.min() >= 0.0 and cmd.height_mm.max() <= 5.0
         assert cmd.stiffness_k.min() >= 0.5 and cmd.stiffness_k.max() <= 1.0
         assert cmd.friction.min() >= 0.0 and cmd.friction.max() <= 1.0
+        # the compiled pass against the numpy arithmetic it replaced, and the checking
+        # constructor accepts what it built
+        expected = _numpy_render(scene.sample(renderer.pin_positions_mm(pos)), cfg)
+        for got, want in zip((cmd.height_mm, cmd.stiffness_k, cmd.friction), expected[:3],
+                             strict=True):
+            np.testing.assert_array_equal(got, want)
+        assert cmd.clamped_pins == expected[3]
+        again = PinCommand(cmd.height_mm, cmd.stiffness_k, cmd.friction)
+        assert again.friction_active == cmd.friction_active
+
+
+def _numpy_render(sample, cfg: RendererConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """The renderer's arithmetic as numpy array operations (its implementation before the
+    compiled pass): an independent reference."""
+    h, k, f = sample.height_mm, sample.stiffness_k, sample.friction
+    ref = h.min() if cfg.height_mode == "relative" else 0.0
+    target = cfg.height_offset_mm + cfg.height_gain * (h - ref)
+    height = np.clip(target, 0.0, cfg.stroke_mm)
+    clamped = int(np.count_nonzero(np.abs(target - height) > 1e-9))
+    friction = np.clip(f, 0.0, 1.0)
+    friction[friction < cfg.friction_floor] = 0.0
+    return height, np.clip(k, 0.5, 1.0), friction, clamped
 
 
 @settings(max_examples=40, deadline=None)
