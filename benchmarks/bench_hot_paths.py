@@ -116,8 +116,7 @@ def main() -> int:
              f"{args.pairs}`. {args.pairs} pairs of fresh processes, old and new alternating; "
              "thread CPU time per operation (best of 5 repetitions per process), median over "
              f"the pairs. Machine: nproc {os.cpu_count()}, load average {load:.1f} at start "
-             "(shared with other agents' jobs: even CPU time inflates under load, compare the "
-             "ratio).", "",
+             "(other jobs on the machine inflate even CPU time: compare the ratio).", "",
              "| operation | old (median) | new (median) | new / old | old runs | new runs |",
              "|---|---|---|---|---|---|"]
     for key in keys:
