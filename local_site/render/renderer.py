@@ -206,7 +206,11 @@ class Renderer:
         self._last_scene: SceneSource | None = None
         self._last_version = -1
         self._last_xy = (math.nan, math.nan)
-        warm_up()  # compile the 1 kHz path's kernel before the loop needs it
+        # compile (or load from numba's cache) the 1 kHz path's kernels now, not in the
+        # display loop's first render
+        warm_up()
+        one = np.zeros(1)
+        _finish(one, np.full(1, K_MAX), one, self.config, np.empty((3, 1)))
 
     @property
     def last_command(self) -> PinCommand | None:
@@ -272,11 +276,8 @@ class Renderer:
         sample = scene.sample(self._offsets + centre)
         shape = sample.height_mm.shape
         out = np.empty((3, sample.height_mm.size))
-        status, clamped, ext = _finish_kernel(
-            sample.height_mm.ravel(), sample.stiffness_k.ravel(), sample.friction.ravel(),
-            cfg.height_mode == "relative", cfg.height_offset_mm, cfg.height_gain,
-            cfg.stroke_mm, K_MIN, K_MAX, cfg.friction_floor, _MAX_SCENE_HEIGHT_MM, _RANGE_TOL,
-            out)
+        status, clamped, ext = _finish(sample.height_mm.ravel(), sample.stiffness_k.ravel(),
+                                       sample.friction.ravel(), cfg, out)
         if status:
             raise InputDataError(_bad_sample_message(type(scene).__name__, status, ext))
         out.setflags(write=False)  # the command's layers are read-only views of it
@@ -286,6 +287,16 @@ class Renderer:
         return PinCommand.checked(height, stiffness, friction, position_mm=(x, y),
                                   scene_version=version, clamped_pins=int(clamped),
                                   outside_pins=int(np.count_nonzero(~sample.inside)))
+
+
+def _finish(h: NDArray[np.float64], k: NDArray[np.float64], f: NDArray[np.float64],
+            cfg: RendererConfig, out: NDArray[np.float64]) -> tuple[int, int, NDArray[np.float64]]:
+    """:func:`_finish_kernel` with the settings as the types it was compiled for (an int
+    gain would compile another version inside the display loop)."""
+    return _finish_kernel(h, k, f, cfg.height_mode == "relative", float(cfg.height_offset_mm),
+                          float(cfg.height_gain), float(cfg.stroke_mm), float(K_MIN),
+                          float(K_MAX), float(cfg.friction_floor), float(_MAX_SCENE_HEIGHT_MM),
+                          float(_RANGE_TOL), out)
 
 
 def _bad_sample_message(name: str, status: int, ext: NDArray[np.float64]) -> str:

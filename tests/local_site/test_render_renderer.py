@@ -20,6 +20,7 @@ from local_site.scenes import (
 )
 from shared.errors import ConfigError, InputDataError
 from shared.protocol import TactileFrame
+from tests.support import scaled
 
 
 class PlaneScene(SceneSource):
@@ -370,3 +371,26 @@ def test_virtual_shapes_give_valid_commands_everywhere(name, x, y, shore, fricti
     assert cmd.height_mm.min() >= 0.0 and cmd.height_mm.max() <= 5.0
     assert cmd.stiffness_k.min() >= 0.5 and cmd.stiffness_k.max() <= 1.0
     assert cmd.friction.min() >= 0.0 and cmd.friction.max() <= 1.0
+
+
+def test_the_compiled_pass_is_ready_before_the_first_render() -> None:
+    """Compiling inside the 1 kHz loop would stall its first render (~1 s without numba's
+    cache): the renderer compiles at construction, for the argument types every render
+    uses, whatever number types the settings were given in."""
+    import subprocess
+    import sys
+
+    from local_site.render.renderer import _finish_kernel
+
+    # a fresh process: constructing a renderer is what compiles it
+    code = ("from local_site.render import Renderer; "
+            "from local_site.render.renderer import _finish_kernel as k; "
+            "Renderer(); print(len(k.signatures))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, timeout=scaled(120.0))
+    assert out.stdout.strip() == "1"
+    renderer = Renderer(RendererConfig(height_gain=1, height_offset_mm=0, stroke_mm=5))
+    compiled = list(_finish_kernel.signatures)
+    renderer.render(PlaneScene(0.3, 0.0, 0.0), (0.5, 0.5))
+    Renderer().render(PlaneScene(0.1, 0.0, 0.0), (1.0, 2.0))
+    assert list(_finish_kernel.signatures) == compiled and len(compiled) == 1
