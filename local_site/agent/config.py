@@ -64,13 +64,14 @@ class LocalAgentConfig:
         motion_done_grace_s: with ``--until-motion-done``, keep running this long after the
             motion finished so the last tactile frames come back.
         gil_switch_interval_s: ``sys.setswitchinterval`` while the agent runs (restored
-            after). 1 ms (default) bounds how long a busy thread can hold the display loop
-            and the platform reader off the GIL to one display period; Python's 5 ms
-            default would allow five. The earlier 0.2 ms forced a GIL hand-over (futex
-            calls, thread switches: about 28,000 futex calls/s in the demo's local station)
-            so often that the demo used more CPU and ran its loop slower than at 1 or 5 ms
-            (docs/speed.md section 9, benchmarks/results/cpu_gil_switch/). 0 leaves the
-            interpreter's setting alone.
+            after). 0.2 ms (default) bounds how long a busy thread can hold the display loop
+            and the platform reader (which stamps every encoder sample) off the GIL.
+            Measured (docs/speed.md section 9, benchmarks/results/cpu_gil_switch/): 1 ms
+            cost about 0.05 cores less and ran the loop faster, but the demo's palpation
+            typing then scattered from session to session (its benign tumor's malignant
+            score 0.52-1.06 in 8 sessions, typed malignant once in a CI run, against
+            0.74-0.84 at 0.2 ms): the samples' time stamps matter more than the CPU.
+            0 leaves the interpreter's setting alone.
         display_thread_nice: the display loop thread's nice value while it runs (-20..19;
             Linux, per thread). Negative asks the OS to run the 1 kHz loop before ordinary
             work when it wakes (a loaded machine otherwise makes it wait for a core); it
@@ -110,7 +111,7 @@ class LocalAgentConfig:
     record_image_rate_hz: float = 0.0
     record_findings: bool = True
     motion_done_grace_s: float = 0.5
-    gil_switch_interval_s: float = 0.001
+    gil_switch_interval_s: float = 0.0002
     display_thread_nice: int = 0
     view: str = ""
     view_rate_hz: float = 40.0
