@@ -65,13 +65,14 @@ class LocalAgentConfig:
             motion finished so the last tactile frames come back.
         gil_switch_interval_s: ``sys.setswitchinterval`` while the agent runs (restored
             after). 0.2 ms (default) bounds how long a busy thread can hold the display loop
-            and the platform reader (which stamps every encoder sample) off the GIL.
+            and the platform reader off the GIL.
             Measured (docs/speed.md section 9, benchmarks/results/cpu_gil_switch/): 1 ms
             cost about 0.05 cores less and ran the loop faster, but the demo's palpation
             typing then scattered from session to session (its benign tumor's malignant
             score 0.52-1.06 in 8 sessions, typed malignant once in a CI run, against
-            0.74-0.84 at 0.2 ms): the samples' time stamps matter more than the CPU.
-            0 leaves the interpreter's setting alone.
+            0.74-0.84 at 0.2 ms; why is not established: the encoder samples carry the
+            board's latch time, so not their stamps). 0 leaves the interpreter's setting
+            alone.
         display_thread_nice: the display loop thread's nice value while it runs (-20..19;
             Linux, per thread). Negative asks the OS to run the 1 kHz loop before ordinary
             work when it wakes (a loaded machine otherwise makes it wait for a core); it
