@@ -58,6 +58,8 @@ def check_sensor_source(name_or_camera: str | int) -> None:
     if not _is_camera_source(name):
         raise ConfigError(f"unknown sensor {name!r}; known: {sorted(SENSORS)} or a camera "
                           "index / URL / video file")
+    if "!" in name or " " in name:  # a GStreamer pipeline: OpenCV's to judge at connect
+        return
     if not name.isdigit() and "://" not in name and not Path(name).exists():
         raise ConfigError(f"sensor {name!r}: no such video file (a camera index, a URL such as "
                           "rtsp://..., or an existing video file)")

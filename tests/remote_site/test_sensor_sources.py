@@ -227,7 +227,8 @@ def test_a_mistyped_sensor_is_named_before_anything_is_loaded(tmp_path: Path) ->
     video = tmp_path / "presses.avi"
     video.write_bytes(b"")  # exists: whether it decodes is the camera's business at connect
     for fine in ("sim", "camera", "0", 0, "rtsp://host/stream", str(video),
-                 "remote_site.sensor.simulator:SimulatedSensor"):
+                 "remote_site.sensor.simulator:SimulatedSensor",
+                 "v4l2src device=/dev/video9 ! videoconvert ! appsink"):
         check_sensor_source(fine)
     with pytest.raises(ConfigError, match="no such video file"):
         check_sensor_source(str(tmp_path / "missing.avi"))
