@@ -124,8 +124,10 @@ class RenderStats:
     clamped_pins: int = 0
 
 
-#: what :func:`_finish_kernel` found wrong (0: nothing), in the order it checks
-_BAD_HEIGHT_NAN, _BAD_K_NAN, _BAD_F_NAN, _BAD_HEIGHT, _BAD_K, _BAD_F = range(1, 7)
+#: what :func:`_finish_kernel` found wrong (0: nothing), in the order it checks: NaN/Inf in
+#: layer i is status i + 1 (layers in :data:`_LAYERS` order), then the three ranges
+_LAYERS = ("height_mm", "stiffness_k", "friction")
+_BAD_HEIGHT, _BAD_K, _BAD_F = 4, 5, 6
 
 
 @njit(cache=True, nogil=True)
@@ -148,17 +150,17 @@ def _finish_kernel(h: NDArray[np.float64], k: NDArray[np.float64], f: NDArray[np
         lo, hi = np.inf, -np.inf
         for v in values:
             if not np.isfinite(v):
-                return layer + 1, 0, ext  # _BAD_HEIGHT_NAN, _BAD_K_NAN, _BAD_F_NAN
+                return layer + 1, 0, ext  # NaN/Inf in _LAYERS[layer]
             lo = min(lo, v)
             hi = max(hi, v)
         ext[2 * layer] = lo
         ext[2 * layer + 1] = hi
     if max(-ext[0], ext[1]) > max_height:
-        return 4, 0, ext  # _BAD_HEIGHT
+        return _BAD_HEIGHT, 0, ext
     if ext[2] < k_lo - tol or ext[3] > k_hi + tol:
-        return 5, 0, ext  # _BAD_K
+        return _BAD_K, 0, ext
     if ext[4] < -tol or ext[5] > 1.0 + tol:
-        return 6, 0, ext  # _BAD_F
+        return _BAD_F, 0, ext
     ref = ext[0] if relative else 0.0
     clamped = 0
     for i in range(h.size):
@@ -301,10 +303,8 @@ def _finish(h: NDArray[np.float64], k: NDArray[np.float64], f: NDArray[np.float6
 
 def _bad_sample_message(name: str, status: int, ext: NDArray[np.float64]) -> str:
     """The error for a :func:`_finish_kernel` status."""
-    if status in (_BAD_HEIGHT_NAN, _BAD_K_NAN, _BAD_F_NAN):
-        label = {_BAD_HEIGHT_NAN: "height_mm", _BAD_K_NAN: "stiffness_k",
-                 _BAD_F_NAN: "friction"}[status]
-        return f"scene {name} gave NaN/Inf {label}; pins not updated"
+    if status <= len(_LAYERS):
+        return f"scene {name} gave NaN/Inf {_LAYERS[status - 1]}; pins not updated"
     if status == _BAD_HEIGHT:
         return f"scene {name} height beyond +-{_MAX_SCENE_HEIGHT_MM} mm"
     if status == _BAD_K:
