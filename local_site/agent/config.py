@@ -81,6 +81,14 @@ class LocalAgentConfig:
             alone: in the demo, where both stations share two cores, -10 raised the loop to
             ~790-950 Hz but the remote station then stalled (0.3-4.4 s) in 5 of 6 runs
             (docs/speed.md section 7), so it is for a station on a machine of its own.
+        display_thread_realtime: the display loop thread's ``SCHED_FIFO`` priority while it
+            runs (1..99; 0, the default: left alone). The thread then runs as soon as it
+            wakes, ahead of all ordinary threads and processes; it needs root or
+            ``CAP_SYS_NICE`` (else logged, the summary says so). Measured in the demo
+            (docs/speed.md section 10): priority 10 raised the loop from 831-939 to 945-988 Hz
+            and halved its period jitter p99 (2.2-3.6 -> 1.0-2.0 ms), for the same CPU, but
+            the demo's motion-to-touch p99 was no better (worse in 3 of 5 pairs): the other
+            station shares the two cores. For a station on a machine of its own.
         view: serve the live view in the browser on ``HOST:PORT`` (empty: no view;
             ``127.0.0.1:8780`` keeps it on this machine, see docs/view.md).
         view_rate_hz: the view's snapshot rate (the page's update rate).
@@ -114,6 +122,7 @@ class LocalAgentConfig:
     motion_done_grace_s: float = 0.5
     gil_switch_interval_s: float = 0.0002
     display_thread_nice: int = 0
+    display_thread_realtime: int = 0
     view: str = ""
     view_rate_hz: float = 40.0
 
@@ -152,6 +161,11 @@ class LocalAgentConfig:
                 or not isinstance(self.display_thread_nice, int) \
                 or not -20 <= self.display_thread_nice <= 19:
             raise ConfigError("local.agent.display_thread_nice must be an integer in [-20, 19]")
+        if isinstance(self.display_thread_realtime, bool) \
+                or not isinstance(self.display_thread_realtime, int) \
+                or not 0 <= self.display_thread_realtime <= 99:
+            raise ConfigError("local.agent.display_thread_realtime must be an integer in "
+                              "[0, 99] (a SCHED_FIFO priority; 0: off)")
         if not (isinstance(self.view_rate_hz, int | float)
                 and 1.0 <= self.view_rate_hz <= 120.0):
             raise ConfigError("local.agent.view_rate_hz must lie in [1, 120]")

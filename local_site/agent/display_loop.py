@@ -156,6 +156,36 @@ def thread_priority(nice: int) -> Iterator[int | None]:
             os.setpriority(os.PRIO_PROCESS, tid, before)
 
 
+@contextlib.contextmanager
+def thread_realtime(priority: int) -> Iterator[int | None]:
+    """Run the calling thread under ``SCHED_FIFO`` at ``priority`` (1-99) for the block.
+
+    Yields the priority applied, or None when ``priority`` is 0 or the OS refused (it needs
+    root or ``CAP_SYS_NICE``; logged, the thread keeps its policy). The thread's previous
+    policy and priority are restored after the block. A real-time thread runs as soon as it
+    wakes, ahead of every ordinary thread; the display loop sleeps every period, and the
+    kernel's real-time throttling (``/proc/sys/kernel/sched_rt_runtime_us``, 95 % by
+    default) would still leave the rest of the machine its share if it did not.
+    """
+    if priority == 0 or not hasattr(os, "sched_setscheduler"):
+        yield None
+        return
+    tid = threading.get_native_id()
+    try:
+        policy, param = os.sched_getscheduler(tid), os.sched_getparam(tid)
+        os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
+    except OSError as err:
+        log.info("display loop thread keeps its scheduling policy (SCHED_FIFO %d refused: %s)",
+                 priority, err)
+        yield None
+        return
+    try:
+        yield priority
+    finally:
+        with contextlib.suppress(OSError):
+            os.sched_setscheduler(tid, policy, param)
+
+
 class FrameSlot:
     """Latest-wins hand-over of tactile frames from the link task to the display loop."""
 
@@ -294,6 +324,8 @@ class DisplayLoop:
         self.frame_listener = frame_listener
         #: the nice value the loop's thread got (None: left alone or not permitted)
         self.priority_applied: int | None = None
+        #: the SCHED_FIFO priority the loop's thread got (None: left alone or not permitted)
+        self.realtime_applied: int | None = None
 
     @property
     def last_command(self) -> PinCommand | None:
@@ -552,7 +584,7 @@ class DisplayLoop:
 
     # ------------------------------------------------------------------ runners
 
-    def run_in_thread(self, stop: threading.Event, nice: int = 0) -> None:
+    def run_in_thread(self, stop: threading.Event, nice: int = 0, realtime: int = 0) -> None:
         """Run at ``rate_hz`` until ``stop`` is set (blocking; call from a thread).
 
         The schedule is absolute (sleep overshoot does not accumulate); when an iteration
@@ -564,9 +596,12 @@ class DisplayLoop:
             stop: ends the loop when set.
             nice: this thread's nice value while the loop runs (0: unchanged; see
                 :func:`thread_priority`); its previous value is restored on return.
+            realtime: this thread's ``SCHED_FIFO`` priority while the loop runs (0:
+                unchanged; see :func:`thread_realtime`); restored on return.
         """
-        with thread_priority(nice) as applied:
+        with thread_priority(nice) as applied, thread_realtime(realtime) as rt_applied:
             self.priority_applied = applied
+            self.realtime_applied = rt_applied
             self._run_in_thread(stop)
 
     def _run_in_thread(self, stop: threading.Event) -> None:

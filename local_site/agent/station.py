@@ -449,7 +449,8 @@ class LocalAgent:
         async_stop = asyncio.Event()
         if self.config.render_loop == "thread":
             display_task = aio.run_in_executor(None, loop.run_in_thread, self._thread_stop,
-                                               self.config.display_thread_nice)
+                                               self.config.display_thread_nice,
+                                               self.config.display_thread_realtime)
         else:
             display_task = aio.create_task(loop.run_async(async_stop), name="display-loop")
         tasks = [aio.create_task(coro, name=name) for name, coro in (
@@ -585,7 +586,9 @@ class LocalAgent:
             "motion_to_touch_ms": self.ledger.summary_ms(),
             "tactile_codec": dataclasses.asdict(self.tactile_decoder.counters),
             "display_loop": {"mode": self.config.render_loop,
-                             "thread_nice": loop.priority_applied, **loop.periods.summary()},
+                             "thread_nice": loop.priority_applied,
+                             "thread_realtime": loop.realtime_applied,
+                             **loop.periods.summary()},
             "platform": {"spec": self.config.platform, "reads": reader.reads,
                          "read_rate_hz": reader.reads / elapsed,
                          "decoded_rate_hz": platform_stats.frames_ok / elapsed,

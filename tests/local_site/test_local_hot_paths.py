@@ -27,7 +27,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from local_site.agent import LocalAgentConfig
-from local_site.agent.display_loop import thread_priority
+from local_site.agent.display_loop import thread_priority, thread_realtime
 from local_site.agent.platform_reader import PlatformReader
 from local_site.arraytac_sim.plant import ArrayTacPlant
 from local_site.display import frames as fr
@@ -317,6 +317,38 @@ def test_thread_priority_applies_and_restores_or_says_it_was_refused(
     with caplog.at_level("INFO"), thread_priority(-10) as applied:
         assert applied is None
     assert "keeps its priority (nice -10 refused" in caplog.text
+
+
+def test_thread_realtime_applies_and_restores_or_says_it_was_refused(
+        monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    tid = threading.get_native_id()
+    before = (os.sched_getscheduler(tid), os.sched_getparam(tid).sched_priority)
+    with thread_realtime(0) as applied:
+        assert applied is None and os.sched_getscheduler(tid) == before[0]
+    with caplog.at_level("INFO"), thread_realtime(1) as applied:
+        # root or CAP_SYS_NICE: SCHED_FIFO 1 while inside; else refused and said so
+        if applied is None:
+            assert "keeps its scheduling policy (SCHED_FIFO 1 refused" in caplog.text
+            assert os.sched_getscheduler(tid) == before[0]
+        else:
+            assert applied == 1 and os.sched_getscheduler(tid) == os.SCHED_FIFO
+            assert os.sched_getparam(tid).sched_priority == 1
+    assert (os.sched_getscheduler(tid), os.sched_getparam(tid).sched_priority) == before
+
+    def refuse(*_args: object) -> None:
+        raise PermissionError(1, "Operation not permitted")
+
+    caplog.clear()
+    monkeypatch.setattr(os, "sched_setscheduler", refuse)
+    with caplog.at_level("INFO"), thread_realtime(10) as applied:
+        assert applied is None
+    assert "keeps its scheduling policy (SCHED_FIFO 10 refused" in caplog.text
+
+
+@pytest.mark.parametrize("priority", [-1, 100, 1.5, True])
+def test_display_thread_realtime_is_checked(priority: object) -> None:
+    with pytest.raises(ConfigError, match="display_thread_realtime"):
+        LocalAgentConfig(display_thread_realtime=priority)  # type: ignore[arg-type]
 
 
 @pytest.mark.parametrize("nice", [-21, 20, 1.5, True])
