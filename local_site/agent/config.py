@@ -45,6 +45,9 @@ class LocalAgentConfig:
         render_loop: ``thread`` or ``asyncio`` (where the display loop runs).
         platform_read_timeout_s: no new platform sample for this long means it is lost
             (0.25 s: on a loaded 2-core host the reader thread was seen starved > 100 ms).
+        platform_reopen_after_s: a platform silent this long (its port still open) is closed
+            and reopened; before that its samples are taken the moment they come back
+            (>= ``platform_read_timeout_s``).
         device_retry_min_s: first delay before reopening a lost device.
         device_retry_max_s: largest such delay (the delay doubles up to it).
         display_keepalive_interval_s: unchanged commands are re-sent this often.
@@ -107,6 +110,7 @@ class LocalAgentConfig:
     render_rate_hz: float = 1000.0
     render_loop: str = "thread"
     platform_read_timeout_s: float = 0.25
+    platform_reopen_after_s: float = 1.0
     device_retry_min_s: float = 0.2
     device_retry_max_s: float = 5.0
     display_keepalive_interval_s: float = 0.02
@@ -148,6 +152,12 @@ class LocalAgentConfig:
             raise ConfigError("local.agent.render_rate_hz must lie in [1, 10000]")
         if not 1.0 <= self.platform_send_rate_hz <= 10_000.0:
             raise ConfigError("local.agent.platform_send_rate_hz must lie in [1, 10000]")
+        if not (isinstance(self.platform_reopen_after_s, int | float)
+                and not isinstance(self.platform_reopen_after_s, bool)
+                and math.isfinite(self.platform_reopen_after_s)
+                and self.platform_reopen_after_s >= self.platform_read_timeout_s):
+            raise ConfigError("local.agent.platform_reopen_after_s must be finite and >= "
+                              "platform_read_timeout_s")
         if self.device_retry_max_s < self.device_retry_min_s:
             raise ConfigError("local.agent.device_retry_max_s must be >= device_retry_min_s")
         if self.interpolation_order not in (0, 1, 3):

@@ -5,9 +5,16 @@ The platform driver streams samples from its own reader thread and keeps the new
 position the driver decoded). The reader thread watches the device with the blocking
 ``read_state`` every ``poll_s`` (not at every sample: each wake-up of a thread costs the
 other threads the GIL, and the display loop runs at 1 kHz beside it). When the device
-disappears (link error or no sample for ``read_timeout_s``) it logs one clear error, marks
-itself unhealthy (the display loop then puts the pins in their safe state) and reopens the
-device with an exponential backoff until it answers again or the agent stops.
+disappears (link error or no sample for ``read_timeout_s``) it logs one clear error and marks
+itself unhealthy (the display loop then puts the pins in their safe state).
+
+A link error (port closed, device unplugged) reopens the device at once, with an exponential
+backoff until it answers again or the agent stops. A device that is only *silent* keeps its
+open port for ``reopen_after_s``: the samples of a board that was late (or of a driver thread
+that could not run on a busy machine) are taken the moment they arrive, with no close/reopen
+gap; only a silence that lasts is treated like a lost link. (Closing and reopening at the
+first 250 ms of silence turned short stalls of the demo's simulated board into 0.65-0.85 s
+gaps in the platform uplink.)
 """
 
 from __future__ import annotations
@@ -16,7 +23,7 @@ import logging
 import threading
 
 from local_site.platform.base import PlatformSample, XYZPlatform
-from shared.errors import ConfigError, DeviceError, DeviceInitError
+from shared.errors import ConfigError, DeviceError, DeviceInitError, DeviceTimeoutError
 from shared.timebase import monotonic_s
 
 __all__ = ["PlatformReader"]
@@ -36,16 +43,25 @@ class PlatformReader:
             :attr:`motion_done` once that much board time has passed since the first sample.
         poll_s: pause between two health checks (a link failure is noticed at most this
             much later than by a reader blocked in ``read_state``).
+        reopen_after_s: a device silent this long (>= ``read_timeout_s``) is closed and
+            reopened like a lost link (default: four read timeouts).
     """
 
     def __init__(self, platform: XYZPlatform, *, read_timeout_s: float = 0.1,
                  retry_min_s: float = 0.2, retry_max_s: float = 5.0,
-                 motion_duration_s: float | None = None, poll_s: float = 0.005) -> None:
+                 motion_duration_s: float | None = None, poll_s: float = 0.005,
+                 reopen_after_s: float | None = None) -> None:
         if not 0 <= poll_s < read_timeout_s:
             raise ConfigError(f"poll_s must be in [0, read_timeout_s), got {poll_s}")
+        if reopen_after_s is None:
+            reopen_after_s = 4.0 * read_timeout_s
+        if not read_timeout_s <= reopen_after_s < float("inf"):
+            raise ConfigError(f"reopen_after_s must be finite and >= read_timeout_s "
+                              f"({read_timeout_s}), got {reopen_after_s}")
         self.platform = platform
         self._poll_s = poll_s
         self._read_timeout_s = read_timeout_s
+        self._reopen_after_s = reopen_after_s
         self._retry_min_s = retry_min_s
         self._retry_max_s = retry_max_s
         self._motion_duration_s = motion_duration_s
@@ -59,6 +75,8 @@ class PlatformReader:
         self.reads = 0
         self.errors = 0
         self.reconnects = 0
+        #: silences that ended on the open port (no reopen needed)
+        self.recoveries = 0
         self.last_error: str | None = None
         self._first_board_t_us: int | None = None
 
@@ -106,30 +124,55 @@ class PlatformReader:
             delay = min(self._retry_max_s, delay * 2.0)
         return False
 
+    def _lost(self, err: DeviceError, reopen: bool) -> None:
+        """Unhealthy from now (the first error of an episode is counted and logged)."""
+        self.last_error = str(err)
+        if self.healthy:
+            self.errors += 1
+            self.healthy, self.lost_since_s = False, monotonic_s()
+            action = "reopening with backoff" if reopen else \
+                f"waiting for it (reopened after {self._reopen_after_s:.2g} s of silence)"
+            log.error("platform lost: %s; display to its safe state, %s", err, action)
+        elif reopen:
+            log.error("platform %s: %s; reopening with backoff", self.platform.name, err)
+        if reopen:
+            try:
+                self.platform.disconnect()  # a silent device is reopened, not re-read
+            except DeviceError as close_err:
+                log.debug("platform disconnect after loss failed: %s", close_err)
+
     def _run(self) -> None:
         ever_connected = False
+        needs_open = True
         while not self._stop.is_set():
-            if not self.healthy:
+            if needs_open:
                 if not self._connect_with_backoff():
                     return
                 if ever_connected:
                     self.reconnects += 1
                     log.info("platform %s is back", self.platform.name)
-                ever_connected = True
+                ever_connected, needs_open = True, False
                 self.healthy, self.lost_since_s = True, None
             try:
                 sample = self.platform.read_state(timeout_s=self._read_timeout_s)
-            except DeviceError as err:
-                self.errors += 1
-                self.last_error = str(err)
-                self.healthy, self.lost_since_s = False, monotonic_s()
-                log.error("platform lost: %s; display to its safe state, reopening with "
-                          "backoff", err)
-                try:
-                    self.platform.disconnect()  # a silent device is reopened, not re-read
-                except DeviceError as close_err:
-                    log.debug("platform disconnect after loss failed: %s", close_err)
+            except DeviceTimeoutError as err:  # silent, the port still open
+                silent_since = self.lost_since_s if not self.healthy else None
+                # silent since one read timeout before the episode was noticed
+                needs_open = silent_since is not None and monotonic_s() - silent_since \
+                    + self._read_timeout_s >= self._reopen_after_s
+                self._lost(err, reopen=needs_open)
                 continue
+            except DeviceError as err:  # the link failed: reopen now
+                needs_open = True
+                self._lost(err, reopen=True)
+                continue
+            if not self.healthy:  # the silence ended on the open port
+                self.recoveries += 1
+                silent_s = monotonic_s() - (self.lost_since_s or monotonic_s()) \
+                    + self._read_timeout_s
+                log.info("platform %s is back on the open port (silent for about %.0f ms)",
+                         self.platform.name, silent_s * 1e3)
+                self.healthy, self.lost_since_s = True, None
             previous, self._last_sample = self._last_sample, sample
             advance = sample.seq - previous.seq if previous is not None else 1
             self.reads += advance if advance > 0 else 1  # a reopened board starts anew

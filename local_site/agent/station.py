@@ -223,6 +223,7 @@ class LocalAgent:
             self.scene = open_scene(spec, interpolation_order=cfg.interpolation_order)
         self.reader = PlatformReader(
             platform, read_timeout_s=cfg.platform_read_timeout_s,
+            reopen_after_s=cfg.platform_reopen_after_s,
             retry_min_s=cfg.device_retry_min_s, retry_max_s=cfg.device_retry_max_s,
             motion_duration_s=motion_duration_s if self.until_motion_done else None)
         reader = self.reader
@@ -593,7 +594,8 @@ class LocalAgent:
                          "read_rate_hz": reader.reads / elapsed,
                          "decoded_rate_hz": platform_stats.frames_ok / elapsed,
                          "errors": reader.errors,
-                         "reconnects": reader.reconnects, "last_error": reader.last_error,
+                         "reconnects": reader.reconnects, "recoveries": reader.recoveries,
+                         "last_error": reader.last_error,
                          **dataclasses.asdict(platform_stats)},
             "uplink": {"platform_states_sent": self.platform_states_sent,
                        "send_rate_hz": self.platform_states_sent / elapsed,

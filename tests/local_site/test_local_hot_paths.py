@@ -18,7 +18,7 @@ from __future__ import annotations
 import os
 import threading
 import tty
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
@@ -289,6 +289,65 @@ def test_platform_reader_latest_is_the_drivers_newest_sample() -> None:
         reader.stop()
         platform.disconnect()
     assert reader.latest is not None  # the last sample stays readable after a stop
+
+
+def _silence(board: Any) -> Callable[[], None]:
+    """Make a running simulated board drop every frame (a silent board, port open); returns
+    the function that makes it talk again."""
+    write = board._write
+
+    def drop(_data: bytes) -> None:
+        raise BlockingIOError  # the board counts the frame as dropped and goes on
+
+    board._write = drop
+    return lambda: setattr(board, "_write", write)
+
+
+def test_a_short_platform_silence_ends_on_the_open_port_without_a_reopen() -> None:
+    """A board silent for less than ``reopen_after_s`` (a late board, a starved thread)
+    makes the reader unhealthy (pins safe), and its next sample healthy again, on the
+    same open port: no close/reopen gap (before, the first read timeout reopened it)."""
+    platform = SimulatedPlatform(HoldMotion((20.0, 30.0, 100.0)))
+    reader = PlatformReader(platform, poll_s=0.005, read_timeout_s=scaled(0.1),
+                            reopen_after_s=scaled(10.0))
+    reader.start()
+    try:
+        wait_until(lambda: reader.healthy and reader.reads > 10, 3.0, "samples")
+        board = platform.board
+        talk = _silence(board)
+        wait_until(lambda: not reader.healthy, 3.0, "the silence noticed")
+        assert reader.errors >= 1 and "no new valid sample" in (reader.last_error or "")
+        talk()
+        wait_until(lambda: reader.healthy, 3.0, "healthy again on the next sample")
+        assert reader.recoveries >= 1 and reader.reconnects == 0
+        assert platform.board is board  # never closed and reopened
+    finally:
+        reader.stop()
+        platform.disconnect()
+
+
+def test_a_lasting_platform_silence_is_reopened() -> None:
+    platform = SimulatedPlatform(HoldMotion((20.0, 30.0, 100.0)))
+    reader = PlatformReader(platform, poll_s=0.005, read_timeout_s=scaled(0.1),
+                            reopen_after_s=scaled(0.3), retry_min_s=0.05)
+    reader.start()
+    try:
+        wait_until(lambda: reader.healthy and reader.reads > 10, 3.0, "samples")
+        board = platform.board
+        _silence(board)  # for good: only a new board (a reopen) talks again
+        wait_until(lambda: reader.reconnects >= 1 and reader.healthy, 5.0,
+                   "the silent platform reopened")
+        assert platform.board is not board and reader.recoveries == 0
+    finally:
+        reader.stop()
+        platform.disconnect()
+
+
+def test_platform_reader_reopen_after_must_cover_a_read_timeout() -> None:
+    with pytest.raises(ConfigError, match="reopen_after_s"):
+        PlatformReader(SimulatedPlatform("hold"), read_timeout_s=0.25, reopen_after_s=0.1)
+    with pytest.raises(ConfigError, match="platform_reopen_after_s"):
+        LocalAgentConfig(platform_read_timeout_s=0.25, platform_reopen_after_s=0.2)
 
 
 def test_platform_reader_poll_must_be_shorter_than_the_read_timeout() -> None:
