@@ -73,8 +73,9 @@ class LocalAgentConfig:
             cost about 0.05 cores less and ran the loop faster, but the demo's palpation
             typing then scattered from session to session (its benign tumor's malignant
             score 0.52-1.06 in 8 sessions, typed malignant once in a CI run, against
-            0.74-0.84 at 0.2 ms; why is not established: the encoder samples carry the
-            board's latch time, so not their stamps). 0 leaves the interpreter's setting
+            0.74-0.84 at 0.2 ms: at 1 ms the platform went silent for 250 ms more often, 5
+            of 20 sessions against 1 of 16, and such a gap in the uplink moves the score,
+            benchmarks/results/platform_silence.md). 0 leaves the interpreter's setting
             alone.
         display_thread_nice: the display loop thread's nice value while it runs (-20..19;
             Linux, per thread). Negative asks the OS to run the 1 kHz loop before ordinary
