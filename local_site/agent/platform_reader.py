@@ -161,6 +161,8 @@ class PlatformReader:
                 needs_open = silent_since is not None and monotonic_s() - silent_since \
                     + self._read_timeout_s >= self._reopen_after_s
                 self._lost(err, reopen=needs_open)
+                if not needs_open and self._poll_s > 0 and self._stop.wait(self._poll_s):
+                    return  # (a read_state that times out at once must not spin)
                 continue
             except DeviceError as err:  # the link failed: reopen now
                 needs_open = True
