@@ -89,9 +89,9 @@ class LocalAgentConfig:
             runs (1..99; 0, the default: left alone). The thread then runs as soon as it
             wakes, ahead of all ordinary threads and processes; it needs root or
             ``CAP_SYS_NICE`` (else logged, the summary says so). Measured in the demo
-            (docs/speed.md section 10, 8 pairs): priority 10 raised the loop by 17-140 Hz
-            (989-996 Hz in the last 3) and about halved its period jitter p99 (to 0.8-2.0 ms),
-            for the same CPU, but the demo's motion-to-touch p99 was no better (worse in 5 of
+            (docs/speed.md section 10, 8 pairs): priority 10 raised the loop by 6-142 Hz
+            (989-996 Hz in the last 3) and cut its period jitter p99 (x0.27-0.90, to 0.8-2.0 ms),
+            for the same CPU, but the demo's motion-to-touch p99 was no better (worse in 6 of
             8 pairs): the other station shares the two cores. For a station on a machine of
             its own.
         view: serve the live view in the browser on ``HOST:PORT`` (empty: no view;
