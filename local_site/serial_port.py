@@ -181,6 +181,9 @@ class SerialPortReader:
         self._given_port = port
         self._port: serial.SerialBase | None = None
         self._reader: ReaderThread | None = None
+        #: when the reader thread last came back from a read of the port (monotonic s; with
+        #: or without data: it reads with ``timeout_s``), None before the first
+        self.last_read_s: float | None = None
 
     @property
     def is_open(self) -> bool:
@@ -263,6 +266,21 @@ class SerialPortReader:
             if not reader.stopping:
                 self._on_error(err)
             return False
+        self.last_read_s = monotonic_s()
         if data:
             self._on_data(data)
         return True
+
+    def silence_hint(self) -> str:
+        """Why a silent port is silent, as far as this side can tell (for error messages):
+        whether the reader thread has been reading (the device sent nothing) or has not
+        run for a while (a busy host starved it)."""
+        last = self.last_read_s
+        if last is None:
+            return ""
+        ago_ms = (monotonic_s() - last) * 1e3
+        if ago_ms <= 5.0 * self._timeout_s * 1e3 + 50.0:
+            return (f"; the reader thread read the port {ago_ms:.0f} ms ago (the device sent "
+                    "nothing)")
+        return (f"; the reader thread has not run for {ago_ms:.0f} ms (a busy host starved it, "
+                "or it is stuck)")

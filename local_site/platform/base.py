@@ -137,6 +137,11 @@ class XYZPlatform(Device):
         """Byte-level counters of the backend (override when there is a byte stream)."""
         return DecoderStats()
 
+    def _silence_hint(self) -> str:
+        """What the backend can tell about a silence, appended to the timeout's message
+        (override; e.g. whether its reader thread has been running)."""
+        return ""
+
     # ------------------------------------------------------------------ lifecycle steps
 
     def _before_connect(self) -> None:
@@ -226,7 +231,8 @@ class XYZPlatform(Device):
                     silent_s = monotonic_s() - self._last_rx_s
                     raise DeviceTimeoutError(
                         f"{self.name}: no new valid sample for {silent_s * 1e3:.0f} ms "
-                        f"(waited {timeout_s * 1e3:.0f} ms); device silent or unplugged?")
+                        f"(waited {timeout_s * 1e3:.0f} ms); device silent or unplugged?"
+                        f"{self._silence_hint()}")
                 self._cond.wait(remaining)
 
     def zero(self, at_mm: Vec3 = (0.0, 0.0, 0.0)) -> None:

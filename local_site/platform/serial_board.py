@@ -61,6 +61,9 @@ class SerialEncoderPlatform(XYZPlatform):
     def _decoder_stats(self) -> DecoderStats:
         return self._decoder.stats
 
+    def _silence_hint(self) -> str:
+        return self._link.silence_hint()
+
     def _on_data(self, data: bytes) -> None:
         rx_us = now_us()
         for frame in self._decoder.feed(data):

@@ -343,6 +343,20 @@ def test_a_lasting_platform_silence_is_reopened() -> None:
         platform.disconnect()
 
 
+def test_the_silence_hint_tells_a_silent_device_from_a_starved_reader_thread(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    import local_site.serial_port as sp
+
+    reader = SerialPortReader("loop://", name="board", thread_name="rx", on_data=lambda _d: None,
+                              on_error=lambda _e: None, timeout_s=0.02)
+    assert reader.silence_hint() == ""  # never read: nothing to tell
+    monkeypatch.setattr(sp, "monotonic_s", lambda: 100.0)
+    reader.last_read_s = 100.0 - 0.03  # read 30 ms ago: the thread runs, the device is quiet
+    assert "read the port 30 ms ago (the device sent nothing)" in reader.silence_hint()
+    reader.last_read_s = 100.0 - 0.9  # 900 ms without coming back from a 20 ms read
+    assert "has not run for 900 ms (a busy host starved it" in reader.silence_hint()
+
+
 def test_platform_reader_reopen_after_must_cover_a_read_timeout() -> None:
     with pytest.raises(ConfigError, match="reopen_after_s"):
         PlatformReader(SimulatedPlatform("hold"), read_timeout_s=0.25, reopen_after_s=0.1)

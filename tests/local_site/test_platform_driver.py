@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import time
 from collections.abc import Iterator
 
@@ -156,9 +157,12 @@ def test_silent_device_gives_init_error_then_timeout(loop_port: serial.SerialBas
     wait_until(lambda: not loop_port.in_waiting, 1.0, "the reader to drain the port")
     # Samples the board sent before it stopped may still be in the decoder (a loaded reader
     # thread lags): take them, then the silent device must time out.
-    with pytest.raises(DeviceTimeoutError, match="no new valid sample"):
+    with pytest.raises(DeviceTimeoutError, match="no new valid sample") as timeout:
         for _ in range(50):
             platform.read_state(0.1)
+    # the message says whether the driver's reader thread had been reading the silent port
+    assert re.search(r"the reader thread (read the port \d+ ms ago|has not run for)",
+                     str(timeout.value)), str(timeout.value)
     platform.disconnect()
     with pytest.raises(DeviceNotConnectedError):
         platform.read_state(0.1)
