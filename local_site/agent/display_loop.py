@@ -43,7 +43,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Any, Protocol
 
 from local_site.agent.period_stats import PeriodStats
 from local_site.display.base import ArrayTacDisplay, SafeMode
@@ -131,6 +131,26 @@ class SameClockLink:
 
 
 @contextlib.contextmanager
+def _thread_setting(value: int, keeps: str, read: Callable[[], Any],
+                    write: Callable[[Any], None], setting: Any) -> Iterator[int | None]:
+    """Apply ``setting`` to the calling thread for the block (``write``), restore what
+    ``read`` returned before it after; yield ``value``, or None when the OS refused (logged:
+    the thread ``keeps`` its ...)."""
+    try:
+        before = read()
+        write(setting)
+    except OSError as err:
+        log.info("display loop thread keeps its %s refused: %s)", keeps, err)
+        yield None
+        return
+    try:
+        yield value
+    finally:
+        with contextlib.suppress(OSError):
+            write(before)
+
+
+@contextlib.contextmanager
 def thread_priority(nice: int) -> Iterator[int | None]:
     """Give the calling thread the nice value ``nice`` for the block (Linux: per thread).
 
@@ -138,22 +158,14 @@ def thread_priority(nice: int) -> Iterator[int | None]:
     priority needs root or ``CAP_SYS_NICE``; logged once, the thread keeps its priority).
     The previous value is restored after the block (lowering is always permitted).
     """
-    tid = threading.get_native_id()
     if nice == 0 or not hasattr(os, "setpriority"):
         yield None
         return
-    try:
-        before = os.getpriority(os.PRIO_PROCESS, tid)
-        os.setpriority(os.PRIO_PROCESS, tid, nice)
-    except OSError as err:
-        log.info("display loop thread keeps its priority (nice %d refused: %s)", nice, err)
-        yield None
-        return
-    try:
-        yield nice
-    finally:
-        with contextlib.suppress(OSError):
-            os.setpriority(os.PRIO_PROCESS, tid, before)
+    tid = threading.get_native_id()
+    with _thread_setting(nice, f"priority (nice {nice}",
+                         lambda: os.getpriority(os.PRIO_PROCESS, tid),
+                         lambda v: os.setpriority(os.PRIO_PROCESS, tid, v), nice) as applied:
+        yield applied
 
 
 @contextlib.contextmanager
@@ -171,19 +183,11 @@ def thread_realtime(priority: int) -> Iterator[int | None]:
         yield None
         return
     tid = threading.get_native_id()
-    try:
-        policy, param = os.sched_getscheduler(tid), os.sched_getparam(tid)
-        os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
-    except OSError as err:
-        log.info("display loop thread keeps its scheduling policy (SCHED_FIFO %d refused: %s)",
-                 priority, err)
-        yield None
-        return
-    try:
-        yield priority
-    finally:
-        with contextlib.suppress(OSError):
-            os.sched_setscheduler(tid, policy, param)
+    with _thread_setting(priority, f"scheduling policy (SCHED_FIFO {priority}",
+                         lambda: (os.sched_getscheduler(tid), os.sched_getparam(tid)),
+                         lambda v: os.sched_setscheduler(tid, *v),
+                         (os.SCHED_FIFO, os.sched_param(priority))) as applied:
+        yield applied
 
 
 class FrameSlot:
