@@ -6,13 +6,6 @@ daemon thread (:class:`~shared.devices.reader.ReaderThread`) that hands every ch
 callback, and close it so that a blocked read
 returns at once. Only their byte protocols differ, and those stay in the drivers.
 
-A port can also be read without a thread of its own (``read_thread=False``): whoever wants
-the newest data calls :meth:`SerialPortReader.pump`, which takes what the kernel holds without
-waiting. The local station reads its encoder board this way from the threads that use the
-position (the 1 kHz display loop, the uplink): one thread fewer contends for the GIL, and a
-reader thread woken with data waiting can no longer be kept from the GIL for 0.25-1 s on a
-busy host while the display loop runs on (``benchmarks/results/platform_silence.md``).
-
 Writes: pyserial 3.5's ``write`` on a device/pty and on ``socket://`` checks its write
 timeout *after* a send that already put every byte out, so a writer descheduled for longer
 than the timeout (a loaded machine) gets ``SerialTimeoutException('Write timeout')`` for a
@@ -31,8 +24,6 @@ import math
 import os
 import queue
 import select
-import threading
-import time
 from collections.abc import Callable
 
 import serial
@@ -66,8 +57,6 @@ except ImportError:  # pragma: no cover - not POSIX
 _RETRY_ERRNOS = (errno.EAGAIN, errno.EALREADY, errno.EWOULDBLOCK, errno.EINPROGRESS,
                  errno.EINTR)
 _READ_CHUNK_BYTES = 4096
-#: most chunks one pump() hands on (a reader that was starved finds a backlog: bounded work)
-_PUMP_MAX_READS = 16
 
 
 def _read_available(port: serial.SerialBase) -> bytes | None:
@@ -162,29 +151,25 @@ def _write_all(port: serial.SerialBase, data: bytes, timeout_s: float | None) ->
 
 
 class SerialPortReader:
-    """Open a serial URL and feed what arrives to ``on_data`` from a daemon thread (or from
-    the threads that call :meth:`pump`).
+    """Open a serial URL and feed what arrives to ``on_data`` from a daemon thread.
 
     Args:
         url: pyserial URL or device.
         name: the device's name for messages.
         thread_name: the reader thread's name.
-        on_data: called from the reader thread (or a pumping thread) with every non-empty
-            chunk.
-        on_error: called from the reader thread (or a pumping thread) when a read fails (not
-            after close()).
+        on_data: called from the reader thread with every non-empty chunk.
+        on_error: called from the reader thread when a read fails (not after close()).
         baudrate: line speed.
         timeout_s: read timeout (how often the thread checks for close()).
         write_timeout_s: write timeout, or None to block.
         port: an already-open port to use instead of opening ``url``; it is not closed.
-        read_thread: read in a thread of its own (True) or only when :meth:`pump` is called.
     """
 
     def __init__(self, url: str, *, name: str, thread_name: str,
                  on_data: Callable[[bytes], None], on_error: Callable[[BaseException], None],
                  baudrate: int = 921_600, timeout_s: float = 0.05,
                  write_timeout_s: float | None = None,
-                 port: serial.SerialBase | None = None, read_thread: bool = True) -> None:
+                 port: serial.SerialBase | None = None) -> None:
         self.url = url
         self.name = name
         self._thread_name = thread_name
@@ -196,12 +181,8 @@ class SerialPortReader:
         self._given_port = port
         self._port: serial.SerialBase | None = None
         self._reader: ReaderThread | None = None
-        self.read_thread = read_thread
-        self._pump_lock = threading.Lock()
-        self._pump_owner: int | None = None
-        self._pump_failed = False
-        #: when the port was last read (monotonic s; with or without data: the reader thread
-        #: reads with ``timeout_s``, a pump without waiting), None before the first
+        #: when the reader thread last came back from a read of the port (monotonic s; with
+        #: or without data: it reads with ``timeout_s``), None before the first
         self.last_read_s: float | None = None
 
     @property
@@ -231,13 +212,11 @@ class SerialPortReader:
                                              write_timeout=self._write_timeout_s)
             except (serial.SerialException, OSError, ValueError) as err:
                 raise DeviceInitError(f"{self.name}: cannot open: {err}") from err
-        port.timeout = self._timeout_s if self.read_thread else 0
-        self._pump_failed = False
+        port.timeout = self._timeout_s
         self._port = port
-        if self.read_thread:
-            reader = ReaderThread(self._thread_name, lambda: self._read_once(port, reader))
-            self._reader = reader
-            reader.start()
+        reader = ReaderThread(self._thread_name, lambda: self._read_once(port, reader))
+        self._reader = reader
+        reader.start()
 
     def close(self) -> None:
         """Stop the reader thread and close the port (a given port is left open)."""
@@ -252,61 +231,11 @@ class SerialPortReader:
                 port.cancel_read()
         if reader is not None:
             reader.join(timeout_s=2.0)
-        # a pump in progress in another thread finishes its read before the port closes
-        # (its descriptor could otherwise be reused under it)
-        held = self._pump_owner != threading.get_ident() and \
-            self._pump_lock.acquire(timeout=2.0)
-        try:
-            if port is not None and port is not self._given_port:
-                try:
-                    port.close()
-                except (serial.SerialException, OSError):
-                    log.debug("closing %s failed", self.url, exc_info=True)
-        finally:
-            if held:
-                self._pump_lock.release()
-
-    def pump(self) -> int:
-        """Read what the port holds now, without waiting, and hand it to ``on_data`` in the
-        calling thread (a reader opened with ``read_thread=False``; otherwise it does nothing).
-
-        Any thread may call it: one reads, the others return at once rather than wait behind
-        it. A read failure goes to ``on_error`` once; later calls read nothing until the port
-        is reopened.
-
-        Returns:
-            The number of bytes handed on.
-        """
-        if self.read_thread or not self._pump_lock.acquire(blocking=False):
-            return 0
-        self._pump_owner = threading.get_ident()
-        try:
-            port = self._port
-            if port is None or self._pump_failed:
-                return 0
-            total = 0
-            for _ in range(_PUMP_MAX_READS):
-                try:
-                    data = _read_available(port)  # the port's timeout is 0: no wait
-                    if data is None:
-                        waiting = port.in_waiting
-                        data = port.read(waiting) if waiting else b""
-                except _READ_ERRORS as err:  # Type/AttributeError: pyserial after a close
-                    if self._port is port:
-                        self._pump_failed = True
-                        self._on_error(err)
-                    return total
-                self.last_read_s = monotonic_s()
-                if not data:
-                    break
-                total += len(data)
-                self._on_data(data)
-                if len(data) < _READ_CHUNK_BYTES:
-                    break  # the kernel gave all it had
-            return total
-        finally:
-            self._pump_owner = None
-            self._pump_lock.release()
+        if port is not None and port is not self._given_port:
+            try:
+                port.close()
+            except (serial.SerialException, OSError):
+                log.debug("closing %s failed", self.url, exc_info=True)
 
     def write(self, data: bytes) -> None:
         """Write bytes to the port.
@@ -342,19 +271,6 @@ class SerialPortReader:
             self._on_data(data)
         return True
 
-    def wait_readable(self, timeout_s: float) -> None:
-        """Wait until the port has data to read, at most ``timeout_s`` (for a reader without
-        a thread, between two :meth:`pump` calls). A device or pty port waits on its
-        descriptor; other ports sleep ``timeout_s``."""
-        port = self._port
-        fd = port.fd if port is not None and _POSIX_READ is not None \
-            and type(port).read is _POSIX_READ else None
-        if not isinstance(fd, int):
-            time.sleep(timeout_s)
-            return
-        with contextlib.suppress(OSError, ValueError):  # closed meanwhile: the pump says so
-            select.select([fd], [], [], timeout_s)
-
     def silence_hint(self) -> str:
         """Why a silent port is silent, as far as this side can tell (for error messages):
         whether the reader thread has been reading (the device sent nothing) or has not
@@ -363,13 +279,7 @@ class SerialPortReader:
         if last is None:
             return ""
         ago_ms = (monotonic_s() - last) * 1e3
-        recent = ago_ms <= 5.0 * self._timeout_s * 1e3 + 50.0
-        if not self.read_thread:
-            if recent:
-                return f"; the port was read {ago_ms:.0f} ms ago (the device sent nothing)"
-            return (f"; nothing has read the port for {ago_ms:.0f} ms (a busy host starved "
-                    "the threads that read it, or they are stuck)")
-        if recent:
+        if ago_ms <= 5.0 * self._timeout_s * 1e3 + 50.0:
             return (f"; the reader thread read the port {ago_ms:.0f} ms ago (the device sent "
                     "nothing)")
         return (f"; the reader thread has not run for {ago_ms:.0f} ms (a busy host starved it, "

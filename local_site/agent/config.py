@@ -48,10 +48,6 @@ class LocalAgentConfig:
         platform_reopen_after_s: a platform silent this long (its port still open) is closed
             and reopened; before that its samples are taken the moment they come back
             (>= ``platform_read_timeout_s``).
-        platform_read_thread: read the platform's serial port in a thread of its own (True)
-            or in the threads that use the position (False: the display loop and the uplink
-            drain the port, without waiting, each time they ask for the newest sample; the
-            platform reader's health check reads it when it finds no new sample).
         device_retry_min_s: first delay before reopening a lost device.
         device_retry_max_s: largest such delay (the delay doubles up to it).
         display_keepalive_interval_s: unchanged commands are re-sent this often.
@@ -117,7 +113,6 @@ class LocalAgentConfig:
     render_loop: str = "thread"
     platform_read_timeout_s: float = 0.25
     platform_reopen_after_s: float = 1.0
-    platform_read_thread: bool = True
     device_retry_min_s: float = 0.2
     device_retry_max_s: float = 5.0
     display_keepalive_interval_s: float = 0.02

@@ -201,7 +201,6 @@ class LocalAgent:
         platform_opts = dict(self._platform_options)
         if cfg.motion.strip():
             platform_opts["motion"] = cfg.motion  # parsed by the sim backend
-        platform_opts.setdefault("read_thread", cfg.platform_read_thread)
         platform = open_platform(cfg.platform, connect=False, **platform_opts)
         motion = getattr(platform, "motion", None)
         motion_duration_s = getattr(motion, "duration_s", None)

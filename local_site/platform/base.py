@@ -7,10 +7,7 @@ checks; the lifecycle (``connect``/``disconnect``, context manager, errors by ph
 :class:`~shared.devices.base.Device`'s. A backend implements ``_connect()`` /
 ``_disconnect()`` and, from its own reader thread,
 hands each raw :class:`~local_site.platform.protocol.EncoderSample` to
-:meth:`XYZPlatform._publish` (or a link failure to :meth:`XYZPlatform._link_failed`). A
-backend without a reader thread overrides ``_pump()`` (read what arrived, without waiting)
-and ``_pump_period_s``: ``latest()`` and ``read_state()`` then read the device in the
-calling thread.
+:meth:`XYZPlatform._publish` (or a link failure to :meth:`XYZPlatform._link_failed`).
 
 Typical use (lerobot habit)::
 
@@ -23,9 +20,7 @@ from __future__ import annotations
 
 import collections
 import logging
-import math
 import threading
-import time
 from dataclasses import dataclass
 
 from local_site.platform.kinematics import PlatformGeometry, WrapUnwrapper
@@ -115,10 +110,6 @@ class XYZPlatform(Device):
     _missed: int
     _clamped: int
     _reads: int
-    #: a backend read by its callers (``_pump``) is read at least this often while someone
-    #: waits for a sample (``_wait_readable`` may return sooner); ``inf``: the backend's own
-    #: thread publishes (waiters wait on the condition)
-    _pump_period_s: float = math.inf
 
     def __init__(self, *, geometry: PlatformGeometry | None = None,
                  velocity_window_s: float = 0.01, stale_timeout_s: float = 0.5,
@@ -146,15 +137,6 @@ class XYZPlatform(Device):
         """Byte-level counters of the backend (override when there is a byte stream)."""
         return DecoderStats()
 
-    def _pump(self) -> None:
-        """Read what the device has sent, without waiting, in the calling thread (override
-        in a backend without a reader thread of its own; set ``_pump_period_s`` too)."""
-
-    def _wait_readable(self, timeout_s: float) -> None:
-        """Wait (unlocked) until the device may have sent something, at most ``timeout_s``
-        (a backend read by its callers; override when it can wait on its descriptor)."""
-        time.sleep(timeout_s)
-
     def _silence_hint(self) -> str:
         """What the backend can tell about a silence, appended to the timeout's message
         (override; e.g. whether its reader thread has been running)."""
@@ -168,17 +150,13 @@ class XYZPlatform(Device):
     def _after_connect(self) -> None:
         """Wait for the first valid sample (or a link failure) within connect_timeout_s."""
         deadline = monotonic_s() + self._connect_timeout_s
-        while True:
-            self._pump()
-            with self._cond:
-                latest, error = self._latest, self._link_error
+        with self._cond:
+            while self._latest is None and self._link_error is None:
                 remaining = deadline - monotonic_s()
-                if latest is not None or error is not None or remaining <= 0:
+                if remaining <= 0:
                     break
-                if self._pump_period_s == math.inf:
-                    self._cond.wait(remaining)
-                    continue
-            self._wait_readable(min(remaining, self._pump_period_s))
+                self._cond.wait(remaining)
+            latest, error = self._latest, self._link_error
         if latest is None:
             reason = f"link failed: {error}" if error else \
                 f"no valid frame within {self._connect_timeout_s:.2f} s"
@@ -215,9 +193,7 @@ class XYZPlatform(Device):
         super().connect()
 
     def latest(self) -> PlatformSample | None:
-        """The newest sample without waiting (None before the first one); a backend read by
-        its callers is read first."""
-        self._pump()
+        """The newest sample without waiting (None before the first one)."""
         return self._latest
 
     def read_state(self, timeout_s: float = 0.1) -> PlatformSample:
@@ -237,9 +213,8 @@ class XYZPlatform(Device):
         if not self._connected:
             raise DeviceNotConnectedError(f"{self.name}: read_state() before connect()")
         deadline = monotonic_s() + timeout_s
-        while True:
-            self._pump()  # (outside the lock: a pump publishes under it)
-            with self._cond:
+        with self._cond:
+            while True:
                 if self._link_error is not None:
                     raise DeviceOperationError(
                         f"{self.name}: device disappeared ({self._link_error}); "
@@ -258,10 +233,7 @@ class XYZPlatform(Device):
                         f"{self.name}: no new valid sample for {silent_s * 1e3:.0f} ms "
                         f"(waited {timeout_s * 1e3:.0f} ms); device silent or unplugged?"
                         f"{self._silence_hint()}")
-                if self._pump_period_s == math.inf:
-                    self._cond.wait(remaining)
-                    continue
-            self._wait_readable(min(remaining, self._pump_period_s))
+                self._cond.wait(remaining)
 
     def zero(self, at_mm: Vec3 = (0.0, 0.0, 0.0)) -> None:
         """Declare that the platform is now at ``at_mm`` (default: the workspace origin).

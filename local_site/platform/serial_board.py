@@ -5,9 +5,6 @@ The port is opened with :func:`serial.serial_for_url`, so a real board is named 
 simulated one by ``loop://`` or a pty path. A reader thread drains the port, feeds the
 resynchronising decoder and publishes samples; a serial error ends the thread and is
 reported by the next ``read_state()`` as :class:`~shared.errors.DeviceOperationError`.
-With ``read_thread=False`` there is no such thread: ``latest()`` and ``read_state()`` drain
-the port in the calling thread (what the local station does: its display loop asks for the
-position 1,000 times a second anyway).
 """
 
 from __future__ import annotations
@@ -19,7 +16,6 @@ import serial
 from local_site.platform.base import XYZPlatform
 from local_site.platform.protocol import BoardInfo, DecoderStats, EncoderFrameDecoder
 from local_site.serial_port import SerialPortReader
-from shared.errors import ConfigError
 from shared.timebase import now_us
 
 __all__ = ["SerialEncoderPlatform"]
@@ -38,28 +34,18 @@ class SerialEncoderPlatform(XYZPlatform):
             ``loop://``, where the simulated board and the driver share one port object).
             A port passed in is not closed by ``disconnect()``.
         read_timeout_s: the reader thread's poll period.
-        read_thread: read the port in a thread of its own (True), or in the threads that ask
-            for samples (False; ``read_state`` then waits for the port to be readable, at
-            most ``pump_period_s`` at a time, and reads it).
-        pump_period_s: see ``read_thread``.
         **kwargs: passed to :class:`~local_site.platform.base.XYZPlatform`.
     """
 
     def __init__(self, url: str, *, baudrate: int = 921_600,
                  port: serial.SerialBase | None = None, read_timeout_s: float = 0.02,
-                 read_thread: bool = True, pump_period_s: float = 0.02,
                  **kwargs: object) -> None:
         super().__init__(**kwargs)  # type: ignore[arg-type]
-        if not 0 < pump_period_s <= 1.0:
-            raise ConfigError(f"pump_period_s must be in (0, 1] s, got {pump_period_s}")
         self.url = url
         self._decoder = EncoderFrameDecoder()
         self._link = SerialPortReader(url, name=self.name, thread_name=f"platform-rx {url}",
                                       on_data=self._on_data, on_error=self._link_failed,
-                                      baudrate=baudrate, timeout_s=read_timeout_s, port=port,
-                                      read_thread=read_thread)
-        if not read_thread:
-            self._pump_period_s = pump_period_s
+                                      baudrate=baudrate, timeout_s=read_timeout_s, port=port)
 
     @property
     def name(self) -> str:
@@ -74,12 +60,6 @@ class SerialEncoderPlatform(XYZPlatform):
 
     def _decoder_stats(self) -> DecoderStats:
         return self._decoder.stats
-
-    def _pump(self) -> None:
-        self._link.pump()
-
-    def _wait_readable(self, timeout_s: float) -> None:
-        self._link.wait_readable(timeout_s)
 
     def _silence_hint(self) -> str:
         return self._link.silence_hint()

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-import threading
 from pathlib import Path
 from typing import cast
 
@@ -25,15 +24,12 @@ from tests.support import scaled
 DEPLOY_LOCAL = Path(__file__).resolve().parents[2] / "deploy" / "config" / "local.toml"
 
 
-@pytest.mark.parametrize("read_thread", [True, False], ids=["reader-thread", "callers-read"])
-async def test_scene_mode_renders_the_hemisphere_and_survives_an_unplugged_platform(
-        read_thread: bool) -> None:
+async def test_scene_mode_renders_the_hemisphere_and_survives_an_unplugged_platform() -> None:
     # The platform's read timeout is a product timeout under test: scaled, so a loaded
     # machine does not report a spurious loss.
     agent = LocalAgent(LocalAgentConfig(scene="hemisphere", motion="hold:x=30,y=30,z=100",
                                         device_retry_min_s=0.05,
-                                        platform_read_timeout_s=scaled(0.25),
-                                        platform_read_thread=read_thread))
+                                        platform_read_timeout_s=scaled(0.25)))
     run = asyncio.create_task(agent.run())
     try:
         # hemisphere r = 4.5 mm placed at the workspace centre, platform on its top:
@@ -44,9 +40,6 @@ async def test_scene_mode_renders_the_hemisphere_and_survives_an_unplugged_platf
                        and abs(float(fb.position_mm.min()) - 2.69) < 0.1, 6.0,
                        "pins showing the hemisphere")
         assert agent.link is None and loop_of(agent).safe_reason is None
-        # read by the threads that use the position: no reader thread of the driver's own
-        assert any(t.name.startswith("platform-rx") for t in threading.enumerate()) \
-            == read_thread
         # The display loop starts beside the platform reader: when the display is ready
         # first (a loaded machine), the pins wait in the safe state for the platform's first
         # sample, counted as one "platform_lost" at start. Count the unplug on top of that.

@@ -272,14 +272,8 @@ def test_the_peer_going_away_is_reported_once(pty_pair: tuple[int, int | str]) -
 # ---------------------------------------------------------------- platform reader
 
 
-#: the driver reads its port in a thread of its own, or in the threads that ask for samples
-both_readers = pytest.mark.parametrize("read_thread", [True, False],
-                                       ids=["reader-thread", "callers-read"])
-
-
-@both_readers
-def test_platform_reader_latest_is_the_drivers_newest_sample(read_thread: bool) -> None:
-    platform = SimulatedPlatform(HoldMotion((20.0, 30.0, 100.0)), read_thread=read_thread)
+def test_platform_reader_latest_is_the_drivers_newest_sample() -> None:
+    platform = SimulatedPlatform(HoldMotion((20.0, 30.0, 100.0)))
     # polls far slower than the 1 kHz board; a long read timeout keeps it healthy below
     reader = PlatformReader(platform, poll_s=0.05, read_timeout_s=scaled(5.0))
     reader.start()
@@ -309,13 +303,11 @@ def _silence(board: Any) -> Callable[[], None]:
     return lambda: setattr(board, "_write", write)
 
 
-@both_readers
-def test_a_short_platform_silence_ends_on_the_open_port_without_a_reopen(
-        read_thread: bool) -> None:
+def test_a_short_platform_silence_ends_on_the_open_port_without_a_reopen() -> None:
     """A board silent for less than ``reopen_after_s`` (a late board, a starved thread)
     makes the reader unhealthy (pins safe), and its next sample healthy again, on the
     same open port: no close/reopen gap (before, the first read timeout reopened it)."""
-    platform = SimulatedPlatform(HoldMotion((20.0, 30.0, 100.0)), read_thread=read_thread)
+    platform = SimulatedPlatform(HoldMotion((20.0, 30.0, 100.0)))
     reader = PlatformReader(platform, poll_s=0.005, read_timeout_s=scaled(0.1),
                             reopen_after_s=scaled(10.0))
     reader.start()
@@ -334,9 +326,8 @@ def test_a_short_platform_silence_ends_on_the_open_port_without_a_reopen(
         platform.disconnect()
 
 
-@both_readers
-def test_a_lasting_platform_silence_is_reopened(read_thread: bool) -> None:
-    platform = SimulatedPlatform(HoldMotion((20.0, 30.0, 100.0)), read_thread=read_thread)
+def test_a_lasting_platform_silence_is_reopened() -> None:
+    platform = SimulatedPlatform(HoldMotion((20.0, 30.0, 100.0)))
     reader = PlatformReader(platform, poll_s=0.005, read_timeout_s=scaled(0.1),
                             reopen_after_s=scaled(0.3), retry_min_s=0.05)
     reader.start()

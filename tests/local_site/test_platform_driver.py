@@ -47,22 +47,14 @@ def loop_port() -> Iterator[serial.SerialBase]:
     port.close()
 
 
-#: both ways of reading the port: the driver's own reader thread, or the callers' threads
-#: (``read_thread=False``: ``latest()`` / ``read_state()`` drain the port)
-both_readers = pytest.mark.parametrize("read_thread", [True, False],
-                                       ids=["reader-thread", "callers-read"])
-
-
 def _expected_position(motion: WaypointMotion, board_t_us: int, t0_us: int = 0) -> np.ndarray:
     return motion.sample(np.array([(board_t_us - t0_us) * 1e-6]))[0]
 
 
-@both_readers
-def test_loop_reads_positions_of_the_motion_within_one_count(loop_port: serial.SerialBase,
-                                                             read_thread: bool) -> None:
+def test_loop_reads_positions_of_the_motion_within_one_count(loop_port: serial.SerialBase) -> None:
     motion = _line()
     board = SimulatedEncoderBoard(motion, loop_port.write, sample_rate_hz=500)
-    platform = SerialEncoderPlatform("loop://", port=loop_port, read_thread=read_thread)
+    platform = SerialEncoderPlatform("loop://", port=loop_port)
     with board, platform:
         samples = [platform.read_state(scaled(0.5)) for _ in range(50)]
     for s in samples:
@@ -152,38 +144,32 @@ def test_zero_sets_the_current_pose_as_the_given_position(loop_port: serial.Seri
             platform.zero(at_mm=(61.0, 0.0, 0.0))
 
 
-@both_readers
-def test_silent_device_gives_init_error_then_timeout(loop_port: serial.SerialBase,
-                                                     read_thread: bool) -> None:
+def test_silent_device_gives_init_error_then_timeout(loop_port: serial.SerialBase) -> None:
     # The same connect timeout must let the retry below find the board's first frame on a
     # loaded machine, so it scales.
-    platform = SerialEncoderPlatform("loop://", port=loop_port, connect_timeout_s=scaled(0.2),
-                                     read_thread=read_thread)
+    platform = SerialEncoderPlatform("loop://", port=loop_port, connect_timeout_s=scaled(0.2))
     with pytest.raises(DeviceInitError, match="no valid frame"):
         platform.connect()
     board = SimulatedEncoderBoard(HoldMotion(), loop_port.write, sample_rate_hz=500)
     with board:
         platform.connect()  # retry works once the board talks
         platform.read_state(scaled(0.5))
-    wait_until(lambda: platform.latest() is not None and not loop_port.in_waiting, 1.0,
-               "the reader to drain the port")
+    wait_until(lambda: not loop_port.in_waiting, 1.0, "the reader to drain the port")
     # Samples the board sent before it stopped may still be in the decoder (a loaded reader
     # thread lags): take them, then the silent device must time out.
     with pytest.raises(DeviceTimeoutError, match="no new valid sample") as timeout:
         for _ in range(50):
             platform.read_state(0.1)
-    # the message says whether the port had been read while it was silent
-    hint = r"the reader thread (read the port \d+ ms ago|has not run for)" if read_thread \
-        else r"(the port was read \d+ ms ago|nothing has read the port for)"
-    assert re.search(hint, str(timeout.value)), str(timeout.value)
+    # the message says whether the driver's reader thread had been reading the silent port
+    assert re.search(r"the reader thread (read the port \d+ ms ago|has not run for)",
+                     str(timeout.value)), str(timeout.value)
     platform.disconnect()
     with pytest.raises(DeviceNotConnectedError):
         platform.read_state(0.1)
 
 
-@both_readers
-def test_pty_device_disappearing_is_reported_and_connect_retries(read_thread: bool) -> None:
-    platform = SimulatedPlatform(HoldMotion((20.0, 20.0, 20.0)), read_thread=read_thread)
+def test_pty_device_disappearing_is_reported_and_connect_retries() -> None:
+    platform = SimulatedPlatform(HoldMotion((20.0, 20.0, 20.0)))
     platform.connect()
     try:
         assert platform.read_state(scaled(0.5)).position_mm == pytest.approx(
@@ -227,15 +213,14 @@ def test_a_reopened_link_finds_the_motion_where_it_is_now_not_at_its_start() -> 
         platform.disconnect()
 
 
-@both_readers
-def test_pty_raw_board_hangup_gives_operation_error(read_thread: bool) -> None:
+def test_pty_raw_board_hangup_gives_operation_error() -> None:
     master, slave = os.openpty()
     import tty
     tty.setraw(slave)
     path = os.ttyname(slave)
     board = SimulatedEncoderBoard(HoldMotion(), lambda b: os.write(master, b),
                                   sample_rate_hz=500)
-    platform = SerialEncoderPlatform(path, read_thread=read_thread)
+    platform = SerialEncoderPlatform(path)
     try:
         with board:
             platform.connect()
@@ -252,10 +237,8 @@ def test_pty_raw_board_hangup_gives_operation_error(read_thread: bool) -> None:
             os.close(master)
 
 
-@both_readers
-def test_open_platform_sim_reads_at_board_rate(read_thread: bool) -> None:
-    with open_platform("sim", motion="random", motion_options={"seed": 3},
-                       read_thread=read_thread) as platform:
+def test_open_platform_sim_reads_at_board_rate() -> None:
+    with open_platform("sim", motion="random", motion_options={"seed": 3}) as platform:
         platform.read_state(scaled(0.5))
         t0 = time.perf_counter()
         n = 0

@@ -18,7 +18,6 @@ import re
 import socket
 import threading
 import time
-import tty
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -358,78 +357,3 @@ def test_display_on_a_peer_that_stopped_reading_fails_within_the_timeout_and_sti
         t0 = monotonic_s()
         display.disconnect()
         assert monotonic_s() - t0 < timeout_s + scaled(2.0)
-
-
-# ---------------------------------------------------------------------- reading without a thread
-
-
-@pytest.mark.parametrize("url", ["pty", "loop://"])
-def test_a_reader_without_a_thread_reads_only_when_pumped_and_reports_a_failure_once(
-        url: str) -> None:
-    pty = _PtyPeer() if url == "pty" else None
-    if pty:
-        tty.setraw(pty.slave)  # bytes as they come (a line discipline would hold them)
-    received: list[bytes] = []
-    errors: list[BaseException] = []
-    link = SerialPortReader(pty.url if pty else url, name="test link", thread_name="test-rx",
-                            on_data=received.append, on_error=errors.append,
-                            read_thread=False)
-    link.open()
-    try:
-        assert not any(t.name == "test-rx" for t in threading.enumerate())
-        assert link.pump() == 0 and link.last_read_s is not None  # nothing there: no wait
-        payload = bytes(range(256)) * 12  # (a pty and loop:// hold at most 4 kB)
-        if pty:
-            os.write(pty.master, payload)
-            wait_until(lambda: link._port is not None and link._port.in_waiting
-                       >= len(payload), 2.0, "the pty to hold the bytes")
-        else:
-            link.write(payload)
-        assert link.pump() == len(payload)
-        assert b"".join(received) == payload and not errors
-        if pty:
-            os.close(pty.master)  # hang-up: the next read fails
-            pty.master = os.open(os.devnull, os.O_RDONLY)  # (for the peer's close)
-            link.pump()
-            link.pump()
-            assert len(errors) == 1, errors  # reported once, not at every pump
-    finally:
-        link.close()
-        if pty:
-            pty.close()
-
-
-def test_threads_pumping_one_port_at_once_decode_every_frame_exactly_once() -> None:
-    # the station's display loop, uplink and health check all ask for the newest platform
-    # sample; the port must be read by one of them at a time, each byte decoded once
-    from local_site.platform.motion import HoldMotion
-    from local_site.platform.sim import SimulatedPlatform
-
-    platform = SimulatedPlatform(HoldMotion((20.0, 20.0, 20.0)), read_thread=False)
-    platform.connect()
-    stop = threading.Event()
-    seen: list[list[int]] = [[], []]
-
-    def ask(out: list[int]) -> None:
-        while not stop.is_set():
-            sample = platform.latest()
-            if sample is not None:
-                out.append(sample.seq)
-
-    threads = [threading.Thread(target=ask, args=(out,)) for out in seen]
-    try:
-        for t in threads:
-            t.start()
-        reads = [platform.read_state(scaled(0.5)).seq for _ in range(200)]
-    finally:
-        stop.set()
-        for t in threads:
-            t.join()
-        stats = platform.stats()
-        platform.disconnect()
-    assert reads == sorted(set(reads))
-    for out in seen:
-        assert out == sorted(out)  # never backwards
-    assert stats.crc_errors == 0 and stats.garbage_bytes == 0
-    assert stats.samples_missed == 0  # every frame the board sent was decoded, once
-    assert stats.frames_ok >= 200
