@@ -54,6 +54,12 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="--ood: no fiducial registration (analyse in the designed map)")
     parser.add_argument("--cache", default=None, metavar="DIR",
                         help="--ood: keep simulated recordings here and reuse them")
+    parser.add_argument("--map-config", default="", metavar="NAME=VALUE,...",
+                        help="--ood: MapConfig overrides for the analysis, e.g. "
+                             "signal_percentile=50")
+    parser.add_argument("--detection-config", default="", metavar="NAME=VALUE,...",
+                        help="--ood: DetectionConfig overrides for the analysis, e.g. "
+                             "malignant_ref_edge_mm=0.75")
 
 
 def _pct(values: list[float], q: float) -> float | None:
@@ -144,6 +150,8 @@ def _run_ood(args: argparse.Namespace) -> int:
 
     from lab.bench.palpation_ood import (
         FAMILIES,
+        config_overrides,
+        configured_analysis,
         failures,
         make_case,
         plot_ood,
@@ -160,17 +168,24 @@ def _run_ood(args: argparse.Namespace) -> int:
 
         raise ConfigError(f"unknown OOD families {unknown}; known: {list(FAMILIES)}")
     cache = Path(args.cache) if args.cache else None
+    from local_site.palpation import DetectionConfig, MapConfig
+
+    analyse = configured_analysis(config_overrides(MapConfig, args.map_config),
+                                  config_overrides(DetectionConfig, args.detection_config))
     command = (f"teletouch bench palpation --ood --runs {n} --first-seed {args.first_seed}"
                + (f" --families {args.families}" if args.families else "")
                + (" --ideal" if args.ideal else "")
-               + ("" if args.register else " --no-register"))
+               + ("" if args.register else " --no-register")
+               + (f" --map-config {args.map_config}" if args.map_config else "")
+               + (f" --detection-config {args.detection_config}"
+                  if args.detection_config else ""))
     load_start = os.getloadavg()[0]
     started = time.monotonic()
     runs: list[dict[str, Any]] = []
     for i in range(n):  # indices outermost: an interrupted run covers every family
         for family in families:
             case = make_case(family, i, n, args.first_seed + i, ideal=args.ideal)
-            result = run_case(case, cache, register=args.register)
+            result = run_case(case, cache, analyse, register=args.register)
             runs.append(result)
             emit(f"[{time.monotonic() - started:6.0f} s] {family} #{i} factor "
                  f"{case.factor:.3g}: " + (result.get("error", "") or

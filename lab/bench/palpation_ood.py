@@ -29,7 +29,9 @@ frame-rate     the type phantoms, tactile frames at 4 .. 60 Hz (log spaced; the 
 =============  ====================================================================
 
 Recordings are cached (``--cache DIR``) by family, index, seed and world so the analysis can
-be re-scored without simulating again.
+be re-scored without simulating again; the key holds nothing of the analysis settings, which
+are applied afresh on every re-analysis (``--map-config`` / ``--detection-config`` override
+them, :func:`configured_analysis`).
 """
 
 from __future__ import annotations
@@ -39,23 +41,27 @@ import json
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 
 from lab.bench.palpation_session import Operator, simulate_registration, simulate_session
 from lab.scoring import score_findings
-from local_site.palpation import analyse_recording
+from local_site.palpation import DetectionConfig, MapConfig, analyse_recording
 from local_site.recording import Recording
 from remote_site.agent.world import IDEAL, REALISTIC, Realism, Registration, world_for
 from remote_site.phantom.phantom_file import phantom_from_dict
 from remote_site.registration import RegistrationEstimate
-from shared.errors import CalibrationError, InputDataError
+from shared.errors import CalibrationError, ConfigError, InputDataError
 from shared.workspace import WorkspaceMap
 
-__all__ = ["FAMILIES", "Case", "make_case", "run_case", "summarise_ood"]
+if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
+
+__all__ = ["FAMILIES", "Case", "config_overrides", "configured_analysis", "make_case", "run_case",
+           "summarise_ood"]
 
 LAYER = {"size_mm": [100.0, 100.0], "thickness_mm": 20.0, "modulus_kpa": 50.0}
 E_BG = 50.0
@@ -213,11 +219,49 @@ Analyse = Callable[[Recording, dict[str, Any]], list[Any]]
 def default_analysis(rec: Recording, context: dict[str, Any]) -> list[Any]:
     """The local station's analysis, in the workspace map the recording says it used,
     corrected by the session's fiducial registration when one was made."""
-    est = context.get("registration")
-    if est is None:
-        return analyse_recording(rec)
-    # platform -> arm (the recorded map) -> phantom (the estimated rigid motion)
-    return analyse_recording(rec, WorkspaceMap().registered(est.dx_mm, est.dy_mm, est.yaw_deg))
+    return configured_analysis()(rec, context)
+
+
+def configured_analysis(map_config: MapConfig | None = None,
+                        detection: DetectionConfig | None = None) -> Analyse:
+    """:func:`default_analysis` with other map and detection settings (the recordings do
+    not depend on them, so cached sessions can be re-analysed with any)."""
+    def analyse(rec: Recording, context: dict[str, Any]) -> list[Any]:
+        est = context.get("registration")
+        if est is None:
+            return analyse_recording(rec, map_config=map_config, detection=detection)
+        # platform -> arm (the recorded map) -> phantom (the estimated rigid motion)
+        return analyse_recording(rec, WorkspaceMap().registered(est.dx_mm, est.dy_mm,
+                                                                est.yaw_deg),
+                                 map_config, detection)
+    return analyse
+
+
+_T = TypeVar("_T", bound="DataclassInstance")
+
+
+def config_overrides(cls: type[_T], text: str) -> _T:
+    """``cls()`` with ``name=value,...`` overrides (numbers and booleans; for the
+    ``--map-config`` / ``--detection-config`` flags).
+
+    Raises:
+        ConfigError: an unknown field or a malformed item.
+    """
+    types = {f.name: str(f.type) for f in fields(cls)}
+    values: dict[str, Any] = {}
+    for item in filter(None, (t.strip() for t in text.split(","))):
+        name, sep, value = item.partition("=")
+        if not sep or name not in types:
+            raise ConfigError(f"{cls.__name__}: expected name=value with a known field, "
+                              f"got {item!r}; fields: {sorted(types)}")
+        kind = types[name]
+        try:
+            values[name] = (int(value) if kind == "int"
+                            else value.lower() in ("1", "true", "yes") if kind == "bool"
+                            else float(value))
+        except ValueError as err:
+            raise ConfigError(f"{cls.__name__}.{name}: not a number: {value!r}") from err
+    return cls(**values)
 
 
 def _registration(world: Any, path: Path | None) -> RegistrationEstimate:

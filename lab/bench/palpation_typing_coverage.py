@@ -16,7 +16,8 @@ errors and the stated type confidence. The tables then answer:
 Usage::
 
   python -m lab.bench.palpation_typing_coverage --cache DIR --first-seed 6000 --runs 30 \\
-      --families type,coverage --out records.json [--config min_coverage=0.5,...]
+      --families type,coverage --out records.json [--config min_coverage=0.5,...] \\
+      [--map-config signal_percentile=20]
 """
 
 from __future__ import annotations
@@ -27,13 +28,12 @@ import json
 import math
 import sys
 from collections.abc import Callable, Iterable
-from dataclasses import fields, replace
 from pathlib import Path
 from typing import Any
 
-from lab.bench.palpation_ood import _load, _registration, make_case
+from lab.bench.palpation_ood import _load, _registration, config_overrides, make_case
 from lab.scoring import score_findings
-from local_site.palpation import DetectionConfig, analyse_recording
+from local_site.palpation import DetectionConfig, MapConfig, analyse_recording
 from remote_site.agent.world import world_for
 from remote_site.phantom.phantom_file import phantom_from_dict
 from shared.workspace import WorkspaceMap
@@ -45,7 +45,8 @@ TYPED_FAMILIES = ("type", "free-operator", "coverage", "registration", "noise", 
 
 
 def collect(families: Iterable[str], first_seed: int, runs: int, cache: Path,
-            detection: DetectionConfig | None = None) -> tuple[list[dict[str, Any]], int]:
+            detection: DetectionConfig | None = None,
+            map_config: MapConfig | None = None) -> tuple[list[dict[str, Any]], int]:
     """Per-inclusion typing records of the cached sessions, and how many were missing."""
     records: list[dict[str, Any]] = []
     missing = 0
@@ -60,7 +61,7 @@ def collect(families: Iterable[str], first_seed: int, runs: int, cache: Path,
             world = world_for(phantom, case.realism, case.seed, case.registration)
             est = _registration(world, path.with_suffix(".reg.json"))
             workspace = WorkspaceMap().registered(est.dx_mm, est.dy_mm, est.yaw_deg)
-            findings = analyse_recording(_load(path), workspace, detection=detection)
+            findings = analyse_recording(_load(path), workspace, map_config, detection)
             truth = world.phantom.ground_truth()
             score = score_findings(findings, truth)
             by_center = {tuple(f.center_mm): f for f in findings}
@@ -76,7 +77,8 @@ def collect(families: Iterable[str], first_seed: int, runs: int, cache: Path,
                                if math.isfinite(f.malignant_score_log_se) else None),
                     "type_confidence": f.type_confidence, "confidence": f.confidence,
                     "edge_width_mm": (f.edge_width_mm if math.isfinite(f.edge_width_mm)
-                                      else None)})
+                                      else None),
+                    "rim_relief": f.rim_relief if math.isfinite(f.rim_relief) else None})
             for t in truth["tumors"]:
                 if t["id"] not in {m["id"] for m in score["matches"]}:
                     records.append({"family": family, "index": i, "seed": case.seed,
@@ -216,20 +218,6 @@ def reliability_table(records: list[dict[str, Any]], confidence: Callable[
     return "\n".join(lines)
 
 
-def _config(text: str) -> DetectionConfig:
-    cfg = DetectionConfig()
-    types = {f.name: f.type for f in fields(DetectionConfig)}
-    for item in filter(None, text.split(",")):
-        name, value = item.split("=")
-        if name not in types:
-            raise SystemExit(f"unknown DetectionConfig field {name!r}")
-        kind = str(types[name])
-        parsed: Any = (int(value) if kind == "int" else value.lower() in ("1", "true")
-                       if kind == "bool" else float(value))
-        cfg = replace(cfg, **{name: parsed})
-    return cfg
-
-
 def main(argv: list[str] | None = None) -> int:
     """Collect records (``--out``) and print the tables."""
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -238,11 +226,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--runs", type=int, required=True)
     p.add_argument("--families", default=",".join(TYPED_FAMILIES))
     p.add_argument("--config", default="", help="DetectionConfig overrides: name=value,...")
+    p.add_argument("--map-config", default="", help="MapConfig overrides: name=value,...")
     p.add_argument("--out", type=Path)
     args = p.parse_args(argv)
     families = args.families.split(",")
     records, missing = collect(families, args.first_seed, args.runs, args.cache,
-                               _config(args.config))
+                               config_overrides(DetectionConfig, args.config),
+                               config_overrides(MapConfig, args.map_config))
     if args.out:
         args.out.write_text(json.dumps({"missing": missing, "records": records}))
     print(f"missing sessions: {missing}")

@@ -11,9 +11,12 @@ Two maps are built on a regular phantom grid:
   A stiff inclusion under a soft layer carries more of the pad's load, so the gel bulges
   more over it. Each frame's patch is divided by the pad's own pressure profile (estimated
   from the data as the median normalised patch over all contact frames, so no pad model is
-  assumed), normalised by its median over the pad's core, and accumulated (mean per cell).
+  assumed), normalised by the frame's *pad signal* (the ``signal_percentile``-th percentile
+  of that ratio over the pad's core; 50 = the median), and accumulated (mean per cell).
   Only the core of the pad (profile >= ``core_fraction`` of its peak) is used, where the
-  profile is flat enough to divide by safely.
+  profile is flat enough to divide by safely. The median over the core rises by ~35 % when
+  the pad sits on an inclusion, so a frame's relief depends on where it fell; a low
+  percentile follows the healthy part of the patch instead (see ``MapConfig``).
 * **secant stiffness**: force / indentation of each contact frame, placed at the frame
   centre (the pad-averaged stiffness the probe felt there), mean per cell.
 """
@@ -26,10 +29,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from local_site.recording import Recording
-from shared.errors import InputDataError
+from shared.errors import ConfigError, InputDataError
 from shared.workspace import WorkspaceMap
 
-__all__ = ["MapConfig", "PalpationMaps", "build_maps", "pad_profile"]
+__all__ = ["MapConfig", "PalpationMaps", "build_maps", "pad_profile", "pad_signal"]
 
 
 @dataclass(frozen=True)
@@ -39,13 +42,22 @@ class MapConfig:
     Attributes:
         cell_mm: grid spacing of the maps (phantom mm).
         min_indentation_mm: frames pressed less than this are not used (secant too noisy).
-        min_signal_fraction: frames whose pad signal (median core height over the pad
-            profile) is below this fraction of the session's median are not used: the
+        min_signal_fraction: frames whose pad signal (see ``signal_percentile``) is below
+            this fraction of the session's median pad signal are not used: the
             relief is that signal's relative variation, so its noise grows as 1 / signal
             (an arm lagging its target in z, under load, grazes the phantom and such frames
             drew findings out of noise at the scan's edge).
         core_fraction: pad-profile level defining the pad core used for relief.
         margin_mm: the maps extend this far beyond the phantom bounds of the workspace.
+        signal_percentile: each frame's pad signal, which its relief is relative to, is
+            this percentile (0-100) of the frame's height over the pad profile across the
+            pad core. 50 (the median) rises when the pad sits on an inclusion, so the
+            relief (and the typing's malignant score) depends on where the frames fell; a
+            low percentile tracks the healthy tissue under the same frame. Changing it
+            rescales the relief, so ``DetectionConfig``'s typing references depend on it.
+
+    Raises:
+        ConfigError: ``signal_percentile`` outside [0, 100] or not finite.
     """
 
     cell_mm: float = 0.5
@@ -53,6 +65,13 @@ class MapConfig:
     min_signal_fraction: float = 0.25
     core_fraction: float = 0.7
     margin_mm: float = 10.0
+    signal_percentile: float = 50.0
+
+    def __post_init__(self) -> None:
+        p = self.signal_percentile
+        if isinstance(p, bool) or not isinstance(p, (int, float)) or not 0.0 <= p <= 100.0:
+            raise ConfigError(f"MapConfig.signal_percentile must be a number in [0, 100], "
+                              f"got {p!r}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -123,6 +142,21 @@ def pad_profile(patches: NDArray[np.floating], core_fraction: float = 0.7
     return profile, profile >= core_fraction
 
 
+def pad_signal(ratios: NDArray[np.floating], percentile: float = 50.0) -> NDArray[np.float64]:
+    """Each frame's pad signal: the ``percentile``-th percentile of its core ratios.
+
+    Args:
+        ratios: (N, core pixels) frame heights over the pad profile.
+        percentile: 0-100 (50: the median, computed as :func:`numpy.median`).
+
+    Returns:
+        (N,) the signal per frame.
+    """
+    if percentile == 50.0:
+        return np.median(ratios, axis=1).astype(np.float64, copy=False)
+    return np.percentile(ratios, percentile, axis=1).astype(np.float64, copy=False)
+
+
 def build_maps(rec: Recording, workspace: WorkspaceMap,
                config: MapConfig | None = None) -> PalpationMaps:
     """Build the relief and stiffness maps of a recording.
@@ -159,7 +193,7 @@ def build_maps(rec: Recording, workspace: WorkspaceMap,
     rows, cols = np.nonzero(core)
     inv_profile = 1.0 / profile[rows, cols]
     ratios = patches[:, rows, cols] * inv_profile  # (N, core pixels)
-    signal = np.median(ratios, axis=1)
+    signal = pad_signal(ratios, cfg.signal_percentile)
     positive = signal[signal > 0]
     min_signal = (cfg.min_signal_fraction * float(np.median(positive)) if positive.size
                   else 0.0)

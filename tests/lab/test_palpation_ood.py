@@ -7,10 +7,11 @@ from typing import Any
 import numpy as np
 import pytest
 
-from lab.bench.palpation_ood import FAMILIES, make_case, summarise_ood
+from lab.bench.palpation_ood import FAMILIES, config_overrides, make_case, summarise_ood
 from lab.bench.palpation_session import Operator, operator_path
 from remote_site.agent.world import IDEAL, REALISTIC
 from remote_site.phantom.phantom_file import phantom_from_dict
+from local_site.palpation import DetectionConfig, MapConfig
 from shared.errors import ConfigError
 
 
@@ -88,3 +89,17 @@ def test_summary_counts_and_confusion() -> None:
     assert row["phantoms"] == 2 and row["failed"] == 1 and row["inclusions"] == 2
     assert row["detection"] == 0.5 and row["fp_per_phantom"] == 1.0
     assert row["confusion b->b b->m m->b m->m"] == "0 1 0 0" and row["type_accuracy"] == 0.0
+
+
+def test_config_overrides_of_the_analysis_flags() -> None:
+    """``--map-config`` / ``--detection-config``: cached sessions re-analysed with other
+    settings."""
+    assert config_overrides(MapConfig, "") == MapConfig()
+    assert config_overrides(MapConfig, "signal_percentile=20, cell_mm=0.25") == MapConfig(
+        signal_percentile=20.0, cell_mm=0.25)
+    assert config_overrides(DetectionConfig, "min_samples=4,edge_sampled_arc_only=true,"
+                            "malignant_ref_edge_mm=0.8") == DetectionConfig(
+        min_samples=4, edge_sampled_arc_only=True, malignant_ref_edge_mm=0.8)
+    for bad in ("nope=1", "signal_percentile", "signal_percentile=x", "signal_percentile=101"):
+        with pytest.raises(ConfigError):
+            config_overrides(MapConfig, bad)

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from lab.scoring import score_findings
@@ -29,10 +29,11 @@ from local_site.palpation import (
     rank_by_severity,
 )
 from local_site.palpation.findings import malignant_score
+from local_site.palpation.maps import pad_profile, pad_signal
 from local_site.recording import SessionRecorder
 from remote_site.phantom.phantom import PixelGrid
 from remote_site.phantom.scenes import make_scene
-from shared.errors import InputDataError
+from shared.errors import ConfigError, InputDataError
 from shared.protocol import Hop, PlatformState, TactileFrame
 from shared.recording import McapRecorder
 from shared.workspace import WorkspaceMap
@@ -333,3 +334,49 @@ def test_half_palpated_finding_has_half_its_outline_sampled() -> None:
         min_coverage=0.0, min_boundary_coverage=0.8))
         if math.dist(f.center_mm, target.center_mm) < 6.0]
     assert strict[0].kind == "uncertain" and strict[0].likely_kind == found[0].likely_kind
+
+
+@pytest.mark.parametrize("bad", [-0.1, 100.5, math.nan, math.inf, -math.inf, True, "20", None])
+def test_signal_percentile_is_validated(bad: object) -> None:
+    with pytest.raises(ConfigError, match="signal_percentile"):
+        MapConfig(signal_percentile=bad)  # type: ignore[arg-type]
+
+
+@given(st.floats(0.0, 100.0) | st.integers(0, 100))
+def test_any_percentile_in_range_is_accepted(p: float) -> None:
+    assert MapConfig(signal_percentile=p).signal_percentile == p
+
+
+@given(st.integers(0, 2**32 - 1), st.floats(0.0, 100.0))
+def test_pad_signal_is_the_percentile_and_50_is_the_median(seed: int, p: float) -> None:
+    ratios = np.random.default_rng(seed).uniform(0.2, 3.0, (5, 37))
+    assert pad_signal(ratios, p) == pytest.approx(np.percentile(ratios, p, axis=1), rel=1e-12)
+    assert np.array_equal(pad_signal(ratios), np.median(ratios, axis=1))
+    assert np.all(pad_signal(ratios, min(p, 50.0)) <= pad_signal(ratios, max(p, 50.0)))
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.floats(0.0, 100.0))
+def test_build_maps_relief_is_relative_to_the_chosen_percentile(seed: int, p: float) -> None:
+    """Frames far apart (each map cell gets one pixel of one frame): every cell's relief is
+    exactly that pixel's ratio to the pad profile over the frame's ``p``-th percentile of
+    the core ratios, minus 1 (independent reference computed here from the patches)."""
+    rng = np.random.default_rng(seed)
+    ws = WorkspaceMap()
+    phantom_xy = [(x, y) for x in (-20.0, -10.0, 0.0, 10.0, 20.0) for y in (-15.0, 0.0, 15.0)]
+    n, size, pitch = len(phantom_xy), 7, 0.5  # odd patch, pitch = cell: one pixel per cell
+    patches = rng.uniform(0.5, 1.5, (n, size, size)).astype(np.float32)
+    centres = ws.inverse(np.array([[x, y, -3.0] for x, y in phantom_xy]))[:, :2]
+    rec = Recording(
+        platform_t_us=np.arange(n, dtype=np.int64), platform_mm=np.zeros((n, 3)),
+        frame_center_mm=centres, frame_pitch_mm=np.full(n, pitch),
+        frame_contact=np.ones(n, bool), frame_force_n=np.full(n, 2.0),
+        frame_indentation_mm=np.full(n, 3.0), frame_height_mm=patches)
+    cfg = MapConfig(cell_mm=pitch, min_signal_fraction=0.0, signal_percentile=p)
+    maps = build_maps(rec, ws, cfg)
+    profile, core = pad_profile(patches, cfg.core_fraction)
+    ratios = patches[:, core] / profile[core]
+    expected = ratios / np.percentile(ratios, p, axis=1, keepdims=True) - 1.0
+    assert maps.relief_count.max() == 1 and maps.frames_used == n
+    got = np.sort(maps.relief[np.isfinite(maps.relief)])
+    assert got == pytest.approx(np.sort(expected.ravel()), rel=1e-9, abs=1e-9)
