@@ -9,9 +9,9 @@ import pytest
 
 from lab.bench.palpation_ood import FAMILIES, config_overrides, make_case, summarise_ood
 from lab.bench.palpation_session import Operator, operator_path
+from local_site.palpation import DetectionConfig, MapConfig
 from remote_site.agent.world import IDEAL, REALISTIC
 from remote_site.phantom.phantom_file import phantom_from_dict
-from local_site.palpation import DetectionConfig, MapConfig
 from shared.errors import ConfigError
 
 
