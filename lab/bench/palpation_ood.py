@@ -255,10 +255,15 @@ def config_overrides(cls: type[_T], text: str) -> _T:
             raise ConfigError(f"{cls.__name__}: expected name=value with a known field, "
                               f"got {item!r}; fields: {sorted(types)}")
         kind = types[name]
+        if kind == "bool":
+            flag = {"1": True, "true": True, "yes": True, "0": False, "false": False,
+                    "no": False}.get(value.strip().lower())
+            if flag is None:
+                raise ConfigError(f"{cls.__name__}.{name}: not a boolean: {value!r}")
+            values[name] = flag
+            continue
         try:
-            values[name] = (int(value) if kind == "int"
-                            else value.lower() in ("1", "true", "yes") if kind == "bool"
-                            else float(value))
+            values[name] = int(value) if kind == "int" else float(value)
         except ValueError as err:
             raise ConfigError(f"{cls.__name__}.{name}: not a number: {value!r}") from err
     return cls(**values)

@@ -103,3 +103,7 @@ def test_config_overrides_of_the_analysis_flags() -> None:
     for bad in ("nope=1", "signal_percentile", "signal_percentile=x", "signal_percentile=101"):
         with pytest.raises(ConfigError):
             config_overrides(MapConfig, bad)
+    assert config_overrides(DetectionConfig, "edge_sampled_arc_only=no") == DetectionConfig(
+        edge_sampled_arc_only=False)
+    with pytest.raises(ConfigError, match="not a boolean"):  # not silently False
+        config_overrides(DetectionConfig, "edge_sampled_arc_only=ture")
