@@ -10,6 +10,7 @@ is a spec too.
 
 Platform specs (:func:`open_platform`):
     ``sim``                      simulated encoder board on a pty, scripted raster operator
+    ``sim-process``              the same, the board in a process of its own (as a real board)
     an entry-point name, ``package.module:Class``   that backend, no arguments
     ``serial:<url>``             explicit serial backend
     anything else                a pyserial device or URL: ``/dev/ttyUSB0``, ``COM3``,
@@ -48,6 +49,7 @@ __all__ = ["DISPLAY_BACKENDS", "PLATFORM_BACKENDS", "open_display", "open_platfo
 #: platform backend name -> "module:Class"
 PLATFORM_BACKENDS: dict[str, str] = {
     "sim": "local_site.platform.sim:SimulatedPlatform",
+    "sim-process": "local_site.platform.sim_process:ProcessSimulatedPlatform",
     "serial": "local_site.platform.serial_board:SerialEncoderPlatform",
 }
 

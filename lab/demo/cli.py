@@ -42,6 +42,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--motion", default=None,
                         help="scripted operator spec for the simulated platform "
                              "(default: a 3 mm-spaced raster, pressed 3 mm into the phantom)")
+    parser.add_argument("--platform", choices=("sim", "sim-process"), default="sim",
+                        help="the simulated platform's board as a thread of the local "
+                             "station (sim, default) or in a process of its own")
     parser.add_argument("--duration", type=float, default=100.0,
                         help="stop the operator after this many seconds (default 100)")
     parser.add_argument("--frame-rate-hz", type=float, default=120.0,
@@ -114,7 +117,8 @@ def run(args: argparse.Namespace) -> int:
     config = DemoConfig(scene=args.phantom or args.scene, seed=args.seed, ideal=args.ideal,
                         register=args.register,
                         link=args.link,
-                        motion=args.motion or DEFAULT_MOTION, max_duration_s=args.duration,
+                        motion=args.motion or DEFAULT_MOTION, platform=args.platform,
+                        max_duration_s=args.duration,
                         frame_rate_hz=args.frame_rate_hz,
                         workdir=Path(args.workdir) if args.workdir else None,
                         record_dir=Path(args.record) if args.record else None,

@@ -82,6 +82,8 @@ class DemoConfig:
         link: link-emulator profile of the path between the two sites, or None; each
             station <-> relay leg gets half its one-way delay and jitter.
         motion: the scripted operator (``teletouch local --motion`` spec).
+        platform: the local station's simulated platform backend: ``sim`` (the board as a
+            thread of the station's process) or ``sim-process`` (in a process of its own).
         ideal: the noise-free simulated world (default: the realistic one, with an unknown
             registration error drawn from ``seed``).
         register: let the remote station measure the registration on the phantom's
@@ -103,6 +105,7 @@ class DemoConfig:
     seed: int = 0
     link: str | None = None
     motion: str = DEFAULT_MOTION
+    platform: str = "sim"
     ideal: bool = False
     register: bool = True
     max_duration_s: float = 100.0
@@ -349,7 +352,7 @@ def run_demo(config: DemoConfig,
                   REMOTE_JOIN_TIMEOUT_S, procs)
         local = procs.start(
             "local", "local", "--relay", f"ws://127.0.0.1:{local_port}/", *common,
-            "--platform", "sim", "--display", "sim", "--motion", config.motion,
+            "--platform", config.platform, "--display", "sim", "--motion", config.motion,
             "--until-motion-done", "--duration", f"{config.max_duration_s:g}", "--no-status",
             "--record", str(files["record"]), "--summary-json", str(files["local_summary"]),
             *view_args, *config.extra_local_args)

@@ -21,7 +21,20 @@ from local_site.platform.serial_board import SerialEncoderPlatform
 from local_site.platform.sim_board import SimulatedEncoderBoard
 from shared.errors import DeviceInitError
 
-__all__ = ["SimulatedPlatform"]
+__all__ = ["SimulatedPlatform", "build_motion"]
+
+
+def build_motion(motion: MotionSource | str,
+                 motion_options: dict[str, object] | None = None) -> MotionSource:
+    """The motion source of a simulated platform: ``motion`` itself, a ``--motion`` spec
+    string parsed, or (with ``motion_options``) a bare name built with those options.
+
+    Raises:
+        ConfigError: a bad spec, name or option.
+    """
+    if isinstance(motion, str) and motion_options is None:
+        return parse_motion_spec(motion)
+    return make_motion(motion, **(motion_options or {}))
 
 
 class SimulatedPlatform(SerialEncoderPlatform):
@@ -45,9 +58,7 @@ class SimulatedPlatform(SerialEncoderPlatform):
                  initial_counts: tuple[int, int, int] = (0, 0, 0),
                  start_board_t_us: int = 0, **kwargs: object) -> None:
         super().__init__("pty://sim", **kwargs)  # type: ignore[arg-type]
-        if isinstance(motion, str) and motion_options is None:
-            motion = parse_motion_spec(motion)
-        self.motion = make_motion(motion, **(motion_options or {}))
+        self.motion = build_motion(motion, motion_options)
         self._sample_rate_hz = sample_rate_hz
         self._initial_counts = initial_counts
         self._start_board_t_us = start_board_t_us
@@ -77,11 +88,6 @@ class SimulatedPlatform(SerialEncoderPlatform):
         # finds the board (and the scripted operator) where they are now, not at the start.
         if self._powered_at_s is None:
             self._powered_at_s = time.perf_counter()
-        start_sample = int((time.perf_counter() - self._powered_at_s) * self._sample_rate_hz)
-        self.board = SimulatedEncoderBoard(
-            self.motion, lambda data: os.write(master_fd, data), geometry=self.geometry,
-            sample_rate_hz=self._sample_rate_hz, initial_counts=self._initial_counts,
-            start_board_t_us=self._start_board_t_us, start_sample=start_sample)
         try:
             super()._connect()
         except DeviceInitError:
@@ -89,11 +95,35 @@ class SimulatedPlatform(SerialEncoderPlatform):
             raise
         finally:
             os.close(slave_fd)  # the driver holds its own descriptor of the slave
+        try:
+            self._start_board(master_fd, self._powered_at_s)
+        except DeviceInitError:
+            super()._disconnect()
+            self._close_pty()
+            raise
+
+    def _start_board(self, master_fd: int, powered_at_s: float) -> None:
+        """Start the board writing to the pty's master side (here: a thread of this process).
+
+        Args:
+            master_fd: the pty's master descriptor.
+            powered_at_s: ``time.perf_counter()`` at the board's power-up (a reopened link
+                finds it where it is now).
+        """
+        start_sample = int((time.perf_counter() - powered_at_s) * self._sample_rate_hz)
+        self.board = SimulatedEncoderBoard(
+            self.motion, lambda data: os.write(master_fd, data), geometry=self.geometry,
+            sample_rate_hz=self._sample_rate_hz, initial_counts=self._initial_counts,
+            start_board_t_us=self._start_board_t_us, start_sample=start_sample)
         self.board.start()
 
-    def _disconnect(self) -> None:
+    def _stop_board(self) -> None:
+        """Stop the board (idempotent)."""
         if self.board is not None:
             self.board.stop()
+
+    def _disconnect(self) -> None:
+        self._stop_board()
         super()._disconnect()
         self._close_pty()
 
@@ -105,6 +135,5 @@ class SimulatedPlatform(SerialEncoderPlatform):
 
     def unplug(self) -> None:
         """Simulate the board disappearing: stop it and close its end of the link."""
-        if self.board is not None:
-            self.board.stop()
+        self._stop_board()
         self._close_pty()

@@ -24,11 +24,13 @@ from tests.support import scaled
 DEPLOY_LOCAL = Path(__file__).resolve().parents[2] / "deploy" / "config" / "local.toml"
 
 
-async def test_scene_mode_renders_the_hemisphere_and_survives_an_unplugged_platform() -> None:
+@pytest.mark.parametrize("platform", ["sim", "sim-process"])
+async def test_scene_mode_renders_the_hemisphere_and_survives_an_unplugged_platform(
+        platform: str) -> None:
     # The platform's read timeout is a product timeout under test: scaled, so a loaded
     # machine does not report a spurious loss.
     agent = LocalAgent(LocalAgentConfig(scene="hemisphere", motion="hold:x=30,y=30,z=100",
-                                        device_retry_min_s=0.05,
+                                        platform=platform, device_retry_min_s=0.05,
                                         platform_read_timeout_s=scaled(0.25)))
     run = asyncio.create_task(agent.run())
     try:
@@ -45,8 +47,7 @@ async def test_scene_mode_renders_the_hemisphere_and_survives_an_unplugged_platf
         # sample, counted as one "platform_lost" at start. Count the unplug on top of that.
         at_start = dict(loop_of(agent).counters.safe_entries)
         assert at_start in ({}, {"platform_lost": 1}) and reader_of(agent).errors == 0
-        platform = reader_of(agent).platform
-        platform.unplug()  # type: ignore[attr-defined]
+        reader_of(agent).platform.unplug()  # type: ignore[attr-defined]
         await wait_for(lambda: loop_of(agent).safe_reason == "platform_lost", 2.0, "safe state")
         await wait_for(lambda: reader_of(agent).reconnects >= 1
                        and loop_of(agent).safe_reason is None,

@@ -5,6 +5,9 @@ from __future__ import annotations
 import math
 import os
 import re
+import subprocess
+import sys
+import threading
 import time
 from collections.abc import Iterator
 
@@ -293,3 +296,59 @@ def test_capture_times_never_go_backwards(steps: list[tuple[int, int]]) -> None:
         if previous is not None:
             assert sample.t_us > previous
         previous = sample.t_us
+
+
+# ---------------------------------------------------------------------- board in its own process
+
+
+def test_sim_process_board_streams_from_its_own_process_and_goes_with_the_link() -> None:
+    platform = open_platform("sim-process", motion="hold:x=20,y=30,z=40")
+    try:
+        child = platform._child  # type: ignore[attr-defined]
+        assert child is not None and child.poll() is None
+        assert not any(t.name == "sim-encoder-board" for t in threading.enumerate())
+        first = platform.read_state(scaled(0.5))
+        assert first.position_mm == pytest.approx((20.0, 30.0, 40.0), abs=RES_MM)
+        t0 = time.perf_counter()
+        n = 0
+        while time.perf_counter() - t0 < 0.3:
+            platform.read_state(scaled(0.5))
+            n += 1
+        assert n / (time.perf_counter() - t0) >= 500 / max(1.0, scaled(1.0))
+        # a reopened link: a new board process that continues the board's clock
+        platform.disconnect()
+        assert child.poll() is not None  # the board's process ended with the link
+        time.sleep(0.1)
+        platform.connect()
+        again = platform.read_state(scaled(0.5))
+        assert again.board_t_us - first.board_t_us >= 100_000
+        stats = platform.stats()
+        assert stats.crc_errors == 0 and stats.garbage_bytes == 0
+    finally:
+        platform.disconnect()
+
+
+def test_sim_process_board_ends_when_the_station_process_dies() -> None:
+    # the station killed (no disconnect): its board must not stream on for ever
+    code = ("import os\nfrom local_site.devices import open_platform\n"
+            "p = open_platform('sim-process')\nprint(p._child.pid, flush=True)\nos._exit(0)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=scaled(30.0), check=True)
+    pid = int(out.stdout.split()[-1])
+
+    def gone() -> bool:
+        try:
+            with open(f"/proc/{pid}/stat") as f:
+                return f.read().rsplit(")", 1)[1].split()[0] == "Z"  # ended, not yet reaped
+        except FileNotFoundError:
+            return True
+
+    wait_until(gone, 5.0, "the orphaned board process to end")
+
+
+@pytest.mark.parametrize("motion, options", [(HoldMotion(), None),
+                                             ("random", {"seed": object()})])
+def test_sim_process_needs_a_motion_it_can_send_to_the_board(motion: object,
+                                                             options: object) -> None:
+    with pytest.raises(ConfigError, match="sim-process"):
+        open_platform("sim-process", connect=False, motion=motion, motion_options=options)
