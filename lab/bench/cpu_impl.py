@@ -142,9 +142,13 @@ def snapshot(pids: list[int]) -> CpuSnapshot:
     return snap
 
 
-def _children(parent: int) -> dict[int, str]:
-    """Direct child processes of ``parent`` running ``lab.cli``: pid -> subcommand."""
-    out: dict[int, str] = {}
+#: the simulated encoder board's own process (``--platform sim-process``), a child of the
+#: local station
+_SIM_BOARD_MODULE = "local_site.platform.sim_process"
+
+
+def _processes() -> Iterator[tuple[int, int, list[str]]]:
+    """(pid, parent pid, argv) of every process that can be read."""
     for entry in os.listdir("/proc"):
         if not entry.isdigit():
             continue
@@ -152,17 +156,27 @@ def _children(parent: int) -> dict[int, str]:
             with open(f"/proc/{entry}/stat") as f:
                 stat = f.read()
             ppid = int(stat[stat.rfind(")") + 2:].split()[1])
-            if ppid != parent:
-                continue
             with open(f"/proc/{entry}/cmdline", "rb") as f:
                 argv = f.read().decode(errors="replace").split("\0")
         except (OSError, ValueError):
             continue
-        if "lab.cli" in argv:
+        yield int(entry), ppid, argv
+
+
+def _children(parent: int) -> dict[int, str]:
+    """Child processes of ``parent`` running ``lab.cli`` (pid -> subcommand), and the local
+    station's simulated board process when it has one (``sim-board``)."""
+    out: dict[int, str] = {}
+    table = list(_processes())
+    for pid, ppid, argv in table:
+        if ppid == parent and "lab.cli" in argv:
             rest = argv[argv.index("lab.cli") + 1:]
             cmd = next((a for a in rest if a in ("relay", "link", "local", "remote")), "?")
-            out[int(entry)] = cmd
-    names: dict[int, str] = {}
+            out[pid] = cmd
+    local = {p for p, c in out.items() if c == "local"}
+    boards = {pid: "sim-board" for pid, ppid, argv in table
+              if ppid in local and _SIM_BOARD_MODULE in argv}
+    names: dict[int, str] = dict(boards)
     links = sorted(p for p, c in out.items() if c == "link")
     for pid, cmd in out.items():
         # the demo runs one emulator for both legs; two (older runs) are told apart by pid
@@ -374,8 +388,9 @@ def _figures(win: _Window, report: dict[str, Any], load_start: tuple[float, floa
         threads[name] = sorted(({"tid": tid, "runs": roots.get(tid, "?"), "cores": cpu / wall}
                                 for tid, cpu in thread_cpu.items()),
                                key=lambda t: -float(t["cores"]))
-        if name.startswith("link"):
-            stages[name]["sim: link emulator"] = total / wall
+        if name.startswith("link") or name == "sim-board":
+            stages[name]["sim: link emulator" if name.startswith("link")
+                         else "sim: platform board + operator"] = total / wall
             top[name] = _top_functions(text) if text else []
             continue
         unattributed = 0.0

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
+
 from lab.bench.cpu_impl import classify_stack, parse_raw_profile, thread_roots
 from lab.bench.cpu_report import product_and_sim
 
@@ -48,3 +50,23 @@ def test_product_and_sim_totals() -> None:
                       "relay": {"relay forwarding": 0.05}}}
     product, sim = product_and_sim(run)
     assert abs(product - 0.15) < 1e-12 and abs(sim - 0.3) < 1e-12
+
+
+def test_the_demos_processes_and_the_local_stations_board_process_are_found(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    from lab.bench import cpu_impl
+
+    py = "/venv/bin/python3"
+    table = [  # (pid, parent, argv): the bench is pid 10
+        (11, 10, [py, "-P", "-m", "lab.cli", "--log-level", "INFO", "relay", "--port", "1"]),
+        (12, 10, [py, "-P", "-m", "lab.cli", "link", "--profile", "lan"]),
+        (13, 10, [py, "-P", "-m", "lab.cli", "remote", "--relay", "ws://x"]),
+        (14, 10, [py, "-P", "-m", "lab.cli", "local", "--platform", "sim-process"]),
+        (15, 14, [py, "-m", "local_site.platform.sim_process", "{}"]),  # the local's board
+        (16, 13, [py, "-m", "local_site.platform.sim_process", "{}"]),  # not the local's
+        (17, 99, [py, "-P", "-m", "lab.cli", "local"]),  # another demo's station
+        (18, 10, ["py-spy", "record", "--pid", "14"]),
+    ]
+    monkeypatch.setattr(cpu_impl, "_processes", lambda: iter(table))
+    assert cpu_impl._children(10) == {11: "relay", 12: "link", 13: "remote", 14: "local",
+                                      15: "sim-board"}
