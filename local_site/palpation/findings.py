@@ -84,6 +84,7 @@ from local_site.palpation.edge import (
     sampled_arc,
 )
 from local_site.palpation.maps import PalpationMaps
+from shared.errors import ConfigError
 
 __all__ = ["DetectionConfig", "Finding", "find_tumors", "malignant_score", "rank_by_severity",
            "type_probability"]
@@ -113,6 +114,20 @@ class DetectionConfig:
     min_boundary_coverage: float = 0.0
     type_se_scale: float = 1.5
     edge_sampled_arc_only: bool = False
+    #: the malignant score is multiplied by ``(malignant_ref_radius_mm / equivalent radius)
+    #: ** malignant_size_exponent``: 0 (default) = no size term, the score as before
+    malignant_size_exponent: float = 0.0
+    malignant_ref_radius_mm: float = 5.7
+
+    def __post_init__(self) -> None:
+        b, r = self.malignant_size_exponent, self.malignant_ref_radius_mm
+        for name, v in (("malignant_size_exponent", b), ("malignant_ref_radius_mm", r)):
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise ConfigError(f"DetectionConfig.{name} must be a finite number, got {v!r}")
+        if b < 0.0:
+            raise ConfigError(f"DetectionConfig.malignant_size_exponent must be >= 0, got {b!r}")
+        if r <= 0.0:
+            raise ConfigError(f"DetectionConfig.malignant_ref_radius_mm must be > 0, got {r!r}")
 
 
 @dataclass(frozen=True)
@@ -209,26 +224,35 @@ def _boundary(excess: NDArray[np.float64], raw_excess: NDArray[np.float64],
 
 
 def malignant_score(width_mm: float, width_se_mm: float, rim: float, rim_se: float,
-                    cfg: DetectionConfig | None = None) -> tuple[float, float]:
-    """``(width / ref_edge)^2 * (rim / ref_rim)^rim_exponent`` and the standard error of its
-    log (first-order propagation of the two standard errors); (nan, inf) when either
-    feature is unmeasured (not finite or not positive)."""
+                    cfg: DetectionConfig | None = None,
+                    radius_mm: float = math.nan) -> tuple[float, float]:
+    """``(width / ref_edge)^2 * (rim / ref_rim)^rim_exponent * (ref_radius / radius)^b``
+    (``b = malignant_size_exponent``; 0 by default: no size term, ``radius_mm`` unused) and
+    the standard error of its log (first-order propagation of the width's and the rim's
+    standard errors; the radius is taken as exact); (nan, inf) when a feature it uses is
+    unmeasured (not finite or not positive)."""
     c = cfg or DetectionConfig()
-    a = c.malignant_rim_exponent
+    a, b = c.malignant_rim_exponent, c.malignant_size_exponent
     if not (math.isfinite(width_mm) and width_mm > 0):
         return math.nan, math.inf
+    size = 1.0
+    if b != 0.0:
+        if not (math.isfinite(radius_mm) and radius_mm > 0):
+            return math.nan, math.inf
+        size = (c.malignant_ref_radius_mm / radius_mm) ** b
     if a == 0.0:  # the boundary alone: the rim need not be measured
-        return (width_mm / c.malignant_ref_edge_mm) ** 2, 2.0 * width_se_mm / width_mm
+        return (width_mm / c.malignant_ref_edge_mm) ** 2 * size, 2.0 * width_se_mm / width_mm
     if not (math.isfinite(rim) and rim > 0):
         return math.nan, math.inf
     score = ((width_mm / c.malignant_ref_edge_mm) ** 2
-             * (rim / c.malignant_ref_rim_relief) ** a)
+             * (rim / c.malignant_ref_rim_relief) ** a) * size
     return score, math.hypot(2.0 * width_se_mm / width_mm, a * rim_se / rim)
 
 
-def _type(b: _Boundary, cfg: DetectionConfig) -> tuple[float, float]:
+def _type(b: _Boundary, radius_mm: float, cfg: DetectionConfig) -> tuple[float, float]:
     """The malignant score and the standard error of its log (inf when unmeasured)."""
-    return malignant_score(b.edge.width_mm, b.edge.width_se_mm, b.rim, b.rim_se, cfg)
+    return malignant_score(b.edge.width_mm, b.edge.width_se_mm, b.rim, b.rim_se, cfg,
+                           radius_mm)
 
 
 def type_probability(margin: float, se_scale: float = 1.0) -> float:
@@ -335,7 +359,7 @@ def find_tumors(maps: PalpationMaps, config: DetectionConfig | None = None) -> l
         significance = peak / max(float(threshold[region].max()), 1e-9)
         # a graded boundary (wide edge) is the main cue, a stiffer inclusion (higher rim
         # relief) adds to it; a score within k standard errors of 1 is not a type
-        malignant_score, log_se = _type(boundary, cfg)
+        malignant_score, log_se = _type(boundary, radius, cfg)
         guess = ("uncertain" if not math.isfinite(malignant_score)
                  else "malignant" if malignant_score > 1.0 else "benign")
         type_margin = (abs(math.log(malignant_score)) / log_se

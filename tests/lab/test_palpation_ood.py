@@ -107,3 +107,8 @@ def test_config_overrides_of_the_analysis_flags() -> None:
         edge_sampled_arc_only=False)
     with pytest.raises(ConfigError, match="not a boolean"):  # not silently False
         config_overrides(DetectionConfig, "edge_sampled_arc_only=ture")
+    assert config_overrides(DetectionConfig, "malignant_size_exponent=2,"
+                            "malignant_ref_radius_mm=5.7") == DetectionConfig(
+        malignant_size_exponent=2.0, malignant_ref_radius_mm=5.7)
+    with pytest.raises(ConfigError, match="malignant_size_exponent"):
+        config_overrides(DetectionConfig, "malignant_size_exponent=-1")

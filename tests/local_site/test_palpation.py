@@ -380,3 +380,71 @@ def test_build_maps_relief_is_relative_to_the_chosen_percentile(seed: int, p: fl
     assert maps.relief_count.max() == 1 and maps.frames_used == n
     got = np.sort(maps.relief[np.isfinite(maps.relief)])
     assert got == pytest.approx(np.sort(expected.ravel()), rel=1e-9, abs=1e-9)
+
+
+@pytest.mark.parametrize("field, bad", [
+    ("malignant_size_exponent", -0.5), ("malignant_size_exponent", math.nan),
+    ("malignant_size_exponent", math.inf), ("malignant_size_exponent", True),
+    ("malignant_size_exponent", "2"), ("malignant_ref_radius_mm", 0.0),
+    ("malignant_ref_radius_mm", -5.0), ("malignant_ref_radius_mm", math.nan),
+    ("malignant_ref_radius_mm", None)])
+def test_size_term_settings_are_validated(field: str, bad: object) -> None:
+    with pytest.raises(ConfigError, match=field):
+        DetectionConfig(**{field: bad})  # type: ignore[arg-type]
+
+
+@given(_POS, _SE, _POS, _SE, st.floats(0.0, 2.0), st.floats(0.5, 15.0) | st.just(math.nan))
+def test_size_exponent_zero_is_the_score_without_a_size_term(
+        w: float, w_se: float, rim: float, rim_se: float, exponent: float,
+        radius: float) -> None:
+    """The default (exponent 0) ignores the radius, even an unmeasured one: the score and
+    its error are bit-identical to the call without a radius (today's rule)."""
+    cfg = DetectionConfig(malignant_rim_exponent=exponent)
+    assert DetectionConfig().malignant_size_exponent == 0.0
+    assert (malignant_score(w, w_se, rim, rim_se, cfg, radius)
+            == malignant_score(w, w_se, rim, rim_se, cfg))
+
+
+@given(_POS, _SE, _POS, _SE, st.floats(0.0, 2.0), st.floats(0.0, 4.0), st.floats(1.0, 10.0),
+       st.floats(0.5, 15.0))
+def test_size_term_divides_out_the_radius(
+        w: float, w_se: float, rim: float, rim_se: float, a: float, b: float, r_ref: float,
+        radius: float) -> None:
+    """Independent reference: ``log score = 2 log(w/ref_edge) + a log(rim/ref_rim)
+    + b log(r_ref/radius)``; the radius is taken as exact, so the log's standard error is
+    the one without the size term."""
+    cfg = DetectionConfig(malignant_ref_edge_mm=0.8, malignant_ref_rim_relief=0.9,
+                          malignant_rim_exponent=a, malignant_size_exponent=b,
+                          malignant_ref_radius_mm=r_ref)
+    score, log_se = malignant_score(w, w_se, rim, rim_se, cfg, radius)
+    log_ref = (2.0 * math.log(w / 0.8) + a * math.log(rim / 0.9)
+               + b * math.log(r_ref / radius))
+    assert math.log(score) == pytest.approx(log_ref, rel=1e-9, abs=1e-9)
+    assert log_se == pytest.approx(math.sqrt((2 * w_se / w) ** 2 + (a * rim_se / rim) ** 2),
+                                   rel=1e-9, abs=1e-12)
+    if b > 0 and radius > r_ref:  # a larger inclusion than the reference scores lower
+        assert score <= malignant_score(w, w_se, rim, rim_se, replace(
+            cfg, malignant_size_exponent=0.0))[0]
+
+
+@pytest.mark.parametrize("radius", [math.nan, 0.0, -1.0, math.inf])
+def test_size_term_needs_a_measured_radius(radius: float) -> None:
+    cfg = DetectionConfig(malignant_size_exponent=2.0)
+    score, log_se = malignant_score(0.8, 0.01, 1.0, 0.01, cfg, radius)
+    assert math.isnan(score) and log_se == math.inf
+
+
+def test_find_tumors_scores_with_the_finding_radius() -> None:
+    """In the full analysis the size term uses each finding's equivalent radius."""
+    rec, _ = synthetic("breast", 3)
+    ws = WorkspaceMap()
+    base = analyse_recording(rec, ws)
+    sized = analyse_recording(rec, ws, detection=DetectionConfig(
+        malignant_size_exponent=2.0, malignant_ref_radius_mm=5.7))
+    assert len(base) == len(sized) >= 1
+    for f in base:
+        g = min(sized, key=lambda s: math.dist(s.center_mm, f.center_mm))
+        assert g.equivalent_radius_mm == f.equivalent_radius_mm
+        assert g.malignant_score == pytest.approx(
+            f.malignant_score * (5.7 / f.equivalent_radius_mm) ** 2, rel=1e-9)
+        assert g.malignant_score_log_se == f.malignant_score_log_se
