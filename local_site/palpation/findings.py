@@ -31,7 +31,11 @@
   families 76-82 % -> 66-71 %): the mechanical blur through 7 mm of tissue is as wide as
   such a boundary, so it stays an option, not the default
   (benchmarks/results/palpation_typing_stiff.md, docs/palpation_typing.md). Both carry
-  a standard error; when the score is within ``type_uncertain_k`` standard errors
+  a standard error. An optional size term ``(malignant_ref_radius_mm / equivalent
+  radius)^malignant_size_exponent`` (exponent 0 by default: off) divides out the score's
+  growth with the inclusion's size; set on development seeds it did not beat the rule
+  without it on fresh seeds (benchmarks/results/palpation_typing_size.md). When the score
+  is within ``type_uncertain_k`` standard errors
   of 1, or the edge could not be fitted, the finding is typed ``uncertain`` (its best
   guess is ``likely_kind``, itself ``uncertain`` when nothing could be measured: a finding
   seen only at its edge has no rim to measure). The measured secant-stiffness contrast
