@@ -30,7 +30,7 @@ import numpy as np
 
 from lab.replay import summarize
 from lab.scoring import score_findings
-from local_site.palpation import build_maps, find_tumors
+from local_site.palpation import build_maps, maps_and_findings
 from local_site.recording import Recording, recording_from_mcap
 from shared.errors import ConfigError, InputDataError
 from shared.recording import McapRecording, read_mcap
@@ -241,7 +241,7 @@ def write_report(local_path: str | os.PathLike[str], out_path: str | os.PathLike
     findings: list[Any] = []
     parts.append("<h2>Maps and findings</h2>")
     try:
-        findings = find_tumors(build_maps(rec, ws))
+        findings = maps_and_findings(rec, ws)[1]
         parts.extend(_map_figures(rec, ws, findings, truth))
     except InputDataError as err:
         parts.append(f'<p class="warn">No maps: {html.escape(str(err))}</p>')

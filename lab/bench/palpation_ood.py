@@ -262,6 +262,9 @@ def config_overrides(cls: type[_T], text: str) -> _T:
                 raise ConfigError(f"{cls.__name__}.{name}: not a boolean: {value!r}")
             values[name] = flag
             continue
+        if "None" in kind and value.strip().lower() == "none":
+            values[name] = None
+            continue
         try:
             values[name] = int(value) if kind == "int" else float(value)
         except ValueError as err:

@@ -5,6 +5,7 @@ same information the operator had. See :mod:`local_site.palpation.maps` and
 :mod:`local_site.palpation.findings` for the method.
 """
 
+import dataclasses
 import logging
 
 from local_site.palpation.findings import DetectionConfig, Finding, find_tumors, rank_by_severity
@@ -15,7 +16,7 @@ from shared.workspace import WorkspaceMap, load_workspace
 
 __all__ = ["DetectionConfig", "Finding", "MapConfig", "PalpationMaps", "Recording",
            "analyse_recording", "build_maps", "correct_lag", "estimate_lag_mm", "find_tumors",
-           "load_recording", "pad_profile", "rank_by_severity"]
+           "load_recording", "maps_and_findings", "pad_profile", "rank_by_severity"]
 
 log = logging.getLogger(__name__)
 
@@ -51,4 +52,26 @@ def analyse_recording(recording: Recording, workspace: WorkspaceMap | None = Non
             log.info("frame positions lag their images by %.3f mm along the motion: "
                      "corrected", lag)
             recording = correct_lag(recording, lag)
-    return find_tumors(build_maps(recording, workspace, map_config), detection)
+    return maps_and_findings(recording, workspace, map_config, detection)[1]
+
+
+def maps_and_findings(recording: Recording, workspace: WorkspaceMap,
+                      map_config: MapConfig | None = None,
+                      detection: DetectionConfig | None = None
+                      ) -> tuple[PalpationMaps, list[Finding]]:
+    """The maps of ``recording`` (no lag correction) and the tumors found in them, typed
+    from a second map at ``MapConfig.typing_signal_percentile`` when it is set (the
+    default, 20: see :class:`MapConfig`).
+
+    Raises:
+        InputDataError: nothing was palpated.
+    """
+    cfg = map_config or MapConfig()
+    maps = build_maps(recording, workspace, cfg)
+    typing_p = cfg.typing_signal_percentile
+    if typing_p is None:
+        return maps, find_tumors(maps, detection)
+    typing_config = dataclasses.replace(cfg, signal_percentile=typing_p,
+                                        typing_signal_percentile=None)
+    return maps, find_tumors(maps, detection,
+                             typing_maps=build_maps(recording, workspace, typing_config))

@@ -32,9 +32,13 @@
   such a boundary, so it stays an option, not the default
   (benchmarks/results/palpation_typing_stiff.md, docs/palpation_typing.md). Both carry
   a standard error. An optional size term ``(malignant_ref_radius_mm / equivalent
-  radius)^malignant_size_exponent`` (exponent 0 by default: off) divides out the score's
-  growth with the inclusion's size; set on development seeds it did not beat the rule
-  without it on fresh seeds (benchmarks/results/palpation_typing_size.md). When the score
+  radius)^malignant_size_exponent`` divides out the score's growth with the inclusion's
+  size; on the median maps it did not beat the rule without it on fresh seeds
+  (benchmarks/results/palpation_typing_size.md). By default the findings are TYPED from a
+  second map normalised by the 20th percentile (``MapConfig.typing_signal_percentile``;
+  ``find_tumors(..., typing_maps=...)``: the typing features of the overlapping region
+  there), with exponent 3 and reference radius 5.15 mm; detection and location stay the
+  median maps' (benchmarks/results/palpation_typing_hybrid.md). When the score
   is within ``type_uncertain_k`` standard errors
   of 1, or the edge could not be fitted, the finding is typed ``uncertain`` (its best
   guess is ``likely_kind``, itself ``uncertain`` when nothing could be measured: a finding
@@ -119,9 +123,11 @@ class DetectionConfig:
     type_se_scale: float = 1.5
     edge_sampled_arc_only: bool = False
     #: the malignant score is multiplied by ``(malignant_ref_radius_mm / equivalent radius)
-    #: ** malignant_size_exponent``: 0 (default) = no size term, the score as before
-    malignant_size_exponent: float = 0.0
-    malignant_ref_radius_mm: float = 5.7
+    #: ** malignant_size_exponent`` (0 = no size term). The defaults (3, 5.15 mm) were set
+    #: for typing maps at the 20th percentile (``MapConfig.typing_signal_percentile``, the
+    #: default); the rule before this one is 0 with typing from the median maps.
+    malignant_size_exponent: float = 3.0
+    malignant_ref_radius_mm: float = 5.15
 
     def __post_init__(self) -> None:
         b, r = self.malignant_size_exponent, self.malignant_ref_radius_mm
@@ -297,22 +303,27 @@ def _disc(maps: PalpationMaps, cx_mm: float, cy_mm: float, r_mm: float) -> NDArr
             <= r_mm ** 2)
 
 
-def find_tumors(maps: PalpationMaps, config: DetectionConfig | None = None) -> list[Finding]:
-    """Detect and characterise tumors in the maps.
+@dataclass(frozen=True, eq=False)
+class _Detection:
+    """What the detection computes on one set of maps (see :func:`_detect`)."""
 
-    Args:
-        maps: relief and stiffness maps of a session.
-        config: thresholds.
+    labels: NDArray[np.int32]
+    count: int
+    excess: NDArray[np.float64]
+    raw_excess: NDArray[np.float64]
+    counts: NDArray[np.float64]
+    covered: NDArray[np.bool_]
+    lesion: NDArray[np.bool_]
+    threshold: NDArray[np.float64]
 
-    Returns:
-        Findings, most severe last, each with its severity rank (1 = least severe).
-    """
-    cfg = config or DetectionConfig()
+
+def _detect(maps: PalpationMaps, cfg: DetectionConfig) -> _Detection | None:
+    """Candidate regions of ``maps`` (None when no cell is covered)."""
     cell = maps.cell_mm
     counts = maps.relief_count.astype(np.float64)
     covered = maps.relief_count >= cfg.min_samples
     if not covered.any():
-        return []
+        return None
     s_cells = cfg.smooth_mm / cell
     smooth, weight = _normalized_smooth(np.nan_to_num(maps.relief), counts, s_cells)
     valid = covered & np.isfinite(smooth)
@@ -327,13 +338,79 @@ def find_tumors(maps: PalpationMaps, config: DetectionConfig | None = None) -> l
     excess = np.where(valid, smooth - background, 0.0)
     threshold = np.maximum(cfg.min_relief, cfg.noise_k * np.maximum(cell_sigma, std_error))
     labels, count = ndimage.label((excess > threshold) & valid)
+    raw_excess = np.where(maps.relief_count > 0, maps.relief - background, np.nan)
+    return _Detection(labels=labels, count=int(count), excess=excess, raw_excess=raw_excess,
+                      counts=counts, covered=covered, lesion=labels > 0, threshold=threshold)
+
+
+def _region_boundary(det: _Detection, region: NDArray[np.bool_], cell: float,
+                     cfg: DetectionConfig) -> _Boundary:
+    """Edge and rim of one region of ``det`` (centre: its excess-weighted centroid)."""
+    weights = np.where(region, det.excess, 0.0)
+    cy, cx = ndimage.center_of_mass(weights)
+    peak = float(det.excess[region].max())
+    return _boundary(det.excess, det.raw_excess, det.counts, region, det.lesion,
+                     det.covered, peak, (cy, cx), cell, cfg)
+
+
+def _typing_from(typing: _Detection, region: NDArray[np.bool_], cell: float,
+                 cfg: DetectionConfig) -> tuple[_Boundary, float] | None:
+    """The boundary and equivalent radius of the region of the TYPING maps that overlaps
+    ``region`` (a finding of the detection maps) most, among regions of at least
+    ``min_area_mm2``; None when none overlaps it."""
+    hits = typing.labels[region]
+    hits = hits[hits > 0]
+    if hits.size == 0:
+        return None
+    labels, overlap = np.unique(hits, return_counts=True)
+    for i in np.argsort(-overlap, kind="stable"):
+        candidate = typing.labels == labels[i]
+        area = float(candidate.sum()) * cell * cell
+        if area >= cfg.min_area_mm2:
+            return (_region_boundary(typing, candidate, cell, cfg),
+                    math.sqrt(area / math.pi))
+    return None
+
+
+def find_tumors(maps: PalpationMaps, config: DetectionConfig | None = None,
+                typing_maps: PalpationMaps | None = None) -> list[Finding]:
+    """Detect and characterise tumors in the maps.
+
+    Args:
+        maps: relief and stiffness maps of a session.
+        config: thresholds.
+        typing_maps: maps of the same session on the same grid (e.g. another
+            ``MapConfig.signal_percentile``) to TYPE the findings from: the findings, their
+            centres, areas, peak, severity score, coverage and stiffness are those of
+            ``maps``; each is typed (edge width, rim relief, malignant score, with the size
+            term's radius) from the region of ``typing_maps`` found by the same detection
+            that overlaps it most, and ``uncertain`` when none does. None (default): typed
+            from ``maps``.
+
+    Returns:
+        Findings, most severe last, each with its severity rank (1 = least severe).
+
+    Raises:
+        ValueError: ``typing_maps`` is not on the grid of ``maps``.
+    """
+    cfg = config or DetectionConfig()
+    cell = maps.cell_mm
+    if typing_maps is not None and not (
+            typing_maps.x_mm.shape == maps.x_mm.shape and typing_maps.y_mm.shape == maps.y_mm.shape
+            and np.array_equal(typing_maps.x_mm, maps.x_mm)
+            and np.array_equal(typing_maps.y_mm, maps.y_mm)):
+        raise ValueError("typing_maps must be on the grid of maps")
+    det = _detect(maps, cfg)
+    if det is None:
+        return []
+    typing = _detect(typing_maps, cfg) if typing_maps is not None else None
+    labels, count, excess, threshold = det.labels, det.count, det.excess, det.threshold
+    covered, lesion = det.covered, det.lesion
     grad_y, grad_x = np.gradient(excess, cell)
     grad = np.hypot(grad_x, grad_y)
     k_map, _ = _normalized_smooth(np.nan_to_num(maps.stiffness_n_per_mm),
                                   np.isfinite(maps.stiffness_n_per_mm).astype(float),
                                   cfg.stiffness_smooth_mm / cell)
-    lesion = labels > 0
-    raw_excess = np.where(maps.relief_count > 0, maps.relief - background, np.nan)
     healthy_k = k_map[np.isfinite(k_map) & ~ndimage.binary_dilation(lesion, iterations=8)]
     k_background = (float(np.median(healthy_k)) if healthy_k.size
                     else maps.background_stiffness_n_per_mm)
@@ -349,11 +426,22 @@ def find_tumors(maps: PalpationMaps, config: DetectionConfig | None = None) -> l
         rim = region & ~ndimage.binary_erosion(region)
         sharpness = float(grad[rim].mean() / peak) if rim.any() and peak > 0 else 0.0
         irregularity = _irregularity(excess, region, peak, cx, cy, cell)
-        boundary = _boundary(excess, raw_excess, counts, region, lesion, covered, peak,
-                             (cy, cx), cell, cfg)
         x_mm = float(np.interp(cx, np.arange(maps.x_mm.size), maps.x_mm))
         y_mm = float(np.interp(cy, np.arange(maps.y_mm.size), maps.y_mm))
         radius = math.sqrt(area / math.pi)
+        if typing is None:
+            boundary = _boundary(excess, det.raw_excess, det.counts, region, lesion, covered,
+                                 peak, (cy, cx), cell, cfg)
+            malignant_score, log_se = _type(boundary, radius, cfg)
+        else:
+            typed_from = _typing_from(typing, region, cell, cfg)
+            if typed_from is None:
+                boundary = _Boundary(EdgeFit(math.nan, math.inf, math.nan, math.nan, 0, 0),
+                                     math.nan, math.inf, 0.0)
+                malignant_score, log_se = math.nan, math.inf
+            else:
+                boundary = typed_from[0]
+                malignant_score, log_se = _type(boundary, typed_from[1], cfg)
         k_cells = k_map[region & np.isfinite(k_map)]
         stiffness = float(np.percentile(k_cells, 90)) if k_cells.size else None
         contrast = (stiffness / k_background - 1.0
@@ -363,7 +451,6 @@ def find_tumors(maps: PalpationMaps, config: DetectionConfig | None = None) -> l
         significance = peak / max(float(threshold[region].max()), 1e-9)
         # a graded boundary (wide edge) is the main cue, a stiffer inclusion (higher rim
         # relief) adds to it; a score within k standard errors of 1 is not a type
-        malignant_score, log_se = _type(boundary, radius, cfg)
         guess = ("uncertain" if not math.isfinite(malignant_score)
                  else "malignant" if malignant_score > 1.0 else "benign")
         type_margin = (abs(math.log(malignant_score)) / log_se

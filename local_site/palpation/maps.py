@@ -61,8 +61,22 @@ class MapConfig:
             worse than 50 on fresh seeds (more malignant typed benign) and added false
             positives, so the default stays 50.
 
+        typing_signal_percentile: a number (0-100; default 20):
+            :func:`local_site.palpation.analyse_recording` (and
+            :func:`local_site.palpation.maps_and_findings`) build a second relief map with
+            this ``signal_percentile`` and type each finding - found, located and sized on
+            the first maps exactly as with None - from it
+            (``find_tumors(..., typing_maps=...)``); the maps are built twice. None: the
+            findings are typed from the maps they were found in (the rule before; use it
+            with ``DetectionConfig(malignant_size_exponent=0)``, whose defaults are set
+            for typing maps at the 20th percentile). Measured
+            (benchmarks/results/palpation_typing_hybrid.md): detection, false positives
+            and localization unchanged by construction; more types right and fewer wrong
+            on fresh seeds 12000-12029 and on four of the five earlier ranges.
+
     Raises:
-        ConfigError: ``signal_percentile`` outside [0, 100] or not finite.
+        ConfigError: ``signal_percentile`` or ``typing_signal_percentile`` outside
+            [0, 100] or not a number.
     """
 
     cell_mm: float = 0.5
@@ -71,12 +85,17 @@ class MapConfig:
     core_fraction: float = 0.7
     margin_mm: float = 10.0
     signal_percentile: float = 50.0
+    typing_signal_percentile: float | None = 20.0
 
     def __post_init__(self) -> None:
-        p = self.signal_percentile
-        if isinstance(p, bool) or not isinstance(p, (int, float)) or not 0.0 <= p <= 100.0:
-            raise ConfigError(f"MapConfig.signal_percentile must be a number in [0, 100], "
-                              f"got {p!r}")
+        for name, p in (("signal_percentile", self.signal_percentile),
+                        ("typing_signal_percentile", self.typing_signal_percentile)):
+            if p is None and name == "typing_signal_percentile":
+                continue
+            if (isinstance(p, bool) or not isinstance(p, (int, float))
+                    or not 0.0 <= p <= 100.0):
+                raise ConfigError(f"MapConfig.{name} must be a number in [0, 100], "
+                                  f"got {p!r}")
 
 
 @dataclass(frozen=True, eq=False)

@@ -6,8 +6,8 @@ in a child process (lowered priority, ``os.nice``) and never in the display loop
 thread: :class:`LiveAnalysis` hands it batches of accepted frames through a
 ``multiprocessing`` queue (non-blocking for the caller) and collects results the same way.
 
-The child runs :func:`local_site.palpation.build_maps` and
-:func:`local_site.palpation.find_tumors` (the same code as the demo's final report) at most
+The child runs :func:`local_site.palpation.maps_and_findings` (maps and
+find_tumors; the same code as the demo's final report) at most
 every ``interval_s``, and not more often than twice its own last run time, so the analysis
 costs at most about a third of a core.
 
@@ -90,7 +90,7 @@ def _confidence(findings: list[dict[str, Any]], past: list[list[dict[str, Any]]]
 
 def _worker(inbox: Any, outbox: Any, workspace: WorkspaceConfig,
             config: LiveAnalysisConfig) -> None:  # pragma: no cover - runs in the child
-    from local_site.palpation import build_maps, find_tumors
+    from local_site.palpation import maps_and_findings
     from local_site.recording import Recording
     from shared.errors import InputDataError
     from shared.workspace import WorkspaceMap
@@ -148,8 +148,8 @@ def _worker(inbox: Any, outbox: Any, workspace: WorkspaceConfig,
             frame_height_mm=np.stack(cols["height"]).astype(np.float32))
         result: dict[str, Any] = {"run": runs + 1, "frames": n, "frames_dropped": dropped}
         try:
-            maps = build_maps(rec, wmap)
-            findings = [f.to_dict() for f in find_tumors(maps)]
+            maps, found = maps_and_findings(rec, wmap)
+            findings = [f.to_dict() for f in found]
         except InputDataError as err:
             result.update(state="waiting", reason=str(err), findings=[])
         else:

@@ -100,7 +100,13 @@ def test_config_overrides_of_the_analysis_flags() -> None:
     assert config_overrides(DetectionConfig, "min_samples=4,edge_sampled_arc_only=true,"
                             "malignant_ref_edge_mm=0.8") == DetectionConfig(
         min_samples=4, edge_sampled_arc_only=True, malignant_ref_edge_mm=0.8)
-    for bad in ("nope=1", "signal_percentile", "signal_percentile=x", "signal_percentile=101"):
+    # an optional field takes "none" (the rule before: type from the detection maps)
+    assert config_overrides(MapConfig, "typing_signal_percentile=None") == MapConfig(
+        typing_signal_percentile=None)
+    assert config_overrides(MapConfig, "typing_signal_percentile=30") == MapConfig(
+        typing_signal_percentile=30.0)
+    for bad in ("nope=1", "signal_percentile", "signal_percentile=x", "signal_percentile=101",
+                "signal_percentile=none", "typing_signal_percentile=x"):
         with pytest.raises(ConfigError):
             config_overrides(MapConfig, bad)
     assert config_overrides(DetectionConfig, "edge_sampled_arc_only=no") == DetectionConfig(

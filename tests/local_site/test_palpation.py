@@ -25,7 +25,9 @@ from local_site.palpation import (
     Recording,
     analyse_recording,
     build_maps,
+    find_tumors,
     load_recording,
+    maps_and_findings,
     rank_by_severity,
 )
 from local_site.palpation.findings import malignant_score
@@ -260,7 +262,7 @@ def test_malignant_score_matches_its_formula_and_error_propagation(
     """Independent reference: the log score is a linear combination of log w and log rim,
     so its standard error is the first-order propagation of the two relative errors."""
     cfg = DetectionConfig(malignant_ref_edge_mm=0.8, malignant_ref_rim_relief=0.9,
-                          malignant_rim_exponent=exponent)
+                          malignant_rim_exponent=exponent, malignant_size_exponent=0.0)
     score, log_se = malignant_score(w, w_se, rim, rim_se, cfg)
     log_ref = 2.0 * math.log(w / 0.8) + exponent * math.log(rim / 0.9)
     assert math.log(score) == pytest.approx(log_ref, rel=1e-9, abs=1e-9)
@@ -274,9 +276,10 @@ def test_malignant_score_grows_with_the_edge_and_saturates_in_the_rim(
     """A wider edge always raises the score; scaling the rim by ``factor`` raises it by
     only ``factor ** 0.5`` (default exponent), while scaling the edge width by ``factor``
     raises it by ``factor ** 2``."""
-    base, _ = malignant_score(w, 0.01, rim, 0.01)
-    wider, _ = malignant_score(w * (1 + factor), 0.01, rim, 0.01)
-    stiffer, _ = malignant_score(w, 0.01, rim * factor, 0.01)
+    cfg = DetectionConfig(malignant_size_exponent=0.0)  # no size term (default 3)
+    base, _ = malignant_score(w, 0.01, rim, 0.01, cfg)
+    wider, _ = malignant_score(w * (1 + factor), 0.01, rim, 0.01, cfg)
+    stiffer, _ = malignant_score(w, 0.01, rim * factor, 0.01, cfg)
     assert wider > base
     assert stiffer / base == pytest.approx(factor ** DetectionConfig().malignant_rim_exponent,
                                            rel=1e-9)
@@ -290,13 +293,15 @@ def test_unmeasured_features_give_no_score(w: float, rim: float) -> None:
 
 
 def test_boundary_only_score_needs_no_rim() -> None:
-    cfg = DetectionConfig(malignant_ref_edge_mm=1.0, malignant_rim_exponent=0.0)
+    cfg = DetectionConfig(malignant_ref_edge_mm=1.0, malignant_rim_exponent=0.0,
+                          malignant_size_exponent=0.0)
     assert malignant_score(2.0, 0.1, math.nan, math.inf, cfg) == pytest.approx((4.0, 0.1))
 
 
 def test_exponent_one_is_the_previous_rule() -> None:
     """``(w / 0.75)^2 * rim`` with the log errors added in quadrature (the former rule)."""
-    cfg = DetectionConfig(malignant_ref_edge_mm=0.75, malignant_rim_exponent=1.0)
+    cfg = DetectionConfig(malignant_ref_edge_mm=0.75, malignant_rim_exponent=1.0,
+                          malignant_size_exponent=0.0)
     score, log_se = malignant_score(0.9, 0.03, 1.2, 0.06, cfg)
     assert score == pytest.approx((0.9 / 0.75) ** 2 * 1.2)
     assert log_se == pytest.approx(math.hypot(2 * 0.03 / 0.9, 0.06 / 1.2))
@@ -397,10 +402,10 @@ def test_size_term_settings_are_validated(field: str, bad: object) -> None:
 def test_size_exponent_zero_is_the_score_without_a_size_term(
         w: float, w_se: float, rim: float, rim_se: float, exponent: float,
         radius: float) -> None:
-    """The default (exponent 0) ignores the radius, even an unmeasured one: the score and
-    its error are bit-identical to the call without a radius (today's rule)."""
-    cfg = DetectionConfig(malignant_rim_exponent=exponent)
-    assert DetectionConfig().malignant_size_exponent == 0.0
+    """Exponent 0 (the rule before; the default is now 3) ignores the radius, even an
+    unmeasured one: the score and its error are bit-identical to the call without a
+    radius."""
+    cfg = DetectionConfig(malignant_rim_exponent=exponent, malignant_size_exponent=0.0)
     assert (malignant_score(w, w_se, rim, rim_se, cfg, radius)
             == malignant_score(w, w_se, rim, rim_se, cfg))
 
@@ -435,11 +440,14 @@ def test_size_term_needs_a_measured_radius(radius: float) -> None:
 
 
 def test_find_tumors_scores_with_the_finding_radius() -> None:
-    """In the full analysis the size term uses each finding's equivalent radius."""
+    """Typed from the detection maps, the size term uses each finding's equivalent radius
+    (with the default typing maps it is the typing region's:
+    test_typing_maps_change_only_the_type)."""
     rec, _ = synthetic("breast", 3)
     ws = WorkspaceMap()
-    base = analyse_recording(rec, ws)
-    sized = analyse_recording(rec, ws, detection=DetectionConfig(
+    same_maps = MapConfig(typing_signal_percentile=None)
+    base = analyse_recording(rec, ws, same_maps, DetectionConfig(malignant_size_exponent=0.0))
+    sized = analyse_recording(rec, ws, same_maps, DetectionConfig(
         malignant_size_exponent=2.0, malignant_ref_radius_mm=5.7))
     assert len(base) == len(sized) >= 1
     for f in base:
@@ -448,3 +456,101 @@ def test_find_tumors_scores_with_the_finding_radius() -> None:
         assert g.malignant_score == pytest.approx(
             f.malignant_score * (5.7 / f.equivalent_radius_mm) ** 2, rel=1e-9)
         assert g.malignant_score_log_se == f.malignant_score_log_se
+
+
+# --- typing from a second relief map (MapConfig.typing_signal_percentile) ---
+
+_DETECTION_FIELDS = ("center_mm", "area_mm2", "equivalent_radius_mm", "peak_relief",
+                     "severity_score", "boundary_sharpness_per_mm", "irregularity",
+                     "stiffness_n_per_mm", "stiffness_contrast", "coverage")
+_TYPING_FIELDS = ("edge_width_mm", "edge_width_se_mm", "rim_relief", "malignant_score",
+                  "malignant_score_log_se", "likely_kind", "boundary_coverage")
+
+
+def _by_centre(findings: list[Finding]) -> list[Finding]:
+    return sorted(findings, key=lambda f: f.center_mm)
+
+
+@pytest.mark.parametrize("bad", [-0.1, 100.5, math.nan, math.inf, True, "20"])
+def test_typing_signal_percentile_is_validated(bad: object) -> None:
+    with pytest.raises(ConfigError, match="typing_signal_percentile"):
+        MapConfig(typing_signal_percentile=bad)  # type: ignore[arg-type]
+
+
+def test_typing_signal_percentile_defaults() -> None:
+    assert MapConfig().typing_signal_percentile == 20.0
+    assert MapConfig(typing_signal_percentile=None).typing_signal_percentile is None
+    cfg = DetectionConfig()
+    assert (cfg.malignant_size_exponent, cfg.malignant_ref_radius_mm) == (3.0, 5.15)
+
+
+def test_typing_from_the_detection_maps_is_the_rule_before() -> None:
+    """None, and a typing map identical to the detection map (same percentile), give
+    exactly the findings of the analysis without typing maps (the rule before: median
+    maps, no size term)."""
+    rec, _ = synthetic("breast", 3)
+    ws = WorkspaceMap()
+    before = DetectionConfig(malignant_size_exponent=0.0)
+    maps = build_maps(rec, ws, MapConfig(typing_signal_percentile=None))
+    today = find_tumors(maps, before)
+    assert analyse_recording(rec, ws, MapConfig(typing_signal_percentile=None), before,
+                             lag_correction=False) == today
+    assert analyse_recording(rec, ws, MapConfig(typing_signal_percentile=50.0), before,
+                             lag_correction=False) == today
+    assert find_tumors(maps, before, typing_maps=maps) == today
+    assert maps_and_findings(rec, ws, MapConfig(typing_signal_percentile=None), before)[1] == today
+
+
+def test_default_analysis_types_from_the_20th_percentile_maps() -> None:
+    rec, _ = synthetic("breast", 3)
+    ws = WorkspaceMap()
+    maps = build_maps(rec, ws)
+    hybrid = find_tumors(maps, typing_maps=build_maps(rec, ws, MapConfig(signal_percentile=20)))
+    assert analyse_recording(rec, ws, lag_correction=False) == hybrid
+    assert maps_and_findings(rec, ws)[1] == hybrid
+
+
+@settings(max_examples=3, deadline=None)
+@given(st.sampled_from([0.0, 10.0, 20.0, 35.0, 80.0]),
+       st.sampled_from([0.0, 3.0]), st.sampled_from([4.0, 5.15]))
+def test_typing_maps_change_only_the_type(p: float, b: float, r_ref: float) -> None:
+    """With typing maps the findings (count, centres, areas, relief, coverage, stiffness)
+    are the detection maps' exactly; only the typing features may differ, and they are
+    those of the typing maps' own analysis of the finding that overlaps it (here, with the
+    two inclusions far apart, the nearest). No lag correction: the analysis estimates one
+    lag per recording, from the detection maps."""
+    rec, _ = synthetic("breast", 3)
+    ws = WorkspaceMap()
+    det = DetectionConfig(malignant_size_exponent=b, malignant_ref_radius_mm=r_ref)
+    maps = build_maps(rec, ws)
+    typing_maps = build_maps(rec, ws, MapConfig(signal_percentile=p, typing_signal_percentile=None))
+    base = _by_centre(find_tumors(maps, det))
+    hybrid = _by_centre(find_tumors(maps, det, typing_maps=typing_maps))
+    own = find_tumors(typing_maps, det)
+    assert len(hybrid) == len(base) == 2
+    assert _by_centre(analyse_recording(rec, ws, MapConfig(typing_signal_percentile=p), det,
+                                        lag_correction=False)) == hybrid
+    for h, f in zip(hybrid, base, strict=True):
+        assert all(getattr(h, n) == getattr(f, n) for n in _DETECTION_FIELDS)
+        twin = min(own, key=lambda g: math.dist(g.center_mm, h.center_mm))
+        pairs = [(n, getattr(h, n), getattr(twin, n)) for n in _TYPING_FIELDS]
+        assert all(x == y or (x != x and y != y) for _, x, y in pairs), pairs  # NaN == NaN
+
+
+def test_typing_maps_must_share_the_grid() -> None:
+    rec, _ = synthetic("breast", 3)
+    ws = WorkspaceMap()
+    with pytest.raises(ValueError, match="grid"):
+        find_tumors(build_maps(rec, ws), typing_maps=build_maps(rec, ws, MapConfig(cell_mm=1.0)))
+
+
+def test_a_finding_without_a_typing_region_is_uncertain() -> None:
+    """A typing map with no region (flat relief) gives no score: ``uncertain``."""
+    rec, _ = synthetic("breast", 3)
+    ws = WorkspaceMap()
+    maps = build_maps(rec, ws)
+    flat = replace(maps, relief=np.where(np.isfinite(maps.relief), 0.0, np.nan))
+    found = find_tumors(maps, typing_maps=flat)
+    assert len(found) == len(find_tumors(maps)) == 2
+    assert all(f.kind == f.likely_kind == "uncertain" and math.isnan(f.malignant_score)
+               for f in found)
