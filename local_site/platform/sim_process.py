@@ -82,7 +82,8 @@ class ProcessSimulatedPlatform(SimulatedPlatform):
         }
         try:
             self._child = subprocess.Popen(
-                [sys.executable, "-m", "local_site.platform.sim_process", json.dumps(settings)],
+                [sys.executable, "-P", "-m", "local_site.platform.sim_process",
+                 json.dumps(settings)],
                 pass_fds=(master_fd,), stdin=subprocess.DEVNULL)
         except OSError as err:
             raise DeviceInitError(f"cannot start the simulated board's process: {err}") from err
