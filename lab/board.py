@@ -14,7 +14,9 @@ What the pins do is written to an event file, one line per event, stamped with
 * ``S mono reason`` - the pins went to the safe state (``watchdog``: no command for the
   watchdog timeout; ``safe_state_frame``: the host asked; ``fault``: the plant failed);
 * ``U mono`` - they left it (a command was applied);
-* ``R mono seq`` - a command frame was applied (``seq``: the frame's sequence number).
+* ``R mono seq`` - a command frame was applied (``seq``: the frame's sequence number);
+* ``X mono`` - a valid command was refused: the watchdog had tripped and the command did not
+  carry ``RESUME`` (one that waited in a frozen station, or sent before it read the trip).
 """
 
 from __future__ import annotations
@@ -91,7 +93,10 @@ class RecordingFirmware(ArrayTacFirmware):
 
     def receive(self, arb_id: int, payload: bytes, now_s: float) -> None:
         was_safe, applied, faults = self.safe_state, self.commands_applied, self.faults
+        refused = self.commands_refused_latched
         super().receive(arb_id, payload, now_s)
+        if self.commands_refused_latched > refused:
+            self.events.write("X")
         if self.faults > faults:
             self._note(was_safe, "fault")
             was_safe = self.safe_state
@@ -157,6 +162,7 @@ def run_board(stop: threading.Event, *, host: str = "127.0.0.1", port: int = 0,
         "error": None if emulator.error is None else repr(emulator.error),
         "commands_applied": firmware.commands_applied,
         "commands_rejected": firmware.commands_rejected,
+        "commands_refused_latched": firmware.commands_refused_latched,
         "watchdog_trips": firmware.watchdog_trips,
         "faults": firmware.faults,
         "overruns": firmware.overruns,

@@ -169,6 +169,7 @@ class BoardLog:
     safe: list[tuple[float, str]] = field(default_factory=list)  # (mono, reason)
     resumed: list[float] = field(default_factory=list)
     applied: list[tuple[float, int]] = field(default_factory=list)  # (mono, command seq)
+    refused: list[float] = field(default_factory=list)  # commands refused by the latch
     _offset: int = 0
 
     def poll(self) -> None:
@@ -182,6 +183,8 @@ class BoardLog:
                 self.resumed.append(mono)
             elif p[0] == "R" and len(p) == 3:
                 self.applied.append((mono, int(p[2])))
+            elif p[0] == "X":
+                self.refused.append(mono)
 
     def safe_at(self, t: float) -> bool:
         """The pins were in the safe state at ``t`` (the last change before it entered it)."""
@@ -821,7 +824,8 @@ def _summary_figures(summaries: dict[str, Any]) -> dict[str, Any]:
                         "link": _pick(link, "connects", "connection_losses")}
     board = summaries.get("board")
     if isinstance(board, dict):
-        out["board"] = _pick(board, "commands_applied", "commands_rejected", "watchdog_trips",
+        out["board"] = _pick(board, "commands_applied", "commands_rejected",
+                             "commands_refused_latched", "watchdog_trips",
                              "overruns", "error", "link", "niceness")
     if isinstance(rem, dict):
         arm = rem.get("arm") or {}

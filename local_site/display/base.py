@@ -97,8 +97,10 @@ class PinFeedback:
         board_t_us: board clock (uint32, wraps).
         seq_echo: sequence number of the last command the board applied.
         safe_state: the board is in its safe state.
-        watchdog_tripped: the safe state was entered by the link-loss watchdog.
-        commands_rejected: frames the board dropped (CRC/format), wrapping counter.
+        watchdog_tripped: the safe state was entered by the link-loss watchdog, and the
+            board refuses commands until one carries ``RESUME`` (sent automatically).
+        commands_rejected: frames the board dropped (CRC/format, or a command without
+            ``RESUME`` after a watchdog trip), wrapping counter.
         watchdog_trips: watchdog firings, wrapping counter.
     """
 
@@ -128,6 +130,7 @@ class DisplayStats:
         safe_states_sent: safe-state frames sent.
         feedback_frames: valid feedback frames received.
         bad_frames: received frames that failed to decode.
+        resumes: command frames sent with ``RESUME`` (the board's watchdog latch was seen).
     """
 
     commands: int = 0
@@ -139,6 +142,7 @@ class DisplayStats:
     safe_states_sent: int = 0
     feedback_frames: int = 0
     bad_frames: int = 0
+    resumes: int = 0
 
 
 class ArrayTacDisplay(Device):
@@ -169,6 +173,7 @@ class ArrayTacDisplay(Device):
     _n_safe: int
     _n_feedback: int
     _n_bad: int
+    _n_resumes: int
 
     def __init__(self, *, keepalive_interval_s: float = 0.02, watchdog_ms: int = 100,
                  watchdog_mode: SafeMode = "flat", disconnect_mode: SafeMode | None = "flat",
@@ -296,8 +301,16 @@ class ArrayTacDisplay(Device):
                 if late_s > 0:
                     raise CommandExpiredError(f"{self.name}: pin command {late_s * 1e3:.1f} ms "
                                               "past its deadline; not sent")
+            # RESUME only once the board's trip was read back (see docs/arraytac_can.md):
+            # decided here, before the write, so a command held by a freeze carries the
+            # state the host knew when it checked the deadline, and a board that tripped
+            # meanwhile refuses it
+            fb = self._feedback
+            resume = fb is not None and fb.watchdog_tripped
             frame = fr.CommandFrame(seq=self._next_seq(),
-                                    flags=self._flags | (fr.FLAG_KEEPALIVE if keepalive else 0),
+                                    flags=(self._flags
+                                           | (fr.FLAG_KEEPALIVE if keepalive else 0)
+                                           | (fr.FLAG_RESUME if resume else 0)),
                                     height_codes=codes[0], k_codes=codes[1], f_codes=codes[2],
                                     watchdog_ms=self._watchdog_ms)
             self._send_frame(fr.ARB_ID_COMMAND, fr.encode_command(frame))
@@ -306,6 +319,7 @@ class ArrayTacDisplay(Device):
             self._force_next = False
             self._n_frames += 1
             self._n_keepalives += keepalive
+            self._n_resumes += resume
             if log.isEnabledFor(logging.DEBUG):
                 log.debug("%s: command seq %d keepalive=%s", self.name, frame.seq, keepalive)
             return self._applied(codes, clamped, sent=True, keepalive=keepalive)
@@ -395,7 +409,7 @@ class ArrayTacDisplay(Device):
                             skipped_unchanged=self._n_skipped, keepalives=self._n_keepalives,
                             clamped=self._n_clamped, rejected_inputs=self._n_rejected,
                             safe_states_sent=self._n_safe, feedback_frames=self._n_feedback,
-                            bad_frames=self._n_bad)
+                            bad_frames=self._n_bad, resumes=self._n_resumes)
 
     # ------------------------------------------------------------------ for backends
 
@@ -432,6 +446,7 @@ class ArrayTacDisplay(Device):
         self._feedback = None
         self._n_commands = self._n_frames = self._n_skipped = self._n_keepalives = 0
         self._n_clamped = self._n_rejected = self._n_safe = self._n_feedback = self._n_bad = 0
+        self._n_resumes = 0
 
     def _next_seq(self) -> int:
         self._seq = (self._seq + 1) & 0xFFFF

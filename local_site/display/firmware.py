@@ -2,7 +2,11 @@
 
 :class:`ArrayTacFirmware` is what the MCU does with the link: decode ``COMMAND`` and
 ``SAFE_STATE`` frames (rejecting and counting bad ones), hand targets to the physics plant,
-run the link-loss watchdog, and report ``FEEDBACK`` at a fixed rate. Time is passed in
+run the link-loss watchdog, and report ``FEEDBACK`` at a fixed rate. A watchdog trip
+latches: until a ``COMMAND`` carrying ``FLAG_RESUME`` arrives, commands are refused (counted
+as rejected), so a command held in a host that froze (SIGSTOP, a VM pause) between its own
+age check and the write cannot undo the park when the host wakes; the host sets the flag
+only once it has read the trip in the feedback (docs/arraytac_can.md). Time is passed in
 explicitly (``now_s``), so it is tested without threads; :mod:`local_site.display.emulator`
 runs it in real time on a CAN or serial link.
 
@@ -97,6 +101,8 @@ class ArrayTacFirmware:
         self.seq_echo = 0
         self.commands_applied = 0
         self.commands_rejected = 0
+        #: of ``commands_rejected``: valid commands refused because the watchdog latch was set
+        self.commands_refused_latched = 0
         self.watchdog_trips = 0
         self.faults = 0
         self.overruns = 0
@@ -173,6 +179,15 @@ class ArrayTacFirmware:
     # ------------------------------------------------------------------ internals
 
     def _apply_command(self, frame: fr.CommandFrame, now_s: float) -> None:
+        if self.watchdog_tripped and not frame.flags & fr.FLAG_RESUME:
+            # latched: this command may have waited in a frozen host; the pins stay parked
+            self.commands_rejected += 1
+            self.commands_refused_latched += 1
+            self._rejected_since_feedback = True
+            if log.isEnabledFor(logging.DEBUG):
+                log.debug("firmware refused command seq %d: watchdog latch, no RESUME",
+                          frame.seq)
+            return
         self.targets_mm = frame.height_mm
         self.k = frame.stiffness_k
         self.friction = frame.friction
@@ -195,7 +210,8 @@ class ArrayTacFirmware:
         self._targets_pending = True
         self.safe_state = True
         self.safe_hold = hold
-        self.watchdog_tripped = by_watchdog
+        # the latch outlives a later explicit safe state or fault: only RESUME clears it
+        self.watchdog_tripped = by_watchdog or self.watchdog_tripped
 
     def _advance_to(self, now_s: float) -> None:
         if self._t0_s is None:

@@ -6,7 +6,8 @@ over every byte before it:
 - ``COMMAND`` (host -> board, arbitration ID 0x100, 64 bytes): a whole 16-pin update:
   height 12 bit (1.25 um per LSB, 0..4000 = 0..5 mm), stiffness k 8 bit (0.002 per LSB,
   0..250 = 0.5..1.0), friction f 8 bit (0.004 per LSB, 0..250 = 0..1), sequence number,
-  flags (keepalive, watchdog safe-state mode) and the link-loss watchdog timeout.
+  flags (keepalive, watchdog safe-state mode, resume after a watchdog trip) and the
+  link-loss watchdog timeout.
 - ``FEEDBACK`` (board -> host, 0x180, 64 bytes): measured pin positions (12 bit, 1.25 um),
   saturation bitmask, drive voltages (12 bit, 0.05 V), status flags, echo of the last applied
   command sequence, board clock, error counters.
@@ -34,6 +35,7 @@ __all__ = [
     "COMMAND_FRAME_BYTES",
     "FEEDBACK_FRAME_BYTES",
     "FLAG_KEEPALIVE",
+    "FLAG_RESUME",
     "FLAG_WATCHDOG_HOLD",
     "F_LSB",
     "HEIGHT_LSB_MM",
@@ -89,6 +91,8 @@ VOLTAGE_LSB_V = 0.05
 
 FLAG_KEEPALIVE = 0x01
 FLAG_WATCHDOG_HOLD = 0x02
+#: the host has seen the board's watchdog trip and this command is fresh: leave the latch
+FLAG_RESUME = 0x04
 
 SAFE_FLAT = 0
 SAFE_HOLD = 1

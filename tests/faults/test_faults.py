@@ -166,6 +166,7 @@ def test_local_station_sigstop_three_seconds_the_board_process_parks_the_pins_by
         f"board commands matching no station send: {[s for _, s, a in ages if a is None]}"
     stale_pins = [a for _, _, a in ages if a is not None and a > FRAME_BOUND_MS]
     assert not stale_pins, (f"{len(stale_pins)} commands with touch older than the bound "
-                            f"reached the pins, up to {max(stale_pins):.0f} ms old")
+                            f"reached the pins, up to {max(stale_pins):.0f} ms old (the "
+                            f"board's latch refused {len(board.refused)})")
     stale = _stale_rendered_after(rig, t_cont)
     assert not stale, f"{len(stale)} stale frames rendered, up to {max(stale):.0f} ms old"

@@ -80,8 +80,10 @@ def test_link_loss_watchdog_parks_the_pins(display: ArrayTacDisplay) -> None:
     fb = _wait_for(display, lambda f: f.safe_state and f.watchdog_tripped, 1.0)
     assert fb.watchdog_trips >= 1
     fb = _wait_for(display, lambda f: f.position_mm.max() < 0.05, 1.5)
-    # link back: commanding again leaves the safe state even with an unchanged command
+    # link back: commanding again leaves the safe state even with an unchanged command; the
+    # driver has read the trip, so the command carries RESUME (the board's latch)
     assert display.send_command(3.0).sent
+    assert display.stats().resumes == 1
     _wait_for(display, lambda f: not f.safe_state, 1.0)
 
 

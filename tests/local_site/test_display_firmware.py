@@ -60,9 +60,37 @@ def test_watchdog_parks_the_pins_flat(firmware: ArrayTacFirmware) -> None:
     assert fb[-1].status & fr.STATUS_SAFE_STATE and fb[-1].status & fr.STATUS_WATCHDOG_TRIPPED
     assert firmware.watchdog_trips == 1 and fb[-1].watchdog_trips == 1
     np.testing.assert_allclose(fb[-1].position_mm, 0.0, atol=0.05)
-    firmware.receive(fr.ARB_ID_COMMAND, _command(2.0, 2, watchdog_ms=50), t)  # link back
+    # link back: a command sent without RESUME may have waited in a frozen host: refused
+    firmware.receive(fr.ARB_ID_COMMAND, _command(2.0, 2, watchdog_ms=50), t)
     t, fb = _run(firmware, t, 0.004)
-    assert not fb[-1].status & fr.STATUS_SAFE_STATE
+    assert fb[-1].status & fr.STATUS_SAFE_STATE and fb[-1].status & fr.STATUS_WATCHDOG_TRIPPED
+    assert fb[0].status & fr.STATUS_COMMAND_REJECTED and fb[-1].seq_echo == 1
+    assert firmware.commands_refused_latched == firmware.commands_rejected == 1
+    # the host has read the trip: its next command carries RESUME and leaves the latch
+    firmware.receive(fr.ARB_ID_COMMAND,
+                     _command(2.0, 3, flags=fr.FLAG_RESUME, watchdog_ms=50), t)
+    t, fb = _run(firmware, t, 0.004)
+    assert not fb[-1].status & (fr.STATUS_SAFE_STATE | fr.STATUS_WATCHDOG_TRIPPED)
+    assert fb[-1].seq_echo == 3
+    # RESUME on a board that is not latched changes nothing
+    firmware.receive(fr.ARB_ID_COMMAND,
+                     _command(2.0, 4, flags=fr.FLAG_RESUME, watchdog_ms=50), t)
+    assert firmware.seq_echo == 4 and firmware.commands_rejected == 1
+
+
+def test_the_watchdog_latch_outlives_an_explicit_safe_state(firmware: ArrayTacFirmware) -> None:
+    firmware.receive(fr.ARB_ID_COMMAND, _command(3.0, 1, watchdog_ms=50), 0.0)
+    t, fb = _run(firmware, 0.0, 0.1)
+    assert firmware.watchdog_tripped
+    firmware.receive(fr.ARB_ID_SAFE_STATE,
+                     fr.encode_safe_state(fr.SafeStateFrame(fr.SAFE_HOLD, 2)), t)
+    firmware.receive(fr.ARB_ID_COMMAND, _command(3.0, 3, watchdog_ms=50), t)
+    t, fb = _run(firmware, t, 0.01)
+    assert fb[-1].status & fr.STATUS_SAFE_STATE and fb[-1].status & fr.STATUS_WATCHDOG_TRIPPED
+    assert fb[-1].seq_echo == 2 and firmware.commands_refused_latched == 1
+    firmware.receive(fr.ARB_ID_COMMAND,
+                     _command(3.0, 4, flags=fr.FLAG_RESUME, watchdog_ms=50), t)
+    assert not firmware.safe_state and not firmware.watchdog_tripped
 
 
 def test_watchdog_hold_keeps_the_pins_and_stops_vibration(firmware: ArrayTacFirmware) -> None:

@@ -196,3 +196,43 @@ def test_the_serial_driver_reaches_the_board_through_a_socket_url_and_reconnects
         peer.sendall(bytes(range(1, 256)) * 64 + b"\x00" * 10)
         wait_until(lambda: transport.stream_stats().garbage_bytes > 0, 2.0, "garbage counted")
     assert board.firmware.commands_applied == applied and board.error is None
+
+
+def test_a_command_held_by_a_frozen_host_cannot_undo_the_boards_park(
+        board: FirmwareEmulator, monkeypatch: pytest.MonkeyPatch) -> None:
+    # The station checks a command's deadline, then freezes (SIGSTOP, a VM pause) before the
+    # write; the board's watchdog parks the pins meanwhile. When the station wakes, the held
+    # command must not put its old touch on the pins: the board refuses it (no RESUME), and
+    # only the driver's next command, decided after it has read the trip, leaves the park.
+    transport = board.transport
+    assert isinstance(transport, TcpFirmwareTransport)
+    display = open_display(transport.url, keepalive_interval_s=0.02,
+                           watchdog_ms=round(scaled(100)), connect_timeout_s=scaled(3.0))
+    try:
+        display.send_command(3.0)
+        wait_until(lambda: board.firmware.commands_applied >= 1, 2.0, "the first command")
+        write = display._send_frame
+
+        def frozen_write(arb_id: int, payload: bytes) -> None:
+            # the freeze lands between the deadline check and the write
+            wait_until(lambda: board.firmware.watchdog_tripped, 3.0, "the board's watchdog")
+            write(arb_id, payload)
+
+        monkeypatch.setattr(display, "_send_frame", frozen_write)
+        applied = board.firmware.commands_applied
+        held = display.send_command(4.0, not_after_s=time.monotonic() + 60.0)
+        monkeypatch.setattr(display, "_send_frame", write)
+        fw = board.firmware
+        wait_until(lambda: fw.commands_applied > applied or fw.commands_refused_latched > 0,
+                   2.0, "the board to take the held command")
+        assert fw.seq_echo != held.seq and fw.safe_state, "the held command moved the pins"
+        assert fw.targets_mm.max() == 0.0 and fw.commands_refused_latched == 1
+        # the driver reads the trip, and its next command carries RESUME
+        wait_until(lambda: display.read_feedback(scaled(1.0)).watchdog_tripped, 2.0,
+                   "the driver to read the trip")
+        fresh = display.send_command(1.0)
+        assert fresh.sent and display.stats().resumes == 1
+        wait_until(lambda: board.firmware.seq_echo == fresh.seq, 2.0, "the fresh command")
+        assert not fw.safe_state and not fw.watchdog_tripped and board.error is None
+    finally:
+        display.disconnect()
