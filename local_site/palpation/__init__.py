@@ -5,12 +5,17 @@ same information the operator had. See :mod:`local_site.palpation.maps` and
 :mod:`local_site.palpation.findings` for the method.
 """
 
-import dataclasses
 import logging
 
 from local_site.palpation.findings import DetectionConfig, Finding, find_tumors, rank_by_severity
 from local_site.palpation.lag import correct_lag, estimate_lag_mm
-from local_site.palpation.maps import MapConfig, PalpationMaps, build_maps, pad_profile
+from local_site.palpation.maps import (
+    MapConfig,
+    PalpationMaps,
+    build_maps,
+    build_maps_at,
+    pad_profile,
+)
 from local_site.recording import Recording, load_recording
 from shared.workspace import WorkspaceMap, load_workspace
 
@@ -67,11 +72,10 @@ def maps_and_findings(recording: Recording, workspace: WorkspaceMap,
         InputDataError: nothing was palpated.
     """
     cfg = map_config or MapConfig()
-    maps = build_maps(recording, workspace, cfg)
     typing_p = cfg.typing_signal_percentile
     if typing_p is None:
+        maps = build_maps(recording, workspace, cfg)
         return maps, find_tumors(maps, detection)
-    typing_config = dataclasses.replace(cfg, signal_percentile=typing_p,
-                                        typing_signal_percentile=None)
-    return maps, find_tumors(maps, detection,
-                             typing_maps=build_maps(recording, workspace, typing_config))
+    maps, typing_maps = build_maps_at(recording, workspace, cfg,
+                                      (cfg.signal_percentile, typing_p))
+    return maps, find_tumors(maps, detection, typing_maps=typing_maps)

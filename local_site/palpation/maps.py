@@ -23,6 +23,7 @@ Two maps are built on a regular phantom grid:
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,7 +33,8 @@ from local_site.recording import Recording
 from shared.errors import ConfigError, InputDataError
 from shared.workspace import WorkspaceMap
 
-__all__ = ["MapConfig", "PalpationMaps", "build_maps", "pad_profile", "pad_signal"]
+__all__ = ["MapConfig", "PalpationMaps", "build_maps", "build_maps_at", "pad_profile",
+           "pad_signal"]
 
 
 @dataclass(frozen=True)
@@ -197,6 +199,40 @@ def build_maps(rec: Recording, workspace: WorkspaceMap,
         InputDataError: no usable contact frame.
     """
     cfg = config or MapConfig()
+    return build_maps_at(rec, workspace, cfg, (cfg.signal_percentile,))[0]
+
+
+#: contact frames placed on the grid per vectorised step (bounds the temporary arrays to a
+#: few MB however long the session)
+_FRAMES_PER_STEP = 256
+
+
+def build_maps_at(rec: Recording, workspace: WorkspaceMap, config: MapConfig | None,
+                  percentiles: Sequence[float]) -> list[PalpationMaps]:
+    """:func:`build_maps` at several ``signal_percentile`` values in one pass.
+
+    The pad profile and where every core pixel of every frame lands on the grid do not
+    depend on the percentile, so they are computed once; each percentile only has its own
+    pad signal, frame selection and sums. Each returned map equals ``build_maps`` with
+    ``dataclasses.replace(config, signal_percentile=p)`` (the same sums in the same order).
+
+    Args:
+        rec: what the local station received.
+        workspace: the platform <-> phantom map the session used.
+        config: map settings (its ``signal_percentile`` is ignored).
+        percentiles: the pad-signal percentiles, 0-100.
+
+    Returns:
+        One map per percentile, in order.
+
+    Raises:
+        InputDataError: no usable contact frame.
+        ConfigError: a percentile outside [0, 100].
+    """
+    cfg = config or MapConfig()
+    for p in percentiles:
+        if isinstance(p, bool) or not isinstance(p, (int, float)) or not 0.0 <= p <= 100.0:
+            raise ConfigError(f"signal percentile must be a number in [0, 100], got {p!r}")
     idx = _contact_frames(rec, cfg)
     if idx.size == 0:
         raise InputDataError("the recording has no contact frame pressed deeper than "
@@ -207,53 +243,67 @@ def build_maps(rec: Recording, workspace: WorkspaceMap,
     cell = cfg.cell_mm
     x_mm = np.arange(lo[0] - cfg.margin_mm, hi[0] + cfg.margin_mm + cell / 2, cell)
     y_mm = np.arange(lo[1] - cfg.margin_mm, hi[1] + cfg.margin_mm + cell / 2, cell)
-    acc = np.zeros((y_mm.size, x_mm.size))
-    acc2 = np.zeros_like(acc)
-    cnt = np.zeros((y_mm.size, x_mm.size), np.int64)
-    k_acc = np.zeros_like(acc)
-    k_cnt = np.zeros_like(cnt)
+    shape = (y_mm.size, x_mm.size)
     _, h_px, w_px = patches.shape
     secant = rec.frame_force_n[idx] / rec.frame_indentation_mm[idx]
     rows, cols = np.nonzero(core)
     inv_profile = 1.0 / profile[rows, cols]
     ratios = patches[:, rows, cols] * inv_profile  # (N, core pixels)
-    signal = pad_signal(ratios, cfg.signal_percentile)
-    positive = signal[signal > 0]
-    min_signal = (cfg.min_signal_fraction * float(np.median(positive)) if positive.size
-                  else 0.0)
-    used = 0
-    for n, i in enumerate(idx):
-        s = float(signal[n])
-        if not (s > 0 and s >= min_signal):
-            continue
-        used += 1
-        pitch = float(rec.frame_pitch_mm[i])
-        cx, cy = rec.frame_center_mm[i]
-        u = (cols - (w_px - 1) / 2.0) * pitch + cx
-        v = (rows - (h_px - 1) / 2.0) * pitch + cy
-        pts = np.column_stack([u, v, np.full(u.size, workspace.config.z_surface_mm)])
-        ph = workspace.forward_unclamped(pts)
-        ratio = ratios[n]
-        rel = ratio / s - 1.0
-        ci = np.rint((ph[:, 1] - y_mm[0]) / cell).astype(np.intp)
-        cj = np.rint((ph[:, 0] - x_mm[0]) / cell).astype(np.intp)
-        inside = (ci >= 0) & (ci < y_mm.size) & (cj >= 0) & (cj < x_mm.size)
-        np.add.at(acc, (ci[inside], cj[inside]), rel[inside])
-        np.add.at(acc2, (ci[inside], cj[inside]), rel[inside] ** 2)
-        np.add.at(cnt, (ci[inside], cj[inside]), 1)
-        centre = workspace.forward_unclamped(
-            np.array([[cx, cy, workspace.config.z_surface_mm]]))[0]
-        ki = int(np.rint((centre[1] - y_mm[0]) / cell))
-        kj = int(np.rint((centre[0] - x_mm[0]) / cell))
-        if 0 <= ki < y_mm.size and 0 <= kj < x_mm.size:
-            k_acc[ki, kj] += secant[n]
-            k_cnt[ki, kj] += 1
-    with np.errstate(invalid="ignore", divide="ignore"):
-        relief = np.where(cnt > 0, acc / np.maximum(cnt, 1), np.nan)
-        var = (acc2 - cnt * np.nan_to_num(relief) ** 2) / np.maximum(cnt - 1, 1)
-        sample_std = np.where(cnt > 1, np.sqrt(np.maximum(var, 0.0)), np.nan)
-        stiffness = np.where(k_cnt > 0, k_acc / np.maximum(k_cnt, 1), np.nan)
-    return PalpationMaps(x_mm=x_mm, y_mm=y_mm, relief=relief, relief_count=cnt,
-                         relief_sample_std=sample_std,
-                         stiffness_n_per_mm=stiffness, frames_used=used,
-                         background_stiffness_n_per_mm=float(np.median(secant)))
+    z_mm = workspace.config.z_surface_mm
+    # each frame's centre -> the stiffness cell (-1: off the grid)
+    centres = rec.frame_center_mm[idx].astype(np.float64)
+    centre_ph = workspace.forward_unclamped(
+        np.column_stack([centres, np.full(idx.size, z_mm)]))
+    k_flat = _cell_index(centre_ph, x_mm, y_mm, cell)
+    col_off = cols - (w_px - 1) / 2.0
+    row_off = rows - (h_px - 1) / 2.0
+    pitch = rec.frame_pitch_mm[idx].astype(np.float64)
+
+    sums = []
+    for p in percentiles:
+        signal = pad_signal(ratios, p)
+        positive = signal[signal > 0]
+        min_signal = (cfg.min_signal_fraction * float(np.median(positive)) if positive.size
+                      else 0.0)
+        used = (signal > 0) & (signal >= min_signal)
+        sums.append((signal, used, np.zeros(shape), np.zeros(shape),
+                     np.zeros(shape, np.int64)))
+    for start in range(0, idx.size, _FRAMES_PER_STEP):
+        step = slice(start, start + _FRAMES_PER_STEP)
+        u = col_off * pitch[step, None] + centres[step, 0, None]
+        v = row_off * pitch[step, None] + centres[step, 1, None]
+        pts = np.stack([u, v, np.full(u.shape, z_mm)], axis=-1)
+        flat = _cell_index(workspace.forward_unclamped(pts), x_mm, y_mm, cell)
+        for signal, used, acc, acc2, cnt in sums:
+            take = used[step, None] & (flat >= 0)
+            rel = (ratios[step] / signal[step, None] - 1.0)[take]
+            where = flat[take]
+            np.add.at(acc.reshape(-1), where, rel)
+            np.add.at(acc2.reshape(-1), where, rel ** 2)
+            np.add.at(cnt.reshape(-1), where, 1)
+    out = []
+    for _signal, used, acc, acc2, cnt in sums:
+        on_grid = used & (k_flat >= 0)
+        k_acc = np.zeros(shape)
+        k_cnt = np.zeros(shape, np.int64)
+        np.add.at(k_acc.reshape(-1), k_flat[on_grid], secant[on_grid])
+        np.add.at(k_cnt.reshape(-1), k_flat[on_grid], 1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            relief = np.where(cnt > 0, acc / np.maximum(cnt, 1), np.nan)
+            var = (acc2 - cnt * np.nan_to_num(relief) ** 2) / np.maximum(cnt - 1, 1)
+            sample_std = np.where(cnt > 1, np.sqrt(np.maximum(var, 0.0)), np.nan)
+            stiffness = np.where(k_cnt > 0, k_acc / np.maximum(k_cnt, 1), np.nan)
+        out.append(PalpationMaps(x_mm=x_mm, y_mm=y_mm, relief=relief, relief_count=cnt,
+                                 relief_sample_std=sample_std,
+                                 stiffness_n_per_mm=stiffness, frames_used=int(used.sum()),
+                                 background_stiffness_n_per_mm=float(np.median(secant))))
+    return out
+
+
+def _cell_index(points_mm: NDArray[np.float64], x_mm: NDArray[np.float64],
+                y_mm: NDArray[np.float64], cell: float) -> NDArray[np.intp]:
+    """Row-major index of the grid cell nearest each point's (x, y); -1 off the grid."""
+    ci = np.rint((points_mm[..., 1] - y_mm[0]) / cell).astype(np.intp)
+    cj = np.rint((points_mm[..., 0] - x_mm[0]) / cell).astype(np.intp)
+    inside = (ci >= 0) & (ci < y_mm.size) & (cj >= 0) & (cj < x_mm.size)
+    return np.where(inside, ci * x_mm.size + cj, -1)

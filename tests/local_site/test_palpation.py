@@ -387,6 +387,92 @@ def test_build_maps_relief_is_relative_to_the_chosen_percentile(seed: int, p: fl
     assert got == pytest.approx(np.sort(expected.ravel()), rel=1e-9, abs=1e-9)
 
 
+def _maps_frame_by_frame(rec: Recording, ws: WorkspaceMap, cfg: MapConfig
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """Reference for :func:`build_maps`: the plain per-frame loop (relief sum, sum of
+    squares, count; stiffness), one frame and one ``np.add.at`` at a time."""
+    h = rec.frame_height_mm
+    ok = (rec.frame_contact & (rec.frame_indentation_mm >= cfg.min_indentation_mm)
+          & (rec.frame_force_n > 0) & (h.reshape(h.shape[0], -1).max(axis=1) > 0))
+    idx = np.nonzero(ok)[0]
+    profile, core = pad_profile(rec.frame_height_mm[idx], cfg.core_fraction)
+    lo, hi = ws.phantom_bounds_mm
+    x_mm = np.arange(lo[0] - cfg.margin_mm, hi[0] + cfg.margin_mm + cfg.cell_mm / 2,
+                     cfg.cell_mm)
+    y_mm = np.arange(lo[1] - cfg.margin_mm, hi[1] + cfg.margin_mm + cfg.cell_mm / 2,
+                     cfg.cell_mm)
+    acc, acc2, k_acc = (np.zeros((y_mm.size, x_mm.size)) for _ in range(3))
+    cnt = np.zeros((y_mm.size, x_mm.size), np.int64)
+    k_cnt = np.zeros_like(cnt)
+    rows, cols = np.nonzero(core)
+    ratios = rec.frame_height_mm[idx][:, rows, cols] * (1.0 / profile[rows, cols])
+    signal = pad_signal(ratios, cfg.signal_percentile)
+    min_signal = cfg.min_signal_fraction * float(np.median(signal[signal > 0]))
+    used = 0
+    z = ws.config.z_surface_mm
+    for n, i in enumerate(idx):
+        if not (signal[n] > 0 and signal[n] >= min_signal):
+            continue
+        used += 1
+        _, hp, wp = rec.frame_height_mm.shape
+        pitch = float(rec.frame_pitch_mm[i])
+        cx, cy = rec.frame_center_mm[i]
+        ph = ws.forward_unclamped(np.column_stack([
+            (cols - (wp - 1) / 2.0) * pitch + cx, (rows - (hp - 1) / 2.0) * pitch + cy,
+            np.full(cols.size, z)]))
+        rel = ratios[n] / signal[n] - 1.0
+        ci = np.rint((ph[:, 1] - y_mm[0]) / cfg.cell_mm).astype(int)
+        cj = np.rint((ph[:, 0] - x_mm[0]) / cfg.cell_mm).astype(int)
+        m = (ci >= 0) & (ci < y_mm.size) & (cj >= 0) & (cj < x_mm.size)
+        np.add.at(acc, (ci[m], cj[m]), rel[m])
+        np.add.at(acc2, (ci[m], cj[m]), rel[m] ** 2)
+        np.add.at(cnt, (ci[m], cj[m]), 1)
+        c = ws.forward_unclamped(np.array([[cx, cy, z]]))[0]
+        ki, kj = (int(np.rint((c[1] - y_mm[0]) / cfg.cell_mm)),
+                  int(np.rint((c[0] - x_mm[0]) / cfg.cell_mm)))
+        if 0 <= ki < y_mm.size and 0 <= kj < x_mm.size:
+            k_acc[ki, kj] += rec.frame_force_n[i] / rec.frame_indentation_mm[i]
+            k_cnt[ki, kj] += 1
+    with np.errstate(invalid="ignore"):
+        stiffness = np.where(k_cnt > 0, k_acc / np.maximum(k_cnt, 1), np.nan)
+    return acc, acc2, cnt, stiffness, used
+
+
+@pytest.mark.parametrize("yaw_deg", [0.0, 3.0])
+def test_maps_at_several_percentiles_equal_the_frame_by_frame_reference(yaw_deg: float) -> None:
+    """One pass at several percentiles (vectorised, 256 frames a step: this raster has
+    1,701 frames) gives exactly the sums of the per-frame loop, percentile by percentile,
+    in a rotated (registered) map too."""
+    from local_site.palpation.maps import build_maps_at
+
+    rec, _ = synthetic("breast", 3, 0.01)
+    # grazing frames (weak signal) at several levels, so that the signal floor drops a
+    # different set of frames at each percentile
+    scale = 1.0 - 0.65 * np.random.default_rng(1).uniform(0.0, 1.0, rec.frames) ** 4
+    rec = replace(rec, frame_height_mm=rec.frame_height_mm * scale[:, None, None]
+                  .astype(np.float32))
+    ws = WorkspaceMap().registered(1.5, -2.0, yaw_deg)
+    percentiles = (50.0, 20.0, 0.0, 100.0)
+    cfg = MapConfig(min_signal_fraction=0.5)
+    maps = build_maps_at(rec, ws, cfg, percentiles)
+    assert len(maps) == len(percentiles)
+    for p, got in zip(percentiles, maps, strict=True):
+        acc, _, cnt, stiffness, used = _maps_frame_by_frame(
+            rec, ws, replace(cfg, signal_percentile=p))
+        assert got.frames_used == used and 0 < used < rec.frames
+        assert np.array_equal(got.relief_count, cnt)
+        assert np.array_equal(got.stiffness_n_per_mm, stiffness, equal_nan=True)
+        with np.errstate(invalid="ignore"):
+            assert np.array_equal(got.relief, np.where(cnt > 0, acc / np.maximum(cnt, 1),
+                                                       np.nan), equal_nan=True)
+        alone = build_maps(rec, ws, replace(cfg, signal_percentile=p))
+        for name in ("relief", "relief_count", "relief_sample_std", "stiffness_n_per_mm"):
+            assert np.array_equal(getattr(alone, name), getattr(got, name), equal_nan=True)
+    assert maps[0].frames_used != maps[1].frames_used
+    with pytest.raises(ConfigError, match="percentile"):
+        build_maps_at(rec, ws, cfg, (50.0, 101.0))
+
+
 @pytest.mark.parametrize("field, bad", [
     ("malignant_size_exponent", -0.5), ("malignant_size_exponent", math.nan),
     ("malignant_size_exponent", math.inf), ("malignant_size_exponent", True),
