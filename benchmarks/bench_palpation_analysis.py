@@ -11,7 +11,8 @@ How: the baseline revision is extracted with ``git archive`` into a temporary di
 tree runs in a child process of its own (same interpreter and libraries, one BLAS thread) that
 loads every recording, analyses it once to warm up, then ``--repeats`` times timed (CPU time of
 the process, ``time.process_time``, so a child preempted by other jobs is not charged for
-them), and reports the median per recording, its findings and its peak RSS. Trees alternate
+them), and reports the median per recording, its findings and its peak RSS (the whole
+child's, imports included). Trees alternate
 (ABBA) over ``--rounds``; the figure is the per-round ratio new/old of the summed medians,
 since the machine's load moves the absolute figures. The findings of both trees are compared
 field by field: a speed change must not change a result.
@@ -29,6 +30,7 @@ import json
 import os
 import platform
 import resource
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -162,6 +164,7 @@ def main() -> None:
                      "old_max_rss_mb": rd["old"]["max_rss_mb"],
                      "new_max_rss_mb": rd["new"]["max_rss_mb"]})
     ratios.sort()
+    median = statistics.median(ratios)
     frames = [rounds[0]["new"]["recordings"][n]["frames"] for n in timed]
     head = (f"# Palpation analysis time per session: this tree against `{args.baseline_rev}`\n\n"
             f"Command: `OPENBLAS_NUM_THREADS=1 python benchmarks/bench_palpation_analysis.py "
@@ -176,7 +179,7 @@ def main() -> None:
             f"{platform.python_implementation()} {platform.python_version()}, "
             f"{os.cpu_count()} cores, load average {load_start[0]:.2f} at the start, "
             f"{load_end[0]:.2f} at the end.\n\n")
-    summary = (f"**new / old: {ratios[len(ratios) // 2]:.2f}** (median over {len(ratios)} "
+    summary = (f"**new / old: {median:.2f}** (median over {len(ratios)} "
                f"rounds, range {ratios[0]:.2f}-{ratios[-1]:.2f}). Findings identical "
                f"(every field) in **{identical} of {len(names)}** sessions.\n\n")
     text = head + summary + format_table(rows) + "\n"

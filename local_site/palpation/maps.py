@@ -68,7 +68,8 @@ class MapConfig:
             :func:`local_site.palpation.maps_and_findings`) build a second relief map with
             this ``signal_percentile`` and type each finding - found, located and sized on
             the first maps exactly as with None - from it
-            (``find_tumors(..., typing_maps=...)``); the maps are built twice. None: the
+            (``find_tumors(..., typing_maps=...)``); both maps come from one pass
+            (:func:`build_maps_at`). None: the
             findings are typed from the maps they were found in (the rule before; use it
             with ``DetectionConfig(malignant_size_exponent=0)``, whose defaults are set
             for typing maps at the 20th percentile). Measured
