@@ -24,6 +24,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TextIO
@@ -50,7 +51,7 @@ class BoardEvents:
         self._out: TextIO | None = open(path, "a") if path is not None else None  # noqa: SIM115
         self._lock = threading.Lock()
         self._last_flush = 0.0
-        self.counts = {"S": 0, "U": 0, "R": 0}
+        self.counts = Counter({"S": 0, "U": 0, "R": 0, "X": 0})
 
     def write(self, kind: str, *fields: object) -> None:
         """One line ``kind mono fields...``, stamped now."""
