@@ -60,6 +60,11 @@ _LOW = np.array([[HEIGHT_RANGE_MM[0]], [K_RANGE[0]], [FRICTION_RANGE[0]]])
 _HIGH = np.array([[HEIGHT_RANGE_MM[1]], [K_RANGE[1]], [FRICTION_RANGE[1]]])
 _CODE_LSB = np.array([[fr.HEIGHT_LSB_MM], [fr.K_LSB], [fr.F_LSB]])
 _CODE_OFFSET = np.array([[0.0], [fr.K_MIN], [0.0]])
+#: after a command with ``RESUME``, feedback still showing the watchdog trip is taken as news
+#: (the command lost) only when it arrives this much later: until then the board's answer may
+#: be on its way, and every further ``RESUME`` command would be one more that a freeze could
+#: hold past a new trip
+RESUME_RETRY_US = 20_000
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -174,6 +179,7 @@ class ArrayTacDisplay(Device):
     _n_feedback: int
     _n_bad: int
     _n_resumes: int
+    _resume_sent_us: int
 
     def __init__(self, *, keepalive_interval_s: float = 0.02, watchdog_ms: int = 100,
                  watchdog_mode: SafeMode = "flat", disconnect_mode: SafeMode | None = "flat",
@@ -306,7 +312,8 @@ class ArrayTacDisplay(Device):
             # state the host knew when it checked the deadline, and a board that tripped
             # meanwhile refuses it
             fb = self._feedback
-            resume = fb is not None and fb.watchdog_tripped
+            resume = (fb is not None and fb.watchdog_tripped
+                      and fb.t_us > self._resume_sent_us + RESUME_RETRY_US)
             frame = fr.CommandFrame(seq=self._next_seq(),
                                     flags=(self._flags
                                            | (fr.FLAG_KEEPALIVE if keepalive else 0)
@@ -319,7 +326,9 @@ class ArrayTacDisplay(Device):
             self._force_next = False
             self._n_frames += 1
             self._n_keepalives += keepalive
-            self._n_resumes += resume
+            if resume:
+                self._n_resumes += 1
+                self._resume_sent_us = now_us()
             if log.isEnabledFor(logging.DEBUG):
                 log.debug("%s: command seq %d keepalive=%s", self.name, frame.seq, keepalive)
             return self._applied(codes, clamped, sent=True, keepalive=keepalive)
@@ -447,6 +456,7 @@ class ArrayTacDisplay(Device):
         self._n_commands = self._n_frames = self._n_skipped = self._n_keepalives = 0
         self._n_clamped = self._n_rejected = self._n_safe = self._n_feedback = self._n_bad = 0
         self._n_resumes = 0
+        self._resume_sent_us = -(1 << 62)
 
     def _next_seq(self) -> int:
         self._seq = (self._seq + 1) & 0xFFFF

@@ -159,3 +159,51 @@ def test_display_specs_parse() -> None:
         parse_display_spec("bogus")
     with pytest.raises(ConfigError):
         open_display("sim", bogus_option=1)
+
+
+def _feed(display: CanArrayTacDisplay, board: can.BusABC, status: int) -> None:
+    """The raw bus plays the board: one feedback frame, waited for until decoded."""
+    before = display.stats().feedback_frames
+    board.send(can.Message(arbitration_id=fr.ARB_ID_FEEDBACK, is_fd=True, is_extended_id=False,
+                           data=fr.encode_feedback(fr.FeedbackFrame(
+                               status=status, seq_echo=0, board_t_us=0,
+                               position_codes=np.zeros(16, np.uint16), saturated_mask=0,
+                               commands_rejected=0, watchdog_trips=1,
+                               voltage_codes=np.zeros(16, np.uint16)))))
+    deadline = time.monotonic() + scaled(1.0)
+    while display.stats().feedback_frames == before:
+        assert time.monotonic() < deadline, "feedback not decoded"
+        time.sleep(0.001)
+
+
+def _flags(board: can.BusABC) -> list[int]:
+    return [fr.decode_command(bytes(m.data)).flags for m in _frames(board)
+            if m.arbitration_id == fr.ARB_ID_COMMAND]
+
+
+def test_resume_once_per_trip_read_and_again_only_when_the_trip_persists(
+        link, monkeypatch: pytest.MonkeyPatch) -> None:
+    from local_site.display import base
+
+    display, board = link
+    monkeypatch.setattr(base, "RESUME_RETRY_US", 60_000_000)  # the retry time never passes
+    display.send_command(1.0)
+    assert _flags(board) == [0]
+    tripped = fr.STATUS_SAFE_STATE | fr.STATUS_WATCHDOG_TRIPPED
+    _feed(display, board, tripped)
+    display.send_command(2.0)  # built after the trip was read: RESUME
+    assert _flags(board) == [fr.FLAG_RESUME]
+    # more feedback still showing the trip, within the retry time (the board's answer to the
+    # RESUME may be on its way): no second RESUME a freeze could hold past a new trip
+    _feed(display, board, tripped)
+    display.send_command(3.0)
+    assert _flags(board) == [0]
+    # the trip still reported after the retry time: the RESUME was lost, sent again
+    monkeypatch.setattr(base, "RESUME_RETRY_US", 0)  # the retry time has passed
+    _feed(display, board, tripped)
+    display.send_command(4.0)
+    assert _flags(board) == [fr.FLAG_RESUME]
+    # the board left the latch: no RESUME
+    _feed(display, board, 0)
+    display.send_command(5.0)
+    assert _flags(board) == [0] and display.stats().resumes == 2
