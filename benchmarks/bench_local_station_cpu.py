@@ -68,12 +68,29 @@ def _thread_names(pid: int, workdir: Path) -> dict[int, str]:
     return names
 
 
-def run_once(tree: Path, label: str, warmup_s: float, window_s: float) -> dict[str, Any]:
-    """One station from ``tree``: CPU per thread over the window, the loop's summary."""
+def run_once(tree: Path, label: str, warmup_s: float, window_s: float,
+             board_process: bool = False) -> dict[str, Any]:
+    """One station from ``tree``: CPU per thread over the window, the loop's summary.
+
+    With ``board_process`` the emulated ArrayTac board runs as ``teletouch board`` (its own
+    process, from the same tree, not counted) and the station reaches it over ``socket://``.
+    """
     workdir = Path(tempfile.mkdtemp(prefix=f"local-cpu-{label}-"))
     env = {**os.environ, "PYTHONPATH": str(tree)}
+    board = None
+    display = "sim"
+    if board_process:
+        board = subprocess.Popen([sys.executable, "-m", "lab.cli", "board", "--listen",
+                                  "127.0.0.1:0"], cwd=workdir, env=env, stdout=subprocess.PIPE,
+                                 stderr=subprocess.DEVNULL, text=True)
+        assert board.stdout is not None
+        first = board.stdout.readline()
+        if not first.startswith("board listening on socket://"):
+            board.kill()
+            raise SystemExit(f"the board process did not start: {first!r}")
+        display = first.split()[-1]
     cmd = [sys.executable, "-m", "lab.cli", "local", "--scene", SCENE, "--platform", "sim",
-           "--display", "sim", "--duration", str(warmup_s + window_s + 2.0), "--no-status",
+           "--display", display, "--duration", str(warmup_s + window_s + 2.0), "--no-status",
            "--summary-json", "summary.json"]
     with open(workdir / "local.log", "wb") as log:
         proc = subprocess.Popen(cmd, cwd=workdir, env=env, stdout=log, stderr=subprocess.STDOUT)
@@ -86,9 +103,10 @@ def run_once(tree: Path, label: str, warmup_s: float, window_s: float) -> dict[s
         names = _thread_names(proc.pid, workdir)
         proc.wait(timeout=60)
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+        for p in (proc, board):
+            if p is not None and p.poll() is None:
+                p.kill()
+                p.wait()
     summary = json.loads((workdir / "summary.json").read_text())
     wall = t1 - t0
     threads: dict[str, float] = {}
@@ -118,11 +136,17 @@ def report(runs: list[dict[str, Any]], args: argparse.Namespace) -> str:
              "agents' jobs (load average per run below); Python "
              f"{host_platform.python_version()}. Command: `python "
              f"benchmarks/bench_local_station_cpu.py --before {args.before} --rounds "
-             f"{args.rounds}` (after = this tree), runs alternating before/after; each run: "
-             f"`teletouch local --scene {SCENE} --platform sim --display sim` (sim encoder "
-             "board on a pty, emulated ArrayTac on virtual CAN FD, 1 kHz display loop, no "
-             f"relay), {args.warmup:g} s warm-up, {args.window:g} s window. Cores = CPU s per "
-             "wall s (`/proc/<pid>/task`), threads named by py-spy.", "",
+             f"{args.rounds}{' --board-process' if args.board_process else ''}` (after = "
+             "this tree), runs alternating before/after; each run: "
+             f"`teletouch local --scene {SCENE} --platform sim --display "
+             f"{'socket://...' if args.board_process else 'sim'}` (sim encoder board on a "
+             "pty, "
+             + ("the emulated ArrayTac as `teletouch board`, a process of its own reached "
+                "over `socket://` and not counted, " if args.board_process else
+                "emulated ArrayTac on virtual CAN FD, ")
+             + f"1 kHz display loop, no relay), {args.warmup:g} s warm-up, {args.window:g} s "
+             "window. Cores = CPU s per wall s (`/proc/<pid>/task`), threads named by "
+             "py-spy.", "",
              "| run | load avg | cores | display loop Hz | jitter p99 ms | overruns | "
              "us CPU per iteration | " + " | ".join(names) + " |",
              "|---|---|---|---|---|---|---|" + "---|" * len(names)]
@@ -149,12 +173,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--warmup", type=float, default=6.0)
     parser.add_argument("--window", type=float, default=8.0)
+    parser.add_argument("--board-process", action="store_true",
+                        help="the emulated ArrayTac board as a process of its own, reached "
+                             "over socket:// (not counted)")
     parser.add_argument("--out", type=Path, default=RESULTS / "local_station_cpu.md")
     args = parser.parse_args(argv)
     runs = []
     for i in range(1, args.rounds + 1):
         for tag, tree in (("before", args.before), ("after", args.after)):
-            r = run_once(tree.resolve(), f"{tag}-{i}", args.warmup, args.window)
+            r = run_once(tree.resolve(), f"{tag}-{i}", args.warmup, args.window,
+                         args.board_process)
             print(f"{r['label']}: load {r['load']:.2f}, {r['cores']:.3f} cores, loop "
                   f"{r['rate_hz']:.0f} Hz, jitter p99 {r['jitter_p99_ms']:.2f} ms", flush=True)
             runs.append(r)

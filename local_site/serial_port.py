@@ -53,6 +53,9 @@ try:
     _POSIX_READ = _serialposix.Serial.read
 except ImportError:  # pragma: no cover - not POSIX
     _POSIX_READ = None
+#: the read of pyserial's ``socket://`` port: read here on its socket's descriptor too (POSIX
+#: only, where a socket is a descriptor ``os.read`` takes)
+_SOCKET_READ = protocol_socket.Serial.read
 #: errors of a non-blocking read that mean "nothing yet", as pyserial treats them
 _RETRY_ERRNOS = (errno.EAGAIN, errno.EALREADY, errno.EWOULDBLOCK, errno.EINPROGRESS,
                  errno.EINTR)
@@ -65,23 +68,33 @@ def _read_available(port: serial.SerialBase) -> bytes | None:
     pyserial's ``read(n)`` returns after ``n`` bytes or its timeout: ``read(1)`` wakes the
     reader for the first byte of a frame and again for the rest, and a larger ``n`` would
     hold a frame back until the timeout. On a POSIX device or pty this does what pyserial's
-    read does (select on the descriptor and on its cancel pipe, then read), but returns
+    read does (select on the descriptor and on its cancel pipe, then read), and on
+    ``socket://`` what its read does (select on the socket, then read), but returns
     whatever the kernel holds as soon as anything arrived. Returns None when the port's
-    read is not pyserial's POSIX read (the caller uses ``read`` then).
+    read is neither (the caller uses ``read`` then).
 
     Raises:
         serial.SerialException: the read failed or the device is gone (ready, no data).
     """
-    if _POSIX_READ is None or type(port).read is not _POSIX_READ:
+    read = type(port).read
+    if _POSIX_READ is None or read not in (_POSIX_READ, _SOCKET_READ):
         return None
     if not port.is_open:
         raise serial.PortNotOpenError()
-    fd, abort = port.fd, port.pipe_abort_read_r
     try:
-        ready, _, _ = select.select([fd, abort], [], [], port.timeout)
-        if abort in ready:
-            os.read(abort, 1000)
-            return b""
+        if read is _SOCKET_READ:
+            # socket://: pyserial's in_waiting says 1 whenever anything is there, and
+            # read(1) then takes one byte per select and recv: a 68-byte board frame cost
+            # 68 wake-ups of this loop. Its socket is non-blocking; close() shuts it down,
+            # which wakes the select (EOF below).
+            fd = port.fileno()
+            ready, _, _ = select.select([fd], [], [], port.timeout)
+        else:
+            fd, abort = port.fd, port.pipe_abort_read_r
+            ready, _, _ = select.select([fd, abort], [], [], port.timeout)
+            if abort in ready:
+                os.read(abort, 1000)
+                return b""
         if not ready:
             return b""
         data = os.read(fd, _READ_CHUNK_BYTES)
@@ -91,6 +104,8 @@ def _read_available(port: serial.SerialBase) -> bytes | None:
         raise serial.SerialException(f"read failed: {err}") from err
     if not data:
         # as pyserial: a disconnected device is ready to read but returns nothing
+        if read is _SOCKET_READ:
+            raise serial.SerialException("socket disconnected (the peer closed the connection)")
         raise serial.SerialException("device reports readiness to read but returned no data "
                                      "(device disconnected or multiple access on port?)")
     return data

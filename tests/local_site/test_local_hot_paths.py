@@ -16,6 +16,7 @@
 from __future__ import annotations
 
 import os
+import socket
 import threading
 import tty
 from collections.abc import Callable, Iterator
@@ -267,6 +268,39 @@ def test_the_peer_going_away_is_reported_once(pty_pair: tuple[int, int | str]) -
     finally:
         reader.close()
         os.dup2(os.open(os.devnull, os.O_RDONLY), int(master))  # the fixture closes it
+
+
+def test_a_socket_url_burst_reaches_the_callback_in_one_piece_and_a_close_is_reported() -> None:
+    # pyserial's socket:// says in_waiting == 1 whenever anything is there, so read(1)
+    # took one byte per wake-up: 78 callbacks for this burst, 68 per drive-board frame
+    server = socket.create_server(("127.0.0.1", 0))
+    chunks: list[bytes] = []
+    got = threading.Event()
+    errors: list[BaseException] = []
+
+    def on_data(data: bytes) -> None:
+        chunks.append(data)
+        if sum(map(len, chunks)) >= 78:
+            got.set()
+
+    host, port = server.getsockname()
+    reader = SerialPortReader(f"socket://{host}:{port}", name="test socket",
+                              thread_name="test-socket-rx", on_data=on_data,
+                              on_error=errors.append, timeout_s=0.05)
+    reader.open()
+    try:
+        server.settimeout(scaled(2.0))
+        peer, _ = server.accept()
+        burst = bytes(range(78))
+        peer.sendall(burst)
+        assert got.wait(scaled(2.0)), "the burst never arrived"
+        assert chunks == [burst]  # one wake-up, one callback
+        peer.close()  # the board went away: reported once
+        wait_until(lambda: errors, 2.0, "the read error")
+        assert len(errors) == 1 and "disconnected" in str(errors[0])
+    finally:
+        reader.close()
+        server.close()
 
 
 # ---------------------------------------------------------------- platform reader
