@@ -63,8 +63,9 @@ def _thread_names(pid: int, workdir: Path) -> dict[int, str]:
         for line in raw.read_text().splitlines():
             m = re.match(r"thread \((\d+)\): ([^;]*)", line)
             if m:
-                names[int(m.group(1))] = re.sub(r" arraytac-sim-[0-9a-f]+| pty://sim", "",
-                                                m.group(2))
+                names[int(m.group(1))] = re.sub(
+                    r" arraytac-sim-[0-9a-f]+| pty://sim| socket://[0-9.]+:\d+", "",
+                    m.group(2))
     return names
 
 

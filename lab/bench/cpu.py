@@ -24,6 +24,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--window-s", type=float, default=12.0,
                         help="measured window (the default operator runs about 25 s)")
     parser.add_argument("--rate-hz", type=int, default=200, help="py-spy sampling rate")
+    parser.add_argument("--display", choices=("sim", "board-process"), default="sim",
+                        help="the demo's drive board (see `teletouch demo --display`)")
     parser.add_argument("--no-profile", action="store_true",
                         help="per-process figures only (no py-spy)")
     parser.add_argument("--local-arg", action="append", default=[],
@@ -55,6 +57,7 @@ def run(args: argparse.Namespace) -> int:
         settings = CpuBenchSettings(scene=args.scene, link=args.link, warmup_s=args.warmup_s,
                                     window_s=args.window_s, rate_hz=args.rate_hz,
                                     profile=not args.no_profile, keep_record=args.keep_record,
+                                    display=args.display,
                                     extra_local_args=tuple(args.local_arg),
                                     extra_remote_args=tuple(args.remote_arg))
         figures = run_cpu_bench(settings)

@@ -103,6 +103,7 @@ class CpuBenchSettings:
     max_duration_s: float = 100.0
     profile: bool = True
     keep_record: Path | None = None
+    display: str = "sim"
     extra_local_args: tuple[str, ...] = ()
     extra_remote_args: tuple[str, ...] = ()
 
@@ -147,6 +148,11 @@ def snapshot(pids: list[int]) -> CpuSnapshot:
 _SIM_BOARD_MODULE = "local_site.platform.sim_process"
 
 
+#: the demo's processes that are simulated hardware as a whole: their stage
+_SIM_PROCESSES = {"sim-board": "sim: platform board + operator",
+                  "board": "sim: ArrayTac plant + firmware"}
+
+
 def _processes() -> Iterator[tuple[int, int, list[str]]]:
     """(pid, parent pid, argv) of every process that can be read."""
     for entry in os.listdir("/proc"):
@@ -164,14 +170,16 @@ def _processes() -> Iterator[tuple[int, int, list[str]]]:
 
 
 def _children(parent: int) -> dict[int, str]:
-    """Child processes of ``parent`` running ``lab.cli`` (pid -> subcommand), and the local
-    station's simulated board process when it has one (``sim-board``)."""
+    """Child processes of ``parent`` running ``lab.cli`` (pid -> subcommand; ``board``: the
+    emulated ArrayTac drive board of ``--display board-process``), and the local station's
+    simulated encoder board process when it has one (``sim-board``)."""
     out: dict[int, str] = {}
     table = list(_processes())
     for pid, ppid, argv in table:
         if ppid == parent and "lab.cli" in argv:
             rest = argv[argv.index("lab.cli") + 1:]
-            cmd = next((a for a in rest if a in ("relay", "link", "local", "remote")), "?")
+            cmd = next((a for a in rest if a in ("relay", "link", "local", "remote", "board")),
+                       "?")
             out[pid] = cmd
     local = {p for p, c in out.items() if c == "local"}
     boards = {pid: "sim-board" for pid, ppid, argv in table
@@ -338,6 +346,7 @@ def run_cpu_bench(settings: CpuBenchSettings) -> dict[str, Any]:
         try:
             report = run_demo(DemoConfig(scene=settings.scene, link=settings.link,
                                          max_duration_s=settings.max_duration_s,
+                                         display=settings.display,
                                          workdir=workdir / "demo",
                                          extra_local_args=settings.extra_local_args,
                                          extra_remote_args=settings.extra_remote_args),
@@ -388,9 +397,9 @@ def _figures(win: _Window, report: dict[str, Any], load_start: tuple[float, floa
         threads[name] = sorted(({"tid": tid, "runs": roots.get(tid, "?"), "cores": cpu / wall}
                                 for tid, cpu in thread_cpu.items()),
                                key=lambda t: -float(t["cores"]))
-        if name.startswith("link") or name == "sim-board":
+        if name.startswith("link") or name in _SIM_PROCESSES:
             stages[name]["sim: link emulator" if name.startswith("link")
-                         else "sim: platform board + operator"] = total / wall
+                         else _SIM_PROCESSES[name]] = total / wall
             top[name] = _top_functions(text) if text else []
             continue
         unattributed = 0.0

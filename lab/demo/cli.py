@@ -45,6 +45,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--platform", choices=("sim", "sim-process"), default="sim",
                         help="the simulated platform's board as a thread of the local "
                              "station (sim, default) or in a process of its own")
+    parser.add_argument("--display", choices=("sim", "board-process"), default="sim",
+                        help="the emulated ArrayTac drive board inside the local station on "
+                             "a virtual CAN bus (sim, default) or as a process of its own "
+                             "reached over socket:// (board-process), like a separate board")
     parser.add_argument("--duration", type=float, default=100.0,
                         help="stop the operator after this many seconds (default 100)")
     parser.add_argument("--frame-rate-hz", type=float, default=120.0,
@@ -118,6 +122,7 @@ def run(args: argparse.Namespace) -> int:
                         register=args.register,
                         link=args.link,
                         motion=args.motion or DEFAULT_MOTION, platform=args.platform,
+                        display=args.display,
                         max_duration_s=args.duration,
                         frame_rate_hz=args.frame_rate_hz,
                         workdir=Path(args.workdir) if args.workdir else None,

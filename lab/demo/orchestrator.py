@@ -84,6 +84,10 @@ class DemoConfig:
         motion: the scripted operator (``teletouch local --motion`` spec).
         platform: the local station's simulated platform backend: ``sim`` (the board as a
             thread of the station's process) or ``sim-process`` (in a process of its own).
+        display: the ArrayTac drive board: ``sim`` (emulated inside the local station, on
+            python-can's virtual CAN FD bus) or ``board-process`` (``teletouch board``, a
+            process of its own that the station reaches over ``socket://`` with its serial
+            driver, as a separate board is reached).
         ideal: the noise-free simulated world (default: the realistic one, with an unknown
             registration error drawn from ``seed``).
         register: let the remote station measure the registration on the phantom's
@@ -106,6 +110,7 @@ class DemoConfig:
     link: str | None = None
     motion: str = DEFAULT_MOTION
     platform: str = "sim"
+    display: str = "sim"
     ideal: bool = False
     register: bool = True
     max_duration_s: float = 100.0
@@ -263,6 +268,8 @@ def run_demo(config: DemoConfig,
     """
     if config.max_duration_s <= 0:
         raise ConfigError("max_duration_s must be > 0")
+    if config.display not in ("sim", "board-process"):
+        raise ConfigError(f"display must be 'sim' or 'board-process', got {config.display!r}")
     temp = config.workdir is None
     workdir = (Path(tempfile.mkdtemp(prefix="teletouch-demo-")) if config.workdir is None
                else Path(config.workdir))
@@ -350,9 +357,15 @@ def run_demo(config: DemoConfig,
         _wait_for(lambda: _peer_joined(relay_status(ws_port), "remote"),
                   "the remote station to join the session (registration, warm-up)",
                   REMOTE_JOIN_TIMEOUT_S, procs)
+        display = "sim"
+        if config.display == "board-process":
+            board_port = free_port()
+            procs.start("board", "board", "--listen", f"127.0.0.1:{board_port}")
+            _wait_for(functools.partial(_port_open, board_port), "the drive board", 20, procs)
+            display = f"socket://127.0.0.1:{board_port}"
         local = procs.start(
             "local", "local", "--relay", f"ws://127.0.0.1:{local_port}/", *common,
-            "--platform", config.platform, "--display", "sim", "--motion", config.motion,
+            "--platform", config.platform, "--display", display, "--motion", config.motion,
             "--until-motion-done", "--duration", f"{config.max_duration_s:g}", "--no-status",
             "--record", str(files["record"]), "--summary-json", str(files["local_summary"]),
             *view_args, *config.extra_local_args)

@@ -66,7 +66,11 @@ def test_the_demos_processes_and_the_local_stations_board_process_are_found(
         (16, 13, [py, "-m", "local_site.platform.sim_process", "{}"]),  # not the local's
         (17, 99, [py, "-P", "-m", "lab.cli", "local"]),  # another demo's station
         (18, 10, ["py-spy", "record", "--pid", "14"]),
+        # --display board-process: the emulated drive board (simulated hardware as a whole)
+        (19, 10, [py, "-P", "-m", "lab.cli", "--log-level", "INFO", "board", "--listen",
+                  "127.0.0.1:7"]),
     ]
     monkeypatch.setattr(cpu_impl, "_processes", lambda: iter(table))
     assert cpu_impl._children(10) == {11: "relay", 12: "link", 13: "remote", 14: "local",
-                                      15: "sim-board"}
+                                      15: "sim-board", 19: "board"}
+    assert set(cpu_impl._SIM_PROCESSES) == {"sim-board", "board"}

@@ -84,14 +84,15 @@ def test_status_line_shows_flow_and_latency() -> None:
 def test_demo_over_one_link_emulator_has_no_merged_stage_names(tmp_path: Path) -> None:
     """--link: one emulator process serves both legs; the ledger names only documented
     stages (frames before both clock offsets are known are counted apart); the simulated
-    sensor's frames are taken on pose."""
+    sensor's frames are taken on pose. --display board-process: the drive board is a process
+    of its own (``teletouch board``), reached over socket://, and drives the pins."""
     from shared.motion_to_touch import END_TO_END, INCOMPLETE, STAGES, UNALIGNED
 
     workdir = tmp_path / "work"
     done = subprocess.run(
         [sys.executable, "-m", "lab.cli", "demo", "--headless", "--json", "--no-view",
-         "--link", "lan", "--motion", SMALL_RASTER, "--duration", "30", "--workdir",
-         str(workdir)],
+         "--link", "lan", "--display", "board-process", "--motion", SMALL_RASTER,
+         "--duration", "30", "--workdir", str(workdir)],
         capture_output=True, text=True, timeout=scaled(120.0), check=False, env=_scaled_env())
     assert done.returncode == 0, done.stderr[-3000:]
     report = json.loads(done.stdout)
@@ -103,6 +104,11 @@ def test_demo_over_one_link_emulator_has_no_merged_stage_names(tmp_path: Path) -
     logs = sorted(p.name for p in workdir.glob("link*.log"))
     assert logs == ["link.log"]
     assert (workdir / "link.log").read_text().count("link emulator listening on") == 2
+    display = report["local"]["display"]
+    assert display["spec"].startswith("socket://127.0.0.1:")
+    assert display["commands_sent"] > 0 and display["driver"]["feedback_frames"] > 0
+    assert report["local"]["frames_rendered"] > 0
+    assert "host connected" in (workdir / "board.log").read_text()
     frames = report["remote"]["frames"]
     assert frames["capture"] == "on_pose"
     assert frames["captures"]["clock"] == 0 and frames["processed"] > 0
