@@ -137,6 +137,10 @@ def check_display(spec: str, settings: CheckSettings | None = None, *,
         with display:
             n0, start_s = display.stats().feedback_frames, monotonic_s()
             last = display.read_feedback(cfg.read_timeout_s)
+            # parked by its watchdog before this check (a station that stopped commanding
+            # without a safe state): the board's latch holds the pins until a command
+            # carries RESUME, which the driver sets itself (docs/arraytac_can.md)
+            figures["watchdog_latched_at_start"] = last.watchdog_tripped
             while monotonic_s() - start_s < cfg.rate_window_s:
                 last = display.read_feedback(cfg.read_timeout_s, newer_than_us=last.t_us)
             rate_hz = (display.stats().feedback_frames - n0) / (monotonic_s() - start_s)

@@ -236,3 +236,23 @@ def test_a_command_held_by_a_frozen_host_cannot_undo_the_boards_park(
         assert not fw.safe_state and not fw.watchdog_tripped and board.error is None
     finally:
         display.disconnect()
+
+
+def test_the_device_check_works_on_a_board_its_previous_run_left_latched(
+        board: FirmwareEmulator) -> None:
+    # `teletouch check` trips the board's watchdog on purpose; the next check (or station)
+    # finds the board latched, and its zero command, sent with RESUME, is still applied
+    from local_site.check import check_display
+    from shared.device_check import CheckSettings
+
+    transport = board.transport
+    assert isinstance(transport, TcpFirmwareTransport)
+    settings = CheckSettings(connect_timeout_s=scaled(3.0), read_timeout_s=scaled(1.0))
+    first = check_display(transport.url, settings)
+    assert first.ok, first.message
+    assert first.figures["watchdog_latched_at_start"] is False
+    assert board.firmware.watchdog_tripped
+    second = check_display(transport.url, settings)
+    assert second.ok, second.message
+    assert second.figures["watchdog_latched_at_start"] is True
+    assert second.figures["zero_command_echoed"] and board.firmware.commands_refused_latched == 0
