@@ -231,17 +231,24 @@ def pty_pair() -> Iterator[tuple[int, str]]:
     os.close(slave)
 
 
-def test_a_burst_reaches_the_callback_in_one_piece(pty_pair: tuple[int, int | str]) -> None:
-    master, path = pty_pair
+def _collector(n_bytes: int) -> tuple[list[bytes], threading.Event,
+                                      Callable[[bytes], None]]:
+    """A reader callback keeping every chunk; the event is set once ``n_bytes`` arrived."""
     chunks: list[bytes] = []
     got = threading.Event()
-    errors: list[BaseException] = []
 
     def on_data(data: bytes) -> None:
         chunks.append(data)
-        if sum(map(len, chunks)) >= 78:
+        if sum(map(len, chunks)) >= n_bytes:
             got.set()
 
+    return chunks, got, on_data
+
+
+def test_a_burst_reaches_the_callback_in_one_piece(pty_pair: tuple[int, int | str]) -> None:
+    master, path = pty_pair
+    chunks, got, on_data = _collector(78)
+    errors: list[BaseException] = []
     reader = SerialPortReader(str(path), name="test pty", thread_name="test-pty-rx",
                               on_data=on_data, on_error=errors.append, timeout_s=0.05)
     reader.open()
@@ -274,15 +281,8 @@ def test_a_socket_url_burst_reaches_the_callback_in_one_piece_and_a_close_is_rep
     # pyserial's socket:// says in_waiting == 1 whenever anything is there, so read(1)
     # took one byte per wake-up: 78 callbacks for this burst, 68 per drive-board frame
     server = socket.create_server(("127.0.0.1", 0))
-    chunks: list[bytes] = []
-    got = threading.Event()
+    chunks, got, on_data = _collector(78)
     errors: list[BaseException] = []
-
-    def on_data(data: bytes) -> None:
-        chunks.append(data)
-        if sum(map(len, chunks)) >= 78:
-            got.set()
-
     host, port = server.getsockname()
     reader = SerialPortReader(f"socket://{host}:{port}", name="test socket",
                               thread_name="test-socket-rx", on_data=on_data,
