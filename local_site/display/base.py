@@ -302,18 +302,20 @@ class ArrayTacDisplay(Device):
             if unchanged and not keepalive:
                 self._n_skipped += 1
                 return self._applied(codes, clamped, sent=False)
+            # RESUME only once the board's trip was read back (see docs/arraytac_can.md).
+            # Decided *before* the deadline check: a freeze after this line carries the
+            # feedback known before it into the write (a board that tripped meanwhile
+            # refuses the command), and a freeze before it is caught by the deadline check.
+            # (Decided after the check, a reader thread that read the trip first after the
+            # freeze would let the held command through with RESUME.)
+            fb = self._feedback
+            resume = (fb is not None and fb.watchdog_tripped
+                      and fb.t_us > self._resume_sent_us + RESUME_RETRY_US)
             if not_after_s is not None:
                 late_s = monotonic_s() - not_after_s
                 if late_s > 0:
                     raise CommandExpiredError(f"{self.name}: pin command {late_s * 1e3:.1f} ms "
                                               "past its deadline; not sent")
-            # RESUME only once the board's trip was read back (see docs/arraytac_can.md):
-            # decided here, before the write, so a command held by a freeze carries the
-            # state the host knew when it checked the deadline, and a board that tripped
-            # meanwhile refuses it
-            fb = self._feedback
-            resume = (fb is not None and fb.watchdog_tripped
-                      and fb.t_us > self._resume_sent_us + RESUME_RETRY_US)
             frame = fr.CommandFrame(seq=self._next_seq(),
                                     flags=(self._flags
                                            | (fr.FLAG_KEEPALIVE if keepalive else 0)

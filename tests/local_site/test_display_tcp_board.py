@@ -256,3 +256,43 @@ def test_the_device_check_works_on_a_board_its_previous_run_left_latched(
     assert second.ok, second.message
     assert second.figures["watchdog_latched_at_start"] is True
     assert second.figures["zero_command_echoed"] and board.firmware.commands_refused_latched == 0
+
+
+def test_a_freeze_right_after_the_deadline_check_cannot_borrow_a_resume_read_later(
+        board: FirmwareEmulator, monkeypatch: pytest.MonkeyPatch) -> None:
+    # The freeze lands just after the deadline check; when the station wakes, its reader
+    # thread reads the trip before the held command is built. RESUME must follow what the
+    # driver knew before the check, or the held command would leave the park.
+    from local_site.display import base
+
+    transport = board.transport
+    assert isinstance(transport, TcpFirmwareTransport)
+    display = open_display(transport.url, keepalive_interval_s=0.02,
+                           watchdog_ms=round(scaled(100)), connect_timeout_s=scaled(3.0))
+    try:
+        display.send_command(3.0)
+        wait_until(lambda: board.firmware.commands_applied >= 1, 2.0, "the first command")
+        fw = board.firmware
+        real = base.monotonic_s
+        calls = 0
+
+        def frozen_clock() -> float:
+            nonlocal calls
+            calls += 1
+            t = real()
+            if calls == 2:  # send_command's deadline check read the clock, then froze
+                wait_until(lambda: fw.watchdog_tripped, 3.0, "the board's watchdog")
+                wait_until(lambda: (fb := display.latest_feedback()) is not None
+                           and fb.watchdog_tripped, 3.0, "the driver to read the trip")
+            return t
+
+        monkeypatch.setattr(base, "monotonic_s", frozen_clock)
+        applied = fw.commands_applied
+        held = display.send_command(4.0, not_after_s=real() + 60.0)
+        monkeypatch.setattr(base, "monotonic_s", real)
+        wait_until(lambda: fw.commands_applied > applied or fw.commands_refused_latched > 0,
+                   2.0, "the board to take the held command")
+        assert fw.seq_echo != held.seq and fw.safe_state, "the held command moved the pins"
+        assert display.stats().resumes == 0
+    finally:
+        display.disconnect()
