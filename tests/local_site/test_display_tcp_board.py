@@ -15,6 +15,7 @@ import pytest
 from local_site.arraytac_sim.plant import ArrayTacPlant
 from local_site.devices import open_display
 from local_site.display import frames as fr
+from local_site.display.base import ArrayTacDisplay
 from local_site.display.emulator import FirmwareEmulator, TcpFirmwareTransport
 from local_site.display.firmware import ArrayTacFirmware
 from local_site.display.serial_framing import LinkFrameDecoder, encode_link_frame
@@ -198,12 +199,9 @@ def test_the_serial_driver_reaches_the_board_through_a_socket_url_and_reconnects
     assert board.firmware.commands_applied == applied and board.error is None
 
 
-def test_a_command_held_by_a_frozen_host_cannot_undo_the_boards_park(
-        board: FirmwareEmulator, monkeypatch: pytest.MonkeyPatch) -> None:
-    # The station checks a command's deadline, then freezes (SIGSTOP, a VM pause) before the
-    # write; the board's watchdog parks the pins meanwhile. When the station wakes, the held
-    # command must not put its old touch on the pins: the board refuses it (no RESUME), and
-    # only the driver's next command, decided after it has read the trip, leaves the park.
+@pytest.fixture
+def commanding(board: FirmwareEmulator) -> Iterator[ArrayTacDisplay]:
+    """The serial driver on the board's socket:// URL, its first command applied."""
     transport = board.transport
     assert isinstance(transport, TcpFirmwareTransport)
     display = open_display(transport.url, keepalive_interval_s=0.02,
@@ -211,31 +209,47 @@ def test_a_command_held_by_a_frozen_host_cannot_undo_the_boards_park(
     try:
         display.send_command(3.0)
         wait_until(lambda: board.firmware.commands_applied >= 1, 2.0, "the first command")
-        write = display._send_frame
-
-        def frozen_write(arb_id: int, payload: bytes) -> None:
-            # the freeze lands between the deadline check and the write
-            wait_until(lambda: board.firmware.watchdog_tripped, 3.0, "the board's watchdog")
-            write(arb_id, payload)
-
-        monkeypatch.setattr(display, "_send_frame", frozen_write)
-        applied = board.firmware.commands_applied
-        held = display.send_command(4.0, not_after_s=time.monotonic() + 60.0)
-        monkeypatch.setattr(display, "_send_frame", write)
-        fw = board.firmware
-        wait_until(lambda: fw.commands_applied > applied or fw.commands_refused_latched > 0,
-                   2.0, "the board to take the held command")
-        assert fw.seq_echo != held.seq and fw.safe_state, "the held command moved the pins"
-        assert fw.targets_mm.max() == 0.0 and fw.commands_refused_latched == 1
-        # the driver reads the trip, and its next command carries RESUME
-        wait_until(lambda: display.read_feedback(scaled(1.0)).watchdog_tripped, 2.0,
-                   "the driver to read the trip")
-        fresh = display.send_command(1.0)
-        assert fresh.sent and display.stats().resumes == 1
-        wait_until(lambda: board.firmware.seq_echo == fresh.seq, 2.0, "the fresh command")
-        assert not fw.safe_state and not fw.watchdog_tripped and board.error is None
+        yield display
     finally:
         display.disconnect()
+
+
+def _assert_held_command_refused(fw: ArrayTacFirmware, applied_before: int,
+                                 held_seq: int) -> None:
+    """The board took the held command (applied or refused) and the pins did not move."""
+    wait_until(lambda: fw.commands_applied > applied_before or fw.commands_refused_latched > 0,
+               2.0, "the board to take the held command")
+    assert fw.seq_echo != held_seq and fw.safe_state, "the held command moved the pins"
+    assert fw.targets_mm.max() == 0.0 and fw.commands_refused_latched == 1
+
+
+def test_a_command_held_by_a_frozen_host_cannot_undo_the_boards_park(
+        board: FirmwareEmulator, commanding: ArrayTacDisplay,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    # The station checks a command's deadline, then freezes (SIGSTOP, a VM pause) before the
+    # write; the board's watchdog parks the pins meanwhile. When the station wakes, the held
+    # command must not put its old touch on the pins: the board refuses it (no RESUME), and
+    # only the driver's next command, decided after it has read the trip, leaves the park.
+    display, fw = commanding, board.firmware
+    write = display._send_frame
+
+    def frozen_write(arb_id: int, payload: bytes) -> None:
+        # the freeze lands between the deadline check and the write
+        wait_until(lambda: fw.watchdog_tripped, 3.0, "the board's watchdog")
+        write(arb_id, payload)
+
+    monkeypatch.setattr(display, "_send_frame", frozen_write)
+    applied = fw.commands_applied
+    held = display.send_command(4.0, not_after_s=time.monotonic() + 60.0)
+    monkeypatch.setattr(display, "_send_frame", write)
+    _assert_held_command_refused(fw, applied, held.seq)
+    # the driver reads the trip, and its next command carries RESUME
+    wait_until(lambda: display.read_feedback(scaled(1.0)).watchdog_tripped, 2.0,
+               "the driver to read the trip")
+    fresh = display.send_command(1.0)
+    assert fresh.sent and display.stats().resumes == 1
+    wait_until(lambda: fw.seq_echo == fresh.seq, 2.0, "the fresh command")
+    assert not fw.safe_state and not fw.watchdog_tripped and board.error is None
 
 
 def test_the_device_check_works_on_a_board_its_previous_run_left_latched(
@@ -259,40 +273,30 @@ def test_the_device_check_works_on_a_board_its_previous_run_left_latched(
 
 
 def test_a_freeze_right_after_the_deadline_check_cannot_borrow_a_resume_read_later(
-        board: FirmwareEmulator, monkeypatch: pytest.MonkeyPatch) -> None:
+        board: FirmwareEmulator, commanding: ArrayTacDisplay,
+        monkeypatch: pytest.MonkeyPatch) -> None:
     # The freeze lands just after the deadline check; when the station wakes, its reader
     # thread reads the trip before the held command is built. RESUME must follow what the
     # driver knew before the check, or the held command would leave the park.
     from local_site.display import base
 
-    transport = board.transport
-    assert isinstance(transport, TcpFirmwareTransport)
-    display = open_display(transport.url, keepalive_interval_s=0.02,
-                           watchdog_ms=round(scaled(100)), connect_timeout_s=scaled(3.0))
-    try:
-        display.send_command(3.0)
-        wait_until(lambda: board.firmware.commands_applied >= 1, 2.0, "the first command")
-        fw = board.firmware
-        real = base.monotonic_s
-        calls = 0
+    display, fw = commanding, board.firmware
+    real = base.monotonic_s
+    calls = 0
 
-        def frozen_clock() -> float:
-            nonlocal calls
-            calls += 1
-            t = real()
-            if calls == 2:  # send_command's deadline check read the clock, then froze
-                wait_until(lambda: fw.watchdog_tripped, 3.0, "the board's watchdog")
-                wait_until(lambda: (fb := display.latest_feedback()) is not None
-                           and fb.watchdog_tripped, 3.0, "the driver to read the trip")
-            return t
+    def frozen_clock() -> float:
+        nonlocal calls
+        calls += 1
+        t = real()
+        if calls == 2:  # send_command's deadline check read the clock, then froze
+            wait_until(lambda: fw.watchdog_tripped, 3.0, "the board's watchdog")
+            wait_until(lambda: (fb := display.latest_feedback()) is not None
+                       and fb.watchdog_tripped, 3.0, "the driver to read the trip")
+        return t
 
-        monkeypatch.setattr(base, "monotonic_s", frozen_clock)
-        applied = fw.commands_applied
-        held = display.send_command(4.0, not_after_s=real() + 60.0)
-        monkeypatch.setattr(base, "monotonic_s", real)
-        wait_until(lambda: fw.commands_applied > applied or fw.commands_refused_latched > 0,
-                   2.0, "the board to take the held command")
-        assert fw.seq_echo != held.seq and fw.safe_state, "the held command moved the pins"
-        assert display.stats().resumes == 0
-    finally:
-        display.disconnect()
+    monkeypatch.setattr(base, "monotonic_s", frozen_clock)
+    applied = fw.commands_applied
+    held = display.send_command(4.0, not_after_s=real() + 60.0)
+    monkeypatch.setattr(base, "monotonic_s", real)
+    _assert_held_command_refused(fw, applied, held.seq)
+    assert display.stats().resumes == 0
