@@ -124,20 +124,27 @@ def main() -> None:
     if args.child:
         json.dump(_child(Path(args.child), Path(args.cache), args.repeats), sys.stdout)
         return
+    for name in ("runs", "rounds", "repeats"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name} must be >= 1")
     sys.path.insert(0, str(ROOT))
     from lab.bench.relay_cpu_impl import extract_revision
+    from shared.errors import ConfigError
     from shared.report import format_table
 
     with tempfile.TemporaryDirectory() as tmp:
+        old_tree = Path(tmp) / "old"
+        old_tree.mkdir()
+        try:  # first: a bad revision fails before minutes of simulation
+            commit = extract_revision(args.baseline_rev, old_tree)
+        except ConfigError as err:
+            parser.error(str(err))
         cache = Path(args.cache) if args.cache else Path(tmp) / "cache"
         cache.mkdir(parents=True, exist_ok=True)
         families = [f for f in args.families.split(",") if f]
         t0 = time.monotonic()
         sessions = _simulate(cache, families, args.runs, args.seed)
         simulate_s = time.monotonic() - t0
-        old_tree = Path(tmp) / "old"
-        old_tree.mkdir()
-        commit = extract_revision(args.baseline_rev, old_tree)
         load_start = os.getloadavg()
         rounds = []
         for r in range(args.rounds):
