@@ -8,6 +8,11 @@ local station on A, the remote on B. The remote sends ``tactile_frame`` (19.4 kB
 both alike. Per frame, from the stamps it arrives with: added = ``relay_out - ts`` (as in
 ``teletouch bench load``) and the NATS leg ``nats_in - nats_out``. The hop's cost = cross
 minus same, at p50 and p99.
+
+Each round also sends the frame's size with no relay on the path (:mod:`lab.bench.nats_floor`):
+over a plain TCP socket, and through the nats-server with a minimal protocol client and with
+nats-py. The minimal client's one-way time is the least a cross-worker hop can cost on the
+machine.
 """
 
 from __future__ import annotations

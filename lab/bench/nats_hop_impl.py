@@ -18,6 +18,7 @@ from lab.bench.load_impl import (
     start_nats_server,
     tactile_frame,
 )
+from lab.bench.nats_floor import PATHS, FloorSender, start_receiver
 from lab.bench.results import publish
 from shared.protocol import ClockPong, Hello, TactileFrame, encode
 from shared.timebase import now_us
@@ -101,18 +102,34 @@ async def run_nats_hop(*, rate_hz: float, rounds: int, round_s: float) -> dict[s
     same: list[int] = []
     cross: list[int] = []
     nats_leg: list[int] = []
+    frame_bytes = len(encode(tactile_frame(), validate=False))
+    floor_sent = dict.fromkeys(PATHS, 0)
+    receiver = sender = None
     try:
         for _ in range(2):
             relays.append(await asyncio.to_thread(RelayUnderTest, 1, url))
         a, b = relays
         await asyncio.to_thread(_wait_cluster, a, 2)
+        receiver, pipe, port = await asyncio.to_thread(start_receiver, url, frame_bytes)
+        sender = FloorSender(url, port, frame_bytes)
+        await sender.open()
         for i in range(rounds):
             got = await _phase(a.ws_port, a.ws_port, f"same{i}", rate_hz, round_s)
             same += [added for added, _ in got]
             got = await _phase(a.ws_port, b.ws_port, f"cross{i}", rate_hz, round_s)
             cross += [added for added, hop in got if hop is not None]
             nats_leg += [hop for _, hop in got if hop is not None]
+            for path in PATHS:
+                floor_sent[path] += await sender.phase(path, rate_hz, round_s, _WARMUP_S)
+        pipe.send("done")
+        floor: dict[str, list[int]] = await asyncio.to_thread(pipe.recv)
     finally:
+        if sender is not None:
+            await sender.close()
+        if receiver is not None:
+            receiver.join(10)
+            if receiver.is_alive():
+                receiver.kill()
         for r in relays:
             r.close()
         nats.terminate()
@@ -120,11 +137,14 @@ async def run_nats_hop(*, rate_hz: float, rounds: int, round_s: float) -> dict[s
     ps, pc = _p(same), _p(cross)
     hop = {k: None if ps[k] is None or pc[k] is None else pc[k] - ps[k]  # type: ignore[operator]
            for k in ("p50", "p99")}
-    return {"frame_bytes": len(encode(tactile_frame(), validate=False)), "rate_hz": rate_hz,
+    return {"frame_bytes": frame_bytes, "rate_hz": rate_hz,
             "rounds": rounds, "round_s": round_s, "frames": {"same": len(same),
                                                               "cross": len(cross)},
             "added_same_worker_us": ps, "added_cross_worker_us": pc,
             "nats_hop_added_us": hop, "nats_leg_stamps_us": _p(nats_leg),
+            "floor_one_way_us": {p: _p(floor[p]) for p in PATHS},
+            "floor_frames": {p: {"sent": floor_sent[p], "received": len(floor[p])}
+                             for p in PATHS},
             "target_hop_p50_us": 500.0,
             "machine": {"nproc": os.cpu_count(), "loadavg_start": load_start,
                         "niceness": os.nice(0),
@@ -146,11 +166,20 @@ def _f(v: float | None) -> str:
     return "n/a" if v is None else f"{v:.0f}"
 
 
+_FLOOR_NAMES = {"direct": "TCP socket, process to process",
+                "nats_raw": "nats-server, minimal client", "nats_py": "nats-server, nats-py"}
+
+
+def _diff(a: float | None, b: float | None) -> float | None:
+    return None if a is None or b is None else a - b
+
+
 def _markdown(r: dict[str, Any], argv: str) -> str:
     m = r["machine"]
     s, c, h, leg = (r["added_same_worker_us"], r["added_cross_worker_us"],
                     r["nats_hop_added_us"], r["nats_leg_stamps_us"])
     ok = h["p50"] is not None and h["p50"] <= r["target_hop_p50_us"]
+    fl = r["floor_one_way_us"]
     return "\n".join([
         "# NATS hop: what a second relay worker on the path adds", "",
         f"Command: `{argv}` at niceness {m['niceness']} (scheduler {m['autogroup']}). "
@@ -170,7 +199,23 @@ def _markdown(r: dict[str, Any], argv: str) -> str:
         f"callback): p50 {_f(leg['p50'])} us, p99 {_f(leg['p99'])} us. The difference also "
         "holds the second worker's decode and re-encode of the frame.", "",
         f"Target: the NATS hop adds <= {r['target_hop_p50_us']:.0f} us p50 on a 19 kB frame: "
-        f"**{'met' if ok else 'MISSED'}** in this run.",
+        f"**{'met' if ok else 'MISSED'}** in this run.", "",
+        "## The floor: the same message with no relay on the path", "",
+        "In the same rounds (`lab/bench/nats_floor.py`), one message of the frame's size from "
+        "the benchmark process to a receiver process, stamped at the write and timed at the "
+        "receiver's callback: over a plain TCP socket, through the nats-server with a minimal "
+        "client speaking the NATS protocol from asyncio protocol callbacks (no library: the "
+        "least any client can add), and through nats-py (the relay's client).", "",
+        "| path | sent | received | one-way p50 us | one-way p99 us |", "|---|---|---|---|---|",
+        *[f"| {_FLOOR_NAMES[p]} | {r['floor_frames'][p]['sent']} | "
+          f"{r['floor_frames'][p]['received']} | {_f(fl[p]['p50'])} | {_f(fl[p]['p99'])} |"
+          for p in PATHS], "",
+        "A cross-worker frame pays one server traversal more than a same-worker frame, so "
+        f"the minimal client's one-way figure ({_f(fl['nats_raw']['p50'])} us p50) is the "
+        "least the hop can cost on this machine, whatever the relay does; nats-py adds "
+        f"{_f(_diff(fl['nats_py']['p50'], fl['nats_raw']['p50']))} us to it and the relay "
+        f"workers' own path (queue, envelope, decode, delivery) "
+        f"{_f(_diff(h['p50'], fl['nats_py']['p50']))} us more.",
     ])
 
 

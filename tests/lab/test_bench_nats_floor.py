@@ -1,0 +1,49 @@
+"""The NATS hop benchmark's floor paths against a real nats-server: every measured message
+arrives on each path, warm-up messages are not counted, and the one-way times are
+plausible (positive, under the test's own duration)."""
+
+from __future__ import annotations
+
+import asyncio
+
+import pytest
+
+from tests.support import scaled
+
+pytest.importorskip("nats", reason="the floor's nats-py path needs nats-py")
+from lab.bench.nats_floor import PATHS, FloorSender, start_receiver
+from tests.relay_server.test_cluster import nats_server
+
+SIZE = 19_452
+
+
+async def _run(url: str) -> tuple[dict[str, int], dict[str, list[int]], float]:
+    loop = asyncio.get_running_loop()
+    t0 = loop.time()
+    receiver, pipe, port = await asyncio.to_thread(start_receiver, url, SIZE)
+    sender = FloorSender(url, port, SIZE)
+    try:
+        await sender.open()
+        sent = {path: await sender.phase(path, 50.0, 0.4, 0.2) for path in PATHS}
+        pipe.send("done")
+        async with asyncio.timeout(scaled(20.0)):
+            got: dict[str, list[int]] = await asyncio.to_thread(pipe.recv)
+    finally:
+        await sender.close()
+        receiver.join(scaled(10.0))
+        if receiver.is_alive():
+            receiver.kill()
+    return sent, got, loop.time() - t0
+
+
+def test_every_measured_message_arrives_once_on_each_path() -> None:
+    async def main() -> tuple[dict[str, int], dict[str, list[int]], float]:
+        async with nats_server() as url:
+            return await _run(url)
+
+    sent, got, elapsed_s = asyncio.run(main())
+    for path in PATHS:
+        # 0.4 s at 50 Hz after a 0.2 s warm-up: about 20 measured, none of the ~10 warm-up
+        assert 15 <= sent[path] <= 22, (path, sent)
+        assert len(got[path]) == sent[path], (path, sent, {p: len(v) for p, v in got.items()})
+        assert all(0 < us < elapsed_s * 1e6 for us in got[path]), (path, got[path])
