@@ -96,7 +96,7 @@ def time_renders(renderer: Renderer, scene: SceneSource,
 def bench_rate(n: int) -> list[dict]:
     """Renders/s and latency p50/p99 for each scene kind (skips off: full cost)."""
     positions = sweep_positions(n)
-    frame_scene = TactileFrameScene()
+    frame_scene = TactileFrameScene()  # the default order (DEFAULT_ORDER)
     g = np.linspace(-1, 1, 32)
     gx, gy = np.meshgrid(g, g)
     frame = TactileFrame(center_mm=(0.0, 0.0), pitch_mm=0.4,
@@ -113,7 +113,7 @@ def bench_rate(n: int) -> list[dict]:
         ("layer file 0.1 mm, order 0", grid_copy(hemi, 0.1, 0)),
         ("layer file 0.1 mm, order 1", grid_copy(hemi, 0.1, 1)),
         ("layer file 0.1 mm, order 3", grid_copy(hemi, 0.1, 3)),
-        ("remote stream 32x32, order 1", frame_scene),
+        (f"remote stream 32x32, order {frame_scene.order}", frame_scene),
     ]
     rows = []
     for name, scene in scenes:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from local_site.render.interpolation import DEFAULT_ORDER
 from shared.errors import ConfigError
 
 __all__ = ["RENDER_LOOP_MODES", "SAFE_STATE_MODES", "LocalAgentConfig"]
@@ -52,7 +53,8 @@ class LocalAgentConfig:
         device_retry_max_s: largest such delay (the delay doubles up to it).
         display_keepalive_interval_s: unchanged commands are re-sent this often.
         display_watchdog_ms: the drive board's link-loss watchdog.
-        interpolation_order: interpolation of grid scenes (0, 1 or 3).
+        interpolation_order: interpolation of grid scenes (0, 1 or 3; default
+            :data:`~local_site.render.interpolation.DEFAULT_ORDER`, Keys cubic).
         scene_center_x_mm: x where a shape without ``x_mm`` is placed (platform frame).
         scene_center_y_mm: y where a shape without ``y_mm`` is placed.
         status_interval_s: status line refresh period.
@@ -117,7 +119,7 @@ class LocalAgentConfig:
     device_retry_max_s: float = 5.0
     display_keepalive_interval_s: float = 0.02
     display_watchdog_ms: int = 100
-    interpolation_order: int = 1
+    interpolation_order: int = DEFAULT_ORDER
     scene_center_x_mm: float = 30.0
     scene_center_y_mm: float = 30.0
     status_interval_s: float = 0.25

@@ -30,10 +30,14 @@ from numpy.typing import NDArray
 
 from shared.errors import ConfigError, InputDataError
 
-__all__ = ["INTERPOLATION_ORDERS", "MAX_GRID_DIM", "GridLayers", "keys_cubic_weights"]
+__all__ = ["DEFAULT_ORDER", "INTERPOLATION_ORDERS", "MAX_GRID_DIM", "GridLayers",
+           "keys_cubic_weights"]
 
 #: supported interpolation orders (0 nearest, 1 bilinear, 3 Keys cubic)
 INTERPOLATION_ORDERS = (0, 1, 3)
+#: the scenes' default: Keys cubic (smaller rendered-height error than bilinear on every
+#: analytic surface of benchmarks/bench_renderer.py, for the same render time)
+DEFAULT_ORDER = 3
 #: largest grid side accepted (same bound as the wire protocol's arrays)
 MAX_GRID_DIM = 4096
 #: tolerance (in grid cells) for deciding that a point lies inside the grid
@@ -164,6 +168,15 @@ class GridLayers:
             _bilinear_kernel(v, points_xy_mm, self.x0_mm, self.y0_mm, self.dx_mm, self.dy_mm,
                              _INSIDE_TOL_CELLS, out, inside_out)
             return out, inside_out
+        if (order == 3 and points_xy_mm.dtype == np.float64 and points_xy_mm.ndim == 2
+                and points_xy_mm.shape[1] == 2):
+            # the same for order 3 (the numpy path's sum to float rounding:
+            # tests/local_site/test_bilinear_kernel)
+            out = np.empty((v.shape[0], points_xy_mm.shape[0]))
+            inside_out = np.empty(points_xy_mm.shape[0], dtype=np.bool_)
+            _keys_kernel(self._padded, points_xy_mm, self.x0_mm, self.y0_mm, self.dx_mm,
+                         self.dy_mm, _INSIDE_TOL_CELLS, out, inside_out)
+            return out, inside_out
         ny, nx = self.shape
         fx = (points_xy_mm[:, 0] - self.x0_mm) / self.dx_mm
         fy = (points_xy_mm[:, 1] - self.y0_mm) / self.dy_mm
@@ -198,30 +211,66 @@ class GridLayers:
 
 
 @njit(cache=True, nogil=True)
+def _cell(x: float, y: float, x0: float, y0: float, dx: float, dy: float, tol: float, nx: int,
+          ny: int) -> tuple[int, int, float, float, bool]:  # pragma: no cover - compiled
+    """The sample cell of one point: (column, row, fraction along x, along y, inside), the
+    point clipped to the grid first (edge replication), as the numpy path does."""
+    fx = (x - x0) / dx
+    fy = (y - y0) / dy
+    inside = (fx >= -tol) and (fx <= nx - 1 + tol) and (fy >= -tol) and (fy <= ny - 1 + tol)
+    fx = min(max(fx, 0.0), nx - 1.0)
+    fy = min(max(fy, 0.0), ny - 1.0)
+    ix = min(int(fx), nx - 2)
+    iy = min(int(fy), ny - 2)
+    return ix, iy, fx - ix, fy - iy, inside
+
+
+@njit(cache=True, nogil=True)
 def _bilinear_kernel(v: NDArray[np.float64], pts: NDArray[np.float64], x0: float, y0: float,
                      dx: float, dy: float, tol: float, out: NDArray[np.float64],
                      inside: NDArray[np.bool_]) -> None:  # pragma: no cover - compiled
     """:meth:`GridLayers.sample` at order 1, fused: the numpy path's operations in order."""
     n_layers, ny, nx = v.shape
     for p in range(pts.shape[0]):
-        fx = (pts[p, 0] - x0) / dx
-        fy = (pts[p, 1] - y0) / dy
-        inside[p] = (fx >= -tol) and (fx <= nx - 1 + tol) and (fy >= -tol) \
-            and (fy <= ny - 1 + tol)
-        fx = min(max(fx, 0.0), nx - 1.0)
-        fy = min(max(fy, 0.0), ny - 1.0)
-        ix = min(int(fx), nx - 2)
-        iy = min(int(fy), ny - 2)
-        tx = fx - ix
-        ty = fy - iy
+        ix, iy, tx, ty, inside[p] = _cell(pts[p, 0], pts[p, 1], x0, y0, dx, dy, tol, nx, ny)
         for layer in range(n_layers):
             top = v[layer, iy, ix] * (1.0 - tx) + v[layer, iy, ix + 1] * tx
             bottom = v[layer, iy + 1, ix] * (1.0 - tx) + v[layer, iy + 1, ix + 1] * tx
             out[layer, p] = top * (1.0 - ty) + bottom * ty
 
 
+@njit(cache=True, nogil=True)
+def _keys_kernel(padded: NDArray[np.float64], pts: NDArray[np.float64], x0: float, y0: float,
+                 dx: float, dy: float, tol: float, out: NDArray[np.float64],
+                 inside: NDArray[np.bool_]) -> None:  # pragma: no cover - compiled
+    """:meth:`GridLayers.sample` at order 3, fused: Keys (a = -1/2) weights on the
+    ghost-padded samples, positions as in :func:`_bilinear_kernel`."""
+    n_layers, ny2, nx2 = padded.shape
+    nx, ny = nx2 - 2, ny2 - 2
+    wx = np.empty(4)
+    wy = np.empty(4)
+    for p in range(pts.shape[0]):
+        ix, iy, tx, ty, inside[p] = _cell(pts[p, 0], pts[p, 1], x0, y0, dx, dy, tol, nx, ny)
+        for w, t in ((wx, tx), (wy, ty)):
+            t2 = t * t
+            t3 = t2 * t
+            w[0] = 0.5 * (-t3 + 2.0 * t2 - t)
+            w[1] = 0.5 * (3.0 * t3 - 5.0 * t2 + 2.0)
+            w[2] = 0.5 * (-3.0 * t3 + 4.0 * t2 + t)
+            w[3] = 0.5 * (t3 - t2)
+        for layer in range(n_layers):
+            acc = 0.0
+            for i in range(4):
+                row = 0.0
+                for j in range(4):
+                    row += padded[layer, iy + i, ix + j] * wx[j]
+                acc += row * wy[i]
+            out[layer, p] = acc
+
+
 def warm_up() -> None:
-    """Compile (or load from numba's cache) the bilinear kernel now, not in the first
+    """Compile (or load from numba's cache) the interpolation kernels now, not in the first
     display-loop iteration that renders."""
     grid = GridLayers(np.zeros((1, 2, 2)), x0_mm=0.0, y0_mm=0.0, dx_mm=1.0, dy_mm=1.0)
     grid.sample(np.zeros((1, 2)), order=1)
+    grid.sample(np.zeros((1, 2)), order=3)

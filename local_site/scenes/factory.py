@@ -16,6 +16,7 @@ from __future__ import annotations
 import os
 from typing import Any
 
+from local_site.render.interpolation import DEFAULT_ORDER
 from local_site.scenes.base import OutsidePolicy, SceneSource
 from local_site.scenes.layer_file import LayerFileScene
 from local_site.scenes.remote_stream import TactileFrameScene
@@ -50,7 +51,7 @@ def parse_shape_spec(spec: str) -> tuple[str, dict[str, float]]:
     return name.strip(), params
 
 
-def open_scene(spec: str, *, interpolation_order: int = 1,
+def open_scene(spec: str, *, interpolation_order: int = DEFAULT_ORDER,
                outside: OutsidePolicy | None = None,
                hardness: HardnessTable | None = None, **remote_options: Any) -> SceneSource:
     """Open the scene a spec string names.

@@ -15,7 +15,7 @@ from typing import ClassVar
 import numpy as np
 from numpy.typing import NDArray
 
-from local_site.render.interpolation import INTERPOLATION_ORDERS, GridLayers
+from local_site.render.interpolation import DEFAULT_ORDER, INTERPOLATION_ORDERS, GridLayers
 from local_site.scenes.base import OutsidePolicy, SceneSample, SceneSource
 from shared.errors import ConfigError
 
@@ -39,7 +39,7 @@ class GridScene(SceneSource):
 
     kind: ClassVar[str] = "grid"
 
-    def __init__(self, *, order: int = 1, outside: OutsidePolicy | None = None) -> None:
+    def __init__(self, *, order: int = DEFAULT_ORDER, outside: OutsidePolicy | None = None) -> None:
         super().__init__()
         if order not in INTERPOLATION_ORDERS:
             raise ConfigError(f"interpolation order must be one of {INTERPOLATION_ORDERS}, "

@@ -33,7 +33,7 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from local_site.render.interpolation import MAX_GRID_DIM, GridLayers
+from local_site.render.interpolation import DEFAULT_ORDER, MAX_GRID_DIM, GridLayers
 from local_site.scenes.base import MAX_SCENE_HEIGHT_MM, OutsidePolicy
 from local_site.scenes.grid_scene import GridScene
 from shared.errors import ConfigError, InputDataError
@@ -264,14 +264,14 @@ class LayerFileScene(GridScene):
 
     kind: ClassVar[str] = "layer_file"
 
-    def __init__(self, data: LayerFileData, *, order: int = 1,
+    def __init__(self, data: LayerFileData, *, order: int = DEFAULT_ORDER,
                  outside: OutsidePolicy | None = None) -> None:
         super().__init__(order=order, outside=outside)
         self.data = data
         self._set_grid(data.grid())
 
     @classmethod
-    def from_file(cls, path: str | os.PathLike[str], *, order: int = 1,
+    def from_file(cls, path: str | os.PathLike[str], *, order: int = DEFAULT_ORDER,
                   outside: OutsidePolicy | None = None,
                   hardness: HardnessTable | None = None) -> LayerFileScene:
         """Load and validate ``path`` and build the scene.

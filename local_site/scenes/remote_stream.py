@@ -36,7 +36,7 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import NDArray
 
-from local_site.render.interpolation import MAX_GRID_DIM, GridLayers
+from local_site.render.interpolation import DEFAULT_ORDER, MAX_GRID_DIM, GridLayers
 from local_site.scenes.base import OutsidePolicy
 from local_site.scenes.grid_scene import GridScene
 from shared.errors import ConfigError, InputDataError
@@ -67,7 +67,7 @@ class TactileFrameScene(GridScene):
 
     kind: ClassVar[str] = "remote"
 
-    def __init__(self, *, order: int = 1, outside: OutsidePolicy | None = None,
+    def __init__(self, *, order: int = DEFAULT_ORDER, outside: OutsidePolicy | None = None,
                  default_stiffness_k: float = K_MAX,
                  stiffness_to_k: StiffnessToK | None = None) -> None:
         super().__init__(order=order, outside=outside)

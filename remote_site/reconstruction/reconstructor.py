@@ -53,9 +53,17 @@ from remote_site.reconstruction.relief import (
 from remote_site.reconstruction.workspace import Workspace
 from shared.errors import ConfigError, InputDataError
 
-__all__ = ["HeightMap", "ReconstructionSettings", "Reconstructor"]
+__all__ = ["BORDER_MODES", "FREE_BORDER_SLOPE", "HeightMap", "ReconstructionSettings",
+           "Reconstructor"]
 
 log = logging.getLogger(__name__)
+
+
+#: ``ReconstructionSettings.border`` values
+BORDER_MODES = ("auto", "fixed", "free")
+#: a border pixel steeper than this (slope magnitude) is free under ``border="free"``
+#: (chosen by 2-fold cross-validation on the GelSight Mini train split, docs/reconstruction.md)
+FREE_BORDER_SLOPE = 0.1
 
 
 @dataclass(frozen=True)
@@ -75,6 +83,13 @@ class ReconstructionSettings:
         relief: ``"plane"`` (heights above the free gel), ``"rim"`` (above the detected
             contact rim, :mod:`.relief`; needs a calibration with a fitted rim extension) or
             None (default): the calibration's ``relief``.
+        border: the ``dst`` solver's condition at the frame border: ``"fixed"`` (h = 0 all
+            round), ``"free"`` (no condition at border pixels steeper than
+            ``FREE_BORDER_SLOPE``: a contact running off the frame, see :mod:`.poisson`) or
+            ``"auto"`` (default): ``"free"`` with the rim relief (objects smaller than the
+            pad, with free gel around them to anchor the height), ``"fixed"`` with the plane
+            relief (a pad pressed flat into tissue: the whole frame may be deformed and the
+            border is the only anchor; the palpation analysis was validated with it).
     """
 
     solver: str = "dst"
@@ -86,6 +101,7 @@ class ReconstructionSettings:
     min_contact_area_mm2: float = 0.1
     pool: str = "change"
     relief: str | None = None
+    border: str = "auto"
 
     def __post_init__(self) -> None:
         if self.solver not in SOLVERS:
@@ -97,6 +113,8 @@ class ReconstructionSettings:
         if self.relief is not None and self.relief not in RELIEF_MODES:
             raise ConfigError(f"relief must be one of {RELIEF_MODES} or None, "
                               f"got {self.relief!r}")
+        if self.border not in BORDER_MODES:
+            raise ConfigError(f"border must be one of {BORDER_MODES}, got {self.border!r}")
         for name in ("contact_threshold_mm", "zero_exclusion_mm", "dead_zone_sigmas",
                      "contact_evidence_sigmas", "min_contact_area_mm2"):
             value = getattr(self, name)
@@ -160,6 +178,10 @@ class Reconstructor:
                               f"{self.relief!r} (from the calibration)")
         if self.relief == "rim":
             extension_for_factor(calibration.rim_extension_mm, 1)  # ConfigError when unfitted
+        border = self.settings.border
+        #: no h = 0 condition at steep border pixels (see ReconstructionSettings.border)
+        self.free_border = self.settings.solver == "dst" and (
+            border == "free" or (border == "auto" and self.relief == "rim"))
         background = validate_frame(calibration.background_rgb, name="calibration background")
         self._background = (background, inverse_background_pct(background))
         self._last_bg_id: int | None = None
@@ -332,7 +354,8 @@ class Reconstructor:
             zeros = np.zeros(gx.shape, np.float32)
             return HeightMap(zeros, np.zeros(gx.shape, bool), pitch_mm, skipped=True)
         work = self._workspace.get("poisson", gx.shape, self._solver.dtype)
-        height = self._solver.integrate(gx, gy, pitch_mm, work=work)
+        height = self._solver.integrate(gx, gy, pitch_mm, work=work,
+                                        free_border=self._free_border(gx, gy))
         height, mask, finite = self._zero_level_and_mask(height, pitch_mm)
         if not finite:  # cannot happen with finite slopes; never pass it on
             raise InputDataError("reconstruction produced non-finite heights")
@@ -342,6 +365,16 @@ class Reconstructor:
             # (the station's background tracker must never take it for the pad lifted)
             self._rim_relief(height, gx, gy, factor)
         return HeightMap(height, mask, pitch_mm, skipped=False)
+
+    def _free_border(self, gx: np.ndarray, gy: np.ndarray) -> np.ndarray | None:
+        """Border pixels steeper than ``FREE_BORDER_SLOPE`` when the border is free (see
+        ``ReconstructionSettings.border``), else None (also when there are none)."""
+        if not self.free_border:
+            return None
+        steep = np.zeros(gx.shape, bool)
+        for edge in ((0, slice(None)), (-1, slice(None)), (slice(None), 0), (slice(None), -1)):
+            steep[edge] = np.hypot(gx[edge], gy[edge]) > FREE_BORDER_SLOPE
+        return steep if steep.any() else None
 
     def _rim_relief(self, height: np.ndarray, gx: np.ndarray, gy: np.ndarray,
                     factor: int) -> None:

@@ -56,7 +56,8 @@ def fit_rim_relief(calibration: Calibration, presses: Sequence[tuple[np.ndarray,
     """
     if not calibration.ball_radius_mm > 0:
         raise CalibrationError("the rim relief needs the calibration ball's radius")
-    settings = ReconstructionSettings(relief="plane")
+    # heights above the free gel, with the border the rim relief reconstructs with
+    settings = ReconstructionSettings(relief="plane", border="free")
     rec = Reconstructor(calibration, settings)
     depths = [label_depth_mm(lb, calibration.ball_radius_mm, calibration.mm_per_px)
               for _, lb in presses]

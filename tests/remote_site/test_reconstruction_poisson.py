@@ -89,3 +89,109 @@ def test_bad_shapes_and_pitch_rejected(gx: np.ndarray, gy: np.ndarray, pitch: fl
 def test_unknown_solver_rejected() -> None:
     with pytest.raises(InputDataError):
         PoissonSolver("multigrid")
+
+
+# ---------------------------------------------------------------- free border pixels (dst)
+
+
+def _least_squares_reference(gx: np.ndarray, gy: np.ndarray, pitch: float,
+                             free: np.ndarray) -> np.ndarray:
+    """The least-squares height written out edge by edge and solved densely (independent of
+    the transforms and of the Woodbury update): interior edges carry the mean of their two
+    pixels' slopes; each border pixel not ``free`` has one edge per frame side it touches to
+    a ghost at h = 0 half a pixel outside (height step 2 h over the ghost's spacing, weight
+    1/2: the DST-II condition), carrying the pixel's own slope."""
+    rows, cols = gx.shape
+    index = np.arange(rows * cols).reshape(rows, cols)
+    px, py = gx * pitch, gy * pitch
+    lines: list[tuple[list[tuple[int, float]], float, float]] = []
+    for i in range(rows):
+        for j in range(cols - 1):
+            lines.append(([(index[i, j + 1], 1.0), (index[i, j], -1.0)],
+                          0.5 * (px[i, j] + px[i, j + 1]), 1.0))
+    for i in range(rows - 1):
+        for j in range(cols):
+            lines.append(([(index[i + 1, j], 1.0), (index[i, j], -1.0)],
+                          0.5 * (py[i, j] + py[i + 1, j]), 1.0))
+    ghost_weight = np.sqrt(0.5)
+    for i in range(rows):
+        if not free[i, 0]:
+            lines.append(([(index[i, 0], 2.0)], px[i, 0], ghost_weight))
+        if not free[i, -1]:
+            lines.append(([(index[i, -1], -2.0)], px[i, -1], ghost_weight))
+    for j in range(cols):
+        if not free[0, j]:
+            lines.append(([(index[0, j], 2.0)], py[0, j], ghost_weight))
+        if not free[-1, j]:
+            lines.append(([(index[-1, j], -2.0)], py[-1, j], ghost_weight))
+    a = np.zeros((len(lines), rows * cols))
+    b = np.zeros(len(lines))
+    for r, (terms, target, weight) in enumerate(lines):
+        for c, v in terms:
+            a[r, c] = v * weight
+        b[r] = target * weight
+    return np.linalg.lstsq(a, b, rcond=None)[0].reshape(rows, cols)
+
+
+def _border(shape: tuple[int, int]) -> np.ndarray:
+    border = np.zeros(shape, bool)
+    border[0] = border[-1] = border[:, 0] = border[:, -1] = True
+    return border
+
+
+@settings(max_examples=60, deadline=None)
+@given(rows=st.integers(2, 9), cols=st.integers(2, 9), seed=st.integers(0, 2**32 - 1),
+       share=st.floats(0.0, 1.0), pitch=st.floats(0.01, 2.0))
+def test_free_border_is_the_least_squares_height_without_those_edges(
+        rows: int, cols: int, seed: int, share: float, pitch: float) -> None:
+    rng = np.random.default_rng(seed)
+    gx, gy = rng.normal(0, 0.5, (2, rows, cols))
+    border = _border((rows, cols))
+    free = border & (rng.random((rows, cols)) < share)
+    free |= rng.random((rows, cols)) < 0.2  # interior marks are ignored
+    out = PoissonSolver("dst", np.float64).integrate(gx, gy, pitch, free_border=free)
+    # border edges dropped (a corner pixel has two); over half of the 2 (rows + cols) edges:
+    # too few anchors left, the Dirichlet condition everywhere
+    n_free = int(free[:, 0].sum() + free[:, -1].sum() + free[0].sum() + free[-1].sum())
+    expected_free = free & border if n_free <= 0.5 * 2 * (rows + cols) else \
+        np.zeros_like(free)
+    ref = _least_squares_reference(gx, gy, pitch, expected_free)
+    np.testing.assert_allclose(out, ref, atol=1e-9 * max(1.0, np.abs(ref).max()))
+
+
+def test_no_free_pixel_is_exactly_the_dirichlet_solution() -> None:
+    _, gx, gy = _bump((40, 50))
+    solver = PoissonSolver("dst")
+    np.testing.assert_array_equal(
+        solver.integrate(gx, gy, PITCH_MM, free_border=np.zeros(gx.shape, bool)),
+        solver.integrate(gx, gy, PITCH_MM))
+
+
+def test_a_bump_cut_by_the_frame_edge_keeps_its_height_with_a_free_border() -> None:
+    """A sphere cap whose contact runs off the left edge: h = 0 there pulls the cap down;
+    freeing the steep border pixels gives it back (a plane of free gel elsewhere)."""
+    rows, cols = 80, 100
+    y, x = np.mgrid[0:rows, 0:cols] * PITCH_MM
+    cx, cy, radius, contact = 0.5, rows * PITCH_MM / 2, 4.735, 1.9  # centre near the edge
+    r2 = (x - cx) ** 2 + (y - cy) ** 2
+    depth = radius - np.sqrt(radius**2 - contact**2)
+    inside = r2 < contact**2
+    z = np.where(inside, np.sqrt(np.clip(radius**2 - r2, 0, None)) - (radius - depth), 0.0)
+    gx = np.where(inside, -(x - cx) / np.sqrt(np.clip(radius**2 - r2, 1e-9, None)), 0.0)
+    gy = np.where(inside, -(y - cy) / np.sqrt(np.clip(radius**2 - r2, 1e-9, None)), 0.0)
+    solver = PoissonSolver("dst", np.float64)
+    fixed = solver.integrate(gx, gy, PITCH_MM)
+    free = _border((rows, cols)) & (np.hypot(gx, gy) > 0.1)
+    freed = solver.integrate(gx, gy, PITCH_MM, free_border=free)
+    assert free.sum() > 0
+    assert fixed.max() < z.max() - 0.1  # the Dirichlet edge costs the cap a lot
+    assert abs(freed.max() - z.max()) < 0.02
+    assert np.abs(freed - z)[~inside].max() < 0.03  # the free gel stays flat
+
+
+def test_free_border_needs_dst_and_the_slopes_shape() -> None:
+    g = np.zeros((6, 7))
+    with pytest.raises(InputDataError, match="dst"):
+        PoissonSolver("dct").integrate(g, g, 0.1, free_border=np.ones((6, 7), bool))
+    with pytest.raises(InputDataError, match="shape"):
+        PoissonSolver("dst").integrate(g, g, 0.1, free_border=np.ones((6, 8), bool))

@@ -313,15 +313,14 @@ def rim_calibration(tmp_path_factory: pytest.TempPathFactory) -> Calibration:
 def test_real_test_presses_peak_at_the_labelled_depth(rim_calibration: Calibration,
                                                       pitch: float | None) -> None:
     """Issue 14's peak target on the reconstruction itself (full resolution and the
-    station's 0.5 mm grid): within 0.05 mm of d = R - sqrt(R^2 - a^2) on every test press
-    but one. Measured 2026-11-23 with the calibration on the 39 train presses whose label
-    passes the label check: press_17 (its contact crosses the image's left edge) peaks
-    0.051 mm low at full resolution, so the bound here is 0.055 mm; the target misses by
-    that 1 um there. (Before the label check, the miscopied press_50 label was in the
-    training set and every press met 0.05.) The free-gel zero misses by up to 0.2 mm; the
-    shape is the same in both."""
+    station's 0.5 mm grid): within 0.05 mm of d = R - sqrt(R^2 - a^2) on every test press.
+    Measured 2026-11-24 with the calibration on the 39 train presses whose label passes the
+    label check: -0.038..+0.038 mm at full resolution. press_17, whose contact crosses the
+    image's left edge, peaked 0.051 mm low while the rim relief kept h = 0 all round the
+    frame; its border is free now (``border="auto"``): -0.037 mm. The free-gel zero misses
+    by up to 0.2 mm; the shape is the same in both (the plane here with the same border)."""
     rim = Reconstructor(rim_calibration)
-    plane = Reconstructor(rim_calibration, ReconstructionSettings(relief="plane"))
+    plane = Reconstructor(rim_calibration, ReconstructionSettings(relief="plane", border="free"))
     rim_m: list[PressMetrics] = []
     plane_m: list[PressMetrics] = []
     for lb in _split("test"):
@@ -334,8 +333,7 @@ def test_real_test_presses_peak_at_the_labelled_depth(rim_calibration: Calibrati
                                       BALL_RADIUS_MM))
     rim_peak = np.array([m.peak_err_mm for m in rim_m])
     plane_peak = np.array([m.peak_err_mm for m in plane_m])
-    assert np.abs(rim_peak).max() <= 0.055, rim_peak
-    assert (np.abs(rim_peak) <= 0.05).sum() >= len(rim_peak) - 1, rim_peak
+    assert np.abs(rim_peak).max() <= 0.05, rim_peak
     assert plane_peak.max() > 0.1  # what the rim relief removes
     if pitch is None:  # relief is a shift (plus clipping below the rim): same shape
         for a, b in zip(rim_m, plane_m, strict=True):
