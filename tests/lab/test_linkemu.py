@@ -6,6 +6,7 @@ import asyncio
 import contextlib
 import json
 import random
+import socket
 import struct
 from collections.abc import AsyncIterator
 
@@ -291,12 +292,17 @@ async def test_websocket_round_trip_through_the_proxy() -> None:
 
 
 async def test_unreachable_target_closes_the_client() -> None:
-    async with LinkEmulator(target=("127.0.0.1", free_tcp_port()), profile="lan") as emu:
-        reader, writer = await asyncio.open_connection("127.0.0.1", emu.port)
-        async with asyncio.timeout(scaled(2.0)):
-            assert await reader.read(10) == b""
-        writer.close()
-        assert emu.target_failures == 1
+    # a port bound but never listening refuses connections, and no other process can take it
+    # while the test runs (a port merely found free could be, by a server of another test)
+    with socket.socket() as refusing:
+        refusing.bind(("127.0.0.1", 0))
+        target = refusing.getsockname()
+        async with LinkEmulator(target=target, profile="lan") as emu:
+            reader, writer = await asyncio.open_connection("127.0.0.1", emu.port)
+            async with asyncio.timeout(scaled(2.0)):
+                assert await reader.read(10) == b""
+            writer.close()
+            assert emu.target_failures == 1
 
 
 def test_cli_runs_for_a_duration_and_prints_json(capsys: pytest.CaptureFixture[str]) -> None:
