@@ -29,8 +29,10 @@ the border pixels ``mask`` marks (no condition there, as ``dct`` has everywhere)
 h = 0 elsewhere. Dropping a border edge changes the Dirichlet system by a rank-one term per
 edge (``L_N = L_D + U C U^T``: the end diagonal goes from -3 to -1, ``C`` = 2 per edge; the
 edge's slope leaves the divergence), so the Woodbury identity solves it with the fast
-Dirichlet solver: one solve of the changed divergence, one per free pixel for the k x k
-capacitance matrix ``C^-1 + U^T L_D^-1 U`` (float64), and one for the correction. A frame
+Dirichlet solver: one solve of the changed divergence, the k x k capacitance matrix
+``C^-1 + U^T L_D^-1 U`` (float64; its Green's function entries from the column frequencies'
+tridiagonal inverses, one Thomas pass per distinct row of the free pixels, no transform: see
+``_green``), and one solve for the correction. A frame
 whose free edges are more than half of its 2 (H + W) border edges (little left to anchor the
 height) keeps the Dirichlet condition everywhere.
 
@@ -189,7 +191,7 @@ class PoissonSolver:
             height = sfft.idctn(spec, type=2, workers=1, overwrite_x=True)
         elif self.solver == "dst":
             if edges is not None:
-                return _integrate_free(div, gx, gy, pitch_mm, edges).astype(self.dtype)
+                return _integrate_free(div, gx, gy, pitch_mm, edges)
             height = _solve_dirichlet(div)
         else:
             denom = _denominator(gx.shape, self.solver, self.dtype.name)
@@ -235,27 +237,48 @@ def _free_edges(free: np.ndarray) -> _FreeEdges | None:
 
 def _integrate_free(div: np.ndarray, gx: np.ndarray, gy: np.ndarray, pitch_mm: float,
                     edges: _FreeEdges) -> np.ndarray:
-    """The Dirichlet solution with the ``edges`` dropped (Woodbury, see the module doc)."""
-    rhs = div.astype(np.float64)
+    """The Dirichlet solution with the ``edges`` dropped (Woodbury, see the module doc), in
+    ``div``'s dtype (which it overwrites); the capacitance system in float64."""
     # the dropped edges' slopes leave the divergence (their sign as in divergence_kernel)
-    rhs[edges.left, 0] += gx[edges.left, 0] * pitch_mm
-    rhs[edges.right, -1] -= gx[edges.right, -1] * pitch_mm
-    rhs[0, edges.top] += gy[0, edges.top] * pitch_mm
-    rhs[-1, edges.bottom] -= gy[-1, edges.bottom] * pitch_mm
-    h0 = _solve_dirichlet(rhs)
-    capacitance = np.diag(1.0 / (2.0 * edges.counts))
-    impulse = np.zeros(div.shape, np.float64)
-    for j, pixel in enumerate(edges.pixels):
-        impulse.fill(0.0)
-        impulse.flat[pixel] = 1.0
-        capacitance[:, j] += _solve_dirichlet(impulse).flat[edges.pixels]
-    try:
-        w = np.linalg.solve(capacitance, h0.flat[edges.pixels])
-    except np.linalg.LinAlgError:  # no anchor left (cannot happen below the fraction cap)
-        return _solve_dirichlet(div.astype(np.float64))
-    impulse.fill(0.0)
-    impulse.flat[edges.pixels] = w
-    return np.asarray(h0 - _solve_dirichlet(impulse))
+    div[edges.left, 0] += gx[edges.left, 0] * pitch_mm
+    div[edges.right, -1] -= gx[edges.right, -1] * pitch_mm
+    div[0, edges.top] += gy[0, edges.top] * pitch_mm
+    div[-1, edges.bottom] -= gy[-1, edges.bottom] * pitch_mm
+    h0 = _solve_dirichlet(div)
+    capacitance = np.diag(1.0 / (2.0 * edges.counts)) + _green(div.shape, edges.pixels)
+    w = np.linalg.solve(capacitance, h0.flat[edges.pixels].astype(np.float64))
+    correction = np.zeros(div.shape, div.dtype)
+    correction.flat[edges.pixels] = w
+    return np.asarray(h0 - _solve_dirichlet(correction), dtype=div.dtype)
+
+
+def _green(shape: tuple[int, ...], pixels: np.ndarray) -> np.ndarray:
+    """``U^T L_D^-1 U``: the Dirichlet solution at pixel p for a unit source at pixel q.
+
+    Without a transform per source: in the DST-II basis along x (scipy's unnormalised pair:
+    forward ``2 sum_n x_n s(k, n)``, inverse ``sum_k w_k y_k s(k, n) / 2W`` with
+    ``s(k, n) = sin(pi (k + 1)(2 n + 1) / 2W)``, ``w_k`` = 2, and 1 for the last k), each
+    column frequency k is the tridiagonal system along y that the Thomas kernel solves, so
+    ``G[p, q] = sum_k w_k / 2W * s(k, c_p) * 2 s(k, c_q) * M_k[r_p, r_q]`` with ``M_k`` the
+    inverse of that system: one kernel call per distinct source row gives ``M_k[:, r]`` for
+    every k (a border pixel's row: few distinct rows but on the left and right sides).
+    """
+    rows, cols = shape
+    r, c = np.divmod(pixels, cols)
+    k = np.arange(cols)
+    s = np.sin(np.pi * (k[None, :] + 1) * (2 * c[:, None] + 1) / (2 * cols))  # (P, W)
+    out_side = s * (np.where(k < cols - 1, 2.0, 1.0) / (2.0 * cols))
+    in_side = 2.0 * s
+    factors = _column_factors((rows, cols))
+    green = np.empty((len(pixels), len(pixels)))
+    unit = np.empty((rows, cols), np.float64)
+    for row in np.unique(r):
+        unit.fill(0.0)
+        unit[row] = 1.0
+        tridiagonal_columns_kernel(unit, factors)  # unit[:, k] = M_k[:, row]
+        sources = np.flatnonzero(r == row)
+        green[:, sources] = (out_side * unit[r]) @ in_side[sources].T
+    return green
 
 
 def integrate_gradients(gx: np.ndarray, gy: np.ndarray, pitch_mm: float,
