@@ -175,8 +175,10 @@ def main() -> int:
         *lines, "",
         "## 2. Cost", "",
         "`height_map` wall time, heights above the free gel (the rim step is the same either "
-        "way). Each free border pixel costs one more Dirichlet solve (Woodbury), so a contact "
-        "cut by the edge costs more at full resolution; at the station's pitch it is small.",
+        "way). A frame with free border pixels costs two more Dirichlet solves and one Thomas "
+        "pass per distinct row of its free pixels (for the capacitance matrix, "
+        "`poisson._green`): a contact cut by a left or right edge costs the most at full "
+        "resolution; at the station's pitch it is small.",
         "", *timing, "",
         "## 3. The cap centre against the labelled centre, by distance to the image border",
         "", "Held out (fixed border, as the shape RMSE of the README): each press's cap "
