@@ -18,7 +18,7 @@ Dirichlet solver); the rim relief uses it by default. This script:
 Metrics as in ``lab.reconstruction_metrics`` (shape and flat-gel p99 with the heights above
 the free gel, the peak with the rim relief against the depth derived from the label).
 
-Run: ``OPENBLAS_NUM_THREADS=1 python benchmarks/bench_free_border.py`` (about 5 minutes);
+Run: ``OPENBLAS_NUM_THREADS=1 python benchmarks/bench_free_border.py`` (about a minute);
 writes ``benchmarks/results/free_border.md``.
 """
 
@@ -142,7 +142,7 @@ def main() -> int:
                 times[border] = float(np.median(samples))
             rec = Reconstructor(full, ReconstructionSettings(relief="plane", border="free"))
             gx, gy, _ = rec.slopes(frames[name], factor=rec.pool_factor(pitch))
-            free = rec._free_border(gx, gy)
+            free = rec._free_border_mask(gx, gy)
             timing.append(f"| {name} | {'full' if pitch is None else f'{pitch} mm'} | "
                           f"{times['fixed']:.2f} | {times['free']:.2f} | "
                           f"{0 if free is None else int(free.sum())} |")

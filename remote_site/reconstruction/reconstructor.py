@@ -355,7 +355,7 @@ class Reconstructor:
             return HeightMap(zeros, np.zeros(gx.shape, bool), pitch_mm, skipped=True)
         work = self._workspace.get("poisson", gx.shape, self._solver.dtype)
         height = self._solver.integrate(gx, gy, pitch_mm, work=work,
-                                        free_border=self._free_border(gx, gy))
+                                        free_border=self._free_border_mask(gx, gy))
         height, mask, finite = self._zero_level_and_mask(height, pitch_mm)
         if not finite:  # cannot happen with finite slopes; never pass it on
             raise InputDataError("reconstruction produced non-finite heights")
@@ -366,7 +366,7 @@ class Reconstructor:
             self._rim_relief(height, gx, gy, factor)
         return HeightMap(height, mask, pitch_mm, skipped=False)
 
-    def _free_border(self, gx: np.ndarray, gy: np.ndarray) -> np.ndarray | None:
+    def _free_border_mask(self, gx: np.ndarray, gy: np.ndarray) -> np.ndarray | None:
         """Border pixels steeper than ``FREE_BORDER_SLOPE`` when the border is free (see
         ``ReconstructionSettings.border``), else None (also when there are none)."""
         if not self.free_border:

@@ -250,6 +250,35 @@ def test_rim_relief_moves_the_heights_not_the_contact() -> None:
     assert lowered >= 3  # the rim level did move the heights of those presses
 
 
+def test_the_border_is_free_with_the_rim_relief_and_where_told() -> None:
+    """``border="auto"``: free with the rim relief (objects smaller than the pad), h = 0 all
+    round with the plane relief (palpation); ``fixed``/``free`` override it, ``dst`` only.
+    A simulated ball whose contact runs off the frame's left edge keeps more of its height
+    when the border is free (0.28 against 0.26 mm here, of 0.4 mm pressed: the simulated
+    frame's edge loses the rest); one well inside is untouched."""
+    plane = simulated_calibration()
+    rim = dataclasses.replace(plane, relief="rim", rim_extension_mm={1: 0.02, 8: 0.02})
+    assert not Reconstructor(plane).free_border
+    assert Reconstructor(rim).free_border
+    assert not Reconstructor(rim, ReconstructionSettings(border="fixed")).free_border
+    assert Reconstructor(plane, ReconstructionSettings(border="free")).free_border
+    assert not Reconstructor(plane, ReconstructionSettings(border="free", solver="dct")
+                             ).free_border
+    with pytest.raises(ConfigError, match="border"):
+        ReconstructionSettings(border="open")
+    model = PhotometricModel(seed=3)
+    h, w = model.settings.shape_hw
+    free, fixed = (Reconstructor(plane, ReconstructionSettings(border=b))
+                   for b in ("free", "fixed"))
+    # contact radius 1.5 mm (24 px) around x = 20 px: it runs 4 px off the left edge
+    cut = model.render(ball_depth_mm((h, w), model.settings.mm_per_px, 20.0, h / 2, 3.0, 0.4))
+    assert free.height_map(cut).max_height_mm > fixed.height_map(cut).max_height_mm + 0.01
+    inside = model.render(ball_depth_mm((h, w), model.settings.mm_per_px, w / 2, h / 2, 3.0,
+                                        0.4))
+    assert np.array_equal(free.height_map(inside).height_mm,
+                          fixed.height_map(inside).height_mm)
+
+
 def test_rim_relief_needs_a_fitted_calibration() -> None:
     with pytest.raises(ConfigError, match="--relief rim"):
         Reconstructor(simulated_calibration(), ReconstructionSettings(relief="rim"))
