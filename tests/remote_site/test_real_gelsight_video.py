@@ -216,12 +216,17 @@ async def _run_session(video: Path, calib: Path, summary_path: Path, n_presses: 
     port = free_tcp_port()
     env = dict(os.environ, TELETOUCH_RELAY_SECRET="video-secret")
     token = derive_token("video-secret", SESSION)
+    # the raw TCP listener on any free port: port + 1, the default, may be in use
     relay = await asyncio.create_subprocess_exec(
-        *cmd, "relay", "--host", "127.0.0.1", "--port", str(port), env=env,
+        *cmd, "relay", "--host", "127.0.0.1", "--port", str(port), "--tcp-port", "0", env=env,
         stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.DEVNULL)
     remote = None
     try:
-        await wait_relay_ready(port)
+        try:
+            await wait_relay_ready(port)
+        except TimeoutError:
+            raise AssertionError(f"the relay did not come up (exit code {relay.returncode})"
+                                 ) from None
         remote = await asyncio.create_subprocess_exec(
             *cmd, "remote", "--relay", f"ws://127.0.0.1:{port}/", "--session", SESSION,
             "--arm", "sim", "--sensor", str(video), "--sensor-preset", "mini-recording",
@@ -241,7 +246,8 @@ async def _run_session(video: Path, calib: Path, summary_path: Path, n_presses: 
     finally:
         if remote is not None:
             await _stop(remote)
-        relay.send_signal(signal.SIGTERM)
+        if relay.returncode is None:
+            relay.send_signal(signal.SIGTERM)
         with contextlib.suppress(TimeoutError):
             async with asyncio.timeout(scaled(10.0)):
                 await relay.wait()
