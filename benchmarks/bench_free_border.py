@@ -33,7 +33,6 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
-from scipy.optimize import least_squares  # noqa: E402
 
 import remote_site.reconstruction.reconstructor as reconstructor_module  # noqa: E402
 from benchmarks.gelsight_labels import DEFAULT_DATA, split_labels, train_labels  # noqa: E402
@@ -75,21 +74,6 @@ def _measure(cal: Calibration, train: list[BallLabel], evaluated: list[BallLabel
         out.append((m.shape_rmse_mm, m.flat_p99_mm,
                     peak - cap_depth_mm(BALL_RADIUS_MM, lb.radius_px * MM_PER_PX)))
     return out
-
-
-def _centre_shift_px(height: np.ndarray, lb: BallLabel) -> np.ndarray:
-    """(dx, dy) of the best-fitting cap centre (radius fixed) from the labelled one, px."""
-    rows, cols = np.mgrid[0:height.shape[0], 0:height.shape[1]]
-    dx = (cols - lb.center_x) * MM_PER_PX
-    dy = (rows - lb.center_y) * MM_PER_PX
-    inside = np.hypot(dx, dy) < (lb.radius_px - 4.0) * MM_PER_PX
-    x, y, h = dx[inside], dy[inside], height[inside].astype(np.float64)
-
-    def residual(p: np.ndarray) -> np.ndarray:
-        z = np.sqrt(np.clip(BALL_RADIUS_MM**2 - (x - p[0]) ** 2 - (y - p[1]) ** 2, 0, None)) - h
-        return np.asarray(z - z.mean())
-
-    return np.asarray(least_squares(residual, np.zeros(2), x_scale=0.1).x) / MM_PER_PX
 
 
 def main() -> int:
@@ -155,7 +139,9 @@ def main() -> int:
         for cal, _, evaluated in jobs:
             rec = Reconstructor(cal, ReconstructionSettings(relief="plane", border="fixed"))
             for lb in evaluated:
-                s = _centre_shift_px(rec.height_map(frames[lb.image]).height_mm, lb)
+                s = np.array(evaluate_press(rec.height_map(frames[lb.image]).height_mm,
+                                            MM_PER_PX, lb, MM_PER_PX, BALL_RADIUS_MM
+                                            ).centre_shift_xy_px)
                 edge_px = min(lb.center_x, 320 - lb.center_x, lb.center_y, 240 - lb.center_y)
                 (near if edge_px < BORDER_BAND_PX else interior).append(float(np.hypot(*s)))
                 shifts.append(f"| {split} | {lb.image} | ({lb.center_x:.0f}, {lb.center_y:.0f})"

@@ -41,6 +41,8 @@ class PressMetrics:
     peak_err_mm: float
     shape_rmse_centred_mm: float
     centre_shift_px: float
+    #: the refitted cap centre minus the labelled one, (x, y) in sensor pixels
+    centre_shift_xy_px: tuple[float, float]
 
     def radius_error(self, ball_radius_mm: float) -> float:
         """Relative error of the fitted radius (signed)."""
@@ -94,12 +96,15 @@ def evaluate_press(height_mm: np.ndarray, grid_mm_per_px: float, label: BallLabe
         flat_p99_mm=flat_p99,
         peak_err_mm=float(height_mm.max()) - float(depth),
         shape_rmse_centred_mm=centred,
-        centre_shift_px=shift_mm / sensor_mm_per_px)
+        centre_shift_px=float(np.hypot(*shift_mm)) / sensor_mm_per_px,
+        centre_shift_xy_px=(float(shift_mm[0]) / sensor_mm_per_px,
+                            float(shift_mm[1]) / sensor_mm_per_px))
 
 
 def _centred_shape_rmse(dx: np.ndarray, dy: np.ndarray, h: np.ndarray,
-                        ball_radius_mm: float) -> tuple[float, float]:
-    """RMS of (h - sphere - offset) with the sphere's centre and the offset fitted; the shift."""
+                        ball_radius_mm: float) -> tuple[float, np.ndarray]:
+    """RMS of (h - sphere - offset) with the sphere's centre and the offset fitted; the
+    centre's shift (x, y), mm."""
     from scipy.optimize import least_squares
 
     def residual(p: np.ndarray) -> np.ndarray:
@@ -108,4 +113,4 @@ def _centred_shape_rmse(dx: np.ndarray, dy: np.ndarray, h: np.ndarray,
         return np.asarray(r - r.mean())
 
     fit = least_squares(residual, np.zeros(2), x_scale=0.1)
-    return float(np.sqrt(np.mean(fit.fun**2))), float(np.hypot(*fit.x))
+    return float(np.sqrt(np.mean(fit.fun**2))), np.asarray(fit.x, dtype=np.float64)

@@ -37,10 +37,17 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run the benchmark and report."""
     import asyncio
+    import math
 
     from lab.bench.nats_hop_impl import report, run_nats_hop
+    from shared.errors import ConfigError
 
-    rounds = args.rounds or (2 if args.quick else 6)
+    rounds = args.rounds if args.rounds is not None else (2 if args.quick else 6)
+    if rounds < 1:
+        raise ConfigError(f"--rounds must be at least 1, got {rounds}")
+    for flag, value in (("--rate-hz", args.rate_hz), ("--round-s", args.round_s)):
+        if not (math.isfinite(value) and value > 0):
+            raise ConfigError(f"{flag} must be a positive number, got {value}")
     results = asyncio.run(run_nats_hop(rate_hz=args.rate_hz, rounds=rounds,
                                        round_s=args.round_s))
     argv = "teletouch bench nats-hop" + (" --quick" if args.quick else "") + (

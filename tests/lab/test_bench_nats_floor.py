@@ -47,3 +47,13 @@ def test_every_measured_message_arrives_once_on_each_path() -> None:
         assert 15 <= sent[path] <= 22, (path, sent)
         assert len(got[path]) == sent[path], (path, sent, {p: len(v) for p, v in got.items()})
         assert all(0 < us < elapsed_s * 1e6 for us in got[path]), (path, got[path])
+
+
+@pytest.mark.parametrize("flags", [["--rounds", "0"], ["--rate-hz", "0"], ["--round-s", "nan"],
+                                   ["--rate-hz", "-5"]])
+def test_bench_nats_hop_refuses_bad_settings_before_starting_anything(flags: list[str]) -> None:
+    """A usage error, with the flag named, before any server is started (exit 1, no traceback
+    from inside the benchmark)."""
+    from lab.cli import main
+
+    assert main(["bench", "nats-hop", *flags]) == 1

@@ -40,6 +40,7 @@ def test_a_shifted_exact_cap_is_a_label_error_not_a_shape_error(
     shift = float(np.hypot(sx, sy))
     assert m.shape_rmse_centred_mm < 2e-3
     assert m.centre_shift_px == pytest.approx(shift, abs=0.15)
+    assert m.centre_shift_xy_px == pytest.approx((sx, sy), abs=0.15)  # and its direction
     if shift > 2:
         assert m.shape_rmse_mm > 5 * m.shape_rmse_centred_mm
     depth = R - np.sqrt(R**2 - (a * PITCH) ** 2)

@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from remote_site.reconstruction.poisson import SOLVERS, PoissonSolver
+from remote_site.reconstruction.poisson import MAX_FREE_BORDER_FRACTION, SOLVERS, PoissonSolver
 from shared.errors import InputDataError
 
 PITCH_MM = 0.0634
@@ -153,7 +153,8 @@ def test_free_border_is_the_least_squares_height_without_those_edges(
     # border edges dropped (a corner pixel has two); over half of the 2 (rows + cols) edges:
     # too few anchors left, the Dirichlet condition everywhere
     n_free = int(free[:, 0].sum() + free[:, -1].sum() + free[0].sum() + free[-1].sum())
-    expected_free = free & border if n_free <= 0.5 * 2 * (rows + cols) else \
+    expected_free = free & border if n_free <= MAX_FREE_BORDER_FRACTION * 2 * (rows + cols) \
+        else \
         np.zeros_like(free)
     ref = _least_squares_reference(gx, gy, pitch, expected_free)
     np.testing.assert_allclose(out, ref, atol=1e-9 * max(1.0, np.abs(ref).max()))
