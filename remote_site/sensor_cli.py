@@ -52,6 +52,11 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                           "above its contact rim, without the gel's drape (objects smaller "
                           "than the pad; fits one parameter on these presses, "
                           "see docs/reconstruction.md)")
+    # the choices are calibration.CENTRES, spelled out for the same reason
+    cal.add_argument("--centres", choices=["edge", "label"], default="edge",
+                     help="edge = move each label's centre onto the contact edge its image "
+                          "shows, where that edge is clean (default: hand labels are a few "
+                          "pixels off); label = train on the centres as labelled")
     cal.add_argument("--drop-bad-labels", action="store_true",
                      help="calibrate without the presses whose label does not sit on their "
                           "contact (named in a warning) instead of refusing them")
@@ -103,7 +108,8 @@ def _calibrate(args: argparse.Namespace) -> int:
                  stream=sys.stderr)
         dropped = [p.image for p in problems]
     calib = fit_calibration(background, presses, args.ball_diameter_mm, args.mm_per_px,
-                            model=args.model, degree=args.degree, trim_px=args.trim_px)
+                            model=args.model, degree=args.degree, trim_px=args.trim_px,
+                            centres=args.centres)
     if args.relief == "rim":
         from remote_site.reconstruction.relief_fit import fit_rim_relief
 
@@ -121,7 +127,11 @@ def _calibrate(args: argparse.Namespace) -> int:
              + (f"(dropped {', '.join(dropped)}: label not on the contact) " if dropped else "")
              + f"({calib.shape_hw[1]}x{calib.shape_hw[0]}): training slope RMSE "
              f"{calib.stats['train_slope_rmse']:.4f}, flat-gel noise {calib.noise_pct:.2f} %, "
-             f"relief {calib.relief} -> {args.out}")
+             f"relief {calib.relief}"
+             + (f", {calib.stats['centres_moved_to_edge']:.0f} centres moved to the contact "
+                f"edge (mean {calib.stats['centre_moved_mean_px']:.1f} px, max "
+                f"{calib.stats['centre_moved_max_px']:.1f} px)" if args.centres == "edge" else "")
+             + f" -> {args.out}")
     return 0
 
 

@@ -38,6 +38,8 @@ from local_site.render import Renderer
 from local_site.render.pin_command import PIN_PITCH_MM
 from local_site.scenes.remote_stream import TactileFrameScene
 from relay_server.auth import derive_token
+from remote_site.reconstruction.contact_edge import fit_contact_edge
+from remote_site.reconstruction.features import relative_change
 from remote_site.reconstruction.frames import load_rgb
 from remote_site.reconstruction.labels import BallLabel, labels_from_npz, write_labels_csv
 from remote_site.reconstruction.sphere import cap_depth_mm, cap_height_mm
@@ -70,6 +72,15 @@ def _kit_data() -> None:
 def _split(name: str) -> list[BallLabel]:
     entries = json.loads((DATA / "train_test_split.json").read_text())[name]
     return labels_from_npz(DATA, [f"press_{int(e.rsplit('/', 1)[1]):02d}.png" for e in entries])
+
+
+def edge_label(label: BallLabel) -> BallLabel:
+    """The contact circle the press's own image shows, found from the frame and the
+    background only (no calibration), seeded by the label."""
+    change = relative_change(load_rgb(DATA / label.image), load_rgb(DATA / "background.png"))
+    edge = fit_contact_edge(change, label)
+    assert edge is not None, label.image
+    return BallLabel(label.image, edge.center_x, edge.center_y, edge.radius_px)
 
 
 def label_depth_mm(radius_px: float) -> float:
@@ -122,6 +133,10 @@ class PressResult:
     offset_mm: float
     shape_rms_without_offset_mm: float
     pins_inside: int
+
+
+#: (remote summary, pins against the hand labels, report, pins on the image's contact circles)
+Session = tuple[dict[str, Any], list[PressResult], str, list[PressResult]]
 
 
 def press_segments(frames: list[TactileFrame], n_presses: int) -> list[TactileFrame] | None:
@@ -256,8 +271,12 @@ async def _run_session(video: Path, calib: Path, summary_path: Path, n_presses: 
 
 @pytest.fixture(scope="module")
 def session(kit_files: tuple[Path, Path], tmp_path_factory: pytest.TempPathFactory
-            ) -> tuple[dict[str, Any], list[PressResult], str]:
-    """One session over the video: (remote summary, per-press pin results, a report)."""
+            ) -> Session:
+    """One session over the video: (remote summary, per-press pin results, a report).
+
+    Each press is scored twice: against its hand label (the results returned; the issue's
+    targets) and, in the report, with the pins placed and scored on the contact circle its
+    own image shows (:func:`edge_label`)."""
     video, calib = kit_files
     labels = _split("test")
     summary_path = tmp_path_factory.mktemp("gelsight-session") / "remote.json"
@@ -267,22 +286,26 @@ def session(kit_files: tuple[Path, Path], tmp_path_factory: pytest.TempPathFacto
     assert mids is not None
     scale_xy = WorkspaceMap().config.scale_xy
     results = [render_press(f, lb, scale_xy) for f, lb in zip(mids, labels, strict=True)]
+    on_edge = [render_press(f, edge_label(lb), scale_xy)
+               for f, lb in zip(mids, labels, strict=True)]
     report = "\n".join(f"{r.image}: depth {r.depth_mm:.3f} peak {r.peak_mm:.3f} "
                        f"(err {r.peak_mm - r.depth_mm:+.3f}) shape rms {r.shape_rms_mm:.3f} "
                        f"(offset {r.offset_mm:+.3f}, without it "
-                       f"{r.shape_rms_without_offset_mm:.3f}) over {r.pins_inside} pins"
-                       for r in results)
+                       f"{r.shape_rms_without_offset_mm:.3f}) over {r.pins_inside} pins; "
+                       f"on the image's contact circle: shape rms {e.shape_rms_mm:.3f}, "
+                       f"peak err {e.peak_mm - e.depth_mm:+.3f}"
+                       for r, e in zip(results, on_edge, strict=True))
     f, bg = summary["frames"], summary["background"]
     report += (f"\nremote: {f['sent']} tactile frames in {summary['elapsed_s']:.1f} s, rejected "
                f"{f['rejected']}, repeated {f['repeated']}; background {bg['source']}, drift "
                f"{bg['drift_from_calibration_rgb']} grey levels")
     print(report)  # the measured figures, for the record (pytest -s)
-    return summary, results, report
+    return summary, results, report, on_edge
 
 
 def test_the_video_plays_like_a_camera_and_the_station_captures_its_background(
-        session: tuple[dict[str, Any], list[PressResult], str]) -> None:
-    summary, _, _ = session
+        session: Session) -> None:
+    summary, _, _, _ = session
     # paced at 25 frames/s: the 60 Hz station finds a fresh frame on every tick but the first
     assert summary["frames"]["rejected"].get("sensor_timeout", 0) <= 5
     assert not summary["sensor"]["ended"]  # looped: the source never ended
@@ -291,14 +314,16 @@ def test_the_video_plays_like_a_camera_and_the_station_captures_its_background(
 
 
 def test_every_real_press_reaches_the_pins(
-        session: tuple[dict[str, Any], list[PressResult], str]) -> None:
+        session: Session) -> None:
     """What is achieved (measured 2026-11-24 on the 11 test presses, calibration made with
-    ``--relief rim --drop-bad-labels`` on the train presses, see the report): peak error
-    -0.047..+0.036 mm, shape RMS 0.014..0.075 mm (9 of 11 within 0.05); without the
-    constant offset within 0.069 mm. Before the free border and the Keys cubic pins: peak
+    ``--relief rim --drop-bad-labels`` on the train presses, centres moved to the contact
+    edge, see the report): peak error -0.046..+0.040 mm, shape RMS 0.010..0.082 mm (9 of 11
+    within 0.05); without the constant offset within 0.063 mm. With the labelled centres
+    for training: peak -0.047..+0.036, shape 0.014..0.075 mm. Before the free border and
+    the Keys cubic pins: peak
     -0.061..+0.027 mm (press_17, cut by the image edge, the low one); before the rim relief:
     peak +0.03..+0.16 mm, shape RMS up to 0.16 mm."""
-    _, results, report = session
+    _, results, report, _ = session
     peak_err = np.array([r.peak_mm - r.depth_mm for r in results])
     assert (np.array([r.peak_mm for r in results]) > PRESS_HEIGHT_MM).all(), report
     assert (np.abs(peak_err) < 0.1).all(), report
@@ -307,25 +332,38 @@ def test_every_real_press_reaches_the_pins(
     assert all(r.pins_inside >= 2 for r in results), report
 
 
-def test_issue_target_peak(session: tuple[dict[str, Any], list[PressResult], str]) -> None:
+def test_issue_target_peak(session: Session) -> None:
     """Issue 14: the peak rendered height within 0.05 mm of the labelled press depth.
 
     Met since the rim relief's reconstruction leaves the border free where the contact runs
     off the frame and the station renders with Keys cubic interpolation: press_17 (contact
     crossing the left edge) went from -0.061 to -0.047 mm, the tightest of the 11."""
-    _, results, report = session
+    _, results, report, _ = session
     peak_err = np.array([r.peak_mm - r.depth_mm for r in results])
     assert np.abs(peak_err).max() <= PEAK_TOLERANCE_MM, report
 
 
 @pytest.mark.xfail(strict=True, reason=(
-    "issue 14 shape target not met on 2 of 11 test presses: with the rim relief the shape RMS "
-    "over the pins in the contact is 0.014..0.039 mm on 9 presses but 0.075 (press_43) and "
-    "0.074 mm (press_47). There the reconstructed cap is centred 3-4 px (0.2 mm) from the "
-    "hand-labelled centre, where the pins are placed (the colour change's centroid moves "
-    "with the reconstruction, not the label); with the centre refitted the reconstruction "
-    "matches the R = 4.735 mm sphere within 0.009 mm RMS (benchmarks/results/"
-    "reconstruction.md, shape_rmse_centred_mm)"))
-def test_issue_target_shape(session: tuple[dict[str, Any], list[PressResult], str]) -> None:
-    _, results, report = session
+    "issue 14 shape target not met against the hand labels on 2 of 11 test presses: with "
+    "the rim relief the shape RMS over the pins in the contact is 0.010..0.045 mm on 9 "
+    "presses but 0.064 (press_43) and 0.082 mm (press_47). Their hand-labelled centres, where "
+    "the pins are placed, lie 2.6 and 4.2 px from the contact edge their images show "
+    "(found without calibration; the reconstructed cap agrees with that edge); on the "
+    "image's contact circles every press is within 0.05 mm (the next test; "
+    "benchmarks/results/label_agreement.md)"))
+def test_issue_target_shape(session: Session) -> None:
+    _, results, report, _ = session
     assert max(r.shape_rms_mm for r in results) <= SHAPE_RMS_TOLERANCE_MM, report
+
+
+def test_shape_on_the_contact_circle_each_image_shows(session: Session) -> None:
+    """The pins placed and scored on the contact circle the press's own image shows (centre
+    and radius from the frame and the background alone,
+    :mod:`remote_site.reconstruction.contact_edge`): the cap shape within the issue's
+    0.05 mm on every press (measured 2026-11-24: 0.009..0.041 mm), where the hand-labelled
+    circles, 2.6 and 4.2 px off on press_43 and press_47, leave those two above it
+    (``benchmarks/results/label_agreement.md``). The peak against the depth of that circle
+    is in the report, not asserted: -0.047..-0.007 mm, the image's radius running about a
+    pixel larger than the labels'."""
+    _, _, report, on_edge = session
+    assert max(r.shape_rms_mm for r in on_edge) <= SHAPE_RMS_TOLERANCE_MM, report

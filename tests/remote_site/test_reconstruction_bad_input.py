@@ -275,3 +275,18 @@ def test_the_sensor_cli_offers_every_relief_mode() -> None:
                                   "--labels", "l.csv", "--ball-diameter-mm", "4",
                                   "--mm-per-px", "0.06", "--out", "c.npz", "--relief", mode])
         assert args.relief == mode
+
+
+def test_the_sensor_cli_offers_every_centres_setting_and_defaults_to_the_edge() -> None:
+    import argparse
+
+    from remote_site.reconstruction.calibration import CENTRES
+    from remote_site.sensor_cli import configure_parser
+
+    parser = argparse.ArgumentParser()
+    configure_parser(parser)
+    base = ["calibrate", "--background", "b.png", "--images", "i", "--labels", "l.csv",
+            "--ball-diameter-mm", "4", "--mm-per-px", "0.06", "--out", "c.npz"]
+    assert parser.parse_args(base).centres == CENTRES[0] == "edge"
+    for centres in CENTRES:
+        assert parser.parse_args([*base, "--centres", centres]).centres == centres
