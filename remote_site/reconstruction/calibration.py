@@ -7,8 +7,9 @@ Procedure (the standard GelSight one, with the accuracy details made explicit):
 2. Each label's centre is moved onto the contact edge its image shows (default
    ``centres="edge"``, :func:`.contact_edge.refine_centre`): hand labels are fitted by eye
    and a centre 2 px off tilts every training slope of its press (on the kit's GelSight
-   Mini set the labels sit 1.75 px from the edge on average; cross-validated on its train
-   split, training on the edge centres lowers the shape RMSE and the flat-gel p99,
+   Mini set the labels sit 1.75 px from the edge on average; in repeated cross-validation
+   on its train split, training on the edge centres lowered the flat-gel p99 every time and
+   left the shape RMSE against the hand labels as it was,
    ``benchmarks/results/label_agreement.md``).
 3. Training targets come from the ball geometry. Pixels inside the labelled contact circle
    *shrunk by* ``trim_px`` (default 4 px, as gs_sdk does: the hand-fitted circles are a

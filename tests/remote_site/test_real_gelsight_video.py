@@ -274,9 +274,8 @@ def session(kit_files: tuple[Path, Path], tmp_path_factory: pytest.TempPathFacto
             ) -> Session:
     """One session over the video: (remote summary, per-press pin results, a report).
 
-    Each press is scored twice: against its hand label (the results returned; the issue's
-    targets) and, in the report, with the pins placed and scored on the contact circle its
-    own image shows (:func:`edge_label`)."""
+    Each press is scored twice: against its hand label (the issue's targets) and with the
+    pins placed and scored on the contact circle its own image shows (:func:`edge_label`)."""
     video, calib = kit_files
     labels = _split("test")
     summary_path = tmp_path_factory.mktemp("gelsight-session") / "remote.json"
@@ -320,9 +319,8 @@ def test_every_real_press_reaches_the_pins(
     edge, see the report): peak error -0.046..+0.040 mm, shape RMS 0.010..0.082 mm (9 of 11
     within 0.05); without the constant offset within 0.063 mm. With the labelled centres
     for training: peak -0.047..+0.036, shape 0.014..0.075 mm. Before the free border and
-    the Keys cubic pins: peak
-    -0.061..+0.027 mm (press_17, cut by the image edge, the low one); before the rim relief:
-    peak +0.03..+0.16 mm, shape RMS up to 0.16 mm."""
+    the Keys cubic pins: peak -0.061..+0.027 mm (press_17, cut by the image edge, the low
+    one); before the rim relief: peak +0.03..+0.16 mm, shape RMS up to 0.16 mm."""
     _, results, report, _ = session
     peak_err = np.array([r.peak_mm - r.depth_mm for r in results])
     assert (np.array([r.peak_mm for r in results]) > PRESS_HEIGHT_MM).all(), report
@@ -337,7 +335,8 @@ def test_issue_target_peak(session: Session) -> None:
 
     Met since the rim relief's reconstruction leaves the border free where the contact runs
     off the frame and the station renders with Keys cubic interpolation: press_17 (contact
-    crossing the left edge) went from -0.061 to -0.047 mm, the tightest of the 11."""
+    crossing the left edge) went from -0.061 to -0.047 mm, and to -0.021 mm with the
+    calibration trained on the contact edges; the tightest is now press_47 (-0.046)."""
     _, results, report, _ = session
     peak_err = np.array([r.peak_mm - r.depth_mm for r in results])
     assert np.abs(peak_err).max() <= PEAK_TOLERANCE_MM, report
