@@ -20,6 +20,7 @@ reported where it was really taken.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -37,8 +38,14 @@ from remote_site.sensor.base import TactileSensor
 from shared.errors import CalibrationError, DeviceError, InputDataError
 from shared.workspace import WorkspaceMap
 
-__all__ = ["GuardedMotion", "RegistrationEstimate", "SafeMotion", "calibrate_with_fiducials",
-           "fit_registration", "guarded", "locate_bump", "robust_fit"]
+__all__ = ["MAX_YAW_DEG", "GuardedMotion", "RegistrationEstimate", "SafeMotion",
+           "calibrate_with_fiducials", "fit_registration", "guarded", "locate_bump",
+           "robust_fit"]
+
+
+#: the largest turn of a hand-placed phantom the fiducial search covers (the simulated world
+#: draws 3 deg sigma; a phantom set down 20 deg askew is searched for, not assumed away)
+MAX_YAW_DEG = 20.0
 
 
 @dataclass(frozen=True)
@@ -261,16 +268,29 @@ def calibrate_with_fiducials(arm: GuardedMotion, sensor: TactileSensor,
                              settle_s: float = 0.2, pitch_mm: float = 0.5,
                              wait: Callable[[float], object] = time.sleep,
                              timeout_s: float = 10.0, outlier_mm: float = 0.5,
-                             centred_mm: float = 3.0,
-                             ring_mm: float = 5.0) -> RegistrationEstimate:
+                             centred_mm: float = 3.0, ring_mm: float = 5.0,
+                             rigid_mm: float = 1.0,
+                             max_yaw_deg: float = MAX_YAW_DEG) -> RegistrationEstimate:
     """Press each fiducial, find the bead, fit the registration.
 
-    For each fiducial the arm presses where the fiducials found so far predict it (the
-    design position for the first), lowering the pad ``press_mm`` into the surface, waiting
-    ``settle_s`` and taking one sensor frame. A bead felt more than ``centred_mm`` off the
-    pad centre is pressed again, centred; a bead not felt at all is searched on a ring of
-    ``ring_mm`` around the prediction. The arm is commanded in its own frame (the designed
-    map's phantom coordinates).
+    For each fiducial the arm presses where the fiducials found so far predict it, lowering
+    the pad ``press_mm`` into the surface, waiting ``settle_s`` and taking one sensor frame.
+    Where to press:
+
+    * none found yet: the design position, then a ring of ``ring_mm`` around it (and, in a
+      last pass when nothing at all was found, a ring of twice that);
+    * one found: along the arc of the design distance around it, yaw 0 first, then
+      alternately further either way up to ``max_yaw_deg`` (one fiducial fixes the shift,
+      not the turn: a 13 deg turn puts a fiducial 59 mm away 13 mm off the shift's
+      prediction);
+    * two or more: the rigid fit's prediction, then the ring around it.
+
+    A bead felt more than ``centred_mm`` off the pad centre is pressed again, centred. A bead
+    is accepted only if its distance to every fiducial found so far matches the design
+    distance within ``rigid_mm`` (a rigid motion keeps distances): a bump that is not the
+    fiducial (the phantom's edge, a tumor) is named in the error and the search goes on.
+    Fiducials not found are tried again, from better predictions, while a pass finds more.
+    The arm is commanded in its own frame (the designed map's phantom coordinates).
 
     Args:
         arm: the connected arm behind its safety layer (:class:`SafeMotion`).
@@ -286,15 +306,21 @@ def calibrate_with_fiducials(arm: GuardedMotion, sensor: TactileSensor,
         outlier_mm: residual rms above which the worst fiducial is dropped (see
             :func:`robust_fit`).
         centred_mm: a bead felt further off the pad centre is pressed again on it.
-        ring_mm: radius of the search ring when a bead is not felt.
+        ring_mm: radius of the search ring when a bead is not felt; also the largest gap
+            between neighbouring presses along an arc.
+        rigid_mm: largest mismatch between a bead's distance to a found fiducial and their
+            design distance.
+        max_yaw_deg: largest turn of the phantom searched for.
 
     Raises:
-        CalibrationError: a move times out, fewer than 2 fiducials are found, or the
-            sensor fails.
+        CalibrationError: a move times out, fewer than 3 mutually consistent fiducials are
+            found (2 when only 2 are designed), or the sensor fails.
     """
-    found_arm: list[tuple[float, float]] = []
-    found_design: list[tuple[float, float]] = []
-    misses = []
+    design = [(float(f[0]), float(f[1])) for f in fiducials_mm]
+    hits: list[tuple[int, tuple[float, float]]] = []  # (design index, arm x, y): every bead
+    found: dict[int, tuple[float, float]] = {}  # the largest rigidly consistent set of hits
+    pressed: dict[int, list[tuple[float, float]]] = {i: [] for i in range(len(design))}
+    misses: list[str] = []
 
     def press(xy: tuple[float, float]) -> tuple[float, float, float] | None:
         """Press at arm (x, y); the bead's arm position and its distance from the pad
@@ -316,33 +342,107 @@ def calibrate_with_fiducials(arm: GuardedMotion, sensor: TactileSensor,
             _move_and_wait(arm, (xy[0], xy[1], hover_mm), wait, 0.5, timeout_s)
         return pose[0] + ox, pose[1] + oy, math.hypot(ox, oy)
 
-    for fx, fy in ((float(f[0]), float(f[1])) for f in fiducials_mm):
-        # where to press: the design position through what was measured so far
-        if len(found_arm) >= 2:
-            guess = fit_registration(found_arm, found_design)
+    def candidates(i: int, wide: bool) -> list[tuple[float, float]]:
+        q = design[i]
+        if len(found) >= 2:
+            keys = sorted(found)
+            guess = fit_registration([found[k] for k in keys], [design[k] for k in keys])
             th = math.radians(-guess.yaw_deg)
-            px, py = fx - guess.dx_mm, fy - guess.dy_mm
-            start_xy = (math.cos(th) * px - math.sin(th) * py,
-                        math.sin(th) * px + math.cos(th) * py)
-        elif found_arm:
-            start_xy = (fx + found_arm[0][0] - found_design[0][0],
-                        fy + found_arm[0][1] - found_design[0][1])
-        else:
-            start_xy = (fx, fy)
-        ring = [(start_xy[0] + ring_mm * math.cos(k * math.pi / 3),
-                 start_xy[1] + ring_mm * math.sin(k * math.pi / 3)) for k in range(6)]
-        for xy in [start_xy, *ring]:
+            px, py = q[0] - guess.dx_mm, q[1] - guess.dy_mm
+            centre = (math.cos(th) * px - math.sin(th) * py,
+                      math.sin(th) * px + math.cos(th) * py)
+            return [centre, *_ring(centre, ring_mm, 6)]
+        # no pair yet: around every bead felt so far (one of them may not be a fiducial)
+        arcs = [xy for k, a in hits if k != i
+                for xy in _arc(a, design[k], q, max_yaw_deg, ring_mm)]
+        return [*arcs, q, *_ring(q, ring_mm, 6), *(_ring(q, 2 * ring_mm, 12) if wide else [])]
+
+    def search(i: int, wide: bool) -> bool:
+        """Look for fiducial ``i``; True once the consistent set has changed."""
+        for xy in candidates(i, wide):
+            if any(math.dist(xy, done) < 1.0 for done in pressed[i]):
+                continue  # pressed there before for this fiducial, nothing to be found
+            pressed[i].append(xy)
             hit = press(xy)
             if hit is not None and hit[2] > centred_mm:  # felt off-centre: press on it
                 hit = press((hit[0], hit[1]))
-            if hit is not None and hit[2] <= centred_mm:
-                found_arm.append((hit[0], hit[1]))
-                found_design.append((fx, fy))
+            if hit is None or hit[2] > centred_mm:
+                continue
+            hits.append((i, (hit[0], hit[1])))
+            best = _consistent(hits, design, rigid_mm)
+            if best != found:
+                found.clear()
+                found.update(best)
+                return True
+            misses.append(f"bump at ({hit[0]:.1f}, {hit[1]:.1f}) does not fit the rigid "
+                          f"layout as fiducial {design[i]}")
+        return False
+
+    wide = False
+    while len(found) < len(design):
+        progress = False
+        for i in range(len(design)):
+            if i not in found and search(i, wide):
+                progress = True
+        if not progress:
+            if hits or wide:
                 break
-    if len(found_arm) < 2:
-        raise CalibrationError(f"registration: only {len(found_arm)} of {len(fiducials_mm)} "
-                               f"fiducials found ({'; '.join(misses)})")
-    return robust_fit(found_arm, found_design, outlier_mm=outlier_mm)
+            wide = True  # nothing felt anywhere: one more pass on wider rings
+    # two beads fit many layouts (the shipped square has four equal sides): with three or
+    # more designed, a registration rests on at least three
+    needed = min(3, len(design)) if len(design) >= 2 else 2
+    if len(found) < needed:
+        raise CalibrationError(f"registration: only {len(found)} of {len(design)} "
+                               f"fiducials found, {needed} needed ({'; '.join(misses)})")
+    keys = sorted(found)
+    return robust_fit([found[k] for k in keys], [design[k] for k in keys],
+                      outlier_mm=outlier_mm)
+
+
+def _consistent(hits: Sequence[tuple[int, tuple[float, float]]],
+                design: Sequence[tuple[float, float]],
+                rigid_mm: float) -> dict[int, tuple[float, float]]:
+    """The largest set of hits, one per fiducial, whose pairwise distances all match the
+    design's within ``rigid_mm`` (a rigid motion keeps distances); of equal sizes, the one
+    whose distances match best, then the earliest."""
+    for size in range(min(len(design), len(hits)), 0, -1):
+        best: tuple[float, tuple[int, ...]] | None = None
+        for combo in itertools.combinations(range(len(hits)), size):
+            ids = [hits[c][0] for c in combo]
+            if len(set(ids)) < size:
+                continue
+            worst = 0.0
+            for b, c in itertools.combinations(combo, 2):
+                (i, a), (k, e) = hits[b], hits[c]
+                worst = max(worst, abs(math.dist(a, e) - math.dist(design[i], design[k])))
+            if worst <= rigid_mm and (best is None or worst < best[0]):
+                best = (worst, combo)
+        if best is not None:
+            return {hits[c][0]: hits[c][1] for c in best[1]}
+    return {}
+
+
+def _ring(centre: tuple[float, float], radius: float, n: int) -> list[tuple[float, float]]:
+    return [(centre[0] + radius * math.cos(2 * math.pi * k / n),
+             centre[1] + radius * math.sin(2 * math.pi * k / n)) for k in range(n)]
+
+
+def _arc(found_arm: tuple[float, float], found_design: tuple[float, float],
+         design: tuple[float, float], max_yaw_deg: float,
+         spacing_mm: float) -> list[tuple[float, float]]:
+    """Where ``design`` lies in the arm frame if the phantom is turned by yaw about the one
+    fiducial found, for yaw 0, then alternately either way, in steps that leave at most
+    ``spacing_mm`` between neighbours, up to ``max_yaw_deg``."""
+    vx, vy = design[0] - found_design[0], design[1] - found_design[1]
+    radius = math.hypot(vx, vy)
+    step = min(math.radians(max_yaw_deg), spacing_mm / max(radius, 1e-9))
+    n = math.ceil(math.radians(max_yaw_deg) / step)
+    out = []
+    for k in [0, *(s * j for j in range(1, n + 1) for s in (1, -1))]:
+        th = -k * step  # the arm sees the phantom turned back: a = a1 + R(-yaw)(q - q1)
+        out.append((found_arm[0] + math.cos(th) * vx - math.sin(th) * vy,
+                    found_arm[1] + math.sin(th) * vx + math.cos(th) * vy))
+    return out
 
 
 def robust_fit(arm_xy_mm: Sequence[Sequence[float]], phantom_xy_mm: Sequence[Sequence[float]],
