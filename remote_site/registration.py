@@ -3,10 +3,11 @@
 A phantom carries small rigid beads (fiducials) just under its surface at positions known by
 design, in phantom coordinates, outside the palpated area. Placed on the table by hand, the
 phantom sits a few millimetres and degrees away from where the workspace map assumes. The
-procedure (:func:`calibrate_with_fiducials`) presses the pad gently onto each fiducial's
-DESIGN position, finds the bead in the reconstructed height map (it pushes the gel in more
-than the soft tissue around it, :func:`locate_bump`), and so measures where each fiducial
-really is in the arm's frame. A least-squares rigid fit of the plane
+procedure (:func:`calibrate_with_fiducials`) presses the pad gently where each fiducial
+should be (its design position, then where the fiducials already found put it, searching
+around that for a phantom shifted and turned by hand), finds the bead in the reconstructed
+height map (it pushes the gel in more than the soft tissue around it, :func:`locate_bump`),
+and so measures where each fiducial really is in the arm's frame. A least-squares rigid fit of the plane
 (:func:`fit_registration`, 2-D Kabsch) gives the registration ``q = R(yaw) a + d`` from arm
 positions ``a`` to phantom positions ``q``, with its uncertainty from the fit's residuals:
 ``cov = s^2 (J^T J)^-1`` with ``s^2`` the residual variance (2n - 3 degrees of freedom) and
