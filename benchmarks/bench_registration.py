@@ -70,7 +70,8 @@ def run(rows: list[tuple[str, int, float, float, float]]) -> dict[str, object]:
         arm = SimArm(config=SimArmConfig(realtime=False, loop_hz=250.0), limits=ArmLimits(),
                      **world.arm_options())
         holder: list[SimulatedSensor] = []
-        sensor = SimulatedSensor(**world.sensor_options(arm, lambda: holder[0]))
+        sensor = SimulatedSensor(**world.sensor_options(
+            arm, lambda holder=holder: holder[0]))  # type: ignore[misc]
         holder.append(sensor)
         arm.connect()
         sensor.connect()
@@ -101,7 +102,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:  # run the placements given as JSON with the code on sys.path
-        print(json.dumps(run([tuple(r) for r in json.loads(args.child)])))  # type: ignore[misc]
+        print(json.dumps(run([(str(r[0]), int(r[1]), float(r[2]), float(r[3]), float(r[4]))
+                              for r in json.loads(args.child)])))
         return 0
     load = os.getloadavg()[0]
     t0 = time.monotonic()

@@ -7,9 +7,10 @@ procedure (:func:`calibrate_with_fiducials`) presses the pad gently where each f
 should be (its design position, then where the fiducials already found put it, searching
 around that for a phantom shifted and turned by hand), finds the bead in the reconstructed
 height map (it pushes the gel in more than the soft tissue around it, :func:`locate_bump`),
-and so measures where each fiducial really is in the arm's frame. A least-squares rigid fit of the plane
-(:func:`fit_registration`, 2-D Kabsch) gives the registration ``q = R(yaw) a + d`` from arm
-positions ``a`` to phantom positions ``q``, with its uncertainty from the fit's residuals:
+and so measures where each fiducial really is in the arm's frame. A least-squares rigid fit
+of the plane (:func:`fit_registration`, 2-D Kabsch) gives the registration
+``q = R(yaw) a + d`` from arm positions ``a`` to phantom positions ``q``, with its
+uncertainty from the fit's residuals:
 ``cov = s^2 (J^T J)^-1`` with ``s^2`` the residual variance (2n - 3 degrees of freedom) and
 ``J`` the fit's Jacobian, floored by the per-fiducial localization noise ``sigma_floor_mm``.
 
