@@ -208,7 +208,8 @@ def simulate_registration(world: SimWorld) -> RegistrationEstimate:
     in simulated time.
 
     Raises:
-        CalibrationError: the phantom has fewer than 2 fiducials, or they were not found.
+        CalibrationError: too few fiducials found (see
+            :func:`remote_site.registration.calibrate_with_fiducials`).
     """
     arm = SimArm(config=SimArmConfig(realtime=False, loop_hz=250.0, seed=world.seed),
                  limits=ArmLimits(), **world.arm_options())
