@@ -271,8 +271,8 @@ def calibrate_with_fiducials(arm: GuardedMotion, sensor: TactileSensor,
                              wait: Callable[[float], object] = time.sleep,
                              timeout_s: float = 10.0, outlier_mm: float = 0.5,
                              centred_mm: float = 3.0, ring_mm: float = 5.0,
-                             rigid_mm: float = 1.0,
-                             max_yaw_deg: float = MAX_YAW_DEG) -> RegistrationEstimate:
+                             rigid_mm: float = 1.0, max_yaw_deg: float = MAX_YAW_DEG,
+                             max_presses: int = 25) -> RegistrationEstimate:
     """Press each fiducial, find the bead, fit the registration.
 
     For each fiducial the arm presses where the fiducials found so far predict it, lowering
@@ -313,20 +313,30 @@ def calibrate_with_fiducials(arm: GuardedMotion, sensor: TactileSensor,
         rigid_mm: largest mismatch between a bead's distance to a found fiducial and their
             design distance.
         max_yaw_deg: largest turn of the phantom searched for.
+        max_presses: presses per designed fiducial after which the search gives up (a real
+            arm takes seconds a press; a fiducial found at once takes 1, one searched on
+            both rings and never felt 19).
 
     Raises:
         CalibrationError: a move times out, fewer than 3 mutually consistent fiducials are
-            found (2 when only 2 are designed), or the sensor fails.
+            found (2 when only 2 are designed), the press budget is spent, or the sensor
+            fails.
     """
     design = [(float(f[0]), float(f[1])) for f in fiducials_mm]
     hits: list[tuple[int, tuple[float, float]]] = []  # (design index, arm x, y): every bead
     found: dict[int, tuple[float, float]] = {}  # the largest rigidly consistent set of hits
     pressed: dict[int, list[tuple[float, float]]] = {i: [] for i in range(len(design))}
     misses: list[str] = []
+    budget = [max_presses * len(design)]
 
     def press(xy: tuple[float, float]) -> tuple[float, float, float] | None:
         """Press at arm (x, y); the bead's arm position and its distance from the pad
         centre, or None when no bead is felt."""
+        if budget[0] <= 0:
+            raise CalibrationError(
+                f"registration: gave up after {max_presses * len(design)} presses with "
+                f"{len(found)} of {len(design)} fiducials found ({'; '.join(misses[-8:])})")
+        budget[0] -= 1
         _move_and_wait(arm, (xy[0], xy[1], hover_mm), wait, 0.5, timeout_s)
         _move_and_wait(arm, (xy[0], xy[1], -press_mm), wait, 0.05, timeout_s)
         wait(settle_s)
@@ -392,7 +402,7 @@ def calibrate_with_fiducials(arm: GuardedMotion, sensor: TactileSensor,
             wide = True  # nothing felt anywhere: one more pass on wider rings
     # two beads fit many layouts (the shipped square has four equal sides): with three or
     # more designed, a registration rests on at least three
-    needed = min(3, len(design)) if len(design) >= 2 else 2
+    needed = 3 if len(design) >= 3 else 2
     if len(found) < needed:
         raise CalibrationError(f"registration: only {len(found)} of {len(design)} "
                                f"fiducials found, {needed} needed ({'; '.join(misses)})")

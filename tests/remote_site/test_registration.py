@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import cmath
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -107,8 +108,8 @@ def test_no_bump_is_an_error() -> None:
         locate_bump(np.ones((30, 40)), 0.0)
 
 
-def _register(registration: Registration, seed: int,
-              scene: str = "breast") -> RegistrationEstimate:
+def _register(registration: Registration, seed: int, scene: str = "breast",
+              **options: Any) -> RegistrationEstimate:
     """Run the procedure on a simulated scene placed with ``registration``."""
     world = world_for(make_scene(scene, seed), REALISTIC, seed, registration)
     arm = SimArm(config=SimArmConfig(realtime=False, loop_hz=250.0), limits=ArmLimits(),
@@ -122,7 +123,7 @@ def _register(registration: Registration, seed: int,
         return calibrate_with_fiducials(guarded(arm), sensor,
                                         Reconstructor(simulated_calibration()),
                                         [f.center_mm for f in world.phantom.fiducials],
-                                        wait=arm.advance)
+                                        wait=arm.advance, **options)
     finally:
         sensor.disconnect()
         arm.disconnect()
@@ -152,6 +153,11 @@ def test_procedure_measures_the_hidden_registration(seed: int,
     err = np.linalg.norm(est.arm_to_phantom(corner)
                          - np.array(registration.to_phantom((*corner, 0))[:2]))
     assert err < 1.0
+
+
+def test_the_search_gives_up_after_its_press_budget() -> None:
+    with pytest.raises(CalibrationError, match="gave up after 8 presses"):
+        _register(Registration(1.0, 1.0, 0.1, 45.0), 3, max_presses=2)
 
 
 def test_a_phantom_turned_beyond_the_search_is_refused_not_misregistered() -> None:
