@@ -51,6 +51,8 @@ ITERATIONS = 3
 OUTLIER_MAD = 3.0
 #: fewer rays inside the frame than this and there is no fit (a contact mostly off the frame)
 MIN_RAYS = 24
+#: circles smaller than this (px) are not searched: too few samples along a ray
+MIN_RADIUS_PX = 3.0
 #: a refined centre is used only if the edge points lie this close to their circle (RMS) ...
 MAX_FIT_RMS_PX = 2.5
 #: ... and it moves the centre by at most this fraction of the labelled radius
@@ -114,6 +116,8 @@ def refine_centre(change_pct: np.ndarray, label: BallLabel) -> BallLabel | None:
 def _edge_points(edge: np.ndarray, cx: float, cy: float, radius: float) -> np.ndarray:
     """(n, 2) x, y of the strongest edge along each ray that stays inside the frame."""
     h, w = edge.shape
+    if not (np.isfinite([cx, cy, radius]).all() and radius >= MIN_RADIUS_PX):
+        return np.empty((0, 2))  # a degenerate circle (a start or a fit): nothing to search
     theta = np.linspace(0.0, 2.0 * np.pi, N_RAYS, endpoint=False)
     radii = np.arange(SEARCH[0] * radius, SEARCH[1] * radius, STEP_PX, dtype=np.float32)
     xs = cx + np.cos(theta)[:, None] * radii[None, :]

@@ -97,6 +97,14 @@ def test_refine_centre_keeps_a_label_whose_edge_is_far_or_missing() -> None:
     assert refine_centre(step_ring(-15.0, 80.0, 30.0), beyond) is None
 
 
+def test_a_degenerate_start_gives_no_fit_not_an_error() -> None:
+    ring = step_ring(100.0, 80.0, 20.0)
+    for start in (BallLabel("p.png", 100.0, 80.0, 0.5), BallLabel("p.png", np.nan, 80.0, 20.0),
+                  BallLabel("p.png", 100.0, 80.0, np.inf)):
+        assert fit_contact_edge(ring, start) is None
+        assert refine_centre(ring, start) is None
+
+
 def test_half_a_circle_inside_the_frame_is_enough() -> None:
     edge = fit_contact_edge(step_ring(2.0, 80.0, 30.0), BallLabel("p.png", 4.0, 78.0, 28.0))
     assert edge is not None and MIN_RAYS <= edge.rays < 60
