@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -105,6 +104,10 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(run([(str(r[0]), int(r[1]), float(r[2]), float(r[3]), float(r[4]))
                               for r in json.loads(args.child)])))
         return 0
+    # the parent only: a child must import the tree it was given, not this checkout
+    sys.path.insert(0, str(ROOT))
+    from benchmarks.tree_child import run_in_tree
+
     load = os.getloadavg()[0]
     t0 = time.monotonic()
     trees = [("this tree", ROOT)] + ([("--tree", args.tree.resolve())] if args.tree else [])
@@ -113,11 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     for max_yaw, shift_sd, n, seed in SETTINGS:
         rows = placements(seed, n, max_yaw, shift_sd)
         for name, tree in trees:
-            env = {**os.environ, "PYTHONPATH": str(tree)}
-            out = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--child",
-                                  json.dumps(rows)], env=env, cwd=tree, check=True,
-                                 capture_output=True, text=True).stdout
-            r = json.loads(out.strip().splitlines()[-1])
+            r = run_in_tree(__file__, tree, rows)
             wrong = (f"{r['wrong']} ({min(r['wrong_mm']):.1f}-{max(r['wrong_mm']):.1f} mm)"
                      if r["wrong"] else "0")
             lines.append(f"| +-{max_yaw:g} deg | {shift_sd:g} mm | {n} | {name} | "

@@ -19,12 +19,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+
 YAWS_DEG = (3.0, -3.0, 8.0, -8.0, 10.0, -10.0, 12.0, -12.0, 14.0, -14.0, 16.0, -16.0, 18.0,
             -18.0, 20.0, -20.0)
 
@@ -67,16 +67,16 @@ def main(argv: list[str] | None = None) -> int:
     if args.child:
         print(json.dumps(run([float(y) for y in json.loads(args.child)])))
         return 0
+    # the parent only: a child must import the tree it was given, not this checkout
+    sys.path.insert(0, str(ROOT))
+    from benchmarks.tree_child import run_in_tree
+
     load = os.getloadavg()[0]
     t0 = time.monotonic()
     trees = [("this tree", ROOT)] + ([("--tree", args.tree.resolve())] if args.tree else [])
     results = {}
     for name, tree in trees:
-        env = {**os.environ, "PYTHONPATH": str(tree)}
-        out = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--child",
-                              json.dumps(list(YAWS_DEG))], env=env, cwd=tree, check=True,
-                             capture_output=True, text=True).stdout
-        results[name] = json.loads(out.strip().splitlines()[-1])
+        results[name] = run_in_tree(__file__, tree, list(YAWS_DEG))
     lines = ["| yaw deg | " + " | ".join(f"{n}: benign typed, malignant typed, "
                                          "localization mm, FP" for n in results) + " |",
              "|---|" + "---|" * len(results)]

@@ -79,6 +79,12 @@ class RegistrationEstimate:
         rot = np.array([[math.cos(th), -math.sin(th)], [math.sin(th), math.cos(th)]])
         return np.asarray(p @ rot.T + np.array([self.dx_mm, self.dy_mm]), float)
 
+    def phantom_to_arm(self, xy_mm: Sequence[float]) -> tuple[float, float]:
+        """Phantom (x, y) to the arm frame: ``a = R(-yaw) (q - d)``."""
+        th = math.radians(-self.yaw_deg)
+        px, py = float(xy_mm[0]) - self.dx_mm, float(xy_mm[1]) - self.dy_mm
+        return (math.cos(th) * px - math.sin(th) * py, math.sin(th) * px + math.cos(th) * py)
+
     def position_std_mm(self, radius_mm: float) -> float:
         """One-sigma position uncertainty of a point ``radius_mm`` from the origin."""
         return math.sqrt(self.std_dx_mm ** 2 + self.std_dy_mm ** 2
@@ -89,10 +95,8 @@ class RegistrationEstimate:
 
         ``a = R(-yaw) (q - d)``: the inverse rigid motion after the designed map.
         """
-        th = math.radians(-self.yaw_deg)
-        rot = np.array([[math.cos(th), -math.sin(th)], [math.sin(th), math.cos(th)]])
-        shift = -(rot @ np.array([self.dx_mm, self.dy_mm]))
-        return workspace.registered(float(shift[0]), float(shift[1]), -self.yaw_deg)
+        shift = self.phantom_to_arm((0.0, 0.0))  # where the phantom origin lies for the arm
+        return workspace.registered(shift[0], shift[1], -self.yaw_deg)
 
     def to_dict(self) -> dict[str, object]:
         """Plain JSON."""
@@ -327,16 +331,17 @@ def calibrate_with_fiducials(arm: GuardedMotion, sensor: TactileSensor,
     found: dict[int, tuple[float, float]] = {}  # the largest rigidly consistent set of hits
     pressed: dict[int, list[tuple[float, float]]] = {i: [] for i in range(len(design))}
     misses: list[str] = []
-    budget = [max_presses * len(design)]
+    presses_left = max_presses * len(design)
 
     def press(xy: tuple[float, float]) -> tuple[float, float, float] | None:
         """Press at arm (x, y); the bead's arm position and its distance from the pad
         centre, or None when no bead is felt."""
-        if budget[0] <= 0:
+        nonlocal presses_left
+        if presses_left <= 0:
             raise CalibrationError(
                 f"registration: gave up after {max_presses * len(design)} presses with "
                 f"{len(found)} of {len(design)} fiducials found ({'; '.join(misses[-8:])})")
-        budget[0] -= 1
+        presses_left -= 1
         _move_and_wait(arm, (xy[0], xy[1], hover_mm), wait, 0.5, timeout_s)
         _move_and_wait(arm, (xy[0], xy[1], -press_mm), wait, 0.05, timeout_s)
         wait(settle_s)
@@ -359,10 +364,7 @@ def calibrate_with_fiducials(arm: GuardedMotion, sensor: TactileSensor,
         if len(found) >= 2:
             keys = sorted(found)
             guess = fit_registration([found[k] for k in keys], [design[k] for k in keys])
-            th = math.radians(-guess.yaw_deg)
-            px, py = q[0] - guess.dx_mm, q[1] - guess.dy_mm
-            centre = (math.cos(th) * px - math.sin(th) * py,
-                      math.sin(th) * px + math.cos(th) * py)
+            centre = guess.phantom_to_arm(q)
             return [centre, *_ring(centre, ring_mm, 6)]
         # no pair yet: around every bead felt so far (one of them may not be a fiducial)
         arcs = [xy for k, a in hits if k != i

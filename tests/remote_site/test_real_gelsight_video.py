@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import json
 import os
 import signal
@@ -74,10 +75,15 @@ def _split(name: str) -> list[BallLabel]:
     return labels_from_npz(DATA, [f"press_{int(e.rsplit('/', 1)[1]):02d}.png" for e in entries])
 
 
+@functools.cache
+def _background() -> np.ndarray:
+    return load_rgb(DATA / "background.png")
+
+
 def edge_label(label: BallLabel) -> BallLabel:
     """The contact circle the press's own image shows, found from the frame and the
     background only (no calibration), seeded by the label."""
-    change = relative_change(load_rgb(DATA / label.image), load_rgb(DATA / "background.png"))
+    change = relative_change(load_rgb(DATA / label.image), _background())
     edge = fit_contact_edge(change, label)
     assert edge is not None, label.image
     return BallLabel(label.image, edge.center_x, edge.center_y, edge.radius_px)
