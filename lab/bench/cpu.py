@@ -12,6 +12,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from lab.demo import DEFAULT_DISPLAY
+
 DEFAULT_OUT = Path(__file__).resolve().parents[2] / "benchmarks" / "results"
 
 
@@ -24,8 +26,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--window-s", type=float, default=12.0,
                         help="measured window (the default operator runs about 25 s)")
     parser.add_argument("--rate-hz", type=int, default=200, help="py-spy sampling rate")
-    parser.add_argument("--display", choices=("sim", "board-process"), default="sim",
-                        help="the demo's drive board (see `teletouch demo --display`)")
+    parser.add_argument("--display", choices=("sim", "board-process"),
+                        default=DEFAULT_DISPLAY,
+                        help="the demo's drive board (see `teletouch demo --display`; "
+                             f"default {DEFAULT_DISPLAY})")
     parser.add_argument("--no-profile", action="store_true",
                         help="per-process figures only (no py-spy)")
     parser.add_argument("--local-arg", action="append", default=[],

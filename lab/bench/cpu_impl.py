@@ -43,6 +43,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from lab.demo import DEFAULT_DISPLAY
 from shared.errors import ConfigError, TeleTouchError
 
 __all__ = ["STAGE_RULES", "CpuBenchSettings", "CpuSnapshot", "classify_stack",
@@ -103,7 +104,7 @@ class CpuBenchSettings:
     max_duration_s: float = 100.0
     profile: bool = True
     keep_record: Path | None = None
-    display: str = "sim"
+    display: str = DEFAULT_DISPLAY
     extra_local_args: tuple[str, ...] = ()
     extra_remote_args: tuple[str, ...] = ()
 

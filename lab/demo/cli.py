@@ -18,6 +18,8 @@ import argparse
 import sys
 from typing import Any
 
+from lab.demo import DEFAULT_DISPLAY
+
 __all__ = ["configure_parser", "format_report", "run"]
 
 SCENES = ("breast", "severity", "localization")
@@ -45,10 +47,11 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--platform", choices=("sim", "sim-process"), default="sim",
                         help="the simulated platform's board as a thread of the local "
                              "station (sim, default) or in a process of its own")
-    parser.add_argument("--display", choices=("sim", "board-process"), default="sim",
-                        help="the emulated ArrayTac drive board inside the local station on "
-                             "a virtual CAN bus (sim, default) or as a process of its own "
-                             "reached over socket:// (board-process), like a separate board")
+    parser.add_argument("--display", choices=("sim", "board-process"), default=DEFAULT_DISPLAY,
+                        help="the emulated ArrayTac drive board as a process of its own "
+                             "reached over socket:// (board-process, default), like a "
+                             "separate board, or inside the local station on a virtual CAN "
+                             "bus (sim)")
     parser.add_argument("--duration", type=float, default=100.0,
                         help="stop the operator after this many seconds (default 100)")
     parser.add_argument("--frame-rate-hz", type=float, default=120.0,

@@ -41,6 +41,7 @@ from pathlib import Path
 from typing import Any
 
 from lab.child import module_argv
+from lab.demo import DEFAULT_DISPLAY
 from lab.ground_truth import write_ground_truth
 from lab.html_report import write_report
 from lab.linkemu import get_profile
@@ -84,10 +85,11 @@ class DemoConfig:
         motion: the scripted operator (``teletouch local --motion`` spec).
         platform: the local station's simulated platform backend: ``sim`` (the board as a
             thread of the station's process) or ``sim-process`` (in a process of its own).
-        display: the ArrayTac drive board: ``sim`` (emulated inside the local station, on
-            python-can's virtual CAN FD bus) or ``board-process`` (``teletouch board``, a
-            process of its own that the station reaches over ``socket://`` with its serial
-            driver, as a separate board is reached).
+        display: the ArrayTac drive board: ``board-process`` (the default: ``teletouch
+            board``, a process of its own that the station reaches over ``socket://`` with
+            its serial driver, as a separate board is reached; the board's simulation then
+            does not share the station's interpreter with the 1 kHz display loop) or ``sim``
+            (emulated inside the local station, on python-can's virtual CAN FD bus).
         ideal: the noise-free simulated world (default: the realistic one, with an unknown
             registration error drawn from ``seed``).
         register: let the remote station measure the registration on the phantom's
@@ -110,7 +112,7 @@ class DemoConfig:
     link: str | None = None
     motion: str = DEFAULT_MOTION
     platform: str = "sim"
-    display: str = "sim"
+    display: str = DEFAULT_DISPLAY
     ideal: bool = False
     register: bool = True
     max_duration_s: float = 100.0

@@ -88,14 +88,15 @@ class LocalAgentConfig:
             ~790-950 Hz but the remote station then stalled (0.3-4.4 s) in 5 of 6 runs
             (docs/speed.md section 7), so it is for a station on a machine of its own.
         display_thread_realtime: the display loop thread's ``SCHED_FIFO`` priority while it
-            runs (1..99; 0, the default: left alone). The thread then runs as soon as it
-            wakes, ahead of all ordinary threads and processes; it needs root or
-            ``CAP_SYS_NICE`` (else logged, the summary says so). Measured in the demo
-            (docs/speed.md section 10, 8 pairs): priority 10 raised the loop by 6-142 Hz
-            (989-996 Hz in the last 3) and cut its period jitter p99 (x0.27-0.90, to 0.8-2.0 ms),
-            for the same CPU, but the demo's motion-to-touch p99 was no better (worse in 6 of
-            8 pairs): the other station shares the two cores. For a station on a machine of
-            its own.
+            runs (1..99; 0: left alone; default 10). The thread then runs as soon as it
+            wakes, ahead of all ordinary threads and processes, as a haptic loop should; it
+            needs root or ``CAP_SYS_NICE`` (else logged once at INFO, the thread keeps its
+            policy and the summary's ``display_loop.thread_realtime`` is null). It sleeps
+            every period, and the kernel's real-time throttling bounds it in any case.
+            Measured in the demo (docs/speed.md sections 10 and 12): the loop at 989-999 Hz
+            against 940-988 Hz, period jitter p99 0.51-0.96 ms against 1.3-2.0 ms, for about
+            the same CPU; the demo's motion-to-touch no better (both stations share its two
+            cores).
         view: serve the live view in the browser on ``HOST:PORT`` (empty: no view;
             ``127.0.0.1:8780`` keeps it on this machine, see docs/view.md).
         view_rate_hz: the view's snapshot rate (the page's update rate).
@@ -130,7 +131,7 @@ class LocalAgentConfig:
     motion_done_grace_s: float = 0.5
     gil_switch_interval_s: float = 0.0002
     display_thread_nice: int = 0
-    display_thread_realtime: int = 0
+    display_thread_realtime: int = 10
     view: str = ""
     view_rate_hz: float = 40.0
 
