@@ -22,22 +22,22 @@ MAX_BODY_BYTES = 2 + 64
 
 
 def cobs_encode(data: bytes) -> bytes:
-    """Consistent Overhead Byte Stuffing: ``data`` without any 0x00 (no delimiter added)."""
+    """Consistent Overhead Byte Stuffing: ``data`` without any 0x00 (no delimiter added).
+
+    Each run of non-zero bytes (split at the zeros) becomes a code byte (its length + 1) and
+    the run; a run of 254 bytes or more is cut into 254-byte blocks under code 255, which
+    imply no zero. The bytes equal the textbook byte-by-byte encoder's (a property test
+    checks it); per frame it costs a split and one append per run, not a Python step per
+    byte (the drive board's commands go out at 1 kHz).
+    """
     out = bytearray()
-    block = bytearray()
-    for byte in data:
-        if byte == 0:
-            out.append(len(block) + 1)
-            out += block
-            block.clear()
-        else:
-            block.append(byte)
-            if len(block) == 254:
-                out.append(255)
-                out += block
-                block.clear()
-    out.append(len(block) + 1)
-    out += block
+    for run in data.split(b"\x00"):
+        while len(run) >= 254:
+            out.append(255)
+            out += run[:254]
+            run = run[254:]
+        out.append(len(run) + 1)
+        out += run
     return bytes(out)
 
 

@@ -170,6 +170,47 @@ def test_cobs_round_trip_has_no_zero_bytes(data: bytes) -> None:
     assert cobs_decode(encoded) == data
 
 
+def _cobs_reference(data: bytes) -> bytes:
+    """The textbook byte-by-byte COBS encoder (the one the wire was specified with)."""
+    out, block = bytearray(), bytearray()
+    for byte in data:
+        if byte == 0:
+            out.append(len(block) + 1)
+            out += block
+            block.clear()
+        else:
+            block.append(byte)
+            if len(block) == 254:
+                out.append(255)
+                out += block
+                block.clear()
+    out.append(len(block) + 1)
+    out += block
+    return bytes(out)
+
+
+#: data made of runs of non-zero bytes around the 254-byte block length, joined by zeros
+_RUNS = st.lists(st.tuples(st.one_of(st.sampled_from([253, 254, 255, 508]), st.integers(0, 600)),
+                           st.integers(1, 255), st.integers(0, 2)),
+                 max_size=5).map(lambda runs: b"".join(bytes([v]) * n + b"\x00" * z
+                                                       for n, v, z in runs))
+
+
+@given(data=st.one_of(st.binary(max_size=600), _RUNS))
+def test_cobs_encoder_equals_the_byte_by_byte_reference(data: bytes) -> None:
+    assert cobs_encode(data) == _cobs_reference(data)
+    assert cobs_decode(cobs_encode(data)) == data
+
+
+def test_cobs_known_vectors() -> None:
+    assert cobs_encode(b"") == b"\x01"
+    assert cobs_encode(b"\x00") == b"\x01\x01"
+    assert cobs_encode(b"\x11\x22\x00\x33") == b"\x03\x11\x22\x02\x33"
+    run = bytes(range(1, 255))  # 254 non-zero bytes: one full block, then an empty one
+    assert cobs_encode(run) == b"\xff" + run + b"\x01"
+    assert cobs_encode(run + b"\x00") == b"\xff" + run + b"\x01\x01"
+
+
 @settings(max_examples=300)
 @given(noise=st.binary(max_size=300), chunk=st.integers(1, 40))
 def test_link_decoder_survives_noise_and_recovers(noise: bytes, chunk: int) -> None:
