@@ -132,15 +132,17 @@ class SameClockLink:
 
 @contextlib.contextmanager
 def _thread_setting(value: int, keeps: str, read: Callable[[], Any],
-                    write: Callable[[Any], None], setting: Any) -> Iterator[int | None]:
+                    write: Callable[[Any], None], setting: Any,
+                    grant: str) -> Iterator[int | None]:
     """Apply ``setting`` to the calling thread for the block (``write``), restore what
     ``read`` returned before it after; yield ``value``, or None when the OS refused (logged:
-    the thread ``keeps`` its ...)."""
+    the thread ``keeps`` its ..., and how to ``grant`` the right)."""
     try:
         before = read()
         write(setting)
     except OSError as err:
-        log.info("display loop thread keeps its %s refused: %s)", keeps, err)
+        log.info("display loop thread keeps its %s refused: %s); to allow it, %s", keeps, err,
+                 grant)
         yield None
         return
     try:
@@ -164,7 +166,9 @@ def thread_priority(nice: int) -> Iterator[int | None]:
     tid = threading.get_native_id()
     with _thread_setting(nice, f"priority (nice {nice}",
                          lambda: os.getpriority(os.PRIO_PROCESS, tid),
-                         lambda v: os.setpriority(os.PRIO_PROCESS, tid, v), nice) as applied:
+                         lambda v: os.setpriority(os.PRIO_PROCESS, tid, v), nice,
+                         f"run as root or with CAP_SYS_NICE, or set RLIMIT_NICE >= {20 - nice} "
+                         f"(systemd: LimitNICE={nice})") as applied:
         yield applied
 
 
@@ -186,7 +190,10 @@ def thread_realtime(priority: int) -> Iterator[int | None]:
     with _thread_setting(priority, f"scheduling policy (SCHED_FIFO {priority}",
                          lambda: (os.sched_getscheduler(tid), os.sched_getparam(tid)),
                          lambda v: os.sched_setscheduler(tid, *v),
-                         (os.SCHED_FIFO, os.sched_param(priority))) as applied:
+                         (os.SCHED_FIFO, os.sched_param(priority)),
+                         f"run as root or with CAP_SYS_NICE, or set RLIMIT_RTPRIO >= {priority} "
+                         f"(systemd: LimitRTPRIO={priority}; docker: --ulimit rtprio="
+                         f"{priority})") as applied:
         yield applied
 
 

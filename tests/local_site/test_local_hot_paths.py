@@ -424,6 +424,7 @@ def test_thread_priority_applies_and_restores_or_says_it_was_refused(
     with caplog.at_level("INFO"), thread_priority(-10) as applied:
         assert applied is None
     assert "keeps its priority (nice -10 refused" in caplog.text
+    assert "RLIMIT_NICE >= 30 (systemd: LimitNICE=-10)" in caplog.text
 
 
 def test_thread_realtime_applies_and_restores_or_says_it_was_refused(
@@ -450,6 +451,7 @@ def test_thread_realtime_applies_and_restores_or_says_it_was_refused(
     with caplog.at_level("INFO"), thread_realtime(10) as applied:
         assert applied is None
     assert "keeps its scheduling policy (SCHED_FIFO 10 refused" in caplog.text
+    assert "RLIMIT_RTPRIO >= 10 (systemd: LimitRTPRIO=10" in caplog.text
 
 
 @pytest.mark.parametrize("priority", [-1, 100, 1.5, True])
