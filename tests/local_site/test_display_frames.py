@@ -171,7 +171,7 @@ def test_cobs_round_trip_has_no_zero_bytes(data: bytes) -> None:
 
 
 def _cobs_reference(data: bytes) -> bytes:
-    """The textbook byte-by-byte COBS encoder (the one the wire was specified with)."""
+    """The textbook byte-by-byte COBS encoder (the form the station used before)."""
     out, block = bytearray(), bytearray()
     for byte in data:
         if byte == 0:
