@@ -35,7 +35,16 @@ sys.path.insert(0, str(ROOT))
 import numpy as np  # noqa: E402
 
 import remote_site.reconstruction.reconstructor as reconstructor_module  # noqa: E402
-from benchmarks.gelsight_labels import DEFAULT_DATA, split_labels, train_labels  # noqa: E402
+from benchmarks.gelsight_labels import (  # noqa: E402
+    BALL_RADIUS_MM,
+    DEFAULT_DATA,
+    MM_PER_PX,
+    border_distance_px,
+    cap_shift_px,
+    split_labels,
+    train_labels,
+)
+from lab.bench.results import write_results  # noqa: E402
 from lab.reconstruction_metrics import evaluate_press  # noqa: E402
 from remote_site.reconstruction.calibration import Calibration, fit_calibration  # noqa: E402
 from remote_site.reconstruction.frames import load_rgb  # noqa: E402
@@ -48,8 +57,6 @@ from remote_site.reconstruction.reconstructor import (  # noqa: E402
 from remote_site.reconstruction.relief_fit import fit_rim_relief  # noqa: E402
 from remote_site.reconstruction.sphere import cap_depth_mm  # noqa: E402
 
-BALL_RADIUS_MM = 4.735
-MM_PER_PX = 0.0634
 THRESHOLDS: tuple[float | None, ...] = (None, 0.1, 0.15, 0.2, 0.3, 0.5)
 STATION_PITCH_MM = 0.507
 BORDER_BAND_PX = 60
@@ -139,10 +146,8 @@ def main() -> int:
         for cal, _, evaluated in jobs:
             rec = Reconstructor(cal, ReconstructionSettings(relief="plane", border="fixed"))
             for lb in evaluated:
-                s = np.array(evaluate_press(rec.height_map(frames[lb.image]).height_mm,
-                                            MM_PER_PX, lb, MM_PER_PX, BALL_RADIUS_MM
-                                            ).centre_shift_xy_px)
-                edge_px = min(lb.center_x, 320 - lb.center_x, lb.center_y, 240 - lb.center_y)
+                s = cap_shift_px(rec, frames[lb.image], lb)
+                edge_px = border_distance_px(lb)
                 (near if edge_px < BORDER_BAND_PX else interior).append(float(np.hypot(*s)))
                 shifts.append(f"| {split} | {lb.image} | ({lb.center_x:.0f}, {lb.center_y:.0f})"
                               f" | {edge_px:.0f} | ({s[0]:+.1f}, {s[1]:+.1f}) | "
@@ -174,8 +179,7 @@ def main() -> int:
         f"**{np.mean(interior):.1f} px** ({len(interior)} presses).", "",
         *shifts, "",
     ]
-    out = ROOT / "benchmarks" / "results" / "free_border.md"
-    out.write_text("\n".join(md))
+    write_results(ROOT / "benchmarks" / "results", "free_border", "\n".join(md))
     print("\n".join(md))
     return 0
 

@@ -38,7 +38,16 @@ sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
 
-from benchmarks.gelsight_labels import DEFAULT_DATA, split_labels, train_labels  # noqa: E402
+from benchmarks.gelsight_labels import (  # noqa: E402
+    BALL_RADIUS_MM,
+    DEFAULT_DATA,
+    MM_PER_PX,
+    border_distance_px,
+    cap_shift_px,
+    split_labels,
+    train_labels,
+)
+from lab.bench.results import write_results  # noqa: E402
 from lab.reconstruction_metrics import evaluate_press  # noqa: E402
 from remote_site.reconstruction.calibration import Calibration, fit_calibration  # noqa: E402
 from remote_site.reconstruction.contact_edge import fit_contact_edge  # noqa: E402
@@ -54,8 +63,6 @@ from remote_site.reconstruction.sphere import cap_depth_mm, cap_height_mm  # noq
 from remote_site.sensor.photometric import PhotometricModel, PhotometricSettings  # noqa: E402
 from remote_site.sensor.sim_calibration import render_ball_presses  # noqa: E402
 
-BALL_RADIUS_MM = 4.735
-MM_PER_PX = 0.0634
 BORDER_BAND_PX = 60
 CV_REPEATS = 12
 SIM_SENSORS = {
@@ -142,17 +149,15 @@ def main() -> int:
     for split, cal, evaluated in jobs:
         rec = Reconstructor(cal, ReconstructionSettings(relief="plane", border="fixed"))
         for lb in evaluated:
-            cap = np.array(evaluate_press(rec.height_map(frames[lb.image]).height_mm,
-                                          MM_PER_PX, lb, MM_PER_PX, BALL_RADIUS_MM
-                                          ).centre_shift_xy_px)
+            cap = cap_shift_px(rec, frames[lb.image], lb)
             e = edges[lb.image]
             edge = np.array([e.center_x - lb.center_x, e.center_y - lb.center_y])
             signed.append(edge)
-            border = min(lb.center_x, 320 - lb.center_x, lb.center_y, 240 - lb.center_y)
+            border_px = border_distance_px(lb)
             row = (float(np.hypot(*edge)), float(np.hypot(*cap)),
                    float(np.hypot(*(cap - edge))), spread[lb.image])
-            pairs["near" if border < BORDER_BAND_PX else "interior"].append(row)
-            table.append(f"| {split} | {lb.image} | {border:.0f} | "
+            pairs["near" if border_px < BORDER_BAND_PX else "interior"].append(row)
+            table.append(f"| {split} | {lb.image} | {border_px:.0f} | "
                          f"({edge[0]:+.1f}, {edge[1]:+.1f}) | {row[1]:.1f} | {row[2]:.1f} | "
                          f"{rms[lb.image]:.2f} | {spread[lb.image]:.2f} |")
     summary = ["| presses | n | edge - label mean px | cap - label mean px | "
@@ -270,8 +275,7 @@ def main() -> int:
         "border). The test split played no part in the choice. " + cv_summary, "",
         *cv, "",
     ]
-    out = ROOT / "benchmarks" / "results" / "label_agreement.md"
-    out.write_text("\n".join(md))
+    write_results(ROOT / "benchmarks" / "results", "label_agreement", "\n".join(md))
     print("\n".join(md))
     return 0
 

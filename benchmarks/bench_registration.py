@@ -130,7 +130,9 @@ def main(argv: list[str] | None = None) -> int:
           "its own seed. Right = the four corners of a 60 mm square within 1 mm of the truth; "
           "silently wrong = an estimate further off; refused = a CalibrationError "
           "(`docs/registration.md`).", "", *lines, ""]
-    (ROOT / "benchmarks" / "results" / "registration.md").write_text("\n".join(md))
+    from lab.bench.results import write_results
+
+    write_results(ROOT / "benchmarks" / "results", "registration", "\n".join(md))
     return 0
 
 

@@ -106,7 +106,9 @@ def main(argv: list[str] | None = None) -> int:
           "(1.0, -1.5) mm and turned by the yaw; fiducial registration, the session recorded "
           "through the registered map, the analysis in the designed map (the live order), "
           "scored in phantom coordinates.", "", *summary, "", *lines, ""]
-    (ROOT / "benchmarks" / "results" / "turned_phantom.md").write_text("\n".join(md))
+    from lab.bench.results import write_results
+
+    write_results(ROOT / "benchmarks" / "results", "turned_phantom", "\n".join(md))
     print("\n".join(md))
     return 0
 

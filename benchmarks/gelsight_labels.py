@@ -23,6 +23,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
@@ -35,6 +36,27 @@ from remote_site.reconstruction.labels import (  # noqa: E402
 )
 
 DEFAULT_DATA = (ROOT / ".." / "shared" / "data" / "gelsight" / "gsmini_ball_9.47mm").resolve()
+#: the kit's ball (9.47 mm) and the Mini's pixel pitch at 320 x 240
+BALL_RADIUS_MM = 4.735
+MM_PER_PX = 0.0634
+FRAME_W_PX, FRAME_H_PX = 320, 240
+
+
+def border_distance_px(label: BallLabel) -> float:
+    """How far a label's centre lies from the nearest frame edge (px)."""
+    return min(label.center_x, FRAME_W_PX - label.center_x, label.center_y,
+               FRAME_H_PX - label.center_y)
+
+
+def cap_shift_px(reconstructor: Any, rgb: Any, label: BallLabel) -> Any:
+    """The reconstructed cap's centre minus the labelled one, (dx, dy) px: the cap fitted
+    to ``reconstructor``'s height map of ``rgb`` with the ball radius fixed."""
+    import numpy as np
+
+    from lab.reconstruction_metrics import evaluate_press
+
+    return np.array(evaluate_press(reconstructor.height_map(rgb).height_mm, MM_PER_PX, label,
+                                   MM_PER_PX, BALL_RADIUS_MM).centre_shift_xy_px)
 
 
 def split_names(data_dir: Path, split: str) -> list[str]:
