@@ -14,8 +14,9 @@ Operations: one render of the 4 x 4 pins from a 30 x 40 tactile frame while the 
 moves (the 1 kHz display path); a tactile frame's per-hop wire cost (encode with validation +
 decode with validation, as the remote, the relay and the local station each do) as sent by
 each tree's default (old: ``tactile_frame`` float32; new: ``tactile_compact`` delta, plus the
-sender's encoder and the receiver's decoder); a ``platform_state`` encode + decode.
-Writes ``benchmarks/results/hot_paths.md``.
+sender's encoder and the receiver's decoder); a ``platform_state`` encode + decode; the serial
+link framing (COBS + delimiter) of one 64-byte drive-board command.
+Writes ``benchmarks/results/hot_paths.md`` (``--stem`` for another name).
 """
 
 from __future__ import annotations
@@ -89,6 +90,10 @@ else:
 ps = PlatformState(seq=5, ts_us=123456789, hops=(Hop("local", "capture", 123456789),),
                    position_mm=(1.0, 2.0, 3.0), velocity_mm_s=(0.1, 0.2, 0.3))
 out["platform_state_hop_us"] = cost(lambda: decode(encode(ps)), 3000)
+from local_site.display.serial_framing import encode_link_frame
+command = bytes(range(1, 65))  # a 64-byte drive-board command body (its zeros: none)
+command = command[:20] + b"\x00" + command[21:40] + b"\x00" + command[41:]
+out["drive_link_frame_us"] = cost(lambda: encode_link_frame(0x101, command), 3000)
 print(json.dumps(out))
 '''
 
@@ -104,6 +109,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--old", type=Path, required=True, help="the tree to compare against")
     parser.add_argument("--pairs", type=int, default=5)
+    parser.add_argument("--stem", default="hot_paths", help="results file name (without .md)")
     args = parser.parse_args()
     load = os.getloadavg()[0]
     old_runs, new_runs = [], []
@@ -113,7 +119,8 @@ def main() -> int:
     keys = sorted(set(old_runs[0]) | set(new_runs[0]))
     lines = ["# Hot paths: CPU per operation, old tree vs this tree (paired)", "",
              f"Command: `python benchmarks/bench_hot_paths.py --old {args.old} --pairs "
-             f"{args.pairs}`. {args.pairs} pairs of fresh processes, old and new alternating; "
+             f"{args.pairs} --stem {args.stem}`. {args.pairs} pairs of fresh processes, old "
+             "and new alternating; "
              "thread CPU time per operation (best of 5 repetitions per process), median over "
              f"the pairs. Machine: nproc {os.cpu_count()}, load average {load:.1f} at start "
              "(other jobs on the machine inflate even CPU time: compare the ratio).", "",
@@ -135,7 +142,7 @@ def main() -> int:
               "`tactile_encoder_us` and the receiver's `tactile_decoder_us` once per frame."]
     text = "\n".join(lines) + "\n"
     RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "hot_paths.md").write_text(text)
+    (RESULTS / f"{args.stem}.md").write_text(text)
     print(text)
     return 0
 
