@@ -48,6 +48,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     dev = parser.add_argument_group("devices and scene ([local.agent])")
     dev.add_argument("--platform", metavar="SPEC", help="sim, /dev/ttyUSB0, socket://... "
                      "(default sim)")
+    dev.add_argument("--platform-process", action=argparse.BooleanOptionalAction,
+                     default=None, help="read the platform in a process of its own, the "
+                     "newest sample in shared memory (default: off; local.agent."
+                     "platform_process)")
     dev.add_argument("--display", metavar="SPEC", help="sim, sim-serial, can://socketcan/can0, "
                      "socketcan:can0, /dev/ttyACM0 ... (default sim)")
     dev.add_argument("--motion", metavar="SPEC",
@@ -104,7 +108,8 @@ def run(args: argparse.Namespace) -> int:
     from shared.workspace import WorkspaceConfig
 
     agent_flags: dict[str, Any] = {
-        "platform": args.platform, "display": args.display, "motion": args.motion,
+        "platform": args.platform, "platform_process": args.platform_process,
+        "display": args.display, "motion": args.motion,
         "scene": args.scene, "safe_state": args.safe_state,
         "link_loss_timeout_s": args.link_loss_timeout,
         "stale_frame_timeout_s": args.stale_timeout, "max_frame_age_s": args.max_frame_age,

@@ -147,6 +147,8 @@ def snapshot(pids: list[int]) -> CpuSnapshot:
 #: the simulated encoder board's own process (``--platform sim-process``), a child of the
 #: local station
 _SIM_BOARD_MODULE = "local_site.platform.sim_process"
+#: the local station's platform reader process (``local.agent.platform_process``)
+_PLATFORM_PROCESS_MODULE = "local_site.agent.platform_process"
 
 
 #: the demo's processes that are simulated hardware as a whole: their stage
@@ -173,7 +175,8 @@ def _processes() -> Iterator[tuple[int, int, list[str]]]:
 def _children(parent: int) -> dict[int, str]:
     """Child processes of ``parent`` running ``lab.cli`` (pid -> subcommand; ``board``: the
     emulated ArrayTac drive board of ``--display board-process``), and the local station's
-    simulated encoder board process when it has one (``sim-board``)."""
+    simulated encoder board process when it has one (``sim-board``) and its platform reader
+    process (``platform``, with ``local.agent.platform_process``)."""
     out: dict[int, str] = {}
     table = list(_processes())
     for pid, ppid, argv in table:
@@ -183,9 +186,11 @@ def _children(parent: int) -> dict[int, str]:
                        "?")
             out[pid] = cmd
     local = {p for p, c in out.items() if c == "local"}
+    readers = {pid: "platform" for pid, ppid, argv in table
+               if ppid in local and _PLATFORM_PROCESS_MODULE in argv}
     boards = {pid: "sim-board" for pid, ppid, argv in table
-              if ppid in local and _SIM_BOARD_MODULE in argv}
-    names: dict[int, str] = dict(boards)
+              if (ppid in local or ppid in readers) and _SIM_BOARD_MODULE in argv}
+    names: dict[int, str] = {**boards, **readers}
     links = sorted(p for p, c in out.items() if c == "link")
     for pid, cmd in out.items():
         # the demo runs one emulator for both legs; two (older runs) are told apart by pid

@@ -49,6 +49,9 @@ class LocalAgentConfig:
         platform_reopen_after_s: a platform silent this long (its port still open) is closed
             and reopened; before that its samples are taken the moment they come back
             (>= ``platform_read_timeout_s``).
+        platform_process: read the platform in a process of its own, the newest sample in
+            shared memory (:mod:`local_site.agent.platform_process`): the platform's threads
+            then no longer take the display loop's GIL.
         device_retry_min_s: first delay before reopening a lost device.
         device_retry_max_s: largest such delay (the delay doubles up to it).
         display_keepalive_interval_s: unchanged commands are re-sent this often.
@@ -116,6 +119,7 @@ class LocalAgentConfig:
     render_loop: str = "thread"
     platform_read_timeout_s: float = 0.25
     platform_reopen_after_s: float = 1.0
+    platform_process: bool = False
     device_retry_min_s: float = 0.2
     device_retry_max_s: float = 5.0
     display_keepalive_interval_s: float = 0.02

@@ -22,7 +22,7 @@ from __future__ import annotations
 import logging
 import threading
 
-from local_site.platform.base import PlatformSample, XYZPlatform
+from local_site.platform.base import PlatformSample, PlatformStats, XYZPlatform
 from shared.errors import ConfigError, DeviceError, DeviceInitError, DeviceTimeoutError
 from shared.timebase import monotonic_s
 
@@ -101,6 +101,14 @@ class PlatformReader:
         if self._thread is not None:
             self._thread.join(timeout_s)
             self._thread = None
+
+    def platform_stats(self) -> PlatformStats:
+        """The device link's counters."""
+        return self.platform.stats()
+
+    def disconnect(self) -> None:
+        """Close the device (after :meth:`stop`)."""
+        self.platform.disconnect()
 
     def _connect_with_backoff(self) -> bool:
         delay = self._retry_min_s

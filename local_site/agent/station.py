@@ -39,8 +39,10 @@ import numpy as np
 
 from local_site.agent.config import LocalAgentConfig
 from local_site.agent.display_loop import DisplayLoop, FrameSlot
+from local_site.agent.platform_process import ProcessPlatformReader
 from local_site.agent.platform_reader import PlatformReader
 from local_site.devices import open_display, open_platform
+from local_site.platform.base import XYZPlatform
 from local_site.recording import SessionRecorder
 from local_site.render import Renderer, RendererConfig
 from local_site.scenes import SceneSource, open_scene, parse_shape_spec
@@ -165,7 +167,7 @@ class LocalAgent:
         #: key frame state of the compact tactile codec (protocol v2)
         self.tactile_decoder = TactileDecoder()
         self.link: StationLink | None = None
-        self.reader: PlatformReader | None = None
+        self.reader: PlatformReader | ProcessPlatformReader | None = None
         self.loop: DisplayLoop | None = None
         self.scene: SceneSource | None = None
         self.exit_reason: str | None = None
@@ -201,9 +203,12 @@ class LocalAgent:
         platform_opts = dict(self._platform_options)
         if cfg.motion.strip():
             platform_opts["motion"] = cfg.motion  # parsed by the sim backend
-        platform = open_platform(cfg.platform, connect=False, **platform_opts)
+        platform: XYZPlatform | None = open_platform(cfg.platform, connect=False,
+                                                     **platform_opts)
         motion = getattr(platform, "motion", None)
         motion_duration_s = getattr(motion, "duration_s", None)
+        if cfg.platform_process:
+            platform = None  # opened again in the reader's process, from the same spec
         if self.until_motion_done and motion_duration_s is None:
             raise ConfigError("--until-motion-done needs a platform with a scripted motion of "
                               "finite length (the sim platform with raster, hold or replay)")
@@ -221,11 +226,13 @@ class LocalAgent:
         else:
             spec = place_shape_spec(cfg.scene, (cfg.scene_center_x_mm, cfg.scene_center_y_mm))
             self.scene = open_scene(spec, interpolation_order=cfg.interpolation_order)
-        self.reader = PlatformReader(
-            platform, read_timeout_s=cfg.platform_read_timeout_s,
+        reader_args: dict[str, Any] = dict(
+            read_timeout_s=cfg.platform_read_timeout_s,
             reopen_after_s=cfg.platform_reopen_after_s,
             retry_min_s=cfg.device_retry_min_s, retry_max_s=cfg.device_retry_max_s,
             motion_duration_s=motion_duration_s if self.until_motion_done else None)
+        self.reader = PlatformReader(platform, **reader_args) if platform is not None \
+            else ProcessPlatformReader(cfg.platform, platform_opts, **reader_args)
         reader = self.reader
         if self.record_path is not None and self.recorder is None:
             self.recorder = SessionRecorder(
@@ -254,7 +261,7 @@ class LocalAgent:
                 "workspace": dataclasses.asdict(self.workspace),
                 "render": dataclasses.asdict(self.render_config)}
 
-    def _require_open(self) -> tuple[DisplayLoop, PlatformReader]:
+    def _require_open(self) -> tuple[DisplayLoop, PlatformReader | ProcessPlatformReader]:
         if self.loop is None or self.reader is None:
             raise ConfigError("LocalAgent.open() has not been called")
         return self.loop, self.reader
@@ -531,9 +538,9 @@ class LocalAgent:
         except DeviceError as err:
             log.warning("display close failed: %s", err)
         await asyncio.to_thread(reader.stop)
-        platform_stats = reader.platform.stats()
+        platform_stats = reader.platform_stats()
         try:
-            await asyncio.to_thread(reader.platform.disconnect)
+            await asyncio.to_thread(reader.disconnect)
         except DeviceError as err:
             log.warning("platform close failed: %s", err)
         if self.link is not None:

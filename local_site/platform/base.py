@@ -21,6 +21,7 @@ from __future__ import annotations
 import collections
 import logging
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from local_site.platform.kinematics import PlatformGeometry, WrapUnwrapper
@@ -126,6 +127,10 @@ class XYZPlatform(Device):
         self._connect_timeout_s = connect_timeout_s
         super().__init__()
         self._cond = threading.Condition()
+        #: called with every new sample, in the driver's reader thread, after it is published
+        #: (must be quick: e.g. a copy into shared memory,
+        #: :mod:`local_site.agent.platform_process`)
+        self.sample_listener: Callable[[PlatformSample], None] | None = None
         self._zero_counts = (0, 0, 0)
         self._zero_at_mm: Vec3 = (0.0, 0.0, 0.0)
         self._reset_track()
@@ -334,6 +339,9 @@ class XYZPlatform(Device):
                                           board_t_us=board_t, clamped=clamped)
             self._last_rx_s = monotonic_s()
             self._cond.notify_all()
+        listener = self.sample_listener
+        if listener is not None:
+            listener(self._latest)
 
     def _link_failed(self, err: BaseException) -> None:
         """Record that the link broke (called by the backend's reader thread)."""

@@ -108,9 +108,11 @@ def loop_of(agent: LocalAgent) -> DisplayLoop:
 
 
 def reader_of(agent: LocalAgent) -> PlatformReader:
-    """The agent's platform reader; fails the test when the agent has not opened it."""
-    if agent.reader is None:
-        raise AssertionError("the agent's platform reader is not running")
+    """The agent's in-process platform reader; fails the test when the agent has not opened
+    it (or reads its platform in a process of its own)."""
+    if not isinstance(agent.reader, PlatformReader):
+        raise AssertionError(f"the agent's platform reader is not running in-process: "
+                             f"{agent.reader!r}")
     return agent.reader
 
 

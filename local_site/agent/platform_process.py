@@ -1,0 +1,609 @@
+"""The platform read in a process of its own; the newest sample in shared memory.
+
+The station's 1 kHz display loop shares its interpreter, and so the GIL, with every other
+thread of the station. The platform's threads were among the busiest: the driver's reader
+wakes for every encoder sample (1 kHz), the :class:`PlatformReader` watches its health, and
+with the ``sim`` backend the simulated encoder board ticks at 1 kHz beside them. On a busy
+host the driver's reader, woken with data waiting, was seen kept from the GIL for 0.25-1 s
+(``benchmarks/results/platform_silence.md``), and every wake-up of those threads is one the
+display loop may have to wait for.
+
+:class:`ProcessPlatformReader` runs the platform driver and its :class:`PlatformReader`
+(reopen with backoff, silence handling, the scripted motion's end) in a child process
+(``python -m local_site.agent.platform_process``: a fresh interpreter, nothing of the
+station's threads copied). The driver's reader thread copies every sample into a small
+shared-memory record as it decodes it (``XYZPlatform.sample_listener``) and the child's main
+thread adds the reader's health every 20 ms; the station reads the record (no system call,
+no lock: a counter that is odd while the child writes, :class:`SampleRecord`) wherever it
+read the in-process reader. Same attributes, same safety meaning:
+
+* ``healthy`` is false while the child reports the device lost and whenever the newest
+  sample is older than the read timeout by its own capture stamp (the child hung, was
+  stopped or died, or reconnected without a sample yet): the display loop then puts the pins
+  in their safe state, and never renders an old position as the current one;
+* a child that died, or whose heartbeat stopped for ``hang_timeout_s``, is (killed and)
+  started again with the same backoff as a device reopen: the station never gives up; the
+  counters carry over and each restart counts as a loss;
+* the child ends with the station: on :meth:`ProcessPlatformReader.stop`, at the end of its
+  standard input (the station's process is gone), and when its parent changes. It runs in
+  a session of its own, so a Ctrl-C at the terminal reaches the station, which stops it.
+
+The record lives in an anonymous file (``memfd``) handed to each child by descriptor: nothing
+is named on a file system, so nothing is left behind by a station that was killed. Capture
+stamps cross on the monotonic clock (system wide) and are put back on the station's
+wall-clock anchor, so a wall-clock step between the two processes' starts cannot shift them.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import json
+import logging
+import math
+import mmap
+import os
+import select
+import signal
+import struct
+import subprocess
+import sys
+import tempfile
+import threading
+from dataclasses import dataclass
+from typing import Any
+
+from local_site.platform.base import PlatformSample, PlatformStats
+from shared.errors import ConfigError
+from shared.timebase import monotonic_s, now_us, wall_anchor_ns
+
+__all__ = ["ProcessPlatformReader", "ReaderHealth", "SampleRecord", "main"]
+
+log = logging.getLogger(__name__)
+
+#: how often the child publishes its health and checks its parent
+_HEARTBEAT_S = 0.02
+#: how often the station's supervisor looks at its child
+_SUPERVISE_S = 0.1
+#: bytes kept of the child's last error message
+_ERROR_BYTES = 240
+#: copies a reader tries while the writer is inside a write (a write takes microseconds);
+#: then it keeps what it had: the display loop never waits for the child
+_TORN_TRIES = 20
+#: the child's longest clean stop (its reader may be inside a 2-5 s device open)
+_CHILD_STOP_S = 6.0
+
+
+@dataclass(frozen=True, slots=True)
+class ReaderHealth:
+    """The child's :class:`PlatformReader` state, as the record last carried it.
+
+    Attributes:
+        healthy: the child's reader had the device.
+        lost_since_mono_s: when it lost it (monotonic clock; None: not lost).
+        reads: samples its reader took.
+        errors: loss episodes.
+        reconnects: device reopens.
+        recoveries: silences that ended on the open port.
+        motion_done: the scripted motion ended.
+        heartbeat_s: when the child last published this (monotonic clock).
+        last_error: its last error message (None: none).
+    """
+
+    healthy: bool
+    lost_since_mono_s: float | None
+    reads: int
+    errors: int
+    reconnects: int
+    recoveries: int
+    motion_done: bool
+    heartbeat_s: float
+    last_error: str | None
+
+
+_NOT_STARTED = ReaderHealth(False, None, 0, 0, 0, 0, False, 0.0, None)
+
+
+class SampleRecord:
+    """One platform sample and the reader's health in shared memory (one writing process).
+
+    Layout (little endian): a ``uint64`` counter, odd while the writer is inside, then the
+    sample (position and velocity, 6 x ``float64``; capture time on the monotonic clock,
+    sequence and board time, 3 x ``int64``; clamped and present flags), then the health
+    (healthy and motion-done flags, the time the device was lost or NaN, four counters, the
+    heartbeat on the monotonic clock) and the last error (length, ``0xFFFF`` for none, then
+    UTF-8). A reader copies the record and keeps the copy when the counter was even and
+    unchanged around it. The writing process's threads take turns (a lock).
+
+    Args:
+        fd: map the record behind this descriptor (shared with another process); None:
+            create a new one (an anonymous file), see :attr:`fd`.
+    """
+
+    _HEAD = struct.Struct("<Q")
+    _SAMPLE = struct.Struct("<6d3q??")
+    _HEALTH = struct.Struct("<??d4qdH")
+    _SAMPLE_AT = _HEAD.size
+    _HEALTH_AT = _SAMPLE_AT + _SAMPLE.size
+    _ERROR_AT = _HEALTH_AT + _HEALTH.size
+    SIZE = _ERROR_AT + _ERROR_BYTES
+
+    def __init__(self, fd: int | None = None) -> None:
+        self._owner = fd is None
+        if fd is None:
+            fd = _anonymous_file(self.SIZE)
+        #: the descriptor behind the record (the creator's; pass it to the writer's process)
+        self.fd = fd
+        self._buf = mmap.mmap(fd, self.SIZE)
+        self._anchor_us = wall_anchor_ns() // 1000
+        self._write_lock = threading.Lock()
+        if self._owner:
+            self.write_health(_NOT_STARTED)
+
+    # ------------------------------------------------------------------ writer (the child)
+
+    def claim(self) -> None:
+        """Become the writer: one that died inside a write left the counter odd."""
+        with self._write_lock:
+            counter = self.counter
+            if counter & 1:
+                self._HEAD.pack_into(self._buf, 0, counter + 1)
+
+    def write_sample(self, sample: PlatformSample) -> None:
+        """Publish a sample (its capture time goes over on the monotonic clock)."""
+        (px, py, pz), (vx, vy, vz) = sample.position_mm, sample.velocity_mm_s
+        with self._write_lock:
+            counter = self.counter + 1
+            self._HEAD.pack_into(self._buf, 0, counter)
+            self._SAMPLE.pack_into(self._buf, self._SAMPLE_AT, px, py, pz, vx, vy, vz,
+                                   sample.t_us - self._anchor_us, sample.seq,
+                                   sample.board_t_us, sample.clamped, True)
+            self._HEAD.pack_into(self._buf, 0, counter + 1)
+
+    def write_health(self, health: ReaderHealth) -> None:
+        """Publish the reader's state and its heartbeat."""
+        error = (health.last_error or "").encode("utf-8", "replace")[:_ERROR_BYTES]
+        lost = math.nan if health.lost_since_mono_s is None else health.lost_since_mono_s
+        with self._write_lock:
+            counter = self.counter + 1
+            self._HEAD.pack_into(self._buf, 0, counter)
+            self._HEALTH.pack_into(self._buf, self._HEALTH_AT, health.healthy,
+                                   health.motion_done, lost, health.reads, health.errors,
+                                   health.reconnects, health.recoveries, health.heartbeat_s,
+                                   len(error) if health.last_error is not None else 0xFFFF)
+            self._buf[self._ERROR_AT:self._ERROR_AT + len(error)] = error
+            self._HEAD.pack_into(self._buf, 0, counter + 1)
+
+    # ------------------------------------------------------------------ reader (the station)
+
+    @property
+    def counter(self) -> int:
+        """The write counter (even between writes; it changes with every write)."""
+        value: int = self._HEAD.unpack_from(self._buf, 0)[0]
+        return value
+
+    def read(self) -> tuple[int, PlatformSample | None, ReaderHealth] | None:
+        """A consistent copy.
+
+        Returns:
+            (counter, the sample or None before the first, the health); None when the
+            writer was inside a write at each of :data:`_TORN_TRIES` tries (it died there,
+            is stopped, or was descheduled): the caller keeps its previous copy.
+        """
+        buf = self._buf
+        for _ in range(_TORN_TRIES):
+            before = self._HEAD.unpack_from(buf, 0)[0]
+            if before & 1:
+                continue
+            raw = buf[self._SAMPLE_AT:self.SIZE]
+            if self._HEAD.unpack_from(buf, 0)[0] == before:
+                break
+        else:
+            return None
+        px, py, pz, vx, vy, vz, t_mono_us, seq, board_t_us, clamped, present = \
+            self._SAMPLE.unpack_from(raw, 0)
+        sample = PlatformSample(position_mm=(px, py, pz), velocity_mm_s=(vx, vy, vz),
+                                t_us=t_mono_us + self._anchor_us, seq=seq,
+                                board_t_us=board_t_us, clamped=clamped) if present else None
+        healthy, done, lost, reads, errors, reconnects, recoveries, beat, n_err = \
+            self._HEALTH.unpack_from(raw, self._HEALTH_AT - self._SAMPLE_AT)
+        at = self._ERROR_AT - self._SAMPLE_AT
+        error = None if n_err == 0xFFFF else raw[at:at + n_err].decode("utf-8", "replace")
+        return before, sample, ReaderHealth(
+            healthy=healthy, lost_since_mono_s=None if math.isnan(lost) else lost,
+            reads=reads, errors=errors, reconnects=reconnects, recoveries=recoveries,
+            motion_done=done, heartbeat_s=beat, last_error=error)
+
+    def close(self) -> None:
+        """Unmap (the creator also closes its descriptor: the file is gone with the last)."""
+        self._buf.close()
+        if self._owner:
+            os.close(self.fd)
+
+
+def _anonymous_file(size: int) -> int:
+    """A descriptor of a ``size``-byte file with no name (``memfd`` where there is one)."""
+    if hasattr(os, "memfd_create"):
+        fd = os.memfd_create("teletouch-platform", os.MFD_CLOEXEC)
+    else:  # pragma: no cover - POSIX without memfd: a temporary file, unlinked at once
+        fd, path = tempfile.mkstemp(prefix="teletouch-platform-")
+        os.unlink(path)
+    os.ftruncate(fd, size)
+    return fd
+
+
+class _Flag:
+    """``motion_done`` as the station reads it (``is_set``), backed by the record."""
+
+    def __init__(self, owner: ProcessPlatformReader) -> None:
+        self._owner = owner
+
+    def is_set(self) -> bool:
+        return self._owner._health().motion_done
+
+
+class ProcessPlatformReader:
+    """A :class:`PlatformReader` in a child process (see the module docstring).
+
+    Args:
+        spec: the platform to open (``open_platform`` spec: a name or a URL).
+        options: the platform's options (JSON values: they cross to the child).
+        read_timeout_s: as for :class:`PlatformReader` (run in the child); here also the
+            oldest a sample may be, by its capture stamp, for the platform to count healthy.
+        reopen_after_s: as for :class:`PlatformReader`.
+        retry_min_s: first delay before reopening the device, or starting the child again.
+        retry_max_s: largest such delay.
+        motion_duration_s: as for :class:`PlatformReader`.
+        hang_timeout_s: a child whose heartbeat stopped this long (stopped, deadlocked) is
+            killed and started again; it also covers a child's start-up.
+
+    Raises:
+        ConfigError: bad timeouts (as :class:`PlatformReader`), options that are not JSON.
+    """
+
+    def __init__(self, spec: str, options: dict[str, Any] | None = None, *,
+                 read_timeout_s: float = 0.1, reopen_after_s: float | None = None,
+                 retry_min_s: float = 0.2, retry_max_s: float = 5.0,
+                 motion_duration_s: float | None = None,
+                 hang_timeout_s: float = 15.0) -> None:
+        if not read_timeout_s > 0:
+            raise ConfigError(f"read_timeout_s must be > 0, got {read_timeout_s}")
+        if reopen_after_s is None:
+            reopen_after_s = 4.0 * read_timeout_s
+        if not read_timeout_s <= reopen_after_s < float("inf"):
+            raise ConfigError(f"reopen_after_s must be finite and >= read_timeout_s "
+                              f"({read_timeout_s}), got {reopen_after_s}")
+        if not hang_timeout_s > reopen_after_s:
+            raise ConfigError(f"hang_timeout_s must be > reopen_after_s ({reopen_after_s}), "
+                              f"got {hang_timeout_s}")
+        self.spec = spec
+        self._options = dict(options or {})
+        try:
+            json.dumps(self._options)
+        except (TypeError, ValueError) as err:
+            raise ConfigError("platform options must be JSON values to cross to the platform "
+                              f"process: {err}") from err
+        self._read_timeout_us = read_timeout_s * 1e6
+        self._hang_timeout_s = hang_timeout_s
+        self._child_args = dict(read_timeout_s=read_timeout_s, reopen_after_s=reopen_after_s,
+                                retry_min_s=retry_min_s, retry_max_s=retry_max_s,
+                                motion_duration_s=motion_duration_s)
+        self._retry_min_s = retry_min_s
+        self._retry_max_s = retry_max_s
+        self._record: SampleRecord | None = None
+        self._process: subprocess.Popen[bytes] | None = None
+        self._stats_fd: int | None = None
+        self._spawned_s = 0.0
+        self._spawn_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._supervisor: threading.Thread | None = None
+        #: each thread's last copy (identity stable within a thread, no lock between them:
+        #: the real-time display loop never waits for another thread here)
+        self._local = threading.local()
+        self._torn_counter: int | None = None
+        self._stopped: tuple[int, PlatformSample | None, ReaderHealth] = (
+            0, None, dataclasses.replace(_NOT_STARTED, lost_since_mono_s=monotonic_s()))
+        self._carried = (0, 0, 0, 0)  # reads, errors, reconnects, recoveries of dead children
+        self._stats: PlatformStats | None = None
+        #: times a child process was started again after it died or hung
+        self.restarts = 0
+        #: why the last child ended unasked (None: none did)
+        self.child_error: str | None = None
+        self.motion_done = _Flag(self)
+
+    # ------------------------------------------------------------------ the record
+
+    def _read(self) -> tuple[int, PlatformSample | None, ReaderHealth]:
+        """The newest consistent copy for this thread (never waits for the child)."""
+        record = self._record
+        local = self._local
+        cached: tuple[int, PlatformSample | None, ReaderHealth] | None = \
+            getattr(local, "cached", None)
+        if record is None:
+            return self._stopped
+        try:
+            counter = record.counter
+            if cached is not None and (counter == cached[0] or counter == self._torn_counter):
+                return cached
+            read = record.read()
+        except ValueError:  # unmapped by stop() meanwhile
+            return self._stopped
+        if read is None:  # the writer is (or died) inside a write: keep what we had
+            self._torn_counter = counter
+            return cached if cached is not None else self._stopped
+        if cached is not None and read[1] is not None and read[1] == cached[1]:
+            # the same sample object until a newer one is published (the uplink and the
+            # renderer tell a new sample by its identity)
+            read = (read[0], cached[1], read[2])
+        local.cached = read
+        return read
+
+    def _health(self) -> ReaderHealth:
+        health = self._read()[2]
+        carried = self._carried
+        if not any(carried):
+            return health
+        return dataclasses.replace(
+            health, reads=health.reads + carried[0], errors=health.errors + carried[1],
+            reconnects=health.reconnects + carried[2], recoveries=health.recoveries + carried[3])
+
+    @property
+    def latest(self) -> PlatformSample | None:
+        """The newest sample the child published (None before the first; after a stop, the
+        last one)."""
+        return self._read()[1]
+
+    @property
+    def healthy(self) -> bool:
+        """The child has the device and its newest sample is younger than the read timeout
+        (by its capture stamp: a hung, stopped or dead child, or one reconnecting, is not)."""
+        _, sample, health = self._read()
+        return health.healthy and sample is not None \
+            and now_us() - sample.t_us <= self._read_timeout_us
+
+    @property
+    def lost_since_s(self) -> float | None:
+        """When the platform was lost, on the monotonic clock; None: healthy."""
+        _, sample, health = self._read()
+        if self.healthy:
+            return None
+        if health.lost_since_mono_s is not None:
+            return health.lost_since_mono_s
+        if sample is None:
+            return self._stopped[2].lost_since_mono_s
+        # samples stopped coming: lost a read timeout after the last one was taken
+        return monotonic_s() - (now_us() - sample.t_us - self._read_timeout_us) / 1e6
+
+    @property
+    def reads(self) -> int:
+        """Samples the children's reader took (board sequence advances)."""
+        return self._health().reads
+
+    @property
+    def errors(self) -> int:
+        """Loss episodes: the children's, and each child that died or hung."""
+        return self._health().errors
+
+    @property
+    def reconnects(self) -> int:
+        """Device reopens in the children."""
+        return self._health().reconnects
+
+    @property
+    def recoveries(self) -> int:
+        """Silences that ended on the open port, in the children."""
+        return self._health().recoveries
+
+    @property
+    def last_error(self) -> str | None:
+        """The child's last error, or why the last child ended unasked."""
+        return self._health().last_error or self.child_error
+
+    # ------------------------------------------------------------------ lifecycle
+
+    def start(self) -> None:
+        """Start the child and its supervisor (idempotent)."""
+        if self._supervisor is not None:
+            return
+        self._stop.clear()
+        self._record = SampleRecord()
+        self._spawn()
+        self._supervisor = threading.Thread(target=self._supervise, name="platform-process",
+                                            daemon=True)
+        self._supervisor.start()
+
+    def _spawn(self) -> None:
+        record = self._record
+        with self._spawn_lock:
+            if record is None or self._stop.is_set():
+                return
+            stats_r, stats_w = os.pipe()
+            settings = {"spec": self.spec, "options": self._options,
+                        "reader": self._child_args, "record_fd": record.fd,
+                        "stats_fd": stats_w, "parent": os.getpid(),
+                        "log_level": logging.getLogger().getEffectiveLevel()}
+            try:
+                self._process = subprocess.Popen(
+                    [sys.executable, "-P", "-m", "local_site.agent.platform_process",
+                     json.dumps(settings)], stdin=subprocess.PIPE,
+                    pass_fds=(record.fd, stats_w), start_new_session=True)
+            except OSError as err:
+                self._process = None
+                self.child_error = f"cannot start the platform process: {err}"
+                log.error("%s", self.child_error)
+                os.close(stats_r)
+            else:
+                self._stats_fd = stats_r
+            finally:
+                os.close(stats_w)
+            self._spawned_s = monotonic_s()
+
+    def _supervise(self) -> None:
+        """Start the child again, with backoff, when it died or hung (a station never gives
+        up); the dead child's counters carry over."""
+        delay = self._retry_min_s
+        while not self._stop.wait(_SUPERVISE_S):
+            process = self._process
+            running = process is not None and process.poll() is None
+            beat = max(self._read()[2].heartbeat_s, self._spawned_s)
+            if running and monotonic_s() - beat <= self._hang_timeout_s:
+                if self.healthy:
+                    delay = self._retry_min_s
+                continue
+            if running and process is not None:
+                why = f"hung (no heartbeat for {monotonic_s() - beat:.1f} s): killed"
+                process.kill()
+                process.wait()
+            else:
+                why = ("could not start" if process is None
+                       else f"exited with {process.returncode}")
+            self.child_error = f"platform process {why}"
+            log.error("%s; starting it again in %.1f s", self.child_error, delay)
+            self._retire(process)
+            if self._stop.wait(delay):
+                return
+            delay = min(self._retry_max_s, delay * 2.0)
+            self.restarts += 1
+            self._spawn()
+
+    def _retire(self, process: subprocess.Popen[bytes] | None) -> None:
+        """Close a dead child's pipes and carry its counters over (a death is a loss)."""
+        if process is not None and process.stdin is not None:
+            with contextlib.suppress(OSError):
+                process.stdin.close()
+        if self._stats_fd is not None:
+            os.close(self._stats_fd)
+            self._stats_fd = None
+        health = self._read()[2]
+        reads, errors, reconnects, recoveries = self._carried
+        self._carried = (reads + health.reads, errors + health.errors + 1,
+                         reconnects + health.reconnects, recoveries + health.recoveries)
+        if self._record is not None:  # the next child starts its counters at zero
+            self._record.claim()  # (the dead child may have stopped inside a write)
+            self._record.write_health(dataclasses.replace(
+                _NOT_STARTED, lost_since_mono_s=monotonic_s(), heartbeat_s=monotonic_s()))
+
+    def stop(self, timeout_s: float = _CHILD_STOP_S) -> None:
+        """Stop the child: it closes the device and reports its link counters.
+
+        Args:
+            timeout_s: how long the child may take (then it is killed, logged).
+        """
+        self._stop.set()
+        with self._spawn_lock:  # no child is started after this
+            pass
+        if self._supervisor is not None:
+            self._supervisor.join(timeout_s)
+            self._supervisor = None
+        process, self._process = self._process, None
+        if process is not None:
+            try:
+                process.communicate(b"stop\n", timeout=timeout_s)
+            except (subprocess.TimeoutExpired, OSError, ValueError) as err:
+                log.warning("platform process did not stop in %.1f s (%s): killed", timeout_s,
+                            err)
+                process.kill()
+                with contextlib.suppress(subprocess.TimeoutExpired):
+                    process.wait(timeout_s)
+            self._stats = self._read_stats()
+        if self._stats_fd is not None:
+            os.close(self._stats_fd)
+            self._stats_fd = None
+        record, self._record = self._record, None
+        if record is not None:
+            self._local = threading.local()
+            copy = record.read()
+            sample, health = (copy[1], copy[2]) if copy is not None else (None, _NOT_STARTED)
+            now = monotonic_s()
+            self._stopped = (0, sample, dataclasses.replace(
+                self._fold(health), healthy=False, lost_since_mono_s=now, heartbeat_s=now))
+            self._carried = (0, 0, 0, 0)
+            record.close()
+
+    def _fold(self, health: ReaderHealth) -> ReaderHealth:
+        reads, errors, reconnects, recoveries = self._carried
+        return dataclasses.replace(health, reads=health.reads + reads,
+                                   errors=health.errors + errors,
+                                   reconnects=health.reconnects + reconnects,
+                                   recoveries=health.recoveries + recoveries)
+
+    def _read_stats(self) -> PlatformStats | None:
+        """The child's link counters from its stats pipe (None when it wrote none)."""
+        fd = self._stats_fd
+        if fd is None:
+            return None
+        chunks = []
+        while select.select([fd], [], [], 0)[0]:
+            chunk = os.read(fd, 4096)
+            if not chunk:
+                break
+            chunks.append(chunk)
+        try:
+            return PlatformStats(**json.loads(b"".join(chunks)))
+        except (ValueError, TypeError):
+            return None
+
+    def platform_stats(self) -> PlatformStats:
+        """The device link's counters as the child reported them at :meth:`stop`."""
+        return self._stats if self._stats is not None else PlatformStats()
+
+    def disconnect(self) -> None:
+        """The child closes the device when it stops (nothing to do here)."""
+
+
+def main(argv: list[str] | None = None) -> int:  # pragma: no cover - runs in the child
+    """The child: open the platform, run its reader, publish every sample and the health,
+    until a line or the end of its standard input (the station stopped or is gone), or
+    until its parent changes.
+
+    Args:
+        argv: ``[settings JSON]`` (written by :class:`ProcessPlatformReader`).
+
+    Returns:
+        0.
+    """
+    settings = json.loads((sys.argv[1:] if argv is None else argv)[0])
+    logging.basicConfig(level=int(settings["log_level"]),
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    from local_site.agent.platform_reader import PlatformReader
+    from local_site.devices import open_platform
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the station stops us through stdin
+    record = SampleRecord(int(settings["record_fd"]))
+    record.claim()
+    platform = open_platform(settings["spec"], connect=False, **settings["options"])
+    # every sample goes to the record from the driver's own reader thread, as it is decoded;
+    # the reader watches the health at its usual pace
+    platform.sample_listener = record.write_sample
+    reader = PlatformReader(platform, **settings["reader"])
+
+    def publish() -> None:
+        record.write_health(ReaderHealth(
+            healthy=reader.healthy, lost_since_mono_s=reader.lost_since_s, reads=reader.reads,
+            errors=reader.errors, reconnects=reader.reconnects, recoveries=reader.recoveries,
+            motion_done=reader.motion_done.is_set(), heartbeat_s=monotonic_s(),
+            last_error=reader.last_error))
+
+    parent = int(settings["parent"])
+    publish()
+    reader.start()
+    try:
+        while True:
+            publish()
+            ready, _, _ = select.select([sys.stdin], [], [], _HEARTBEAT_S)
+            if ready or os.getppid() != parent:
+                break  # "stop", the end of the pipe (the station is gone), or a new parent
+    finally:
+        reader.stop()
+        with contextlib.suppress(Exception):
+            platform.disconnect()
+        publish()
+        with contextlib.suppress(OSError):
+            os.write(int(settings["stats_fd"]),
+                     json.dumps(dataclasses.asdict(platform.stats())).encode())
+        record.close()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
