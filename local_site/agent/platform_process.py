@@ -26,7 +26,9 @@ read the in-process reader. Same attributes, same safety meaning:
   counters carry over and each restart counts as a loss;
 * the child ends with the station: on :meth:`ProcessPlatformReader.stop`, at the end of its
   standard input (the station's process is gone), and when its parent changes. It runs in
-  a session of its own, so a Ctrl-C at the terminal reaches the station, which stops it.
+  a process group of its own, so a Ctrl-C at the terminal reaches the station, which stops
+  it (the same session: the kernel's autogroup scheduling still counts it with the
+  station's processes).
 
 The record lives in an anonymous file (``memfd``) handed to each child by descriptor: nothing
 is named on a file system, so nothing is left behind by a station that was killed. Capture
@@ -426,7 +428,7 @@ class ProcessPlatformReader:
                 self._process = subprocess.Popen(
                     [sys.executable, "-P", "-m", "local_site.agent.platform_process",
                      json.dumps(settings)], stdin=subprocess.PIPE,
-                    pass_fds=(record.fd, stats_w), start_new_session=True)
+                    pass_fds=(record.fd, stats_w), process_group=0)
             except OSError as err:
                 self._process = None
                 self.child_error = f"cannot start the platform process: {err}"
