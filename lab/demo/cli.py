@@ -47,6 +47,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--platform", choices=("sim", "sim-process"), default="sim",
                         help="the simulated platform's board as a thread of the local "
                              "station (sim, default) or in a process of its own")
+    parser.add_argument("--platform-process", action=argparse.BooleanOptionalAction,
+                        default=True,
+                        help="the local station reads its platform in a process of its own, "
+                             "the newest sample in shared memory (default: on)")
     parser.add_argument("--display", choices=("sim", "board-process"), default=DEFAULT_DISPLAY,
                         help="the emulated ArrayTac drive board as a process of its own "
                              "reached over socket:// (board-process, default), like a "
@@ -125,7 +129,7 @@ def run(args: argparse.Namespace) -> int:
                         register=args.register,
                         link=args.link,
                         motion=args.motion or DEFAULT_MOTION, platform=args.platform,
-                        display=args.display,
+                        platform_process=args.platform_process, display=args.display,
                         max_duration_s=args.duration,
                         frame_rate_hz=args.frame_rate_hz,
                         workdir=Path(args.workdir) if args.workdir else None,

@@ -85,6 +85,10 @@ class DemoConfig:
         motion: the scripted operator (``teletouch local --motion`` spec).
         platform: the local station's simulated platform backend: ``sim`` (the board as a
             thread of the station's process) or ``sim-process`` (in a process of its own).
+        platform_process: the local station reads its platform in a process of its own
+            (``teletouch local --platform-process``, the default here: the driver's and the
+            simulated board's threads then leave the display loop's interpreter; paired runs
+            in ``benchmarks/results/platform_process/``).
         display: the ArrayTac drive board: ``board-process`` (the default: ``teletouch
             board``, a process of its own that the station reaches over ``socket://`` with
             its serial driver, as a separate board is reached; the board's simulation then
@@ -112,6 +116,7 @@ class DemoConfig:
     link: str | None = None
     motion: str = DEFAULT_MOTION
     platform: str = "sim"
+    platform_process: bool = True
     display: str = DEFAULT_DISPLAY
     ideal: bool = False
     register: bool = True
@@ -367,7 +372,9 @@ def run_demo(config: DemoConfig,
             display = f"socket://127.0.0.1:{board_port}"
         local = procs.start(
             "local", "local", "--relay", f"ws://127.0.0.1:{local_port}/", *common,
-            "--platform", config.platform, "--display", display, "--motion", config.motion,
+            "--platform", config.platform,
+            "--platform-process" if config.platform_process else "--no-platform-process",
+            "--display", display, "--motion", config.motion,
             "--until-motion-done", "--duration", f"{config.max_duration_s:g}", "--no-status",
             "--record", str(files["record"]), "--summary-json", str(files["local_summary"]),
             *view_args, *config.extra_local_args)

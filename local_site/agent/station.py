@@ -603,6 +603,8 @@ class LocalAgent:
                          "errors": reader.errors,
                          "reconnects": reader.reconnects, "recoveries": reader.recoveries,
                          "last_error": reader.last_error,
+                         "process": isinstance(reader, ProcessPlatformReader),
+                         "process_restarts": getattr(reader, "restarts", 0),
                          **dataclasses.asdict(platform_stats)},
             "uplink": {"platform_states_sent": self.platform_states_sent,
                        "send_rate_hz": self.platform_states_sent / elapsed,

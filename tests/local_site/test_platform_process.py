@@ -247,6 +247,7 @@ async def test_the_local_station_renders_with_its_platform_in_a_process() -> Non
         agent.request_stop("test")
         assert await run == 0
     s = agent.summary
-    assert s is not None and s["platform"]["reads"] > 0
+    assert s is not None and s["platform"]["reads"] > 0 and s["platform"]["process"] is True
+    assert s["platform"]["process_restarts"] >= 1 and s["platform"]["errors"] >= 1
     assert s["platform"]["read_rate_hz"] > 0 and not math.isnan(s["platform"]["read_rate_hz"])
     assert s["safe_state"]["entries"].get("platform_lost", 0) >= 1
