@@ -334,14 +334,15 @@ class XYZPlatform(Device):
             t_us = board_t + self._clock_offset_us
             if previous is not None and t_us <= previous.t_us:
                 t_us = previous.t_us + 1
-            self._latest = PlatformSample(position_mm=position, velocity_mm_s=velocity,  # type: ignore[arg-type]
-                                          t_us=t_us, seq=seq,
-                                          board_t_us=board_t, clamped=clamped)
+            published = PlatformSample(position_mm=position, velocity_mm_s=velocity,  # type: ignore[arg-type]
+                                       t_us=t_us, seq=seq, board_t_us=board_t,
+                                       clamped=clamped)
+            self._latest = published
             self._last_rx_s = monotonic_s()
             self._cond.notify_all()
         listener = self.sample_listener
         if listener is not None:
-            listener(self._latest)
+            listener(published)
 
     def _link_failed(self, err: BaseException) -> None:
         """Record that the link broke (called by the backend's reader thread)."""

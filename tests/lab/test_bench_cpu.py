@@ -74,3 +74,19 @@ def test_the_demos_processes_and_the_local_stations_board_process_are_found(
     assert cpu_impl._children(10) == {11: "relay", 12: "link", 13: "remote", 14: "local",
                                       15: "sim-board", 19: "board"}
     assert set(cpu_impl._SIM_PROCESSES) == {"sim-board", "board"}
+
+
+def test_the_local_stations_platform_process_and_a_board_below_it_are_found(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    from lab.bench import cpu_impl
+
+    py = "/venv/bin/python3"
+    table = [  # --platform-process, with and without --platform sim-process
+        (14, 10, [py, "-P", "-m", "lab.cli", "local", "--platform", "sim-process",
+                  "--platform-process"]),
+        (20, 14, [py, "-P", "-m", "local_site.agent.platform_process", "{}"]),
+        (21, 20, [py, "-P", "-m", "local_site.platform.sim_process", "{}"]),
+        (22, 13, [py, "-P", "-m", "local_site.agent.platform_process", "{}"]),  # not ours
+    ]
+    monkeypatch.setattr(cpu_impl, "_processes", lambda: iter(table))
+    assert cpu_impl._children(10) == {14: "local", 20: "platform", 21: "sim-board"}
