@@ -55,6 +55,7 @@ import threading
 from dataclasses import dataclass
 from typing import Any
 
+from local_site.agent.platform_reader import PlatformReader, reopen_after
 from local_site.platform.base import PlatformSample, PlatformStats
 from shared.errors import ConfigError
 from shared.timebase import monotonic_s, now_us, wall_anchor_ns
@@ -270,11 +271,7 @@ class ProcessPlatformReader:
                  hang_timeout_s: float = 15.0) -> None:
         if not read_timeout_s > 0:
             raise ConfigError(f"read_timeout_s must be > 0, got {read_timeout_s}")
-        if reopen_after_s is None:
-            reopen_after_s = 4.0 * read_timeout_s
-        if not read_timeout_s <= reopen_after_s < float("inf"):
-            raise ConfigError(f"reopen_after_s must be finite and >= read_timeout_s "
-                              f"({read_timeout_s}), got {reopen_after_s}")
+        reopen_after_s = reopen_after(read_timeout_s, reopen_after_s)
         if not hang_timeout_s > reopen_after_s:
             raise ConfigError(f"hang_timeout_s must be > reopen_after_s ({reopen_after_s}), "
                               f"got {hang_timeout_s}")
@@ -341,13 +338,9 @@ class ProcessPlatformReader:
         return read
 
     def _health(self) -> ReaderHealth:
+        """The health with the counters of the children that died before this one."""
         health = self._read()[2]
-        carried = self._carried
-        if not any(carried):
-            return health
-        return dataclasses.replace(
-            health, reads=health.reads + carried[0], errors=health.errors + carried[1],
-            reconnects=health.reconnects + carried[2], recoveries=health.recoveries + carried[3])
+        return self._fold(health) if any(self._carried) else health
 
     @property
     def latest(self) -> PlatformSample | None:
@@ -523,6 +516,7 @@ class ProcessPlatformReader:
             record.close()
 
     def _fold(self, health: ReaderHealth) -> ReaderHealth:
+        """``health`` with the dead children's counters added."""
         reads, errors, reconnects, recoveries = self._carried
         return dataclasses.replace(health, reads=health.reads + reads,
                                    errors=health.errors + errors,
@@ -567,7 +561,6 @@ def main(argv: list[str] | None = None) -> int:  # pragma: no cover - runs in th
     settings = json.loads((sys.argv[1:] if argv is None else argv)[0])
     logging.basicConfig(level=int(settings["log_level"]),
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    from local_site.agent.platform_reader import PlatformReader
     from local_site.devices import open_platform
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the station stops us through stdin

@@ -26,9 +26,23 @@ from local_site.platform.base import PlatformSample, PlatformStats, XYZPlatform
 from shared.errors import ConfigError, DeviceError, DeviceInitError, DeviceTimeoutError
 from shared.timebase import monotonic_s
 
-__all__ = ["PlatformReader"]
+__all__ = ["PlatformReader", "reopen_after"]
 
 log = logging.getLogger(__name__)
+
+
+def reopen_after(read_timeout_s: float, reopen_after_s: float | None) -> float:
+    """The silence after which a platform is reopened (default: four read timeouts).
+
+    Raises:
+        ConfigError: it is shorter than the read timeout, or not finite.
+    """
+    if reopen_after_s is None:
+        reopen_after_s = 4.0 * read_timeout_s
+    if not read_timeout_s <= reopen_after_s < float("inf"):
+        raise ConfigError(f"reopen_after_s must be finite and >= read_timeout_s "
+                          f"({read_timeout_s}), got {reopen_after_s}")
+    return reopen_after_s
 
 
 class PlatformReader:
@@ -53,11 +67,7 @@ class PlatformReader:
                  reopen_after_s: float | None = None) -> None:
         if not 0 <= poll_s < read_timeout_s:
             raise ConfigError(f"poll_s must be in [0, read_timeout_s), got {poll_s}")
-        if reopen_after_s is None:
-            reopen_after_s = 4.0 * read_timeout_s
-        if not read_timeout_s <= reopen_after_s < float("inf"):
-            raise ConfigError(f"reopen_after_s must be finite and >= read_timeout_s "
-                              f"({read_timeout_s}), got {reopen_after_s}")
+        reopen_after_s = reopen_after(read_timeout_s, reopen_after_s)
         self.platform = platform
         self._poll_s = poll_s
         self._read_timeout_s = read_timeout_s
