@@ -148,7 +148,7 @@ def snapshot(pids: list[int]) -> CpuSnapshot:
 #: local station
 _SIM_BOARD_MODULE = "local_site.platform.sim_process"
 #: the local station's platform reader process (``local.agent.platform_process``)
-_PLATFORM_PROCESS_MODULE = "local_site.agent.platform_process"
+_PLATFORM_PROCESS_MODULE = "local_site.agent.platform_child"
 
 
 #: the demo's processes that are simulated hardware as a whole: their stage

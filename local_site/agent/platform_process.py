@@ -10,7 +10,7 @@ display loop may have to wait for.
 
 :class:`ProcessPlatformReader` runs the platform driver and its :class:`PlatformReader`
 (reopen with backoff, silence handling, the scripted motion's end) in a child process
-(``python -m local_site.agent.platform_process``: a fresh interpreter, nothing of the
+(``python -m local_site.agent.platform_child``: a fresh interpreter, nothing of the
 station's threads copied). The driver's reader thread copies every sample into a small
 shared-memory record as it decodes it (``XYZPlatform.sample_listener``) and the child's main
 thread adds the reader's health every 20 ms; the station reads the record (no system call,
@@ -46,7 +46,6 @@ import math
 import mmap
 import os
 import select
-import signal
 import struct
 import subprocess
 import sys
@@ -55,17 +54,17 @@ import threading
 from dataclasses import dataclass
 from typing import Any
 
-from local_site.agent.platform_reader import PlatformReader, reopen_after
+from local_site.agent.platform_reader import reopen_after
 from local_site.platform.base import PlatformSample, PlatformStats
 from shared.errors import ConfigError
 from shared.timebase import monotonic_s, now_us, wall_anchor_ns
 
-__all__ = ["ProcessPlatformReader", "ReaderHealth", "SampleRecord", "main"]
+__all__ = ["HEARTBEAT_S", "ProcessPlatformReader", "ReaderHealth", "SampleRecord"]
 
 log = logging.getLogger(__name__)
 
 #: how often the child publishes its health and checks its parent
-_HEARTBEAT_S = 0.02
+HEARTBEAT_S = 0.02
 #: how often the station's supervisor looks at its child
 _SUPERVISE_S = 0.1
 #: bytes kept of the child's last error message
@@ -419,7 +418,7 @@ class ProcessPlatformReader:
                         "log_level": logging.getLogger().getEffectiveLevel()}
             try:
                 self._process = subprocess.Popen(
-                    [sys.executable, "-P", "-m", "local_site.agent.platform_process",
+                    [sys.executable, "-P", "-m", "local_site.agent.platform_child",
                      json.dumps(settings)], stdin=subprocess.PIPE,
                     pass_fds=(record.fd, stats_w), process_group=0)
             except OSError as err:
@@ -545,60 +544,3 @@ class ProcessPlatformReader:
 
     def disconnect(self) -> None:
         """The child closes the device when it stops (nothing to do here)."""
-
-
-def main(argv: list[str] | None = None) -> int:  # pragma: no cover - runs in the child
-    """The child: open the platform, run its reader, publish every sample and the health,
-    until a line or the end of its standard input (the station stopped or is gone), or
-    until its parent changes.
-
-    Args:
-        argv: ``[settings JSON]`` (written by :class:`ProcessPlatformReader`).
-
-    Returns:
-        0.
-    """
-    settings = json.loads((sys.argv[1:] if argv is None else argv)[0])
-    logging.basicConfig(level=int(settings["log_level"]),
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    from local_site.devices import open_platform
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the station stops us through stdin
-    record = SampleRecord(int(settings["record_fd"]))
-    record.claim()
-    platform = open_platform(settings["spec"], connect=False, **settings["options"])
-    # every sample goes to the record from the driver's own reader thread, as it is decoded;
-    # the reader watches the health at its usual pace
-    platform.sample_listener = record.write_sample
-    reader = PlatformReader(platform, **settings["reader"])
-
-    def publish() -> None:
-        record.write_health(ReaderHealth(
-            healthy=reader.healthy, lost_since_mono_s=reader.lost_since_s, reads=reader.reads,
-            errors=reader.errors, reconnects=reader.reconnects, recoveries=reader.recoveries,
-            motion_done=reader.motion_done.is_set(), heartbeat_s=monotonic_s(),
-            last_error=reader.last_error))
-
-    parent = int(settings["parent"])
-    publish()
-    reader.start()
-    try:
-        while True:
-            publish()
-            ready, _, _ = select.select([sys.stdin], [], [], _HEARTBEAT_S)
-            if ready or os.getppid() != parent:
-                break  # "stop", the end of the pipe (the station is gone), or a new parent
-    finally:
-        reader.stop()
-        with contextlib.suppress(Exception):
-            platform.disconnect()
-        publish()
-        with contextlib.suppress(OSError):
-            os.write(int(settings["stats_fd"]),
-                     json.dumps(dataclasses.asdict(platform.stats())).encode())
-        record.close()
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

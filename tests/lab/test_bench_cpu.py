@@ -84,9 +84,9 @@ def test_the_local_stations_platform_process_and_a_board_below_it_are_found(
     table = [  # --platform-process, with and without --platform sim-process
         (14, 10, [py, "-P", "-m", "lab.cli", "local", "--platform", "sim-process",
                   "--platform-process"]),
-        (20, 14, [py, "-P", "-m", "local_site.agent.platform_process", "{}"]),
+        (20, 14, [py, "-P", "-m", "local_site.agent.platform_child", "{}"]),
         (21, 20, [py, "-P", "-m", "local_site.platform.sim_process", "{}"]),
-        (22, 13, [py, "-P", "-m", "local_site.agent.platform_process", "{}"]),  # not ours
+        (22, 13, [py, "-P", "-m", "local_site.agent.platform_child", "{}"]),  # not ours
     ]
     monkeypatch.setattr(cpu_impl, "_processes", lambda: iter(table))
     assert cpu_impl._children(10) == {14: "local", 20: "platform", 21: "sim-board"}
