@@ -30,6 +30,11 @@ read the in-process reader. Same attributes, same safety meaning:
   it (the same session: the kernel's autogroup scheduling still counts it with the
   station's processes).
 
+Measured (``docs/speed.md`` section 13): on a quiet machine the demo used less CPU, its
+display loop ran faster with less jitter, and motion-to-touch was shorter; beside four busy
+processes the loop still gained but motion-to-touch lost, and with the simulated board's
+thread in the child its reader was still seen starved for 259 ms.
+
 The record lives in an anonymous file (``memfd``) handed to each child by descriptor: nothing
 is named on a file system, so nothing is left behind by a station that was killed. Capture
 stamps cross on the monotonic clock (system wide) and are put back on the station's
