@@ -326,7 +326,9 @@ class ProcessPlatformReader:
             return self._stopped
         try:
             counter = record.counter
-            if cached is not None and (counter == cached[0] or counter == self._torn_counter):
+            if counter == self._torn_counter:  # the same unfinished write: do not retry
+                return cached if cached is not None else self._stopped
+            if cached is not None and counter == cached[0]:
                 return cached
             read = record.read()
         except ValueError:  # unmapped by stop() meanwhile
