@@ -86,7 +86,9 @@ class FaultSpec:
 
     Attributes:
         kind: one of ``FAULT_KINDS``.
-        target: ``local`` or ``remote`` (the leg or the station); unused for the relay.
+        target: ``local`` or ``remote`` (the leg or the station); unused for the relay;
+            ``platform`` (``kill`` and ``stop`` only): the local station's platform process
+            (``--platform-process``), which the station itself restarts.
         duration_s: how long the relay is down / the leg is cut / the station is stopped or
             killed before its restart; for ``clock_step`` the step in seconds (signed).
     """
@@ -98,8 +100,12 @@ class FaultSpec:
     def __post_init__(self) -> None:
         if self.kind not in FAULT_KINDS:
             raise ValueError(f"unknown fault kind {self.kind!r}")
-        if self.target not in ("local", "remote"):
-            raise ValueError(f"fault target must be local or remote, got {self.target!r}")
+        if self.target not in ("local", "remote", "platform"):
+            raise ValueError(f"fault target must be local, remote or platform, got "
+                             f"{self.target!r}")
+        if self.target == "platform" and self.kind not in ("kill", "stop"):
+            raise ValueError(f"the platform process can only be killed or stopped, not "
+                             f"{self.kind!r}")
 
 
 @dataclass(frozen=True)
@@ -137,6 +143,8 @@ def scenarios(*, long: bool = True) -> list[Scenario]:
         out.append(Scenario(f"{role} station SIGSTOP 3 s", FaultSpec("stop", role, 3.0)))
         out.append(Scenario(f"{role} clock +0.3 s step", FaultSpec("clock_step", role, 0.3),
                             observe_s=12.0))
+    out.append(Scenario("platform process SIGKILL", FaultSpec("kill", "platform")))
+    out.append(Scenario("platform process SIGSTOP 3 s", FaultSpec("stop", "platform", 3.0)))
     out.append(Scenario("relay SIGKILL 0.5 s + 2 CPU burners",
                         FaultSpec("relay_kill", "remote", 0.5), cpu_burners=2))
     out.append(Scenario("blackhole 2 s, remote leg + 2 CPU burners",
@@ -274,6 +282,8 @@ class FaultRig:
         frame_rate_hz: the remote station's frame rate.
         board_process: run the local station's drive board as a process of its own
             (``teletouch board``) instead of the simulator inside the station.
+        platform_process: the local station reads its platform in a process of its own
+            (``teletouch local --platform-process``).
         board_nice: the board process's niceness increment (``--nice``; -10 by default: a
             real board's MCU is not slowed by the host's load; refused without the
             privilege, then the board runs at normal priority and its summary says so).
@@ -283,7 +293,8 @@ class FaultRig:
     def __init__(self, workdir: Path, *, outage_s: float | None = None,
                  outage_reset: bool = False, cpu_burners: int = 0,
                  frame_rate_hz: float = 60.0, board_process: bool = False,
-                 board_nice: int = -10, python: str = sys.executable) -> None:
+                 platform_process: bool = False, board_nice: int = -10,
+                 python: str = sys.executable) -> None:
         self.workdir = Path(workdir)
         self.workdir.mkdir(parents=True, exist_ok=True)
         self.outage_s = outage_s or 1.0
@@ -291,6 +302,7 @@ class FaultRig:
         self.cpu_burners = cpu_burners
         self.frame_rate_hz = frame_rate_hz
         self.board_process = board_process
+        self.platform_process = platform_process
         self.board_nice = board_nice
         self.board: _Proc | None = None
         self.board_port = 0
@@ -372,7 +384,8 @@ class FaultRig:
             display = (f"socket://127.0.0.1:{self.board_port}" if self.board_process
                        else "sim")
             args = ["local", *common, "--platform", "sim", "--display", display,
-                    "--motion", MOTION, "--no-status"]
+                    "--motion", MOTION, "--no-status",
+                    "--platform-process" if self.platform_process else "--no-platform-process"]
         p = self._spawn(f"{role}-{n}", args, module="lab.faults_probe", env=env)
         self.stations[role] = p
         return p
@@ -580,6 +593,8 @@ class FaultRig:
             self.links[fault.target].proc.send_signal(signal.SIGUSR1)
             self._sleep_polling(t0 + self.outage_s)
             return t0, t0 + self.outage_s
+        if fault.target == "platform":
+            return self._inject_platform(fault)
         station = self.stations[fault.target]
         if kind == "stop":
             station.proc.send_signal(signal.SIGSTOP)
@@ -603,6 +618,40 @@ class FaultRig:
             self.clock_steps[fault.target].append((t0, total))
             return t0, t0
         raise ValueError(kind)
+
+    def platform_pid(self) -> int | None:
+        """The pid of the local station's platform process (None: it has none now)."""
+        station = self.stations["local"].proc.pid
+        for pid in _children(station):
+            try:
+                cmd = Path(f"/proc/{pid}/cmdline").read_bytes()
+            except OSError:
+                continue
+            if b"local_site.agent.platform_child" in cmd:
+                return pid
+        return None
+
+    def _inject_platform(self, fault: FaultSpec, timeout_s: float = 60.0) -> tuple[float, float]:
+        """SIGKILL the platform process (the recovery moment: the station has started a new
+        one), or SIGSTOP it for the fault's duration (the recovery moment: SIGCONT)."""
+        pid = self.platform_pid()
+        if pid is None:
+            raise RigError(f"the local station (pid {self.stations['local'].proc.pid}) has no "
+                           "platform process; run the rig with platform_process=True")
+        t0 = time.monotonic()
+        if fault.kind == "kill":
+            os.kill(pid, signal.SIGKILL)
+            self._wait(lambda: self.platform_pid() not in (None, pid),
+                       "the station's new platform process", timeout_s,
+                       (self.stations["local"],))
+            return t0, time.monotonic()
+        os.kill(pid, signal.SIGSTOP)
+        try:
+            self._sleep_polling(t0 + fault.duration_s)
+        finally:
+            t1 = time.monotonic()
+            os.kill(pid, signal.SIGCONT)
+        return t0, t1
 
     def _sleep_polling(self, until: float) -> None:
         while (left := until - time.monotonic()) > 0:
@@ -656,6 +705,22 @@ class FaultRig:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _children(pid: int) -> list[int]:
+    """The pids whose parent is ``pid`` (from /proc)."""
+    out = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+        except OSError:
+            continue
+        # the command name (2nd field) is in parentheses and may hold spaces
+        if int(stat[stat.rindex(")") + 2:].split()[1]) == pid:
+            out.append(int(entry.name))
+    return out
 
 
 def _logged(p: _Proc, text: str) -> bool:
@@ -821,7 +886,9 @@ def _summary_figures(summaries: dict[str, Any]) -> dict[str, Any]:
         link = loc.get("link") or {}
         out["local"] = {"exit_reason": loc.get("exit_reason"), "exit_code": loc.get("exit_code"),
                         "safe_entries": (loc.get("safe_state") or {}).get("entries"),
-                        "link": _pick(link, "connects", "connection_losses")}
+                        "link": _pick(link, "connects", "connection_losses"),
+                        "platform": _pick(loc.get("platform") or {}, "process",
+                                          "process_restarts", "reconnects", "recoveries")}
     board = summaries.get("board")
     if isinstance(board, dict):
         out["board"] = _pick(board, "commands_applied", "commands_rejected",
@@ -845,6 +912,7 @@ def run_scenario(scenario: Scenario, workdir: Path, *, repeats: int = 1,
                  start_timeout_s: float = 150.0, steady_timeout_s: float = 20.0,
                  frame_bound_ms: float = 150.0,
                  command_bound_ms: float = 100.0, board_process: bool = False,
+                 platform_process: bool = False,
                  progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Start a rig, inject the scenario's fault ``repeats`` times, stop, analyse.
 
@@ -857,7 +925,8 @@ def run_scenario(scenario: Scenario, workdir: Path, *, repeats: int = 1,
     f = scenario.fault
     rig = FaultRig(workdir, outage_s=f.duration_s if f.kind in ("blackhole", "reset") else None,
                    outage_reset=f.kind == "reset", cpu_burners=scenario.cpu_burners,
-                   board_process=board_process)
+                   board_process=board_process,
+                   platform_process=platform_process or f.target == "platform")
     injections: list[tuple[float, float]] = []
     unsteady = 0
     started = time.monotonic()
@@ -892,18 +961,19 @@ def run_scenario(scenario: Scenario, workdir: Path, *, repeats: int = 1,
                    "repeats": len(injections), "injected_unsteady": unsteady,
                    "wall_s": time.monotonic() - started,
                    "board_process": board_process,
+                   "platform_process": rig.platform_process,
                    "error": error, "summaries": _summary_figures(summaries),
                    "workdir": str(workdir)})
     return result
 
 
 def iter_results(items: list[Scenario], root: Path, *, repeats: int,
-                 board_process: bool = False,
+                 board_process: bool = False, platform_process: bool = False,
                  progress: Callable[[str], None] | None = None) -> Iterator[dict[str, Any]]:
     """Run each scenario in its own directory under ``root``, yielding its result."""
     for i, sc in enumerate(items):
         if progress is not None:
             progress(f"[{i + 1}/{len(items)}] {sc.name}")
         yield run_scenario(sc, root / f"{i:02d}", repeats=repeats, board_process=board_process,
-                           progress=progress)
+                           platform_process=platform_process, progress=progress)
 

@@ -45,11 +45,17 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="run the local station's drive board as a process of its own "
                              "(teletouch board, reached over socket://); the display's safe "
                              "state is then the board's; results go to faults_board.md/json")
+    parser.add_argument("--platform-process", action="store_true",
+                        help="the local station reads its platform in a process of its own "
+                             "(teletouch local --platform-process; the platform process's "
+                             "own faults use it always); results go to faults_platform.md/json "
+                             "(faults_board_platform.* with --board-process)")
     parser.add_argument("--write-results", metavar="DIR", default=None,
                         help="write faults.md and faults.json (faults_board.* with "
-                             "--board-process) to DIR ('' = do not write; default "
-                             "benchmarks/results, but nowhere for a partial run with --only, "
-                             "which must not replace the whole suite's table)")
+                             "--board-process, faults_platform.* with --platform-process) "
+                             "to DIR ('' = do not write; default benchmarks/results, but "
+                             "nowhere for a partial run with --only, which must not replace "
+                             "the whole suite's table)")
 
 
 def results_dir(write_results: str | None, only: list[str] | None) -> str:
@@ -104,8 +110,9 @@ def table(results: list[dict[str, Any]]) -> str:
         exits = ", ".join(f"{e['role']}#{e['instance']}:{e['code']}"
                           for e in r["exits"]) or "0"
         missed = _verdict(r)
+        name = r["scenario"] + (" [platform process]" if r.get("platform_process") else "")
         lines.append(
-            f"| {r['scenario']} | {r['repeats']} | "
+            f"| {name} | {r['repeats']} | "
             f"{_fmt(h['p50'])}/{_fmt(h['p99'])}/{_fmt(h['max'])} ({h['n']}) | "
             f"{_fmt(s['p50'])}/{_fmt(s['p99'])}/{_fmt(s['max'])} ({s['n']}) | "
             f"{_fmt(f['p50'])}/{_fmt(f['max'])} ({_fmt(r['any_frame_after_ms']['max'])}) | "
@@ -121,13 +128,15 @@ def table(results: list[dict[str, Any]]) -> str:
 def _summaries_table(results: list[dict[str, Any]]) -> str:
     lines = ["| scenario | local safe entries | local link connects/losses | remote watchdog / "
              "link-loss halts | remote dropped stale / no clock | remote max measured age ms | "
-             "remote link connects/losses | injected into an unsteady flow |",
-             "|" + "---|" * 8]
+             "remote link connects/losses | local platform process restarts | "
+             "injected into an unsteady flow |",
+             "|" + "---|" * 9]
     for r in results:
         sm = r["summaries"]
         loc = sm.get("local") or {}
         rem = sm.get("remote") or {}
         ll, rl = loc.get("link") or {}, rem.get("link") or {}
+        plat = loc.get("platform") or {}
         lines.append(
             f"| {r['scenario']} | {_fmt(loc.get('safe_entries'))} | "
             f"{_fmt(ll.get('connects'))}/{_fmt(ll.get('connection_losses'))} | "
@@ -135,6 +144,7 @@ def _summaries_table(results: list[dict[str, Any]]) -> str:
             f"{_fmt(rem.get('dropped_stale'))} / {_fmt(rem.get('dropped_no_clock'))} | "
             f"{_fmt(rem.get('max_measured_age_ms'))} | "
             f"{_fmt(rl.get('connects'))}/{_fmt(rl.get('connection_losses'))} | "
+            f"{_fmt(plat.get('process_restarts')) if plat.get('process') else '-'} | "
             f"{r['injected_unsteady']} |")
     return "\n".join(lines)
 
@@ -281,11 +291,13 @@ def run(args: argparse.Namespace) -> int:
     parts = ["teletouch bench faults"] + (["--quick"] if args.quick else []) \
         + (["--short"] if args.short else []) \
         + (["--board-process"] if args.board_process else []) \
+        + (["--platform-process"] if args.platform_process else []) \
         + ([f"--repeats {args.repeats}"] if args.repeats else []) \
         + [f"--only '{t}'" for t in (args.only or [])]
     results: list[dict[str, Any]] = []
     md = ""
-    name = "faults_board" if args.board_process else "faults"
+    name = "faults" + ("_board" if args.board_process else "") \
+        + ("_platform" if args.platform_process else "")
 
     def write(partial: bool) -> None:
         nonlocal md
@@ -301,6 +313,7 @@ def run(args: argparse.Namespace) -> int:
                 "results": results})
 
     for r in iter_results(items, root, repeats=repeats, board_process=args.board_process,
+                          platform_process=args.platform_process,
                           progress=lambda m: print(m, file=sys.stderr, flush=True)):
         results.append(r)
         print(f"  -> halt p99 {_fmt(r['halt_ms']['p99'])} ms, safe p99 "

@@ -175,6 +175,7 @@ class LocalAgent:
         self.summary: dict[str, Any] | None = None
         self.platform_states_sent = 0
         self.platform_states_skipped_link_down = 0
+        self.platform_states_skipped_stale = 0
         self.send_errors = 0
         self.arm_states_received = 0
         self.relay_errors = 0
@@ -291,11 +292,17 @@ class LocalAgent:
         next_t = loop.time()
         last = None
         seq = 0
+        # a sample older than this is never sent (the platform counts as lost by then): a
+        # reader that resumes after a stall may first decode samples the board buffered
+        # meanwhile, stamped when they were latched (the remote would drop them as stale)
+        stale_us = round(self.config.platform_read_timeout_s * 1e6)
         while True:
             sample = reader.latest
             if sample is not None and sample is not last:
                 last = sample
-                if link.is_connected:
+                if now_us() - sample.t_us > stale_us:
+                    self.platform_states_skipped_stale += 1
+                elif link.is_connected:
                     seq += 1
                     velocity = tuple(min(max(v, -_VELOCITY_LIMIT_MM_S), _VELOCITY_LIMIT_MM_S)
                                      for v in sample.velocity_mm_s)
@@ -609,6 +616,7 @@ class LocalAgent:
             "uplink": {"platform_states_sent": self.platform_states_sent,
                        "send_rate_hz": self.platform_states_sent / elapsed,
                        "skipped_link_down": self.platform_states_skipped_link_down,
+                       "skipped_stale": self.platform_states_skipped_stale,
                        "send_errors": self.send_errors},
             "display": {"spec": self.config.display, "commands_sent": c.commands_sent,
                         "commands_skipped_unchanged": c.commands_skipped_unchanged,

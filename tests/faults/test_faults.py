@@ -38,9 +38,10 @@ FLOW_BOUND_MS = scaled(BOUND_MS)
 def rig_factory(tmp_path: Path) -> Iterator[RigFactory]:
     rigs: list[FaultRig] = []
 
-    def make(outage_s: float | None = None, board_process: bool = False) -> FaultRig:
+    def make(outage_s: float | None = None, board_process: bool = False,
+             platform_process: bool = False) -> FaultRig:
         rig = FaultRig(tmp_path / f"rig{len(rigs)}", outage_s=outage_s,
-                       board_process=board_process)
+                       board_process=board_process, platform_process=platform_process)
         rigs.append(rig)
         rig.start(scaled(90.0))
         assert rig.wait_steady(1.0, scaled(30.0), FLOW_BOUND_MS), \
@@ -170,3 +171,37 @@ def test_local_station_sigstop_three_seconds_the_board_process_parks_the_pins_by
                             f"board's latch refused {len(board.refused)})")
     stale = _stale_rendered_after(rig, t_cont)
     assert not stale, f"{len(stale)} stale frames rendered, up to {max(stale):.0f} ms old"
+
+
+def test_platform_process_sigkill_parks_the_pins_halts_the_arm_and_the_station_restarts_it(
+        rig_factory: RigFactory) -> None:
+    # ``teletouch local --platform-process``: the platform is read in a child process. Killed,
+    # the station must notice (no fresh sample within the read timeout), park the pins, stop
+    # sending platform states (the arm's watchdog halts it), start a new child and go on.
+    rig: FaultRig = rig_factory(platform_process=True)
+    old = rig.platform_pid()
+    assert old is not None
+    t_kill, t_new = rig.inject(FaultSpec("kill", "platform"))
+    assert rig.platform_pid() not in (None, old)
+
+    def lost() -> bool:
+        rig.poll()
+        p = rig.probe("local")
+        return any(m > t_kill and why == "platform_lost" for m, why in p.safe)
+
+    wait_until(lost, 10.0, "the display's safe state (platform_lost) after the kill")
+    assert rig.wait_flowing(t_new, scaled(30.0), FLOW_BOUND_MS), \
+        "fresh frames and executed commands did not come back after the new platform process"
+    rig.poll()
+    p = rig.probe("local")
+    entered = min(m for m, why in p.safe if m > t_kill and why == "platform_lost")
+    assert any(m > t_kill for m, _ in rig.probe("remote").halts), \
+        "the arm was not halted while the platform was lost"
+    assert any(m > entered for m in p.resumed), "the display never left its safe state"
+    assert rig.exits == [], f"stations exited: {rig.exits}"
+    stale = _stale_rendered_after(rig, t_kill)
+    assert not stale, f"{len(stale)} stale frames rendered, up to {max(stale):.0f} ms old"
+    summaries = rig.stop()
+    local = summaries["local"]
+    assert local is not None and local["platform"]["process"] is True
+    assert local["platform"]["process_restarts"] >= 1

@@ -159,12 +159,17 @@ def test_the_suite_covers_the_issue_s_faults() -> None:
                 assert (kind, leg, d) in kinds
     for role in ("local", "remote"):
         assert {("kill", role, 0.5), ("stop", role, 3.0), ("clock_step", role, 0.3)} <= kinds
+    assert {("kill", "platform", 0.0), ("stop", "platform", 3.0)} <= kinds
     assert sum(s.cpu_burners == 2 for s in scenarios()) >= 3
     assert len(set(names)) == len(names)
     assert not any(s.fault.duration_s > 2.0 for s in scenarios(long=False)
                    if s.fault.kind in ("blackhole", "reset"))
     with pytest.raises(ValueError, match="unknown fault"):
         FaultSpec("meteor")
+    with pytest.raises(ValueError, match="local, remote or platform"):
+        FaultSpec("kill", "relay")
+    with pytest.raises(ValueError, match="only be killed or stopped"):
+        FaultSpec("clock_step", "platform", 0.3)
 
 
 def test_probe_clock_steps_the_wall_clock_not_the_monotonic_one(tmp_path: Path) -> None:

@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from local_site.agent import LocalAgent
 from local_site.recording import load_recording
@@ -207,3 +208,25 @@ async def test_compact_frames_render_only_once_their_key_frame_arrived() -> None
             await remote.close()
             agent.request_stop("test")
             assert await run == 0
+
+
+async def test_platform_samples_older_than_the_read_timeout_are_never_sent(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    # a reader that resumes after a stall (a stopped or starved platform process) may first
+    # publish samples the board latched long ago; the uplink must not send them as commands.
+    # The station's clock, as the uplink reads it, runs 1 s ahead: every sample is 1 s old.
+    import local_site.agent.station as station
+
+    monkeypatch.setattr(station, "now_us", lambda: now_us() + 1_000_000)
+    async with running_relay() as relay:
+        url = f"ws://127.0.0.1:{relay.ws_port}/"
+        agent = relay_agent(url)
+        run = asyncio.create_task(agent.run())
+        async with FakeRemote(url) as remote:
+            await wait_for(lambda: agent.platform_states_skipped_stale > 20, 10.0,
+                           "samples skipped as stale")
+            agent.request_stop("test")
+            assert await run == 0
+    assert agent.platform_states_sent == 0 and remote.states == []
+    assert agent.summary is not None
+    assert agent.summary["uplink"]["skipped_stale"] == agent.platform_states_skipped_stale
