@@ -48,9 +48,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="the simulated platform's board as a thread of the local "
                              "station (sim, default) or in a process of its own")
     parser.add_argument("--platform-process", action=argparse.BooleanOptionalAction,
-                        default=True,
+                        default=False,
                         help="the local station reads its platform in a process of its own, "
-                             "the newest sample in shared memory (default: on)")
+                             "the newest sample in shared memory (default: off; "
+                             "docs/speed.md section 13)")
     parser.add_argument("--display", choices=("sim", "board-process"), default=DEFAULT_DISPLAY,
                         help="the emulated ArrayTac drive board as a process of its own "
                              "reached over socket:// (board-process, default), like a "

@@ -86,9 +86,10 @@ class DemoConfig:
         platform: the local station's simulated platform backend: ``sim`` (the board as a
             thread of the station's process) or ``sim-process`` (in a process of its own).
         platform_process: the local station reads its platform in a process of its own
-            (``teletouch local --platform-process``, the default here: the driver's and the
-            simulated board's threads then leave the display loop's interpreter; paired runs
-            in ``benchmarks/results/platform_process/``).
+            (``teletouch local --platform-process``; off by default: in paired runs it
+            steadied the display loop without a link emulator but made motion-to-touch worse
+            on ``city-1000km`` and beside CPU burners, ``benchmarks/results/platform_process/``
+            and ``docs/speed.md`` section 13).
         display: the ArrayTac drive board: ``board-process`` (the default: ``teletouch
             board``, a process of its own that the station reaches over ``socket://`` with
             its serial driver, as a separate board is reached; the board's simulation then
@@ -116,7 +117,7 @@ class DemoConfig:
     link: str | None = None
     motion: str = DEFAULT_MOTION
     platform: str = "sim"
-    platform_process: bool = True
+    platform_process: bool = False
     display: str = DEFAULT_DISPLAY
     ideal: bool = False
     register: bool = True

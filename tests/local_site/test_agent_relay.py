@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 from pathlib import Path
 
@@ -198,12 +199,20 @@ async def test_compact_frames_render_only_once_their_key_frame_arrived() -> None
             # the pins are safe: no frame was ever taken in (a loaded machine may also have
             # lost the platform for a moment, which takes precedence as the reason)
             assert loop.safe_reason in ("no_frames", "platform_lost")
-            enc.reset()
-            key = enc.encode(make_frame(20, None, 2.0))
-            assert key.key
-            await remote.send(key)
-            await wait_for(lambda: _pins_near(agent, 2.0), 6.0, "pins at the key frame's 2 mm")
-            assert agent.tactile_decoder.counters.keys == 1
+            # a key frame, resent fresh every 0.3 s as a remote does on its key period: on a
+            # loaded machine one copy may age past the display's bound before it is rendered
+            deadline = monotonic_s() + scaled(6.0)
+            seq = 20
+            while not _pins_near(agent, 2.0):
+                assert monotonic_s() < deadline, "pins never at the key frame's 2 mm"
+                enc.reset()
+                key = enc.encode(make_frame(seq, None, 2.0))
+                assert key.key
+                await remote.send(key)
+                seq += 1
+                with contextlib.suppress(AssertionError):
+                    await wait_for(lambda: _pins_near(agent, 2.0), 0.3, "")
+            assert 1 <= agent.tactile_decoder.counters.keys <= seq - 20
         finally:
             await remote.close()
             agent.request_stop("test")
