@@ -328,6 +328,8 @@ class FaultRig:
         self._all: list[_Proc] = []
         self._stopping = False
         self._killed: set[tuple[str, int]] = set()  # (role, instance) the harness SIGKILLed
+        #: major page faults per process name, read at :meth:`stop`
+        self.major_faults: dict[str, int] = {}
 
     # ------------------------------------------------------------------ processes
 
@@ -668,6 +670,10 @@ class FaultRig:
         """
         self.poll()
         self._stopping = True
+        # major page faults of every process still running: a thread that faults in a page
+        # the kernel dropped (proactive reclaim) waits for the disk, holding the GIL
+        self.major_faults = {p.name: n for p in self._all if p.proc.poll() is None
+                             and (n := _major_faults(p.proc.pid)) is not None}
         summaries: dict[str, Any] = {}
         for role in ("local", "remote"):
             p = self.stations.get(role)
@@ -705,6 +711,15 @@ class FaultRig:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _major_faults(pid: int) -> int | None:
+    """The major page faults of a process so far (None: it is gone)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    return int(stat[stat.rindex(")") + 2:].split()[9])  # field 12, majflt
 
 
 def _children(pid: int) -> list[int]:
@@ -962,6 +977,7 @@ def run_scenario(scenario: Scenario, workdir: Path, *, repeats: int = 1,
                    "wall_s": time.monotonic() - started,
                    "board_process": board_process,
                    "platform_process": rig.platform_process,
+                   "major_page_faults": rig.major_faults,
                    "error": error, "summaries": _summary_figures(summaries),
                    "workdir": str(workdir)})
     return result

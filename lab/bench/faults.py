@@ -129,8 +129,9 @@ def _summaries_table(results: list[dict[str, Any]]) -> str:
     lines = ["| scenario | local safe entries | local link connects/losses | remote watchdog / "
              "link-loss halts | remote dropped stale / no clock | remote max measured age ms | "
              "remote link connects/losses | local platform process restarts | "
+             "major page faults (processes running at the end) | "
              "injected into an unsteady flow |",
-             "|" + "---|" * 9]
+             "|" + "---|" * 10]
     for r in results:
         sm = r["summaries"]
         loc = sm.get("local") or {}
@@ -145,8 +146,16 @@ def _summaries_table(results: list[dict[str, Any]]) -> str:
             f"{_fmt(rem.get('max_measured_age_ms'))} | "
             f"{_fmt(rl.get('connects'))}/{_fmt(rl.get('connection_losses'))} | "
             f"{_fmt(plat.get('process_restarts')) if plat.get('process') else '-'} | "
+            f"{_major_faults(r.get('major_page_faults'))} | "
             f"{r['injected_unsteady']} |")
     return "\n".join(lines)
+
+
+def _major_faults(faults: dict[str, int] | None) -> str:
+    """``name n`` for the processes with major page faults ('0': none; '-': not recorded)."""
+    if faults is None:
+        return "-"
+    return ", ".join(f"{name} {n}" for name, n in sorted(faults.items()) if n) or "0"
 
 
 def _windows_table(results: list[dict[str, Any]]) -> str:

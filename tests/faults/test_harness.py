@@ -257,3 +257,20 @@ def test_a_partial_run_does_not_replace_the_committed_table_unless_told() -> Non
     assert results_dir(None, ["remote station SIGKILL"]) == ""  # --only: nowhere
     assert results_dir("my-results", ["relay"]) == "my-results"  # told where
     assert results_dir("", None) == ""
+
+
+def test_major_page_faults_are_read_from_proc_and_agree_with_getrusage() -> None:
+    import os
+    import resource
+
+    from lab.bench.faults import _major_faults as fmt
+    from lab.faults import _major_faults
+
+    before = _major_faults(os.getpid())
+    after = resource.getrusage(resource.RUSAGE_SELF).ru_majflt  # independent: getrusage(2)
+    assert before is not None and 0 <= after - before <= 5
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait(scaled(30.0))
+    assert _major_faults(gone.pid) is None
+    assert fmt(None) == "-" and fmt({"relay-1": 0}) == "0"
+    assert fmt({"remote-1": 7, "relay-1": 0, "local-1": 2}) == "local-1 2, remote-1 7"
