@@ -17,7 +17,10 @@ other jobs on this machine slow every process here.
 from __future__ import annotations
 
 import argparse
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from lab.faults import Scenario
 
 __all__ = ["configure_parser", "results_dir", "run"]
 
@@ -56,6 +59,22 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                              "to DIR ('' = do not write; default benchmarks/results, but "
                              "nowhere for a partial run with --only, which must not replace "
                              "the whole suite's table)")
+
+
+def select(items: list[Scenario], only: list[str] | None) -> list[Scenario]:
+    """The scenarios whose name contains one of ``only`` (case-insensitive; all without it).
+
+    Raises:
+        ConfigError: ``only`` matched no scenario (the names are listed).
+    """
+    if not only:
+        return items
+    chosen = [s for s in items if any(t.lower() in s.name.lower() for t in only)]
+    if not chosen:
+        from shared.errors import ConfigError
+        names = "; ".join(s.name for s in items)
+        raise ConfigError(f"--only {only} matches no scenario; the scenarios are: {names}")
+    return chosen
 
 
 def results_dir(write_results: str | None, only: list[str] | None) -> str:
@@ -287,9 +306,7 @@ def run(args: argparse.Namespace) -> int:
     if args.merge:
         return _merge(args.merge, args.write_results)
     repeats = args.repeats or (1 if args.quick else 3)
-    items = scenarios(long=not args.short)
-    if args.only:
-        items = [s for s in items if any(t.lower() in s.name.lower() for t in args.only)]
+    items = select(scenarios(long=not args.short), args.only)
     load = os.getloadavg()
     machine = (f"Machine: {platform.machine()}, {os.cpu_count()} cores, Python "
                f"{platform.python_version()}, load average {load[0]:.1f} / {load[1]:.1f} / "

@@ -274,3 +274,16 @@ def test_major_page_faults_are_read_from_proc_and_agree_with_getrusage() -> None
     assert _major_faults(gone.pid) is None
     assert fmt(None) == "-" and fmt({"relay-1": 0}) == "0"
     assert fmt({"remote-1": 7, "relay-1": 0, "local-1": 2}) == "local-1 2, remote-1 7"
+
+
+def test_only_selects_by_name_and_a_selection_of_nothing_is_an_error() -> None:
+    from lab.bench.faults import select
+    from shared.errors import ConfigError
+
+    items = scenarios()
+    assert select(items, None) == items
+    chosen = select(items, ["PLATFORM process", "baseline"])
+    assert [s.name for s in chosen] == ["baseline (no fault)", "platform process SIGKILL",
+                                        "platform process SIGSTOP 3 s"]
+    with pytest.raises(ConfigError, match=r"matches no scenario.*baseline"):
+        select(items, ["no such scenario"])
