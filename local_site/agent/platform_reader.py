@@ -8,6 +8,11 @@ other threads the GIL, and the display loop runs at 1 kHz beside it). When the d
 disappears (link error or no sample for ``read_timeout_s``) it logs one clear error and marks
 itself unhealthy (the display loop then puts the pins in their safe state).
 
+:attr:`PlatformReader.healthy` also judges the newest sample by its capture stamp: a sample
+latched more than ``read_timeout_s`` ago is not a position to render, however recently it was
+decoded (the backlog a driver drains after its thread was starved, or a stall of the reader
+thread itself). Health therefore never waits for the reader thread to run.
+
 A link error (port closed, device unplugged) reopens the device at once, with an exponential
 backoff until it answers again or the agent stops. A device that is only *silent* keeps its
 open port for ``reopen_after_s``: the samples of a board that was late (or of a driver thread
@@ -24,7 +29,7 @@ import threading
 
 from local_site.platform.base import PlatformSample, PlatformStats, XYZPlatform
 from shared.errors import ConfigError, DeviceError, DeviceInitError, DeviceTimeoutError
-from shared.timebase import monotonic_s
+from shared.timebase import monotonic_s, now_us
 
 __all__ = ["PlatformReader", "reopen_after"]
 
@@ -78,8 +83,10 @@ class PlatformReader:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._last_sample: PlatformSample | None = None
-        self.healthy = False
-        self.lost_since_s: float | None = monotonic_s()
+        self._read_timeout_us = read_timeout_s * 1e6
+        # the reader thread's view: the device answers (set and cleared by the thread only)
+        self._device_ok = False
+        self._lost_at_s: float | None = monotonic_s()
         self.motion_done = threading.Event()
         #: samples the driver delivered while the reader watched (board sequence advances)
         self.reads = 0
@@ -96,6 +103,30 @@ class PlatformReader:
         anywhere. While the device is reopened, the last sample of the previous connection."""
         sample = self.platform.latest()
         return sample if sample is not None else self._last_sample
+
+    @property
+    def healthy(self) -> bool:
+        """The device answers and its newest sample was captured at most ``read_timeout_s``
+        ago (by its capture stamp, whenever the reader thread last ran)."""
+        if not self._device_ok:
+            return False
+        sample = self.latest
+        return sample is not None and now_us() - sample.t_us <= self._read_timeout_us
+
+    @property
+    def lost_since_s(self) -> float | None:
+        """When the platform was lost, on the monotonic clock; None: healthy."""
+        if not self._device_ok:
+            lost_at = self._lost_at_s  # (None only in the instant the thread sets the pair)
+            return lost_at if lost_at is not None else monotonic_s()
+        sample = self.latest
+        if sample is None:
+            return monotonic_s()
+        age_us = now_us() - sample.t_us
+        if age_us <= self._read_timeout_us:
+            return None
+        # samples stopped coming: lost a read timeout after the newest one was captured
+        return monotonic_s() - (age_us - self._read_timeout_us) / 1e6
 
     def start(self) -> None:
         """Start the thread (idempotent)."""
@@ -123,7 +154,7 @@ class PlatformReader:
     def _connect_with_backoff(self) -> bool:
         delay = self._retry_min_s
         first = True
-        if self.lost_since_s is not None and self.errors and self._stop.wait(self._retry_min_s):
+        if self._lost_at_s is not None and self.errors and self._stop.wait(self._retry_min_s):
             return False
         while not self._stop.is_set():
             try:
@@ -145,9 +176,9 @@ class PlatformReader:
     def _lost(self, err: DeviceError, reopen: bool) -> None:
         """Unhealthy from now (the first error of an episode is counted and logged)."""
         self.last_error = str(err)
-        if self.healthy:
+        if self._device_ok:
             self.errors += 1
-            self.healthy, self.lost_since_s = False, monotonic_s()
+            self._device_ok, self._lost_at_s = False, monotonic_s()
             action = "reopening with backoff" if reopen else \
                 f"waiting for it (reopened after {self._reopen_after_s:.2g} s of silence)"
             log.error("platform lost: %s; display to its safe state, %s", err, action)
@@ -170,11 +201,11 @@ class PlatformReader:
                     self.reconnects += 1
                     log.info("platform %s is back", self.platform.name)
                 ever_connected, needs_open = True, False
-                self.healthy, self.lost_since_s = True, None
+                self._device_ok, self._lost_at_s = True, None
             try:
                 sample = self.platform.read_state(timeout_s=self._read_timeout_s)
             except DeviceTimeoutError as err:  # silent, the port still open
-                silent_since = self.lost_since_s if not self.healthy else None
+                silent_since = self._lost_at_s if not self._device_ok else None
                 # silent since one read timeout before the episode was noticed
                 needs_open = silent_since is not None and monotonic_s() - silent_since \
                     + self._read_timeout_s >= self._reopen_after_s
@@ -186,13 +217,13 @@ class PlatformReader:
                 needs_open = True
                 self._lost(err, reopen=True)
                 continue
-            if not self.healthy:  # the silence ended on the open port
+            if not self._device_ok:  # the silence ended on the open port
                 self.recoveries += 1
-                silent_s = monotonic_s() - (self.lost_since_s or monotonic_s()) \
+                silent_s = monotonic_s() - (self._lost_at_s or monotonic_s()) \
                     + self._read_timeout_s
                 log.info("platform %s is back on the open port (silent for about %.0f ms)",
                          self.platform.name, silent_s * 1e3)
-                self.healthy, self.lost_since_s = True, None
+                self._device_ok, self._lost_at_s = True, None
             previous, self._last_sample = self._last_sample, sample
             advance = sample.seq - previous.seq if previous is not None else 1
             self.reads += advance if advance > 0 else 1  # a reopened board starts anew

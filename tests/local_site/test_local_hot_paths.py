@@ -40,6 +40,7 @@ from local_site.platform.sim import SimulatedPlatform
 from local_site.platform.sim_board import BLOCK_SAMPLES, SimulatedEncoderBoard
 from local_site.serial_port import SerialPortReader
 from shared.errors import ConfigError, InputDataError
+from shared.timebase import monotonic_s, now_us
 from tests.support import scaled, wait_until
 
 # ---------------------------------------------------------------- simulated encoder board
@@ -349,12 +350,74 @@ def test_a_short_platform_silence_ends_on_the_open_port_without_a_reopen() -> No
         wait_until(lambda: reader.healthy and reader.reads > 10, 3.0, "samples")
         board = platform.board
         talk = _silence(board)
-        wait_until(lambda: not reader.healthy, 3.0, "the silence noticed")
-        assert reader.errors >= 1 and "no new valid sample" in (reader.last_error or "")
+        wait_until(lambda: not reader.healthy, 3.0, "the silence judged (by the sample's age)")
+        wait_until(lambda: reader.errors >= 1, 3.0, "the silence noticed by the reader thread")
+        assert "no new valid sample" in (reader.last_error or "")
         talk()
         wait_until(lambda: reader.healthy, 3.0, "healthy again on the next sample")
         assert reader.recoveries >= 1 and reader.reconnects == 0
         assert platform.board is board  # never closed and reopened
+    finally:
+        reader.stop()
+        platform.disconnect()
+
+
+def test_a_backlog_of_old_samples_is_not_healthy_however_recently_it_was_decoded() -> None:
+    """A driver that drains a backlog (a full pty buffer keeps the oldest frames, after its
+    thread was starved) decodes samples latched long ago: the reader thread takes them as the
+    device being back, but health judges the newest sample by its capture stamp."""
+    platform = SimulatedPlatform(HoldMotion((20.0, 30.0, 100.0)))
+    timeout_s = scaled(0.1)
+    reader = PlatformReader(platform, poll_s=0.005, read_timeout_s=timeout_s,
+                            reopen_after_s=scaled(100.0))
+    reader.start()
+    try:
+        wait_until(lambda: reader.healthy and reader.reads > 10, 3.0, "samples")
+        board = platform.board
+        assert board is not None
+        write = board._write
+        held: list[bytes] = []
+        board._write = held.append  # the frames wait in a buffer nobody reads
+        wait_until(lambda: not reader.healthy, 3.0, "the silence noticed")
+        assert reader.lost_since_s is not None
+        threading.Event().wait(3 * timeout_s)  # the held frames grow older than the timeout
+        assert len(held) > 10
+        _silence(board)  # nothing new after the backlog
+        write(b"".join(held[:10]))  # the oldest frames, decoded now
+        wait_until(lambda: reader.recoveries >= 1, 3.0, "the reader took the backlog")
+        newest = reader.latest
+        assert newest is not None and reader.latest is platform.latest()
+        assert not reader.healthy  # decoded just now, captured more than a timeout ago
+        lost = reader.lost_since_s
+        assert lost is not None and lost <= monotonic_s() - timeout_s
+        board._write = write  # fresh frames again
+        wait_until(lambda: reader.healthy, 3.0, "healthy on fresh samples")
+        assert reader.lost_since_s is None
+    finally:
+        reader.stop()
+        platform.disconnect()
+
+
+def test_platform_health_does_not_wait_for_the_reader_thread(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The newest sample's age decides, whenever the reader thread last ran: with the clock
+    a second ahead, every sample is too old, though the thread keeps reading."""
+    import local_site.agent.platform_reader as pr
+
+    platform = SimulatedPlatform(HoldMotion((20.0, 30.0, 100.0)))
+    reader = PlatformReader(platform, poll_s=0.005, read_timeout_s=0.25)
+    reader.start()
+    try:
+        wait_until(lambda: reader.healthy and reader.reads > 10, 3.0, "samples")
+        monkeypatch.setattr(pr, "now_us", lambda: now_us() + 1_000_000)
+        reads = reader.reads
+        assert not reader.healthy
+        lost = reader.lost_since_s
+        assert lost is not None and abs(lost - (monotonic_s() - 0.75)) < scaled(0.2)
+        wait_until(lambda: reader.reads > reads + 10, 3.0, "the thread reading on")
+        assert not reader.healthy and reader.errors == 0  # no loss episode of the device
+        monkeypatch.undo()
+        assert reader.healthy and reader.lost_since_s is None
     finally:
         reader.stop()
         platform.disconnect()
