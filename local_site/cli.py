@@ -52,6 +52,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                      default=None, help="read the platform in a process of its own, the "
                      "newest sample in shared memory (default: off; local.agent."
                      "platform_process)")
+    dev.add_argument("--lock-memory", action=argparse.BooleanOptionalAction, default=None,
+                     help="keep the station's memory in RAM while it runs (mlockall; default: "
+                     "on where RLIMIT_MEMLOCK is unlimited or with CAP_IPC_LOCK; local.agent."
+                     "lock_memory)")
     dev.add_argument("--display", metavar="SPEC", help="sim, sim-serial, can://socketcan/can0, "
                      "socketcan:can0, /dev/ttyACM0 ... (default sim)")
     dev.add_argument("--motion", metavar="SPEC",
@@ -109,6 +113,7 @@ def run(args: argparse.Namespace) -> int:
 
     agent_flags: dict[str, Any] = {
         "platform": args.platform, "platform_process": args.platform_process,
+        "lock_memory": args.lock_memory,
         "display": args.display, "motion": args.motion,
         "scene": args.scene, "safe_state": args.safe_state,
         "link_loss_timeout_s": args.link_loss_timeout,

@@ -105,6 +105,11 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="take a sensor frame as soon as the arm reached the commanded pose "
                              "(pose, default; a sensor that captures on demand, e.g. sim) or "
                              "on the frame clock (clock; what a streaming camera always does)")
+    parser.add_argument("--lock-memory", dest="lock_memory",
+                        action=argparse.BooleanOptionalAction, default=None,
+                        help="keep the station's memory in RAM while it runs (mlockall; "
+                             "default: on where RLIMIT_MEMLOCK is unlimited or with "
+                             "CAP_IPC_LOCK; remote.agent.lock_memory)")
     parser.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
     parser.add_argument("--record", metavar="PATH.mcap",
                         help="record the session to this MCAP file (docs/recording.md)")
@@ -137,7 +142,7 @@ def run(args: argparse.Namespace) -> int:
         frame_rate_hz=args.frame_rate_hz, patch_pitch_mm=args.patch_pitch_mm,
         tactile_codec=args.tactile_codec,
         capture_on_pose=None if args.capture is None else args.capture == "pose",
-        duration_s=args.duration,
+        lock_memory=args.lock_memory, duration_s=args.duration,
         config_path=Path(args.config) if args.config else None,
         record=Path(args.record) if args.record else None)
     status = StatusLine()

@@ -100,6 +100,12 @@ class LocalAgentConfig:
             against 940-988 Hz, period jitter p99 0.51-0.96 ms against 1.3-2.0 ms, for about
             the same CPU; the demo's motion-to-touch no better (both stations share its two
             cores).
+        lock_memory: keep the station's memory in RAM while it runs (``mlockall`` on
+            fault, :mod:`shared.memlock`): no page of the display loop, the platform reader or
+            the link is read back from disk mid-session. Taken only where it cannot make a
+            later allocation fail (``RLIMIT_MEMLOCK`` unlimited, as the systemd unit sets, or
+            ``CAP_IPC_LOCK``); otherwise logged at INFO and the summary's
+            ``memory_lock.reason`` says why.
         view: serve the live view in the browser on ``HOST:PORT`` (empty: no view;
             ``127.0.0.1:8780`` keeps it on this machine, see docs/view.md).
         view_rate_hz: the view's snapshot rate (the page's update rate).
@@ -136,6 +142,7 @@ class LocalAgentConfig:
     gil_switch_interval_s: float = 0.0002
     display_thread_nice: int = 0
     display_thread_realtime: int = 10
+    lock_memory: bool = True
     view: str = ""
     view_rate_hz: float = 40.0
 
@@ -185,6 +192,9 @@ class LocalAgentConfig:
                 or not 0 <= self.display_thread_realtime <= 99:
             raise ConfigError("local.agent.display_thread_realtime must be an integer in "
                               "[0, 99] (a SCHED_FIFO priority; 0: off)")
+        if not isinstance(self.lock_memory, bool):
+            raise ConfigError(f"local.agent.lock_memory must be true or false, "
+                              f"got {self.lock_memory!r}")
         if not (isinstance(self.view_rate_hz, int | float)
                 and 1.0 <= self.view_rate_hz <= 120.0):
             raise ConfigError("local.agent.view_rate_hz must lie in [1, 120]")

@@ -58,6 +58,7 @@ from shared.errors import (
     RoleTakenError,
     SessionError,
 )
+from shared.memlock import MemoryLock, memory_locked
 from shared.motion_to_touch import MotionToTouchLedger
 from shared.protocol import (
     ArmState,
@@ -176,6 +177,8 @@ class LocalAgent:
         self.platform_states_sent = 0
         self.platform_states_skipped_link_down = 0
         self.platform_states_skipped_stale = 0
+        #: whether :meth:`run` locked the process's memory (None before it runs)
+        self.memory_lock: MemoryLock | None = None
         self.send_errors = 0
         self.arm_states_received = 0
         self.relay_errors = 0
@@ -454,6 +457,8 @@ class LocalAgent:
         previous_switch_s = sys.getswitchinterval()
         if self.config.gil_switch_interval_s > 0:
             sys.setswitchinterval(self.config.gil_switch_interval_s)
+        process_settings = contextlib.ExitStack()  # undone when the station ends
+        self.memory_lock = process_settings.enter_context(memory_locked(self.config.lock_memory))
         self._started_s = monotonic_s()
         self._thread_stop.clear()
         await self._start_view()
@@ -495,6 +500,7 @@ class LocalAgent:
             for signum in signals:
                 aio.remove_signal_handler(signum)
             sys.setswitchinterval(previous_switch_s)
+            process_settings.close()
         return self.exit_code
 
     async def _start_view(self) -> None:
@@ -600,6 +606,7 @@ class LocalAgent:
             "late_sends_refused": c.late_sends_refused,
             "motion_to_touch_ms": self.ledger.summary_ms(),
             "tactile_codec": dataclasses.asdict(self.tactile_decoder.counters),
+            "memory_lock": None if self.memory_lock is None else self.memory_lock.to_dict(),
             "display_loop": {"mode": self.config.render_loop,
                              "thread_nice": loop.priority_applied,
                              "thread_realtime": loop.realtime_applied,

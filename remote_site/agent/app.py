@@ -15,6 +15,7 @@ Whatever happens, the arm is halted and the devices are closed on the way out.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import dataclasses
 import logging
 from collections.abc import Callable
@@ -43,6 +44,7 @@ from remote_site.stiffness.stiffness_map import MapBounds
 from remote_site.tactile import TactileAssembler
 from shared.client import StationLink, StationLinkConfig
 from shared.config import resolve_config
+from shared.memlock import memory_locked
 from shared.recording import McapRecorder
 from shared.workspace import load_workspace
 
@@ -82,6 +84,8 @@ class AgentOptions:
         tactile_codec: ``compact`` or ``raw`` (default from the config: compact).
         capture_on_pose: frames on pose reached (True) or on the frame clock (False); None:
             the config's (default True; a streaming camera always uses the frame clock).
+        lock_memory: keep the station's memory in RAM while it runs; None: the config's
+            (default True, where it is safe: :mod:`shared.memlock`).
         duration_s: stop after this many seconds (None: until stopped).
         config_path: TOML file (or ``$TELETOUCH_CONFIG``).
         record: record the session to this MCAP file (None: no recording).
@@ -107,6 +111,7 @@ class AgentOptions:
     patch_pitch_mm: float | None = None
     tactile_codec: str | None = None
     capture_on_pose: bool | None = None
+    lock_memory: bool | None = None
     duration_s: float | None = None
     config_path: Path | None = None
     record: Path | None = None
@@ -168,7 +173,8 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
     stiffness_cfg = resolve_config(StiffnessConfig, "stiffness", toml_path=toml)
     agent_cfg = resolve_config(RemoteAgentConfig, "remote.agent", toml_path=toml, explicit={
         "frame_rate_hz": options.frame_rate_hz, "patch_pitch_mm": options.patch_pitch_mm,
-        "tactile_codec": options.tactile_codec, "capture_on_pose": options.capture_on_pose})
+        "tactile_codec": options.tactile_codec, "capture_on_pose": options.capture_on_pose,
+        "lock_memory": options.lock_memory})
     background_cfg = resolve_config(BackgroundSettings, "remote.background", toml_path=toml)
     workspace = load_workspace(toml_path=toml)
     stiffness_calibration = load_stiffness_calibration(options.sensor,
@@ -198,6 +204,8 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
     safe_arm: SafeArm | None = None
     recorder: McapRecorder | None = None
     opencv_before = _set_opencv_threads(agent_cfg.opencv_threads)
+    process_settings = contextlib.ExitStack()  # undone when the station ends
+    memory_lock = process_settings.enter_context(memory_locked(agent_cfg.lock_memory))
     try:
         safe_arm = SafeArm(arm, safety, bounds_mm=workspace.phantom_bounds_mm)
         sensor.connect()
@@ -249,7 +257,8 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
                 summary.update(session=link_cfg.session, arm_backend=options.arm,
                                sensor_backend=options.sensor, phantom=options.phantom,
                                seed=options.seed if world else None,
-                               registration=registration.to_dict() if registration else None)
+                               registration=registration.to_dict() if registration else None,
+                               memory_lock=memory_lock.to_dict())
                 if recorder is not None:
                     summary["recording"] = await asyncio.to_thread(recorder.close, summary)
                 if on_summary is not None:
@@ -262,3 +271,4 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
         sensor.disconnect()
         arm.disconnect()
         _set_opencv_threads(opencv_before)
+        process_settings.close()

@@ -56,6 +56,12 @@ class RemoteAgentConfig:
             spun in ``sched_yield`` between frames (about 16,000 calls/s, 0.05 of a core in
             the demo; docs/speed.md section 9). 0 leaves OpenCV's own setting (one worker
             per core).
+        lock_memory: keep the station's memory in RAM while it runs (``mlockall`` on
+            fault, :mod:`shared.memlock`): the arm watchdog, the command path and the frame
+            pipeline never wait for a page read back from disk. Taken only where it cannot
+            make a later allocation fail (``RLIMIT_MEMLOCK`` unlimited, as the systemd unit
+            sets, or ``CAP_IPC_LOCK``); otherwise logged at INFO and the summary's
+            ``memory_lock.reason`` says why.
     """
 
     frame_rate_hz: float = 60.0
@@ -77,6 +83,7 @@ class RemoteAgentConfig:
     pose_tolerance_mm: float = 0.25
     pose_wait_max_ms: float = 10.0
     opencv_threads: int = 1
+    lock_memory: bool = True
 
     def __post_init__(self) -> None:
         positive = ("frame_rate_hz", "patch_pitch_mm", "arm_poll_hz", "arm_state_hz",
@@ -93,6 +100,9 @@ class RemoteAgentConfig:
                 or not 0 <= self.opencv_threads <= 256:
             raise ConfigError("remote.agent.opencv_threads must be an integer in [0, 256], "
                               f"got {self.opencv_threads!r}")
+        if not isinstance(self.lock_memory, bool):
+            raise ConfigError(f"remote.agent.lock_memory must be true or false, "
+                              f"got {self.lock_memory!r}")
         if self.frame_rate_hz > 1000.0 or self.arm_poll_hz > 2000.0:
             raise ConfigError("remote.agent: frame_rate_hz <= 1000 and arm_poll_hz <= 2000")
         if len(self.patch_size_mm) != 2 or not all(

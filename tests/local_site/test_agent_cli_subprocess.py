@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+import shared.memlock as memlock
 from local_site.recording import load_recording
 from tests.local_site.agent_support import FakeRemote, wait_for
 from tests.relay_server.relay_clients import SECRET
@@ -78,6 +79,9 @@ async def test_relay_and_local_processes_sigterm_writes_record_and_summary(tmp_p
         assert doc["exit_reason"] == "signal" and doc["frames_rendered"] > 10
         assert doc["motion_to_touch_ms"]["end_to_end"]["count"] > 10
         assert doc["display"]["last_feedback_safe_state"] is not None
+        # locked by default wherever it is safe (this test's user and limits are the child's)
+        refusal = memlock._refusal()
+        assert doc["memory_lock"] == {"locked": refusal is None, "reason": refusal}
         rec = load_recording(record)
         assert rec.frames == doc["frames_accepted"]
         xs = rec.platform_mm[:, 0]
@@ -93,7 +97,7 @@ async def test_scene_mode_process_until_motion_done(tmp_path: Path) -> None:
     proc = await asyncio.create_subprocess_exec(
         *CMD, "local", "--scene", "hemisphere:radius_mm=8", "--platform", "sim", "--display",
         "sim", "--motion", "raster:x0=26,x1=34,y0=30,y1=30,press_depth=0,pause=0,loop=0",
-        "--until-motion-done", "--summary-json", str(summary),
+        "--until-motion-done", "--summary-json", str(summary), "--no-lock-memory",
         stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.DEVNULL)
     try:
         async with asyncio.timeout(scaled(20.0)):
@@ -102,6 +106,7 @@ async def test_scene_mode_process_until_motion_done(tmp_path: Path) -> None:
         await _stop(proc)
     doc = json.loads(summary.read_text())
     assert doc["mode"] == "scene" and doc["exit_reason"] == "motion_done"
+    assert doc["memory_lock"] == {"locked": False, "reason": "off (lock_memory = false)"}
     assert doc["display"]["commands_sent"] > 20 and doc["link"] is None
     # No loss during the run: no platform error, and at most the start-up wait for the
     # platform's first sample when the display is ready first (loaded machine).

@@ -14,6 +14,7 @@ import os
 import signal
 from pathlib import Path
 
+import shared.memlock as memlock
 from lab.ground_truth import write_ground_truth
 from relay_server.auth import derive_token
 from remote_site.agent.world import build_world
@@ -79,6 +80,8 @@ async def test_relay_and_remote_as_processes(tmp_path: Path) -> None:
         assert summary["phantom"] == "severity" and summary["seed"] == 2
         assert summary["frames"]["sent"] > 30
         assert summary["arm"]["applied"] > 0
+        refusal = memlock._refusal()  # locked by default wherever it is safe
+        assert summary["memory_lock"] == {"locked": refusal is None, "reason": refusal}
         assert "tactile frames sent" in out.decode()
         assert "Traceback" not in err.decode().split("remote station stopped")[0]
     finally:
