@@ -18,6 +18,7 @@ import sys
 from local_site.agent.platform_process import HEARTBEAT_S, ReaderHealth, SampleRecord
 from local_site.agent.platform_reader import PlatformReader
 from local_site.devices import open_platform
+from shared.memlock import memory_locked
 from shared.timebase import monotonic_s
 
 __all__ = ["main"]
@@ -56,6 +57,8 @@ def main(argv: list[str] | None = None) -> int:  # pragma: no cover - runs in th
 
     parent = int(settings["parent"])
     publish()
+    process_settings = contextlib.ExitStack()
+    process_settings.enter_context(memory_locked(bool(settings.get("lock_memory", False))))
     reader.start()
     try:
         while True:
@@ -72,6 +75,7 @@ def main(argv: list[str] | None = None) -> int:  # pragma: no cover - runs in th
             os.write(int(settings["stats_fd"]),
                      json.dumps(dataclasses.asdict(platform.stats())).encode())
         record.close()
+        process_settings.close()
     return 0
 
 

@@ -263,6 +263,7 @@ class ProcessPlatformReader:
         motion_duration_s: as for :class:`PlatformReader`.
         hang_timeout_s: a child whose heartbeat stopped this long (stopped, deadlocked) is
             killed and started again; it also covers a child's start-up.
+        lock_memory: the child locks its memory as the station does (:mod:`shared.memlock`).
 
     Raises:
         ConfigError: bad timeouts (as :class:`PlatformReader`), options that are not JSON.
@@ -272,7 +273,7 @@ class ProcessPlatformReader:
                  read_timeout_s: float = 0.1, reopen_after_s: float | None = None,
                  retry_min_s: float = 0.2, retry_max_s: float = 5.0,
                  motion_duration_s: float | None = None,
-                 hang_timeout_s: float = 15.0) -> None:
+                 hang_timeout_s: float = 15.0, lock_memory: bool = False) -> None:
         if not read_timeout_s > 0:
             raise ConfigError(f"read_timeout_s must be > 0, got {read_timeout_s}")
         reopen_after_s = reopen_after(read_timeout_s, reopen_after_s)
@@ -288,6 +289,7 @@ class ProcessPlatformReader:
                               f"process: {err}") from err
         self._read_timeout_us = read_timeout_s * 1e6
         self._hang_timeout_s = hang_timeout_s
+        self._lock_memory = lock_memory
         self._child_args = dict(read_timeout_s=read_timeout_s, reopen_after_s=reopen_after_s,
                                 retry_min_s=retry_min_s, retry_max_s=retry_max_s,
                                 motion_duration_s=motion_duration_s)
@@ -422,7 +424,8 @@ class ProcessPlatformReader:
             settings = {"spec": self.spec, "options": self._options,
                         "reader": self._child_args, "record_fd": record.fd,
                         "stats_fd": stats_w, "parent": os.getpid(),
-                        "log_level": logging.getLogger().getEffectiveLevel()}
+                        "log_level": logging.getLogger().getEffectiveLevel(),
+                        "lock_memory": self._lock_memory}
             try:
                 self._process = subprocess.Popen(
                     [sys.executable, "-P", "-m", "local_site.agent.platform_child",

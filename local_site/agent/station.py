@@ -236,7 +236,8 @@ class LocalAgent:
             retry_min_s=cfg.device_retry_min_s, retry_max_s=cfg.device_retry_max_s,
             motion_duration_s=motion_duration_s if self.until_motion_done else None)
         self.reader = PlatformReader(platform, **reader_args) if platform is not None \
-            else ProcessPlatformReader(cfg.platform, platform_opts, **reader_args)
+            else ProcessPlatformReader(cfg.platform, platform_opts, lock_memory=cfg.lock_memory,
+                                       **reader_args)
         reader = self.reader
         if self.record_path is not None and self.recorder is None:
             self.recorder = SessionRecorder(

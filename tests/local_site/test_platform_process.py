@@ -12,6 +12,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+import shared.memlock as memlock
 from local_site.agent import LocalAgent, LocalAgentConfig
 from local_site.agent.platform_process import ProcessPlatformReader, ReaderHealth, SampleRecord
 from local_site.platform.base import PlatformSample
@@ -175,6 +176,27 @@ def test_the_process_reader_publishes_the_boards_samples_on_our_clock() -> None:
     assert stats.frames_ok >= 100 and stats.crc_errors == 0  # the child's link counters
     assert not reader.healthy and reader.latest is not None  # the last sample stays readable
     assert reader.lost_since_s is not None and reader.reads >= 100
+
+
+def _locked_kb(pid: int) -> int:
+    with open(f"/proc/{pid}/status", encoding="ascii") as status:
+        for line in status:
+            if line.startswith("VmLck:"):
+                return int(line.split()[1])
+    raise AssertionError("no VmLck line")
+
+
+@pytest.mark.parametrize("lock", [True, False])
+def test_the_platform_process_locks_its_memory_as_the_station_does(lock: bool) -> None:
+    reader = _started(lock_memory=lock)
+    try:
+        assert reader._process is not None
+        pid = reader._process.pid
+        # the child locks before it starts reading: locked by its first sample
+        expect = lock and memlock._refusal() is None
+        assert (_locked_kb(pid) > 0) == expect
+    finally:
+        reader.stop()
 
 
 def test_a_killed_platform_process_makes_it_lost_then_is_started_again() -> None:
