@@ -142,11 +142,11 @@ def report(runs: list[dict[str, Any]]) -> str:
            "| run | arm | remote VmRSS / VmLck MB | major faults | longest command gap per "
            "page-out ms | mappings refused |", "|---|---|---|---|---|---|"]
     for k, r in enumerate(runs, 1):
-        gaps = ", ".join(str(p["longest_command_gap_ms"]) for p in r["pageouts"])
+        gap_cells = ", ".join(str(p["longest_command_gap_ms"]) for p in r["pageouts"])
         refused = ", ".join(str(p["mappings_refused"]) for p in r["pageouts"])
         out.append(f"| {k} | {r['arm']} | {r['remote_rss_kb'] / 1024:.0f} / "
-                   f"{r['remote_vmlck_kb'] / 1024:.0f} | {r['remote_major_faults']} | {gaps} | "
-                   f"{refused} |")
+                   f"{r['remote_vmlck_kb'] / 1024:.0f} | {r['remote_major_faults']} | "
+                   f"{gap_cells} | {refused} |")
     out.append("")
     for arm in ("nolock", "lock"):
         gaps = [p["longest_command_gap_ms"] for r in runs if r["arm"] == arm
