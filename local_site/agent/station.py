@@ -458,11 +458,11 @@ class LocalAgent:
         previous_switch_s = sys.getswitchinterval()
         if self.config.gil_switch_interval_s > 0:
             sys.setswitchinterval(self.config.gil_switch_interval_s)
-        process_settings = contextlib.ExitStack()  # undone when the station ends
-        self.memory_lock = process_settings.enter_context(memory_locked(self.config.lock_memory))
         self._started_s = monotonic_s()
         self._thread_stop.clear()
         await self._start_view()
+        process_settings = contextlib.ExitStack()  # undone when the station ends (finally)
+        self.memory_lock = process_settings.enter_context(memory_locked(self.config.lock_memory))
         reader.start()
         if self.link is not None:
             self.link.start()
