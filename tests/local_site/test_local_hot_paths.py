@@ -415,9 +415,10 @@ def test_platform_health_does_not_wait_for_the_reader_thread(
         lost = reader.lost_since_s
         assert lost is not None and abs(lost - (monotonic_s() - 0.75)) < scaled(0.2)
         wait_until(lambda: reader.reads > reads + 10, 3.0, "the thread reading on")
-        assert not reader.healthy and reader.errors == 0  # no loss episode of the device
+        assert not reader.healthy  # though the thread took 10 samples meanwhile
         monkeypatch.undo()
-        assert reader.healthy and reader.lost_since_s is None
+        wait_until(lambda: reader.healthy and reader.lost_since_s is None, 3.0,
+                   "healthy on the true clock")
     finally:
         reader.stop()
         platform.disconnect()
