@@ -330,6 +330,7 @@ class FaultRig:
         self._killed: set[tuple[str, int]] = set()  # (role, instance) the harness SIGKILLed
         #: major page faults per process name, read at :meth:`stop`
         self.major_faults: dict[str, int] = {}
+        self._faults_mark: dict[str, int] = {}
 
     # ------------------------------------------------------------------ processes
 
@@ -660,6 +661,13 @@ class FaultRig:
             self.poll()
             time.sleep(min(0.05, left))
 
+    def mark_major_faults(self) -> None:
+        """Remember every running process's major page faults so far: :meth:`stop` then
+        reports those since this moment (for a process started later, since its start), not
+        the start-up's (imports read from disk, before a station locks its memory)."""
+        self._faults_mark = {p.name: n for p in self._all if p.proc.poll() is None
+                             and (n := _major_faults(p.proc.pid)) is not None}
+
     # ------------------------------------------------------------------ stop
 
     def stop(self) -> dict[str, Any]:
@@ -672,7 +680,8 @@ class FaultRig:
         self._stopping = True
         # major page faults of every process still running: a thread that faults in a page
         # the kernel dropped (proactive reclaim) waits for the disk, holding the GIL
-        self.major_faults = {p.name: n for p in self._all if p.proc.poll() is None
+        self.major_faults = {p.name: n - self._faults_mark.get(p.name, 0) for p in self._all
+                             if p.proc.poll() is None
                              and (n := _major_faults(p.proc.pid)) is not None}
         summaries: dict[str, Any] = {}
         for role in ("local", "remote"):
@@ -953,6 +962,8 @@ def run_scenario(scenario: Scenario, workdir: Path, *, repeats: int = 1,
             rig._sleep_polling(time.monotonic() + settle_s)
             if not rig.wait_steady(2.0, steady_timeout_s, frame_bound_ms):
                 unsteady += 1  # injected anyway; the table says how often
+            if i == 0:
+                rig.mark_major_faults()  # the session's faults, not the start-up's
             t_fault, t_rec = rig.inject(f)
             injections.append((t_fault, t_rec))
             if f.kind in ("none", "clock_step"):
@@ -978,6 +989,7 @@ def run_scenario(scenario: Scenario, workdir: Path, *, repeats: int = 1,
                    "board_process": board_process,
                    "platform_process": rig.platform_process,
                    "major_page_faults": rig.major_faults,
+                   "major_page_faults_since": "steady",
                    "error": error, "summaries": _summary_figures(summaries),
                    "workdir": str(workdir)})
     return result

@@ -148,7 +148,7 @@ def _summaries_table(results: list[dict[str, Any]]) -> str:
     lines = ["| scenario | local safe entries | local link connects/losses | remote watchdog / "
              "link-loss halts | remote dropped stale / no clock | remote max measured age ms | "
              "remote link connects/losses | local platform process restarts | "
-             "major page faults (processes running at the end) | "
+             "major page faults once the flow was steady (processes running at the end) | "
              "injected into an unsteady flow |",
              "|" + "---|" * 10]
     for r in results:
@@ -165,7 +165,8 @@ def _summaries_table(results: list[dict[str, Any]]) -> str:
             f"{_fmt(rem.get('max_measured_age_ms'))} | "
             f"{_fmt(rl.get('connects'))}/{_fmt(rl.get('connection_losses'))} | "
             f"{_fmt(plat.get('process_restarts')) if plat.get('process') else '-'} | "
-            f"{_major_faults(r.get('major_page_faults'))} | "
+            f"{_major_faults(r.get('major_page_faults'))}"
+            f"{'' if r.get('major_page_faults_since') == 'steady' else ' (since start)'} | "
             f"{r['injected_unsteady']} |")
     return "\n".join(lines)
 

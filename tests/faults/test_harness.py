@@ -276,6 +276,32 @@ def test_major_page_faults_are_read_from_proc_and_agree_with_getrusage() -> None
     assert fmt({"remote-1": 7, "relay-1": 0, "local-1": 2}) == "local-1 2, remote-1 7"
 
 
+def test_major_faults_are_counted_from_the_steady_mark(tmp_path: Path,
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    # the start-up's faults (imports, before a station locks its memory) are not the
+    # session's: a process running at the mark reports what came after it, one started
+    # later (a restarted station) its whole life
+    import lab.faults as faults
+
+    counts = {"early-1": 10, "late-1": 4}
+    monkeypatch.setattr(faults, "_major_faults", lambda pid: counts[names[pid]])
+    rig = FaultRig(tmp_path)
+    names: dict[int, str] = {}
+
+    def start(name: str) -> None:
+        proc = subprocess.Popen([sys.executable, "-c", "import sys; sys.stdin.read()"],
+                                stdin=subprocess.PIPE)
+        names[proc.pid] = name
+        rig._all.append(faults._Proc(name, proc, tmp_path / f"{name}.log", 0.0))
+
+    start("early-1")
+    rig.mark_major_faults()
+    start("late-1")
+    counts["early-1"] += 7
+    rig.stop()
+    assert rig.major_faults == {"early-1": 7, "late-1": 4}
+
+
 def test_only_selects_by_name_and_a_selection_of_nothing_is_an_error() -> None:
     from lab.bench.faults import select
     from shared.errors import ConfigError
