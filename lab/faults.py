@@ -294,7 +294,7 @@ class FaultRig:
                  outage_reset: bool = False, cpu_burners: int = 0,
                  frame_rate_hz: float = 60.0, board_process: bool = False,
                  platform_process: bool = False, board_nice: int = -10,
-                 python: str = sys.executable) -> None:
+                 lock_memory: bool = True, python: str = sys.executable) -> None:
         self.workdir = Path(workdir)
         self.workdir.mkdir(parents=True, exist_ok=True)
         self.outage_s = outage_s or 1.0
@@ -303,6 +303,7 @@ class FaultRig:
         self.frame_rate_hz = frame_rate_hz
         self.board_process = board_process
         self.platform_process = platform_process
+        self.lock_memory = lock_memory
         self.board_nice = board_nice
         self.board: _Proc | None = None
         self.board_port = 0
@@ -389,6 +390,8 @@ class FaultRig:
             args = ["local", *common, "--platform", "sim", "--display", display,
                     "--motion", MOTION, "--no-status",
                     "--platform-process" if self.platform_process else "--no-platform-process"]
+        if not self.lock_memory:
+            args.append("--no-lock-memory")
         p = self._spawn(f"{role}-{n}", args, module="lab.faults_probe", env=env)
         self.stations[role] = p
         return p
@@ -936,7 +939,7 @@ def run_scenario(scenario: Scenario, workdir: Path, *, repeats: int = 1,
                  start_timeout_s: float = 150.0, steady_timeout_s: float = 20.0,
                  frame_bound_ms: float = 150.0,
                  command_bound_ms: float = 100.0, board_process: bool = False,
-                 platform_process: bool = False,
+                 platform_process: bool = False, lock_memory: bool = True,
                  progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Start a rig, inject the scenario's fault ``repeats`` times, stop, analyse.
 
@@ -950,7 +953,8 @@ def run_scenario(scenario: Scenario, workdir: Path, *, repeats: int = 1,
     rig = FaultRig(workdir, outage_s=f.duration_s if f.kind in ("blackhole", "reset") else None,
                    outage_reset=f.kind == "reset", cpu_burners=scenario.cpu_burners,
                    board_process=board_process,
-                   platform_process=platform_process or f.target == "platform")
+                   platform_process=platform_process or f.target == "platform",
+                   lock_memory=lock_memory)
     injections: list[tuple[float, float]] = []
     unsteady = 0
     started = time.monotonic()
@@ -990,6 +994,7 @@ def run_scenario(scenario: Scenario, workdir: Path, *, repeats: int = 1,
                    "platform_process": rig.platform_process,
                    "major_page_faults": rig.major_faults,
                    "major_page_faults_since": "steady",
+                   "lock_memory": lock_memory,
                    "error": error, "summaries": _summary_figures(summaries),
                    "workdir": str(workdir)})
     return result
@@ -997,11 +1002,13 @@ def run_scenario(scenario: Scenario, workdir: Path, *, repeats: int = 1,
 
 def iter_results(items: list[Scenario], root: Path, *, repeats: int,
                  board_process: bool = False, platform_process: bool = False,
+                 lock_memory: bool = True,
                  progress: Callable[[str], None] | None = None) -> Iterator[dict[str, Any]]:
     """Run each scenario in its own directory under ``root``, yielding its result."""
     for i, sc in enumerate(items):
         if progress is not None:
             progress(f"[{i + 1}/{len(items)}] {sc.name}")
         yield run_scenario(sc, root / f"{i:02d}", repeats=repeats, board_process=board_process,
-                           platform_process=platform_process, progress=progress)
+                           platform_process=platform_process, lock_memory=lock_memory,
+                           progress=progress)
 

@@ -53,6 +53,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                              "(teletouch local --platform-process; the platform process's "
                              "own faults use it always); results go to faults_platform.md/json "
                              "(faults_board_platform.* with --board-process)")
+    parser.add_argument("--no-lock-memory", dest="lock_memory", action="store_false",
+                        help="start both stations with --no-lock-memory (their memory is "
+                             "locked by default where it is safe); results go to "
+                             "faults_nolock.md/json")
     parser.add_argument("--write-results", metavar="DIR", default=None,
                         help="write faults.md and faults.json (faults_board.* with "
                              "--board-process, faults_platform.* with --platform-process) "
@@ -319,12 +323,14 @@ def run(args: argparse.Namespace) -> int:
         + (["--short"] if args.short else []) \
         + (["--board-process"] if args.board_process else []) \
         + (["--platform-process"] if args.platform_process else []) \
+        + ([] if args.lock_memory else ["--no-lock-memory"]) \
         + ([f"--repeats {args.repeats}"] if args.repeats else []) \
         + [f"--only '{t}'" for t in (args.only or [])]
     results: list[dict[str, Any]] = []
     md = ""
     name = "faults" + ("_board" if args.board_process else "") \
-        + ("_platform" if args.platform_process else "")
+        + ("_platform" if args.platform_process else "") \
+        + ("" if args.lock_memory else "_nolock")
 
     def write(partial: bool) -> None:
         nonlocal md
@@ -341,6 +347,7 @@ def run(args: argparse.Namespace) -> int:
 
     for r in iter_results(items, root, repeats=repeats, board_process=args.board_process,
                           platform_process=args.platform_process,
+                          lock_memory=args.lock_memory,
                           progress=lambda m: print(m, file=sys.stderr, flush=True)):
         results.append(r)
         print(f"  -> halt p99 {_fmt(r['halt_ms']['p99'])} ms, safe p99 "

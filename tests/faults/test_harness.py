@@ -302,6 +302,19 @@ def test_major_faults_are_counted_from_the_steady_mark(tmp_path: Path,
     assert rig.major_faults == {"early-1": 7, "late-1": 4}
 
 
+@pytest.mark.parametrize("lock", [True, False])
+def test_the_rig_can_start_the_stations_without_their_memory_lock(tmp_path: Path,
+                                                                   lock: bool) -> None:
+    rig = FaultRig(tmp_path, lock_memory=lock)
+    started: list[list[str]] = []
+    rig._spawn = lambda name, args, **kw: started.append(args)  # type: ignore[assignment,method-assign]
+    rig.leg_ports, rig.token = {"local": 1, "remote": 2}, "token"
+    rig.start_station("local")
+    rig.start_station("remote")
+    assert [a[0] for a in started] == ["local", "remote"]
+    assert all(("--no-lock-memory" in a) is not lock for a in started)
+
+
 def test_only_selects_by_name_and_a_selection_of_nothing_is_an_error() -> None:
     from lab.bench.faults import select
     from shared.errors import ConfigError
