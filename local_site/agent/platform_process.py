@@ -59,10 +59,10 @@ import threading
 from dataclasses import dataclass
 from typing import Any
 
-from local_site.agent.platform_reader import reopen_after
+from local_site.agent.platform_reader import reopen_after, stale_since_s
 from local_site.platform.base import PlatformSample, PlatformStats
 from shared.errors import ConfigError
-from shared.timebase import monotonic_s, now_us, wall_anchor_ns
+from shared.timebase import monotonic_s, wall_anchor_ns
 
 __all__ = ["HEARTBEAT_S", "ProcessPlatformReader", "ReaderHealth", "SampleRecord"]
 
@@ -287,7 +287,7 @@ class ProcessPlatformReader:
         except (TypeError, ValueError) as err:
             raise ConfigError("platform options must be JSON values to cross to the platform "
                               f"process: {err}") from err
-        self._read_timeout_us = read_timeout_s * 1e6
+        self._read_timeout_s = read_timeout_s
         self._hang_timeout_s = hang_timeout_s
         self._lock_memory = lock_memory
         self._child_args = dict(read_timeout_s=read_timeout_s, reopen_after_s=reopen_after_s,
@@ -362,7 +362,7 @@ class ProcessPlatformReader:
         (by its capture stamp: a hung, stopped or dead child, or one reconnecting, is not)."""
         _, sample, health = self._read()
         return health.healthy and sample is not None \
-            and now_us() - sample.t_us <= self._read_timeout_us
+            and stale_since_s(sample, self._read_timeout_s) is None
 
     @property
     def lost_since_s(self) -> float | None:
@@ -375,7 +375,7 @@ class ProcessPlatformReader:
         if sample is None:
             return self._stopped[2].lost_since_mono_s
         # samples stopped coming: lost a read timeout after the last one was taken
-        return monotonic_s() - (now_us() - sample.t_us - self._read_timeout_us) / 1e6
+        return stale_since_s(sample, self._read_timeout_s) or monotonic_s()
 
     @property
     def reads(self) -> int:

@@ -31,7 +31,7 @@ from local_site.platform.base import PlatformSample, PlatformStats, XYZPlatform
 from shared.errors import ConfigError, DeviceError, DeviceInitError, DeviceTimeoutError
 from shared.timebase import monotonic_s, now_us
 
-__all__ = ["PlatformReader", "reopen_after"]
+__all__ = ["PlatformReader", "reopen_after", "stale_since_s"]
 
 log = logging.getLogger(__name__)
 
@@ -48,6 +48,13 @@ def reopen_after(read_timeout_s: float, reopen_after_s: float | None) -> float:
         raise ConfigError(f"reopen_after_s must be finite and >= read_timeout_s "
                           f"({read_timeout_s}), got {reopen_after_s}")
     return reopen_after_s
+
+
+def stale_since_s(sample: PlatformSample, read_timeout_s: float) -> float | None:
+    """When ``sample`` became too old to render, on the monotonic clock: a read timeout
+    after its capture stamp; None while it is younger than that."""
+    age_s = (now_us() - sample.t_us) / 1e6
+    return None if age_s <= read_timeout_s else monotonic_s() - (age_s - read_timeout_s)
 
 
 class PlatformReader:
@@ -83,7 +90,6 @@ class PlatformReader:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._last_sample: PlatformSample | None = None
-        self._read_timeout_us = read_timeout_s * 1e6
         # the reader thread's view: the device answers (set and cleared by the thread only)
         self._device_ok = False
         self._lost_at_s: float | None = monotonic_s()
@@ -111,7 +117,7 @@ class PlatformReader:
         if not self._device_ok:
             return False
         sample = self.latest
-        return sample is not None and now_us() - sample.t_us <= self._read_timeout_us
+        return sample is not None and stale_since_s(sample, self._read_timeout_s) is None
 
     @property
     def lost_since_s(self) -> float | None:
@@ -120,13 +126,7 @@ class PlatformReader:
             lost_at = self._lost_at_s  # (None only in the instant the thread sets the pair)
             return lost_at if lost_at is not None else monotonic_s()
         sample = self.latest
-        if sample is None:
-            return monotonic_s()
-        age_us = now_us() - sample.t_us
-        if age_us <= self._read_timeout_us:
-            return None
-        # samples stopped coming: lost a read timeout after the newest one was captured
-        return monotonic_s() - (age_us - self._read_timeout_us) / 1e6
+        return monotonic_s() if sample is None else stale_since_s(sample, self._read_timeout_s)
 
     def start(self) -> None:
         """Start the thread (idempotent)."""

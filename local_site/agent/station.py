@@ -40,7 +40,7 @@ import numpy as np
 from local_site.agent.config import LocalAgentConfig
 from local_site.agent.display_loop import DisplayLoop, FrameSlot
 from local_site.agent.platform_process import ProcessPlatformReader
-from local_site.agent.platform_reader import PlatformReader
+from local_site.agent.platform_reader import PlatformReader, stale_since_s
 from local_site.devices import open_display, open_platform
 from local_site.platform.base import XYZPlatform
 from local_site.recording import SessionRecorder
@@ -299,12 +299,12 @@ class LocalAgent:
         # a sample older than this is never sent (the platform counts as lost by then): a
         # reader that resumes after a stall may first decode samples the board buffered
         # meanwhile, stamped when they were latched (the remote would drop them as stale)
-        stale_us = round(self.config.platform_read_timeout_s * 1e6)
+        stale_s = self.config.platform_read_timeout_s
         while True:
             sample = reader.latest
             if sample is not None and sample is not last:
                 last = sample
-                if now_us() - sample.t_us > stale_us:
+                if stale_since_s(sample, stale_s) is not None:
                     self.platform_states_skipped_stale += 1
                 elif link.is_connected:
                     seq += 1

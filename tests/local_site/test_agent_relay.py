@@ -223,10 +223,10 @@ async def test_platform_samples_older_than_the_read_timeout_are_never_sent(
         monkeypatch: pytest.MonkeyPatch) -> None:
     # a reader that resumes after a stall (a stopped or starved platform process) may first
     # publish samples the board latched long ago; the uplink must not send them as commands.
-    # The station's clock, as the uplink reads it, runs 1 s ahead: every sample is 1 s old.
-    import local_site.agent.station as station
+    # The clock the sample-age rule reads runs 1 s ahead: every sample is 1 s old.
+    import local_site.agent.platform_reader as platform_reader
 
-    monkeypatch.setattr(station, "now_us", lambda: now_us() + 1_000_000)
+    monkeypatch.setattr(platform_reader, "now_us", lambda: now_us() + 1_000_000)
     async with running_relay() as relay:
         url = f"ws://127.0.0.1:{relay.ws_port}/"
         agent = relay_agent(url)
