@@ -725,29 +725,26 @@ class FaultRig:
         self.close()
 
 
-def _major_faults(pid: int) -> int | None:
-    """The major page faults of a process so far (None: it is gone)."""
+def _stat_fields(proc_dir: Path) -> list[str] | None:
+    """The fields of ``/proc/<pid>/stat`` after the command name (which is in parentheses and
+    may hold spaces): index 0 is field 3, the state. None: the process is gone."""
     try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
+        stat = (proc_dir / "stat").read_text()
     except OSError:
         return None
-    return int(stat[stat.rindex(")") + 2:].split()[9])  # field 12, majflt
+    return stat[stat.rindex(")") + 2:].split()
+
+
+def _major_faults(pid: int) -> int | None:
+    """The major page faults of a process so far (None: it is gone)."""
+    fields = _stat_fields(Path(f"/proc/{pid}"))
+    return None if fields is None else int(fields[9])  # field 12, majflt
 
 
 def _children(pid: int) -> list[int]:
     """The pids whose parent is ``pid`` (from /proc)."""
-    out = []
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            stat = (entry / "stat").read_text()
-        except OSError:
-            continue
-        # the command name (2nd field) is in parentheses and may hold spaces
-        if int(stat[stat.rindex(")") + 2:].split()[1]) == pid:
-            out.append(int(entry.name))
-    return out
+    return [int(entry.name) for entry in Path("/proc").iterdir() if entry.name.isdigit()
+            and (fields := _stat_fields(entry)) is not None and int(fields[1]) == pid]
 
 
 def _logged(p: _Proc, text: str) -> bool:
