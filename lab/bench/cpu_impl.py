@@ -432,6 +432,7 @@ def _figures(win: _Window, report: dict[str, Any], load_start: tuple[float, floa
             "frames_received"), "demo_error": report.get("demo_error"),
         "remote_frames": (report.get("remote") or {}).get("frames"),
         "remote_platform_states": (report.get("remote") or {}).get("platform_states"),
+        "remote_latency_ms": (report.get("remote") or {}).get("latency_ms"),
         "remote_elapsed_s": (report.get("remote") or {}).get("elapsed_s"),
         "tactile_codec": local.get("tactile_codec"),
         "settings": {k: v for k, v in vars(win.settings).items()},

@@ -50,6 +50,12 @@ class RemoteAgentConfig:
             target, it gets there within this long of the command; otherwise the frame is
             taken at once (an arm tracking a moving hand lags it all the time: waiting would
             only add latency).
+        command_fresh_ms: with capture on pose, a frame that is due (a frame period after
+            the previous one) is taken at once only for a command applied at most this long
+            ago; for an older one it waits for the next command, when that is due (by the
+            commands' recent interval) within a frame period, so that the frame answers a
+            command the moment it arrives instead of one that aged meanwhile (a frame period
+            or more: taken at once, the behaviour before).
         opencv_threads: OpenCV's thread count while the station runs (``cv2.setNumThreads``;
             restored after). 1 (default) runs its resizes and blurs in the calling thread:
             on sensor-sized frames (320 x 240) its worker pool saved nothing per frame but
@@ -82,6 +88,7 @@ class RemoteAgentConfig:
     capture_on_pose: bool = True
     pose_tolerance_mm: float = 0.25
     pose_wait_max_ms: float = 10.0
+    command_fresh_ms: float = 1.0
     opencv_threads: int = 1
     lock_memory: bool = True
 
@@ -96,6 +103,9 @@ class RemoteAgentConfig:
         if not (math.isfinite(self.pose_wait_max_ms) and 0.0 <= self.pose_wait_max_ms <= 1000.0):
             raise ConfigError("remote.agent.pose_wait_max_ms must lie in [0, 1000], got "
                               f"{self.pose_wait_max_ms!r}")
+        if not (math.isfinite(self.command_fresh_ms) and 0.0 <= self.command_fresh_ms <= 1000.0):
+            raise ConfigError("remote.agent.command_fresh_ms must lie in [0, 1000], got "
+                              f"{self.command_fresh_ms!r}")
         if isinstance(self.opencv_threads, bool) or not isinstance(self.opencv_threads, int) \
                 or not 0 <= self.opencv_threads <= 256:
             raise ConfigError("remote.agent.opencv_threads must be an integer in [0, 256], "

@@ -14,7 +14,10 @@ Four asyncio tasks share one :class:`RemoteStation`:
   With a sensor that captures on demand (the simulator) and ``capture_on_pose``, a frame is
   taken as soon as the arm has reached the pose of the latest applied command (within
   ``pose_tolerance_mm``, or no longer moving), never sooner than one frame period after the
-  previous one; an arm that will not get there within ``pose_wait_max_ms`` of the command
+  previous one; a frame that is due when the newest command is older than
+  ``command_fresh_ms`` waits for the next command if that is due within a frame period (by
+  the commands' recent interval, :func:`next_command_wait_s`), so frames answer commands as
+  they arrive; an arm that will not get there within ``pose_wait_max_ms`` of the command
   at its current speed (tracking a moving hand, it lags all the time) is not waited for;
   without a new command, a frame every two periods keeps the touch fresh. A streaming camera
   keeps the frame clock: the newest frame at each tick (:func:`pose_reached`,
@@ -51,7 +54,8 @@ from shared.protocol.messages import ArmCommand, Message, PlatformState
 from shared.protocol.tactile_codec import CodecSettings, TactileEncoder
 from shared.timebase import monotonic_s, now_us
 
-__all__ = ["RemoteStation", "StationCounters", "command_clock", "percentiles_ms"]
+__all__ = ["RemoteStation", "StationCounters", "command_clock", "next_command_wait_s",
+           "percentiles_ms"]
 
 log = logging.getLogger(__name__)
 
@@ -103,12 +107,15 @@ class CaptureCounters:
             lags it all the time): taken at once rather than waited for.
         idle: no new command for a period (refresh).
         clock: the frame clock (a streaming sensor, or ``capture_on_pose`` off).
+        waited_for_command: frames (counted above as well) that were due while the newest
+            command was older than ``command_fresh_ms`` and waited for the next one.
     """
 
     on_pose: int = 0
     moving: int = 0
     idle: int = 0
     clock: int = 0
+    waited_for_command: int = 0
 
 
 def pose_reached(reading: ArmReading, tolerance_mm: float) -> bool:
@@ -140,6 +147,33 @@ def closing_speed_mm_s(reading: ArmReading) -> float:
     if dist == 0.0:
         return 0.0
     return sum(v * g for v, g in zip(reading.velocity_mm_s, gap, strict=True)) / dist
+
+
+#: command gaps longer than this are pauses (link, operator), not the command rate
+_COMMAND_GAP_MAX_S = 0.1
+
+
+def next_command_wait_s(age_s: float, interval_s: float | None, fresh_s: float,
+                        period_s: float) -> float:
+    """How long a frame that is due now waits for the next command (0: taken at once).
+
+    Args:
+        age_s: how long ago the newest command was applied.
+        interval_s: the commands' recent interval (None: not known yet).
+        fresh_s: a command at most this old is answered at once.
+        period_s: the frame period (the longest wait).
+
+    Returns:
+        0 for a fresh command, an unknown interval, or a next command not due within a
+        period; else the time until the next one is due plus half an interval of slack for
+        its jitter, at most ``period_s`` (it usually arrives, and ends the wait, sooner).
+    """
+    if age_s <= fresh_s or interval_s is None:
+        return 0.0
+    due_s = interval_s - age_s
+    if due_s > period_s:
+        return 0.0
+    return min(period_s, max(0.0, due_s) + 0.5 * interval_s)
 
 
 def command_clock(view: ClockView | None) -> tuple[float, float] | None:
@@ -188,6 +222,8 @@ class RemoteStation:
         self.captures = CaptureCounters()
         #: set when a platform_state is applied to the arm (wakes a frame capture on pose)
         self._command_applied = asyncio.Event()
+        #: the commands' recent interval (seconds, moving average; None: not known yet)
+        self.command_interval_s: float | None = None
         self._frame_seq = 0
         self._arm_state_seq = 0
         self._link_halted = False
@@ -201,6 +237,9 @@ class RemoteStation:
         self.assemble_s: deque[float] = deque(maxlen=window)
         self.dispatch_s: deque[float] = deque(maxlen=window)
         self.frame_period_s: deque[float] = deque(maxlen=window)
+        #: from a command's application to the start of the frame that answers it (frames
+        #: answering a new command only): the wait part of the ledger's arm_and_sensor stage
+        self.command_wait_s: deque[float] = deque(maxlen=window)
         cfg = self.config
         #: the compact tactile codec (None: raw tactile_frame messages)
         self.encoder = TactileEncoder(CodecSettings(
@@ -236,6 +275,11 @@ class RemoteStation:
             return None
         if result.accepted:
             t_us = now_us()
+            if self.latest is not None:
+                gap_s = (t_us - self.latest.arm_command_us) / 1e6
+                if 0.0 < gap_s <= _COMMAND_GAP_MAX_S:
+                    prev = self.command_interval_s
+                    self.command_interval_s = gap_s if prev is None else prev + (gap_s - prev) / 8
             self.latest = AppliedCommand(state, t_us)
             self._command_applied.set()
             self.counters.platform_applied += 1
@@ -317,13 +361,15 @@ class RemoteStation:
 
     async def _until_pose(self, command: AppliedCommand) -> None:
         """Return once the arm has reached ``command``'s pose, or at once when it will not
-        reach it within ``pose_wait_max_ms`` of the command at its current, steady speed
-        (an arm still at rest, settling or speeding up is given until then)."""
+        reach it within ``pose_wait_max_ms`` of the command at its current speed (an arm
+        that set off from rest or settling for this command is given until then while it
+        speeds up)."""
         loop = asyncio.get_running_loop()
         tolerance_mm = self.config.pose_tolerance_mm
         wait_s = self.config.pose_wait_max_ms / 1000.0 - (now_us() - command.arm_command_us) / 1e6
         deadline = loop.time() + wait_s
         prev_closing: float | None = None
+        from_rest: bool | None = None
         while True:
             reading = self.pipeline.read_arm()
             eta_s = pose_eta_s(reading, tolerance_mm)
@@ -331,14 +377,19 @@ class RemoteStation:
                 self.captures.on_pose += 1
                 return
             # an arm not yet on its way to this target (at rest, or still settling from its
-            # previous move: its speed is not towards this target) or still speeding up
-            # towards it is given until the deadline: its speed now says little about when
-            # it arrives. Only an arm closing in at a steady speed, too slowly to arrive in
-            # time (tracking a moving hand), is captured at once. (Judged by the absolute
-            # speed, a 10 mm step was captured 2 ms after its command, the pad at the start.)
+            # previous move: its speed is not towards this target) is given until the
+            # deadline, and so is one that set off from there and is still speeding up: its
+            # speed then says little about when it arrives. (Judged by the absolute speed, a
+            # 10 mm step was captured 2 ms after its command, the pad at the start.) An arm
+            # already closing in when it is first looked at is tracking a moving hand (each
+            # command moves its target a little further, so it is always speeding up a
+            # little): judged by its speed at once, without a second look a millisecond
+            # later (that look cost 1-3 ms per frame, docs/speed.md section 15).
             closing = closing_speed_mm_s(reading)
-            starting = (closing < 1.0 or prev_closing is None
-                        or closing > prev_closing * 1.001)
+            if from_rest is None:
+                from_rest = closing < 1.0
+            starting = closing < 1.0 or (from_rest and (
+                prev_closing is None or closing > prev_closing * 1.001))
             prev_closing = closing
             if loop.time() >= deadline or (loop.time() + eta_s > deadline and not starting):
                 self.captures.moving += 1
@@ -352,12 +403,21 @@ class RemoteStation:
         delay = earliest_s - loop.time()
         if delay > 0:
             await asyncio.sleep(delay)
-        if self.latest is captured:  # nothing new: wait for a command, at most a period
+        latest = self.latest
+        if latest is None or latest is captured:  # nothing new: wait for one, at most a period
+            wait_s = period
+        else:  # an older command: its successor, if it is due soon (see the module doc)
+            wait_s = next_command_wait_s((now_us() - latest.arm_command_us) / 1e6,
+                                         self.command_interval_s,
+                                         self.config.command_fresh_ms / 1000.0, period)
+        if wait_s > 0:
             self._command_applied.clear()
             # asyncio.timeout, not wait_for: no task is created per frame
             with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(period):
+                async with asyncio.timeout(wait_s):
                     await self._command_applied.wait()
+            if latest is not None and latest is not captured:
+                self.captures.waited_for_command += 1
         command = self.latest
         if command is captured or command is None:
             self.captures.idle += 1
@@ -383,6 +443,9 @@ class RemoteStation:
             if last_start is not None:
                 self.frame_period_s.append(start - last_start)
             last_start = start
+            if self.latest is not captured and self.latest is not None:
+                self.command_wait_s.append(
+                    max(0, now_us() - self.latest.arm_command_us) / 1e6)
             captured = self.latest
             outcome: FrameOutcome = await loop.run_in_executor(
                 executor, self.pipeline.process, self._frame_seq + 1, captured)
@@ -550,6 +613,7 @@ class RemoteStation:
                 "reconstruct": percentiles_ms(self.reconstruct_s),
                 "assemble": percentiles_ms(self.assemble_s),
                 "station_rx_to_arm_command": percentiles_ms(self.dispatch_s),
+                "arm_command_to_capture": percentiles_ms(self.command_wait_s),
                 "frame_period": percentiles_ms(self.frame_period_s),
             },
             "link": asdict(self.link.counters),

@@ -7,10 +7,18 @@ import asyncio
 import math
 from collections.abc import Sequence
 
+import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from remote_site.agent.config import RemoteAgentConfig
-from remote_site.agent.station import closing_speed_mm_s, pose_eta_s, pose_reached
+from remote_site.agent.station import (
+    closing_speed_mm_s,
+    next_command_wait_s,
+    pose_eta_s,
+    pose_reached,
+)
 from remote_site.arm.base import ArmReading
 from remote_site.arm.safety import SafetyConfig
 from shared.errors import ConfigError
@@ -70,6 +78,38 @@ def test_pose_settings_are_checked() -> None:
         RemoteAgentConfig(pose_tolerance_mm=0.0)
     with pytest.raises(ConfigError, match="pose_wait_max_ms"):
         RemoteAgentConfig(pose_wait_max_ms=math.inf)
+    for bad in (-1.0, math.nan, math.inf):
+        with pytest.raises(ConfigError, match="command_fresh_ms"):
+            RemoteAgentConfig(command_fresh_ms=bad)
+
+
+_SECONDS = st.floats(0.0, 1.0, allow_nan=False)
+
+
+@given(age=_SECONDS, interval=st.none() | st.floats(1e-4, 0.1), fresh=_SECONDS,
+       period=st.floats(1e-3, 1.0))
+def test_a_due_frame_waits_for_the_next_command_only_when_it_is_due_within_a_period(
+        age: float, interval: float | None, fresh: float, period: float) -> None:
+    wait = next_command_wait_s(age, interval, fresh, period)
+    assert 0.0 <= wait <= period
+    if age <= fresh or interval is None or interval - age > period:
+        assert wait == 0.0  # a fresh command, no rate known, or the next one far off
+    else:
+        assert wait > 0.0
+        # until the next command is due, or a whole period when that comes later
+        assert age + wait >= interval or wait == period
+
+
+def test_the_wait_for_the_next_command_in_numbers() -> None:
+    # commands every 4 ms, frames at most every 8.3 ms: a command 3 ms old is not taken, its
+    # successor (due in 1 ms) is waited for, with 2 ms of slack for its jitter
+    assert next_command_wait_s(0.003, 0.004, 0.001, 0.0083) == pytest.approx(0.003)
+    assert next_command_wait_s(0.0005, 0.004, 0.001, 0.0083) == 0.0  # fresh: at once
+    assert next_command_wait_s(0.003, None, 0.001, 0.0083) == 0.0  # no rate known yet
+    # commands every 50 ms, frames every 8.3 ms: the next one is 45 ms away, not waited for
+    assert next_command_wait_s(0.005, 0.05, 0.001, 0.0083) == 0.0
+    # a command overdue (late on the link): half an interval of slack, then the old one
+    assert next_command_wait_s(0.006, 0.004, 0.001, 0.0083) == pytest.approx(0.002)
 
 
 def _frames(sent: Sequence[object]) -> list[TactileFrame | TactileCompact]:
@@ -163,5 +203,81 @@ async def test_a_streaming_sensor_keeps_the_frame_clock() -> None:
         assert not station.captures_on_pose
         assert station.captures.on_pose == station.captures.idle == 0
         assert station.summary()["frames"]["capture"] == "clock"
+    finally:
+        close_station(station)
+
+
+async def test_frames_answer_commands_as_they_arrive_not_after_they_aged() -> None:
+    """Commands every 12 ms, frames at most every 20 ms: without the wait for the next
+    command a due frame takes the newest command at whatever age it has then (8, 4, 0 or
+    12 ms in turn: median about 6 ms); with it, frames are taken as commands arrive."""
+    interval_s = 0.012
+    link = FakeLink()
+    safety = SafetyConfig(max_command_age_ms=scaled(100.0), command_timeout_ms=scaled(200.0))
+    station = make_station(link, safety, config=RemoteAgentConfig(
+        frame_rate_hz=50.0, status_interval_s=10.0, command_fresh_ms=1.0))
+    position = (0.0, 0.0, 12.0)
+    stop = asyncio.Event()
+
+    async def operator() -> None:
+        loop = asyncio.get_running_loop()
+        next_t = loop.time()
+        seq = 0
+        while len(station.command_wait_s) < 30:
+            seq += 1
+            link.inbox.put_nowait(platform_state(seq, position))  # a held hand
+            next_t += interval_s
+            await asyncio.sleep(max(0.0, next_t - loop.time()))
+        stop.set()
+
+    try:
+        task = asyncio.create_task(operator())
+        await station.run(stop, duration_s=scaled(30.0))
+        await task
+        ages_ms = np.asarray(station.command_wait_s)[5:] * 1e3  # after the rate is known
+        assert station.command_interval_s == pytest.approx(interval_s, rel=0.5)
+        assert float(np.median(ages_ms)) <= interval_s * 1e3 / 4, (
+            f"command ages at capture {np.round(ages_ms, 1)} ms; {station.captures}")
+        assert station.captures.waited_for_command >= 10
+        assert station.summary()["latency_ms"]["arm_command_to_capture"]["n"] >= 30
+    finally:
+        close_station(station)
+
+
+async def test_an_arm_tracking_a_moving_hand_is_judged_at_the_first_look() -> None:
+    """An arm already closing in on a target it cannot reach within the pose wait (tracking
+    a hand, 1 mm behind at 45 mm/s: 17 ms) is captured at once, with no second look; one
+    that sets off from rest is given until the deadline while it speeds up."""
+    from remote_site.tactile import AppliedCommand
+
+    station = make_station(FakeLink(), config=RemoteAgentConfig(
+        frame_rate_hz=30.0, status_interval_s=10.0, pose_wait_max_ms=10.0))
+    target = (1.0, 0.0, 12.0)
+    looks: list[float] = []
+
+    def tracking() -> ArmReading:
+        looks.append(asyncio.get_running_loop().time())
+        return ArmReading((0.0, 0.0, 12.0), (45.0, 0.0, 0.0), 0.0, "moving", target, 0.0)
+
+    speeds = iter([0.0, 20.0, 40.0, 60.0, 80.0, 100.0, 120.0, 140.0, 160.0, 180.0] * 100)
+
+    def from_rest() -> ArmReading:  # speeding up by 20 mm/s per look, never arriving
+        looks.append(asyncio.get_running_loop().time())
+        return ArmReading((0.0, 0.0, 12.0), (next(speeds), 0.0, 0.0), 0.0, "moving", target,
+                          0.0)
+
+    try:
+        command = AppliedCommand(platform_state(1, target), now_us())
+        station.pipeline.read_arm = tracking
+        await station._until_pose(command)
+        assert len(looks) == 1 and station.captures.moving == 1
+
+        looks.clear()
+        command = AppliedCommand(platform_state(2, target), now_us())
+        station.pipeline.read_arm = from_rest
+        await station._until_pose(command)
+        assert len(looks) >= 3, "an arm setting off from rest was not given time"
+        assert looks[-1] - looks[0] >= 0.005  # looked at until (about) the deadline
+        assert station.captures.moving == 2
     finally:
         close_station(station)
