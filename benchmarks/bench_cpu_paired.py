@@ -1,0 +1,156 @@
+"""`teletouch bench cpu` for several sides in the same minutes, per link profile: paired runs.
+
+A *side* is a checkout with its own ``.venv`` (e.g. a ``git worktree`` of the base commit
+beside this one) and, optionally, extra flags for the remote station (a setting to compare
+on the same code). Per round and profile every side runs once (``teletouch bench cpu
+--no-profile --link P``); the order of the sides reverses every round (ABBA...) so that the
+machine's load hits all alike. ``--burners N`` runs N CPU-bound processes beside every run.
+
+Per run the table keeps what issue 12's targets are about: all processes' cores, the local
+and remote stations' cores, the remote's achieved frame rate, the display loop's rate and
+period jitter p99, motion-to-touch end to end (p50 / p99) and its ``arm_and_sensor`` stage,
+and the remote's wait from a command to the capture that answers it (``arm_command_to_capture``
+in its summary, where the side reports it). Then the medians per side and profile, and each
+side's median ratio to the first side over the pairs.
+
+Run: ``python benchmarks/bench_cpu_paired.py --side base=../m2t-base --side new=. --link lan
+--link city-1000km --rounds 3 --out benchmarks/results/DIR`` (``--report-only`` rebuilds
+``DIR/README.md``'s table from the saved runs; ``--side NAME=ROOT::--flag::value`` passes
+remote flags, separated by ``::``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+#: (column, unit format) per run
+COLUMNS = ("load", "cores", "local", "remote", "fps", "loop_hz", "jitter_p99", "m2t_p50",
+           "m2t_p99", "arm_sensor_p50", "arm_sensor_p99", "cmd_to_capture_p50")
+
+
+def _side(text: str) -> tuple[str, Path, list[str]]:
+    name, _, rest = text.partition("=")
+    root, *flags = rest.split("::")
+    if not name or not root:
+        raise argparse.ArgumentTypeError(f"--side NAME=ROOT[::FLAG...], got {text!r}")
+    return name, Path(root).resolve(), flags
+
+
+def _run(name: str, root: Path, flags: list[str], link: str, label: str, out: Path) -> None:
+    cmd = [str(root / ".venv" / "bin" / "teletouch"), "bench", "cpu", "--no-profile",
+           "--label", label, "--out-dir", str(out), "--link", link]
+    for flag in flags:
+        cmd.append(f"--remote-arg={flag}")
+    proc = subprocess.run(cmd, cwd=root, capture_output=True, text=True, timeout=900,
+                          check=False)
+    if proc.returncode != 0:
+        print(f"{label}: exit {proc.returncode}: {proc.stderr[-800:]}", file=sys.stderr)
+
+
+def figures(path: Path) -> dict[str, float | None]:
+    """One run's row (None where the run does not report the figure)."""
+    run = json.loads(path.read_text())
+    lat, procs = run.get("latency_ms") or {}, run.get("processes") or {}
+    remote_lat = run.get("remote_latency_ms") or {}
+
+    def pick(table: dict[str, Any], stage: str, q: str) -> float | None:
+        value = (table.get(stage) or {}).get(q)
+        return None if value is None else float(value)
+
+    return {
+        "load": float(run["load_start"][0]),
+        "cores": sum(p["cores"] for p in procs.values()),
+        "local": procs.get("local", {}).get("cores"),
+        "remote": procs.get("remote", {}).get("cores"),
+        "fps": (run.get("remote_frames") or {}).get("achieved_fps"),
+        "loop_hz": (run.get("display_loop") or {}).get("rate_hz"),
+        "jitter_p99": (run.get("display_loop") or {}).get("jitter_p99_ms"),
+        "m2t_p50": pick(lat, "end_to_end", "p50"), "m2t_p99": pick(lat, "end_to_end", "p99"),
+        "arm_sensor_p50": pick(lat, "arm_and_sensor", "p50"),
+        "arm_sensor_p99": pick(lat, "arm_and_sensor", "p99"),
+        "cmd_to_capture_p50": pick(remote_lat, "arm_command_to_capture", "p50"),
+    }
+
+
+def _median(values: list[float | None]) -> float | None:
+    known = [v for v in values if v is not None]
+    return statistics.median(known) if known else None
+
+
+def _fmt(value: float | None) -> str:
+    return "-" if value is None else f"{value:.3f}" if abs(value) < 10 else f"{value:.1f}"
+
+
+def report(out: Path, sides: list[str], links: list[str], burners: int) -> str:
+    """The markdown table of every saved run in ``out``, medians and ratios."""
+    prefix = f"b{burners}-" if burners else ""
+    lines = ["| run | " + " | ".join(COLUMNS) + " |", "|---" * (len(COLUMNS) + 1) + "|"]
+    medians: dict[tuple[str, str], dict[str, float | None]] = {}
+    pairs: dict[tuple[str, str], list[dict[str, float | None]]] = {}
+    for link in links:
+        for side in sides:
+            runs = sorted(out.glob(f"cpu-{prefix}{side}-{link}-*.json"),
+                          key=lambda p: int(p.stem.rsplit("-", 1)[1]))
+            rows = [figures(p) for p in runs]
+            pairs[(side, link)] = rows
+            for p, row in zip(runs, rows, strict=True):
+                lines.append(f"| {p.stem[4:]} | " + " | ".join(_fmt(row[c]) for c in COLUMNS)
+                             + " |")
+            medians[(side, link)] = {c: _median([r[c] for r in rows]) for c in COLUMNS}
+    lines += ["", "Medians per side and profile (ratio to the first side's median over the "
+              "same rounds in brackets):", "",
+              "| side | profile | runs | " + " | ".join(COLUMNS[1:]) + " |",
+              "|---" * (len(COLUMNS) + 2) + "|"]
+    for link in links:
+        first = medians.get((sides[0], link), {})
+        for side in sides:
+            med = medians[(side, link)]
+            cells = []
+            for c in COLUMNS[1:]:
+                v, b = med[c], first.get(c)
+                ratio = f" (x{v / b:.2f})" if side != sides[0] and v is not None and b else ""
+                cells.append(_fmt(v) + ratio)
+            lines.append(f"| {side} | {link} | {len(pairs[(side, link)])} | "
+                         + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--side", type=_side, action="append", required=True,
+                    help="NAME=ROOT[::REMOTE-FLAG...] (repeat; the first is the reference)")
+    ap.add_argument("--link", action="append", required=True, help="link profile (repeat)")
+    ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--burners", type=int, default=0, help="CPU-bound processes beside runs")
+    ap.add_argument("--out", type=Path, required=True, help="results directory")
+    ap.add_argument("--report-only", action="store_true")
+    args = ap.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    names = [s[0] for s in args.side]
+    prefix = f"b{args.burners}-" if args.burners else ""
+    if not args.report_only:
+        burners = [subprocess.Popen([sys.executable, "-c", "while True: pass"])
+                   for _ in range(args.burners)]
+        try:
+            for i in range(1, args.rounds + 1):
+                for link in args.link:
+                    order = args.side if i % 2 else list(reversed(args.side))
+                    for name, root, flags in order:
+                        _run(name, root, flags, link, f"{prefix}{name}-{link}-{i}", args.out)
+        finally:
+            for b in burners:
+                b.kill()
+    table = report(args.out, names, args.link, args.burners)
+    print(table)
+    (args.out / f"table{'-' + prefix.rstrip('-') if prefix else ''}.md").write_text(table)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
