@@ -44,7 +44,9 @@ def _side(text: str) -> tuple[str, Path, list[str]]:
 
 def _run(name: str, root: Path, flags: list[str], link: str, label: str, out: Path) -> None:
     cmd = [str(root / ".venv" / "bin" / "teletouch"), "bench", "cpu", "--no-profile",
-           "--label", label, "--out-dir", str(out), "--link", link]
+           "--label", label, "--out-dir", str(out)]
+    if link != "none":  # none: the stations straight to the relay
+        cmd += ["--link", link]
     for flag in flags:
         cmd.append(f"--remote-arg={flag}")
     proc = subprocess.run(cmd, cwd=root, capture_output=True, text=True, timeout=900,
@@ -125,12 +127,14 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--side", type=_side, action="append", required=True,
                     help="NAME=ROOT[::REMOTE-FLAG...] (repeat; the first is the reference)")
-    ap.add_argument("--link", action="append", required=True, help="link profile (repeat)")
+    ap.add_argument("--link", action="append", required=True,
+                    help="link profile, or none for no link emulator (repeat)")
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--burners", type=int, default=0, help="CPU-bound processes beside runs")
     ap.add_argument("--out", type=Path, required=True, help="results directory")
     ap.add_argument("--report-only", action="store_true")
     args = ap.parse_args(argv)
+    args.out = args.out.resolve()  # the runs work in their own checkouts
     args.out.mkdir(parents=True, exist_ok=True)
     names = [s[0] for s in args.side]
     prefix = f"b{args.burners}-" if args.burners else ""

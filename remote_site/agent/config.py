@@ -54,8 +54,8 @@ class RemoteAgentConfig:
             the previous one) is taken at once only for a command applied at most this long
             ago; for an older one it waits for the next command, when that is due (by the
             commands' recent interval) within a frame period, so that the frame answers a
-            command the moment it arrives instead of one that aged meanwhile (a frame period
-            or more: taken at once, the behaviour before).
+            command the moment it arrives instead of one that aged meanwhile (1000: taken at
+            once, the behaviour before).
         opencv_threads: OpenCV's thread count while the station runs (``cv2.setNumThreads``;
             restored after). 1 (default) runs its resizes and blurs in the calling thread:
             on sensor-sized frames (320 x 240) its worker pool saved nothing per frame but

@@ -406,7 +406,7 @@ class RemoteStation:
         latest = self.latest
         if latest is None or latest is captured:  # nothing new: wait for one, at most a period
             wait_s = period
-        else:  # an older command: its successor, if it is due soon (see the module doc)
+        else:  # a command not answered yet: now if fresh, else its successor if due soon
             wait_s = next_command_wait_s((now_us() - latest.arm_command_us) / 1e6,
                                          self.command_interval_s,
                                          self.config.command_fresh_ms / 1000.0, period)
