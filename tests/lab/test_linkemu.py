@@ -186,9 +186,11 @@ async def test_added_delay_and_jitter_match_the_profile(sink: Sink) -> None:
     assert (p84 - p16) == pytest.approx(6.0, abs=tol)
     assert added_ms.min() >= 20.0 - 4 * 3.0 - 1.0  # no chunk faster than the model allows
     up = stats["up"]
-    # one read per 10 ms record while the emulator keeps up; a loaded emulator reads some
-    # records together (TCP coalesces them), so the chunk count is a scaled timing bound
-    assert up["bytes"] == n * RECORD.size and up["chunks"] >= n / max(1.0, scaled(1.0))
+    # one read per 10 ms record while the emulator keeps up; an emulator held up for 10 ms
+    # reads the records that came meanwhile together (TCP coalesces them): a few such
+    # hiccups happen on any machine (6 of 150 in a fresh-clone CI run at scale 1), so most
+    # records, not all, must have been read alone (a scaled bound on a loaded machine)
+    assert up["bytes"] == n * RECORD.size and up["chunks"] >= 0.8 * n / max(1.0, scaled(1.0))
     assert up["planned_delay_ms"]["p50"] == pytest.approx(20.0, abs=1.5)
     assert stats["down"]["bytes"] == 0 and stats["connections_total"] == 1
 
