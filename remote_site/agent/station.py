@@ -384,12 +384,13 @@ class RemoteStation:
             # already closing in when it is first looked at is tracking a moving hand (each
             # command moves its target a little further, so it is always speeding up a
             # little): judged by its speed at once, without a second look a millisecond
-            # later (that look cost 1-3 ms per frame, docs/speed.md section 15).
+            # later (that look slept at least 1 ms per frame, docs/speed.md section 15).
             closing = closing_speed_mm_s(reading)
             if from_rest is None:
                 from_rest = closing < 1.0
-            starting = closing < 1.0 or (from_rest and (
-                prev_closing is None or closing > prev_closing * 1.001))
+            # (at the first look an arm from rest is starting by its speed alone)
+            starting = closing < 1.0 or (from_rest and prev_closing is not None
+                                         and closing > prev_closing * 1.001)
             prev_closing = closing
             if loop.time() >= deadline or (loop.time() + eta_s > deadline and not starting):
                 self.captures.moving += 1
