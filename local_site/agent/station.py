@@ -29,7 +29,6 @@ import logging
 import math
 import os
 import signal
-import sys
 import threading
 from collections.abc import Callable
 from pathlib import Path
@@ -58,6 +57,7 @@ from shared.errors import (
     RoleTakenError,
     SessionError,
 )
+from shared.gil import switch_interval
 from shared.memlock import MemoryLock, memory_locked
 from shared.motion_to_touch import MotionToTouchLedger
 from shared.protocol import (
@@ -455,13 +455,11 @@ class LocalAgent:
                 with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
                     aio.add_signal_handler(sig, self.request_stop, "signal")
                     signals.append(sig)
-        previous_switch_s = sys.getswitchinterval()
-        if self.config.gil_switch_interval_s > 0:
-            sys.setswitchinterval(self.config.gil_switch_interval_s)
         self._started_s = monotonic_s()
         self._thread_stop.clear()
         await self._start_view()
         process_settings = contextlib.ExitStack()  # undone when the station ends (finally)
+        process_settings.enter_context(switch_interval(self.config.gil_switch_interval_s))
         self.memory_lock = process_settings.enter_context(memory_locked(self.config.lock_memory))
         reader.start()
         if self.link is not None:
@@ -500,7 +498,6 @@ class LocalAgent:
             await self._shutdown()
             for signum in signals:
                 aio.remove_signal_handler(signum)
-            sys.setswitchinterval(previous_switch_s)
             process_settings.close()
         return self.exit_code
 

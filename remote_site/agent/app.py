@@ -44,6 +44,7 @@ from remote_site.stiffness.stiffness_map import MapBounds
 from remote_site.tactile import TactileAssembler
 from shared.client import StationLink, StationLinkConfig
 from shared.config import resolve_config
+from shared.gil import switch_interval
 from shared.memlock import memory_locked
 from shared.recording import McapRecorder
 from shared.workspace import load_workspace
@@ -206,6 +207,7 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
     opencv_before = _set_opencv_threads(agent_cfg.opencv_threads)
     process_settings = contextlib.ExitStack()  # undone when the station ends
     memory_lock = process_settings.enter_context(memory_locked(agent_cfg.lock_memory))
+    process_settings.enter_context(switch_interval(agent_cfg.gil_switch_interval_s))
     try:
         safe_arm = SafeArm(arm, safety, bounds_mm=workspace.phantom_bounds_mm)
         sensor.connect()

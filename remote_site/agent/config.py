@@ -68,6 +68,10 @@ class RemoteAgentConfig:
             make a later allocation fail (``RLIMIT_MEMLOCK`` unlimited, as the systemd unit
             sets, or ``CAP_IPC_LOCK``); otherwise logged at INFO and the summary's
             ``memory_lock.reason`` says why.
+        gil_switch_interval_s: ``sys.setswitchinterval`` while the station runs (restored
+            after; :mod:`shared.gil`): how long the frame pipeline's worker may keep the
+            event loop (commands in, frames out) off the GIL. 0 leaves the interpreter's
+            setting (5 ms) alone.
     """
 
     frame_rate_hz: float = 60.0
@@ -91,6 +95,7 @@ class RemoteAgentConfig:
     command_fresh_ms: float = 1.0
     opencv_threads: int = 1
     lock_memory: bool = True
+    gil_switch_interval_s: float = 0.0
 
     def __post_init__(self) -> None:
         positive = ("frame_rate_hz", "patch_pitch_mm", "arm_poll_hz", "arm_state_hz",
@@ -106,6 +111,11 @@ class RemoteAgentConfig:
         if not (math.isfinite(self.command_fresh_ms) and 0.0 <= self.command_fresh_ms <= 1000.0):
             raise ConfigError("remote.agent.command_fresh_ms must lie in [0, 1000], got "
                               f"{self.command_fresh_ms!r}")
+        if not (isinstance(self.gil_switch_interval_s, int | float)
+                and math.isfinite(self.gil_switch_interval_s)
+                and 0.0 <= self.gil_switch_interval_s <= 0.1):
+            raise ConfigError("remote.agent.gil_switch_interval_s must lie in [0, 0.1] s, got "
+                              f"{self.gil_switch_interval_s!r}")
         if isinstance(self.opencv_threads, bool) or not isinstance(self.opencv_threads, int) \
                 or not 0 <= self.opencv_threads <= 256:
             raise ConfigError("remote.agent.opencv_threads must be an integer in [0, 256], "
