@@ -207,7 +207,8 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
     opencv_before = _set_opencv_threads(agent_cfg.opencv_threads)
     process_settings = contextlib.ExitStack()  # undone when the station ends
     memory_lock = process_settings.enter_context(memory_locked(agent_cfg.lock_memory))
-    process_settings.enter_context(switch_interval(agent_cfg.gil_switch_interval_s))
+    gil_switch_s = process_settings.enter_context(
+        switch_interval(agent_cfg.gil_switch_interval_s))
     try:
         safe_arm = SafeArm(arm, safety, bounds_mm=workspace.phantom_bounds_mm)
         sensor.connect()
@@ -260,7 +261,8 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
                                sensor_backend=options.sensor, phantom=options.phantom,
                                seed=options.seed if world else None,
                                registration=registration.to_dict() if registration else None,
-                               memory_lock=memory_lock.to_dict())
+                               memory_lock=memory_lock.to_dict(),
+                               gil_switch_interval_s=gil_switch_s)
                 if recorder is not None:
                     summary["recording"] = await asyncio.to_thread(recorder.close, summary)
                 if on_summary is not None:

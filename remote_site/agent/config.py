@@ -55,7 +55,7 @@ class RemoteAgentConfig:
             ago; for an older one it waits for the next command, when that is due (by the
             commands' recent interval) within a frame period, so that the frame answers a
             command the moment it arrives instead of one that aged meanwhile (1000: taken at
-            once, the behaviour before).
+            once, as the frame gate did before; the pose wait's first look stays).
         opencv_threads: OpenCV's thread count while the station runs (``cv2.setNumThreads``;
             restored after). 1 (default) runs its resizes and blurs in the calling thread:
             on sensor-sized frames (320 x 240) its worker pool saved nothing per frame but
