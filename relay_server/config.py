@@ -69,6 +69,12 @@ class RelayConfig:
         reuse_port: bind with SO_REUSEPORT (set for the workers of ``--workers``).
         nats_ca_file: PEM CA that signed the NATS server's certificate, for a ``tls://``
             ``nats_url`` (None: the system's trust store).
+        lock_memory: keep each relay process's memory in RAM while it serves (``mlockall``
+            on fault, :mod:`shared.memlock`, as the stations do): forwarding never waits for
+            a page read back from disk on a cloud host under memory pressure. Taken only
+            where it cannot make a later allocation fail (``RLIMIT_MEMLOCK`` unlimited or
+            ``CAP_IPC_LOCK``); otherwise logged at INFO, and ``/status`` says why
+            (``memory_lock``).
     """
 
     host: str = "127.0.0.1"
@@ -104,6 +110,7 @@ class RelayConfig:
     nats_subject_prefix: str = "teletouch"
     reuse_port: bool = False
     nats_ca_file: Path | None = None
+    lock_memory: bool = True
 
     def __post_init__(self) -> None:
         for name in ("port",):
@@ -123,6 +130,8 @@ class RelayConfig:
         for name in ints:
             if getattr(self, name) < 1:
                 raise ConfigError(f"relay.{name} must be >= 1")
+        if not isinstance(self.lock_memory, bool):
+            raise ConfigError(f"relay.lock_memory must be true or false, got {self.lock_memory!r}")
         if self.workers < 0:
             raise ConfigError("relay.workers must be >= 0")
         if self.workers > 1 and not self.nats_url:

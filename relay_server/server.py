@@ -54,6 +54,7 @@ from shared.errors import (
     ReplacedError,
     SessionError,
 )
+from shared.memlock import MemoryLock, memory_locked
 from shared.protocol import Hello, Stats, Welcome
 from shared.protocol.peer_session import (
     ClockSampled,
@@ -152,6 +153,8 @@ class RelayServer:
         self.view_server: ViewServer | None = None
         #: the link to the other workers of a clustered relay (relay_server.cluster)
         self.cluster: ClusterLink | None = None
+        #: the process's memory lock when :func:`serve_forever` runs the relay (``/status``)
+        self.memory_lock: MemoryLock | None = None
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -268,6 +271,8 @@ class RelayServer:
                "ports": {"ws": self.ws_port, "tcp": self.tcp_port}}
         if self.cluster is not None:
             doc["cluster"] = self.cluster.status()
+        if self.memory_lock is not None:
+            doc["memory_lock"] = self.memory_lock.to_dict()
         return doc
 
     def _process_http(self, connection: _Responder, request: Request) -> Response | None:
@@ -673,7 +678,14 @@ async def serve_forever(config: RelayConfig,
         config: resolved settings.
         started: called once the listeners are bound (e.g. to print the ports).
     """
-    relay = RelayServer(config)
+    with memory_locked(config.lock_memory) as memory_lock:
+        relay = RelayServer(config)
+        relay.memory_lock = memory_lock
+        await _serve(relay, config, started)
+
+
+async def _serve(relay: RelayServer, config: RelayConfig,
+                 started: Callable[[RelayServer], None] | None) -> None:
     await relay.start()
     if config.nats_url:
         from relay_server.cluster import ClusterLink

@@ -1,4 +1,4 @@
-"""Keep a station's memory in RAM while it runs (``mlockall``).
+"""Keep a station's (or the relay's) memory in RAM while it runs (``mlockall``).
 
 A page the kernel has evicted from a running station is read back from disk the next time a
 thread touches it: a *major page fault*. Without swap that still happens to file-backed
@@ -70,7 +70,7 @@ def lock_refusal(soft_limit: int, unlimited: int, cap_ipc_lock: bool) -> str | N
     """
     if cap_ipc_lock or soft_limit == unlimited:
         return None
-    return (f"RLIMIT_MEMLOCK is {soft_limit / 2**20:.3g} MiB: a locked station's later "
+    return (f"RLIMIT_MEMLOCK is {soft_limit / 2**20:.3g} MiB: a locked process's later "
             "allocations could fail against it; set it unlimited (systemd "
             "LimitMEMLOCK=infinity, docker --ulimit memlock=-1) or grant CAP_IPC_LOCK")
 
@@ -126,7 +126,7 @@ def memory_locked(enabled: bool = True) -> Iterator[MemoryLock]:
                 log.info("memory not locked: %s", reason)
                 result = MemoryLock(False, reason)
             else:
-                log.info("memory locked (mlockall, on fault): no page of this station is "
+                log.info("memory locked (mlockall, on fault): no page of this process is "
                          "evicted while it runs")
                 result = MemoryLock(True)
         else:

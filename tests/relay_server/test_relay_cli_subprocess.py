@@ -18,6 +18,20 @@ from tests.relay_server.test_relay_isolation_and_status import http_get
 from tests.support import free_tcp_port, scaled
 
 
+def memlock_refusal() -> str | None:
+    """Why a process of this user may not lock its memory (None: it may), as the relay
+    judges it."""
+    from shared.memlock import _refusal
+
+    return _refusal()
+
+
+def locked_kib(pid: int) -> int:
+    """``VmLck`` of a process (kB)."""
+    with open(f"/proc/{pid}/status", encoding="ascii") as status:
+        return next(int(line.split()[1]) for line in status if line.startswith("VmLck:"))
+
+
 async def test_teletouch_relay_subprocess() -> None:
     port, tcp_port = free_tcp_port(), free_tcp_port()
     exe = shutil.which("teletouch")
@@ -35,6 +49,12 @@ async def test_teletouch_relay_subprocess() -> None:
                         break
                 await asyncio.sleep(0.1)
         assert json.loads(body)["ports"] == {"ws": port, "tcp": tcp_port}
+        # the relay locks its memory where that is safe, as the stations do, and says so
+        lock = json.loads(body)["memory_lock"]
+        refusal = memlock_refusal()
+        assert lock == {"locked": refusal is None, "reason": refusal}
+        if refusal is None:
+            assert locked_kib(proc.pid) > 0
         token = derive_token("cli-secret", "demo")
         conn = ProtocolConnection("ws")
         async with connect(f"ws://127.0.0.1:{port}") as local, \

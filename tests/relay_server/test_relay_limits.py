@@ -141,3 +141,13 @@ async def test_the_rate_limit_does_not_touch_a_1khz_stream() -> None:
         errs = [await c.expect("error", skip=("clock_ping", "stats")) for _ in range(5)]
         assert all(e.code == "no_peer" for e in errs)
         assert relay.counters["rate_limited"] == 0
+
+
+@pytest.mark.parametrize("bad", ["yes", 1, None])
+def test_lock_memory_must_be_a_boolean(bad: object) -> None:
+    from relay_server.config import RelayConfig
+    from shared.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"relay\.lock_memory must be true or false"):
+        RelayConfig(lock_memory=bad)  # type: ignore[arg-type]
+    assert RelayConfig().lock_memory is True
