@@ -23,11 +23,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
 import subprocess
 import sys
 from pathlib import Path
 from typing import Any
+
+from lab.bench.results import median_known
 
 #: (column, unit format) per run
 COLUMNS = ("load", "cores", "local", "remote", "fps", "loop_hz", "jitter_p99", "m2t_p50",
@@ -80,11 +81,6 @@ def figures(path: Path) -> dict[str, float | None]:
     }
 
 
-def _median(values: list[float | None]) -> float | None:
-    known = [v for v in values if v is not None]
-    return statistics.median(known) if known else None
-
-
 def _fmt(value: float | None) -> str:
     return "-" if value is None else f"{value:.3f}" if abs(value) < 10 else f"{value:.1f}"
 
@@ -104,7 +100,7 @@ def report(out: Path, sides: list[str], links: list[str], burners: int) -> str:
             for p, row in zip(runs, rows, strict=True):
                 lines.append(f"| {p.stem[4:]} | " + " | ".join(_fmt(row[c]) for c in COLUMNS)
                              + " |")
-            medians[(side, link)] = {c: _median([r[c] for r in rows]) for c in COLUMNS}
+            medians[(side, link)] = {c: median_known([r[c] for r in rows]) for c in COLUMNS}
     lines += ["", "Medians per side and profile (ratio to the first side's median over the "
               "same rounds in brackets):", "",
               "| side | profile | runs | " + " | ".join(COLUMNS[1:]) + " |",

@@ -25,12 +25,13 @@ import argparse
 import json
 import os
 import platform
-import statistics
 import subprocess
 import sys
 import time
 from pathlib import Path
 from typing import Any
+
+from lab.bench.results import median_known
 
 RESULTS = Path(__file__).resolve().parent / "results"
 #: stages that do work (not wait); their p50 joins the nominal round trip in the floor
@@ -72,11 +73,6 @@ def _fig(run: dict[str, Any], stage: str, key: str) -> float | None:
     return None if value is None else float(value)
 
 
-def _median(values: list[float | None]) -> float | None:
-    vs = [v for v in values if v is not None]
-    return statistics.median(vs) if vs else None
-
-
 def _f(v: float | None, digits: int = 1) -> str:
     return "-" if v is None else f"{v:.{digits}f}"
 
@@ -86,9 +82,9 @@ def summarise(runs: dict[str, dict[str, list[dict[str, Any]]]],
     """Markdown table rows and the figures per profile (medians over the runs)."""
     rows, figures = [], {}
     for profile, sides in runs.items():
-        med = {side: {k: _median([_fig(r, "end_to_end", k) for r in sides[side]])
+        med = {side: {k: median_known([_fig(r, "end_to_end", k) for r in sides[side]])
                       for k in ("p50", "p99")} for side in SIDES}
-        work = {s: _median([_fig(r, s, "p50") for r in sides["after"]]) for s in WORK_STAGES}
+        work = {s: median_known([_fig(r, s, "p50") for r in sides["after"]]) for s in WORK_STAGES}
         floor = rtt_ms[profile] + sum(v for v in work.values() if v is not None)
         p99_after = med["after"]["p99"]
         figures[profile] = {"nominal_rtt_ms": rtt_ms[profile], "work_stages_p50_ms": work,
@@ -117,9 +113,9 @@ def stage_rows(runs: dict[str, dict[str, list[dict[str, Any]]]]) -> list[str]:
         for name in names:
             cells = []
             for side in SIDES:
-                p50 = _median([_fig(r, name, "p50") for r in sides[side]])
-                p99 = _median([_fig(r, name, "p99") for r in sides[side]])
-                count = _median([_fig(r, name, "count") for r in sides[side]])
+                p50 = median_known([_fig(r, name, "p50") for r in sides[side]])
+                p99 = median_known([_fig(r, name, "p99") for r in sides[side]])
+                count = median_known([_fig(r, name, "count") for r in sides[side]])
                 cells.append(f"{_f(p50, 2)} / {_f(p99, 2)} ({_f(count, 0)})")
             rows.append(f"| {profile} | `{name}` | {cells[0]} | {cells[1]} |")
     return rows

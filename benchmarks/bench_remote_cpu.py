@@ -22,14 +22,13 @@ import argparse
 import json
 import os
 import platform
-import statistics
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
 from typing import Any
 
-from lab.bench.results import write_results
+from lab.bench.results import median_known, write_results
 
 RESULTS = Path(__file__).resolve().parent / "results"
 SIDES = ("before", "after")
@@ -70,11 +69,6 @@ def _run(root: Path, label: str, window_s: float, out_dir: Path, keep: Path | No
     }
 
 
-def _median(values: list[float | None]) -> float | None:
-    vs = [v for v in values if v is not None]
-    return statistics.median(vs) if vs else None
-
-
 def _f(v: float | None, digits: int = 3) -> str:
     return "n/a" if v is None else f"{v:.{digits}f}"
 
@@ -99,8 +93,8 @@ def _report(runs: dict[str, list[dict[str, Any]]], args: argparse.Namespace) -> 
              "| metric | before (median) | after (median) | after / before |",
              "|---|---|---|---|"]
     for name, key in METRICS:
-        b = _median([r.get(key) for r in runs["before"]])
-        a = _median([r.get(key) for r in runs["after"]])
+        b = median_known([r.get(key) for r in runs["before"]])
+        a = median_known([r.get(key) for r in runs["after"]])
         ratio = a / b if a is not None and b else None
         lines.append(f"| {name} | {_f(b)} | {_f(a)} | {_f(ratio, 2)} |")
     lines += ["", "## Runs", "", "| run | load 1 min (start/end) | remote | product | sim hw | "
@@ -120,8 +114,8 @@ def _report(runs: dict[str, list[dict[str, Any]]], args: argparse.Namespace) -> 
               "| stage | before | after |", "|---|---|---|"]
     stages = sorted({s for side in SIDES for r in runs[side] for s in r.get("stages", {})})
     for s in stages:
-        vals = [_median([r.get("stages", {}).get(s, 0.0) for r in runs[side] if "error" not in r])
-                for side in SIDES]
+        vals = [median_known([r.get("stages", {}).get(s, 0.0) for r in runs[side]
+                              if "error" not in r]) for side in SIDES]
         lines.append(f"| {s} | {_f(vals[0])} | {_f(vals[1])} |")
     lines += ["", "## Remote threads (cores, exact per thread; name: root function)", ""]
     for r in order:

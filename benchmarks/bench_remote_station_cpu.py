@@ -28,7 +28,6 @@ import asyncio
 import json
 import os
 import platform
-import statistics
 import subprocess
 import sys
 import threading
@@ -36,7 +35,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from lab.bench.results import write_results
+from lab.bench.results import median_known, write_results
 
 RESULTS = Path(__file__).resolve().parent / "results"
 SIDES = ("before", "after")
@@ -226,11 +225,6 @@ def _run_side(root: Path, duration_s: float, seed: int) -> dict[str, Any]:
     return run
 
 
-def _median(values: list[Any]) -> float | None:
-    vs = [v for v in values if v is not None]
-    return statistics.median(vs) if vs else None
-
-
 def _f(v: float | None, digits: int = 3) -> str:
     return "n/a" if v is None else f"{v:.{digits}f}"
 
@@ -253,8 +247,8 @@ def _report(runs: dict[str, list[dict[str, Any]]], args: argparse.Namespace) -> 
              f"Before: {args.before_note}. After: {args.after_note}.", "",
              "| metric | before (median) | after (median) | after / before |", "|---|---|---|---|"]
     for name, key in METRICS:
-        b = _median([r.get(key) for r in ok["before"]])
-        a = _median([r.get(key) for r in ok["after"]])
+        b = median_known([r.get(key) for r in ok["before"]])
+        a = median_known([r.get(key) for r in ok["after"]])
         ratio = a / b if a is not None and b else None
         lines.append(f"| {name} | {_f(b)} | {_f(a)} | {_f(ratio, 2)} |")
     lines += ["", "## Runs", "", "| run | load 1 min | cores | product | sim sensor | sim arm | "

@@ -2,20 +2,28 @@
 
 Every benchmark writes ``<stem>.md`` (the human table, the file committed under
 ``benchmarks/results/``), ``<stem>.json`` (the same figures, strict JSON) when it has structured
-results, and ``<stem>.png`` when it draws a plot.
+results, and ``<stem>.png`` when it draws a plot. :func:`median_known` is the median their
+tables of paired runs share (a run that does not report a figure is left out).
 """
 
 from __future__ import annotations
 
 import json
 import os
-from collections.abc import Callable
+import statistics
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
 from shared.report import emit, emit_json, to_jsonable
 
-__all__ = ["publish", "write_results"]
+__all__ = ["median_known", "publish", "write_results"]
+
+
+def median_known(values: Iterable[float | None]) -> float | None:
+    """The median of the values that are known (not None); None when none is."""
+    known = [v for v in values if v is not None]
+    return statistics.median(known) if known else None
 
 
 def write_results(out_dir: str | os.PathLike[str], stem: str, markdown: str, *,
