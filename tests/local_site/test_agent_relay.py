@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -38,10 +39,14 @@ async def test_platform_state_and_frames_flow_record_and_summary(tmp_path: Path)
     async with running_relay() as relay:
         url = f"ws://127.0.0.1:{relay.ws_port}/"
         agent = relay_agent(url, tmp_path)
+        switch_before = sys.getswitchinterval()
         run = asyncio.create_task(agent.run())
         async with FakeRemote(url) as remote:
             await wait_for(lambda: agent.loop is not None and _pins_near(agent, 2.0), 6.0,
                            "pins at the frames' 2 mm")
+            # the station's GIL switch interval while it runs (0.2 ms), restored after
+            assert sys.getswitchinterval() == pytest.approx(
+                agent.config.gil_switch_interval_s)
             await wait_for(lambda: agent.ledger.frames >= 5, 3.0, "end-to-end latencies")
             await wait_for(lambda: loop_of(agent).periods.iterations > 300, 3.0, "loop iterations")
             # asserted below: wait for it too (beside two CPU burners the other conditions
@@ -49,6 +54,8 @@ async def test_platform_state_and_frames_flow_record_and_summary(tmp_path: Path)
             await wait_for(lambda: agent.platform_states_sent > 50, 3.0, "platform states sent")
             agent.request_stop("test")
             assert await run == 0
+    assert sys.getswitchinterval() == pytest.approx(switch_before)
+    assert switch_before != pytest.approx(agent.config.gil_switch_interval_s)
     # platform_state: capture hop = ts, then the relay's stamps, then the remote's receipt
     state = remote.states[-1]
     assert [f"{h.clock}.{h.stage}" for h in state.hops] == [

@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import sys
 import time
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -154,6 +155,8 @@ async def test_agent_follows_a_press_and_streams_tactile_frames(
     # scaled, so a loaded machine's queueing delays do not read as stale commands
     monkeypatch.setenv("TELETOUCH_ARM_SAFETY_MAX_COMMAND_AGE_MS", str(scaled(100.0)))
     monkeypatch.setenv("TELETOUCH_ARM_SAFETY_COMMAND_TIMEOUT_MS", str(scaled(100.0)))
+    monkeypatch.setenv("TELETOUCH_REMOTE_AGENT_GIL_SWITCH_INTERVAL_S", "0.003")
+    switch_before = sys.getswitchinterval()
     url = f"ws://127.0.0.1:{relay.ws_port}/"
     truth_path = tmp_path / "truth.json"
     write_ground_truth(build_world("breast", 5, ideal=True), truth_path, WorkspaceMap())
@@ -180,6 +183,9 @@ async def test_agent_follows_a_press_and_streams_tactile_frames(
         stop.set()
         summary = await asyncio.wait_for(agent, scaled(10.0))
     assert cv2.getNumThreads() == 2  # and gets its pool back when it stops
+    # the GIL switch interval in force while it ran is reported, and restored after
+    assert summary["gil_switch_interval_s"] == pytest.approx(0.003)
+    assert sys.getswitchinterval() == pytest.approx(switch_before)
     check_press_result(got, truth, "malignant")
     # compact frames through the real relay: key frames and deltas, every one decoded
     compact = got["compact"]
