@@ -45,8 +45,9 @@ class RemoteAgentConfig:
             as the arm has reached the latest command's pose, instead of on the next tick of
             the frame clock; ``frame_rate_hz`` stays the highest frame rate, and the rate
             achieved falls below it because a frame waits for a command: with commands every
-            4 ms the demo's 120 gave 73-85 frames/s and 75 gave 55-56 (docs/speed.md
-            sections 15-16), so a display that needs 60 needs a setting above 75.
+            4 ms the demo's 120 gave 73-85 frames/s, 75 gave 55-56 and this default of 60
+            gave 47 (docs/speed.md sections 15-16), so a display that needs 60 needs a
+            setting above 75.
         pose_tolerance_mm: the pose counts as reached within this distance of the target
             (or when the arm is no longer moving: settled, blocked or halted).
         pose_wait_max_ms: the arm is waited for only if, at its current speed towards the
