@@ -1,8 +1,8 @@
 """Garbage-collector pauses of every Python process of a run (docs/speed.md section 16).
 
 Loaded at interpreter start through a ``.pth`` file in the venv's site-packages, it times
-each collection with :data:`gc.callbacks` and, at exit, writes
-``$GC_PROBE_DIR/<pid>.json`` (default ``/tmp/gcstats``): per generation the count, total,
+each collection with :data:`gc.callbacks` and, at exit, writes ``$GC_PROBE_DIR/<pid>.json``
+(default: ``teletouch-gcstats`` in the temporary directory): per generation the count, total,
 max and p99 pause (ms) and how many took over 5 ms, the process's object count, and every
 pause over 1 ms with its time since start (``big``: seconds, generation, ms, collected).
 
@@ -24,6 +24,7 @@ import gc
 import json
 import os
 import sys
+import tempfile
 import time
 from typing import Any
 
@@ -53,7 +54,8 @@ def _dump() -> None:
             "p99_ms": ordered[int(0.99 * (len(ordered) - 1))] if ordered else 0,
             "over_5ms": sum(1 for p in ordered if p > 5)}
     out.update(argv=" ".join(sys.argv[:8]), big=_big, objects=len(gc.get_objects()))
-    directory = os.environ.get("GC_PROBE_DIR", "/tmp/gcstats")
+    directory = os.environ.get("GC_PROBE_DIR") or os.path.join(tempfile.gettempdir(),
+                                                              "teletouch-gcstats")
     with contextlib.suppress(OSError):
         os.makedirs(directory, exist_ok=True)
         with open(os.path.join(directory, f"{os.getpid()}.json"), "w", encoding="utf-8") as f:
