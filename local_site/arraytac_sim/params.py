@@ -1,6 +1,6 @@
 """All physical and controller constants of the ArrayTac simulator, with units and sources.
 
-Sources: "paper" is ``/work/shared/reference/arraytac-paper.md`` (ArrayTac, main text and
+Sources: "paper" is ``../shared/reference/arraytac-paper.md`` (ArrayTac, main text and
 supplement); "design" means derived from the paper's measured figures by
 :mod:`local_site.arraytac_sim.design` (the derivation is written out there); "assumed" means a
 plausible hardware value the paper does not give. The "design" defaults are the output of
