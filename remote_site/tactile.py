@@ -70,10 +70,12 @@ class AppliedCommand:
     Attributes:
         state: the platform_state as received (its hops end with ``remote.station_rx``).
         arm_command_us: when it was applied to the arm (our clock, microseconds).
+        arm_speed_mm_s: the arm's speed when it was applied (None: not known).
     """
 
     state: PlatformState
     arm_command_us: int
+    arm_speed_mm_s: float | None = None
 
 
 def crop_centered(grid: NDArray[np.floating], size_mm: tuple[float, float],

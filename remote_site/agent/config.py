@@ -43,19 +43,19 @@ class RemoteAgentConfig:
         capture_on_pose: with a sensor that captures on demand (the simulator; a camera
             streams on its own clock and keeps the frame clock), take the next frame as soon
             as the arm has reached the latest command's pose, instead of on the next tick of
-            the frame clock; ``frame_rate_hz`` stays the highest frame rate, and the rate
-            achieved falls below it because a frame waits for a command: with commands every
-            4 ms the demo's 120 gave 73-85 frames/s, 75 gave 55-56 and this default of 60
-            gave 47 (docs/speed.md sections 15-16), so a display that needs 60 needs a
-            setting above 75.
+            the frame clock. Frames keep a schedule of ``frame_rate_hz`` on average while
+            commands come faster than that (the waits for a command and for the pose do not
+            add up; before, when each frame was due a period after the previous one began,
+            this default of 60 gave 47 frames/s with commands every 4 ms: docs/speed.md
+            sections 16-17); without commands, a frame every two periods.
         pose_tolerance_mm: the pose counts as reached within this distance of the target
             (or when the arm is no longer moving: settled, blocked or halted).
         pose_wait_max_ms: the arm is waited for only if, at its current speed towards the
             target, it gets there within this long of the command; otherwise the frame is
             taken at once (an arm tracking a moving hand lags it all the time: waiting would
             only add latency).
-        command_fresh_ms: with capture on pose, a frame that is due (a frame period after
-            the previous one) is taken at once only for a command applied at most this long
+        command_fresh_ms: with capture on pose, a frame that is due (by the frame schedule)
+            is taken at once only for a command applied at most this long
             ago; for an older one it waits for the next command, when that is due (by the
             commands' recent interval) within a frame period, so that the frame answers a
             command the moment it arrives instead of one that aged meanwhile (1000: taken at

@@ -13,13 +13,15 @@ Four asyncio tasks share one :class:`RemoteStation`:
   (numpy releases the GIL, so the receive path stays responsive), then ``tactile_frame`` out.
   With a sensor that captures on demand (the simulator) and ``capture_on_pose``, a frame is
   taken as soon as the arm has reached the pose of the latest applied command (within
-  ``pose_tolerance_mm``, or no longer moving), never sooner than one frame period after the
-  previous one; a frame that is due when the newest command is older than
+  ``pose_tolerance_mm``, or no longer moving), on a schedule of one frame per period
+  (:func:`next_frame_due_s`: the waits for a command and for the pose do not add up, so
+  ``frame_rate_hz`` is met on average); a frame that is due when the newest command is older than
   ``command_fresh_ms`` waits for the next command if that is due within a frame period (by
   the commands' recent interval, :func:`next_command_wait_s`), so frames answer commands as
   they arrive; an arm that will not get there within ``pose_wait_max_ms`` of the command
   at its current speed (tracking a moving hand, it lags all the time) is not waited for;
-  without a new command, a frame every two periods keeps the touch fresh. A streaming camera
+  without a new command within a period of its due time, a frame is taken anyway (it keeps
+  the touch fresh) and the schedule restarts at it: a frame every two periods. A streaming camera
   keeps the frame clock: the newest frame at each tick (:func:`pose_reached`,
   :class:`CaptureCounters`).
 * **status**: one status line per ``status_interval_s``.
@@ -55,7 +57,7 @@ from shared.protocol.tactile_codec import CodecSettings, TactileEncoder
 from shared.timebase import monotonic_s, now_us
 
 __all__ = ["RemoteStation", "StationCounters", "command_clock", "next_command_wait_s",
-           "percentiles_ms"]
+           "next_frame_due_s", "percentiles_ms"]
 
 log = logging.getLogger(__name__)
 
@@ -149,6 +151,9 @@ def closing_speed_mm_s(reading: ArmReading) -> float:
     return sum(v * g for v, g in zip(reading.velocity_mm_s, gap, strict=True)) / dist
 
 
+#: an arm slower than this is at rest (the pose wait gives it time to set off)
+_AT_REST_MM_S = 1.0
+
 #: command gaps longer than this are pauses (link, operator), not the command rate
 _COMMAND_GAP_MAX_S = 0.1
 
@@ -174,6 +179,33 @@ def next_command_wait_s(age_s: float, interval_s: float | None, fresh_s: float,
     if due_s > period_s:
         return 0.0
     return min(period_s, max(0.0, due_s) + 0.5 * interval_s)
+
+
+def next_frame_due_s(due_s: float, start_s: float, now_s: float, period_s: float,
+                     answered: bool) -> tuple[float, bool]:
+    """When the next frame is due with capture on pose, and whether the schedule fell behind.
+
+    A frame that answered a new command keeps an absolute schedule: the next is due a period
+    after this one was *due*, not after it began, so the waits before a frame (for the next
+    command, for the pose: a few ms each) do not add up. (Counted from each frame's start,
+    ``frame_rate_hz = 60`` gave 47 frames/s with commands every 4 ms; docs/speed.md section
+    17.) A schedule more than a period behind ``now_s`` restarts at ``now_s`` (late: True)
+    rather than catching up in a burst. An idle frame (no new command within a period of its
+    due time) restarts the schedule at its start: without commands, a frame every two periods.
+
+    Args:
+        due_s: when this frame was due.
+        start_s: when it began (after its waits).
+        now_s: now (after it was processed and sent).
+        period_s: the frame period.
+        answered: whether the frame answered a new command.
+    """
+    if not answered:
+        return start_s + period_s, False
+    due_s += period_s
+    if due_s < now_s - period_s:
+        return now_s, True
+    return due_s, False
 
 
 def command_clock(view: ClockView | None) -> tuple[float, float] | None:
@@ -280,7 +312,7 @@ class RemoteStation:
                 if 0.0 < gap_s <= _COMMAND_GAP_MAX_S:
                     prev = self.command_interval_s
                     self.command_interval_s = gap_s if prev is None else prev + (gap_s - prev) / 8
-            self.latest = AppliedCommand(state, t_us)
+            self.latest = AppliedCommand(state, t_us, result.speed_before_mm_s)
             self._command_applied.set()
             self.counters.platform_applied += 1
             rx = [h.t_us for h in state.hops if h.clock == "remote" and h.stage == "station_rx"]
@@ -387,10 +419,14 @@ class RemoteStation:
             # later (that look slept at least 1 ms per frame, docs/speed.md section 15).
             closing = closing_speed_mm_s(reading)
             if from_rest is None:
-                from_rest = closing < 1.0
-            # (at the first look an arm from rest is starting by its speed alone)
-            starting = closing < 1.0 or (from_rest and prev_closing is not None
-                                         and closing > prev_closing * 1.001)
+                # at rest when the command was given, or still (a look within a millisecond
+                # or two of the command may find an arm from rest already above 1 mm/s)
+                from_rest = closing < _AT_REST_MM_S or (
+                    command.arm_speed_mm_s is not None
+                    and command.arm_speed_mm_s < _AT_REST_MM_S)
+            # an arm from rest is starting at the first look, and while it speeds up
+            starting = closing < _AT_REST_MM_S or (from_rest and (
+                prev_closing is None or closing > prev_closing * 1.001))
             prev_closing = closing
             if loop.time() >= deadline or (loop.time() + eta_s > deadline and not starting):
                 self.captures.moving += 1
@@ -398,8 +434,9 @@ class RemoteStation:
             await asyncio.sleep(0.001)
 
     async def _next_capture(self, earliest_s: float, period: float,
-                            captured: AppliedCommand | None) -> None:
-        """Wait for the moment of the next frame (capture on pose, see the module doc)."""
+                            captured: AppliedCommand | None) -> bool:
+        """Wait for the moment of the next frame (capture on pose, see the module doc);
+        return whether it answers a new command (False: an idle frame)."""
         loop = asyncio.get_running_loop()
         delay = earliest_s - loop.time()
         if delay > 0:
@@ -422,8 +459,9 @@ class RemoteStation:
         command = self.latest
         if command is captured or command is None:
             self.captures.idle += 1
-            return
+            return False
         await self._until_pose(command)
+        return True
 
     async def _frame_loop(self, executor: ThreadPoolExecutor) -> None:
         period = 1.0 / self.config.frame_rate_hz
@@ -432,9 +470,10 @@ class RemoteStation:
         next_t = loop.time()
         last_start: float | None = None
         captured: AppliedCommand | None = None
+        answered = False
         while True:
             if on_pose:
-                await self._next_capture(next_t, period, captured)
+                answered = await self._next_capture(next_t, period, captured)
             else:
                 delay = next_t - loop.time()
                 if delay > 0:
@@ -463,8 +502,9 @@ class RemoteStation:
                     self.counters.frames_not_sent_link_down += 1
                     if self.encoder is not None:
                         self.encoder.reset()  # a key frame first when the link is back
-            if on_pose:  # the next frame no sooner than a period after this one began
-                next_t = start + period
+            if on_pose:
+                next_t, late = next_frame_due_s(next_t, start, loop.time(), period, answered)
+                self.counters.frames_late += late
                 continue
             next_t += period
             now = loop.time()

@@ -97,6 +97,8 @@ class CommandResult:
         age_ms: clock-corrected age of the command, when it carried a timestamp.
         refused: why an age-checked command was refused (a
             :data:`shared.freshness.Verdict` other than ``fresh``), else None.
+        speed_before_mm_s: the arm's speed when the move was given (read right before it),
+            None when it was not given.
     """
 
     accepted: bool
@@ -105,6 +107,7 @@ class CommandResult:
     clamped: bool = False
     age_ms: float | None = None
     refused: str | None = None
+    speed_before_mm_s: float | None = None
 
 
 @dataclass
@@ -256,7 +259,8 @@ class SafeArm:
             self._last_command_s = self._mono() - sent_ago_s
             self._halted = False
             self.counters.applied += 1
-            return CommandResult(True, applied, status, clamped, age_ms)
+            return CommandResult(True, applied, status, clamped, age_ms,
+                                 speed_before_mm_s=math.hypot(*reading.velocity_mm_s))
 
     def _judge(self, sent_ts_us: int, clock: tuple[float, float] | None) -> AgeVerdict:
         """A command's age now, by its stamp (error bound included); the worst age is kept."""

@@ -45,6 +45,19 @@ def test_fresh_command_applies_and_stale_one_is_dropped() -> None:
     assert arm.state().target_mm == (1.0, 2.0, 5.0)
 
 
+def test_a_move_reports_the_arm_speed_it_was_given_at() -> None:
+    safe, arm, clock = make()
+    res = safe.move((0.0, 0.0, 30.0), sent_ts_us=clock.wall_us())
+    assert res.speed_before_mm_s == 0.0  # at rest
+    arm.advance(0.05)
+    moving = arm.state().velocity_mm_s
+    res = safe.move((0.0, 0.0, 30.0), sent_ts_us=clock.wall_us())
+    assert res.speed_before_mm_s == pytest.approx(sum(v * v for v in moving) ** 0.5)
+    assert res.speed_before_mm_s is not None and res.speed_before_mm_s > 1.0
+    refused = safe.move((1.0, 2.0, 5.0), sent_ts_us=clock.wall_us() - 150_000)
+    assert refused.speed_before_mm_s is None
+
+
 def test_age_is_clock_corrected() -> None:
     safe, _, clock = make()
     # the sender's clock runs 300 ms behind ours: its stamp + offset is our send time

@@ -16,6 +16,7 @@ from remote_site.agent.config import RemoteAgentConfig
 from remote_site.agent.station import (
     closing_speed_mm_s,
     next_command_wait_s,
+    next_frame_due_s,
     pose_eta_s,
     pose_reached,
 )
@@ -110,6 +111,47 @@ def test_the_wait_for_the_next_command_in_numbers() -> None:
     assert next_command_wait_s(0.005, 0.05, 0.001, 0.0083) == 0.0
     # a command overdue (late on the link): half an interval of slack, then the old one
     assert next_command_wait_s(0.006, 0.004, 0.001, 0.0083) == pytest.approx(0.002)
+
+
+def test_the_frame_schedule_in_numbers() -> None:
+    period = 1 / 60
+    # a frame due at 1.0 that began 3 ms late: the next is due a period after 1.0, not
+    # after its start (counted from the start, 60 frames/s gave 47 in the demo)
+    assert next_frame_due_s(1.0, 1.003, 1.006, period, True) == (1.0 + period, False)
+    # more than a period behind: restart now, no burst of catch-up frames
+    assert next_frame_due_s(1.0, 1.003, 1.0 + 2.5 * period, period, True) == (
+        1.0 + 2.5 * period, True)
+    # an idle frame (no new command within a period): the schedule restarts at its start
+    assert next_frame_due_s(1.0, 1.0 + period, 1.02, period, False) == (
+        pytest.approx(1.0 + 2 * period), False)
+
+
+@given(steps=st.lists(st.tuples(st.floats(0.0, 1.0), st.floats(0.0, 1.0)), min_size=1,
+                      max_size=200),
+       period=st.floats(1e-3, 1.0))
+def test_frames_keep_their_rate_on_average_and_never_burst(
+        steps: list[tuple[float, float]], period: float) -> None:
+    """Frames that each wait (for a command, the pose) and take time to process, in all
+    below a period: frame k is due exactly k periods after the first, whatever the waits,
+    so the rate setting is met. With longer waits the schedule restarts rather than owing
+    more than a period."""
+    due = start0 = 0.0
+    now = 0.0
+    for k, (wait_frac, busy_frac) in enumerate(steps, start=1):
+        start = max(due, now) + wait_frac * 0.5 * period
+        now = start + busy_frac * 0.49 * period
+        due, late = next_frame_due_s(due, start, now, period, True)
+        assert not late
+        assert due == pytest.approx(start0 + k * period, abs=1e-9 * k)
+        assert due >= now - period
+    # and whatever the waits, at most a period of catch-up is owed after any frame
+    for wait, busy in steps:
+        start = max(due, now) + wait * 3 * period
+        now = start + busy * 3 * period
+        before = due
+        due, late = next_frame_due_s(due, start, now, period, True)
+        assert due >= now - period
+        assert due == (now if late else before + period)
 
 
 def _frames(sent: Sequence[object]) -> list[TactileFrame | TactileCompact]:
@@ -244,6 +286,44 @@ async def test_frames_answer_commands_as_they_arrive_not_after_they_aged() -> No
         close_station(station)
 
 
+async def test_the_frame_rate_setting_is_met_while_commands_come_faster() -> None:
+    """Frames at 10 Hz, commands every 20 ms, each frame waiting for the next command
+    (``command_fresh_ms = 0``): 0-20 ms per frame. Counted from each frame's start, those
+    waits would add up (about 10 ms a frame, 200 ms over 20 frames); on the frame schedule
+    20 frames take 20 periods plus at most one wait."""
+    interval_s, period_s, n = 0.02, 0.1, 20
+    link = FakeLink()
+    safety = SafetyConfig(max_command_age_ms=scaled(100.0), command_timeout_ms=scaled(200.0))
+    station = make_station(link, safety, config=RemoteAgentConfig(
+        frame_rate_hz=1 / period_s, status_interval_s=10.0, command_fresh_ms=0.0))
+    stop = asyncio.Event()
+    skip = 3  # the first frames, before the commands' interval is known
+
+    async def operator() -> None:
+        loop = asyncio.get_running_loop()
+        next_t = loop.time()
+        seq = 0
+        while len(station.frame_period_s) < skip + n:
+            seq += 1
+            link.inbox.put_nowait(platform_state(seq, (0.0, 0.0, 12.0)))  # a held hand
+            next_t += interval_s
+            await asyncio.sleep(max(0.0, next_t - loop.time()))
+        stop.set()
+
+    try:
+        task = asyncio.create_task(operator())
+        await station.run(stop, duration_s=scaled(30.0))
+        await task
+        periods = list(station.frame_period_s)[skip:skip + n]
+        assert station.captures.waited_for_command >= n // 2, station.captures
+        assert station.counters.frames_late == 0
+        assert sum(periods) <= n * period_s + scaled(0.06), (
+            f"{n} frames took {sum(periods) * 1e3:.0f} ms against {n * period_s * 1e3:.0f}; "
+            f"periods {np.round(np.asarray(periods) * 1e3, 1)} ms")
+    finally:
+        close_station(station)
+
+
 async def test_an_arm_tracking_a_moving_hand_is_judged_at_the_first_look() -> None:
     """An arm already closing in on a target it cannot reach within the pose wait (tracking
     a hand, 1 mm behind at 45 mm/s: 17 ms) is captured at once, with no second look; one
@@ -279,5 +359,21 @@ async def test_an_arm_tracking_a_moving_hand_is_judged_at_the_first_look() -> No
         assert len(looks) >= 3, "an arm setting off from rest was not given time"
         assert looks[-1] - looks[0] >= 0.005  # looked at until (about) the deadline
         assert station.captures.moving == 2
+
+        # looked at a moment after the command, an arm from rest may already be above
+        # 1 mm/s: it was at rest when the command was given, so it is given time as well
+        # (judged by the first look alone, a 10 mm step was captured 0.9 ms after its
+        # command with the pad still at the start)
+        looks.clear()
+        speeds = iter([2.0 * (k + 1) for k in range(1000)])
+        command = AppliedCommand(platform_state(3, target), now_us(), arm_speed_mm_s=0.0)
+        await station._until_pose(command)
+        assert len(looks) >= 3, "an arm given a command at rest was not given time"
+        # the same first look, for an arm that was moving when the command came: at once
+        looks.clear()
+        command = AppliedCommand(platform_state(4, target), now_us(), arm_speed_mm_s=40.0)
+        await station._until_pose(command)
+        assert len(looks) == 1
+        assert station.captures.moving == 4
     finally:
         close_station(station)
