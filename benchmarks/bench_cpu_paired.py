@@ -8,7 +8,9 @@ machine's load hits all alike. ``--burners N`` runs N CPU-bound processes beside
 
 Per run the table keeps what issue 12's targets are about: all processes' cores, the local
 and remote stations' cores, the remote's achieved frame rate, the display loop's rate and
-period jitter p99, motion-to-touch end to end (p50 / p99) and its ``arm_and_sensor`` stage,
+period jitter p99 (``fps`` is the session's average, idle stretches included;
+``period_p50`` the remote's median frame period in ms, the rate while commands flow),
+motion-to-touch end to end (p50 / p99) and its ``arm_and_sensor`` stage,
 and the remote's wait from a command to the capture that answers it (``arm_command_to_capture``
 in its summary, where the side reports it). Then the medians per side and profile, and each
 side's median ratio to the first side over the pairs.
@@ -31,8 +33,8 @@ from typing import Any
 from lab.bench.results import median_known
 
 #: (column, unit format) per run
-COLUMNS = ("load", "cores", "local", "remote", "fps", "loop_hz", "jitter_p99", "m2t_p50",
-           "m2t_p99", "arm_sensor_p50", "arm_sensor_p99", "cmd_to_capture_p50")
+COLUMNS = ("load", "cores", "local", "remote", "fps", "period_p50", "loop_hz", "jitter_p99",
+           "m2t_p50", "m2t_p99", "arm_sensor_p50", "arm_sensor_p99", "cmd_to_capture_p50")
 
 
 def _side(text: str) -> tuple[str, Path, list[str]]:
@@ -72,6 +74,7 @@ def figures(path: Path) -> dict[str, float | None]:
         "local": procs.get("local", {}).get("cores"),
         "remote": procs.get("remote", {}).get("cores"),
         "fps": (run.get("remote_frames") or {}).get("achieved_fps"),
+        "period_p50": pick(remote_lat, "frame_period", "p50"),
         "loop_hz": (run.get("display_loop") or {}).get("rate_hz"),
         "jitter_p99": (run.get("display_loop") or {}).get("jitter_p99_ms"),
         "m2t_p50": pick(lat, "end_to_end", "p50"), "m2t_p99": pick(lat, "end_to_end", "p99"),

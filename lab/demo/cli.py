@@ -18,7 +18,7 @@ import argparse
 import sys
 from typing import Any
 
-from lab.demo import DEFAULT_DISPLAY
+from lab.demo import DEFAULT_DISPLAY, DEFAULT_FRAME_RATE_HZ
 
 __all__ = ["configure_parser", "format_report", "run"]
 
@@ -59,8 +59,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                              "bus (sim)")
     parser.add_argument("--duration", type=float, default=100.0,
                         help="stop the operator after this many seconds (default 100)")
-    parser.add_argument("--frame-rate-hz", type=float, default=120.0,
-                        help="remote sensor frame rate (default 120)")
+    parser.add_argument("--frame-rate-hz", type=float, default=DEFAULT_FRAME_RATE_HZ,
+                        help=f"remote sensor frame rate (default {DEFAULT_FRAME_RATE_HZ:g})")
     parser.add_argument("--headless", action="store_true",
                         help="no live status line")
     parser.add_argument("--json", action="store_true",

@@ -41,7 +41,7 @@ from pathlib import Path
 from typing import Any
 
 from lab.child import module_argv
-from lab.demo import DEFAULT_DISPLAY
+from lab.demo import DEFAULT_DISPLAY, DEFAULT_FRAME_RATE_HZ
 from lab.ground_truth import write_ground_truth
 from lab.html_report import write_report
 from lab.linkemu import get_profile
@@ -122,7 +122,7 @@ class DemoConfig:
     ideal: bool = False
     register: bool = True
     max_duration_s: float = 100.0
-    frame_rate_hz: float = 120.0
+    frame_rate_hz: float = DEFAULT_FRAME_RATE_HZ
     workdir: Path | None = None
     keep_files: bool = False
     python: str = sys.executable
