@@ -3,7 +3,8 @@
 Precedence, highest first: explicit arguments (for example CLI flags) > environment
 variables ``TELETOUCH_<SECTION>_<FIELD>`` > a TOML file (table ``[section]``) > the
 dataclass defaults. Every component describes its settings as a frozen dataclass and
-calls :func:`resolve_config` once; nothing else reads the environment.
+calls :func:`resolve_config` once; nothing else reads the environment. Environment values
+are text and are parsed; TOML values carry their types and must match (:func:`_coerce`).
 
 Example::
 
@@ -69,36 +70,45 @@ def load_toml_section(path: str | os.PathLike[str] | None, section: str) -> dict
     return dict(node)
 
 
-def _coerce(value: Any, annotation: Any, name: str) -> Any:
-    """Convert ``value`` (often a string from the environment) to the annotated type."""
+def _coerce(value: Any, annotation: Any, name: str, *, typed: bool = False) -> Any:
+    """Convert ``value`` to the annotated type.
+
+    Text (the environment's strings) is parsed: ``yes``/``no`` for booleans, ``1.5, -2`` for
+    tuples, ``none`` for an optional setting. A ``typed`` value (from a TOML file, whose
+    values carry their own types) must already have the setting's type: ``"yes"`` for a
+    boolean, ``"8080"`` for an integer or ``"1, 2"`` for a list is refused, not guessed at
+    (an integer counts as a number). A number with a fraction is never an integer.
+    """
     origin = typing.get_origin(annotation)
     args = typing.get_args(annotation)
     if origin in (typing.Union, types.UnionType):
         if value is None and type(None) in args:
             return None
-        if isinstance(value, str) and value.lower() in ("", "none", "null") and type(None) in args:
+        if not typed and isinstance(value, str) and value.lower() in ("", "none", "null") \
+                and type(None) in args:
             return None
         last: Exception | None = None
         for arg in args:
             if arg is type(None):
                 continue
             try:
-                return _coerce(value, arg, name)
+                return _coerce(value, arg, name, typed=typed)
             except ConfigError as err:
                 last = err
         raise ConfigError(f"{name}: cannot use {value!r}") from last
     if origin in (tuple, list):
         items = value
-        if isinstance(value, str):
+        if isinstance(value, str) and not typed:
             items = [v.strip() for v in value.split(",") if v.strip()]
         if not isinstance(items, list | tuple):
             raise ConfigError(f"{name}: expected a list, got {value!r}")
         if origin is tuple and args and args[-1] is not Ellipsis:
             if len(items) != len(args):
                 raise ConfigError(f"{name}: expected {len(args)} values, got {value!r}")
-            return tuple(_coerce(v, t, name) for v, t in zip(items, args, strict=True))
+            return tuple(_coerce(v, t, name, typed=typed)
+                         for v, t in zip(items, args, strict=True))
         inner = args[0] if args else str
-        converted = [_coerce(v, inner, name) for v in items]
+        converted = [_coerce(v, inner, name, typed=typed) for v in items]
         return tuple(converted) if origin is tuple else converted
     if origin is dict or annotation is dict:
         if not isinstance(value, dict):
@@ -107,19 +117,23 @@ def _coerce(value: Any, annotation: Any, name: str) -> Any:
     if annotation is bool:
         if isinstance(value, bool):
             return value
-        if isinstance(value, str) and value.lower() in ("1", "true", "yes", "on"):
-            return True
-        if isinstance(value, str) and value.lower() in ("0", "false", "no", "off"):
-            return False
+        if isinstance(value, str) and not typed:
+            if value.lower() in ("1", "true", "yes", "on"):
+                return True
+            if value.lower() in ("0", "false", "no", "off"):
+                return False
         raise ConfigError(f"{name}: expected true/false, got {value!r}")
     if annotation is int:
-        if isinstance(value, bool):
+        if isinstance(value, bool) or (typed and not isinstance(value, int)) \
+                or (isinstance(value, float) and not value.is_integer()):
             raise ConfigError(f"{name}: expected an integer, got {value!r}")
         try:
             return int(value)
-        except (TypeError, ValueError) as err:
+        except (TypeError, ValueError, OverflowError) as err:
             raise ConfigError(f"{name}: expected an integer, got {value!r}") from err
     if annotation is float:
+        if isinstance(value, bool) or (typed and not isinstance(value, int | float)):
+            raise ConfigError(f"{name}: expected a number, got {value!r}")
         try:
             out = float(value)
         except (TypeError, ValueError) as err:
@@ -132,6 +146,8 @@ def _coerce(value: Any, annotation: Any, name: str) -> Any:
             raise ConfigError(f"{name}: expected a string, got {value!r}")
         return value
     if annotation is Path:
+        if typed and not isinstance(value, str):
+            raise ConfigError(f"{name}: expected a path (a string), got {value!r}")
         return Path(value)
     return value
 
@@ -180,15 +196,17 @@ def resolve_config(
             continue
         raw: Any = dataclasses.MISSING
         where = ""
+        typed = False  # a TOML value carries its own type; text is parsed
         if explicit is not None and explicit.get(name) is not None:
             raw, where = explicit[name], "argument"
         elif prefix + name.upper() in env:
             raw, where = env[prefix + name.upper()], f"${prefix + name.upper()}"
         elif name in from_file:
-            raw, where = from_file[name], f"{toml_path} [{section}]"
+            raw, where, typed = from_file[name], f"{toml_path} [{section}]", True
         if raw is dataclasses.MISSING:
             continue
-        values[name] = _coerce(raw, hints[name], f"{section}.{name} (from {where})")
+        values[name] = _coerce(raw, hints[name], f"{section}.{name} (from {where})",
+                               typed=typed)
     try:
         return cls(**values)
     except TypeError as err:

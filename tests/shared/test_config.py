@@ -68,6 +68,43 @@ def test_bad_values_name_the_setting_and_source(env, match) -> None:
     assert "demo." in str(info.value) and "TELETOUCH_DEMO_" in str(info.value)
 
 
+@pytest.mark.parametrize("line, match", [
+    ('verbose = "yes"', "true/false"),
+    ('port = "8080"', "integer"),
+    ("port = 80.5", "integer"),
+    ("port = 80.0", "integer"),
+    ('rate_hz = "500"', "number"),
+    ("rate_hz = true", "number"),
+    ('origin_mm = "1, 2"', "list"),
+    ("host = 1", "string"),
+    ('token = "none"', None),  # a string setting takes the word as it is
+])
+def test_a_file_value_must_have_the_setting_type(tmp_path: Path, line: str,
+                                                 match: str | None) -> None:
+    """TOML values carry their types: one of the wrong type is refused, never parsed as
+    the environment's text is (``"yes"`` is not a boolean in a file)."""
+    path = write(tmp_path, f"[demo]\n{line}\n")
+    if match is None:
+        assert resolve_config(Demo, "demo", toml_path=path, environ={}).token == "none"
+        return
+    with pytest.raises(ConfigError, match=match) as info:
+        resolve_config(Demo, "demo", toml_path=path, environ={})
+    assert "demo." in str(info.value) and "c.toml" in str(info.value)
+
+
+def test_file_numbers_and_lists_of_the_right_type(tmp_path: Path) -> None:
+    path = write(tmp_path, "[demo]\nrate_hz = 100\norigin_mm = [1, -2.5]\nport = 9\n")
+    cfg = resolve_config(Demo, "demo", toml_path=path, environ={})
+    assert (cfg.rate_hz, cfg.origin_mm, cfg.port) == (100.0, (1.0, -2.5), 9)
+
+
+def test_an_integer_setting_never_drops_a_fraction() -> None:
+    with pytest.raises(ConfigError, match="integer"):
+        resolve_config(Demo, "demo", explicit={"port": 80.5}, environ={})
+    with pytest.raises(ConfigError, match="integer"):
+        resolve_config(Demo, "demo", environ={"TELETOUCH_DEMO_PORT": "80.5"})
+
+
 def test_unknown_key_in_file(tmp_path: Path) -> None:
     path = write(tmp_path, "[demo]\nprot = 1\n")
     with pytest.raises(ConfigError, match="prot"):
