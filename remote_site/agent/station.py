@@ -189,9 +189,12 @@ def next_frame_due_s(due_s: float, start_s: float, now_s: float, period_s: float
     after this one was *due*, not after it began, so the waits before a frame (for the next
     command, for the pose: a few ms each) do not add up. (Counted from each frame's start,
     ``frame_rate_hz = 60`` gave 47 frames/s with commands every 4 ms; docs/speed.md section
-    17.) A schedule more than a period behind ``now_s`` restarts at ``now_s`` (late: True)
-    rather than catching up in a burst. An idle frame (no new command within a period of its
-    due time) restarts the schedule at its start: without commands, a frame every two periods.
+    17.) A schedule more than a period behind ``now_s`` restarts at ``now_s`` (late: True),
+    and no frame starts sooner than half a period after the previous one began: a schedule
+    that fell behind is not caught up in back-to-back frames (beside two CPU burners they
+    lengthened the motion-to-touch tail), and waits of up to half a period still do not add
+    up. An idle frame (no new command within a period of its due time) restarts the
+    schedule at its start: without commands, a frame every two periods.
 
     Args:
         due_s: when this frame was due.
@@ -203,9 +206,10 @@ def next_frame_due_s(due_s: float, start_s: float, now_s: float, period_s: float
     if not answered:
         return start_s + period_s, False
     due_s += period_s
-    if due_s < now_s - period_s:
-        return now_s, True
-    return due_s, False
+    late = due_s < now_s - period_s
+    if late:
+        due_s = now_s
+    return max(due_s, start_s + 0.5 * period_s), late
 
 
 def command_clock(view: ClockView | None) -> tuple[float, float] | None:

@@ -121,6 +121,9 @@ def test_the_frame_schedule_in_numbers() -> None:
     # more than a period behind: restart now, no burst of catch-up frames
     assert next_frame_due_s(1.0, 1.003, 1.0 + 2.5 * period, period, True) == (
         1.0 + 2.5 * period, True)
+    # behind by less: the next no sooner than half a period after this one began
+    assert next_frame_due_s(1.0, 1.0 + 0.9 * period, 1.0 + 1.2 * period, period, True) == (
+        pytest.approx(1.0 + 1.4 * period), False)
     # an idle frame (no new command within a period): the schedule restarts at its start
     assert next_frame_due_s(1.0, 1.0 + period, 1.02, period, False) == (
         pytest.approx(1.0 + 2 * period), False)
@@ -131,15 +134,15 @@ def test_the_frame_schedule_in_numbers() -> None:
        period=st.floats(1e-3, 1.0))
 def test_frames_keep_their_rate_on_average_and_never_burst(
         steps: list[tuple[float, float]], period: float) -> None:
-    """Frames that each wait (for a command, the pose) and take time to process, in all
-    below a period: frame k is due exactly k periods after the first, whatever the waits,
-    so the rate setting is met. With longer waits the schedule restarts rather than owing
-    more than a period."""
+    """Frames that each wait (for a command, the pose) up to a quarter period and take up to
+    a quarter to process: frame k is due exactly k periods after the first, whatever the
+    waits, so the rate setting is met. With longer waits the schedule restarts rather than
+    owing more than a period, and no frame starts within half a period of the previous."""
     due = start0 = 0.0
     now = 0.0
     for k, (wait_frac, busy_frac) in enumerate(steps, start=1):
-        start = max(due, now) + wait_frac * 0.5 * period
-        now = start + busy_frac * 0.49 * period
+        start = max(due, now) + wait_frac * 0.25 * period
+        now = start + busy_frac * 0.24 * period
         due, late = next_frame_due_s(due, start, now, period, True)
         assert not late
         assert due == pytest.approx(start0 + k * period, abs=1e-9 * k)
@@ -151,7 +154,8 @@ def test_frames_keep_their_rate_on_average_and_never_burst(
         before = due
         due, late = next_frame_due_s(due, start, now, period, True)
         assert due >= now - period
-        assert due == (now if late else before + period)
+        assert due >= start + 0.5 * period
+        assert due == max(now if late else before + period, start + 0.5 * period)
 
 
 def _frames(sent: Sequence[object]) -> list[TactileFrame | TactileCompact]:
