@@ -47,7 +47,8 @@ class RemoteAgentConfig:
             commands come faster than that (the waits for a command and for the pose do not
             add up; before, when each frame was due a period after the previous one began,
             this default of 60 gave 47 frames/s with commands every 4 ms: docs/speed.md
-            sections 16-17); without commands, a frame every two periods.
+            sections 16-17); no frame starts within half a period of the previous one, and
+            without commands a frame comes every two periods.
         pose_tolerance_mm: the pose counts as reached within this distance of the target
             (or when the arm is no longer moving: settled, blocked or halted).
         pose_wait_max_ms: the arm is waited for only if, at its current speed towards the
