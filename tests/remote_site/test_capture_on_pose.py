@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import pytest
@@ -162,6 +162,21 @@ def _frames(sent: Sequence[object]) -> list[TactileFrame | TactileCompact]:
     return [m for m in sent if isinstance(m, TactileFrame | TactileCompact)]
 
 
+async def hold_hand(link: FakeLink, position: tuple[float, float, float], interval_s: float,
+                    *, until: Callable[[], bool], stop: asyncio.Event) -> None:
+    """A held hand: a fresh platform state at ``position`` every ``interval_s`` (on an
+    absolute schedule) until ``until()``; then ``stop`` is set."""
+    loop = asyncio.get_running_loop()
+    next_t = loop.time()
+    seq = 0
+    while not until():
+        seq += 1
+        link.inbox.put_nowait(platform_state(seq, position))
+        next_t += interval_s
+        await asyncio.sleep(max(0.0, next_t - loop.time()))
+    stop.set()
+
+
 async def test_frames_are_taken_once_the_arm_reached_the_commanded_pose() -> None:
     """A 10 mm step takes the sim arm about 0.3 s. With a slow frame clock (5 Hz) and a long
     pose wait, every frame answering the step is taken with the pad within the tolerance of
@@ -265,19 +280,10 @@ async def test_frames_answer_commands_as_they_arrive_not_after_they_aged() -> No
     position = (0.0, 0.0, 12.0)
     stop = asyncio.Event()
 
-    async def operator() -> None:
-        loop = asyncio.get_running_loop()
-        next_t = loop.time()
-        seq = 0
-        while len(station.command_wait_s) < 30:
-            seq += 1
-            link.inbox.put_nowait(platform_state(seq, position))  # a held hand
-            next_t += interval_s
-            await asyncio.sleep(max(0.0, next_t - loop.time()))
-        stop.set()
-
     try:
-        task = asyncio.create_task(operator())
+        task = asyncio.create_task(hold_hand(
+            link, position, interval_s, until=lambda: len(station.command_wait_s) >= 30,
+            stop=stop))
         await station.run(stop, duration_s=scaled(30.0))
         await task
         ages_ms = np.asarray(station.command_wait_s)[5:] * 1e3  # after the rate is known
@@ -303,19 +309,10 @@ async def test_the_frame_rate_setting_is_met_while_commands_come_faster() -> Non
     stop = asyncio.Event()
     skip = 3  # the first frames, before the commands' interval is known
 
-    async def operator() -> None:
-        loop = asyncio.get_running_loop()
-        next_t = loop.time()
-        seq = 0
-        while len(station.frame_period_s) < skip + n:
-            seq += 1
-            link.inbox.put_nowait(platform_state(seq, (0.0, 0.0, 12.0)))  # a held hand
-            next_t += interval_s
-            await asyncio.sleep(max(0.0, next_t - loop.time()))
-        stop.set()
-
     try:
-        task = asyncio.create_task(operator())
+        task = asyncio.create_task(hold_hand(
+            link, (0.0, 0.0, 12.0), interval_s,
+            until=lambda: len(station.frame_period_s) >= skip + n, stop=stop))
         await station.run(stop, duration_s=scaled(30.0))
         await task
         periods = list(station.frame_period_s)[skip:skip + n]
