@@ -163,18 +163,27 @@ def _frames(sent: Sequence[object]) -> list[TactileFrame | TactileCompact]:
 
 
 async def hold_hand(link: FakeLink, position: tuple[float, float, float], interval_s: float,
-                    *, until: Callable[[], bool], stop: asyncio.Event) -> None:
+                    *, until: Callable[[], bool], stop: asyncio.Event | None = None,
+                    seq: int = 0) -> int:
     """A held hand: a fresh platform state at ``position`` every ``interval_s`` (on an
-    absolute schedule) until ``until()``; then ``stop`` is set."""
+    absolute schedule, numbered on from ``seq``) until ``until()``; then ``stop`` is set.
+    Returns the last state's number."""
     loop = asyncio.get_running_loop()
     next_t = loop.time()
-    seq = 0
     while not until():
         seq += 1
         link.inbox.put_nowait(platform_state(seq, position))
         next_t += interval_s
         await asyncio.sleep(max(0.0, next_t - loop.time()))
-    stop.set()
+    if stop is not None:
+        stop.set()
+    return seq
+
+
+def _for(seconds: float) -> Callable[[], bool]:
+    """True once ``seconds`` have passed (on the running loop's clock)."""
+    end = asyncio.get_running_loop().time() + seconds
+    return lambda: asyncio.get_running_loop().time() >= end
 
 
 async def test_frames_are_taken_once_the_arm_reached_the_commanded_pose() -> None:
@@ -193,25 +202,15 @@ async def test_frames_are_taken_once_the_arm_reached_the_commanded_pose() -> Non
     assert station.captures_on_pose
     start, target = (0.0, 0.0, 12.0), (10.0, 0.0, 12.0)
     stop = asyncio.Event()
-    seq = 0
 
-    async def hold(position: tuple[float, float, float], seconds: float) -> None:
-        nonlocal seq
-        end = asyncio.get_running_loop().time() + seconds
-        while asyncio.get_running_loop().time() < end:  # a held hand: fresh states at 50 Hz
-            seq += 1
-            link.inbox.put_nowait(platform_state(seq, position))
-            await asyncio.sleep(0.02)
-
-    async def operator() -> None:
-        await hold(start, scaled(1.0))
+    async def operator() -> None:  # a held hand: fresh states at 50 Hz
+        seq = await hold_hand(link, start, 0.02, until=_for(scaled(1.0)))
         await async_wait_until(lambda: math.dist(station.safe_arm.arm.state().position_mm,
                                                  start) < 0.01, 10.0, "the arm at the start")
         station.captures.on_pose = station.captures.moving = 0
         before = len(_frames(link.sent))
         step_seq = seq + 1
-        await hold(target, scaled(1.5))
-        stop.set()
+        await hold_hand(link, target, 0.02, until=_for(scaled(1.5)), stop=stop, seq=seq)
         answered = [f for f in _frames(link.sent)[before:]
                     if f.source_seq is not None and f.source_seq >= step_seq]
         assert answered, "no frame answered the step"
