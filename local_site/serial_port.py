@@ -1,12 +1,10 @@
 """A pyserial port with its reader thread: the part every serial device driver shares.
 
 The platform's encoder board and the ArrayTac serial link both open a port by URL
-(``serial.serial_for_url``: a device, ``loop://``, ``socket://``, a pty) and close it so
-that a blocked read returns at once. The platform reads it from a daemon thread
-(:class:`~shared.devices.reader.ReaderThread`) that hands every chunk to a callback; the
-ArrayTac link has no thread: its driver takes what arrived (:meth:`SerialPortReader.read_now`,
-one non-blocking read) whenever the display loop, which wakes at 1 kHz anyway, asks it to.
-Only their byte protocols differ, and those stay in the drivers.
+(``serial.serial_for_url``: a device, ``loop://``, ``socket://``, a pty), read it from a
+daemon thread (:class:`~shared.devices.reader.ReaderThread`) that hands every chunk to a
+callback, and close it so that a blocked read
+returns at once. Only their byte protocols differ, and those stay in the drivers.
 
 Writes: pyserial 3.5's ``write`` on a device/pty and on ``socket://`` checks its write
 timeout *after* a send that already put every byte out, so a writer descheduled for longer
@@ -26,7 +24,6 @@ import math
 import os
 import queue
 import select
-import time
 from collections.abc import Callable
 
 import serial
@@ -98,50 +95,20 @@ def _read_available(port: serial.SerialBase) -> bytes | None:
             if abort in ready:
                 os.read(abort, 1000)
                 return b""
-    except OSError as err:
-        if err.errno in _RETRY_ERRNOS:
+        if not ready:
             return b""
-        raise serial.SerialException(f"read failed: {err}") from err
-    if not ready:
-        return b""
-    return _read_fd(fd, socket_port=read is _SOCKET_READ)
-
-
-def _read_fd(fd: int, *, socket_port: bool) -> bytes:
-    """One ``os.read`` of a port's non-blocking descriptor: ``b""`` when nothing is there.
-
-    Raises:
-        serial.SerialException: the read failed, or reached the end (as pyserial: a
-            disconnected device reads as ready with no data; a closed socket likewise).
-    """
-    try:
         data = os.read(fd, _READ_CHUNK_BYTES)
     except OSError as err:
         if err.errno in _RETRY_ERRNOS:
             return b""
         raise serial.SerialException(f"read failed: {err}") from err
     if not data:
-        if socket_port:
+        # as pyserial: a disconnected device is ready to read but returns nothing
+        if read is _SOCKET_READ:
             raise serial.SerialException("socket disconnected (the peer closed the connection)")
         raise serial.SerialException("device reports readiness to read but returned no data "
                                      "(device disconnected or multiple access on port?)")
     return data
-
-
-def _nonblocking_read_fd(port: serial.SerialBase) -> int | None:
-    """The port's descriptor when :meth:`SerialPortReader.read_now` may ``os.read`` it: a
-    device, pty or ``socket://`` port (the reads :func:`_read_available` replaces) whose
-    descriptor pyserial opened non-blocking; else None (pyserial's own read then)."""
-    read = type(port).read
-    if _POSIX_READ is None or read not in (_POSIX_READ, _SOCKET_READ):
-        return None
-    try:
-        fd = port.fileno() if read is _SOCKET_READ else port.fd
-        if not isinstance(fd, int) or os.get_blocking(fd):
-            return None
-    except (serial.SerialException, OSError, AttributeError):
-        return None
-    return fd
 
 
 def _descriptor(port: serial.SerialBase) -> int | None:
@@ -199,32 +166,25 @@ def _write_all(port: serial.SerialBase, data: bytes, timeout_s: float | None) ->
 
 
 class SerialPortReader:
-    """Open a serial URL and feed what arrives to ``on_data`` from a daemon thread, or let
-    the owner take it with :meth:`read_now` (no thread).
+    """Open a serial URL and feed what arrives to ``on_data`` from a daemon thread.
 
     Args:
         url: pyserial URL or device.
         name: the device's name for messages.
-        thread_name: the reader thread's name; None for no reader thread: the owner reads
-            the port itself with :meth:`read_now` (and waits with :meth:`wait_readable`),
-            as a loop that wakes anyway does, saving a thread's wake-up per burst.
-        on_data: called from the reader thread with every non-empty chunk (thread only).
-        on_error: called from the reader thread when a read fails, not after close()
-            (thread only).
+        thread_name: the reader thread's name.
+        on_data: called from the reader thread with every non-empty chunk.
+        on_error: called from the reader thread when a read fails (not after close()).
         baudrate: line speed.
         timeout_s: read timeout (how often the thread checks for close()).
         write_timeout_s: write timeout, or None to block.
         port: an already-open port to use instead of opening ``url``; it is not closed.
     """
 
-    def __init__(self, url: str, *, name: str, thread_name: str | None,
-                 on_data: Callable[[bytes], None] | None = None,
-                 on_error: Callable[[BaseException], None] | None = None,
+    def __init__(self, url: str, *, name: str, thread_name: str,
+                 on_data: Callable[[bytes], None], on_error: Callable[[BaseException], None],
                  baudrate: int = 921_600, timeout_s: float = 0.05,
                  write_timeout_s: float | None = None,
                  port: serial.SerialBase | None = None) -> None:
-        if thread_name is not None and (on_data is None or on_error is None):
-            raise ValueError("a reader thread needs on_data and on_error")
         self.url = url
         self.name = name
         self._thread_name = thread_name
@@ -236,7 +196,6 @@ class SerialPortReader:
         self._given_port = port
         self._port: serial.SerialBase | None = None
         self._reader: ReaderThread | None = None
-        self._nowait_fd: int | None = None
         #: when the reader thread last came back from a read of the port (monotonic s; with
         #: or without data: it reads with ``timeout_s``), None before the first
         self.last_read_s: float | None = None
@@ -270,9 +229,6 @@ class SerialPortReader:
                 raise DeviceInitError(f"{self.name}: cannot open: {err}") from err
         port.timeout = self._timeout_s
         self._port = port
-        self._nowait_fd = _nonblocking_read_fd(port)
-        if self._thread_name is None:
-            return
         reader = ReaderThread(self._thread_name, lambda: self._read_once(port, reader))
         self._reader = reader
         reader.start()
@@ -281,7 +237,6 @@ class SerialPortReader:
         """Stop the reader thread and close the port (a given port is left open)."""
         port, self._port = self._port, None
         reader, self._reader = self._reader, None
-        self._nowait_fd = None
         if reader is not None:
             reader.request_stop()
         if port is not None and hasattr(port, "cancel_read"):
@@ -316,47 +271,6 @@ class SerialPortReader:
                 f"{(self._write_timeout_s or 0.0) * 1e3:.0f} ms (the other end does not "
                 "take them)")
 
-    def read_now(self) -> bytes:
-        """Every byte the port holds now, without waiting (``b""``: nothing yet).
-
-        For a port opened without a reader thread. On ``socket://`` it is one non-blocking
-        ``os.read`` of the port's descriptor; on a device or pty a zero-timeout ``select``
-        and that read; on other ports (``loop://``, ``spy://``) pyserial's ``in_waiting``
-        and ``read``.
-
-        Raises:
-            DeviceOperationError: the port is closed, the read failed, or the device or
-                peer is gone (a socket the peer closed, a device that reports readiness
-                and returns nothing).
-        """
-        port = self._port
-        if port is None:
-            raise DeviceOperationError(f"{self.name}: port is closed")
-        fd = self._nowait_fd
-        try:
-            if fd is not None:
-                socket_port = type(port).read is _SOCKET_READ
-                # a tty in raw mode reads 0 bytes both when empty and when gone: ask
-                # select first, as pyserial does (a socket says EAGAIN or EOF by itself)
-                if not socket_port and not select.select([fd], [], [], 0)[0]:
-                    return b""
-                return _read_fd(fd, socket_port=socket_port)
-            waiting = port.in_waiting
-            return port.read(waiting) if waiting else b""
-        except _READ_ERRORS as err:
-            raise DeviceOperationError(f"{self.name}: read failed: {err}") from err
-
-    def wait_readable(self, timeout_s: float) -> None:
-        """Wait up to ``timeout_s`` for bytes to read (for a port read with :meth:`read_now`;
-        returns early when they arrive; on ports without a descriptor it waits at most 1 ms
-        per call)."""
-        fd = self._nowait_fd
-        if fd is None:
-            time.sleep(min(max(timeout_s, 0.0), 0.001))
-            return
-        with contextlib.suppress(OSError, ValueError):
-            select.select([fd], [], [], max(timeout_s, 0.0))
-
     def _read_once(self, port: serial.SerialBase, reader: ReaderThread) -> bool:
         try:
             data = _read_available(port)
@@ -364,11 +278,11 @@ class SerialPortReader:
                 waiting = port.in_waiting
                 data = port.read(waiting if waiting else 1)
         except _READ_ERRORS as err:  # Type/AttributeError: pyserial after a close
-            if not reader.stopping and self._on_error is not None:
+            if not reader.stopping:
                 self._on_error(err)
             return False
         self.last_read_s = monotonic_s()
-        if data and self._on_data is not None:
+        if data:
             self._on_data(data)
         return True
 

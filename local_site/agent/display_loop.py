@@ -2,9 +2,6 @@
 
 One iteration (:meth:`DisplayLoop.tick`):
 
-0. take in the board's feedback that arrived since the last tick
-   (:meth:`~local_site.display.base.ArrayTacDisplay.poll_link`: on a serial link one
-   non-blocking read, no reader thread; a read error is a display error);
 1. take the newest tactile frame handed over by the link (:class:`FrameSlot`, latest wins)
    and apply it to the :class:`~local_site.scenes.TactileFrameScene`; a bad frame (NaN,
    out of range, malformed) is rejected and counted and the pins are not touched;
@@ -470,7 +467,6 @@ class DisplayLoop:
         Raises:
             DeviceError: the display failed (the runner reopens it).
         """
-        self.display.poll_link()  # the board's feedback first: a command knows the newest
         self._intake()
         if self.recorder is not None:
             pins = self.pin_state

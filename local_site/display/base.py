@@ -5,10 +5,7 @@ wire codes, the "unchanged pins are not re-sent" rule with its keepalive, sequen
 the safe state, feedback decoding and bookkeeping; the lifecycle is
 :class:`~shared.devices.base.Device`'s. A backend implements ``_connect()``,
 ``_disconnect()`` and ``_send_frame(arb_id, payload)``, and hands every frame it receives to
-:meth:`ArrayTacDisplay._on_frame`: from a reader thread of its own (CAN), or, with no
-thread, whenever :meth:`ArrayTacDisplay.poll_link` is called (serial: the display loop calls
-it once per tick, so the board's feedback costs no thread wake-up and no GIL hand-over in the
-station).
+:meth:`ArrayTacDisplay._on_frame` from its reader thread.
 
 Pin order: 16 pins, row-major on a 4 x 4 grid, ``index = row * 4 + col``; ``col`` grows along
 platform +x and ``row`` along +y; pin (row, col) sits at ((col - 1.5) * 1.7 mm,
@@ -213,23 +210,6 @@ class ArrayTacDisplay(Device):
     def _send_frame(self, arb_id: int, payload: bytes) -> None:
         """Put one frame on the link; raise DeviceOperationError on failure."""
 
-    def poll_link(self) -> None:
-        """Take in the frames the link received, without waiting.
-
-        A backend without a reader thread decodes them here; one with a reader thread
-        already did, and this does nothing. The display loop calls it once per tick, before
-        it decides anything, so a command is built knowing the newest feedback.
-
-        Raises:
-            DeviceOperationError: the link failed (read error, device or peer gone).
-        """
-
-    def _await_link(self, timeout_s: float) -> None:
-        """Wait up to ``timeout_s`` for frames, with ``self._cond`` held (for
-        :meth:`read_feedback`). With a reader thread: its notify wakes the wait; a polled
-        backend waits on its link and then polls it."""
-        self._cond.wait(timeout_s)
-
     # ------------------------------------------------------------------ lifecycle steps
 
     def _before_connect(self) -> None:
@@ -244,9 +224,6 @@ class ArrayTacDisplay(Device):
         except DeviceTimeoutError as err:
             raise DeviceInitError(f"{self.name}: no feedback from the drive board within "
                                   f"{self._connect_timeout_s:.2f} s") from err
-        except DeviceOperationError as err:
-            raise DeviceInitError(f"{self.name}: the link failed while waiting for the "
-                                  f"board's first feedback: {err}") from err
 
     def _before_disconnect(self) -> None:
         """Send the disconnect safe state, best effort."""
@@ -418,13 +395,11 @@ class ArrayTacDisplay(Device):
         Raises:
             DeviceNotConnectedError: not connected.
             DeviceTimeoutError: nothing (new enough) within ``timeout_s``.
-            DeviceOperationError: the link failed (a polled backend).
         """
         if not self._connected:
             raise DeviceNotConnectedError(f"{self.name}: read_feedback() before connect()")
         deadline = monotonic_s() + timeout_s
         with self._cond:
-            self.poll_link()
             while True:
                 fb = self._feedback
                 if fb is not None and (newer_than_us is None or fb.t_us > newer_than_us):
@@ -433,11 +408,10 @@ class ArrayTacDisplay(Device):
                 if remaining <= 0 or not self._connected:
                     raise DeviceTimeoutError(f"{self.name}: no feedback from the drive board "
                                              f"within {timeout_s * 1e3:.0f} ms")
-                self._await_link(remaining)
+                self._cond.wait(remaining)
 
     def latest_feedback(self) -> PinFeedback | None:
-        """The newest feedback taken in, without waiting (None before the first frame); on a
-        polled backend, as of the last :meth:`poll_link` (the display loop's last tick)."""
+        """The newest feedback without waiting (None before the first frame)."""
         return self._feedback
 
     def stats(self) -> DisplayStats:
@@ -451,7 +425,7 @@ class ArrayTacDisplay(Device):
     # ------------------------------------------------------------------ for backends
 
     def _on_frame(self, arb_id: int, payload: bytes, rx_us: int | None = None) -> None:
-        """Handle one received frame (from the backend's reader thread or its poll)."""
+        """Handle one received frame (called by the backend's reader thread)."""
         if arb_id != fr.ARB_ID_FEEDBACK:
             return  # our own commands echoed, other nodes' traffic
         try:

@@ -6,7 +6,7 @@ For boards reached over USB CDC / UART instead of CAN FD (``/dev/ttyACM0``,
 
 from __future__ import annotations
 
-import threading
+import logging
 from typing import Any
 
 from local_site.display.base import ArrayTacDisplay
@@ -14,6 +14,8 @@ from local_site.display.serial_framing import LinkFrameDecoder, encode_link_fram
 from local_site.serial_port import SerialPortReader
 
 __all__ = ["SerialArrayTacDisplay"]
+
+log = logging.getLogger(__name__)
 
 
 class SerialArrayTacDisplay(ArrayTacDisplay):
@@ -31,12 +33,10 @@ class SerialArrayTacDisplay(ArrayTacDisplay):
         super().__init__(**kwargs)
         self.url = url
         self.decoder = LinkFrameDecoder()
-        # no reader thread: the board's feedback (500 Hz) is taken in by poll_link(), which
-        # the display loop calls every tick, and by read_feedback() while it waits
-        self._link = SerialPortReader(url, name=self.name, thread_name=None,
+        self._link = SerialPortReader(url, name=self.name, thread_name=f"arraytac-rx {url}",
+                                      on_data=self._on_data, on_error=self._on_read_error,
                                       baudrate=baudrate, timeout_s=0.05,
                                       write_timeout_s=write_timeout_s)
-        self._poll_lock = threading.Lock()
 
     @property
     def name(self) -> str:
@@ -52,25 +52,9 @@ class SerialArrayTacDisplay(ArrayTacDisplay):
     def _send_frame(self, arb_id: int, payload: bytes) -> None:
         self._link.write(encode_link_frame(arb_id, payload))
 
-    def poll_link(self) -> None:
-        """Decode the frames that arrived since the last poll (one non-blocking read).
+    def _on_data(self, data: bytes) -> None:
+        for arb_id, payload in self.decoder.feed(data):
+            self._on_frame(arb_id, payload)
 
-        Safe from any thread: a poll that finds another one under way returns at once (that
-        one takes the bytes).
-
-        Raises:
-            DeviceOperationError: the read failed or the board's end is gone.
-        """
-        if not self._poll_lock.acquire(blocking=False):
-            return
-        try:
-            data = self._link.read_now()
-            if data:
-                for arb_id, payload in self.decoder.feed(data):
-                    self._on_frame(arb_id, payload)
-        finally:
-            self._poll_lock.release()
-
-    def _await_link(self, timeout_s: float) -> None:
-        self._link.wait_readable(timeout_s)
-        self.poll_link()
+    def _on_read_error(self, err: BaseException) -> None:
+        log.warning("%s: read failed: %s", self.name, err)

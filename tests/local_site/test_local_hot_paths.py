@@ -39,7 +39,7 @@ from local_site.platform.motion_spec import parse_motion_spec
 from local_site.platform.sim import SimulatedPlatform
 from local_site.platform.sim_board import BLOCK_SAMPLES, SimulatedEncoderBoard
 from local_site.serial_port import SerialPortReader
-from shared.errors import ConfigError, DeviceOperationError, InputDataError
+from shared.errors import ConfigError, InputDataError
 from shared.timebase import monotonic_s, now_us
 from tests.support import scaled, wait_until
 
@@ -302,80 +302,6 @@ def test_a_socket_url_burst_reaches_the_callback_in_one_piece_and_a_close_is_rep
     finally:
         reader.close()
         server.close()
-
-
-def _read_until(reader: SerialPortReader, n_bytes: int) -> list[bytes]:
-    """Chunks from :meth:`SerialPortReader.read_now` until ``n_bytes`` came (waiting on the
-    port in between, as the ArrayTac driver's read_feedback does)."""
-    chunks: list[bytes] = []
-    deadline = monotonic_s() + scaled(2.0)
-    while sum(map(len, chunks)) < n_bytes:
-        assert monotonic_s() < deadline, f"only {chunks!r} arrived"
-        reader.wait_readable(0.05)
-        if data := reader.read_now():
-            chunks.append(data)
-    return chunks
-
-
-def test_a_port_without_a_reader_thread_reads_what_is_there_without_waiting(
-        pty_pair: tuple[int, int | str]) -> None:
-    master, path = pty_pair
-    reader = SerialPortReader(str(path), name="test pty", thread_name=None, timeout_s=0.05)
-    before = {t.name for t in threading.enumerate()}
-    reader.open()
-    try:
-        assert {t.name for t in threading.enumerate()} == before  # no thread started
-        t0 = monotonic_s()
-        assert reader.read_now() == b""  # nothing there: back at once, not after a timeout
-        assert monotonic_s() - t0 < scaled(0.04)
-        burst = bytes(range(78))
-        os.write(int(master), burst)
-        assert b"".join(_read_until(reader, 78)) == burst
-        assert reader.read_now() == b""
-        os.close(int(master))  # the device went away: an error, not an endless b""
-        with pytest.raises(DeviceOperationError, match="test pty: read failed"):
-            _read_until(reader, 1)
-    finally:
-        reader.close()
-        os.dup2(os.open(os.devnull, os.O_RDONLY), int(master))  # the fixture closes it
-    with pytest.raises(DeviceOperationError, match="port is closed"):
-        reader.read_now()
-
-
-def test_a_socket_url_without_a_reader_thread_reads_bursts_and_reports_the_peer_gone() -> None:
-    server = socket.create_server(("127.0.0.1", 0))
-    host, port = server.getsockname()
-    reader = SerialPortReader(f"socket://{host}:{port}", name="test socket", thread_name=None,
-                              timeout_s=0.05)
-    reader.open()
-    try:
-        server.settimeout(scaled(2.0))
-        peer, _ = server.accept()
-        assert reader.read_now() == b""
-        peer.sendall(bytes(range(78)))
-        assert b"".join(_read_until(reader, 78)) == bytes(range(78))
-        peer.close()
-        with pytest.raises(DeviceOperationError, match="peer closed the connection"):
-            _read_until(reader, 1)
-    finally:
-        reader.close()
-        server.close()
-
-
-def test_a_loop_url_without_a_reader_thread_uses_pyserials_read() -> None:
-    reader = SerialPortReader("loop://", name="loop", thread_name=None, timeout_s=0.05)
-    reader.open()
-    try:
-        assert reader.read_now() == b""
-        reader.write(b"abc")
-        assert b"".join(_read_until(reader, 3)) == b"abc"
-    finally:
-        reader.close()
-
-
-def test_a_reader_thread_needs_its_callbacks() -> None:
-    with pytest.raises(ValueError, match="needs on_data and on_error"):
-        SerialPortReader("loop://", name="loop", thread_name="rx")
 
 
 # ---------------------------------------------------------------- platform reader
