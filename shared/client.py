@@ -172,6 +172,8 @@ class StationLink:
         self._tx_room = asyncio.Event()  # the ordered send queue has room
         self._tx_room.set()
         self._task: asyncio.Task[None] | None = None
+        #: the open connection while one is up (for :meth:`_write_now`)
+        self._transport: Transport | None = None
         #: called with ("tx" | "rx", message, wall-clock us) for every message the station
         #: queues with :meth:`send` or takes with :meth:`recv` (a recorder; must not block)
         self.tap: Callable[[str, Message, int], None] | None = None
@@ -343,9 +345,31 @@ class StationLink:
             await self._tx_room.wait()
             self._raise_if_unusable()
             queued = self._session.send(msg)
-        self._tx_ready.set()
+        if not self._write_now():
+            self._tx_ready.set()
         if self.tap is not None:
             self.tap("tx", msg, now_us())
+
+    def _write_now(self) -> bool:
+        """Hand what the session has ready to the socket from the caller's own task, when the
+        socket takes it at once: no wake-up of the writer task and none of websockets'
+        ``send`` machinery per message (the relay's fast path, ``relay_server/wire.py``).
+        The session decides what goes and in which order, as for the writer task.
+
+        Returns:
+            False when the writer task must do it: not connected, or earlier writes still
+            wait in the socket's buffer (flow control, latest-wins replaces meanwhile).
+        """
+        transport = self._transport
+        if transport is None or not transport.ready():
+            return False
+        frames = []
+        while (data := self._session.next_data(now_us())) is not None:
+            frames.append(data)
+        if frames:
+            self._tx_room.set()
+            transport.write_nowait(frames)
+        return True
 
     @property
     def pending_sends(self) -> int:
@@ -455,8 +479,10 @@ class StationLink:
         try:
             await transport.write([self._session.connect(transport.framing, now_us())])
             writer = asyncio.get_running_loop().create_task(self._write_loop(transport))
+            self._transport = transport
             await self._read_loop(transport)
         finally:
+            self._transport = None
             if writer is not None:
                 writer.cancel()
                 await asyncio.gather(writer, return_exceptions=True)
@@ -497,7 +523,8 @@ class StationLink:
                     log.warning("dropped an invalid message from the relay: %s", event.error)
             if len(session.inbox):
                 self._readable.set()
-            self._tx_ready.set()  # pongs, and what was queued while the link was down
+            if not self._write_now():  # pongs, and what was queued while the link was down
+                self._tx_ready.set()
 
     async def _write_loop(self, transport: Transport) -> None:
         try:

@@ -36,6 +36,7 @@ from shared.protocol import (
     Welcome,
 )
 from shared.timebase import monotonic_s, now_us
+from shared.transport import TcpTransport, WsTransport
 from tests.support import free_tcp_port, scaled
 
 TOKEN = "s3cret"
@@ -364,6 +365,39 @@ async def test_role_taken_is_retried_not_final() -> None:
                 await asyncio.sleep(0.005)
         assert link.final_error is None and not link.is_connected
         assert link.counters.role_taken_refusals >= 2
+
+
+@pytest.mark.parametrize("scheme", ["ws", "tcp"])
+async def test_a_send_reaches_the_socket_in_the_callers_task_while_the_socket_keeps_up(
+        relay: FakeRelay, scheme: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each message goes to the socket from ``send`` itself (no writer-task wake-up per
+    message) and arrives in order; the writer task is left only the hello."""
+    cls: Any = WsTransport if scheme == "ws" else TcpTransport
+    calls = {"write": 0, "write_nowait": 0}
+    write, write_nowait = cls.write, cls.write_nowait
+
+    async def counted_write(self: Any, frames: list[bytes]) -> None:
+        calls["write"] += 1
+        await write(self, frames)
+
+    def counted_write_nowait(self: Any, frames: list[bytes]) -> None:
+        calls["write_nowait"] += len(frames)
+        write_nowait(self, frames)
+
+    monkeypatch.setattr(cls, "write", counted_write)
+    monkeypatch.setattr(cls, "write_nowait", counted_write_nowait)
+    async with _link(relay.url(scheme)) as link:
+        await link.wait_connected(scaled(2.0))
+        for i in range(20):  # ordered messages: none may be dropped or reordered
+            await link.send(ArmCommand(seq=i, ts_us=now_us(), action="stop"))
+            assert link.pending_sends == 0  # handed over before send() returned
+        seqs: list[int] = []
+        while len(seqs) < 20:
+            got = await relay.next_message(ArmCommand)
+            assert isinstance(got, ArmCommand)
+            seqs.append(got.seq)
+        assert seqs == list(range(20))
+        assert calls == {"write": 1, "write_nowait": 20}  # the hello, then every message
 
 
 async def test_latest_wins_on_a_stalled_socket(relay: FakeRelay) -> None:
