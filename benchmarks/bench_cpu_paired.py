@@ -12,8 +12,10 @@ period jitter p99 (``fps`` is the session's average, idle stretches included;
 ``period_p50`` the remote's median frame period in ms, the rate while commands flow),
 motion-to-touch end to end (p50 / p99) and its ``arm_and_sensor`` stage,
 and the remote's wait from a command to the capture that answers it (``arm_command_to_capture``
-in its summary, where the side reports it). Then the medians per side and profile, and each
-side's median ratio to the first side over the pairs.
+in its summary, where the side reports it). ``switches`` is the context switches per second
+of all processes (where the side's ``bench cpu`` records them): wake-ups and preemptions, each
+worth tens of us of CPU on this machine (``benchmarks/bench_wakeup_cost.py``). Then the
+medians per side and profile, and each side's median ratio to the first side over the pairs.
 
 Run: ``python benchmarks/bench_cpu_paired.py --side base=../m2t-base --side new=. --link lan
 --link city-1000km --rounds 3 --out benchmarks/results/DIR`` (``--report-only`` rebuilds
@@ -33,7 +35,8 @@ from typing import Any
 from lab.bench.results import median_known
 
 #: (column, unit format) per run
-COLUMNS = ("load", "cores", "local", "remote", "fps", "period_p50", "loop_hz", "jitter_p99",
+COLUMNS = ("load", "cores", "local", "remote", "switches", "fps", "period_p50", "loop_hz",
+           "jitter_p99",
            "m2t_p50", "m2t_p99", "arm_sensor_p50", "arm_sensor_p99", "cmd_to_capture_p50")
 
 
@@ -73,6 +76,8 @@ def figures(path: Path) -> dict[str, float | None]:
         "cores": sum(p["cores"] for p in procs.values()),
         "local": procs.get("local", {}).get("cores"),
         "remote": procs.get("remote", {}).get("cores"),
+        "switches": (sum(p["switches_per_s"] for p in procs.values())
+                     if procs and all("switches_per_s" in p for p in procs.values()) else None),
         "fps": (run.get("remote_frames") or {}).get("achieved_fps"),
         "period_p50": pick(remote_lat, "frame_period", "p50"),
         "loop_hz": (run.get("display_loop") or {}).get("rate_hz"),

@@ -115,6 +115,10 @@ class CpuSnapshot:
 
     wall_s: float
     threads: dict[int, dict[int, float]] = field(default_factory=dict)  # pid -> tid -> cpu s
+    #: pid -> tid -> context switches so far (voluntary + involuntary): each is a wake-up
+    #: of the thread or a preemption, and on this machine each costs tens of us of CPU
+    #: (``benchmarks/bench_wakeup_cost.py``)
+    switches: dict[int, dict[int, int]] = field(default_factory=dict)
 
 
 def _task_cpu_s(pid: int, tid: int) -> float | None:
@@ -127,11 +131,25 @@ def _task_cpu_s(pid: int, tid: int) -> float | None:
     return (int(fields[11]) + int(fields[12])) / _CLK_TCK  # utime, stime
 
 
+def _task_switches(pid: int, tid: int) -> int | None:
+    """Voluntary + involuntary context switches of a thread so far (``status``)."""
+    try:
+        with open(f"/proc/{pid}/task/{tid}/status") as f:
+            text = f.read()
+    except OSError:
+        return None
+    return sum(int(m) for m in _SWITCHES.findall(text))
+
+
+_SWITCHES = re.compile(r"^(?:non)?voluntary_ctxt_switches:\s+(\d+)$", re.MULTILINE)
+
+
 def snapshot(pids: list[int]) -> CpuSnapshot:
-    """Read the CPU time of every thread of ``pids`` now."""
+    """Read the CPU time and context switches of every thread of ``pids`` now."""
     snap = CpuSnapshot(time.perf_counter())
     for pid in pids:
         per: dict[int, float] = {}
+        sw: dict[int, int] = {}
         try:
             tids = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
         except OSError:
@@ -140,7 +158,11 @@ def snapshot(pids: list[int]) -> CpuSnapshot:
             cpu = _task_cpu_s(pid, tid)
             if cpu is not None:
                 per[tid] = cpu
+            n = _task_switches(pid, tid)
+            if n is not None:
+                sw[tid] = n
         snap.threads[pid] = per
+        snap.switches[pid] = sw
     return snap
 
 
@@ -394,13 +416,17 @@ def _figures(win: _Window, report: dict[str, Any], load_start: tuple[float, floa
     for pid, name in sorted(win.names.items(), key=lambda kv: kv[1]):
         t0, t1 = win.start.threads.get(pid, {}), win.end.threads.get(pid, {})
         thread_cpu = {tid: t1[tid] - t0.get(tid, 0.0) for tid in t1}
+        s0, s1 = win.start.switches.get(pid, {}), win.end.switches.get(pid, {})
+        thread_sw = {tid: (s1[tid] - s0.get(tid, 0)) / wall for tid in s1}
         total = sum(thread_cpu.values())
-        processes[name] = {"cores": total / wall, "threads": len(t1)}
+        processes[name] = {"cores": total / wall, "threads": len(t1),
+                           "switches_per_s": sum(thread_sw.values())}
         path = win.workdir / f"profile-{name}.txt"
         text = path.read_text() if path.exists() else ""
         per_thread = parse_raw_profile(text) if text else {}
         roots = thread_roots(text) if text else {}
-        threads[name] = sorted(({"tid": tid, "runs": roots.get(tid, "?"), "cores": cpu / wall}
+        threads[name] = sorted(({"tid": tid, "runs": roots.get(tid, "?"), "cores": cpu / wall,
+                                 "switches_per_s": thread_sw.get(tid)}
                                 for tid, cpu in thread_cpu.items()),
                                key=lambda t: -float(t["cores"]))
         if name.startswith("link") or name in _SIM_PROCESSES:

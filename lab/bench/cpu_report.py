@@ -81,6 +81,13 @@ def write_report(runs: list[dict[str, Any]], out_dir: Path) -> None:
     prow = [{"process": p, **{lab: _fmt(r["processes"].get(p, {}).get("cores"))
                               for lab, r in zip(labels, runs, strict=True)}} for p in procs]
     lines += ["## Per process (cores)", "", format_table(prow), ""]
+    # context switches (wake-ups and preemptions): recorded from this round on
+    swrow = [{"process": p, **{lab: _fmt(r["processes"].get(p, {}).get("switches_per_s"), 0)
+                               for lab, r in zip(labels, runs, strict=True)}} for p in procs]
+    if any(r["processes"].get(p, {}).get("switches_per_s") is not None
+           for r in runs for p in procs):
+        lines += ["## Per process (context switches per second, all threads)", "",
+                  format_table(swrow), ""]
     keys = sorted({(p, s) for r in runs for p, per in r["stages"].items() for s in per})
     srow = [{"process": p, "stage": s,
              **{lab: _fmt(r["stages"].get(p, {}).get(s)) for lab, r in

@@ -3,6 +3,7 @@ waits recognised by their line, py-spy raw lines parsed per thread."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
@@ -90,3 +91,31 @@ def test_the_local_stations_platform_process_and_a_board_below_it_are_found(
     ]
     monkeypatch.setattr(cpu_impl, "_processes", lambda: iter(table))
     assert cpu_impl._children(10) == {14: "local", 20: "platform", 21: "sim-board"}
+
+
+def test_a_snapshot_counts_each_threads_context_switches() -> None:
+    import threading
+    import time
+
+    from lab.bench.cpu_impl import snapshot
+
+    done, may_end = threading.Event(), threading.Event()
+
+    def sleeper() -> None:  # 20 sleeps: at least 20 voluntary switches of this thread
+        for _ in range(20):
+            time.sleep(0.001)
+        done.set()
+        may_end.wait(10.0)  # alive while the second snapshot reads it
+
+    pid = os.getpid()
+    thread = threading.Thread(target=sleeper)
+    before = snapshot([pid])
+    thread.start()
+    assert done.wait(10.0)
+    tid = thread.native_id
+    after = snapshot([pid])
+    may_end.set()
+    thread.join()
+    assert tid is not None and tid in after.switches[pid]
+    assert after.switches[pid][tid] - before.switches[pid].get(tid, 0) >= 20
+    assert after.switches[pid][tid] >= 20 and after.threads[pid][tid] >= 0.0
