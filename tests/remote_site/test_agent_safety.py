@@ -207,7 +207,10 @@ def test_platform_states_wait_for_clock_offsets() -> None:
 
 async def test_arm_halts_when_commands_stop() -> None:
     link = FakeLink()
-    station = make_station(link)
+    # the command is stamped before the station starts: its age limit scales with the
+    # machine's load (a station that starts late would refuse it as too old, which is not
+    # what this test is about); the watchdog under test keeps its 100 ms
+    station = make_station(link, SafetyConfig(max_command_age_ms=scaled(100.0)))
     try:
         link.inbox.put_nowait(platform_state(1, (10.0, 0.0, 10.0)))
         await station.run(asyncio.Event(), duration_s=scaled(0.5))
