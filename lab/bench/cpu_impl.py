@@ -7,7 +7,9 @@ How it measures (``teletouch bench cpu``):
 2. Once the relay has forwarded data both ways, and after a warm-up, a window of
    ``window_s`` seconds starts. At its start and end the CPU time (user + system) of every
    child process and of each of its threads is read from ``/proc/<pid>/task/<tid>/stat``:
-   these per-process and per-thread figures are exact (kernel accounting).
+   these per-process and per-thread figures are exact (kernel accounting). So are the
+   context switches (``.../status``: voluntary + involuntary), reported per second: each
+   costs tens of microseconds of CPU on this machine (``benchmarks/bench_wakeup_cost.py``).
 3. During the window every process is sampled by py-spy (``--nonblocking``: the process is
    never paused; ``--idle --threads``: every thread, every sample). py-spy's idle detection
    is unreliable in this container (a sleeping thread is reported as running), so a sample
