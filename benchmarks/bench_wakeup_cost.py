@@ -1,6 +1,6 @@
 """What a wake-up costs in CPU on this machine: sleeps and thread hand-overs (issue 12).
 
-The demo's processes switch context some 10,000-13,000 times per second between them
+The demo's processes switch context some 14,500-15,800 times per second between them
 (``teletouch bench cpu`` records it per process since this round). This measures what one
 switch costs the thread that makes it, with nothing else to do:
 
