@@ -39,11 +39,16 @@ def test_apply_rule_withholds_by_coverage_outline_and_margin() -> None:
 def test_se_scale_recovers_how_much_the_stated_error_is_too_small(scale: float,
                                                                  seed: int) -> None:
     """Independent reference: scores drawn with a true log scatter ``scale`` times the
-    stated standard error give an RMS pairwise z of about ``scale``."""
+    stated standard error give an RMS pairwise z of about ``scale``.
+
+    The bounds are six standard deviations of the estimates over seeds (3,000 seeds at scale
+    1: RMS sd 0.041, robust sd 0.060): the earlier 15 % was 3.7 sd, and a fresh-clone CI
+    drew a seed at 0.845. A factor-of-sqrt(2) error (one standard error instead of both)
+    still falls outside the RMS bound."""
     rng = np.random.default_rng(seed)
     rs = [_rec(s, float(math.exp(rng.normal(0.0, 0.1 * scale))), 0.1, family=f)
           for s in range(150) for f in ("type", "noise", "coverage")]
     pairs, rms, robust = se_scale(rs)
     assert pairs == 450
-    assert rms == pytest.approx(scale, rel=0.15)
-    assert robust == pytest.approx(scale, rel=0.25)
+    assert rms == pytest.approx(scale, rel=0.25)
+    assert robust == pytest.approx(scale, rel=0.36)
