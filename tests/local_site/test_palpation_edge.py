@@ -156,10 +156,14 @@ def test_arc_coverage_is_the_sampled_share_of_the_outline(radius: float, start: 
     assert abs(share - extent / (2 * math.pi)) <= 2.0 / 16 + 1e-9
     assert share == arc_coverage(covered, _disc_distance(radius), np.ones((N, N), bool),
                                  _CENTER)
-    # the sampled sectors' cells are (mostly) the covered ones: a sector is sampled when at
-    # least half of its band is covered
+    # a sector is sampled when at least half of its band cells (the outer fall, 0-4 mm out)
+    # are covered, so the band cells of the sampled sectors are at least half covered; the
+    # mask holds the sectors' cells at every distance, where the wedge may cover less (a
+    # fresh-clone CI found 47 % over all of a sector's cells with 50 % of its band)
     if share > 0:
-        assert covered[mask].mean() >= 0.5
+        distance = _disc_distance(radius)
+        band = (distance > 0.0) & (distance <= 4.0)
+        assert covered[mask & band].mean() >= 0.5
 
 
 @given(radius=st.floats(3.0, 7.0), seed=st.integers(0, 2**32 - 1),
