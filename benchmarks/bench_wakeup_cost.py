@@ -46,8 +46,9 @@ def _per_iteration_us(wait: Callable[[float], object], period_s: float, seconds:
     return (time.thread_time() - t0) / n * 1e6
 
 
-def _handover_us(period_s: float, seconds: float) -> float:
-    """CPU of both threads per hand-over: a setter every ``period_s``, a waiter."""
+def _handover_us(period_s: float, seconds: float, sleep_us: float) -> float:
+    """CPU of both threads per hand-over: a setter every ``period_s``, a waiter; the
+    setter's own sleep (``sleep_us`` per period, measured alone) taken off."""
     n = max(20, int(seconds / period_s))
     ready, stop = threading.Event(), threading.Event()
     cpu = {"waiter": 0.0}
@@ -69,8 +70,7 @@ def _handover_us(period_s: float, seconds: float) -> float:
     stop.set()
     ready.set()
     thread.join()
-    sleep_only = _per_iteration_us(time.sleep, period_s, seconds) * n / 1e6
-    return (setter - sleep_only + cpu["waiter"]) / n * 1e6
+    return (setter + cpu["waiter"]) / n * 1e6 - sleep_us
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -89,7 +89,7 @@ def main(argv: list[str] | None = None) -> int:
         for _ in range(args.rounds):
             cells["sleep"].append(_per_iteration_us(time.sleep, p, args.seconds))
             cells["epoll"].append(_per_iteration_us(ep.poll, p, args.seconds))
-            cells["handover"].append(_handover_us(p, args.seconds))
+            cells["handover"].append(_handover_us(p, args.seconds, cells["sleep"][-1]))
         med = {k: statistics.median(v) for k, v in cells.items()}
         rows.append((period_ms, med, {k: (min(v), max(v)) for k, v in cells.items()}))
         print(f"{period_ms:g} ms: " + ", ".join(f"{k} {v:.1f} us" for k, v in med.items()),

@@ -123,24 +123,20 @@ class CpuSnapshot:
     switches: dict[int, dict[int, int]] = field(default_factory=dict)
 
 
-def _task_cpu_s(pid: int, tid: int) -> float | None:
+def _task_figures(pid: int, tid: int) -> tuple[float, int] | None:
+    """A thread's CPU seconds (utime + stime, ``stat``) and context switches (voluntary +
+    involuntary, ``status``) so far; None once it is gone."""
+    base = f"/proc/{pid}/task/{tid}/"
     try:
-        with open(f"/proc/{pid}/task/{tid}/stat") as f:
+        with open(base + "stat") as f:
             stat = f.read()
+        with open(base + "status") as f:
+            status = f.read()
     except OSError:
         return None
     fields = stat[stat.rfind(")") + 2:].split()
-    return (int(fields[11]) + int(fields[12])) / _CLK_TCK  # utime, stime
-
-
-def _task_switches(pid: int, tid: int) -> int | None:
-    """Voluntary + involuntary context switches of a thread so far (``status``)."""
-    try:
-        with open(f"/proc/{pid}/task/{tid}/status") as f:
-            text = f.read()
-    except OSError:
-        return None
-    return sum(int(m) for m in _SWITCHES.findall(text))
+    cpu = (int(fields[11]) + int(fields[12])) / _CLK_TCK
+    return cpu, sum(int(m) for m in _SWITCHES.findall(status))
 
 
 _SWITCHES = re.compile(r"^(?:non)?voluntary_ctxt_switches:\s+(\d+)$", re.MULTILINE)
@@ -157,12 +153,9 @@ def snapshot(pids: list[int]) -> CpuSnapshot:
         except OSError:
             continue
         for tid in tids:
-            cpu = _task_cpu_s(pid, tid)
-            if cpu is not None:
-                per[tid] = cpu
-            n = _task_switches(pid, tid)
-            if n is not None:
-                sw[tid] = n
+            figures = _task_figures(pid, tid)
+            if figures is not None:
+                per[tid], sw[tid] = figures
         snap.threads[pid] = per
         snap.switches[pid] = sw
     return snap

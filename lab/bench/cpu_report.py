@@ -39,19 +39,18 @@ def write_report(runs: list[dict[str, Any]], out_dir: Path) -> None:
              "CPU seconds per wall second (1.0 = one core) over a measured window of the default "
              "demo (breast scene, scripted raster operator, sensor frames at the demo's default "
              "rate, 1 kHz display loop). Per-process and per-thread totals are exact "
-             "(`/proc/<pid>/task/*/stat`); "
-             "the split over stages is py-spy sampling (`--nonblocking --idle --threads`), "
-             "idle judged by the innermost Python line, each thread's CPU shared out in "
-             "proportion to its busy samples (method: `lab/bench/cpu_impl.py`). `sim:` stages "
-             "are simulated hardware and test infrastructure, not product code.", "",
+             "(`/proc/<pid>/task/*/stat`); the split over stages is py-spy sampling "
+             "(`--nonblocking --idle --threads`), idle judged by the innermost Python line, "
+             "each thread's CPU shared out in proportion to its busy samples (method: "
+             "`lab/bench/cpu_impl.py`). `sim:` stages are simulated hardware and test "
+             "infrastructure, not product code.", "",
              "**The 1-minute load average at the start of each run is recorded: other jobs on "
              "the machine (in earlier sessions, other agents' test suites at load 20-35) raise "
              "the figures, so compare runs made back to back, and read figures as upper "
              "bounds.** Where the processes were starved (display loop far below "
              "1 kHz, frames below their setting) CPU per wall second understates the cost; the "
-             "last two "
-             "columns divide by the work done (session-average loop rate and achieved frame "
-             "rate), which holds better under load.", ""]
+             "last two columns divide by the work done (session-average loop rate and "
+             "achieved frame rate), which holds better under load.", ""]
     rows = []
     for r in runs:
         product, sim = product_and_sim(r)
