@@ -5,6 +5,12 @@
   ``virtual`` bus channels that a test opened and did not close. Threads and sockets that
   are on their way out get a short grace period (``scaled(LEAK_GRACE_S)``).
 
+The hypothesis profile comes from ``HYPOTHESIS_PROFILE`` (:data:`HYPOTHESIS_PROFILES`):
+``ci`` (``.ci/run``) draws the same examples on every run of the same test code, so a
+commit's CI result does not depend on a lucky draw; ``explore`` draws new examples on every
+run with no example database (give ``--hypothesis-seed`` to repeat one); ``dev``, the
+default, is hypothesis's own (new draws, and the local database replays past failures).
+
 Library threads that live for the whole session by design are not leaks (see
 ``_LONG_LIVED_THREAD_PREFIXES``). A test that must leave something behind says so with
 ``@pytest.mark.allow_leaks("thread", "socket", "can_bus")`` and a comment saying why.
@@ -19,6 +25,7 @@ import time
 from collections.abc import AsyncIterator, Iterator
 
 import pytest
+from hypothesis import settings
 
 from tests.support import scaled
 
@@ -30,6 +37,27 @@ LEAK_GRACE_S = 1.0
 #: not list, and pytest-asyncio joins the event loop's default executor when it closes
 #: the loop (before this check). Add a prefix here, with its owner, if a library needs it.
 _LONG_LIVED_THREAD_PREFIXES: tuple[str, ...] = ()
+
+
+#: the hypothesis profiles, chosen by ``HYPOTHESIS_PROFILE`` (see the module docstring)
+HYPOTHESIS_PROFILES = {
+    "dev": settings(print_blob=True),
+    "ci": settings(derandomize=True, database=None, print_blob=True),
+    "explore": settings(derandomize=False, database=None, print_blob=True),
+}
+for _name, _profile in HYPOTHESIS_PROFILES.items():
+    settings.register_profile(_name, _profile)
+
+
+def _load_hypothesis_profile() -> None:
+    name = os.environ.get("HYPOTHESIS_PROFILE", "dev")
+    if name not in HYPOTHESIS_PROFILES:
+        raise pytest.UsageError(f"HYPOTHESIS_PROFILE={name!r}: expected one of "
+                                f"{', '.join(HYPOTHESIS_PROFILES)}")
+    settings.load_profile(name)
+
+
+_load_hypothesis_profile()
 
 
 def pytest_configure(config: pytest.Config) -> None:

@@ -1,0 +1,80 @@
+"""The hypothesis profile comes from ``HYPOTHESIS_PROFILE`` (``tests/conftest.py``).
+
+Each case runs a small property test in a fresh pytest process with the suite's conftest and
+records what it drew: under ``ci`` two runs draw the same examples, under ``explore`` they
+do not, and an unknown profile name stops the run with a message naming the profiles.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from tests.support import scaled
+
+ROOT = Path(__file__).resolve().parents[1]
+
+PROBE = '''
+import os
+
+from hypothesis import given, settings, strategies as st
+
+
+@settings(max_examples=10, deadline=None)
+@given(st.integers(0, 2**62))
+def test_draw(n):
+    with open(os.environ["PROBE_OUT"], "a") as out:
+        out.write(f"{n}\\n")
+'''
+
+
+def _run(tmp_path: Path, profile: str,
+         tag: str) -> tuple[subprocess.CompletedProcess[str], list[int]]:
+    """Run the probe test under ``profile`` in ``tmp_path / tag``: the process, its draws."""
+    work = tmp_path / tag
+    work.mkdir()
+    (work / "test_probe.py").write_text(PROBE)
+    out = work / "draws.txt"
+    env = {**os.environ, "HYPOTHESIS_PROFILE": profile, "PROBE_OUT": str(out),
+           "PYTHONPATH": str(ROOT)}
+    # the suite's pytest settings and conftest, applied to a test outside the suite
+    proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+                           "-c", str(ROOT / "pyproject.toml"), "--rootdir", str(work),
+                           "-p", "tests.conftest", "test_probe.py"], cwd=work, env=env,
+                          capture_output=True, text=True, timeout=scaled(120))
+    draws = [int(x) for x in out.read_text().split()] if out.exists() else []
+    return proc, draws
+
+
+def test_the_ci_profile_draws_the_same_examples_on_every_run(tmp_path: Path) -> None:
+    first, a = _run(tmp_path, "ci", "a")
+    second, b = _run(tmp_path, "ci", "b")
+    assert first.returncode == 0, first.stdout + first.stderr
+    assert second.returncode == 0, second.stdout + second.stderr
+    assert len(a) >= 10
+    assert a == b
+
+
+def test_the_explore_profile_draws_new_examples_on_every_run(tmp_path: Path) -> None:
+    first, a = _run(tmp_path, "explore", "a")
+    second, b = _run(tmp_path, "explore", "b")
+    assert first.returncode == 0, first.stdout + first.stderr
+    assert second.returncode == 0, second.stdout + second.stderr
+    assert len(a) >= 10 and len(b) >= 10
+    assert a != b
+    assert not (tmp_path / "a" / ".hypothesis").exists()  # no example database
+
+
+@pytest.mark.parametrize("profile", ["nightly", ""])
+def test_an_unknown_profile_stops_the_run_and_names_the_profiles(tmp_path: Path,
+                                                                  profile: str) -> None:
+    proc, draws = _run(tmp_path, profile, "x")
+    assert proc.returncode != 0
+    assert draws == []
+    text = proc.stdout + proc.stderr
+    assert f"HYPOTHESIS_PROFILE={profile!r}" in text
+    assert "dev, ci, explore" in text
