@@ -64,7 +64,7 @@ from shared.protocol import Hop, TactileFrame
 from shared.timebase import monotonic_s, now_us
 
 __all__ = ["SAFE_REASONS", "DisplayLoop", "DisplayLoopCounters", "FrameSlot", "LinkHealth",
-           "PinState", "SameClockLink", "thread_priority"]
+           "PinState", "SameClockLink", "main_thread_scheduling", "thread_priority"]
 
 log = logging.getLogger(__name__)
 
@@ -195,6 +195,52 @@ def thread_realtime(priority: int) -> Iterator[int | None]:
                          f"(systemd: LimitRTPRIO={priority}; docker: --ulimit rtprio="
                          f"{priority})") as applied:
         yield applied
+
+
+@contextlib.contextmanager
+def main_thread_scheduling() -> Iterator[None]:
+    """Give the calling thread the scheduling policy and nice value of the process's main
+    thread for the block; restore its own after.
+
+    A thread inherits them from the thread that starts it. The display loop's thread runs
+    with a raised priority (:func:`thread_realtime`, :func:`thread_priority`) and (re)opens
+    the display, which starts the driver's reader thread (and, for an emulated board, the
+    board's own thread): opened inside this block, those run like the process's other
+    threads instead of at the loop's real-time priority, where a reader flooded by a faulty
+    device would hold a core ahead of every ordinary thread. Lowering a priority is always
+    permitted, and raising it back needs the right the loop's thread already used.
+    """
+    if not hasattr(os, "sched_setscheduler"):
+        yield
+        return
+    tid, main = threading.get_native_id(), os.getpid()
+    try:
+        own = (os.sched_getscheduler(tid), os.sched_getparam(tid),
+               os.getpriority(os.PRIO_PROCESS, tid))
+        main_policy = (os.sched_getscheduler(main), os.sched_getparam(main),
+                       os.getpriority(os.PRIO_PROCESS, main))
+    except OSError as err:  # pragma: no cover - /proc-less or exotic kernels
+        log.debug("scheduling of the display loop's thread not read: %s", err)
+        yield
+        return
+    if own == main_policy:
+        yield
+        return
+    try:
+        os.sched_setscheduler(tid, main_policy[0], main_policy[1])
+        os.setpriority(os.PRIO_PROCESS, tid, main_policy[2])
+    except OSError as err:  # pragma: no cover - lowering is always permitted
+        log.warning("display loop thread: could not lower its priority to open the display "
+                    "(%s); the display's threads inherit the loop's", err)
+    try:
+        yield
+    finally:
+        try:
+            os.setpriority(os.PRIO_PROCESS, tid, own[2])
+            os.sched_setscheduler(tid, own[0], own[1])
+        except OSError as err:  # pragma: no cover - the right was used on the way in
+            log.warning("display loop thread: its raised priority could not be restored "
+                        "after opening the display: %s", err)
 
 
 class FrameSlot:
@@ -562,7 +608,9 @@ class DisplayLoop:
         logged = False
         while True:
             try:
-                self.display.connect()
+                # the display's threads (its reader) must not inherit the loop's priority
+                with main_thread_scheduling():
+                    self.display.connect()
                 break
             except DeviceInitError as err:
                 if not logged:

@@ -28,9 +28,15 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from local_site.agent import LocalAgentConfig
-from local_site.agent.display_loop import thread_priority, thread_realtime
+from local_site.agent.display_loop import (
+    DisplayLoop,
+    main_thread_scheduling,
+    thread_priority,
+    thread_realtime,
+)
 from local_site.agent.platform_reader import PlatformReader
 from local_site.arraytac_sim.plant import ArrayTacPlant
+from local_site.devices import open_display
 from local_site.display import frames as fr
 from local_site.display.base import ArrayTacDisplay
 from local_site.display.firmware import ArrayTacFirmware
@@ -38,6 +44,8 @@ from local_site.platform.motion import HoldMotion, RandomWalk, make_motion
 from local_site.platform.motion_spec import parse_motion_spec
 from local_site.platform.sim import SimulatedPlatform
 from local_site.platform.sim_board import BLOCK_SAMPLES, SimulatedEncoderBoard
+from local_site.render import Renderer
+from local_site.scenes import TactileFrameScene
 from local_site.serial_port import SerialPortReader
 from shared.errors import ConfigError, InputDataError
 from shared.timebase import monotonic_s, now_us
@@ -516,6 +524,77 @@ def test_thread_realtime_applies_and_restores_or_says_it_was_refused(
         assert applied is None
     assert "keeps its scheduling policy (SCHED_FIFO 10 refused" in caplog.text
     assert "RLIMIT_RTPRIO >= 10 (systemd: LimitRTPRIO=10" in caplog.text
+
+
+def _scheduling(tid: int) -> tuple[int, int, int]:
+    return (os.sched_getscheduler(tid), os.sched_getparam(tid).sched_priority,
+            os.getpriority(os.PRIO_PROCESS, tid))
+
+
+def _realtime_permitted() -> bool:
+    with thread_realtime(1) as applied:
+        return applied is not None
+
+
+@pytest.mark.parametrize("realtime", [0, 10])
+def test_the_displays_threads_do_not_inherit_the_loops_raised_priority(realtime: int) -> None:
+    # the loop's thread opens the display, which starts the display's own threads (the
+    # emulated board and the bus reader): they must run like the process's other threads,
+    # not at the loop's priority (found: the board link's reader ran at SCHED_FIFO 10)
+    if realtime and not _realtime_permitted():
+        pytest.skip("SCHED_FIFO needs root, CAP_SYS_NICE or RLIMIT_RTPRIO here")
+    main = _scheduling(os.getpid())
+    nice = min(main[2] + 5, 19)  # lowering the priority is always permitted
+    display = open_display("sim", connect=False)
+    loop = DisplayLoop(display, Renderer(), TactileFrameScene(), positions=lambda: None,
+                       platform_ok=lambda: True)
+    stop = threading.Event()
+    runner = threading.Thread(target=loop.run_in_thread, args=(stop,),
+                              kwargs={"nice": nice, "realtime": realtime}, name="loop")
+    known = set(threading.enumerate())
+    runner.start()
+    try:
+        wait_until(lambda: display.is_connected, 10.0, "the display opened by the loop")
+        started = [t for t in threading.enumerate() if t not in known and t is not runner]
+        assert started, "opening the display started no thread"
+        assert runner.native_id is not None
+        loop_sched = _scheduling(runner.native_id)
+        if realtime:
+            assert loop_sched[:2] == (os.SCHED_FIFO, realtime)
+        else:
+            assert loop_sched[2] == nice
+        for t in started:
+            assert t.native_id is not None
+            assert _scheduling(t.native_id) == main, t.name
+        assert _scheduling(runner.native_id) == loop_sched  # the loop got its own back
+    finally:
+        stop.set()
+        runner.join(scaled(5.0))
+        display.disconnect()
+
+
+def test_main_thread_scheduling_lowers_for_the_block_and_restores_after() -> None:
+    main = _scheduling(os.getpid())
+    seen: dict[str, tuple[int, int, int]] = {}
+
+    def worker() -> None:  # a thread of its own: the helper copies the main thread's
+        tid = threading.get_native_id()
+        seen["before"] = _scheduling(tid)
+        with thread_priority(min(main[2] + 3, 19)):
+            seen["raised"] = _scheduling(tid)
+            with main_thread_scheduling():
+                seen["inside"] = _scheduling(tid)
+            seen["restored"] = _scheduling(tid)
+        with main_thread_scheduling():  # nothing to change: nothing changes
+            seen["unchanged"] = _scheduling(tid)
+
+    t = threading.Thread(target=worker)
+    t.start()
+    t.join(scaled(5.0))
+    assert seen["before"] == main and seen["raised"][2] == min(main[2] + 3, 19)
+    assert seen["inside"] == main
+    assert seen["restored"] == seen["raised"]
+    assert seen["unchanged"] == main
 
 
 @pytest.mark.parametrize("priority", [-1, 100, 1.5, True])
