@@ -99,7 +99,8 @@ class LocalAgentConfig:
             Measured in the demo (docs/speed.md sections 10 and 12): the loop at 989-999 Hz
             against 940-988 Hz, period jitter p99 0.51-0.96 ms against 1.3-2.0 ms, for about
             the same CPU; the demo's motion-to-touch no better (both stations share its two
-            cores).
+            cores). Only the loop's thread: the threads the display starts when the loop
+            opens it (its reader) run with the main thread's policy (docs/speed.md section 19).
         lock_memory: keep the station's memory in RAM while it runs (``mlockall`` on
             fault, :mod:`shared.memlock`): no page of the display loop, the platform reader or
             the link is read back from disk mid-session. Taken only where it cannot make a
