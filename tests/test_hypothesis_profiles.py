@@ -78,3 +78,29 @@ def test_an_unknown_profile_stops_the_run_and_names_the_profiles(tmp_path: Path,
     text = proc.stdout + proc.stderr
     assert f"HYPOTHESIS_PROFILE={profile!r}" in text
     assert "dev, ci, explore" in text
+
+
+def test_no_profile_has_a_deadline(tmp_path: Path) -> None:
+    # an example slower than hypothesis's default 200 ms deadline passes under every profile
+    # (a loaded machine must not fail a property test by the clock)
+    slow = '''
+import time
+
+from hypothesis import given, settings, strategies as st
+
+
+@settings(max_examples=2)
+@given(st.integers(0, 10))
+def test_slow(n):
+    time.sleep(0.25)
+'''
+    for profile in ("dev", "ci", "explore"):
+        work = tmp_path / profile
+        work.mkdir()
+        (work / "test_slow.py").write_text(slow)
+        env = {**os.environ, "HYPOTHESIS_PROFILE": profile, "PYTHONPATH": str(ROOT)}
+        proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+                               "-c", str(ROOT / "pyproject.toml"), "--rootdir", str(work),
+                               "-p", "tests.conftest", "test_slow.py"], cwd=work, env=env,
+                              capture_output=True, text=True, timeout=scaled(120))
+        assert proc.returncode == 0, proc.stdout + proc.stderr
