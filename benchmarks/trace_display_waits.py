@@ -191,8 +191,11 @@ def analyse(events: list[tuple[float, int, str, str]], loop_tid: int,
             futex_enter = t
         elif name == "syscalls:sys_exit_futex":
             if futex_enter is not None and ticks:
+                # the wake-up that ended the wait falls inside it (none: it returned at once,
+                # the futex's value had changed already)
                 i = bisect.bisect_right(wakes, t) - 1
-                ticks[-1]["futex"].append((futex_enter, t, wakers[i] if i >= 0 else -1))
+                waker = wakers[i] if i >= 0 and wakes[i] >= futex_enter else -1
+                ticks[-1]["futex"].append((futex_enter, t, waker))
             futex_enter = None
         elif name == "syscalls:sys_enter_clock_nanosleep" and ticks:
             ticks[-1]["sleep"] = t
@@ -221,7 +224,8 @@ def analyse(events: list[tuple[float, int, str, str]], loop_tid: int,
         for a, b, who in _episodes(r["futex"]):
             if b - a < LONG_WAIT_S:
                 continue
-            d = by[names.get(who, "a timer (woken from an interrupt)")]
+            d = by["no wake-up seen" if who == -1 else
+                   names.get(who, "a timer (woken from an interrupt)")]
             d["wait_ms"].append((b - a) * 1e3)
             d["on_cpu"].append(_overlap(on.get(who, []), a, b) / (b - a))
             d["runnable"].append(_overlap(ready_iv.get(who, []), a, b) / (b - a))
