@@ -554,7 +554,8 @@ def test_the_displays_threads_do_not_inherit_the_loops_raised_priority(realtime:
     known = set(threading.enumerate())
     runner.start()
     try:
-        wait_until(lambda: display.is_connected, 10.0, "the display opened by the loop")
+        # the loop ticks once the display is open and its own priority is back
+        wait_until(lambda: loop.periods.iterations > 0, 10.0, "the loop's first tick")
         started = [t for t in threading.enumerate() if t not in known and t is not runner]
         assert started, "opening the display started no thread"
         assert runner.native_id is not None
