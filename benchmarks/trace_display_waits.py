@@ -15,7 +15,8 @@ and follows the display loop's thread through every tick:
   wait: on a CPU, runnable but not running (preempted: the GIL held by a thread the scheduler
   does not run), or asleep.
 
-Needs ``perf`` with the ``sched`` and ``syscalls`` tracepoints and the right to trace every
+Needs ``perf`` with the ``sched`` and ``syscalls`` tracepoints, tracefs mounted (here:
+``mount -t tracefs nodev /sys/kernel/tracing``, once per boot) and the right to trace every
 CPU (root here; elsewhere ``perf_event_paranoid`` <= -1 and tracefs access), and py-spy to
 name the threads. A tick is one ``clock_nanosleep`` exit to the next entry (ticks that
 overran and did not sleep are merged into one). In this Firecracker guest, events in an idle
