@@ -48,6 +48,8 @@ from typing import Any
 
 import numpy as np
 
+from lab.bench.cpu_impl import demo_processes, pyspy_path
+
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "results" / "display_waits"
 LONG_WAIT_S = 0.2e-3
@@ -61,28 +63,31 @@ _FUTEX_OP = re.compile(r"op: (0x[0-9a-f]+)")
 _FUTEX_WAITS = {0, 6, 9, 11, 13}
 
 
-def _tool(name: str) -> str:
-    path = shutil.which(name) or str(Path(sys.executable).with_name(name))
-    if not Path(path).exists():
-        raise SystemExit(f"{name} is needed and was not found")
+def _perf() -> str:
+    path = shutil.which("perf")
+    if path is None:
+        raise SystemExit("perf is needed and was not found")
     return path
 
 
-def _local_station(deadline_s: float) -> int:
-    """The pid of the demo's local station, once it runs."""
+def _local_station(bench_pid: int, deadline_s: float) -> int:
+    """The pid of the demo's local station (a child of the ``bench cpu`` process), once it
+    runs."""
     while time.monotonic() < deadline_s:
-        out = subprocess.run(["pgrep", "-f", "lab.cli --log-level INFO local "],
-                             capture_output=True, text=True, check=False).stdout.split()
-        if out:
-            return int(out[0])
+        local = [pid for pid, cmd in demo_processes(bench_pid).items() if cmd == "local"]
+        if local:
+            return local[0]
         time.sleep(0.5)
     raise SystemExit("the demo's local station did not start")
 
 
 def _threads(pid: int) -> tuple[dict[int, str], int]:
     """Thread names by tid (py-spy) and the tid running the display loop."""
-    dump = subprocess.run([_tool("py-spy"), "dump", "--pid", str(pid)], capture_output=True,
-                          text=True, timeout=60, check=False).stdout
+    spy = pyspy_path()
+    if spy is None:
+        raise SystemExit("py-spy is needed (it names the threads) and was not found")
+    dump = subprocess.run([spy, "dump", "--pid", str(pid)], capture_output=True, text=True,
+                          timeout=60, check=False).stdout
     names: dict[int, str] = {}
     loop_tid = None
     current = None
@@ -112,13 +117,13 @@ def _policies(pid: int) -> dict[str, str]:
 def record(loop_tid: int, seconds: float, data: Path) -> list[tuple[float, int, str, str]]:
     """perf record system-wide, then the events as (time, common pid, event, fields)."""
     only = f"common_pid == {loop_tid}"
-    cmd = [_tool("perf"), "record", "-q", "-a", "-o", str(data),
+    cmd = [_perf(), "record", "-q", "-a", "-o", str(data),
            "-e", "sched:sched_switch", "-e", "sched:sched_wakeup"]
     for ev in ("sys_enter_futex", "sys_exit_futex", "sys_enter_clock_nanosleep",
                "sys_exit_clock_nanosleep"):
         cmd += ["-e", f"syscalls:{ev}", "--filter", only]
     subprocess.run([*cmd, "--", "sleep", str(seconds)], capture_output=True, check=True)
-    text = subprocess.run([_tool("perf"), "script", "-i", str(data)], capture_output=True,
+    text = subprocess.run([_perf(), "script", "-i", str(data)], capture_output=True,
                           text=True, check=True).stdout
     events = []
     for line in text.splitlines():
@@ -325,7 +330,7 @@ def main(argv: list[str] | None = None) -> int:
         cmd += ["--link", args.link]
     bench = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
-        pid = _local_station(time.monotonic() + 120.0)
+        pid = _local_station(bench.pid, time.monotonic() + 120.0)
         time.sleep(5.0)  # into the demo's measured window (its warm-up is 3 s)
         names, loop_tid = _threads(pid)
         policies = _policies(pid)

@@ -32,20 +32,25 @@ def test_draw(n):
 '''
 
 
+def _pytest(work: Path, test_file: str, source: str,
+            env: dict[str, str]) -> subprocess.CompletedProcess[str]:
+    """Run ``source`` as ``work / test_file`` in a fresh pytest with the suite's settings
+    and conftest (applied to a test outside the suite)."""
+    work.mkdir()
+    (work / test_file).write_text(source)
+    return subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+                           "-c", str(ROOT / "pyproject.toml"), "--rootdir", str(work),
+                           "-p", "tests.conftest", test_file], cwd=work,
+                          env={**os.environ, "PYTHONPATH": str(ROOT), **env},
+                          capture_output=True, text=True, timeout=scaled(120))
+
+
 def _run(tmp_path: Path, profile: str,
          tag: str) -> tuple[subprocess.CompletedProcess[str], list[int]]:
     """Run the probe test under ``profile`` in ``tmp_path / tag``: the process, its draws."""
-    work = tmp_path / tag
-    work.mkdir()
-    (work / "test_probe.py").write_text(PROBE)
-    out = work / "draws.txt"
-    env = {**os.environ, "HYPOTHESIS_PROFILE": profile, "PROBE_OUT": str(out),
-           "PYTHONPATH": str(ROOT)}
-    # the suite's pytest settings and conftest, applied to a test outside the suite
-    proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
-                           "-c", str(ROOT / "pyproject.toml"), "--rootdir", str(work),
-                           "-p", "tests.conftest", "test_probe.py"], cwd=work, env=env,
-                          capture_output=True, text=True, timeout=scaled(120))
+    out = tmp_path / tag / "draws.txt"
+    proc = _pytest(tmp_path / tag, "test_probe.py", PROBE,
+                   {"HYPOTHESIS_PROFILE": profile, "PROBE_OUT": str(out)})
     draws = [int(x) for x in out.read_text().split()] if out.exists() else []
     return proc, draws
 
@@ -95,12 +100,6 @@ def test_slow(n):
     time.sleep(0.25)
 '''
     for profile in ("dev", "ci", "explore"):
-        work = tmp_path / profile
-        work.mkdir()
-        (work / "test_slow.py").write_text(slow)
-        env = {**os.environ, "HYPOTHESIS_PROFILE": profile, "PYTHONPATH": str(ROOT)}
-        proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
-                               "-c", str(ROOT / "pyproject.toml"), "--rootdir", str(work),
-                               "-p", "tests.conftest", "test_slow.py"], cwd=work, env=env,
-                              capture_output=True, text=True, timeout=scaled(120))
+        proc = _pytest(tmp_path / profile, "test_slow.py", slow,
+                       {"HYPOTHESIS_PROFILE": profile})
         assert proc.returncode == 0, proc.stdout + proc.stderr

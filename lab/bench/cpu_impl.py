@@ -49,7 +49,7 @@ from lab.demo import DEFAULT_DISPLAY
 from shared.errors import ConfigError, TeleTouchError
 
 __all__ = ["STAGE_RULES", "CpuBenchSettings", "CpuSnapshot", "classify_stack",
-           "parse_raw_profile", "run_cpu_bench"]
+           "demo_processes", "parse_raw_profile", "pyspy_path", "run_cpu_bench"]
 
 _CLK_TCK = os.sysconf("SC_CLK_TCK")
 
@@ -189,7 +189,7 @@ def _processes() -> Iterator[tuple[int, int, list[str]]]:
         yield int(entry), ppid, argv
 
 
-def _children(parent: int) -> dict[int, str]:
+def demo_processes(parent: int) -> dict[int, str]:
     """Child processes of ``parent`` running ``lab.cli`` (pid -> subcommand; ``board``: the
     emulated ArrayTac drive board of ``--display board-process``), and the local station's
     simulated encoder board process when it has one (``sim-board``) and its platform reader
@@ -319,7 +319,7 @@ class _Window:
                 self.ready_at = now
             return
         if self.start is None and now - self.ready_at >= self.settings.warmup_s:
-            self.names = _children(os.getpid())
+            self.names = demo_processes(os.getpid())
             self.start = snapshot(list(self.names))
             if self.pyspy and self.settings.profile:
                 for pid, name in self.names.items():
@@ -342,7 +342,8 @@ class _Window:
                         os.kill(pid, signal.SIGTERM)
 
 
-def _pyspy_path() -> str | None:
+def pyspy_path() -> str | None:
+    """py-spy on PATH or beside this interpreter (None: not installed)."""
     found = shutil.which("py-spy")
     if found:
         return found
@@ -362,7 +363,7 @@ def run_cpu_bench(settings: CpuBenchSettings) -> dict[str, Any]:
     if settings.window_s <= 0 or settings.warmup_s < 0:
         raise ConfigError("window_s must be > 0 and warmup_s >= 0")
     workdir = Path(tempfile.mkdtemp(prefix="teletouch-cpu-"))
-    pyspy = _pyspy_path() if settings.profile else None
+    pyspy = pyspy_path() if settings.profile else None
     win = _Window(settings, workdir, pyspy)
     load_start = os.getloadavg()
     try:

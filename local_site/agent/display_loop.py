@@ -197,6 +197,19 @@ def thread_realtime(priority: int) -> Iterator[int | None]:
         yield applied
 
 
+_Scheduling = tuple[int, Any, int]  # policy, sched_param, nice value
+
+
+def _read_scheduling(tid: int) -> _Scheduling:
+    return (os.sched_getscheduler(tid), os.sched_getparam(tid),
+            os.getpriority(os.PRIO_PROCESS, tid))
+
+
+def _write_scheduling(tid: int, value: _Scheduling) -> None:
+    os.setpriority(os.PRIO_PROCESS, tid, value[2])
+    os.sched_setscheduler(tid, value[0], value[1])
+
+
 @contextlib.contextmanager
 def main_thread_scheduling() -> Iterator[None]:
     """Give the calling thread the scheduling policy and nice value of the process's main
@@ -213,22 +226,18 @@ def main_thread_scheduling() -> Iterator[None]:
     if not hasattr(os, "sched_setscheduler"):
         yield
         return
-    tid, main = threading.get_native_id(), os.getpid()
+    tid = threading.get_native_id()
     try:
-        own = (os.sched_getscheduler(tid), os.sched_getparam(tid),
-               os.getpriority(os.PRIO_PROCESS, tid))
-        main_policy = (os.sched_getscheduler(main), os.sched_getparam(main),
-                       os.getpriority(os.PRIO_PROCESS, main))
+        own, main = _read_scheduling(tid), _read_scheduling(os.getpid())
     except OSError as err:  # pragma: no cover - /proc-less or exotic kernels
         log.debug("scheduling of the display loop's thread not read: %s", err)
         yield
         return
-    if own == main_policy:
+    if own == main:
         yield
         return
     try:
-        os.sched_setscheduler(tid, main_policy[0], main_policy[1])
-        os.setpriority(os.PRIO_PROCESS, tid, main_policy[2])
+        _write_scheduling(tid, main)
     except OSError as err:  # pragma: no cover - lowering is always permitted
         log.warning("display loop thread: could not lower its priority to open the display "
                     "(%s); the display's threads inherit the loop's", err)
@@ -236,8 +245,7 @@ def main_thread_scheduling() -> Iterator[None]:
         yield
     finally:
         try:
-            os.setpriority(os.PRIO_PROCESS, tid, own[2])
-            os.sched_setscheduler(tid, own[0], own[1])
+            _write_scheduling(tid, own)
         except OSError as err:  # pragma: no cover - the right was used on the way in
             log.warning("display loop thread: its raised priority could not be restored "
                         "after opening the display: %s", err)

@@ -72,7 +72,7 @@ def test_the_demos_processes_and_the_local_stations_board_process_are_found(
                   "127.0.0.1:7"]),
     ]
     monkeypatch.setattr(cpu_impl, "_processes", lambda: iter(table))
-    assert cpu_impl._children(10) == {11: "relay", 12: "link", 13: "remote", 14: "local",
+    assert cpu_impl.demo_processes(10) == {11: "relay", 12: "link", 13: "remote", 14: "local",
                                       15: "sim-board", 19: "board"}
     assert set(cpu_impl._SIM_PROCESSES) == {"sim-board", "board"}
 
@@ -90,7 +90,7 @@ def test_the_local_stations_platform_process_and_a_board_below_it_are_found(
         (22, 13, [py, "-P", "-m", "local_site.agent.platform_child", "{}"]),  # not ours
     ]
     monkeypatch.setattr(cpu_impl, "_processes", lambda: iter(table))
-    assert cpu_impl._children(10) == {14: "local", 20: "platform", 21: "sim-board"}
+    assert cpu_impl.demo_processes(10) == {14: "local", 20: "platform", 21: "sim-board"}
 
 
 def test_a_snapshot_counts_each_threads_context_switches() -> None:
