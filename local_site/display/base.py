@@ -22,6 +22,8 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
+from numba import njit
+from numpy.typing import NDArray
 
 from local_site.display import frames as fr
 from shared.devices import Device
@@ -60,6 +62,75 @@ _LOW = np.array([[HEIGHT_RANGE_MM[0]], [K_RANGE[0]], [FRICTION_RANGE[0]]])
 _HIGH = np.array([[HEIGHT_RANGE_MM[1]], [K_RANGE[1]], [FRICTION_RANGE[1]]])
 _CODE_LSB = np.array([[fr.HEIGHT_LSB_MM], [fr.K_LSB], [fr.F_LSB]])
 _CODE_OFFSET = np.array([[0.0], [fr.K_MIN], [0.0]])
+#: the shapes a layer may have as an array (a scalar is the third form)
+_PIN_SHAPES = ((4, 4), (fr.N_PINS,))
+_F64 = np.dtype(np.float64)
+
+
+@njit(cache=True, nogil=True)
+def _quantise_kernel(h: NDArray[np.float64], k: NDArray[np.float64], f: NDArray[np.float64],
+                     low: NDArray[np.float64], high: NDArray[np.float64],
+                     offset: NDArray[np.float64], lsb: NDArray[np.float64],
+                     last: NDArray[np.uint16], has_last: bool, codes: NDArray[np.uint16],
+                     applied: NDArray[np.float64]
+                     ) -> tuple[bool, bool, bool]:  # pragma: no cover - compiled
+    """Clamp, quantise and compare the three layers (rows h, k, f of 16 pins) in one pass:
+    the numpy steps of :meth:`ArrayTacDisplay._quantise` in the same order, per value.
+
+    ``codes`` (3, 16) gets the wire codes, ``applied`` (3, 16) the values they stand for.
+    Returns (all finite, any value clamped, codes equal to ``last``); when not all finite,
+    the outputs are garbage.
+    """
+    clamped = False
+    same = has_last
+    for row in range(3):
+        src = h if row == 0 else (k if row == 1 else f)
+        lo, hi, off, step = low[row, 0], high[row, 0], offset[row, 0], lsb[row, 0]
+        for i in range(src.shape[0]):
+            v = src[i]
+            if not np.isfinite(v):
+                return False, False, False
+            if v < lo or v > hi:
+                clamped = True
+            code = np.uint16(np.rint((min(max(v, lo), hi) - off) / step))
+            codes[row, i] = code
+            applied[row, i] = code * step + off
+            if has_last and last[row, i] != code:
+                same = False
+    return True, clamped, same
+
+
+def _warm_up() -> None:
+    """Run :func:`_quantise_kernel` and the command encoder once for each type of argument
+    the sends use: writable and read-only layers (numba compiles at the first call of each,
+    or loads its cache)."""
+    codes = np.zeros((3, fr.N_PINS), np.uint16)
+    row = np.zeros(fr.N_PINS)
+    frozen = np.zeros(fr.N_PINS)
+    frozen.setflags(write=False)  # the renderer's commands are read-only (a type of its own)
+    for layer in (row, frozen):
+        _quantise_kernel(layer, layer, layer, _LOW, _HIGH, _CODE_OFFSET, _CODE_LSB, codes,
+                         False, codes, np.empty((3, fr.N_PINS)))
+    fr.encode_command(fr.CommandFrame(seq=0, flags=0, height_codes=codes[0], k_codes=codes[1],
+                                      f_codes=codes[2]))
+
+
+def _float_rows(height_mm: object, stiffness_k: object, friction: object
+                ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]] | None:
+    """The three layers as 1-D float64 arrays of 16 pins when each already is a contiguous
+    float64 array of shape (4, 4) or (16,) (the renderer's commands, the keepalive's
+    re-send: the types :func:`_quantise_kernel` was compiled for); None for anything else
+    (scalars, lists, other dtypes, shapes or layouts: :meth:`ArrayTacDisplay._as_pins3`)."""
+    if not (type(height_mm) is np.ndarray and type(stiffness_k) is np.ndarray
+            and type(friction) is np.ndarray):
+        return None
+    if not (height_mm.dtype == _F64 and stiffness_k.dtype == _F64 and friction.dtype == _F64
+            and height_mm.shape in _PIN_SHAPES and stiffness_k.shape in _PIN_SHAPES
+            and friction.shape in _PIN_SHAPES and height_mm.flags.c_contiguous
+            and stiffness_k.flags.c_contiguous and friction.flags.c_contiguous):
+        return None
+    return (height_mm.reshape(fr.N_PINS), stiffness_k.reshape(fr.N_PINS),
+            friction.reshape(fr.N_PINS))
 #: after a command with ``RESUME``, feedback still showing the watchdog trip is taken as news
 #: (the command lost) only when it arrives this much later: until then the board's answer may
 #: be on its way, and every further ``RESUME`` command would be one more that a freeze could
@@ -166,6 +237,7 @@ class ArrayTacDisplay(Device):
 
     _seq: int
     _last_codes: np.ndarray | None
+    _last_applied: np.ndarray
     _last_send_s: float
     _force_next: bool
     _feedback: PinFeedback | None
@@ -202,6 +274,9 @@ class ArrayTacDisplay(Device):
         self._send_lock = threading.Lock()
         self._cond = threading.Condition()
         self._reset_session()
+        # compile (or load from numba's cache) the send path's kernels now, not in the
+        # display loop's first command
+        _warm_up()
 
     # ------------------------------------------------------------------ backend interface
     # _connect() / _disconnect(): see shared.devices.base.Device
@@ -282,26 +357,33 @@ class ArrayTacDisplay(Device):
         """
         if not self._connected:
             raise DeviceNotConnectedError(f"{self.name}: send_command() before connect()")
-        try:
-            values = self._as_pins3(height_mm, stiffness_k, friction)
-        except InputDataError:
-            self._n_rejected += 1
-            raise
-        # one array op per step for the three layers (rows: height, k, f)
-        codes = np.rint((np.clip(values, _LOW, _HIGH) - _CODE_OFFSET) / _CODE_LSB) \
-            .astype(np.uint16)
-        clamped = bool((values < _LOW).any() or (values > _HIGH).any())
+        rows = _float_rows(height_mm, stiffness_k, friction)
+        if rows is None:
+            try:
+                values = self._as_pins3(height_mm, stiffness_k, friction)
+            except InputDataError:
+                self._n_rejected += 1
+                raise
+            rows = (values[0], values[1], values[2])
+        codes = np.empty((3, fr.N_PINS), np.uint16)
+        applied = np.empty((3, fr.N_PINS))
         with self._send_lock:
+            last = self._last_codes
+            finite, clamped, same = _quantise_kernel(
+                rows[0], rows[1], rows[2], _LOW, _HIGH, _CODE_OFFSET, _CODE_LSB,
+                codes if last is None else last, last is not None, codes, applied)
+            if not finite:
+                self._n_rejected += 1
+                self._as_pins3(height_mm, stiffness_k, friction)  # raises the specific error
+                raise InputDataError("NaN or Inf in a pin command; nothing sent")
             self._n_commands += 1
             self._n_clamped += clamped
             now_s = monotonic_s()
-            last = self._last_codes
-            unchanged = (last is not None and not self._force_next
-                         and np.array_equal(last, codes))
+            unchanged = same and not self._force_next
             keepalive = unchanged and now_s - self._last_send_s >= self._keepalive_interval_s
             if unchanged and not keepalive:
                 self._n_skipped += 1
-                return self._applied(codes, clamped, sent=False)
+                return self._applied(applied, clamped, sent=False)
             # RESUME only once the board's trip was read back (see docs/arraytac_can.md).
             # Decided *before* the deadline check: a freeze after this line carries the
             # feedback known before it into the write (a board that tripped meanwhile
@@ -324,6 +406,7 @@ class ArrayTacDisplay(Device):
                                     watchdog_ms=self._watchdog_ms)
             self._send_frame(fr.ARB_ID_COMMAND, fr.encode_command(frame))
             self._last_codes = codes
+            self._last_applied = applied
             self._last_send_s = now_s
             self._force_next = False
             self._n_frames += 1
@@ -333,7 +416,7 @@ class ArrayTacDisplay(Device):
                 self._resume_sent_us = now_us()
             if log.isEnabledFor(logging.DEBUG):
                 log.debug("%s: command seq %d keepalive=%s", self.name, frame.seq, keepalive)
-            return self._applied(codes, clamped, sent=True, keepalive=keepalive)
+            return self._applied(applied, clamped, sent=True, keepalive=keepalive)
 
     def keepalive(self, not_after_s: float | None = None) -> bool:
         """Re-send the last command if the keepalive interval has passed.
@@ -357,7 +440,7 @@ class ArrayTacDisplay(Device):
                 self._n_commands += 1
                 self._n_skipped += 1
                 return False
-        values = last * _CODE_LSB + _CODE_OFFSET
+            values = self._last_applied
         applied = self.send_command(values[0], values[1], values[2], not_after_s=not_after_s)
         return applied.sent
 
@@ -452,6 +535,7 @@ class ArrayTacDisplay(Device):
     def _reset_session(self) -> None:
         self._seq = 0
         self._last_codes = None
+        self._last_applied = np.zeros((3, fr.N_PINS))
         self._last_send_s = 0.0
         self._force_next = False
         self._feedback = None
@@ -464,9 +548,9 @@ class ArrayTacDisplay(Device):
         self._seq = (self._seq + 1) & 0xFFFF
         return self._seq
 
-    def _applied(self, codes: np.ndarray, clamped: bool, *, sent: bool,
+    def _applied(self, values: np.ndarray, clamped: bool, *, sent: bool,
                  keepalive: bool = False) -> AppliedPinCommand:
-        values = codes * _CODE_LSB + _CODE_OFFSET
+        """``values``: (3, 16) applied height, k and friction."""
         return AppliedPinCommand(height_mm=values[0], stiffness_k=values[1], friction=values[2],
                                  seq=self._seq, clamped=clamped, sent=sent, keepalive=keepalive)
 

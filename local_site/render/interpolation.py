@@ -142,13 +142,14 @@ class GridLayers:
         return (self.x0_mm, self.x0_mm + (nx - 1) * self.dx_mm,
                 self.y0_mm, self.y0_mm + (ny - 1) * self.dy_mm)
 
-    def sample(self, points_xy_mm: NDArray[np.float64],
-               order: int = 1) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    def sample(self, points_xy_mm: NDArray[np.float64], order: int = 1, *,
+               clip: bool = False) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
         """Interpolate every layer at ``points_xy_mm``.
 
         Args:
             points_xy_mm: array ``(n_points, 2)`` of finite (x, y) in mm.
             order: 0 (nearest), 1 (bilinear) or 3 (Keys cubic).
+            clip: bound the values by each layer's data range (:meth:`clip_to_data`).
 
         Returns:
             ``(values, inside)``: ``values`` is ``(n_layers, n_points)``; ``inside`` is
@@ -158,25 +159,27 @@ class GridLayers:
         Raises:
             ConfigError: an unsupported order.
         """
-        v = self.values
-        if (order == 1 and v.dtype == np.float64 and points_xy_mm.dtype == np.float64
-                and points_xy_mm.ndim == 2 and points_xy_mm.shape[1] == 2):
+        if order in (1, 3) and points_xy_mm.dtype == np.float64 and points_xy_mm.ndim == 2 \
+                and points_xy_mm.shape[1] == 2:
             # the renderer's path at 1 kHz: one compiled call instead of ~30 numpy calls on
-            # 16 points (same arithmetic, same results: tests/local_site/test_bilinear_kernel)
-            out = np.empty((v.shape[0], points_xy_mm.shape[0]))
+            # 16 points (same arithmetic, same results: tests/local_site/test_bilinear_kernel),
+            # the clip included
+            out = np.empty((self.values.shape[0], points_xy_mm.shape[0]))
             inside_out = np.empty(points_xy_mm.shape[0], dtype=np.bool_)
-            _bilinear_kernel(v, points_xy_mm, self.x0_mm, self.y0_mm, self.dx_mm, self.dy_mm,
-                             _INSIDE_TOL_CELLS, out, inside_out)
+            if order == 1:
+                _bilinear_kernel(self.values, points_xy_mm, self.x0_mm, self.y0_mm, self.dx_mm,
+                                 self.dy_mm, _INSIDE_TOL_CELLS, clip, self.value_range, out,
+                                 inside_out)
+            else:  # the numpy path's sum-to-float rounding (tests as above)
+                _keys_kernel(self._padded, points_xy_mm, self.x0_mm, self.y0_mm, self.dx_mm,
+                             self.dy_mm, _INSIDE_TOL_CELLS, clip, self.value_range, out,
+                             inside_out)
             return out, inside_out
-        if (order == 3 and points_xy_mm.dtype == np.float64 and points_xy_mm.ndim == 2
-                and points_xy_mm.shape[1] == 2):
-            # the same for order 3 (the numpy path's sum to float rounding:
-            # tests/local_site/test_bilinear_kernel)
-            out = np.empty((v.shape[0], points_xy_mm.shape[0]))
-            inside_out = np.empty(points_xy_mm.shape[0], dtype=np.bool_)
-            _keys_kernel(self._padded, points_xy_mm, self.x0_mm, self.y0_mm, self.dx_mm,
-                         self.dy_mm, _INSIDE_TOL_CELLS, out, inside_out)
-            return out, inside_out
+        values, inside = self._sample_numpy(points_xy_mm, order)
+        return (self.clip_to_data(values) if clip else values), inside
+
+    def _sample_numpy(self, points_xy_mm: NDArray[np.float64],
+                      order: int) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
         ny, nx = self.shape
         fx = (points_xy_mm[:, 0] - self.x0_mm) / self.dx_mm
         fy = (points_xy_mm[:, 1] - self.y0_mm) / self.dy_mm
@@ -227,24 +230,30 @@ def _cell(x: float, y: float, x0: float, y0: float, dx: float, dy: float, tol: f
 
 @njit(cache=True, nogil=True)
 def _bilinear_kernel(v: NDArray[np.float64], pts: NDArray[np.float64], x0: float, y0: float,
-                     dx: float, dy: float, tol: float, out: NDArray[np.float64],
+                     dx: float, dy: float, tol: float, clip: bool,
+                     value_range: NDArray[np.float64], out: NDArray[np.float64],
                      inside: NDArray[np.bool_]) -> None:  # pragma: no cover - compiled
-    """:meth:`GridLayers.sample` at order 1, fused: the numpy path's operations in order."""
+    """:meth:`GridLayers.sample` at order 1, fused: the numpy path's operations in order
+    (then :meth:`GridLayers.clip_to_data`'s when ``clip``)."""
     n_layers, ny, nx = v.shape
     for p in range(pts.shape[0]):
         ix, iy, tx, ty, inside[p] = _cell(pts[p, 0], pts[p, 1], x0, y0, dx, dy, tol, nx, ny)
         for layer in range(n_layers):
             top = v[layer, iy, ix] * (1.0 - tx) + v[layer, iy, ix + 1] * tx
             bottom = v[layer, iy + 1, ix] * (1.0 - tx) + v[layer, iy + 1, ix + 1] * tx
-            out[layer, p] = top * (1.0 - ty) + bottom * ty
+            value = top * (1.0 - ty) + bottom * ty
+            if clip:
+                value = min(max(value, value_range[layer, 0]), value_range[layer, 1])
+            out[layer, p] = value
 
 
 @njit(cache=True, nogil=True)
 def _keys_kernel(padded: NDArray[np.float64], pts: NDArray[np.float64], x0: float, y0: float,
-                 dx: float, dy: float, tol: float, out: NDArray[np.float64],
+                 dx: float, dy: float, tol: float, clip: bool,
+                 value_range: NDArray[np.float64], out: NDArray[np.float64],
                  inside: NDArray[np.bool_]) -> None:  # pragma: no cover - compiled
     """:meth:`GridLayers.sample` at order 3, fused: Keys (a = -1/2) weights on the
-    ghost-padded samples, positions as in :func:`_bilinear_kernel`."""
+    ghost-padded samples, positions as in :func:`_bilinear_kernel` (and its clip)."""
     n_layers, ny2, nx2 = padded.shape
     nx, ny = nx2 - 2, ny2 - 2
     wx = np.empty(4)
@@ -265,6 +274,8 @@ def _keys_kernel(padded: NDArray[np.float64], pts: NDArray[np.float64], x0: floa
                 for j in range(4):
                     row += padded[layer, iy + i, ix + j] * wx[j]
                 acc += row * wy[i]
+            if clip:
+                acc = min(max(acc, value_range[layer, 0]), value_range[layer, 1])
             out[layer, p] = acc
 
 
@@ -272,5 +283,5 @@ def warm_up() -> None:
     """Compile (or load from numba's cache) the interpolation kernels now, not in the first
     display-loop iteration that renders."""
     grid = GridLayers(np.zeros((1, 2, 2)), x0_mm=0.0, y0_mm=0.0, dx_mm=1.0, dy_mm=1.0)
-    grid.sample(np.zeros((1, 2)), order=1)
-    grid.sample(np.zeros((1, 2)), order=3)
+    for order in (1, 3):
+        grid.sample(np.zeros((1, 2)), order=order, clip=True)

@@ -113,22 +113,20 @@ class PinCommand:
     @classmethod
     def checked(cls, height_mm: NDArray[np.float64], stiffness_k: NDArray[np.float64],
                 friction: NDArray[np.float64], *, position_mm: tuple[float, float] = (0.0, 0.0),
-                scene_version: int = 0, clamped_pins: int = 0,
-                outside_pins: int = 0) -> PinCommand:
+                scene_version: int = 0, clamped_pins: int = 0, outside_pins: int = 0,
+                friction_active: bool) -> PinCommand:
         """A command from layers the caller has already checked, without checking again.
 
         For the renderer's 1 kHz path, whose compiled pass checks exactly what the
         constructor would. The caller guarantees: float64 arrays of shape (4, 4), read-only,
-        finite, inside the pin ranges (tests compare both paths); anyone else uses the
-        constructor.
+        finite, inside the pin ranges, and ``friction_active`` true exactly when a friction
+        value is above 0 (tests compare both paths); anyone else uses the constructor.
         """
         command = object.__new__(cls)
-        for name, value in (("height_mm", height_mm), ("stiffness_k", stiffness_k),
-                            ("friction", friction), ("position_mm", position_mm),
-                            ("scene_version", scene_version), ("clamped_pins", clamped_pins),
-                            ("outside_pins", outside_pins),
-                            ("friction_active", bool((friction > 0.0).any()))):
-            object.__setattr__(command, name, value)
+        command.__dict__.update(height_mm=height_mm, stiffness_k=stiffness_k, friction=friction,
+                                position_mm=position_mm, scene_version=scene_version,
+                                clamped_pins=clamped_pins, outside_pins=outside_pins,
+                                friction_active=friction_active)
         return command
 
     @classmethod

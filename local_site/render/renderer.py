@@ -34,7 +34,14 @@ from numba import njit
 from numpy.typing import NDArray
 
 from local_site.render.interpolation import warm_up
-from local_site.render.pin_command import PIN_PITCH_MM, STROKE_MM, PinCommand, pin_offsets_mm
+from local_site.render.pin_command import (
+    N_COLS,
+    N_ROWS,
+    PIN_PITCH_MM,
+    STROKE_MM,
+    PinCommand,
+    pin_offsets_mm,
+)
 from shared.errors import ConfigError, InputDataError
 from shared.hardness import K_MAX, K_MIN
 
@@ -128,6 +135,7 @@ class RenderStats:
 #: layer i is status i + 1 (layers in :data:`_LAYERS` order), then the three ranges
 _LAYERS = ("height_mm", "stiffness_k", "friction")
 _BAD_HEIGHT, _BAD_K, _BAD_F = 4, 5, 6
+N_PINS = N_ROWS * N_COLS
 
 
 @njit(cache=True, nogil=True)
@@ -135,12 +143,13 @@ def _finish_kernel(h: NDArray[np.float64], k: NDArray[np.float64], f: NDArray[np
                    relative: bool, offset: float, gain: float, stroke: float, k_lo: float,
                    k_hi: float, floor: float, max_height: float, tol: float,
                    out: NDArray[np.float64]
-                   ) -> tuple[int, int, NDArray[np.float64]]:  # pragma: no cover - compiled
+                   ) -> tuple[int, int, NDArray[np.float64], bool]:  # pragma: no cover - compiled
     """Check the sampled layers and turn them into pin values in one pass (the numpy
     version was about 20 array calls on 16 values each, most of a render's cost).
 
     ``out`` (3, n) gets height, k and friction. Returns (status, clamped pins, the six
-    extremes hmin, hmax, kmin, kmax, fmin, fmax for the error message); status 0 = valid,
+    extremes hmin, hmax, kmin, kmax, fmin, fmax for the error message, whether any pin's
+    friction is above 0); status 0 = valid,
     else one of the ``_BAD_*`` codes (then ``out`` is garbage). NaN/Inf in any layer is
     reported before any range, layers in the order height, k, friction.
     """
@@ -150,19 +159,20 @@ def _finish_kernel(h: NDArray[np.float64], k: NDArray[np.float64], f: NDArray[np
         lo, hi = np.inf, -np.inf
         for v in values:
             if not np.isfinite(v):
-                return layer + 1, 0, ext  # NaN/Inf in _LAYERS[layer]
+                return layer + 1, 0, ext, False  # NaN/Inf in _LAYERS[layer]
             lo = min(lo, v)
             hi = max(hi, v)
         ext[2 * layer] = lo
         ext[2 * layer + 1] = hi
     if max(-ext[0], ext[1]) > max_height:
-        return _BAD_HEIGHT, 0, ext
+        return _BAD_HEIGHT, 0, ext, False
     if ext[2] < k_lo - tol or ext[3] > k_hi + tol:
-        return _BAD_K, 0, ext
+        return _BAD_K, 0, ext, False
     if ext[4] < -tol or ext[5] > 1.0 + tol:
-        return _BAD_F, 0, ext
+        return _BAD_F, 0, ext, False
     ref = ext[0] if relative else 0.0
     clamped = 0
+    friction_active = False
     for i in range(h.size):
         target = offset + gain * (h[i] - ref)
         height = min(max(target, 0.0), stroke)
@@ -172,7 +182,8 @@ def _finish_kernel(h: NDArray[np.float64], k: NDArray[np.float64], f: NDArray[np
         out[1, i] = min(max(k[i], k_lo), k_hi)
         fi = min(max(f[i], 0.0), 1.0)
         out[2, i] = 0.0 if fi < floor else fi
-    return 0, clamped, ext
+        friction_active = friction_active or out[2, i] > 0.0
+    return 0, clamped, ext, friction_active
 
 
 def _position_xy(position_mm: Sequence[float] | np.ndarray) -> tuple[float, float]:
@@ -204,6 +215,9 @@ class Renderer:
         self.config = config or RendererConfig()
         self.stats = RenderStats()
         self._offsets = pin_offsets_mm(self.config.pitch_mm)  # (4, 4, 2)
+        self._flat_offsets = self._offsets.reshape(N_PINS, 2)
+        self._centre = np.zeros(2)
+        self._finish_args = _finish_args(self.config)
         self._last: PinCommand | None = None
         self._last_scene: SceneSource | None = None
         self._last_version = -1
@@ -212,7 +226,7 @@ class Renderer:
         # display loop's first render
         warm_up()
         one = np.zeros(1)
-        _finish(one, np.full(1, K_MAX), one, self.config, np.empty((3, 1)))
+        _finish_kernel(one, np.full(1, K_MAX), one, *self._finish_args, np.empty((3, 1)))
 
     @property
     def last_command(self) -> PinCommand | None:
@@ -274,31 +288,35 @@ class Renderer:
 
     def _compute(self, scene: SceneSource, x: float, y: float, version: int) -> PinCommand:
         cfg = self.config
-        centre = np.array([x + cfg.window_offset_x_mm, y + cfg.window_offset_y_mm])
-        sample = scene.sample(self._offsets + centre)
-        shape = sample.height_mm.shape
-        out = np.empty((3, sample.height_mm.size))
-        status, clamped, ext = _finish(sample.height_mm.ravel(), sample.stiffness_k.ravel(),
-                                       sample.friction.ravel(), cfg, out)
+        centre = self._centre  # the window centre, written in place (no array built)
+        centre[0] = x + cfg.window_offset_x_mm
+        centre[1] = y + cfg.window_offset_y_mm
+        sample = scene.sample_flat(self._flat_offsets + centre)
+        out = np.empty((3, N_PINS))
+        status, clamped, ext, friction_active = _finish_kernel(
+            sample.height_mm, sample.stiffness_k, sample.friction, *self._finish_args, out)
         if status:
             raise InputDataError(_bad_sample_message(type(scene).__name__, status, ext))
         out.setflags(write=False)  # the command's layers are read-only views of it
-        height, stiffness, friction = (row.reshape(shape) for row in out)
+        height, stiffness, friction = out.reshape(3, N_ROWS, N_COLS)
         # the kernel checked what PinCommand's constructor would (finite, in range; the
         # shape is the pin window's), so the command is built without checking it again
         return PinCommand.checked(height, stiffness, friction, position_mm=(x, y),
                                   scene_version=version, clamped_pins=int(clamped),
-                                  outside_pins=int(np.count_nonzero(~sample.inside)))
+                                  outside_pins=N_PINS - int(np.count_nonzero(sample.inside)),
+                                  friction_active=friction_active)
 
 
-def _finish(h: NDArray[np.float64], k: NDArray[np.float64], f: NDArray[np.float64],
-            cfg: RendererConfig, out: NDArray[np.float64]) -> tuple[int, int, NDArray[np.float64]]:
-    """:func:`_finish_kernel` with the settings as the types it was compiled for (an int
-    gain would compile another version inside the display loop)."""
-    return _finish_kernel(h, k, f, cfg.height_mode == "relative", float(cfg.height_offset_mm),
-                          float(cfg.height_gain), float(cfg.stroke_mm), float(K_MIN),
-                          float(K_MAX), float(cfg.friction_floor), float(_MAX_SCENE_HEIGHT_MM),
-                          float(_RANGE_TOL), out)
+_FinishArgs = tuple[bool, float, float, float, float, float, float, float, float]
+
+
+def _finish_args(cfg: RendererConfig) -> _FinishArgs:
+    """The settings as :func:`_finish_kernel` takes them, after its three layers: as the
+    types it was compiled for (an int gain would compile another version inside the
+    display loop)."""
+    return (cfg.height_mode == "relative", float(cfg.height_offset_mm), float(cfg.height_gain),
+            float(cfg.stroke_mm), float(K_MIN), float(K_MAX), float(cfg.friction_floor),
+            float(_MAX_SCENE_HEIGHT_MM), float(_RANGE_TOL))
 
 
 def _bad_sample_message(name: str, status: int, ext: NDArray[np.float64]) -> str:

@@ -52,6 +52,10 @@ class SceneSample(NamedTuple):
     inside: NDArray[np.bool_]
 
 
+#: the dtypes of a :class:`SceneSample`'s arrays, in field order
+_SAMPLE_DTYPES = (np.dtype(np.float64),) * 3 + (np.dtype(np.bool_),)
+
+
 @dataclass(frozen=True)
 class OutsidePolicy:
     """What a bounded scene returns at points outside its data.
@@ -135,17 +139,35 @@ class SceneSource(ABC):
         if not np.isfinite(pts).all():
             raise InputDataError("scene points contain NaN or Inf")
         flat = pts.reshape(-1, 2)
-        s = self._sample(flat)
-        n = flat.shape[0]
+        return self._conformed(self._sample(flat), flat.shape[0], pts.shape[:-1])
+
+    def sample_flat(self, points_xy_mm: NDArray[np.float64]) -> SceneSample:
+        """:meth:`sample` at points the caller has checked: a float64 array ``(n, 2)`` of
+        finite values (the renderer's 1 kHz path: its pins' positions). The arrays have
+        shape ``(n,)`` and are contiguous (the types the renderer's compiled pass takes).
+
+        Raises:
+            InputDataError: the scene returned arrays of the wrong shape.
+        """
+        s = self._sample(points_xy_mm)
+        n = points_xy_mm.shape[0]
+        for arr, dtype in zip(s, _SAMPLE_DTYPES, strict=True):
+            if type(arr) is not np.ndarray or arr.shape != (n,) or arr.dtype != dtype \
+                    or not arr.flags.c_contiguous:
+                return self._conformed(s, n, (n,))
+        return s
+
+    def _conformed(self, s: SceneSample, n: int, lead: tuple[int, ...]) -> SceneSample:
+        """``s`` (what :meth:`_sample` returned for ``n`` points) checked, as contiguous
+        float64 and bool arrays of shape ``lead``."""
         for name, arr in zip(SceneSample._fields, s, strict=True):
             if np.shape(arr) != (n,):
                 raise InputDataError(f"{type(self).__name__} returned {name} of shape "
                                      f"{np.shape(arr)} for {n} points")
-        lead = pts.shape[:-1]
-        return SceneSample(np.asarray(s.height_mm, dtype=np.float64).reshape(lead),
-                           np.asarray(s.stiffness_k, dtype=np.float64).reshape(lead),
-                           np.asarray(s.friction, dtype=np.float64).reshape(lead),
-                           np.asarray(s.inside, dtype=bool).reshape(lead))
+        return SceneSample(np.ascontiguousarray(s.height_mm, dtype=np.float64).reshape(lead),
+                           np.ascontiguousarray(s.stiffness_k, dtype=np.float64).reshape(lead),
+                           np.ascontiguousarray(s.friction, dtype=np.float64).reshape(lead),
+                           np.ascontiguousarray(s.inside, dtype=bool).reshape(lead))
 
     @abstractmethod
     def _sample(self, points_xy_mm: NDArray[np.float64]) -> SceneSample:

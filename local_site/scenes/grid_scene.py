@@ -70,9 +70,8 @@ class GridScene(SceneSource):
             o = self.outside
             return SceneSample(np.full(n, o.height_mm), np.full(n, o.stiffness_k),
                                np.full(n, o.friction), np.zeros(n, dtype=bool))
-        values, inside = grid.sample(points_xy_mm, self.order)
-        # cubic weights overshoot; even convex weights can round 1 ulp past a bound
-        values = grid.clip_to_data(values)
+        # clipped: cubic weights overshoot; even convex weights can round 1 ulp past a bound
+        values, inside = grid.sample(points_xy_mm, self.order, clip=True)
         s = SceneSample(values[0], values[1], values[2], inside)
         if not inside.all():
             s = self.outside.apply(s)

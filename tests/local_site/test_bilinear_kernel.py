@@ -109,3 +109,26 @@ def test_compiled_keys_cubic_is_exact_for_quadratic_fields(seed: int, ny: int, n
     got, inside = grid.sample(pts, order=3)
     assert inside.all()
     np.testing.assert_allclose(got[0], quad(pts[:, 0], pts[:, 1]), rtol=0, atol=1e-9)
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), order=st.sampled_from([0, 1, 3]),
+       layers=st.integers(1, 3), ny=st.integers(2, 20), nx=st.integers(2, 20),
+       n=st.integers(1, 32))
+def test_sampling_with_clip_is_sampling_then_clip_to_data(seed: int, order: int, layers: int,
+                                                          ny: int, nx: int, n: int) -> None:
+    """``clip=True`` (done inside the compiled kernels at orders 1 and 3) gives exactly the
+    unclipped values passed through :meth:`GridLayers.clip_to_data`, and never leaves a
+    layer's data range (Keys overshoots it on a step)."""
+    rng = np.random.default_rng(seed)
+    values = rng.normal(0, 1, (layers, ny, nx))
+    values[:, :, nx // 2:] += 3.0  # a step: cubic weights overshoot next to it
+    grid = GridLayers(values, x0_mm=0.0, y0_mm=0.0, dx_mm=0.5, dy_mm=0.5)
+    pts = np.stack([rng.uniform(-1.0, nx * 0.5 + 1.0, n), rng.uniform(-1.0, ny * 0.5 + 1.0, n)],
+                   axis=1)
+    raw, inside = grid.sample(pts, order=order)
+    clipped, clipped_inside = grid.sample(pts, order=order, clip=True)
+    np.testing.assert_array_equal(clipped_inside, inside)
+    np.testing.assert_array_equal(clipped, grid.clip_to_data(raw))
+    assert (clipped >= values.min(axis=(1, 2))[:, None]).all()
+    assert (clipped <= values.max(axis=(1, 2))[:, None]).all()

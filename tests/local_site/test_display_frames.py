@@ -157,6 +157,28 @@ def test_out_of_range_codes_with_valid_crc_are_rejected() -> None:
         fr.decode_command(bytes(data))
 
 
+@settings(max_examples=200)
+@given(seq=st.integers(0, 0xFFFF), flags=st.integers(0, 0xFF), wd=st.integers(0, 0xFFFF),
+       h=_codes(0xFFFF), k=_codes(0xFFFF), f=_codes(0xFFFF), in_range=st.booleans())
+def test_compiled_command_encoder_gives_the_bytes_and_refusals_of_the_python_one(
+        seq: int, flags: int, wd: int, h: np.ndarray, k: np.ndarray, f: np.ndarray,
+        in_range: bool) -> None:
+    """uint16 codes (the display's own) take the compiled encoder; int64 codes take the
+    Python one: the same 64 bytes, or the same refusal of a code out of range."""
+    if in_range:
+        h, k, f = h % 4001, k % 251, f % 251
+    fast = fr.CommandFrame(seq, flags, h, k, f, wd)
+    slow = fr.CommandFrame(seq, flags, h.astype(np.int64), k.astype(np.int64),
+                           f.astype(np.int64), wd)
+    ok = bool(h.max() <= 4000 and k.max() <= 250 and f.max() <= 250)
+    if ok:
+        assert fr.encode_command(fast) == fr.encode_command(slow)
+    else:
+        for frame in (fast, slow):
+            with pytest.raises(ValueError, match="codes in"):
+                fr.encode_command(frame)
+
+
 def test_encoder_refuses_unquantised_codes() -> None:
     with pytest.raises(ValueError):
         fr.encode_command(fr.CommandFrame(0, 0, np.full(16, 4001, np.uint16),

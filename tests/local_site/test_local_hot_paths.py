@@ -164,6 +164,11 @@ def test_send_command_matches_the_per_layer_reference(h: object, k: object, f: o
     ((np.r_[np.ones(15), np.nan], 1.0, 0.0), "height_mm: NaN or Inf at pin(s) [15]"),
     ((1.0, 1.0, np.r_[np.inf, np.zeros(15)]), "friction: NaN or Inf at pin(s) [0]"),
     ((1.0, "stiff", 0.0), "stiffness_k: not numeric"),
+    # all three float64 arrays: the compiled pass finds the NaN, the message is the same
+    ((np.ones(16), np.r_[np.nan, np.ones(15)].reshape(4, 4), np.zeros(16)),
+     "stiffness_k: NaN or Inf at pin(s) [0]"),
+    ((np.ones((4, 4)), np.ones(16), np.r_[np.zeros(3), -np.inf, np.zeros(12)]),
+     "friction: NaN or Inf at pin(s) [3]"),
 ])
 def test_send_command_refuses_bad_input_naming_the_layer(args: tuple[object, ...],
                                                          message: str) -> None:
@@ -173,6 +178,41 @@ def test_send_command_refuses_bad_input_naming_the_layer(args: tuple[object, ...
         display.send_command(*args)  # type: ignore[arg-type]
     assert message in str(err.value)
     assert display.sent == [] and display.stats().rejected_inputs == 1
+
+
+def test_the_send_paths_kernels_are_compiled_once_before_the_first_command() -> None:
+    """Compiling inside the 1 kHz loop would stall its first command: a display compiles
+    the send path's kernels (or loads numba's cache) when it is built, for the types every
+    command, keepalive and (4, 4) or (16,) layer uses, the renderer's read-only ones
+    included. Other layouts and types take the numpy path instead of compiling another
+    version."""
+    import subprocess
+    import sys
+
+    code = ("from local_site.devices import open_display; "
+            "from local_site.display.base import _quantise_kernel as q; "
+            "from local_site.display.frames import _command_body_kernel as e; "
+            "open_display('sim', connect=False); "
+            "print(len(q.signatures), len(e.signatures))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, timeout=scaled(120.0))
+    assert out.stdout.split() == ["2", "1"]  # writable and read-only layers
+    from local_site.display.base import _quantise_kernel
+    from local_site.display.frames import _command_body_kernel
+
+    display = _CaptureDisplay(keepalive_interval_s=0.001)
+    display.connect()
+    compiled = (list(_quantise_kernel.signatures), list(_command_body_kernel.signatures))
+    strided = np.full((16, 2), 0.5)[:, 0]  # a non-contiguous column
+    display.send_command(np.full((4, 4), 1.0), np.full(16, 0.8), np.zeros((4, 4)))
+    display.send_command(strided, np.full(16, 0.8), np.zeros(16))
+    command = Renderer().render(TactileFrameScene(), (0.0, 0.0))  # read-only layers
+    display.send_command(*command.arrays())
+    display.send_command(np.full(16, 2, dtype=np.float32), 0.8, [0.1] * 16)  # type: ignore[arg-type]
+    wait_until(lambda: display.keepalive(), 1.0, "a keepalive once due")
+    assert len(display.sent) == 5
+    assert (list(_quantise_kernel.signatures), list(_command_body_kernel.signatures)) \
+        == compiled and (len(compiled[0]), len(compiled[1])) == (2, 1)
 
 
 def test_keepalive_returns_early_until_due_and_counts_as_before() -> None:

@@ -343,8 +343,43 @@ def test_random_layers_and_positions_give_valid_commands(height, k_unit, frictio
                              strict=True):
             np.testing.assert_array_equal(got, want)
         assert cmd.clamped_pins == expected[3]
+        sample = scene.sample(renderer.pin_positions_mm(pos))
+        assert cmd.outside_pins == int(np.count_nonzero(~sample.inside))
         again = PinCommand(cmd.height_mm, cmd.stiffness_k, cmd.friction)
         assert again.friction_active == cmd.friction_active
+
+
+class _LooseScene(PlaneScene):
+    """Returns what a careless scene might: float32, a strided view, a list, ints."""
+
+    def _sample(self, p: NDArray[np.float64]) -> SceneSample:
+        s = super()._sample(p)
+        wide = np.repeat(s.stiffness_k, 2)[::2]  # the same values, not contiguous
+        return SceneSample(s.height_mm.astype(np.float32), wide,
+                           s.friction.tolist(), s.inside.astype(int))
+
+
+def test_sample_flat_is_sample_at_flat_points_as_contiguous_float_arrays() -> None:
+    """The renderer's ``sample_flat`` gives what ``sample`` gives at the same points, with
+    the arrays of the types its compiled pass takes, whatever the scene returned."""
+    points = np.random.default_rng(3).uniform(-5, 5, (16, 2))
+    for scene in (PlaneScene(f=0.2), _LooseScene(f=0.2),
+                  _grid_scene(np.arange(20.0).reshape(4, 5), (-3.0, 3.0, -2.0, 2.0), order=3)):
+        flat, full = scene.sample_flat(points), scene.sample(points)
+        for got, want, dtype in zip(flat, full, (np.float64,) * 3 + (np.bool_,), strict=True):
+            assert got.shape == (16,) and got.dtype == dtype and got.flags.c_contiguous
+            np.testing.assert_array_equal(got, want)
+    assert Renderer().render(_LooseScene(f=0.2), (1.0, 1.0)).friction_active
+
+
+def test_sample_flat_refuses_arrays_of_the_wrong_length() -> None:
+    class Short(PlaneScene):
+        def _sample(self, p: NDArray[np.float64]) -> SceneSample:
+            s = super()._sample(p)
+            return SceneSample(s.height_mm[:-1], s.stiffness_k, s.friction, s.inside)
+
+    with pytest.raises(InputDataError, match="height_mm of shape"):
+        Short().sample_flat(np.zeros((16, 2)))
 
 
 def _numpy_render(sample, cfg: RendererConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
