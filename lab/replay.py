@@ -27,7 +27,7 @@ from local_site.agent.display_loop import DisplayLoop, FrameSlot, SameClockLink
 from local_site.devices import open_display
 from local_site.platform.base import PlatformSample
 from local_site.render import Renderer
-from local_site.scenes import open_scene
+from local_site.scenes import TactileFrameScene
 from shared.errors import ConfigError, InputDataError
 from shared.protocol import Message, PlatformState, TactileCompact, TactileFrame
 from shared.protocol.tactile_codec import TactileDecoder
@@ -214,9 +214,10 @@ class Replayer:
 
     def _build_loop(self) -> tuple[DisplayLoop, FrameSlot, list[PlatformSample | None]]:
         position: list[PlatformSample | None] = [None]
-        slot = FrameSlot()
+        scene = TactileFrameScene()
+        slot = FrameSlot(prepare=scene.prepare)
         display = open_display(self.display_spec, connect=False)
-        loop = DisplayLoop(display, Renderer(), open_scene("remote"),
+        loop = DisplayLoop(display, Renderer(), scene,
                            positions=lambda: position[0], platform_ok=lambda: True,
                            frames=slot, link=SameClockLink(),
                            stale_timeout_s=self.stale_timeout_s)

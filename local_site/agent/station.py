@@ -44,7 +44,7 @@ from local_site.devices import open_display, open_platform
 from local_site.platform.base import XYZPlatform
 from local_site.recording import SessionRecorder
 from local_site.render import Renderer, RendererConfig
-from local_site.scenes import SceneSource, open_scene, parse_shape_spec
+from local_site.scenes import SceneSource, TactileFrameScene, open_scene, parse_shape_spec
 from local_site.scenes.factory import REMOTE_SPECS
 from local_site.view import StationView
 from shared.client import StationLink, StationLinkConfig
@@ -223,7 +223,10 @@ class LocalAgent:
         display_opts.update(self._display_options)
         display = open_display(cfg.display, connect=False, **display_opts)
         if self.remote_mode:
-            self.scene = open_scene("remote", interpolation_order=cfg.interpolation_order)
+            scene = TactileFrameScene(order=cfg.interpolation_order)
+            self.scene = scene
+            # each frame is validated and gridded where it arrives, not in the display loop
+            self.frames.prepare = scene.prepare
             if self.link_config is None:
                 raise ConfigError("the local agent needs a relay link (--relay) or a --scene")
             self.link = StationLink.from_config(self.link_config, "local")

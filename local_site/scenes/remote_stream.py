@@ -109,18 +109,23 @@ class TactileFrameScene(GridScene):
         return (monotonic_s() if now_s is None else now_s) - self.last_update_s
 
     # ------------------------------------------------------------------ updates
-    def update(self, frame: TactileFrame, *, now_s: float | None = None) -> None:
+    def update(self, frame: TactileFrame, *, now_s: float | None = None,
+               prepared: GridLayers | InputDataError | None = None) -> None:
         """Replace the content with ``frame`` (latest wins).
 
         Args:
             frame: the tactile frame.
             now_s: local monotonic time of arrival (read when None).
+            prepared: what :meth:`prepare` gave for ``frame`` (its grid, or the error it
+                raised), when another thread ran it; None: prepared here.
 
         Raises:
             InputDataError: the frame is malformed (content unchanged).
         """
         try:
-            grid = self._grid_from_frame(frame)
+            if isinstance(prepared, InputDataError):
+                raise prepared
+            grid = self.prepare(frame) if prepared is None else prepared
         except InputDataError:
             self.frames_rejected += 1
             raise
@@ -130,6 +135,18 @@ class TactileFrameScene(GridScene):
         self._set_grid(grid)
         if log.isEnabledFor(logging.DEBUG):
             log.debug("tactile frame seq=%d accepted (version %d)", frame.seq, self.version)
+
+    def prepare(self, frame: TactileFrame) -> GridLayers:
+        """Validate ``frame`` and build the grid :meth:`update` would swap in.
+
+        Changes nothing (reads only the settings fixed at construction), so any thread may
+        run it: the station prepares each frame where it arrives, and the display loop only
+        swaps the grid in (:class:`~local_site.agent.display_loop.FrameSlot`).
+
+        Raises:
+            InputDataError: the frame is malformed.
+        """
+        return self._grid_from_frame(frame)
 
     def clear(self) -> None:
         """Forget the content (e.g. on link loss): every point becomes outside."""

@@ -58,14 +58,18 @@ def frame(seq: int, ts_us: int) -> TactileFrame:
 Build = Callable[..., tuple[DisplayLoop, FrameSlot]]
 
 
-@pytest.fixture
-def make_loop() -> Iterator[Build]:
+@pytest.fixture(params=["prepared_where_put", "prepared_in_the_loop"])
+def make_loop(request: pytest.FixtureRequest) -> Iterator[Build]:
+    """A loop fed through a slot that prepares each frame where it is put (the station's
+    way), or one that leaves it to the loop: every rule holds for both."""
     loops: list[DisplayLoop] = []
 
     def build(link: FakeLink, **kw: Any) -> tuple[DisplayLoop, FrameSlot]:
-        slot = FrameSlot()
+        scene = TactileFrameScene()
+        slot = FrameSlot(prepare=scene.prepare if request.param == "prepared_where_put"
+                         else None)
         display = open_display("sim")
-        loop = DisplayLoop(display, Renderer(), TactileFrameScene(), positions=lambda: SAMPLE,
+        loop = DisplayLoop(display, Renderer(), scene, positions=lambda: SAMPLE,
                            platform_ok=lambda: True, frames=slot, link=link,
                            stale_timeout_s=kw.pop("stale_timeout_s", 10.0), **kw)
         loops.append(loop)
@@ -245,3 +249,77 @@ def test_a_fresh_frame_is_rendered_once_the_clock_is_injected(
     loop.tick()
     assert loop.safe_reason is None and loop.counters.frames_rendered == 1
     assert loop.counters.late_sends_withdrawn == 0
+
+
+def test_a_frame_is_gridded_in_the_thread_that_puts_it_not_in_the_loop(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The station prepares each frame where it arrives: the loop's tick only swaps the grid
+    in (about half a millisecond of validation and gridding per frame kept out of the 1 ms
+    period), and renders what preparing in the loop renders."""
+    import threading
+
+    built_in: list[int] = []
+    original = TactileFrameScene._grid_from_frame
+
+    def spy(self: TactileFrameScene, f: TactileFrame) -> Any:
+        built_in.append(threading.get_ident())
+        return original(self, f)
+
+    monkeypatch.setattr(TactileFrameScene, "_grid_from_frame", spy)
+    commands = []
+    for prepare_where_put in (True, False):
+        scene = TactileFrameScene()
+        slot = FrameSlot(prepare=scene.prepare if prepare_where_put else None)
+        display = open_display("sim")
+        try:
+            loop = DisplayLoop(display, Renderer(), scene, positions=lambda: SAMPLE,
+                               platform_ok=lambda: True, frames=slot, link=FakeLink())
+            built_in.clear()
+            putter = threading.Thread(target=slot.put, args=(frame(1, now_us()), now_us()))
+            putter.start()
+            putter.join()
+            loop.tick()
+            assert loop.safe_reason is None and loop.counters.frames_accepted == 1
+            where = putter.ident if prepare_where_put else threading.get_ident()
+            assert built_in == [where]
+            assert loop.last_command is not None
+            commands.append(loop.last_command.height_mm)
+        finally:
+            display.disconnect()
+    np.testing.assert_array_equal(commands[0], commands[1])
+
+
+def test_a_bad_frame_prepared_where_put_is_refused_by_the_loop_and_counted() -> None:
+    """The slot keeps the error with the frame: ``put`` never raises into the link task,
+    and the loop refuses the frame as it refuses one it prepared itself (counted, the
+    reason kept, the pins untouched)."""
+    scene = TactileFrameScene()
+    slot = FrameSlot(prepare=scene.prepare)
+    display = open_display("sim")
+    try:
+        loop = DisplayLoop(display, Renderer(), scene, positions=lambda: SAMPLE,
+                           platform_ok=lambda: True, frames=slot, link=FakeLink(),
+                           stale_timeout_s=10.0)
+        slot.put(frame(1, now_us()), now_us())
+        loop.tick()
+        good = loop.last_command
+        assert good is not None
+        bad = frame(2, now_us())
+        bad.layers["height_mm"][4, 4] = np.nan
+        slot.put(bad, now_us())
+        loop.tick()
+        assert loop.counters.frames_rejected == 1 and scene.frames_rejected == 1
+        assert "NaN" in (loop.counters.last_reject_reason or "")
+        assert scene.last_seq == 1 and loop.last_command is good
+    finally:
+        display.disconnect()
+
+
+def test_a_slot_preparing_frames_for_another_scene_is_refused() -> None:
+    from shared.errors import ConfigError
+
+    display = open_display("sim", connect=False)
+    with pytest.raises(ConfigError, match="another scene"):
+        DisplayLoop(display, Renderer(), TactileFrameScene(), positions=lambda: SAMPLE,
+                    platform_ok=lambda: True, frames=FrameSlot(TactileFrameScene().prepare),
+                    link=FakeLink())
