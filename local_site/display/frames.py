@@ -208,7 +208,8 @@ def encode_command(frame: CommandFrame) -> bytes:
             and h.shape == k.shape == f.shape == (N_PINS,):
         # the display's own codes (1 kHz): packed and range-checked in one compiled pass
         packed = np.empty(COMMAND_FRAME_BYTES - 2, np.uint8)
-        if _command_body_kernel(h, k, f, frame.flags, frame.seq, frame.watchdog_ms, packed):
+        if _command_body_kernel(h, k, f, frame.flags & 0xFF, frame.seq & 0xFFFF,
+                                frame.watchdog_ms & 0xFFFF, packed):
             data = packed.tobytes()
             return data + _CRC.pack(frame_crc(data))
     h = _check_codes("height_codes", h, HEIGHT_MAX_CODE)

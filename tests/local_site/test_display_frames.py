@@ -158,13 +158,15 @@ def test_out_of_range_codes_with_valid_crc_are_rejected() -> None:
 
 
 @settings(max_examples=200)
-@given(seq=st.integers(0, 0xFFFF), flags=st.integers(0, 0xFF), wd=st.integers(0, 0xFFFF),
-       h=_codes(0xFFFF), k=_codes(0xFFFF), f=_codes(0xFFFF), in_range=st.booleans())
+@given(seq=st.integers(-2**70, 2**70), flags=st.integers(-2**70, 2**70),
+       wd=st.integers(-2**70, 2**70), h=_codes(0xFFFF), k=_codes(0xFFFF), f=_codes(0xFFFF),
+       in_range=st.booleans())
 def test_compiled_command_encoder_gives_the_bytes_and_refusals_of_the_python_one(
         seq: int, flags: int, wd: int, h: np.ndarray, k: np.ndarray, f: np.ndarray,
         in_range: bool) -> None:
     """uint16 codes (the display's own) take the compiled encoder; int64 codes take the
-    Python one: the same 64 bytes, or the same refusal of a code out of range."""
+    Python one: the same 64 bytes (header fields masked to their widths, whatever integers
+    they were given), or the same refusal of a code out of range."""
     if in_range:
         h, k, f = h % 4001, k % 251, f % 251
     fast = fr.CommandFrame(seq, flags, h, k, f, wd)
