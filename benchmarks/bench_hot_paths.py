@@ -43,12 +43,14 @@ from local_site.render import Renderer
 from local_site.scenes import TactileFrameScene
 from shared.protocol import Hop, PlatformState, TactileFrame, decode, encode
 
-def cost(fn, n):
+def cost(fn, n, sleep_s=0.0):
     best = float("inf")
     for _ in range(5):
         t = time.thread_time()
         for _ in range(n):
             fn()
+            if sleep_s:
+                time.sleep(sleep_s)
         best = min(best, (time.thread_time() - t) / n)
     return best * 1e6
 
@@ -102,14 +104,7 @@ out["drive_link_frame_us"] = cost(lambda: encode_link_frame(0x101, command), 300
 # the display loop's whole iteration and its send, each call after a 0.2 ms sleep (as in
 # the loop: caches and predictors cold), net of an empty call with the same sleep
 def cost_after_sleep(fn, n):
-    best = float("inf")
-    for _ in range(5):
-        t = time.thread_time()
-        for _ in range(n):
-            fn()
-            time.sleep(0.0002)
-        best = min(best, (time.thread_time() - t) / n)
-    return best * 1e6
+    return cost(fn, n, sleep_s=0.0002)
 
 from local_site.agent.display_loop import DisplayLoop, FrameSlot, SameClockLink
 from local_site.devices import open_display
