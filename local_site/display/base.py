@@ -62,6 +62,12 @@ _LOW = np.array([[HEIGHT_RANGE_MM[0]], [K_RANGE[0]], [FRICTION_RANGE[0]]])
 _HIGH = np.array([[HEIGHT_RANGE_MM[1]], [K_RANGE[1]], [FRICTION_RANGE[1]]])
 _CODE_LSB = np.array([[fr.HEIGHT_LSB_MM], [fr.K_LSB], [fr.F_LSB]])
 _CODE_OFFSET = np.array([[0.0], [fr.K_MIN], [0.0]])
+#: after a command with ``RESUME``, feedback still showing the watchdog trip is taken as news
+#: (the command lost) only when it arrives this much later: until then the board's answer may
+#: be on its way, and every further ``RESUME`` command would be one more that a freeze could
+#: hold past a new trip
+RESUME_RETRY_US = 20_000
+
 #: the shapes a layer may have as an array (a scalar is the third form)
 _PIN_SHAPES = ((4, 4), (fr.N_PINS,))
 _F64 = np.dtype(np.float64)
@@ -75,7 +81,8 @@ def _quantise_kernel(h: NDArray[np.float64], k: NDArray[np.float64], f: NDArray[
                      applied: NDArray[np.float64]
                      ) -> tuple[bool, bool, bool]:  # pragma: no cover - compiled
     """Clamp, quantise and compare the three layers (rows h, k, f of 16 pins) in one pass:
-    the numpy steps of :meth:`ArrayTacDisplay._quantise` in the same order, per value.
+    per value the array steps it replaced, in their order (clip to the layer's range, minus
+    its offset, divided by its step, rounded half to even), about ten numpy calls a command.
 
     ``codes`` (3, 16) gets the wire codes, ``applied`` (3, 16) the values they stand for.
     Returns (all finite, any value clamped, codes equal to ``last``); when not all finite,
@@ -131,11 +138,6 @@ def _float_rows(height_mm: object, stiffness_k: object, friction: object
         return None
     return (height_mm.reshape(fr.N_PINS), stiffness_k.reshape(fr.N_PINS),
             friction.reshape(fr.N_PINS))
-#: after a command with ``RESUME``, feedback still showing the watchdog trip is taken as news
-#: (the command lost) only when it arrives this much later: until then the board's answer may
-#: be on its way, and every further ``RESUME`` command would be one more that a freeze could
-#: hold past a new trip
-RESUME_RETRY_US = 20_000
 
 
 @dataclass(frozen=True, slots=True, eq=False)

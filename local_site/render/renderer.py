@@ -202,6 +202,9 @@ def _position_xy(position_mm: Sequence[float] | np.ndarray) -> tuple[float, floa
 class Renderer:
     """Samples a scene through the pin window and produces validated pin commands.
 
+    One thread renders (the display loop's): a renderer keeps its last command and a
+    work array between calls, so it is not shared between threads.
+
     Args:
         config: settings (defaults when None).
 
