@@ -125,16 +125,19 @@ def _warm_up() -> None:
 def _float_rows(height_mm: object, stiffness_k: object, friction: object
                 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]] | None:
     """The three layers as 1-D float64 arrays of 16 pins when each already is a contiguous
-    float64 array of shape (4, 4) or (16,) (the renderer's commands, the keepalive's
-    re-send: the types :func:`_quantise_kernel` was compiled for); None for anything else
-    (scalars, lists, other dtypes, shapes or layouts: :meth:`ArrayTacDisplay._as_pins3`)."""
+    float64 array of shape (4, 4) or (16,), all three read-only or all writable (the
+    renderer's commands, the keepalive's re-send: the types :func:`_quantise_kernel` was
+    compiled for); None for anything else (scalars, lists, other dtypes, shapes or layouts,
+    a mix: :meth:`ArrayTacDisplay._as_pins3`)."""
     if not (type(height_mm) is np.ndarray and type(stiffness_k) is np.ndarray
             and type(friction) is np.ndarray):
         return None
     if not (height_mm.dtype == _F64 and stiffness_k.dtype == _F64 and friction.dtype == _F64
             and height_mm.shape in _PIN_SHAPES and stiffness_k.shape in _PIN_SHAPES
             and friction.shape in _PIN_SHAPES and height_mm.flags.c_contiguous
-            and stiffness_k.flags.c_contiguous and friction.flags.c_contiguous):
+            and stiffness_k.flags.c_contiguous and friction.flags.c_contiguous
+            and height_mm.flags.writeable == stiffness_k.flags.writeable
+            == friction.flags.writeable):
         return None
     return (height_mm.reshape(fr.N_PINS), stiffness_k.reshape(fr.N_PINS),
             friction.reshape(fr.N_PINS))
@@ -145,7 +148,8 @@ class AppliedPinCommand:
     """The command actually applied: after clamping and quantisation to the wire codes.
 
     Attributes:
-        height_mm: (16,) heights, multiples of 1.25 um in [0, 5].
+        height_mm: (16,) heights, multiples of 1.25 um in [0, 5] (read-only, as the other
+            two layers: the display re-sends them as its keepalive).
         stiffness_k: (16,) k, multiples of 0.002 in [0.5, 1].
         friction: (16,) f, multiples of 0.004 in [0, 1].
         seq: sequence number of the frame that carried it (of the last one sent when skipped).
@@ -378,6 +382,8 @@ class ArrayTacDisplay(Device):
                 self._n_rejected += 1
                 self._as_pins3(height_mm, stiffness_k, friction)  # raises the specific error
                 raise InputDataError("NaN or Inf in a pin command; nothing sent")
+            # returned to the caller and kept for the keepalive's re-send: nobody may edit it
+            applied.setflags(write=False)
             self._n_commands += 1
             self._n_clamped += clamped
             now_s = monotonic_s()

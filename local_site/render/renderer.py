@@ -291,9 +291,11 @@ class Renderer:
 
     def _compute(self, scene: SceneSource, x: float, y: float, version: int) -> PinCommand:
         cfg = self.config
+        cx, cy = x + cfg.window_offset_x_mm, y + cfg.window_offset_y_mm
+        if not (math.isfinite(cx) and math.isfinite(cy)):  # a finite sum can overflow
+            raise InputDataError(f"scene points contain NaN or Inf (window centre {cx}, {cy})")
         centre = self._centre  # the window centre, written in place (no array built)
-        centre[0] = x + cfg.window_offset_x_mm
-        centre[1] = y + cfg.window_offset_y_mm
+        centre[0], centre[1] = cx, cy
         sample = scene.sample_flat(self._flat_offsets + centre)
         out = np.empty((3, N_PINS))
         status, clamped, ext, friction_active = _finish_kernel(

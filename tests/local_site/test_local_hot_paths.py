@@ -208,11 +208,26 @@ def test_the_send_paths_kernels_are_compiled_once_before_the_first_command() -> 
     display.send_command(strided, np.full(16, 0.8), np.zeros(16))
     command = Renderer().render(TactileFrameScene(), (0.0, 0.0))  # read-only layers
     display.send_command(*command.arrays())
+    display.send_command(command.height_mm, np.full(16, 0.9), command.friction)  # a mix
     display.send_command(np.full(16, 2, dtype=np.float32), 0.8, [0.1] * 16)  # type: ignore[arg-type]
     wait_until(lambda: display.keepalive(), 1.0, "a keepalive once due")
-    assert len(display.sent) == 5
+    assert len(display.sent) == 6
     assert (list(_quantise_kernel.signatures), list(_command_body_kernel.signatures)) \
         == compiled and (len(compiled[0]), len(compiled[1])) == (2, 1)
+
+
+def test_the_applied_values_cannot_be_edited_into_the_keepalive() -> None:
+    """The applied command's layers are the ones the keepalive re-sends: read-only, so a
+    caller cannot change what the pins get next."""
+    display = _CaptureDisplay(keepalive_interval_s=0.001)
+    display.connect()
+    applied = display.send_command(np.full(16, 1.0), 0.8, 0.0)
+    for layer in (applied.height_mm, applied.stiffness_k, applied.friction):
+        with pytest.raises(ValueError, match="read-only"):
+            layer[:] = 4.0
+    wait_until(lambda: display.keepalive(), 1.0, "a keepalive once due")
+    first, again = (fr.decode_command(p) for _, p in display.sent)
+    assert np.array_equal(again.height_codes, first.height_codes)
 
 
 def test_keepalive_returns_early_until_due_and_counts_as_before() -> None:

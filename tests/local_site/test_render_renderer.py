@@ -372,6 +372,15 @@ def test_sample_flat_is_sample_at_flat_points_as_contiguous_float_arrays() -> No
     assert Renderer().render(_LooseScene(f=0.2), (1.0, 1.0)).friction_active
 
 
+def test_a_window_centre_that_overflows_is_refused() -> None:
+    """Position and window offset each finite, their sum not: refused and counted, never a
+    command (the pins would otherwise get the scene's outside values)."""
+    renderer = Renderer(RendererConfig(window_offset_x_mm=1e308))
+    with pytest.raises(InputDataError, match="NaN or Inf"):
+        renderer.render(PlaneScene(), (1.7e308, 0.0))
+    assert renderer.stats.rejected == 1 and renderer.last_command is None
+
+
 def test_sample_flat_refuses_arrays_of_the_wrong_length() -> None:
     class Short(PlaneScene):
         def _sample(self, p: NDArray[np.float64]) -> SceneSample:
