@@ -203,22 +203,23 @@ def encode_command(frame: CommandFrame) -> bytes:
         ValueError: a code out of range (a bug of the caller: quantise first).
     """
     h, k, f = frame.height_codes, frame.k_codes, frame.f_codes
-    if type(h) is np.ndarray and type(k) is np.ndarray and type(f) is np.ndarray \
-            and h.dtype == _U16 and k.dtype == _U16 and f.dtype == _U16 \
-            and h.shape == k.shape == f.shape == (N_PINS,):
-        # the display's own codes (1 kHz): packed and range-checked in one compiled pass
-        packed = np.empty(COMMAND_FRAME_BYTES - 2, np.uint8)
-        if _command_body_kernel(h, k, f, frame.flags & 0xFF, frame.seq & 0xFFFF,
+    if not (type(h) is np.ndarray and type(k) is np.ndarray and type(f) is np.ndarray
+            and h.dtype == _U16 and k.dtype == _U16 and f.dtype == _U16
+            and h.shape == k.shape == f.shape == (N_PINS,) and h.flags.c_contiguous
+            and k.flags.c_contiguous and f.flags.c_contiguous):
+        # other integer types or layouts: checked, then as the display's own codes are
+        h, k, f = (np.ascontiguousarray(_check_codes(name, codes, top), dtype=np.uint16)
+                   for name, codes, top in (("height_codes", h, HEIGHT_MAX_CODE),
+                                            ("k_codes", k, K_MAX_CODE),
+                                            ("f_codes", f, F_MAX_CODE)))
+    packed = np.empty(COMMAND_FRAME_BYTES - 2, np.uint8)
+    if not _command_body_kernel(h, k, f, frame.flags & 0xFF, frame.seq & 0xFFFF,
                                 frame.watchdog_ms & 0xFFFF, packed):
-            data = packed.tobytes()
-            return data + _CRC.pack(frame_crc(data))
-    h = _check_codes("height_codes", h, HEIGHT_MAX_CODE)
-    k = _check_codes("k_codes", k, K_MAX_CODE)
-    f = _check_codes("f_codes", f, F_MAX_CODE)
-    body = (_CMD_HEAD.pack(TYPE_COMMAND, frame.flags & 0xFF, frame.seq & 0xFFFF) + pack12(h)
-            + k.astype(np.uint8).tobytes() + f.astype(np.uint8).tobytes()
-            + struct.pack("<H", frame.watchdog_ms & 0xFFFF))
-    return body + _CRC.pack(frame_crc(body))
+        for name, codes, top in (("height_codes", h, HEIGHT_MAX_CODE),
+                                 ("k_codes", k, K_MAX_CODE), ("f_codes", f, F_MAX_CODE)):
+            _check_codes(name, codes, top)  # raises, naming the layer
+    data = packed.tobytes()
+    return data + _CRC.pack(frame_crc(data))
 
 
 _U16 = np.dtype(np.uint16)
@@ -228,9 +229,9 @@ _U16 = np.dtype(np.uint16)
 def _command_body_kernel(h: NDArray[np.uint16], k: NDArray[np.uint16], f: NDArray[np.uint16],
                          flags: int, seq: int, watchdog_ms: int,
                          out: NDArray[np.uint8]) -> bool:  # pragma: no cover - compiled
-    """A ``COMMAND`` frame's 62 bytes before the CRC into ``out``, as :func:`encode_command`
-    lays them out (head, :func:`pack12` heights, k and f bytes, watchdog); False when a code
-    is out of range (then ``out`` is garbage and the caller raises)."""
+    """A ``COMMAND`` frame's 62 bytes before the CRC into ``out`` (docs/arraytac_can.md: head,
+    the heights packed as :func:`pack12` packs them, k and f bytes, watchdog); False when a
+    code is out of range (then ``out`` is garbage and the caller raises)."""
     out[0] = TYPE_COMMAND
     out[1] = flags & 0xFF
     out[2] = seq & 0xFF

@@ -175,6 +175,7 @@ def test_compiled_command_encoder_gives_the_bytes_and_refusals_of_the_python_one
     ok = bool(h.max() <= 4000 and k.max() <= 250 and f.max() <= 250)
     if ok:
         assert fr.encode_command(fast) == fr.encode_command(slow)
+        assert fr.encode_command(fast)[4:28] == fr.pack12(h)  # the heights, packed in Python
     else:
         for frame in (fast, slow):
             with pytest.raises(ValueError, match="codes in"):
