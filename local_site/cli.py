@@ -90,8 +90,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                       help="platform_state rate to the relay (default 250)")
     tune.add_argument("--render-rate", type=float, metavar="HZ",
                       help="display loop rate (default 1000)")
-    tune.add_argument("--render-loop", choices=["thread", "asyncio"],
-                      help="where the display loop runs (default thread)")
+    tune.add_argument("--render-loop", choices=["thread", "asyncio", "process"],
+                      help="where the display loop runs: a thread of the station (default), "
+                           "a task on its event loop, or a process of its own with the board "
+                           "link (the platform is then read in a process of its own too)")
     tune.add_argument("--record-pins-rate", type=float, metavar="HZ",
                       help="rate of the recording's /local/pins channel (default 50)")
     tune.add_argument("--record-images", type=float, metavar="HZ",

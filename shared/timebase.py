@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import time
 
-__all__ = ["monotonic_s", "now_us", "wall_anchor_ns"]
+__all__ = ["adopt_wall_anchor", "monotonic_s", "now_us", "wall_anchor_ns"]
 
 #: wall-clock time minus monotonic time at start-up (ns)
 _ANCHOR_NS = time.time_ns() - time.monotonic_ns()
@@ -25,6 +25,16 @@ _ANCHOR_NS = time.time_ns() - time.monotonic_ns()
 def wall_anchor_ns() -> int:
     """The wall clock minus the monotonic clock when this process started (ns)."""
     return _ANCHOR_NS
+
+
+def adopt_wall_anchor(anchor_ns: int) -> None:
+    """Stamp on another process's clock: its :func:`wall_anchor_ns` (a station's child).
+
+    The monotonic clock is system wide, so a child that adopts its parent's anchor stamps
+    exactly as the parent does, also when the wall clock was stepped between their starts.
+    """
+    global _ANCHOR_NS
+    _ANCHOR_NS = int(anchor_ns)
 
 
 def now_us() -> int:

@@ -166,6 +166,8 @@ def snapshot(pids: list[int]) -> CpuSnapshot:
 _SIM_BOARD_MODULE = "local_site.platform.sim_process"
 #: the local station's platform reader process (``local.agent.platform_process``)
 _PLATFORM_PROCESS_MODULE = "local_site.agent.platform_child"
+#: the local station's display loop process (``local.agent.render_loop = "process"``)
+_DISPLAY_PROCESS_MODULE = "local_site.agent.display_child"
 
 
 #: the demo's processes that are simulated hardware as a whole: their stage
@@ -193,7 +195,8 @@ def demo_processes(parent: int) -> dict[int, str]:
     """Child processes of ``parent`` running ``lab.cli`` (pid -> subcommand; ``board``: the
     emulated ArrayTac drive board of ``--display board-process``), and the local station's
     simulated encoder board process when it has one (``sim-board``) and its platform reader
-    process (``platform``, with ``local.agent.platform_process``)."""
+    process (``platform``, with ``local.agent.platform_process``), and its display loop
+    process (``display``, with ``local.agent.render_loop = "process"``)."""
     out: dict[int, str] = {}
     table = list(_processes())
     for pid, ppid, argv in table:
@@ -205,6 +208,8 @@ def demo_processes(parent: int) -> dict[int, str]:
     local = {p for p, c in out.items() if c == "local"}
     readers = {pid: "platform" for pid, ppid, argv in table
                if ppid in local and _PLATFORM_PROCESS_MODULE in argv}
+    readers.update({pid: "display" for pid, ppid, argv in table
+                    if ppid in local and _DISPLAY_PROCESS_MODULE in argv})
     boards = {pid: "sim-board" for pid, ppid, argv in table
               if (ppid in local or ppid in readers) and _SIM_BOARD_MODULE in argv}
     names: dict[int, str] = {**boards, **readers}

@@ -57,7 +57,9 @@ def write_report(runs: list[dict[str, Any]], out_dir: Path) -> None:
         dl = r.get("display_loop", {}) or {}
         lat = r.get("latency_ms", {}) or {}
         e2e = lat.get("end_to_end", lat) if isinstance(lat, dict) else {}
-        local_cores = r["processes"].get("local", {}).get("cores")
+        # the station with its own child processes (platform reader, display loop)
+        local_cores = sum(r["processes"].get(name, {}).get("cores") or 0.0
+                          for name in ("local", "platform", "display")) or None
         remote_cores = r["processes"].get("remote", {}).get("cores")
         fps = (r.get("remote_frames") or {}).get("achieved_fps")
         rate = dl.get("rate_hz")
@@ -70,7 +72,7 @@ def write_report(runs: list[dict[str, Any]], out_dir: Path) -> None:
             "display loop Hz": _fmt(dl.get("rate_hz"), 0),
             "period jitter p99 ms": _fmt(dl.get("jitter_p99_ms"), 2),
             "motion-to-touch p99 ms": _fmt(e2e.get("p99") if isinstance(e2e, dict) else None, 1),
-            "local CPU us per loop iteration": _fmt(
+            "local station CPU us per loop iteration": _fmt(
                 1e6 * local_cores / rate if local_cores and rate else None, 0),
             "remote CPU ms per tactile frame": _fmt(
                 1e3 * remote_cores / fps if remote_cores and fps else None, 2),

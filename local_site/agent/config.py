@@ -18,7 +18,7 @@ __all__ = ["RENDER_LOOP_MODES", "SAFE_STATE_MODES", "LocalAgentConfig"]
 
 SAFE_STATE_MODES = ("flat", "hold")
 #: where the display loop runs: a dedicated thread (default, by measurement) or an asyncio task
-RENDER_LOOP_MODES = ("thread", "asyncio")
+RENDER_LOOP_MODES = ("thread", "asyncio", "process")
 
 
 @dataclass(frozen=True)
@@ -43,7 +43,10 @@ class LocalAgentConfig:
         max_offset_uncertainty_s: frames are not rendered while that error bound is wider.
         platform_send_rate_hz: platform_state messages per second to the relay (at most).
         render_rate_hz: display loop rate (the array refresh; >= 500 Hz required).
-        render_loop: ``thread`` or ``asyncio`` (where the display loop runs).
+        render_loop: where the display loop runs: ``thread`` (a thread of the station),
+            ``asyncio`` (a task on its event loop) or ``process`` (a process of its own with
+            the board link and the renderer, :mod:`local_site.agent.display_process`; the
+            platform is then read in a process of its own too).
         platform_read_timeout_s: no new platform sample for this long means it is lost
             (0.25 s: on a loaded 2-core host the reader thread was seen starved > 100 ms).
         platform_reopen_after_s: a platform silent this long (its port still open) is closed

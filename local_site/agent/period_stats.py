@@ -46,6 +46,31 @@ class PeriodStats:
             self._periods_s[self._n % self._periods_s.size] = start_s - last
             self._n += 1
 
+    @property
+    def recorded(self) -> int:
+        """Periods recorded so far (older ones may be overwritten; see :meth:`since`)."""
+        return self._n
+
+    def since(self, recorded: int) -> tuple[int, np.ndarray]:
+        """The periods recorded after the first ``recorded`` (those still kept), and the new
+        count: how another process mirrors this one (:meth:`extend`)."""
+        with self._lock:
+            n = min(self._n - max(0, recorded), self._periods_s.size)
+            end = self._n % self._periods_s.size
+            idx = np.arange(end - n, end) % self._periods_s.size
+            return self._n, self._periods_s[idx].copy()
+
+    def extend(self, periods_s: np.ndarray, iterations: int, overruns: int) -> None:
+        """Add periods measured elsewhere (:meth:`since`) and take over its totals."""
+        periods = np.asarray(periods_s, dtype=float).ravel()[-self._periods_s.size:]
+        with self._lock:
+            size = self._periods_s.size
+            idx = np.arange(self._n, self._n + periods.size) % size
+            self._periods_s[idx] = periods
+            self._n += periods.size
+        self.iterations = iterations
+        self.overruns = overruns
+
     def restart(self) -> None:
         """Forget the last start (after a pause, e.g. a device reconnect): no fake period."""
         self._last_start_s = None

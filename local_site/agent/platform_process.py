@@ -64,7 +64,8 @@ from local_site.platform.base import PlatformSample, PlatformStats
 from shared.errors import ConfigError
 from shared.timebase import monotonic_s, wall_anchor_ns
 
-__all__ = ["HEARTBEAT_S", "ProcessPlatformReader", "ReaderHealth", "SampleRecord"]
+__all__ = ["HEARTBEAT_S", "ProcessPlatformReader", "ReaderHealth", "RecordView", "SampleRecord",
+           "healthy_copy"]
 
 log = logging.getLogger(__name__)
 
@@ -228,6 +229,73 @@ class SampleRecord:
             os.close(self.fd)
 
 
+_Copy = tuple[int, PlatformSample | None, ReaderHealth]
+
+
+class RecordView:
+    """The newest consistent copy of a :class:`SampleRecord`, for each thread that reads it.
+
+    A thread keeps its last copy and copies the record again only when its counter moved;
+    a write that does not finish (the writer died or is stopped inside it) is not retried
+    for the same counter. Nothing here waits for the writer: the real-time display loop
+    reads through it.
+
+    Args:
+        record: the record (mapped in this process).
+        read_timeout_s: the oldest a sample may be, by its capture stamp, for the platform
+            to count healthy (:meth:`healthy`).
+    """
+
+    def __init__(self, record: SampleRecord, read_timeout_s: float) -> None:
+        self.record = record
+        self.read_timeout_s = read_timeout_s
+        self._local = threading.local()
+        self._torn_counter: int | None = None
+
+    def read(self) -> _Copy | None:
+        """This thread's newest copy; None before one could be taken, or once unmapped."""
+        local = self._local
+        cached: _Copy | None = getattr(local, "cached", None)
+        try:
+            counter = self.record.counter
+            if counter == self._torn_counter:  # the same unfinished write: do not retry
+                return cached
+            if cached is not None and counter == cached[0]:
+                return cached
+            read = self.record.read()
+        except ValueError:  # unmapped meanwhile
+            return None
+        if read is None:  # the writer is (or died) inside a write: keep what we had
+            self._torn_counter = counter
+            return cached
+        if cached is not None and read[1] is not None and read[1] == cached[1]:
+            # the same sample object until a newer one is published (the uplink and the
+            # renderer tell a new sample by its identity)
+            read = (read[0], cached[1], read[2])
+        local.cached = read
+        return read
+
+    @property
+    def latest(self) -> PlatformSample | None:
+        """The newest sample (None before the first)."""
+        copy = self.read()
+        return None if copy is None else copy[1]
+
+    @property
+    def healthy(self) -> bool:
+        """The writer's reader has the device and the newest sample is younger than the read
+        timeout by its capture stamp (a hung, stopped or dead writer's is not)."""
+        copy = self.read()
+        return copy is not None and healthy_copy(copy, self.read_timeout_s)
+
+
+def healthy_copy(copy: _Copy, read_timeout_s: float) -> bool:
+    """A copy's reader had the device and its sample is younger than ``read_timeout_s``."""
+    _, sample, health = copy
+    return health.healthy and sample is not None \
+        and stale_since_s(sample, read_timeout_s) is None
+
+
 def _anonymous_file(size: int) -> int:
     """A descriptor of a ``size``-byte file with no name (``memfd`` where there is one)."""
     if hasattr(os, "memfd_create"):
@@ -296,16 +364,13 @@ class ProcessPlatformReader:
         self._retry_min_s = retry_min_s
         self._retry_max_s = retry_max_s
         self._record: SampleRecord | None = None
+        self._view: RecordView | None = None
         self._process: subprocess.Popen[bytes] | None = None
         self._stats_fd: int | None = None
         self._spawned_s = 0.0
         self._spawn_lock = threading.Lock()
         self._stop = threading.Event()
         self._supervisor: threading.Thread | None = None
-        #: each thread's last copy (identity stable within a thread, no lock between them:
-        #: the real-time display loop never waits for another thread here)
-        self._local = threading.local()
-        self._torn_counter: int | None = None
         self._stopped: tuple[int, PlatformSample | None, ReaderHealth] = (
             0, None, dataclasses.replace(_NOT_STARTED, lost_since_mono_s=monotonic_s()))
         self._carried = (0, 0, 0, 0)  # reads, errors, reconnects, recoveries of dead children
@@ -320,35 +385,27 @@ class ProcessPlatformReader:
 
     def _read(self) -> tuple[int, PlatformSample | None, ReaderHealth]:
         """The newest consistent copy for this thread (never waits for the child)."""
-        record = self._record
-        local = self._local
-        cached: tuple[int, PlatformSample | None, ReaderHealth] | None = \
-            getattr(local, "cached", None)
-        if record is None:
-            return self._stopped
-        try:
-            counter = record.counter
-            if counter == self._torn_counter:  # the same unfinished write: do not retry
-                return cached if cached is not None else self._stopped
-            if cached is not None and counter == cached[0]:
-                return cached
-            read = record.read()
-        except ValueError:  # unmapped by stop() meanwhile
-            return self._stopped
-        if read is None:  # the writer is (or died) inside a write: keep what we had
-            self._torn_counter = counter
-            return cached if cached is not None else self._stopped
-        if cached is not None and read[1] is not None and read[1] == cached[1]:
-            # the same sample object until a newer one is published (the uplink and the
-            # renderer tell a new sample by its identity)
-            read = (read[0], cached[1], read[2])
-        local.cached = read
-        return read
+        view = self._view
+        copy = None if view is None else view.read()
+        return self._stopped if copy is None else copy
 
     def _health(self) -> ReaderHealth:
         """The health with the counters of the children that died before this one."""
         health = self._read()[2]
         return self._fold(health) if any(self._carried) else health
+
+    @property
+    def read_timeout_s(self) -> float:
+        """The oldest a sample may be, by its capture stamp, for the platform to count
+        healthy."""
+        return self._read_timeout_s
+
+    @property
+    def record_fd(self) -> int | None:
+        """The descriptor of the shared record (for another reading process; None while
+        stopped). It stays the same when the child is started again."""
+        record = self._record
+        return None if record is None else record.fd
 
     @property
     def latest(self) -> PlatformSample | None:
@@ -360,9 +417,7 @@ class ProcessPlatformReader:
     def healthy(self) -> bool:
         """The child has the device and its newest sample is younger than the read timeout
         (by its capture stamp: a hung, stopped or dead child, or one reconnecting, is not)."""
-        _, sample, health = self._read()
-        return health.healthy and sample is not None \
-            and stale_since_s(sample, self._read_timeout_s) is None
+        return healthy_copy(self._read(), self._read_timeout_s)
 
     @property
     def lost_since_s(self) -> float | None:
@@ -410,6 +465,7 @@ class ProcessPlatformReader:
             return
         self._stop.clear()
         self._record = SampleRecord()
+        self._view = RecordView(self._record, self._read_timeout_s)
         self._spawn()
         self._supervisor = threading.Thread(target=self._supervise, name="platform-process",
                                             daemon=True)
@@ -514,8 +570,8 @@ class ProcessPlatformReader:
             os.close(self._stats_fd)
             self._stats_fd = None
         record, self._record = self._record, None
+        self._view = None
         if record is not None:
-            self._local = threading.local()
             copy = record.read()
             sample, health = (copy[1], copy[2]) if copy is not None else (None, _NOT_STARTED)
             now = monotonic_s()

@@ -38,6 +38,7 @@ import numpy as np
 
 from local_site.agent.config import LocalAgentConfig
 from local_site.agent.display_loop import DisplayLoop, FrameSlot
+from local_site.agent.display_process import DisplayProcess
 from local_site.agent.platform_process import ProcessPlatformReader
 from local_site.agent.platform_reader import PlatformReader, stale_since_s
 from local_site.devices import open_display, open_platform
@@ -169,7 +170,7 @@ class LocalAgent:
         self.tactile_decoder = TactileDecoder()
         self.link: StationLink | None = None
         self.reader: PlatformReader | ProcessPlatformReader | None = None
-        self.loop: DisplayLoop | None = None
+        self.loop: DisplayLoop | DisplayProcess | None = None
         self.scene: SceneSource | None = None
         self.exit_reason: str | None = None
         self.exit_code = 0
@@ -211,7 +212,7 @@ class LocalAgent:
                                                      **platform_opts)
         motion = getattr(platform, "motion", None)
         motion_duration_s = getattr(motion, "duration_s", None)
-        if cfg.platform_process:
+        if cfg.platform_process or cfg.render_loop == "process":
             platform = None  # opened again in the reader's process, from the same spec
         if self.until_motion_done and motion_duration_s is None:
             raise ConfigError("--until-motion-done needs a platform with a scripted motion of "
@@ -249,16 +250,30 @@ class LocalAgent:
                 image_rate_hz=cfg.record_image_rate_hz or None)
             if self.link is not None:
                 self.link.tap = self.recorder.tap
+        loop_args: dict[str, Any] = dict(
+            rate_hz=cfg.render_rate_hz, safe_mode=cfg.safe_state,
+            link_loss_timeout_s=cfg.link_loss_timeout_s,
+            stale_timeout_s=cfg.stale_frame_timeout_s, max_frame_age_s=cfg.max_frame_age_s,
+            max_offset_uncertainty_s=cfg.max_offset_uncertainty_s,
+            retry_min_s=cfg.device_retry_min_s, retry_max_s=cfg.device_retry_max_s)
+        if cfg.render_loop == "process":
+            self.loop = DisplayProcess(
+                display=cfg.display, display_options=display_opts,
+                render_config=self.render_config,
+                scene="remote" if self.remote_mode else spec,
+                interpolation_order=cfg.interpolation_order, platform=reader,
+                loop_args=loop_args, link=self.link, recorder=self.recorder,
+                ledger=self.ledger, retry_min_s=cfg.device_retry_min_s,
+                retry_max_s=cfg.device_retry_max_s,
+                gil_switch_interval_s=cfg.gil_switch_interval_s, lock_memory=cfg.lock_memory)
+            self.frames = self.loop.frames  # type: ignore[assignment]
+            return
         self.loop = DisplayLoop(
             display, Renderer(self.render_config), self.scene,
             positions=lambda: reader.latest, platform_ok=lambda: reader.healthy,
-            rate_hz=cfg.render_rate_hz, safe_mode=cfg.safe_state,  # type: ignore[arg-type]
             frames=self.frames if self.remote_mode else None, link=self.link,
-            link_loss_timeout_s=cfg.link_loss_timeout_s,
-            stale_timeout_s=cfg.stale_frame_timeout_s, max_frame_age_s=cfg.max_frame_age_s,
-            max_offset_uncertainty_s=cfg.max_offset_uncertainty_s, recorder=self.recorder,
-            ledger=self.ledger, retry_min_s=cfg.device_retry_min_s,
-            retry_max_s=cfg.device_retry_max_s)
+            recorder=self.recorder, ledger=self.ledger,
+            **loop_args)
 
     def _record_meta(self) -> dict[str, Any]:
         """What the recording's start metadata says about this run (read by the analysis)."""
@@ -269,7 +284,8 @@ class LocalAgent:
                 "workspace": dataclasses.asdict(self.workspace),
                 "render": dataclasses.asdict(self.render_config)}
 
-    def _require_open(self) -> tuple[DisplayLoop, PlatformReader | ProcessPlatformReader]:
+    def _require_open(self) -> tuple[DisplayLoop | DisplayProcess,
+                                     PlatformReader | ProcessPlatformReader]:
         if self.loop is None or self.reader is None:
             raise ConfigError("LocalAgent.open() has not been called")
         return self.loop, self.reader
@@ -469,7 +485,7 @@ class LocalAgent:
             self.link.start()
         display_task: asyncio.Future[None]
         async_stop = asyncio.Event()
-        if self.config.render_loop == "thread":
+        if isinstance(loop, DisplayProcess) or self.config.render_loop == "thread":
             display_task = aio.run_in_executor(None, loop.run_in_thread, self._thread_stop,
                                                self.config.display_thread_nice,
                                                self.config.display_thread_realtime)

@@ -11,6 +11,7 @@ import numpy as np
 
 from local_site.agent import LocalAgent, LocalAgentConfig
 from local_site.agent.display_loop import DisplayLoop
+from local_site.agent.display_process import DisplayProcess
 from local_site.agent.platform_reader import PlatformReader
 from relay_server.auth import derive_token
 from shared.client import StationLink, StationLinkConfig
@@ -101,7 +102,17 @@ async def wait_for(predicate: Any, timeout_s: float, what: str) -> None:
 
 
 def loop_of(agent: LocalAgent) -> DisplayLoop:
-    """The agent's display loop; fails the test when the agent has not opened it."""
+    """The agent's display loop; fails the test when the agent has not opened it (or runs
+    it in a process of its own: :func:`any_loop_of`)."""
+    if not isinstance(agent.loop, DisplayLoop):
+        raise AssertionError(f"the agent's display loop is not running in-process: "
+                             f"{agent.loop!r}")
+    return agent.loop
+
+
+def any_loop_of(agent: LocalAgent) -> DisplayLoop | DisplayProcess:
+    """The agent's display loop, in-process or in a process of its own (what the station
+    reads of it is the same)."""
     if agent.loop is None:
         raise AssertionError("the agent's display loop is not running")
     return agent.loop

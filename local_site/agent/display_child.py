@@ -1,0 +1,195 @@
+"""The display process's entry point: ``python -m local_site.agent.display_child``.
+
+A module of its own, which the package does not import, so that ``-m`` runs it once (see
+:mod:`local_site.agent.display_process` for what the child does and how it talks to the
+station).
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import dataclasses
+import json
+import logging
+import pickle
+import signal
+import socket
+import sys
+import threading
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+from local_site.agent.display_loop import DisplayLoop, FrameSlot
+from local_site.agent.display_process import HEARTBEAT_S, MAX_MESSAGE_BYTES, LinkMirror
+from local_site.agent.platform_process import RecordView, SampleRecord
+from local_site.devices import open_display
+from local_site.render import Renderer, RendererConfig
+from local_site.scenes import SceneSource, TactileFrameScene, open_scene
+from shared.gil import switch_interval
+from shared.memlock import memory_locked
+from shared.motion_to_touch import MotionToTouchLedger, StageTrace
+from shared.protocol import Hop
+from shared.timebase import adopt_wall_anchor, monotonic_s
+
+__all__ = ["main"]
+
+log = logging.getLogger(__name__)
+
+
+class _TappedLedger(MotionToTouchLedger):
+    """The loop's ledger: each rendered frame's hops also go to the station (its ledger
+    is the one the summary reads)."""
+
+    def __init__(self) -> None:
+        super().__init__(window=64)
+        self.rendered: collections.deque[tuple[tuple[Hop, ...], dict[str, Any], float]] = \
+            collections.deque(maxlen=4096)
+
+    def add_hops(self, hops: Iterable[Hop],
+                 offsets_us: Mapping[str, float | None]) -> StageTrace:
+        hops = tuple(hops)
+        self.rendered.append((hops, dict(offsets_us), monotonic_s()))
+        return super().add_hops(hops, offsets_us)
+
+
+def _drain(queue: collections.deque[Any]) -> list[Any]:
+    out = []
+    while queue:
+        out.append(queue.popleft())
+    return out
+
+
+class _Reporter:
+    """What the station reads, sent every heartbeat (and once more at the end)."""
+
+    def __init__(self, loop: DisplayLoop, ledger: _TappedLedger, sock: socket.socket) -> None:
+        self.loop = loop
+        self.ledger = ledger
+        self.sock = sock
+        self.accepted: collections.deque[tuple[int, int]] = collections.deque(maxlen=4096)
+        self._recorded = 0
+        self._pins_seq = -1
+        self._feedback: Any = None
+        self._lock = threading.Lock()
+        self.dropped = 0
+
+    def frame_accepted(self, frame: Any, rx_us: int) -> None:
+        self.accepted.append((frame.seq, rx_us))
+
+    def send(self, final: bool = False) -> None:
+        loop = self.loop
+        with self._lock:
+            recorded, periods = loop.periods.since(self._recorded)
+            self._recorded = recorded
+            pins = loop.pin_state
+            new_pins = pins if pins.seq != self._pins_seq else None
+            self._pins_seq = pins.seq
+            connected = loop.display.is_connected
+            feedback = loop.display.latest_feedback() if connected else None
+            new_feedback = feedback if feedback is not self._feedback else None
+            self._feedback = feedback
+            report = {"periods": (recorded, periods),
+                      "loops": (loop.periods.iterations, loop.periods.overruns),
+                      "counters": dataclasses.replace(loop.counters),
+                      "render_stats": dataclasses.replace(loop.renderer.stats),
+                      "priority": (loop.priority_applied, loop.realtime_applied),
+                      "connected": connected, "feedback": new_feedback, "pins": new_pins,
+                      "accepted": _drain(self.accepted),
+                      "rendered": _drain(self.ledger.rendered), "final": final,
+                      "display_stats": loop.display.stats() if final else None}
+            try:
+                self.sock.send(pickle.dumps(("report", report), protocol=5),
+                               0 if final else socket.MSG_DONTWAIT)
+            except OSError:  # the station is busy (or gone: the receiver stops us)
+                self.dropped += 1
+
+    def run(self, stop: threading.Event) -> None:
+        while not stop.wait(HEARTBEAT_S):
+            self.send()
+
+
+def _receive(sock: socket.socket, frames: FrameSlot | None, link: LinkMirror | None,
+             stop: threading.Event) -> None:
+    """Frames, the link's state and ``stop`` from the station; the end of the socket (the
+    station is gone) stops the loop too."""
+    try:
+        while not stop.is_set():
+            data = sock.recv(MAX_MESSAGE_BYTES)
+            if not data:
+                break
+            message = pickle.loads(data)
+            kind = message[0]
+            if kind == "frame" and frames is not None:
+                frames.put(message[1], message[2])
+            elif kind == "link" and link is not None:
+                link.update(message[1])
+            elif kind == "stop":
+                break
+    except OSError as err:
+        log.info("display process: the station's socket failed: %s", err)
+    finally:
+        stop.set()
+
+
+def _scene(settings: dict[str, Any]) -> SceneSource:
+    order = int(settings["order"])
+    if settings["remote"]:
+        return TactileFrameScene(order=order)
+    return open_scene(settings["scene"], interpolation_order=order)
+
+
+def main(argv: list[str] | None = None) -> int:  # pragma: no cover - runs in the child
+    """The child: open the board, run the display loop until ``stop``, the end of the
+    station's socket, or the station's death; then the pins' safe state and a final report.
+
+    Args:
+        argv: ``[settings JSON]`` (written by :class:`~local_site.agent.display_process.
+            DisplayProcess`).
+
+    Returns:
+        0.
+    """
+    settings = json.loads((sys.argv[1:] if argv is None else argv)[0])
+    adopt_wall_anchor(int(settings["anchor_ns"]))  # stamps on the station's clock
+    logging.basicConfig(level=int(settings["log_level"]),
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the station stops us through the socket
+    sock = socket.socket(fileno=int(settings["sock_fd"]))
+    platform = RecordView(SampleRecord(int(settings["record_fd"])),
+                          float(settings["read_timeout_s"]))
+    display = open_display(settings["display"], connect=False, **settings["display_options"])
+    remote = bool(settings["remote"])
+    link = LinkMirror() if remote else None
+    frames = FrameSlot() if remote else None  # prepared in the loop: no second busy thread
+    ledger = _TappedLedger()
+    loop = DisplayLoop(display, Renderer(RendererConfig(**settings["render"])),
+                       _scene(settings), positions=lambda: platform.latest,
+                       platform_ok=lambda: platform.healthy, frames=frames, link=link,
+                       ledger=ledger, **settings["loop"])
+    reporter = _Reporter(loop, ledger, sock)
+    loop.frame_listener = reporter.frame_accepted
+    stop = threading.Event()
+    threads = [threading.Thread(target=_receive, args=(sock, frames, link, stop),
+                                name="display-receive", daemon=True),
+               threading.Thread(target=reporter.run, args=(stop,), name="display-report",
+                                daemon=True)]
+    for thread in threads:
+        thread.start()
+    with contextlib.ExitStack() as process_settings:
+        process_settings.enter_context(switch_interval(float(settings["gil_switch_interval_s"])))
+        process_settings.enter_context(memory_locked(bool(settings["lock_memory"])))
+        try:
+            loop.run_in_thread(stop, int(settings["nice"]), int(settings["realtime"]))
+        finally:
+            stop.set()
+            threads[1].join()
+            loop.finish("shutdown")
+            with contextlib.suppress(Exception):
+                display.disconnect()
+            reporter.send(final=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
