@@ -93,7 +93,7 @@ async def _sample_tracking(agent: LocalAgent, out: list[float]) -> None:
         loop = agent.loop
         if loop is None or loop.safe_reason is not None:
             continue
-        command, fb = loop.renderer.last_command, loop.display.latest_feedback()
+        command, fb = loop.last_command, loop.display.latest_feedback()
         if command is not None and fb is not None and not fb.safe_state:
             err = fb.position_mm - command.height_mm.reshape(16)
             out.append(float(np.sqrt(np.mean(err**2))))

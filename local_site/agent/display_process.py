@@ -292,6 +292,8 @@ class DisplayProcess:
         self.realtime_applied: int | None = None
         #: times a child was started again after it ended unasked or hung
         self.restarts = 0
+        #: the running child's process id (None: none runs)
+        self.child_pid: int | None = None
         #: why the last child ended unasked (None: none did)
         self.child_error: str | None = None
         #: the counters, iterations and overruns of the children that ended
@@ -397,7 +399,7 @@ class DisplayProcess:
                                                         socket.socket] | None:
         record_fd = self.platform.record_fd
         if record_fd is None:
-            self.child_error = "the platform process has not started"
+            self._spawn_error = "not started: the platform's record is not there yet"
             return None
         ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         settings = {**self._settings, "sock_fd": theirs.fileno(), "record_fd": record_fd,
@@ -410,7 +412,7 @@ class DisplayProcess:
                 pass_fds=(theirs.fileno(), record_fd), process_group=0)
         except OSError as err:
             ours.close()
-            self.child_error = f"cannot start the display process: {err}"
+            self._spawn_error = f"could not start: {err}"
             return None
         finally:
             theirs.close()
@@ -423,14 +425,16 @@ class DisplayProcess:
         delay = self._retry_min_s
         while not stop.is_set():
             child = self._spawn(nice, realtime)
-            why = self.child_error or "could not start"
+            why = self._spawn_error
             if child is not None:
                 process, sock = child
                 self.frames.sock = sock
+                self.child_pid = process.pid
                 try:
                     ended = self._serve(process, sock, stop)
                 finally:
                     self.frames.sock = None
+                    self.child_pid = None
                     sock.close()
                 if ended is None:
                     return
@@ -446,6 +450,7 @@ class DisplayProcess:
             self.restarts += 1
 
     _spawned_s = 0.0
+    _spawn_error = "could not start"
 
     def _link_state(self) -> LinkState | None:
         link = self.link

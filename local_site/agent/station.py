@@ -625,6 +625,8 @@ class LocalAgent:
             "tactile_codec": dataclasses.asdict(self.tactile_decoder.counters),
             "memory_lock": None if self.memory_lock is None else self.memory_lock.to_dict(),
             "display_loop": {"mode": self.config.render_loop,
+                             "process_restarts": getattr(loop, "restarts", 0),
+                             "process_error": getattr(loop, "child_error", None),
                              "thread_nice": loop.priority_applied,
                              "thread_realtime": loop.realtime_applied,
                              **loop.periods.summary()},

@@ -1,0 +1,288 @@
+"""The display loop in a process of its own (``local.agent.render_loop = "process"``).
+
+Its parts (the period mirror, the link as the child sees it, the counters of ended children,
+the shared clock), and the station with a real child process against a real relay: frames
+rejected without touching the pins, a silent station counted as a lost link, a killed child
+started again, a child that stops when the station's socket ends, a frame too large to hand
+over.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import os
+import pickle
+import select
+import signal
+import socket
+import threading
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from local_site.agent import LocalAgent, LocalAgentConfig
+from local_site.agent.display_loop import DisplayLoopCounters
+from local_site.agent.display_process import (
+    HEARTBEAT_S,
+    DisplayProcess,
+    LinkMirror,
+    LinkState,
+    _Frames,
+    fold_counters,
+)
+from local_site.agent.period_stats import PeriodStats
+from local_site.agent.platform_process import ProcessPlatformReader
+from local_site.render import RendererConfig
+from shared import timebase
+from shared.errors import ConfigError
+from shared.freshness import ClockView
+from shared.protocol import TactileFrame
+from shared.timebase import monotonic_s, now_us
+from tests.local_site.agent_support import (
+    FakeRemote,
+    any_loop_of,
+    make_frame,
+    relay_agent,
+    wait_for,
+)
+from tests.relay_server.relay_clients import running_relay
+from tests.support import scaled, wait_until
+
+# ---------------------------------------------------------------------- the parts
+
+
+@given(periods=st.lists(st.floats(1e-4, 5e-3), min_size=0, max_size=300),
+       cuts=st.lists(st.integers(0, 300), max_size=8),
+       capacity=st.sampled_from([2, 7, 64, 1024]))
+def test_period_mirror_reports_what_the_loop_measured(periods: list[float], cuts: list[int],
+                                                      capacity: int) -> None:
+    # the child's PeriodStats, read in batches (since) into the station's (extend), give the
+    # same summary as the child's own, the ring's overwriting included
+    child, mirror = PeriodStats(1e-3, capacity), PeriodStats(1e-3, capacity)
+    starts = np.concatenate([[0.0], np.cumsum(periods)]) if periods else np.zeros(0)
+    recorded = 0
+    bounds = sorted({0, len(starts), *(c for c in cuts if c <= len(starts))})
+    for a, b in itertools.pairwise(bounds):
+        for t in starts[a:b]:
+            child.tick(float(t))
+        child.overruns = b
+        recorded, new = child.since(recorded)
+        mirror.extend(new, child.iterations, child.overruns)
+    assert recorded == child.recorded == max(0, len(starts) - 1)
+    assert mirror.summary() == child.summary()
+    assert np.array_equal(mirror.periods_s(), child.periods_s())
+
+
+def test_link_mirror_counts_the_stations_silence_as_a_lost_link() -> None:
+    t0 = monotonic_s()
+    mirror = LinkMirror(grace_s=0.04)
+    # before the station's first word: down as long as it stays silent (beyond the grace)
+    assert mirror.link_down_for_s(t0 + 0.5) == pytest.approx(0.5 - 0.04, abs=0.01)
+    view = ClockView({"local": 5, "remote": -3}, {"local": 100, "remote": 100}, now_us())
+    mirror.update(LinkState(None, view, {"local": 5, "remote": -3}), now_s=t0)
+    assert mirror.link_down_for_s(t0 + 0.01) == 0.0
+    assert mirror.clock_view is view and dict(mirror.clock_offsets_us) == {"local": 5,
+                                                                          "remote": -3}
+    assert mirror.link_down_for_s(t0 + 0.14) == pytest.approx(0.1)  # silent 140 ms
+    # the station says the link is down since t0 - 1: that counts, whatever its silence
+    mirror.update(LinkState(t0 - 1.0, None, {}), now_s=t0)
+    assert mirror.link_down_for_s(t0) == pytest.approx(1.0)
+    assert mirror.clock_view is None and dict(mirror.clock_offsets_us) == {}
+
+
+def test_fold_counters_adds_every_field() -> None:
+    a = DisplayLoopCounters(frames_accepted=3, safe_entries={"link_lost": 1},
+                            safe_time_s=0.5, link_loss_to_safe_ms=[10.0],
+                            last_reject_reason="nan", rendered_frame_age_max_ms=40.0)
+    b = DisplayLoopCounters(frames_accepted=4, commands_sent=7,
+                            safe_entries={"link_lost": 2, "no_frames": 1}, safe_time_s=0.25,
+                            link_loss_to_safe_ms=[20.0], rendered_frame_age_max_ms=30.0)
+    c = fold_counters(a, b)
+    assert c.frames_accepted == 7 and c.commands_sent == 7
+    assert c.safe_entries == {"link_lost": 3, "no_frames": 1}
+    assert c.safe_time_s == pytest.approx(0.75) and c.link_loss_to_safe_ms == [10.0, 20.0]
+    assert c.last_reject_reason == "nan" and c.rendered_frame_age_max_ms == 40.0
+    assert fold_counters(DisplayLoopCounters(), DisplayLoopCounters()) == DisplayLoopCounters()
+
+
+def test_adopted_wall_anchor_stamps_on_the_other_clock() -> None:
+    before = timebase.wall_anchor_ns()
+    try:
+        timebase.adopt_wall_anchor(before + 7_000_000_000)  # a parent started 7 s "later"
+        shifted = now_us()
+        timebase.adopt_wall_anchor(before)
+        plain = now_us()
+        assert 7_000_000 - 50_000 < shifted - plain < 7_000_000 + 1  # ours ran in between
+    finally:
+        timebase.adopt_wall_anchor(before)
+
+
+def test_a_frame_too_large_to_hand_over_is_counted_not_raised() -> None:
+    frames = _Frames()
+    ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    try:
+        frames.sock = ours
+        small = make_frame(1, None)
+        frames.put(small, 5)
+        got = pickle.loads(theirs.recv(1 << 20))
+        assert got[0] == "frame" and got[1].seq == 1 and got[2] == 5
+        big = TactileFrame(seq=2, center_mm=(30.0, 30.0), pitch_mm=0.1, layers={
+            "height_mm": np.zeros((512, 512), np.float32)})  # 1 MB: more than a packet
+        frames.put(big, 6)
+        assert frames.too_large == 1 and frames.superseded == 1 and frames.put_count == 2
+        assert frames.accepted(1, 5) is small and frames.accepted(2, 6) is None
+        theirs.close()
+        frames.put(small, 7)  # the child is gone: counted, never raised
+        assert frames.superseded == 2
+    finally:
+        ours.close()
+        theirs.close()
+
+
+def test_the_process_needs_a_platform_read_in_a_process_and_json_options() -> None:
+    common = dict(display="sim", render_config=RendererConfig(), scene="hemisphere",
+                  interpolation_order=1, loop_args={})
+    with pytest.raises(ConfigError, match="ProcessPlatformReader"):
+        DisplayProcess(display_options={}, platform=object(), **common)  # type: ignore[arg-type]
+    reader = ProcessPlatformReader("sim")
+    with pytest.raises(ConfigError, match="JSON"):
+        DisplayProcess(display_options={"x": object()}, platform=reader,
+                       **common)  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match="render_loop"):
+        LocalAgentConfig(render_loop="process-ish")
+
+
+def test_the_child_stops_when_the_stations_socket_ends() -> None:
+    reader = ProcessPlatformReader("sim")
+    process = DisplayProcess(display="sim", display_options={}, render_config=RendererConfig(),
+                             scene="hemisphere", interpolation_order=1, platform=reader,
+                             loop_args={})
+    reader.start()
+    try:
+        child = process._spawn(0, 0)
+        assert child is not None
+        proc, sock = child
+        wait_until(lambda: select.select([sock], [], [], 0)[0], 30.0, "the child's first report")
+        sock.close()  # the station is gone
+        assert proc.wait(scaled(15.0)) == 0
+    finally:
+        reader.stop()
+
+
+# ---------------------------------------------------------------------- the station
+
+
+async def test_bad_frames_are_rejected_in_the_child_without_touching_the_pins() -> None:
+    async with running_relay() as relay:
+        url = f"ws://127.0.0.1:{relay.ws_port}/"
+        agent = relay_agent(url, stale_frame_timeout_s=30.0, max_frame_age_s=30.0,
+                            render_loop="process")
+        run = asyncio.create_task(agent.run())
+        try:
+            async with FakeRemote(url, height_mm=3.0) as remote:
+                await wait_for(lambda: agent.loop is not None and _pins_at(agent, 3.0), 20.0,
+                               "pins at 3 mm")
+                remote.paused = True
+                loop = any_loop_of(agent)
+                await asyncio.sleep(scaled(0.2))  # frames in flight arrive, reports too
+                sent = loop.counters.commands_sent
+                nan = make_frame(900, None, 3.0)
+                nan.layers["height_mm"][2, 3] = np.nan
+                for bad in (nan, make_frame(901, None, 50.0),
+                            TactileFrame(seq=902, center_mm=(30.0, 30.0), layers={
+                                "height_mm": np.ones((4, 4)), "friction": np.ones((3, 3))})):
+                    agent.frames.put(bad, now_us())
+                    await asyncio.sleep(0.02)  # the child's hand-over keeps the newest only
+                await wait_for(lambda: loop.counters.frames_rejected >= 3, 3.0,
+                               "the child to reject the bad frames")
+                await asyncio.sleep(scaled(0.1))
+                assert loop.counters.frames_rejected == 3
+                assert loop.counters.commands_sent == sent
+                assert loop.counters.last_reject_reason
+                assert _pins_at(agent, 3.0) and loop.safe_reason is None
+        finally:
+            agent.request_stop("test")
+            assert await run == 0
+    assert agent.summary is not None and agent.summary["frames_rejected"] == 3
+
+
+def _pins_at(agent: LocalAgent, height_mm: float) -> bool:
+    fb = any_loop_of(agent).display.latest_feedback()
+    return fb is not None and not fb.safe_state and \
+        bool(np.all(np.abs(fb.position_mm - height_mm) < 0.15))
+
+
+async def test_a_silent_station_is_a_lost_link_for_the_child() -> None:
+    # the station stops sending the link's state (as when it is stopped or starved) while
+    # frames still arrive: the child cannot vouch for the link and puts the pins safe
+    async with running_relay() as relay:
+        url = f"ws://127.0.0.1:{relay.ws_port}/"
+        agent = relay_agent(url, render_loop="process", safe_state="flat")
+        run = asyncio.create_task(agent.run())
+        try:
+            async with FakeRemote(url):
+                await wait_for(lambda: agent.loop is not None and _pins_at(agent, 2.0), 20.0,
+                               "pins at 2 mm")
+                loop = any_loop_of(agent)
+                assert isinstance(loop, DisplayProcess)
+                silent = threading.Event()
+                link_state = loop._link_state
+                loop._link_state = lambda: None if silent.is_set() else link_state()  # type: ignore[method-assign]
+                silent.set()
+                await wait_for(lambda: loop.safe_reason == "link_lost", 2.0,
+                               "the child's safe state")
+                await wait_for(lambda: (fb := loop.display.latest_feedback()) is not None
+                               and fb.safe_state, 2.0, "pins flat")
+                silent.clear()
+                await wait_for(lambda: loop.safe_reason is None and _pins_at(agent, 2.0),
+                               4.0, "rendering again")
+        finally:
+            agent.request_stop("test")
+            assert await run == 0
+    assert agent.summary is not None
+    assert agent.summary["safe_state"]["entries"].get("link_lost", 0) >= 1
+    assert agent.summary["link"]["connection_losses"] == 0  # the relay link never went down
+
+
+async def test_a_killed_child_is_started_again_and_its_counts_carry_over() -> None:
+    async with running_relay() as relay:
+        url = f"ws://127.0.0.1:{relay.ws_port}/"
+        agent = relay_agent(url, render_loop="process", device_retry_min_s=0.05)
+        run = asyncio.create_task(agent.run())
+        try:
+            async with FakeRemote(url):
+                await wait_for(lambda: agent.loop is not None and _pins_at(agent, 2.0), 20.0,
+                               "pins at 2 mm")
+                loop = any_loop_of(agent)
+                assert isinstance(loop, DisplayProcess) and loop.child_pid is not None
+                first = loop.child_pid
+                await wait_for(lambda: loop.counters.frames_rendered >= 3, 3.0, "frames")
+                rendered = loop.counters.frames_rendered
+                iterations = loop.periods.iterations
+                os.kill(first, signal.SIGKILL)
+                await wait_for(lambda: loop.restarts == 1, 5.0, "the child started again")
+                assert loop.child_error is not None and "exited with -9" in loop.child_error
+                # the dead child's counts stay (the new one needs a second to start)
+                assert loop.counters.frames_rendered >= rendered
+                assert loop.periods.iterations >= iterations
+                await wait_for(lambda: loop.child_pid not in (None, first)
+                               and loop.safe_reason is None and _pins_at(agent, 2.0)
+                               and loop.counters.frames_rendered > rendered, 20.0,
+                               "rendering by the new child")
+                assert loop.periods.iterations > iterations
+        finally:
+            agent.request_stop("test")
+            assert await run == 0
+    s = agent.summary
+    assert s is not None and s["display_loop"]["process_restarts"] == 1
+    assert s["frames_rendered"] > rendered and s["display_loop"]["iterations"] > iterations
+    assert s["display_loop"]["process_error"].startswith("display process exited")
+
+
+def test_heartbeat_is_well_inside_the_link_loss_timeout() -> None:
+    # the child counts a silence beyond two heartbeats as a lost link; the default link-loss
+    # timeout must leave room for a late heartbeat or two
+    assert LocalAgentConfig().link_loss_timeout_s > 2 * HEARTBEAT_S
