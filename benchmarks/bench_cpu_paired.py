@@ -20,7 +20,8 @@ medians per side and profile, and each side's median ratio to the first side ove
 Run: ``python benchmarks/bench_cpu_paired.py --side base=../m2t-base --side new=. --link lan
 --link city-1000km --rounds 3 --out benchmarks/results/DIR`` (``--report-only`` rebuilds
 ``DIR/README.md``'s table from the saved runs; ``--side NAME=ROOT::--flag::value`` passes
-remote flags, separated by ``::``).
+remote flags, separated by ``::``, and ``local:--flag=value`` a flag of the local station).
+``local`` counts the local station with its child processes (platform reader, display loop).
 """
 
 from __future__ import annotations
@@ -54,7 +55,10 @@ def _run(name: str, root: Path, flags: list[str], link: str, label: str, out: Pa
     if link != "none":  # none: the stations straight to the relay
         cmd += ["--link", link]
     for flag in flags:
-        cmd.append(f"--remote-arg={flag}")
+        if flag.startswith("local:"):
+            cmd.append(f"--local-arg={flag.removeprefix('local:')}")
+        else:
+            cmd.append(f"--remote-arg={flag}")
     proc = subprocess.run(cmd, cwd=root, capture_output=True, text=True, timeout=900,
                           check=False)
     if proc.returncode != 0:
@@ -74,7 +78,9 @@ def figures(path: Path) -> dict[str, float | None]:
     return {
         "load": float(run["load_start"][0]),
         "cores": sum(p["cores"] for p in procs.values()),
-        "local": procs.get("local", {}).get("cores"),
+        # the local station with its child processes (platform reader, display loop)
+        "local": sum(procs.get(name, {}).get("cores") or 0.0
+                     for name in ("local", "platform", "display")) or None,
         "remote": procs.get("remote", {}).get("cores"),
         "switches": (sum(p["switches_per_s"] for p in procs.values())
                      if procs and all("switches_per_s" in p for p in procs.values()) else None),

@@ -284,6 +284,8 @@ class FaultRig:
             (``teletouch board``) instead of the simulator inside the station.
         platform_process: the local station reads its platform in a process of its own
             (``teletouch local --platform-process``).
+        render_loop: where the local station runs its display loop (``--render-loop``;
+            ``process``: a process of its own, probed there too).
         board_nice: the board process's niceness increment (``--nice``; -10 by default: a
             real board's MCU is not slowed by the host's load; refused without the
             privilege, then the board runs at normal priority and its summary says so).
@@ -293,8 +295,9 @@ class FaultRig:
     def __init__(self, workdir: Path, *, outage_s: float | None = None,
                  outage_reset: bool = False, cpu_burners: int = 0,
                  frame_rate_hz: float = 60.0, board_process: bool = False,
-                 platform_process: bool = False, board_nice: int = -10,
-                 lock_memory: bool = True, python: str = sys.executable) -> None:
+                 platform_process: bool = False, render_loop: str = "thread",
+                 board_nice: int = -10, lock_memory: bool = True,
+                 python: str = sys.executable) -> None:
         self.workdir = Path(workdir)
         self.workdir.mkdir(parents=True, exist_ok=True)
         self.outage_s = outage_s or 1.0
@@ -303,6 +306,7 @@ class FaultRig:
         self.frame_rate_hz = frame_rate_hz
         self.board_process = board_process
         self.platform_process = platform_process
+        self.render_loop = render_loop
         self.lock_memory = lock_memory
         self.board_nice = board_nice
         self.board: _Proc | None = None
@@ -389,7 +393,8 @@ class FaultRig:
                        else "sim")
             args = ["local", *common, "--platform", "sim", "--display", display,
                     "--motion", MOTION, "--no-status",
-                    "--platform-process" if self.platform_process else "--no-platform-process"]
+                    "--platform-process" if self.platform_process else "--no-platform-process",
+                    "--render-loop", self.render_loop]
         if not self.lock_memory:
             args.append("--no-lock-memory")
         p = self._spawn(f"{role}-{n}", args, module="lab.faults_probe", env=env)

@@ -2,6 +2,8 @@
 
 ``python -m lab.faults_probe local|remote ARGS...`` runs ``teletouch local|remote ARGS...`` in
 this process after wrapping a few product methods so that what the station *does* is written,
+(with ``--render-loop process`` the local station's display process runs through the probe
+too: ``python -m lab.faults_probe display-child SETTINGS``, the same file, its own lines)
 with the host's monotonic clock (the same in every process on one machine), to the file named
 by ``$TELETOUCH_FAULT_PROBE``, one event a line:
 
@@ -103,6 +105,10 @@ def _install_clock(path: str) -> None:
 
 def _install_local() -> None:
     from local_site.agent import display_loop as dl
+    from local_site.agent.display_process import DisplayProcess
+
+    # a display loop in a process of its own is probed there (the same file, appended)
+    DisplayProcess.child_argv = ("-m", "lab.faults_probe", "display-child")
 
     orig_take = dl.FrameSlot.take
     orig_tick = dl.DisplayLoop.tick
@@ -218,7 +224,7 @@ def main(argv: list[str] | None = None) -> int:
     global _out
     args = list(sys.argv[1:] if argv is None else argv)
     # the station's subcommand may follow global flags such as --log-level LEVEL
-    role = next((a for a in args if a in ("local", "remote")), None)
+    role = next((a for a in args if a in ("local", "remote", "display-child")), None)
     path = os.environ.get("TELETOUCH_FAULT_PROBE")
     if role is None or not path:
         print("usage: TELETOUCH_FAULT_PROBE=FILE python -m lab.faults_probe "
@@ -226,8 +232,18 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     _out = open(path, "a", buffering=1)  # noqa: SIM115 - open for the process's life
     clock = os.environ.get("TELETOUCH_FAULT_CLOCK")
-    if clock:
+    if clock and role != "display-child":  # the child stamps on its station's clock anyway
         _install_clock(clock)
+    if role == "display-child":
+        _install_local()
+        from local_site.agent.display_child import main as child_main
+
+        try:
+            return child_main(args[args.index(role) + 1:])
+        finally:
+            with _lock:
+                _out.close()
+                _out = None
     if role == "local":
         _install_local()
     else:

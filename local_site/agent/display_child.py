@@ -69,7 +69,6 @@ class _Reporter:
         self.sock = sock
         self.accepted: collections.deque[tuple[int, int]] = collections.deque(maxlen=4096)
         self._recorded = 0
-        self._pins_seq = -1
         self._feedback: Any = None
         self._lock = threading.Lock()
         self.dropped = 0
@@ -77,15 +76,15 @@ class _Reporter:
     def frame_accepted(self, frame: Any, rx_us: int) -> None:
         self.accepted.append((frame.seq, rx_us))
 
-    def send(self, final: bool = False) -> None:
+    def send(self, final: bool = False, connected: bool | None = None) -> None:
+        """Report (``final``: the last report, with the board's counters; ``connected``:
+        whether the board was connected, read before it was closed)."""
         loop = self.loop
         with self._lock:
             recorded, periods = loop.periods.since(self._recorded)
             self._recorded = recorded
-            pins = loop.pin_state
-            new_pins = pins if pins.seq != self._pins_seq else None
-            self._pins_seq = pins.seq
-            connected = loop.display.is_connected
+            if connected is None:
+                connected = loop.display.is_connected
             feedback = loop.display.latest_feedback() if connected else None
             new_feedback = feedback if feedback is not self._feedback else None
             self._feedback = feedback
@@ -94,7 +93,8 @@ class _Reporter:
                       "counters": dataclasses.replace(loop.counters),
                       "render_stats": dataclasses.replace(loop.renderer.stats),
                       "priority": (loop.priority_applied, loop.realtime_applied),
-                      "connected": connected, "feedback": new_feedback, "pins": new_pins,
+                      "connected": connected, "feedback": new_feedback,
+                      "pins": loop.pin_state,
                       "accepted": _drain(self.accepted),
                       "rendered": _drain(self.ledger.rendered), "final": final,
                       "display_stats": loop.display.stats() if final else None}
@@ -185,9 +185,11 @@ def main(argv: list[str] | None = None) -> int:  # pragma: no cover - runs in th
             stop.set()
             threads[1].join()
             loop.finish("shutdown")
+            connected = display.is_connected
             with contextlib.suppress(Exception):
                 display.disconnect()
-            reporter.send(final=True)
+            # the board's counters, its last feedback (kept by the driver) and the pins' state
+            reporter.send(final=True, connected=connected)
     return 0
 
 

@@ -70,13 +70,18 @@ from shared.motion_to_touch import MotionToTouchLedger
 from shared.protocol import TactileFrame
 from shared.timebase import monotonic_s, wall_anchor_ns
 
-__all__ = ["HEARTBEAT_S", "MAX_MESSAGE_BYTES", "DisplayProcess", "LinkMirror", "LinkState",
-           "fold_counters"]
+__all__ = ["HEARTBEAT_S", "MAX_MESSAGE_BYTES", "NO_WORD", "SILENCE_S", "DisplayProcess",
+           "LinkMirror", "LinkState", "fold_counters"]
 
 log = logging.getLogger(__name__)
 
 #: how often the station sends the link's state and the child reports
 HEARTBEAT_S = 0.02
+#: a child silent this long (stopped, starved) leaves the station's pin state unknown
+SILENCE_S = 0.25
+#: the safe-state reason shown while no child reports (none runs, or it is silent): the
+#: pins' state is not known here, and the board's watchdog holds them safe
+NO_WORD = "display_process"
 #: the largest message either side reads (a tactile frame is tens of kB)
 MAX_MESSAGE_BYTES = 1 << 20
 #: frames kept after sending, to record and show the ones the loop accepts
@@ -167,7 +172,8 @@ class _DisplayMirror:
         return self._stats
 
     def disconnect(self) -> None:
-        """The child closes the board when it stops (nothing to do here)."""
+        """The child closed the board when it stopped; its last feedback stays readable."""
+        self.is_connected = False
 
 
 class _RendererMirror:
@@ -303,6 +309,7 @@ class DisplayProcess:
         self._child_counters = DisplayLoopCounters()
         self._child_loops = (0, 0)
         self._recorded = 0
+        self._child_pins_seq = -1
         self._last_report_s = 0.0
         self._final = False
 
@@ -366,14 +373,21 @@ class DisplayProcess:
             if trace.end_to_end_us is not None:
                 self.recent_e2e_ms.append(trace.end_to_end_us / 1e3)
             self.last_trace = (trace.stages_us, trace.end_to_end_us, at_s)
-        pins: PinState | None = report["pins"]
-        if pins is not None:
+        pins: PinState = report["pins"]
+        if pins.seq != self._child_pins_seq or self.pin_state.safe_reason == NO_WORD:
+            self._child_pins_seq = pins.seq
             self.pin_state = PinState(pins.command, pins.safe_reason, self.pin_state.seq + 1)
         if self.recorder is not None:
             state = self.pin_state
             self.recorder.add_pins(state.command, display, state.safe_reason)
-        if report.get("final"):
+        if report["final"]:
             self._final = True
+
+    def _silent(self) -> None:
+        """No report for :data:`SILENCE_S`: what the station shows of the pins is not known
+        now, so no command is shown as on them (never an old state as the current one)."""
+        if self.pin_state.safe_reason != NO_WORD and not self._final:
+            self.pin_state = PinState(None, NO_WORD, self.pin_state.seq + 1)
 
     def _retire(self) -> None:
         """An ended child's counters become the base of the next one's."""
@@ -383,15 +397,16 @@ class DisplayProcess:
         self._child_counters = DisplayLoopCounters()
         self._child_loops = (0, 0)
         self._recorded = 0
+        self._child_pins_seq = -1
         self.periods.restart()
         self._no_child()
 
     def _no_child(self) -> None:
         """No child drives the board now: no command is shown as on the pins (the board's
         watchdog, or the child's last act, put them in their safe state)."""
-        self.display.is_connected = False
-        if not self._final or self.pin_state.command is not None:
-            self.pin_state = PinState(None, "display_process", self.pin_state.seq + 1)
+        if not self._final:
+            self.display.is_connected = False
+            self.pin_state = PinState(None, NO_WORD, self.pin_state.seq + 1)
 
     # ------------------------------------------------------------------ the child
 
@@ -407,8 +422,8 @@ class DisplayProcess:
                     "log_level": logging.getLogger().getEffectiveLevel()}
         try:
             process = subprocess.Popen(
-                [sys.executable, "-P", "-m", "local_site.agent.display_child",
-                 json.dumps(settings)], stdin=subprocess.DEVNULL,
+                [sys.executable, "-P", *self.child_argv, json.dumps(settings)],
+                stdin=subprocess.DEVNULL,
                 pass_fds=(theirs.fileno(), record_fd), process_group=0)
         except OSError as err:
             ours.close()
@@ -451,6 +466,8 @@ class DisplayProcess:
 
     _spawned_s = 0.0
     _spawn_error = "could not start"
+    #: the child's command after the interpreter (an instrumented child may replace it)
+    child_argv: tuple[str, ...] = ("-m", "local_site.agent.display_child")
 
     def _link_state(self) -> LinkState | None:
         link = self.link
@@ -488,6 +505,8 @@ class DisplayProcess:
             if process.poll() is not None:
                 return f"exited with {process.returncode}"
             beat = max(self._last_report_s, self._spawned_s)
+            if monotonic_s() - beat > SILENCE_S:
+                self._silent()
             if monotonic_s() - beat > self._hang_timeout_s:
                 process.kill()
                 process.wait()

@@ -39,9 +39,10 @@ def rig_factory(tmp_path: Path) -> Iterator[RigFactory]:
     rigs: list[FaultRig] = []
 
     def make(outage_s: float | None = None, board_process: bool = False,
-             platform_process: bool = False) -> FaultRig:
+             platform_process: bool = False, render_loop: str = "thread") -> FaultRig:
         rig = FaultRig(tmp_path / f"rig{len(rigs)}", outage_s=outage_s,
-                       board_process=board_process, platform_process=platform_process)
+                       board_process=board_process, platform_process=platform_process,
+                       render_loop=render_loop)
         rigs.append(rig)
         rig.start(scaled(90.0))
         assert rig.wait_steady(1.0, scaled(30.0), FLOW_BOUND_MS), \
@@ -105,17 +106,23 @@ def test_two_second_blackhole_on_the_remote_leg_halts_goes_safe_and_recovers(
     assert rig.exits == [], f"stations exited: {rig.exits}"
 
 
-def test_no_stale_frame_rendered_after_a_two_second_blackhole(rig_factory: RigFactory) -> None:
-    rig: FaultRig = rig_factory(outage_s=2.0)
+# "process": the display loop in a process of its own (local.agent.render_loop), probed there
+@pytest.mark.parametrize("render_loop", ["thread", "process"])
+def test_no_stale_frame_rendered_after_a_two_second_blackhole(rig_factory: RigFactory,
+                                                               render_loop: str) -> None:
+    rig: FaultRig = rig_factory(outage_s=2.0, render_loop=render_loop)
     _, t_end = rig.inject(FaultSpec("blackhole", "remote", 2.0))
     assert rig.wait_flowing(t_end, scaled(20.0), FLOW_BOUND_MS)
     stale = _stale_rendered_after(rig, t_end)
     assert not stale, f"{len(stale)} stale frames rendered, up to {max(stale):.0f} ms old"
 
 
+@pytest.mark.parametrize("render_loop", ["thread", "process"])
 def test_local_station_sigstop_three_seconds_renders_no_stale_frame_after_sigcont(
-        rig_factory: RigFactory) -> None:
-    rig: FaultRig = rig_factory()
+        rig_factory: RigFactory, render_loop: str) -> None:
+    # "process": only the station stops; its display process goes on, hears nothing from it
+    # (a lost link) and parks the pins itself
+    rig: FaultRig = rig_factory(render_loop=render_loop)
     _, t_cont = rig.inject(FaultSpec("stop", "local", 3.0))
     assert rig.wait_flowing(t_cont, scaled(20.0), FLOW_BOUND_MS), \
         "fresh frames and executed commands did not come back after SIGCONT"
@@ -125,13 +132,16 @@ def test_local_station_sigstop_three_seconds_renders_no_stale_frame_after_sigcon
     assert not stale, f"{len(stale)} stale frames rendered, up to {max(stale):.0f} ms old"
 
 
+@pytest.mark.parametrize("render_loop", ["thread", "process"])
 def test_local_station_sigstop_three_seconds_the_board_process_parks_the_pins_by_itself(
-        rig_factory: RigFactory) -> None:
+        rig_factory: RigFactory, render_loop: str) -> None:
     # The drive board is a process of its own (``teletouch board``): the frozen station
     # cannot park the pins, only the board's own watchdog can. The board's event file is the
     # truth of what the pins did; before the board process, the display's safe state of a
     # stopped station could only be logged after SIGCONT (faults_after.md: safe p99 2962 ms).
-    rig: FaultRig = rig_factory(board_process=True)
+    # "process": the display process goes on beside the stopped station and parks the pins
+    # as a lost link, before the board's watchdog would
+    rig: FaultRig = rig_factory(board_process=True, render_loop=render_loop)
     board = rig.board_log
     assert board is not None
     _, t_cont = rig.inject(FaultSpec("stop", "local", 3.0))

@@ -27,6 +27,8 @@ from local_site.agent import LocalAgent, LocalAgentConfig
 from local_site.agent.display_loop import DisplayLoopCounters
 from local_site.agent.display_process import (
     HEARTBEAT_S,
+    NO_WORD,
+    SILENCE_S,
     DisplayProcess,
     LinkMirror,
     LinkState,
@@ -286,3 +288,36 @@ def test_heartbeat_is_well_inside_the_link_loss_timeout() -> None:
     # the child counts a silence beyond two heartbeats as a lost link; the default link-loss
     # timeout must leave room for a late heartbeat or two
     assert LocalAgentConfig().link_loss_timeout_s > 2 * HEARTBEAT_S
+
+
+async def test_a_stopped_child_leaves_the_pins_unknown_not_shown_as_before() -> None:
+    # a child that stops reporting (SIGSTOP) must not leave its last command shown as the one
+    # on the pins: the station shows no command until the child reports again
+    async with running_relay() as relay:
+        url = f"ws://127.0.0.1:{relay.ws_port}/"
+        agent = relay_agent(url, render_loop="process")
+        run = asyncio.create_task(agent.run())
+        try:
+            async with FakeRemote(url):
+                await wait_for(lambda: agent.loop is not None and _pins_at(agent, 2.0), 20.0,
+                               "pins at 2 mm")
+                loop = any_loop_of(agent)
+                assert isinstance(loop, DisplayProcess) and loop.child_pid is not None
+                await wait_for(lambda: loop.last_command is not None, 2.0, "a command shown")
+                pid = loop.child_pid
+                os.kill(pid, signal.SIGSTOP)
+                try:
+                    await wait_for(lambda: loop.safe_reason == NO_WORD
+                                   and loop.last_command is None, 1.0 + SILENCE_S,
+                                   "the pin state marked unknown")
+                finally:
+                    os.kill(pid, signal.SIGCONT)
+                await wait_for(lambda: loop.safe_reason is None and loop.last_command is not None
+                               and _pins_at(agent, 2.0), 10.0, "the child's state again")
+                assert loop.restarts == 0 and loop.child_pid == pid
+        finally:
+            agent.request_stop("test")
+            assert await run == 0
+    s = agent.summary
+    assert s is not None and s["display"]["last_feedback_safe_state"] is not None
+    assert s["display"]["driver"]["safe_states_sent"] >= 1  # the shutdown's, at least
