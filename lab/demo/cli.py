@@ -52,6 +52,12 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="the local station reads its platform in a process of its own, "
                              "the newest sample in shared memory (default: off; "
                              "docs/speed.md section 13)")
+    parser.add_argument("--render-loop", choices=("process", "thread", "asyncio"),
+                        default="process",
+                        help="where the local station runs its display loop: a process of "
+                             "its own with the board link (default; the platform is then read "
+                             "in a process of its own too), a thread, or an asyncio task "
+                             "(docs/speed.md section 21)")
     parser.add_argument("--display", choices=("sim", "board-process"), default=DEFAULT_DISPLAY,
                         help="the emulated ArrayTac drive board as a process of its own "
                              "reached over socket:// (board-process, default), like a "
@@ -130,7 +136,8 @@ def run(args: argparse.Namespace) -> int:
                         register=args.register,
                         link=args.link,
                         motion=args.motion or DEFAULT_MOTION, platform=args.platform,
-                        platform_process=args.platform_process, display=args.display,
+                        platform_process=args.platform_process,
+                        render_loop=args.render_loop, display=args.display,
                         max_duration_s=args.duration,
                         frame_rate_hz=args.frame_rate_hz,
                         workdir=Path(args.workdir) if args.workdir else None,

@@ -90,6 +90,11 @@ class DemoConfig:
             steadied the display loop without a link emulator but made motion-to-touch worse
             on ``city-1000km`` and beside CPU burners, ``benchmarks/results/platform_process/``
             and ``docs/speed.md`` section 13).
+        render_loop: where the local station runs its display loop (``teletouch local
+            --render-loop``): ``process`` (the default: a process of its own with the board
+            link, which met the loop's 0.5 ms jitter target in paired runs where the thread
+            did not, for about 0.08 cores more; ``docs/speed.md`` section 21), ``thread`` or
+            ``asyncio``.
         display: the ArrayTac drive board: ``board-process`` (the default: ``teletouch
             board``, a process of its own that the station reaches over ``socket://`` with
             its serial driver, as a separate board is reached; the board's simulation then
@@ -118,6 +123,7 @@ class DemoConfig:
     motion: str = DEFAULT_MOTION
     platform: str = "sim"
     platform_process: bool = False
+    render_loop: str = "process"
     display: str = DEFAULT_DISPLAY
     ideal: bool = False
     register: bool = True
@@ -375,6 +381,7 @@ def run_demo(config: DemoConfig,
             "local", "local", "--relay", f"ws://127.0.0.1:{local_port}/", *common,
             "--platform", config.platform,
             "--platform-process" if config.platform_process else "--no-platform-process",
+            "--render-loop", config.render_loop,
             "--display", display, "--motion", config.motion,
             "--until-motion-done", "--duration", f"{config.max_duration_s:g}", "--no-status",
             "--record", str(files["record"]), "--summary-json", str(files["local_summary"]),
