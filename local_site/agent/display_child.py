@@ -20,7 +20,7 @@ import threading
 from collections.abc import Iterable, Mapping
 from typing import Any
 
-from local_site.agent.display_loop import DisplayLoop, FrameSlot
+from local_site.agent.display_loop import DisplayLoop, DisplayLoopCounters, FrameSlot
 from local_site.agent.display_process import HEARTBEAT_S, MAX_MESSAGE_BYTES, LinkMirror
 from local_site.agent.platform_process import RecordView, SampleRecord
 from local_site.devices import open_display
@@ -60,6 +60,12 @@ def _drain(queue: collections.deque[Any]) -> list[Any]:
     return out
 
 
+def _copy_counters(c: DisplayLoopCounters) -> DisplayLoopCounters:
+    """A copy of the loop's counters (their dict and list too: the loop goes on meanwhile)."""
+    return dataclasses.replace(c, safe_entries=dict(c.safe_entries),
+                               link_loss_to_safe_ms=list(c.link_loss_to_safe_ms))
+
+
 class _Reporter:
     """What the station reads, sent every heartbeat (and once more at the end)."""
 
@@ -90,7 +96,7 @@ class _Reporter:
             self._feedback = feedback
             report = {"periods": (recorded, periods),
                       "loops": (loop.periods.iterations, loop.periods.overruns),
-                      "counters": dataclasses.replace(loop.counters),
+                      "counters": _copy_counters(loop.counters),
                       "render_stats": dataclasses.replace(loop.renderer.stats),
                       "priority": (loop.priority_applied, loop.realtime_applied),
                       "connected": connected, "feedback": new_feedback,

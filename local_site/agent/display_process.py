@@ -85,7 +85,7 @@ NO_WORD = "display_process"
 #: the largest message either side reads (a tactile frame is tens of kB)
 MAX_MESSAGE_BYTES = 1 << 20
 #: frames kept after sending, to record and show the ones the loop accepts
-_KEEP_SENT = 256
+_KEEP_SENT = 64
 #: how long a stopping child may take (it puts the pins in their safe state, closes the board)
 _CHILD_STOP_S = 6.0
 
@@ -308,7 +308,6 @@ class DisplayProcess:
         self._base_overruns = 0
         self._child_counters = DisplayLoopCounters()
         self._child_loops = (0, 0)
-        self._recorded = 0
         self._child_pins_seq = -1
         self._last_report_s = 0.0
         self._final = False
@@ -340,10 +339,7 @@ class DisplayProcess:
         if kind != "report":
             return
         self._last_report_s = monotonic_s()
-        recorded, periods = report["periods"]
-        if recorded < self._recorded:  # a new child counts from zero
-            self._recorded = 0
-        self._recorded = recorded
+        _, periods = report["periods"]
         iterations, overruns = report["loops"]
         self._child_loops = (iterations, overruns)
         self.periods.extend(periods, self._base_iterations + iterations,
@@ -396,9 +392,7 @@ class DisplayProcess:
         self._base_overruns += self._child_loops[1]
         self._child_counters = DisplayLoopCounters()
         self._child_loops = (0, 0)
-        self._recorded = 0
         self._child_pins_seq = -1
-        self.periods.restart()
         self._no_child()
 
     def _no_child(self) -> None:

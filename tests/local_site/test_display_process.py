@@ -10,6 +10,7 @@ over.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import itertools
 import os
 import pickle
@@ -17,6 +18,8 @@ import select
 import signal
 import socket
 import threading
+from collections.abc import AsyncIterator
+from typing import Any
 
 import numpy as np
 import pytest
@@ -177,38 +180,25 @@ def test_the_child_stops_when_the_stations_socket_ends() -> None:
 # ---------------------------------------------------------------------- the station
 
 
-async def test_bad_frames_are_rejected_in_the_child_without_touching_the_pins() -> None:
+@contextlib.asynccontextmanager
+async def _station(height_mm: float = 2.0, **overrides: Any) -> AsyncIterator[
+        tuple[LocalAgent, DisplayProcess, FakeRemote]]:
+    """A station with its display loop in a process of its own, against a real relay and a
+    fake remote, once its pins show the remote's frames; stopped (exit 0) after the block."""
     async with running_relay() as relay:
         url = f"ws://127.0.0.1:{relay.ws_port}/"
-        agent = relay_agent(url, stale_frame_timeout_s=30.0, max_frame_age_s=30.0,
-                            render_loop="process")
+        agent = relay_agent(url, render_loop="process", **overrides)
         run = asyncio.create_task(agent.run())
         try:
-            async with FakeRemote(url, height_mm=3.0) as remote:
-                await wait_for(lambda: agent.loop is not None and _pins_at(agent, 3.0), 20.0,
-                               "pins at 3 mm")
-                remote.paused = True
+            async with FakeRemote(url, height_mm=height_mm) as remote:
+                await wait_for(lambda: agent.loop is not None
+                               and _pins_at(agent, height_mm), 20.0, "pins at the frames'")
                 loop = any_loop_of(agent)
-                await asyncio.sleep(scaled(0.2))  # frames in flight arrive, reports too
-                sent = loop.counters.commands_sent
-                nan = make_frame(900, None, 3.0)
-                nan.layers["height_mm"][2, 3] = np.nan
-                for bad in (nan, make_frame(901, None, 50.0),
-                            TactileFrame(seq=902, center_mm=(30.0, 30.0), layers={
-                                "height_mm": np.ones((4, 4)), "friction": np.ones((3, 3))})):
-                    agent.frames.put(bad, now_us())
-                    await asyncio.sleep(0.02)  # the child's hand-over keeps the newest only
-                await wait_for(lambda: loop.counters.frames_rejected >= 3, 3.0,
-                               "the child to reject the bad frames")
-                await asyncio.sleep(scaled(0.1))
-                assert loop.counters.frames_rejected == 3
-                assert loop.counters.commands_sent == sent
-                assert loop.counters.last_reject_reason
-                assert _pins_at(agent, 3.0) and loop.safe_reason is None
+                assert isinstance(loop, DisplayProcess) and loop.child_pid is not None
+                yield agent, loop, remote
         finally:
             agent.request_stop("test")
             assert await run == 0
-    assert agent.summary is not None and agent.summary["frames_rejected"] == 3
 
 
 def _pins_at(agent: LocalAgent, height_mm: float) -> bool:
@@ -217,107 +207,94 @@ def _pins_at(agent: LocalAgent, height_mm: float) -> bool:
         bool(np.all(np.abs(fb.position_mm - height_mm) < 0.15))
 
 
+async def test_bad_frames_are_rejected_in_the_child_without_touching_the_pins() -> None:
+    async with _station(3.0, stale_frame_timeout_s=30.0, max_frame_age_s=30.0) as (
+            agent, loop, remote):
+        remote.paused = True
+        await asyncio.sleep(scaled(0.2))  # frames in flight arrive, reports too
+        sent = loop.counters.commands_sent
+        nan = make_frame(900, None, 3.0)
+        nan.layers["height_mm"][2, 3] = np.nan
+        for bad in (nan, make_frame(901, None, 50.0),
+                    TactileFrame(seq=902, center_mm=(30.0, 30.0), layers={
+                        "height_mm": np.ones((4, 4)), "friction": np.ones((3, 3))})):
+            agent.frames.put(bad, now_us())
+            await asyncio.sleep(0.02)  # the child's hand-over keeps the newest only
+        await wait_for(lambda: loop.counters.frames_rejected >= 3, 3.0,
+                       "the child to reject the bad frames")
+        await asyncio.sleep(scaled(0.1))
+        assert loop.counters.frames_rejected == 3
+        assert loop.counters.commands_sent == sent
+        assert loop.counters.last_reject_reason
+        assert _pins_at(agent, 3.0) and loop.safe_reason is None
+    assert agent.summary is not None and agent.summary["frames_rejected"] == 3
+
+
 async def test_a_silent_station_is_a_lost_link_for_the_child() -> None:
     # the station stops sending the link's state (as when it is stopped or starved) while
     # frames still arrive: the child cannot vouch for the link and puts the pins safe
-    async with running_relay() as relay:
-        url = f"ws://127.0.0.1:{relay.ws_port}/"
-        agent = relay_agent(url, render_loop="process", safe_state="flat")
-        run = asyncio.create_task(agent.run())
-        try:
-            async with FakeRemote(url):
-                await wait_for(lambda: agent.loop is not None and _pins_at(agent, 2.0), 20.0,
-                               "pins at 2 mm")
-                loop = any_loop_of(agent)
-                assert isinstance(loop, DisplayProcess)
-                silent = threading.Event()
-                link_state = loop._link_state
-                loop._link_state = lambda: None if silent.is_set() else link_state()  # type: ignore[method-assign]
-                silent.set()
-                await wait_for(lambda: loop.safe_reason == "link_lost", 2.0,
-                               "the child's safe state")
-                await wait_for(lambda: (fb := loop.display.latest_feedback()) is not None
-                               and fb.safe_state, 2.0, "pins flat")
-                silent.clear()
-                await wait_for(lambda: loop.safe_reason is None and _pins_at(agent, 2.0),
-                               4.0, "rendering again")
-        finally:
-            agent.request_stop("test")
-            assert await run == 0
+    async with _station(safe_state="flat") as (agent, loop, _):
+        silent = threading.Event()
+        link_state = loop._link_state
+        loop._link_state = lambda: None if silent.is_set() else link_state()  # type: ignore[method-assign]
+        silent.set()
+        await wait_for(lambda: loop.safe_reason == "link_lost", 2.0, "the child's safe state")
+        await wait_for(lambda: (fb := loop.display.latest_feedback()) is not None
+                       and fb.safe_state, 2.0, "pins flat")
+        silent.clear()
+        await wait_for(lambda: loop.safe_reason is None and _pins_at(agent, 2.0), 4.0,
+                       "rendering again")
     assert agent.summary is not None
     assert agent.summary["safe_state"]["entries"].get("link_lost", 0) >= 1
     assert agent.summary["link"]["connection_losses"] == 0  # the relay link never went down
 
 
 async def test_a_killed_child_is_started_again_and_its_counts_carry_over() -> None:
-    async with running_relay() as relay:
-        url = f"ws://127.0.0.1:{relay.ws_port}/"
-        agent = relay_agent(url, render_loop="process", device_retry_min_s=0.05)
-        run = asyncio.create_task(agent.run())
-        try:
-            async with FakeRemote(url):
-                await wait_for(lambda: agent.loop is not None and _pins_at(agent, 2.0), 20.0,
-                               "pins at 2 mm")
-                loop = any_loop_of(agent)
-                assert isinstance(loop, DisplayProcess) and loop.child_pid is not None
-                first = loop.child_pid
-                await wait_for(lambda: loop.counters.frames_rendered >= 3, 3.0, "frames")
-                rendered = loop.counters.frames_rendered
-                iterations = loop.periods.iterations
-                os.kill(first, signal.SIGKILL)
-                await wait_for(lambda: loop.restarts == 1, 5.0, "the child started again")
-                assert loop.child_error is not None and "exited with -9" in loop.child_error
-                # the dead child's counts stay (the new one needs a second to start)
-                assert loop.counters.frames_rendered >= rendered
-                assert loop.periods.iterations >= iterations
-                await wait_for(lambda: loop.child_pid not in (None, first)
-                               and loop.safe_reason is None and _pins_at(agent, 2.0)
-                               and loop.counters.frames_rendered > rendered, 20.0,
-                               "rendering by the new child")
-                assert loop.periods.iterations > iterations
-        finally:
-            agent.request_stop("test")
-            assert await run == 0
+    async with _station(device_retry_min_s=0.05) as (agent, loop, _):
+        first = loop.child_pid
+        assert first is not None
+        await wait_for(lambda: loop.counters.frames_rendered >= 3, 3.0, "frames")
+        rendered = loop.counters.frames_rendered
+        iterations = loop.periods.iterations
+        os.kill(first, signal.SIGKILL)
+        await wait_for(lambda: loop.restarts == 1, 5.0, "the child started again")
+        assert loop.child_error is not None and "exited with -9" in loop.child_error
+        # the dead child's counts stay (the new one needs a second to start)
+        assert loop.counters.frames_rendered >= rendered
+        assert loop.periods.iterations >= iterations
+        await wait_for(lambda: loop.child_pid not in (None, first)
+                       and loop.safe_reason is None and _pins_at(agent, 2.0)
+                       and loop.counters.frames_rendered > rendered, 20.0,
+                       "rendering by the new child")
+        assert loop.periods.iterations > iterations
     s = agent.summary
     assert s is not None and s["display_loop"]["process_restarts"] == 1
     assert s["frames_rendered"] > rendered and s["display_loop"]["iterations"] > iterations
     assert s["display_loop"]["process_error"].startswith("display process exited")
 
 
+async def test_a_stopped_child_leaves_the_pins_unknown_not_shown_as_before() -> None:
+    # a child that stops reporting (SIGSTOP) must not leave its last command shown as the one
+    # on the pins: the station shows no command until the child reports again
+    async with _station() as (agent, loop, _):
+        await wait_for(lambda: loop.last_command is not None, 2.0, "a command shown")
+        pid = loop.child_pid
+        assert pid is not None
+        os.kill(pid, signal.SIGSTOP)
+        try:
+            await wait_for(lambda: loop.safe_reason == NO_WORD and loop.last_command is None,
+                           1.0 + SILENCE_S, "the pin state marked unknown")
+        finally:
+            os.kill(pid, signal.SIGCONT)
+        await wait_for(lambda: loop.safe_reason is None and loop.last_command is not None
+                       and _pins_at(agent, 2.0), 10.0, "the child's state again")
+        assert loop.restarts == 0 and loop.child_pid == pid
+    s = agent.summary
+    assert s is not None and s["display"]["last_feedback_safe_state"] is not None
+    assert s["display"]["driver"]["safe_states_sent"] >= 1  # the shutdown's, at least
+
+
 def test_heartbeat_is_well_inside_the_link_loss_timeout() -> None:
     # the child counts a silence beyond two heartbeats as a lost link; the default link-loss
     # timeout must leave room for a late heartbeat or two
     assert LocalAgentConfig().link_loss_timeout_s > 2 * HEARTBEAT_S
-
-
-async def test_a_stopped_child_leaves_the_pins_unknown_not_shown_as_before() -> None:
-    # a child that stops reporting (SIGSTOP) must not leave its last command shown as the one
-    # on the pins: the station shows no command until the child reports again
-    async with running_relay() as relay:
-        url = f"ws://127.0.0.1:{relay.ws_port}/"
-        agent = relay_agent(url, render_loop="process")
-        run = asyncio.create_task(agent.run())
-        try:
-            async with FakeRemote(url):
-                await wait_for(lambda: agent.loop is not None and _pins_at(agent, 2.0), 20.0,
-                               "pins at 2 mm")
-                loop = any_loop_of(agent)
-                assert isinstance(loop, DisplayProcess) and loop.child_pid is not None
-                await wait_for(lambda: loop.last_command is not None, 2.0, "a command shown")
-                pid = loop.child_pid
-                os.kill(pid, signal.SIGSTOP)
-                try:
-                    await wait_for(lambda: loop.safe_reason == NO_WORD
-                                   and loop.last_command is None, 1.0 + SILENCE_S,
-                                   "the pin state marked unknown")
-                finally:
-                    os.kill(pid, signal.SIGCONT)
-                await wait_for(lambda: loop.safe_reason is None and loop.last_command is not None
-                               and _pins_at(agent, 2.0), 10.0, "the child's state again")
-                assert loop.restarts == 0 and loop.child_pid == pid
-        finally:
-            agent.request_stop("test")
-            assert await run == 0
-    s = agent.summary
-    assert s is not None and s["display"]["last_feedback_safe_state"] is not None
-    assert s["display"]["driver"]["safe_states_sent"] >= 1  # the shutdown's, at least
