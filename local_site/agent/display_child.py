@@ -17,6 +17,7 @@ import signal
 import socket
 import sys
 import threading
+import time
 from collections.abc import Iterable, Mapping
 from typing import Any
 
@@ -35,6 +36,11 @@ from shared.timebase import adopt_wall_anchor, monotonic_s
 __all__ = ["main"]
 
 log = logging.getLogger(__name__)
+
+#: tries of the final report while the station's socket is busy (10 ms apart)
+_FINAL_TRIES = 100
+#: accepted frames and rendered frames' hops kept for a station that takes no report
+_KEEP_PENDING = 256
 
 
 class _TappedLedger(MotionToTouchLedger):
@@ -67,48 +73,69 @@ def _copy_counters(c: DisplayLoopCounters) -> DisplayLoopCounters:
 
 
 class _Reporter:
-    """What the station reads, sent every heartbeat (and once more at the end)."""
+    """What the station reads, sent every heartbeat (and once more at the end). What a report
+    carries once (new periods, accepted frames, rendered hops, new feedback) is given up only
+    when the report went out: a report the station's busy socket refused is not a loss."""
 
-    def __init__(self, loop: DisplayLoop, ledger: _TappedLedger, sock: socket.socket) -> None:
+    def __init__(self, loop: DisplayLoop, ledger: _TappedLedger, sock: socket.socket,
+                 frames: FrameSlot | None) -> None:
         self.loop = loop
         self.ledger = ledger
         self.sock = sock
+        self.frames = frames
         self.accepted: collections.deque[tuple[int, int]] = collections.deque(maxlen=4096)
         self._recorded = 0
         self._feedback: Any = None
         self._lock = threading.Lock()
+        self._accepted: list[tuple[int, int]] = []
+        self._rendered: list[Any] = []
         self.dropped = 0
 
     def frame_accepted(self, frame: Any, rx_us: int) -> None:
         self.accepted.append((frame.seq, rx_us))
 
     def send(self, final: bool = False, connected: bool | None = None) -> None:
-        """Report (``final``: the last report, with the board's counters; ``connected``:
-        whether the board was connected, read before it was closed)."""
+        """Report (``final``: the last one, sent even when the station's socket is busy for
+        a while; ``connected``: whether the board was connected, read before it was
+        closed)."""
         loop = self.loop
         with self._lock:
             recorded, periods = loop.periods.since(self._recorded)
-            self._recorded = recorded
             if connected is None:
                 connected = loop.display.is_connected
             feedback = loop.display.latest_feedback() if connected else None
-            new_feedback = feedback if feedback is not self._feedback else None
-            self._feedback = feedback
-            report = {"periods": (recorded, periods),
+            self._accepted += _drain(self.accepted)
+            self._rendered += [(tuple((h.clock, h.stage, h.t_us) for h in hops), offsets, at)
+                               for hops, offsets, at in _drain(self.ledger.rendered)]
+            # a station that takes nothing for long gets the newest (a report fits a packet)
+            del self._accepted[:-_KEEP_PENDING], self._rendered[:-_KEEP_PENDING]
+            report = {"periods": periods,
                       "loops": (loop.periods.iterations, loop.periods.overruns),
                       "counters": _copy_counters(loop.counters),
                       "render_stats": dataclasses.replace(loop.renderer.stats),
+                      "display_stats": loop.display.stats(),
+                      "superseded": 0 if self.frames is None else self.frames.superseded,
                       "priority": (loop.priority_applied, loop.realtime_applied),
-                      "connected": connected, "feedback": new_feedback,
-                      "pins": loop.pin_state,
-                      "accepted": _drain(self.accepted),
-                      "rendered": _drain(self.ledger.rendered), "final": final,
-                      "display_stats": loop.display.stats() if final else None}
-            try:
-                self.sock.send(pickle.dumps(("report", report), protocol=5),
-                               0 if final else socket.MSG_DONTWAIT)
-            except OSError:  # the station is busy (or gone: the receiver stops us)
+                      "connected": connected,
+                      "feedback": feedback if feedback is not self._feedback else None,
+                      "pins": loop.pin_state, "accepted": self._accepted,
+                      "rendered": self._rendered, "final": final}
+            data = pickle.dumps(("report", report), protocol=5)
+            for _ in range(_FINAL_TRIES if final else 1):
+                try:
+                    self.sock.send(data, socket.MSG_DONTWAIT)
+                    break
+                except BlockingIOError:  # the station is busy: the next report carries it
+                    if final:
+                        time.sleep(0.01)
+                except OSError:  # the station is gone (the receiver stops us)
+                    break
+            else:
                 self.dropped += 1
+                return
+            self._recorded = recorded
+            self._feedback = feedback
+            self._accepted, self._rendered = [], []
 
     def run(self, stop: threading.Event) -> None:
         while not stop.wait(HEARTBEAT_S):
@@ -160,7 +187,10 @@ def main(argv: list[str] | None = None) -> int:  # pragma: no cover - runs in th
     adopt_wall_anchor(int(settings["anchor_ns"]))  # stamps on the station's clock
     logging.basicConfig(level=int(settings["log_level"]),
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the station stops us through the socket
+    # the station stops us through the socket (a Ctrl-C at the terminal, or systemd's SIGTERM
+    # to the whole unit, reaches the station, which parks the pins through us)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     sock = socket.socket(fileno=int(settings["sock_fd"]))
     platform = RecordView(SampleRecord(int(settings["record_fd"])),
                           float(settings["read_timeout_s"]))
@@ -173,7 +203,7 @@ def main(argv: list[str] | None = None) -> int:  # pragma: no cover - runs in th
                        _scene(settings), positions=lambda: platform.latest,
                        platform_ok=lambda: platform.healthy, frames=frames, link=link,
                        ledger=ledger, **settings["loop"])
-    reporter = _Reporter(loop, ledger, sock)
+    reporter = _Reporter(loop, ledger, sock, frames)
     loop.frame_listener = reporter.frame_accepted
     stop = threading.Event()
     threads = [threading.Thread(target=_receive, args=(sock, frames, link, stop),

@@ -22,23 +22,31 @@ packet; both ends are this program):
 * station -> child: each tactile frame as it arrives (``frame``), the link's state every
   :data:`HEARTBEAT_S` (``link``: since when it is down, the clock offsets and their bounds),
   and ``stop``;
-* child -> station: a report every :data:`HEARTBEAT_S` (new loop periods, counters, the pin
-  state when it changed, the board's newest feedback, the frames the loop accepted and the
-  hops of the frames it rendered) and a final one when it stops.
+* child -> station: a report every :data:`HEARTBEAT_S` (new loop periods, the loop's, the
+  board link's and the renderer's counters, frames superseded in its hand-over, the pin
+  state, the board's newest feedback, the frames the loop accepted and the hops of the frames
+  it rendered; what a report refused by a busy socket carried goes with the next) and a
+  final one when it stops. The station's recorder takes the pins from these reports: at most
+  one sample per report (50 Hz), stamped when the report arrives.
 
-Safety, as in the station's own loop, and more:
+Safety, as in the station's own loop, and more (``docs/safety.md``, Watchdogs):
 
 * the child judges every frame by its capture stamp on the station's clock (it adopts the
   station's wall-clock anchor), so a frame held anywhere is never rendered as fresh;
-* a station that goes silent (stopped, starved, dead) counts as a lost link in the child after
-  two heartbeats: the pins go to their safe state within ``link_loss_timeout_s`` of that;
-  the end of the socket (the station is gone) stops the child, which puts the pins in their
-  safe state and closes the board;
-* the station sends frames without waiting: a child that does not take them loses frames
-  (counted as superseded), never the station's event loop;
-* a child that died or whose reports stopped for ``hang_timeout_s`` is (killed and) started
-  again with the device backoff; meanwhile the board's own watchdog holds the pins safe. The
-  counters of the children that ended carry over.
+* with a relay, a station that goes silent (stopped, starved, dead) counts as a lost link in
+  the child after two heartbeats: the pins go to their safe state within
+  ``link_loss_timeout_s`` of that; the end of the socket (the station is gone) stops the
+  child, which puts the pins in their safe state, closes the board and reports a last time;
+  SIGINT and SIGTERM are left to the station, which stops the child in order;
+* the station never waits for the child: frames and ``stop`` are sent without waiting (a
+  frame the child's socket cannot take is dropped, counted as superseded), and a child that
+  has not ended :data:`_CHILD_STOP_S` after ``stop`` is killed;
+* a child that died, or made no progress for ``hang_timeout_s`` (its loop did not advance
+  while its board was connected, or it did not report), is (killed and) started again with
+  the device backoff; meanwhile the board's own watchdog holds the pins safe. The counts of
+  the children that ended carry over;
+* what the station shows of the pins is judged when it is read: while the child's loop has
+  not been seen to advance for :data:`SILENCE_S`, no command is shown (:data:`NO_WORD`).
 """
 
 from __future__ import annotations
@@ -67,7 +75,7 @@ from local_site.render.renderer import RenderStats
 from shared.errors import ConfigError
 from shared.freshness import ClockView
 from shared.motion_to_touch import MotionToTouchLedger
-from shared.protocol import TactileFrame
+from shared.protocol import Hop, TactileFrame
 from shared.timebase import monotonic_s, wall_anchor_ns
 
 __all__ = ["HEARTBEAT_S", "MAX_MESSAGE_BYTES", "NO_WORD", "SILENCE_S", "DisplayProcess",
@@ -84,8 +92,9 @@ SILENCE_S = 0.25
 NO_WORD = "display_process"
 #: the largest message either side reads (a tactile frame is tens of kB)
 MAX_MESSAGE_BYTES = 1 << 20
-#: frames kept after sending, to record and show the ones the loop accepts
-_KEEP_SENT = 64
+#: frames kept after sending, to record and show the ones the loop accepts (the child takes
+#: the newest at each tick and reports every 20 ms: a few are outstanding at a time)
+_KEEP_SENT = 256
 #: how long a stopping child may take (it puts the pins in their safe state, closes the board)
 _CHILD_STOP_S = 6.0
 
@@ -155,21 +164,48 @@ def fold_counters(base: DisplayLoopCounters, more: DisplayLoopCounters) -> Displ
     return out
 
 
+def _add_stats(a: Any, b: Any) -> Any:
+    """Two snapshots of an all-integer counters dataclass (``DisplayStats``, ``RenderStats``)
+    added field by field."""
+    return type(a)(**{f.name: getattr(a, f.name) + getattr(b, f.name)
+                      for f in dataclasses.fields(a)})
+
+
+@dataclass(frozen=True)
+class _Totals:
+    """What one child (or all the children that ended) counted."""
+
+    counters: DisplayLoopCounters = dataclasses.field(default_factory=DisplayLoopCounters)
+    display: DisplayStats = dataclasses.field(default_factory=DisplayStats)
+    render: RenderStats = dataclasses.field(default_factory=RenderStats)
+    superseded: int = 0
+    iterations: int = 0
+    overruns: int = 0
+
+    def plus(self, other: _Totals) -> _Totals:
+        return _Totals(fold_counters(self.counters, other.counters),
+                       _add_stats(self.display, other.display),
+                       _add_stats(self.render, other.render),
+                       self.superseded + other.superseded, self.iterations + other.iterations,
+                       self.overruns + other.overruns)
+
+
 class _DisplayMirror:
     """The board as the station sees it through the child's reports (for the view, the
     recorder and the summary)."""
 
-    def __init__(self, name: str) -> None:
+    def __init__(self, owner: DisplayProcess, name: str) -> None:
+        self._owner = owner
         self.name = name
         self.is_connected = False
         self._feedback: PinFeedback | None = None
-        self._stats = DisplayStats()
 
     def latest_feedback(self) -> PinFeedback | None:
         return self._feedback
 
     def stats(self) -> DisplayStats:
-        return self._stats
+        """The board link's counters, those of the children that ended included."""
+        return self._owner.totals.display
 
     def disconnect(self) -> None:
         """The child closed the board when it stopped; its last feedback stays readable."""
@@ -177,8 +213,13 @@ class _DisplayMirror:
 
 
 class _RendererMirror:
-    def __init__(self) -> None:
-        self.stats = RenderStats()
+    def __init__(self, owner: DisplayProcess) -> None:
+        self._owner = owner
+
+    @property
+    def stats(self) -> RenderStats:
+        """The renderer's counters, those of the children that ended included."""
+        return self._owner.totals.render
 
 
 class _Frames:
@@ -188,36 +229,44 @@ class _Frames:
 
     prepare = None
 
-    def __init__(self) -> None:
+    def __init__(self, owner: DisplayProcess) -> None:
+        self._owner = owner
         self.sock: socket.socket | None = None
         self.put_count = 0
-        self.superseded = 0
+        #: frames not handed to the child (no child, its socket full or gone, too large)
+        self.dropped = 0
         self.too_large = 0
         self._lock = threading.Lock()
         self._sent: collections.OrderedDict[tuple[int, int], TactileFrame] = \
             collections.OrderedDict()
 
+    @property
+    def superseded(self) -> int:
+        """Frames replaced before the loop took them: dropped here, or in the children's
+        hand-over (a newer frame came first)."""
+        return self.dropped + self._owner.totals.superseded
+
     def put(self, frame: TactileFrame, rx_us: int) -> None:
         self.put_count += 1
         sock = self.sock
+        key = (frame.seq, rx_us)
+        # kept before it is sent: the child's report that accepts it may come at once
+        with self._lock:
+            self._sent[key] = frame
+            while len(self._sent) > _KEEP_SENT:
+                self._sent.popitem(last=False)
         try:
             if sock is None:
                 raise BlockingIOError("no display process")
             sock.send(pickle.dumps(("frame", frame, rx_us), protocol=5), socket.MSG_DONTWAIT)
-        except BlockingIOError:
-            self.superseded += 1
-            return
-        except OSError as err:  # the child is gone (the supervisor starts it again) or too big
-            self.superseded += 1
+        except OSError as err:  # busy, gone (the supervisor starts it again) or too big
+            with self._lock:
+                self._sent.pop(key, None)
+            self.dropped += 1
             if err.errno == errno.EMSGSIZE:
                 self.too_large += 1
                 if self.too_large == 1:
                     log.warning("a tactile frame too large for the display process: %s", err)
-            return
-        with self._lock:
-            self._sent[(frame.seq, rx_us)] = frame
-            while len(self._sent) > _KEEP_SENT:
-                self._sent.popitem(last=False)
 
     def accepted(self, seq: int, rx_us: int) -> TactileFrame | None:
         """The frame the child accepted (None when it is no longer kept)."""
@@ -247,7 +296,9 @@ class DisplayProcess:
         link: the relay link (None: a local scene).
         recorder: records accepted frames and the pins (optional).
         ledger: motion-to-touch accounting of the rendered frames (optional).
-        hang_timeout_s: a child whose reports stopped this long is killed and started again.
+        hang_timeout_s: a child that made no progress this long (its loop did not advance
+            while its board was connected, or it did not report at all) is killed and
+            started again; it also covers the child's start-up.
         retry_min_s: first delay before starting an ended child again.
         retry_max_s: largest such delay.
         gil_switch_interval_s: the child's ``sys.setswitchinterval``.
@@ -286,11 +337,10 @@ class DisplayProcess:
         self._hang_timeout_s = hang_timeout_s
         self._retry_min_s = retry_min_s
         self._retry_max_s = retry_max_s
-        self.frames = _Frames()
-        self.display = _DisplayMirror(display)
-        self.renderer = _RendererMirror()
+        self.frames = _Frames(self)
+        self.display = _DisplayMirror(self, display)
+        self.renderer = _RendererMirror(self)
         self.periods = PeriodStats(1.0 / rate_hz)
-        self.pin_state = PinState()
         self.recent_e2e_ms: collections.deque[float] = collections.deque(maxlen=2000)
         self.last_trace: tuple[tuple[tuple[str, float], ...], float | None, float] | None = None
         self.frame_listener: Any = None
@@ -302,22 +352,44 @@ class DisplayProcess:
         self.child_pid: int | None = None
         #: why the last child ended unasked (None: none did)
         self.child_error: str | None = None
-        #: the counters, iterations and overruns of the children that ended
-        self._base = DisplayLoopCounters()
-        self._base_iterations = 0
-        self._base_overruns = 0
-        self._child_counters = DisplayLoopCounters()
-        self._child_loops = (0, 0)
+        #: (what the children that ended counted, what the running one counted so far):
+        #: replaced whole, so a reader in another thread never adds one child twice
+        self._counts = (_Totals(), _Totals())
+        self._pins = PinState()
         self._child_pins_seq = -1
-        self._last_report_s = 0.0
+        #: when the child's loop was last seen to advance (monotonic s; reports that do not
+        #: advance it do not count: a wedged loop's reporter still reports)
+        self._loop_seen_s = 0.0
+        #: when the child was last seen alive: its loop advanced, or it reported while it
+        #: waits to reopen its board
+        self._alive_s = 0.0
         self._final = False
+        self._spawned_s = 0.0
+        self._spawn_error = "could not start"
 
     # ------------------------------------------------------------------ loop-like reads
 
     @property
+    def totals(self) -> _Totals:
+        """Everything counted so far, by every child."""
+        ended, live = self._counts
+        return ended.plus(live)
+
+    @property
     def counters(self) -> DisplayLoopCounters:
         """The loop's counters, those of ended children included."""
-        return fold_counters(self._base, self._child_counters)
+        return self.totals.counters
+
+    @property
+    def pin_state(self) -> PinState:
+        """The pins' state as the child last reported it; while its loop has not been seen
+        to advance for :data:`SILENCE_S` (stopped, starved, hung, or none runs), none is
+        known here: no command, safe reason :data:`NO_WORD` (judged on each read, so a
+        reader never shows an old state as current, whatever the supervisor is doing)."""
+        pins = self._pins
+        if self._final or monotonic_s() - self._loop_seen_s <= SILENCE_S:
+            return pins
+        return PinState(None, NO_WORD, pins.seq)
 
     @property
     def last_command(self) -> Any:
@@ -338,21 +410,23 @@ class DisplayProcess:
         kind, report = message
         if kind != "report":
             return
-        self._last_report_s = monotonic_s()
-        _, periods = report["periods"]
+        now = monotonic_s()
         iterations, overruns = report["loops"]
-        self._child_loops = (iterations, overruns)
-        self.periods.extend(periods, self._base_iterations + iterations,
-                            self._base_overruns + overruns)
-        self._child_counters = report["counters"]
-        self.renderer.stats = report["render_stats"]
+        ended, live = self._counts
+        if iterations > live.iterations or report["final"]:
+            self._loop_seen_s = self._alive_s = now
+        elif not report["connected"]:
+            self._alive_s = now  # its loop waits for the board to come back: not hung
+        self._counts = (ended, _Totals(report["counters"], report["display_stats"],
+                                       report["render_stats"], report["superseded"],
+                                       iterations, overruns))
+        self.periods.extend(report["periods"], ended.iterations + iterations,
+                            ended.overruns + overruns)
         self.priority_applied, self.realtime_applied = report["priority"]
         display = self.display
         display.is_connected = report["connected"]
         if report["feedback"] is not None:
             display._feedback = report["feedback"]
-        if report.get("display_stats") is not None:
-            display._stats = report["display_stats"]
         for seq, rx_us in report["accepted"]:
             frame = self.frames.accepted(seq, rx_us)
             if frame is None:
@@ -365,33 +439,24 @@ class DisplayProcess:
         for hops, offsets, at_s in report["rendered"]:
             if self.ledger is None:
                 break
-            trace = self.ledger.add_hops(hops, offsets)
+            trace = self.ledger.add_hops([Hop(*h) for h in hops], offsets)
             if trace.end_to_end_us is not None:
                 self.recent_e2e_ms.append(trace.end_to_end_us / 1e3)
             self.last_trace = (trace.stages_us, trace.end_to_end_us, at_s)
         pins: PinState = report["pins"]
-        if pins.seq != self._child_pins_seq or self.pin_state.safe_reason == NO_WORD:
+        if pins.seq != self._child_pins_seq:
             self._child_pins_seq = pins.seq
-            self.pin_state = PinState(pins.command, pins.safe_reason, self.pin_state.seq + 1)
+            self._pins = PinState(pins.command, pins.safe_reason, self._pins.seq + 1)
         if self.recorder is not None:
             state = self.pin_state
             self.recorder.add_pins(state.command, display, state.safe_reason)
         if report["final"]:
             self._final = True
 
-    def _silent(self) -> None:
-        """No report for :data:`SILENCE_S`: what the station shows of the pins is not known
-        now, so no command is shown as on them (never an old state as the current one)."""
-        if self.pin_state.safe_reason != NO_WORD and not self._final:
-            self.pin_state = PinState(None, NO_WORD, self.pin_state.seq + 1)
-
     def _retire(self) -> None:
-        """An ended child's counters become the base of the next one's."""
-        self._base = self.counters
-        self._base_iterations += self._child_loops[0]
-        self._base_overruns += self._child_loops[1]
-        self._child_counters = DisplayLoopCounters()
-        self._child_loops = (0, 0)
+        """An ended child's counts join those of the children before it (one assignment)."""
+        ended, live = self._counts
+        self._counts = (ended.plus(live), _Totals())
         self._child_pins_seq = -1
         self._no_child()
 
@@ -400,9 +465,12 @@ class DisplayProcess:
         watchdog, or the child's last act, put them in their safe state)."""
         if not self._final:
             self.display.is_connected = False
-            self.pin_state = PinState(None, NO_WORD, self.pin_state.seq + 1)
+            self._pins = PinState(None, NO_WORD, self._pins.seq + 1)
 
     # ------------------------------------------------------------------ the child
+
+    #: the child's command after the interpreter (an instrumented child may replace it)
+    child_argv: tuple[str, ...] = ("-m", "local_site.agent.display_child")
 
     def _spawn(self, nice: int, realtime: int) -> tuple[subprocess.Popen[bytes],
                                                         socket.socket] | None:
@@ -417,12 +485,15 @@ class DisplayProcess:
         try:
             process = subprocess.Popen(
                 [sys.executable, "-P", *self.child_argv, json.dumps(settings)],
-                stdin=subprocess.DEVNULL,
-                pass_fds=(theirs.fileno(), record_fd), process_group=0)
+                stdin=subprocess.DEVNULL, pass_fds=(theirs.fileno(), record_fd),
+                process_group=0)
         except OSError as err:
             ours.close()
             self._spawn_error = f"could not start: {err}"
             return None
+        except BaseException:
+            ours.close()
+            raise
         finally:
             theirs.close()
         return process, ours
@@ -441,6 +512,9 @@ class DisplayProcess:
                 self.child_pid = process.pid
                 try:
                     ended = self._serve(process, sock, stop)
+                except BaseException:
+                    _reap(process, 0.0)  # never leave a child behind
+                    raise
                 finally:
                     self.frames.sock = None
                     self.child_pid = None
@@ -458,11 +532,6 @@ class DisplayProcess:
             delay = min(self._retry_max_s, delay * 2.0)
             self.restarts += 1
 
-    _spawned_s = 0.0
-    _spawn_error = "could not start"
-    #: the child's command after the interpreter (an instrumented child may replace it)
-    child_argv: tuple[str, ...] = ("-m", "local_site.agent.display_child")
-
     def _link_state(self) -> LinkState | None:
         link = self.link
         if link is None:
@@ -475,9 +544,9 @@ class DisplayProcess:
     def _serve(self, process: subprocess.Popen[bytes], sock: socket.socket,
                stop: threading.Event) -> str | None:
         """Serve one child: the link's state out, its reports in. Returns why it ended
-        unasked, or None when ``stop`` ended it."""
+        unasked, or None when ``stop`` ended it. Never blocks on the child."""
         self._spawned_s = monotonic_s()
-        self._last_report_s = 0.0
+        self._loop_seen_s = self._alive_s = 0.0
         self._final = False
         next_beat = 0.0
         while True:
@@ -494,17 +563,13 @@ class DisplayProcess:
                                   socket.MSG_DONTWAIT)
             ready, _, _ = select.select([sock], [], [], max(0.0, next_beat - monotonic_s()))
             if ready and not self._drain(sock):
-                process.wait()
-                return f"exited with {process.returncode}"
+                return f"exited with {_reap(process, _CHILD_STOP_S)}"
             if process.poll() is not None:
                 return f"exited with {process.returncode}"
-            beat = max(self._last_report_s, self._spawned_s)
-            if monotonic_s() - beat > SILENCE_S:
-                self._silent()
-            if monotonic_s() - beat > self._hang_timeout_s:
-                process.kill()
-                process.wait()
-                return f"hung (no report for {monotonic_s() - beat:.1f} s): killed"
+            alive = max(self._alive_s, self._spawned_s)
+            if monotonic_s() - alive > self._hang_timeout_s:
+                _reap(process, 0.0)
+                return f"hung (no progress for {monotonic_s() - alive:.1f} s): killed"
 
     def _drain(self, sock: socket.socket) -> bool:
         """Take every report waiting; False at the end of the socket (the child is gone)."""
@@ -521,18 +586,27 @@ class DisplayProcess:
 
     def _stop_child(self, process: subprocess.Popen[bytes], sock: socket.socket) -> None:
         """Ask the child to stop (it puts the pins in their safe state and closes the board)
-        and take its final report."""
+        and take its final report; one that does not stop within :data:`_CHILD_STOP_S` (or
+        cannot even be told: its socket is full) is killed."""
         with contextlib.suppress(OSError):
-            sock.send(pickle.dumps(("stop", None)))
+            sock.send(pickle.dumps(("stop", None)), socket.MSG_DONTWAIT)
         end = monotonic_s() + _CHILD_STOP_S
-        while monotonic_s() < end:
+        while monotonic_s() < end and not self._final:
             ready, _, _ = select.select([sock], [], [], max(0.0, end - monotonic_s()))
             if ready and not self._drain(sock):
                 break
-        try:
-            process.wait(max(0.1, end - monotonic_s()))
-        except subprocess.TimeoutExpired:
-            log.warning("display process did not stop in %.1f s: killed", _CHILD_STOP_S)
-            process.kill()
-            process.wait()
+        code = _reap(process, max(0.1, end - monotonic_s()))
+        if not self._final:
+            log.warning("display process did not stop cleanly (exit %s)", code)
         self._no_child()
+
+
+def _reap(process: subprocess.Popen[bytes], timeout_s: float) -> int:
+    """Wait up to ``timeout_s`` for ``process`` to end, then kill it; its exit code."""
+    if timeout_s > 0:
+        try:
+            return process.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            pass
+    process.kill()
+    return process.wait()

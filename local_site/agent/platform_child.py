@@ -39,7 +39,10 @@ def main(argv: list[str] | None = None) -> int:  # pragma: no cover - runs in th
     logging.basicConfig(level=int(settings["log_level"]),
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
 
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the station stops us through stdin
+    # the station stops us through stdin (a Ctrl-C at the terminal, or systemd's SIGTERM to
+    # the whole unit, reaches the station, which stops us in order)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     record = SampleRecord(int(settings["record_fd"]))
     record.claim()
     platform = open_platform(settings["spec"], connect=False, **settings["options"])

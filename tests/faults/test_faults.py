@@ -120,8 +120,8 @@ def test_no_stale_frame_rendered_after_a_two_second_blackhole(rig_factory: RigFa
 @pytest.mark.parametrize("render_loop", ["thread", "process"])
 def test_local_station_sigstop_three_seconds_renders_no_stale_frame_after_sigcont(
         rig_factory: RigFactory, render_loop: str) -> None:
-    # "process": only the station stops; its display process goes on, hears nothing from it
-    # (a lost link) and parks the pins itself
+    # "process": only the station stops; its display process goes on, receives no frames
+    # (stale_scene) and no word from the station (link_lost), and parks the pins itself
     rig: FaultRig = rig_factory(render_loop=render_loop)
     _, t_cont = rig.inject(FaultSpec("stop", "local", 3.0))
     assert rig.wait_flowing(t_cont, scaled(20.0), FLOW_BOUND_MS), \
@@ -140,7 +140,7 @@ def test_local_station_sigstop_three_seconds_the_board_process_parks_the_pins_by
     # truth of what the pins did; before the board process, the display's safe state of a
     # stopped station could only be logged after SIGCONT (faults_after.md: safe p99 2962 ms).
     # "process": the display process goes on beside the stopped station and parks the pins
-    # as a lost link, before the board's watchdog would
+    # itself (no frames, no word from the station), before the board's watchdog would
     rig: FaultRig = rig_factory(board_process=True, render_loop=render_loop)
     board = rig.board_log
     assert board is not None

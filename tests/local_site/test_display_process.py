@@ -18,7 +18,8 @@ import select
 import signal
 import socket
 import threading
-from collections.abc import AsyncIterator
+import time
+from collections.abc import AsyncIterator, Iterator
 from typing import Any
 
 import numpy as np
@@ -27,7 +28,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from local_site.agent import LocalAgent, LocalAgentConfig
-from local_site.agent.display_loop import DisplayLoopCounters
+from local_site.agent.display_loop import DisplayLoopCounters, PinState, SameClockLink
 from local_site.agent.display_process import (
     HEARTBEAT_S,
     NO_WORD,
@@ -35,12 +36,13 @@ from local_site.agent.display_process import (
     DisplayProcess,
     LinkMirror,
     LinkState,
-    _Frames,
     fold_counters,
 )
 from local_site.agent.period_stats import PeriodStats
 from local_site.agent.platform_process import ProcessPlatformReader
-from local_site.render import RendererConfig
+from local_site.display.base import DisplayStats
+from local_site.render import PinCommand, RendererConfig
+from local_site.render.renderer import RenderStats
 from shared import timebase
 from shared.errors import ConfigError
 from shared.freshness import ClockView
@@ -125,8 +127,22 @@ def test_adopted_wall_anchor_stamps_on_the_other_clock() -> None:
         timebase.adopt_wall_anchor(before)
 
 
+class _NoPlatform:
+    """A platform record that is never read (for a DisplayProcess whose child never runs)."""
+
+    read_timeout_s = 0.25
+    record_fd = 0
+
+
+def _unserved(**kw: Any) -> DisplayProcess:
+    """A DisplayProcess that is never served: its parts alone."""
+    return DisplayProcess(display="sim", display_options={}, render_config=RendererConfig(),
+                          scene="remote", interpolation_order=1, platform=_NoPlatform(),
+                          loop_args={}, **kw)
+
+
 def test_a_frame_too_large_to_hand_over_is_counted_not_raised() -> None:
-    frames = _Frames()
+    frames = _unserved().frames
     ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
     try:
         frames.sock = ours
@@ -161,19 +177,35 @@ def test_the_process_needs_a_platform_read_in_a_process_and_json_options() -> No
 
 
 def test_the_child_stops_when_the_stations_socket_ends() -> None:
-    reader = ProcessPlatformReader("sim")
+    # the station's end of the socket closes (the station is gone): the child parks the pins,
+    # closes the board, sends what it can of a final report and exits
+    reader = ProcessPlatformReader("sim", {"motion": "hold:x=30,y=30,z=100"})
     process = DisplayProcess(display="sim", display_options={}, render_config=RendererConfig(),
                              scene="hemisphere", interpolation_order=1, platform=reader,
                              loop_args={})
     reader.start()
+    proc = None
     try:
         child = process._spawn(0, 0)
         assert child is not None
         proc, sock = child
         wait_until(lambda: select.select([sock], [], [], 0)[0], 30.0, "the child's first report")
-        sock.close()  # the station is gone
+        sock.shutdown(socket.SHUT_WR)  # its receiver sees the end; we still read its reports
+        reports: list[dict[str, Any]] = []
+        while not (reports and reports[-1]["final"]):
+            assert select.select([sock], [], [], scaled(15.0))[0], "no final report"
+            data = sock.recv(1 << 20)
+            assert data, "the socket ended without a final report"
+            reports.append(pickle.loads(data)[1])
+        final = reports[-1]
+        assert final["pins"].safe_reason == "shutdown" and final["pins"].command is None
+        assert final["display_stats"].safe_states_sent >= 1
         assert proc.wait(scaled(15.0)) == 0
+        sock.close()
     finally:
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+            proc.wait()
         reader.stop()
 
 
@@ -298,3 +330,159 @@ def test_heartbeat_is_well_inside_the_link_loss_timeout() -> None:
     # the child counts a silence beyond two heartbeats as a lost link; the default link-loss
     # timeout must leave room for a late heartbeat or two
     assert LocalAgentConfig().link_loss_timeout_s > 2 * HEARTBEAT_S
+
+
+# ---------------------------------------------------------------------- the process alone
+# (a review's findings, each failing on the code before its mend)
+
+
+@contextlib.contextmanager
+def _served(scene: str, link: Any = None, **kw: Any) -> Iterator[
+        tuple[DisplayProcess, threading.Event]]:
+    """A DisplayProcess served in a thread (as the station runs it), its platform read in a
+    process of its own; stopped after the block (the serving thread must end)."""
+    reader = ProcessPlatformReader("sim", {"motion": "hold:x=30,y=30,z=100"},
+                                   read_timeout_s=scaled(0.25))
+    reader.start()
+    process = DisplayProcess(display="sim", display_options={},
+                             render_config=RendererConfig(), scene=scene,
+                             interpolation_order=1, platform=reader, loop_args={}, link=link,
+                             retry_min_s=0.05, **kw)
+    stop = threading.Event()
+    thread = threading.Thread(target=process.run_in_thread, args=(stop,), daemon=True)
+    thread.start()
+    try:
+        yield process, stop
+    finally:
+        stop.set()
+        thread.join(scaled(20.0))
+        reader.stop()
+    assert not thread.is_alive(), "the display process's supervisor did not stop"
+
+
+def test_frames_superseded_in_the_childs_hand_over_are_counted() -> None:
+    with _served("remote", SameClockLink()) as (process, _):
+        wait_until(lambda: process.periods.iterations > 200, 30.0, "the child's loop")
+        for seq in range(1, 201):  # a burst, as after a stall of the relay's leg
+            process.frames.put(make_frame(seq, None), now_us())
+        wait_until(lambda: process.frames.put_count - process.counters.frames_accepted
+                   - process.counters.frames_rejected - process.frames.superseded <= 1, 5.0,
+                   "every frame accounted for")
+    c = process.counters
+    assert c.frames_accepted >= 1 and process.frames.superseded >= 100
+
+
+def test_the_boards_and_renderers_counts_carry_over_a_killed_child() -> None:
+    with _served("hemisphere") as (process, _):
+        wait_until(lambda: process.counters.keepalives_sent > 50, 30.0, "the first child")
+        first = process.child_pid
+        assert first is not None
+        before = process.display.stats().keepalives
+        rendered = process.renderer.stats.rendered + process.renderer.stats.skipped
+        os.kill(first, signal.SIGKILL)
+        wait_until(lambda: process.restarts == 1, 10.0, "the second child")
+        assert process.display.stats().keepalives >= before
+        assert process.renderer.stats.rendered + process.renderer.stats.skipped >= rendered
+        wait_until(lambda: process.child_pid not in (None, first)
+                   and process.display.stats().keepalives > before, 30.0,
+                   "the second child sending")
+    stats = process.display.stats()
+    assert stats.keepalives >= process.counters.keepalives_sent > 50
+
+
+def test_stop_returns_when_the_child_does_not_read_its_socket() -> None:
+    # a child that never reads (stopped, or stuck on a device): its socket fills up, and
+    # stopping the station must still end (the child is killed after its grace)
+    class Platform:
+        read_timeout_s = 0.25
+
+        def __init__(self) -> None:
+            self.record_fd = os.open(os.devnull, os.O_RDONLY)
+
+    platform = Platform()
+    process = DisplayProcess(display="sim", display_options={}, render_config=RendererConfig(),
+                             scene="remote", interpolation_order=1, platform=platform,
+                             loop_args={}, link=SameClockLink(), hang_timeout_s=600.0)
+    process.child_argv = ("-c", "import time; time.sleep(600)")
+    stop = threading.Event()
+    thread = threading.Thread(target=process.run_in_thread, args=(stop,), daemon=True)
+    thread.start()
+    try:
+        wait_until(lambda: process.child_pid is not None, 10.0, "the child")
+        pid = process.child_pid
+        big = TactileFrame(seq=1, center_mm=(30.0, 30.0), pitch_mm=1.0,
+                           layers={"height_mm": np.zeros((100, 100), np.float32)})
+        while process.frames.dropped == 0:  # until its socket is full
+            process.frames.put(big, 1)
+        stop.set()
+        thread.join(scaled(15.0))  # the child's grace is 6 s
+        assert not thread.is_alive(), "stopping waited for a child that does not read"
+        assert pid is not None
+        with pytest.raises(ProcessLookupError):
+            os.kill(pid, 0)  # killed and reaped
+    finally:
+        stop.set()
+        os.close(platform.record_fd)
+
+
+def test_sigterm_to_the_child_is_left_to_the_station() -> None:
+    # systemd stops a unit with SIGTERM to all its processes: the child leaves it to the
+    # station, which stops it cleanly (pins parked, final report), never a crash
+    with _served("hemisphere") as (process, stop):
+        wait_until(lambda: process.counters.keepalives_sent > 20, 30.0, "the child")
+        assert process.child_pid is not None
+        os.kill(process.child_pid, signal.SIGTERM)
+        time.sleep(scaled(0.2))
+        assert process.restarts == 0 and process.child_error is None
+        stop.set()
+    assert process.child_error is None and process.restarts == 0
+    assert process.display.stats().safe_states_sent >= 1  # parked by the final act
+    assert process.safe_reason == "shutdown" and process.last_command is None
+
+
+def test_an_accepted_frame_reported_at_once_is_still_recorded() -> None:
+    # the child's report accepting a frame may be folded in before put() returns
+    recorded: list[int] = []
+
+    class Recorder:
+        def add_frame(self, frame: TactileFrame, rx_us: int) -> None:
+            recorded.append(frame.seq)
+
+        def add_pins(self, *args: Any) -> None:
+            pass
+
+    process = _unserved(recorder=Recorder())
+    report = {"periods": np.zeros(0), "loops": (1, 0),
+              "counters": DisplayLoopCounters(frames_accepted=1),
+              "render_stats": RenderStats(), "display_stats": DisplayStats(), "superseded": 0,
+              "priority": (None, None), "connected": True, "feedback": None,
+              "pins": PinState(), "accepted": [(7, 123)], "rendered": [], "final": False}
+
+    class Sock:
+        def send(self, data: bytes, flags: int = 0) -> int:
+            process._take(("report", report))  # the supervisor runs in between
+            return len(data)
+
+    process.frames.sock = Sock()  # type: ignore[assignment]
+    process.frames.put(make_frame(7, None), 123)
+    assert recorded == [7]
+
+
+def test_the_pin_state_goes_unknown_when_read_even_without_the_supervisor() -> None:
+    process = _unserved()
+    command = PinCommand(np.full((4, 4), 2.0), np.full((4, 4), 0.8), np.zeros((4, 4)))
+    report = {"periods": np.zeros(0), "loops": (10, 0), "counters": DisplayLoopCounters(),
+              "render_stats": RenderStats(), "display_stats": DisplayStats(), "superseded": 0,
+              "priority": (None, None), "connected": True, "feedback": None,
+              "pins": PinState(command, None, 3), "accepted": [], "rendered": [],
+              "final": False}
+    process._take(("report", report))
+    assert process.last_command is command and process.safe_reason is None
+    # nothing more from the child (no supervisor runs here): unknown once SILENCE_S passed
+    wait_until(lambda: process.safe_reason == NO_WORD, 2.0, "the state marked unknown")
+    assert process.last_command is None
+    # a report whose loop did not advance (a wedged loop, a live reporter) does not revive it
+    process._take(("report", report))
+    assert process.safe_reason == NO_WORD
+    process._take(("report", {**report, "loops": (11, 0)}))
+    assert process.last_command is command
