@@ -93,7 +93,7 @@ class DemoConfig:
         render_loop: where the local station runs its display loop (``teletouch local
             --render-loop``): ``process`` (the default: a process of its own with the board
             link, which met the loop's 0.5 ms jitter target in paired runs where the thread
-            did not, for about 0.08 cores more; ``docs/speed.md`` section 21), ``thread`` or
+            did not, for 0.08-0.13 cores more; ``docs/speed.md`` section 21), ``thread`` or
             ``asyncio``.
         display: the ArrayTac drive board: ``board-process`` (the default: ``teletouch
             board``, a process of its own that the station reaches over ``socket://`` with
