@@ -75,8 +75,11 @@ class LocalAgentConfig:
         motion_done_grace_s: with ``--until-motion-done``, keep running this long after the
             motion finished so the last tactile frames come back.
         gil_switch_interval_s: ``sys.setswitchinterval`` while the agent runs (restored
-            after). 0.2 ms (default) bounds how long a busy thread can hold the display loop
-            and the platform reader off the GIL.
+            after), in the process that runs the display loop (with ``render_loop =
+            "process"``, the display process; the station then keeps Python's: less CPU and
+            no worse motion-to-touch in paired runs, docs/speed.md section 21). 0.2 ms
+            (default) bounds how long a busy thread can hold the display loop and the
+            platform reader off the GIL.
             Measured (docs/speed.md section 9, benchmarks/results/cpu_gil_switch/): 1 ms
             cost about 0.05 cores less and ran the loop faster, but the demo's palpation
             typing then scattered from session to session (its benign tumor's malignant

@@ -478,7 +478,10 @@ class LocalAgent:
         self._thread_stop.clear()
         await self._start_view()
         process_settings = contextlib.ExitStack()  # undone when the station ends (finally)
-        process_settings.enter_context(switch_interval(self.config.gil_switch_interval_s))
+        # the switch interval is for the display loop: with the loop in a process of its own,
+        # that process takes it and the station keeps Python's (0: left alone)
+        process_settings.enter_context(switch_interval(
+            0.0 if isinstance(loop, DisplayProcess) else self.config.gil_switch_interval_s))
         self.memory_lock = process_settings.enter_context(memory_locked(self.config.lock_memory))
         reader.start()
         if self.link is not None:
