@@ -9,7 +9,9 @@
 * the *receive* task takes ``tactile_frame`` (handed to the display loop), ``arm_state``,
   ``stats`` (kept by the link for clock offsets) and ``error`` messages;
 * the :class:`~local_site.agent.display_loop.DisplayLoop` renders at the refresh rate in a
-  thread (default) or a task, with the safe-state rules;
+  thread (default), a task, or a process of its own with the board link
+  (:mod:`local_site.agent.display_process`, ``render_loop = "process"``; the platform is then
+  read in a process of its own too), with the safe-state rules;
 * a status task redraws the terminal status line.
 
 Without a relay (``scene`` set), the same loop renders a local shape or layer file.
