@@ -29,7 +29,7 @@ from local_site.render import Renderer, RendererConfig
 from local_site.scenes import SceneSource, TactileFrameScene, open_scene
 from shared.gil import switch_interval
 from shared.memlock import memory_locked
-from shared.motion_to_touch import MotionToTouchLedger, StageTrace
+from shared.motion_to_touch import MotionToTouchLedger, StageTrace, trace_hops
 from shared.protocol import Hop
 from shared.timebase import adopt_wall_anchor, monotonic_s
 
@@ -44,11 +44,11 @@ _KEEP_PENDING = 256
 
 
 class _TappedLedger(MotionToTouchLedger):
-    """The loop's ledger: each rendered frame's hops also go to the station (its ledger
-    is the one the summary reads)."""
+    """The loop's ledger: each rendered frame's hops go to the station, whose ledger is the
+    one the summary reads and accounts them (here they are only traced, for the loop)."""
 
     def __init__(self) -> None:
-        super().__init__(window=64)
+        super().__init__(window=1)
         self.rendered: collections.deque[tuple[tuple[Hop, ...], dict[str, Any], float]] = \
             collections.deque(maxlen=4096)
 
@@ -56,7 +56,7 @@ class _TappedLedger(MotionToTouchLedger):
                  offsets_us: Mapping[str, float | None]) -> StageTrace:
         hops = tuple(hops)
         self.rendered.append((hops, dict(offsets_us), monotonic_s()))
-        return super().add_hops(hops, offsets_us)
+        return trace_hops(hops, offsets_us)
 
 
 def _drain(queue: collections.deque[Any]) -> list[Any]:

@@ -227,8 +227,6 @@ class _Frames:
     ``put_count``, ``superseded``). Never waits: a frame the child's socket cannot take now
     is dropped and counted as superseded."""
 
-    prepare = None
-
     def __init__(self, owner: DisplayProcess) -> None:
         self._owner = owner
         self.sock: socket.socket | None = None
