@@ -36,9 +36,47 @@ from shared.protocol import Message, PlatformState, TactileCompact, TactileFrame
 from shared.protocol.tactile_codec import TactileDecoder
 from shared.recording import McapRecorder, McapRecording, RecordingFormatError, read_mcap
 
-__all__ = ["Recording", "SessionRecorder", "load_recording", "recording_from_mcap"]
+__all__ = ["PinsSampler", "Recording", "SessionRecorder", "load_recording", "recording_from_mcap"]
 
 log = logging.getLogger(__name__)
+
+
+#: one pins sample: (wall-clock us, the command on the pins, the measured positions or None,
+#: the safe-state reason or None)
+PinsSample = tuple[int, Any, Any, "str | None"]
+
+
+class PinsSampler:
+    """Samples the pins' state at most ``rate_hz`` times a second, stamped when read.
+
+    Offered the state on every display-loop tick (in whichever process the loop runs), it
+    returns a sample when one is due: the command then on the pins and the board's measured
+    positions, with the wall-clock time they were read.
+
+    Args:
+        rate_hz: samples per second, at most (> 0).
+
+    Raises:
+        ConfigError: a rate that is not > 0.
+    """
+
+    def __init__(self, rate_hz: float) -> None:
+        if not rate_hz > 0:
+            raise ConfigError(f"pins_rate_hz must be > 0, got {rate_hz}")
+        self.rate_hz = rate_hz
+        self._period_s = 1.0 / rate_hz
+        self._next_s = 0.0
+
+    def offer(self, commanded: Any, display: Any, safe_reason: str | None
+              ) -> PinsSample | None:
+        """The sample, when one is due and a command is on the pins (else None, at once)."""
+        now = time.monotonic()
+        if now < self._next_s or commanded is None:
+            return None
+        self._next_s = now + self._period_s
+        measured = display.latest_feedback() if display.is_connected else None
+        return (time.time_ns() // 1000, commanded, None if measured is None
+                else measured.position_mm, safe_reason)
 
 
 class SessionRecorder:
@@ -64,8 +102,8 @@ class SessionRecorder:
         self.mcap = McapRecorder(path, "local", meta=meta, queue_size=queue_size,
                                  flush_interval_s=flush_interval_s, image_rate_hz=image_rate_hz)
         self.path = self.mcap.path
-        self._pins_period_s = 1.0 / pins_rate_hz
-        self._next_pins_s = 0.0
+        #: decides when the pins are sampled (at ``pins_rate_hz``)
+        self.pins_sampler = PinsSampler(pins_rate_hz)
         self.frames = 0
 
     def tap(self, direction: str, msg: Message, t_us: int) -> None:
@@ -86,19 +124,28 @@ class SessionRecorder:
                 feedback is the measured heights).
             safe_reason: why the pins are in their safe state (None: rendering).
         """
-        now = time.monotonic()
-        if now < self._next_pins_s or commanded is None:
-            return
-        self._next_pins_s = now + self._pins_period_s
-        measured = display.latest_feedback() if display.is_connected else None
-        t_us = time.time_ns() // 1000
+        sample = self.pins_sampler.offer(commanded, display, safe_reason)
+        if sample is not None:
+            self.record_pins(*sample)
+
+    def record_pins(self, t_us: int, commanded: Any, measured_mm: Any,
+                    safe_reason: str | None) -> None:
+        """Record one pins sample taken elsewhere (a :class:`PinsSampler`'s, e.g. in the
+        display process), stamped when it was taken.
+
+        Args:
+            t_us: when the state was read (wall clock, us).
+            commanded: the :class:`~local_site.render.PinCommand` then on the pins.
+            measured_mm: the board's measured pin positions then (None: no feedback).
+            safe_reason: why the pins were in their safe state (None: rendering).
+        """
 
         def payload() -> dict[str, Any]:
             h, k, f = commanded.arrays()
-            pos = None if measured is None else measured.position_mm
             return {"commanded_mm": np.ravel(h).tolist(), "stiffness_k": np.ravel(k).tolist(),
                     "friction": np.ravel(f).tolist(),
-                    "measured_mm": None if pos is None else np.ravel(pos).tolist(),
+                    "measured_mm": None if measured_mm is None
+                    else np.ravel(measured_mm).tolist(),
                     "safe_reason": safe_reason}
 
         self.mcap.derived("pins", t_us, payload)

@@ -25,6 +25,7 @@ from local_site.agent.display_loop import DisplayLoop, DisplayLoopCounters, Fram
 from local_site.agent.display_process import HEARTBEAT_S, MAX_MESSAGE_BYTES, LinkMirror
 from local_site.agent.platform_process import RecordView, SampleRecord
 from local_site.devices import open_display
+from local_site.recording import PinsSample, PinsSampler
 from local_site.render import Renderer, RendererConfig
 from local_site.scenes import SceneSource, TactileFrameScene, open_scene
 from shared.gil import switch_interval
@@ -59,6 +60,24 @@ class _TappedLedger(MotionToTouchLedger):
         return trace_hops(hops, offsets_us)
 
 
+class _PinsTap:
+    """The loop's recorder in the child: it samples the pins for the station's recorder
+    (at its rate, stamped when read) and keeps the samples for the next report; accepted
+    frames go to the station through the reporter (:meth:`_Reporter.frame_accepted`)."""
+
+    def __init__(self, rate_hz: float) -> None:
+        self._sampler = PinsSampler(rate_hz)
+        self.samples: collections.deque[PinsSample] = collections.deque(maxlen=4096)
+
+    def add_frame(self, frame: Any, rx_us: int) -> None:
+        """Nothing: the reporter tells the station of accepted frames."""
+
+    def add_pins(self, commanded: Any, display: Any, safe_reason: str | None) -> None:
+        sample = self._sampler.offer(commanded, display, safe_reason)
+        if sample is not None:
+            self.samples.append(sample)
+
+
 def _drain(queue: collections.deque[Any]) -> list[Any]:
     out = []
     while queue:
@@ -78,9 +97,10 @@ class _Reporter:
     when the report went out: a report the station's busy socket refused is not a loss."""
 
     def __init__(self, loop: DisplayLoop, ledger: _TappedLedger, sock: socket.socket,
-                 frames: FrameSlot | None) -> None:
+                 frames: FrameSlot | None, pins: _PinsTap | None = None) -> None:
         self.loop = loop
         self.ledger = ledger
+        self.pins = pins
         self.sock = sock
         self.frames = frames
         self.accepted: collections.deque[tuple[int, int]] = collections.deque(maxlen=4096)
@@ -89,6 +109,7 @@ class _Reporter:
         self._lock = threading.Lock()
         self._accepted: list[tuple[int, int]] = []
         self._rendered: list[Any] = []
+        self._pins_samples: list[PinsSample] = []
         self.dropped = 0
 
     def frame_accepted(self, frame: Any, rx_us: int) -> None:
@@ -107,8 +128,11 @@ class _Reporter:
             self._accepted += _drain(self.accepted)
             self._rendered += [(tuple((h.clock, h.stage, h.t_us) for h in hops), offsets, at)
                                for hops, offsets, at in _drain(self.ledger.rendered)]
+            if self.pins is not None:
+                self._pins_samples += _drain(self.pins.samples)
             # a station that takes nothing for long gets the newest (a report fits a packet)
             del self._accepted[:-_KEEP_PENDING], self._rendered[:-_KEEP_PENDING]
+            del self._pins_samples[:-_KEEP_PENDING]
             report = {"periods": periods,
                       "loops": (loop.periods.iterations, loop.periods.overruns),
                       "counters": _copy_counters(loop.counters),
@@ -119,7 +143,8 @@ class _Reporter:
                       "connected": connected,
                       "feedback": feedback if feedback is not self._feedback else None,
                       "pins": loop.pin_state, "accepted": self._accepted,
-                      "rendered": self._rendered, "final": final}
+                      "rendered": self._rendered, "pins_samples": self._pins_samples,
+                      "final": final}
             data = pickle.dumps(("report", report), protocol=5)
             for _ in range(_FINAL_TRIES if final else 1):
                 try:
@@ -135,7 +160,7 @@ class _Reporter:
                 return
             self._recorded = recorded
             self._feedback = feedback
-            self._accepted, self._rendered = [], []
+            self._accepted, self._rendered, self._pins_samples = [], [], []
 
     def run(self, stop: threading.Event) -> None:
         while not stop.wait(HEARTBEAT_S):
@@ -199,11 +224,13 @@ def main(argv: list[str] | None = None) -> int:  # pragma: no cover - runs in th
     link = LinkMirror() if remote else None
     frames = FrameSlot() if remote else None  # prepared in the loop: no second busy thread
     ledger = _TappedLedger()
+    pins_rate_hz = settings["pins_rate_hz"]
+    pins = None if pins_rate_hz is None else _PinsTap(float(pins_rate_hz))
     loop = DisplayLoop(display, Renderer(RendererConfig(**settings["render"])),
                        _scene(settings), positions=lambda: platform.latest,
                        platform_ok=lambda: platform.healthy, frames=frames, link=link,
-                       ledger=ledger, **settings["loop"])
-    reporter = _Reporter(loop, ledger, sock, frames)
+                       ledger=ledger, recorder=pins, **settings["loop"])
+    reporter = _Reporter(loop, ledger, sock, frames, pins)
     loop.frame_listener = reporter.frame_accepted
     stop = threading.Event()
     threads = [threading.Thread(target=_receive, args=(sock, frames, link, stop),

@@ -48,7 +48,6 @@ from typing import Any, Protocol
 from local_site.agent.period_stats import PeriodStats
 from local_site.display.base import ArrayTacDisplay, SafeMode
 from local_site.platform.base import PlatformSample
-from local_site.recording import SessionRecorder
 from local_site.render import PinCommand, Renderer
 from local_site.scenes import SceneSource, TactileFrameScene
 from shared.errors import (
@@ -64,13 +63,23 @@ from shared.protocol import Hop, TactileFrame
 from shared.timebase import monotonic_s, now_us
 
 __all__ = ["SAFE_REASONS", "DisplayLoop", "DisplayLoopCounters", "FrameSlot", "LinkHealth",
-           "PinState", "SameClockLink", "main_thread_scheduling", "thread_priority"]
+           "LoopRecorder", "PinState", "SameClockLink", "main_thread_scheduling", "thread_priority"]
 
 log = logging.getLogger(__name__)
 
 #: why the pins are in their safe state, in order of precedence
 SAFE_REASONS = ("platform_lost", "link_lost", "no_frames", "clock_uncertain", "stale_frame",
                 "stale_scene", "shutdown")
+
+
+class LoopRecorder(Protocol):
+    """What the loop tells a recorder (a :class:`~local_site.recording.SessionRecorder`)."""
+
+    def add_frame(self, frame: TactileFrame, rx_us: int) -> None:
+        """A frame the loop accepted into its scene (received at ``rx_us``)."""
+
+    def add_pins(self, commanded: Any, display: Any, safe_reason: str | None) -> None:
+        """The pins' state, offered every tick (the recorder samples it at its rate)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -356,7 +365,7 @@ class DisplayLoop:
                  link: LinkHealth | None = None, link_loss_timeout_s: float = 0.1,
                  stale_timeout_s: float = 0.08, max_frame_age_s: float = 0.15,
                  max_offset_uncertainty_s: float = 0.03,
-                 recorder: SessionRecorder | None = None,
+                 recorder: LoopRecorder | None = None,
                  ledger: MotionToTouchLedger | None = None, retry_min_s: float = 0.2,
                  retry_max_s: float = 5.0,
                  frame_listener: Callable[[TactileFrame, int], None] | None = None) -> None:

@@ -26,8 +26,9 @@ packet; both ends are this program):
   board link's and the renderer's counters, frames superseded in its hand-over, the pin
   state, the board's newest feedback, the frames the loop accepted and the hops of the frames
   it rendered; what a report refused by a busy socket carried goes with the next) and a
-  final one when it stops. The station's recorder takes the pins from these reports: at most
-  one sample per report (50 Hz), stamped when the report arrives.
+  final one when it stops. The pins are sampled for the station's recorder in the child, at
+  the recorder's rate and stamped when the loop read them (:class:`~local_site.recording.
+  PinsSampler`), and the samples travel with the reports.
 
 Safety, as in the station's own loop, and more (``docs/safety.md``, Watchdogs):
 
@@ -321,6 +322,8 @@ class DisplayProcess:
             "render": dataclasses.asdict(render_config), "scene": scene,
             "order": interpolation_order, "loop": dict(loop_args), "remote": link is not None,
             "read_timeout_s": platform.read_timeout_s,
+            # the child samples the pins for the recorder, at its rate, when they are read
+            "pins_rate_hz": None if recorder is None else recorder.pins_sampler.rate_hz,
             "gil_switch_interval_s": gil_switch_interval_s, "lock_memory": lock_memory}
         try:
             json.dumps(self._settings)
@@ -446,8 +449,8 @@ class DisplayProcess:
             self._child_pins_seq = pins.seq
             self._pins = PinState(pins.command, pins.safe_reason, self._pins.seq + 1)
         if self.recorder is not None:
-            state = self.pin_state
-            self.recorder.add_pins(state.command, display, state.safe_reason)
+            for sample in report["pins_samples"]:
+                self.recorder.record_pins(*sample)
         if report["final"]:
             self._final = True
 

@@ -42,6 +42,7 @@ from local_site.agent.period_stats import PeriodStats
 from local_site.agent.platform_process import ProcessPlatformReader
 from local_site.display.base import DisplayStats
 from local_site.render import PinCommand, RendererConfig
+from local_site.recording import PinsSampler
 from local_site.render.renderer import RenderStats
 from shared import timebase
 from shared.errors import ConfigError
@@ -360,6 +361,48 @@ def _served(scene: str, link: Any = None, **kw: Any) -> Iterator[
     assert not thread.is_alive(), "the display process's supervisor did not stop"
 
 
+def test_the_pins_are_recorded_at_the_recorders_rate_stamped_when_read() -> None:
+    # sampled in the child as the loop reads them, not one per 20 ms report stamped when
+    # the report arrives
+    samples: list[tuple[int, Any, Any, str | None, int]] = []
+
+    class Recorder:
+        pins_sampler = PinsSampler(200.0)
+
+        def add_frame(self, frame: TactileFrame, rx_us: int) -> None:
+            pass
+
+        def record_pins(self, t_us: int, commanded: Any, measured: Any,
+                        safe_reason: str | None) -> None:
+            samples.append((t_us, commanded, measured, safe_reason, now_us()))
+
+    with _served("hemisphere", recorder=Recorder()) as (process, _):
+        wait_until(lambda: len(samples) > 100, 30.0, "pins samples")
+    stamps = np.array([s[0] for s in samples], np.int64)
+    gaps_ms = np.diff(stamps) / 1e3
+    assert np.all(gaps_ms >= 5.0 - 0.1)  # never above the recorder's rate
+    assert float(np.median(gaps_ms)) < 10.0  # at its rate (one per report: 20 ms)
+    assert all(t <= arrived for t, *_, arrived in samples)  # stamped before they arrive
+    assert all(isinstance(s[1], PinCommand) and s[3] is None for s in samples)
+    # the board's measured positions
+    assert any(s[2] is not None and np.size(s[2]) == 16 for s in samples)
+
+
+def test_the_pins_sampler_keeps_its_rate_and_waits_for_a_command() -> None:
+    with pytest.raises(ConfigError, match="pins_rate_hz"):
+        PinsSampler(0.0)
+
+    class Board:
+        is_connected = False
+
+    sampler = PinsSampler(1e-3)
+    assert sampler.offer(None, Board(), "startup") is None  # nothing on the pins yet
+    first = sampler.offer("command", Board(), None)
+    assert first is not None and first[1:] == ("command", None, None)
+    assert abs(first[0] - now_us()) < 5e6
+    assert sampler.offer("command", Board(), None) is None  # not due for 1,000 s
+
+
 def test_frames_superseded_in_the_childs_hand_over_are_counted() -> None:
     with _served("remote", SameClockLink()) as (process, _):
         wait_until(lambda: process.periods.iterations > 200, 30.0, "the child's loop")
@@ -445,10 +488,12 @@ def test_an_accepted_frame_reported_at_once_is_still_recorded() -> None:
     recorded: list[int] = []
 
     class Recorder:
+        pins_sampler = PinsSampler(50.0)
+
         def add_frame(self, frame: TactileFrame, rx_us: int) -> None:
             recorded.append(frame.seq)
 
-        def add_pins(self, *args: Any) -> None:
+        def record_pins(self, *args: Any) -> None:
             pass
 
     process = _unserved(recorder=Recorder())
@@ -456,7 +501,8 @@ def test_an_accepted_frame_reported_at_once_is_still_recorded() -> None:
               "counters": DisplayLoopCounters(frames_accepted=1),
               "render_stats": RenderStats(), "display_stats": DisplayStats(), "superseded": 0,
               "priority": (None, None), "connected": True, "feedback": None,
-              "pins": PinState(), "accepted": [(7, 123)], "rendered": [], "final": False}
+              "pins": PinState(), "accepted": [(7, 123)], "rendered": [], "pins_samples": [],
+              "final": False}
 
     class Sock:
         def send(self, data: bytes, flags: int = 0) -> int:
@@ -475,7 +521,7 @@ def test_the_pin_state_goes_unknown_when_read_even_without_the_supervisor() -> N
               "render_stats": RenderStats(), "display_stats": DisplayStats(), "superseded": 0,
               "priority": (None, None), "connected": True, "feedback": None,
               "pins": PinState(command, None, 3), "accepted": [], "rendered": [],
-              "final": False}
+              "pins_samples": [], "final": False}
     process._take(("report", report))
     assert process.last_command is command and process.safe_reason is None
     # nothing more from the child (no supervisor runs here): unknown once SILENCE_S passed
