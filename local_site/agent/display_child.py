@@ -142,7 +142,10 @@ class _Reporter:
                       "priority": (loop.priority_applied, loop.realtime_applied),
                       "connected": connected,
                       "feedback": feedback if feedback is not self._feedback else None,
-                      "pins": loop.pin_state, "accepted": self._accepted,
+                      "pins": loop.pin_state,
+                      # the open safe episode (the final report's is counted already)
+                      "safe_since_s": None if final else loop.safe_since_s,
+                      "accepted": self._accepted,
                       "rendered": self._rendered, "pins_samples": self._pins_samples,
                       "final": final}
             data = pickle.dumps(("report", report), protocol=5)

@@ -431,6 +431,12 @@ class DisplayLoop:
         """Why the pins are in their safe state now (None: rendering)."""
         return self.pin_state.safe_reason
 
+    @property
+    def safe_since_s(self) -> float | None:
+        """Since when (monotonic clock) the open safe episode not yet in
+        ``counters.safe_time_s`` runs (None: rendering)."""
+        return self._safe_since_s
+
     def _set_pins(self, command: PinCommand | None, safe_reason: str | None) -> None:
         """Publish a new pin state (one assignment: readers in other threads see it whole)."""
         old = self.pin_state

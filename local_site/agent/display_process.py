@@ -365,6 +365,12 @@ class DisplayProcess:
         #: waits to reopen its board
         self._alive_s = 0.0
         self._final = False
+        #: the running child's open safe episode (its start, monotonic s; None: rendering)
+        self._safe_open_since_s: float | None = None
+        #: since when no child drives the board (a child ended unasked; None: one does)
+        self._no_child_since_s: float | None = None
+        #: safe time no child's counters hold (ended children's open episodes, gaps)
+        self._safe_lost_s = 0.0
         self._spawned_s = 0.0
         self._spawn_error = "could not start"
 
@@ -378,8 +384,24 @@ class DisplayProcess:
 
     @property
     def counters(self) -> DisplayLoopCounters:
-        """The loop's counters, those of ended children included."""
-        return self.totals.counters
+        """The loop's counters, those of ended children included. ``safe_time_s`` also
+        counts what no child's counters hold: the running child's open safe episode, a
+        child that ended unasked from its open episode (or its loop's last progress) on, and
+        the time no child drove the board (the board's watchdog holds the pins safe)."""
+        counters = self.totals.counters
+        extra = self._safe_untold_s(monotonic_s())
+        if extra <= 0.0:
+            return counters
+        return dataclasses.replace(counters, safe_time_s=counters.safe_time_s + extra)
+
+    def _safe_untold_s(self, now_s: float) -> float:
+        open_since, gap_since = self._safe_open_since_s, self._no_child_since_s
+        extra = self._safe_lost_s
+        if open_since is not None:
+            extra += max(0.0, now_s - open_since)
+        if gap_since is not None:
+            extra += max(0.0, now_s - gap_since)
+        return extra
 
     @property
     def pin_state(self) -> PinState:
@@ -416,8 +438,13 @@ class DisplayProcess:
         ended, live = self._counts
         if iterations > live.iterations or report["final"]:
             self._loop_seen_s = self._alive_s = now
+            gap_since = self._no_child_since_s
+            if gap_since is not None:  # a child drives the board again
+                self._safe_lost_s += max(0.0, now - gap_since)
+                self._no_child_since_s = None
         elif not report["connected"]:
             self._alive_s = now  # its loop waits for the board to come back: not hung
+        self._safe_open_since_s = report["safe_since_s"]
         self._counts = (ended, _Totals(report["counters"], report["display_stats"],
                                        report["render_stats"], report["superseded"],
                                        iterations, overruns))
@@ -455,7 +482,17 @@ class DisplayProcess:
             self._final = True
 
     def _retire(self) -> None:
-        """An ended child's counts join those of the children before it (one assignment)."""
+        """An ended child's counts join those of the children before it (one assignment);
+        its open safe episode, or the time since its loop last advanced, and the time until
+        the next child drives the board count as safe time."""
+        now = monotonic_s()
+        if self._no_child_since_s is None and not self._final and self._spawned_s > 0:
+            since = self._safe_open_since_s
+            if since is None:
+                since = self._loop_seen_s or self._spawned_s
+            self._safe_lost_s += max(0.0, now - since)
+            self._no_child_since_s = now
+        self._safe_open_since_s = None
         ended, live = self._counts
         self._counts = (ended.plus(live), _Totals())
         self._child_pins_seq = -1

@@ -502,7 +502,7 @@ def test_an_accepted_frame_reported_at_once_is_still_recorded() -> None:
               "render_stats": RenderStats(), "display_stats": DisplayStats(), "superseded": 0,
               "priority": (None, None), "connected": True, "feedback": None,
               "pins": PinState(), "accepted": [(7, 123)], "rendered": [], "pins_samples": [],
-              "final": False}
+              "safe_since_s": None, "final": False}
 
     class Sock:
         def send(self, data: bytes, flags: int = 0) -> int:
@@ -514,6 +514,48 @@ def test_an_accepted_frame_reported_at_once_is_still_recorded() -> None:
     assert recorded == [7]
 
 
+def _report(iterations: int, safe_since_s: float | None, final: bool = False
+            ) -> tuple[str, dict[str, Any]]:
+    return ("report", {
+        "periods": np.zeros(0), "loops": (iterations, 0), "counters": DisplayLoopCounters(),
+        "render_stats": RenderStats(), "display_stats": DisplayStats(), "superseded": 0,
+        "priority": (None, None), "connected": True, "feedback": None,
+        "pins": PinState(None, None if safe_since_s is None else "platform_lost", 1),
+        "safe_since_s": safe_since_s, "accepted": [], "rendered": [], "pins_samples": [],
+        "final": final})
+
+
+def test_safe_time_counts_open_episodes_killed_children_and_gaps_without_a_child() -> None:
+    # what no child's counters hold: the running child's open episode, the episode a
+    # killed child had open, and the time until the next child drives the board
+    process = _unserved()
+    process._spawned_s = monotonic_s() - 10.0
+    process._take(_report(10, monotonic_s() - 5.0))  # safe for 5 s, still open
+    assert 5.0 <= process.counters.safe_time_s < 5.0 + scaled(1.0)
+    process._retire()  # killed with the episode open: counted up to now, then the gap
+    at_retire = process.counters.safe_time_s
+    assert at_retire >= 5.0
+    wait_until(lambda: process.counters.safe_time_s > at_retire, 5.0, "the gap counted")
+    process._take(_report(1, None))  # the next child renders: the gap ends
+    closed = process.counters.safe_time_s
+    assert closed < at_retire + scaled(1.0)
+    time.sleep(0.05)
+    assert process.counters.safe_time_s == closed
+    process._retire()  # killed while rendering: from its loop's last progress on
+    assert process.counters.safe_time_s < closed + scaled(1.0)
+
+
+def test_safe_time_is_not_counted_before_a_child_ran_nor_after_a_clean_stop() -> None:
+    process = _unserved()
+    process._retire()  # could not start (e.g. the platform's record not there yet)
+    assert process.counters.safe_time_s == 0.0
+    process._spawned_s = monotonic_s()
+    process._take(_report(5, None, final=True))  # the child counted its episode itself
+    process._retire()
+    time.sleep(0.05)
+    assert process.counters.safe_time_s == 0.0
+
+
 def test_the_pin_state_goes_unknown_when_read_even_without_the_supervisor() -> None:
     process = _unserved()
     command = PinCommand(np.full((4, 4), 2.0), np.full((4, 4), 0.8), np.zeros((4, 4)))
@@ -521,7 +563,7 @@ def test_the_pin_state_goes_unknown_when_read_even_without_the_supervisor() -> N
               "render_stats": RenderStats(), "display_stats": DisplayStats(), "superseded": 0,
               "priority": (None, None), "connected": True, "feedback": None,
               "pins": PinState(command, None, 3), "accepted": [], "rendered": [],
-              "pins_samples": [], "final": False}
+              "pins_samples": [], "safe_since_s": None, "final": False}
     process._take(("report", report))
     assert process.last_command is command and process.safe_reason is None
     # nothing more from the child (no supervisor runs here): unknown once SILENCE_S passed
