@@ -379,6 +379,7 @@ class DisplayLoop:
                 and max_frame_age_s > 0 and max_offset_uncertainty_s > 0):
             raise ConfigError("rate, timeouts and age bounds of the display loop must be > 0")
         self.display = display
+        display.warm_up()  # its send path compiled now, not in the first command
         self.renderer = renderer
         self.scene = scene
         self._positions = positions

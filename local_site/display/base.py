@@ -107,10 +107,16 @@ def _quantise_kernel(h: NDArray[np.float64], k: NDArray[np.float64], f: NDArray[
     return True, clamped, same
 
 
+_warmed = False
+
+
 def _warm_up() -> None:
     """Run :func:`_quantise_kernel` and the command encoder once for each type of argument
     the sends use: writable and read-only layers (numba compiles at the first call of each,
-    or loads its cache)."""
+    or loads its cache: about 0.5 s here). Once per process."""
+    global _warmed
+    if _warmed:
+        return
     codes = np.zeros((3, fr.N_PINS), np.uint16)
     row = np.zeros(fr.N_PINS)
     frozen = np.zeros(fr.N_PINS)
@@ -120,6 +126,7 @@ def _warm_up() -> None:
                          False, codes, np.empty((3, fr.N_PINS)))
     fr.encode_command(fr.CommandFrame(seq=0, flags=0, height_codes=codes[0], k_codes=codes[1],
                                       f_codes=codes[2]))
+    _warmed = True
 
 
 def _float_rows(height_mm: object, stiffness_k: object, friction: object
@@ -280,8 +287,12 @@ class ArrayTacDisplay(Device):
         self._send_lock = threading.Lock()
         self._cond = threading.Condition()
         self._reset_session()
-        # compile (or load from numba's cache) the send path's kernels now, not in the
-        # display loop's first command
+
+    def warm_up(self) -> None:
+        """Compile (or load from numba's cache) the send path's kernels now, not in the first
+        command: the display loop calls it when it is built, and :meth:`connect` at the
+        latest. Not at construction: a station that only checks the display's settings (its
+        loop runs in another process) never spends the time."""
         _warm_up()
 
     # ------------------------------------------------------------------ backend interface
@@ -294,6 +305,7 @@ class ArrayTacDisplay(Device):
     # ------------------------------------------------------------------ lifecycle steps
 
     def _before_connect(self) -> None:
+        _warm_up()
         self._reset_session()
 
     def _after_connect(self) -> None:

@@ -181,22 +181,35 @@ def test_send_command_refuses_bad_input_naming_the_layer(args: tuple[object, ...
 
 
 def test_the_send_paths_kernels_are_compiled_once_before_the_first_command() -> None:
-    """Compiling inside the 1 kHz loop would stall its first command: a display compiles
-    the send path's kernels (or loads numba's cache) when it is built, for the types every
-    command, keepalive and (4, 4) or (16,) layer uses, the renderer's read-only ones
-    included. Other layouts and types take the numpy path instead of compiling another
+    """Compiling inside the 1 kHz loop would stall its first command: the display loop has
+    its display compile the send path's kernels (or load numba's cache) when the loop is
+    built, and a display does at ``connect()`` at the latest, for the types every command,
+    keepalive and (4, 4) or (16,) layer uses, the renderer's read-only ones included. Not
+    when it is only built (a station whose loop runs in another process builds one to check
+    its settings). Other layouts and types take the numpy path instead of compiling another
     version."""
     import subprocess
     import sys
 
-    code = ("from local_site.devices import open_display; "
-            "from local_site.display.base import _quantise_kernel as q; "
-            "from local_site.display.frames import _command_body_kernel as e; "
-            "open_display('sim', connect=False); "
-            "print(len(q.signatures), len(e.signatures))")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         check=True, timeout=scaled(120.0))
-    assert out.stdout.split() == ["2", "1"]  # writable and read-only layers
+    def signatures(steps: str) -> list[str]:
+        code = ("from local_site.devices import open_display; "
+                "from local_site.display.base import _quantise_kernel as q; "
+                "from local_site.display.frames import _command_body_kernel as e; "
+                f"d = open_display('socket://127.0.0.1:9', connect=False); {steps}; "
+                "print(len(q.signatures), len(e.signatures))")
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                             check=True, timeout=scaled(120.0))
+        return out.stdout.split()
+
+    assert signatures("pass") == ["0", "0"]  # built only: nothing compiled
+    assert signatures("d.warm_up()") == ["2", "1"]  # writable and read-only layers
+    assert signatures(  # the loop's construction warms its display
+        "from local_site.agent.display_loop import DisplayLoop; "
+        "from local_site.render import Renderer; "
+        "from local_site.scenes import TactileFrameScene; "
+        "DisplayLoop(d, Renderer(), TactileFrameScene(), positions=lambda: None, "
+        "platform_ok=lambda: True)"
+    ) == ["2", "1"]
     from local_site.display.base import _quantise_kernel
     from local_site.display.frames import _command_body_kernel
 
