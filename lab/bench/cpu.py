@@ -37,7 +37,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--remote-arg", action="append", default=[],
                         help="extra flag for `teletouch remote` (repeat)")
     parser.add_argument("--keep-record", type=Path, default=None,
-                        help="copy the local station's recording (record.npz) here")
+                        help="copy the local station's recording (local.mcap) here")
     parser.add_argument("--note", default="", help="a note saved with the run")
     parser.add_argument("--out-dir", type=Path, default=DEFAULT_OUT, help="results directory")
     parser.add_argument("--report-only", action="store_true",

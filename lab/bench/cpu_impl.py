@@ -399,8 +399,11 @@ def run_cpu_bench(settings: CpuBenchSettings) -> dict[str, Any]:
         if win.start is None or win.end is None:
             raise ConfigError("the demo ended before the measured window did; lower "
                               "--window-s or --warmup-s (the default operator runs ~25 s)")
-        if settings.keep_record is not None and (workdir / "demo" / "record.npz").exists():
-            shutil.copyfile(workdir / "demo" / "record.npz", settings.keep_record)
+        if settings.keep_record is not None:
+            record = workdir / "demo" / "local.mcap"
+            if not record.exists():
+                raise ConfigError(f"--keep-record: the demo left no recording ({record})")
+            shutil.copyfile(record, settings.keep_record)
         return _figures(win, report, load_start, pyspy)
     finally:
         shutil.rmtree(workdir, ignore_errors=True)

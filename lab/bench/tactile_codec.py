@@ -2,8 +2,9 @@
 height error of the compact codec (protocol v2) against the uncompressed ``tactile_frame``
 stream, over deadband settings.
 
-Input: a local station recording (``record.npz``: every tactile frame the station accepted,
-with its layers), e.g. from ``teletouch bench cpu --keep-record PATH`` or ``teletouch demo
+Input: a local station recording (``local.mcap``, or an ``.npz`` of the same arrays as
+:class:`~local_site.recording.Recording`: every tactile frame the station accepted, with its
+layers), e.g. from ``teletouch bench cpu --keep-record PATH.mcap`` or ``teletouch demo
 --workdir DIR``. Each frame is replayed as the remote sent it (``tactile_frame`` with float32
 layers), encoded as ``tactile_compact`` through the real msgpack codec, decoded on the other
 side, and rendered by the local station's renderer at the frame's centre, like the
@@ -32,7 +33,7 @@ SETTINGS: tuple[tuple[float, float], ...] = (
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     """Add the benchmark's options."""
     parser.add_argument("--record", type=Path, required=True,
-                        help="a local station recording (record.npz)")
+                        help="a local station recording (local.mcap, or .npz)")
     parser.add_argument("--frames", type=int, default=3000, help="frames replayed at most")
     parser.add_argument("--loss", type=float, default=0.2,
                         help="share of frames lost in the second pass (default 0.2)")
@@ -41,12 +42,33 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0)
 
 
+def _arrays(path: Path) -> Any:
+    """The recording's frame arrays by name (``frame_seq``, ``frame_height_mm``, ...)."""
+    import numpy as np
+
+    if path.suffix != ".mcap":
+        return np.load(path, allow_pickle=False)
+    from local_site.recording import load_recording
+
+    rec = load_recording(path)
+    zeros = np.zeros_like(rec.frame_height_mm)
+    return {"frame_seq": rec.frame_seq, "frame_rx_us": rec.frame_rx_us,
+            "frame_height_mm": rec.frame_height_mm,
+            "frame_stiffness_k": zeros if rec.frame_stiffness_k is None
+            else rec.frame_stiffness_k,
+            "frame_stiffness_n_per_mm": zeros if rec.frame_stiffness_n_per_mm is None
+            else rec.frame_stiffness_n_per_mm,
+            "frame_center_mm": rec.frame_center_mm, "frame_pitch_mm": rec.frame_pitch_mm,
+            "frame_contact": rec.frame_contact, "frame_force_n": rec.frame_force_n,
+            "frame_indentation_mm": rec.frame_indentation_mm}
+
+
 def _frames(path: Path, limit: int) -> tuple[list[Any], float]:
     import numpy as np
 
     from shared.protocol import TactileFrame
 
-    d = np.load(path, allow_pickle=False)
+    d = _arrays(path)
     n = min(limit, int(d["frame_seq"].shape[0]))
     rx = d["frame_rx_us"][:n].astype(np.int64)
     rate = (n - 1) / ((rx[-1] - rx[0]) / 1e6) if n > 1 and rx[-1] > rx[0] else float("nan")
