@@ -37,9 +37,13 @@ has both ``local.capture`` and ``local.rendered``.
 
 from __future__ import annotations
 
+import collections
 import itertools
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
 
 from shared.ledger import LatencyLedger
 from shared.protocol import Hop
@@ -135,6 +139,9 @@ class MotionToTouchLedger:
         self._window = window
         self._ledgers: dict[str, LatencyLedger] = {}
         self._skipped: dict[str, int] = {}
+        #: the newest complete frames (every stage, in STAGES order, then end-to-end; us)
+        self._complete: collections.deque[tuple[float, ...]] = collections.deque(
+            maxlen=window)
 
     def _ledger(self, name: str) -> LatencyLedger:
         ledger = self._ledgers.get(name)
@@ -150,6 +157,9 @@ class MotionToTouchLedger:
             self._ledger(name).record(None, 0, round(duration))
         if trace.end_to_end_us is not None:
             self._ledger(END_TO_END).record(None, 0, round(trace.end_to_end_us))
+            if len(trace.stages_us) == len(STAGES):
+                self._complete.append((*(d for _, d in trace.stages_us),
+                                       trace.end_to_end_us))
 
     def add_hops(self, hops: Iterable[Hop], offsets_us: Mapping[str, float | None]) -> StageTrace:
         """Trace ``hops`` (see :func:`trace_hops`), account it and return it."""
@@ -162,6 +172,46 @@ class MotionToTouchLedger:
         """Frames with an end-to-end figure."""
         ledger = self._ledgers.get(END_TO_END)
         return 0 if ledger is None else ledger.received
+
+    def tail_ms(self, quantile: float = 0.95) -> dict[str, Any] | None:
+        """Where the slow frames lose their time: the complete frames (every stage counted)
+        whose end-to-end latency is at or above its ``quantile``, each stage's mean over them
+        against the stage's median over all complete frames.
+
+        A complete frame's stages add up to its end-to-end latency (both ends are the local
+        clock), so the stages' ``excess`` (tail mean minus median) add up to the tail's mean
+        end-to-end minus the sum of the stage medians: ``share`` is each stage's part of that
+        sum.
+
+        Args:
+            quantile: the tail's lower bound, as a quantile of end-to-end latency (0 < q < 1).
+
+        Returns:
+            ``{"quantile", "frames" (in the tail), "of" (complete frames), "end_to_end":
+            {"p50", "tail_mean"}, "stages": {stage: {"p50", "tail_mean", "excess",
+            "share"}}}`` in ms; None without complete frames.
+
+        Raises:
+            ValueError: a quantile outside (0, 1).
+        """
+        if not 0.0 < quantile < 1.0:
+            raise ValueError(f"quantile must lie in (0, 1), got {quantile}")
+        if not self._complete:
+            return None
+        data = np.asarray(self._complete, np.float64) / 1000.0
+        e2e = data[:, -1]
+        tail = data[e2e >= np.quantile(e2e, quantile)]
+        medians = np.median(data, axis=0)
+        means = tail.mean(axis=0)
+        excess = means[:-1] - medians[:-1]
+        total = float(excess.sum())
+        return {
+            "quantile": quantile, "frames": int(tail.shape[0]), "of": int(data.shape[0]),
+            "end_to_end": {"p50": float(medians[-1]), "tail_mean": float(means[-1])},
+            "stages": {name: {"p50": float(medians[i]), "tail_mean": float(means[i]),
+                              "excess": float(excess[i]),
+                              "share": float(excess[i] / total) if total > 0 else None}
+                       for i, name in enumerate(STAGES)}}
 
     def summary_ms(self) -> dict[str, dict[str, float | int | None]]:
         """Per stage (and ``end_to_end``): ``p50``, ``p99``, ``max`` in ms and the count.

@@ -458,7 +458,9 @@ def _figures(win: _Window, report: dict[str, Any], load_start: tuple[float, floa
         "processes": processes, "threads": threads,
         "stages": {k: dict(v) for k, v in stages.items()},
         "top": top, "display_loop": local.get("display_loop", {}),
-        "latency_ms": report.get("latency_ms", {}), "frames_received": report.get(
+        "latency_ms": report.get("latency_ms", {}),
+        "latency_tail_ms": local.get("motion_to_touch_tail_ms"),
+        "frames_received": report.get(
             "frames_received"), "demo_error": report.get("demo_error"),
         "remote_frames": (report.get("remote") or {}).get("frames"),
         "remote_platform_states": (report.get("remote") or {}).get("platform_states"),

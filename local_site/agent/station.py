@@ -627,6 +627,8 @@ class LocalAgent:
             "late_sends_withdrawn": c.late_sends_withdrawn,
             "late_sends_refused": c.late_sends_refused,
             "motion_to_touch_ms": self.ledger.summary_ms(),
+            # where the slowest 5 % of the complete frames lose their time, stage by stage
+            "motion_to_touch_tail_ms": self.ledger.tail_ms(0.95),
             "tactile_codec": dataclasses.asdict(self.tactile_decoder.counters),
             "memory_lock": None if self.memory_lock is None else self.memory_lock.to_dict(),
             "display_loop": {"mode": self.config.render_loop,

@@ -41,8 +41,8 @@ from local_site.agent.display_process import (
 from local_site.agent.period_stats import PeriodStats
 from local_site.agent.platform_process import ProcessPlatformReader
 from local_site.display.base import DisplayStats
-from local_site.render import PinCommand, RendererConfig
 from local_site.recording import PinsSampler
+from local_site.render import PinCommand, RendererConfig
 from local_site.render.renderer import RenderStats
 from shared import timebase
 from shared.errors import ConfigError
@@ -376,7 +376,7 @@ def test_the_pins_are_recorded_at_the_recorders_rate_stamped_when_read() -> None
                         safe_reason: str | None) -> None:
             samples.append((t_us, commanded, measured, safe_reason, now_us()))
 
-    with _served("hemisphere", recorder=Recorder()) as (process, _):
+    with _served("hemisphere", recorder=Recorder()):
         wait_until(lambda: len(samples) > 100, 30.0, "pins samples")
     stamps = np.array([s[0] for s in samples], np.int64)
     gaps_ms = np.diff(stamps) / 1e3

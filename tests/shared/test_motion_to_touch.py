@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import numpy as np
+import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
 from shared.motion_to_touch import (
     END_TO_END,
     INCOMPLETE,
+    STAGES,
     UNALIGNED,
     MotionToTouchLedger,
     trace_hops,
@@ -89,3 +92,63 @@ def test_a_frame_without_its_platform_part_still_has_stages() -> None:
     assert [n for n, _ in trace.stages_us] == [
         "reconstruction_and_stiffness", "uplink_remote_to_relay", "relay_forward_tactile",
         "relay_to_local", "render"]
+
+
+def _loop_hops(durations_us: list[int]) -> list[Hop]:
+    """One loop's stamps, on one clock (offsets 0), with these stage durations."""
+    t, hops = 0, []
+    for (clock, stage, _), d in zip(TRUE, [0, *durations_us], strict=True):
+        t += d
+        hops.append(Hop(clock, stage, t))
+    return hops
+
+
+@given(st.lists(st.lists(st.integers(0, 50_000), min_size=len(STAGES), max_size=len(STAGES)),
+                min_size=1, max_size=200),
+       st.floats(0.5, 0.99))
+def test_the_tails_stage_excesses_add_up_to_its_end_to_end_excess(
+        frames: list[list[int]], quantile: float) -> None:
+    ledger = MotionToTouchLedger()
+    for durations in frames:
+        ledger.add_hops(_loop_hops(durations), {"local": 0, "remote": 0})
+    tail = ledger.tail_ms(quantile)
+    assert tail is not None and tail["of"] == len(frames)
+    data = np.asarray(frames, np.float64) / 1e3
+    e2e = data.sum(axis=1)
+    chosen = data[e2e >= np.quantile(e2e, quantile)]  # an independent reckoning
+    assert tail["frames"] == chosen.shape[0] >= 1
+    stages = tail["stages"]
+    for i, name in enumerate(STAGES):
+        assert stages[name]["tail_mean"] == pytest.approx(chosen[:, i].mean(), abs=1e-9)
+        assert stages[name]["p50"] == pytest.approx(np.median(data[:, i]), abs=1e-9)
+    excess = sum(s["excess"] for s in stages.values())
+    assert excess == pytest.approx(tail["end_to_end"]["tail_mean"]
+                                   - sum(s["p50"] for s in stages.values()), abs=1e-6)
+    shares = [s["share"] for s in stages.values()]
+    if excess > 1e-9:
+        assert sum(shares) == pytest.approx(1.0)
+
+
+def test_the_stage_with_the_heavy_tail_takes_the_tails_share() -> None:
+    ledger = MotionToTouchLedger()
+    rng = np.random.default_rng(1)
+    k = STAGES.index("arm_and_sensor")
+    for i in range(1000):
+        durations = [int(v) for v in rng.integers(900, 1100, len(STAGES))]
+        if i % 20 == 0:
+            durations[k] += 20_000  # one frame in 20 waits 20 ms for the sensor
+        ledger.add_hops(_loop_hops(durations), {"local": 0, "remote": 0})
+    tail = ledger.tail_ms(0.95)
+    assert tail is not None and tail["frames"] == 50
+    assert tail["stages"]["arm_and_sensor"]["share"] > 0.95
+    assert tail["stages"]["arm_and_sensor"]["excess"] == pytest.approx(20.0, abs=0.5)
+
+
+def test_the_tail_needs_complete_frames_and_a_quantile_inside_0_1() -> None:
+    ledger = MotionToTouchLedger()
+    assert ledger.tail_ms() is None
+    ledger.add_hops(_loop_hops([1000] * len(STAGES))[4:], {"local": 0, "remote": 0})
+    assert ledger.tail_ms() is None  # no platform part: not a complete frame
+    for q in (0.0, 1.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="quantile"):
+            ledger.tail_ms(q)
