@@ -1,0 +1,76 @@
+"""Where the motion-to-touch tail goes: a table of ``bench cpu`` runs' tail attribution.
+
+Reads every ``cpu-*.json`` in a results directory (``teletouch bench cpu`` runs, which carry
+the local station's ``motion_to_touch_tail_ms``: for the slowest 5 % of the complete frames,
+each stage's mean against its median over all of them, see
+:meth:`shared.motion_to_touch.MotionToTouchLedger.tail_ms`) and writes ``tail.md`` beside
+them: per link profile and stage, the median over the runs of the stage's median, its mean in
+the tail, its excess and its share of the tail's excess (with the range over the runs), and
+the end-to-end median, tail mean and p99.
+
+Run: ``python benchmarks/m2t_tail_table.py benchmarks/results/m2t_tail``.
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import sys
+from pathlib import Path
+from typing import Any
+
+
+def _runs(directory: Path) -> dict[str, list[dict[str, Any]]]:
+    by_link: dict[str, list[dict[str, Any]]] = {}
+    for path in sorted(directory.glob("cpu-*.json")):
+        run = json.loads(path.read_text())
+        if run.get("latency_tail_ms"):
+            by_link.setdefault(run["settings"]["link"] or "none", []).append(run)
+    return by_link
+
+
+def _cell(values: list[float], fmt: str = "{:.2f}") -> str:
+    med = statistics.median(values)
+    if len(values) == 1:
+        return fmt.format(med)
+    return f"{fmt.format(med)} ({fmt.format(min(values))}-{fmt.format(max(values))})"
+
+
+def table(directory: Path) -> str:
+    """The Markdown table of the runs in ``directory``."""
+    lines = []
+    for link, runs in _runs(directory).items():
+        tails = [r["latency_tail_ms"] for r in runs]
+        e2e = [r["latency_ms"]["end_to_end"] for r in runs]
+        loads = [r["load_start"][0] for r in runs]
+        lines += [f"### `{link}`: {len(runs)} runs, load {min(loads):.1f}-{max(loads):.1f}", "",
+                  f"End to end (ms): median {_cell([t['end_to_end']['p50'] for t in tails])}, "
+                  f"tail mean {_cell([t['end_to_end']['tail_mean'] for t in tails])}, "
+                  f"p99 {_cell([e['p99'] for e in e2e])}; tail = the slowest "
+                  f"{100 * (1 - tails[0]['quantile']):.0f} % of "
+                  f"{_cell([float(t['of']) for t in tails], '{:.0f}')} complete frames.", "",
+                  "| stage | median (ms) | tail mean (ms) | excess (ms) | share of the excess |",
+                  "|---|---|---|---|---|"]
+        stages = list(tails[0]["stages"])
+        stages.sort(key=lambda s: -statistics.median(t["stages"][s]["excess"] for t in tails))
+        for stage in stages:
+            rows = [t["stages"][stage] for t in tails]
+            shares = [r["share"] for r in rows if r["share"] is not None]
+            lines.append(
+                f"| {stage} | {_cell([r['p50'] for r in rows])} | "
+                f"{_cell([r['tail_mean'] for r in rows])} | {_cell([r['excess'] for r in rows])} "
+                f"| {_cell([100 * s for s in shares], '{:.0f} %') if shares else '-'} |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def main(argv: list[str]) -> int:
+    directory = Path(argv[0]) if argv else Path("benchmarks/results/m2t_tail")
+    text = table(directory)
+    (directory / "tail.md").write_text(text + "\n")
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
