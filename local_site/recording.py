@@ -35,6 +35,7 @@ from shared.errors import ConfigError, InputDataError
 from shared.protocol import Message, PlatformState, TactileCompact, TactileFrame
 from shared.protocol.tactile_codec import TactileDecoder
 from shared.recording import McapRecorder, McapRecording, RecordingFormatError, read_mcap
+from shared.timebase import now_us
 
 __all__ = ["PinsSampler", "Recording", "SessionRecorder", "load_recording", "recording_from_mcap"]
 
@@ -48,6 +49,8 @@ PinsSample = tuple[int, Any, Any, "str | None"]
 
 class PinsSampler:
     """Samples the pins' state at most ``rate_hz`` times a second, stamped when read.
+
+    Only while a command is on the pins: in the safe state there is none to record.
 
     Offered the state on every display-loop tick (in whichever process the loop runs), it
     returns a sample when one is due: the command then on the pins and the board's measured
@@ -75,8 +78,10 @@ class PinsSampler:
             return None
         self._next_s = now + self._period_s
         measured = display.latest_feedback() if display.is_connected else None
-        return (time.time_ns() // 1000, commanded, None if measured is None
-                else measured.position_mm, safe_reason)
+        # on the wall clock the station's messages are stamped on (shared.timebase: a
+        # display process adopts the station's anchor), so /local/pins lines up with them
+        return (now_us(), commanded, None if measured is None else measured.position_mm,
+                safe_reason)
 
 
 class SessionRecorder:

@@ -77,6 +77,10 @@ class StageTrace:
     skipped: str | None = None
 
 
+#: a tail whose stages exceed their medians by less than this in all (ms) has no shares:
+#: they would be shares of rounding noise
+_SHARE_FLOOR_MS = 1e-3
+
 #: the stage between SEQUENCE[i] and SEQUENCE[i + 1]
 STAGES: tuple[str, ...] = (
     "uplink_local_to_relay", "relay_forward_platform", "relay_to_remote", "remote_dispatch",
@@ -181,7 +185,7 @@ class MotionToTouchLedger:
         A complete frame's stages add up to its end-to-end latency (both ends are the local
         clock), so the stages' ``excess`` (tail mean minus median) add up to the tail's mean
         end-to-end minus the sum of the stage medians: ``share`` is each stage's part of that
-        sum.
+        sum (None when the sum is under a microsecond: the tail is no slower than the rest).
 
         Args:
             quantile: the tail's lower bound, as a quantile of end-to-end latency (0 < q < 1).
@@ -210,7 +214,8 @@ class MotionToTouchLedger:
             "end_to_end": {"p50": float(medians[-1]), "tail_mean": float(means[-1])},
             "stages": {name: {"p50": float(medians[i]), "tail_mean": float(means[i]),
                               "excess": float(excess[i]),
-                              "share": float(excess[i] / total) if total > 0 else None}
+                              "share": float(excess[i] / total)
+                              if total > _SHARE_FLOOR_MS else None}
                        for i, name in enumerate(STAGES)}}
 
     def summary_ms(self) -> dict[str, dict[str, float | int | None]]:

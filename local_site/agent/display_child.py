@@ -10,6 +10,7 @@ from __future__ import annotations
 import collections
 import contextlib
 import dataclasses
+import errno
 import json
 import logging
 import pickle
@@ -42,6 +43,8 @@ log = logging.getLogger(__name__)
 _FINAL_TRIES = 100
 #: accepted frames and rendered frames' hops kept for a station that takes no report
 _KEEP_PENDING = 256
+#: halvings of what waits, at most, to fit one report into a packet
+_MAX_SHEDS = 12
 
 
 class _TappedLedger(MotionToTouchLedger):
@@ -110,7 +113,11 @@ class _Reporter:
         self._accepted: list[tuple[int, int]] = []
         self._rendered: list[Any] = []
         self._pins_samples: list[PinsSample] = []
+        #: reports the station's socket did not take (busy or gone)
         self.dropped = 0
+        #: items given up because a report no longer fitted a packet
+        self.shed = 0
+        self.shed_warned = False
 
     def frame_accepted(self, frame: Any, rx_us: int) -> None:
         self.accepted.append((frame.seq, rx_us))
@@ -121,7 +128,6 @@ class _Reporter:
         closed)."""
         loop = self.loop
         with self._lock:
-            recorded, periods = loop.periods.since(self._recorded)
             if connected is None:
                 connected = loop.display.is_connected
             feedback = loop.display.latest_feedback() if connected else None
@@ -133,37 +139,60 @@ class _Reporter:
             # a station that takes nothing for long gets the newest (a report fits a packet)
             del self._accepted[:-_KEEP_PENDING], self._rendered[:-_KEEP_PENDING]
             del self._pins_samples[:-_KEEP_PENDING]
-            report = {"periods": periods,
-                      "loops": (loop.periods.iterations, loop.periods.overruns),
-                      "counters": _copy_counters(loop.counters),
-                      "render_stats": dataclasses.replace(loop.renderer.stats),
-                      "display_stats": loop.display.stats(),
-                      "superseded": 0 if self.frames is None else self.frames.superseded,
-                      "priority": (loop.priority_applied, loop.realtime_applied),
-                      "connected": connected,
-                      "feedback": feedback if feedback is not self._feedback else None,
-                      "pins": loop.pin_state,
-                      # the open safe episode (the final report's is counted already)
-                      "safe_since_s": None if final else loop.safe_since_s,
-                      "accepted": self._accepted,
-                      "rendered": self._rendered, "pins_samples": self._pins_samples,
-                      "final": final}
-            data = pickle.dumps(("report", report), protocol=5)
-            for _ in range(_FINAL_TRIES if final else 1):
+            tries = _FINAL_TRIES if final else 1
+            sheds = 0
+            while tries > 0:
+                tries -= 1
+                recorded, periods = loop.periods.since(self._recorded)
+                report = {"periods": periods,
+                          "loops": (loop.periods.iterations, loop.periods.overruns),
+                          "counters": _copy_counters(loop.counters),
+                          "render_stats": dataclasses.replace(loop.renderer.stats),
+                          "display_stats": loop.display.stats(),
+                          "superseded": 0 if self.frames is None else self.frames.superseded,
+                          "priority": (loop.priority_applied, loop.realtime_applied),
+                          "connected": connected,
+                          "feedback": feedback if feedback is not self._feedback else None,
+                          "pins": loop.pin_state,
+                          # the open safe episode (the final report's is counted already)
+                          "safe_since_s": None if final else loop.safe_since_s,
+                          "accepted": self._accepted,
+                          "rendered": self._rendered, "pins_samples": self._pins_samples,
+                          "shed": self.shed, "final": final}
                 try:
-                    self.sock.send(data, socket.MSG_DONTWAIT)
-                    break
+                    self.sock.send(pickle.dumps(("report", report), protocol=5),
+                                   socket.MSG_DONTWAIT)
                 except BlockingIOError:  # the station is busy: the next report carries it
-                    if final:
+                    if tries:
                         time.sleep(0.01)
-                except OSError:  # the station is gone (the receiver stops us)
-                    break
-            else:
-                self.dropped += 1
+                    continue
+                except OSError as err:
+                    if err.errno != errno.EMSGSIZE:
+                        break  # the station is gone (the receiver stops us)
+                    self._shed(recorded)  # too much kept for one packet: the oldest go
+                    if sheds < _MAX_SHEDS:
+                        sheds += 1
+                        tries += 1  # at once, smaller
+                    continue
+                self._recorded = recorded
+                self._feedback = feedback
+                self._accepted, self._rendered, self._pins_samples = [], [], []
                 return
-            self._recorded = recorded
-            self._feedback = feedback
-            self._accepted, self._rendered, self._pins_samples = [], [], []
+            self.dropped += 1
+
+    def _shed(self, recorded: int) -> None:
+        """Give up the older half of what waits to be reported, and the loop periods not yet
+        reported (counted in :attr:`shed`): a report that no longer fits one packet."""
+        for pending in (self._accepted, self._rendered, self._pins_samples):
+            n = (len(pending) + 1) // 2
+            self.shed += n
+            del pending[:n]
+        self.shed += recorded - self._recorded
+        self._recorded = recorded
+        if not self.shed_warned:
+            self.shed_warned = True
+            log.warning("display process: a report too large for a packet; the oldest "
+                        "accepted frames, pins samples and loop periods were given up")
 
     def run(self, stop: threading.Event) -> None:
         while not stop.wait(HEARTBEAT_S):

@@ -544,12 +544,18 @@ class DisplayLoop:
         self.renderer.invalidate()
         log.info("display to safe state %r (%s)", self.safe_mode, reason)
 
+    def _close_safe_episode(self, now_s: float) -> None:
+        """Count the open safe episode into ``safe_time_s``. Its start is cleared first: a
+        reader in another thread (the display process's reporter) may find the episode
+        neither open nor counted for a moment, never both."""
+        since, self._safe_since_s = self._safe_since_s, None
+        if since is not None:
+            self.counters.safe_time_s += max(0.0, now_s - since)
+
     def _leave_safe_state(self, now_s: float) -> None:
-        if self._safe_since_s is not None:
-            self.counters.safe_time_s += now_s - self._safe_since_s
+        self._close_safe_episode(now_s)
         log.info("display resumes rendering (was safe: %s)", self.safe_reason)
         self._set_pins(None, None)
-        self._safe_since_s = None
 
     def tick(self) -> None:
         """One iteration (see the module docstring).
@@ -664,8 +670,8 @@ class DisplayLoop:
             if stop(delay):
                 return False
             delay = min(self._retry_max_s, delay * 2.0)
+        self._close_safe_episode(monotonic_s())  # the pins were safe while it was away
         self._set_pins(None, None)
-        self._safe_since_s = None
         self.renderer.invalidate()
         self.periods.restart()
         return True

@@ -28,7 +28,9 @@ packet; both ends are this program):
   it rendered; what a report refused by a busy socket carried goes with the next) and a
   final one when it stops. The pins are sampled for the station's recorder in the child, at
   the recorder's rate and stamped when the loop read them (:class:`~local_site.recording.
-  PinsSampler`), and the samples travel with the reports.
+  PinsSampler`), and the samples travel with the reports. A report that would outgrow a
+  packet (a station that took none for seconds) gives up the older half of what waits,
+  counted (``shed``).
 
 Safety, as in the station's own loop, and more (``docs/safety.md``, Watchdogs):
 
@@ -182,13 +184,15 @@ class _Totals:
     superseded: int = 0
     iterations: int = 0
     overruns: int = 0
+    #: reported items given up because a report no longer fitted a packet
+    shed: int = 0
 
     def plus(self, other: _Totals) -> _Totals:
         return _Totals(fold_counters(self.counters, other.counters),
                        _add_stats(self.display, other.display),
                        _add_stats(self.render, other.render),
                        self.superseded + other.superseded, self.iterations + other.iterations,
-                       self.overruns + other.overruns)
+                       self.overruns + other.overruns, self.shed + other.shed)
 
 
 class _DisplayMirror:
@@ -365,12 +369,11 @@ class DisplayProcess:
         #: waits to reopen its board
         self._alive_s = 0.0
         self._final = False
-        #: the running child's open safe episode (its start, monotonic s; None: rendering)
-        self._safe_open_since_s: float | None = None
-        #: since when no child drives the board (a child ended unasked; None: one does)
-        self._no_child_since_s: float | None = None
-        #: safe time no child's counters hold (ended children's open episodes, gaps)
-        self._safe_lost_s = 0.0
+        #: safe time no child's counters hold: (what is counted so far: ended children's
+        #: open episodes and gaps, s; the running child's open episode's start, monotonic s,
+        #: or None; since when no child drives the board, or None). Replaced whole, so a
+        #: reader in another thread never counts one stretch twice
+        self._untold: tuple[float, float | None, float | None] = (0.0, None, None)
         self._spawned_s = 0.0
         self._spawn_error = "could not start"
 
@@ -395,13 +398,12 @@ class DisplayProcess:
         return dataclasses.replace(counters, safe_time_s=counters.safe_time_s + extra)
 
     def _safe_untold_s(self, now_s: float) -> float:
-        open_since, gap_since = self._safe_open_since_s, self._no_child_since_s
-        extra = self._safe_lost_s
+        counted, open_since, gap_since = self._untold
         if open_since is not None:
-            extra += max(0.0, now_s - open_since)
+            counted += max(0.0, now_s - open_since)
         if gap_since is not None:
-            extra += max(0.0, now_s - gap_since)
-        return extra
+            counted += max(0.0, now_s - gap_since)
+        return counted
 
     @property
     def pin_state(self) -> PinState:
@@ -436,18 +438,18 @@ class DisplayProcess:
         now = monotonic_s()
         iterations, overruns = report["loops"]
         ended, live = self._counts
+        counted, _, gap_since = self._untold
         if iterations > live.iterations or report["final"]:
             self._loop_seen_s = self._alive_s = now
-            gap_since = self._no_child_since_s
             if gap_since is not None:  # a child drives the board again
-                self._safe_lost_s += max(0.0, now - gap_since)
-                self._no_child_since_s = None
+                counted += max(0.0, now - gap_since)
+                gap_since = None
         elif not report["connected"]:
             self._alive_s = now  # its loop waits for the board to come back: not hung
-        self._safe_open_since_s = report["safe_since_s"]
+        self._untold = (counted, report["safe_since_s"], gap_since)
         self._counts = (ended, _Totals(report["counters"], report["display_stats"],
                                        report["render_stats"], report["superseded"],
-                                       iterations, overruns))
+                                       iterations, overruns, report["shed"]))
         self.periods.extend(report["periods"], ended.iterations + iterations,
                             ended.overruns + overruns)
         self.priority_applied, self.realtime_applied = report["priority"]
@@ -486,13 +488,14 @@ class DisplayProcess:
         its open safe episode, or the time since its loop last advanced, and the time until
         the next child drives the board count as safe time."""
         now = monotonic_s()
-        if self._no_child_since_s is None and not self._final and self._spawned_s > 0:
-            since = self._safe_open_since_s
-            if since is None:
-                since = self._loop_seen_s or self._spawned_s
-            self._safe_lost_s += max(0.0, now - since)
-            self._no_child_since_s = now
-        self._safe_open_since_s = None
+        counted, open_since, gap_since = self._untold
+        if gap_since is None and self._spawned_s > 0:
+            if not self._final:  # a final report's counters hold its episode already
+                since = open_since if open_since is not None \
+                    else (self._loop_seen_s or self._spawned_s)
+                counted += max(0.0, now - since)
+            gap_since = now
+        self._untold = (counted, None, gap_since)
         ended, live = self._counts
         self._counts = (ended.plus(live), _Totals())
         self._child_pins_seq = -1
@@ -540,6 +543,12 @@ class DisplayProcess:
         """Start the child and serve it until ``stop`` is set; start it again, with backoff,
         when it ends unasked or hangs (a station never gives up). Blocking: call from a
         thread. ``nice`` and ``realtime`` are applied to the child's loop thread."""
+        try:
+            self._supervise(stop, nice, realtime)
+        finally:  # stopped: what is untold stops growing (a gap, a killed child's episode)
+            self._untold = (self._safe_untold_s(monotonic_s()), None, None)
+
+    def _supervise(self, stop: threading.Event, nice: int, realtime: int) -> None:
         delay = self._retry_min_s
         while not stop.is_set():
             child = self._spawn(nice, realtime)

@@ -634,6 +634,10 @@ class LocalAgent:
             "display_loop": {"mode": self.config.render_loop,
                              "process_restarts": getattr(loop, "restarts", 0),
                              "process_error": getattr(loop, "child_error", None),
+                             # accepted frames, pins samples, hops and periods the display
+                             # process gave up because a report outgrew a packet
+                             "process_report_items_shed": getattr(
+                                 getattr(loop, "totals", None), "shed", 0),
                              "thread_nice": loop.priority_applied,
                              "thread_realtime": loop.realtime_applied,
                              **loop.periods.summary()},

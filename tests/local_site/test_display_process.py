@@ -388,6 +388,57 @@ def test_the_pins_are_recorded_at_the_recorders_rate_stamped_when_read() -> None
     assert any(s[2] is not None and np.size(s[2]) == 16 for s in samples)
 
 
+def test_a_report_too_large_for_a_packet_sheds_its_oldest_items_not_all() -> None:
+    # a station that took no report for long: what waits no longer fits one packet; the
+    # reporter gives up the oldest half (counted) and sends the rest, never everything
+    import errno as errno_
+
+    from local_site.agent.display_child import _Reporter, _TappedLedger
+
+    class Board:
+        is_connected = True
+
+        def latest_feedback(self) -> None:
+            return None
+
+        def stats(self) -> DisplayStats:
+            return DisplayStats()
+
+    class Loop:
+        periods = PeriodStats(0.001)
+        display = Board()
+        counters = DisplayLoopCounters()
+        priority_applied = realtime_applied = None
+        pin_state = PinState()
+        safe_since_s = None
+
+        class renderer:
+            stats = RenderStats()
+
+    sent: list[dict[str, Any]] = []
+
+    class Sock:
+        def send(self, data: bytes, flags: int = 0) -> int:
+            if len(data) > 20_000:
+                raise OSError(errno_.EMSGSIZE, "Message too long")
+            sent.append(pickle.loads(data)[1])
+            return len(data)
+
+    reporter = _Reporter(Loop(), _TappedLedger(), Sock(), None)  # type: ignore[arg-type]
+    for seq in range(200):
+        reporter.accepted.append((seq, seq))
+    reporter._pins_samples = [(t, None, np.zeros(16), None) for t in range(200)]
+    reporter.send()
+    assert len(sent) == 1 and reporter.shed > 0 and reporter.dropped == 0
+    report = sent[0]
+    kept = [seq for seq, _ in report["accepted"]]
+    assert kept and kept[-1] == 199 and kept == sorted(kept)  # the newest kept, in order
+    assert len(kept) + len(report["pins_samples"]) + report["shed"] == 400
+    assert report["shed"] == reporter.shed
+    reporter.send()  # nothing pending now
+    assert sent[-1]["accepted"] == [] and sent[-1]["pins_samples"] == []
+
+
 def test_the_pins_sampler_keeps_its_rate_and_waits_for_a_command() -> None:
     with pytest.raises(ConfigError, match="pins_rate_hz"):
         PinsSampler(0.0)
@@ -502,7 +553,7 @@ def test_an_accepted_frame_reported_at_once_is_still_recorded() -> None:
               "render_stats": RenderStats(), "display_stats": DisplayStats(), "superseded": 0,
               "priority": (None, None), "connected": True, "feedback": None,
               "pins": PinState(), "accepted": [(7, 123)], "rendered": [], "pins_samples": [],
-              "safe_since_s": None, "final": False}
+              "safe_since_s": None, "shed": 0, "final": False}
 
     class Sock:
         def send(self, data: bytes, flags: int = 0) -> int:
@@ -522,7 +573,7 @@ def _report(iterations: int, safe_since_s: float | None, final: bool = False
         "priority": (None, None), "connected": True, "feedback": None,
         "pins": PinState(None, None if safe_since_s is None else "platform_lost", 1),
         "safe_since_s": safe_since_s, "accepted": [], "rendered": [], "pins_samples": [],
-        "final": final})
+        "shed": 0, "final": final})
 
 
 def test_safe_time_counts_open_episodes_killed_children_and_gaps_without_a_child() -> None:
@@ -534,26 +585,44 @@ def test_safe_time_counts_open_episodes_killed_children_and_gaps_without_a_child
     assert 5.0 <= process.counters.safe_time_s < 5.0 + scaled(1.0)
     process._retire()  # killed with the episode open: counted up to now, then the gap
     at_retire = process.counters.safe_time_s
-    assert at_retire >= 5.0
+    assert 5.0 <= at_retire < 5.0 + scaled(1.0)
     wait_until(lambda: process.counters.safe_time_s > at_retire, 5.0, "the gap counted")
     process._take(_report(1, None))  # the next child renders: the gap ends
     closed = process.counters.safe_time_s
-    assert closed < at_retire + scaled(1.0)
+    assert at_retire < closed < at_retire + scaled(1.0)
     time.sleep(0.05)
     assert process.counters.safe_time_s == closed
+    process._loop_seen_s = monotonic_s() - 2.0  # its loop last advanced 2 s ago
     process._retire()  # killed while rendering: from its loop's last progress on
-    assert process.counters.safe_time_s < closed + scaled(1.0)
+    assert closed + 2.0 <= process.counters.safe_time_s < closed + 2.0 + scaled(1.0)
 
 
-def test_safe_time_is_not_counted_before_a_child_ran_nor_after_a_clean_stop() -> None:
+def test_safe_time_after_a_crash_counts_the_gap_not_the_episode_twice() -> None:
+    # a loop that crashed still sends a final report (its counters hold its episode), then
+    # the child ends unasked: the time until the next child is safe time
+    process = _unserved()
+    process._spawned_s = monotonic_s() - 10.0
+    process._take(_report(5, None, final=True))
+    process._retire()
+    wait_until(lambda: process.counters.safe_time_s > 0.0, 5.0, "the gap counted")
+    assert process.counters.safe_time_s < scaled(1.0)
+
+
+def test_safe_time_is_not_counted_before_a_child_ran_and_stops_growing_when_stopped() -> None:
     process = _unserved()
     process._retire()  # could not start (e.g. the platform's record not there yet)
     assert process.counters.safe_time_s == 0.0
-    process._spawned_s = monotonic_s()
-    process._take(_report(5, None, final=True))  # the child counted its episode itself
+    # stopped during the backoff after a child died: the gap ends with the supervisor
+    process._spawned_s = monotonic_s() - 1.0
+    process._take(_report(5, monotonic_s() - 0.5))
     process._retire()
+    stop = threading.Event()
+    stop.set()
+    process.run_in_thread(stop)
+    frozen = process.counters.safe_time_s
+    assert frozen >= 0.5
     time.sleep(0.05)
-    assert process.counters.safe_time_s == 0.0
+    assert process.counters.safe_time_s == frozen
 
 
 def test_the_pin_state_goes_unknown_when_read_even_without_the_supervisor() -> None:
@@ -563,7 +632,7 @@ def test_the_pin_state_goes_unknown_when_read_even_without_the_supervisor() -> N
               "render_stats": RenderStats(), "display_stats": DisplayStats(), "superseded": 0,
               "priority": (None, None), "connected": True, "feedback": None,
               "pins": PinState(command, None, 3), "accepted": [], "rendered": [],
-              "pins_samples": [], "safe_since_s": None, "final": False}
+              "pins_samples": [], "safe_since_s": None, "shed": 0, "final": False}
     process._take(("report", report))
     assert process.last_command is command and process.safe_reason is None
     # nothing more from the child (no supervisor runs here): unknown once SILENCE_S passed

@@ -191,11 +191,11 @@ def test_the_send_paths_kernels_are_compiled_once_before_the_first_command() -> 
     import subprocess
     import sys
 
-    def signatures(steps: str) -> list[str]:
+    def signatures(steps: str, spec: str = "socket://127.0.0.1:9") -> list[str]:
         code = ("from local_site.devices import open_display; "
                 "from local_site.display.base import _quantise_kernel as q; "
                 "from local_site.display.frames import _command_body_kernel as e; "
-                f"d = open_display('socket://127.0.0.1:9', connect=False); {steps}; "
+                f"d = open_display({spec!r}, connect=False); {steps}; "
                 "print(len(q.signatures), len(e.signatures))")
         out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                              check=True, timeout=scaled(120.0))
@@ -203,6 +203,7 @@ def test_the_send_paths_kernels_are_compiled_once_before_the_first_command() -> 
 
     assert signatures("pass") == ["0", "0"]  # built only: nothing compiled
     assert signatures("d.warm_up()") == ["2", "1"]  # writable and read-only layers
+    assert signatures("d.connect(); d.disconnect()", "sim") == ["2", "1"]  # at connect
     assert signatures(  # the loop's construction warms its display
         "from local_site.agent.display_loop import DisplayLoop; "
         "from local_site.render import Renderer; "
