@@ -677,3 +677,18 @@ def test_display_thread_realtime_is_checked(priority: object) -> None:
 def test_display_thread_nice_is_checked(nice: object) -> None:
     with pytest.raises(ConfigError, match="display_thread_nice"):
         LocalAgentConfig(display_thread_nice=nice)  # type: ignore[arg-type]
+
+
+def test_safe_time_counts_the_episode_a_board_reconnect_ends() -> None:
+    # the pins were parked while the board was away: that episode is safe time, counted
+    # when the board is back (before, the reconnect dropped it)
+    display = _CaptureDisplay()
+    display.connect()
+    loop = DisplayLoop(display, Renderer(), TactileFrameScene(), positions=lambda: None,
+                       platform_ok=lambda: True)
+    loop.enter_safe_state("platform_lost", monotonic_s() - 3.0)  # parked 3 s ago
+    assert loop.safe_since_s is not None and loop.counters.safe_time_s == 0.0
+    display.disconnect()
+    assert loop._reopen_display(lambda delay_s: False)
+    assert loop.safe_since_s is None
+    assert 3.0 <= loop.counters.safe_time_s < 3.0 + scaled(1.0)
