@@ -113,11 +113,16 @@ def format_report(report: dict[str, Any]) -> str:
         lines.append(f"    {m['id']:<10} true {m['true_kind']:<9} found {m['found_kind']:<9} "
                      f"error {m['error_mm']:.2f} mm  rank true {m['true_severity_rank']} "
                      f"found {m['found_severity_rank']}")
-    lines.append("  motion-to-touch latency (ms):        p50      p99      max")
+    tail = report.get("latency_tail_ms") or {}
+    shares = {stage: fig.get("share") for stage, fig in (tail.get("stages") or {}).items()}
+    lines.append("  motion-to-touch latency (ms):        p50      p99      max  "
+                 "share of the slowest 5 %")
     for stage, fig in report["latency_ms"].items():
         if isinstance(fig, dict):
+            share = shares.get(stage)
             lines.append(f"    {stage:<32} {_fmt(fig.get('p50')):>7}  {_fmt(fig.get('p99')):>7}"
-                         f"  {_fmt(fig.get('max')):>7}")
+                         f"  {_fmt(fig.get('max')):>7}"
+                         + ("" if share is None else f"  {100 * share:>5.0f} %"))
     if report.get("recordings"):
         lines.append(f"  recordings        {report['recordings']['local']}, "
                      f"{report['recordings']['remote']}")

@@ -462,6 +462,8 @@ def _report(config: DemoConfig, files: dict[str, Path], relay_final: dict[str, A
         "findings": [f.to_dict() for f in findings],
         "frames_received": recording.frames,
         "latency_ms": latency,
+        # where the slowest 5 % of the frames lose their time, stage by stage
+        "latency_tail_ms": local_summary.get("motion_to_touch_tail_ms"),
         "local": local_summary,
         "registration": {"true": truth.get("world", {}).get("registration"),
                          "estimated": remote_summary.get("registration")},

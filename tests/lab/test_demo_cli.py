@@ -9,6 +9,8 @@ import sys
 import threading
 from pathlib import Path
 
+import pytest
+
 from lab.demo.cli import _relay_line, format_report
 from shared.recording import read_mcap
 from tests.support import scaled
@@ -74,7 +76,14 @@ def test_demo_headless_json_reports_the_felt_tumor(tmp_path: Path) -> None:
         ["benign"], ["uncertain"])
     e2e = report["latency_ms"]["end_to_end"]
     assert 0 < e2e["p50"] <= e2e["p99"]
-    assert "tumors found" in format_report(report)
+    text = format_report(report)
+    assert "tumors found" in text
+    # where the slowest frames lose their time: each stage's share, printed beside it
+    tail = report["latency_tail_ms"]
+    assert tail["frames"] >= 1 and tail["of"] >= tail["frames"]
+    shares = [s["share"] for s in tail["stages"].values() if s["share"] is not None]
+    assert not shares or sum(shares) == pytest.approx(1.0)
+    assert "share of the slowest 5 %" in text
     # the default drive board is a process of its own, reached over socket:// (issue 12)
     display = report["local"]["display"]
     assert display["spec"].startswith("socket://127.0.0.1:")
