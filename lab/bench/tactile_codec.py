@@ -44,6 +44,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 def _arrays(path: Path) -> Any:
     """The recording's frame arrays by name (``frame_seq``, ``frame_height_mm``, ...)."""
+    import dataclasses
+
     import numpy as np
 
     if path.suffix != ".mcap":
@@ -51,16 +53,10 @@ def _arrays(path: Path) -> Any:
     from local_site.recording import load_recording
 
     rec = load_recording(path)
-    zeros = np.zeros_like(rec.frame_height_mm)
-    return {"frame_seq": rec.frame_seq, "frame_rx_us": rec.frame_rx_us,
-            "frame_height_mm": rec.frame_height_mm,
-            "frame_stiffness_k": zeros if rec.frame_stiffness_k is None
-            else rec.frame_stiffness_k,
-            "frame_stiffness_n_per_mm": zeros if rec.frame_stiffness_n_per_mm is None
-            else rec.frame_stiffness_n_per_mm,
-            "frame_center_mm": rec.frame_center_mm, "frame_pitch_mm": rec.frame_pitch_mm,
-            "frame_contact": rec.frame_contact, "frame_force_n": rec.frame_force_n,
-            "frame_indentation_mm": rec.frame_indentation_mm}
+    zeros = np.zeros_like(rec.frame_height_mm)  # a layer not recorded
+    return {f.name: zeros if value is None else value
+            for f in dataclasses.fields(rec) if f.name.startswith("frame_")
+            for value in (getattr(rec, f.name),)}
 
 
 def _frames(path: Path, limit: int) -> tuple[list[Any], float]:

@@ -117,7 +117,7 @@ class _Reporter:
         self.dropped = 0
         #: items given up because a report no longer fitted a packet
         self.shed = 0
-        self.shed_warned = False
+        self._shed_warned = False
 
     def frame_accepted(self, frame: Any, rx_us: int) -> None:
         self.accepted.append((frame.seq, rx_us))
@@ -189,8 +189,8 @@ class _Reporter:
             del pending[:n]
         self.shed += recorded - self._recorded
         self._recorded = recorded
-        if not self.shed_warned:
-            self.shed_warned = True
+        if not self._shed_warned:
+            self._shed_warned = True
             log.warning("display process: a report too large for a packet; the oldest "
                         "accepted frames, pins samples and loop periods were given up")
 

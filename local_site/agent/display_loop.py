@@ -768,7 +768,7 @@ class DisplayLoop:
         """Final safe state at shutdown (best effort; the display stays open)."""
         now_s = monotonic_s()
         if self.safe_reason is not None and self._safe_since_s is not None:
-            self.counters.safe_time_s += now_s - self._safe_since_s
+            self._close_safe_episode(now_s)  # counted up to now; still safe from here on
             self._safe_since_s = now_s
         if not self.display.is_connected:
             return
