@@ -7,6 +7,8 @@ in order (``clock.stage``):
 ==========================  ======================================================
 stamp                       taken when
 ==========================  ======================================================
+``local.motion``            the previous platform_state's sample was read: a movement
+                            just after it is first shown by this one
 ``local.capture``           the platform sample was read (its ``ts``)
 ``relay.relay_in``          the relay received the platform_state
 ``relay.relay_out``         the relay wrote it to the remote station
@@ -22,7 +24,16 @@ stamp                       taken when
 
 Each stamp is converted to the relay's clock with the stations' clock offsets
 (``t_relay = t - offset[clock]``; the relay's own offset is 0) and the differences between
-consecutive stamps are the **stages**; ``rendered - capture`` is the end-to-end latency.
+consecutive stamps are the **stages**; ``rendered - motion`` is the end-to-end latency.
+
+The platform is read at about 1 kHz but sent at ``platform_send_rate_hz`` (250 Hz), newest
+sample only: a movement made just after one message's sample shows first in the next
+message, one send period later. ``local.motion`` (the previous message's sample time) makes
+that wait a stage of its own, ``uplink_sampling``, and end to end the latency of the
+**earliest movement the frame is the first to show**: a bound, since a movement at a random
+instant waits half a period on average. The first message of a link session (and the first
+after a sample was skipped) has no previous one and no ``local.motion``; its frames are
+counted from ``local.capture``.
 The stages of a frame are counted only when every clock among its stamps has a known offset
 (the remote station's offset reaches the local station a few seconds after joining) and every
 pair of consecutive stamps is a documented stage: such a frame is **aligned**. The others are
@@ -32,7 +43,7 @@ stamps that are not neighbours in the table above would meet; a frame may lack a
 part, e.g. one taken while no command was applied starts at ``remote.sensor_frame``).
 ``end_to_end`` needs only the
 local clock (both of its stamps are the local station's) and is counted for every frame that
-has both ``local.capture`` and ``local.rendered``.
+has ``local.rendered`` and ``local.motion`` or ``local.capture`` (the first of them).
 """
 
 from __future__ import annotations
@@ -53,7 +64,7 @@ __all__ = ["END_TO_END", "INCOMPLETE", "SEQUENCE", "STAGES", "UNALIGNED", "Motio
 
 #: the documented stamps of one loop, in order
 SEQUENCE: tuple[str, ...] = (
-    "local.capture", "relay.relay_in", "relay.relay_out", "remote.station_rx",
+    "local.motion", "local.capture", "relay.relay_in", "relay.relay_out", "remote.station_rx",
     "remote.arm_command", "remote.sensor_frame", "remote.tactile_ready", "relay.relay_in",
     "relay.relay_out", "local.station_rx", "local.rendered")
 
@@ -77,21 +88,25 @@ class StageTrace:
     skipped: str | None = None
 
 
+#: the stamps end to end may start from (the first present)
+_STARTS = frozenset({"local.motion", "local.capture"})
+
 #: a tail whose stages exceed their medians by less than this in all (ms) has no shares:
 #: they would be shares of rounding noise
 _SHARE_FLOOR_MS = 1e-3
 
 #: the stage between SEQUENCE[i] and SEQUENCE[i + 1]
 STAGES: tuple[str, ...] = (
-    "uplink_local_to_relay", "relay_forward_platform", "relay_to_remote", "remote_dispatch",
-    "arm_and_sensor", "reconstruction_and_stiffness", "uplink_remote_to_relay",
+    "uplink_sampling", "uplink_local_to_relay", "relay_forward_platform", "relay_to_remote",
+    "remote_dispatch", "arm_and_sensor", "reconstruction_and_stiffness", "uplink_remote_to_relay",
     "relay_forward_tactile", "relay_to_local", "render")
 
 
 def _start_in_sequence(names: Sequence[str]) -> int | None:
     """Where ``names`` starts as an unbroken run of :data:`SEQUENCE`, or None (a frame
     without the platform part, taken while no command was applied, starts at
-    ``remote.sensor_frame``)."""
+    ``remote.sensor_frame``; one answering the first message of a link session, at
+    ``local.capture``)."""
     n = len(names)
     return next((k for k in range(len(SEQUENCE) - n + 1)
                  if tuple(names) == SEQUENCE[k:k + n]), None)
@@ -108,8 +123,9 @@ def trace_hops(hops: Sequence[Hop], offsets_us: Mapping[str, float | None]) -> S
     Returns:
         The stages between consecutive stamps when the frame is aligned (every clock's
         offset known, every pair a documented stage; else no stages and ``skipped`` says
-        why), and end-to-end from the first ``local.capture`` to the last ``local.rendered``
-        (None when either is missing or the local offset is unknown).
+        why), and end-to-end from the first ``local.motion`` (else ``local.capture``) to the
+        last ``local.rendered`` (None when either end is missing or the local offset is
+        unknown).
     """
     points: list[tuple[str, float]] = []
     unaligned = False
@@ -119,7 +135,7 @@ def trace_hops(hops: Sequence[Hop], offsets_us: Mapping[str, float | None]) -> S
             unaligned = True
             continue
         points.append((f"{hop.clock}.{hop.stage}", hop.t_us - offset))
-    start = next((t for name, t in points if name == "local.capture"), None)
+    start = next((t for name, t in points if name in _STARTS), None)
     end = next((t for name, t in reversed(points) if name == "local.rendered"), None)
     e2e = end - start if start is not None and end is not None else None
     if unaligned:

@@ -5,7 +5,8 @@
 * a :class:`~local_site.agent.platform_reader.PlatformReader` thread takes every platform
   sample (the driver streams at the board rate, >= 500 Hz);
 * the *uplink* task sends the newest sample as a ``platform_state`` at
-  ``platform_send_rate_hz`` (latest wins), stamped ``Hop("local", "capture", ts)``;
+  ``platform_send_rate_hz`` (latest wins), stamped ``Hop("local", "capture", ts)`` after
+  ``Hop("local", "motion", previous ts)`` (the previous message's sample);
 * the *receive* task takes ``tactile_frame`` (handed to the display loop), ``arm_state``,
   ``stats`` (kept by the link for clock offsets) and ``error`` messages;
 * the :class:`~local_site.agent.display_loop.DisplayLoop` renders at the refresh rate in a
@@ -316,6 +317,10 @@ class LocalAgent:
         loop = asyncio.get_running_loop()
         next_t = loop.time()
         last = None
+        # the previous message's sample time: a movement just after it shows first in the
+        # next message (``local.motion``, docs of shared/motion_to_touch.py); None when no
+        # message went out since the link came up or since a sample was skipped
+        motion_us: int | None = None
         seq = 0
         # a sample older than this is never sent (the platform counts as lost by then): a
         # reader that resumes after a stall may first decode samples the board buffered
@@ -327,18 +332,22 @@ class LocalAgent:
                 last = sample
                 if stale_since_s(sample, stale_s) is not None:
                     self.platform_states_skipped_stale += 1
+                    motion_us = None
                 elif link.is_connected:
                     seq += 1
                     velocity = tuple(min(max(v, -_VELOCITY_LIMIT_MM_S), _VELOCITY_LIMIT_MM_S)
                                      for v in sample.velocity_mm_s)
-                    msg = PlatformState(seq=seq, ts_us=sample.t_us,
-                                        hops=(Hop("local", "capture", sample.t_us),),
+                    capture = Hop("local", "capture", sample.t_us)
+                    hops = (capture,) if motion_us is None or motion_us >= sample.t_us else (
+                        Hop("local", "motion", motion_us), capture)
+                    msg = PlatformState(seq=seq, ts_us=sample.t_us, hops=hops,
                                         position_mm=sample.position_mm,
                                         velocity_mm_s=velocity)  # type: ignore[arg-type]
                     try:
                         await link.send(msg)
                     except LocalProtocolError as err:
                         self.send_errors += 1
+                        motion_us = None
                         if self.send_errors == 1:
                             log.warning("platform_state not sent: %s", err)
                     except (AuthError, RoleTakenError):
@@ -347,8 +356,10 @@ class LocalAgent:
                         return  # link closed: shutting down
                     else:
                         self.platform_states_sent += 1
+                        motion_us = sample.t_us
                 else:
                     self.platform_states_skipped_link_down += 1
+                    motion_us = None
             next_t += period_s
             now = loop.time()
             if next_t < now - period_s:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import itertools
 import json
 import sys
 from pathlib import Path
@@ -64,11 +65,17 @@ async def test_platform_state_and_frames_flow_record_and_summary(tmp_path: Path,
             assert await run == 0
     assert sys.getswitchinterval() == pytest.approx(switch_before)
     assert switch_before != pytest.approx(agent.config.gil_switch_interval_s)
-    # platform_state: capture hop = ts, then the relay's stamps, then the remote's receipt
+    # platform_state: the previous message's sample (motion), capture hop = ts, then the
+    # relay's stamps, then the remote's receipt; the first of the link session has no motion
     state = remote.states[-1]
     assert [f"{h.clock}.{h.stage}" for h in state.hops] == [
-        "local.capture", "relay.relay_in", "relay.relay_out", "remote.station_rx"]
-    assert state.hops[0].t_us == state.ts_us
+        "local.motion", "local.capture", "relay.relay_in", "relay.relay_out",
+        "remote.station_rx"]
+    assert state.hops[1].t_us == state.ts_us and state.hops[0].t_us < state.ts_us
+    # motion is the previous message's sample (the relay forwards every state here)
+    follow = [(s.hops[0].t_us, prev.ts_us) for prev, s in itertools.pairwise(remote.states)
+              if s.hops[0].stage == "motion"]
+    assert len(follow) >= 50 and sum(a == b for a, b in follow) >= 0.9 * len(follow)
     assert abs(state.position_mm[0] - 30.0) < 0.1 and abs(state.position_mm[2] - 100.0) < 0.1
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert agent.summary is not None
@@ -257,3 +264,34 @@ async def test_platform_samples_older_than_the_read_timeout_are_never_sent(
     assert agent.platform_states_sent == 0 and remote.states == []
     assert agent.summary is not None
     assert agent.summary["uplink"]["skipped_stale"] == agent.platform_states_skipped_stale
+
+
+async def test_the_first_state_after_skipped_samples_has_no_motion_stamp(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    # ``local.motion`` is the previous message's sample: the first message of a link session,
+    # and the first after samples were skipped, have none to name (their frames count from
+    # capture)
+    import local_site.agent.platform_reader as platform_reader
+
+    ahead_us = [0]  # 1 s: every sample 1 s old, skipped as stale
+    monkeypatch.setattr(platform_reader, "now_us", lambda: now_us() + ahead_us[0])
+    async with running_relay() as relay:
+        url = f"ws://127.0.0.1:{relay.ws_port}/"
+        agent = relay_agent(url)
+        run = asyncio.create_task(agent.run())
+        async with FakeRemote(url) as remote:
+            await wait_for(lambda: len(remote.states) >= 3, 10.0, "states")
+            ahead_us[0] = 1_000_000
+            await wait_for(lambda: agent.platform_states_skipped_stale > 5, 10.0,
+                           "samples skipped as stale")
+            sent = agent.platform_states_sent
+            ahead_us[0] = 0
+            await wait_for(lambda: len(remote.states) >= sent + 3, 10.0, "states after")
+            agent.request_stop("test")
+            assert await run == 0
+    stages = [[h.stage for h in s.hops][:2] for s in remote.states]
+    assert stages[0] == ["capture", "relay_in"]  # the first of the link session
+    assert stages[1] == ["motion", "capture"]
+    assert stages[sent] == ["capture", "relay_in"]  # the first after the skipped samples
+    assert stages[sent + 1] == ["motion", "capture"]
+    assert remote.states[sent + 1].hops[0].t_us == remote.states[sent].ts_us

@@ -18,7 +18,8 @@ from shared.motion_to_touch import (
 from shared.protocol import Hop
 
 # true times on the relay clock (us) of each stamp of one loop
-TRUE = [("local", "capture", 0), ("relay", "relay_in", 10_000), ("relay", "relay_out", 10_050),
+TRUE = [("local", "motion", -4_000), ("local", "capture", 0), ("relay", "relay_in", 10_000),
+        ("relay", "relay_out", 10_050),
         ("remote", "station_rx", 20_050), ("remote", "arm_command", 20_100),
         ("remote", "sensor_frame", 28_000), ("remote", "tactile_ready", 30_500),
         ("relay", "relay_in", 40_500), ("relay", "relay_out", 40_560),
@@ -33,9 +34,10 @@ def stamped(offsets: dict[str, int]) -> list[Hop]:
 def test_offsets_are_removed(off_local: int, off_remote: int) -> None:
     offsets = {"local": off_local, "remote": off_remote}
     trace = trace_hops(stamped(offsets), offsets)
-    assert trace.end_to_end_us == 51_000
+    assert trace.end_to_end_us == 55_000
     assert dict(trace.stages_us) == {
-        "uplink_local_to_relay": 10_000, "relay_forward_platform": 50, "relay_to_remote": 10_000,
+        "uplink_sampling": 4_000, "uplink_local_to_relay": 10_000, "relay_forward_platform": 50,
+        "relay_to_remote": 10_000,
         "remote_dispatch": 50, "arm_and_sensor": 7_900, "reconstruction_and_stiffness": 2_500,
         "uplink_remote_to_relay": 10_000, "relay_forward_tactile": 60, "relay_to_local": 10_000,
         "render": 440}
@@ -47,7 +49,7 @@ def test_unknown_offset_counts_the_frame_apart_without_merged_stages() -> None:
     trace = trace_hops(stamped({"local": 5, "remote": 777}), offsets)
     assert trace.stages_us == ()
     assert trace.skipped == UNALIGNED
-    assert trace.end_to_end_us == 51_000  # both of its stamps are on the local clock
+    assert trace.end_to_end_us == 55_000  # both of its stamps are on the local clock
     ledger = MotionToTouchLedger()
     ledger.add(trace)
     ledger.add_hops(stamped({"local": 5, "remote": 777}), {"local": 5, "remote": 777})
@@ -64,7 +66,21 @@ def test_a_missing_stamp_never_yields_a_merged_stage(dropped: set[int]) -> None:
     trace = trace_hops(hops, {"local": 0, "remote": 0})
     assert trace.stages_us == ()
     assert trace.skipped == INCOMPLETE
+    assert trace.end_to_end_us == 55_000
+
+
+def test_a_first_message_without_motion_stamp_counts_from_its_capture() -> None:
+    # the first platform_state of a link session has no previous message: no local.motion
+    hops = stamped({"local": 0, "remote": 0})[1:]
+    trace = trace_hops(hops, {"local": 0, "remote": 0})
+    assert trace.skipped is None
     assert trace.end_to_end_us == 51_000
+    assert [n for n, _ in trace.stages_us] == list(STAGES[1:])
+    assert sum(d for _, d in trace.stages_us) == trace.end_to_end_us
+    ledger = MotionToTouchLedger()
+    ledger.add(trace)
+    assert ledger.frames == 1
+    assert ledger.tail_ms() is None  # counted, but not a complete frame for the tail
 
 
 def test_missing_render_stamp_gives_no_end_to_end() -> None:
@@ -79,14 +95,14 @@ def test_ledger_summary_in_ms() -> None:
         ledger.add_hops(hops, {"local": 0, "remote": 0})
     summary = ledger.summary_ms()
     assert ledger.frames == 100
-    assert summary[END_TO_END]["max"] == 51.0 + 0.99
+    assert summary[END_TO_END]["max"] == 55.0 + 0.99
     p50 = summary[END_TO_END]["p50"]
-    assert p50 is not None and 51.4 <= p50 <= 51.6
+    assert p50 is not None and 55.4 <= p50 <= 55.6
     assert summary["relay_to_local"]["p99"] == 10.0
 
 
 def test_a_frame_without_its_platform_part_still_has_stages() -> None:
-    hops = stamped({"local": 0, "remote": 0})[5:]  # from remote.sensor_frame on
+    hops = stamped({"local": 0, "remote": 0})[6:]  # from remote.sensor_frame on
     trace = trace_hops(hops, {"local": 0, "remote": 0})
     assert trace.skipped is None and trace.end_to_end_us is None
     assert [n for n, _ in trace.stages_us] == [
@@ -158,7 +174,7 @@ def test_equal_frames_have_no_tail_shares() -> None:
 def test_the_tail_needs_complete_frames_and_a_quantile_inside_0_1() -> None:
     ledger = MotionToTouchLedger()
     assert ledger.tail_ms() is None
-    ledger.add_hops(_loop_hops([1000] * len(STAGES))[4:], {"local": 0, "remote": 0})
+    ledger.add_hops(_loop_hops([1000] * len(STAGES))[5:], {"local": 0, "remote": 0})
     assert ledger.tail_ms() is None  # no platform part: not a complete frame
     for q in (0.0, 1.0, -1.0, float("nan")):
         with pytest.raises(ValueError, match="quantile"):
