@@ -24,7 +24,7 @@ import contextlib
 import logging
 import struct
 from collections.abc import Callable, Coroutine
-from typing import Any
+from typing import Any, cast
 
 from websockets.exceptions import InvalidState
 from websockets.frames import Frame, Opcode
@@ -98,8 +98,9 @@ class Wire(asyncio.Protocol, abc.ABC):
     # ------------------------------------------------------------------ asyncio.Protocol
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        assert isinstance(transport, asyncio.Transport)
-        self.transport = transport
+        # a stream transport (read and write): asyncio's, or another event loop's that
+        # implements the same interface without subclassing it (uvloop's)
+        self.transport = cast(asyncio.Transport, transport)
         self._wires.add(self)
         set_nodelay(transport)
         peer = transport.get_extra_info("peername")

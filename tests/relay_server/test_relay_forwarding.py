@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 
 import numpy as np
+import pytest
 
 from relay_server.server import RelayServer
 from shared.protocol import ArmCommand, ArmState, PlatformState, TactileFrame, Welcome
@@ -108,3 +109,37 @@ async def test_clock_offsets_and_stats_push() -> None:
         assert set(m["drops"]["local_to_remote"]) == {"lost", "latest_wins", "queue_full",
                                                       "no_peer"}
         assert set(m["queue_depth"]) == {"local", "remote"}
+
+
+class _ForeignTransport:
+    """A stream transport of another event loop: asyncio's interface, not its class (as
+    uvloop's transports are)."""
+
+    def __init__(self, inner: asyncio.BaseTransport) -> None:
+        self._inner = inner
+
+    def __getattr__(self, name: str) -> object:
+        return getattr(self._inner, name)
+
+
+async def test_transports_need_asyncios_interface_not_its_class(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    # the relay's connections are protocols of any event loop whose transports implement
+    # asyncio.Transport's methods: an isinstance check refused uvloop's
+    from relay_server import wire
+
+    made = wire.Wire.connection_made
+    foreign: list[object] = []
+
+    def connection_made(self: wire.Wire, transport: asyncio.BaseTransport) -> None:
+        proxy = _ForeignTransport(transport)
+        assert not isinstance(proxy, asyncio.Transport)
+        foreign.append(proxy)
+        made(self, proxy)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(wire.Wire, "connection_made", connection_made)
+    async with running_relay() as relay, clients(("ws", 0), ("tcp", 0)) as (local, remote):
+        await join_pair(relay, "s1", local, remote)
+        await local.send(platform(5, local.now()))
+        assert (await remote.expect("platform_state")).seq == 5
+    assert len(foreign) == 2
