@@ -156,6 +156,7 @@ class _Reporter:
                           "pins": loop.pin_state,
                           # the open safe episode (the final report's is counted already)
                           "safe_since_s": None if final else loop.safe_since_s,
+                          "started_s": loop.started_s,
                           "accepted": self._accepted,
                           "rendered": self._rendered, "pins_samples": self._pins_samples,
                           "shed": self.shed, "final": final}

@@ -421,6 +421,8 @@ class DisplayLoop:
         self.priority_applied: int | None = None
         #: the SCHED_FIFO priority the loop's thread got (None: left alone or not permitted)
         self.realtime_applied: int | None = None
+        #: when the loop first ticked, i.e. began to drive the board (monotonic s; None before)
+        self.started_s: float | None = None
 
     @property
     def last_command(self) -> PinCommand | None:
@@ -718,6 +720,8 @@ class DisplayLoop:
             return
         period = self.period_s
         next_t = time.perf_counter()
+        if self.started_s is None:
+            self.started_s = monotonic_s()
         while not stop.is_set():
             self.periods.tick(time.perf_counter())
             try:
@@ -749,6 +753,8 @@ class DisplayLoop:
             return
         period = self.period_s
         next_t = time.perf_counter()
+        if self.started_s is None:
+            self.started_s = monotonic_s()
         while not stop.is_set():
             self.periods.tick(time.perf_counter())
             try:

@@ -441,8 +441,11 @@ class DisplayProcess:
         counted, _, gap_since = self._untold
         if iterations > live.iterations or report["final"]:
             self._loop_seen_s = self._alive_s = now
-            if gap_since is not None:  # a child drives the board again
-                counted += max(0.0, now - gap_since)
+            if gap_since is not None:  # a child drives the board again, since its first
+                # tick (its own counters count safe time from then: not twice)
+                started = report["started_s"]
+                end = now if started is None else min(now, max(gap_since, started))
+                counted += max(0.0, end - gap_since)
                 gap_since = None
         elif not report["connected"]:
             self._alive_s = now  # its loop waits for the board to come back: not hung

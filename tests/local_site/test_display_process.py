@@ -410,7 +410,7 @@ def test_a_report_too_large_for_a_packet_sheds_its_oldest_items_not_all() -> Non
         counters = DisplayLoopCounters()
         priority_applied = realtime_applied = None
         pin_state = PinState()
-        safe_since_s = None
+        safe_since_s = started_s = None
 
         class renderer:
             stats = RenderStats()
@@ -553,7 +553,7 @@ def test_an_accepted_frame_reported_at_once_is_still_recorded() -> None:
               "render_stats": RenderStats(), "display_stats": DisplayStats(), "superseded": 0,
               "priority": (None, None), "connected": True, "feedback": None,
               "pins": PinState(), "accepted": [(7, 123)], "rendered": [], "pins_samples": [],
-              "safe_since_s": None, "shed": 0, "final": False}
+              "safe_since_s": None, "started_s": None, "shed": 0, "final": False}
 
     class Sock:
         def send(self, data: bytes, flags: int = 0) -> int:
@@ -565,15 +565,15 @@ def test_an_accepted_frame_reported_at_once_is_still_recorded() -> None:
     assert recorded == [7]
 
 
-def _report(iterations: int, safe_since_s: float | None, final: bool = False
-            ) -> tuple[str, dict[str, Any]]:
+def _report(iterations: int, safe_since_s: float | None, final: bool = False,
+            started_s: float | None = None) -> tuple[str, dict[str, Any]]:
     return ("report", {
         "periods": np.zeros(0), "loops": (iterations, 0), "counters": DisplayLoopCounters(),
         "render_stats": RenderStats(), "display_stats": DisplayStats(), "superseded": 0,
         "priority": (None, None), "connected": True, "feedback": None,
         "pins": PinState(None, None if safe_since_s is None else "platform_lost", 1),
-        "safe_since_s": safe_since_s, "accepted": [], "rendered": [], "pins_samples": [],
-        "shed": 0, "final": final})
+        "safe_since_s": safe_since_s, "started_s": started_s, "accepted": [], "rendered": [],
+        "pins_samples": [], "shed": 0, "final": final})
 
 
 def test_safe_time_counts_open_episodes_killed_children_and_gaps_without_a_child() -> None:
@@ -595,6 +595,22 @@ def test_safe_time_counts_open_episodes_killed_children_and_gaps_without_a_child
     process._loop_seen_s = monotonic_s() - 2.0  # its loop last advanced 2 s ago
     process._retire()  # killed while rendering: from its loop's last progress on
     assert closed + 2.0 <= process.counters.safe_time_s < closed + 2.0 + scaled(1.0)
+
+
+def test_the_gap_ends_at_the_next_childs_first_tick_not_at_its_first_report() -> None:
+    # the next child counts its own safe time from its first tick; the gap before it ends
+    # there, not when its first report arrives (up to a heartbeat later): never both
+    process = _unserved()
+    process._spawned_s = monotonic_s() - 10.0
+    process._take(_report(10, None))
+    process._retire()
+    counted, _, gap_since = process._untold  # the killed child's time since its progress
+    assert gap_since is not None
+    time.sleep(0.05)
+    first_tick = gap_since + 0.02
+    process._take(_report(1, first_tick, started_s=first_tick))  # safe from its first tick
+    assert process._untold[0] - counted == pytest.approx(0.02, abs=1e-6)
+    assert process._untold[1:] == (first_tick, None)
 
 
 def test_safe_time_after_a_crash_counts_the_gap_not_the_episode_twice() -> None:
