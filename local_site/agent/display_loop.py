@@ -219,25 +219,39 @@ def _write_scheduling(tid: int, value: _Scheduling) -> None:
     os.sched_setscheduler(tid, value[0], value[1])
 
 
+def read_thread_scheduling() -> _Scheduling | None:
+    """The calling thread's scheduling policy and nice value (None where not readable)."""
+    if not hasattr(os, "sched_setscheduler"):
+        return None
+    try:
+        return _read_scheduling(threading.get_native_id())
+    except OSError:  # pragma: no cover - /proc-less or exotic kernels
+        return None
+
+
 @contextlib.contextmanager
-def main_thread_scheduling() -> Iterator[None]:
-    """Give the calling thread the scheduling policy and nice value of the process's main
-    thread for the block; restore its own after.
+def main_thread_scheduling(scheduling: _Scheduling | None = None) -> Iterator[None]:
+    """Give the calling thread ``scheduling`` (default: the scheduling policy and nice value
+    of the process's main thread) for the block; restore its own after.
 
     A thread inherits them from the thread that starts it. The display loop's thread runs
     with a raised priority (:func:`thread_realtime`, :func:`thread_priority`) and (re)opens
     the display, which starts the driver's reader thread (and, for an emulated board, the
     board's own thread): opened inside this block, those run like the process's other
     threads instead of at the loop's real-time priority, where a reader flooded by a faulty
-    device would hold a core ahead of every ordinary thread. Lowering a priority is always
-    permitted, and raising it back needs the right the loop's thread already used.
+    device would hold a core ahead of every ordinary thread. Where the loop runs on the
+    main thread itself (the display process), the main thread's scheduling is the raised
+    one: the loop passes the ``scheduling`` its thread had before it raised it. Lowering a
+    priority is always permitted, and raising it back needs the right the loop's thread
+    already used.
     """
     if not hasattr(os, "sched_setscheduler"):
         yield
         return
     tid = threading.get_native_id()
     try:
-        own, main = _read_scheduling(tid), _read_scheduling(os.getpid())
+        own = _read_scheduling(tid)
+        main = scheduling if scheduling is not None else _read_scheduling(os.getpid())
     except OSError as err:  # pragma: no cover - /proc-less or exotic kernels
         log.debug("scheduling of the display loop's thread not read: %s", err)
         yield
@@ -423,6 +437,8 @@ class DisplayLoop:
         self.realtime_applied: int | None = None
         #: when the loop first ticked, i.e. began to drive the board (monotonic s; None before)
         self.started_s: float | None = None
+        #: the scheduling the display is opened with (None: the main thread's)
+        self._open_scheduling: _Scheduling | None = None
 
     @property
     def last_command(self) -> PinCommand | None:
@@ -661,7 +677,7 @@ class DisplayLoop:
         while True:
             try:
                 # the display's threads (its reader) must not inherit the loop's priority
-                with main_thread_scheduling():
+                with main_thread_scheduling(self._open_scheduling):
                     self.display.connect()
                 break
             except DeviceInitError as err:
@@ -710,6 +726,9 @@ class DisplayLoop:
             realtime: this thread's ``SCHED_FIFO`` priority while the loop runs (0:
                 unchanged; see :func:`thread_realtime`); restored on return.
         """
+        # the display is (re)opened with the scheduling the thread had before: its threads
+        # must not inherit the loop's
+        self._open_scheduling = read_thread_scheduling()
         with thread_priority(nice) as applied, thread_realtime(realtime) as rt_applied:
             self.priority_applied = applied
             self.realtime_applied = rt_applied

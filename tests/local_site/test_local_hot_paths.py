@@ -643,6 +643,63 @@ def test_the_displays_threads_do_not_inherit_the_loops_raised_priority(realtime:
         display.disconnect()
 
 
+_ON_MAIN_THREAD = """
+import json, os, sys, threading
+from local_site.agent.display_loop import DisplayLoop
+from local_site.devices import open_display
+from local_site.render import Renderer
+from local_site.scenes import TactileFrameScene
+
+def sched(tid):
+    return [os.sched_getscheduler(tid), os.sched_getparam(tid).sched_priority,
+            os.getpriority(os.PRIO_PROCESS, tid)]
+
+nice, realtime = int(sys.argv[1]), int(sys.argv[2])
+before = sched(os.getpid())
+display = open_display("sim", connect=False)
+loop = DisplayLoop(display, Renderer(), TactileFrameScene(), positions=lambda: None,
+                   platform_ok=lambda: True)
+stop, seen = threading.Event(), {}
+known = {threading.get_native_id()}
+
+def watch():
+    while loop.periods.iterations == 0:
+        threading.Event().wait(0.01)
+    seen["loop"] = sched(os.getpid())
+    seen["display"] = [sched(t.native_id) for t in threading.enumerate()
+                       if t.native_id not in known and t is not threading.current_thread()]
+    stop.set()
+
+threading.Thread(target=watch, daemon=True).start()
+loop.run_in_thread(stop, nice, realtime)  # on the main thread, as in the display process
+display.disconnect()
+print(json.dumps({"before": before, **seen}))
+"""
+
+
+@pytest.mark.parametrize("realtime", [0, 10])
+def test_a_loop_on_the_main_thread_opens_the_display_with_its_earlier_scheduling(
+        realtime: int) -> None:
+    # the display process runs its loop on its main thread: the main thread's scheduling
+    # is then the loop's raised one, and the board link's reader inherited SCHED_FIFO
+    if realtime and not _realtime_permitted():
+        pytest.skip("SCHED_FIFO needs root, CAP_SYS_NICE or RLIMIT_RTPRIO here")
+    import json
+    import subprocess
+    import sys
+
+    nice = min(_scheduling(os.getpid())[2] + 5, 19)
+    out = subprocess.run([sys.executable, "-c", _ON_MAIN_THREAD, str(nice), str(realtime)],
+                         capture_output=True, text=True, timeout=scaled(60.0), check=True)
+    seen = json.loads(out.stdout.strip().splitlines()[-1])
+    if realtime:
+        assert seen["loop"][:2] == [os.SCHED_FIFO, realtime]
+    else:
+        assert seen["loop"][2] == nice
+    assert seen["display"], "opening the display started no thread"
+    assert all(s == seen["before"] for s in seen["display"]), seen
+
+
 def test_main_thread_scheduling_lowers_for_the_block_and_restores_after() -> None:
     main = _scheduling(os.getpid())
     seen: dict[str, tuple[int, int, int]] = {}
