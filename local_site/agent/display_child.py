@@ -22,7 +22,12 @@ import time
 from collections.abc import Iterable, Mapping
 from typing import Any
 
-from local_site.agent.display_loop import DisplayLoop, DisplayLoopCounters, FrameSlot
+from local_site.agent.display_loop import (
+    DisplayLoop,
+    DisplayLoopCounters,
+    FrameSlot,
+    thread_realtime,
+)
 from local_site.agent.display_process import HEARTBEAT_S, MAX_MESSAGE_BYTES, LinkMirror
 from local_site.agent.platform_process import RecordView, SampleRecord
 from local_site.devices import open_display
@@ -201,9 +206,21 @@ class _Reporter:
 
 
 def _receive(sock: socket.socket, frames: FrameSlot | None, link: LinkMirror | None,
-             stop: threading.Event) -> None:
+             stop: threading.Event, realtime: int = 0) -> None:
     """Frames, the link's state and ``stop`` from the station; the end of the socket (the
-    station is gone) stops the loop too."""
+    station is gone) stops the loop too.
+
+    ``realtime``: the ``SCHED_FIFO`` priority of this thread (0: left alone). A frame then
+    reaches the loop as soon as it arrives, not when the scheduler next runs an ordinary
+    thread on a busy machine; the work per message is small (a receive, an unpickle, the
+    hand-over) and the station, not a device, is the only sender.
+    """
+    with thread_realtime(realtime):
+        _receive_messages(sock, frames, link, stop)
+
+
+def _receive_messages(sock: socket.socket, frames: FrameSlot | None, link: LinkMirror | None,
+                      stop: threading.Event) -> None:
     try:
         while not stop.is_set():
             data = sock.recv(MAX_MESSAGE_BYTES)
@@ -266,7 +283,11 @@ def main(argv: list[str] | None = None) -> int:  # pragma: no cover - runs in th
     reporter = _Reporter(loop, ledger, sock, frames, pins)
     loop.frame_listener = reporter.frame_accepted
     stop = threading.Event()
-    threads = [threading.Thread(target=_receive, args=(sock, frames, link, stop),
+    # frames to the loop at once: real-time just below the loop, when it is real-time
+    realtime = int(settings["realtime"])
+    threads = [threading.Thread(target=_receive,
+                                args=(sock, frames, link, stop, max(1, realtime - 1)
+                                      if realtime > 0 else 0),
                                 name="display-receive", daemon=True),
                threading.Thread(target=reporter.run, args=(stop,), name="display-report",
                                 daemon=True)]

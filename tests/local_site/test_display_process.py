@@ -659,3 +659,31 @@ def test_the_pin_state_goes_unknown_when_read_even_without_the_supervisor() -> N
     assert process.safe_reason == NO_WORD
     process._take(("report", {**report, "loops": (11, 0)}))
     assert process.last_command is command
+
+
+def test_the_childs_receiving_thread_runs_at_the_real_time_priority_it_is_given() -> None:
+    # frames reach the loop when they arrive, not when an ordinary thread is next run
+    from local_site.agent.display_child import _receive
+    from local_site.agent.display_loop import thread_realtime
+
+    with thread_realtime(1) as permitted:
+        if permitted is None:
+            pytest.skip("SCHED_FIFO needs root, CAP_SYS_NICE or RLIMIT_RTPRIO here")
+    seen: list[tuple[int, int]] = []
+
+    class Slot:
+        def put(self, frame: TactileFrame, rx_us: int) -> None:
+            tid = threading.get_native_id()
+            seen.append((os.sched_getscheduler(tid), os.sched_getparam(tid).sched_priority))
+
+    ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    with ours, theirs:
+        stop = threading.Event()
+        receiver = threading.Thread(target=_receive,
+                                    args=(theirs, Slot(), None, stop, 5), daemon=True)
+        receiver.start()
+        ours.send(pickle.dumps(("frame", make_frame(1, None), 7), protocol=5))
+        ours.send(pickle.dumps(("stop",), protocol=5))
+        receiver.join(scaled(5.0))
+        assert not receiver.is_alive() and stop.is_set()
+    assert seen == [(os.SCHED_FIFO, 5)]
