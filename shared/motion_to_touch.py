@@ -33,7 +33,9 @@ that wait a stage of its own, ``uplink_sampling``, and end to end the latency of
 **earliest movement the frame is the first to show**: a bound, since a movement at a random
 instant waits half a period on average. The first message of a link session (and the first
 after a sample was skipped) has no previous one and no ``local.motion``; its frames are
-counted from ``local.capture``.
+counted from ``local.capture``. The previous message is the one *sent*: when the relay drops
+one as superseded (latest wins, a backed-up remote), the wait of the movements it alone
+showed is not counted in full.
 The stages of a frame are counted only when every clock among its stamps has a known offset
 (the remote station's offset reaches the local station a few seconds after joining) and every
 pair of consecutive stamps is a documented stage: such a frame is **aligned**. The others are
