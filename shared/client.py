@@ -498,7 +498,9 @@ class StationLink:
                 session.reading_resumed(now_us())
             timeout_s = max(0.0, (session.deadline_us() - now_us()) / 1e6)
             try:
-                data = await asyncio.wait_for(transport.recv(), timeout_s)
+                # asyncio.timeout, not wait_for: no task is created per message received
+                async with asyncio.timeout(timeout_s):
+                    data = await transport.recv()
             except TimeoutError as err:
                 silent = session.check_liveness(now_us())
                 if silent is None:
