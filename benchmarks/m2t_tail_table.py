@@ -4,9 +4,10 @@ Reads every ``cpu-*.json`` in a results directory (``teletouch bench cpu`` runs,
 the local station's ``motion_to_touch_tail_ms``: for the slowest 5 % of the complete frames,
 each stage's mean against its median over all of them, see
 :meth:`shared.motion_to_touch.MotionToTouchLedger.tail_ms`) and writes ``tail.md`` beside
-them: per link profile and stage, the median over the runs of the stage's median, its mean in
-the tail, its excess and its share of the tail's excess (with the range over the runs), and
-the end-to-end median, tail mean and p99.
+them: per side and link profile (the run's label without its round number, e.g. ``s250-lan``
+for ``s250-lan-2``: the sides of a paired run are never pooled) and stage, the median over
+the runs of the stage's median, its mean in the tail, its excess and its share of the tail's
+excess (with the range over the runs), and the end-to-end median, tail mean and p99.
 
 Run: ``python benchmarks/m2t_tail_table.py benchmarks/results/m2t_tail``.
 """
@@ -14,6 +15,7 @@ Run: ``python benchmarks/m2t_tail_table.py benchmarks/results/m2t_tail``.
 from __future__ import annotations
 
 import json
+import re
 import statistics
 import sys
 from pathlib import Path
@@ -21,12 +23,15 @@ from typing import Any
 
 
 def _runs(directory: Path) -> dict[str, list[dict[str, Any]]]:
-    by_link: dict[str, list[dict[str, Any]]] = {}
+    by_group: dict[str, list[dict[str, Any]]] = {}
     for path in sorted(directory.glob("cpu-*.json")):
         run = json.loads(path.read_text())
         if run.get("latency_tail_ms"):
-            by_link.setdefault(run["settings"]["link"] or "none", []).append(run)
-    return by_link
+            link = run["settings"]["link"] or "none"
+            label = re.sub(r"-\d+$", "", str(run.get("label") or ""))
+            by_group.setdefault(label if link in label else f"{label} {link}".strip(),
+                                []).append(run)
+    return by_group
 
 
 def _cell(values: list[float], fmt: str = "{:.2f}") -> str:

@@ -32,10 +32,11 @@ message, one send period later. ``local.motion`` (the previous message's sample 
 that wait a stage of its own, ``uplink_sampling``, and end to end the latency of the
 **earliest movement the frame is the first to show**: a bound, since a movement at a random
 instant waits half a period on average. The first message of a link session (and the first
-after a sample was skipped) has no previous one and no ``local.motion``; its frames are
-counted from ``local.capture``. The previous message is the one *sent*: when the relay drops
-one as superseded (latest wins, a backed-up remote), the wait of the movements it alone
-showed is not counted in full.
+after a sample was skipped, or across a platform outage longer than the read timeout) has
+no previous one and no ``local.motion``; its frames are counted from ``local.capture``. A
+message the station's own send queue replaced unsent never left: the next one names what
+that one named. One the relay drops as superseded (latest wins, a backed-up remote) did
+leave, so the wait of the movements it alone showed is not counted in full.
 The stages of a frame are counted only when every clock among its stamps has a known offset
 (the remote station's offset reaches the local station a few seconds after joining) and every
 pair of consecutive stamps is a documented stage: such a frame is **aligned**. The others are

@@ -13,6 +13,7 @@ import dataclasses
 import errno
 import json
 import logging
+import os
 import pickle
 import signal
 import socket
@@ -20,14 +21,9 @@ import sys
 import threading
 import time
 from collections.abc import Iterable, Mapping
-from typing import Any
+from typing import Any, Protocol
 
-from local_site.agent.display_loop import (
-    DisplayLoop,
-    DisplayLoopCounters,
-    FrameSlot,
-    thread_realtime,
-)
+from local_site.agent.display_loop import DisplayLoop, DisplayLoopCounters, FrameSlot
 from local_site.agent.display_process import HEARTBEAT_S, MAX_MESSAGE_BYTES, LinkMirror
 from local_site.agent.platform_process import RecordView, SampleRecord
 from local_site.devices import open_display
@@ -205,27 +201,49 @@ class _Reporter:
             self.send()
 
 
+class _Loop(Protocol):
+    """What the receiving thread reads of the display loop."""
+
+    started_s: float | None
+    realtime_applied: int | None
+
+
+def _follow_the_loop(loop: _Loop) -> bool:
+    """Once the loop runs (its scheduling decided), run this thread ``SCHED_FIFO`` one below
+    the loop's real-time priority, if it has one above 1; return whether that is decided."""
+    if loop.started_s is None:
+        return False
+    priority = (loop.realtime_applied or 0) - 1
+    if priority < 1:
+        return True  # an ordinary loop (or at the lowest level): an ordinary thread
+    try:
+        os.sched_setscheduler(threading.get_native_id(), os.SCHED_FIFO,
+                              os.sched_param(priority))
+    except (OSError, AttributeError) as err:
+        log.info("display process: its receiving thread stays an ordinary thread "
+                 "(SCHED_FIFO %d refused: %s)", priority, err)
+    return True
+
+
 def _receive(sock: socket.socket, frames: FrameSlot | None, link: LinkMirror | None,
-             stop: threading.Event, realtime: int = 0) -> None:
+             stop: threading.Event, loop: _Loop | None = None) -> None:
     """Frames, the link's state and ``stop`` from the station; the end of the socket (the
     station is gone) stops the loop too.
 
-    ``realtime``: the ``SCHED_FIFO`` priority of this thread (0: left alone). A frame then
-    reaches the loop as soon as it arrives, not when the scheduler next runs an ordinary
-    thread on a busy machine; the work per message is small (a receive, an unpickle, the
-    hand-over) and the station, not a device, is the only sender.
+    ``loop``: once it runs under ``SCHED_FIFO`` (the priority it was actually given, above
+    1), this thread runs one level below it. A frame then reaches the loop as soon as it
+    arrives, not when the scheduler next runs an ordinary thread on a busy machine; the work
+    per message is small (a receive, an unpickle, the hand-over) and the station, not a
+    device, is the only sender.
     """
-    with thread_realtime(realtime):
-        _receive_messages(sock, frames, link, stop)
-
-
-def _receive_messages(sock: socket.socket, frames: FrameSlot | None, link: LinkMirror | None,
-                      stop: threading.Event) -> None:
+    following = loop
     try:
         while not stop.is_set():
             data = sock.recv(MAX_MESSAGE_BYTES)
             if not data:
                 break
+            if following is not None and _follow_the_loop(following):
+                following = None
             message = pickle.loads(data)
             kind = message[0]
             if kind == "frame" and frames is not None:
@@ -283,11 +301,8 @@ def main(argv: list[str] | None = None) -> int:  # pragma: no cover - runs in th
     reporter = _Reporter(loop, ledger, sock, frames, pins)
     loop.frame_listener = reporter.frame_accepted
     stop = threading.Event()
-    # frames to the loop at once: real-time just below the loop, when it is real-time
-    realtime = int(settings["realtime"])
-    threads = [threading.Thread(target=_receive,
-                                args=(sock, frames, link, stop, max(1, realtime - 1)
-                                      if realtime > 0 else 0),
+    # frames to the loop at once: real-time just below the loop, once it is real-time
+    threads = [threading.Thread(target=_receive, args=(sock, frames, link, stop, loop),
                                 name="display-receive", daemon=True),
                threading.Thread(target=reporter.run, args=(stop,), name="display-report",
                                 daemon=True)]

@@ -317,28 +317,37 @@ class LocalAgent:
         loop = asyncio.get_running_loop()
         next_t = loop.time()
         last = None
-        # the previous message's sample time: a movement just after it shows first in the
-        # next message (``local.motion``, docs of shared/motion_to_touch.py); None when no
-        # message went out since the link came up or since a sample was skipped
-        motion_us: int | None = None
+        # ``local.motion`` (docs of shared/motion_to_touch.py): a movement just after the
+        # previous message's sample shows first in the next message. The previous sample's
+        # time, and the motion stamp that message carried (for when it is replaced unsent);
+        # None when no message went out since the link came up or a sample was skipped
+        sent_us: int | None = None
+        sent_motion_us: int | None = None
         seq = 0
         # a sample older than this is never sent (the platform counts as lost by then): a
         # reader that resumes after a stall may first decode samples the board buffered
         # meanwhile, stamped when they were latched (the remote would drop them as stale)
         stale_s = self.config.platform_read_timeout_s
+        gap_limit_us = stale_s * 1e6  # a longer gap between samples: the platform was lost
         while True:
             sample = reader.latest
             if sample is not None and sample is not last:
                 last = sample
                 if stale_since_s(sample, stale_s) is not None:
                     self.platform_states_skipped_stale += 1
-                    motion_us = None
+                    sent_us = sent_motion_us = None
                 elif link.is_connected:
                     seq += 1
                     velocity = tuple(min(max(v, -_VELOCITY_LIMIT_MM_S), _VELOCITY_LIMIT_MM_S)
                                      for v in sample.velocity_mm_s)
+                    # the previous message still unsent is replaced by this one: this one
+                    # shows what it would have, from its own motion stamp on
+                    motion_us = sent_motion_us if link.holds_unsent(PlatformState.TYPE) \
+                        else sent_us
+                    if motion_us is not None and not 0 < sample.t_us - motion_us <= gap_limit_us:
+                        motion_us = None  # the platform was lost meanwhile: not a wait
                     capture = Hop("local", "capture", sample.t_us)
-                    hops = (capture,) if motion_us is None or motion_us >= sample.t_us else (
+                    hops = (capture,) if motion_us is None else (
                         Hop("local", "motion", motion_us), capture)
                     msg = PlatformState(seq=seq, ts_us=sample.t_us, hops=hops,
                                         position_mm=sample.position_mm,
@@ -347,7 +356,7 @@ class LocalAgent:
                         await link.send(msg)
                     except LocalProtocolError as err:
                         self.send_errors += 1
-                        motion_us = None
+                        sent_us = sent_motion_us = None
                         if self.send_errors == 1:
                             log.warning("platform_state not sent: %s", err)
                     except (AuthError, RoleTakenError):
@@ -356,10 +365,10 @@ class LocalAgent:
                         return  # link closed: shutting down
                     else:
                         self.platform_states_sent += 1
-                        motion_us = sample.t_us
+                        sent_us, sent_motion_us = sample.t_us, motion_us
                 else:
                     self.platform_states_skipped_link_down += 1
-                    motion_us = None
+                    sent_us = sent_motion_us = None
             next_t += period_s
             now = loop.time()
             if next_t < now - period_s:

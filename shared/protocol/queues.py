@@ -57,6 +57,11 @@ class StreamQueue(Generic[T]):
         self._cells.append(cell)
         return replaced
 
+    def holds(self, key: str) -> bool:
+        """Whether slot ``key`` holds an unsent item (the next :meth:`put_latest` of that key
+        replaces it)."""
+        return key in self._latest
+
     def put_ordered(self, item: T, *, force: bool = False) -> bool:
         """Append ``item`` to the ordered queue.
 

@@ -326,6 +326,11 @@ class StationSession:
         """Messages queued but not yet handed out by :meth:`next_data`."""
         return len(self.outbox)
 
+    def holds_unsent(self, msg_type: str) -> bool:
+        """Whether a latest-wins message of ``msg_type`` waits unsent (the next one of that
+        type replaces it)."""
+        return self.outbox.holds(msg_type)
+
     def next_data(self, now_us: int) -> bytes | None:
         """The next framed message to write (pongs first), or None.
 

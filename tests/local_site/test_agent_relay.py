@@ -8,13 +8,15 @@ import itertools
 import json
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from local_site.agent import LocalAgent
+from local_site.platform.base import PlatformSample
 from local_site.recording import load_recording
-from shared.protocol import TactileFrame
+from shared.protocol import PlatformState, TactileFrame
 from shared.recording import read_mcap
 from shared.timebase import monotonic_s, now_us
 from tests.local_site.agent_support import (
@@ -268,9 +270,8 @@ async def test_platform_samples_older_than_the_read_timeout_are_never_sent(
 
 async def test_the_first_state_after_skipped_samples_has_no_motion_stamp(
         monkeypatch: pytest.MonkeyPatch) -> None:
-    # ``local.motion`` is the previous message's sample: the first message of a link session,
-    # and the first after samples were skipped, have none to name (their frames count from
-    # capture)
+    # ``local.motion`` is the previous message's sample: the first message after samples
+    # were skipped has none to name (its frames count from capture)
     import local_site.agent.platform_reader as platform_reader
 
     ahead_us = [0]  # 1 s: every sample 1 s old, skipped as stale
@@ -289,9 +290,79 @@ async def test_the_first_state_after_skipped_samples_has_no_motion_stamp(
             await wait_for(lambda: len(remote.states) >= sent + 3, 10.0, "states after")
             agent.request_stop("test")
             assert await run == 0
-    stages = [[h.stage for h in s.hops][:2] for s in remote.states]
-    assert stages[0] == ["capture", "relay_in"]  # the first of the link session
-    assert stages[1] == ["motion", "capture"]
-    assert stages[sent] == ["capture", "relay_in"]  # the first after the skipped samples
-    assert stages[sent + 1] == ["motion", "capture"]
-    assert remote.states[sent + 1].hops[0].t_us == remote.states[sent].ts_us
+    # by seq: a state replaced unsent (a busy machine) leaves a gap, not a shift; the one
+    # after it names what the replaced one would have (none, at the start of a stretch)
+    by_seq = {s.seq: s for s in remote.states}
+    stages = {seq: [h.stage for h in s.hops][:2] for seq, s in by_seq.items()}
+    # (the first of the link session may go out before the remote joins: the relay drops it;
+    # test_the_motion_stamp_never_spans_a_platform_outage_or_names_an_unsent_state has it)
+    after_skip = min(seq for seq in by_seq if seq > sent)
+    assert stages[after_skip] == ["capture", "relay_in"]  # the first after the skipped samples
+    follows = [seq for seq in by_seq if seq - 1 in by_seq and seq - 1 != sent]
+    assert len(follows) >= 2
+    for seq in follows:  # its predecessor was written: it names that one's sample
+        assert stages[seq] == ["motion", "capture"]
+        assert by_seq[seq].hops[0].t_us == by_seq[seq - 1].ts_us
+
+
+class _UplinkLink:
+    """The link as the uplink sees it: every send kept; ``unsent`` says whether the previous
+    platform_state still waits in the send queue (the next replaces it)."""
+
+    is_connected = True
+
+    def __init__(self) -> None:
+        self.sent: list[PlatformState] = []
+        self.unsent = False
+
+    def holds_unsent(self, msg_type: str) -> bool:
+        return self.unsent and msg_type == "platform_state"
+
+    async def send(self, msg: PlatformState) -> None:
+        self.sent.append(msg)
+
+
+def _sample(t_us: int) -> PlatformSample:
+    return PlatformSample((0.0, 0.0, 100.0), (0.0, 0.0, 0.0), t_us, seq=t_us, board_t_us=t_us)
+
+
+def _motion(msg: PlatformState) -> int | None:
+    return next((h.t_us for h in msg.hops if h.stage == "motion"), None)
+
+
+async def test_the_motion_stamp_never_spans_a_platform_outage_or_names_an_unsent_state(
+        ) -> None:
+    # a platform lost for longer than the read timeout is not an uplink wait; a message the
+    # next one replaced in the send queue never left: the next names what that one named
+    agent = relay_agent("ws://127.0.0.1:9/")
+    link, reader = _UplinkLink(), SimpleNamespace(latest=None)
+    agent.link, agent.reader = link, reader  # type: ignore[assignment]
+    task = asyncio.create_task(agent._uplink())
+    try:
+        async def offer(t_us: int) -> PlatformState:
+            n = len(link.sent)
+            reader.latest = _sample(t_us)
+            await wait_for(lambda: len(link.sent) > n, 2.0, "a platform_state")
+            return link.sent[-1]
+
+        t0 = now_us()
+        first = await offer(t0)
+        assert _motion(first) is None  # the first of the link session: nothing before it
+        second = await offer(t0 + 3_000)
+        assert _motion(second) == t0
+        link.unsent = True  # the second still waits in the send queue
+        third = await offer(t0 + 6_000)
+        assert _motion(third) == t0  # shows what the replaced second would have
+        link.unsent = False
+        fourth = await offer(t0 + 9_000)
+        assert _motion(fourth) == t0 + 6_000
+        # the same sample held through an outage longer than the read timeout, then a
+        # fresh one (stamped now, so not stale): no motion stamp across the outage
+        gap_us = int(agent.config.platform_read_timeout_s * 1e6) + 200_000
+        await asyncio.sleep(gap_us / 1e6)
+        after = await offer(max(now_us(), t0 + 9_000 + gap_us))
+        assert _motion(after) is None
+    finally:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task

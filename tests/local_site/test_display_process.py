@@ -648,7 +648,8 @@ def test_the_pin_state_goes_unknown_when_read_even_without_the_supervisor() -> N
               "render_stats": RenderStats(), "display_stats": DisplayStats(), "superseded": 0,
               "priority": (None, None), "connected": True, "feedback": None,
               "pins": PinState(command, None, 3), "accepted": [], "rendered": [],
-              "pins_samples": [], "safe_since_s": None, "shed": 0, "final": False}
+              "pins_samples": [], "safe_since_s": None, "started_s": None, "shed": 0,
+              "final": False}
     process._take(("report", report))
     assert process.last_command is command and process.safe_reason is None
     # nothing more from the child (no supervisor runs here): unknown once SILENCE_S passed
@@ -661,14 +662,21 @@ def test_the_pin_state_goes_unknown_when_read_even_without_the_supervisor() -> N
     assert process.last_command is command
 
 
-def test_the_childs_receiving_thread_runs_at_the_real_time_priority_it_is_given() -> None:
-    # frames reach the loop when they arrive, not when an ordinary thread is next run
+@pytest.mark.parametrize(("loop_realtime", "expected"), [
+    (6, (os.SCHED_FIFO, 5)),  # one below the loop's
+    (1, (os.SCHED_OTHER, 0)),  # no level below the lowest: an ordinary thread
+    (None, (os.SCHED_OTHER, 0)),  # the loop is not real-time (refused, or not asked for)
+])
+def test_the_childs_receiving_thread_runs_just_below_a_real_time_loop(
+        loop_realtime: int | None, expected: tuple[int, int]) -> None:
+    # frames reach the loop when they arrive, not when an ordinary thread is next run; the
+    # level follows the priority the loop actually got, once it runs
     from local_site.agent.display_child import _receive
     from local_site.agent.display_loop import thread_realtime
 
-    with thread_realtime(1) as permitted:
+    with thread_realtime(5) as permitted:
         if permitted is None:
-            pytest.skip("SCHED_FIFO needs root, CAP_SYS_NICE or RLIMIT_RTPRIO here")
+            pytest.skip("SCHED_FIFO 5 needs root, CAP_SYS_NICE or RLIMIT_RTPRIO here")
     seen: list[tuple[int, int]] = []
 
     class Slot:
@@ -676,14 +684,23 @@ def test_the_childs_receiving_thread_runs_at_the_real_time_priority_it_is_given(
             tid = threading.get_native_id()
             seen.append((os.sched_getscheduler(tid), os.sched_getparam(tid).sched_priority))
 
+    class Loop:
+        started_s: float | None = None  # not running yet: its scheduling is not decided
+        realtime_applied = loop_realtime
+
+    loop = Loop()
     ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
     with ours, theirs:
         stop = threading.Event()
-        receiver = threading.Thread(target=_receive,
-                                    args=(theirs, Slot(), None, stop, 5), daemon=True)
+        receiver = threading.Thread(target=_receive, args=(theirs, Slot(), None, stop, loop),
+                                    daemon=True)
         receiver.start()
-        ours.send(pickle.dumps(("frame", make_frame(1, None), 7), protocol=5))
+        frame = pickle.dumps(("frame", make_frame(1, None), 7), protocol=5)
+        ours.send(frame)
+        wait_until(lambda: len(seen) == 1, 5.0, "the first frame handed over")
+        loop.started_s = monotonic_s()  # the loop runs now
+        ours.send(frame)
         ours.send(pickle.dumps(("stop",), protocol=5))
         receiver.join(scaled(5.0))
         assert not receiver.is_alive() and stop.is_set()
-    assert seen == [(os.SCHED_FIFO, 5)]
+    assert seen == [(os.SCHED_OTHER, 0), expected]
