@@ -96,6 +96,12 @@ def test_stream_queue_arrival_order_latest_and_bound() -> None:
     assert len(q) == 3
     assert [q.pop(), q.pop(), q.pop(), q.pop()] == [2, 3, 5, None]
     assert q.put_ordered(6, force=True) and q.take() == [6] and len(q) == 0
+    # holds: an unsent item waits in the slot (the next put_latest replaces it)
+    assert not q.holds("a")
+    q.put_latest("a", 7)
+    q.put_latest("a", 8)
+    assert q.holds("a") and not q.holds("b")
+    assert q.pop() == 8 and not q.holds("a")
 
 
 # --------------------------------------------------------------------------- handshake
@@ -257,10 +263,13 @@ def test_the_burst_goes_on_while_the_offset_is_uncertain() -> None:
 
 def test_latest_wins_replaces_unsent_state_and_counts_a_drop() -> None:
     station, peer = joined_pair()
+    assert not station.holds_unsent("platform_state")
     for seq in range(3):
         assert station.send(PlatformState(seq=seq, ts_us=seq))
     assert station.pending_sends == 1 and station.counters.stale_dropped_tx == 2
+    assert station.holds_unsent("platform_state") and not station.holds_unsent("arm_state")
     (data,) = pump(station, 10)
+    assert not station.holds_unsent("platform_state")
     assert data == frame(encode(PlatformState(seq=2, ts_us=2)))
     peer.receive_data(data, 20)
     assert peer.events_received() == [DataReceived(PlatformState(seq=2, ts_us=2), 20)]
