@@ -390,7 +390,10 @@ class DisplayProcess:
         """The loop's counters, those of ended children included. ``safe_time_s`` also
         counts what no child's counters hold: the running child's open safe episode, a
         child that ended unasked from its open episode (or its loop's last progress) on, and
-        the time no child drove the board (the board's watchdog holds the pins safe)."""
+        the time no child drove the board (the board's watchdog holds the pins safe). That
+        gap is counted up to the read until the next child's first report says when its loop
+        first ticked: the figure may then step back by up to a heartbeat, never count a
+        stretch twice."""
         counters = self.totals.counters
         extra = self._safe_untold_s(monotonic_s())
         if extra <= 0.0:
