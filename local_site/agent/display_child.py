@@ -13,7 +13,6 @@ import dataclasses
 import errno
 import json
 import logging
-import os
 import pickle
 import signal
 import socket
@@ -23,7 +22,12 @@ import time
 from collections.abc import Iterable, Mapping
 from typing import Any, Protocol
 
-from local_site.agent.display_loop import DisplayLoop, DisplayLoopCounters, FrameSlot
+from local_site.agent.display_loop import (
+    DisplayLoop,
+    DisplayLoopCounters,
+    FrameSlot,
+    thread_realtime,
+)
 from local_site.agent.display_process import HEARTBEAT_S, MAX_MESSAGE_BYTES, LinkMirror
 from local_site.agent.platform_process import RecordView, SampleRecord
 from local_site.devices import open_display
@@ -201,6 +205,10 @@ class _Reporter:
             self.send()
 
 
+#: the thread named in the log when its real-time priority is refused
+_RECEIVING_THREAD = "display process: its receiving thread"
+
+
 class _Loop(Protocol):
     """What the receiving thread reads of the display loop."""
 
@@ -208,20 +216,15 @@ class _Loop(Protocol):
     realtime_applied: int | None
 
 
-def _follow_the_loop(loop: _Loop) -> bool:
+def _follow_the_loop(loop: _Loop, scheduling: contextlib.ExitStack) -> bool:
     """Once the loop runs (its scheduling decided), run this thread ``SCHED_FIFO`` one below
-    the loop's real-time priority, if it has one above 1; return whether that is decided."""
+    the loop's real-time priority, if it has one above 1, until ``scheduling`` closes;
+    return whether that is decided."""
     if loop.started_s is None:
         return False
     priority = (loop.realtime_applied or 0) - 1
-    if priority < 1:
-        return True  # an ordinary loop (or at the lowest level): an ordinary thread
-    try:
-        os.sched_setscheduler(threading.get_native_id(), os.SCHED_FIFO,
-                              os.sched_param(priority))
-    except (OSError, AttributeError) as err:
-        log.info("display process: its receiving thread stays an ordinary thread "
-                 "(SCHED_FIFO %d refused: %s)", priority, err)
+    if priority >= 1:  # else an ordinary loop (or at the lowest level): an ordinary thread
+        scheduling.enter_context(thread_realtime(priority, who=_RECEIVING_THREAD))
     return True
 
 
@@ -237,25 +240,26 @@ def _receive(sock: socket.socket, frames: FrameSlot | None, link: LinkMirror | N
     device, is the only sender.
     """
     following = loop
-    try:
-        while not stop.is_set():
-            data = sock.recv(MAX_MESSAGE_BYTES)
-            if not data:
-                break
-            if following is not None and _follow_the_loop(following):
-                following = None
-            message = pickle.loads(data)
-            kind = message[0]
-            if kind == "frame" and frames is not None:
-                frames.put(message[1], message[2])
-            elif kind == "link" and link is not None:
-                link.update(message[1])
-            elif kind == "stop":
-                break
-    except OSError as err:
-        log.info("display process: the station's socket failed: %s", err)
-    finally:
-        stop.set()
+    with contextlib.ExitStack() as scheduling:
+        try:
+            while not stop.is_set():
+                data = sock.recv(MAX_MESSAGE_BYTES)
+                if not data:
+                    break
+                if following is not None and _follow_the_loop(following, scheduling):
+                    following = None
+                message = pickle.loads(data)
+                kind = message[0]
+                if kind == "frame" and frames is not None:
+                    frames.put(message[1], message[2])
+                elif kind == "link" and link is not None:
+                    link.update(message[1])
+                elif kind == "stop":
+                    break
+        except OSError as err:
+            log.info("display process: the station's socket failed: %s", err)
+        finally:
+            stop.set()
 
 
 def _scene(settings: dict[str, Any]) -> SceneSource:

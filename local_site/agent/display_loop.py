@@ -63,7 +63,7 @@ from shared.protocol import Hop, TactileFrame
 from shared.timebase import monotonic_s, now_us
 
 __all__ = ["SAFE_REASONS", "DisplayLoop", "DisplayLoopCounters", "FrameSlot", "LinkHealth",
-           "LoopRecorder", "PinState", "SameClockLink", "main_thread_scheduling", "thread_priority"]
+           "LoopRecorder", "PinState", "SameClockLink", "opening_scheduling", "thread_priority"]
 
 log = logging.getLogger(__name__)
 
@@ -139,19 +139,22 @@ class SameClockLink:
                          {"local": self._bound_us, "remote": self._bound_us}, now_us())
 
 
+#: the thread named in the log when a raised priority is refused
+_LOOP_THREAD = "display loop thread"
+
+
 @contextlib.contextmanager
 def _thread_setting(value: int, keeps: str, read: Callable[[], Any],
                     write: Callable[[Any], None], setting: Any,
-                    grant: str) -> Iterator[int | None]:
+                    grant: str, who: str) -> Iterator[int | None]:
     """Apply ``setting`` to the calling thread for the block (``write``), restore what
     ``read`` returned before it after; yield ``value``, or None when the OS refused (logged:
-    the thread ``keeps`` its ..., and how to ``grant`` the right)."""
+    the thread, ``who``, ``keeps`` its ..., and how to ``grant`` the right)."""
     try:
         before = read()
         write(setting)
     except OSError as err:
-        log.info("display loop thread keeps its %s refused: %s); to allow it, %s", keeps, err,
-                 grant)
+        log.info("%s keeps its %s refused: %s); to allow it, %s", who, keeps, err, grant)
         yield None
         return
     try:
@@ -162,7 +165,7 @@ def _thread_setting(value: int, keeps: str, read: Callable[[], Any],
 
 
 @contextlib.contextmanager
-def thread_priority(nice: int) -> Iterator[int | None]:
+def thread_priority(nice: int, who: str = _LOOP_THREAD) -> Iterator[int | None]:
     """Give the calling thread the nice value ``nice`` for the block (Linux: per thread).
 
     Yields the value applied, or None when ``nice`` is 0 or the OS refused (raising the
@@ -177,20 +180,20 @@ def thread_priority(nice: int) -> Iterator[int | None]:
                          lambda: os.getpriority(os.PRIO_PROCESS, tid),
                          lambda v: os.setpriority(os.PRIO_PROCESS, tid, v), nice,
                          f"run as root or with CAP_SYS_NICE, or set RLIMIT_NICE >= {20 - nice} "
-                         f"(systemd: LimitNICE={nice})") as applied:
+                         f"(systemd: LimitNICE={nice})", who) as applied:
         yield applied
 
 
 @contextlib.contextmanager
-def thread_realtime(priority: int) -> Iterator[int | None]:
+def thread_realtime(priority: int, who: str = _LOOP_THREAD) -> Iterator[int | None]:
     """Run the calling thread under ``SCHED_FIFO`` at ``priority`` (1-99) for the block.
 
     Yields the priority applied, or None when ``priority`` is 0 or the OS refused (it needs
-    root or ``CAP_SYS_NICE``; logged, the thread keeps its policy). The thread's previous
-    policy and priority are restored after the block. A real-time thread runs as soon as it
-    wakes, ahead of every ordinary thread; the display loop sleeps every period, and the
-    kernel's real-time throttling (``/proc/sys/kernel/sched_rt_runtime_us``, 95 % by
-    default) would still leave the rest of the machine its share if it did not.
+    root or ``CAP_SYS_NICE``; logged, naming the thread ``who``, which keeps its policy). The
+    thread's previous policy and priority are restored after the block. A real-time thread
+    runs as soon as it wakes, ahead of every ordinary thread; the display loop sleeps every
+    period, and the kernel's real-time throttling (``/proc/sys/kernel/sched_rt_runtime_us``,
+    95 % by default) would still leave the rest of the machine its share if it did not.
     """
     if priority == 0 or not hasattr(os, "sched_setscheduler"):
         yield None
@@ -202,7 +205,7 @@ def thread_realtime(priority: int) -> Iterator[int | None]:
                          (os.SCHED_FIFO, os.sched_param(priority)),
                          f"run as root or with CAP_SYS_NICE, or set RLIMIT_RTPRIO >= {priority} "
                          f"(systemd: LimitRTPRIO={priority}; docker: --ulimit rtprio="
-                         f"{priority})") as applied:
+                         f"{priority})", who) as applied:
         yield applied
 
 
@@ -230,9 +233,10 @@ def read_thread_scheduling() -> _Scheduling | None:
 
 
 @contextlib.contextmanager
-def main_thread_scheduling(scheduling: _Scheduling | None = None) -> Iterator[None]:
-    """Give the calling thread ``scheduling`` (default: the scheduling policy and nice value
-    of the process's main thread) for the block; restore its own after.
+def opening_scheduling(scheduling: _Scheduling | None = None) -> Iterator[None]:
+    """Give the calling thread the scheduling to open a display with for the block:
+    ``scheduling`` (default: the scheduling policy and nice value of the process's main
+    thread); restore its own after.
 
     A thread inherits them from the thread that starts it. The display loop's thread runs
     with a raised priority (:func:`thread_realtime`, :func:`thread_priority`) and (re)opens
@@ -677,7 +681,7 @@ class DisplayLoop:
         while True:
             try:
                 # the display's threads (its reader) must not inherit the loop's priority
-                with main_thread_scheduling(self._open_scheduling):
+                with opening_scheduling(self._open_scheduling):
                     self.display.connect()
                 break
             except DeviceInitError as err:

@@ -704,3 +704,24 @@ def test_the_childs_receiving_thread_runs_just_below_a_real_time_loop(
         receiver.join(scaled(5.0))
         assert not receiver.is_alive() and stop.is_set()
     assert seen == [(os.SCHED_OTHER, 0), expected]
+
+
+def test_the_childs_receiving_thread_says_so_when_real_time_is_refused(
+        monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    # the refusal names this thread (not the loop's) and the thread goes on as it was
+    from local_site.agent import display_child
+
+    def refuse(*args: object) -> None:
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(os, "sched_setscheduler", refuse)
+
+    class Loop:
+        started_s = monotonic_s()
+        realtime_applied = 6
+
+    with caplog.at_level("INFO"), contextlib.ExitStack() as scheduling:
+        assert display_child._follow_the_loop(Loop(), scheduling)
+    assert ("display process: its receiving thread keeps its scheduling policy "
+            "(SCHED_FIFO 5 refused") in caplog.text
+    assert "display loop thread" not in caplog.text

@@ -30,7 +30,7 @@ from hypothesis import strategies as st
 from local_site.agent import LocalAgentConfig
 from local_site.agent.display_loop import (
     DisplayLoop,
-    main_thread_scheduling,
+    opening_scheduling,
     thread_priority,
     thread_realtime,
 )
@@ -700,7 +700,7 @@ def test_a_loop_on_the_main_thread_opens_the_display_with_its_earlier_scheduling
     assert all(s == seen["before"] for s in seen["display"]), seen
 
 
-def test_main_thread_scheduling_lowers_for_the_block_and_restores_after() -> None:
+def test_opening_scheduling_lowers_for_the_block_and_restores_after() -> None:
     main = _scheduling(os.getpid())
     seen: dict[str, tuple[int, int, int]] = {}
 
@@ -709,10 +709,10 @@ def test_main_thread_scheduling_lowers_for_the_block_and_restores_after() -> Non
         seen["before"] = _scheduling(tid)
         with thread_priority(min(main[2] + 3, 19)):
             seen["raised"] = _scheduling(tid)
-            with main_thread_scheduling():
+            with opening_scheduling():
                 seen["inside"] = _scheduling(tid)
             seen["restored"] = _scheduling(tid)
-        with main_thread_scheduling():  # nothing to change: nothing changes
+        with opening_scheduling():  # nothing to change: nothing changes
             seen["unchanged"] = _scheduling(tid)
 
     t = threading.Thread(target=worker)
