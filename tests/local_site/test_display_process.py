@@ -717,8 +717,8 @@ def test_the_childs_receiving_thread_says_so_when_real_time_is_refused(
     monkeypatch.setattr(os, "sched_setscheduler", refuse)
 
     class Loop:
-        started_s = monotonic_s()
-        realtime_applied = 6
+        started_s: float | None = monotonic_s()
+        realtime_applied: int | None = 6
 
     with caplog.at_level("INFO"), contextlib.ExitStack() as scheduling:
         assert display_child._follow_the_loop(Loop(), scheduling)
