@@ -125,7 +125,7 @@ def _plot(runs: list[dict[str, Any]], path: Path) -> None:
         ax.bar(xs, sim, width, bottom=prod, label=f"{r['label']}: simulated hw", alpha=0.5)
     ax.set_xticks([j + 0.4 - width / 2 for j in range(len(procs))], procs)
     ax.set_ylabel("cores (CPU s per wall s)")
-    ax.set_title("Demo CPU per process (machine shared with other agents)")
+    ax.set_title("Demo CPU per process (see each run's load average in cpu.md)")
     ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=100)

@@ -181,8 +181,9 @@ def run(args: argparse.Namespace) -> int:
         "renderer commands at the frame centre (every 10th frame). The lost-frame columns "
         f"drop {args.loss:.0%} of the frames at random before the decoder (deltas then refer "
         "to key frames that may be missing: those wait, counted). Encode/decode times include "
-        "msgpack and validation; machine shared with other agents "
-        f"(nproc {os.cpu_count()}, load {os.getloadavg()[0]:.1f}), so times are upper bounds.",
+        "msgpack and validation, wall time per frame on this machine "
+        f"(nproc {os.cpu_count()}, 1-minute load {os.getloadavg()[0]:.1f} when the table was "
+        "written): read them as upper bounds.",
         "", format_table(rows), ""])
     write_results(args.out_dir, "tactile_codec", text,
                   plot=lambda path: _plot(results, raw, rate, path))
