@@ -18,6 +18,7 @@ from typing import Any, Protocol
 from shared.clocksync import ClockFilter
 from shared.errors import RoleTakenError
 from shared.ledger import LatencyLedger, LedgerSnapshot, merge_snapshots
+from shared.motion_to_touch import carry_motion
 from shared.protocol import DataMessage, Error, StreamPolicy, TactileCompact
 from shared.protocol.forward import WireMessage
 from shared.protocol.peer_session import Outbox, Pending
@@ -299,6 +300,12 @@ class Session:
         key = f"{direction.name}:{stream}"
         if latest:
             self._key_frame_first(direction.name, msg, receiver)
+            held = receiver.outbox.held(key)
+            if held is not None and isinstance(held.message, DataMessage):
+                # it replaces one never sent: it must start where that one started
+                carried = carry_motion(held.message, msg)
+                if carried is not msg:
+                    msg, wire = carried, None  # encoded from the message, new stamps and all
             if receiver.outbox.put_latest(key, msg, t_in_us, on_send, mid_hops,
                                           wire) is not None:
                 ledger.record_drop("latest_wins")

@@ -153,6 +153,11 @@ class Outbox:
         self._woken()
         return old
 
+    def held(self, key: str) -> Pending | None:
+        """The unsent entry in slot ``key`` that the next :meth:`put_latest` of ``key`` would
+        replace, or None."""
+        return self._queue.held(key)
+
     def put_control_latest(self, key: str, message: Message,
                            build: Callable[[int], Message] | None = None) -> bool:
         """Put the relay's own periodic message in slot ``key`` (a fresh one replaces an

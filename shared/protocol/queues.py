@@ -57,6 +57,12 @@ class StreamQueue(Generic[T]):
         self._cells.append(cell)
         return replaced
 
+    def held(self, key: str) -> T | None:
+        """The unsent item in slot ``key`` (the next :meth:`put_latest` of that key replaces
+        it), or None."""
+        cell = self._latest.get(key)
+        return None if cell is None else cell.item
+
     def holds(self, key: str) -> bool:
         """Whether slot ``key`` holds an unsent item (the next :meth:`put_latest` of that key
         replaces it)."""
