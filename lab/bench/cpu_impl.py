@@ -50,7 +50,7 @@ from lab.demo import DEFAULT_DISPLAY
 from shared.errors import ConfigError, TeleTouchError
 
 __all__ = ["STAGE_RULES", "CpuBenchSettings", "CpuSnapshot", "classify_stack",
-           "demo_processes", "parse_raw_profile", "pyspy_path", "run_cpu_bench"]
+           "demo_processes", "parse_raw_profile", "pyspy_path", "run_cpu_bench", "window_drops"]
 
 log = logging.getLogger(__name__)
 
@@ -318,17 +318,21 @@ class _Window:
     names: dict[int, str] = field(default_factory=dict)
     spies: dict[int, subprocess.Popen[bytes]] = field(default_factory=dict)
     local_loop: dict[str, Any] | None = None
+    #: the relay's drop counters (``/status``, per direction) at the window's start and end
+    drops: list[dict[str, Any]] = field(default_factory=list)
 
     def progress(self, _elapsed: float, status: dict[str, Any] | None) -> None:
         now = time.perf_counter()
+        session = ((status or {}).get("sessions", {}).get("demo", {}) or {})
         if self.ready_at is None:
-            fwd = ((status or {}).get("sessions", {}).get("demo", {}) or {}).get("forwarded", {})
+            fwd = session.get("forwarded", {})
             if fwd and all((v or 0) > 0 for v in fwd.values()) and len(fwd) == 2:
                 self.ready_at = now
             return
         if self.start is None and now - self.ready_at >= self.settings.warmup_s:
             self.names = demo_processes(os.getpid())
             self.start = snapshot(list(self.names))
+            self.drops = [session.get("drops", {})]
             if self.pyspy and self.settings.profile:
                 for pid, name in self.names.items():
                     self.spies[pid] = subprocess.Popen(
@@ -342,6 +346,7 @@ class _Window:
         if self.start is not None and self.end is None \
                 and now - self.start.wall_s >= self.settings.window_s:
             self.end = snapshot(list(self.names))
+            self.drops.append(session.get("drops", {}))
             # the window is measured: stop the operator early (the station exits 0 on
             # SIGTERM after writing its summary), the demo then finishes as usual
             for pid, name in self.names.items():
@@ -471,8 +476,19 @@ def _figures(win: _Window, report: dict[str, Any], load_start: tuple[float, floa
         "remote_latency_ms": (report.get("remote") or {}).get("latency_ms"),
         "remote_elapsed_s": (report.get("remote") or {}).get("elapsed_s"),
         "tactile_codec": local.get("tactile_codec"),
+        "relay_drops": window_drops(win.drops),
         "settings": {k: v for k, v in vars(win.settings).items()},
     }
+
+
+def window_drops(drops: list[dict[str, Any]]) -> dict[str, dict[str, int]] | None:
+    """The relay's drops over the window, per direction and reason (end minus start of its
+    ``/status`` counters); None without both readings."""
+    if len(drops) != 2:
+        return None
+    start, end = drops
+    return {d: {k: int(v) - int((start.get(d) or {}).get(k, 0)) for k, v in counts.items()}
+            for d, counts in end.items() if isinstance(counts, dict)}
 
 
 def to_json(figures: dict[str, Any]) -> str:

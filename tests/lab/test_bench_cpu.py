@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from lab.bench.cpu_impl import classify_stack, parse_raw_profile, thread_roots
+from lab.bench.cpu_impl import classify_stack, parse_raw_profile, thread_roots, window_drops
 from lab.bench.cpu_report import product_and_sim
 
 
@@ -119,3 +119,13 @@ def test_a_snapshot_counts_each_threads_context_switches() -> None:
     assert tid is not None and tid in after.switches[pid]
     assert after.switches[pid][tid] - before.switches[pid].get(tid, 0) >= 20
     assert after.switches[pid][tid] >= 20 and after.threads[pid][tid] >= 0.0
+
+
+def test_the_relays_drops_are_counted_over_the_window_only() -> None:
+    start = {"local_to_remote": {"lost": 1, "latest_wins": 5, "queue_full": 0, "no_peer": 7}}
+    end = {"local_to_remote": {"lost": 1, "latest_wins": 9, "queue_full": 0, "no_peer": 7},
+           "remote_to_local": {"lost": 0, "latest_wins": 2, "queue_full": 0, "no_peer": 0}}
+    assert window_drops([start, end]) == {
+        "local_to_remote": {"lost": 0, "latest_wins": 4, "queue_full": 0, "no_peer": 0},
+        "remote_to_local": {"lost": 0, "latest_wins": 2, "queue_full": 0, "no_peer": 0}}
+    assert window_drops([start]) is None  # the window never ended
