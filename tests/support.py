@@ -23,6 +23,8 @@ from pathlib import Path
 
 import pytest
 
+from shared.protocol import DataMessage, Hop, PlatformState
+
 TIMEOUT_SCALE = float(os.environ.get("TELETOUCH_TEST_TIMEOUT_SCALE", "1"))
 
 #: the repository's root (this file is ``<repo>/tests/support.py``)
@@ -101,3 +103,17 @@ def teletouch_cmd() -> list[str]:
     """The ``teletouch`` command as a new user runs it (the console script, else the module)."""
     exe = shutil.which("teletouch")
     return [exe] if exe else [sys.executable, "-m", "lab.cli"]
+
+
+def motion_state(seq: int, motion_us: int | None, capture_us: int) -> PlatformState:
+    """A ``platform_state`` stamped as a local station stamps it: ``local.motion`` (when
+    given) and ``local.capture``."""
+    capture = Hop("local", "capture", capture_us)
+    hops = (capture,) if motion_us is None else (Hop("local", "motion", motion_us), capture)
+    return PlatformState(seq=seq, ts_us=capture_us, hops=hops)
+
+
+def motion_of(msg: DataMessage) -> int | None:
+    """The ``local.motion`` stamp of a message (None without one)."""
+    return next((h.t_us for h in msg.hops if h.stage == "motion" and h.clock == "local"),
+                None)

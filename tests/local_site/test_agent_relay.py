@@ -30,7 +30,7 @@ from tests.local_site.agent_support import (
     wait_for,
 )
 from tests.relay_server.relay_clients import running_relay
-from tests.support import free_tcp_port, scaled
+from tests.support import free_tcp_port, motion_of, scaled
 
 
 def _pins_near(agent: LocalAgent, height_mm: float, tol_mm: float = 0.15) -> bool:
@@ -326,10 +326,6 @@ def _sample(t_us: int) -> PlatformSample:
     return PlatformSample((0.0, 0.0, 100.0), (0.0, 0.0, 0.0), t_us, seq=t_us, board_t_us=t_us)
 
 
-def _motion(msg: PlatformState) -> int | None:
-    return next((h.t_us for h in msg.hops if h.stage == "motion"), None)
-
-
 async def test_the_motion_stamp_never_spans_a_platform_outage_or_names_an_unsent_state(
         ) -> None:
     # a platform lost for longer than the read timeout is not an uplink wait; a message the
@@ -347,21 +343,21 @@ async def test_the_motion_stamp_never_spans_a_platform_outage_or_names_an_unsent
 
         t0 = now_us()
         first = await offer(t0)
-        assert _motion(first) is None  # the first of the link session: nothing before it
+        assert motion_of(first) is None  # the first of the link session: nothing before it
         second = await offer(t0 + 3_000)
-        assert _motion(second) == t0
+        assert motion_of(second) == t0
         link.unsent = True  # the second still waits in the send queue
         third = await offer(t0 + 6_000)
-        assert _motion(third) == t0  # shows what the replaced second would have
+        assert motion_of(third) == t0  # shows what the replaced second would have
         link.unsent = False
         fourth = await offer(t0 + 9_000)
-        assert _motion(fourth) == t0 + 6_000
+        assert motion_of(fourth) == t0 + 6_000
         # the same sample held through an outage longer than the read timeout, then a
         # fresh one (stamped now, so not stale): no motion stamp across the outage
         gap_us = int(agent.config.platform_read_timeout_s * 1e6) + 200_000
         await asyncio.sleep(gap_us / 1e6)
         after = await offer(max(now_us(), t0 + 9_000 + gap_us))
-        assert _motion(after) is None
+        assert motion_of(after) is None
     finally:
         task.cancel()
         with contextlib.suppress(asyncio.CancelledError):

@@ -12,6 +12,7 @@ from relay_server.session import Peer, Session
 from shared.errors import RoleTakenError
 from shared.protocol import ArmCommand, ArmState, Hop, PlatformState, TactileCompact
 from shared.protocol.peer_session import Outbox
+from tests.support import motion_of, motion_state
 
 
 def make_peer(pid: int, role: str, limit: int = 4) -> Peer:
@@ -79,7 +80,7 @@ def test_ordered_and_latest_leave_in_arrival_order() -> None:
 
 
 def test_forwarded_encoding_appends_two_hops_and_keeps_the_hop_limit() -> None:
-    from shared.protocol import Hop, decode, encode, frame
+    from shared.protocol import decode, encode, frame
     from shared.protocol.messages import MAX_HOPS
 
     relay_hops = (Hop("relay", "relay_in", 20), Hop("relay", "relay_out", 30))
@@ -150,14 +151,6 @@ def test_a_key_frame_is_not_superseded_by_its_deltas_in_the_queue() -> None:
     assert session.compact_keys_resent == 0
 
 
-def _state(seq: int, motion_us: int | None, capture_us: int) -> PlatformState:
-    capture = Hop("local", "capture", capture_us)
-    hops = (capture,) if motion_us is None else (Hop("local", "motion", motion_us), capture)
-    return PlatformState(seq=seq, ts_us=capture_us, hops=hops)
-
-
-def _motion(msg: PlatformState) -> int | None:
-    return next((h.t_us for h in msg.hops if h.stage == "motion"), None)
 
 
 @given(st.lists(st.booleans(), min_size=1, max_size=60))
@@ -174,15 +167,15 @@ def test_through_a_latest_wins_slot_every_delivered_state_starts_at_the_last_del
     previous: int | None = None
     for seq, take in enumerate(takes, start=1):
         capture = 1_000 * seq
-        assert session.route(local, _state(seq, previous, capture), capture + 10) is None
+        assert session.route(local, motion_state(seq, previous, capture), capture + 10) is None
         previous = capture
         if take or seq == len(takes):
             delivered += [p.message for p in remote.outbox.take()
                           if isinstance(p.message, PlatformState)]
     assert delivered and delivered[-1].seq == len(takes)
-    assert _motion(delivered[0]) is None
+    assert motion_of(delivered[0]) is None
     for before, after in itertools.pairwise(delivered):
-        assert _motion(after) == before.ts_us
+        assert motion_of(after) == before.ts_us
 
 
 def test_a_carried_replacement_is_encoded_anew_not_sent_as_received() -> None:
@@ -197,7 +190,7 @@ def test_a_carried_replacement_is_encoded_anew_not_sent_as_received() -> None:
     local, remote = make_peer(1, "local"), make_peer(2, "remote")
     session.join(local)
     session.join(remote)
-    first, second = _state(1, 1_000, 2_000), _state(2, 2_000, 3_000)
+    first, second = motion_state(1, 1_000, 2_000), motion_state(2, 2_000, 3_000)
     wires = []
     for msg in (first, second):
         data = encode(msg)
@@ -206,11 +199,11 @@ def test_a_carried_replacement_is_encoded_anew_not_sent_as_received() -> None:
     session.route(local, first, 2_010, wire=wires[0])
     session.route(local, second, 3_010, wire=wires[1])
     (pending,) = remote.outbox.take()
-    assert pending.wire is None and _motion(pending.message) == 1_000  # type: ignore[arg-type]
+    assert pending.wire is None and motion_of(pending.message) == 1_000  # type: ignore[arg-type]
     # and a replacement that keeps its stamps (its sender broke the chain) keeps its bytes
-    fourth = _state(4, None, 5_000)
+    fourth = motion_state(4, None, 5_000)
     data = encode(fourth)
-    session.route(local, _state(3, 3_000, 4_000), 4_010)
+    session.route(local, motion_state(3, 3_000, 4_000), 4_010)
     session.route(local, fourth, 5_010, wire=locate_hops(data, msgpack.unpackb(data)))
     (pending,) = remote.outbox.take()
     assert pending.wire is not None and decode(pending.wire.data) == fourth

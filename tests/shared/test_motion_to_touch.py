@@ -17,6 +17,7 @@ from shared.motion_to_touch import (
     trace_hops,
 )
 from shared.protocol import Hop, PlatformState
+from tests.support import motion_state
 
 # true times on the relay clock (us) of each stamp of one loop
 TRUE = [("local", "motion", -4_000), ("local", "capture", 0), ("relay", "relay_in", 10_000),
@@ -182,29 +183,21 @@ def test_the_tail_needs_complete_frames_and_a_quantile_inside_0_1() -> None:
             ledger.tail_ms(q)
 
 
-def _state(seq: int, motion_us: int | None, capture_us: int) -> PlatformState:
-    capture = Hop("local", "capture", capture_us)
-    hops = (capture,) if motion_us is None else (Hop("local", "motion", motion_us), capture)
-    return PlatformState(seq=seq, ts_us=capture_us, hops=hops)
-
-
-def _motion(msg: PlatformState) -> int | None:
-    return next((h.t_us for h in msg.hops if h.stage == "motion"), None)
 
 
 def test_a_replacement_starts_where_the_replaced_message_started() -> None:
-    newer = _state(2, 2_000, 3_000)
-    carried = carry_motion(_state(1, 1_000, 2_000), newer)
+    newer = motion_state(2, 2_000, 3_000)
+    carried = carry_motion(motion_state(1, 1_000, 2_000), newer)
     assert isinstance(carried, PlatformState)
     assert carried.hops == (Hop("local", "motion", 1_000), Hop("local", "capture", 3_000))
     assert carried.seq == 2 and carried.ts_us == 3_000
     # the replaced one had no start (first of a session): neither has its successor now
-    carried = carry_motion(_state(1, None, 2_000), newer)
+    carried = carry_motion(motion_state(1, None, 2_000), newer)
     assert carried.hops == (Hop("local", "capture", 3_000),)
     # a successor that its sender saw break the chain keeps what it has
-    alone = _state(2, None, 3_000)
-    assert carry_motion(_state(1, 1_000, 2_000), alone) is alone
+    alone = motion_state(2, None, 3_000)
+    assert carry_motion(motion_state(1, 1_000, 2_000), alone) is alone
     # nothing to change: the very message
-    same = _state(2, 1_000, 3_000)
-    assert carry_motion(_state(1, 1_000, 2_000), same) is same
+    same = motion_state(2, 1_000, 3_000)
+    assert carry_motion(motion_state(1, 1_000, 2_000), same) is same
 
