@@ -19,7 +19,7 @@ from shared.clocksync import ClockFilter
 from shared.errors import RoleTakenError
 from shared.ledger import LatencyLedger, LedgerSnapshot, merge_snapshots
 from shared.motion_to_touch import carry_motion
-from shared.protocol import DataMessage, Error, StreamPolicy, TactileCompact
+from shared.protocol import DataMessage, Error, PlatformState, StreamPolicy, TactileCompact
 from shared.protocol.forward import WireMessage
 from shared.protocol.peer_session import Outbox, Pending
 
@@ -300,9 +300,10 @@ class Session:
         key = f"{direction.name}:{stream}"
         if latest:
             self._key_frame_first(direction.name, msg, receiver)
-            held = receiver.outbox.held(key)
-            if held is not None and isinstance(held.message, DataMessage):
-                # it replaces one never sent: it must start where that one started
+            # a platform_state that replaces one never sent starts where that one started
+            # (tactile frames keep the stamps of the state they answer)
+            held = receiver.outbox.held(key) if isinstance(msg, PlatformState) else None
+            if held is not None and isinstance(held.message, PlatformState):
                 carried = carry_motion(held.message, msg)
                 if carried is not msg:
                     msg, wire = carried, None  # encoded from the message, new stamps and all

@@ -332,7 +332,7 @@ class _Window:
         if self.start is None and now - self.ready_at >= self.settings.warmup_s:
             self.names = demo_processes(os.getpid())
             self.start = snapshot(list(self.names))
-            self.drops = [session.get("drops", {})]
+            self.drops = [session["drops"]] if session.get("drops") else []
             if self.pyspy and self.settings.profile:
                 for pid, name in self.names.items():
                     self.spies[pid] = subprocess.Popen(
@@ -346,7 +346,8 @@ class _Window:
         if self.start is not None and self.end is None \
                 and now - self.start.wall_s >= self.settings.window_s:
             self.end = snapshot(list(self.names))
-            self.drops.append(session.get("drops", {}))
+            if self.drops and session.get("drops"):
+                self.drops.append(session["drops"])
             # the window is measured: stop the operator early (the station exits 0 on
             # SIGTERM after writing its summary), the demo then finishes as usual
             for pid, name in self.names.items():
@@ -483,8 +484,9 @@ def _figures(win: _Window, report: dict[str, Any], load_start: tuple[float, floa
 
 def window_drops(drops: list[dict[str, Any]]) -> dict[str, dict[str, int]] | None:
     """The relay's drops over the window, per direction and reason (end minus start of its
-    ``/status`` counters); None without both readings."""
-    if len(drops) != 2:
+    ``/status`` counters); None without both readings (a status poll that failed or did not
+    show the session is no reading, not "no drops")."""
+    if len(drops) != 2 or not all(drops):
         return None
     start, end = drops
     return {d: {k: int(v) - int((start.get(d) or {}).get(k, 0)) for k, v in counts.items()}

@@ -63,7 +63,8 @@ from shared.protocol import Hop, TactileFrame
 from shared.timebase import monotonic_s, now_us
 
 __all__ = ["SAFE_REASONS", "DisplayLoop", "DisplayLoopCounters", "FrameSlot", "LinkHealth",
-           "LoopRecorder", "PinState", "SameClockLink", "opening_scheduling", "thread_priority"]
+           "LoopRecorder", "PinState", "SameClockLink", "opening_scheduling", "thread_priority",
+           "thread_realtime"]
 
 log = logging.getLogger(__name__)
 
@@ -155,6 +156,10 @@ def _thread_setting(value: int, keeps: str, read: Callable[[], Any],
         write(setting)
     except OSError as err:
         log.info("%s keeps its %s refused: %s); to allow it, %s", who, keeps, err, grant)
+        refused = True
+    else:
+        refused = False
+    if refused:  # yielded outside the handler: the block's errors are not chained to it
         yield None
         return
     try:

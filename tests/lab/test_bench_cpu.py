@@ -129,3 +129,5 @@ def test_the_relays_drops_are_counted_over_the_window_only() -> None:
         "local_to_remote": {"lost": 0, "latest_wins": 4, "queue_full": 0, "no_peer": 0},
         "remote_to_local": {"lost": 0, "latest_wins": 2, "queue_full": 0, "no_peer": 0}}
     assert window_drops([start]) is None  # the window never ended
+    assert window_drops([{}, end]) is None  # a reading without the session is no reading
+    assert window_drops([start, {}]) is None

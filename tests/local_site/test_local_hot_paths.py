@@ -749,3 +749,17 @@ def test_safe_time_counts_the_episode_a_board_reconnect_ends() -> None:
     assert loop._reopen_display(lambda delay_s: False)
     assert loop.safe_since_s is None
     assert 3.0 <= loop.counters.safe_time_s < 3.0 + scaled(1.0)
+
+
+def test_a_refused_priority_does_not_chain_itself_to_the_blocks_errors(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    # the receiving thread of the display process runs its whole life inside such a block:
+    # its own errors must not read "during handling of" a refusal long past
+    def refuse(*args: object) -> None:
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(os, "sched_setscheduler", refuse)
+    with pytest.raises(ValueError) as info, thread_realtime(5) as applied:
+        assert applied is None
+        raise ValueError("the block's own error")
+    assert info.value.__context__ is None

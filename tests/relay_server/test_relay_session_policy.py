@@ -207,3 +207,30 @@ def test_a_carried_replacement_is_encoded_anew_not_sent_as_received() -> None:
     session.route(local, fourth, 5_010, wire=locate_hops(data, msgpack.unpackb(data)))
     (pending,) = remote.outbox.take()
     assert pending.wire is not None and decode(pending.wire.data) == fourth
+
+
+def test_a_tactile_frame_that_replaces_one_keeps_its_own_stamps_and_bytes() -> None:
+    # a frame carries the stamps of the state it answers; the remote answers only some
+    # states, so a frame the relay replaces must not hand its state's start to the next
+    import msgpack
+    import numpy as np
+
+    from shared.protocol import TactileFrame
+    from shared.protocol.codec import decode, encode
+    from shared.protocol.forward import locate_hops
+
+    session = Session("s", 64)
+    local, remote = make_peer(1, "local"), make_peer(2, "remote")
+    session.join(local)
+    session.join(remote)
+    layers = {"height_mm": np.zeros((4, 4), np.float32)}
+    frames = [TactileFrame(seq=seq, ts_us=seq * 10_000, layers=layers,
+                           hops=motion_state(seq, seq * 10_000 - 4_000, seq * 10_000).hops)
+              for seq in (1, 2)]
+    for frame in frames:
+        data = encode(frame)
+        session.route(remote, frame, frame.ts_us + 500,
+                      wire=locate_hops(data, msgpack.unpackb(data)))
+    (pending,) = local.outbox.take()
+    assert pending.wire is not None and decode(pending.wire.data) == frames[1]
+    assert motion_of(pending.message) == 16_000  # type: ignore[arg-type]
