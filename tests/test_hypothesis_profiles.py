@@ -71,7 +71,30 @@ def test_the_explore_profile_draws_new_examples_on_every_run(tmp_path: Path) -> 
     assert second.returncode == 0, second.stdout + second.stderr
     assert len(a) >= 10 and len(b) >= 10
     assert a != b
-    assert not (tmp_path / "a" / ".hypothesis").exists()  # no example database
+
+
+FAILING = '''
+from hypothesis import given, settings, strategies as st
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.integers(0, 100))
+def test_fails(n):
+    assert n < 50
+'''
+
+
+@pytest.mark.parametrize(("profile", "saved"), [("explore", False), ("ci", False),
+                                                 ("dev", True)])
+def test_only_the_dev_profile_saves_failing_examples(tmp_path: Path, profile: str,
+                                                     saved: bool) -> None:
+    # a failure under explore or ci leaves no example database behind (hypothesis keeps
+    # other caches in .hypothesis, e.g. the constants it reads from local source files);
+    # dev, hypothesis's default, saves the failing example to replay it
+    proc = _pytest(tmp_path / profile, "test_failing.py", FAILING,
+                   {"HYPOTHESIS_PROFILE": profile})
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    assert (tmp_path / profile / ".hypothesis" / "examples").exists() == saved
 
 
 @pytest.mark.parametrize("profile", ["nightly", ""])
