@@ -63,17 +63,33 @@ def keys_cubic_weights(t: NDArray[np.float64]) -> NDArray[np.float64]:
     ], axis=-1)
 
 
-def _pad_ghost(values: NDArray[np.float64], axis: int) -> NDArray[np.float64]:
-    """Add one ghost sample at both ends of ``axis`` (Keys' quadratic extrapolation)."""
-    v = np.moveaxis(values, axis, -1)
-    if v.shape[-1] >= 3:
-        lo = 3.0 * v[..., 0] - 3.0 * v[..., 1] + v[..., 2]
-        hi = 3.0 * v[..., -1] - 3.0 * v[..., -2] + v[..., -3]
-    else:  # two samples: linear extrapolation is the best the data allows
-        lo = 2.0 * v[..., 0] - v[..., 1]
-        hi = 2.0 * v[..., -1] - v[..., -2]
-    out = np.concatenate([lo[..., None], v, hi[..., None]], axis=-1)
-    return np.moveaxis(out, -1, axis)
+def _fill_ghosts(a: NDArray[np.float64], axis: int) -> None:
+    """Write the ghost samples of ``a`` in place: its first and last samples along ``axis``
+    (1 or 2) from the data between them, by Keys' quadratic extrapolation (linear where
+    there are only two data samples: the best the data allow)."""
+    def at(i: int) -> tuple[slice | int, ...]:
+        return (slice(None), i) if axis == 1 else (slice(None), slice(None), i)
+
+    if a.shape[axis] - 2 >= 3:
+        a[at(0)] = 3.0 * a[at(1)] - 3.0 * a[at(2)] + a[at(3)]
+        a[at(-1)] = 3.0 * a[at(-2)] - 3.0 * a[at(-3)] + a[at(-4)]
+    else:
+        a[at(0)] = 2.0 * a[at(1)] - a[at(2)]
+        a[at(-1)] = 2.0 * a[at(-2)] - a[at(-3)]
+
+
+def _with_ghosts(values: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``values`` ``(n_layers, ny, nx)`` with one ghost sample at both ends of each grid axis:
+    ``(n_layers, ny + 2, nx + 2)``. The ghost rows first, then the ghost columns over every
+    row (the corners extrapolate the ghost rows), written into one array: a few numpy calls
+    per frame instead of two rounds of axis moves and concatenations (this runs in the
+    display loop's tick for every frame, in the display process)."""
+    n, ny, nx = values.shape
+    out = np.empty((n, ny + 2, nx + 2))
+    out[:, 1:-1, 1:-1] = values
+    _fill_ghosts(out[:, :, 1:-1], 1)
+    _fill_ghosts(out, 2)
+    return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -114,7 +130,7 @@ class GridLayers:
                                  f"x0={self.x0_mm}, y0={self.y0_mm}, dx={self.dx_mm}, "
                                  f"dy={self.dy_mm}")
         v.setflags(write=False)
-        padded = _pad_ghost(_pad_ghost(v, 1), 2)
+        padded = _with_ghosts(v)
         padded.setflags(write=False)
         object.__setattr__(self, "values", v)
         object.__setattr__(self, "_padded", padded)

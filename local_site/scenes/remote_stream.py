@@ -167,12 +167,15 @@ class TactileFrameScene(GridScene):
         if not (2 <= arr.shape[0] <= MAX_GRID_DIM and 2 <= arr.shape[1] <= MAX_GRID_DIM):
             raise InputDataError(f"tactile frame layers need 2..{MAX_GRID_DIM} samples per "
                                  f"side, got {arr.shape}")
-        if not np.isfinite(arr).all():
-            raise InputDataError(f"tactile frame layer {name!r} contains NaN or Inf")
+        # two passes, not three: a NaN makes min or max NaN and an Inf leaves the (finite)
+        # range, so both fail the range check, which then tells them apart
         lo, hi = LAYER_RANGES[name]
-        if arr.min() < lo or arr.max() > hi:
+        least, most = arr.min(), arr.max()
+        if not (lo <= least and most <= hi):
+            if not np.isfinite(arr).all():
+                raise InputDataError(f"tactile frame layer {name!r} contains NaN or Inf")
             raise InputDataError(f"tactile frame layer {name!r} must lie in [{lo}, {hi}], got "
-                                 f"[{arr.min():.6g}, {arr.max():.6g}]")
+                                 f"[{least:.6g}, {most:.6g}]")
         return arr.astype(np.float64, copy=False)
 
     def _grid_from_frame(self, frame: TactileFrame) -> GridLayers:

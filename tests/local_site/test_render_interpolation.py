@@ -130,3 +130,32 @@ def test_interpolation_is_finite_and_bilinear_stays_within_the_data(values, pts,
     assert out.shape == (1, 8) and inside.shape == (8,)
     if order in (0, 1):
         assert out.min() >= values.min() - 1e-9 and out.max() <= values.max() + 1e-9
+
+
+def _ghost_reference(values: np.ndarray, axis: int) -> np.ndarray:
+    """The ghost padding as first written, one axis at a time (the independent reference)."""
+    v = np.moveaxis(values, axis, -1)
+    if v.shape[-1] >= 3:
+        lo = 3.0 * v[..., 0] - 3.0 * v[..., 1] + v[..., 2]
+        hi = 3.0 * v[..., -1] - 3.0 * v[..., -2] + v[..., -3]
+    else:
+        lo = 2.0 * v[..., 0] - v[..., 1]
+        hi = 2.0 * v[..., -1] - v[..., -2]
+    out = np.concatenate([lo[..., None], v, hi[..., None]], axis=-1)
+    return np.moveaxis(out, -1, axis)
+
+
+@given(st.integers(1, 4), st.integers(2, 12), st.integers(2, 12), st.integers(0, 2**32 - 1),
+       st.floats(1e-3, 1e6))
+def test_the_ghost_padding_equals_the_axis_by_axis_reference_bit_for_bit(
+        layers: int, ny: int, nx: int, seed: int, scale: float) -> None:
+    # the padding the Keys kernel reads, built in one array: the same arithmetic in the
+    # same order as padding the rows, then the columns of the padded rows
+    from local_site.render.interpolation import _with_ghosts
+
+    values = np.random.default_rng(seed).normal(0.0, scale, (layers, ny, nx))
+    got = _with_ghosts(values)
+    want = _ghost_reference(_ghost_reference(values, 1), 2)
+    assert got.shape == (layers, ny + 2, nx + 2) and got.flags.c_contiguous
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(got[:, 1:-1, 1:-1], values)

@@ -144,3 +144,22 @@ def test_bad_settings_are_rejected() -> None:
         TactileFrameScene(order=2)
     with pytest.raises(ConfigError):
         open_scene("hemisphere", default_stiffness_k=0.7)
+
+
+@pytest.mark.parametrize(("layers", "message"), [
+    ({"height_mm": np.nan}, "'height_mm' contains NaN or Inf"),
+    ({"height_mm": np.inf}, "'height_mm' contains NaN or Inf"),
+    ({"friction": -np.inf}, "'friction' contains NaN or Inf"),
+    ({"stiffness_k": 1.5}, r"'stiffness_k' must lie in \[0.5, 1.0\], got \[0.7, 1.5\]"),
+    ({"height_mm": -10.5}, r"'height_mm' must lie in \[-10.0, 10.0\], got \[-10.5, 1\]"),
+])
+def test_a_bad_layer_value_gets_its_own_message(layers: dict[str, float], message: str) -> None:
+    # the range check runs first (NaN and Inf fail it too); the message still names which
+    base = {"height_mm": np.full((12, 16), 1.0), "stiffness_k": np.full((12, 16), 0.7),
+            "friction": np.full((12, 16), 0.3)}
+    for name, value in layers.items():
+        base[name][4, 4] = value
+    with pytest.raises(InputDataError, match=message):
+        TactileFrameScene().update(TactileFrame(layers=base, center_mm=(0.0, 0.0),
+                                                pitch_mm=0.5), now_s=1.0)
+
