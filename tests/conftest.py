@@ -44,10 +44,15 @@ _LONG_LIVED_THREAD_PREFIXES: tuple[str, ...] = ()
 #: loaded machine any wall-clock bound fails at random (an example of
 #: ``test_pin_ages_agree_with_a_brute_force_reference`` took 409 ms beside two CPU burners,
 #: against hypothesis's default 200 ms deadline, and 0.5 ms when replayed)
+#: Each starts from hypothesis's own ``default`` profile, not from whatever is loaded: where
+#: the environment has ``CI`` set, hypothesis loads its built-in ``ci`` profile at import
+#: (derandomized, no database), and ``dev`` would silently inherit it.
+_BASE = settings.get_profile("default")
 HYPOTHESIS_PROFILES = {
-    "dev": settings(deadline=None, print_blob=True),
-    "ci": settings(deadline=None, derandomize=True, database=None, print_blob=True),
-    "explore": settings(deadline=None, derandomize=False, database=None, print_blob=True),
+    "dev": settings(_BASE, deadline=None, print_blob=True),
+    "ci": settings(_BASE, deadline=None, derandomize=True, database=None, print_blob=True),
+    "explore": settings(_BASE, deadline=None, derandomize=False, database=None,
+                        print_blob=True),
 }
 for _name, _profile in HYPOTHESIS_PROFILES.items():
     settings.register_profile(_name, _profile)

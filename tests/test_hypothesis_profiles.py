@@ -38,10 +38,12 @@ def _pytest(work: Path, test_file: str, source: str,
     and conftest (applied to a test outside the suite)."""
     work.mkdir()
     (work / test_file).write_text(source)
+    # hypothesis keeps its files under the working directory unless told otherwise
+    inherited = {k: v for k, v in os.environ.items() if k != "HYPOTHESIS_STORAGE_DIRECTORY"}
     return subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
                            "-c", str(ROOT / "pyproject.toml"), "--rootdir", str(work),
                            "-p", "tests.conftest", test_file], cwd=work,
-                          env={**os.environ, "PYTHONPATH": str(ROOT), **env},
+                          env={**inherited, "PYTHONPATH": str(ROOT), **env},
                           capture_output=True, text=True, timeout=scaled(120))
 
 
