@@ -64,9 +64,8 @@ class StreamQueue(Generic[T]):
         return None if cell is None else cell.item
 
     def holds(self, key: str) -> bool:
-        """Whether slot ``key`` holds an unsent item (the next :meth:`put_latest` of that key
-        replaces it)."""
-        return key in self._latest
+        """Whether slot ``key`` holds an unsent item (:meth:`held` is not None)."""
+        return self.held(key) is not None
 
     def put_ordered(self, item: T, *, force: bool = False) -> bool:
         """Append ``item`` to the ordered queue.
