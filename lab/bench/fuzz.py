@@ -193,7 +193,7 @@ def _report(args: argparse.Namespace, ath: list[AtherisResult], builtin: list[An
     lines = ["# Fuzzing: decoder, session cores, relay", "",
              f"Command: `{_argv(args)}`  ", f"Started {started}; {seconds:.0f} s in all.  ",
              f"Machine: `nproc` = {os.cpu_count()}, load average {load[0]:.1f} / {load[1]:.1f}"
-             f" / {load[2]:.1f} at the start (shared with other agents' jobs: rates are "
+             f" / {load[2]:.1f} at the start (other jobs may share the machine: rates are "
              "indicative only).", "",
              "Targets (`lab/fuzz/`): `decoder` (one message, oracle: the doc's envelope rules, "
              "re-encode round trip, forwarding hops), `framing` (TCP length prefix in chunks "

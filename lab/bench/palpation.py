@@ -201,8 +201,8 @@ def _run_ood(args: argparse.Namespace) -> int:
         write_results(args.write_results, "palpation_ood", (
             "# Out-of-distribution palpation benchmark\n\n"
             f"Command: `{command}` ({len(runs)} sessions, {elapsed:.0f} s). Machine: "
-            f"{platform.machine()} {platform.system()}, {os.cpu_count()} cores shared with "
-            f"other agents, load average {load_start:.1f} at start. Each session is simulated "
+            f"{platform.machine()} {platform.system()}, {os.cpu_count()} cores, "
+            f"load average {load_start:.1f} at start. Each session is simulated "
             "in-process (lab/bench/palpation_session.py: the station's pipeline in simulated "
             "time, no network) and analysed with the local station's analysis; errors are in "
             "PHANTOM coordinates. Families: lab/bench/palpation_ood.py. `detection_target`: "

@@ -157,7 +157,7 @@ def run_relay_cpu(settings: CpuSettings) -> dict[str, Any]:
             "machine": {"nproc": os.cpu_count(), "loadavg_start": load_start,
                         "loadavg_end": os.getloadavg(), "python": platform.python_version(),
                         "niceness": os.nice(0), "autogroup": _autogroup(),
-                        "note": "shared with other agents' jobs while measuring"}}
+                        "note": "other jobs may share the machine: see the load averages"}}
 
 
 #: a run counts only when every stream delivered this share in the window, with no
@@ -262,9 +262,9 @@ def markdown(r: dict[str, Any], argv: str) -> str:
         f"Machine: {m['nproc']} cores, Python {m['python']}, load average "
         f"{m['loadavg_start'][0]:.2f} at the start and {m['loadavg_end'][0]:.2f} at the end "
         f"(each run's 1-minute load average is in the last column below); niceness "
-        f"{m['niceness']}, scheduler {m['autogroup'] or 'group ?'}. **The machine was shared "
-        "with other agents' jobs while this ran** and the load generators run on the same 2 "
-        "cores as the relay: absolute milliseconds move with the load; the per-round ratio "
+        f"{m['niceness']}, scheduler {m['autogroup'] or 'group ?'}. Other jobs may share the "
+        "machine (the load averages say how busy it was), and the load generators run on the "
+        "same cores as the relay: absolute milliseconds move with the load; the per-round ratio "
         "new/old (same traffic, minutes apart) is the figure to compare.", "",
         "ms/1k msgs = relay CPU (user + system, /proc) over the measured window / messages the "
         "receiving stations got in it x 1,000, so it charges the relay's fixed costs (clock "
