@@ -18,8 +18,7 @@ from typing import Any, Protocol
 from shared.clocksync import ClockFilter
 from shared.errors import RoleTakenError
 from shared.ledger import LatencyLedger, LedgerSnapshot, merge_snapshots
-from shared.motion_to_touch import carry_motion
-from shared.protocol import DataMessage, Error, PlatformState, StreamPolicy, TactileCompact
+from shared.protocol import DataMessage, Error, StreamPolicy, TactileCompact, carry_motion
 from shared.protocol.forward import WireMessage
 from shared.protocol.peer_session import Outbox, Pending
 
@@ -301,9 +300,8 @@ class Session:
         if latest:
             self._key_frame_first(direction.name, msg, receiver)
             # a platform_state that replaces one never sent starts where that one started
-            # (tactile frames keep the stamps of the state they answer)
-            held = receiver.outbox.held(key) if isinstance(msg, PlatformState) else None
-            if held is not None and isinstance(held.message, PlatformState):
+            held = receiver.outbox.held(key)
+            if held is not None:
                 carried = carry_motion(held.message, msg)
                 if carried is not msg:
                     msg, wire = carried, None  # encoded from the message, new stamps and all

@@ -376,11 +376,6 @@ class StationLink:
         """Messages queued but not yet handed to the socket."""
         return self._session.pending_sends
 
-    def holds_unsent(self, msg_type: str) -> bool:
-        """Whether a latest-wins message of ``msg_type`` waits unsent: the next :meth:`send`
-        of that type replaces it, and it never reaches the relay."""
-        return self._session.holds_unsent(msg_type)
-
     # ------------------------------------------------------------------ receiving
 
     async def recv(self, timeout_s: float | None = None) -> Message:

@@ -34,10 +34,10 @@ that wait a stage of its own, ``uplink_sampling``, and end to end the latency of
 instant waits half a period on average. The first message of a link session (and the first
 after a sample was skipped, or across a platform outage longer than the read timeout) has
 no previous one and no ``local.motion``; its frames are counted from ``local.capture``. A
-message the station's own send queue replaced unsent never left: the next one names what
-that one named. One the relay replaces unsent (latest wins, a backed-up remote) is treated
-the same way: the relay gives its successor the replaced one's ``local.motion``, or none when
-it had none (:func:`carry_motion`).
+message replaced unsent in a latest-wins slot never left: its successor is given the
+replaced one's ``local.motion``, or none when it had none, by the one rule both such slots
+apply (the station's send queue, the relay's queue to the remote:
+:func:`shared.protocol.carry_motion`).
 The stages of a frame are counted only when every clock among its stamps has a known offset
 (the remote station's offset reaches the local station a few seconds after joining) and every
 pair of consecutive stamps is a documented stage: such a frame is **aligned**. The others are
@@ -53,7 +53,6 @@ has ``local.rendered`` and ``local.motion`` or ``local.capture`` (the first of t
 from __future__ import annotations
 
 import collections
-import dataclasses
 import itertools
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
@@ -62,10 +61,10 @@ from typing import Any
 import numpy as np
 
 from shared.ledger import LatencyLedger
-from shared.protocol import DataMessage, Hop
+from shared.protocol import Hop
 
 __all__ = ["END_TO_END", "INCOMPLETE", "SEQUENCE", "STAGES", "UNALIGNED", "MotionToTouchLedger",
-           "StageTrace", "carry_motion", "trace_hops"]
+           "StageTrace", "trace_hops"]
 
 #: the documented stamps of one loop, in order
 SEQUENCE: tuple[str, ...] = (
@@ -105,30 +104,6 @@ STAGES: tuple[str, ...] = (
     "uplink_sampling", "uplink_local_to_relay", "relay_forward_platform", "relay_to_remote",
     "remote_dispatch", "arm_and_sensor", "reconstruction_and_stiffness", "uplink_remote_to_relay",
     "relay_forward_tactile", "relay_to_local", "render")
-
-
-def _is_motion(hop: Hop) -> bool:
-    return hop.stage == "motion" and hop.clock == "local"
-
-
-def carry_motion(replaced: DataMessage, newer: DataMessage) -> DataMessage:
-    """``newer`` as it must travel when it replaces ``replaced`` unsent (a latest-wins slot).
-
-    The movements only ``replaced`` would have shown are first shown by ``newer``, so
-    ``newer`` starts from where ``replaced`` started: its ``local.motion`` becomes
-    ``replaced``'s, and goes when ``replaced`` had none (its wait had no known start: the
-    frames then count from the capture). A ``newer`` without ``local.motion`` (its sender saw
-    the chain broken: a new link session, a skipped sample, a platform outage) is returned
-    as it is, and so is one whose stamps would not change.
-    """
-    mine = next((h for h in newer.hops if _is_motion(h)), None)
-    if mine is None:
-        return newer
-    theirs = next((h for h in replaced.hops if _is_motion(h)), None)
-    if theirs == mine:
-        return newer
-    rest = tuple(h for h in newer.hops if not _is_motion(h))
-    return dataclasses.replace(newer, hops=rest if theirs is None else (theirs, *rest))
 
 
 def _start_in_sequence(names: Sequence[str]) -> int | None:

@@ -319,10 +319,9 @@ class LocalAgent:
         last = None
         # ``local.motion`` (docs of shared/motion_to_touch.py): a movement just after the
         # previous message's sample shows first in the next message. The previous sample's
-        # time, and the motion stamp that message carried (for when it is replaced unsent);
-        # None when no message went out since the link came up or a sample was skipped
+        # time; None when no message went out since the link came up or a sample was skipped
+        # (one the link's queue replaces unsent passes its own stamp on: carry_motion)
         sent_us: int | None = None
-        sent_motion_us: int | None = None
         seq = 0
         # a sample older than this is never sent (the platform counts as lost by then): a
         # reader that resumes after a stall may first decode samples the board buffered
@@ -335,15 +334,12 @@ class LocalAgent:
                 last = sample
                 if stale_since_s(sample, stale_s) is not None:
                     self.platform_states_skipped_stale += 1
-                    sent_us = sent_motion_us = None
+                    sent_us = None
                 elif link.is_connected:
                     seq += 1
                     velocity = tuple(min(max(v, -_VELOCITY_LIMIT_MM_S), _VELOCITY_LIMIT_MM_S)
                                      for v in sample.velocity_mm_s)
-                    # the previous message still unsent is replaced by this one: this one
-                    # shows what it would have, from its own motion stamp on
-                    motion_us = sent_motion_us if link.holds_unsent(PlatformState.TYPE) \
-                        else sent_us
+                    motion_us = sent_us
                     if motion_us is not None and not 0 < sample.t_us - motion_us <= gap_limit_us:
                         motion_us = None  # the platform was lost meanwhile: not a wait
                     capture = Hop("local", "capture", sample.t_us)
@@ -356,7 +352,7 @@ class LocalAgent:
                         await link.send(msg)
                     except LocalProtocolError as err:
                         self.send_errors += 1
-                        sent_us = sent_motion_us = None
+                        sent_us = None
                         if self.send_errors == 1:
                             log.warning("platform_state not sent: %s", err)
                     except (AuthError, RoleTakenError):
@@ -365,10 +361,10 @@ class LocalAgent:
                         return  # link closed: shutting down
                     else:
                         self.platform_states_sent += 1
-                        sent_us, sent_motion_us = sample.t_us, motion_us
+                        sent_us = sample.t_us
                 else:
                     self.platform_states_skipped_link_down += 1
-                    sent_us = sent_motion_us = None
+                    sent_us = None
             next_t += period_s
             now = loop.time()
             if next_t < now - period_s:

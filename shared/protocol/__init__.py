@@ -44,6 +44,7 @@ from shared.protocol.messages import (
     TactileCompact,
     TactileFrame,
     Welcome,
+    carry_motion,
 )
 from shared.protocol.queues import StreamQueue
 
@@ -79,6 +80,7 @@ __all__ = [
     "TactileCompact",
     "TactileFrame",
     "Welcome",
+    "carry_motion",
     "decode",
     "decode_map",
     "encode",

@@ -21,7 +21,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from enum import Enum
-from typing import Any, ClassVar, NamedTuple
+from typing import Any, ClassVar, NamedTuple, TypeVar
 
 import numpy as np
 
@@ -63,6 +63,7 @@ __all__ = [
     "TactileCompact",
     "TactileFrame",
     "Welcome",
+    "carry_motion",
 ]
 
 ROLES = frozenset({"local", "remote", "observer"})
@@ -389,6 +390,38 @@ class PlatformState(DataMessage):
         return cls(**cls._read_head(d, t),
                    position_mm=read_vector(d, t, "position_mm", 3, lo=-lim, hi=lim),  # type: ignore[arg-type]
                    velocity_mm_s=read_vector(d, t, "velocity_mm_s", 3, lo=-1e5, hi=1e5))  # type: ignore[arg-type]
+
+
+_M = TypeVar("_M", bound=Message)
+
+
+def carry_motion(replaced: Message, newer: _M) -> _M:
+    """``newer`` as it must travel when it replaces ``replaced`` unsent in a latest-wins slot
+    (the local station's send queue, the relay's queue to the remote).
+
+    Only a ``platform_state`` after a ``platform_state`` changes. The movements only
+    ``replaced`` would have shown are first shown by ``newer``, so ``newer`` starts from where
+    ``replaced`` started: its ``local.motion`` stamp (``shared/motion_to_touch.py``) becomes
+    ``replaced``'s, and goes when ``replaced`` had none (that wait had no known start: the
+    frames then count from the capture). A ``newer`` without ``local.motion`` (its sender saw
+    the chain broken: a new link session, a skipped sample, a platform outage) is returned as
+    it is, and so is one whose stamps would not change. Tactile frames keep their stamps:
+    they carry those of the state they answer, and the remote answers only some states.
+    """
+    if not isinstance(newer, PlatformState) or not isinstance(replaced, PlatformState):
+        return newer
+    mine = next((h for h in newer.hops if _is_motion(h)), None)
+    if mine is None:
+        return newer
+    theirs = next((h for h in replaced.hops if _is_motion(h)), None)
+    if theirs == mine:
+        return newer
+    rest = tuple(h for h in newer.hops if not _is_motion(h))
+    return dataclasses.replace(newer, hops=rest if theirs is None else (theirs, *rest))
+
+
+def _is_motion(hop: Hop) -> bool:
+    return hop.stage == "motion" and hop.clock == "local"
 
 
 @dataclass(frozen=True, slots=True)

@@ -54,6 +54,7 @@ from shared.protocol.messages import (
     Stats,
     StreamPolicy,
     Welcome,
+    carry_motion,
 )
 from shared.protocol.queues import StreamQueue
 
@@ -166,6 +167,9 @@ class StationSession:
         #: encoded messages waiting for the relay (what waits when a connection is welcomed
         #: was queued while the link was down: it is dropped then, never delivered late)
         self.outbox: StreamQueue[bytes] = StreamQueue(send_queue_size)
+        #: per latest-wins type, the newest message queued and its bytes (the message a
+        #: newer one replaces while the bytes still wait in the outbox: :func:`carry_motion`)
+        self._queued_latest: dict[str, tuple[bytes, Message]] = {}
         #: received messages waiting for the station
         self.inbox: StreamQueue[Message] = StreamQueue(receive_queue_size)
         self.welcome: Welcome | None = None
@@ -301,7 +305,9 @@ class StationSession:
         """Queue ``msg`` with its stream's policy.
 
         A latest-wins message replaces an unsent one of its type (counted in
-        ``stale_dropped_tx``); an ordered one is refused when the queue is full.
+        ``stale_dropped_tx``), and then travels as :func:`~shared.protocol.carry_motion`
+        makes it (a ``platform_state`` starts where the replaced one started); an ordered one
+        is refused when the queue is full.
 
         Returns:
             False, with nothing queued, when the ordered queue is full.
@@ -309,12 +315,16 @@ class StationSession:
         Raises:
             LocalProtocolError: ``msg`` is invalid or larger than ``max_message_bytes``.
         """
+        if msg.POLICY is not StreamPolicy.LATEST_WINS:
+            return self.outbox.put_ordered(encode(msg, max_message_bytes=self.max_message_bytes))
+        queued = self._queued_latest.get(msg.TYPE)
+        if queued is not None and self.outbox.held(msg.TYPE) is queued[0]:
+            msg = carry_motion(queued[1], msg)
         payload = encode(msg, max_message_bytes=self.max_message_bytes)
-        if msg.POLICY is StreamPolicy.LATEST_WINS:
-            if self.outbox.put_latest(msg.TYPE, payload) is not None:
-                self.counters.stale_dropped_tx += 1
-            return True
-        return self.outbox.put_ordered(payload)
+        if self.outbox.put_latest(msg.TYPE, payload) is not None:
+            self.counters.stale_dropped_tx += 1
+        self._queued_latest[msg.TYPE] = (payload, msg)
+        return True
 
     def send_bye(self, reason: str) -> None:
         """Queue a ``bye`` even if the ordered queue is full."""
@@ -325,11 +335,6 @@ class StationSession:
     def pending_sends(self) -> int:
         """Messages queued but not yet handed out by :meth:`next_data`."""
         return len(self.outbox)
-
-    def holds_unsent(self, msg_type: str) -> bool:
-        """Whether a latest-wins message of ``msg_type`` waits unsent (the next one of that
-        type replaces it)."""
-        return self.outbox.holds(msg_type)
 
     def next_data(self, now_us: int) -> bytes | None:
         """The next framed message to write (pongs first), or None.

@@ -295,7 +295,7 @@ async def test_the_first_state_after_skipped_samples_has_no_motion_stamp(
     by_seq = {s.seq: s for s in remote.states}
     stages = {seq: [h.stage for h in s.hops][:2] for seq, s in by_seq.items()}
     # (the first of the link session may go out before the remote joins: the relay drops it;
-    # test_the_motion_stamp_never_spans_a_platform_outage_or_names_an_unsent_state has it)
+    # test_the_motion_stamp_names_the_previous_sample_but_never_spans_an_outage has it)
     after_skip = min(seq for seq in by_seq if seq > sent)
     assert stages[after_skip] == ["capture", "relay_in"]  # the first after the skipped samples
     follows = [seq for seq in by_seq if seq - 1 in by_seq and seq - 1 != sent]
@@ -306,17 +306,13 @@ async def test_the_first_state_after_skipped_samples_has_no_motion_stamp(
 
 
 class _UplinkLink:
-    """The link as the uplink sees it: every send kept; ``unsent`` says whether the previous
-    platform_state still waits in the send queue (the next replaces it)."""
+    """The link as the uplink sees it: every send kept (a message its queue replaces unsent
+    is the queue's to carry: test_the_send_queue_carries_only_a_replaced_unsent_platform_state)."""
 
     is_connected = True
 
     def __init__(self) -> None:
         self.sent: list[PlatformState] = []
-        self.unsent = False
-
-    def holds_unsent(self, msg_type: str) -> bool:
-        return self.unsent and msg_type == "platform_state"
 
     async def send(self, msg: PlatformState) -> None:
         self.sent.append(msg)
@@ -326,10 +322,10 @@ def _sample(t_us: int) -> PlatformSample:
     return PlatformSample((0.0, 0.0, 100.0), (0.0, 0.0, 0.0), t_us, seq=t_us, board_t_us=t_us)
 
 
-async def test_the_motion_stamp_never_spans_a_platform_outage_or_names_an_unsent_state(
+async def test_the_motion_stamp_names_the_previous_sample_but_never_spans_an_outage(
         ) -> None:
-    # a platform lost for longer than the read timeout is not an uplink wait; a message the
-    # next one replaced in the send queue never left: the next names what that one named
+    # each message names the sample of the one before it; a platform lost for longer than
+    # the read timeout is not an uplink wait
     agent = relay_agent("ws://127.0.0.1:9/")
     link, reader = _UplinkLink(), SimpleNamespace(latest=None)
     agent.link, agent.reader = link, reader  # type: ignore[assignment]
@@ -346,10 +342,8 @@ async def test_the_motion_stamp_never_spans_a_platform_outage_or_names_an_unsent
         assert motion_of(first) is None  # the first of the link session: nothing before it
         second = await offer(t0 + 3_000)
         assert motion_of(second) == t0
-        link.unsent = True  # the second still waits in the send queue
         third = await offer(t0 + 6_000)
-        assert motion_of(third) == t0  # shows what the replaced second would have
-        link.unsent = False
+        assert motion_of(third) == t0 + 3_000
         fourth = await offer(t0 + 9_000)
         assert motion_of(fourth) == t0 + 6_000
         # the same sample held through an outage longer than the read timeout, then a

@@ -13,10 +13,9 @@ from shared.motion_to_touch import (
     STAGES,
     UNALIGNED,
     MotionToTouchLedger,
-    carry_motion,
     trace_hops,
 )
-from shared.protocol import Hop, PlatformState
+from shared.protocol import Hop, PlatformState, TactileFrame, carry_motion
 from tests.support import motion_state
 
 # true times on the relay clock (us) of each stamp of one loop
@@ -200,4 +199,11 @@ def test_a_replacement_starts_where_the_replaced_message_started() -> None:
     # nothing to change: the very message
     same = motion_state(2, 1_000, 3_000)
     assert carry_motion(motion_state(1, 1_000, 2_000), same) is same
+    # only a platform_state after a platform_state: a tactile frame keeps the stamps of the
+    # state it answers
+    layers = {"height_mm": np.zeros((2, 2), np.float32)}
+    frame = TactileFrame(seq=2, ts_us=3_000, layers=layers, hops=newer.hops)
+    assert carry_motion(TactileFrame(seq=1, ts_us=2_000, layers=layers,
+                                     hops=motion_state(1, 1_000, 2_000).hops), frame) is frame
+    assert carry_motion(motion_state(1, 1_000, 2_000), frame) is frame
 

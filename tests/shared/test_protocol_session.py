@@ -5,6 +5,7 @@ from __future__ import annotations
 import itertools
 from collections import Counter
 
+import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -47,6 +48,7 @@ from shared.protocol.station_session import (
     Welcomed,
     refusal_for_close_code,
 )
+from tests.support import motion_of, motion_state
 
 HELLO = Hello(role="local", session="lab1", token="t", name="n")
 WELCOME = Welcome(session="lab1", role="local", server_time_us=5, ping_interval_s=1.0,
@@ -263,16 +265,69 @@ def test_the_burst_goes_on_while_the_offset_is_uncertain() -> None:
 
 def test_latest_wins_replaces_unsent_state_and_counts_a_drop() -> None:
     station, peer = joined_pair()
-    assert not station.holds_unsent("platform_state")
     for seq in range(3):
         assert station.send(PlatformState(seq=seq, ts_us=seq))
     assert station.pending_sends == 1 and station.counters.stale_dropped_tx == 2
-    assert station.holds_unsent("platform_state") and not station.holds_unsent("arm_state")
     (data,) = pump(station, 10)
-    assert not station.holds_unsent("platform_state")
+    assert station.pending_sends == 0
     assert data == frame(encode(PlatformState(seq=2, ts_us=2)))
     peer.receive_data(data, 20)
     assert peer.events_received() == [DataReceived(PlatformState(seq=2, ts_us=2), 20)]
+
+
+@given(st.lists(st.booleans(), min_size=1, max_size=60))
+def test_through_the_send_queue_every_written_state_starts_at_the_last_written(
+        takes: list[bool]) -> None:
+    # the uplink stamps each message with its predecessor's sample; whichever the station's
+    # own latest-wins slot replaces, what is written names the sample of what was written
+    # before it (the first names none: the first message had none)
+    station, _ = joined_pair()
+    written: list[PlatformState] = []
+    previous: int | None = None
+    for seq, take in enumerate(takes, start=1):
+        capture = 1_000 * seq
+        assert station.send(motion_state(seq, previous, capture))
+        previous = capture
+        if take or seq == len(takes):
+            written += [m for m in (decode(d[HEADER.size:]) for d in pump(station, capture))
+                        if isinstance(m, PlatformState)]
+    assert written and written[-1].seq == len(takes)
+    assert motion_of(written[0]) is None
+    for before, after in itertools.pairwise(written):
+        assert motion_of(after) == before.ts_us
+
+
+def test_the_send_queue_carries_only_a_replaced_unsent_platform_state() -> None:
+    station, _ = joined_pair()
+    assert station.send(motion_state(1, 1_000, 2_000))
+    pump(station, 1)  # written: the next one keeps its own stamp
+    assert station.send(motion_state(2, 2_000, 3_000))
+    (data,) = pump(station, 2)
+    assert motion_of(decode(data[HEADER.size:])) == 2_000  # type: ignore[arg-type]
+    # replaced unsent: its successor starts where it started
+    assert station.send(motion_state(3, 3_000, 4_000))
+    assert station.send(motion_state(4, 4_000, 5_000))
+    (data,) = pump(station, 3)
+    assert decode(data[HEADER.size:]).hops == motion_state(4, 3_000, 5_000).hops  # type: ignore[attr-defined]
+    # a successor whose sender broke the chain keeps none
+    assert station.send(motion_state(5, 5_000, 6_000))
+    assert station.send(motion_state(6, None, 7_000))
+    (data,) = pump(station, 3)
+    assert motion_of(decode(data[HEADER.size:])) is None  # type: ignore[arg-type]
+    # tactile frames keep the stamps of the state they answer
+    layers = {"height_mm": np.zeros((4, 4), np.float32)}
+    for seq in (1, 2):
+        assert station.send(TactileFrame(seq=seq, ts_us=seq * 10_000, layers=layers,
+                                         hops=motion_state(seq, seq * 10_000 - 4_000,
+                                                           seq * 10_000).hops))
+    (data,) = pump(station, 4)
+    assert motion_of(decode(data[HEADER.size:])) == 16_000  # type: ignore[arg-type]
+    # a reconnect drops what was queued: nothing is carried from it
+    assert station.send(motion_state(7, 7_000, 8_000))
+    station.outbox.clear()
+    assert station.send(motion_state(8, 8_000, 9_000))
+    (data,) = pump(station, 5)
+    assert motion_of(decode(data[HEADER.size:])) == 8_000  # type: ignore[arg-type]
 
 
 def test_ordered_queue_bound_refuses_and_keeps_order() -> None:
