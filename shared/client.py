@@ -330,8 +330,10 @@ class StationLink:
 
         State streams (``Message.POLICY`` latest-wins) replace any not-yet-sent message of
         the same type; other messages are kept in order, waiting for room when
-        ``send_queue_size`` are already pending. Messages sent while the link is down are
-        delivered after it comes back (at most one per state type).
+        ``send_queue_size`` are already pending. Messages still queued when the link comes
+        back (sent while it was down) are dropped then, never sent late (counted in
+        ``dropped_on_reconnect``). The tap records the message as it was queued (a
+        ``platform_state`` that replaced an unsent one carries that one's motion stamp).
 
         Raises:
             LocalProtocolError: ``msg`` is invalid or larger than ``max_message_bytes``.
@@ -340,7 +342,7 @@ class StationLink:
         """
         queued = self._session.send(msg)
         self._raise_if_unusable()
-        while not queued:
+        while queued is None:
             self._tx_room.clear()
             await self._tx_room.wait()
             self._raise_if_unusable()
@@ -348,7 +350,7 @@ class StationLink:
         if not self._write_now():
             self._tx_ready.set()
         if self.tap is not None:
-            self.tap("tx", msg, now_us())
+            self.tap("tx", queued, now_us())
 
     def _write_now(self) -> bool:
         """Hand what the session has ready to the socket from the caller's own task, when the

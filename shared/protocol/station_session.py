@@ -51,6 +51,7 @@ from shared.protocol.messages import (
     Error,
     Hello,
     Message,
+    PlatformState,
     Stats,
     StreamPolicy,
     Welcome,
@@ -167,9 +168,9 @@ class StationSession:
         #: encoded messages waiting for the relay (what waits when a connection is welcomed
         #: was queued while the link was down: it is dropped then, never delivered late)
         self.outbox: StreamQueue[bytes] = StreamQueue(send_queue_size)
-        #: per latest-wins type, the newest message queued and its bytes (the message a
-        #: newer one replaces while the bytes still wait in the outbox: :func:`carry_motion`)
-        self._queued_latest: dict[str, tuple[bytes, Message]] = {}
+        #: the newest platform_state queued and its bytes: the message a newer one replaces
+        #: while those bytes still wait in the outbox (:func:`carry_motion`)
+        self._held_state: tuple[bytes, PlatformState] | None = None
         #: received messages waiting for the station
         self.inbox: StreamQueue[Message] = StreamQueue(receive_queue_size)
         self.welcome: Welcome | None = None
@@ -285,6 +286,9 @@ class StationSession:
             log.debug("relay error: %s: %s", msg.code, msg.message)
         self.counters.messages_received += 1
         if msg.POLICY is StreamPolicy.LATEST_WINS:
+            held = self.inbox.held(msg.TYPE)
+            if held is not None:  # never read: the newer one shows first what it showed
+                msg = carry_motion(held, msg)
             if self.inbox.put_latest(msg.TYPE, msg) is not None:
                 self.counters.stale_dropped_rx += 1
         else:  # the glue stops reading while the inbox is full: a soft bound
@@ -301,30 +305,33 @@ class StationSession:
 
     # ------------------------------------------------------------------ sending
 
-    def send(self, msg: Message) -> bool:
+    def send(self, msg: Message) -> Message | None:
         """Queue ``msg`` with its stream's policy.
 
         A latest-wins message replaces an unsent one of its type (counted in
-        ``stale_dropped_tx``), and then travels as :func:`~shared.protocol.carry_motion`
-        makes it (a ``platform_state`` starts where the replaced one started); an ordered one
-        is refused when the queue is full.
+        ``stale_dropped_tx``); a ``platform_state`` that replaces one then travels as
+        :func:`~shared.protocol.carry_motion` makes it (it starts where the replaced one
+        started). An ordered message is refused when the queue is full.
 
         Returns:
-            False, with nothing queued, when the ordered queue is full.
+            The message as it was queued (what a recording of the link must show), or None,
+            with nothing queued, when the ordered queue is full.
 
         Raises:
             LocalProtocolError: ``msg`` is invalid or larger than ``max_message_bytes``.
         """
         if msg.POLICY is not StreamPolicy.LATEST_WINS:
-            return self.outbox.put_ordered(encode(msg, max_message_bytes=self.max_message_bytes))
-        queued = self._queued_latest.get(msg.TYPE)
-        if queued is not None and self.outbox.held(msg.TYPE) is queued[0]:
-            msg = carry_motion(queued[1], msg)
+            payload = encode(msg, max_message_bytes=self.max_message_bytes)
+            return msg if self.outbox.put_ordered(payload) else None
+        held = self._held_state
+        if held is not None and self.outbox.held(msg.TYPE) is held[0]:
+            msg = carry_motion(held[1], msg)
         payload = encode(msg, max_message_bytes=self.max_message_bytes)
         if self.outbox.put_latest(msg.TYPE, payload) is not None:
             self.counters.stale_dropped_tx += 1
-        self._queued_latest[msg.TYPE] = (payload, msg)
-        return True
+        # only a platform_state is ever carried: keep no other message (nor its bytes)
+        self._held_state = (payload, msg) if isinstance(msg, PlatformState) else held
+        return msg
 
     def send_bye(self, reason: str) -> None:
         """Queue a ``bye`` even if the ordered queue is full."""

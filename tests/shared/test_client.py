@@ -37,7 +37,7 @@ from shared.protocol import (
 )
 from shared.timebase import monotonic_s, now_us
 from shared.transport import TcpTransport, WsTransport
-from tests.support import free_tcp_port, scaled
+from tests.support import free_tcp_port, motion_of, motion_state, scaled
 
 TOKEN = "s3cret"
 
@@ -448,6 +448,18 @@ async def test_inbox_is_latest_wins_for_state_and_ordered_for_commands(
         assert states == [19] and cmds == list(range(20))
         assert link.counters.stale_dropped_rx == 19
         assert "platform_state" in LATEST_WINS_TYPES
+
+
+async def test_the_tap_records_a_state_as_its_queue_carried_it() -> None:
+    # never connected: the states wait in the queue, the second replaces the first and
+    # takes its motion stamp; a recording must show what would go on the wire
+    link = _link(f"tcp://127.0.0.1:{free_tcp_port()}")
+    tapped: list[Any] = []
+    link.tap = lambda direction, msg, t_us: tapped.append((direction, msg))
+    await link.send(motion_state(1, 1_000, 2_000))
+    await link.send(motion_state(2, 2_000, 3_000))
+    assert [(d, m.seq, motion_of(m)) for d, m in tapped] == [("tx", 1, 1_000), ("tx", 2, 1_000)]
+    await link.close()
 
 
 async def test_invalid_message_is_refused_locally(relay: FakeRelay) -> None:

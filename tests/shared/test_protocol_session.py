@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from shared.errors import AuthError, MalformedMessageError, RoleTakenError
+from shared.errors import AuthError, LocalProtocolError, MalformedMessageError, RoleTakenError
 from shared.protocol import (
     ArmCommand,
     ClockPing,
@@ -324,16 +324,48 @@ def test_the_send_queue_carries_only_a_replaced_unsent_platform_state() -> None:
     assert motion_of(decode(data[HEADER.size:])) == 16_000  # type: ignore[arg-type]
     # a reconnect drops what was queued: nothing is carried from it
     assert station.send(motion_state(7, 7_000, 8_000))
-    station.outbox.clear()
+    assert station.connection_lost()
+    peer = PeerSession("tcp", SETTINGS, now_us=0)
+    peer.receive_data(station.connect("tcp", 10), 11)
+    peer.accept(WELCOME, 12)
+    for data in peer.data_to_send(lambda: 13):
+        station.receive_data(data, 14)
+    assert station.counters.dropped_on_reconnect == 1 and station.pending_sends == 0
     assert station.send(motion_state(8, 8_000, 9_000))
     (data,) = pump(station, 5)
     assert motion_of(decode(data[HEADER.size:])) == 8_000  # type: ignore[arg-type]
 
 
+def test_send_returns_the_state_as_queued_and_a_refused_one_changes_nothing() -> None:
+    station, _ = joined_pair()
+    first = station.send(motion_state(1, 1_000, 2_000))
+    assert first == motion_state(1, 1_000, 2_000)
+    # an invalid state is refused before anything is queued or remembered
+    with pytest.raises(LocalProtocolError):
+        station.send(PlatformState(seq=-1, ts_us=3_000, hops=motion_state(2, 2_000, 3_000).hops))
+    queued = station.send(motion_state(3, 3_000, 4_000))
+    assert queued is not None and motion_of(queued) == 1_000  # what the refused one did not
+    (data,) = pump(station, 1)
+    assert decode(data[HEADER.size:]) == queued
+
+
+def test_the_inbox_carries_a_platform_state_replaced_unread() -> None:
+    # a state the station's reader never took is shown first by the newer one that replaced it
+    station, _ = joined_pair()
+    for seq in (1, 2, 3):
+        station.receive_data(frame(encode(motion_state(seq, 1_000 * seq, 1_000 * seq + 1_000))),
+                             10 + seq)
+    got = station.next_message()
+    assert isinstance(got, PlatformState) and got.seq == 3 and motion_of(got) == 1_000
+    station.receive_data(frame(encode(motion_state(4, 4_000, 5_000))), 20)
+    got = station.next_message()
+    assert got is not None and motion_of(got) == 4_000  # its predecessor was read
+
+
 def test_ordered_queue_bound_refuses_and_keeps_order() -> None:
     station, _ = joined_pair()
     assert all(station.send(ArmCommand(seq=i, ts_us=0)) for i in range(4))
-    assert station.send(ArmCommand(seq=4, ts_us=0)) is False
+    assert station.send(ArmCommand(seq=4, ts_us=0)) is None
     assert [decode(d[4:]).seq for d in pump(station, 1)] == [0, 1, 2, 3]  # type: ignore[attr-defined]
 
 
