@@ -344,7 +344,7 @@ def test_send_returns_the_state_as_queued_and_a_refused_one_changes_nothing() ->
     with pytest.raises(LocalProtocolError):
         station.send(PlatformState(seq=-1, ts_us=3_000, hops=motion_state(2, 2_000, 3_000).hops))
     queued = station.send(motion_state(3, 3_000, 4_000))
-    assert queued is not None and motion_of(queued) == 1_000  # what the refused one did not
+    assert isinstance(queued, PlatformState) and motion_of(queued) == 1_000  # not the refused one
     (data,) = pump(station, 1)
     assert decode(data[HEADER.size:]) == queued
 
@@ -359,7 +359,7 @@ def test_the_inbox_carries_a_platform_state_replaced_unread() -> None:
     assert isinstance(got, PlatformState) and got.seq == 3 and motion_of(got) == 1_000
     station.receive_data(frame(encode(motion_state(4, 4_000, 5_000))), 20)
     got = station.next_message()
-    assert got is not None and motion_of(got) == 4_000  # its predecessor was read
+    assert isinstance(got, PlatformState) and motion_of(got) == 4_000  # its predecessor was read
 
 
 def test_ordered_queue_bound_refuses_and_keeps_order() -> None:
