@@ -10,8 +10,9 @@ capture counters and the 1-minute load average at the start of the run.
 The **floor** of a profile is what no scheduling can remove: the profile's nominal round trip
 (twice its one-way delay; jitter and loss only add) plus the stages that do work rather than
 wait - ``remote_dispatch``, ``reconstruction_and_stiffness``, ``relay_forward_platform``,
-``relay_forward_tactile`` and ``render`` - and the wait the design fixes,
-``uplink_sampling`` (the platform_state send period), taken at their p50 in the same
+``relay_forward_tactile`` and ``render`` - and the wait the design's rates fix,
+``uplink_sampling`` (the platform_state send period, and the states passed over until the
+remote's frame schedule took one: ``shared/motion_to_touch.py``), taken at their p50 in the same
 profile's *after* runs. What the measured p99 exceeds the floor by is waiting: the frame
 clock or the pose wait and the simulated sensor's render (``arm_and_sensor``), jitter and
 head-of-line blocking on the emulated links, and the processes being descheduled on a loaded

@@ -33,11 +33,22 @@ that wait a stage of its own, ``uplink_sampling``, and end to end the latency of
 **earliest movement the frame is the first to show**: a bound, since a movement at a random
 instant waits half a period on average. The first message of a link session (and the first
 after a sample was skipped, or across a platform outage longer than the read timeout) has
-no previous one and no ``local.motion``; its frames are counted from ``local.capture``. A
-message replaced unsent in a latest-wins slot never left: its successor is given the
-replaced one's ``local.motion``, or none when it had none, by the one rule both such slots
-apply (the station's send queue, the relay's queue to the remote:
-:func:`shared.protocol.carry_motion`).
+no previous one and no ``local.motion``; its frames are counted from ``local.capture``.
+
+A message that never reaches the next step passes its start on. One replaced unsent or
+unread in a latest-wins slot (the local station's send queue, the relay's queue to the
+remote, the remote station's inbox) gives its successor its ``local.motion``, or none when it
+had none (:func:`shared.protocol.carry_motion`); a successor without one keeps none. The
+remote station's frames come at ``frame_rate_hz`` (60-80), a few times slower than the
+states: a state the arm was given but no frame answered (a newer one came before a capture
+took it) hands its ``local.motion`` on to the next state in the same way
+(``RemoteStation._carried``), so a frame names the sample of the state the previous frame
+answered. ``uplink_sampling`` is therefore the whole wait from the earliest movement to the
+sample the frame answers: the send period, plus every state passed over after it (by the
+frame schedule, mostly). No gap limit applies to these carries, so a state held in a
+stalled send queue counts its stall; a refused state (no clock offset yet, too old,
+unusable) and a reconnect of the remote's link end the chain instead, as an outage does at
+the uplink.
 The stages of a frame are counted only when every clock among its stamps has a known offset
 (the remote station's offset reaches the local station a few seconds after joining) and every
 pair of consecutive stamps is a documented stage: such a frame is **aligned**. The others are

@@ -52,7 +52,7 @@ from remote_site.tactile import AppliedCommand
 from shared.client import LinkCounters
 from shared.errors import InputDataError
 from shared.freshness import ClockView
-from shared.protocol.messages import ArmCommand, Message, PlatformState
+from shared.protocol.messages import ArmCommand, Message, PlatformState, carry_motion
 from shared.protocol.tactile_codec import CodecSettings, TactileEncoder
 from shared.timebase import monotonic_s, now_us
 
@@ -254,6 +254,11 @@ class RemoteStation:
         self.status = status
         self.counters = StationCounters()
         self.latest: AppliedCommand | None = None
+        #: the last platform_state applied (as carried) with the link connection it came
+        #: on (None after one that was refused), and the state the last frame answered: an
+        #: applied state that no frame answered passes its motion stamp on (:meth:`_carried`)
+        self._last_state: tuple[PlatformState, int] | None = None
+        self._answered: PlatformState | None = None
         self.last_reading: ArmReading | None = None
         self.captures = CaptureCounters()
         #: set when a platform_state is applied to the arm (wakes a frame capture on pose)
@@ -292,6 +297,8 @@ class RemoteStation:
             (clock offsets unknown, or an invalid position).
         """
         self.counters.platform_states += 1
+        state = self._carried(state)
+        self._last_state = None  # a refused state ends the chain (below: one applied)
         clock = command_clock(self.link.clock_view)
         if clock is None:
             self.counters.platform_dropped_no_clock += 1
@@ -317,12 +324,27 @@ class RemoteStation:
                     prev = self.command_interval_s
                     self.command_interval_s = gap_s if prev is None else prev + (gap_s - prev) / 8
             self.latest = AppliedCommand(state, t_us, result.speed_before_mm_s)
+            self._last_state = (state, self.link.counters.connects)
             self._command_applied.set()
             self.counters.platform_applied += 1
             rx = [h.t_us for h in state.hops if h.clock == "remote" and h.stage == "station_rx"]
             if rx:
                 self.dispatch_s.append(max(0, t_us - rx[-1]) / 1e6)
         return result
+
+    def _carried(self, state: PlatformState) -> PlatformState:
+        """``state`` as the frame answering it must count it (``local.motion``, docs of
+        shared/motion_to_touch.py). A frame shows what every state applied since the one the
+        last frame answered showed, so an applied state that no frame answered (the arm had
+        a newer one before a capture took it) hands its motion stamp on, as a latest-wins
+        slot does (:func:`~shared.protocol.carry_motion`). A refused state (no clock offset
+        yet, too old, unusable) and a reconnect of the link end the chain, as an outage
+        does at the local station's uplink: the next state keeps its own stamp."""
+        last = self._last_state
+        if last is not None and last[0] is not self._answered \
+                and last[1] == self.link.counters.connects:
+            return carry_motion(last[0], state)
+        return state
 
     def apply_arm_command(self, command: ArmCommand) -> CommandResult:
         """Apply an explicit arm command (stop always acts; the others are age-checked)."""
@@ -491,6 +513,8 @@ class RemoteStation:
                 self.command_wait_s.append(
                     max(0, now_us() - self.latest.arm_command_us) / 1e6)
             captured = self.latest
+            if captured is not None:
+                self._answered = captured.state
             outcome: FrameOutcome = await loop.run_in_executor(
                 executor, self.pipeline.process, self._frame_seq + 1, captured)
             if outcome.frame is not None:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import itertools
 import logging
 from pathlib import Path
 
@@ -431,3 +432,84 @@ def test_the_deploy_example_resolves_the_agent_settings() -> None:
     assert cfg.frame_rate_hz == 60.0 and cfg.patch_size_mm == (0.0, 0.0)
     with pytest.raises(ConfigError):
         RemoteAgentConfig(frame_rate_hz=0.0)
+
+
+# --------------------------------------------------------------------------- motion stamps
+
+
+def _stamped(seq: int, previous_ts: int | None) -> PlatformState:
+    """A platform_state stamped as the uplink stamps it: ``local.motion`` names the previous
+    state's sample (none for the first)."""
+    from shared.protocol import Hop
+
+    state = platform_state(seq, (0.0, -35.0, 2.0 + 0.01 * (seq % 50)))
+    capture = Hop("local", "capture", state.ts_us)
+    hops = (capture,) if previous_ts is None else (Hop("local", "motion", previous_ts), capture)
+    return dataclasses.replace(state, hops=hops)
+
+
+async def test_a_frame_counts_from_the_state_the_previous_frame_answered() -> None:
+    # states at 250 Hz, frames at 30: most states are applied and passed over before a
+    # capture takes one. The movements they showed are first shown by the next frame, so it
+    # names the sample of the state the previous frame answered, not its own state's
+    # predecessor's
+    from tests.support import motion_of
+
+    link = FakeLink()
+    station = make_station(link, SafetyConfig(max_command_age_ms=scaled(5_000.0)))
+    stop = asyncio.Event()
+    sent: dict[int, PlatformState] = {}
+
+    async def operator() -> None:
+        previous = None
+        for seq in range(1, 200):
+            state = _stamped(seq, previous)
+            sent[seq], previous = state, state.ts_us
+            link.inbox.put_nowait(state)
+            await asyncio.sleep(0.004)
+        stop.set()
+
+    try:
+        feeder = asyncio.create_task(operator())
+        await station.run(stop, duration_s=scaled(20.0))
+        await feeder
+        assert station.counters.platform_applied == station.counters.platform_states == 199
+        frames = [m for m in link.sent if isinstance(m, TactileFrame | TactileCompact)]
+        answered = [f for f in frames if f.source_seq is not None]
+        pairs = [(a, b) for a, b in itertools.pairwise(answered)
+                 if b.source_seq != a.source_seq]
+        assert len(pairs) >= 5
+        passed_over = 0
+        for before, after in pairs:
+            assert before.source_seq is not None and after.source_seq is not None
+            assert motion_of(after) == sent[before.source_seq].ts_us
+            passed_over += after.source_seq - before.source_seq > 1
+        assert passed_over >= 3  # the case under test happened
+    finally:
+        close_station(station)
+
+
+def test_a_refused_state_or_a_reconnect_ends_the_motion_chain() -> None:
+    from tests.support import motion_of
+
+    link = FakeLink()
+    station = make_station(link, realtime=False)
+    try:
+        first = _stamped(1, None)
+        second = _stamped(2, first.ts_us)
+        assert station.apply_platform_state(first) is not None
+        assert station.apply_platform_state(second) is not None
+        assert station.latest is not None and motion_of(station.latest.state) is None  # carried
+        link.counters.connects += 1  # the link came back: a new chain
+        third = _stamped(3, second.ts_us)
+        station.apply_platform_state(third)
+        assert station.latest is not None and motion_of(station.latest.state) == second.ts_us
+        link.offsets = {"local": None, "remote": 0}  # refused: no clock offset
+        fourth = _stamped(4, third.ts_us)
+        assert station.apply_platform_state(fourth) is None
+        link.offsets = {"local": 0, "remote": 0}
+        fifth = _stamped(5, fourth.ts_us)
+        station.apply_platform_state(fifth)
+        assert station.latest is not None and motion_of(station.latest.state) == fourth.ts_us
+    finally:
+        close_station(station)
