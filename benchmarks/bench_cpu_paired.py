@@ -10,7 +10,8 @@ Per run the table keeps what issue 12's targets are about: all processes' cores,
 and remote stations' cores, the remote's achieved frame rate, the display loop's rate and
 period jitter p99 (``fps`` is the session's average, idle stretches included;
 ``period_p50`` the remote's median frame period in ms, the rate while commands flow),
-motion-to-touch end to end (p50 / p99) and its ``arm_and_sensor`` stage,
+motion-to-touch end to end (p50 / p99; ``cap_p99``: the p99 from the sample the frame answers,
+``from_capture``, where the side reports it) and its ``arm_and_sensor`` stage,
 and the remote's wait from a command to the capture that answers it (``arm_command_to_capture``
 in its summary, where the side reports it). ``switches`` is the context switches per second
 of all processes (where the side's ``bench cpu`` records them): wake-ups and preemptions, each
@@ -38,7 +39,8 @@ from lab.bench.results import median_known
 #: (column, unit format) per run
 COLUMNS = ("load", "cores", "local", "remote", "switches", "fps", "period_p50", "loop_hz",
            "jitter_p99",
-           "m2t_p50", "m2t_p99", "arm_sensor_p50", "arm_sensor_p99", "cmd_to_capture_p50")
+           "m2t_p50", "m2t_p99", "cap_p99", "arm_sensor_p50", "arm_sensor_p99",
+           "cmd_to_capture_p50")
 
 
 def _side(text: str) -> tuple[str, Path, list[str]]:
@@ -89,6 +91,7 @@ def figures(path: Path) -> dict[str, float | None]:
         "loop_hz": (run.get("display_loop") or {}).get("rate_hz"),
         "jitter_p99": (run.get("display_loop") or {}).get("jitter_p99_ms"),
         "m2t_p50": pick(lat, "end_to_end", "p50"), "m2t_p99": pick(lat, "end_to_end", "p99"),
+        "cap_p99": pick(lat, "from_capture", "p99"),
         "arm_sensor_p50": pick(lat, "arm_and_sensor", "p50"),
         "arm_sensor_p99": pick(lat, "arm_and_sensor", "p99"),
         "cmd_to_capture_p50": pick(remote_lat, "arm_command_to_capture", "p50"),

@@ -74,8 +74,8 @@ import numpy as np
 from shared.ledger import LatencyLedger
 from shared.protocol import Hop
 
-__all__ = ["END_TO_END", "INCOMPLETE", "SEQUENCE", "STAGES", "UNALIGNED", "MotionToTouchLedger",
-           "StageTrace", "trace_hops"]
+__all__ = ["END_TO_END", "FROM_CAPTURE", "INCOMPLETE", "SEQUENCE", "STAGES", "UNALIGNED",
+           "MotionToTouchLedger", "StageTrace", "trace_hops"]
 
 #: the documented stamps of one loop, in order
 SEQUENCE: tuple[str, ...] = (
@@ -84,6 +84,9 @@ SEQUENCE: tuple[str, ...] = (
     "relay.relay_out", "local.station_rx", "local.rendered")
 
 END_TO_END = "end_to_end"
+#: from the sample the frame answers (``local.capture``) to the pins: end to end without the
+#: sampling wait, the figure sections 3b-22 of docs/speed.md (and issue 12's targets) counted
+FROM_CAPTURE = "from_capture"
 #: frames whose stages were not counted: a clock offset was not known yet
 UNALIGNED = "unaligned"
 #: frames whose stages were not counted: a stamp was missing
@@ -101,6 +104,8 @@ class StageTrace:
     stages_us: tuple[tuple[str, float], ...]
     end_to_end_us: float | None
     skipped: str | None = None
+    #: ``local.rendered - local.capture`` (None when either is missing)
+    from_capture_us: float | None = None
 
 
 #: the stamps end to end may start from (the first present)
@@ -151,16 +156,18 @@ def trace_hops(hops: Sequence[Hop], offsets_us: Mapping[str, float | None]) -> S
             continue
         points.append((f"{hop.clock}.{hop.stage}", hop.t_us - offset))
     start = next((t for name, t in points if name in _STARTS), None)
+    capture = next((t for name, t in points if name == "local.capture"), None)
     end = next((t for name, t in reversed(points) if name == "local.rendered"), None)
     e2e = end - start if start is not None and end is not None else None
+    from_capture = end - capture if capture is not None and end is not None else None
     if unaligned:
-        return StageTrace((), e2e, UNALIGNED)
+        return StageTrace((), e2e, UNALIGNED, from_capture)
     start_k = _start_in_sequence([name for name, _ in points])
     if start_k is None:
-        return StageTrace((), e2e, INCOMPLETE)
+        return StageTrace((), e2e, INCOMPLETE, from_capture)
     stages = tuple((STAGES[start_k + i], tb - ta)
                    for i, ((_, ta), (_, tb)) in enumerate(itertools.pairwise(points)))
-    return StageTrace(stages, e2e)
+    return StageTrace(stages, e2e, None, from_capture)
 
 
 class MotionToTouchLedger:
@@ -190,6 +197,8 @@ class MotionToTouchLedger:
             self._skipped[trace.skipped] = self._skipped.get(trace.skipped, 0) + 1
         for name, duration in trace.stages_us:
             self._ledger(name).record(None, 0, round(duration))
+        if trace.from_capture_us is not None:
+            self._ledger(FROM_CAPTURE).record(None, 0, round(trace.from_capture_us))
         if trace.end_to_end_us is not None:
             self._ledger(END_TO_END).record(None, 0, round(trace.end_to_end_us))
             if len(trace.stages_us) == len(STAGES):
@@ -250,7 +259,8 @@ class MotionToTouchLedger:
                        for i, name in enumerate(STAGES)}}
 
     def summary_ms(self) -> dict[str, dict[str, float | int | None]]:
-        """Per stage (and ``end_to_end``): ``p50``, ``p99``, ``max`` in ms and the count.
+        """Per stage (and ``end_to_end``, ``from_capture``): ``p50``, ``p99``, ``max`` in ms
+        and the count.
 
         Frames whose stages were not counted appear as :data:`UNALIGNED` and
         :data:`INCOMPLETE` with their ``count`` only (their figures are None).

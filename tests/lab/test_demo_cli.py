@@ -130,7 +130,7 @@ def test_demo_over_one_link_emulator_has_no_merged_stage_names(tmp_path: Path) -
     sensor's frames are taken on pose. --display sim: the drive board emulated inside the
     local station on the virtual CAN FD bus (the default, a board process of its own, is
     checked by the test above) drives the pins."""
-    from shared.motion_to_touch import END_TO_END, INCOMPLETE, STAGES, UNALIGNED
+    from shared.motion_to_touch import END_TO_END, FROM_CAPTURE, INCOMPLETE, STAGES, UNALIGNED
 
     workdir = tmp_path / "work"
     done = subprocess.run(
@@ -142,7 +142,7 @@ def test_demo_over_one_link_emulator_has_no_merged_stage_names(tmp_path: Path) -
     report = json.loads(done.stdout)
     names = set(report["latency_ms"])
     assert not [n for n in names if ">" in n], names
-    assert names <= {*STAGES, END_TO_END, UNALIGNED, INCOMPLETE}
+    assert names <= {*STAGES, END_TO_END, FROM_CAPTURE, UNALIGNED, INCOMPLETE}
     assert {"relay_to_remote", "arm_and_sensor", "render"} <= names
     assert report["latency_ms"][END_TO_END]["count"] > 0
     logs = sorted(p.name for p in workdir.glob("link*.log"))

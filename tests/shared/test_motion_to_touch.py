@@ -9,6 +9,7 @@ from hypothesis import strategies as st
 
 from shared.motion_to_touch import (
     END_TO_END,
+    FROM_CAPTURE,
     INCOMPLETE,
     STAGES,
     UNALIGNED,
@@ -36,6 +37,7 @@ def test_offsets_are_removed(off_local: int, off_remote: int) -> None:
     offsets = {"local": off_local, "remote": off_remote}
     trace = trace_hops(stamped(offsets), offsets)
     assert trace.end_to_end_us == 55_000
+    assert trace.from_capture_us == 51_000  # without the sampling wait
     assert dict(trace.stages_us) == {
         "uplink_sampling": 4_000, "uplink_local_to_relay": 10_000, "relay_forward_platform": 50,
         "relay_to_remote": 10_000,
@@ -51,13 +53,15 @@ def test_unknown_offset_counts_the_frame_apart_without_merged_stages() -> None:
     assert trace.stages_us == ()
     assert trace.skipped == UNALIGNED
     assert trace.end_to_end_us == 55_000  # both of its stamps are on the local clock
+    assert trace.from_capture_us == 51_000  # so are these
     ledger = MotionToTouchLedger()
     ledger.add(trace)
     ledger.add_hops(stamped({"local": 5, "remote": 777}), {"local": 5, "remote": 777})
     summary = ledger.summary_ms()
     assert summary[UNALIGNED]["count"] == 1
     assert summary["render"]["count"] == 1
-    assert summary[END_TO_END]["count"] == 2
+    assert summary[END_TO_END]["count"] == 2 and summary[FROM_CAPTURE]["count"] == 2
+    assert summary[FROM_CAPTURE]["p50"] == 51.0
     assert not [name for name in summary if ">" in name]
 
 
@@ -68,6 +72,8 @@ def test_a_missing_stamp_never_yields_a_merged_stage(dropped: set[int]) -> None:
     assert trace.stages_us == ()
     assert trace.skipped == INCOMPLETE
     assert trace.end_to_end_us == 55_000
+    # local.capture is TRUE's second stamp: without it there is no figure from the capture
+    assert trace.from_capture_us == (None if 1 in dropped else 51_000)
 
 
 def test_a_first_message_without_motion_stamp_counts_from_its_capture() -> None:
@@ -75,7 +81,7 @@ def test_a_first_message_without_motion_stamp_counts_from_its_capture() -> None:
     hops = stamped({"local": 0, "remote": 0})[1:]
     trace = trace_hops(hops, {"local": 0, "remote": 0})
     assert trace.skipped is None
-    assert trace.end_to_end_us == 51_000
+    assert trace.end_to_end_us == trace.from_capture_us == 51_000
     assert [n for n, _ in trace.stages_us] == list(STAGES[1:])
     assert sum(d for _, d in trace.stages_us) == trace.end_to_end_us
     ledger = MotionToTouchLedger()
