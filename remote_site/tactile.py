@@ -71,11 +71,15 @@ class AppliedCommand:
         state: the platform_state as received (its hops end with ``remote.station_rx``).
         arm_command_us: when it was applied to the arm (our clock, microseconds).
         arm_speed_mm_s: the arm's speed when it was applied (None: not known).
+        answers: whether a frame taken for it answers it (False: an idle frame, taken with no
+            command newer than the last frame's; it shows no movement first and carries
+            no platform stamps, so motion-to-touch does not count it).
     """
 
     state: PlatformState
     arm_command_us: int
     arm_speed_mm_s: float | None = None
+    answers: bool = True
 
 
 def crop_centered(grid: NDArray[np.floating], size_mm: tuple[float, float],
@@ -268,7 +272,8 @@ class TactileAssembler:
         hops: tuple[Hop, ...] = ()
         source_seq = source_ts = None
         if source is not None:
-            hops = (*source.state.hops, Hop("remote", "arm_command", source.arm_command_us))
+            if source.answers:
+                hops = (*source.state.hops, Hop("remote", "arm_command", source.arm_command_us))
             source_seq, source_ts = source.state.seq, source.state.ts_us
         ready_us = now_us() if tactile_ready_us is None else int(tactile_ready_us)
         hops = (*hops, Hop("remote", "sensor_frame", int(frame_ts_us)),

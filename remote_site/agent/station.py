@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import logging
 import math
 from collections import deque
@@ -157,6 +158,20 @@ _AT_REST_MM_S = 1.0
 #: command gaps longer than this are pauses (link, operator), not the command rate
 _COMMAND_GAP_MAX_S = 0.1
 
+#: a frame whose first unshown state came longer ago than this ends an outage of the touch
+#: path (a sensor or pipeline stall): it counts from its own state's sample, not the outage
+#: (the loaded tails measured so far stay well below it, 0.16-0.45 s at worst)
+_CHAIN_MAX_S = 1.0
+
+
+@dataclass(frozen=True, slots=True)
+class _Chain:
+    """The first platform_state received since the last capture that gave a frame."""
+
+    first: PlatformState
+    connects: int
+    since_s: float
+
 
 def next_command_wait_s(age_s: float, interval_s: float | None, fresh_s: float,
                         period_s: float) -> float:
@@ -254,11 +269,12 @@ class RemoteStation:
         self.status = status
         self.counters = StationCounters()
         self.latest: AppliedCommand | None = None
-        #: the last platform_state applied (as carried) with the link connection it came
-        #: on (None after one that was refused), and the state the last frame answered: an
-        #: applied state that no frame answered passes its motion stamp on (:meth:`_carried`)
-        self._last_state: tuple[PlatformState, int] | None = None
-        self._answered: PlatformState | None = None
+        #: the first platform_state received since the last capture that gave a frame (the
+        #: link connection it came on, when): what the next frame is the first to show
+        #: starts there (:meth:`_frame_source`)
+        self._chain: _Chain | None = None
+        #: the command the last frame given answered (a capture of it again is idle)
+        self._answered: AppliedCommand | None = None
         self.last_reading: ArmReading | None = None
         self.captures = CaptureCounters()
         #: set when a platform_state is applied to the arm (wakes a frame capture on pose)
@@ -297,8 +313,9 @@ class RemoteStation:
             (clock offsets unknown, or an invalid position).
         """
         self.counters.platform_states += 1
-        state = self._carried(state)
-        self._last_state = None  # a refused state ends the chain (below: one applied)
+        connects = self.link.counters.connects
+        if self._chain is None or self._chain.connects != connects:
+            self._chain = _Chain(state, connects, monotonic_s())
         clock = command_clock(self.link.clock_view)
         if clock is None:
             self.counters.platform_dropped_no_clock += 1
@@ -324,7 +341,6 @@ class RemoteStation:
                     prev = self.command_interval_s
                     self.command_interval_s = gap_s if prev is None else prev + (gap_s - prev) / 8
             self.latest = AppliedCommand(state, t_us, result.speed_before_mm_s)
-            self._last_state = (state, self.link.counters.connects)
             self._command_applied.set()
             self.counters.platform_applied += 1
             rx = [h.t_us for h in state.hops if h.clock == "remote" and h.stage == "station_rx"]
@@ -332,19 +348,41 @@ class RemoteStation:
                 self.dispatch_s.append(max(0, t_us - rx[-1]) / 1e6)
         return result
 
-    def _carried(self, state: PlatformState) -> PlatformState:
-        """``state`` as the frame answering it must count it (``local.motion``, docs of
-        shared/motion_to_touch.py). A frame shows what every state applied since the one the
-        last frame answered showed, so an applied state that no frame answered (the arm had
-        a newer one before a capture took it) hands its motion stamp on, as a latest-wins
-        slot does (:func:`~shared.protocol.carry_motion`). A refused state (no clock offset
-        yet, too old, unusable) and a reconnect of the link end the chain, as an outage
-        does at the local station's uplink: the next state keeps its own stamp."""
-        last = self._last_state
-        if last is not None and last[0] is not self._answered \
-                and last[1] == self.link.counters.connects:
-            return carry_motion(last[0], state)
-        return state
+    def _frame_source(self, command: AppliedCommand | None
+                      ) -> tuple[AppliedCommand | None, _Chain | None]:
+        """What the frame captured now answers, and the chain it takes (to hand back with
+        :meth:`_keep_chain` when the capture gives no frame).
+
+        ``local.motion`` (docs of shared/motion_to_touch.py) is the start of the earliest
+        movement a frame is the first to show. Frames come a few times slower than states:
+        every state received since the last capture that gave a frame (passed over, refused
+        as too old or unusable: positions are absolute, so the newest shows their movements
+        too) is first shown by this frame, so it starts where the first of them started, as
+        a latest-wins slot hands a replaced state's start on
+        (:func:`~shared.protocol.carry_motion`). Not across a reconnect of the link, nor
+        from a start older than :data:`_CHAIN_MAX_S` (an outage of the touch path, not a
+        latency: the frame then counts from its own state's sample, as the uplink does
+        across a platform outage). A command a frame already answered is captured again
+        idle: that frame shows nothing first and carries no platform stamps.
+        """
+        if command is None:
+            return None, None
+        if command is self._answered:
+            return dataclasses.replace(command, answers=False), None
+        chain, self._chain = self._chain, None
+        state = command.state
+        if chain is not None and chain.connects == self.link.counters.connects:
+            if monotonic_s() - chain.since_s <= _CHAIN_MAX_S:
+                state = carry_motion(chain.first, state)
+            else:
+                state = dataclasses.replace(state, hops=tuple(
+                    h for h in state.hops if not (h.clock == "local" and h.stage == "motion")))
+        return dataclasses.replace(command, state=state), chain
+
+    def _keep_chain(self, chain: _Chain | None) -> None:
+        """A capture gave no frame: its chain goes on (before any started since)."""
+        if chain is not None and chain.connects == self.link.counters.connects:
+            self._chain = chain
 
     def apply_arm_command(self, command: ArmCommand) -> CommandResult:
         """Apply an explicit arm command (stop always acts; the others are age-checked)."""
@@ -513,10 +551,13 @@ class RemoteStation:
                 self.command_wait_s.append(
                     max(0, now_us() - self.latest.arm_command_us) / 1e6)
             captured = self.latest
-            if captured is not None:
-                self._answered = captured.state
+            source, chain = self._frame_source(captured)
             outcome: FrameOutcome = await loop.run_in_executor(
-                executor, self.pipeline.process, self._frame_seq + 1, captured)
+                executor, self.pipeline.process, self._frame_seq + 1, source)
+            if outcome.frame is None:
+                self._keep_chain(chain)
+            elif captured is not None:
+                self._answered = captured
             if outcome.frame is not None:
                 self._frame_seq += 1
                 self._record(outcome)

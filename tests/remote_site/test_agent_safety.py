@@ -13,6 +13,7 @@ import dataclasses
 import itertools
 import logging
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -39,13 +40,14 @@ from remote_site.sensor.base import SensorFrame, TactileSensor
 from remote_site.sensor.sim_calibration import simulated_calibration
 from remote_site.sensor.simulator import SimulatedSensor
 from remote_site.stiffness.estimator import StiffnessConfig
-from remote_site.tactile import TactileAssembler
+from remote_site.tactile import AppliedCommand, TactileAssembler
 from shared.client import LinkCounters
 from shared.errors import CalibrationError, ConfigError
 from shared.freshness import ClockView
 from shared.protocol import (
     ArmCommand,
     ArmState,
+    Hop,
     Message,
     PlatformState,
     TactileCompact,
@@ -440,23 +442,28 @@ def test_the_deploy_example_resolves_the_agent_settings() -> None:
 def _stamped(seq: int, previous_ts: int | None) -> PlatformState:
     """A platform_state stamped as the uplink stamps it: ``local.motion`` names the previous
     state's sample (none for the first)."""
-    from shared.protocol import Hop
-
     state = platform_state(seq, (0.0, -35.0, 2.0 + 0.01 * (seq % 50)))
     capture = Hop("local", "capture", state.ts_us)
     hops = (capture,) if previous_ts is None else (Hop("local", "motion", previous_ts), capture)
     return dataclasses.replace(state, hops=hops)
 
 
-async def test_a_frame_counts_from_the_state_the_previous_frame_answered() -> None:
+@pytest.mark.parametrize("sensor", ["sim", "every_other_capture_fails"])
+async def test_a_frame_counts_from_the_state_the_previous_frame_answered(sensor: str) -> None:
     # states at 250 Hz, frames at 30: most states are applied and passed over before a
     # capture takes one. The movements they showed are first shown by the next frame, so it
     # names the sample of the state the previous frame answered, not its own state's
-    # predecessor's
+    # predecessor's, even when captures in between gave no frame (a streaming camera that
+    # has no new image yet); idle frames (no newer command) carry no platform stamps
     from tests.support import motion_of
 
     link = FakeLink()
-    station = make_station(link, SafetyConfig(max_command_age_ms=scaled(5_000.0)))
+    scripted = None
+    if sensor != "sim":
+        good = SimulatedSensor().render(np.zeros((240, 320)))
+        scripted = ScriptedSensor([good if i % 2 else None for i in range(400)])
+    station = make_station(link, SafetyConfig(max_command_age_ms=scaled(5_000.0)),
+                           sensor=scripted)
     stop = asyncio.Event()
     sent: dict[int, PlatformState] = {}
 
@@ -475,41 +482,72 @@ async def test_a_frame_counts_from_the_state_the_previous_frame_answered() -> No
         await feeder
         assert station.counters.platform_applied == station.counters.platform_states == 199
         frames = [m for m in link.sent if isinstance(m, TactileFrame | TactileCompact)]
-        answered = [f for f in frames if f.source_seq is not None]
-        pairs = [(a, b) for a, b in itertools.pairwise(answered)
-                 if b.source_seq != a.source_seq]
+        answering = [f for f in frames if any(h.clock == "local" for h in f.hops)]
+        assert all(f.hops[0] == Hop("remote", "sensor_frame", f.ts_us)
+                   for f in frames if f not in answering and f.source_seq is not None)
+        pairs = list(itertools.pairwise(answering))
         assert len(pairs) >= 5
         passed_over = 0
         for before, after in pairs:
             assert before.source_seq is not None and after.source_seq is not None
+            assert after.source_seq > before.source_seq  # each answers a newer command
             assert motion_of(after) == sent[before.source_seq].ts_us
             passed_over += after.source_seq - before.source_seq > 1
         assert passed_over >= 3  # the case under test happened
+        if scripted is not None:  # and captures without a frame came between
+            assert sum(station.pipeline.rejected.values()) >= 3
     finally:
         close_station(station)
 
 
-def test_a_refused_state_or_a_reconnect_ends_the_motion_chain() -> None:
+def test_the_motion_chain_through_refusals_failed_captures_reconnects_and_outages() -> None:
     from tests.support import motion_of
 
     link = FakeLink()
     station = make_station(link, realtime=False)
+    states = {0: _stamped(0, None)}
+
+    def offer(seq: int) -> PlatformState:
+        states[seq] = _stamped(seq, states[seq - 1].ts_us)
+        station.apply_platform_state(states[seq])
+        return states[seq]
+
+    def capture() -> tuple[AppliedCommand | None, Any]:
+        return station._frame_source(station.latest)
+
     try:
-        first = _stamped(1, None)
-        second = _stamped(2, first.ts_us)
-        assert station.apply_platform_state(first) is not None
-        assert station.apply_platform_state(second) is not None
-        assert station.latest is not None and motion_of(station.latest.state) is None  # carried
-        link.counters.connects += 1  # the link came back: a new chain
-        third = _stamped(3, second.ts_us)
-        station.apply_platform_state(third)
-        assert station.latest is not None and motion_of(station.latest.state) == second.ts_us
-        link.offsets = {"local": None, "remote": 0}  # refused: no clock offset
-        fourth = _stamped(4, third.ts_us)
-        assert station.apply_platform_state(fourth) is None
+        for seq in (1, 2, 3):
+            offer(seq)
+        source, chain = capture()
+        assert source is not None and source.answers and source.state.seq == 3
+        assert motion_of(source.state) == states[0].ts_us  # from the first passed over
+        station._answered = station.latest  # that capture gave a frame
+        idle, _ = capture()  # no newer command: idle, no platform stamps
+        assert idle is not None and not idle.answers
+        link.offsets = {"local": None, "remote": 0}
+        offer(4)  # refused (no clock offset): it joins the chain all the same
         link.offsets = {"local": 0, "remote": 0}
-        fifth = _stamped(5, fourth.ts_us)
-        station.apply_platform_state(fifth)
-        assert station.latest is not None and motion_of(station.latest.state) == fourth.ts_us
+        offer(5)
+        source, chain = capture()
+        assert source is not None and motion_of(source.state) == states[3].ts_us
+        station._keep_chain(chain)  # that capture gave no frame: the chain goes on
+        offer(6)
+        source, chain = capture()
+        assert source is not None and source.state.seq == 6
+        assert motion_of(source.state) == states[3].ts_us
+        station._answered = station.latest
+        offer(7)
+        link.counters.connects += 1  # the link came back: a new chain from the next state
+        offer(8)
+        source, _ = capture()
+        assert source is not None and motion_of(source.state) == states[7].ts_us
+        station._answered = station.latest
+        offer(9)
+        assert station._chain is not None
+        station._chain = dataclasses.replace(station._chain, since_s=station._chain.since_s - 2.0)
+        offer(10)
+        source, _ = capture()  # its start lies beyond an outage: counted from its sample
+        assert source is not None and motion_of(source.state) is None
+        assert source.state.hops[0] == Hop("local", "capture", states[10].ts_us)
     finally:
         close_station(station)
