@@ -194,7 +194,7 @@ def main() -> int:
         "demo: breast scene, raster operator, 120 Hz sensor frames, 1 kHz display loop).",
         "",
         f"Machine: {platform.machine()}, nproc {os.cpu_count()}, Python "
-        f"{platform.python_version()}. **Shared with other agents' jobs**: 1-min load average "
+        f"{platform.python_version()}. Other jobs may share the machine: 1-min load average "
         f"{load_start[0]:.1f} at the start, {min(loads):.1f}-{max(loads):.1f} at the start of "
         f"the runs, {os.getloadavg()[0]:.1f} at the end. Sides alternate (ABBA) within each "
         "profile, so load hits both alike; each figure is the median over the runs of that "

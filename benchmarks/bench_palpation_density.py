@@ -294,7 +294,7 @@ def main(argv: list[str] | None = None) -> int:
     elapsed = time.monotonic() - t0
     command = "python benchmarks/bench_palpation_density.py " + " ".join(sys.argv[1:])
     head = (f"Command: `{command}` ({elapsed:.0f} s; `nproc` {os.cpu_count()}, load average "
-            f"{load0:.1f} at start, other agents' jobs on the machine; the figures are "
+            f"{load0:.1f} at start, other jobs may share the machine; the figures are "
             "simulated-time results and do not depend on the load).")
     text = "\n\n".join([head, "### 1. The demo's session against the frame rate", demo_md,
                         "### 2. Development phantoms against the frame rate", dev_md,

@@ -86,7 +86,7 @@ def _report(runs: dict[str, list[dict[str, Any]]], args: argparse.Namespace) -> 
              f"{args.after} --rounds {args.rounds} --window-s {args.window_s:g}"
              f"{' --tag ' + args.tag if args.tag else ''}`", "",
              f"Machine: {platform.machine()}, nproc {os.cpu_count()}, Python "
-             f"{platform.python_version()}. **Shared with other agents' jobs during the runs** "
+             f"{platform.python_version()}. Other jobs may share the machine "
              "(1-minute load average per run below): compare the sides by their medians and "
              "ratios from the same minutes, not with other files' absolute figures.", "",
              f"Before: {args.before_note}. After: {args.after_note}.", "",

@@ -241,8 +241,8 @@ def _report(runs: dict[str, list[dict[str, Any]]], args: argparse.Namespace) -> 
              "", f"`python benchmarks/bench_remote_station_cpu.py --before {args.before} --after "
              f"{args.after} --rounds {args.rounds} --duration-s {args.duration_s:g}"
              f"{' --tag ' + args.tag if args.tag else ''}`", "",
-             f"Machine: nproc {os.cpu_count()}, Python {platform.python_version()}. **Shared "
-             "with other agents' jobs** (1-minute load average per run below): compare medians "
+             f"Machine: nproc {os.cpu_count()}, Python {platform.python_version()}. Other jobs "
+             "may share the machine (1-minute load average per run below): compare medians "
              "and ratios of the same minutes. Method: see the module docstring.", "",
              f"Before: {args.before_note}. After: {args.after_note}.", "",
              "| metric | before (median) | after (median) | after / before |", "|---|---|---|---|"]

@@ -353,8 +353,8 @@ def main(argv: list[str] | None = None) -> int:
     text = "\n".join([
         "# Live view: the display loop with 0 and 3 viewers",
         "",
-        f"Machine: {host_platform.machine()}, nproc {nproc}, shared with other agents' jobs "
-        f"while this ran (1/5/15-min load average at start {load0[0]:.2f} / {load0[1]:.2f} / "
+        f"Machine: {host_platform.machine()}, nproc {nproc}, other jobs may "
+        f"share it (1/5/15-min load average at start {load0[0]:.2f} / {load0[1]:.2f} / "
         f"{load0[2]:.2f}; per run in the table); no GPU; Python "
         f"{host_platform.python_version()}.",
         f"Command: `{command}` ({rounds} round(s), {duration_s:g} s per run, settings "

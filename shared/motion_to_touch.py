@@ -7,8 +7,9 @@ in order (``clock.stage``):
 ==========================  ======================================================
 stamp                       taken when
 ==========================  ======================================================
-``local.motion``            the previous platform_state's sample was read: a movement
-                            just after it is first shown by this one
+``local.motion``            the earliest movement this frame is the first to show may
+                            have started: the previous platform_state's sample, or an
+                            earlier one handed on (below)
 ``local.capture``           the platform sample was read (its ``ts``)
 ``relay.relay_in``          the relay received the platform_state
 ``relay.relay_out``         the relay wrote it to the remote station
@@ -40,15 +41,19 @@ unread in a latest-wins slot (the local station's send queue, the relay's queue 
 remote, the remote station's inbox) gives its successor its ``local.motion``, or none when it
 had none (:func:`shared.protocol.carry_motion`); a successor without one keeps none. The
 remote station's frames come at ``frame_rate_hz`` (60-80), a few times slower than the
-states: a state the arm was given but no frame answered (a newer one came before a capture
-took it) hands its ``local.motion`` on to the next state in the same way
-(``RemoteStation._carried``), so a frame names the sample of the state the previous frame
-answered. ``uplink_sampling`` is therefore the whole wait from the earliest movement to the
-sample the frame answers: the send period, plus every state passed over after it (by the
-frame schedule, mostly). No gap limit applies to these carries, so a state held in a
-stalled send queue counts its stall; a refused state (no clock offset yet, too old,
-unusable) and a reconnect of the remote's link end the chain instead, as an outage does at
-the uplink.
+states: every state it received since the last capture that gave a frame (passed over, or
+refused as too old or unusable: positions are absolute, so a newer state shows their
+movements too) is first shown by the next frame, which starts where the first of them
+started (``RemoteStation._frame_source``). A capture that gives no frame (a streaming camera
+with no new image yet, a sensor error) hands that chain back; a reconnect of the remote's
+link, and a start more than a second old (an outage of the touch path, not a latency), end
+it. A frame taken with no command newer than the last frame's (idle) shows nothing first: it
+carries no platform stamps and is not counted end to end. ``uplink_sampling`` is therefore
+the whole wait from the earliest movement to the sample the frame answers: the send period
+plus every state passed over (by the frame schedule, mostly). No gap limit applies to the
+slots' carries, so a state held in a stalled send queue counts its stall. Tactile frames are
+not carried: one replaced on the way back would, by the same rule, hand its start to the
+next (not built).
 The stages of a frame are counted only when every clock among its stamps has a known offset
 (the remote station's offset reaches the local station a few seconds after joining) and every
 pair of consecutive stamps is a documented stage: such a frame is **aligned**. The others are
