@@ -38,22 +38,23 @@ no previous one and no ``local.motion``; its frames are counted from ``local.cap
 
 A message that never reaches the next step passes its start on. One replaced unsent or
 unread in a latest-wins slot (the local station's send queue, the relay's queue to the
-remote, the remote station's inbox) gives its successor its ``local.motion``, or none when it
-had none (:func:`shared.protocol.carry_motion`); a successor without one keeps none. The
+remote, the remote station's inbox) gives its successor its ``local.motion``, or none when
+it had none (:func:`shared.protocol.carry_motion`); a successor without one keeps none. The
 remote station's frames come at ``frame_rate_hz`` (60-80), a few times slower than the
 states: every state it received since the last capture that gave a frame (passed over, or
 refused as too old or unusable: positions are absolute, so a newer state shows their
 movements too) is first shown by the next frame, which starts where the first of them
 started (``RemoteStation._frame_source``). A capture that gives no frame (a streaming camera
-with no new image yet, a sensor error) hands that chain back; a reconnect of the remote's
-link, and a start more than a second old (an outage of the touch path, not a latency), end
-it. A frame taken with no command newer than the last frame's (idle) shows nothing first: it
-carries no platform stamps and is not counted end to end. ``uplink_sampling`` is therefore
-the whole wait from the earliest movement to the sample the frame answers: the send period
-plus every state passed over (by the frame schedule, mostly). No gap limit applies to the
-slots' carries, so a state held in a stalled send queue counts its stall. Tactile frames are
-not carried: one replaced on the way back would, by the same rule, hand its start to the
-next (not built).
+with no new image yet, a sensor error) hands that chain back; states refused after the state
+captured are left for the next frame; a reconnect of the remote's link, and a first state
+that reached the remote more than a second before the capture (an outage of the touch path,
+not a latency), end it. A frame taken with no command newer than the last frame's (idle)
+shows nothing first: it carries no platform stamps and is not counted end to end.
+``uplink_sampling`` is therefore the whole wait from the earliest movement to the sample the
+frame answers: the send period plus every state passed over (by the frame schedule, mostly).
+No gap limit applies to the slots' carries, so a state held in a stalled send queue counts
+its stall. Tactile frames are not carried: one replaced on the way back would, by the same
+rule, hand its start to the next (not built).
 The stages of a frame are counted only when every clock among its stamps has a known offset
 (the remote station's offset reaches the local station a few seconds after joining) and every
 pair of consecutive stamps is a documented stage: such a frame is **aligned**. The others are

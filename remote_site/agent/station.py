@@ -273,6 +273,9 @@ class RemoteStation:
         #: link connection it came on, when): what the next frame is the first to show
         #: starts there (:meth:`_frame_source`)
         self._chain: _Chain | None = None
+        #: the first state received since the latest applied one (refused ones only): the
+        #: chain a capture of the latest command leaves for the next frame
+        self._after_latest: _Chain | None = None
         #: the command the last frame given answered (a capture of it again is idle)
         self._answered: AppliedCommand | None = None
         self.last_reading: ArmReading | None = None
@@ -314,8 +317,11 @@ class RemoteStation:
         """
         self.counters.platform_states += 1
         connects = self.link.counters.connects
+        joined = _Chain(state, connects, monotonic_s())
         if self._chain is None or self._chain.connects != connects:
-            self._chain = _Chain(state, connects, monotonic_s())
+            self._chain = joined
+        if self._after_latest is None or self._after_latest.connects != connects:
+            self._after_latest = joined
         clock = command_clock(self.link.clock_view)
         if clock is None:
             self.counters.platform_dropped_no_clock += 1
@@ -341,6 +347,7 @@ class RemoteStation:
                     prev = self.command_interval_s
                     self.command_interval_s = gap_s if prev is None else prev + (gap_s - prev) / 8
             self.latest = AppliedCommand(state, t_us, result.speed_before_mm_s)
+            self._after_latest = None
             self._command_applied.set()
             self.counters.platform_applied += 1
             rx = [h.t_us for h in state.hops if h.clock == "remote" and h.stage == "station_rx"]
@@ -355,21 +362,23 @@ class RemoteStation:
 
         ``local.motion`` (docs of shared/motion_to_touch.py) is the start of the earliest
         movement a frame is the first to show. Frames come a few times slower than states:
-        every state received since the last capture that gave a frame (passed over, refused
-        as too old or unusable: positions are absolute, so the newest shows their movements
-        too) is first shown by this frame, so it starts where the first of them started, as
-        a latest-wins slot hands a replaced state's start on
-        (:func:`~shared.protocol.carry_motion`). Not across a reconnect of the link, nor
-        from a start older than :data:`_CHAIN_MAX_S` (an outage of the touch path, not a
-        latency: the frame then counts from its own state's sample, as the uplink does
-        across a platform outage). A command a frame already answered is captured again
-        idle: that frame shows nothing first and carries no platform stamps.
+        every state received since the last capture that gave a frame, up to the command
+        captured (passed over, refused as too old or unusable: positions are absolute, so a
+        newer state shows their movements too) is first shown by this frame, so it starts
+        where the first of them started, as a latest-wins slot hands a replaced state's start
+        on (:func:`~shared.protocol.carry_motion`). States refused after the command captured
+        are left for the next frame. Not across a reconnect of the link, nor when the first
+        of them reached this station more than :data:`_CHAIN_MAX_S` ago (an outage of the
+        touch path, not a latency: the frame then counts from its own state's sample, as the
+        uplink does across a platform outage). A command a frame already answered is
+        captured again idle: that frame shows nothing first and carries no platform stamps.
         """
         if command is None:
             return None, None
         if command is self._answered:
             return dataclasses.replace(command, answers=False), None
-        chain, self._chain = self._chain, None
+        # the states refused since this command stay for the next frame: it shows them first
+        chain, self._chain = self._chain, self._after_latest
         state = command.state
         if chain is not None and chain.connects == self.link.counters.connects:
             if monotonic_s() - chain.since_s <= _CHAIN_MAX_S:
@@ -380,7 +389,8 @@ class RemoteStation:
         return dataclasses.replace(command, state=state), chain
 
     def _keep_chain(self, chain: _Chain | None) -> None:
-        """A capture gave no frame: its chain goes on (before any started since)."""
+        """A capture gave no frame: its chain goes on (it started before any left or begun
+        since)."""
         if chain is not None and chain.connects == self.link.counters.connects:
             self._chain = chain
 
@@ -536,8 +546,8 @@ class RemoteStation:
         captured: AppliedCommand | None = None
         answered = False
         while True:
-            if on_pose:
-                answered = await self._next_capture(next_t, period, captured)
+            if on_pose:  # a command whose capture gave no frame is still new
+                answered = await self._next_capture(next_t, period, self._answered)
             else:
                 delay = next_t - loop.time()
                 if delay > 0:

@@ -448,39 +448,78 @@ def _stamped(seq: int, previous_ts: int | None) -> PlatformState:
     return dataclasses.replace(state, hops=hops)
 
 
-@pytest.mark.parametrize("sensor", ["sim", "every_other_capture_fails"])
-async def test_a_frame_counts_from_the_state_the_previous_frame_answered(sensor: str) -> None:
+class FirstCaptureFails(TactileSensor):
+    """A sensor whose first capture for each new command of ``station`` gives no frame (a
+    streaming camera without a new image yet), the next ones a flat-gel frame."""
+
+    def __init__(self) -> None:
+        super().__init__((240, 320), 0.0634)
+        self.station: RemoteStation | None = None
+        self.image = SimulatedSensor().render(np.zeros((240, 320)))
+        self.failed_for: Any = None
+        self.seq = 0
+
+    def _connect(self) -> None:
+        pass
+
+    def _disconnect(self) -> None:
+        pass
+
+    def _latest(self) -> SensorFrame | None:
+        command = None if self.station is None else self.station.latest
+        if command is not None and command is not self.failed_for:
+            self.failed_for = command
+            return None
+        self.seq += 1
+        return SensorFrame(self.image, now_us(), self.seq)
+
+
+@pytest.mark.parametrize(("sensor", "states_hz"), [("sim", 250.0),
+                                                  ("every_other_capture_fails", 250.0),
+                                                  ("first_capture_of_a_command_fails", 5.0)])
+async def test_a_frame_counts_from_the_state_the_previous_frame_answered(
+        sensor: str, states_hz: float, monkeypatch: pytest.MonkeyPatch) -> None:
     # states at 250 Hz, frames at 30: most states are applied and passed over before a
     # capture takes one. The movements they showed are first shown by the next frame, so it
     # names the sample of the state the previous frame answered, not its own state's
     # predecessor's, even when captures in between gave no frame (a streaming camera that
-    # has no new image yet); idle frames (no newer command) carry no platform stamps
+    # has no new image yet); idle frames (no newer command) carry no platform stamps. With
+    # states slower than the frames, every state is answered, a failed capture's too
+    import remote_site.agent.station as station_module
     from tests.support import motion_of
 
+    monkeypatch.setattr(station_module, "_CHAIN_MAX_S", scaled(60.0))  # no outage here
+    n_states = 200 if states_hz > 100 else 16
     link = FakeLink()
-    scripted = None
-    if sensor != "sim":
+    scripted: TactileSensor | None = None
+    if sensor == "every_other_capture_fails":
         good = SimulatedSensor().render(np.zeros((240, 320)))
         scripted = ScriptedSensor([good if i % 2 else None for i in range(400)])
+    elif sensor == "first_capture_of_a_command_fails":
+        scripted = FirstCaptureFails()
     station = make_station(link, SafetyConfig(max_command_age_ms=scaled(5_000.0)),
                            sensor=scripted)
+    if isinstance(scripted, FirstCaptureFails):
+        scripted.station = station
     stop = asyncio.Event()
     sent: dict[int, PlatformState] = {}
 
     async def operator() -> None:
         previous = None
-        for seq in range(1, 200):
+        for seq in range(1, n_states):
             state = _stamped(seq, previous)
             sent[seq], previous = state, state.ts_us
             link.inbox.put_nowait(state)
-            await asyncio.sleep(0.004)
+            await asyncio.sleep(1.0 / states_hz)
+        await asyncio.sleep(0.2)  # the last state's frame
         stop.set()
 
     try:
         feeder = asyncio.create_task(operator())
         await station.run(stop, duration_s=scaled(20.0))
         await feeder
-        assert station.counters.platform_applied == station.counters.platform_states == 199
+        assert station.counters.platform_applied == station.counters.platform_states \
+            == n_states - 1
         frames = [m for m in link.sent if isinstance(m, TactileFrame | TactileCompact)]
         answering = [f for f in frames if any(h.clock == "local" for h in f.hops)]
         assert all(f.hops[0] == Hop("remote", "sensor_frame", f.ts_us)
@@ -493,7 +532,11 @@ async def test_a_frame_counts_from_the_state_the_previous_frame_answered(sensor:
             assert after.source_seq > before.source_seq  # each answers a newer command
             assert motion_of(after) == sent[before.source_seq].ts_us
             passed_over += after.source_seq - before.source_seq > 1
-        assert passed_over >= 3  # the case under test happened
+        if states_hz > 100:
+            assert passed_over >= 3  # the case under test happened
+        else:  # a state whose capture gave no frame is answered by the next capture (a
+            # state may rarely be passed over on a loaded machine: at most a few)
+            assert len(answering) >= 0.8 * (n_states - 1)
         if scripted is not None:  # and captures without a frame came between
             assert sum(station.pipeline.rejected.values()) >= 3
     finally:
@@ -505,49 +548,82 @@ def test_the_motion_chain_through_refusals_failed_captures_reconnects_and_outage
 
     link = FakeLink()
     station = make_station(link, realtime=False)
-    states = {0: _stamped(0, None)}
+    states = [_stamped(0, None)]
 
-    def offer(seq: int) -> PlatformState:
-        states[seq] = _stamped(seq, states[seq - 1].ts_us)
-        station.apply_platform_state(states[seq])
-        return states[seq]
+    def offer(refused: bool = False) -> PlatformState:
+        """The next state, stamped with its predecessor's sample (refused: no clock offset)."""
+        states.append(_stamped(len(states), states[-1].ts_us))
+        link.offsets = {"local": None if refused else 0, "remote": 0}
+        result = station.apply_platform_state(states[-1])
+        assert (result is None) == refused
+        return states[-1]
 
     def capture() -> tuple[AppliedCommand | None, Any]:
         return station._frame_source(station.latest)
 
+    def start_of(source: AppliedCommand | None) -> int | None:
+        assert source is not None and source.answers
+        return motion_of(source.state)
+
     try:
-        for seq in (1, 2, 3):
-            offer(seq)
+        for _ in range(3):
+            offer()
         source, chain = capture()
-        assert source is not None and source.answers and source.state.seq == 3
-        assert motion_of(source.state) == states[0].ts_us  # from the first passed over
+        assert source is not None and source.state.seq == 3
+        assert start_of(source) == states[0].ts_us  # from the first passed over
         station._answered = station.latest  # that capture gave a frame
         idle, _ = capture()  # no newer command: idle, no platform stamps
         assert idle is not None and not idle.answers
-        link.offsets = {"local": None, "remote": 0}
-        offer(4)  # refused (no clock offset): it joins the chain all the same
-        link.offsets = {"local": 0, "remote": 0}
-        offer(5)
+        assert not any(h.clock == "local" for h in station.pipeline.assembler.assemble(
+            seq=1, frame_ts_us=now_us(), height_mm=np.zeros((8, 8)), pitch_mm=0.5,
+            probe_mm=(0.0, 0.0, 1.0), force_n=0.0, contact=False, stiffness_map=None,
+            current_n_per_mm=None, source=idle).hops)
+        offer(refused=True)  # 4: refused, it joins the chain all the same
+        offer()  # 5
         source, chain = capture()
-        assert source is not None and motion_of(source.state) == states[3].ts_us
+        assert start_of(source) == states[3].ts_us
         station._keep_chain(chain)  # that capture gave no frame: the chain goes on
-        offer(6)
+        again, chain = capture()  # the same command again: still new, the same start
+        assert again is not None and again.state.seq == 5
+        assert start_of(again) == states[3].ts_us
+        station._keep_chain(chain)  # no frame either
+        offer()  # 6
         source, chain = capture()
         assert source is not None and source.state.seq == 6
-        assert motion_of(source.state) == states[3].ts_us
+        assert start_of(source) == states[3].ts_us
         station._answered = station.latest
-        offer(7)
-        link.counters.connects += 1  # the link came back: a new chain from the next state
-        offer(8)
+        # a state refused after the command a capture takes is left for the next frame
+        offer()  # 7
+        offer(refused=True)  # 8
         source, _ = capture()
-        assert source is not None and motion_of(source.state) == states[7].ts_us
+        assert source is not None and source.state.seq == 7
+        assert start_of(source) == states[6].ts_us
         station._answered = station.latest
-        offer(9)
+        offer()  # 9
+        source, _ = capture()
+        assert start_of(source) == states[7].ts_us  # where 8, refused, started
+        station._answered = station.latest
+        # a reconnect while a capture gave no frame: that chain does not come back
+        offer()  # 10
+        source, chain = capture()
+        link.counters.connects += 1
+        station._keep_chain(chain)
+        assert station._chain is None
+        # a reconnect between states: a new chain from the next state
+        offer()  # 11
+        link.counters.connects += 1
+        offer()  # 12
+        source, _ = capture()
+        assert start_of(source) == states[11].ts_us
+        station._answered = station.latest
+        # a chain whose first state came more than a second ago: counted from the sample
+        offer()  # 13
         assert station._chain is not None
         station._chain = dataclasses.replace(station._chain, since_s=station._chain.since_s - 2.0)
-        offer(10)
-        source, _ = capture()  # its start lies beyond an outage: counted from its sample
-        assert source is not None and motion_of(source.state) is None
-        assert source.state.hops[0] == Hop("local", "capture", states[10].ts_us)
+        offer()  # 14
+        source, _ = capture()
+        assert start_of(source) is None
+        assert source is not None and source.state.hops[0] == Hop("local", "capture",
+                                                                  states[14].ts_us)
     finally:
         close_station(station)
