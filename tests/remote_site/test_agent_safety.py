@@ -448,22 +448,15 @@ def _stamped(seq: int, previous_ts: int | None) -> PlatformState:
     return dataclasses.replace(state, hops=hops)
 
 
-class FirstCaptureFails(TactileSensor):
+class FirstCaptureFails(ScriptedSensor):
     """A sensor whose first capture for each new command of ``station`` gives no frame (a
     streaming camera without a new image yet), the next ones a flat-gel frame."""
 
     def __init__(self) -> None:
-        super().__init__((240, 320), 0.0634)
+        super().__init__([])
         self.station: RemoteStation | None = None
         self.image = SimulatedSensor().render(np.zeros((240, 320)))
         self.failed_for: Any = None
-        self.seq = 0
-
-    def _connect(self) -> None:
-        pass
-
-    def _disconnect(self) -> None:
-        pass
 
     def _latest(self) -> SensorFrame | None:
         command = None if self.station is None else self.station.latest
