@@ -63,10 +63,6 @@ class StreamQueue(Generic[T]):
         cell = self._latest.get(key)
         return None if cell is None else cell.item
 
-    def holds(self, key: str) -> bool:
-        """Whether slot ``key`` holds an unsent item (:meth:`held` is not None)."""
-        return self.held(key) is not None
-
     def put_ordered(self, item: T, *, force: bool = False) -> bool:
         """Append ``item`` to the ordered queue.
 

@@ -98,12 +98,12 @@ def test_stream_queue_arrival_order_latest_and_bound() -> None:
     assert len(q) == 3
     assert [q.pop(), q.pop(), q.pop(), q.pop()] == [2, 3, 5, None]
     assert q.put_ordered(6, force=True) and q.take() == [6] and len(q) == 0
-    # holds: an unsent item waits in the slot (the next put_latest replaces it)
-    assert not q.holds("a")
+    # held: the unsent item waiting in the slot (the next put_latest replaces it)
+    assert q.held("a") is None
     q.put_latest("a", 7)
     q.put_latest("a", 8)
-    assert q.holds("a") and not q.holds("b")
-    assert q.pop() == 8 and not q.holds("a")
+    assert q.held("a") is not None and q.held("b") is None
+    assert q.pop() == 8 and q.held("a") is None
 
 
 # --------------------------------------------------------------------------- handshake
