@@ -53,7 +53,13 @@ from remote_site.tactile import AppliedCommand
 from shared.client import LinkCounters
 from shared.errors import InputDataError
 from shared.freshness import ClockView
-from shared.protocol.messages import ArmCommand, Message, PlatformState, carry_motion
+from shared.protocol.messages import (
+    ArmCommand,
+    Message,
+    PlatformState,
+    carry_motion,
+    without_motion,
+)
 from shared.protocol.tactile_codec import CodecSettings, TactileEncoder
 from shared.timebase import monotonic_s, now_us
 
@@ -384,8 +390,7 @@ class RemoteStation:
             if monotonic_s() - chain.since_s <= _CHAIN_MAX_S:
                 state = carry_motion(chain.first, state)
             else:
-                state = dataclasses.replace(state, hops=tuple(
-                    h for h in state.hops if not (h.clock == "local" and h.stage == "motion")))
+                state = without_motion(state)
         return dataclasses.replace(command, state=state), chain
 
     def _keep_chain(self, chain: _Chain | None) -> None:

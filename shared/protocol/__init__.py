@@ -45,6 +45,7 @@ from shared.protocol.messages import (
     TactileFrame,
     Welcome,
     carry_motion,
+    without_motion,
 )
 from shared.protocol.queues import StreamQueue
 
@@ -86,4 +87,5 @@ __all__ = [
     "encode",
     "frame",
     "message_from_map",
+    "without_motion",
 ]

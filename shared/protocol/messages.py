@@ -64,6 +64,7 @@ __all__ = [
     "TactileFrame",
     "Welcome",
     "carry_motion",
+    "without_motion",
 ]
 
 ROLES = frozenset({"local", "remote", "observer"})
@@ -393,11 +394,13 @@ class PlatformState(DataMessage):
 
 
 _M = TypeVar("_M", bound=Message)
+_D = TypeVar("_D", bound=DataMessage)
 
 
 def carry_motion(replaced: Message, newer: _M) -> _M:
-    """``newer`` as it must travel when it replaces ``replaced`` unsent in a latest-wins slot
-    (the local station's send queue, the relay's queue to the remote).
+    """``newer`` as it must travel when it replaces ``replaced`` unsent or unread in a
+    latest-wins slot (the local station's send queue, the relay's queue to the remote, the
+    remote station's inbox), or follows states no frame answered at the remote.
 
     Only a ``platform_state`` after a ``platform_state`` changes. The movements only
     ``replaced`` would have shown are first shown by ``newer``, so ``newer`` starts from where
@@ -405,8 +408,8 @@ def carry_motion(replaced: Message, newer: _M) -> _M:
     ``replaced``'s, and goes when ``replaced`` had none (that wait had no known start: the
     frames then count from the capture). A ``newer`` without ``local.motion`` (its sender saw
     the chain broken: a new link session, a skipped sample, a platform outage) is returned as
-    it is, and so is one whose stamps would not change. Tactile frames keep their stamps:
-    they carry those of the state they answer, and the remote answers only some states.
+    it is, and so is one whose stamps would not change. Tactile frames are not carried (not
+    built: see ``shared/motion_to_touch.py``).
     """
     if not isinstance(newer, PlatformState) or not isinstance(replaced, PlatformState):
         return newer
@@ -416,8 +419,16 @@ def carry_motion(replaced: Message, newer: _M) -> _M:
     theirs = next((h for h in replaced.hops if _is_motion(h)), None)
     if theirs == mine:
         return newer
-    rest = tuple(h for h in newer.hops if not _is_motion(h))
+    rest = without_motion(newer).hops
     return dataclasses.replace(newer, hops=rest if theirs is None else (theirs, *rest))
+
+
+def without_motion(msg: _D) -> _D:
+    """``msg`` without its ``local.motion`` stamp (the same message when it has none): its
+    frames then count from its ``local.capture``."""
+    if not any(_is_motion(h) for h in msg.hops):
+        return msg
+    return dataclasses.replace(msg, hops=tuple(h for h in msg.hops if not _is_motion(h)))
 
 
 def _is_motion(hop: Hop) -> bool:

@@ -213,3 +213,13 @@ def test_a_replacement_starts_where_the_replaced_message_started() -> None:
                                      hops=motion_state(1, 1_000, 2_000).hops), frame) is frame
     assert carry_motion(motion_state(1, 1_000, 2_000), frame) is frame
 
+
+
+def test_without_motion_drops_only_the_motion_stamp() -> None:
+    from shared.protocol import without_motion
+
+    stamped = motion_state(2, 1_000, 3_000)
+    assert without_motion(stamped).hops == (Hop("local", "capture", 3_000),)
+    assert without_motion(stamped).seq == 2
+    alone = motion_state(2, None, 3_000)
+    assert without_motion(alone) is alone
