@@ -299,7 +299,8 @@ class Session:
         key = f"{direction.name}:{stream}"
         if latest:
             self._key_frame_first(direction.name, msg, receiver)
-            # a platform_state that replaces one never sent starts where that one started
+            # a platform_state or tactile frame that replaces one never sent starts where
+            # that one started
             held = receiver.outbox.held(key)
             if held is not None:
                 carried = carry_motion(held.message, msg)

@@ -37,9 +37,14 @@ after a sample was skipped, or across a platform outage longer than the read tim
 no previous one and no ``local.motion``; its frames are counted from ``local.capture``.
 
 A message that never reaches the next step passes its start on. One replaced unsent or
-unread in a latest-wins slot (the local station's send queue, the relay's queue to the
-remote, the remote station's inbox) gives its successor its ``local.motion``, or none when
-it had none (:func:`shared.protocol.carry_motion`); a successor without one keeps none. The
+unread in a latest-wins slot gives its successor its ``local.motion``, or its
+``local.capture`` when it had none (the known part of its wait;
+:func:`shared.protocol.carry_motion`); a successor without ``local.motion`` keeps none. On
+the way out that is a ``platform_state`` in the local station's send queue, the relay's queue
+to the remote or the remote station's inbox; on the way back a tactile frame in the remote
+station's send queue, the relay's queue to the local, the local station's inbox, its
+hand-over to the display process (a frame the busy child's socket did not take; not across a
+new child), that process's frame slot, or the display loop's frame not yet rendered. The
 remote station's frames come at ``frame_rate_hz`` (60-80), a few times slower than the
 states: every state it received since the last capture that gave a frame (passed over, or
 refused as too old or unusable: positions are absolute, so a newer state shows their
@@ -53,8 +58,9 @@ shows nothing first: it carries no platform stamps and is not counted end to end
 ``uplink_sampling`` is therefore the whole wait from the earliest movement to the sample the
 frame answers: the send period plus every state passed over (by the frame schedule, mostly).
 No gap limit applies to the slots' carries, so a state held in a stalled send queue counts
-its stall. Tactile frames are not carried: one replaced on the way back would, by the same
-rule, hand its start to the next (not built).
+its stall. A tactile frame that is refused rather than replaced (a compact delta without its
+key frame, a frame the display loop rejects) and one whose successor is idle hand nothing on:
+their movements are not counted (not built).
 The stages of a frame are counted only when every clock among its stamps has a known offset
 (the remote station's offset reaches the local station a few seconds after joining) and every
 pair of consecutive stamps is a documented stage: such a frame is **aligned**. The others are

@@ -21,9 +21,10 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 import pytest
 
-from shared.protocol import DataMessage, Hop, PlatformState
+from shared.protocol import DataMessage, Hop, PlatformState, TactileFrame
 
 TIMEOUT_SCALE = float(os.environ.get("TELETOUCH_TEST_TIMEOUT_SCALE", "1"))
 
@@ -111,6 +112,17 @@ def motion_state(seq: int, motion_us: int | None, capture_us: int) -> PlatformSt
     capture = Hop("local", "capture", capture_us)
     hops = (capture,) if motion_us is None else (Hop("local", "motion", motion_us), capture)
     return PlatformState(seq=seq, ts_us=capture_us, hops=hops)
+
+
+def motion_frame(seq: int, motion_us: int | None, capture_us: int) -> TactileFrame:
+    """A 4 x 4 ``tactile_frame`` answering :func:`motion_state` ``(seq, motion_us,
+    capture_us)``: that state's stamps and the remote's own, as the remote stamps them."""
+    hops = (*motion_state(seq, motion_us, capture_us).hops,
+            Hop("remote", "arm_command", capture_us + 100),
+            Hop("remote", "sensor_frame", capture_us + 200),
+            Hop("remote", "tactile_ready", capture_us + 300))
+    return TactileFrame(seq=seq, ts_us=capture_us + 200, hops=hops,
+                        layers={"height_mm": np.zeros((4, 4), np.float32)})
 
 
 def motion_of(msg: DataMessage) -> int | None:

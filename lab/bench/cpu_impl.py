@@ -477,6 +477,11 @@ def _figures(win: _Window, report: dict[str, Any], load_start: tuple[float, floa
         "remote_latency_ms": (report.get("remote") or {}).get("latency_ms"),
         "remote_elapsed_s": (report.get("remote") or {}).get("elapsed_s"),
         "tactile_codec": local.get("tactile_codec"),
+        # frames replaced on the local side before the pins showed them (the session's, not
+        # the window's): in the hand-overs to the loop, and unread in the link's inbox (the
+        # inbox's count includes arm_state)
+        "local_frames_superseded": local.get("frames_superseded"),
+        "local_inbox_replaced": (local.get("link") or {}).get("stale_dropped_rx"),
         "relay_drops": window_drops(win.drops),
         "settings": {k: v for k, v in vars(win.settings).items()},
     }

@@ -59,7 +59,7 @@ from shared.errors import (
 )
 from shared.freshness import AgeVerdict, ClockView, judge_age
 from shared.motion_to_touch import MotionToTouchLedger
-from shared.protocol import Hop, TactileFrame
+from shared.protocol import Hop, TactileFrame, carry_motion, carry_motion_hops
 from shared.timebase import monotonic_s, now_us
 
 __all__ = ["SAFE_REASONS", "DisplayLoop", "DisplayLoopCounters", "FrameSlot", "LinkHealth",
@@ -302,7 +302,8 @@ class FrameSlot:
         self.superseded = 0
 
     def put(self, frame: TactileFrame, rx_us: int) -> None:
-        """Offer a frame (replaces one the loop has not taken yet, counted)."""
+        """Offer a frame (replaces one the loop has not taken yet, counted; the newer frame
+        then starts where the replaced one started: :func:`~shared.protocol.carry_motion`)."""
         prepared: Any = None
         if self.prepare is not None:
             try:
@@ -310,8 +311,9 @@ class FrameSlot:
             except InputDataError as err:
                 prepared = err  # refused by the loop, which counts and reports it
         with self._lock:
-            if self._item is not None:
+            if self._item is not None:  # never taken: this one shows first what it showed
                 self.superseded += 1
+                frame = carry_motion(self._item[0], frame)
             self._item = (frame, rx_us, prepared)
             self.put_count += 1
 
@@ -495,9 +497,11 @@ class DisplayLoop:
         self._frame_stamp_us = frame.ts_us
         view = self.link.clock_view if self.link is not None else None
         self._frame_clock = None if view is None else view.relative("local", "remote", now_us())
-        if self._pending_hops is not None:
+        hops = tuple(frame.hops)
+        if self._pending_hops is not None:  # never rendered: this one shows it first
             self.counters.frames_superseded_unrendered += 1
-        self._pending_hops = (tuple(frame.hops), scene.version)
+            hops = carry_motion_hops(self._pending_hops[0], hops)
+        self._pending_hops = (hops, scene.version)
         if self.recorder is not None:
             self.recorder.add_frame(frame, rx_us)
         if self.frame_listener is not None:

@@ -45,6 +45,7 @@ from shared.protocol.messages import (
     TactileFrame,
     Welcome,
     carry_motion,
+    carry_motion_hops,
     without_motion,
 )
 from shared.protocol.queues import StreamQueue
@@ -82,6 +83,7 @@ __all__ = [
     "TactileFrame",
     "Welcome",
     "carry_motion",
+    "carry_motion_hops",
     "decode",
     "decode_map",
     "encode",

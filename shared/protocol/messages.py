@@ -18,7 +18,7 @@ import dataclasses
 import math
 import re
 from abc import ABC, abstractmethod
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
 from typing import Any, ClassVar, NamedTuple, TypeVar
@@ -64,6 +64,7 @@ __all__ = [
     "TactileFrame",
     "Welcome",
     "carry_motion",
+    "carry_motion_hops",
     "without_motion",
 ]
 
@@ -399,28 +400,56 @@ _D = TypeVar("_D", bound=DataMessage)
 
 def carry_motion(replaced: Message, newer: _M) -> _M:
     """``newer`` as it must travel when it replaces ``replaced`` unsent or unread in a
-    latest-wins slot (the local station's send queue, the relay's queue to the remote, the
-    remote station's inbox), or follows states no frame answered at the remote.
+    latest-wins slot or hand-over, or follows states no frame answered at the remote.
 
-    Only a ``platform_state`` after a ``platform_state`` changes. The movements only
-    ``replaced`` would have shown are first shown by ``newer``, so ``newer`` starts from where
-    ``replaced`` started: its ``local.motion`` stamp (``shared/motion_to_touch.py``) becomes
-    ``replaced``'s, and goes when ``replaced`` had none (that wait had no known start: the
-    frames then count from the capture). A ``newer`` without ``local.motion`` (its sender saw
-    the chain broken: a new link session, a skipped sample, a platform outage) is returned as
-    it is, and so is one whose stamps would not change. Tactile frames are not carried (not
-    built: see ``shared/motion_to_touch.py``).
+    The slots: on the way out, the local station's send queue, the relay's queue to the
+    remote and the remote station's inbox (``platform_state``); on the way back, the remote
+    station's send queue, the relay's queue to the local, the local station's inbox, its
+    hand-over to the display process, that process's frame slot and the display loop's
+    frame not yet rendered (tactile frames).
+
+    Only a message after one of its own kind changes (a ``platform_state`` after a
+    ``platform_state``, a tactile frame after a tactile frame, either encoding): the
+    movements only ``replaced`` would have shown are first shown by ``newer``, so ``newer``
+    starts where ``replaced`` started (:func:`carry_motion_hops`). Any other pair, and a
+    ``newer`` whose stamps would not change, is returned as it is.
     """
-    if not isinstance(newer, PlatformState) or not isinstance(replaced, PlatformState):
+    kind = _carried_kind(newer)
+    if kind is None or kind != _carried_kind(replaced) or not isinstance(newer, DataMessage) \
+            or not isinstance(replaced, DataMessage):
         return newer
-    mine = next((h for h in newer.hops if _is_motion(h)), None)
+    hops = carry_motion_hops(replaced.hops, newer.hops)
+    return newer if hops is newer.hops else dataclasses.replace(newer, hops=hops)
+
+
+def carry_motion_hops(replaced: Sequence[Hop], newer: tuple[Hop, ...]) -> tuple[Hop, ...]:
+    """The stamps of a message that replaces one with stamps ``replaced`` (see
+    :func:`carry_motion`, which applies this to messages).
+
+    ``newer``'s ``local.motion`` stamp (``shared/motion_to_touch.py``) becomes
+    ``replaced``'s ``local.motion``, or, when it had none (the first of a link session, or
+    after a break), its ``local.capture``: the known part of its wait. A ``newer`` without
+    ``local.motion`` (its sender saw the chain broken: a new link session, a skipped sample,
+    a platform outage; or an idle tactile frame, which shows nothing first) and a
+    ``replaced`` with neither stamp (an idle frame) leave ``newer`` as it is: the very tuple.
+    """
+    mine = next((h for h in newer if _is_motion(h)), None)
     if mine is None:
         return newer
-    theirs = next((h for h in replaced.hops if _is_motion(h)), None)
-    if theirs == mine:
+    theirs = next((h for h in replaced if _is_motion(h)), None) or next(
+        (h for h in replaced if h.stage == "capture" and h.clock == "local"), None)
+    if theirs is None or theirs.t_us == mine.t_us:
         return newer
-    rest = without_motion(newer).hops
-    return dataclasses.replace(newer, hops=rest if theirs is None else (theirs, *rest))
+    return (Hop("local", "motion", theirs.t_us), *(h for h in newer if not _is_motion(h)))
+
+
+def _carried_kind(msg: Message) -> str | None:
+    """What :func:`carry_motion` treats as one kind of message (None: never carried)."""
+    if isinstance(msg, PlatformState):
+        return "platform_state"
+    if isinstance(msg, TactileFrame | TactileCompact):
+        return "tactile"
+    return None
 
 
 def without_motion(msg: _D) -> _D:

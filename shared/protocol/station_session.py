@@ -51,7 +51,6 @@ from shared.protocol.messages import (
     Error,
     Hello,
     Message,
-    PlatformState,
     Stats,
     StreamPolicy,
     Welcome,
@@ -168,9 +167,9 @@ class StationSession:
         #: encoded messages waiting for the relay (what waits when a connection is welcomed
         #: was queued while the link was down: it is dropped then, never delivered late)
         self.outbox: StreamQueue[bytes] = StreamQueue(send_queue_size)
-        #: the newest platform_state queued and its bytes: the message a newer one replaces
-        #: while those bytes still wait in the outbox (:func:`carry_motion`)
-        self._held_state: tuple[bytes, PlatformState] | None = None
+        #: per latest-wins stream, the newest message queued and its bytes: the message a
+        #: newer one replaces while those bytes still wait in the outbox (:func:`carry_motion`)
+        self._queued_latest: dict[str, tuple[bytes, Message]] = {}
         #: received messages waiting for the station
         self.inbox: StreamQueue[Message] = StreamQueue(receive_queue_size)
         self.welcome: Welcome | None = None
@@ -309,8 +308,8 @@ class StationSession:
         """Queue ``msg`` with its stream's policy.
 
         A latest-wins message replaces an unsent one of its type (counted in
-        ``stale_dropped_tx``); a ``platform_state`` that replaces one then travels as
-        :func:`~shared.protocol.carry_motion` makes it (it starts where the replaced one
+        ``stale_dropped_tx``) and then travels as :func:`~shared.protocol.carry_motion`
+        makes it (a ``platform_state`` or a tactile frame starts where the replaced one
         started). An ordered message is refused when the queue is full.
 
         Returns:
@@ -323,14 +322,13 @@ class StationSession:
         if msg.POLICY is not StreamPolicy.LATEST_WINS:
             payload = encode(msg, max_message_bytes=self.max_message_bytes)
             return msg if self.outbox.put_ordered(payload) else None
-        held = self._held_state
+        held = self._queued_latest.get(msg.TYPE)
         if held is not None and self.outbox.held(msg.TYPE) is held[0]:
             msg = carry_motion(held[1], msg)
         payload = encode(msg, max_message_bytes=self.max_message_bytes)
         if self.outbox.put_latest(msg.TYPE, payload) is not None:
             self.counters.stale_dropped_tx += 1
-        # only a platform_state is ever carried: keep no other message (nor its bytes)
-        self._held_state = (payload, msg) if isinstance(msg, PlatformState) else held
+        self._queued_latest[msg.TYPE] = (payload, msg)
         return msg
 
     def send_bye(self, reason: str) -> None:

@@ -12,7 +12,7 @@ from relay_server.session import Peer, Session
 from shared.errors import RoleTakenError
 from shared.protocol import ArmCommand, ArmState, Hop, PlatformState, TactileCompact
 from shared.protocol.peer_session import Outbox
-from tests.support import motion_of, motion_state
+from tests.support import motion_frame, motion_of, motion_state
 
 
 def make_peer(pid: int, role: str, limit: int = 4) -> Peer:
@@ -158,7 +158,8 @@ def test_through_a_latest_wins_slot_every_delivered_state_starts_at_the_last_del
         takes: list[bool]) -> None:
     # the station stamps each message with its predecessor's sample; whichever the relay's
     # slot replaces, what the remote gets names the sample of what it got before (the first
-    # delivered names none: the first message had none)
+    # delivered names the first message's sample, the known part of its wait, or none when
+    # it is the first message, which had none)
     session = Session("s", 64)
     local, remote = make_peer(1, "local"), make_peer(2, "remote")
     session.join(local)
@@ -173,7 +174,7 @@ def test_through_a_latest_wins_slot_every_delivered_state_starts_at_the_last_del
             delivered += [p.message for p in remote.outbox.take()
                           if isinstance(p.message, PlatformState)]
     assert delivered and delivered[-1].seq == len(takes)
-    assert motion_of(delivered[0]) is None
+    assert motion_of(delivered[0]) == (None if delivered[0].seq == 1 else 1_000)
     for before, after in itertools.pairwise(delivered):
         assert motion_of(after) == before.ts_us
 
@@ -209,28 +210,36 @@ def test_a_carried_replacement_is_encoded_anew_not_sent_as_received() -> None:
     assert pending.wire is not None and decode(pending.wire.data) == fourth
 
 
-def test_a_tactile_frame_that_replaces_one_keeps_its_own_stamps_and_bytes() -> None:
-    # a frame carries the stamps of the state it answers; the remote answers only some
-    # states, so a frame the relay replaces must not hand its state's start to the next
+def test_a_tactile_frame_that_replaces_one_starts_where_that_one_started() -> None:
+    # on the way back too: the local is first shown the replaced frame's movements by the
+    # frame that replaced it, encoded anew; compact deltas replace each other the same way
     import msgpack
-    import numpy as np
 
-    from shared.protocol import TactileFrame
     from shared.protocol.codec import decode, encode
     from shared.protocol.forward import locate_hops
+    from shared.protocol.tactile_codec import CodecSettings, TactileEncoder
 
     session = Session("s", 64)
     local, remote = make_peer(1, "local"), make_peer(2, "remote")
     session.join(local)
     session.join(remote)
-    layers = {"height_mm": np.zeros((4, 4), np.float32)}
-    frames = [TactileFrame(seq=seq, ts_us=seq * 10_000, layers=layers,
-                           hops=motion_state(seq, seq * 10_000 - 4_000, seq * 10_000).hops)
-              for seq in (1, 2)]
+    frames = [motion_frame(seq, seq * 10_000 - 4_000, seq * 10_000) for seq in (1, 2)]
     for frame in frames:
         data = encode(frame)
         session.route(remote, frame, frame.ts_us + 500,
                       wire=locate_hops(data, msgpack.unpackb(data)))
     (pending,) = local.outbox.take()
-    assert pending.wire is not None and decode(pending.wire.data) == frames[1]
-    assert motion_of(pending.message) == 16_000  # type: ignore[arg-type]
+    assert pending.wire is None and pending.message.seq == 2  # type: ignore[attr-defined]
+    assert motion_of(pending.message) == 6_000  # type: ignore[arg-type]
+    assert pending.message.hops[1:] == frames[1].hops[1:]  # type: ignore[attr-defined]
+    encoder = TactileEncoder(CodecSettings())
+    stream = [encoder.encode(motion_frame(seq, seq * 10_000 - 4_000, seq * 10_000))
+              for seq in (3, 4, 5)]
+    assert stream[0].key and not stream[1].key and not stream[2].key
+    for msg in stream:
+        data = encode(msg)
+        session.route(remote, msg, msg.ts_us + 500,
+                      wire=locate_hops(data, msgpack.unpackb(data)))
+    key, delta = local.outbox.take()
+    assert key.wire is not None and decode(key.wire.data) == stream[0]  # ordered, untouched
+    assert delta.message.seq == 5 and motion_of(delta.message) == 36_000  # type: ignore[attr-defined,arg-type]

@@ -16,8 +16,9 @@ from shared.motion_to_touch import (
     MotionToTouchLedger,
     trace_hops,
 )
-from shared.protocol import Hop, PlatformState, TactileFrame, carry_motion
-from tests.support import motion_state
+from shared.protocol import Hop, PlatformState, TactileFrame, carry_motion, carry_motion_hops
+from shared.protocol.tactile_codec import CodecSettings, TactileEncoder
+from tests.support import motion_frame, motion_of, motion_state
 
 # true times on the relay clock (us) of each stamp of one loop
 TRUE = [("local", "motion", -4_000), ("local", "capture", 0), ("relay", "relay_in", 10_000),
@@ -196,23 +197,66 @@ def test_a_replacement_starts_where_the_replaced_message_started() -> None:
     assert isinstance(carried, PlatformState)
     assert carried.hops == (Hop("local", "motion", 1_000), Hop("local", "capture", 3_000))
     assert carried.seq == 2 and carried.ts_us == 3_000
-    # the replaced one had no start (first of a session): neither has its successor now
-    carried = carry_motion(motion_state(1, None, 2_000), newer)
-    assert carried.hops == (Hop("local", "capture", 3_000),)
+    # the replaced one had no start (first of a session): the known part of its wait, from
+    # its capture, is kept (here that is the successor's own start: the very message)
+    assert carry_motion(motion_state(1, None, 2_000), newer) is newer
+    carried = carry_motion(motion_state(1, None, 1_500), newer)
+    assert carried.hops == (Hop("local", "motion", 1_500), Hop("local", "capture", 3_000))
     # a successor that its sender saw break the chain keeps what it has
     alone = motion_state(2, None, 3_000)
     assert carry_motion(motion_state(1, 1_000, 2_000), alone) is alone
     # nothing to change: the very message
     same = motion_state(2, 1_000, 3_000)
     assert carry_motion(motion_state(1, 1_000, 2_000), same) is same
-    # only a platform_state after a platform_state: a tactile frame keeps the stamps of the
-    # state it answers
-    layers = {"height_mm": np.zeros((2, 2), np.float32)}
-    frame = TactileFrame(seq=2, ts_us=3_000, layers=layers, hops=newer.hops)
-    assert carry_motion(TactileFrame(seq=1, ts_us=2_000, layers=layers,
-                                     hops=motion_state(1, 1_000, 2_000).hops), frame) is frame
-    assert carry_motion(motion_state(1, 1_000, 2_000), frame) is frame
 
+
+def test_a_tactile_frame_replaced_hands_its_start_on_to_a_tactile_frame_only() -> None:
+    frame = motion_frame(2, 2_000, 3_000)
+    carried = carry_motion(motion_frame(1, 1_000, 2_000), frame)
+    assert isinstance(carried, TactileFrame) and carried.seq == 2
+    assert carried.hops == (Hop("local", "motion", 1_000), *frame.hops[1:])
+    # either encoding: a compact frame replaced by a compact frame
+    encoder = TactileEncoder(CodecSettings())
+    compact = [encoder.encode(motion_frame(seq, 1_000 * seq, 1_000 * seq + 1_000))
+               for seq in (1, 2)]
+    assert motion_of(carry_motion(compact[0], compact[1])) == 1_000
+    # a frame after a state, a state after a frame: different streams, nothing changes
+    assert carry_motion(motion_state(1, 1_000, 2_000), frame) is frame
+    state = motion_state(2, 2_000, 3_000)
+    assert carry_motion(motion_frame(1, 1_000, 2_000), state) is state
+    # an idle frame (no platform stamps) shows nothing first: it hands nothing on and a
+    # successor to one keeps its own start; an idle successor takes nothing
+    idle = TactileFrame(seq=1, ts_us=2_500, layers=frame.layers, hops=frame.hops[-2:])
+    assert carry_motion(idle, frame) is frame
+    assert carry_motion(motion_frame(1, 1_000, 2_000), idle) is idle
+
+
+@given(st.lists(st.tuples(st.sampled_from(["motion", "capture", "relay_in", "sensor_frame"]),
+                          st.sampled_from(["local", "relay", "remote"]),
+                          st.integers(0, 10**9)), max_size=6),
+       st.lists(st.tuples(st.sampled_from(["motion", "capture", "relay_in", "sensor_frame"]),
+                          st.sampled_from(["local", "relay", "remote"]),
+                          st.integers(0, 10**9)), max_size=6))
+def test_carried_hops_change_only_the_motion_stamp(
+        replaced_raw: list[tuple[str, str, int]], newer_raw: list[tuple[str, str, int]]) -> None:
+    replaced = tuple(Hop(c, s, t) for s, c, t in replaced_raw)
+    newer = tuple(Hop(c, s, t) for s, c, t in newer_raw)
+    out = carry_motion_hops(replaced, newer)
+
+    def first(hops: tuple[Hop, ...], stage: str) -> int | None:
+        return next((h.t_us for h in hops if h.clock == "local" and h.stage == stage), None)
+
+    def others(hops: tuple[Hop, ...]) -> list[Hop]:
+        return [h for h in hops if not (h.clock == "local" and h.stage == "motion")]
+
+    theirs = first(replaced, "motion")
+    theirs = first(replaced, "capture") if theirs is None else theirs
+    if first(newer, "motion") is None or theirs is None or theirs == first(newer, "motion"):
+        assert out is newer  # the very tuple: nothing re-encoded
+    else:
+        assert out[0] == Hop("local", "motion", theirs)
+        assert others(out) == others(newer)  # every other stamp kept, in order
+        assert sum(h.clock == "local" and h.stage == "motion" for h in out) == 1
 
 
 def test_without_motion_drops_only_the_motion_stamp() -> None:

@@ -5,7 +5,6 @@ from __future__ import annotations
 import itertools
 from collections import Counter
 
-import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -22,6 +21,7 @@ from shared.protocol import (
     Stats,
     StreamPolicy,
     StreamQueue,
+    TactileCompact,
     TactileFrame,
     Welcome,
     decode,
@@ -48,7 +48,8 @@ from shared.protocol.station_session import (
     Welcomed,
     refusal_for_close_code,
 )
-from tests.support import motion_of, motion_state
+from shared.protocol.tactile_codec import CodecSettings, TactileEncoder
+from tests.support import motion_frame, motion_of, motion_state
 
 HELLO = Hello(role="local", session="lab1", token="t", name="n")
 WELCOME = Welcome(session="lab1", role="local", server_time_us=5, ping_interval_s=1.0,
@@ -280,7 +281,8 @@ def test_through_the_send_queue_every_written_state_starts_at_the_last_written(
         takes: list[bool]) -> None:
     # the uplink stamps each message with its predecessor's sample; whichever the station's
     # own latest-wins slot replaces, what is written names the sample of what was written
-    # before it (the first names none: the first message had none)
+    # before it (the first written names the first message's sample, the known part of its
+    # wait; none when it is the first message, which had none)
     station, _ = joined_pair()
     written: list[PlatformState] = []
     previous: int | None = None
@@ -292,12 +294,12 @@ def test_through_the_send_queue_every_written_state_starts_at_the_last_written(
             written += [m for m in (decode(d[HEADER.size:]) for d in pump(station, capture))
                         if isinstance(m, PlatformState)]
     assert written and written[-1].seq == len(takes)
-    assert motion_of(written[0]) is None
+    assert motion_of(written[0]) == (None if written[0].seq == 1 else 1_000)
     for before, after in itertools.pairwise(written):
         assert motion_of(after) == before.ts_us
 
 
-def test_the_send_queue_carries_only_a_replaced_unsent_platform_state() -> None:
+def test_the_send_queue_carries_a_replaced_unsent_state_or_frame() -> None:
     station, _ = joined_pair()
     assert station.send(motion_state(1, 1_000, 2_000))
     pump(station, 1)  # written: the next one keeps its own stamp
@@ -314,14 +316,16 @@ def test_the_send_queue_carries_only_a_replaced_unsent_platform_state() -> None:
     assert station.send(motion_state(6, None, 7_000))
     (data,) = pump(station, 3)
     assert motion_of(decode(data[HEADER.size:])) is None  # type: ignore[arg-type]
-    # tactile frames keep the stamps of the state they answer
-    layers = {"height_mm": np.zeros((4, 4), np.float32)}
+    # a tactile frame replaced unsent (the remote's queue) hands its start on too
     for seq in (1, 2):
-        assert station.send(TactileFrame(seq=seq, ts_us=seq * 10_000, layers=layers,
-                                         hops=motion_state(seq, seq * 10_000 - 4_000,
-                                                           seq * 10_000).hops))
+        assert station.send(motion_frame(seq, seq * 10_000 - 4_000, seq * 10_000))
     (data,) = pump(station, 4)
-    assert motion_of(decode(data[HEADER.size:])) == 16_000  # type: ignore[arg-type]
+    sent = decode(data[HEADER.size:])
+    assert isinstance(sent, TactileFrame) and sent.seq == 2 and motion_of(sent) == 6_000
+    # one written is not carried from
+    assert station.send(motion_frame(3, 26_000, 30_000))
+    (data,) = pump(station, 4)
+    assert motion_of(decode(data[HEADER.size:])) == 26_000  # type: ignore[arg-type]
     # a reconnect drops what was queued: nothing is carried from it
     assert station.send(motion_state(7, 7_000, 8_000))
     assert station.connection_lost()
@@ -360,6 +364,21 @@ def test_the_inbox_carries_a_platform_state_replaced_unread() -> None:
     station.receive_data(frame(encode(motion_state(4, 4_000, 5_000))), 20)
     got = station.next_message()
     assert isinstance(got, PlatformState) and motion_of(got) == 4_000  # its predecessor was read
+
+
+def test_the_inbox_carries_a_tactile_frame_replaced_unread() -> None:
+    # the local station's inbox: a compact frame its reader never took is shown first by
+    # the newer one (the frames' own kind only: a state between them changes nothing)
+    station, _ = joined_pair()
+    encoder = TactileEncoder(CodecSettings())
+    for seq in (1, 2, 3):
+        station.receive_data(frame(encode(encoder.encode(
+            motion_frame(seq, 1_000 * seq, 1_000 * seq + 1_000)))), 10 + seq)
+    station.receive_data(frame(encode(motion_state(9, 7_000, 8_000))), 14)
+    got = station.next_message()
+    assert isinstance(got, TactileCompact) and got.seq == 3 and motion_of(got) == 1_000
+    got = station.next_message()
+    assert isinstance(got, PlatformState) and motion_of(got) == 7_000
 
 
 def test_ordered_queue_bound_refuses_and_keeps_order() -> None:
