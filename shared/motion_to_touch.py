@@ -42,9 +42,10 @@ unread in a latest-wins slot gives its successor its ``local.motion``, or its
 :func:`shared.protocol.carry_motion`); a successor without ``local.motion`` keeps none. On
 the way out that is a ``platform_state`` in the local station's send queue, the relay's queue
 to the remote or the remote station's inbox; on the way back a tactile frame in the remote
-station's send queue, the relay's queue to the local, the local station's inbox, its
-hand-over to the display process (a frame the busy child's socket did not take; not across a
-new child), that process's frame slot, or the display loop's frame not yet rendered. The
+station's send queue, the relay's queue to the local, the local station's inbox, or the
+display loop's frame slot while the loop renders. Not across an outage of the touch path:
+frames replaced while the pins are safe or the loop has not begun, and frames the display
+process's full socket did not take (a child not reading), hand nothing on. The
 remote station's frames come at ``frame_rate_hz`` (60-80), a few times slower than the
 states: every state it received since the last capture that gave a frame (passed over, or
 refused as too old or unusable: positions are absolute, so a newer state shows their

@@ -59,7 +59,7 @@ from shared.errors import (
 )
 from shared.freshness import AgeVerdict, ClockView, judge_age
 from shared.motion_to_touch import MotionToTouchLedger
-from shared.protocol import Hop, TactileFrame, carry_motion, carry_motion_hops
+from shared.protocol import Hop, TactileFrame, carry_motion
 from shared.timebase import monotonic_s, now_us
 
 __all__ = ["SAFE_REASONS", "DisplayLoop", "DisplayLoopCounters", "FrameSlot", "LinkHealth",
@@ -300,10 +300,15 @@ class FrameSlot:
         self.prepare = prepare
         self.put_count = 0
         self.superseded = 0
+        #: the loop renders (set by it): a frame replaced meanwhile was late, and its
+        #: successor takes its start on; while the pins are safe or the loop has not begun,
+        #: the touch path is out, not slow, and the successor counts from its own start
+        self.rendering = False
 
     def put(self, frame: TactileFrame, rx_us: int) -> None:
-        """Offer a frame (replaces one the loop has not taken yet, counted; the newer frame
-        then starts where the replaced one started: :func:`~shared.protocol.carry_motion`)."""
+        """Offer a frame (replaces one the loop has not taken yet, counted; while the loop
+        renders, the newer frame then starts where the replaced one started:
+        :func:`~shared.protocol.carry_motion`)."""
         prepared: Any = None
         if self.prepare is not None:
             try:
@@ -311,9 +316,10 @@ class FrameSlot:
             except InputDataError as err:
                 prepared = err  # refused by the loop, which counts and reports it
         with self._lock:
-            if self._item is not None:  # never taken: this one shows first what it showed
+            if self._item is not None:
                 self.superseded += 1
-                frame = carry_motion(self._item[0], frame)
+                if self.rendering:  # never taken: this one shows first what it showed
+                    frame = carry_motion(self._item[0], frame)
             self._item = (frame, rx_us, prepared)
             self.put_count += 1
 
@@ -472,6 +478,8 @@ class DisplayLoop:
         old = self.pin_state
         if old.command is not command or old.safe_reason != safe_reason:
             self.pin_state = PinState(command, safe_reason, old.seq + 1)
+            if self.frames is not None:
+                self.frames.rendering = safe_reason is None and command is not None
 
     # ------------------------------------------------------------------ one iteration
 
@@ -497,11 +505,11 @@ class DisplayLoop:
         self._frame_stamp_us = frame.ts_us
         view = self.link.clock_view if self.link is not None else None
         self._frame_clock = None if view is None else view.relative("local", "remote", now_us())
-        hops = tuple(frame.hops)
-        if self._pending_hops is not None:  # never rendered: this one shows it first
+        if self._pending_hops is not None:  # never rendered: the pins were safe or the tick
+            # sent nothing (no sample, a refused render or send): not handed on, as in an
+            # outage (FrameSlot.rendering)
             self.counters.frames_superseded_unrendered += 1
-            hops = carry_motion_hops(self._pending_hops[0], hops)
-        self._pending_hops = (hops, scene.version)
+        self._pending_hops = (tuple(frame.hops), scene.version)
         if self.recorder is not None:
             self.recorder.add_frame(frame, rx_us)
         if self.frame_listener is not None:

@@ -78,7 +78,7 @@ from local_site.render.renderer import RenderStats
 from shared.errors import ConfigError
 from shared.freshness import ClockView
 from shared.motion_to_touch import MotionToTouchLedger
-from shared.protocol import Hop, TactileFrame, carry_motion
+from shared.protocol import Hop, TactileFrame
 from shared.timebase import monotonic_s, wall_anchor_ns
 
 __all__ = ["HEARTBEAT_S", "MAX_MESSAGE_BYTES", "NO_WORD", "SILENCE_S", "DisplayProcess",
@@ -230,7 +230,10 @@ class _RendererMirror:
 class _Frames:
     """The station's frame hand-over to the child (the ``FrameSlot`` it replaces: ``put``,
     ``put_count``, ``superseded``). Never waits: a frame the child's socket cannot take now
-    is dropped and counted as superseded."""
+    is dropped and counted as superseded. It hands no start on (unlike the frame slot while
+    the loop renders, ``shared.protocol.carry_motion``): the socket holds several frames, so
+    a full one means a child that has not read for several frame periods (starting, hung):
+    an outage of the touch path rather than a latency."""
 
     def __init__(self, owner: DisplayProcess) -> None:
         self._owner = owner
@@ -242,9 +245,6 @@ class _Frames:
         self._lock = threading.Lock()
         self._sent: collections.OrderedDict[tuple[int, int], TactileFrame] = \
             collections.OrderedDict()
-        #: the last frame the child's busy socket did not take: the next frame handed over
-        #: shows first what it showed (:func:`~shared.protocol.carry_motion`)
-        self._unsent: tuple[socket.socket, TactileFrame] | None = None
 
     @property
     def superseded(self) -> int:
@@ -255,9 +255,6 @@ class _Frames:
     def put(self, frame: TactileFrame, rx_us: int) -> None:
         self.put_count += 1
         sock = self.sock
-        unsent, self._unsent = self._unsent, None
-        if unsent is not None and unsent[0] is sock:  # a new child counts afresh
-            frame = carry_motion(unsent[1], frame)
         key = (frame.seq, rx_us)
         # kept before it is sent: the child's report that accepts it may come at once
         with self._lock:
@@ -272,10 +269,6 @@ class _Frames:
             with self._lock:
                 self._sent.pop(key, None)
             self.dropped += 1
-            if sock is not None and isinstance(err, BlockingIOError):
-                # only for the same child: the frames a new one takes count from their own
-                # start, as the remote's frame chain ends at a reconnect
-                self._unsent = (sock, frame)
             if err.errno == errno.EMSGSIZE:
                 self.too_large += 1
                 if self.too_large == 1:

@@ -404,9 +404,8 @@ def carry_motion(replaced: Message, newer: _M) -> _M:
 
     The slots: on the way out, the local station's send queue, the relay's queue to the
     remote and the remote station's inbox (``platform_state``); on the way back, the remote
-    station's send queue, the relay's queue to the local, the local station's inbox, its
-    hand-over to the display process, that process's frame slot and the display loop's
-    frame not yet rendered (tactile frames).
+    station's send queue, the relay's queue to the local, the local station's inbox and the
+    display loop's frame slot while the loop renders (tactile frames).
 
     Only a message after one of its own kind changes (a ``platform_state`` after a
     ``platform_state``, a tactile frame after a tactile frame, either encoding): the

@@ -1,5 +1,6 @@
-"""A tactile frame replaced before the pins showed it hands its start on (``carry_motion``):
-in the display process's frame slot and as the loop's frame accepted but not yet rendered."""
+"""A tactile frame replaced in the display loop's frame slot hands its start on
+(``carry_motion``) while the loop renders; while the pins are safe the touch path is out,
+not slow, and nothing is handed on."""
 
 from __future__ import annotations
 
@@ -36,8 +37,9 @@ class _Ledger(MotionToTouchLedger):
         return super().add_hops(hops, offsets_us)
 
 
-def test_a_frame_the_loop_never_took_hands_its_start_on() -> None:
+def test_a_frame_the_loop_never_took_hands_its_start_on_while_the_loop_renders() -> None:
     slot = FrameSlot()
+    slot.rendering = True
     for seq in (1, 2, 3):
         slot.put(motion_frame(seq, seq * 10_000 - 4_000, seq * 10_000), seq)
     item = slot.take()
@@ -48,9 +50,15 @@ def test_a_frame_the_loop_never_took_hands_its_start_on() -> None:
     slot.put(motion_frame(4, 36_000, 40_000), 4)
     item = slot.take()
     assert item is not None and motion_of(item[0]) == 36_000  # its predecessor was taken
+    # the loop not rendering (not begun, or the pins safe): the touch path is out, not slow
+    slot.rendering = False
+    for seq in (5, 6):
+        slot.put(motion_frame(seq, seq * 10_000 - 4_000, seq * 10_000), seq)
+    item = slot.take()
+    assert item is not None and slot.superseded == 3 and motion_of(item[0]) == 56_000
 
 
-def test_a_frame_accepted_but_never_rendered_hands_its_start_on() -> None:
+def test_the_loop_lets_its_slot_carry_only_while_it_renders() -> None:
     platform = {"ok": False}
     ledger = _Ledger()
     slot = FrameSlot()
@@ -59,22 +67,30 @@ def test_a_frame_accepted_but_never_rendered_hands_its_start_on() -> None:
                        frames=slot, link=FakeLink(), stale_timeout_s=10.0, ledger=ledger)
     try:
         t = now_us()
-        # the platform is lost: each frame is accepted, the pins stay safe, nothing rendered
-        for seq, back_ms in ((1, 60), (2, 40)):
+        # the platform is lost: each frame is accepted, the pins stay safe, nothing is
+        # rendered, and nothing is handed on (an outage, not a latency)
+        for seq, back_ms in ((1, 80), (2, 70)):
             slot.put(_frame(seq, t - back_ms * 1_000, t - (back_ms - 10) * 1_000), t)
             loop.tick()
-        assert loop.counters.frames_accepted == 2 and loop.counters.frames_rendered == 0
-        assert loop.counters.frames_superseded_unrendered == 1 and ledger.hops == []
+            assert not slot.rendering
+        slot.put(_frame(3, t - 60_000, t - 50_000), t)
+        slot.put(_frame(4, t - 50_000, t - 40_000), t)  # replaced in the slot meanwhile
+        assert loop.counters.frames_accepted == 2 and ledger.hops == []
         platform["ok"] = True
         loop.tick()
-        assert loop.counters.frames_rendered == 1
-        (hops,) = ledger.hops
-        assert hops[0] == Hop("local", "motion", t - 60_000)  # the first frame's start
-        assert hops[1:-1] == _frame(2, t - 40_000, t - 30_000).hops[1:]
-        assert hops[-1].stage == "rendered"
-        # the next frame follows a rendered one: its own start
-        slot.put(_frame(3, t - 20_000, t - 10_000), now_us())
+        counters = loop.counters
+        assert counters.frames_rendered == 1 and counters.frames_superseded_unrendered == 2
+        assert slot.rendering
+        assert [h[0].t_us for h in ledger.hops] == [t - 50_000]  # its own start
+        # rendering: two frames before the next tick, the second shows the first's first
+        slot.put(_frame(5, t - 40_000, t - 30_000), t)
+        slot.put(_frame(6, t - 30_000, t - 20_000), t)
         loop.tick()
-        assert [h[0].t_us for h in ledger.hops] == [t - 60_000, t - 20_000]
+        assert [h[0].t_us for h in ledger.hops] == [t - 50_000, t - 40_000]
+        assert ledger.hops[-1][1:-1] == _frame(6, t - 30_000, t - 20_000).hops[1:]
+        assert ledger.hops[-1][-1].stage == "rendered"
+        platform["ok"] = False  # lost again: the slot stops carrying at once
+        loop.tick()
+        assert not slot.rendering and loop.safe_reason == "platform_lost"
     finally:
         loop.display.disconnect()

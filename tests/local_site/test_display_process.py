@@ -57,7 +57,7 @@ from tests.local_site.agent_support import (
     wait_for,
 )
 from tests.relay_server.relay_clients import running_relay
-from tests.support import motion_frame, motion_of, scaled, wait_until
+from tests.support import scaled, wait_until
 
 # ---------------------------------------------------------------------- the parts
 
@@ -162,41 +162,6 @@ def test_a_frame_too_large_to_hand_over_is_counted_not_raised() -> None:
     finally:
         ours.close()
         theirs.close()
-
-
-def test_a_frame_the_busy_child_did_not_take_hands_its_start_on_to_the_next() -> None:
-    # the hand-over is latest-wins too: the next frame handed to the same child shows the
-    # dropped one's movements first; a frame for a new child (restarted) counts afresh
-    class Sock:
-        def __init__(self, fail: list[type[OSError]]) -> None:
-            self.fail = fail
-            self.sent: list[TactileFrame] = []
-
-        def send(self, data: bytes, flags: int = 0) -> int:
-            if self.fail:
-                raise self.fail.pop(0)()
-            self.sent.append(pickle.loads(data)[1])
-            return len(data)
-
-    frames = _unserved().frames
-    frames.sock = busy = Sock([BlockingIOError, BlockingIOError])  # type: ignore[assignment]
-    for seq in (1, 2, 3):
-        frames.put(motion_frame(seq, seq * 10_000 - 4_000, seq * 10_000), seq)
-    assert frames.dropped == 2 and [motion_of(f) for f in busy.sent] == [6_000]
-    assert frames.accepted(3, 3) == busy.sent[0]  # what is recorded: the frame as handed over
-    frames.put(motion_frame(4, 36_000, 40_000), 4)
-    assert motion_of(busy.sent[-1]) == 36_000  # its predecessor was taken
-    busy.fail = [BlockingIOError]
-    frames.put(motion_frame(5, 46_000, 50_000), 5)  # dropped, then a new child
-    assert frames.dropped == 3
-    frames.sock = fresh = Sock([])  # type: ignore[assignment]
-    frames.put(motion_frame(6, 56_000, 60_000), 6)
-    assert [motion_of(f) for f in fresh.sent] == [56_000]
-    # a child that is gone (not busy) takes nothing and is handed nothing on
-    frames.sock = gone = Sock([BrokenPipeError])  # type: ignore[assignment]
-    frames.put(motion_frame(7, 66_000, 70_000), 7)
-    frames.put(motion_frame(8, 76_000, 80_000), 8)
-    assert [motion_of(f) for f in gone.sent] == [76_000]
 
 
 def test_the_process_needs_a_platform_read_in_a_process_and_json_options() -> None:
