@@ -124,6 +124,25 @@ class CpuSnapshot:
     #: of the thread or a preemption, and on this machine each costs tens of us of CPU
     #: (``benchmarks/bench_wakeup_cost.py``)
     switches: dict[int, dict[int, int]] = field(default_factory=dict)
+    #: the whole machine's CPU seconds so far by kind (``/proc/stat``): ``busy`` (user,
+    #: nice, system, irq, softirq) and ``steal`` (this VM's CPUs ready to run while the
+    #: host ran something else); None where the file cannot be read
+    host: dict[str, float] | None = None
+
+
+def host_cpu_s(path: str = "/proc/stat") -> dict[str, float] | None:
+    """The machine's CPU seconds so far, ``busy`` and ``steal`` (``/proc/stat``'s first
+    line); None where it cannot be read."""
+    try:
+        with open(path) as f:
+            fields = [int(v) for v in f.readline().split()[1:]]
+    except (OSError, ValueError):
+        return None
+    if len(fields) < 8:
+        return None
+    user, nice, system, _idle, _iowait, irq, softirq, steal = fields[:8]
+    return {"busy": (user + nice + system + irq + softirq) / _CLK_TCK,
+            "steal": steal / _CLK_TCK}
 
 
 def _task_figures(pid: int, tid: int) -> tuple[float, int] | None:
@@ -147,7 +166,7 @@ _SWITCHES = re.compile(r"^(?:non)?voluntary_ctxt_switches:\s+(\d+)$", re.MULTILI
 
 def snapshot(pids: list[int]) -> CpuSnapshot:
     """Read the CPU time and context switches of every thread of ``pids`` now."""
-    snap = CpuSnapshot(time.perf_counter())
+    snap = CpuSnapshot(time.perf_counter(), host=host_cpu_s())
     for pid in pids:
         per: dict[int, float] = {}
         sw: dict[int, int] = {}
@@ -462,8 +481,18 @@ def _figures(win: _Window, report: dict[str, Any], load_start: tuple[float, floa
             stages[name]["(threads without busy samples)"] = unattributed / wall
         top[name] = _top_functions(text) if text else []
     local = report.get("local", {})
+    h0, h1 = win.start.host, win.end.host
+    host = None if h0 is None or h1 is None else {
+        # all this machine's work over the window, the demo's included (``others``: the
+        # rest, this harness and a profiler too), and the CPU time the host took from it:
+        # what else ran, which the load average does not tell
+        "busy_cores": (h1["busy"] - h0["busy"]) / wall,
+        "others_cores": (h1["busy"] - h0["busy"]) / wall - sum(
+            p["cores"] for p in processes.values()),
+        "steal_cores": (h1["steal"] - h0["steal"]) / wall}
     return {
         "wall_s": wall, "nproc": os.cpu_count(), "load_start": load_start,
+        "host": host,
         "load_end": os.getloadavg(), "profiler": "py-spy" if pyspy else "none",
         "processes": processes, "threads": threads,
         "stages": {k: dict(v) for k, v in stages.items()},
