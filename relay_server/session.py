@@ -18,7 +18,14 @@ from typing import Any, Protocol
 from shared.clocksync import ClockFilter
 from shared.errors import RoleTakenError
 from shared.ledger import LatencyLedger, LedgerSnapshot, merge_snapshots
-from shared.protocol import DataMessage, Error, StreamPolicy, TactileCompact, carry_motion
+from shared.protocol import (
+    DataMessage,
+    Error,
+    StreamPolicy,
+    TactileCompact,
+    carry_motion,
+    is_latest_wins,
+)
 from shared.protocol.forward import WireMessage
 from shared.protocol.peer_session import Outbox, Pending
 
@@ -278,8 +285,7 @@ class Session:
             return None
         # a compact key frame is never superseded in a latest-wins slot by the deltas that
         # need it: it goes in the ordered queue
-        latest = msg.POLICY is StreamPolicy.LATEST_WINS and not (
-            isinstance(msg, TactileCompact) and msg.key)
+        latest = is_latest_wins(msg)
         receiver = self.stations.get(_OTHER[sender_role])
         if receiver is None:
             ledger.record_drop("no_peer")
@@ -345,8 +351,7 @@ class Session:
         if not self.observers:
             return
         key = f"{direction.name}:{msg.TYPE}"
-        if msg.POLICY is StreamPolicy.LATEST_WINS and not (
-                isinstance(msg, TactileCompact) and msg.key):
+        if is_latest_wins(msg):
             for obs in self.observers.values():
                 self._key_frame_first(direction.name, msg, obs)
                 if obs.outbox.put_latest(key, msg, t_in_us, None, mid_hops, wire) is not None:

@@ -333,7 +333,8 @@ class StationLink:
         ``send_queue_size`` are already pending. Messages still queued when the link comes
         back (sent while it was down) are dropped then, never sent late (counted in
         ``dropped_on_reconnect``). The tap records the message as it was queued (a
-        ``platform_state`` that replaced an unsent one carries that one's motion stamp).
+        ``platform_state`` or tactile frame that replaced an unsent one carries that one's
+        motion stamp: :func:`~shared.protocol.carry_motion`).
 
         Raises:
             LocalProtocolError: ``msg`` is invalid or larger than ``max_message_bytes``.

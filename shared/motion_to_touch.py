@@ -43,25 +43,29 @@ unread in a latest-wins slot gives its successor its ``local.motion``, or its
 the way out that is a ``platform_state`` in the local station's send queue, the relay's queue
 to the remote or the remote station's inbox; on the way back a tactile frame in the remote
 station's send queue, the relay's queue to the local, the local station's inbox, or the
-display loop's frame slot while the loop renders. Not across an outage of the touch path:
-frames replaced while the pins are safe or the loop has not begun, and frames the display
-process's full socket did not take (a child not reading), hand nothing on. The
-remote station's frames come at ``frame_rate_hz`` (60-80), a few times slower than the
-states: every state it received since the last capture that gave a frame (passed over, or
+display loop's frame slot while the loop renders. Not across what is taken for an outage
+of the touch path: a start more than a second (``MOTION_CARRY_MAX_US``) before the
+successor's own is not handed on, nor the start of a frame replaced while the pins are
+safe, the display is being reopened or the loop has not begun, nor that of one the display
+process's full socket did not take (a child not reading). A ``tactile_compact`` key frame
+is never replaced (every queue keeps it in order for the deltas that need it). The remote
+station's frames come at ``frame_rate_hz`` (60-80), a few times slower than the states:
+every state it received since the last capture that gave a frame (passed over, or
 refused as too old or unusable: positions are absolute, so a newer state shows their
 movements too) is first shown by the next frame, which starts where the first of them
 started (``RemoteStation._frame_source``). A capture that gives no frame (a streaming camera
 with no new image yet, a sensor error) hands that chain back; states refused after the state
 captured are left for the next frame; a reconnect of the remote's link, and a first state
 that reached the remote more than a second before the capture (an outage of the touch path,
-not a latency), end it. A frame taken with no command newer than the last frame's (idle)
-shows nothing first: it carries no platform stamps and is not counted end to end.
-``uplink_sampling`` is therefore the whole wait from the earliest movement to the sample the
-frame answers: the send period plus every state passed over (by the frame schedule, mostly).
-No gap limit applies to the slots' carries, so a state held in a stalled send queue counts
-its stall. A tactile frame that is refused rather than replaced (a compact delta without its
-key frame, a frame the display loop rejects) and one whose successor is idle hand nothing on:
-their movements are not counted (not built).
+not a latency), end it; states the remote drops before their age can be judged (its clock
+offsets not known yet) start none. A frame taken with no command newer than the last
+frame's (idle) shows nothing first: it carries no platform stamps and is not counted end to
+end. ``uplink_sampling`` is therefore the whole wait from the earliest movement to the sample
+the frame answers: the send period plus every state passed over (by the frame schedule,
+mostly), plus, for a frame that replaced another on the way back, the frames between them.
+A tactile frame that is refused rather than replaced (a compact delta without its key
+frame, a frame the display loop rejects), one replaced while the pins are safe, and one
+whose successor is idle hand nothing on: their movements are not counted (not built).
 The stages of a frame are counted only when every clock among its stamps has a known offset
 (the remote station's offset reaches the local station a few seconds after joining) and every
 pair of consecutive stamps is a documented stage: such a frame is **aligned**. The others are

@@ -717,6 +717,8 @@ class DisplayLoop:
 
     def _display_failed(self, err: DeviceError, stop: Callable[[float], bool]) -> bool:
         self.counters.display_errors += 1
+        if self.frames is not None:  # nothing renders until the display is back: an outage
+            self.frames.rendering = False
         log.error("display failed: %s; reopening with backoff", err)
         try:
             self.display.disconnect()

@@ -54,6 +54,7 @@ from shared.client import LinkCounters
 from shared.errors import InputDataError
 from shared.freshness import ClockView
 from shared.protocol.messages import (
+    MOTION_CARRY_MAX_US,
     ArmCommand,
     Message,
     PlatformState,
@@ -166,8 +167,9 @@ _COMMAND_GAP_MAX_S = 0.1
 
 #: a frame whose first unshown state came longer ago than this ends an outage of the touch
 #: path (a sensor or pipeline stall): it counts from its own state's sample, not the outage
-#: (the loaded tails measured so far stay well below it, 0.16-0.45 s at worst)
-_CHAIN_MAX_S = 1.0
+#: (the loaded tails measured so far stay well below it, 0.16-0.45 s at worst); the same
+#: bound as a latest-wins slot's carry (:data:`~shared.protocol.MOTION_CARRY_MAX_US`)
+_CHAIN_MAX_S = MOTION_CARRY_MAX_US / 1e6
 
 
 @dataclass(frozen=True, slots=True)
@@ -322,20 +324,20 @@ class RemoteStation:
             (clock offsets unknown, or an invalid position).
         """
         self.counters.platform_states += 1
-        connects = self.link.counters.connects
-        joined = _Chain(state, connects, monotonic_s())
-        if self._chain is None or self._chain.connects != connects:
-            self._chain = joined
-        if self._after_latest is None or self._after_latest.connects != connects:
-            self._after_latest = joined
         clock = command_clock(self.link.clock_view)
-        if clock is None:
+        if clock is None:  # the touch path is not up yet (or no longer): no chain starts
             self.counters.platform_dropped_no_clock += 1
             if not self._warned_no_clock:
                 log.warning("clock offsets not reported by the relay yet: platform states "
                             "are dropped until their age can be checked")
                 self._warned_no_clock = True
             return None
+        connects = self.link.counters.connects
+        joined = _Chain(state, connects, monotonic_s())
+        if self._chain is None or self._chain.connects != connects:
+            self._chain = joined
+        if self._after_latest is None or self._after_latest.connects != connects:
+            self._after_latest = joined
         try:
             target = self.forward(state.position_mm)
             result = self.safe_arm.move(tuple(float(v) for v in target),

@@ -44,6 +44,7 @@ __all__ = [
     "LAYER_RANGES",
     "MAX_HOPS",
     "MESSAGE_TYPES",
+    "MOTION_CARRY_MAX_US",
     "ROLES",
     "SESSION_ID_PATTERN",
     "ArmCommand",
@@ -63,8 +64,10 @@ __all__ = [
     "TactileCompact",
     "TactileFrame",
     "Welcome",
+    "carried_kind",
     "carry_motion",
     "carry_motion_hops",
+    "is_latest_wins",
     "without_motion",
 ]
 
@@ -397,6 +400,10 @@ class PlatformState(DataMessage):
 _M = TypeVar("_M", bound=Message)
 _D = TypeVar("_D", bound=DataMessage)
 
+#: the longest wait :func:`carry_motion_hops` hands on (us); the remote station's frame
+#: chain ends after as long (``RemoteStation._frame_source``): longer is an outage
+MOTION_CARRY_MAX_US = 1_000_000
+
 
 def carry_motion(replaced: Message, newer: _M) -> _M:
     """``newer`` as it must travel when it replaces ``replaced`` unsent or unread in a
@@ -413,8 +420,8 @@ def carry_motion(replaced: Message, newer: _M) -> _M:
     starts where ``replaced`` started (:func:`carry_motion_hops`). Any other pair, and a
     ``newer`` whose stamps would not change, is returned as it is.
     """
-    kind = _carried_kind(newer)
-    if kind is None or kind != _carried_kind(replaced) or not isinstance(newer, DataMessage) \
+    kind = carried_kind(newer)
+    if kind is None or kind != carried_kind(replaced) or not isinstance(newer, DataMessage) \
             or not isinstance(replaced, DataMessage):
         return newer
     hops = carry_motion_hops(replaced.hops, newer.hops)
@@ -427,28 +434,40 @@ def carry_motion_hops(replaced: Sequence[Hop], newer: tuple[Hop, ...]) -> tuple[
 
     ``newer``'s ``local.motion`` stamp (``shared/motion_to_touch.py``) becomes
     ``replaced``'s ``local.motion``, or, when it had none (the first of a link session, or
-    after a break), its ``local.capture``: the known part of its wait. A ``newer`` without
-    ``local.motion`` (its sender saw the chain broken: a new link session, a skipped sample,
-    a platform outage; or an idle tactile frame, which shows nothing first) and a
-    ``replaced`` with neither stamp (an idle frame) leave ``newer`` as it is: the very tuple.
+    after a break), its ``local.capture``: the known part of its wait. Only an earlier start
+    is taken, and none more than :data:`MOTION_CARRY_MAX_US` before ``newer``'s own: a
+    longer wait is an outage of the touch path (a stalled queue, a reconnect), not a
+    latency. A ``newer`` without ``local.motion`` (its sender saw the chain broken: a new
+    link session, a skipped sample, a platform outage; or an idle tactile frame, which shows
+    nothing first) and a ``replaced`` with neither stamp (an idle frame) leave ``newer`` as
+    it is: the very tuple.
     """
     mine = next((h for h in newer if _is_motion(h)), None)
     if mine is None:
         return newer
     theirs = next((h for h in replaced if _is_motion(h)), None) or next(
         (h for h in replaced if h.stage == "capture" and h.clock == "local"), None)
-    if theirs is None or theirs.t_us == mine.t_us:
+    if theirs is None or not 0 < mine.t_us - theirs.t_us <= MOTION_CARRY_MAX_US:
         return newer
     return (Hop("local", "motion", theirs.t_us), *(h for h in newer if not _is_motion(h)))
 
 
-def _carried_kind(msg: Message) -> str | None:
-    """What :func:`carry_motion` treats as one kind of message (None: never carried)."""
+def carried_kind(msg: Message) -> str | None:
+    """What :func:`carry_motion` treats as one kind of message (None: never carried):
+    ``platform_state``, or ``tactile`` for either encoding of a tactile frame."""
     if isinstance(msg, PlatformState):
         return "platform_state"
     if isinstance(msg, TactileFrame | TactileCompact):
         return "tactile"
     return None
+
+
+def is_latest_wins(msg: Message) -> bool:
+    """Whether ``msg`` goes in its stream's latest-wins slot (a newer one may replace it
+    unsent or unread). A ``tactile_compact`` key frame never does, although its stream is
+    latest-wins: the deltas after it need it, so every queue keeps it in order."""
+    return msg.POLICY is StreamPolicy.LATEST_WINS and not (
+        isinstance(msg, TactileCompact) and msg.key)
 
 
 def without_motion(msg: _D) -> _D:

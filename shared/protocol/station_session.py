@@ -52,9 +52,10 @@ from shared.protocol.messages import (
     Hello,
     Message,
     Stats,
-    StreamPolicy,
     Welcome,
+    carried_kind,
     carry_motion,
+    is_latest_wins,
 )
 from shared.protocol.queues import StreamQueue
 
@@ -167,8 +168,9 @@ class StationSession:
         #: encoded messages waiting for the relay (what waits when a connection is welcomed
         #: was queued while the link was down: it is dropped then, never delivered late)
         self.outbox: StreamQueue[bytes] = StreamQueue(send_queue_size)
-        #: per latest-wins stream, the newest message queued and its bytes: the message a
-        #: newer one replaces while those bytes still wait in the outbox (:func:`carry_motion`)
+        #: per carried stream (:func:`carried_kind`), the newest message queued and its
+        #: bytes: the message a newer one replaces while those bytes still wait in the
+        #: outbox (:func:`carry_motion`)
         self._queued_latest: dict[str, tuple[bytes, Message]] = {}
         #: received messages waiting for the station
         self.inbox: StreamQueue[Message] = StreamQueue(receive_queue_size)
@@ -284,7 +286,7 @@ class StationSession:
         elif isinstance(msg, Error) and log.isEnabledFor(logging.DEBUG):
             log.debug("relay error: %s: %s", msg.code, msg.message)
         self.counters.messages_received += 1
-        if msg.POLICY is StreamPolicy.LATEST_WINS:
+        if is_latest_wins(msg):
             held = self.inbox.held(msg.TYPE)
             if held is not None:  # never read: the newer one shows first what it showed
                 msg = carry_motion(held, msg)
@@ -310,7 +312,8 @@ class StationSession:
         A latest-wins message replaces an unsent one of its type (counted in
         ``stale_dropped_tx``) and then travels as :func:`~shared.protocol.carry_motion`
         makes it (a ``platform_state`` or a tactile frame starts where the replaced one
-        started). An ordered message is refused when the queue is full.
+        started). An ordered message, and a ``tactile_compact`` key frame
+        (:func:`~shared.protocol.is_latest_wins`), is refused when the queue is full.
 
         Returns:
             The message as it was queued (what a recording of the link must show), or None,
@@ -319,7 +322,7 @@ class StationSession:
         Raises:
             LocalProtocolError: ``msg`` is invalid or larger than ``max_message_bytes``.
         """
-        if msg.POLICY is not StreamPolicy.LATEST_WINS:
+        if not is_latest_wins(msg):
             payload = encode(msg, max_message_bytes=self.max_message_bytes)
             return msg if self.outbox.put_ordered(payload) else None
         held = self._queued_latest.get(msg.TYPE)
@@ -328,7 +331,8 @@ class StationSession:
         payload = encode(msg, max_message_bytes=self.max_message_bytes)
         if self.outbox.put_latest(msg.TYPE, payload) is not None:
             self.counters.stale_dropped_tx += 1
-        self._queued_latest[msg.TYPE] = (payload, msg)
+        if carried_kind(msg) is not None:  # only these are ever carried: keep no other
+            self._queued_latest[msg.TYPE] = (payload, msg)
         return msg
 
     def send_bye(self, reason: str) -> None:

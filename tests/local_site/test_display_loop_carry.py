@@ -12,6 +12,7 @@ from local_site.agent.display_loop import DisplayLoop, FrameSlot
 from local_site.devices import open_display
 from local_site.render import Renderer
 from local_site.scenes import TactileFrameScene
+from shared.errors import DeviceError
 from shared.motion_to_touch import MotionToTouchLedger, StageTrace
 from shared.protocol import Hop, TactileFrame
 from shared.timebase import now_us
@@ -92,5 +93,13 @@ def test_the_loop_lets_its_slot_carry_only_while_it_renders() -> None:
         platform["ok"] = False  # lost again: the slot stops carrying at once
         loop.tick()
         assert not slot.rendering and loop.safe_reason == "platform_lost"
+        platform["ok"] = True
+        slot.put(_frame(7, t - 20_000, t - 10_000), now_us())
+        loop.tick()
+        assert slot.rendering and loop.safe_reason is None
+        # the display fails: nothing renders until it is reopened (the runner's path; the
+        # pins keep their last command meanwhile, so only this tells the slot)
+        assert not loop._display_failed(DeviceError("unplugged"), stop=lambda _s: True)
+        assert not slot.rendering
     finally:
         loop.display.disconnect()

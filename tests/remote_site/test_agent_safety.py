@@ -543,13 +543,17 @@ def test_the_motion_chain_through_refusals_failed_captures_reconnects_and_outage
     station = make_station(link, realtime=False)
     states = [_stamped(0, None)]
 
-    def offer(refused: bool = False) -> PlatformState:
-        """The next state, stamped with its predecessor's sample (refused: no clock offset)."""
-        states.append(_stamped(len(states), states[-1].ts_us))
-        link.offsets = {"local": None if refused else 0, "remote": 0}
-        result = station.apply_platform_state(states[-1])
-        assert (result is None) == refused
-        return states[-1]
+    def offer(refused: bool = False, no_clock: bool = False) -> PlatformState:
+        """The next state, stamped with its predecessor's sample (refused: unusable, its
+        position not finite; no_clock: dropped before its age can be judged)."""
+        state = _stamped(len(states), states[-1].ts_us)
+        if refused:
+            state = dataclasses.replace(state, position_mm=(float("nan"), 0.0, 0.0))
+        states.append(state)
+        link.offsets = {"local": None if no_clock else 0, "remote": 0}
+        result = station.apply_platform_state(state)
+        assert (result is None) == (refused or no_clock)
+        return state
 
     def capture() -> tuple[AppliedCommand | None, Any]:
         return station._frame_source(station.latest)
@@ -618,5 +622,14 @@ def test_the_motion_chain_through_refusals_failed_captures_reconnects_and_outage
         assert start_of(source) is None
         assert source is not None and source.state.hops[0] == Hop("local", "capture",
                                                                   states[14].ts_us)
+        station._answered = station.latest
+        # states dropped before their age can be judged (no clock offsets: the touch path
+        # is not up) start no chain: the next frame counts from the first one used
+        offer(no_clock=True)  # 15
+        offer(no_clock=True)  # 16
+        offer()  # 17
+        source, _ = capture()
+        assert source is not None and source.state.seq == 17
+        assert start_of(source) == states[16].ts_us  # its own start, not 15's
     finally:
         close_station(station)

@@ -367,18 +367,45 @@ def test_the_inbox_carries_a_platform_state_replaced_unread() -> None:
 
 
 def test_the_inbox_carries_a_tactile_frame_replaced_unread() -> None:
-    # the local station's inbox: a compact frame its reader never took is shown first by
-    # the newer one (the frames' own kind only: a state between them changes nothing)
+    # the local station's inbox: a compact delta its reader never took is shown first by
+    # the newer one; a state arriving between them (another stream) changes nothing
     station, _ = joined_pair()
     encoder = TactileEncoder(CodecSettings())
-    for seq in (1, 2, 3):
-        station.receive_data(frame(encode(encoder.encode(
-            motion_frame(seq, 1_000 * seq, 1_000 * seq + 1_000)))), 10 + seq)
-    station.receive_data(frame(encode(motion_state(9, 7_000, 8_000))), 14)
+    key, *deltas = [encoder.encode(motion_frame(seq, 1_000 * seq, 1_000 * seq + 1_000))
+                    for seq in (1, 2, 3)]
+    assert key.key and not any(d.key for d in deltas)
+    station.receive_data(frame(encode(key)), 10)
     got = station.next_message()
-    assert isinstance(got, TactileCompact) and got.seq == 3 and motion_of(got) == 1_000
-    got = station.next_message()
+    assert isinstance(got, TactileCompact) and got.key and got.seq == 1
+    station.receive_data(frame(encode(deltas[0])), 11)
+    station.receive_data(frame(encode(motion_state(9, 7_000, 8_000))), 12)
+    station.receive_data(frame(encode(deltas[1])), 13)
+    got = station.next_message()  # the replacement takes its own place in arrival order
     assert isinstance(got, PlatformState) and motion_of(got) == 7_000
+    got = station.next_message()
+    assert isinstance(got, TactileCompact) and got.seq == 3 and motion_of(got) == 2_000
+
+
+def test_a_compact_key_frame_is_never_replaced_by_its_deltas() -> None:
+    # the deltas need it: the inbox and the send queue keep it in order, as the relay does
+    # (otherwise nothing renders until the sender's next key frame)
+    encoder = TactileEncoder(CodecSettings())
+    key, *deltas = [encoder.encode(motion_frame(seq, 1_000 * seq, 1_000 * seq + 1_000))
+                    for seq in (1, 2, 3)]
+    station, _ = joined_pair()
+    for i, msg in enumerate((key, *deltas)):
+        station.receive_data(frame(encode(msg)), 10 + i)
+    first, second = station.next_message(), station.next_message()
+    assert isinstance(first, TactileCompact) and first.key and first.seq == 1
+    assert station.next_message() is None
+    assert isinstance(second, TactileCompact) and second.seq == 3
+    assert motion_of(second) == 2_000  # from the delta it replaced, not from the key frame
+    station, _ = joined_pair()
+    for msg in (key, *deltas):
+        assert station.send(msg) is not None
+    sent = [decode(d[HEADER.size:]) for d in pump(station, 5)]
+    assert [m.seq for m in sent] == [1, 3]  # type: ignore[attr-defined]
+    assert encode(sent[0]) == encode(key) and motion_of(sent[1]) == 2_000  # type: ignore[arg-type]
 
 
 def test_ordered_queue_bound_refuses_and_keeps_order() -> None:
