@@ -17,10 +17,9 @@ in its summary, where the side reports it). ``switches`` is the context switches
 of all processes (where the side's ``bench cpu`` records them): wake-ups and preemptions, each
 worth tens of us of CPU on this machine (``benchmarks/bench_wakeup_cost.py``). ``replaced``:
 the tactile frames the local station's hand-overs to its display loop replaced before the
-pins showed them, over the whole session (where the side records it). ``others``: the
-cores the rest of this machine used over the window (the harness included), ``steal``:
-the cores the host took from this machine's CPUs (``/proc/stat``; where the side records
-them). Then the
+pins showed them, over the whole session (where the side records it). ``steal``: the
+cores the host took from this machine's CPUs over the window (``/proc/stat``; where the
+side records it). Then the
 medians per side and profile, and each side's median ratio to the first side over the pairs.
 
 Run: ``python benchmarks/bench_cpu_paired.py --side base=../m2t-base --side new=. --link lan
@@ -45,7 +44,7 @@ from lab.bench.results import median_known
 COLUMNS = ("load", "cores", "local", "remote", "switches", "fps", "period_p50", "loop_hz",
            "jitter_p99",
            "m2t_p50", "m2t_p99", "cap_p99", "arm_sensor_p50", "arm_sensor_p99",
-           "cmd_to_capture_p50", "replaced", "others", "steal")
+           "cmd_to_capture_p50", "replaced", "steal")
 
 
 def _side(text: str) -> tuple[str, Path, list[str]]:
@@ -101,7 +100,6 @@ def figures(path: Path) -> dict[str, float | None]:
         "arm_sensor_p99": pick(lat, "arm_and_sensor", "p99"),
         "cmd_to_capture_p50": pick(remote_lat, "arm_command_to_capture", "p50"),
         "replaced": run.get("local_frames_superseded"),
-        "others": (run.get("host") or {}).get("others_cores"),
         "steal": (run.get("host") or {}).get("steal_cores"),
     }
 

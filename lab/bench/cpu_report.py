@@ -45,11 +45,11 @@ def write_report(runs: list[dict[str, Any]], out_dir: Path) -> None:
              "`lab/bench/cpu_impl.py`). `sim:` stages are simulated hardware and test "
              "infrastructure, not product code.", "",
              "**The 1-minute load average at the start of each run is recorded, and (from "
-             "2026-11-29) the CPU the rest of the machine used over the window and the CPU "
-             "time the host took from its CPUs (steal, `/proc/stat`): other jobs raise the "
-             "figures, so compare runs made back to back, and read figures as upper "
-             "bounds.** Where the processes were starved (display loop far below "
-             "1 kHz, frames below their setting) CPU per wall second understates the cost; the "
+             "2026-11-29) the CPU time the host took from this machine's CPUs over the "
+             "window (steal, `/proc/stat`): other jobs raise the figures, so compare runs "
+             "made back to back, and read figures as upper bounds.** Where the processes "
+             "were starved (display loop far below 1 kHz, frames below their setting) CPU "
+             "per wall second understates the cost; the "
              "last two columns divide by the work done (session-average loop rate and "
              "achieved frame rate), which holds better under load.", ""]
     rows = []
@@ -68,9 +68,7 @@ def write_report(runs: list[dict[str, Any]], out_dir: Path) -> None:
             "run": r["label"], "note": r.get("note", ""),
             "nproc": r.get("nproc"), "load avg at start": _fmt(r["load_start"][0], 2),
             "window s": _fmt(r["wall_s"], 1),
-            # the rest of the machine (this harness included) and what the host took from
-            # it over the window (recorded from 2026-11-29 on)
-            "other work (cores)": _fmt((r.get("host") or {}).get("others_cores")),
+            # what the host took from this machine over the window (from 2026-11-29 on)
             "stolen by the host (cores)": _fmt((r.get("host") or {}).get("steal_cores")),
             "all processes (cores)": _fmt(sum(p["cores"] for p in r["processes"].values())),
             "product code": _fmt(product), "simulated hw": _fmt(sim),
