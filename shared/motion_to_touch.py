@@ -48,7 +48,8 @@ of the touch path: a start more than a second (``MOTION_CARRY_MAX_US``) before t
 successor's own is not handed on, nor the start of a frame replaced while the pins are
 safe, the display is being reopened or the loop has not begun, nor that of one the display
 process's full socket did not take (a child not reading). A ``tactile_compact`` key frame
-is never replaced (every queue keeps it in order for the deltas that need it). The remote
+is never replaced by a delta; in a station's queues a newer key frame replaces a waiting key
+frame and a waiting delta, and takes their starts. The remote
 station's frames come at ``frame_rate_hz`` (60-80), a few times slower than the states:
 every state it received since the last capture that gave a frame (passed over, or
 refused as too old or unusable: positions are absolute, so a newer state shows their

@@ -464,8 +464,10 @@ def carried_kind(msg: Message) -> str | None:
 
 def is_latest_wins(msg: Message) -> bool:
     """Whether ``msg`` goes in its stream's latest-wins slot (a newer one may replace it
-    unsent or unread). A ``tactile_compact`` key frame never does, although its stream is
-    latest-wins: the deltas after it need it, so every queue keeps it in order."""
+    unsent or unread) in the relay's queues. A ``tactile_compact`` key frame never does,
+    although its stream is latest-wins: the deltas after it need it, so the relay keeps it
+    in order (a station gives it a slot of its own instead:
+    ``shared.protocol.station_session.latest_slot``)."""
     return msg.POLICY is StreamPolicy.LATEST_WINS and not (
         isinstance(msg, TactileCompact) and msg.key)
 

@@ -63,6 +63,14 @@ class StreamQueue(Generic[T]):
         cell = self._latest.get(key)
         return None if cell is None else cell.item
 
+    def discard(self, key: str) -> T | None:
+        """Remove the unsent item in slot ``key`` and return it (None when there is none)."""
+        cell = self._latest.pop(key, None)
+        if cell is None:
+            return None
+        item, cell.item = cell.item, None
+        return item
+
     def put_ordered(self, item: T, *, force: bool = False) -> bool:
         """Append ``item`` to the ordered queue.
 

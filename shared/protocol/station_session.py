@@ -52,10 +52,11 @@ from shared.protocol.messages import (
     Hello,
     Message,
     Stats,
+    StreamPolicy,
+    TactileCompact,
     Welcome,
     carried_kind,
     carry_motion,
-    is_latest_wins,
 )
 from shared.protocol.queues import StreamQueue
 
@@ -68,6 +69,7 @@ __all__ = [
     "StationEvent",
     "StationSession",
     "Welcomed",
+    "latest_slot",
     "refusal_for_close_code",
 ]
 
@@ -77,6 +79,27 @@ _REFUSALS = (AuthError, RoleTakenError, HandshakeTimeoutError, ReplacedError)
 _REFUSALS_BY_CODE: dict[str, type[SessionError]] = {c.code: c for c in _REFUSALS}
 _REFUSALS_BY_CLOSE: dict[int, type[SessionError]] = {c.close_code: c for c in _REFUSALS}
 _MAX_PENDING_PONGS = 16
+
+
+def latest_slot(msg: Message) -> str | None:
+    """The latest-wins slot ``msg`` takes in a station's send queue and inbox (None: it
+    goes in order). A ``tactile_compact`` key frame has a slot of its own: a newer key frame
+    replaces an older one that still waits (each is whole), a delta never replaces it, and
+    the queue stays bounded without ever making the sender wait. The relay keeps key frames
+    in order instead (:func:`~shared.protocol.is_latest_wins`): its re-send of a key frame
+    to a late joiner counts on knowing which one a peer was given."""
+    if msg.POLICY is not StreamPolicy.LATEST_WINS:
+        return None
+    if isinstance(msg, TactileCompact) and msg.key:
+        return msg.TYPE + "/key"
+    return msg.TYPE
+
+
+def _replaced_slots(msg: Message, slot: str) -> tuple[str, ...]:
+    """The slots whose waiting message ``msg`` replaces: its own and, for a key frame, its
+    stream's delta slot too (the key frame is newer and whole: it shows that delta's
+    movements first)."""
+    return (slot, msg.TYPE) if slot != msg.TYPE else (slot,)
 
 
 def refusal_for_close_code(close_code: int | None, reason: str) -> SessionError | None:
@@ -286,14 +309,19 @@ class StationSession:
         elif isinstance(msg, Error) and log.isEnabledFor(logging.DEBUG):
             log.debug("relay error: %s: %s", msg.code, msg.message)
         self.counters.messages_received += 1
-        if is_latest_wins(msg):
-            held = self.inbox.held(msg.TYPE)
+        slot = latest_slot(msg)
+        if slot is None:  # the glue stops reading while the inbox is full: a soft bound
+            self.inbox.put_ordered(msg, force=True)
+            return
+        for held_slot in _replaced_slots(msg, slot):
+            held = self.inbox.held(held_slot)
             if held is not None:  # never read: the newer one shows first what it showed
                 msg = carry_motion(held, msg)
-            if self.inbox.put_latest(msg.TYPE, msg) is not None:
-                self.counters.stale_dropped_rx += 1
-        else:  # the glue stops reading while the inbox is full: a soft bound
-            self.inbox.put_ordered(msg, force=True)
+                if held_slot != slot:  # a delta before a key frame: the key frame shows it
+                    self.inbox.discard(held_slot)
+                    self.counters.stale_dropped_rx += 1
+        if self.inbox.put_latest(slot, msg) is not None:
+            self.counters.stale_dropped_rx += 1
 
     def events_received(self) -> list[StationEvent]:
         """Return and clear the events produced by :meth:`receive_data`."""
@@ -309,11 +337,12 @@ class StationSession:
     def send(self, msg: Message) -> Message | None:
         """Queue ``msg`` with its stream's policy.
 
-        A latest-wins message replaces an unsent one of its type (counted in
-        ``stale_dropped_tx``) and then travels as :func:`~shared.protocol.carry_motion`
-        makes it (a ``platform_state`` or a tactile frame starts where the replaced one
-        started). An ordered message, and a ``tactile_compact`` key frame
-        (:func:`~shared.protocol.is_latest_wins`), is refused when the queue is full.
+        A latest-wins message replaces an unsent one of its slot (:func:`latest_slot`;
+        counted in ``stale_dropped_tx``) and then travels as
+        :func:`~shared.protocol.carry_motion` makes it (a ``platform_state`` or a tactile
+        frame starts where the replaced one started). A ``tactile_compact`` key frame has a
+        slot of its own: it replaces an unsent key frame and also an unsent delta, which it
+        shows first. An ordered message is refused when the queue is full.
 
         Returns:
             The message as it was queued (what a recording of the link must show), or None,
@@ -322,17 +351,25 @@ class StationSession:
         Raises:
             LocalProtocolError: ``msg`` is invalid or larger than ``max_message_bytes``.
         """
-        if not is_latest_wins(msg):
+        slot = latest_slot(msg)
+        if slot is None:
             payload = encode(msg, max_message_bytes=self.max_message_bytes)
             return msg if self.outbox.put_ordered(payload) else None
-        held = self._queued_latest.get(msg.TYPE)
-        if held is not None and self.outbox.held(msg.TYPE) is held[0]:
-            msg = carry_motion(held[1], msg)
-        payload = encode(msg, max_message_bytes=self.max_message_bytes)
-        if self.outbox.put_latest(msg.TYPE, payload) is not None:
+        unsent = []
+        for held_slot in _replaced_slots(msg, slot):
+            held = self._queued_latest.get(held_slot)
+            if held is not None and self.outbox.held(held_slot) is held[0]:
+                msg = carry_motion(held[1], msg)
+                unsent.append(held_slot)
+        payload = encode(msg, max_message_bytes=self.max_message_bytes)  # may refuse it
+        for held_slot in unsent:
+            if held_slot != slot:  # a delta before a key frame: the key frame shows it
+                self.outbox.discard(held_slot)
+                self.counters.stale_dropped_tx += 1
+        if self.outbox.put_latest(slot, payload) is not None:
             self.counters.stale_dropped_tx += 1
         if carried_kind(msg) is not None:  # only these are ever carried: keep no other
-            self._queued_latest[msg.TYPE] = (payload, msg)
+            self._queued_latest[slot] = (payload, msg)
         return msg
 
     def send_bye(self, reason: str) -> None:

@@ -386,9 +386,9 @@ def test_the_inbox_carries_a_tactile_frame_replaced_unread() -> None:
     assert isinstance(got, TactileCompact) and got.seq == 3 and motion_of(got) == 2_000
 
 
-def test_a_compact_key_frame_is_never_replaced_by_its_deltas() -> None:
-    # the deltas need it: the inbox and the send queue keep it in order, as the relay does
-    # (otherwise nothing renders until the sender's next key frame)
+def test_a_compact_key_frame_is_never_replaced_by_a_delta() -> None:
+    # the deltas need it: a station's inbox and send queue give it a slot of its own (a
+    # delta that replaced it could not be decoded until the sender's next key frame)
     encoder = TactileEncoder(CodecSettings())
     key, *deltas = [encoder.encode(motion_frame(seq, 1_000 * seq, 1_000 * seq + 1_000))
                     for seq in (1, 2, 3)]
@@ -406,6 +406,34 @@ def test_a_compact_key_frame_is_never_replaced_by_its_deltas() -> None:
     sent = [decode(d[HEADER.size:]) for d in pump(station, 5)]
     assert [m.seq for m in sent] == [1, 3]  # type: ignore[attr-defined]
     assert encode(sent[0]) == encode(key) and motion_of(sent[1]) == 2_000  # type: ignore[arg-type]
+
+
+def test_a_key_frame_replaces_a_waiting_key_frame_and_the_delta_it_shows_first() -> None:
+    # key 1, delta 2, key 3, delta 4, key 5 (a delta after each key frame)
+    encoder = TactileEncoder(CodecSettings(key_every=1))
+    stream = [encoder.encode(motion_frame(seq, 1_000 * seq, 1_000 * seq + 1_000))
+              for seq in range(1, 6)]
+    assert [m.key for m in stream] == [True, False, True, False, True]
+    station, _ = joined_pair()
+    assert all(station.send(ArmCommand(seq=i, ts_us=0)) for i in range(4))
+    assert station.outbox.ordered_full
+    for msg in stream[:3]:  # key 3 replaces key 1 and delta 2, and never waits for room
+        assert station.send(msg) is not None
+    assert station.counters.stale_dropped_tx == 2
+    sent = [decode(d[HEADER.size:]) for d in pump(station, 5)]
+    assert [(m.TYPE, m.seq) for m in sent] == [("arm_command", i) for i in range(4)] + [  # type: ignore[attr-defined]
+        ("tactile_compact", 3)]
+    assert motion_of(sent[-1]) == 1_000  # type: ignore[arg-type]  # where key 1 started
+    # the inbox: delta 4 waits, key 5 comes: key 5 shows it first and takes its start
+    station, _ = joined_pair()
+    station.receive_data(frame(encode(stream[2])), 10)
+    assert station.next_message().seq == 3  # type: ignore[union-attr]
+    for i, msg in enumerate(stream[3:]):
+        station.receive_data(frame(encode(msg)), 11 + i)
+    got = station.next_message()
+    assert isinstance(got, TactileCompact) and got.key and got.seq == 5
+    assert motion_of(got) == 4_000 and station.next_message() is None
+    assert station.counters.stale_dropped_rx == 1
 
 
 def test_ordered_queue_bound_refuses_and_keeps_order() -> None:
