@@ -23,6 +23,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from shared.errors import (
@@ -95,11 +96,20 @@ def latest_slot(msg: Message) -> str | None:
     return msg.TYPE
 
 
-def _replaced_slots(msg: Message, slot: str) -> tuple[str, ...]:
-    """The slots whose waiting message ``msg`` replaces: its own and, for a key frame, its
-    stream's delta slot too (the key frame is newer and whole: it shows that delta's
-    movements first)."""
-    return (slot, msg.TYPE) if slot != msg.TYPE else (slot,)
+def _supersede(msg: Message, slot: str, waiting: Callable[[str], Message | None]
+               ) -> tuple[Message, list[str]]:
+    """``msg`` as it replaces what ``waiting`` (slot -> the message waiting there, or None)
+    holds in its slot and, for a key frame, in its stream's delta slot too (the key frame is
+    newer and whole: it shows that delta's movements first); and those other slots, which
+    the caller empties. Each replaced message hands its start on (:func:`carry_motion`)."""
+    others = []
+    for held_slot in (slot, msg.TYPE) if slot != msg.TYPE else (slot,):
+        held = waiting(held_slot)
+        if held is not None:
+            msg = carry_motion(held, msg)
+            if held_slot != slot:
+                others.append(held_slot)
+    return msg, others
 
 
 def refusal_for_close_code(close_code: int | None, reason: str) -> SessionError | None:
@@ -313,13 +323,11 @@ class StationSession:
         if slot is None:  # the glue stops reading while the inbox is full: a soft bound
             self.inbox.put_ordered(msg, force=True)
             return
-        for held_slot in _replaced_slots(msg, slot):
-            held = self.inbox.held(held_slot)
-            if held is not None:  # never read: the newer one shows first what it showed
-                msg = carry_motion(held, msg)
-                if held_slot != slot:  # a delta before a key frame: the key frame shows it
-                    self.inbox.discard(held_slot)
-                    self.counters.stale_dropped_rx += 1
+        # never read: the newer one shows first what the replaced one showed
+        msg, others = _supersede(msg, slot, self.inbox.held)
+        for other in others:
+            self.inbox.discard(other)
+            self.counters.stale_dropped_rx += 1
         if self.inbox.put_latest(slot, msg) is not None:
             self.counters.stale_dropped_rx += 1
 
@@ -355,22 +363,22 @@ class StationSession:
         if slot is None:
             payload = encode(msg, max_message_bytes=self.max_message_bytes)
             return msg if self.outbox.put_ordered(payload) else None
-        unsent = []
-        for held_slot in _replaced_slots(msg, slot):
-            held = self._queued_latest.get(held_slot)
-            if held is not None and self.outbox.held(held_slot) is held[0]:
-                msg = carry_motion(held[1], msg)
-                unsent.append(held_slot)
+        msg, others = _supersede(msg, slot, self._unsent)
         payload = encode(msg, max_message_bytes=self.max_message_bytes)  # may refuse it
-        for held_slot in unsent:
-            if held_slot != slot:  # a delta before a key frame: the key frame shows it
-                self.outbox.discard(held_slot)
-                self.counters.stale_dropped_tx += 1
+        for other in others:
+            self.outbox.discard(other)
+            self.counters.stale_dropped_tx += 1
         if self.outbox.put_latest(slot, payload) is not None:
             self.counters.stale_dropped_tx += 1
         if carried_kind(msg) is not None:  # only these are ever carried: keep no other
             self._queued_latest[slot] = (payload, msg)
         return msg
+
+    def _unsent(self, slot: str) -> Message | None:
+        """The message whose bytes still wait in the outbox's slot ``slot``, or None."""
+        queued = self._queued_latest.get(slot)
+        return queued[1] if queued is not None and self.outbox.held(slot) is queued[0] \
+            else None
 
     def send_bye(self, reason: str) -> None:
         """Queue a ``bye`` even if the ordered queue is full."""
