@@ -63,6 +63,9 @@ async def test_platform_state_and_frames_flow_record_and_summary(tmp_path: Path,
             # asserted below: wait for it too (beside two CPU burners the other conditions
             # were met after 45 states)
             await wait_for(lambda: agent.platform_states_sent > 50, 3.0, "platform states sent")
+            # and received: beside two CPU burners the station had sent 50 while the remote
+            # had taken only 35 (the rest in flight, or replaced unsent in a slot on the way)
+            await wait_for(lambda: len(remote.states) > 51, 3.0, "platform states received")
             agent.request_stop("test")
             assert await run == 0
     assert sys.getswitchinterval() == pytest.approx(switch_before)
