@@ -142,6 +142,16 @@ def steal_s(path: str = "/proc/stat") -> float | None:
     return fields[7] / _CLK_TCK if len(fields) >= 8 else None
 
 
+def stolen_cores(start: CpuSnapshot, end: CpuSnapshot) -> float | None:
+    """The CPU the host took from this machine between two snapshots, in cores (stolen CPU
+    seconds per wall second), which the load average does not tell; None when either
+    snapshot could not read it or no time passed."""
+    wall = end.wall_s - start.wall_s
+    if start.steal_s is None or end.steal_s is None or wall <= 0:
+        return None
+    return (end.steal_s - start.steal_s) / wall
+
+
 def _task_figures(pid: int, tid: int) -> tuple[float, int] | None:
     """A thread's CPU seconds (utime + stime, ``stat``) and context switches (voluntary +
     involuntary, ``status``) so far; None once it is gone."""
@@ -478,14 +488,10 @@ def _figures(win: _Window, report: dict[str, Any], load_start: tuple[float, floa
             stages[name]["(threads without busy samples)"] = unattributed / wall
         top[name] = _top_functions(text) if text else []
     local = report.get("local", {})
-    stolen0, stolen1 = win.start.steal_s, win.end.steal_s
-    # the CPU time the host took from this machine over the window, which the load average
-    # does not tell
-    host = None if stolen0 is None or stolen1 is None else {
-        "steal_cores": (stolen1 - stolen0) / wall}
+    stolen = stolen_cores(win.start, win.end)
     return {
         "wall_s": wall, "nproc": os.cpu_count(), "load_start": load_start,
-        "host": host,
+        "host": None if stolen is None else {"steal_cores": stolen},
         "load_end": os.getloadavg(), "profiler": "py-spy" if pyspy else "none",
         "processes": processes, "threads": threads,
         "stages": {k: dict(v) for k, v in stages.items()},

@@ -148,3 +148,15 @@ def test_the_cpu_the_host_stole_is_read_from_proc_stat(tmp_path: Path) -> None:
     if real is None:
         pytest.skip("no /proc/stat here")
     assert real >= 0
+
+
+def test_the_cpu_the_host_stole_over_a_window_is_in_cores() -> None:
+    from lab.bench.cpu_impl import CpuSnapshot, stolen_cores
+
+    start = CpuSnapshot(100.0, steal_s=3.0)
+    assert stolen_cores(start, CpuSnapshot(104.0, steal_s=3.5)) == pytest.approx(0.125)
+    assert stolen_cores(start, CpuSnapshot(104.0, steal_s=3.0)) == 0.0
+    # a snapshot that could not read /proc/stat, or no time between them: no figure
+    assert stolen_cores(start, CpuSnapshot(104.0)) is None
+    assert stolen_cores(CpuSnapshot(100.0), CpuSnapshot(104.0, steal_s=3.5)) is None
+    assert stolen_cores(start, CpuSnapshot(100.0, steal_s=3.5)) is None

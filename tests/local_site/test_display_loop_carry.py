@@ -101,5 +101,12 @@ def test_the_loop_lets_its_slot_carry_only_while_it_renders() -> None:
         # pins keep their last command meanwhile, so only this tells the slot)
         assert not loop._display_failed(DeviceError("unplugged"), stop=lambda _s: True)
         assert not slot.rendering
+        # reopened (the runner's path when it may go on): the slot stays out until the loop
+        # renders again, and carries again from then on
+        assert loop._display_failed(DeviceError("unplugged"), stop=lambda _s: False)
+        assert not slot.rendering
+        slot.put(_frame(8, t - 10_000, t - 5_000), now_us())
+        loop.tick()
+        assert slot.rendering and loop.safe_reason is None
     finally:
         loop.display.disconnect()

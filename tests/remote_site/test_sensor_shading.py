@@ -108,6 +108,6 @@ def test_brightness_gain_in_the_kernel_equals_cv2_multiply(
         depth[80:160, 100:220] = 0.4
     got = a.render(depth, gain=g32.astype(np.float64))
     plain = b.render(depth)
-    want = cv2.multiply(plain, (float(g32[0]), float(g32[1]), float(g32[2]), 0.0),  # type: ignore[call-overload]
+    want = cv2.multiply(plain, (float(g32[0]), float(g32[1]), float(g32[2]), 0.0),  # type: ignore[call-overload,unused-ignore]
                         dtype=cv2.CV_8U)
     np.testing.assert_array_equal(got, np.asarray(want))
