@@ -35,6 +35,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 import lab.reconstruction_reference as ref  # noqa: E402
@@ -185,6 +186,13 @@ def _lean(calib_path: Path, args: argparse.Namespace, rounds: int = 3) -> list[d
     return rows
 
 
+def _python(args: argparse.Namespace, which: str) -> str:
+    """The interpreter of one side: ``--baseline-python`` for the baseline (the same tree
+    under other library versions, e.g. a virtual environment with OpenCV 4), else this one."""
+    return str(args.baseline_python) if which == "previous" and args.baseline_python \
+        else sys.executable
+
+
 def _tree_stages(calib_path: Path, data: Path, args: argparse.Namespace,
                  rounds: int = 3) -> tuple[list[dict[str, Any]], dict[str, float]]:
     """Per-stage CPU ms of the baseline tree and of this tree, each in fresh processes
@@ -195,7 +203,7 @@ def _tree_stages(calib_path: Path, data: Path, args: argparse.Namespace,
     runs: dict[str, list[dict[str, float]]] = {"previous": [], "this": []}
     for _ in range(rounds):
         for which, tree in (("previous", Path(args.baseline_tree)), ("this", ROOT)):
-            argv = [sys.executable, str(child), "--tree", str(tree), "--calibration",
+            argv = [_python(args, which), str(child), "--tree", str(tree), "--calibration",
                     str(calib_path), "--data", str(data), "--repeats",
                     str(max(5, args.repeats // 3))]
             done = subprocess.run(argv, capture_output=True, text=True, check=True)
@@ -203,7 +211,7 @@ def _tree_stages(calib_path: Path, data: Path, args: argparse.Namespace,
     starts: dict[str, list[dict[str, float]]] = {"previous": [], "this": []}
     for _ in range(rounds):  # start-up, numba cache warm (the stage runs above filled it)
         for which, tree in (("previous", Path(args.baseline_tree)), ("this", ROOT)):
-            argv = [sys.executable, str(child), "--startup", "--tree", str(tree),
+            argv = [_python(args, which), str(child), "--startup", "--tree", str(tree),
                     "--calibration", str(calib_path), "--data", str(data)]
             done = subprocess.run(argv, capture_output=True, text=True, check=True)
             starts[which].append(json.loads(done.stdout.strip().splitlines()[-1]))
@@ -362,12 +370,14 @@ def main(args: argparse.Namespace) -> int:
            "benchmarks/bench_reconstruction_fullres.py" +
            (f" --repeats {args.repeats}" if args.repeats != 60 else "") +
            (f" --baseline-tree DIR --baseline-label '{args.baseline_label}'"
-            if args.baseline_tree else ""))
+            if args.baseline_tree else "") +
+           (" --baseline-python PYTHON" if args.baseline_python else ""))
     md = [
         "# Reconstruction at full resolution (320 x 240): before / after, per stage, with error",
         "",
         f"Run {started}, commit {_commit()}, {platform.machine()}, nproc {os.cpu_count()}, "
-        f"Python {platform.python_version()}, OPENBLAS_NUM_THREADS="
+        f"Python {platform.python_version()}, OpenCV {cv2.__version__}, NumPy {np.__version__}, "
+        "OPENBLAS_NUM_THREADS="
         f"{os.environ.get('OPENBLAS_NUM_THREADS', 'unset')}. **Machine load average at start "
         f"{load_start}, at end {load_end}** (other jobs on the machine inflate every figure "
         "against a quiet machine, CPU time less than wall time; compare the ratio). "
@@ -431,6 +441,10 @@ if __name__ == "__main__":
     parser.add_argument("--baseline-tree", default=None,
                         help="an earlier checkout (e.g. `git archive main | tar -x -C DIR`) "
                              "to compare with this tree stage by stage in fresh processes")
+    parser.add_argument("--baseline-python", default=None,
+                        help="the interpreter that runs the baseline tree's processes "
+                             "(default: this one); with --baseline-tree . it compares library "
+                             "versions, e.g. a virtual environment with OpenCV 4")
     parser.add_argument("--baseline-label", default="baseline",
                         help="how the results name the baseline tree (e.g. its commit)")
     parser.add_argument("--lean", choices=("before", "after"), default=None,
