@@ -9,6 +9,11 @@ for ``s250-lan-2``: the sides of a paired run are never pooled) and stage, the m
 the runs of the stage's median, its mean in the tail, its excess and its share of the tail's
 excess (with the range over the runs), and the end-to-end median, tail mean and p99.
 
+It also gives each group's **floor**, as ``bench_motion_to_touch.py`` defines it: the link
+profile's nominal round trip plus the p50 of the stages that work and of the waits the
+design's rates fix (``WORK_STAGES``, ``DESIGN_WAITS`` there), medians over the runs, and how
+far each run's p99 lies above it.
+
 Run: ``python benchmarks/m2t_tail_table.py benchmarks/results/m2t_tail``.
 """
 
@@ -20,6 +25,13 @@ import statistics
 import sys
 from pathlib import Path
 from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from benchmarks.bench_motion_to_touch import DESIGN_WAITS, WORK_STAGES  # noqa: E402
+from lab.linkemu import get_profile  # noqa: E402
 
 
 def _runs(directory: Path) -> dict[str, list[dict[str, Any]]]:
@@ -41,6 +53,22 @@ def _cell(values: list[float], fmt: str = "{:.2f}") -> str:
     return f"{fmt.format(med)} ({fmt.format(min(values))}-{fmt.format(max(values))})"
 
 
+def floor_ms(runs: list[dict[str, Any]]) -> float | None:
+    """The floor of a group of runs of one link profile (None without a link emulator, or
+    when a run lacks one of the floor's stages)."""
+    link = runs[0]["settings"]["link"]
+    if not link:
+        return None
+    parts = []
+    for stage in (*WORK_STAGES, *DESIGN_WAITS):
+        values = [((r.get("latency_ms") or {}).get(stage) or {}).get("p50") for r in runs]
+        known = [float(v) for v in values if v is not None]
+        if len(known) < len(values):
+            return None
+        parts.append(statistics.median(known))
+    return float(get_profile(link).round_trip_ms) + sum(parts)
+
+
 def table(directory: Path) -> str:
     """The Markdown table of the runs in ``directory``."""
     lines = []
@@ -53,8 +81,14 @@ def table(directory: Path) -> str:
                   f"tail mean {_cell([t['end_to_end']['tail_mean'] for t in tails])}, "
                   f"p99 {_cell([e['p99'] for e in e2e])}; tail = the slowest "
                   f"{100 * (1 - tails[0]['quantile']):.0f} % of "
-                  f"{_cell([float(t['of']) for t in tails], '{:.0f}')} complete frames.", "",
-                  "| stage | median (ms) | tail mean (ms) | excess (ms) | share of the excess |",
+                  f"{_cell([float(t['of']) for t in tails], '{:.0f}')} complete frames.", ""]
+        floor = floor_ms(runs)
+        if floor is not None:
+            lines += [f"Floor {floor:.1f} ms (nominal round trip "
+                      f"{get_profile(runs[0]['settings']['link']).round_trip_ms:.1f} ms + the "
+                      f"p50 of {', '.join(WORK_STAGES + DESIGN_WAITS)}); p99 above it by "
+                      f"{_cell([e['p99'] - floor for e in e2e], '{:.1f}')} ms.", ""]
+        lines += ["| stage | median (ms) | tail mean (ms) | excess (ms) | share of the excess |",
                   "|---|---|---|---|---|"]
         stages = list(tails[0]["stages"])
         stages.sort(key=lambda s: -statistics.median(t["stages"][s]["excess"] for t in tails))
