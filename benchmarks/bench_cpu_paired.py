@@ -25,7 +25,8 @@ medians per side and profile, and each side's median ratio to the first side ove
 Run: ``python benchmarks/bench_cpu_paired.py --side base=../m2t-base --side new=. --link lan
 --link city-1000km --rounds 3 --out benchmarks/results/DIR`` (``--report-only`` rebuilds
 ``DIR/README.md``'s table from the saved runs; ``--side NAME=ROOT::--flag::value`` passes
-remote flags, separated by ``::``, and ``local:--flag=value`` a flag of the local station).
+remote flags, separated by ``::``, ``local:--flag=value`` a flag of the local station and
+``bench:--flag=value`` one of ``bench cpu`` itself, e.g. ``bench:--display=sim``).
 ``local`` counts the local station with its child processes (platform reader, display loop).
 """
 
@@ -61,7 +62,9 @@ def _run(name: str, root: Path, flags: list[str], link: str, label: str, out: Pa
     if link != "none":  # none: the stations straight to the relay
         cmd += ["--link", link]
     for flag in flags:
-        if flag.startswith("local:"):
+        if flag.startswith("bench:"):  # an option of `bench cpu` itself, e.g. --display=sim
+            cmd.append(flag.removeprefix("bench:"))
+        elif flag.startswith("local:"):
             cmd.append(f"--local-arg={flag.removeprefix('local:')}")
         else:
             cmd.append(f"--remote-arg={flag}")
@@ -145,7 +148,8 @@ def report(out: Path, sides: list[str], links: list[str], burners: int) -> str:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--side", type=_side, action="append", required=True,
-                    help="NAME=ROOT[::REMOTE-FLAG...] (repeat; the first is the reference)")
+                    help="NAME=ROOT[::FLAG...]: remote flags, local:FLAG, bench:FLAG (repeat; "
+                         "the first is the reference)")
     ap.add_argument("--link", action="append", required=True,
                     help="link profile, or none for no link emulator (repeat)")
     ap.add_argument("--rounds", type=int, default=3)

@@ -186,6 +186,13 @@ def _lean(calib_path: Path, args: argparse.Namespace, rounds: int = 3) -> list[d
     return rows
 
 
+def _opencv_version(python: str) -> str:
+    """The OpenCV version another interpreter imports."""
+    done = subprocess.run([python, "-c", "import cv2; print(cv2.__version__)"],
+                          capture_output=True, text=True, check=True)
+    return done.stdout.strip()
+
+
 def _python(args: argparse.Namespace, which: str) -> str:
     """The interpreter of one side: ``--baseline-python`` for the baseline (the same tree
     under other library versions, e.g. a virtual environment with OpenCV 4), else this one."""
@@ -376,7 +383,10 @@ def main(args: argparse.Namespace) -> int:
         "# Reconstruction at full resolution (320 x 240): before / after, per stage, with error",
         "",
         f"Run {started}, commit {_commit()}, {platform.machine()}, nproc {os.cpu_count()}, "
-        f"Python {platform.python_version()}, OpenCV {cv2.__version__}, NumPy {np.__version__}, "
+        f"Python {platform.python_version()}, OpenCV {cv2.__version__}"
+        + (f" (the baseline's interpreter: OpenCV {_opencv_version(args.baseline_python)})"
+           if args.baseline_python else "")
+        + f", NumPy {np.__version__}, "
         "OPENBLAS_NUM_THREADS="
         f"{os.environ.get('OPENBLAS_NUM_THREADS', 'unset')}. **Machine load average at start "
         f"{load_start}, at end {load_end}** (other jobs on the machine inflate every figure "

@@ -63,8 +63,17 @@ def dump(args: argparse.Namespace) -> int:
 
 
 def _largest(a: np.ndarray, b: np.ndarray) -> float:
-    return float(np.nanmax(np.abs(a.astype(np.float64) - b.astype(np.float64)))) \
-        if a.size else 0.0
+    """The largest difference; infinite where the NaNs lie in different places."""
+    if not a.size:
+        return 0.0
+    if not np.array_equal(np.isnan(a), np.isnan(b)):
+        return float("inf")
+    diff = np.abs(a.astype(np.float64) - b.astype(np.float64))
+    return float(np.nanmax(diff)) if np.isfinite(diff).any() else 0.0
+
+
+def _identical(a: np.ndarray, b: np.ndarray) -> bool:
+    return a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
 
 
 def compare(args: argparse.Namespace) -> int:
@@ -73,19 +82,24 @@ def compare(args: argparse.Namespace) -> int:
     print(f"first: OpenCV {a['versions'][0]}, NumPy {a['versions'][1]}; "
           f"second: OpenCV {b['versions'][0]}, NumPy {b['versions'][1]}")
     ca, cb = np.load(f"{args.first}.calib.npz"), np.load(f"{args.second}.calib.npz")
-    for key in ca.files:
+    for key in sorted(set(ca.files) ^ set(cb.files)):
+        print(f"calibration {key}: only in the {'first' if key in ca.files else 'second'}")
+    for key in sorted(set(ca.files) & set(cb.files)):
         x, y = ca[key], cb[key]
         if x.shape != y.shape:
             print(f"calibration {key}: shapes differ, {x.shape} against {y.shape}")
         elif x.dtype.kind in "fiub" and (d := _largest(x, y)) > 0:
             print(f"calibration {key}: largest difference {d:.3g}")
-    own = [k for k in a.files if k.startswith("own/")]
-    print("heights, each its own calibration: largest difference "
-          f"{max(_largest(a[k], b[k]) for k in own) * 1e3:.3g} um")
+    pairs = {"each its own calibration": [(a[k], b[k]) for k in a.files if k.startswith("own/")]}
     given = [k for k in b.files if k.startswith("given/")]
     if given:
-        d = max(_largest(a["own/" + k.split("/", 1)[1]], b[k]) for k in given)
-        print(f"heights, both with the first calibration: largest difference {d * 1e3:.3g} um")
+        pairs["both with the first calibration"] = [(a["own/" + k.split("/", 1)[1]], b[k])
+                                                    for k in given]
+    for what, maps in pairs.items():
+        same = sum(_identical(x, y) for x, y in maps)
+        print(f"heights, {what}: largest difference "
+              f"{max(_largest(x, y) for x, y in maps) * 1e3:.3g} um; "
+              f"{same} of {len(maps)} maps bit-identical")
     return 0
 
 

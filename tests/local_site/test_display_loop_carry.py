@@ -104,9 +104,15 @@ def test_the_loop_lets_its_slot_carry_only_while_it_renders() -> None:
         # reopened (the runner's path when it may go on): the slot stays out until the loop
         # renders again, and carries again from then on
         assert loop._display_failed(DeviceError("unplugged"), stop=lambda _s: False)
-        assert not slot.rendering
-        slot.put(_frame(8, t - 10_000, t - 5_000), now_us())
+        t = now_us()
+        slot.put(_frame(8, t - 20_000, t - 15_000), t)
+        slot.put(_frame(9, t - 15_000, t - 10_000), t)  # replaced before the loop renders
         loop.tick()
         assert slot.rendering and loop.safe_reason is None
+        assert ledger.hops[-1][0].t_us == t - 15_000  # its own start: nothing handed on
+        slot.put(_frame(10, t - 10_000, t - 5_000), t)
+        slot.put(_frame(11, t - 5_000, t - 2_000), t)  # replaced while the loop renders
+        loop.tick()
+        assert ledger.hops[-1][0].t_us == t - 10_000  # the replaced frame's start
     finally:
         loop.display.disconnect()
