@@ -19,7 +19,10 @@ worth tens of us of CPU on this machine (``benchmarks/bench_wakeup_cost.py``). `
 the tactile frames the local station's hand-overs to its display loop replaced before the
 pins showed them, over the whole session (where the side records it). ``steal``: the
 cores the host took from this machine's CPUs over the window (``/proc/stat``; where the
-side records it). Then the
+side records it). ``ref_us`` and ``mem_gbs``: the machine's own speed just before and after
+the demo (``reference_speed`` in ``lab/bench/cpu_impl.py``: CPU us of a fixed interpreter
+loop, GB/s of an array pass larger than the caches; the mean of the two; where the side
+records it). Then the
 medians per side and profile, and each side's median ratio to the first side over the pairs.
 
 Run: ``python benchmarks/bench_cpu_paired.py --side base=../m2t-base --side new=. --link lan
@@ -45,7 +48,7 @@ from lab.bench.results import median_known
 COLUMNS = ("load", "cores", "local", "remote", "switches", "fps", "period_p50", "loop_hz",
            "jitter_p99",
            "m2t_p50", "m2t_p99", "cap_p99", "arm_sensor_p50", "arm_sensor_p99",
-           "cmd_to_capture_p50", "replaced", "steal")
+           "cmd_to_capture_p50", "replaced", "steal", "ref_us", "mem_gbs")
 
 
 def _side(text: str) -> tuple[str, Path, list[str]]:
@@ -104,7 +107,16 @@ def figures(path: Path) -> dict[str, float | None]:
         "cmd_to_capture_p50": pick(remote_lat, "arm_command_to_capture", "p50"),
         "replaced": run.get("local_frames_superseded"),
         "steal": (run.get("host") or {}).get("steal_cores"),
+        # the machine's speed just before and after the demo (``reference_speed``), mean
+        "ref_us": _reference(run, "python_us"), "mem_gbs": _reference(run, "memory_gb_s"),
     }
+
+
+def _reference(run: dict[str, Any], key: str) -> float | None:
+    ref = run.get("reference") or {}
+    values = [(ref.get(when) or {}).get(key) for when in ("before", "after")]
+    known = [float(v) for v in values if v is not None]
+    return sum(known) / len(known) if known else None
 
 
 def _fmt(value: float | None) -> str:

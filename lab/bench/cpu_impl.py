@@ -36,6 +36,7 @@ import os
 import re
 import shutil
 import signal
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -150,6 +151,41 @@ def stolen_cores(start: CpuSnapshot, end: CpuSnapshot) -> float | None:
     if start.steal_s is None or end.steal_s is None or wall <= 0:
         return None
     return (end.steal_s - start.steal_s) / wall
+
+
+#: the reference workloads' sizes: a fixed interpreter loop, and an array pass larger than
+#: any cache here (3 x 32 MB)
+_REFERENCE_LOOP = 20_000
+_REFERENCE_BYTES = 32 * 2**20
+
+
+def reference_speed(rounds: int = 7) -> dict[str, float]:
+    """How fast this machine runs two fixed workloads now, by this thread's CPU time (so a
+    wait for the CPU does not count; the caches, memory and clock shared with other jobs
+    do): ``python_us``, CPU us per pass of a fixed interpreter loop (dict and integer
+    work), and ``memory_gb_s``, GB/s of ``numpy.add`` over arrays larger than the caches
+    (two read, one written); the median of ``rounds`` passes each. ``bench cpu`` runs it
+    just before the demo starts and just after it ends, when this process has the machine
+    to itself but for other jobs: when two runs of the same code differ, it tells whether
+    the machine itself was slower."""
+    import numpy as np
+
+    if rounds < 1:
+        raise ValueError("rounds must be >= 1")
+    loop_us, gb_s = [], []
+    a = np.ones(_REFERENCE_BYTES // 8)
+    b, out = a.copy(), np.empty_like(a)
+    for _ in range(rounds):
+        table: dict[int, int] = {}
+        t0 = time.thread_time()
+        for i in range(_REFERENCE_LOOP):
+            table[i & 255] = table.get(i & 127, 0) + i
+        t1 = time.thread_time()
+        np.add(a, b, out=out)
+        t2 = time.thread_time()
+        loop_us.append((t1 - t0) * 1e6)
+        gb_s.append(3 * _REFERENCE_BYTES / 1e9 / max(t2 - t1, 1e-9))
+    return {"python_us": statistics.median(loop_us), "memory_gb_s": statistics.median(gb_s)}
 
 
 def _task_figures(pid: int, tid: int) -> tuple[float, int] | None:
@@ -405,6 +441,7 @@ def run_cpu_bench(settings: CpuBenchSettings) -> dict[str, Any]:
     workdir = Path(tempfile.mkdtemp(prefix="teletouch-cpu-"))
     pyspy = pyspy_path() if settings.profile else None
     win = _Window(settings, workdir, pyspy)
+    reference = {"before": reference_speed()}
     load_start = os.getloadavg()
     try:
         try:
@@ -440,7 +477,8 @@ def run_cpu_bench(settings: CpuBenchSettings) -> dict[str, Any]:
                 shutil.copyfile(record, settings.keep_record)
             else:  # the figures are still worth keeping
                 log.warning("--keep-record: the demo left no recording (%s)", record)
-        return _figures(win, report, load_start, pyspy)
+        reference["after"] = reference_speed()
+        return {**_figures(win, report, load_start, pyspy), "reference": reference}
     finally:
         shutil.rmtree(workdir, ignore_errors=True)
 

@@ -32,6 +32,15 @@ def _fmt(v: Any, digits: int = 3) -> str:
     return str(v)
 
 
+def _pair(run: dict[str, Any], key: str, digits: int) -> str:
+    """A reference figure before / after the demo ("-" where the run did not measure it)."""
+    ref = run.get("reference") or {}
+    values = [(ref.get(when) or {}).get(key) for when in ("before", "after")]
+    if all(v is None for v in values):
+        return "-"
+    return " / ".join("-" if v is None else f"{v:.{digits}f}" for v in values)
+
+
 def write_report(runs: list[dict[str, Any]], out_dir: Path) -> None:
     """Write ``cpu.md`` and ``cpu.png`` from the saved runs."""
     labels = [r["label"] for r in runs]
@@ -51,7 +60,11 @@ def write_report(runs: list[dict[str, Any]], out_dir: Path) -> None:
              "were starved (display loop far below 1 kHz, frames below their setting) CPU "
              "per wall second understates the cost; the "
              "last two columns divide by the work done (session-average loop rate and "
-             "achieved frame rate), which holds better under load.", ""]
+             "achieved frame rate), which holds better under load. From 2026-12-06 each run "
+             "also times two fixed workloads by CPU time just before the demo starts and just "
+             "after it ends (`reference_speed`: an interpreter loop, and an array pass larger "
+             "than the caches): when two runs of the same code differ, these tell whether the "
+             "machine itself was slower.", ""]
     rows = []
     for r in runs:
         product, sim = product_and_sim(r)
@@ -70,6 +83,9 @@ def write_report(runs: list[dict[str, Any]], out_dir: Path) -> None:
             "window s": _fmt(r["wall_s"], 1),
             # what the host took from this machine over the window (from 2026-11-29 on)
             "stolen by the host (cores)": _fmt((r.get("host") or {}).get("steal_cores")),
+            # the machine's own speed just before and after the demo (from 2026-12-06 on)
+            "reference loop us before / after": _pair(r, "python_us", 0),
+            "memory GB/s before / after": _pair(r, "memory_gb_s", 1),
             "all processes (cores)": _fmt(sum(p["cores"] for p in r["processes"].values())),
             "product code": _fmt(product), "simulated hw": _fmt(sim),
             "display loop Hz": _fmt(dl.get("rate_hz"), 0),

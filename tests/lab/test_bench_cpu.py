@@ -3,6 +3,7 @@ waits recognised by their line, py-spy raw lines parsed per thread."""
 
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
 
@@ -160,3 +161,27 @@ def test_the_cpu_the_host_stole_over_a_window_is_in_cores() -> None:
     assert stolen_cores(start, CpuSnapshot(104.0)) is None
     assert stolen_cores(CpuSnapshot(100.0), CpuSnapshot(104.0, steal_s=3.5)) is None
     assert stolen_cores(start, CpuSnapshot(100.0, steal_s=3.5)) is None
+
+
+def test_the_reference_workloads_time_this_thread() -> None:
+    from lab.bench.cpu_impl import reference_speed
+
+    ref = reference_speed(rounds=3)
+    assert set(ref) == {"python_us", "memory_gb_s"}
+    assert all(math.isfinite(v) and v > 0 for v in ref.values())
+    with pytest.raises(ValueError):
+        reference_speed(rounds=0)
+
+
+def test_the_reference_figures_reach_the_tables() -> None:
+    from benchmarks.bench_cpu_paired import _reference
+    from lab.bench.cpu_report import _pair
+
+    run = {"reference": {"before": {"python_us": 1000.0, "memory_gb_s": 20.0},
+                         "after": {"python_us": 1500.0}}}
+    assert _pair(run, "python_us", 0) == "1000 / 1500"
+    assert _pair(run, "memory_gb_s", 1) == "20.0 / -"
+    assert _pair({}, "python_us", 0) == "-"  # runs before the probe existed
+    assert _reference(run, "python_us") == 1250.0
+    assert _reference(run, "memory_gb_s") == 20.0
+    assert _reference({"reference": None}, "python_us") is None
