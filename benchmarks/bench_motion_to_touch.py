@@ -46,6 +46,19 @@ DESIGN_WAITS = ("uplink_sampling",)
 SIDES = ("before", "after")
 
 
+def floor_ms(round_trip_ms: float, latencies: list[dict[str, Any] | None]) -> float | None:
+    """The floor (see the module docstring): the nominal round trip plus, per stage of
+    ``WORK_STAGES`` and ``DESIGN_WAITS``, the median of its p50 over the runs' latency
+    tables that report it; None when no run reports one of those stages."""
+    total = round_trip_ms
+    for stage in (*WORK_STAGES, *DESIGN_WAITS):
+        p50 = median_known(((lat or {}).get(stage) or {}).get("p50") for lat in latencies)
+        if p50 is None:
+            return None
+        total += float(p50)
+    return total
+
+
 def _nominal_rtt_ms(profile: str, root: Path) -> float:
     code = ("import json, sys; from lab.linkemu import get_profile; "
             f"print(get_profile({profile!r}).round_trip_ms)")
@@ -92,7 +105,7 @@ def summarise(runs: dict[str, dict[str, list[dict[str, Any]]]],
                       for k in ("p50", "p99")} for side in SIDES}
         work = {s: median_known([_fig(r, s, "p50") for r in sides["after"]])
                 for s in (*WORK_STAGES, *DESIGN_WAITS)}
-        floor = rtt_ms[profile] + sum(v for v in work.values() if v is not None)
+        floor = floor_ms(rtt_ms[profile], [r.get("latency_ms") for r in sides["after"]])
         p99_after = med["after"]["p99"]
         figures[profile] = {"nominal_rtt_ms": rtt_ms[profile], "work_stages_p50_ms": work,
                             "floor_ms": floor, "median": med}
@@ -105,7 +118,8 @@ def summarise(runs: dict[str, dict[str, list[dict[str, Any]]]],
             f"{_f(med['before']['p50'])} / {_f(med['before']['p99'])} | "
             f"{_f(med['after']['p50'])} / {_f(med['after']['p99'])} | "
             f"{_f(ratio['p50'], 2)} / {_f(ratio['p99'], 2)} | {_f(rtt_ms[profile])} | "
-            f"{_f(floor)} | {_f(None if p99_after is None else p99_after - floor)} |")
+            f"{_f(floor)} | "
+            f"{_f(None if p99_after is None or floor is None else p99_after - floor)} |")
     return rows, figures
 
 

@@ -31,6 +31,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from benchmarks.bench_motion_to_touch import DESIGN_WAITS, WORK_STAGES  # noqa: E402
+from benchmarks.bench_motion_to_touch import floor_ms as motion_to_touch_floor  # noqa: E402
 from lab.linkemu import get_profile  # noqa: E402
 
 
@@ -54,19 +55,13 @@ def _cell(values: list[float], fmt: str = "{:.2f}") -> str:
 
 
 def floor_ms(runs: list[dict[str, Any]]) -> float | None:
-    """The floor of a group of runs of one link profile (None without a link emulator, or
-    when a run lacks one of the floor's stages)."""
+    """The floor of a group of runs of one link profile (``bench_motion_to_touch.floor_ms``);
+    None without a link emulator, or when no run reports one of the floor's stages."""
     link = runs[0]["settings"]["link"]
     if not link:
         return None
-    parts = []
-    for stage in (*WORK_STAGES, *DESIGN_WAITS):
-        values = [((r.get("latency_ms") or {}).get(stage) or {}).get("p50") for r in runs]
-        known = [float(v) for v in values if v is not None]
-        if len(known) < len(values):
-            return None
-        parts.append(statistics.median(known))
-    return float(get_profile(link).round_trip_ms) + sum(parts)
+    return motion_to_touch_floor(float(get_profile(link).round_trip_ms),
+                                 [r.get("latency_ms") for r in runs])
 
 
 def table(directory: Path) -> str:

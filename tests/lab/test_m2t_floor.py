@@ -1,6 +1,6 @@
-"""The motion-to-touch floor of a group of ``bench cpu`` runs (``benchmarks/m2t_tail_table.py``):
-the link profile's nominal round trip plus the medians of the working stages' and the
-design's waits' p50."""
+"""The motion-to-touch floor of a group of ``bench cpu`` runs (``benchmarks/m2t_tail_table.py``,
+through ``bench_motion_to_touch.floor_ms``): the link profile's nominal round trip plus the
+medians of the working stages' and the design's waits' p50."""
 
 from __future__ import annotations
 
@@ -30,9 +30,16 @@ def test_the_floor_adds_the_round_trip_and_the_medians_of_the_stages() -> None:
     assert get_profile("city-1000km").round_trip_ms == pytest.approx(20.0)
 
 
-def test_no_floor_without_a_link_or_with_a_stage_missing() -> None:
+def test_a_stage_counts_over_the_runs_that_report_it_and_none_without_it() -> None:
     stages = (*WORK_STAGES, *DESIGN_WAITS)
-    assert floor_ms([_run(None, dict.fromkeys(stages, 1.0))]) is None
+    assert floor_ms([_run(None, dict.fromkeys(stages, 1.0))]) is None  # no link emulator
     partial = dict.fromkeys(stages, 1.0)
     del partial["render"]
-    assert floor_ms([_run("lan", dict.fromkeys(stages, 1.0)), _run("lan", partial)]) is None
+    full = dict.fromkeys(stages, 1.0) | {"render": 5.0}
+    rtt = get_profile("lan").round_trip_ms
+    # a run without the stage (an older format, a failed run) does not pull it to zero
+    assert floor_ms([_run("lan", full), _run("lan", partial)]) == pytest.approx(
+        rtt + len(stages) - 1 + 5.0)
+    assert floor_ms([_run("lan", partial), _run("lan", partial)]) is None
+    failed: dict[str, Any] = {"settings": {"link": "lan"}}  # no latency table at all
+    assert floor_ms([_run("lan", full), failed]) == pytest.approx(rtt + len(stages) - 1 + 5.0)
