@@ -42,6 +42,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from lab.bench.cpu_report import reference_values
 from lab.bench.results import median_known
 
 #: (column, unit format) per run
@@ -113,9 +114,7 @@ def figures(path: Path) -> dict[str, float | None]:
 
 
 def _reference(run: dict[str, Any], key: str) -> float | None:
-    ref = run.get("reference") or {}
-    values = [(ref.get(when) or {}).get(key) for when in ("before", "after")]
-    known = [float(v) for v in values if v is not None]
+    known = [v for v in reference_values(run, key) if v is not None]
     return sum(known) / len(known) if known else None
 
 

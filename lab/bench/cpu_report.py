@@ -32,10 +32,17 @@ def _fmt(v: Any, digits: int = 3) -> str:
     return str(v)
 
 
-def _pair(run: dict[str, Any], key: str, digits: int) -> str:
-    """A reference figure before / after the demo ("-" where the run did not measure it)."""
+def reference_values(run: dict[str, Any], key: str) -> list[float | None]:
+    """A run's reference figure (``reference_speed``'s ``key``) just before and just after
+    the demo, None where the run did not measure it."""
     ref = run.get("reference") or {}
     values = [(ref.get(when) or {}).get(key) for when in ("before", "after")]
+    return [None if v is None else float(v) for v in values]
+
+
+def _pair(run: dict[str, Any], key: str, digits: int) -> str:
+    """A reference figure before / after the demo ("-" where the run did not measure it)."""
+    values = reference_values(run, key)
     if all(v is None for v in values):
         return "-"
     return " / ".join("-" if v is None else f"{v:.{digits}f}" for v in values)
