@@ -44,8 +44,10 @@ def test_baked_grid_matches_plain_predict(seed: int, degree: int, factor: int,
     tol = 1e-4 * max(1.0, float(np.abs(ref).max()))
     err = np.abs(np.concatenate([gx[active] - ref[:, 0], gy[active] - ref[:, 1]]))
     # float32 regrouping: where large colour terms cancel, a rare pixel loses a few more bits
-    # (seen: 2 of 23,095 at 1.4 tol with a 16-count colour spread); bound both
-    assert float(np.quantile(err, 0.999)) <= tol
+    # (seen: 2 of 23,095 at 1.4 tol with a 16-count colour spread; 1 of 720 at 1.7 tol with
+    # a 30-count spread on a 30 x 40 grid, where a 0.999 quantile is the largest error
+    # itself): at most one value in a thousand, or one, above tol; every one within 10 tol
+    assert int((err > tol).sum()) <= max(1, err.size // 1000)
     assert float(err.max()) <= 10.0 * tol
     assert (gx[~active] == 7.0).all() and (gy[~active] == 7.0).all()  # untouched
     assert np.isfinite(gx).all() and np.abs(gx[active]).max() <= 5.0
