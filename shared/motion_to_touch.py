@@ -54,7 +54,11 @@ station's frames come at ``frame_rate_hz`` (60-80), a few times slower than the 
 every state it received since the last capture that gave a frame (passed over, or
 refused as too old or unusable: positions are absolute, so a newer state shows their
 movements too) is first shown by the next frame, which starts where the first of them
-started (``RemoteStation._frame_source``). A capture that gives no frame (a streaming camera
+started (``RemoteStation._frame_source``). A streaming camera's image was taken before
+the frame tick that reads it: its frame answers the command applied by the image's time
+(``RemoteStation.applied_at``; the camera's known latency is taken off its arrival), and the
+states after that command are left for the next frame, so ``arm_command`` never follows
+``sensor_frame``. A capture that gives no frame (a streaming camera
 with no new image yet, a sensor error) hands that chain back; states refused after the state
 captured are left for the next frame; a reconnect of the remote's link, and a first state
 that reached the remote more than a second before the capture (an outage of the touch path,

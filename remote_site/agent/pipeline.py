@@ -22,7 +22,7 @@ from remote_site.agent.background import BackgroundTracker
 from remote_site.agent.stiffness_stage import StiffnessStage
 from remote_site.arm.base import ArmReading
 from remote_site.reconstruction.reconstructor import Reconstructor
-from remote_site.sensor.base import TactileSensor
+from remote_site.sensor.base import SensorFrame, TactileSensor
 from remote_site.tactile import AppliedCommand, TactileAssembler
 from shared.errors import DeviceError, DeviceTimeoutError, InputDataError
 from shared.protocol.messages import TactileFrame
@@ -134,7 +134,8 @@ class FramePipeline:
         return FrameOutcome(None, "rejected", reason)
 
     def process(self, seq: int, source: AppliedCommand | None) -> FrameOutcome:
-        """Take the newest sensor frame and build the tactile frame ``seq``.
+        """Take the newest sensor frame and build the tactile frame ``seq`` (the arm's
+        reading taken just before: a sensor that captures on demand takes the image now).
 
         Args:
             seq: sequence number for the tactile frame.
@@ -145,6 +146,17 @@ class FramePipeline:
         """
         t0 = time.perf_counter()
         reading = self.read_arm()
+        taken = self.capture()
+        if isinstance(taken, FrameOutcome):
+            return taken
+        return self.build(seq, taken[0], reading, source, time.perf_counter() - t0)
+
+    def capture(self) -> tuple[SensorFrame, float] | FrameOutcome:
+        """The newest sensor frame and the seconds it took (the simulator renders here), or
+        the outcome of a tick without a new one (rejected or repeated). With a sensor that
+        does not capture on demand this only takes the frame it holds (the station calls it
+        on its event loop)."""
+        t0 = time.perf_counter()
         try:
             sensor_frame = self.sensor.read_latest(self.sensor_max_age_ms)
         except DeviceError as err:
@@ -154,6 +166,22 @@ class FramePipeline:
             self.repeated += 1
             return FrameOutcome(None, "repeated")
         self._last_sensor_seq = sensor_frame.seq
+        return sensor_frame, time.perf_counter() - t0
+
+    def build(self, seq: int, sensor_frame: SensorFrame, reading: ArmReading,
+              source: AppliedCommand | None, capture_s: float = 0.0) -> FrameOutcome:
+        """The tactile frame ``seq`` of one captured sensor frame.
+
+        Args:
+            seq: sequence number for the tactile frame.
+            sensor_frame: from :meth:`capture`.
+            reading: the arm when the image was taken (its pad pose places the patch).
+            source: the platform_state the frame answers (applied before the image).
+            capture_s: the capture's time, for the outcome.
+
+        Returns:
+            The outcome; never raises for bad frames.
+        """
         t1 = time.perf_counter()
         try:
             height_map = self.reconstructor.height_map(sensor_frame.rgb,
@@ -179,5 +207,4 @@ class FramePipeline:
                 return self._reject("bad_frame", err)
         t3 = time.perf_counter()
         self.processed += 1
-        return FrameOutcome(frame, "ok", None, height_map.skipped, t1 - t0, t2 - t1, t3 - t2)
-
+        return FrameOutcome(frame, "ok", None, height_map.skipped, capture_s, t2 - t1, t3 - t2)

@@ -23,7 +23,11 @@ Four asyncio tasks share one :class:`RemoteStation`:
   without a new command within a period of its due time, a frame is taken anyway (it keeps
   the touch fresh) and the schedule restarts at it: a frame every two periods. A streaming camera
   keeps the frame clock: the newest frame at each tick (:func:`pose_reached`,
-  :class:`CaptureCounters`).
+  :class:`CaptureCounters`). Its image was taken before the tick, perhaps before the newest
+  command: the frame answers the command applied by the image's time
+  (:meth:`RemoteStation.applied_at`) and is placed at the arm's pose then
+  (:meth:`RemoteStation.reading_at`), so no image is shown as fresher than it is and
+  motion-to-touch never counts a movement the image cannot show.
 * **status**: one status line per ``status_interval_s``.
 
 The StationLink answers clock pings and reconnects with backoff by itself.
@@ -171,6 +175,15 @@ _COMMAND_GAP_MAX_S = 0.1
 #: bound as a latest-wins slot's carry (:data:`~shared.protocol.MOTION_CARRY_MAX_US`)
 _CHAIN_MAX_S = MOTION_CARRY_MAX_US / 1e6
 
+#: the platform states kept (with the commands applied from them) to find the one a
+#: streaming sensor's image answers: seconds of states at any usable rate, while an image
+#: older than ``sensor_max_age_ms`` (100 ms by default) is refused
+_RECEIVED_KEEP = 2048
+
+#: the arm readings kept to place a streaming sensor's image (with ``arm_poll_hz`` <= 2000,
+#: a quarter of a second or more)
+_READINGS_KEEP = 512
+
 
 @dataclass(frozen=True, slots=True)
 class _Chain:
@@ -281,9 +294,14 @@ class RemoteStation:
         #: link connection it came on, when): what the next frame is the first to show
         #: starts there (:meth:`_frame_source`)
         self._chain: _Chain | None = None
-        #: the first state received since the latest applied one (refused ones only): the
-        #: chain a capture of the latest command leaves for the next frame
-        self._after_latest: _Chain | None = None
+        #: every state received with its age checkable, in order, with the command applied
+        #: from it (None: refused): which command an image answers, and the chain its
+        #: capture leaves for the next frame (the states received after that command)
+        self._received: deque[tuple[_Chain, AppliedCommand | None]] = deque(
+            maxlen=_RECEIVED_KEEP)
+        #: the arm's readings as polled (our clock, microseconds): where the arm was when a
+        #: streaming sensor's image was taken
+        self._readings: deque[tuple[int, ArmReading]] = deque(maxlen=_READINGS_KEEP)
         #: the command the last frame given answered (a capture of it again is idle)
         self._answered: AppliedCommand | None = None
         self.last_reading: ArmReading | None = None
@@ -336,14 +354,13 @@ class RemoteStation:
         joined = _Chain(state, connects, monotonic_s())
         if self._chain is None or self._chain.connects != connects:
             self._chain = joined
-        if self._after_latest is None or self._after_latest.connects != connects:
-            self._after_latest = joined
         try:
             target = self.forward(state.position_mm)
             result = self.safe_arm.move(tuple(float(v) for v in target),
                                         sent_ts_us=state.ts_us, clock_offset_us=clock[0],
                                         offset_uncertainty_us=clock[1])
         except InputDataError as err:
+            self._received.append((joined, None))
             self.counters.platform_invalid += 1
             log.warning("unusable platform_state %d: %s", state.seq, err)
             return None
@@ -355,13 +372,49 @@ class RemoteStation:
                     prev = self.command_interval_s
                     self.command_interval_s = gap_s if prev is None else prev + (gap_s - prev) / 8
             self.latest = AppliedCommand(state, t_us, result.speed_before_mm_s)
-            self._after_latest = None
             self._command_applied.set()
             self.counters.platform_applied += 1
             rx = [h.t_us for h in state.hops if h.clock == "remote" and h.stage == "station_rx"]
             if rx:
                 self.dispatch_s.append(max(0, t_us - rx[-1]) / 1e6)
+        self._received.append((joined, self.latest if result.accepted else None))
         return result
+
+    def applied_at(self, t_us: int) -> AppliedCommand | None:
+        """The latest command applied to the arm at or before ``t_us`` (our clock): what an
+        image taken then can show (None: none kept was; a streaming sensor's image may be
+        older than the newest command)."""
+        latest = self.latest
+        if latest is None or latest.arm_command_us <= t_us:
+            return latest
+        for _, applied in reversed(self._received):
+            if applied is not None and applied.arm_command_us <= t_us:
+                return applied
+        return None
+
+    def reading_at(self, t_us: int) -> ArmReading:
+        """The arm's polled reading nearest to ``t_us`` (our clock): where the pad was when an
+        image was taken (the current reading before any was polled)."""
+        best: tuple[int, ArmReading] | None = None
+        for polled_us, reading in reversed(self._readings):
+            if best is not None and abs(polled_us - t_us) >= abs(best[0] - t_us):
+                break  # the readings are in time order: the nearest is passed
+            best = (polled_us, reading)
+        return self.pipeline.read_arm() if best is None else best[1]
+
+    def _after(self, command: AppliedCommand) -> _Chain | None:
+        """The first state received after ``command`` (on the newest state's link
+        connection): where the chain a capture of it leaves for the next frame starts."""
+        if not self._received:
+            return None
+        connects = self._received[-1][0].connects
+        first = None
+        for joined, applied in reversed(self._received):
+            if applied is command:
+                return first
+            if joined.connects == connects:
+                first = joined
+        return None  # no longer kept: a chain older than the outage bound
 
     def _frame_source(self, command: AppliedCommand | None
                       ) -> tuple[AppliedCommand | None, _Chain | None]:
@@ -374,8 +427,9 @@ class RemoteStation:
         captured (passed over, refused as too old or unusable: positions are absolute, so a
         newer state shows their movements too) is first shown by this frame, so it starts
         where the first of them started, as a latest-wins slot hands a replaced state's start
-        on (:func:`~shared.protocol.carry_motion`). States refused after the command captured
-        are left for the next frame. Not across a reconnect of the link, nor when the first
+        on (:func:`~shared.protocol.carry_motion`). States received after the command captured
+        (refused, or applied after a streaming sensor's image was taken) are left for the
+        next frame. Not across a reconnect of the link, nor when the first
         of them reached this station more than :data:`_CHAIN_MAX_S` ago (an outage of the
         touch path, not a latency: the frame then counts from its own state's sample, as the
         uplink does across a platform outage). A command a frame already answered is
@@ -385,8 +439,9 @@ class RemoteStation:
             return None, None
         if command is self._answered:
             return dataclasses.replace(command, answers=False), None
-        # the states refused since this command stay for the next frame: it shows them first
-        chain, self._chain = self._chain, self._after_latest
+        # the states received after this command (refused, or applied after the image of a
+        # streaming sensor) stay for the next frame: it shows them first
+        chain, self._chain = self._chain, self._after(command)
         state = command.state
         if chain is not None and chain.connects == self.link.counters.connects:
             if monotonic_s() - chain.since_s <= _CHAIN_MAX_S:
@@ -445,6 +500,7 @@ class RemoteStation:
         while True:
             reading = self.safe_arm.poll()
             self.last_reading = reading
+            self._readings.append((now_us(), reading))
             try:
                 self.stiffness.add_sample(reading.t_s, reading.position_mm, reading.force_n)
             except InputDataError as err:
@@ -568,9 +624,13 @@ class RemoteStation:
                 self.command_wait_s.append(
                     max(0, now_us() - self.latest.arm_command_us) / 1e6)
             captured = self.latest
-            source, chain = self._frame_source(captured)
-            outcome: FrameOutcome = await loop.run_in_executor(
-                executor, self.pipeline.process, self._frame_seq + 1, source)
+            outcome: FrameOutcome
+            if self.pipeline.sensor.captures_on_demand:  # the image is taken now
+                source, chain = self._frame_source(captured)
+                outcome = await loop.run_in_executor(
+                    executor, self.pipeline.process, self._frame_seq + 1, source)
+            else:
+                captured, chain, outcome = await self._streamed_frame(executor)
             if outcome.frame is None:
                 self._keep_chain(chain)
             elif captured is not None:
@@ -597,6 +657,24 @@ class RemoteStation:
             if now > next_t:
                 self.counters.frames_late += 1
                 next_t = now
+
+    async def _streamed_frame(self, executor: ThreadPoolExecutor
+                              ) -> tuple[AppliedCommand | None, _Chain | None, FrameOutcome]:
+        """The next frame of a sensor that streams on its own clock: its newest image was
+        taken before this tick, perhaps before the newest command, so the frame answers the
+        command applied by the image's time and is placed where the arm was then (not where
+        it is now). Returns the command answered, the chain taken and the outcome."""
+        taken = self.pipeline.capture()  # the frame the sensor holds: no waiting
+        if isinstance(taken, FrameOutcome):
+            return self.latest, None, taken
+        sensor_frame, capture_s = taken
+        captured = self.applied_at(sensor_frame.timestamp_us)
+        source, chain = self._frame_source(captured)
+        reading = self.reading_at(sensor_frame.timestamp_us)
+        outcome = await asyncio.get_running_loop().run_in_executor(
+            executor, self.pipeline.build, self._frame_seq + 1, sensor_frame, reading, source,
+            capture_s)
+        return captured, chain, outcome
 
     def _record(self, outcome: FrameOutcome) -> None:
         frame = outcome.frame

@@ -37,7 +37,9 @@ class SensorFrame:
 
     Attributes:
         rgb: (H, W, 3) uint8 image, RGB order.
-        timestamp_us: capture time, wall clock microseconds (``shared.timebase.now_us``).
+        timestamp_us: capture time (when the image was taken, as well as the source knows:
+            a streaming camera stamps its arrival less the device's known latency), wall
+            clock microseconds (``shared.timebase.now_us``).
         seq: capture sequence number, increasing by one per captured frame.
     """
 
@@ -77,7 +79,10 @@ class TactileSensor(Device):
     Attributes:
         captures_on_demand: every :meth:`read_latest` captures a new frame now (a renderer,
             a triggered camera); False for a source that streams on its own clock, where
-            the newest frame is whatever was captured last.
+            the newest frame is whatever was captured last (its :meth:`read_latest` must
+            then only return the frame it holds, without waiting: the remote station reads
+            it on its event loop, then pairs it with the command and the arm pose of the
+            frame's ``timestamp_us``).
     """
 
     captures_on_demand: bool = False

@@ -102,9 +102,15 @@ class OpenCVCameraSensor(TactileSensor):
         stall_timeout_s: no new frame for this long counts as a stall.
         first_frame_timeout_s: how long connect() waits for the first frame.
         capture_factory: builds the capture object (``cv2.VideoCapture`` by default).
+        latency_ms: how long before its arrival here an image was taken (exposure, the
+            camera's and the USB stack's buffering), when known for the device: frames are
+            stamped that much before they arrive, so the station pairs each with the command
+            and the arm pose of its time, and ages it as what it is. 0 (the default): stamped
+            at arrival, an upper bound on the image's time. Not measured here for any preset.
 
     Raises:
-        ConfigError: an unknown preset or a non-positive rate / timeout.
+        ConfigError: an unknown preset, a non-positive rate / timeout, or a negative or
+            non-finite latency.
     """
 
     def __init__(self, source: int | str = 0, preset: str = DEFAULT_PRESET,
@@ -112,7 +118,8 @@ class OpenCVCameraSensor(TactileSensor):
                  crop_fraction: float | None = None, fps: float | None = None,
                  loop: bool = False, stall_timeout_s: float = 1.0,
                  first_frame_timeout_s: float = 5.0,
-                 capture_factory: Callable[[int | str], _Capture] | None = None) -> None:
+                 capture_factory: Callable[[int | str], _Capture] | None = None,
+                 latency_ms: float = 0.0) -> None:
         base = camera_preset(preset)
         self.preset = CameraPreset(
             base.name,
@@ -129,6 +136,10 @@ class OpenCVCameraSensor(TactileSensor):
         self.stall_timeout_s = float(_positive_or_none(stall_timeout_s, "stall_timeout_s") or 1.0)
         self.first_frame_timeout_s = float(first_frame_timeout_s)
         self._factory = capture_factory
+        latency_ms = float(latency_ms)
+        if not (math.isfinite(latency_ms) and latency_ms >= 0):
+            raise ConfigError(f"camera latency_ms must be finite and >= 0, got {latency_ms}")
+        self._latency_us = round(latency_ms * 1000.0)
         self._capture: _Capture | None = None
         self._reader: ReaderThread | None = None
         self._wake = threading.Event()
@@ -260,7 +271,8 @@ class OpenCVCameraSensor(TactileSensor):
             return False
         with self._lock:
             self._seq += 1
-            self._newest = SensorFrame(rgb=rgb, timestamp_us=now_us(), seq=self._seq)
+            self._newest = SensorFrame(rgb=rgb, timestamp_us=now_us() - self._latency_us,
+                                       seq=self._seq)
             if self._health.stalled:
                 log.info("camera %r delivers frames again", self.source)
                 self._health = SensorHealth(stalls=self._health.stalls,
@@ -286,7 +298,7 @@ class OpenCVCameraSensor(TactileSensor):
         h = self._health
         if h.ended or h.stalled or self._newest is None:
             return
-        age_s = (now_us() - self._newest.timestamp_us) / 1e6
+        age_s = (now_us() - self._newest.timestamp_us - self._latency_us) / 1e6  # arrival
         if age_s > self.stall_timeout_s:
             self._health = SensorHealth(stalls=h.stalls + 1, stalled=True, loops=h.loops)
             log.warning("camera %r stalled: no new frame for %.1f s (stall %d)", self.source,

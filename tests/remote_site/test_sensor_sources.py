@@ -23,6 +23,7 @@ from shared.errors import (
     DeviceTimeoutError,
     InputDataError,
 )
+from shared.timebase import now_us
 from tests.support import scaled, wait_until
 
 
@@ -196,6 +197,23 @@ def test_stale_frames_are_refused() -> None:
         with pytest.raises(DeviceTimeoutError, match="old"):
             sensor.read_latest(max_age_ms=10)
     assert capture.released
+
+
+def test_a_camera_stamps_its_frames_with_the_known_latency_taken_off() -> None:
+    # the image was taken latency_ms before it arrived: stamped then, and aged from then;
+    # a stall is still judged by the arrival (a long latency is not a stalled camera)
+    capture = FakeCapture([], repeat=_raw_frame())
+    before_us = now_us()
+    with OpenCVCameraSensor(0, capture_factory=lambda src: capture, latency_ms=2_000.0,
+                            stall_timeout_s=scaled(1.0)) as sensor:
+        frame = sensor.read_latest(max_age_ms=scaled(3_000.0))
+        assert before_us - 2_000_000 <= frame.timestamp_us <= now_us() - 2_000_000
+        with pytest.raises(DeviceTimeoutError, match="old"):
+            sensor.read_latest(max_age_ms=1_500.0)
+        assert not sensor.health.stalled and not sensor.health.ended
+    for bad in (-1.0, float("nan"), float("inf")):
+        with pytest.raises(ConfigError, match="latency_ms"):
+            OpenCVCameraSensor(0, capture_factory=lambda src: capture, latency_ms=bad)
 
 
 def test_camera_rejects_odd_frames_from_the_device() -> None:

@@ -1,0 +1,194 @@
+"""A streaming sensor's frame answers the command of its image's time, at the arm's pose then.
+
+A camera that streams on its own clock hands the station an image taken before the frame
+tick that reads it, perhaps before the newest command was applied. The frame must then name
+the command applied by the image's time (never one applied after it: ``arm_command`` would
+follow ``sensor_frame`` and motion-to-touch would count a movement the image cannot show),
+leave the states after that command for the next frame, and place the patch where the arm
+was when the image was taken.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import itertools
+import math
+
+import numpy as np
+import pytest
+
+from remote_site.agent.config import RemoteAgentConfig
+from remote_site.arm.base import ArmReading
+from remote_site.arm.safety import CommandResult, SafetyConfig
+from remote_site.sensor.base import SensorFrame
+from remote_site.sensor.simulator import SimulatedSensor
+from remote_site.tactile import AppliedCommand
+from shared.protocol import Hop, PlatformState, TactileCompact, TactileFrame
+from shared.timebase import now_us
+from tests.remote_site.test_agent_safety import (
+    WS,
+    FakeLink,
+    ScriptedSensor,
+    _stamped,
+    close_station,
+    make_station,
+    platform_state,
+)
+from tests.support import motion_of, scaled
+
+
+class LaggingCamera(ScriptedSensor):
+    """A streaming camera: each read finds a new image, taken ``lag_us`` before the read."""
+
+    def __init__(self, lag_us: int) -> None:
+        super().__init__([])
+        self.lag_us = lag_us
+        self.image = SimulatedSensor().render(np.zeros((240, 320)))
+
+    def _latest(self) -> SensorFrame | None:
+        self.seq += 1
+        return SensorFrame(self.image, now_us() - self.lag_us, self.seq)
+
+
+def _stamp(frame: TactileFrame | TactileCompact, stage: str) -> int:
+    return next(h.t_us for h in frame.hops if h.clock == "remote" and h.stage == stage)
+
+
+async def test_a_streamed_frame_answers_the_command_of_its_image_at_the_pose_then(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    # states at 250 Hz move the arm along x at 20 mm/s; frames at 30 Hz from a camera whose
+    # images are 30 ms old when read: 7-8 commands are applied between an image and its read
+    import remote_site.agent.station as station_module
+
+    monkeypatch.setattr(station_module, "_CHAIN_MAX_S", scaled(60.0))  # no outage here
+    lag_us = 30_000
+    link = FakeLink()
+    station = make_station(link, SafetyConfig(max_command_age_ms=scaled(5_000.0)),
+                           sensor=LaggingCamera(lag_us),
+                           config=RemoteAgentConfig(frame_rate_hz=30.0, status_interval_s=10.0))
+    assert not station.captures_on_pose
+    applied: list[AppliedCommand] = []  # in order
+    apply = station.apply_platform_state
+
+    def recording_apply(state: PlatformState) -> CommandResult | None:
+        before = station.latest
+        result = apply(state)
+        if station.latest is not before and station.latest is not None:
+            applied.append(station.latest)
+        return result
+
+    station.apply_platform_state = recording_apply  # type: ignore[method-assign]
+    readings: list[tuple[int, ArmReading]] = []  # (after the poll, reading)
+    poll = station.safe_arm.poll
+
+    def recording_poll() -> ArmReading:
+        reading = poll()
+        readings.append((now_us(), reading))
+        return reading
+
+    station.safe_arm.poll = recording_poll  # type: ignore[method-assign]
+    stop = asyncio.Event()
+    sent: dict[int, PlatformState] = {}
+
+    async def operator() -> None:
+        previous = None
+        for seq in range(1, 250):
+            state = _stamped(seq, previous)
+            moved = platform_state(seq, (-12.0 + 0.08 * seq, -35.0, 2.0), state.ts_us)
+            state = dataclasses.replace(state, position_mm=moved.position_mm)
+            sent[seq], previous = state, state.ts_us
+            link.inbox.put_nowait(state)
+            await asyncio.sleep(0.004)
+        await asyncio.sleep(0.2)
+        stop.set()
+
+    try:
+        feeder = asyncio.create_task(operator())
+        await station.run(stop, duration_s=scaled(30.0))
+        await feeder
+        frames = [m for m in link.sent if isinstance(m, TactileFrame | TactileCompact)]
+        answering = [f for f in frames if any(h.clock == "local" for h in f.hops)]
+        assert len(answering) >= 10, f"{len(answering)} answering frames"
+        by_seq = {c.state.seq: c for c in applied}
+        newer_than_image = placed = 0
+        for frame in answering:
+            image_us, command_us = _stamp(frame, "sensor_frame"), _stamp(frame, "arm_command")
+            assert command_us <= image_us  # never a command the image cannot show
+            assert frame.source_seq is not None
+            command = by_seq[frame.source_seq]
+            assert command.arm_command_us == command_us
+            # ... and the newest such: the next command was applied after the image
+            later = [c for c in applied if c.arm_command_us > command_us]
+            assert not later or later[0].arm_command_us > image_us
+            ready_us = _stamp(frame, "tactile_ready")
+            newer_than_image += any(image_us < c.arm_command_us <= ready_us for c in applied)
+            # placed where the arm was when the image was taken: a reading polled within
+            # two poll periods of it (at 20 mm/s the reading at the read, 30 ms on, is 0.6 mm
+            # away)
+            period_us = 1e6 / station.config.arm_poll_hz
+            if image_us < readings[0][0]:
+                continue  # taken before the station's first poll: its first reading places it
+            near = [r for t, r in readings if abs(t - image_us) <= 2 * period_us]
+            assert near, "no reading polled near the image's time"
+            placed += 1
+            assert min(math.dist(frame.center_mm, WS.inverse(list(r.position_mm))[:2])
+                       for r in near) < 1e-6
+        assert newer_than_image >= 5 and placed >= 5  # the cases under test happened
+        # the states applied after an image are first shown by the next frame
+        for before, after in itertools.pairwise(answering):
+            assert before.source_seq is not None and after.source_seq is not None
+            assert after.source_seq > before.source_seq
+            assert motion_of(after) == sent[before.source_seq].ts_us
+    finally:
+        close_station(station)
+
+
+def test_applied_at_reading_at_and_the_chain_left_after_an_older_command(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    import remote_site.agent.station as station_module
+
+    clock = itertools.count(1_000_000, 1_000)  # 1 ms per stamp
+    monkeypatch.setattr(station_module, "now_us", lambda: next(clock))
+    link = FakeLink()
+    station = make_station(link, realtime=False, sensor=LaggingCamera(0))
+    states = [_stamped(0, None)]
+    try:
+        assert station.applied_at(10**12) is None  # nothing applied yet
+
+        def offer(refused: bool = False) -> AppliedCommand | None:
+            state = _stamped(len(states), states[-1].ts_us)
+            if refused:
+                state = dataclasses.replace(state, position_mm=(float("nan"), 0.0, 0.0))
+            states.append(state)
+            station.apply_platform_state(state)
+            return None if refused else station.latest
+
+        first = offer()  # 1
+        second = offer()  # 2
+        offer(refused=True)  # 3
+        third = offer()  # 4
+        assert first is not None and second is not None and third is not None
+        assert station.applied_at(first.arm_command_us - 1) is None
+        assert station.applied_at(first.arm_command_us) is first
+        assert station.applied_at(third.arm_command_us - 1) is second
+        assert station.applied_at(10**12) is third
+        # a frame of the image taken before the third command answers the second, starts at
+        # the first state's predecessor and leaves the chain from state 3 (refused) on
+        source, _ = station._frame_source(station.applied_at(third.arm_command_us - 1))
+        assert source is not None and source.state.seq == 2
+        assert motion_of(source.state) == states[0].ts_us
+        station._answered = second
+        source, _ = station._frame_source(station.latest)
+        assert source is not None and source.state.seq == 4
+        assert motion_of(source.state) == states[2].ts_us  # where 3 started
+        # the arm reading nearest in time (the current one before any was polled)
+        assert station.reading_at(0) is not None
+        a, b = (ArmReading((float(i), 0.0, 1.0), (0.0, 0.0, 0.0), 0.0, "ok", None, 0.0)
+                for i in range(2))
+        station._readings.extend([(100, a), (200, b)])
+        assert station.reading_at(0) is a and station.reading_at(149) is a
+        assert station.reading_at(151) is b and station.reading_at(10**9) is b
+        assert Hop("local", "capture", states[4].ts_us) in source.state.hops
+    finally:
+        close_station(station)
