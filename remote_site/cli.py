@@ -72,6 +72,11 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sensor-fps", dest="sensor_fps", type=float, metavar="HZ",
                         help="publish camera frames at this rate (default: a video file's own "
                              "rate; a live camera paces itself)")
+    parser.add_argument("--sensor-latency-ms", dest="sensor_latency_ms", type=float,
+                        metavar="MS",
+                        help="how long before its arrival a camera image was taken, when known "
+                             "for the device: frames are paired with the command and the arm "
+                             "pose of that time (default 0: the arrival, an upper bound)")
     parser.add_argument("--sensor-loop", dest="sensor_loop", action="store_true",
                         help="restart a video file at its end (default: it ends, reported once)")
     parser.add_argument("--phantom",
@@ -134,7 +139,8 @@ def run(args: argparse.Namespace) -> int:
         relay=args.relay, session=args.session, token=args.token, name=args.name,
         ca_file=args.ca_file,
         arm=args.arm, sensor=args.sensor, sensor_preset=args.sensor_preset,
-        sensor_fps=args.sensor_fps, sensor_loop=args.sensor_loop, phantom=args.phantom,
+        sensor_fps=args.sensor_fps, sensor_latency_ms=args.sensor_latency_ms,
+        sensor_loop=args.sensor_loop, phantom=args.phantom,
         seed=args.seed, ideal=args.ideal, fiducials=parse_fiducials(args.fiducials),
         calibration=Path(args.calibration) if args.calibration else None,
         stiffness_calibration=(Path(args.stiffness_calibration)

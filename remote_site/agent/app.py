@@ -69,6 +69,8 @@ class AgentOptions:
         sensor_preset: camera crop / size preset (``mini-raw``, ``mini-recording``); None:
             the camera's default.
         sensor_fps: pace a camera source at this rate (None: a video file's own rate).
+        sensor_latency_ms: a camera's latency from exposure to arrival (None: 0, the
+            arrival).
         sensor_loop: restart a video file at its end.
         phantom: scene name of the simulated world (None: no world).
         seed: placement seed of the phantom (and the simulated session's noise).
@@ -101,6 +103,7 @@ class AgentOptions:
     sensor: str = "sim"
     sensor_preset: str | None = None
     sensor_fps: float | None = None
+    sensor_latency_ms: float | None = None
     sensor_loop: bool = False
     phantom: str | None = None
     seed: int = 0
@@ -138,6 +141,8 @@ def sensor_options(options: AgentOptions) -> dict[str, Any]:
         given["preset"] = options.sensor_preset
     if options.sensor_fps is not None:
         given["fps"] = options.sensor_fps
+    if options.sensor_latency_ms is not None:
+        given["latency_ms"] = options.sensor_latency_ms
     if options.sensor_loop:
         given["loop"] = True
     return given

@@ -56,6 +56,9 @@ BALL_RADIUS_MM = 4.735
 MM_PER_PX = 0.0634
 FPS = 25.0
 LEAD_FRAMES, PRESS_FRAMES, GAP_FRAMES = 30, 10, 10
+#: the camera latency given to the remote (``--sensor-latency-ms``): the frames are stamped
+#: that much before they arrive (a video file has none; the stamps show the option applied)
+LATENCY_MS = 10.0
 SESSION = "gelsight-video"
 STIFFNESS_CALIBRATION = REPO_ROOT / "remote_site" / "phantom" / "data" / "sim_stiffness_calib.json"
 #: a frame whose highest point exceeds this shows a press
@@ -142,7 +145,12 @@ class PressResult:
 
 
 #: (remote summary, pins against the hand labels, report, pins on the image's contact circles)
-Session = tuple[dict[str, Any], list[PressResult], str, list[PressResult]]
+Session = tuple[dict[str, Any], list[PressResult], str, list[PressResult],
+                list[TactileFrame]]
+
+
+def _remote_stamp(frame: TactileFrame, stage: str) -> int:
+    return next(h.t_us for h in frame.hops if h.clock == "remote" and h.stage == stage)
 
 
 def press_segments(frames: list[TactileFrame], n_presses: int) -> list[TactileFrame] | None:
@@ -251,7 +259,8 @@ async def _run_session(video: Path, calib: Path, summary_path: Path, n_presses: 
         remote = await asyncio.create_subprocess_exec(
             *cmd, "remote", "--relay", f"ws://127.0.0.1:{port}/", "--session", SESSION,
             "--arm", "sim", "--sensor", str(video), "--sensor-preset", "mini-recording",
-            "--sensor-loop", "--calibration", str(calib),
+            "--sensor-loop", "--sensor-latency-ms", str(LATENCY_MS), "--calibration",
+            str(calib),
             "--stiffness-calibration", str(STIFFNESS_CALIBRATION),
             "--summary-json", str(summary_path),
             env=dict(os.environ, TELETOUCH_REMOTE_LINK_TOKEN=token),
@@ -305,17 +314,22 @@ def session(kit_files: tuple[Path, Path], tmp_path_factory: pytest.TempPathFacto
                f"{f['rejected']}, repeated {f['repeated']}; background {bg['source']}, drift "
                f"{bg['drift_from_calibration_rgb']} grey levels")
     print(report)  # the measured figures, for the record (pytest -s)
-    return summary, results, report, on_edge
+    return summary, results, report, on_edge, frames
 
 
 def test_the_video_plays_like_a_camera_and_the_station_captures_its_background(
         session: Session) -> None:
-    summary, _, _, _ = session
+    summary, _, _, _, frames = session
     # paced at 25 frames/s: the 60 Hz station finds a fresh frame on every tick but the first
     assert summary["frames"]["rejected"].get("sensor_timeout", 0) <= 5
     assert not summary["sensor"]["ended"]  # looped: the source never ended
     assert summary["background"]["source"] == "station"
     assert summary["background"]["drift_from_calibration_mean"] < 1.0  # same gel, same day
+    # --sensor-latency-ms reached the camera: every frame is stamped that much before it
+    # arrived, so before the station read and processed it
+    lead_ms = [(_remote_stamp(f, "tactile_ready") - _remote_stamp(f, "sensor_frame")) / 1e3
+               for f in frames]
+    assert min(lead_ms) >= LATENCY_MS, f"{min(lead_ms):.1f} ms"
 
 
 def test_every_real_press_reaches_the_pins(
@@ -327,7 +341,7 @@ def test_every_real_press_reaches_the_pins(
     for training: peak -0.047..+0.036, shape 0.014..0.075 mm. Before the free border and
     the Keys cubic pins: peak -0.061..+0.027 mm (press_17, cut by the image edge, the low
     one); before the rim relief: peak +0.03..+0.16 mm, shape RMS up to 0.16 mm."""
-    _, results, report, _ = session
+    _, results, report, _, _ = session
     peak_err = np.array([r.peak_mm - r.depth_mm for r in results])
     assert (np.array([r.peak_mm for r in results]) > PRESS_HEIGHT_MM).all(), report
     assert (np.abs(peak_err) < 0.1).all(), report
@@ -343,7 +357,7 @@ def test_issue_target_peak(session: Session) -> None:
     off the frame and the station renders with Keys cubic interpolation: press_17 (contact
     crossing the left edge) went from -0.061 to -0.047 mm, and to -0.021 mm with the
     calibration trained on the contact edges; the tightest is now press_47 (-0.046)."""
-    _, results, report, _ = session
+    _, results, report, _, _ = session
     peak_err = np.array([r.peak_mm - r.depth_mm for r in results])
     assert np.abs(peak_err).max() <= PEAK_TOLERANCE_MM, report
 
@@ -357,7 +371,7 @@ def test_issue_target_peak(session: Session) -> None:
     "image's contact circles every press is within 0.05 mm (the next test; "
     "benchmarks/results/label_agreement.md)"))
 def test_issue_target_shape(session: Session) -> None:
-    _, results, report, _ = session
+    _, results, report, _, _ = session
     assert max(r.shape_rms_mm for r in results) <= SHAPE_RMS_TOLERANCE_MM, report
 
 
@@ -370,5 +384,5 @@ def test_shape_on_the_contact_circle_each_image_shows(session: Session) -> None:
     (``benchmarks/results/label_agreement.md``). The peak against the depth of that circle
     is in the report, not asserted: -0.047..-0.007 mm, the image's radius running about a
     pixel larger than the labels'."""
-    _, _, report, on_edge = session
+    _, _, report, on_edge, _ = session
     assert max(r.shape_rms_mm for r in on_edge) <= SHAPE_RMS_TOLERANCE_MM, report
