@@ -57,9 +57,11 @@ movements too) is first shown by the next frame, which starts where the first of
 started (``RemoteStation._frame_source``). A streaming camera's image was taken before
 the frame tick that reads it: its frame answers the command applied by the image's time
 (``RemoteStation.applied_at``; the camera's known latency is taken off its arrival), and the
-states after that command are left for the next frame, so ``arm_command`` never follows
-``sensor_frame``. A capture that gives no frame (a streaming camera
-with no new image yet, a sensor error) hands that chain back; states refused after the state
+states after that command are left for the next frame: its ``arm_command`` stamp never
+follows its ``sensor_frame`` stamp (the arrival less the camera's latency when that is
+known, ``--sensor-latency-ms``; else the arrival, and a real delay goes uncounted). A capture
+that gives no frame (a streaming camera with no new image yet, a sensor error) hands that
+chain back; states refused after the state
 captured are left for the next frame; a reconnect of the remote's link, and a first state
 that reached the remote more than a second before the capture (an outage of the touch path,
 not a latency), end it; states the remote drops before their age can be judged (its clock

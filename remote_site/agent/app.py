@@ -44,6 +44,7 @@ from remote_site.stiffness.stiffness_map import MapBounds
 from remote_site.tactile import TactileAssembler
 from shared.client import StationLink, StationLinkConfig
 from shared.config import resolve_config
+from shared.errors import ConfigError
 from shared.gil import switch_interval
 from shared.memlock import memory_locked
 from shared.recording import McapRecorder
@@ -181,6 +182,13 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
         "frame_rate_hz": options.frame_rate_hz, "patch_pitch_mm": options.patch_pitch_mm,
         "tactile_codec": options.tactile_codec, "capture_on_pose": options.capture_on_pose,
         "lock_memory": options.lock_memory})
+    if options.sensor_latency_ms is not None \
+            and options.sensor_latency_ms >= agent_cfg.sensor_max_age_ms:
+        raise ConfigError(f"--sensor-latency-ms {options.sensor_latency_ms:g} is not below "
+                          f"[remote.agent] sensor_max_age_ms ({agent_cfg.sensor_max_age_ms:g}): "
+                          "frames are aged from their image's time, so every one would be "
+                          "refused as too old; raise sensor_max_age_ms above the latency plus "
+                          "a frame period")
     background_cfg = resolve_config(BackgroundSettings, "remote.background", toml_path=toml)
     workspace = load_workspace(toml_path=toml)
     stiffness_calibration = load_stiffness_calibration(options.sensor,

@@ -29,7 +29,8 @@ class RemoteAgentConfig:
         link_loss_halt_ms: the arm is halted when the link has been down this long.
         watchdog_period_s: period of the safety watchdog thread (command timeout, force
             limit), independent of the event loop.
-        sensor_max_age_ms: a sensor frame older than this is refused.
+        sensor_max_age_ms: a sensor frame older than this is refused (aged from its image's
+            time: a camera's ``--sensor-latency-ms`` counts against it).
         stiffness_cell_mm: cell size of the stiffness map.
         friction: value of the friction layer (0 for palpation).
         status_interval_s: how often the status line is refreshed.

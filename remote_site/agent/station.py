@@ -24,10 +24,10 @@ Four asyncio tasks share one :class:`RemoteStation`:
   the touch fresh) and the schedule restarts at it: a frame every two periods. A streaming camera
   keeps the frame clock: the newest frame at each tick (:func:`pose_reached`,
   :class:`CaptureCounters`). Its image was taken before the tick, perhaps before the newest
-  command: the frame answers the command applied by the image's time
-  (:meth:`RemoteStation.applied_at`) and is placed at the arm's pose then
-  (:meth:`RemoteStation.reading_at`), so no image is shown as fresher than it is and
-  motion-to-touch never counts a movement the image cannot show.
+  command: the frame is paired with the command applied by the image's timestamp
+  (:meth:`RemoteStation.applied_at`), never a later one, and placed at the arm's pose then
+  (:meth:`RemoteStation.reading_at`). The timestamp is the arrival less the camera's known
+  latency (``--sensor-latency-ms``; 0 by default, which leaves a real delay uncounted).
 * **status**: one status line per ``status_interval_s``.
 
 The StationLink answers clock pings and reconnects with backoff by itself.
@@ -324,7 +324,8 @@ class RemoteStation:
         self.dispatch_s: deque[float] = deque(maxlen=window)
         self.frame_period_s: deque[float] = deque(maxlen=window)
         #: from a command's application to the start of the frame that answers it (frames
-        #: answering a new command only): the wait part of the ledger's arm_and_sensor stage
+        #: answering a new command only; with a streaming sensor, to its image's time): the
+        #: wait part of the ledger's arm_and_sensor stage
         self.command_wait_s: deque[float] = deque(maxlen=window)
         cfg = self.config
         #: the compact tactile codec (None: raw tactile_frame messages)
@@ -414,7 +415,7 @@ class RemoteStation:
                 return first
             if joined.connects == connects:
                 first = joined
-        return None  # no longer kept: a chain older than the outage bound
+        return None  # no longer kept (more than _RECEIVED_KEEP states since it)
 
     def _frame_source(self, command: AppliedCommand | None
                       ) -> tuple[AppliedCommand | None, _Chain | None]:
@@ -620,17 +621,22 @@ class RemoteStation:
             if last_start is not None:
                 self.frame_period_s.append(start - last_start)
             last_start = start
-            if self.latest is not captured and self.latest is not None:
-                self.command_wait_s.append(
-                    max(0, now_us() - self.latest.arm_command_us) / 1e6)
-            captured = self.latest
             outcome: FrameOutcome
             if self.pipeline.sensor.captures_on_demand:  # the image is taken now
+                if self.latest is not captured and self.latest is not None:
+                    self.command_wait_s.append(
+                        max(0, now_us() - self.latest.arm_command_us) / 1e6)
+                captured = self.latest
                 source, chain = self._frame_source(captured)
                 outcome = await loop.run_in_executor(
                     executor, self.pipeline.process, self._frame_seq + 1, source)
             else:
+                answered_before = self._answered
                 captured, chain, outcome = await self._streamed_frame(executor)
+                if outcome.frame is not None and captured is not None \
+                        and captured is not answered_before:  # to the image's time
+                    self.command_wait_s.append(
+                        max(0, outcome.frame.ts_us - captured.arm_command_us) / 1e6)
             if outcome.frame is None:
                 self._keep_chain(chain)
             elif captured is not None:

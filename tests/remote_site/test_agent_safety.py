@@ -371,6 +371,18 @@ async def test_a_real_sensor_without_stiffness_calibration_fails_before_anything
         await run_agent(options, asyncio.Event())
 
 
+async def test_a_camera_latency_that_would_age_out_every_frame_fails_at_start_up(
+        tmp_path: Path) -> None:
+    # frames are aged from their image's time: a latency at or above the age limit would
+    # refuse every one, each tick, with only the first warned
+    empty = tmp_path / "empty.toml"
+    empty.write_text("")
+    options = AgentOptions(relay="ws://127.0.0.1:9/", session="s", token="t", arm="sim",
+                           sensor="camera", sensor_latency_ms=100.0, config_path=empty)
+    with pytest.raises(ConfigError, match="sensor_max_age_ms"):
+        await run_agent(options, asyncio.Event())
+
+
 def test_worlds_are_opened_by_name() -> None:
     world = open_world("phantom", "breast", 2)
     assert isinstance(world, SimWorld) and world.phantom.seed == 2

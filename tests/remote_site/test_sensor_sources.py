@@ -203,13 +203,14 @@ def test_a_camera_stamps_its_frames_with_the_known_latency_taken_off() -> None:
     # the image was taken latency_ms before it arrived: stamped then, and aged from then;
     # a stall is still judged by the arrival (a long latency is not a stalled camera)
     capture = FakeCapture([], repeat=_raw_frame())
+    latency_us = round(scaled(2.0) * 1e6)  # twice the stall timeout, on a loaded machine too
     before_us = now_us()
-    with OpenCVCameraSensor(0, capture_factory=lambda src: capture, latency_ms=2_000.0,
+    with OpenCVCameraSensor(0, capture_factory=lambda src: capture, latency_ms=latency_us / 1e3,
                             stall_timeout_s=scaled(1.0)) as sensor:
         frame = sensor.read_latest(max_age_ms=scaled(3_000.0))
-        assert before_us - 2_000_000 <= frame.timestamp_us <= now_us() - 2_000_000
+        assert before_us - latency_us <= frame.timestamp_us <= now_us() - latency_us
         with pytest.raises(DeviceTimeoutError, match="old"):
-            sensor.read_latest(max_age_ms=1_500.0)
+            sensor.read_latest(max_age_ms=latency_us / 1e3 * 0.75)
         assert not sensor.health.stalled and not sensor.health.ended
     for bad in (-1.0, float("nan"), float("inf")):
         with pytest.raises(ConfigError, match="latency_ms"):

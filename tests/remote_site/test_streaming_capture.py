@@ -14,6 +14,7 @@ import asyncio
 import dataclasses
 import itertools
 import math
+import threading
 
 import numpy as np
 import pytest
@@ -81,10 +82,12 @@ async def test_a_streamed_frame_answers_the_command_of_its_image_at_the_pose_the
     station.apply_platform_state = recording_apply  # type: ignore[method-assign]
     readings: list[tuple[int, ArmReading]] = []  # (after the poll, reading)
     poll = station.safe_arm.poll
+    loop_thread = threading.current_thread()
 
     def recording_poll() -> ArmReading:
         reading = poll()
-        readings.append((now_us(), reading))
+        if threading.current_thread() is loop_thread:  # the station's, not the watchdog's
+            readings.append((now_us(), reading))
         return reading
 
     station.safe_arm.poll = recording_poll  # type: ignore[method-assign]
@@ -123,18 +126,20 @@ async def test_a_streamed_frame_answers_the_command_of_its_image_at_the_pose_the
             assert not later or later[0].arm_command_us > image_us
             ready_us = _stamp(frame, "tactile_ready")
             newer_than_image += any(image_us < c.arm_command_us <= ready_us for c in applied)
-            # placed where the arm was when the image was taken: a reading polled within
-            # two poll periods of it (at 20 mm/s the reading at the read, 30 ms on, is 0.6 mm
-            # away)
-            period_us = 1e6 / station.config.arm_poll_hz
-            if image_us < readings[0][0]:
-                continue  # taken before the station's first poll: its first reading places it
-            near = [r for t, r in readings if abs(t - image_us) <= 2 * period_us]
-            assert near, "no reading polled near the image's time"
+            # placed where the arm was when the image was taken
+            # (the readings polled just before and just after it; a reading at the read itself,
+            # 30 ms on, is 0.6 mm away at 20 mm/s)
+            k = next((i for i, (t, _) in enumerate(readings) if t > image_us), None)
+            if k is None or k == 0:
+                continue  # taken before the station's first poll or after its last
             placed += 1
             assert min(math.dist(frame.center_mm, WS.inverse(list(r.position_mm))[:2])
-                       for r in near) < 1e-6
+                       for _, r in readings[k - 1:k + 1]) < 1e-6
         assert newer_than_image >= 5 and placed >= 5  # the cases under test happened
+        # the wait from each answered command to its image, once per answering frame
+        waits = sorted(round(w * 1e6) for w in station.command_wait_s)
+        assert waits == sorted(_stamp(f, "sensor_frame") - _stamp(f, "arm_command")
+                               for f in answering)
         # the states applied after an image are first shown by the next frame
         for before, after in itertools.pairwise(answering):
             assert before.source_seq is not None and after.source_seq is not None
@@ -183,12 +188,25 @@ def test_applied_at_reading_at_and_the_chain_left_after_an_older_command(
         assert source is not None and source.state.seq == 4
         assert motion_of(source.state) == states[2].ts_us  # where 3 started
         # the arm reading nearest in time (the current one before any was polled)
-        assert station.reading_at(0) is not None
+        assert station.reading_at(0).position_mm == station.pipeline.read_arm().position_mm
         a, b = (ArmReading((float(i), 0.0, 1.0), (0.0, 0.0, 0.0), 0.0, "ok", None, 0.0)
                 for i in range(2))
         station._readings.extend([(100, a), (200, b)])
         assert station.reading_at(0) is a and station.reading_at(149) is a
         assert station.reading_at(151) is b and station.reading_at(10**9) is b
         assert Hop("local", "capture", states[4].ts_us) in source.state.hops
+        # the chain left after a command starts on the newest link connection: a state
+        # refused before a reconnect does not start it, one refused after does
+        offer(refused=True)  # 5, before the reconnect
+        link.counters.connects += 1
+        offer(refused=True)  # 6, after it
+        fourth = offer()  # 7
+        assert fourth is not None
+        source, _ = station._frame_source(third)  # an image taken before 5 answers 4
+        assert source is not None and source.state.seq == 4
+        station._answered = third
+        source, _ = station._frame_source(fourth)
+        assert source is not None and source.state.seq == 7
+        assert motion_of(source.state) == states[5].ts_us  # where 6 started, not 5
     finally:
         close_station(station)
