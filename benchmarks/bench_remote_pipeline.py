@@ -30,6 +30,7 @@ import os
 import platform
 import sys
 import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -43,17 +44,19 @@ from remote_site.agent.pipeline import FramePipeline
 from remote_site.agent.station import RemoteStation, percentiles_ms
 from remote_site.agent.stiffness_stage import StiffnessStage
 from remote_site.agent.world import SimWorld
+from remote_site.arm.base import Arm
 from remote_site.arm.safety import SafeArm
 from remote_site.phantom.reference_presses import sim_stiffness_calibration
 from remote_site.phantom.scenes import make_scene
 from remote_site.reconstruction.reconstructor import ReconstructionSettings, Reconstructor
+from remote_site.sensor.base import TactileSensor
 from remote_site.sensor.sim_calibration import simulated_calibration
 from remote_site.sensor.simulator import SimulatedSensor
 from remote_site.stiffness.estimator import StiffnessConfig, estimate_press
 from remote_site.tactile import TactileAssembler
 from shared.client import LinkCounters
 from shared.freshness import ClockView
-from shared.protocol import Message, PlatformState, TactileFrame
+from shared.protocol import Message, PlatformState, TactileCompact, TactileFrame
 from shared.report import emit, format_table
 from shared.timebase import now_us
 from shared.workspace import WorkspaceMap
@@ -110,11 +113,18 @@ def operator_xyz(t_s: float, tumor_xy: tuple[float, float], duration_s: float
     return (tumor_xy[0] - 8.0 + 16.0 * v, tumor_xy[1], -1.5 if 0.1 < v < 0.9 else 1.0)
 
 
-def build_station(frame_rate_hz: float) -> tuple[RemoteStation, MemoryLink, SimWorld]:
+def build_station(frame_rate_hz: float, *,
+                  sensor_for: Callable[[TactileSensor, Arm], TactileSensor] | None = None,
+                  tactile_codec: str = "compact"
+                  ) -> tuple[RemoteStation, MemoryLink, SimWorld]:
+    """The station on the simulated world and an in-memory link (``sensor_for``: wraps the
+    simulated sensor, e.g. as a streaming camera)."""
     world = SimWorld(make_scene(SCENE, SEED))
     ws = WorkspaceMap()
     arm = open_world_arm("sim", world)
     sensor = open_world_sensor("sim", world, arm)
+    if sensor_for is not None:
+        sensor = sensor_for(sensor, arm)
     arm.connect()
     sensor.connect()
     safe = SafeArm(arm, bounds_mm=ws.phantom_bounds_mm)
@@ -124,35 +134,42 @@ def build_station(frame_rate_hz: float) -> tuple[RemoteStation, MemoryLink, SimW
                              TactileAssembler(ws, stiffness_to_k=calib.stiffness_to_k()),
                              stiffness, arm.state)
     link = MemoryLink()
-    cfg = RemoteAgentConfig(frame_rate_hz=frame_rate_hz, status_interval_s=60.0)
+    cfg = RemoteAgentConfig(frame_rate_hz=frame_rate_hz, status_interval_s=60.0,
+                            tactile_codec=tactile_codec)
     return RemoteStation(link, safe, pipeline, stiffness, ws.forward, cfg), link, world
+
+
+async def feed_states(link: MemoryLink, phantom_xyz: Callable[[float], Sequence[float]],
+                      duration_s: float, stop: asyncio.Event) -> None:
+    """Platform states at 250 Hz along ``phantom_xyz(t_s)`` (phantom mm, mapped to the
+    platform as the stations do) for ``duration_s``, then ``stop`` set."""
+    ws = WorkspaceMap()
+    t0 = time.monotonic()
+    seq = 0
+    while (t := time.monotonic() - t0) < duration_s:
+        p = ws.inverse(list(phantom_xyz(t)))
+        seq += 1
+        ts = now_us()
+        link.inbox.put_nowait(PlatformState(seq=seq, ts_us=ts, position_mm=(
+            float(p[0]), float(p[1]), float(p[2]))).with_hop("remote", "station_rx", ts))
+        await asyncio.sleep(0.004)
+    stop.set()
 
 
 async def run_latency(frame_rate_hz: float, duration_s: float) -> dict[str, Any]:
     """Part 1: the station at one frame rate under the scripted operator."""
     station, link, world = build_station(frame_rate_hz)
-    ws = WorkspaceMap()
-    tumor_xy = tuple(world.phantom.tumors[1].center_mm)  # the malignant one
+    tumor = world.phantom.tumors[1].center_mm  # the malignant one
+    tumor_xy = (float(tumor[0]), float(tumor[1]))
     stop = asyncio.Event()
-
-    async def operator() -> None:
-        t0 = time.monotonic()
-        seq = 0
-        while (t := time.monotonic() - t0) < duration_s:
-            p = ws.inverse(list(operator_xyz(t, tumor_xy, duration_s)))  # type: ignore[arg-type]
-            seq += 1
-            ts = now_us()
-            link.inbox.put_nowait(PlatformState(seq=seq, ts_us=ts, position_mm=(
-                float(p[0]), float(p[1]), float(p[2]))).with_hop("remote", "station_rx", ts))
-            await asyncio.sleep(0.004)
-        stop.set()
-
     cpu0, wall0 = time.process_time(), time.monotonic()
-    op = asyncio.create_task(operator())
+    op = asyncio.create_task(feed_states(
+        link, lambda t: operator_xyz(t, tumor_xy, duration_s), duration_s, stop))
     await station.run(stop, duration_s=duration_s + 5.0)
     await op
     cpu_s, wall_s = time.process_time() - cpu0, time.monotonic() - wall0
-    frames = [m for m in link.sent if isinstance(m, TactileFrame)]
+    # either encoding (the station sends compact frames by default): the stamps are the same
+    frames = [m for m in link.sent if isinstance(m, TactileFrame | TactileCompact)]
     cmd_to_ready = []
     for f in frames:
         stamps = {h.stage: h.t_us for h in f.hops}

@@ -44,22 +44,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np
 
-from benchmarks.bench_remote_pipeline import SCENE, SEED, MemoryLink
-from remote_site.agent.config import RemoteAgentConfig
-from remote_site.agent.devices import open_world_arm, open_world_sensor
-from remote_site.agent.pipeline import FrameOutcome, FramePipeline
-from remote_site.agent.station import RemoteStation
-from remote_site.agent.stiffness_stage import StiffnessStage
-from remote_site.agent.world import SimWorld
+from benchmarks.bench_remote_pipeline import MemoryLink, build_station, feed_states
+from remote_site.agent.pipeline import FrameOutcome
 from remote_site.arm.base import Arm
-from remote_site.arm.safety import SafeArm
-from remote_site.phantom.reference_presses import sim_stiffness_calibration
-from remote_site.phantom.scenes import make_scene
-from remote_site.reconstruction.reconstructor import Reconstructor
 from remote_site.sensor.base import SensorFrame, TactileSensor
-from remote_site.sensor.sim_calibration import simulated_calibration
-from remote_site.stiffness.estimator import StiffnessConfig
-from remote_site.tactile import AppliedCommand, TactileAssembler
+from remote_site.tactile import AppliedCommand
 from shared.protocol import PlatformState, TactileFrame
 from shared.report import emit, format_table
 from shared.timebase import now_us
@@ -128,22 +117,15 @@ def sweep_xyz(t_s: float, centre: tuple[float, float]) -> tuple[float, float, fl
 
 async def run_case(fps: float, latency_ms: float, stamp_exposure: bool, duration_s: float
                    ) -> dict[str, Any]:
-    world = SimWorld(make_scene(SCENE, SEED))
-    arm = open_world_arm("sim", world)
-    camera = StreamingSimCamera(open_world_sensor("sim", world, arm), arm, fps,
-                                latency_ms / 1000.0, stamp_exposure)
-    arm.connect()
-    camera.connect()
-    calib = sim_stiffness_calibration()
-    stiffness = StiffnessStage(StiffnessConfig().with_calibration(calib))
-    pipeline = FramePipeline(camera, Reconstructor(simulated_calibration()),
-                             TactileAssembler(WS, stiffness_to_k=calib.stiffness_to_k()),
-                             stiffness, arm.state)
-    link = MemoryLink()
-    station = RemoteStation(link, SafeArm(arm, bounds_mm=WS.phantom_bounds_mm), pipeline,
-                            stiffness, WS.forward,
-                            RemoteAgentConfig(frame_rate_hz=60.0, status_interval_s=60.0,
-                                              tactile_codec="raw"))
+    cameras: list[StreamingSimCamera] = []
+
+    def streaming(sensor: TactileSensor, arm: Arm) -> TactileSensor:
+        cameras.append(StreamingSimCamera(sensor, arm, fps, latency_ms / 1000.0,
+                                          stamp_exposure))
+        return cameras[0]
+
+    station, link, world = build_station(60.0, sensor_for=streaming, tactile_codec="raw")
+    camera, arm, pipeline = cameras[0], station.safe_arm.arm, station.pipeline
     # what the pairing before 96c0aac took: the newest command and the arm's reading when
     # the tick took the image (its worker read the arm, then the sensor)
     old: dict[int, tuple[AppliedCommand | None, tuple[float, ...]]] = {}
@@ -168,22 +150,11 @@ async def run_case(fps: float, latency_ms: float, stamp_exposure: bool, duration
         return result
 
     station.apply_platform_state = recording_apply  # type: ignore[method-assign]
-    centre = tuple(world.phantom.tumors[1].center_mm)
+    tumor = world.phantom.tumors[1].center_mm
+    centre = (float(tumor[0]), float(tumor[1]))
     stop = asyncio.Event()
-
-    async def operator() -> None:
-        t0 = time.monotonic()
-        seq = 0
-        while (t := time.monotonic() - t0) < duration_s:
-            p = WS.inverse(list(sweep_xyz(t, centre)))  # type: ignore[arg-type]
-            seq += 1
-            ts = now_us()
-            link.inbox.put_nowait(PlatformState(seq=seq, ts_us=ts, position_mm=(
-                float(p[0]), float(p[1]), float(p[2]))).with_hop("remote", "station_rx", ts))
-            await asyncio.sleep(0.004)
-        stop.set()
-
-    op = asyncio.create_task(operator())
+    op = asyncio.create_task(feed_states(link, lambda t: sweep_xyz(t, centre), duration_s,
+                                         stop))
     await station.run(stop, duration_s=duration_s + 5.0)
     await op
     station.safe_arm.close()
