@@ -62,6 +62,8 @@ class StreamingSimCamera(TactileSensor):
     """The simulated sensor as a streaming camera (see the module docstring)."""
 
     captures_on_demand = False
+    #: calls ``_frame_arrived`` for each new image (where the base class has it)
+    notifies_frames = True
 
     def __init__(self, inner: TactileSensor, arm: Arm, fps: float, latency_s: float,
                  stamp_exposure: bool) -> None:
@@ -72,6 +74,8 @@ class StreamingSimCamera(TactileSensor):
         self.truth: dict[int, tuple[int, tuple[float, ...]]] = {}
         #: the stamp each image was given -> its seq (a tactile frame carries the stamp)
         self.seq_of: dict[int, int] = {}
+        #: seq -> when the image arrived (us)
+        self.arrived: dict[int, int] = {}
         self._newest: SensorFrame | None = None
         self._lock = threading.Lock()
         self._stop = threading.Event()
@@ -100,7 +104,11 @@ class StreamingSimCamera(TactileSensor):
             with self._lock:
                 self.truth[seq] = (exposure_us, pose)
                 self.seq_of[stamp] = seq
+                self.arrived[seq] = now_us()
                 self._newest = SensorFrame(rgb, stamp, seq)
+            arrived = getattr(self, "_frame_arrived", None)  # (not before 2026-12-06)
+            if arrived is not None:
+                arrived()
             next_s += self.period_s
             self._stop.wait(max(0.0, next_s - time.monotonic()))
 
@@ -160,7 +168,9 @@ async def run_case(fps: float, latency_ms: float, stamp_exposure: bool, duration
     station.safe_arm.close()
     camera.disconnect()
     arm.disconnect()
-    return score(link, camera, old, applied, fps, latency_ms, stamp_exposure)
+    out = score(link, camera, old, applied, fps, latency_ms, stamp_exposure)
+    out["ticks_per_frame"] = station.captures.clock / max(1, station.pipeline.processed)
+    return out
 
 
 def score(link: MemoryLink, camera: StreamingSimCamera,
@@ -170,7 +180,8 @@ def score(link: MemoryLink, camera: StreamingSimCamera,
     """The figures of one case (see the module docstring)."""
     times = np.array([c.arm_command_us for c in applied], dtype=np.int64)
     rows: dict[str, list[float]] = {k: [] for k in (
-        "old_after", "old_lead_ms", "old_place_mm", "new_after", "new_lead_ms", "new_place_mm")}
+        "old_after", "old_lead_ms", "old_place_mm", "new_after", "new_lead_ms", "new_place_mm",
+        "arrival_to_ready_ms")}
     frames = [m for m in link.sent if isinstance(m, TactileFrame)]
     for frame in frames:
         stamps = {h.stage: h.t_us for h in frame.hops if h.clock == "remote"}
@@ -180,6 +191,7 @@ def score(link: MemoryLink, camera: StreamingSimCamera,
         if seq is None or seq not in old:
             continue
         exposure_us, pose = camera.truth[seq]
+        rows["arrival_to_ready_ms"].append((stamps["tactile_ready"] - camera.arrived[seq]) / 1e3)
         # the newest command applied by the exposure: what the image can show at most
         shown = int(np.searchsorted(times, exposure_us, side="right")) - 1
         shown_us = int(times[shown]) if shown >= 0 else None
@@ -216,12 +228,14 @@ def report(results: list[dict[str, Any]], command: str) -> str:
               "before: named after a later command", "before: command lead ms p50/p99/max",
               "before: placement error mm p50/p99/max",
               "now: named after a later command", "now: command lead ms p50/p99/max",
-              "now: placement error mm p50/p99/max"]
+              "now: placement error mm p50/p99/max", "arrival to tactile_ready ms p50/p99/max",
+              "station ticks per frame"]
     rows = [dict(zip(header, [
         f"{r['fps']:.0f}", f"{r['latency_ms']:.0f}", r["stamped"], str(r["frames"]),
         f"{100 * r['old_after']:.0f} %", _fmt(r["old_lead_ms"], 1), _fmt(r["old_place_mm"], 2),
         f"{100 * r['new_after']:.0f} %", _fmt(r["new_lead_ms"], 1),
-        _fmt(r["new_place_mm"], 2)], strict=True)) for r in results]
+        _fmt(r["new_place_mm"], 2), _fmt(r["arrival_to_ready_ms"], 1),
+        f"{r['ticks_per_frame']:.2f}"], strict=True)) for r in results]
     return "\n".join([
         "# A streaming camera's frame: the command and the arm pose it is paired with",
         "",
@@ -237,7 +251,10 @@ def report(results: list[dict[str, Any]], command: str) -> str:
         "show). *Placement error*: the patch centre against the arm's reported position at "
         "the exposure (platform mm). *Before* is the pairing before commit 96c0aac (the newest "
         "command and the arm's reading when the tick took the image), recorded in the same "
-        "run; *now* is what the station sent.",
+        "run; *now* is what the station sent. *Arrival to tactile_ready*: from the image's "
+        "arrival at the station to its tactile frame being ready (the wait for the station's "
+        "tick plus the pipeline). *Ticks per frame*: the station's frame ticks per tactile "
+        "frame made (a tick without a new image makes none).",
         "",
         format_table(rows, header),
         "",
