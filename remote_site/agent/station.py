@@ -23,7 +23,9 @@ Four asyncio tasks share one :class:`RemoteStation`:
   without a new command within a period of its due time, a frame is taken anyway (it keeps
   the touch fresh) and the schedule restarts at it: a frame every two periods. A streaming camera
   keeps the frame clock: the newest frame at each tick (:func:`pose_reached`,
-  :class:`CaptureCounters`). Its image was taken before the tick, perhaps before the newest
+  :class:`CaptureCounters`); a camera that says when a new image arrives
+  (``notifies_frames``) is read as it arrives instead, at most ``frame_rate_hz``. Its image
+  was taken before the tick, perhaps before the newest
   command: the frame is paired with the command applied by the image's timestamp
   (:meth:`RemoteStation.applied_at`), never a later one, and placed at the arm's pose then
   (:meth:`RemoteStation.reading_at`). The timestamp is the arrival less the camera's known
@@ -121,6 +123,10 @@ class CaptureCounters:
             lags it all the time): taken at once rather than waited for.
         idle: no new command for a period (refresh).
         clock: the frame clock (a streaming sensor, or ``capture_on_pose`` off).
+        on_arrival: frames (counted under ``clock`` as well) taken as the streaming sensor's
+            new image arrived (a source that notifies, :attr:`TactileSensor.notifies_frames`);
+            the other clock ticks of such a sensor came after ``sensor_max_age_ms`` without
+            one.
         waited_for_command: frames (counted above as well) that were due while the newest
             command was older than ``command_fresh_ms`` and waited for the next one.
     """
@@ -129,6 +135,7 @@ class CaptureCounters:
     moving: int = 0
     idle: int = 0
     clock: int = 0
+    on_arrival: int = 0
     waited_for_command: int = 0
 
 
@@ -601,7 +608,41 @@ class RemoteStation:
         await self._until_pose(command)
         return True
 
+    async def _next_arrival(self, earliest_s: float, arrived: asyncio.Event) -> None:
+        """Wait for a streaming sensor's next image (not before ``earliest_s``: at most
+        ``frame_rate_hz``), or ``sensor_max_age_ms`` without one (the tick then finds the
+        newest frame too old, or the same one again, and says so)."""
+        delay = earliest_s - asyncio.get_running_loop().time()
+        if delay > 0:
+            await asyncio.sleep(delay)
+        if not arrived.is_set():
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(self.config.sensor_max_age_ms / 1000.0):
+                    await arrived.wait()
+        if arrived.is_set():
+            self.captures.on_arrival += 1
+        arrived.clear()
+
     async def _frame_loop(self, executor: ThreadPoolExecutor) -> None:
+        sensor = self.pipeline.sensor
+        loop = asyncio.get_running_loop()
+        arrived: asyncio.Event | None = None
+        if sensor.notifies_frames and not sensor.captures_on_demand:
+            arrived = asyncio.Event()
+            event = arrived
+
+            def on_frame() -> None:  # the sensor's thread
+                loop.call_soon_threadsafe(event.set)
+
+            sensor.on_frame = on_frame
+        try:
+            await self._frames(executor, arrived)
+        finally:
+            if arrived is not None:
+                sensor.on_frame = None
+
+    async def _frames(self, executor: ThreadPoolExecutor, arrived: asyncio.Event | None
+                      ) -> None:
         period = 1.0 / self.config.frame_rate_hz
         on_pose = self.captures_on_pose
         loop = asyncio.get_running_loop()
@@ -612,6 +653,9 @@ class RemoteStation:
         while True:
             if on_pose:  # a command whose capture gave no frame is still new
                 answered = await self._next_capture(next_t, period, self._answered)
+            elif arrived is not None:  # a streaming sensor's image as it arrives
+                await self._next_arrival(next_t, arrived)
+                self.captures.clock += 1
             else:
                 delay = next_t - loop.time()
                 if delay > 0:
@@ -657,6 +701,9 @@ class RemoteStation:
             if on_pose:
                 next_t, late = next_frame_due_s(next_t, start, loop.time(), period, answered)
                 self.counters.frames_late += late
+                continue
+            if arrived is not None:  # the next image as it comes, a period after this one
+                next_t = start + period
                 continue
             next_t += period
             now = loop.time()

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import logging
 from abc import abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -83,14 +84,33 @@ class TactileSensor(Device):
             then only return the frame it holds, without waiting: the remote station reads
             it on its event loop, then pairs it with the command and the arm pose of the
             frame's ``timestamp_us``).
+        notifies_frames: a streaming source that calls :meth:`_frame_arrived` for each new
+            frame, so a consumer can take it as it arrives (:attr:`on_frame`) rather than on
+            a clock of its own.
+        on_frame: set by the consumer of a source that notifies: called with no arguments
+            from the source's own thread after each new frame (it must be quick and
+            thread-safe, e.g. ``loop.call_soon_threadsafe(event.set)``); None: not called.
     """
 
     captures_on_demand: bool = False
+    notifies_frames: bool = False
 
     def __init__(self, shape_hw: tuple[int, int], mm_per_px: float) -> None:
         super().__init__()
         self.shape_hw = (int(shape_hw[0]), int(shape_hw[1]))
         self.mm_per_px = float(mm_per_px)
+        self.on_frame: Callable[[], None] | None = None
+
+    def _frame_arrived(self) -> None:
+        """For a source that notifies: a new frame is stored. Calls :attr:`on_frame`; its
+        failure (a consumer gone) is logged, never raised into the source's thread."""
+        callback = self.on_frame
+        if callback is None:
+            return
+        try:
+            callback()
+        except Exception as err:  # the consumer's problem, not the camera's
+            log.debug("%s: on_frame failed: %s", self.name, err)
 
     def _after_connect(self) -> None:
         log.info("%s: %dx%d frames, %.4f mm/px", self.name, self.shape_hw[1], self.shape_hw[0],

@@ -113,6 +113,8 @@ class OpenCVCameraSensor(TactileSensor):
             non-finite latency.
     """
 
+    notifies_frames = True  # each frame as it arrives (the station takes it then)
+
     def __init__(self, source: int | str = 0, preset: str = DEFAULT_PRESET,
                  out_hw: tuple[int, int] | None = None, mm_per_px: float | None = None,
                  crop_fraction: float | None = None, fps: float | None = None,
@@ -277,6 +279,7 @@ class OpenCVCameraSensor(TactileSensor):
                 log.info("camera %r delivers frames again", self.source)
                 self._health = SensorHealth(stalls=self._health.stalls,
                                             loops=self._health.loops)
+        self._frame_arrived()
         return True
 
     def _wait_until_due(self) -> bool:

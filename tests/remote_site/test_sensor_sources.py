@@ -217,6 +217,25 @@ def test_a_camera_stamps_its_frames_with_the_known_latency_taken_off() -> None:
             OpenCVCameraSensor(0, capture_factory=lambda src: capture, latency_ms=bad)
 
 
+def test_a_camera_says_when_each_frame_arrives_and_survives_a_failing_listener() -> None:
+    capture = FakeCapture([_raw_frame() for _ in range(6)])
+    calls: list[int] = []
+    sensor = OpenCVCameraSensor(0, capture_factory=lambda src: capture)
+    assert sensor.notifies_frames and not sensor.captures_on_demand
+
+    def listener() -> None:  # the first call comes while connect() waits for a frame
+        newest = sensor._latest()
+        assert newest is not None
+        calls.append(newest.seq)
+        if len(calls) == 2:
+            raise RuntimeError("a listener's own failure")
+
+    sensor.on_frame = listener
+    with sensor:
+        wait_until(lambda: sensor.health.ended, 5.0, "the six frames read")
+    assert calls == [1, 2, 3, 4, 5, 6]  # each frame once, after it was stored
+
+
 def test_camera_rejects_odd_frames_from_the_device() -> None:
     gray = np.zeros((350, 466), np.uint8)
     sensor = OpenCVCameraSensor(0, first_frame_timeout_s=scaled(0.3),

@@ -22,7 +22,7 @@ import pytest
 from remote_site.agent.config import RemoteAgentConfig
 from remote_site.arm.base import ArmReading
 from remote_site.arm.safety import CommandResult, SafetyConfig
-from remote_site.sensor.base import SensorFrame
+from remote_site.sensor.base import SensorFrame, TactileSensor
 from remote_site.sensor.simulator import SimulatedSensor
 from remote_site.tactile import AppliedCommand
 from shared.protocol import Hop, PlatformState, TactileCompact, TactileFrame
@@ -36,7 +36,7 @@ from tests.remote_site.test_agent_safety import (
     make_station,
     platform_state,
 )
-from tests.support import motion_of, scaled
+from tests.support import async_wait_until, motion_of, scaled
 
 
 class LaggingCamera(ScriptedSensor):
@@ -208,5 +208,104 @@ def test_applied_at_reading_at_and_the_chain_left_after_an_older_command(
         source, _ = station._frame_source(fourth)
         assert source is not None and source.state.seq == 7
         assert motion_of(source.state) == states[5].ts_us  # where 6 started, not 5
+    finally:
+        close_station(station)
+
+
+class NotifyingCamera(TactileSensor):
+    """A streaming camera on its own thread at ``fps`` that says when a new image arrives;
+    ``paused`` stops it (a stalled camera)."""
+
+    notifies_frames = True
+
+    def __init__(self, fps: float) -> None:
+        super().__init__((240, 320), 0.0634)
+        self.period_s = 1.0 / fps
+        self.image = SimulatedSensor().render(np.zeros((240, 320)))
+        self.paused = threading.Event()
+        self.arrived_us: list[int] = []
+        self._newest: SensorFrame | None = None
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def _connect(self) -> None:
+        self._thread = threading.Thread(target=self._run, name="test-camera", daemon=True)
+        self._thread.start()
+
+    def _disconnect(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+
+    def _run(self) -> None:
+        seq = 0
+        while not self._stop.wait(self.period_s):
+            if self.paused.is_set():
+                continue
+            seq += 1
+            with self._lock:
+                self._newest = SensorFrame(self.image, now_us(), seq)
+                self.arrived_us.append(self._newest.timestamp_us)
+            self._frame_arrived()
+
+    def _latest(self) -> SensorFrame | None:
+        with self._lock:
+            return self._newest
+
+
+async def test_a_camera_that_notifies_is_read_as_each_image_arrives() -> None:
+    # a 25 frames/s camera and a station allowed 60 frames/s: each image is taken once, as
+    # it arrives, instead of on a 60 Hz clock that finds the same image on most ticks
+    camera = NotifyingCamera(25.0)
+    link = FakeLink()
+    station = make_station(link, sensor=camera, config=RemoteAgentConfig(
+        frame_rate_hz=60.0, status_interval_s=10.0, tactile_codec="raw"))
+    stop = asyncio.Event()
+
+    async def stopper() -> None:
+        await async_wait_until(lambda: station.pipeline.processed >= 25, scaled(20.0),
+                               "25 frames")
+        stop.set()
+
+    try:
+        task = asyncio.create_task(stopper())
+        await station.run(stop, duration_s=scaled(30.0))
+        await task
+        assert camera.on_frame is None  # let go when the station stopped
+        processed = station.pipeline.processed
+        # the images arrive 40 ms apart, far within sensor_max_age_ms: every tick but the
+        # first had a new one (a clock at 60 Hz would have found the same image on about
+        # 3 ticks in 5)
+        assert station.captures.on_arrival >= processed - 1
+        assert station.pipeline.repeated <= 2, station.pipeline.repeated
+        frames = [m for m in link.sent if isinstance(m, TactileFrame)]
+        assert {f.ts_us for f in frames} <= set(camera.arrived_us)
+    finally:
+        close_station(station)
+
+
+async def test_a_notifying_camera_is_read_at_most_at_the_frame_rate_and_when_it_stalls(
+        ) -> None:
+    camera = NotifyingCamera(200.0)
+    link = FakeLink()
+    station = make_station(link, sensor=camera, config=RemoteAgentConfig(
+        frame_rate_hz=20.0, status_interval_s=10.0, sensor_max_age_ms=50.0))
+    stop = asyncio.Event()
+
+    async def script() -> None:
+        await async_wait_until(lambda: station.pipeline.processed >= 10, scaled(20.0),
+                               "10 frames")
+        camera.paused.set()  # a stalled camera: the ticks go on, and say so
+        await async_wait_until(lambda: station.pipeline.rejected["sensor_timeout"] >= 2,
+                               scaled(20.0), "ticks of the stalled camera")
+        stop.set()
+
+    try:
+        task = asyncio.create_task(script())
+        await station.run(stop, duration_s=scaled(30.0))
+        await task
+        # no two frames sooner than a period apart (the camera offers one every 5 ms)
+        assert min(station.frame_period_s) >= 1.0 / 20.0 - 1e-3
     finally:
         close_station(station)
