@@ -151,6 +151,11 @@ class FramePipeline:
             return taken
         return self.build(seq, taken[0], reading, source, time.perf_counter() - t0)
 
+    @property
+    def last_sensor_seq(self) -> int | None:
+        """The ``seq`` of the last sensor frame taken (None: none yet)."""
+        return self._last_sensor_seq
+
     def capture(self) -> tuple[SensorFrame, float] | FrameOutcome:
         """The newest sensor frame and the seconds it took (the simulator renders here), or
         the outcome of a tick without a new one (rejected or repeated). With a sensor that

@@ -106,6 +106,8 @@ class StationCounters:
     arm_commands_applied: int = 0
     frames_sent: int = 0
     frames_not_sent_link_down: int = 0
+    #: frames whose schedule fell more than a period behind (not counted for a sensor read as
+    #: its images arrive: there is no schedule to fall behind)
     frames_late: int = 0
     arm_states_sent: int = 0
     link_loss_halts: int = 0
@@ -532,6 +534,12 @@ class RemoteStation:
             await asyncio.sleep(max(0.0, delay))
 
     @property
+    def _reads_on_arrival(self) -> bool:
+        """Whether frames are taken as a streaming sensor's images arrive."""
+        sensor = self.pipeline.sensor
+        return sensor.notifies_frames and not sensor.captures_on_demand
+
+    @property
     def captures_on_pose(self) -> bool:
         """Whether frames are taken on pose reached (else on the frame clock)."""
         return self.config.capture_on_pose and self.pipeline.sensor.captures_on_demand
@@ -611,23 +619,32 @@ class RemoteStation:
     async def _next_arrival(self, earliest_s: float, arrived: asyncio.Event) -> None:
         """Wait for a streaming sensor's next image (not before ``earliest_s``: at most
         ``frame_rate_hz``), or ``sensor_max_age_ms`` without one (the tick then finds the
-        newest frame too old, or the same one again, and says so)."""
-        delay = earliest_s - asyncio.get_running_loop().time()
+        newest frame too old, or the same one again, and says so). A notice of the image the
+        last tick already took (stored just before that tick, announced just after) is not
+        an arrival: the wait goes on."""
+        loop = asyncio.get_running_loop()
+        delay = earliest_s - loop.time()
         if delay > 0:
             await asyncio.sleep(delay)
-        if not arrived.is_set():
-            with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(self.config.sensor_max_age_ms / 1000.0):
-                    await arrived.wait()
-        if arrived.is_set():
-            self.captures.on_arrival += 1
-        arrived.clear()
+        deadline = loop.time() + self.config.sensor_max_age_ms / 1000.0
+        sensor = self.pipeline.sensor
+        while True:
+            if not arrived.is_set():
+                with contextlib.suppress(TimeoutError):
+                    async with asyncio.timeout_at(deadline):
+                        await arrived.wait()
+            if not arrived.is_set():
+                return  # none within the limit
+            arrived.clear()
+            if sensor.newest_seq != self.pipeline.last_sensor_seq:
+                self.captures.on_arrival += 1
+                return
 
     async def _frame_loop(self, executor: ThreadPoolExecutor) -> None:
         sensor = self.pipeline.sensor
         loop = asyncio.get_running_loop()
         arrived: asyncio.Event | None = None
-        if sensor.notifies_frames and not sensor.captures_on_demand:
+        if self._reads_on_arrival:
             arrived = asyncio.Event()
             event = arrived
 
@@ -830,7 +847,8 @@ class RemoteStation:
             "elapsed_s": elapsed,
             "frames": {
                 "frame_rate_hz": self.config.frame_rate_hz,
-                "capture": "on_pose" if self.captures_on_pose else "clock",
+                "capture": "on_pose" if self.captures_on_pose else (
+                    "on_arrival" if self._reads_on_arrival else "clock"),
                 "captures": asdict(self.captures),
                 "processed": p.processed,
                 "sent": c.frames_sent,

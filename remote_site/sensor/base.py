@@ -101,6 +101,14 @@ class TactileSensor(Device):
         self.mm_per_px = float(mm_per_px)
         self.on_frame: Callable[[], None] | None = None
 
+    @property
+    def newest_seq(self) -> int | None:
+        """The ``seq`` of the frame a streaming source holds (None: none yet), without the
+        checks of :meth:`read_latest` (for a source that captures on demand this would
+        capture)."""
+        frame = self._latest()
+        return None if frame is None else frame.seq
+
     def _frame_arrived(self) -> None:
         """For a source that notifies: a new frame is stored. Calls :attr:`on_frame`; its
         failure (a consumer gone) is logged, never raised into the source's thread."""

@@ -68,6 +68,7 @@ async def test_a_streamed_frame_answers_the_command_of_its_image_at_the_pose_the
     station = make_station(link, SafetyConfig(max_command_age_ms=scaled(5_000.0)),
                            sensor=LaggingCamera(lag_us),
                            config=RemoteAgentConfig(frame_rate_hz=30.0, status_interval_s=10.0))
+    station.pipeline.warm_up()  # a cold compile of the kernels would take the first second
     assert not station.captures_on_pose
     applied: list[AppliedCommand] = []  # in order
     apply = station.apply_platform_state
@@ -214,13 +215,16 @@ def test_applied_at_reading_at_and_the_chain_left_after_an_older_command(
 
 class NotifyingCamera(TactileSensor):
     """A streaming camera on its own thread at ``fps`` that says when a new image arrives;
-    ``paused`` stops it (a stalled camera)."""
+    ``paused`` stops it (a stalled camera). ``late_notices``: every other image is announced
+    only after the next one was stored and announced (its notice then names an image the
+    station has taken already)."""
 
     notifies_frames = True
 
-    def __init__(self, fps: float) -> None:
+    def __init__(self, fps: float, late_notices: bool = False) -> None:
         super().__init__((240, 320), 0.0634)
         self.period_s = 1.0 / fps
+        self.late_notices = late_notices
         self.image = SimulatedSensor().render(np.zeros((240, 320)))
         self.paused = threading.Event()
         self.arrived_us: list[int] = []
@@ -239,15 +243,26 @@ class NotifyingCamera(TactileSensor):
             self._thread.join()
 
     def _run(self) -> None:
-        seq = 0
-        while not self._stop.wait(self.period_s):
+        seq = step = 0
+        while not self._stop.wait(self.period_s / 2):  # two steps per image
+            step += 1
             if self.paused.is_set():
                 continue
-            seq += 1
-            with self._lock:
-                self._newest = SensorFrame(self.image, now_us(), seq)
-                self.arrived_us.append(self._newest.timestamp_us)
-            self._frame_arrived()
+            if not self.late_notices:
+                if step % 2 == 0:
+                    self._store(seq := seq + 1)
+                    self._frame_arrived()
+                continue
+            phase = step % 4  # store (notice held), -, store and announce, the held notice
+            if phase in (0, 2):
+                self._store(seq := seq + 1)
+            if phase in (2, 3):
+                self._frame_arrived()
+
+    def _store(self, seq: int) -> None:
+        with self._lock:
+            self._newest = SensorFrame(self.image, now_us(), seq)
+            self.arrived_us.append(self._newest.timestamp_us)
 
     def _latest(self) -> SensorFrame | None:
         with self._lock:
@@ -260,12 +275,12 @@ async def test_a_camera_that_notifies_is_read_as_each_image_arrives() -> None:
     camera = NotifyingCamera(25.0)
     link = FakeLink()
     station = make_station(link, sensor=camera, config=RemoteAgentConfig(
-        frame_rate_hz=60.0, status_interval_s=10.0, tactile_codec="raw"))
+        frame_rate_hz=60.0, status_interval_s=10.0))
+    station.pipeline.warm_up()
     stop = asyncio.Event()
 
     async def stopper() -> None:
-        await async_wait_until(lambda: station.pipeline.processed >= 25, scaled(20.0),
-                               "25 frames")
+        await async_wait_until(lambda: station.pipeline.processed >= 25, 20.0, "25 frames")
         stop.set()
 
     try:
@@ -279,8 +294,31 @@ async def test_a_camera_that_notifies_is_read_as_each_image_arrives() -> None:
         # 3 ticks in 5)
         assert station.captures.on_arrival >= processed - 1
         assert station.pipeline.repeated <= 2, station.pipeline.repeated
-        frames = [m for m in link.sent if isinstance(m, TactileFrame)]
-        assert {f.ts_us for f in frames} <= set(camera.arrived_us)
+        assert station.summary()["frames"]["capture"] == "on_arrival"
+    finally:
+        close_station(station)
+
+
+async def test_a_late_notice_of_an_image_already_taken_is_not_a_tick() -> None:
+    # every other notice comes after the next image was stored and announced (and taken):
+    # such a notice names nothing new, and the station waits on for the next image
+    camera = NotifyingCamera(50.0, late_notices=True)
+    link = FakeLink()
+    station = make_station(link, sensor=camera, config=RemoteAgentConfig(
+        frame_rate_hz=400.0, status_interval_s=10.0))
+    station.pipeline.warm_up()
+    stop = asyncio.Event()
+
+    async def stopper() -> None:
+        await async_wait_until(lambda: station.pipeline.processed >= 20, 20.0, "20 frames")
+        stop.set()
+
+    try:
+        task = asyncio.create_task(stopper())
+        await station.run(stop, duration_s=scaled(30.0))
+        await task
+        assert station.pipeline.repeated <= 1, station.pipeline.repeated
+        assert station.captures.on_arrival <= station.pipeline.processed + 1
     finally:
         close_station(station)
 
@@ -291,14 +329,19 @@ async def test_a_notifying_camera_is_read_at_most_at_the_frame_rate_and_when_it_
     link = FakeLink()
     station = make_station(link, sensor=camera, config=RemoteAgentConfig(
         frame_rate_hz=20.0, status_interval_s=10.0, sensor_max_age_ms=50.0))
+    station.pipeline.warm_up()
     stop = asyncio.Event()
+    at_pause: dict[str, int] = {}
 
     async def script() -> None:
-        await async_wait_until(lambda: station.pipeline.processed >= 10, scaled(20.0),
-                               "10 frames")
+        await async_wait_until(lambda: station.pipeline.processed >= 10, 20.0, "10 frames")
         camera.paused.set()  # a stalled camera: the ticks go on, and say so
-        await async_wait_until(lambda: station.pipeline.rejected["sensor_timeout"] >= 2,
-                               scaled(20.0), "ticks of the stalled camera")
+        at_pause.update(timeouts=station.pipeline.rejected["sensor_timeout"],
+                        arrivals=station.captures.on_arrival,
+                        ticks=len(station.frame_period_s))
+        await async_wait_until(
+            lambda: station.pipeline.rejected["sensor_timeout"] >= at_pause["timeouts"] + 3,
+            20.0, "ticks of the stalled camera")
         stop.set()
 
     try:
@@ -307,5 +350,10 @@ async def test_a_notifying_camera_is_read_at_most_at_the_frame_rate_and_when_it_
         await task
         # no two frames sooner than a period apart (the camera offers one every 5 ms)
         assert min(station.frame_period_s) >= 1.0 / 20.0 - 1e-3
+        # stalled, a tick comes a period plus sensor_max_age_ms after the last (0.1 s here),
+        # and it is not an arrival (the image in flight at the pause may be one)
+        assert station.captures.on_arrival <= at_pause["arrivals"] + 1
+        stalled = list(station.frame_period_s)[at_pause["ticks"] + 2:]
+        assert stalled and max(stalled) <= scaled(0.3), stalled
     finally:
         close_station(station)
