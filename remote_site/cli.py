@@ -64,7 +64,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                              "system's trust store)")
     parser.add_argument("--arm", default="sim", help="arm backend: sim, franka (default sim)")
     parser.add_argument("--sensor", default="sim",
-                        help="sensor: sim, camera, or a camera index / URL / video file")
+                        help="sensor: sim (renders on demand), sim-camera (the simulator streaming "
+                             "on its own clock like a camera: --sensor-fps, default 25, and "
+                             "--sensor-latency-ms), camera, or a camera index / URL / video file")
     parser.add_argument("--sensor-preset", dest="sensor_preset", metavar="NAME",
                         help="camera crop/size: mini-raw (raw GelSight Mini camera: 1/7 cropped "
                              "per side, resized to 320x240; default) or mini-recording (a "

@@ -135,8 +135,8 @@ def _set_opencv_threads(threads: int | None) -> int | None:
 
 
 def sensor_options(options: AgentOptions) -> dict[str, Any]:
-    """The camera options given on the command line (only those given: a simulated sensor
-    refuses them with a ConfigError)."""
+    """The camera options given on the command line (only those given: ``sim`` refuses them
+    with a ConfigError; ``sim-camera`` takes the rate and the latency)."""
     given: dict[str, Any] = {}
     if options.sensor_preset is not None:
         given["preset"] = options.sensor_preset

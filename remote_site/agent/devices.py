@@ -48,11 +48,13 @@ WORLDS: dict[str, str] = {
 #: sensor backend name -> "module:function" returning its default Calibration
 DEFAULT_CALIBRATIONS: dict[str, str] = {
     "sim": "remote_site.sensor.sim_calibration:simulated_calibration",
+    "sim-camera": "remote_site.sensor.sim_calibration:simulated_calibration",
 }
 
 #: sensor backend name -> "module:function" returning its default StiffnessCalibration
 DEFAULT_STIFFNESS_CALIBRATIONS: dict[str, str] = {
     "sim": "remote_site.phantom.reference_presses:sim_stiffness_calibration",
+    "sim-camera": "remote_site.phantom.reference_presses:sim_stiffness_calibration",
 }
 
 

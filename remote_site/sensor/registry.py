@@ -1,4 +1,4 @@
-"""Sensor sources by name: ``"sim"``, ``"camera"``, or a camera given directly.
+"""Sensor sources by name: ``"sim"``, ``"sim-camera"``, ``"camera"``, or a camera given directly.
 
 ``SENSORS`` maps a name to ``"module:Class"``; the module is imported only when that
 sensor is opened. The table is registered as device kind ``sensor`` with the one loader,
@@ -21,6 +21,7 @@ __all__ = ["SENSORS", "check_sensor_source", "open_sensor", "sensor_class"]
 
 SENSORS: dict[str, str] = {
     "sim": "remote_site.sensor.simulator:SimulatedSensor",
+    "sim-camera": "remote_site.sensor.simulator:StreamingSimulatedSensor",
     "camera": "remote_site.sensor.camera:OpenCVCameraSensor",
 }
 

@@ -9,6 +9,8 @@ Each :meth:`read_latest` renders a fresh frame (seq + 1, timestamp = now).
 
 from __future__ import annotations
 
+import logging
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -17,10 +19,12 @@ import numpy as np
 
 from remote_site.sensor.base import SensorFrame, TactileSensor
 from remote_site.sensor.photometric import PhotometricModel, PhotometricSettings
-from shared.errors import DeviceOperationError, InputDataError
+from shared.errors import ConfigError, DeviceInitError, DeviceOperationError, InputDataError
 from shared.timebase import now_us
 
-__all__ = ["DepthProvider", "SimulatedSensor"]
+__all__ = ["DepthProvider", "SimulatedSensor", "StreamingSimulatedSensor"]
+
+log = logging.getLogger(__name__)
 
 DepthProvider = Callable[[], np.ndarray]
 
@@ -88,7 +92,11 @@ class SimulatedSensor(TactileSensor):
     def _disconnect(self) -> None:
         pass
 
-    def _latest(self) -> SensorFrame:
+    def _latest(self) -> SensorFrame | None:
+        return self._render_now()
+
+    def _render_now(self) -> SensorFrame:
+        """Render the gel as it is now (the next seq, stamped now)."""
         depth = self._provider() if self._provider is not None else self._depth
         # the LED drift scales the 8-bit frame per channel, saturating, in the render's pass
         gain = self.led_gain().astype(np.float64) if self._drift_per_s.any() else None
@@ -100,3 +108,92 @@ class SimulatedSensor(TactileSensor):
             self._seq += 1
             seq = self._seq
         return SensorFrame(rgb=rgb, timestamp_us=now_us(), seq=seq)
+
+
+class StreamingSimulatedSensor(SimulatedSensor):
+    """The simulated sensor as a streaming camera (``--sensor sim-camera``): it renders the
+    gel on a clock of its own, as a GelSight Mini streams at 25 frames/s, rather than when
+    read. Each image is rendered at its exposure (the contact at that moment), delivered
+    ``latency_ms`` later and stamped at the exposure (a camera whose latency is known, as
+    ``--sensor-latency-ms`` states it); the station is told of each one
+    (:attr:`~remote_site.sensor.base.TactileSensor.notifies_frames`).
+
+    Args:
+        depth_provider, settings, seed, led_drift_per_min, clock_s: as for
+            :class:`SimulatedSensor`.
+        fps: images per second (``--sensor-fps``; a GelSight Mini's 25 by default).
+        latency_ms: from an image's exposure to its delivery (``--sensor-latency-ms``).
+        first_frame_timeout_s: how long connect() waits for the first image.
+
+    Raises:
+        ConfigError: a rate outside (0, 1000] or a negative or non-finite latency.
+    """
+
+    captures_on_demand = False
+    notifies_frames = True
+
+    def __init__(self, depth_provider: DepthProvider | None = None,
+                 settings: PhotometricSettings | None = None, seed: int = 0, *,
+                 led_drift_per_min: float = 0.0,
+                 clock_s: Callable[[], float] | None = None,
+                 fps: float = 25.0, latency_ms: float = 0.0,
+                 first_frame_timeout_s: float = 5.0) -> None:
+        fps, latency_ms = float(fps), float(latency_ms)
+        if not (math.isfinite(fps) and 0.0 < fps <= 1000.0):
+            raise ConfigError(f"sim-camera fps must be in (0, 1000], got {fps}")
+        if not (math.isfinite(latency_ms) and latency_ms >= 0.0):
+            raise ConfigError(f"sim-camera latency_ms must be finite and >= 0, got {latency_ms}")
+        super().__init__(depth_provider, settings, seed, led_drift_per_min=led_drift_per_min,
+                         clock_s=clock_s)
+        self.fps, self.latency_ms = fps, latency_ms
+        self.first_frame_timeout_s = float(first_frame_timeout_s)
+        self._held: SensorFrame | None = None
+        self._held_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def _connect(self) -> None:
+        super()._connect()
+        self._held = None
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._stream, name="sim-camera", daemon=True)
+        self._thread.start()
+        deadline = time.monotonic() + self.first_frame_timeout_s
+        while self._held is None and time.monotonic() < deadline:
+            time.sleep(0.002)
+        if self._held is None:
+            self._disconnect()
+            raise DeviceInitError(f"sim-camera delivered no image within "
+                                  f"{self.first_frame_timeout_s} s")
+
+    def _disconnect(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+
+    def _stream(self) -> None:
+        period_s, latency_s = 1.0 / self.fps, self.latency_ms / 1000.0
+        next_s = time.monotonic()
+        while not self._stop.is_set():
+            exposure_us = now_us()
+            try:
+                frame = self._render_now()  # the gel as it is at the exposure
+            except DeviceOperationError as err:  # the provider's map: no image this time
+                log.warning("sim-camera: %s", err)
+                frame = None
+            if frame is not None:
+                if latency_s > 0 and self._stop.wait(latency_s):
+                    return
+                with self._held_lock:
+                    self._held = SensorFrame(frame.rgb, exposure_us, frame.seq)
+                self._frame_arrived()
+            next_s += period_s
+            now_s = time.monotonic()
+            if next_s < now_s:  # fell behind (a busy machine): from now, not in a burst
+                next_s = now_s
+            self._stop.wait(next_s - now_s)
+
+    def _latest(self) -> SensorFrame | None:
+        with self._held_lock:
+            return self._held

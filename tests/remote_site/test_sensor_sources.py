@@ -65,10 +65,12 @@ def _raw_frame(rows: int = 350, cols: int = 466) -> np.ndarray:
 # --------------------------------------------------------------------------- base class contract
 
 
-@pytest.fixture(params=["sim", "fake_camera"])
+@pytest.fixture(params=["sim", "sim_camera", "fake_camera"])
 def any_sensor(request: pytest.FixtureRequest) -> TactileSensor:
     if request.param == "sim":
         return open_sensor("sim")
+    if request.param == "sim_camera":
+        return open_sensor("sim-camera", fps=50.0)
     return OpenCVCameraSensor(0, capture_factory=lambda src: FakeCapture([], repeat=_raw_frame()))
 
 
@@ -91,6 +93,53 @@ def test_every_backend_follows_the_contract(any_sensor: TactileSensor) -> None:
 
 
 # --------------------------------------------------------------------------- simulator
+
+
+def test_the_simulated_camera_streams_stamps_its_exposure_and_says_so() -> None:
+    # 40 frames/s, 60 ms from exposure to delivery: each image is announced once, when it
+    # is delivered, stamped with its exposure (at least the latency before the notice)
+    sensor = open_sensor("sim-camera", fps=40.0, latency_ms=60.0)
+    assert not sensor.captures_on_demand and sensor.notifies_frames
+    notices: list[tuple[int, int]] = []  # (seq, lead of the notice over the stamp, us)
+
+    def listener() -> None:
+        frame = sensor._latest()
+        assert frame is not None
+        notices.append((frame.seq, now_us() - frame.timestamp_us))
+
+    sensor.on_frame = listener
+    with sensor:
+        wait_until(lambda: len(notices) >= 6, 5.0, "six images")
+        frame = sensor.read_latest(max_age_ms=scaled(1_000.0))
+        assert frame.rgb.shape == (240, 320, 3)
+        with pytest.raises(DeviceTimeoutError, match="old"):  # aged from the exposure
+            sensor.read_latest(max_age_ms=50.0)
+    seqs = [seq for seq, _ in notices]
+    assert seqs == sorted(set(seqs)) and seqs[0] == 1  # each once, in order, from the first
+    assert min(lead for _, lead in notices) >= 60_000
+    for bad in ({"fps": 0.0}, {"fps": float("nan")}, {"latency_ms": -1.0}):
+        with pytest.raises(ConfigError):
+            open_sensor("sim-camera", **bad)
+
+
+def test_the_simulated_camera_takes_the_world_wiring() -> None:
+    # (what --phantom gives the sim sensor: the depth provider at the arm pose, noise, drift)
+    from remote_site.agent.devices import open_world_arm, open_world_sensor
+    from remote_site.agent.world import SimWorld
+    from remote_site.phantom.scenes import make_scene
+
+    world = SimWorld(make_scene("breast", 0))
+    arm = open_world_arm("sim", world)
+    sensor = open_world_sensor("sim-camera", world, arm, fps=50.0)
+    arm.connect()
+    try:
+        with sensor:
+            first = sensor.read_latest(max_age_ms=scaled(500.0))
+            wait_until(lambda: sensor.read_latest(max_age_ms=scaled(500.0)).seq > first.seq,
+                       2.0, "a second image")
+            assert np.array_equal(first.rgb.shape, (240, 320, 3))
+    finally:
+        arm.disconnect()
 
 
 def test_simulator_renders_contacts_from_a_provider() -> None:
