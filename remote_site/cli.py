@@ -73,7 +73,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                              "recording of the Mini's 320x240 output, taken as it is)")
     parser.add_argument("--sensor-fps", dest="sensor_fps", type=float, metavar="HZ",
                         help="publish camera frames at this rate (default: a video file's own "
-                             "rate; a live camera paces itself)")
+                             "rate; a live camera paces itself; sim-camera: 25)")
     parser.add_argument("--sensor-latency-ms", dest="sensor_latency_ms", type=float,
                         metavar="MS",
                         help="how long before its arrival a camera image was taken, when known "

@@ -182,14 +182,18 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
         "frame_rate_hz": options.frame_rate_hz, "patch_pitch_mm": options.patch_pitch_mm,
         "tactile_codec": options.tactile_codec, "capture_on_pose": options.capture_on_pose,
         "lock_memory": options.lock_memory})
-    if options.sensor_latency_ms is not None \
-            and options.sensor_latency_ms >= agent_cfg.sensor_max_age_ms:
-        raise ConfigError(f"--sensor-latency-ms {options.sensor_latency_ms:g} is not below "
-                          f"[remote.agent] sensor_max_age_ms ({agent_cfg.sensor_max_age_ms:g}): "
-                          "frames are aged from their image's time, so every one would be "
-                          "refused as too old; raise sensor_max_age_ms above the latency plus "
-                          "a frame period")
     background_cfg = resolve_config(BackgroundSettings, "remote.background", toml_path=toml)
+    # frames are aged from their image's time: a latency at or above an age limit refuses
+    # every frame there (each tick, or the whole background capture)
+    for limit_ms, where in ((agent_cfg.sensor_max_age_ms, "[remote.agent] sensor_max_age_ms"),
+                            (background_cfg.max_frame_age_ms,
+                             "[remote.background] max_frame_age_ms")):
+        if options.sensor_latency_ms is not None and options.sensor_latency_ms >= limit_ms:
+            raise ConfigError(f"--sensor-latency-ms {options.sensor_latency_ms:g} is not below "
+                              f"{where} ({limit_ms:g}): frames are aged from their image's "
+                              "time, so every one would be refused as too old; raise it above "
+                              "the latency (plus a frame period, or some frames age out "
+                              "before they are read)")
     workspace = load_workspace(toml_path=toml)
     stiffness_calibration = load_stiffness_calibration(options.sensor,
                                                        options.stiffness_calibration)

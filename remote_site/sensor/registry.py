@@ -95,4 +95,7 @@ def open_sensor(name_or_camera: str | int, **options: Any) -> TactileSensor:
     try:
         return cls(**options)
     except TypeError as err:
-        raise ConfigError(f"bad options for sensor {name_or_camera!r}: {err}") from err
+        raise ConfigError(f"bad options for sensor {name_or_camera!r}: {err} (on the command "
+                          "line --sensor-preset and --sensor-loop are a camera's options; "
+                          "--sensor-fps and --sensor-latency-ms a camera's or sim-camera's)"
+                          ) from err

@@ -9,6 +9,7 @@ Each :meth:`read_latest` renders a fresh frame (seq + 1, timestamp = now).
 
 from __future__ import annotations
 
+import collections
 import logging
 import math
 import threading
@@ -17,7 +18,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from remote_site.sensor.base import SensorFrame, TactileSensor
+from remote_site.sensor.base import SensorFrame, SensorHealth, TactileSensor
 from remote_site.sensor.photometric import PhotometricModel, PhotometricSettings
 from shared.errors import ConfigError, DeviceInitError, DeviceOperationError, InputDataError
 from shared.timebase import now_us
@@ -114,9 +115,11 @@ class StreamingSimulatedSensor(SimulatedSensor):
     """The simulated sensor as a streaming camera (``--sensor sim-camera``): it renders the
     gel on a clock of its own, as a GelSight Mini streams at 25 frames/s, rather than when
     read. Each image is rendered at its exposure (the contact at that moment), delivered
-    ``latency_ms`` later and stamped at the exposure (a camera whose latency is known, as
-    ``--sensor-latency-ms`` states it); the station is told of each one
-    (:attr:`~remote_site.sensor.base.TactileSensor.notifies_frames`).
+    ``latency_ms`` after the exposure (or once rendered, if that takes longer) and stamped
+    at the exposure (a camera whose latency is known, as ``--sensor-latency-ms`` states
+    it); the station is told of each one
+    (:attr:`~remote_site.sensor.base.TactileSensor.notifies_frames`). Exposures keep their
+    rate whatever the latency: images in flight wait in a queue, as in a camera's pipeline.
 
     Args:
         depth_provider, settings, seed, led_drift_per_min, clock_s: as for
@@ -151,10 +154,15 @@ class StreamingSimulatedSensor(SimulatedSensor):
         self._held_lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        #: the last render failure (the thread goes on; connect() names it if no image came)
+        self.render_error: str | None = None
+        self._render_failures = 0
 
     def _connect(self) -> None:
         super()._connect()
         self._held = None
+        self.render_error = None
+        self._render_failures = 0
         self._stop.clear()
         self._thread = threading.Thread(target=self._stream, name="sim-camera", daemon=True)
         self._thread.start()
@@ -163,8 +171,9 @@ class StreamingSimulatedSensor(SimulatedSensor):
             time.sleep(0.002)
         if self._held is None:
             self._disconnect()
+            cause = f" (last render error: {self.render_error})" if self.render_error else ""
             raise DeviceInitError(f"sim-camera delivered no image within "
-                                  f"{self.first_frame_timeout_s} s")
+                                  f"{self.first_frame_timeout_s} s{cause}")
 
     def _disconnect(self) -> None:
         self._stop.set()
@@ -172,27 +181,50 @@ class StreamingSimulatedSensor(SimulatedSensor):
             self._thread.join()
             self._thread = None
 
+    def _is_healthy(self) -> bool:
+        thread = self._thread
+        return thread is not None and thread.is_alive()
+
+    @property
+    def health(self) -> SensorHealth:
+        """Ended when its thread is gone while connected (it should never be)."""
+        thread = self._thread
+        if thread is not None and not thread.is_alive() and not self._stop.is_set():
+            return SensorHealth(ended=True, reason=self.render_error or "stream thread ended")
+        return SensorHealth()
+
     def _stream(self) -> None:
         period_s, latency_s = 1.0 / self.fps, self.latency_ms / 1000.0
+        in_flight: collections.deque[tuple[float, SensorFrame]] = collections.deque()
         next_s = time.monotonic()
         while not self._stop.is_set():
-            exposure_us = now_us()
-            try:
-                frame = self._render_now()  # the gel as it is at the exposure
-            except DeviceOperationError as err:  # the provider's map: no image this time
-                log.warning("sim-camera: %s", err)
-                frame = None
-            if frame is not None:
-                if latency_s > 0 and self._stop.wait(latency_s):
-                    return
+            if time.monotonic() >= next_s:  # an exposure: the gel as it is now
+                exposure_s, exposure_us = time.monotonic(), now_us()
+                frame = self._render_safely()
+                if frame is not None:
+                    in_flight.append((exposure_s + latency_s,
+                                      SensorFrame(frame.rgb, exposure_us, frame.seq)))
+                next_s += period_s
+                if next_s < time.monotonic():  # fell behind (a busy machine): no burst
+                    next_s = time.monotonic()
+            while in_flight and in_flight[0][0] <= time.monotonic():
                 with self._held_lock:
-                    self._held = SensorFrame(frame.rgb, exposure_us, frame.seq)
+                    self._held = in_flight.popleft()[1]
                 self._frame_arrived()
-            next_s += period_s
-            now_s = time.monotonic()
-            if next_s < now_s:  # fell behind (a busy machine): from now, not in a burst
-                next_s = now_s
-            self._stop.wait(next_s - now_s)
+            wake_s = min(next_s, in_flight[0][0]) if in_flight else next_s
+            self._stop.wait(max(0.0, wake_s - time.monotonic()))
+
+    def _render_safely(self) -> SensorFrame | None:
+        """One image, or None when rendering failed (logged the first time and counted:
+        a failing depth provider must not end the stream)."""
+        try:
+            return self._render_now()
+        except Exception as err:  # the world's provider, whatever it raises
+            self.render_error = f"{type(err).__name__}: {err}"
+            self._render_failures += 1
+            if self._render_failures == 1:
+                log.warning("sim-camera: no image: %s", self.render_error)
+            return None
 
     def _latest(self) -> SensorFrame | None:
         with self._held_lock:

@@ -371,15 +371,20 @@ async def test_a_real_sensor_without_stiffness_calibration_fails_before_anything
         await run_agent(options, asyncio.Event())
 
 
+@pytest.mark.parametrize(("toml", "latency_ms", "names"), [
+    ("", 100.0, r"\[remote.agent\] sensor_max_age_ms"),
+    ("[remote.agent]\nsensor_max_age_ms = 300\n", 150.0,
+     r"\[remote.background\] max_frame_age_ms")])
 async def test_a_camera_latency_that_would_age_out_every_frame_fails_at_start_up(
-        tmp_path: Path) -> None:
-    # frames are aged from their image's time: a latency at or above the age limit would
-    # refuse every one, each tick, with only the first warned
-    empty = tmp_path / "empty.toml"
-    empty.write_text("")
+        tmp_path: Path, toml: str, latency_ms: float, names: str) -> None:
+    # frames are aged from their image's time: a latency at or above an age limit would
+    # refuse every frame there (each tick, with only the first warned, or the whole
+    # background capture)
+    config = tmp_path / "remote.toml"
+    config.write_text(toml)
     options = AgentOptions(relay="ws://127.0.0.1:9/", session="s", token="t", arm="sim",
-                           sensor="camera", sensor_latency_ms=100.0, config_path=empty)
-    with pytest.raises(ConfigError, match="sensor_max_age_ms"):
+                           sensor="camera", sensor_latency_ms=latency_ms, config_path=config)
+    with pytest.raises(ConfigError, match=names):
         await run_agent(options, asyncio.Event())
 
 

@@ -114,21 +114,49 @@ def test_the_simulated_camera_streams_stamps_its_exposure_and_says_so() -> None:
         assert frame.rgb.shape == (240, 320, 3)
         with pytest.raises(DeviceTimeoutError, match="old"):  # aged from the exposure
             sensor.read_latest(max_age_ms=50.0)
+        # the latency (longer than a period) does not slow the rate: images in flight queue
+        count, t0 = len(notices), time.monotonic()
+        time.sleep(0.5)
+        rate = (len(notices) - count) / (time.monotonic() - t0)
+        assert rate >= 0.6 * 40.0, f"{rate:.1f} images/s"
     seqs = [seq for seq, _ in notices]
     assert seqs == sorted(set(seqs)) and seqs[0] == 1  # each once, in order, from the first
     assert min(lead for _, lead in notices) >= 60_000
+    assert not sensor.health.ended
     for bad in ({"fps": 0.0}, {"fps": float("nan")}, {"latency_ms": -1.0}):
         with pytest.raises(ConfigError):
             open_sensor("sim-camera", **bad)
 
 
+def test_a_failing_depth_provider_does_not_end_the_simulated_camera() -> None:
+    from remote_site.sensor.simulator import StreamingSimulatedSensor
+
+    calls = [0]
+
+    def flaky() -> np.ndarray:  # every third map fails
+        calls[0] += 1
+        if calls[0] % 3 == 0:
+            raise ValueError("the world's contact model failed")
+        return np.zeros((240, 320), np.float32)
+
+    sensor = StreamingSimulatedSensor(flaky, fps=100.0)
+    with sensor:
+        first = sensor.read_latest(max_age_ms=scaled(1_000.0))
+        wait_until(lambda: calls[0] >= 10, 5.0, "ten renders")
+        assert sensor.read_latest(max_age_ms=scaled(1_000.0)).seq > first.seq
+        assert not sensor.health.ended and sensor.render_error is not None
+    broken = StreamingSimulatedSensor(lambda: np.full((2, 2), np.nan), fps=100.0,
+                                      first_frame_timeout_s=0.3)
+    with pytest.raises(DeviceInitError, match="last render error"):
+        broken.connect()
+
+
 def test_the_simulated_camera_takes_the_world_wiring() -> None:
     # (what --phantom gives the sim sensor: the depth provider at the arm pose, noise, drift)
     from remote_site.agent.devices import open_world_arm, open_world_sensor
-    from remote_site.agent.world import SimWorld
-    from remote_site.phantom.scenes import make_scene
+    from remote_site.agent.world import build_world
 
-    world = SimWorld(make_scene("breast", 0))
+    world = build_world("breast", 0)  # the realistic world: every wiring option
     arm = open_world_arm("sim", world)
     sensor = open_world_sensor("sim-camera", world, arm, fps=50.0)
     arm.connect()
