@@ -15,11 +15,13 @@ import dataclasses
 import itertools
 import math
 import threading
+from collections.abc import Awaitable, Callable
 
 import numpy as np
 import pytest
 
 from remote_site.agent.config import RemoteAgentConfig
+from remote_site.agent.station import RemoteStation
 from remote_site.arm.base import ArmReading
 from remote_site.arm.safety import CommandResult, SafetyConfig
 from remote_site.sensor.base import SensorFrame, TactileSensor
@@ -269,24 +271,40 @@ class NotifyingCamera(TactileSensor):
             return self._newest
 
 
+def _camera_station(camera: TactileSensor, frame_rate_hz: float,
+                    sensor_max_age_ms: float = 100.0) -> RemoteStation:
+    """The station on ``camera`` (its kernels warmed up: a cold compile would take the
+    first second)."""
+    station = make_station(FakeLink(), sensor=camera, config=RemoteAgentConfig(
+        frame_rate_hz=frame_rate_hz, sensor_max_age_ms=sensor_max_age_ms,
+        status_interval_s=10.0))
+    station.pipeline.warm_up()
+    return station
+
+
+async def _run_while(station: RemoteStation, script: Callable[[], Awaitable[None]]) -> None:
+    """Run ``station`` until ``script`` has returned (or failed: the error is raised)."""
+    stop = asyncio.Event()
+
+    async def driver() -> None:
+        try:
+            await script()
+        finally:
+            stop.set()
+
+    task = asyncio.create_task(driver())
+    await station.run(stop, duration_s=scaled(30.0))
+    await task
+
+
 async def test_a_camera_that_notifies_is_read_as_each_image_arrives() -> None:
     # a 25 frames/s camera and a station allowed 60 frames/s: each image is taken once, as
     # it arrives, instead of on a 60 Hz clock that finds the same image on most ticks
     camera = NotifyingCamera(25.0)
-    link = FakeLink()
-    station = make_station(link, sensor=camera, config=RemoteAgentConfig(
-        frame_rate_hz=60.0, status_interval_s=10.0))
-    station.pipeline.warm_up()
-    stop = asyncio.Event()
-
-    async def stopper() -> None:
-        await async_wait_until(lambda: station.pipeline.processed >= 25, 20.0, "25 frames")
-        stop.set()
-
+    station = _camera_station(camera, frame_rate_hz=60.0)
     try:
-        task = asyncio.create_task(stopper())
-        await station.run(stop, duration_s=scaled(30.0))
-        await task
+        await _run_while(station, lambda: async_wait_until(
+            lambda: station.pipeline.processed >= 25, 20.0, "25 frames"))
         assert camera.on_frame is None  # let go when the station stopped
         processed = station.pipeline.processed
         # the images arrive 40 ms apart, far within sensor_max_age_ms: every tick but the
@@ -302,21 +320,10 @@ async def test_a_camera_that_notifies_is_read_as_each_image_arrives() -> None:
 async def test_a_late_notice_of_an_image_already_taken_is_not_a_tick() -> None:
     # every other notice comes after the next image was stored and announced (and taken):
     # such a notice names nothing new, and the station waits on for the next image
-    camera = NotifyingCamera(50.0, late_notices=True)
-    link = FakeLink()
-    station = make_station(link, sensor=camera, config=RemoteAgentConfig(
-        frame_rate_hz=400.0, status_interval_s=10.0))
-    station.pipeline.warm_up()
-    stop = asyncio.Event()
-
-    async def stopper() -> None:
-        await async_wait_until(lambda: station.pipeline.processed >= 20, 20.0, "20 frames")
-        stop.set()
-
+    station = _camera_station(NotifyingCamera(50.0, late_notices=True), frame_rate_hz=400.0)
     try:
-        task = asyncio.create_task(stopper())
-        await station.run(stop, duration_s=scaled(30.0))
-        await task
+        await _run_while(station, lambda: async_wait_until(
+            lambda: station.pipeline.processed >= 20, 20.0, "20 frames"))
         assert station.pipeline.repeated <= 1, station.pipeline.repeated
         assert station.captures.on_arrival <= station.pipeline.processed + 1
     finally:
@@ -326,11 +333,7 @@ async def test_a_late_notice_of_an_image_already_taken_is_not_a_tick() -> None:
 async def test_a_notifying_camera_is_read_at_most_at_the_frame_rate_and_when_it_stalls(
         ) -> None:
     camera = NotifyingCamera(200.0)
-    link = FakeLink()
-    station = make_station(link, sensor=camera, config=RemoteAgentConfig(
-        frame_rate_hz=20.0, status_interval_s=10.0, sensor_max_age_ms=50.0))
-    station.pipeline.warm_up()
-    stop = asyncio.Event()
+    station = _camera_station(camera, frame_rate_hz=20.0, sensor_max_age_ms=50.0)
     at_pause: dict[str, int] = {}
 
     async def script() -> None:
@@ -342,12 +345,9 @@ async def test_a_notifying_camera_is_read_at_most_at_the_frame_rate_and_when_it_
         await async_wait_until(
             lambda: station.pipeline.rejected["sensor_timeout"] >= at_pause["timeouts"] + 3,
             20.0, "ticks of the stalled camera")
-        stop.set()
 
     try:
-        task = asyncio.create_task(script())
-        await station.run(stop, duration_s=scaled(30.0))
-        await task
+        await _run_while(station, script)
         # no two frames sooner than a period apart (the camera offers one every 5 ms)
         assert min(station.frame_period_s) >= 1.0 / 20.0 - 1e-3
         # stalled, a tick comes a period plus sensor_max_age_ms after the last (0.1 s here),
