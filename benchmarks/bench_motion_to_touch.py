@@ -10,7 +10,8 @@ capture counters and the 1-minute load average at the start of the run.
 The **floor** of a profile is what no scheduling can remove: the profile's nominal round trip
 (twice its one-way delay; jitter and loss only add) plus the stages that do work rather than
 wait - ``remote_dispatch``, ``reconstruction_and_stiffness``, ``relay_forward_platform``,
-``relay_forward_tactile`` and ``render`` - and the wait the design's rates fix,
+``relay_forward_tactile`` and ``render`` - the sensor's own delivery, ``sensor_delivery`` (a
+streaming camera's latency: no scheduling here removes it), and the wait the design's rates fix,
 ``uplink_sampling`` (the platform_state send period, and the states passed over until the
 remote's frame schedule took one: ``shared/motion_to_touch.py``), taken at their p50 in the same
 profile's *after* runs. What the measured p99 exceeds the floor by is waiting: the frame
@@ -43,16 +44,23 @@ WORK_STAGES = ("remote_dispatch", "reconstruction_and_stiffness", "relay_forward
 #: waits the design fixes (the uplink's send period: a movement just after one message's
 #: sample shows first in the next); their p50 joins the floor too
 DESIGN_WAITS = ("uplink_sampling",)
+#: the sensor's own delivery (a camera's latency and transfer; 0 for a source that captures
+#: on demand); in the floor too. Ledgers before 2026-12-06 had no such stage: it was part of
+#: ``reconstruction_and_stiffness``, so a run without it adds nothing (not a missing stage)
+SENSOR_STAGES = ("sensor_delivery",)
 SIDES = ("before", "after")
 
 
 def floor_ms(round_trip_ms: float, latencies: list[dict[str, Any] | None]) -> float | None:
     """The floor (see the module docstring): the nominal round trip plus, per stage of
-    ``WORK_STAGES`` and ``DESIGN_WAITS``, the median of its p50 over the runs' latency
-    tables that report it; None when no run reports one of those stages."""
+    ``WORK_STAGES``, ``DESIGN_WAITS`` and ``SENSOR_STAGES``, the median of its p50 over the
+    runs' latency tables that report it; None when no run reports one of the first two
+    groups' stages (one of ``SENSOR_STAGES`` that no run reports adds 0: older ledgers)."""
     total = round_trip_ms
-    for stage in (*WORK_STAGES, *DESIGN_WAITS):
+    for stage in (*WORK_STAGES, *DESIGN_WAITS, *SENSOR_STAGES):
         p50 = median_known(((lat or {}).get(stage) or {}).get("p50") for lat in latencies)
+        if p50 is None and stage in SENSOR_STAGES:
+            continue
         if p50 is None:
             return None
         total += float(p50)
@@ -104,7 +112,7 @@ def summarise(runs: dict[str, dict[str, list[dict[str, Any]]]],
         med = {side: {k: median_known([_fig(r, "end_to_end", k) for r in sides[side]])
                       for k in ("p50", "p99")} for side in SIDES}
         work = {s: median_known([_fig(r, s, "p50") for r in sides["after"]])
-                for s in (*WORK_STAGES, *DESIGN_WAITS)}
+                for s in (*WORK_STAGES, *DESIGN_WAITS, *SENSOR_STAGES)}
         floor = floor_ms(rtt_ms[profile], [r.get("latency_ms") for r in sides["after"]])
         p99_after = med["after"]["p99"]
         figures[profile] = {"nominal_rtt_ms": rtt_ms[profile], "work_stages_p50_ms": work,
@@ -220,7 +228,9 @@ def main() -> int:
         *rows,
         "",
         "Floor = nominal round trip + the p50 of the stages that work rather than wait ("
-        + ", ".join(f"`{s}`" for s in WORK_STAGES) + ") and of the waits the design fixes ("
+        + ", ".join(f"`{s}`" for s in WORK_STAGES) + "), of the sensor's own delivery ("
+        + ", ".join(f"`{s}`" for s in SENSOR_STAGES) + "; 0 where not reported) and of the "
+        "waits the design fixes ("
         + ", ".join(f"`{s}`" for s in DESIGN_WAITS) + ") in the after runs.",
         "",
         "## Stages (median over runs of p50 / p99 ms, and the frame count)",

@@ -11,7 +11,8 @@ excess (with the range over the runs), and the end-to-end median, tail mean and 
 
 It also gives each group's **floor**, as ``bench_motion_to_touch.py`` defines it: the link
 profile's nominal round trip plus the p50 of the stages that work and of the waits the
-design's rates fix (``WORK_STAGES``, ``DESIGN_WAITS`` there), medians over the runs, and how
+design's rates fix and of the sensor's own delivery (``WORK_STAGES``, ``DESIGN_WAITS``,
+``SENSOR_STAGES`` there), medians over the runs, and how
 far each run's p99 lies above it.
 
 Run: ``python benchmarks/m2t_tail_table.py benchmarks/results/m2t_tail``.
@@ -30,7 +31,11 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from benchmarks.bench_motion_to_touch import DESIGN_WAITS, WORK_STAGES  # noqa: E402
+from benchmarks.bench_motion_to_touch import (  # noqa: E402
+    DESIGN_WAITS,
+    SENSOR_STAGES,
+    WORK_STAGES,
+)
 from benchmarks.bench_motion_to_touch import floor_ms as motion_to_touch_floor  # noqa: E402
 from lab.linkemu import get_profile  # noqa: E402
 
@@ -79,9 +84,11 @@ def table(directory: Path) -> str:
                   f"{_cell([float(t['of']) for t in tails], '{:.0f}')} complete frames.", ""]
         floor = floor_ms(runs)
         if floor is not None:
+            counted = WORK_STAGES + DESIGN_WAITS + tuple(
+                s for s in SENSOR_STAGES if any(s in r["latency_ms"] for r in runs))
             lines += [f"Floor {floor:.1f} ms (nominal round trip "
                       f"{get_profile(runs[0]['settings']['link']).round_trip_ms:.1f} ms + the "
-                      f"p50 of {', '.join(WORK_STAGES + DESIGN_WAITS)}); p99 above it by "
+                      f"p50 of {', '.join(counted)}); p99 above it by "
                       f"{_cell([e['p99'] - floor for e in e2e], '{:.1f}')} ms.", ""]
         lines += ["| stage | median (ms) | tail mean (ms) | excess (ms) | share of the excess |",
                   "|---|---|---|---|---|"]

@@ -22,7 +22,8 @@ Layout of a ``tactile_frame`` built here (see :class:`shared.protocol.TactileFra
 * ``contact``, ``force_n``, ``indentation_mm`` (pad approach below the surface, phantom mm).
 * ``ts_us``: sensor frame capture time; ``source_seq``/``source_ts_us``: the platform_state
   this frame answers; ``hops``: that state's hops + ``remote.arm_command`` +
-  ``remote.sensor_frame`` + ``remote.tactile_ready`` (the agents' contract).
+  ``remote.sensor_frame`` + ``remote.sensor_arrival`` + ``remote.tactile_ready`` (the agents'
+  contract).
 
 Why a 0.5 mm patch over the sensor area: the display's pins are 1.7 mm apart, but the
 operator slides the platform continuously, so the pins sample the surface at every sub-pitch
@@ -223,8 +224,8 @@ class TactileAssembler:
     def assemble(self, *, seq: int, frame_ts_us: int, height_mm: NDArray[np.floating],
                  pitch_mm: float, probe_mm: Sequence[float], force_n: float, contact: bool,
                  stiffness_map: StiffnessMap | None, current_n_per_mm: float | None,
-                 source: AppliedCommand | None, tactile_ready_us: int | None = None
-                 ) -> TactileFrame:
+                 source: AppliedCommand | None, tactile_ready_us: int | None = None,
+                 sensor_arrival_us: int | None = None) -> TactileFrame:
         """Build one tactile frame (see the module docstring for the layout).
 
         Args:
@@ -241,6 +242,8 @@ class TactileAssembler:
             source: the platform_state this frame answers (None before the first command).
             tactile_ready_us: the ``remote.tactile_ready`` stamp (None: now, taken as the
                 last step of the assembly).
+            sensor_arrival_us: the ``remote.sensor_arrival`` stamp, when the image reached
+                the station (None: ``frame_ts_us``, a source that stamps as it delivers).
 
         Raises:
             InputDataError: non-finite heights, pose or force.
@@ -276,7 +279,9 @@ class TactileAssembler:
                 hops = (*source.state.hops, Hop("remote", "arm_command", source.arm_command_us))
             source_seq, source_ts = source.state.seq, source.state.ts_us
         ready_us = now_us() if tactile_ready_us is None else int(tactile_ready_us)
+        arrival_us = frame_ts_us if sensor_arrival_us is None else sensor_arrival_us
         hops = (*hops, Hop("remote", "sensor_frame", int(frame_ts_us)),
+                Hop("remote", "sensor_arrival", int(arrival_us)),
                 Hop("remote", "tactile_ready", ready_us))
         return TactileFrame(seq=seq, ts_us=int(frame_ts_us), hops=hops,
                             center_mm=(float(center[0]), float(center[1])),

@@ -16,6 +16,9 @@ stamp                       taken when
 ``remote.station_rx``       the remote station's link received it
 ``remote.arm_command``      the arm was commanded towards it
 ``remote.sensor_frame``     the first sensor frame taken after that was captured
+``remote.sensor_arrival``   that image reached the station (a streaming camera's delivery:
+                            its latency and transfer; the capture stamp of a source that
+                            captures on demand)
 ``remote.tactile_ready``    reconstruction and stiffness finished, frame sent
 ``relay.relay_in``          the relay received the tactile_frame
 ``relay.relay_out``         the relay wrote it to the local station
@@ -59,7 +62,12 @@ the frame tick that reads it: its frame answers the command applied by the image
 (``RemoteStation.applied_at``; the camera's known latency is taken off its arrival), and the
 states after that command are left for the next frame: its ``arm_command`` stamp never
 follows its ``sensor_frame`` stamp (the arrival less the camera's latency when that is
-known, ``--sensor-latency-ms``; else the arrival, and a real delay goes uncounted). A capture
+known, ``--sensor-latency-ms``; else the arrival, and a real delay goes uncounted). Its
+``sensor_delivery`` stage (``sensor_frame`` to ``sensor_arrival``) is that known latency
+plus the transfer, and ``reconstruction_and_stiffness`` starts where the image reached the
+station, so it holds the wait for the frame tick too; a source that captures on demand has
+a delivery of 0 (it stamps as its read returns, so its render sits in
+``arm_and_sensor``). A capture
 that gives no frame (a streaming camera with no new image yet, a sensor error) hands that
 chain back; states refused after the state
 captured are left for the next frame; a reconnect of the remote's link, and a first state
@@ -104,8 +112,9 @@ __all__ = ["END_TO_END", "FROM_CAPTURE", "INCOMPLETE", "SEQUENCE", "STAGES", "UN
 #: the documented stamps of one loop, in order
 SEQUENCE: tuple[str, ...] = (
     "local.motion", "local.capture", "relay.relay_in", "relay.relay_out", "remote.station_rx",
-    "remote.arm_command", "remote.sensor_frame", "remote.tactile_ready", "relay.relay_in",
-    "relay.relay_out", "local.station_rx", "local.rendered")
+    "remote.arm_command", "remote.sensor_frame", "remote.sensor_arrival",
+    "remote.tactile_ready", "relay.relay_in", "relay.relay_out", "local.station_rx",
+    "local.rendered")
 
 END_TO_END = "end_to_end"
 #: from the sample the frame answers (``local.capture``) to the pins: end to end without the
@@ -142,8 +151,8 @@ _SHARE_FLOOR_MS = 1e-3
 #: the stage between SEQUENCE[i] and SEQUENCE[i + 1]
 STAGES: tuple[str, ...] = (
     "uplink_sampling", "uplink_local_to_relay", "relay_forward_platform", "relay_to_remote",
-    "remote_dispatch", "arm_and_sensor", "reconstruction_and_stiffness", "uplink_remote_to_relay",
-    "relay_forward_tactile", "relay_to_local", "render")
+    "remote_dispatch", "arm_and_sensor", "sensor_delivery", "reconstruction_and_stiffness",
+    "uplink_remote_to_relay", "relay_forward_tactile", "relay_to_local", "render")
 
 
 def _start_in_sequence(names: Sequence[str]) -> int | None:

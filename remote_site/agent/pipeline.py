@@ -204,6 +204,7 @@ class FramePipeline:
             try:
                 frame = self.assembler.assemble(
                     seq=seq, frame_ts_us=sensor_frame.timestamp_us,
+                    sensor_arrival_us=sensor_frame.received_us,
                     height_mm=height_map.height_mm, pitch_mm=height_map.mm_per_px,
                     probe_mm=reading.position_mm, force_n=reading.force_n, contact=contact,
                     stiffness_map=self.stiffness.map, current_n_per_mm=current,

@@ -42,11 +42,21 @@ class SensorFrame:
             a streaming camera stamps its arrival less the device's known latency), wall
             clock microseconds (``shared.timebase.now_us``).
         seq: capture sequence number, increasing by one per captured frame.
+        arrival_us: when the image reached this process (the driver received it), same
+            clock; None: when it was stamped (a source that captures on demand stamps as its
+            read returns). The motion-to-touch ledger's ``remote.sensor_arrival``
+            (:attr:`received_us`): a streaming camera's delivery is then a stage of its own.
     """
 
     rgb: np.ndarray
     timestamp_us: int
     seq: int
+    arrival_us: int | None = None
+
+    @property
+    def received_us(self) -> int:
+        """When the image reached this process: :attr:`arrival_us`, else the stamp."""
+        return self.timestamp_us if self.arrival_us is None else self.arrival_us
 
 
 @dataclass(frozen=True)

@@ -273,8 +273,9 @@ class OpenCVCameraSensor(TactileSensor):
             return False
         with self._lock:
             self._seq += 1
-            self._newest = SensorFrame(rgb=rgb, timestamp_us=now_us() - self._latency_us,
-                                       seq=self._seq)
+            arrival_us = now_us()
+            self._newest = SensorFrame(rgb=rgb, timestamp_us=arrival_us - self._latency_us,
+                                       seq=self._seq, arrival_us=arrival_us)
             if self._health.stalled:
                 log.info("camera %r delivers frames again", self.source)
                 self._health = SensorHealth(stalls=self._health.stalls,
@@ -301,7 +302,7 @@ class OpenCVCameraSensor(TactileSensor):
         h = self._health
         if h.ended or h.stalled or self._newest is None:
             return
-        age_s = (now_us() - self._newest.timestamp_us - self._latency_us) / 1e6  # arrival
+        age_s = (now_us() - self._newest.received_us) / 1e6  # since it arrived
         if age_s > self.stall_timeout_s:
             self._health = SensorHealth(stalls=h.stalls + 1, stalled=True, loops=h.loops)
             log.warning("camera %r stalled: no new frame for %.1f s (stall %d)", self.source,

@@ -10,6 +10,7 @@ Each :meth:`read_latest` renders a fresh frame (seq + 1, timestamp = now).
 from __future__ import annotations
 
 import collections
+import dataclasses
 import logging
 import math
 import threading
@@ -208,8 +209,9 @@ class StreamingSimulatedSensor(SimulatedSensor):
                 if next_s < time.monotonic():  # fell behind (a busy machine): no burst
                     next_s = time.monotonic()
             while in_flight and in_flight[0][0] <= time.monotonic():
+                image = dataclasses.replace(in_flight.popleft()[1], arrival_us=now_us())
                 with self._held_lock:
-                    self._held = in_flight.popleft()[1]
+                    self._held = image
                 self._frame_arrived()
             wake_s = min(next_s, in_flight[0][0]) if in_flight else next_s
             self._stop.wait(max(0.0, wake_s - time.monotonic()))

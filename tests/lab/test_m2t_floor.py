@@ -8,7 +8,7 @@ from typing import Any
 
 import pytest
 
-from benchmarks.bench_motion_to_touch import DESIGN_WAITS, WORK_STAGES
+from benchmarks.bench_motion_to_touch import DESIGN_WAITS, SENSOR_STAGES, WORK_STAGES
 from benchmarks.m2t_tail_table import floor_ms
 from lab.linkemu import get_profile
 
@@ -19,7 +19,7 @@ def _run(link: str | None, p50: dict[str, float]) -> dict[str, Any]:
 
 
 def test_the_floor_adds_the_round_trip_and_the_medians_of_the_stages() -> None:
-    stages = (*WORK_STAGES, *DESIGN_WAITS)
+    stages = (*WORK_STAGES, *DESIGN_WAITS, *SENSOR_STAGES)
     # three runs: stage i's p50 is i+1, 2(i+1), 10(i+1) ms -> median 2(i+1)
     runs = [_run("city-1000km", {s: k * (i + 1) for i, s in enumerate(stages)})
             for k in (1.0, 2.0, 10.0)]
@@ -43,3 +43,16 @@ def test_a_stage_counts_over_the_runs_that_report_it_and_none_without_it() -> No
     assert floor_ms([_run("lan", partial), _run("lan", partial)]) is None
     failed: dict[str, Any] = {"settings": {"link": "lan"}}  # no latency table at all
     assert floor_ms([_run("lan", full), failed]) == pytest.approx(rtt + len(stages) - 1 + 5.0)
+
+
+def test_the_sensor_delivery_counts_where_reported_and_adds_nothing_in_older_ledgers() -> None:
+    # before 2026-12-06 a camera's delivery was part of reconstruction_and_stiffness: a run
+    # without the stage is not a run with a missing stage
+    older = dict.fromkeys((*WORK_STAGES, *DESIGN_WAITS), 1.0)
+    rtt = get_profile("lan").round_trip_ms
+    base = rtt + len(older)
+    assert floor_ms([_run("lan", older)]) == pytest.approx(base)
+    newer = older | {"sensor_delivery": 30.0}
+    assert SENSOR_STAGES == ("sensor_delivery",)
+    assert floor_ms([_run("lan", newer)]) == pytest.approx(base + 30.0)
+    assert floor_ms([_run("lan", newer), _run("lan", older)]) == pytest.approx(base + 30.0)

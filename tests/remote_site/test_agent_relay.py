@@ -35,7 +35,8 @@ from tests.support import free_tcp_port, scaled
 TOKEN = "palpate"
 SESSION = "lab1"
 CONTRACT_STAMPS = ["local.capture", "relay.relay_in", "relay.relay_out", "remote.station_rx",
-                   "remote.arm_command", "remote.sensor_frame", "remote.tactile_ready",
+                   "remote.arm_command", "remote.sensor_frame", "remote.sensor_arrival",
+                   "remote.tactile_ready",
                    "relay.relay_in", "relay.relay_out", "local.station_rx"]
 
 

@@ -330,6 +330,10 @@ def test_the_video_plays_like_a_camera_and_the_station_captures_its_background(
     lead_ms = [(_remote_stamp(f, "tactile_ready") - _remote_stamp(f, "sensor_frame")) / 1e3
                for f in frames]
     assert min(lead_ms) >= LATENCY_MS, f"{min(lead_ms):.1f} ms"
+    # and the ledger sees that latency as the sensor's own stage: arrival less stamp
+    delivery_us = {_remote_stamp(f, "sensor_arrival") - _remote_stamp(f, "sensor_frame")
+                   for f in frames}
+    assert delivery_us == {round(LATENCY_MS * 1e3)}
 
 
 def test_every_real_press_reaches_the_pins(

@@ -101,11 +101,13 @@ def test_the_simulated_camera_streams_stamps_its_exposure_and_says_so() -> None:
     sensor = open_sensor("sim-camera", fps=40.0, latency_ms=60.0)
     assert not sensor.captures_on_demand and sensor.notifies_frames
     notices: list[tuple[int, int]] = []  # (seq, lead of the notice over the stamp, us)
+    deliveries: list[tuple[int, int]] = []  # (arrival - stamp, notice - arrival), us
 
     def listener() -> None:
         frame = sensor._latest()
         assert frame is not None
         notices.append((frame.seq, now_us() - frame.timestamp_us))
+        deliveries.append((frame.received_us - frame.timestamp_us, now_us() - frame.received_us))
 
     sensor.on_frame = listener
     with sensor:
@@ -122,6 +124,10 @@ def test_the_simulated_camera_streams_stamps_its_exposure_and_says_so() -> None:
     seqs = [seq for seq, _ in notices]
     assert seqs == sorted(set(seqs)) and seqs[0] == 1  # each once, in order, from the first
     assert min(lead for _, lead in notices) >= 60_000
+    # stamped again on delivery (the ledger's sensor_arrival): the latency lies between the
+    # two stamps, and the notice follows the arrival
+    assert min(delivery for delivery, _ in deliveries) >= 60_000
+    assert min(after for _, after in deliveries) >= 0
     assert not sensor.health.ended
     for bad in ({"fps": 0.0}, {"fps": float("nan")}, {"latency_ms": -1.0}):
         with pytest.raises(ConfigError):
@@ -286,6 +292,8 @@ def test_a_camera_stamps_its_frames_with_the_known_latency_taken_off() -> None:
                             stall_timeout_s=scaled(1.0)) as sensor:
         frame = sensor.read_latest(max_age_ms=scaled(3_000.0))
         assert before_us - latency_us <= frame.timestamp_us <= now_us() - latency_us
+        # its arrival is kept apart (the ledger's sensor_delivery): exactly that latency
+        assert frame.received_us - frame.timestamp_us == latency_us
         with pytest.raises(DeviceTimeoutError, match="old"):
             sensor.read_latest(max_age_ms=latency_us / 1e3 * 0.75)
         assert not sensor.health.stalled and not sensor.health.ended

@@ -42,16 +42,18 @@ from tests.support import async_wait_until, motion_of, scaled
 
 
 class LaggingCamera(ScriptedSensor):
-    """A streaming camera: each read finds a new image, taken ``lag_us`` before the read."""
+    """A streaming camera: each read finds a new image, taken ``lag_us`` before the read and
+    delivered ``delivery_us`` after it was taken."""
 
-    def __init__(self, lag_us: int) -> None:
+    def __init__(self, lag_us: int, delivery_us: int = 0) -> None:
         super().__init__([])
-        self.lag_us = lag_us
+        self.lag_us, self.delivery_us = lag_us, delivery_us
         self.image = SimulatedSensor().render(np.zeros((240, 320)))
 
     def _latest(self) -> SensorFrame | None:
         self.seq += 1
-        return SensorFrame(self.image, now_us() - self.lag_us, self.seq)
+        taken_us = now_us() - self.lag_us
+        return SensorFrame(self.image, taken_us, self.seq, taken_us + self.delivery_us)
 
 
 def _stamp(frame: TactileFrame | TactileCompact, stage: str) -> int:
@@ -68,7 +70,7 @@ async def test_a_streamed_frame_answers_the_command_of_its_image_at_the_pose_the
     lag_us = 30_000
     link = FakeLink()
     station = make_station(link, SafetyConfig(max_command_age_ms=scaled(5_000.0)),
-                           sensor=LaggingCamera(lag_us),
+                           sensor=LaggingCamera(lag_us, delivery_us=12_000),
                            config=RemoteAgentConfig(frame_rate_hz=30.0, status_interval_s=10.0))
     station.pipeline.warm_up()  # a cold compile of the kernels would take the first second
     assert not station.captures_on_pose
@@ -128,6 +130,8 @@ async def test_a_streamed_frame_answers_the_command_of_its_image_at_the_pose_the
             later = [c for c in applied if c.arm_command_us > command_us]
             assert not later or later[0].arm_command_us > image_us
             ready_us = _stamp(frame, "tactile_ready")
+            # the image's delivery is its own stage, and the station's work starts after it
+            assert _stamp(frame, "sensor_arrival") - image_us == 12_000
             newer_than_image += any(image_us < c.arm_command_us <= ready_us for c in applied)
             # placed where the arm was when the image was taken
             # (the readings polled just before and just after it; a reading at the read itself,

@@ -46,11 +46,13 @@ def reconstructor() -> Reconstructor:
 
 def _assemble(assembler: TactileAssembler, height: np.ndarray, probe=(0.0, 0.0, -1.0),
               stiffness_map: StiffnessMap | None = None, current: float | None = None,
-              source: AppliedCommand | None = None, pitch: float = PITCH_MM):
+              source: AppliedCommand | None = None, pitch: float = PITCH_MM,
+              arrival_us: int | None = None):
     return assembler.assemble(seq=1, frame_ts_us=1_000, height_mm=height, pitch_mm=pitch,
                               probe_mm=probe, force_n=1.0, contact=True,
                               stiffness_map=stiffness_map, current_n_per_mm=current,
-                              source=source, tactile_ready_us=2_000)
+                              source=source, tactile_ready_us=2_000,
+                              sensor_arrival_us=arrival_us)
 
 
 def test_flat_phantom_without_contact_gives_a_zero_patch(reconstructor: Reconstructor) -> None:
@@ -116,11 +118,12 @@ def test_hops_follow_the_contract_and_survive_the_wire() -> None:
         Hop("local", "capture", 100), Hop("relay", "relay_in", 150),
         Hop("relay", "relay_out", 160), Hop("remote", "station_rx", 170)))
     frame = _assemble(_assembler(), np.zeros((30, 40), np.float32),
-                      source=AppliedCommand(state, 180))
+                      source=AppliedCommand(state, 180), arrival_us=1_300)
     assert [f"{h.clock}.{h.stage}" for h in frame.hops] == [
         "local.capture", "relay.relay_in", "relay.relay_out", "remote.station_rx",
-        "remote.arm_command", "remote.sensor_frame", "remote.tactile_ready"]
-    assert [h.t_us for h in frame.hops][-3:] == [180, 1_000, 2_000]
+        "remote.arm_command", "remote.sensor_frame", "remote.sensor_arrival",
+        "remote.tactile_ready"]
+    assert [h.t_us for h in frame.hops][-4:] == [180, 1_000, 1_300, 2_000]
     assert (frame.source_seq, frame.source_ts_us, frame.ts_us) == (7, 100, 1_000)
     back = decode(encode(frame))
     assert isinstance(back, TactileFrame)
@@ -129,7 +132,9 @@ def test_hops_follow_the_contract_and_survive_the_wire() -> None:
 
 def test_without_a_source_only_the_remote_stamps_are_present() -> None:
     frame = _assemble(_assembler(), np.zeros((30, 40), np.float32))
-    assert [h.stage for h in frame.hops] == ["sensor_frame", "tactile_ready"]
+    assert [h.stage for h in frame.hops] == ["sensor_frame", "sensor_arrival", "tactile_ready"]
+    # a source that stamps as it delivers: the image arrived when it was stamped
+    assert [h.t_us for h in frame.hops] == [1_000, 1_000, 2_000]
     assert frame.source_seq is None and frame.source_ts_us is None
 
 

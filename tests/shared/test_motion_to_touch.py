@@ -31,7 +31,8 @@ from tests.support import motion_frame, motion_of, motion_state
 TRUE = [("local", "motion", -4_000), ("local", "capture", 0), ("relay", "relay_in", 10_000),
         ("relay", "relay_out", 10_050),
         ("remote", "station_rx", 20_050), ("remote", "arm_command", 20_100),
-        ("remote", "sensor_frame", 28_000), ("remote", "tactile_ready", 30_500),
+        ("remote", "sensor_frame", 28_000), ("remote", "sensor_arrival", 28_300),
+        ("remote", "tactile_ready", 30_500),
         ("relay", "relay_in", 40_500), ("relay", "relay_out", 40_560),
         ("local", "station_rx", 50_560), ("local", "rendered", 51_000)]
 
@@ -49,7 +50,8 @@ def test_offsets_are_removed(off_local: int, off_remote: int) -> None:
     assert dict(trace.stages_us) == {
         "uplink_sampling": 4_000, "uplink_local_to_relay": 10_000, "relay_forward_platform": 50,
         "relay_to_remote": 10_000,
-        "remote_dispatch": 50, "arm_and_sensor": 7_900, "reconstruction_and_stiffness": 2_500,
+        "remote_dispatch": 50, "arm_and_sensor": 7_900, "sensor_delivery": 300,
+        "reconstruction_and_stiffness": 2_200,
         "uplink_remote_to_relay": 10_000, "relay_forward_tactile": 60, "relay_to_local": 10_000,
         "render": 440}
     assert sum(d for _, d in trace.stages_us) == trace.end_to_end_us
@@ -121,8 +123,8 @@ def test_a_frame_without_its_platform_part_still_has_stages() -> None:
     trace = trace_hops(hops, {"local": 0, "remote": 0})
     assert trace.skipped is None and trace.end_to_end_us is None
     assert [n for n, _ in trace.stages_us] == [
-        "reconstruction_and_stiffness", "uplink_remote_to_relay", "relay_forward_tactile",
-        "relay_to_local", "render"]
+        "sensor_delivery", "reconstruction_and_stiffness", "uplink_remote_to_relay",
+        "relay_forward_tactile", "relay_to_local", "render"]
 
 
 def _loop_hops(durations_us: list[int]) -> list[Hop]:
