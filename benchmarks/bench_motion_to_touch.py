@@ -44,8 +44,8 @@ WORK_STAGES = ("remote_dispatch", "reconstruction_and_stiffness", "relay_forward
 #: waits the design fixes (the uplink's send period: a movement just after one message's
 #: sample shows first in the next); their p50 joins the floor too
 DESIGN_WAITS = ("uplink_sampling",)
-#: the sensor's own delivery (a camera's latency and transfer; 0 for a source that captures
-#: on demand); in the floor too. Ledgers before 2026-12-06 had no such stage: it was part of
+#: the sensor's own delivery (a camera's known latency; 0 for a source that captures on
+#: demand); in the floor too. Ledgers before 2026-12-06 had no such stage: it was part of
 #: ``reconstruction_and_stiffness``, so a run without it adds nothing (not a missing stage)
 SENSOR_STAGES = ("sensor_delivery",)
 SIDES = ("before", "after")

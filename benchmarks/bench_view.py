@@ -69,6 +69,7 @@ def _frame(seq: int, state: PlatformState) -> TactileFrame:
     height = (pad * (1.0 + 0.3 * np.sin(gx / 3.0) * np.cos(gy / 3.0))).astype(np.float32)
     return TactileFrame(seq=seq, ts_us=t, hops=(*state.hops, Hop("remote", "arm_command", t),
                                                 Hop("remote", "sensor_frame", t),
+                                                Hop("remote", "sensor_arrival", t),
                                                 Hop("remote", "tactile_ready", now_us())),
                         center_mm=(cx, cy), pitch_mm=PITCH_MM,
                         layers={"height_mm": height,

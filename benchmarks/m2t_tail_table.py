@@ -92,10 +92,13 @@ def table(directory: Path) -> str:
                       f"{_cell([e['p99'] - floor for e in e2e], '{:.1f}')} ms.", ""]
         lines += ["| stage | median (ms) | tail mean (ms) | excess (ms) | share of the excess |",
                   "|---|---|---|---|---|"]
-        stages = list(tails[0]["stages"])
-        stages.sort(key=lambda s: -statistics.median(t["stages"][s]["excess"] for t in tails))
+        # every stage any run reports (files from before 2026-12-06 lack sensor_delivery),
+        # each over the runs that report it
+        stages = list(dict.fromkeys(s for t in tails for s in t["stages"]))
+        stages.sort(key=lambda s: -statistics.median(
+            t["stages"][s]["excess"] for t in tails if s in t["stages"]))
         for stage in stages:
-            rows = [t["stages"][stage] for t in tails]
+            rows = [t["stages"][stage] for t in tails if stage in t["stages"]]
             shares = [r["share"] for r in rows if r["share"] is not None]
             lines.append(
                 f"| {stage} | {_cell([r['p50'] for r in rows])} | "

@@ -16,9 +16,9 @@ stamp                       taken when
 ``remote.station_rx``       the remote station's link received it
 ``remote.arm_command``      the arm was commanded towards it
 ``remote.sensor_frame``     the first sensor frame taken after that was captured
-``remote.sensor_arrival``   that image reached the station (a streaming camera's delivery:
-                            its latency and transfer; the capture stamp of a source that
-                            captures on demand)
+``remote.sensor_arrival``   that image reached the station (a streaming camera: its
+                            stamp plus its known latency; the capture stamp of a source
+                            that captures on demand)
 ``remote.tactile_ready``    reconstruction and stiffness finished, frame sent
 ``relay.relay_in``          the relay received the tactile_frame
 ``relay.relay_out``         the relay wrote it to the local station
@@ -63,10 +63,11 @@ the frame tick that reads it: its frame answers the command applied by the image
 states after that command are left for the next frame: its ``arm_command`` stamp never
 follows its ``sensor_frame`` stamp (the arrival less the camera's latency when that is
 known, ``--sensor-latency-ms``; else the arrival, and a real delay goes uncounted). Its
-``sensor_delivery`` stage (``sensor_frame`` to ``sensor_arrival``) is that known latency
-plus the transfer, and ``reconstruction_and_stiffness`` starts where the image reached the
-station, so it holds the wait for the frame tick too; a source that captures on demand has
-a delivery of 0 (it stamps as its read returns, so its render sits in
+``sensor_delivery`` stage (``sensor_frame`` to ``sensor_arrival``) is therefore that known
+latency, a constant the camera was given, not a measurement (the simulated camera's holds
+its latency and its render). ``reconstruction_and_stiffness`` starts where the image
+reached the station, so it holds the wait for the frame tick too. A source that captures
+on demand has a delivery of 0 (it stamps as its read returns, so its render sits in
 ``arm_and_sensor``). A capture
 that gives no frame (a streaming camera with no new image yet, a sensor error) hands that
 chain back; states refused after the state

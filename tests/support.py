@@ -120,6 +120,7 @@ def motion_frame(seq: int, motion_us: int | None, capture_us: int) -> TactileFra
     hops = (*motion_state(seq, motion_us, capture_us).hops,
             Hop("remote", "arm_command", capture_us + 100),
             Hop("remote", "sensor_frame", capture_us + 200),
+            Hop("remote", "sensor_arrival", capture_us + 250),
             Hop("remote", "tactile_ready", capture_us + 300))
     return TactileFrame(seq=seq, ts_us=capture_us + 200, hops=hops,
                         layers={"height_mm": np.zeros((4, 4), np.float32)})

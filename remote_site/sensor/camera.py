@@ -257,6 +257,7 @@ class OpenCVCameraSensor(TactileSensor):
         if capture is None:
             return False
         ok, bgr = capture.read()
+        read_us = now_us()  # a live camera's image arrived (before this station's crop)
         looping = self.loop and self.is_file and self._newest is not None
         if (not ok or bgr is None) and looping and self._restart() and self._capture:
             ok, bgr = self._capture.read()
@@ -271,9 +272,11 @@ class OpenCVCameraSensor(TactileSensor):
             return self._end(str(err))
         if self._period_s is not None and not self._wait_until_due():
             return False
+        # a live camera's image arrived at the read (pacing it only makes it older); a
+        # file's plays the camera: it arrives when it is released, after the wait
+        arrival_us = now_us() if self.is_file else read_us
         with self._lock:
             self._seq += 1
-            arrival_us = now_us()
             self._newest = SensorFrame(rgb=rgb, timestamp_us=arrival_us - self._latency_us,
                                        seq=self._seq, arrival_us=arrival_us)
             if self._health.stalled:

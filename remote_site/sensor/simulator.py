@@ -116,9 +116,10 @@ class StreamingSimulatedSensor(SimulatedSensor):
     """The simulated sensor as a streaming camera (``--sensor sim-camera``): it renders the
     gel on a clock of its own, as a GelSight Mini streams at 25 frames/s, rather than when
     read. Each image is rendered at its exposure (the contact at that moment), delivered
-    ``latency_ms`` after the exposure (or once rendered, if that takes longer) and stamped
-    at the exposure (a camera whose latency is known, as ``--sensor-latency-ms`` states
-    it); the station is told of each one
+    ``latency_ms`` after the exposure (or once rendered, if that takes longer), stamped at
+    the exposure (a camera whose latency is known, as ``--sensor-latency-ms`` states it)
+    and stamped again at its delivery (``SensorFrame.arrival_us``: the ledger's
+    ``sensor_delivery`` holds the latency, or the render); the station is told of each one
     (:attr:`~remote_site.sensor.base.TactileSensor.notifies_frames`). Exposures keep their
     rate whatever the latency: images in flight wait in a queue, as in a camera's pipeline.
 
@@ -195,26 +196,30 @@ class StreamingSimulatedSensor(SimulatedSensor):
         return SensorHealth()
 
     def _stream(self) -> None:
-        period_s, latency_s = 1.0 / self.fps, self.latency_ms / 1000.0
-        in_flight: collections.deque[tuple[float, SensorFrame]] = collections.deque()
+        period_s, latency_us = 1.0 / self.fps, round(self.latency_ms * 1000.0)
+        # (due on the stamps' clock, the image): due = exposure + latency, so the arrival
+        # stamp follows the exposure stamp by at least the latency, by construction
+        in_flight: collections.deque[tuple[int, SensorFrame]] = collections.deque()
         next_s = time.monotonic()
         while not self._stop.is_set():
             if time.monotonic() >= next_s:  # an exposure: the gel as it is now
-                exposure_s, exposure_us = time.monotonic(), now_us()
+                exposure_us = now_us()
                 frame = self._render_safely()
                 if frame is not None:
-                    in_flight.append((exposure_s + latency_s,
+                    in_flight.append((exposure_us + latency_us,
                                       SensorFrame(frame.rgb, exposure_us, frame.seq)))
                 next_s += period_s
                 if next_s < time.monotonic():  # fell behind (a busy machine): no burst
                     next_s = time.monotonic()
-            while in_flight and in_flight[0][0] <= time.monotonic():
-                image = dataclasses.replace(in_flight.popleft()[1], arrival_us=now_us())
+            while in_flight and in_flight[0][0] <= (arrival_us := now_us()):
+                image = dataclasses.replace(in_flight.popleft()[1], arrival_us=arrival_us)
                 with self._held_lock:
                     self._held = image
                 self._frame_arrived()
-            wake_s = min(next_s, in_flight[0][0]) if in_flight else next_s
-            self._stop.wait(max(0.0, wake_s - time.monotonic()))
+            wake_s = next_s - time.monotonic()
+            if in_flight:
+                wake_s = min(wake_s, (in_flight[0][0] - now_us()) / 1e6)
+            self._stop.wait(max(0.0, wake_s))
 
     def _render_safely(self) -> SensorFrame | None:
         """One image, or None when rendering failed (logged the first time and counted:

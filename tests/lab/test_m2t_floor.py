@@ -4,12 +4,14 @@ medians of the working stages' and the design's waits' p50."""
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
 from typing import Any
 
 import pytest
 
 from benchmarks.bench_motion_to_touch import DESIGN_WAITS, SENSOR_STAGES, WORK_STAGES
-from benchmarks.m2t_tail_table import floor_ms
+from benchmarks.m2t_tail_table import floor_ms, table
 from lab.linkemu import get_profile
 
 
@@ -56,3 +58,26 @@ def test_the_sensor_delivery_counts_where_reported_and_adds_nothing_in_older_led
     assert SENSOR_STAGES == ("sensor_delivery",)
     assert floor_ms([_run("lan", newer)]) == pytest.approx(base + 30.0)
     assert floor_ms([_run("lan", newer), _run("lan", older)]) == pytest.approx(base + 30.0)
+
+
+def test_the_tail_table_takes_a_group_mixing_older_and_newer_ledgers(tmp_path: Path) -> None:
+    # one run from before sensor_delivery existed, one after: every stage is listed, each
+    # over the runs that report it
+    def run(n: int, stages: dict[str, float]) -> dict[str, Any]:
+        tail = {"quantile": 0.95, "of": 100,
+                "end_to_end": {"p50": 20.0, "tail_mean": 30.0},
+                "stages": {s: {"p50": v, "tail_mean": v + 1.0, "excess": 1.0, "share": 0.1}
+                           for s, v in stages.items()}}
+        return {"label": f"cam-lan-{n}", "settings": {"link": "lan"}, "load_start": [0.5],
+                "latency_ms": {"end_to_end": {"p50": 20.0, "p99": 40.0},
+                               **{s: {"p50": v} for s, v in stages.items()}},
+                "latency_tail_ms": tail}
+
+    older = dict.fromkeys((*WORK_STAGES, *DESIGN_WAITS), 1.0)
+    newer = older | {"sensor_delivery": 30.0}
+    (tmp_path / "cpu-cam-lan-1.json").write_text(json.dumps(run(1, newer)))
+    (tmp_path / "cpu-cam-lan-2.json").write_text(json.dumps(run(2, older)))
+    text = table(tmp_path)
+    assert "| sensor_delivery | 30.00 |" in text  # the one run that has it
+    assert "| render | 1.00 (1.00-1.00) |" in text  # both runs
+    assert "uplink_sampling, sensor_delivery); p99" in text  # counted in the floor

@@ -30,6 +30,7 @@ def make_frame(seq: int, state: PlatformState | None, height_mm: float = 2.0,
     """A tactile frame answering ``state`` (contract hops), uniform height and stiffness."""
     t = now_us()
     hops = (*state.hops, Hop("remote", "arm_command", t), Hop("remote", "sensor_frame", t),
+            Hop("remote", "sensor_arrival", t),
             Hop("remote", "tactile_ready", t)) if state is not None else ()
     center = state.position_mm[:2] if state is not None else (30.0, 30.0)
     return TactileFrame(

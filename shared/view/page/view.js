@@ -8,7 +8,7 @@
 const STALE_MS = 500;        // older data is drawn dimmed and labelled stale
 const CHART_S = 30;          // chart window
 const STAGE_COLOURS = ["#58a6ff", "#3fb950", "#d29922", "#bc8cff", "#ff7b72", "#39c5cf",
-  "#e3b341", "#8b949e", "#f778ba", "#a5d6ff", "#7ee787"];
+  "#e3b341", "#8b949e", "#f778ba", "#a5d6ff", "#7ee787", "#ffa657"];
 
 // State the page keeps; also read by the browser test (window.teletouchView).
 const state = {
