@@ -82,6 +82,9 @@ mostly), plus, for a frame that replaced another on the way back, the frames bet
 A tactile frame that is refused rather than replaced (a compact delta without its key
 frame, a frame the display loop rejects), one replaced while the pins are safe, and one
 whose successor is idle hand nothing on: their movements are not counted (not built).
+A clustered relay's stamps for a hop between its workers (``relay.nats_out``,
+``relay.nats_in``) lie inside ``relay_forward_platform`` or ``relay_forward_tactile``, which
+then include that hop; they bound no stage of their own.
 The stages of a frame are counted only when every clock among its stamps has a known offset
 (the remote station's offset reaches the local station a few seconds after joining) and every
 pair of consecutive stamps is a documented stage: such a frame is **aligned**. The others are
@@ -145,6 +148,12 @@ class StageTrace:
 #: the stamps end to end may start from (the first present)
 _STARTS = frozenset({"local.motion", "local.capture"})
 
+#: stamps inside a stage, not bounds of one: a clustered relay's hop between two workers
+#: (``relay_server.cluster``: ``relay_in``, ``nats_out``, ``nats_in``, ``relay_out``) lies
+#: inside the relay's forwarding, which the stage then spans (the relay's own metrics book
+#: the NATS leg); the workers' clocks are one relay clock (NTP across hosts)
+_WITHIN_STAGE = frozenset({"relay.nats_out", "relay.nats_in"})
+
 #: a tail whose stages exceed their medians by less than this in all (ms) has no shares:
 #: they would be shares of rounding noise
 _SHARE_FLOOR_MS = 1e-3
@@ -184,6 +193,8 @@ def trace_hops(hops: Sequence[Hop], offsets_us: Mapping[str, float | None]) -> S
     points: list[tuple[str, float]] = []
     unaligned = False
     for hop in hops:
+        if hop.clock == "relay" and f"relay.{hop.stage}" in _WITHIN_STAGE:
+            continue
         offset = 0.0 if hop.clock == "relay" else offsets_us.get(hop.clock)
         if offset is None:
             unaligned = True

@@ -57,6 +57,25 @@ def test_offsets_are_removed(off_local: int, off_remote: int) -> None:
     assert sum(d for _, d in trace.stages_us) == trace.end_to_end_us
 
 
+@given(st.booleans(), st.booleans())
+def test_a_clustered_relays_hop_between_workers_lies_inside_the_forwarding_stage(
+        out_leg: bool, back_leg: bool) -> None:
+    # relay workers joined by NATS stamp relay_in, nats_out, nats_in, relay_out: the frame is
+    # still aligned, with the same stages, the hop inside relay_forward_*
+    hops: list[Hop] = []
+    for hop in stamped({"local": 0, "remote": 0}):
+        hops.append(hop)
+        if hop.clock == "relay" and hop.stage == "relay_in" and (
+                out_leg if hop.t_us < 20_000 else back_leg):
+            hops += [Hop("relay", "nats_out", hop.t_us + 10),
+                     Hop("relay", "nats_in", hop.t_us + 30)]
+    trace = trace_hops(hops, {"local": 0, "remote": 0})
+    plain = trace_hops(stamped({"local": 0, "remote": 0}), {"local": 0, "remote": 0})
+    assert trace.skipped is None
+    assert trace == plain
+    assert dict(trace.stages_us)["relay_forward_platform"] == 50
+
+
 def test_unknown_offset_counts_the_frame_apart_without_merged_stages() -> None:
     offsets = {"local": 5, "remote": None}
     trace = trace_hops(stamped({"local": 5, "remote": 777}), offsets)
