@@ -17,6 +17,7 @@ from typing import Any
 import pytest
 
 from shared.client import StationLink
+from shared.motion_to_touch import trace_hops
 from shared.protocol import ArmCommand, ArmState, Message, PlatformState
 from shared.timebase import now_us
 from tests.relay_server.test_relay_isolation_and_status import http_get
@@ -149,6 +150,11 @@ async def test_stations_on_two_workers_exchange_messages() -> None:
             assert stages == ["relay_in", "nats_out", "nats_in", "relay_out"]
             t = [h.t_us for h in got.hops if h.clock == "relay"]  # type: ignore[attr-defined]
             assert t == sorted(t)  # one host, one clock: the stamps are in time order
+            # the motion-to-touch ledger counts the hop inside the relay's forwarding
+            relay_hops = [h for h in got.hops if h.clock == "relay"]  # type: ignore[attr-defined]
+            trace = trace_hops(relay_hops, {})
+            assert trace.skipped is None
+            assert trace.stages_us == (("relay_forward_platform", t[-1] - t[0]),)
             await remote.send(ArmState(seq=1, ts_us=now_us(), position_mm=(4.0, 5.0, 6.0)))
             back = await recv_type(local, "arm_state")
             assert back.position_mm == (4.0, 5.0, 6.0)  # type: ignore[attr-defined]
