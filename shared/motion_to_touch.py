@@ -16,9 +16,9 @@ stamp                       taken when
 ``remote.station_rx``       the remote station's link received it
 ``remote.arm_command``      the arm was commanded towards it
 ``remote.sensor_frame``     the first sensor frame taken after that was captured
-``remote.sensor_arrival``   that image reached the station (a streaming camera: its
-                            stamp plus its known latency; the capture stamp of a source
-                            that captures on demand)
+``remote.sensor_arrival``   that image reached the station (a camera: its stamp plus
+                            the latency it was given; the simulated camera: its delivery;
+                            the capture stamp of a source that captures on demand)
 ``remote.tactile_ready``    reconstruction and stiffness finished, frame sent
 ``relay.relay_in``          the relay received the tactile_frame
 ``relay.relay_out``         the relay wrote it to the local station
@@ -82,9 +82,11 @@ mostly), plus, for a frame that replaced another on the way back, the frames bet
 A tactile frame that is refused rather than replaced (a compact delta without its key
 frame, a frame the display loop rejects), one replaced while the pins are safe, and one
 whose successor is idle hand nothing on: their movements are not counted (not built).
-A clustered relay's stamps for a hop between its workers (``relay.nats_out``,
-``relay.nats_in``) lie inside ``relay_forward_platform`` or ``relay_forward_tactile``, which
-then include that hop; they bound no stage of their own.
+A clustered relay's stamps for a hop between its workers (``relay.nats_out`` right after
+``relay.relay_in``, then ``relay.nats_in``) lie inside ``relay_forward_platform`` or
+``relay_forward_tactile``, which then include that hop; they bound no stage of their own.
+The workers' clocks must agree (NTP across hosts): a NATS leg that ends before it began
+makes the frame ``unaligned``; a smaller disagreement goes into the forwarding stages.
 The stages of a frame are counted only when every clock among its stamps has a known offset
 (the remote station's offset reaches the local station a few seconds after joining) and every
 pair of consecutive stamps is a documented stage: such a frame is **aligned**. The others are
@@ -148,11 +150,12 @@ class StageTrace:
 #: the stamps end to end may start from (the first present)
 _STARTS = frozenset({"local.motion", "local.capture"})
 
-#: stamps inside a stage, not bounds of one: a clustered relay's hop between two workers
-#: (``relay_server.cluster``: ``relay_in``, ``nats_out``, ``nats_in``, ``relay_out``) lies
-#: inside the relay's forwarding, which the stage then spans (the relay's own metrics book
-#: the NATS leg); the workers' clocks are one relay clock (NTP across hosts)
-_WITHIN_STAGE = frozenset({"relay.nats_out", "relay.nats_in"})
+#: stamps inside a stage, not bounds of one, each after the stamp it must follow: a
+#: clustered relay's hop between two workers (``relay_server.cluster``: ``relay_in``,
+#: ``nats_out``, ``nats_in``, ``relay_out``) lies inside the relay's forwarding, which the
+#: stage then spans (the relay's own metrics book the NATS leg). Anywhere else such a stamp
+#: breaks the sequence (``incomplete``)
+_WITHIN_STAGE = {"relay.nats_out": "relay.relay_in", "relay.nats_in": "relay.nats_out"}
 
 #: a tail whose stages exceed their medians by less than this in all (ms) has no shares:
 #: they would be shares of rounding noise
@@ -192,8 +195,15 @@ def trace_hops(hops: Sequence[Hop], offsets_us: Mapping[str, float | None]) -> S
     """
     points: list[tuple[str, float]] = []
     unaligned = False
+    previous: Hop | None = None
     for hop in hops:
-        if hop.clock == "relay" and f"relay.{hop.stage}" in _WITHIN_STAGE:
+        prev, previous = previous, hop
+        name = f"{hop.clock}.{hop.stage}"
+        after = _WITHIN_STAGE.get(name)
+        if after is not None and prev is not None and f"{prev.clock}.{prev.stage}" == after:
+            # the NATS leg runs between two workers' clocks: one that ends before it began
+            # shows them out of step (they must agree, NTP), an offset not known here
+            unaligned |= name == "relay.nats_in" and hop.t_us < prev.t_us
             continue
         offset = 0.0 if hop.clock == "relay" else offsets_us.get(hop.clock)
         if offset is None:

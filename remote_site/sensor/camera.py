@@ -97,7 +97,8 @@ class OpenCVCameraSensor(TactileSensor):
         mm_per_px: pitch of the delivered frames; the preset's when None.
         crop_fraction: border removed on each side before resizing; the preset's when None.
         fps: publish frames at this rate; None: a video file's own rate, a live camera
-            unpaced (it paces itself).
+            unpaced (it paces itself). A video file waits until each frame is due; a live
+            camera drops the frames it delivers in between (held, they would age).
         loop: restart a video file at its end.
         stall_timeout_s: no new frame for this long counts as a stall.
         first_frame_timeout_s: how long connect() waits for the first frame.
@@ -150,6 +151,7 @@ class OpenCVCameraSensor(TactileSensor):
         self._seq = 0
         self._period_s: float | None = None
         self._next_due_s: float | None = None
+        self._file = False  # whether the source is a video file (known at connect)
         self._health = SensorHealth()
         self.read_error: str | None = None
 
@@ -193,9 +195,10 @@ class OpenCVCameraSensor(TactileSensor):
             raise DeviceInitError(f"camera {self.source!r} did not open (unplugged, busy or a "
                                   "wrong URL?)")
         self._period_s = None
+        self._file = self.is_file  # once: a file renamed while it plays stays a file
         if self.fps is not None:
             self._period_s = 1.0 / self.fps
-        elif self.is_file:
+        elif self._file:
             fps = self._file_fps(capture)
             if fps is None:
                 capture.release()
@@ -258,23 +261,25 @@ class OpenCVCameraSensor(TactileSensor):
             return False
         ok, bgr = capture.read()
         read_us = now_us()  # a live camera's image arrived (before this station's crop)
-        looping = self.loop and self.is_file and self._newest is not None
+        looping = self.loop and self._file and self._newest is not None
         if (not ok or bgr is None) and looping and self._restart() and self._capture:
             ok, bgr = self._capture.read()
         if not ok or bgr is None:
-            return self._end("end of the video file" if self.is_file else
+            return self._end("end of the video file" if self._file else
                              "capture.read() failed (device lost or end of stream)")
         if bgr.ndim != 3 or bgr.shape[2] != 3 or bgr.dtype != np.uint8:
             return self._end(f"unexpected frame {bgr.shape} {bgr.dtype}")
+        if self._period_s is not None and not self._file and not self._due_now(self._period_s):
+            return True  # a live camera paced to fps: frames between are dropped, not held
         try:
             rgb = shape_frame(bgr, self.preset)
         except InputDataError as err:
             return self._end(str(err))
-        if self._period_s is not None and not self._wait_until_due():
+        if self._period_s is not None and self._file and not self._wait_until_due():
             return False
-        # a live camera's image arrived at the read (pacing it only makes it older); a
-        # file's plays the camera: it arrives when it is released, after the wait
-        arrival_us = now_us() if self.is_file else read_us
+        # a live camera's image arrived at the read; a file's plays the camera: it arrives
+        # when it is released, after its pacing wait
+        arrival_us = now_us() if self._file else read_us
         with self._lock:
             self._seq += 1
             self._newest = SensorFrame(rgb=rgb, timestamp_us=arrival_us - self._latency_us,
@@ -286,8 +291,21 @@ class OpenCVCameraSensor(TactileSensor):
         self._frame_arrived()
         return True
 
+    def _due_now(self, period: float) -> bool:
+        """A live camera paced to ``fps``: whether the frame just read is due (the schedule
+        then moves on). One that is not is dropped rather than held until due: held, it
+        would reach the station a period old (a stale image stamped as a fresh one, or
+        one refused as too old)."""
+        now = time.monotonic()
+        due = now if self._next_due_s is None else self._next_due_s
+        if due > now:
+            return False
+        self._next_due_s = max(due, now - period) + period  # more than a frame late: no burst
+        return True
+
     def _wait_until_due(self) -> bool:
-        """Sleep until the next frame is due (real-time pacing); False if stopping."""
+        """Sleep until the next frame is due (a video file's real-time pacing); False if
+        stopping."""
         period = self._period_s
         if period is None:
             return True

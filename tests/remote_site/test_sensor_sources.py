@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import time
 from pathlib import Path
 from typing import Any
@@ -301,25 +302,27 @@ def test_a_camera_stamps_its_frames_with_the_known_latency_taken_off() -> None:
             OpenCVCameraSensor(0, capture_factory=lambda src: capture, latency_ms=bad)
 
 
-def test_a_paced_live_camera_stamps_its_arrival_at_the_read_not_at_the_release() -> None:
-    # a live camera held back to --sensor-fps: its image arrived when it was read, so the
-    # wait makes it older (counted after sensor_delivery), never younger
+def test_a_paced_live_camera_drops_the_frames_between_rather_than_holding_them() -> None:
+    # a live camera published at --sensor-fps below its own rate: the frame published is
+    # the one just read, stamped then (not one held until due, which would reach the station
+    # a period old), and the rate is kept
     period_us = 300_000
-    releases: list[int] = []  # release (the notice) less the arrival stamp, us
+    seen: list[tuple[int, int]] = []  # (release less the arrival stamp, arrival stamp), us
     sensor = OpenCVCameraSensor(0, capture_factory=lambda src: FakeCapture(
         [], repeat=_raw_frame()), fps=1e6 / period_us)
 
     def listener() -> None:
         frame = sensor._latest()
         assert frame is not None
-        releases.append(now_us() - frame.received_us)
+        seen.append((now_us() - frame.received_us, frame.received_us))
 
     sensor.on_frame = listener
     with sensor:
-        wait_until(lambda: len(releases) >= 4, scaled(5.0), "four images")
-    # the first is due at once; each later one is read just after the previous release and
-    # held for most of a period
-    assert min(releases[1:]) >= period_us / 6, releases
+        wait_until(lambda: len(seen) >= 4, 5.0, "four images")
+        sensor.read_latest(max_age_ms=scaled(100.0))  # fresh when published
+    assert max(lag for lag, _ in seen) < scaled(0.05) * 1e6, seen
+    gaps = [b - a for (_, a), (_, b) in itertools.pairwise(seen)]
+    assert min(gaps) >= 0.8 * period_us, gaps  # paced: the frames between were dropped
 
 
 def test_a_camera_says_when_each_frame_arrives_and_survives_a_failing_listener() -> None:

@@ -76,6 +76,34 @@ def test_a_clustered_relays_hop_between_workers_lies_inside_the_forwarding_stage
     assert dict(trace.stages_us)["relay_forward_platform"] == 50
 
 
+@pytest.mark.parametrize("where", ["after_station_rx", "without_relay_in", "alone"])
+def test_nats_stamps_out_of_place_break_the_sequence(where: str) -> None:
+    hops = stamped({"local": 0, "remote": 0})
+    k = next(i for i, h in enumerate(hops) if h.stage == "station_rx")
+    nats = [Hop("relay", "nats_out", 20_060), Hop("relay", "nats_in", 20_070)]
+    if where == "after_station_rx":
+        hops = [*hops[:k + 1], *nats, *hops[k + 1:]]
+    elif where == "without_relay_in":  # the leg stands in for relay_in
+        r = next(i for i, h in enumerate(hops) if h.stage == "relay_in")
+        hops = [*hops[:r], *nats, *hops[r + 1:]]
+    else:  # a nats_in without its nats_out
+        r = next(i for i, h in enumerate(hops) if h.stage == "relay_in")
+        hops = [*hops[:r + 1], nats[1], *hops[r + 1:]]
+    trace = trace_hops(hops, {"local": 0, "remote": 0})
+    assert trace.skipped == INCOMPLETE and trace.stages_us == ()
+
+
+def test_a_nats_leg_that_ends_before_it_began_shows_the_workers_clocks_out_of_step() -> None:
+    hops = []
+    for hop in stamped({"local": 0, "remote": 0}):
+        hops.append(hop)
+        if hop.stage == "relay_in" and hop.t_us < 20_000:  # worker B 5 ms behind worker A
+            hops += [Hop("relay", "nats_out", hop.t_us + 10),
+                     Hop("relay", "nats_in", hop.t_us + 10 - 5_000)]
+    trace = trace_hops(hops, {"local": 0, "remote": 0})
+    assert trace.skipped == UNALIGNED and trace.stages_us == ()
+
+
 def test_unknown_offset_counts_the_frame_apart_without_merged_stages() -> None:
     offsets = {"local": 5, "remote": None}
     trace = trace_hops(stamped({"local": 5, "remote": 777}), offsets)
