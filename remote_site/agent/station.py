@@ -327,6 +327,8 @@ class RemoteStation:
         self._stopped_s: float | None = None
         window = 20_000
         self.pipeline_s: deque[float] = deque(maxlen=window)
+        #: exposure to arrival of each frame's image (a camera's given latency; 0 on demand)
+        self.delivery_s: deque[float] = deque(maxlen=window)
         self.capture_s: deque[float] = deque(maxlen=window)
         self.reconstruct_s: deque[float] = deque(maxlen=window)
         self.assemble_s: deque[float] = deque(maxlen=window)
@@ -753,6 +755,8 @@ class RemoteStation:
         stamps = {h.stage: h.t_us for h in frame.hops if h.clock == "remote"}
         if "sensor_frame" in stamps and "tactile_ready" in stamps:
             self.pipeline_s.append((stamps["tactile_ready"] - stamps["sensor_frame"]) / 1e6)
+        if "sensor_frame" in stamps and "sensor_arrival" in stamps:
+            self.delivery_s.append((stamps["sensor_arrival"] - stamps["sensor_frame"]) / 1e6)
         self.capture_s.append(outcome.capture_s)
         self.reconstruct_s.append(outcome.reconstruct_s)
         self.assemble_s.append(outcome.assemble_s)
@@ -885,6 +889,7 @@ class RemoteStation:
                           "samples_rejected": c.stiffness_samples_rejected},
             "latency_ms": {
                 "sensor_frame_to_tactile_ready": percentiles_ms(self.pipeline_s),
+                "sensor_delivery": percentiles_ms(self.delivery_s),
                 "capture": percentiles_ms(self.capture_s),
                 "reconstruct": percentiles_ms(self.reconstruct_s),
                 "assemble": percentiles_ms(self.assemble_s),

@@ -143,6 +143,9 @@ async def test_a_streamed_frame_answers_the_command_of_its_image_at_the_pose_the
             assert min(math.dist(frame.center_mm, WS.inverse(list(r.position_mm))[:2])
                        for _, r in readings[k - 1:k + 1]) < 1e-6
         assert newer_than_image >= 5 and placed >= 5  # the cases under test happened
+        # the station's summary keeps the camera's delivery apart too
+        delivery = station.summary()["latency_ms"]["sensor_delivery"]
+        assert delivery["p50"] == delivery["max"] == 12.0
         # the wait from each answered command to its image, once per answering frame
         waits = sorted(round(w * 1e6) for w in station.command_wait_s)
         assert waits == sorted(_stamp(f, "sensor_frame") - _stamp(f, "arm_command")
