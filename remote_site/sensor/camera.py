@@ -297,11 +297,17 @@ class OpenCVCameraSensor(TactileSensor):
         would reach the station a period old (a stale image stamped as a fresh one, or
         one refused as too old)."""
         now = time.monotonic()
-        due = now if self._next_due_s is None else self._next_due_s
+        due = self._due_s(now, period)
         if due > now:
             return False
-        self._next_due_s = max(due, now - period) + period  # more than a frame late: no burst
+        self._next_due_s = due + period
         return True
+
+    def _due_s(self, now: float, period: float) -> float:
+        """When the next frame is due: on schedule, or now when more than a frame behind (a
+        slow decoder, a gap in a live stream): no burst to catch up."""
+        due = now if self._next_due_s is None else self._next_due_s
+        return now if due < now - period else due
 
     def _wait_until_due(self) -> bool:
         """Sleep until the next frame is due (a video file's real-time pacing); False if
@@ -310,9 +316,7 @@ class OpenCVCameraSensor(TactileSensor):
         if period is None:
             return True
         now = time.monotonic()
-        due = now if self._next_due_s is None else self._next_due_s
-        if due < now - period:  # more than a frame behind (a slow decoder): no burst
-            due = now
+        due = self._due_s(now, period)
         if due > now and self._wake.wait(due - now):
             return False
         self._next_due_s = due + period

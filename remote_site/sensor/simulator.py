@@ -196,30 +196,27 @@ class StreamingSimulatedSensor(SimulatedSensor):
         return SensorHealth()
 
     def _stream(self) -> None:
-        period_s, latency_us = 1.0 / self.fps, round(self.latency_ms * 1000.0)
-        # (due on the stamps' clock, the image): due = exposure + latency, so the arrival
-        # stamp follows the exposure stamp by at least the latency, by construction
-        in_flight: collections.deque[tuple[int, SensorFrame]] = collections.deque()
-        next_s = time.monotonic()
+        # one clock for the schedule and the stamps (now_us never steps): an image is due
+        # its latency after its exposure, so the arrival stamp follows the exposure stamp by
+        # at least the latency, by construction
+        period_us, latency_us = round(1e6 / self.fps), round(self.latency_ms * 1000.0)
+        in_flight: collections.deque[tuple[int, SensorFrame]] = collections.deque()  # (due, image)
+        next_us = now_us()
         while not self._stop.is_set():
-            if time.monotonic() >= next_s:  # an exposure: the gel as it is now
+            if now_us() >= next_us:  # an exposure: the gel as it is now
                 exposure_us = now_us()
                 frame = self._render_safely()
                 if frame is not None:
                     in_flight.append((exposure_us + latency_us,
                                       SensorFrame(frame.rgb, exposure_us, frame.seq)))
-                next_s += period_s
-                if next_s < time.monotonic():  # fell behind (a busy machine): no burst
-                    next_s = time.monotonic()
+                next_us = max(next_us + period_us, now_us())  # fell behind: no burst
             while in_flight and in_flight[0][0] <= (arrival_us := now_us()):
                 image = dataclasses.replace(in_flight.popleft()[1], arrival_us=arrival_us)
                 with self._held_lock:
                     self._held = image
                 self._frame_arrived()
-            wake_s = next_s - time.monotonic()
-            if in_flight:
-                wake_s = min(wake_s, (in_flight[0][0] - now_us()) / 1e6)
-            self._stop.wait(max(0.0, wake_s))
+            wake_us = min(next_us, in_flight[0][0]) if in_flight else next_us
+            self._stop.wait(max(0.0, (wake_us - now_us()) / 1e6))
 
     def _render_safely(self) -> SensorFrame | None:
         """One image, or None when rendering failed (logged the first time and counted:
