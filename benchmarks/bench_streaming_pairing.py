@@ -21,8 +21,11 @@ Per frame that answers a command, against the reference:
   taken (``arm_command`` after ``sensor_frame``: motion-to-touch counted a movement the image
   cannot show), by how much, and how far the patch was placed from the arm's pose at the
   exposure;
-* **the pairing now** (the command applied by the image's stamp, the arm's polled reading
-  nearest to it): the same figures.
+* **the pairing now** (the command applied by the image's stamp, the arm where its polled
+  readings around that stamp put it): the same figures;
+* **the nearest poll** (how the patch was placed before 2026-12-06: the arm's polled reading
+  nearest to the image's stamp among those the station had then, recorded in the same run):
+  its placement error.
 
 Writes ``benchmarks/results/streaming_pairing.md``.
 """
@@ -100,12 +103,13 @@ class StreamingSimCamera(TactileSensor):
             rgb = self.inner.read_latest(max_age_ms=1e9).rgb  # rendered at the pose now
             time.sleep(max(0.0, exposure_us / 1e6 + self.latency_s - now_us() / 1e6))
             seq += 1
-            stamp = exposure_us if self.stamp_exposure else now_us()
+            arrival_us = now_us()
+            stamp = exposure_us if self.stamp_exposure else arrival_us
             with self._lock:
                 self.truth[seq] = (exposure_us, pose)
                 self.seq_of[stamp] = seq
-                self.arrived[seq] = now_us()
-                self._newest = SensorFrame(rgb, stamp, seq)
+                self.arrived[seq] = arrival_us
+                self._newest = SensorFrame(rgb, stamp, seq, arrival_us=arrival_us)
             arrived = getattr(self, "_frame_arrived", None)  # (not before 2026-12-06)
             if arrived is not None:
                 arrived()
@@ -158,6 +162,19 @@ async def run_case(fps: float, latency_ms: float, stamp_exposure: bool, duration
         return result
 
     station.apply_platform_state = recording_apply  # type: ignore[method-assign]
+    # where the nearest poll would have placed each image, from the polls the station had
+    # when it placed it (the placement before 2026-12-06)
+    nearest: dict[int, tuple[float, ...]] = {}
+    reading_at = station.reading_at
+
+    def recording_reading_at(t_us: int) -> Any:
+        polls = list(station._readings)
+        if polls:
+            _, near = min(polls, key=lambda p: abs(p[0] - t_us))
+            nearest[t_us] = tuple(float(v) for v in near.position_mm)
+        return reading_at(t_us)
+
+    station.reading_at = recording_reading_at  # type: ignore[method-assign]
     tumor = world.phantom.tumors[1].center_mm
     centre = (float(tumor[0]), float(tumor[1]))
     stop = asyncio.Event()
@@ -168,20 +185,21 @@ async def run_case(fps: float, latency_ms: float, stamp_exposure: bool, duration
     station.safe_arm.close()
     camera.disconnect()
     arm.disconnect()
-    out = score(link, camera, old, applied, fps, latency_ms, stamp_exposure)
+    out = score(link, camera, old, applied, nearest, fps, latency_ms, stamp_exposure)
     out["ticks_per_frame"] = station.captures.clock / max(1, station.pipeline.processed)
     return out
 
 
 def score(link: MemoryLink, camera: StreamingSimCamera,
           old: dict[int, tuple[AppliedCommand | None, tuple[float, ...]]],
-          applied: list[AppliedCommand], fps: float, latency_ms: float,
-          stamp_exposure: bool) -> dict[str, Any]:
-    """The figures of one case (see the module docstring)."""
+          applied: list[AppliedCommand], nearest: dict[int, tuple[float, ...]],
+          fps: float, latency_ms: float, stamp_exposure: bool) -> dict[str, Any]:
+    """The figures of one case (see the module docstring); ``nearest``: by image stamp, the
+    position of the arm poll nearest to it among those the station had then."""
     times = np.array([c.arm_command_us for c in applied], dtype=np.int64)
     rows: dict[str, list[float]] = {k: [] for k in (
         "old_after", "old_lead_ms", "old_place_mm", "new_after", "new_lead_ms", "new_place_mm",
-        "arrival_to_ready_ms")}
+        "nearest_place_mm", "arrival_to_ready_ms")}
     frames = [m for m in link.sent if isinstance(m, TactileFrame)]
     for frame in frames:
         stamps = {h.stage: h.t_us for h in frame.hops if h.clock == "remote"}
@@ -206,6 +224,10 @@ def score(link: MemoryLink, camera: StreamingSimCamera,
             rows["new_after"].append(float(stamps["arm_command"] > exposure_us))
             rows["new_lead_ms"].append((stamps["arm_command"] - shown_us) / 1e3)
             rows["new_place_mm"].append(float(math.dist(frame.center_mm, truth_xy)))
+            near = nearest.get(stamps["sensor_frame"])
+            if near is not None:
+                rows["nearest_place_mm"].append(float(math.dist(WS.inverse(list(near))[:2],
+                                                                truth_xy)))
     out: dict[str, Any] = {"fps": fps, "latency_ms": latency_ms,
                            "stamped": "exposure" if stamp_exposure else "arrival",
                            "frames": len(rows["new_after"])}
@@ -228,13 +250,16 @@ def report(results: list[dict[str, Any]], command: str) -> str:
               "before: named after a later command", "before: command lead ms p50/p99/max",
               "before: placement error mm p50/p99/max",
               "now: named after a later command", "now: command lead ms p50/p99/max",
-              "now: placement error mm p50/p99/max", "arrival to tactile_ready ms p50/p99/max",
+              "now: placement error mm p50/p99/max",
+              "nearest poll: placement error mm p50/p99/max",
+              "arrival to tactile_ready ms p50/p99/max",
               "station ticks per frame"]
     rows = [dict(zip(header, [
         f"{r['fps']:.0f}", f"{r['latency_ms']:.0f}", r["stamped"], str(r["frames"]),
         f"{100 * r['old_after']:.0f} %", _fmt(r["old_lead_ms"], 1), _fmt(r["old_place_mm"], 2),
         f"{100 * r['new_after']:.0f} %", _fmt(r["new_lead_ms"], 1),
-        _fmt(r["new_place_mm"], 2), _fmt(r["arrival_to_ready_ms"], 1),
+        _fmt(r["new_place_mm"], 3), _fmt(r["nearest_place_mm"], 3),
+        _fmt(r["arrival_to_ready_ms"], 1),
         f"{r['ticks_per_frame']:.2f}"], strict=True)) for r in results]
     return "\n".join([
         "# A streaming camera's frame: the command and the arm pose it is paired with",
@@ -251,7 +276,10 @@ def report(results: list[dict[str, Any]], command: str) -> str:
         "show). *Placement error*: the patch centre against the arm's reported position at "
         "the exposure (platform mm). *Before* is the pairing before commit 96c0aac (the newest "
         "command and the arm's reading when the tick took the image), recorded in the same "
-        "run; *now* is what the station sent. *Arrival to tactile_ready*: from the image's "
+        "run; *now* is what the station sent; *nearest poll* places the patch at the arm's "
+        "polled reading nearest to the image's stamp among those the station had when it "
+        "placed the image (the placement before 2026-12-06), recorded in the same run. "
+        "*Arrival to tactile_ready*: from the image's "
         "arrival at the station to its tactile frame being ready (the wait for the station's "
         "tick plus the pipeline). *Ticks per frame*: the station's frame ticks per tactile "
         "frame made (a tick without a new image makes none).",

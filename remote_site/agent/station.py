@@ -28,8 +28,9 @@ Four asyncio tasks share one :class:`RemoteStation`:
   was taken before the tick, perhaps before the newest
   command: the frame is paired with the command applied by the image's timestamp
   (:meth:`RemoteStation.applied_at`), never a later one, and placed at the arm's pose then
-  (:meth:`RemoteStation.reading_at`). The timestamp is the arrival less the camera's known
-  latency (``--sensor-latency-ms``; 0 by default, which leaves a real delay uncounted).
+  (:meth:`RemoteStation.reading_at`, between the two arm polls around it). The timestamp
+  is the arrival less the camera's known latency (``--sensor-latency-ms``; 0 by default,
+  which leaves a real delay uncounted).
 * **status**: one status line per ``status_interval_s``.
 
 The StationLink answers clock pings and reconnects with backoff by itself.
@@ -53,7 +54,7 @@ import numpy as np
 from remote_site.agent.config import RemoteAgentConfig
 from remote_site.agent.pipeline import FrameOutcome, FramePipeline
 from remote_site.agent.stiffness_stage import StiffnessStage
-from remote_site.arm.base import ArmReading
+from remote_site.arm.base import ArmReading, polled_reading_at
 from remote_site.arm.safety import CommandResult, SafeArm
 from remote_site.tactile import AppliedCommand
 from shared.client import LinkCounters
@@ -405,14 +406,11 @@ class RemoteStation:
         return None
 
     def reading_at(self, t_us: int) -> ArmReading:
-        """The arm's polled reading nearest to ``t_us`` (our clock): where the pad was when an
-        image was taken (the current reading before any was polled)."""
-        best: tuple[int, ArmReading] | None = None
-        for polled_us, reading in reversed(self._readings):
-            if best is not None and abs(polled_us - t_us) >= abs(best[0] - t_us):
-                break  # the readings are in time order: the nearest is passed
-            best = (polled_us, reading)
-        return self.pipeline.read_arm() if best is None else best[1]
+        """Where the arm was at ``t_us`` (our clock; when an image was taken), from its
+        polled readings (:func:`~remote_site.arm.base.polled_reading_at`); the current
+        reading before any was polled."""
+        found = polled_reading_at(self._readings, t_us)
+        return self.pipeline.read_arm() if found is None else found
 
     def _after(self, command: AppliedCommand) -> _Chain | None:
         """The first state received after ``command`` (on the newest state's link

@@ -13,7 +13,7 @@ from __future__ import annotations
 import logging
 import math
 from abc import abstractmethod
-from collections.abc import Sequence
+from collections.abc import Reversible, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,7 +23,8 @@ from shared.errors import CommandExpiredError, ConfigError, InputDataError
 from shared.protocol.messages import ARM_STATUSES, ArmState
 from shared.timebase import monotonic_s
 
-__all__ = ["Arm", "ArmLimits", "ArmReading", "Vec3", "as_vec3"]
+__all__ = ["Arm", "ArmLimits", "ArmReading", "Vec3", "as_vec3", "polled_reading_at",
+           "reading_between"]
 
 log = logging.getLogger(__name__)
 
@@ -102,6 +103,52 @@ class ArmReading:
         """The wire message for this reading."""
         return ArmState(seq=seq, ts_us=ts_us, position_mm=self.position_mm,
                         force_n=float(self.force_n), status=self.status, source_seq=source_seq)
+
+
+def reading_between(earlier: ArmReading, later: ArmReading, weight: float) -> ArmReading:
+    """The arm between two readings, ``weight`` of the way from ``earlier`` (0) to
+    ``later`` (1): position, velocity, force and time on the straight line between them;
+    the status and target of the nearer one (they do not blend).
+
+    Raises:
+        InputDataError: a weight outside [0, 1] or not finite.
+    """
+    w = float(weight)
+    if not 0.0 <= w <= 1.0:  # also refuses NaN
+        raise InputDataError(f"reading_between: weight must be in [0, 1], got {weight!r}")
+    if w == 0.0:
+        return earlier
+    if w == 1.0:
+        return later
+    near = earlier if w <= 0.5 else later
+
+    def blend(a: float, b: float) -> float:
+        return a + (b - a) * w
+
+    def blend3(a: Vec3, b: Vec3) -> Vec3:
+        return blend(a[0], b[0]), blend(a[1], b[1]), blend(a[2], b[2])
+
+    return ArmReading(blend3(earlier.position_mm, later.position_mm),
+                      blend3(earlier.velocity_mm_s, later.velocity_mm_s),
+                      blend(earlier.force_n, later.force_n), near.status, near.target_mm,
+                      blend(earlier.t_s, later.t_s))
+
+
+def polled_reading_at(readings: Reversible[tuple[int, ArmReading]],
+                      t_us: int) -> ArmReading | None:
+    """Where the arm was at ``t_us``, from readings polled at known times (``(t_us,
+    reading)`` in time order, on one clock): on the straight line between the two polled
+    around it (:func:`reading_between`), the oldest or the newest when ``t_us`` lies
+    outside them (no guess beyond what was polled); None without readings."""
+    later: tuple[int, ArmReading] | None = None
+    for polled_us, reading in reversed(readings):
+        if polled_us <= t_us:
+            if later is None or polled_us == t_us:
+                return reading
+            return reading_between(reading, later[1],
+                                   (t_us - polled_us) / (later[0] - polled_us))
+        later = (polled_us, reading)
+    return None if later is None else later[1]
 
 
 class Arm(Device):

@@ -67,6 +67,7 @@ async def test_a_streamed_frame_answers_the_command_of_its_image_at_the_pose_the
     import remote_site.agent.station as station_module
 
     monkeypatch.setattr(station_module, "_CHAIN_MAX_S", scaled(60.0))  # no outage here
+    monkeypatch.setattr(station_module, "_READINGS_KEEP", 100_000)  # all the run's polls
     lag_us = 30_000
     link = FakeLink()
     station = make_station(link, SafetyConfig(max_command_age_ms=scaled(5_000.0)),
@@ -85,17 +86,6 @@ async def test_a_streamed_frame_answers_the_command_of_its_image_at_the_pose_the
         return result
 
     station.apply_platform_state = recording_apply  # type: ignore[method-assign]
-    readings: list[tuple[int, ArmReading]] = []  # (after the poll, reading)
-    poll = station.safe_arm.poll
-    loop_thread = threading.current_thread()
-
-    def recording_poll() -> ArmReading:
-        reading = poll()
-        if threading.current_thread() is loop_thread:  # the station's, not the watchdog's
-            readings.append((now_us(), reading))
-        return reading
-
-    station.safe_arm.poll = recording_poll  # type: ignore[method-assign]
     stop = asyncio.Event()
     sent: dict[int, PlatformState] = {}
 
@@ -119,7 +109,9 @@ async def test_a_streamed_frame_answers_the_command_of_its_image_at_the_pose_the
         answering = [f for f in frames if any(h.clock == "local" for h in f.hops)]
         assert len(answering) >= 10, f"{len(answering)} answering frames"
         by_seq = {c.state.seq: c for c in applied}
-        newer_than_image = placed = 0
+        readings = list(station._readings)  # (stamped after the poll, reading), all kept
+        polled_us = np.array([t for t, _ in readings], dtype=float)
+        newer_than_image = placed = between = 0
         for frame in answering:
             image_us, command_us = _stamp(frame, "sensor_frame"), _stamp(frame, "arm_command")
             assert command_us <= image_us  # never a command the image cannot show
@@ -133,16 +125,22 @@ async def test_a_streamed_frame_answers_the_command_of_its_image_at_the_pose_the
             # the image's delivery is its own stage, and the station's work starts after it
             assert _stamp(frame, "sensor_arrival") - image_us == 12_000
             newer_than_image += any(image_us < c.arm_command_us <= ready_us for c in applied)
-            # placed where the arm was when the image was taken
-            # (the readings polled just before and just after it; a reading at the read itself,
-            # 30 ms on, is 0.6 mm away at 20 mm/s)
-            k = next((i for i, (t, _) in enumerate(readings) if t > image_us), None)
-            if k is None or k == 0:
+            # placed where the arm was when the image was taken: on the straight line
+            # between the readings polled just before and just after it (a reading at the
+            # read itself, 30 ms on, is 0.6 mm away at 20 mm/s; the nearer of the two polls,
+            # 4 ms apart, up to 0.04 mm)
+            k = int(np.searchsorted(polled_us, image_us, side="right"))
+            if k == 0 or k == len(readings):
                 continue  # taken before the station's first poll or after its last
             placed += 1
-            assert min(math.dist(frame.center_mm, WS.inverse(list(r.position_mm))[:2])
-                       for _, r in readings[k - 1:k + 1]) < 1e-6
-        assert newer_than_image >= 5 and placed >= 5  # the cases under test happened
+            where = [np.interp(image_us, polled_us[k - 1:k + 1],
+                               [r.position_mm[axis] for _, r in readings[k - 1:k + 1]])
+                     for axis in range(3)]
+            assert math.dist(frame.center_mm, WS.inverse(where)[:2]) < 1e-6
+            gap = polled_us[k] - polled_us[k - 1]
+            between += 0.25 <= (image_us - polled_us[k - 1]) / gap <= 0.75
+        # the cases under test happened (an image well between two polls among them)
+        assert newer_than_image >= 5 and placed >= 5 and between >= 2
         # the station's summary keeps the camera's delivery apart too
         delivery = station.summary()["latency_ms"]["sensor_delivery"]
         assert delivery["p50"] == delivery["max"] == 12.0
@@ -197,13 +195,14 @@ def test_applied_at_reading_at_and_the_chain_left_after_an_older_command(
         source, _ = station._frame_source(station.latest)
         assert source is not None and source.state.seq == 4
         assert motion_of(source.state) == states[2].ts_us  # where 3 started
-        # the arm reading nearest in time (the current one before any was polled)
+        # the arm between its polled readings (the current one before any was polled)
         assert station.reading_at(0).position_mm == station.pipeline.read_arm().position_mm
         a, b = (ArmReading((float(i), 0.0, 1.0), (0.0, 0.0, 0.0), 0.0, "ok", None, 0.0)
                 for i in range(2))
         station._readings.extend([(100, a), (200, b)])
-        assert station.reading_at(0) is a and station.reading_at(149) is a
-        assert station.reading_at(151) is b and station.reading_at(10**9) is b
+        assert station.reading_at(0) is a and station.reading_at(100) is a
+        assert station.reading_at(175).position_mm == (0.75, 0.0, 1.0)
+        assert station.reading_at(200) is b and station.reading_at(10**9) is b
         assert Hop("local", "capture", states[4].ts_us) in source.state.hops
         # the chain left after a command starts on the newest link connection: a state
         # refused before a reconnect does not start it, one refused after does
