@@ -15,7 +15,9 @@ motion-to-touch end to end (p50 / p99; ``cap_p99``: the p99 from the sample the 
 and the remote's wait from a command to the capture that answers it (``arm_command_to_capture``
 in its summary, where the side reports it). ``switches`` is the context switches per second
 of all processes (where the side's ``bench cpu`` records them): wake-ups and preemptions, each
-worth tens of us of CPU on this machine (``benchmarks/bench_wakeup_cost.py``). ``replaced``:
+worth tens of us of CPU on this machine (``benchmarks/bench_wakeup_cost.py``). ``wait``:
+all threads' time on a run queue per second, i.e. the mean number waiting to run
+(``schedstat``; where the side records it). ``replaced``:
 the tactile frames the local station's hand-overs to its display loop replaced before the
 pins showed them, over the whole session (where the side records it). ``steal``: the
 cores the host took from this machine's CPUs over the window (``/proc/stat``; where the
@@ -46,7 +48,7 @@ from lab.bench.cpu_report import reference_values
 from lab.bench.results import median_known
 
 #: (column, unit format) per run
-COLUMNS = ("load", "cores", "local", "remote", "switches", "fps", "period_p50", "loop_hz",
+COLUMNS = ("load", "cores", "local", "remote", "switches", "wait", "fps", "period_p50", "loop_hz",
            "jitter_p99",
            "m2t_p50", "m2t_p99", "cap_p99", "arm_sensor_p50", "arm_sensor_p99",
            "cmd_to_capture_p50", "replaced", "steal", "ref_us", "mem_gbs")
@@ -97,6 +99,8 @@ def figures(path: Path) -> dict[str, float | None]:
         "remote": procs.get("remote", {}).get("cores"),
         "switches": (sum(p["switches_per_s"] for p in procs.values())
                      if procs and all("switches_per_s" in p for p in procs.values()) else None),
+        "wait": (sum(p["waiting_threads"] for p in procs.values())
+                 if procs and all("waiting_threads" in p for p in procs.values()) else None),
         "fps": (run.get("remote_frames") or {}).get("achieved_fps"),
         "period_p50": pick(remote_lat, "frame_period", "p50"),
         "loop_hz": (run.get("display_loop") or {}).get("rate_hz"),

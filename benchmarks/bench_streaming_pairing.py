@@ -165,6 +165,9 @@ async def run_case(fps: float, latency_ms: float, stamp_exposure: bool, duration
     # where the nearest poll would have placed each image, from the polls the station had
     # when it placed it (the placement before 2026-12-06)
     nearest: dict[int, tuple[float, ...]] = {}
+    # whether a poll followed the image's stamp when it was placed (interpolated) or not
+    # (the newest poll held)
+    bracketed: dict[int, bool] = {}
     reading_at = station.reading_at
 
     def recording_reading_at(t_us: int) -> Any:
@@ -172,6 +175,7 @@ async def run_case(fps: float, latency_ms: float, stamp_exposure: bool, duration
         if polls:
             _, near = min(polls, key=lambda p: abs(p[0] - t_us))
             nearest[t_us] = tuple(float(v) for v in near.position_mm)
+            bracketed[t_us] = polls[0][0] <= t_us < polls[-1][0]
         return reading_at(t_us)
 
     station.reading_at = recording_reading_at  # type: ignore[method-assign]
@@ -186,6 +190,10 @@ async def run_case(fps: float, latency_ms: float, stamp_exposure: bool, duration
     camera.disconnect()
     arm.disconnect()
     out = score(link, camera, old, applied, nearest, fps, latency_ms, stamp_exposure)
+    answered = [f.ts_us for f in link.sent if isinstance(f, TactileFrame)
+                and any(h.stage == "arm_command" for h in f.hops)]
+    known = [bracketed[t] for t in answered if t in bracketed]
+    out["interpolated"] = sum(known) / len(known) if known else math.nan
     out["ticks_per_frame"] = station.captures.clock / max(1, station.pipeline.processed)
     return out
 
@@ -252,6 +260,7 @@ def report(results: list[dict[str, Any]], command: str) -> str:
               "now: named after a later command", "now: command lead ms p50/p99/max",
               "now: placement error mm p50/p99/max",
               "nearest poll: placement error mm p50/p99/max",
+              "placed between two polls",
               "arrival to tactile_ready ms p50/p99/max",
               "station ticks per frame"]
     rows = [dict(zip(header, [
@@ -259,6 +268,7 @@ def report(results: list[dict[str, Any]], command: str) -> str:
         f"{100 * r['old_after']:.0f} %", _fmt(r["old_lead_ms"], 1), _fmt(r["old_place_mm"], 2),
         f"{100 * r['new_after']:.0f} %", _fmt(r["new_lead_ms"], 1),
         _fmt(r["new_place_mm"], 3), _fmt(r["nearest_place_mm"], 3),
+        f"{100 * r['interpolated']:.0f} %",
         _fmt(r["arrival_to_ready_ms"], 1),
         f"{r['ticks_per_frame']:.2f}"], strict=True)) for r in results]
     return "\n".join([
@@ -279,6 +289,8 @@ def report(results: list[dict[str, Any]], command: str) -> str:
         "run; *now* is what the station sent; *nearest poll* places the patch at the arm's "
         "polled reading nearest to the image's stamp among those the station had when it "
         "placed the image (the placement before 2026-12-06), recorded in the same run. "
+        "*Placed between two polls*: the share of answering frames whose image had a poll "
+        "after it when placed (the others take the newest poll, as the nearest rule does). "
         "*Arrival to tactile_ready*: from the image's "
         "arrival at the station to its tactile frame being ready (the wait for the station's "
         "tick plus the pipeline). *Ticks per frame*: the station's frame ticks per tactile "

@@ -10,6 +10,12 @@ How it measures (``teletouch bench cpu``):
    these per-process and per-thread figures are exact (kernel accounting). So are the
    context switches (``.../status``: voluntary + involuntary), reported per second: each
    costs tens of microseconds of CPU on this machine (``benchmarks/bench_wakeup_cost.py``).
+   And so is the time each thread spent on a run queue, runnable but not running
+   (``.../schedstat``'s second figure, ``run_delay``: from a wake-up or a preemption until
+   it runs), summed over a process' threads and divided by the window
+   (``waiting_threads``): the mean number of its threads waiting to run at any instant.
+   It is the scheduler's part of the processes' latencies; a wait for the GIL or for I/O
+   is a sleep, not counted there, and neither is time the host steals.
 3. During the window every process is sampled by py-spy (``--nonblocking``: the process is
    never paused; ``--idle --threads``: every thread, every sample). py-spy's idle detection
    is unreliable in this container (a sleeping thread is reported as running), so a sample
@@ -125,6 +131,9 @@ class CpuSnapshot:
     #: of the thread or a preemption, and on this machine each costs tens of us of CPU
     #: (``benchmarks/bench_wakeup_cost.py``)
     switches: dict[int, dict[int, int]] = field(default_factory=dict)
+    #: pid -> tid -> seconds on a run queue so far (``schedstat``; a thread without the
+    #: figure is left out)
+    waits: dict[int, dict[int, float]] = field(default_factory=dict)
     #: the machine's stolen CPU seconds so far (``/proc/stat``: this VM's CPUs ready to
     #: run while the host ran something else); None where the file cannot be read
     steal_s: float | None = None
@@ -188,9 +197,10 @@ def reference_speed(rounds: int = 7) -> dict[str, float]:
     return {"python_us": statistics.median(loop_us), "memory_gb_s": statistics.median(gb_s)}
 
 
-def _task_figures(pid: int, tid: int) -> tuple[float, int] | None:
-    """A thread's CPU seconds (utime + stime, ``stat``) and context switches (voluntary +
-    involuntary, ``status``) so far; None once it is gone."""
+def _task_figures(pid: int, tid: int) -> tuple[float, int, float | None] | None:
+    """A thread's CPU seconds (utime + stime, ``stat``), context switches (voluntary +
+    involuntary, ``status``) and seconds on a run queue (``schedstat``; None where it is not
+    kept) so far; None once it is gone."""
     base = f"/proc/{pid}/task/{tid}/"
     try:
         with open(base + "stat") as f:
@@ -201,7 +211,19 @@ def _task_figures(pid: int, tid: int) -> tuple[float, int] | None:
         return None
     fields = stat[stat.rfind(")") + 2:].split()
     cpu = (int(fields[11]) + int(fields[12])) / _CLK_TCK
-    return cpu, sum(int(m) for m in _SWITCHES.findall(status))
+    return cpu, sum(int(m) for m in _SWITCHES.findall(status)), _run_queue_wait_s(base)
+
+
+def _run_queue_wait_s(task_dir: str) -> float | None:
+    """Seconds the task waited on a run queue so far (``schedstat``: time on a CPU, time
+    on a run queue, time slices; ns, ns, count); None where it cannot be read, or reads
+    all zeros (what a kernel that keeps no such figures writes; a task that never ran)."""
+    try:
+        with open(task_dir + "schedstat") as f:
+            fields = [int(v) for v in f.read().split()[:3]]
+    except (OSError, ValueError):
+        return None
+    return None if len(fields) < 2 or not any(fields) else fields[1] / 1e9
 
 
 _SWITCHES = re.compile(r"^(?:non)?voluntary_ctxt_switches:\s+(\d+)$", re.MULTILINE)
@@ -213,6 +235,7 @@ def snapshot(pids: list[int]) -> CpuSnapshot:
     for pid in pids:
         per: dict[int, float] = {}
         sw: dict[int, int] = {}
+        waits: dict[int, float] = {}
         try:
             tids = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
         except OSError:
@@ -220,9 +243,12 @@ def snapshot(pids: list[int]) -> CpuSnapshot:
         for tid in tids:
             figures = _task_figures(pid, tid)
             if figures is not None:
-                per[tid], sw[tid] = figures
+                per[tid], sw[tid], wait = figures
+                if wait is not None:
+                    waits[tid] = wait
         snap.threads[pid] = per
         snap.switches[pid] = sw
+        snap.waits[pid] = waits
     return snap
 
 
@@ -496,15 +522,23 @@ def _figures(win: _Window, report: dict[str, Any], load_start: tuple[float, floa
         thread_cpu = {tid: t1[tid] - t0.get(tid, 0.0) for tid in t1}
         s0, s1 = win.start.switches.get(pid, {}), win.end.switches.get(pid, {})
         thread_sw = {tid: (s1[tid] - s0.get(tid, 0)) / wall for tid in s1}
+        w0, w1 = win.start.waits.get(pid, {}), win.end.waits.get(pid, {})
+        # threads seen at both ends, or born in the window (from 0); a thread that ended
+        # inside it is lost, as its CPU time is
+        thread_wait = {tid: (w1[tid] - w0.get(tid, 0.0)) / wall for tid in w1
+                       if tid in w0 or tid not in t0}
         total = sum(thread_cpu.values())
         processes[name] = {"cores": total / wall, "threads": len(t1),
                            "switches_per_s": sum(thread_sw.values())}
+        if thread_wait:
+            processes[name]["waiting_threads"] = sum(thread_wait.values())
         path = win.workdir / f"profile-{name}.txt"
         text = path.read_text() if path.exists() else ""
         per_thread = parse_raw_profile(text) if text else {}
         roots = thread_roots(text) if text else {}
         threads[name] = sorted(({"tid": tid, "runs": roots.get(tid, "?"), "cores": cpu / wall,
-                                 "switches_per_s": thread_sw.get(tid)}
+                                 "switches_per_s": thread_sw.get(tid),
+                                 "waiting_threads": thread_wait.get(tid)}
                                 for tid, cpu in thread_cpu.items()),
                                key=lambda t: -float(t["cores"]))
         if name.startswith("link") or name in _SIM_PROCESSES:

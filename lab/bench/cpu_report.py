@@ -71,7 +71,13 @@ def write_report(runs: list[dict[str, Any]], out_dir: Path) -> None:
              "also times two fixed workloads by CPU time just before the demo starts and just "
              "after it ends (`reference_speed`: an interpreter loop, and an array pass larger "
              "than the caches): when two runs of the same code differ, these tell whether the "
-             "machine itself was slower.", ""]
+             "machine itself was slower. Also from 2026-12-06, *threads waiting to run*: each "
+             "thread's time on a run queue, runnable but not running (`schedstat`'s "
+             "`run_delay`: from a wake-up or a preemption until it runs), summed over the "
+             "threads and divided by the window, i.e. the mean number of threads waiting at "
+             "any instant (it can exceed the CPU count). It is the scheduler's part of the "
+             "latencies; GIL and I/O waits are sleeps, not in it. The run total is left out "
+             "when a process lacks the figure.", ""]
     rows = []
     for r in runs:
         product, sim = product_and_sim(r)
@@ -94,6 +100,8 @@ def write_report(runs: list[dict[str, Any]], out_dir: Path) -> None:
             "reference loop us before / after": _pair(r, "python_us", 0),
             "memory GB/s before / after": _pair(r, "memory_gb_s", 1),
             "all processes (cores)": _fmt(sum(p["cores"] for p in r["processes"].values())),
+            # on a run queue, all threads (from 2026-12-06 on)
+            "threads waiting to run (mean)": _fmt(_waiting(r)),
             "product code": _fmt(product), "simulated hw": _fmt(sim),
             "display loop Hz": _fmt(dl.get("rate_hz"), 0),
             "period jitter p99 ms": _fmt(dl.get("jitter_p99_ms"), 2),
@@ -115,6 +123,13 @@ def write_report(runs: list[dict[str, Any]], out_dir: Path) -> None:
            for r in runs for p in procs):
         lines += ["## Per process (context switches per second, all threads)", "",
                   format_table(swrow), ""]
+    # run-queue waits: recorded from 2026-12-06 on
+    wrow = [{"process": p, **{lab: _fmt(r["processes"].get(p, {}).get("waiting_threads"))
+                              for lab, r in zip(labels, runs, strict=True)}} for p in procs]
+    if any(r["processes"].get(p, {}).get("waiting_threads") is not None
+           for r in runs for p in procs):
+        lines += ["## Per process (threads waiting to run, mean: its threads' time on a run "
+                  "queue per second)", "", format_table(wrow), ""]
     keys = sorted({(p, s) for r in runs for p, per in r["stages"].items() for s in per})
     srow = [{"process": p, "stage": s,
              **{lab: _fmt(r["stages"].get(p, {}).get(s)) for lab, r in
@@ -156,3 +171,10 @@ def _plot(runs: list[dict[str, Any]], path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def _waiting(run: dict[str, Any]) -> float | None:
+    """All processes' threads waiting to run, mean (None when a process lacks the figure:
+    runs from before it was recorded)."""
+    waits = [p.get("waiting_threads") for p in run["processes"].values()]
+    return None if not waits or None in waits else sum(w for w in waits if w is not None)

@@ -508,9 +508,13 @@ class RemoteStation:
         next_t = loop.time()
         next_state_t = next_t
         while True:
+            polled_us = now_us()
             reading = self.safe_arm.poll()
+            # stamped halfway through the poll: an arm whose poll takes a while (a real
+            # one's round trip) is placed no later than it was
+            polled_us = (polled_us + now_us()) // 2
             self.last_reading = reading
-            self._readings.append((now_us(), reading))
+            self._readings.append((polled_us, reading))
             try:
                 self.stiffness.add_sample(reading.t_s, reading.position_mm, reading.force_n)
             except InputDataError as err:

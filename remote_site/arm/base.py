@@ -137,9 +137,11 @@ def reading_between(earlier: ArmReading, later: ArmReading, weight: float) -> Ar
 def polled_reading_at(readings: Reversible[tuple[int, ArmReading]],
                       t_us: int) -> ArmReading | None:
     """Where the arm was at ``t_us``, from readings polled at known times (``(t_us,
-    reading)`` in time order, on one clock): on the straight line between the two polled
-    around it (:func:`reading_between`), the oldest or the newest when ``t_us`` lies
-    outside them (no guess beyond what was polled); None without readings."""
+    reading)`` in increasing time order, on one clock; readings out of order give a wrong
+    answer, not an error): on the straight line between the two polled around it
+    (:func:`reading_between`), the oldest or the newest when ``t_us`` lies outside them
+    (no guess beyond what was polled); of two readings with the same stamp, the later one;
+    None without readings."""
     later: tuple[int, ArmReading] | None = None
     for polled_us, reading in reversed(readings):
         if polled_us <= t_us:

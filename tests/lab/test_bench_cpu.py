@@ -185,3 +185,82 @@ def test_the_reference_figures_reach_the_tables() -> None:
     assert _reference(run, "python_us") == 1250.0
     assert _reference(run, "memory_gb_s") == 20.0
     assert _reference({"reference": None}, "python_us") is None
+
+
+def test_a_window_counts_each_threads_time_on_a_run_queue(tmp_path: Path) -> None:
+    """Three CPU-bound processes pinned to one CPU for 0.4 s: each runs about a third of the
+    time and waits on the run queue about two thirds (a busy loop never sleeps, so its time
+    on the CPU and its wait add up to the window, whatever else the machine runs). The
+    window's figures give each process' threads' waits over the window per second."""
+    import subprocess
+    import sys
+    import time
+
+    from lab.bench.cpu_impl import CpuBenchSettings, _figures, _Window, snapshot
+
+    cpu = min(os.sched_getaffinity(0))
+    code = f"import os; os.sched_setaffinity(0, {{{cpu}}})\nwhile True: pass"
+    busy = [subprocess.Popen([sys.executable, "-c", code]) for _ in range(3)]
+    try:
+        pids = [p.pid for p in busy]
+        time.sleep(0.2)  # pinned and running
+        start = snapshot(pids)
+        time.sleep(0.4)
+        end = snapshot(pids)
+    finally:
+        for p in busy:
+            p.kill()
+            p.wait()
+    if not any(end.waits.get(pid) for pid in pids):
+        pytest.skip("this kernel keeps no run-queue waits (schedstat)")
+    wall = end.wall_s - start.wall_s
+    for pid in pids:
+        waited = sum(end.waits[pid].values()) - sum(start.waits[pid].values())
+        ran = sum(end.threads[pid].values()) - sum(start.threads[pid].values())
+        # ran is counted in 10 ms ticks; the two snapshots read each process a little apart
+        assert waited + ran == pytest.approx(wall, abs=0.1 * wall + 0.03)
+        assert waited >= 0.4 * wall  # two others share its CPU: about 2/3
+    names = {pid: f"relay{i}" for i, pid in enumerate(pids)}
+    win = _Window(CpuBenchSettings(), tmp_path, None, start=start, end=end, names=names)
+    procs = _figures(win, {}, (0.0, 0.0, 0.0), None)["processes"]
+    for pid, name in names.items():
+        waited = sum(end.waits[pid].values()) - sum(start.waits[pid].values())
+        assert procs[name]["waiting_threads"] == pytest.approx(waited / wall)
+
+
+def test_schedstat_is_read_as_the_run_queue_wait(tmp_path: Path) -> None:
+    from lab.bench.cpu_impl import _run_queue_wait_s
+
+    task = tmp_path / "task"
+    task.mkdir()
+    (task / "schedstat").write_text("5000000000 1500000000 42\n")  # ran 5 s, waited 1.5 s
+    assert _run_queue_wait_s(f"{task}/") == 1.5
+    (task / "schedstat").write_text("0 0 0\n")  # a kernel keeping no such figures
+    assert _run_queue_wait_s(f"{task}/") is None
+    (task / "schedstat").write_text("garbage\n")
+    assert _run_queue_wait_s(f"{task}/") is None
+    assert _run_queue_wait_s(f"{tmp_path}/none/") is None
+
+
+def test_the_waiting_figures_reach_the_tables(tmp_path: Path) -> None:
+    import json
+
+    from benchmarks.bench_cpu_paired import figures
+    from lab.bench.cpu_report import _waiting, write_report
+
+    procs = {"relay": {"cores": 0.1, "switches_per_s": 10.0, "waiting_threads": 0.02},
+             "remote": {"cores": 0.4, "switches_per_s": 20.0, "waiting_threads": 0.05}}
+    assert _waiting({"processes": procs}) == pytest.approx(0.07)
+    path = tmp_path / "cpu-x.json"
+    path.write_text(json.dumps({"load_start": [1.0, 1.0, 1.0], "processes": procs}))
+    assert figures(path)["wait"] == pytest.approx(0.07)
+    run = {"label": "x", "load_start": [1.0, 1.0, 1.0], "wall_s": 12.0, "stages": {},
+           "processes": procs}
+    write_report([run], tmp_path)
+    text = (tmp_path / "cpu.md").read_text()
+    assert "threads waiting to run (mean)" in text and "| remote | 0.050 |" in text
+    # a process without the figure (a run from before it was recorded): no total
+    del procs["relay"]["waiting_threads"]
+    assert _waiting({"processes": procs}) is None
+    path.write_text(json.dumps({"load_start": [1.0, 1.0, 1.0], "processes": procs}))
+    assert figures(path)["wait"] is None

@@ -67,7 +67,6 @@ async def test_a_streamed_frame_answers_the_command_of_its_image_at_the_pose_the
     import remote_site.agent.station as station_module
 
     monkeypatch.setattr(station_module, "_CHAIN_MAX_S", scaled(60.0))  # no outage here
-    monkeypatch.setattr(station_module, "_READINGS_KEEP", 100_000)  # all the run's polls
     lag_us = 30_000
     link = FakeLink()
     station = make_station(link, SafetyConfig(max_command_age_ms=scaled(5_000.0)),
@@ -86,6 +85,15 @@ async def test_a_streamed_frame_answers_the_command_of_its_image_at_the_pose_the
         return result
 
     station.apply_platform_state = recording_apply  # type: ignore[method-assign]
+    # the polls the station had when it placed each image (by the image's stamp)
+    polls_then: dict[int, list[tuple[int, ArmReading]]] = {}
+    reading_at = station.reading_at
+
+    def recording_reading_at(t_us: int) -> ArmReading:
+        polls_then[t_us] = list(station._readings)
+        return reading_at(t_us)
+
+    station.reading_at = recording_reading_at  # type: ignore[method-assign]
     stop = asyncio.Event()
     sent: dict[int, PlatformState] = {}
 
@@ -109,8 +117,6 @@ async def test_a_streamed_frame_answers_the_command_of_its_image_at_the_pose_the
         answering = [f for f in frames if any(h.clock == "local" for h in f.hops)]
         assert len(answering) >= 10, f"{len(answering)} answering frames"
         by_seq = {c.state.seq: c for c in applied}
-        readings = list(station._readings)  # (stamped after the poll, reading), all kept
-        polled_us = np.array([t for t, _ in readings], dtype=float)
         newer_than_image = placed = between = 0
         for frame in answering:
             image_us, command_us = _stamp(frame, "sensor_frame"), _stamp(frame, "arm_command")
@@ -126,12 +132,14 @@ async def test_a_streamed_frame_answers_the_command_of_its_image_at_the_pose_the
             assert _stamp(frame, "sensor_arrival") - image_us == 12_000
             newer_than_image += any(image_us < c.arm_command_us <= ready_us for c in applied)
             # placed where the arm was when the image was taken: on the straight line
-            # between the readings polled just before and just after it (a reading at the
-            # read itself, 30 ms on, is 0.6 mm away at 20 mm/s; the nearer of the two polls,
-            # 4 ms apart, up to 0.04 mm)
+            # between the readings polled just before and just after it, of those the
+            # station had then (a reading at the read itself, 30 ms on, is 0.6 mm away at
+            # 20 mm/s; the nearer of the two polls, 4 ms apart, up to 0.04 mm)
+            readings = polls_then[image_us]
+            polled_us = np.array([t for t, _ in readings], dtype=float)
             k = int(np.searchsorted(polled_us, image_us, side="right"))
             if k == 0 or k == len(readings):
-                continue  # taken before the station's first poll or after its last
+                continue  # taken before the station's first poll or after its last then
             placed += 1
             where = [np.interp(image_us, polled_us[k - 1:k + 1],
                                [r.position_mm[axis] for _, r in readings[k - 1:k + 1]])
