@@ -4,7 +4,8 @@ A *side* is a checkout with its own ``.venv`` (e.g. a ``git worktree`` of the ba
 beside this one) and, optionally, extra flags for the remote station (a setting to compare
 on the same code). Per round and profile every side runs once (``teletouch bench cpu
 --no-profile --link P``); the order of the sides reverses every round (ABBA...) so that the
-machine's load hits all alike. ``--burners N`` runs N CPU-bound processes beside every run.
+machine's load hits all alike. ``--burners N`` runs N CPU-bound processes beside every run
+(``--burner-nice K``: at nice K, as other jobs ranked below the stations would run).
 
 Per run the table keeps what issue 12's targets are about: all processes' cores, the local
 and remote stations' cores, the remote's achieved frame rate, the display loop's rate and
@@ -126,9 +127,16 @@ def _fmt(value: float | None) -> str:
     return "-" if value is None else f"{value:.3f}" if abs(value) < 10 else f"{value:.1f}"
 
 
-def report(out: Path, sides: list[str], links: list[str], burners: int) -> str:
-    """The markdown table of every saved run in ``out``, medians and ratios."""
-    prefix = f"b{burners}-" if burners else ""
+def run_prefix(burners: int, burner_nice: int = 0) -> str:
+    """The label prefix of runs beside ``burners`` CPU burners at nice ``burner_nice``."""
+    if not burners:
+        return ""
+    return f"b{burners}-" if not burner_nice else f"b{burners}n{burner_nice}-"
+
+
+def report(out: Path, sides: list[str], links: list[str], prefix: str) -> str:
+    """The markdown table of every saved run in ``out`` whose label starts with ``prefix``,
+    medians and ratios."""
     lines = ["| run | " + " | ".join(COLUMNS) + " |", "|---" * (len(COLUMNS) + 1) + "|"]
     medians: dict[tuple[str, str], dict[str, float | None]] = {}
     pairs: dict[tuple[str, str], list[dict[str, float | None]]] = {}
@@ -169,15 +177,18 @@ def main(argv: list[str] | None = None) -> int:
                     help="link profile, or none for no link emulator (repeat)")
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--burners", type=int, default=0, help="CPU-bound processes beside runs")
+    ap.add_argument("--burner-nice", type=int, default=0,
+                    help="the burners' nice value (above 0: ranked below the demo)")
     ap.add_argument("--out", type=Path, required=True, help="results directory")
     ap.add_argument("--report-only", action="store_true")
     args = ap.parse_args(argv)
     args.out = args.out.resolve()  # the runs work in their own checkouts
     args.out.mkdir(parents=True, exist_ok=True)
     names = [s[0] for s in args.side]
-    prefix = f"b{args.burners}-" if args.burners else ""
+    prefix = run_prefix(args.burners, args.burner_nice)
     if not args.report_only:
-        burners = [subprocess.Popen([sys.executable, "-c", "while True: pass"])
+        burn = f"import os\nos.nice({args.burner_nice})\nwhile True: pass"
+        burners = [subprocess.Popen([sys.executable, "-c", burn])
                    for _ in range(args.burners)]
         try:
             for i in range(1, args.rounds + 1):
@@ -188,7 +199,7 @@ def main(argv: list[str] | None = None) -> int:
         finally:
             for b in burners:
                 b.kill()
-    table = report(args.out, names, args.link, args.burners)
+    table = report(args.out, names, args.link, prefix)
     print(table)
     (args.out / f"table{'-' + prefix.rstrip('-') if prefix else ''}.md").write_text(table)
     return 0

@@ -264,3 +264,11 @@ def test_the_waiting_figures_reach_the_tables(tmp_path: Path) -> None:
     assert _waiting({"processes": procs}) is None
     path.write_text(json.dumps({"load_start": [1.0, 1.0, 1.0], "processes": procs}))
     assert figures(path)["wait"] is None
+
+
+def test_runs_beside_burners_are_labelled_by_their_count_and_nice() -> None:
+    from benchmarks.bench_cpu_paired import run_prefix
+
+    assert run_prefix(0) == "" and run_prefix(0, 10) == ""
+    assert run_prefix(2) == "b2-"  # the labels of the runs before --burner-nice
+    assert run_prefix(2, 10) == "b2n10-"
