@@ -5,7 +5,8 @@ beside this one) and, optionally, extra flags for the remote station (a setting 
 on the same code). Per round and profile every side runs once (``teletouch bench cpu
 --no-profile --link P``); the order of the sides reverses every round (ABBA...) so that the
 machine's load hits all alike. ``--burners N`` runs N CPU-bound processes beside every run
-(``--burner-nice K``: at nice K, as other jobs ranked below the stations would run).
+(``--burner-nice K``: at nice K; they share the demo's scheduling group, so this is not how
+a deployed station's nice would work under autogroup: docs/speed.md section 34).
 
 Per run the table keeps what issue 12's targets are about: all processes' cores, the local
 and remote stations' cores, the remote's achieved frame rate, the display loop's rate and
@@ -45,7 +46,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from lab.bench.cpu_report import reference_values
+from lab.bench.cpu_report import reference_values, waiting_threads
 from lab.bench.results import median_known
 
 #: (column, unit format) per run
@@ -100,8 +101,7 @@ def figures(path: Path) -> dict[str, float | None]:
         "remote": procs.get("remote", {}).get("cores"),
         "switches": (sum(p["switches_per_s"] for p in procs.values())
                      if procs and all("switches_per_s" in p for p in procs.values()) else None),
-        "wait": (sum(p["waiting_threads"] for p in procs.values())
-                 if procs and all("waiting_threads" in p for p in procs.values()) else None),
+        "wait": waiting_threads(run) if procs else None,
         "fps": (run.get("remote_frames") or {}).get("achieved_fps"),
         "period_p50": pick(remote_lat, "frame_period", "p50"),
         "loop_hz": (run.get("display_loop") or {}).get("rate_hz"),

@@ -101,7 +101,7 @@ def write_report(runs: list[dict[str, Any]], out_dir: Path) -> None:
             "memory GB/s before / after": _pair(r, "memory_gb_s", 1),
             "all processes (cores)": _fmt(sum(p["cores"] for p in r["processes"].values())),
             # on a run queue, all threads (from 2026-12-06 on)
-            "threads waiting to run (mean)": _fmt(_waiting(r)),
+            "threads waiting to run (mean)": _fmt(waiting_threads(r)),
             "product code": _fmt(product), "simulated hw": _fmt(sim),
             "display loop Hz": _fmt(dl.get("rate_hz"), 0),
             "period jitter p99 ms": _fmt(dl.get("jitter_p99_ms"), 2),
@@ -173,7 +173,7 @@ def _plot(runs: list[dict[str, Any]], path: Path) -> None:
     plt.close(fig)
 
 
-def _waiting(run: dict[str, Any]) -> float | None:
+def waiting_threads(run: dict[str, Any]) -> float | None:
     """All processes' threads waiting to run, mean (None when a process lacks the figure:
     runs from before it was recorded)."""
     waits = [p.get("waiting_threads") for p in run["processes"].values()]

@@ -246,11 +246,11 @@ def test_the_waiting_figures_reach_the_tables(tmp_path: Path) -> None:
     import json
 
     from benchmarks.bench_cpu_paired import figures
-    from lab.bench.cpu_report import _waiting, write_report
+    from lab.bench.cpu_report import waiting_threads, write_report
 
     procs = {"relay": {"cores": 0.1, "switches_per_s": 10.0, "waiting_threads": 0.02},
              "remote": {"cores": 0.4, "switches_per_s": 20.0, "waiting_threads": 0.05}}
-    assert _waiting({"processes": procs}) == pytest.approx(0.07)
+    assert waiting_threads({"processes": procs}) == pytest.approx(0.07)
     path = tmp_path / "cpu-x.json"
     path.write_text(json.dumps({"load_start": [1.0, 1.0, 1.0], "processes": procs}))
     assert figures(path)["wait"] == pytest.approx(0.07)
@@ -261,7 +261,7 @@ def test_the_waiting_figures_reach_the_tables(tmp_path: Path) -> None:
     assert "threads waiting to run (mean)" in text and "| remote | 0.050 |" in text
     # a process without the figure (a run from before it was recorded): no total
     del procs["relay"]["waiting_threads"]
-    assert _waiting({"processes": procs}) is None
+    assert waiting_threads({"processes": procs}) is None
     path.write_text(json.dumps({"load_start": [1.0, 1.0, 1.0], "processes": procs}))
     assert figures(path)["wait"] is None
 
