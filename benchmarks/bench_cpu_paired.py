@@ -7,6 +7,11 @@ on the same code). Per round and profile every side runs once (``teletouch bench
 machine's load hits all alike. ``--burners N`` runs N CPU-bound processes beside every run
 (``--burner-nice K``: at nice K; they share the demo's scheduling group, so this is not how
 a deployed station's nice would work under autogroup: docs/speed.md section 34).
+``--cgroups`` puts the burners in a CPU group of their own at weight 100 (systemd's default
+``CPUWeight=``) and each side's runs in another, at the side's ``cgroup:W`` flag (default
+100), with a real-time budget for the display loop's ``SCHED_FIFO`` thread: how a deployment
+ranks the stations above other jobs (``lab/bench/cgroups.py``; needs root and cgroup v1's
+``cpu`` controller).
 
 Per run the table keeps what issue 12's targets are about: all processes' cores, the local
 and remote stations' cores, the remote's achieved frame rate, the display loop's rate and
@@ -33,7 +38,8 @@ Run: ``python benchmarks/bench_cpu_paired.py --side base=../m2t-base --side new=
 --link city-1000km --rounds 3 --out benchmarks/results/DIR`` (``--report-only`` rebuilds
 ``DIR/README.md``'s table from the saved runs; ``--side NAME=ROOT::--flag::value`` passes
 remote flags, separated by ``::``, ``local:--flag=value`` a flag of the local station and
-``bench:--flag=value`` one of ``bench cpu`` itself, e.g. ``bench:--display=sim``).
+``bench:--flag=value`` one of ``bench cpu`` itself, e.g. ``bench:--display=sim``, and
+``cgroup:W`` the side's CPU weight under ``--cgroups``).
 ``local`` counts the local station with its child processes (platform reader, display loop).
 """
 
@@ -41,11 +47,15 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import signal
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from lab.bench.cgroups import DEFAULT_WEIGHT, CpuGroups
 from lab.bench.cpu_report import reference_values, waiting_threads
 from lab.bench.results import median_known
 
@@ -64,22 +74,39 @@ def _side(text: str) -> tuple[str, Path, list[str]]:
     return name, Path(root).resolve(), flags
 
 
-def _run(name: str, root: Path, flags: list[str], link: str, label: str, out: Path) -> None:
+def side_weight(flags: list[str]) -> int:
+    """The side's CPU weight under ``--cgroups`` (its ``cgroup:W`` flag; default 100)."""
+    weights = [int(f.removeprefix("cgroup:")) for f in flags if f.startswith("cgroup:")]
+    return weights[-1] if weights else DEFAULT_WEIGHT
+
+
+def _run(name: str, root: Path, flags: list[str], link: str, label: str, out: Path,
+         preexec: Callable[[], None] | None = None) -> None:
     cmd = [str(root / ".venv" / "bin" / "teletouch"), "bench", "cpu", "--no-profile",
            "--label", label, "--out-dir", str(out)]
     if link != "none":  # none: the stations straight to the relay
         cmd += ["--link", link]
     for flag in flags:
+        if flag.startswith("cgroup:"):  # the side's CPU weight: applied by preexec
+            continue
         if flag.startswith("bench:"):  # an option of `bench cpu` itself, e.g. --display=sim
             cmd.append(flag.removeprefix("bench:"))
         elif flag.startswith("local:"):
             cmd.append(f"--local-arg={flag.removeprefix('local:')}")
         else:
             cmd.append(f"--remote-arg={flag}")
-    proc = subprocess.run(cmd, cwd=root, capture_output=True, text=True, timeout=900,
-                          check=False)
+    # a session of its own: on a timeout the whole run (stations, relay, links) is killed,
+    # so that nothing is left running, nor in a CPU group that is to be removed
+    proc = subprocess.Popen(cmd, cwd=root, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, start_new_session=True, preexec_fn=preexec)
+    try:
+        _out, err = proc.communicate(timeout=900)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        _out, err = proc.communicate()
+        err += "\n(killed after 900 s)"
     if proc.returncode != 0:
-        print(f"{label}: exit {proc.returncode}: {proc.stderr[-800:]}", file=sys.stderr)
+        print(f"{label}: exit {proc.returncode}: {err[-800:]}", file=sys.stderr)
 
 
 def figures(path: Path) -> dict[str, float | None]:
@@ -127,11 +154,13 @@ def _fmt(value: float | None) -> str:
     return "-" if value is None else f"{value:.3f}" if abs(value) < 10 else f"{value:.1f}"
 
 
-def run_prefix(burners: int, burner_nice: int = 0) -> str:
-    """The label prefix of runs beside ``burners`` CPU burners at nice ``burner_nice``."""
+def run_prefix(burners: int, burner_nice: int = 0, cgroups: bool = False) -> str:
+    """The label prefix of runs beside ``burners`` CPU burners at nice ``burner_nice``
+    (``cg``: each in a CPU group of its own)."""
+    groups = "cg" if cgroups else ""
     if not burners:
-        return ""
-    return f"b{burners}-" if not burner_nice else f"b{burners}n{burner_nice}-"
+        return f"{groups}-" if groups else ""
+    return f"b{burners}{f'n{burner_nice}' if burner_nice else ''}{groups}-"
 
 
 def report(out: Path, sides: list[str], links: list[str], prefix: str) -> str:
@@ -176,29 +205,53 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--link", action="append", required=True,
                     help="link profile, or none for no link emulator (repeat)")
     ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--first-round", type=int, default=1,
+                    help="number of the first round (to interleave invocations of other "
+                         "settings round by round into one directory)")
     ap.add_argument("--burners", type=int, default=0, help="CPU-bound processes beside runs")
     ap.add_argument("--burner-nice", type=int, default=0,
                     help="the burners' nice value (above 0: ranked below the demo)")
+    ap.add_argument("--cgroups", action="store_true",
+                    help="burners and each side in CPU groups of their own (weights: a side's "
+                         "cgroup:W flag, burners 100)")
     ap.add_argument("--out", type=Path, required=True, help="results directory")
     ap.add_argument("--report-only", action="store_true")
     args = ap.parse_args(argv)
     args.out = args.out.resolve()  # the runs work in their own checkouts
     args.out.mkdir(parents=True, exist_ok=True)
     names = [s[0] for s in args.side]
-    prefix = run_prefix(args.burners, args.burner_nice)
+    prefix = run_prefix(args.burners, args.burner_nice, args.cgroups)
     if not args.report_only:
+        groups = CpuGroups() if args.cgroups else None  # CgroupError: a clear refusal
         burn = f"import os\nos.nice({args.burner_nice})\nwhile True: pass"
-        burners = [subprocess.Popen([sys.executable, "-c", burn])
-                   for _ in range(args.burners)]
+        burners: list[subprocess.Popen[bytes]] = []
         try:
-            for i in range(1, args.rounds + 1):
+            if groups is not None:
+                groups.make("others", DEFAULT_WEIGHT)
+                for name, _root, flags in args.side:
+                    # the display loop's SCHED_FIFO thread takes ~0.1 core; the sides share
+                    # 0.8 of the root's 0.95 s of real time per second
+                    groups.make(f"side-{name}", side_weight(flags),
+                                rt_runtime_us=800_000 // len(args.side))
+            burners = [subprocess.Popen([sys.executable, "-c", burn])
+                       for _ in range(args.burners)]
+            for b in burners:
+                if groups is not None:
+                    groups.add("others", b.pid)
+            for i in range(args.first_round, args.first_round + args.rounds):
                 for link in args.link:
                     order = args.side if i % 2 else list(reversed(args.side))
                     for name, root, flags in order:
-                        _run(name, root, flags, link, f"{prefix}{name}-{link}-{i}", args.out)
+                        enter = (None if groups is None
+                                 else lambda g=groups, n=name: g.enter(f"side-{n}"))
+                        _run(name, root, flags, link, f"{prefix}{name}-{link}-{i}", args.out,
+                             enter)
         finally:
             for b in burners:
                 b.kill()
+                b.wait()
+            if groups is not None:
+                groups.close()
     table = report(args.out, names, args.link, prefix)
     print(table)
     (args.out / f"table{'-' + prefix.rstrip('-') if prefix else ''}.md").write_text(table)

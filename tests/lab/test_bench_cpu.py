@@ -272,3 +272,13 @@ def test_runs_beside_burners_are_labelled_by_their_count_and_nice() -> None:
     assert run_prefix(0) == "" and run_prefix(0, 10) == ""
     assert run_prefix(2) == "b2-"  # the labels of the runs before --burner-nice
     assert run_prefix(2, 10) == "b2n10-"
+    # each in a CPU group of its own (--cgroups): apart from the runs without
+    assert run_prefix(2, 0, cgroups=True) == "b2cg-" and run_prefix(2, 10, True) == "b2n10cg-"
+    assert run_prefix(0, 0, cgroups=True) == "cg-"
+
+
+def test_a_sides_cpu_weight_is_its_cgroup_flag() -> None:
+    from benchmarks.bench_cpu_paired import side_weight
+
+    assert side_weight([]) == 100  # systemd's default CPUWeight=
+    assert side_weight(["--sensor-fps::80", "cgroup:1000", "bench:--display=sim"]) == 1000

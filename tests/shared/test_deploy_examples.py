@@ -108,6 +108,11 @@ def test_units_and_compose_call_existing_subcommands() -> None:
     for text in texts:
         assert "Restart=on-failure" in text
         assert "EnvironmentFile=/etc/teletouch/teletouch.env" in text
+        # ranked above other jobs for CPU by the slice's weight (docs/speed.md section 35)
+        assert re.search(r"^\[Service\][^\[]*^Slice=teletouch\.slice$", text, re.M | re.S)
+    slice_unit = (DEPLOY / "systemd" / "teletouch.slice").read_text()
+    weight = re.search(r"^\[Slice\][^\[]*^CPUWeight=(\d+)$", slice_unit, re.M | re.S)
+    assert weight and int(weight[1]) > 100  # above the default of the groups beside it
     calls = re.findall(r"bin/teletouch (\w+)", "\n".join(texts))
     calls += re.findall(r'"teletouch",\s*"(\w+)"', (DEPLOY / "compose.yaml").read_text())
     calls += re.findall(r'"teletouch",\s*"(\w+)"', (DEPLOY / "Dockerfile").read_text())
