@@ -79,7 +79,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="keep logs, recordings and summaries in this directory")
     parser.add_argument("--record", metavar="DIR", default=None,
                         help="write both stations' MCAP recordings, the ground truth and the "
-                             "HTML report into DIR (default: the work directory)")
+                             "HTML report into DIR (default: the work directory, which is "
+                             "deleted at the end unless --workdir names it)")
 
 
 def _fmt(v: Any, digits: int = 2) -> str:
@@ -126,6 +127,8 @@ def format_report(report: dict[str, Any]) -> str:
     if report.get("recordings"):
         lines.append(f"  recordings        {report['recordings']['local']}, "
                      f"{report['recordings']['remote']}")
+    elif "recordings" in report:
+        lines.append("  recordings        not kept (--record DIR keeps them)")
     lines.append(f"  report            {report.get('report_html') or 'not written (see log)'}")
     return "\n".join(lines)
 

@@ -328,7 +328,9 @@ def run_demo(config: DemoConfig,
         files = {k: rec_dir / v for k, v in {
             "ground_truth": "ground_truth.json", "record": "local.mcap",
             "remote_record": "remote.mcap", "report": "report.html"}.items()}
-        if temp and config.record_dir is None and not config.keep_files:
+        # the recordings stay only where they outlive the temporary work directory
+        kept = not (temp and config.record_dir is None and not config.keep_files)
+        if not kept:
             files["report"] = Path(tempfile.gettempdir()) / \
                 f"teletouch-demo-report-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}.html"
         files.update(local_summary=workdir / "local_summary.json",
@@ -419,8 +421,9 @@ def run_demo(config: DemoConfig,
                             f"with:\n{remote.log_tail()}")
         procs.stop_all()
         report = _report(config, files, relay_final, time.monotonic() - started, workdir)
-        report["recordings"] = {"local": str(files["record"]),
-                                "remote": str(files["remote_record"])}
+        # None: deleted with the work directory below (the HTML report is kept)
+        report["recordings"] = ({"local": str(files["record"]),
+                                 "remote": str(files["remote_record"])} if kept else None)
         report["report_html"] = _write_html(files)
         return report
     except (OSError, subprocess.SubprocessError, DeviceError) as err:

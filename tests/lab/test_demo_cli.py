@@ -156,3 +156,18 @@ def test_demo_over_one_link_emulator_has_no_merged_stage_names(tmp_path: Path) -
     frames = report["remote"]["frames"]
     assert frames["capture"] == "on_pose"
     assert frames["captures"]["clock"] == 0 and frames["processed"] > 0
+
+
+def test_the_report_names_recordings_only_where_they_are_kept() -> None:
+    """Without --record or --workdir the work directory and its recordings are deleted at the
+    end: the report says so instead of naming files that are gone."""
+    report: dict[str, object] = {
+        "scene": "breast", "seed": 0, "link": "direct", "elapsed_s": 50.0,
+        "frames_received": 10, "tumors_found": 0, "tumors_expected": 2, "false_positives": 0,
+        "localization_error_mm": {"mean": None, "max": None}, "types_correct": 0,
+        "types_total": 2, "kendall_tau": None, "matches": [], "latency_ms": {},
+        "recordings": None}
+    text = format_report(report)
+    assert "recordings        not kept (--record DIR keeps them)" in text
+    report["recordings"] = {"local": "/d/local.mcap", "remote": "/d/remote.mcap"}
+    assert "recordings        /d/local.mcap, /d/remote.mcap" in format_report(report)
