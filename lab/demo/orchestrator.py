@@ -285,8 +285,10 @@ def run_demo(config: DemoConfig,
     if config.display not in ("sim", "board-process"):
         raise ConfigError(f"display must be 'sim' or 'board-process', got {config.display!r}")
     temp = config.workdir is None
+    # absolute: the children run in the work directory, where a relative path would name
+    # another place than the one this process reads back
     workdir = (Path(tempfile.mkdtemp(prefix="teletouch-demo-")) if config.workdir is None
-               else Path(config.workdir))
+               else Path(config.workdir).resolve())
     workdir.mkdir(parents=True, exist_ok=True)
     # the per-run secret reaches the children through their environment, never argv; one
     # BLAS thread per process: several processes share the cores, and threaded BLAS on a
@@ -323,7 +325,7 @@ def run_demo(config: DemoConfig,
                         "--profile", config.link, *leg_delay, "--seed", str(config.seed * 2))
             for port in (local_port, remote_port):
                 _wait_for(functools.partial(_port_open, port), "the link emulator", 20, procs)
-        rec_dir = Path(config.record_dir) if config.record_dir is not None else workdir
+        rec_dir = Path(config.record_dir).resolve() if config.record_dir is not None else workdir
         rec_dir.mkdir(parents=True, exist_ok=True)
         files = {k: rec_dir / v for k, v in {
             "ground_truth": "ground_truth.json", "record": "local.mcap",

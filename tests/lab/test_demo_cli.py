@@ -132,11 +132,12 @@ def test_demo_over_one_link_emulator_has_no_merged_stage_names(tmp_path: Path) -
     checked by the test above) drives the pins."""
     from shared.motion_to_touch import END_TO_END, FROM_CAPTURE, INCOMPLETE, STAGES, UNALIGNED
 
-    workdir = tmp_path / "work"
+    workdir = (tmp_path / "work").resolve()
+    # a relative --workdir: the children run inside it, so the demo makes it absolute
     done = subprocess.run(
         [sys.executable, "-m", "lab.cli", "demo", "--headless", "--json", "--no-view",
          "--link", "lan", "--display", "sim", "--motion", SMALL_RASTER,
-         "--duration", "30", "--workdir", str(workdir)],
+         "--duration", "30", "--workdir", "work"], cwd=tmp_path,
         capture_output=True, text=True, timeout=scaled(120.0), check=False, env=_scaled_env())
     assert done.returncode == 0, done.stderr[-3000:]
     report = json.loads(done.stdout)
@@ -145,6 +146,9 @@ def test_demo_over_one_link_emulator_has_no_merged_stage_names(tmp_path: Path) -
     assert names <= {*STAGES, END_TO_END, FROM_CAPTURE, UNALIGNED, INCOMPLETE}
     assert {"relay_to_remote", "arm_and_sensor", "render"} <= names
     assert report["latency_ms"][END_TO_END]["count"] > 0
+    # --workdir keeps the recordings, and the report names them there
+    assert report["recordings"]["local"] == str(workdir / "local.mcap")
+    assert (workdir / "local.mcap").is_file()
     logs = sorted(p.name for p in workdir.glob("link*.log"))
     assert logs == ["link.log"]
     assert (workdir / "link.log").read_text().count("link emulator listening on") == 2
