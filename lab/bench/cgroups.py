@@ -102,7 +102,11 @@ class CpuGroups:
 
     def add(self, name: str, pid: int) -> None:
         """Move process ``pid`` (all its threads) into group ``name``; its children inherit it."""
-        (self.parent / name / "cgroup.procs").write_text(f"{pid}\n")
+        procs = self.parent / name / "cgroup.procs"
+        try:
+            procs.write_text(f"{pid}\n")
+        except OSError as exc:
+            raise CgroupError(f"cannot move process {pid} into {procs}: {exc}") from exc
 
     def enter(self, name: str) -> None:
         """Move the calling process into group ``name`` (e.g. from a ``preexec_fn``)."""

@@ -121,6 +121,8 @@ def test_closing_moves_a_left_over_process_out_and_removes_every_group() -> None
     with _groups() as groups:
         groups.make("a", 100)
         groups.make("b", 100)
+        with pytest.raises(CgroupError, match="cannot move process"):
+            groups.add("no-such-group", os.getpid())
         sleeper = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(600)"],
                                    preexec_fn=partial(groups.enter, "a"))
         try:
