@@ -46,6 +46,7 @@ remote flags, separated by ``::``, ``local:--flag=value`` a flag of the local st
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import signal
@@ -233,19 +234,18 @@ def main(argv: list[str] | None = None) -> int:
                     # 0.8 of the root's 0.95 s of real time per second
                     groups.make(f"side-{name}", side_weight(flags),
                                 rt_runtime_us=800_000 // len(args.side))
-            burners = [subprocess.Popen([sys.executable, "-c", burn])
+            def placed(group: str) -> Callable[[], None] | None:
+                """A child's ``preexec_fn`` that enters ``group`` (None without groups)."""
+                return None if groups is None else functools.partial(groups.enter, group)
+
+            burners = [subprocess.Popen([sys.executable, "-c", burn], preexec_fn=placed("others"))
                        for _ in range(args.burners)]
-            for b in burners:
-                if groups is not None:
-                    groups.add("others", b.pid)
             for i in range(args.first_round, args.first_round + args.rounds):
                 for link in args.link:
                     order = args.side if i % 2 else list(reversed(args.side))
                     for name, root, flags in order:
-                        enter = (None if groups is None
-                                 else lambda g=groups, n=name: g.enter(f"side-{n}"))
                         _run(name, root, flags, link, f"{prefix}{name}-{link}-{i}", args.out,
-                             enter)
+                             placed(f"side-{name}"))
         finally:
             for b in burners:
                 b.kill()

@@ -20,7 +20,7 @@ import contextlib
 import errno
 import os
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 #: systemd's default CPUWeight= and cgroup v1's default cpu.shares
@@ -137,36 +137,35 @@ def _read_pids(path: Path) -> list[int]:
         return []
 
 
-def _remove(group: Path, wait_s: float = 2.0) -> None:
-    """rmdir a group; one whose last process was just moved out or ended may still count as
-    busy for a moment (EBUSY), so that is retried until ``wait_s`` has passed."""
+def _retrying(action: Callable[[], object], code: int, wait_s: float, poll_s: float) -> None:
+    """Run ``action``, again while it fails with errno ``code``, until ``wait_s`` has passed
+    (then the last error is raised): the kernel finishes some cgroup changes a moment late."""
     deadline = time.monotonic() + wait_s
     while True:
         try:
-            group.rmdir()
-            return
-        except FileNotFoundError:
+            action()
             return
         except OSError as exc:
-            if exc.errno != errno.EBUSY or time.monotonic() > deadline:
+            if exc.errno != code or time.monotonic() > deadline:
                 raise
-            time.sleep(0.02)
+            time.sleep(poll_s)
+
+
+def _remove(group: Path, wait_s: float = 2.0) -> None:
+    """rmdir a group; one whose last process was just moved out or ended may still count as
+    busy for a moment (EBUSY)."""
+    with contextlib.suppress(FileNotFoundError):
+        _retrying(group.rmdir, errno.EBUSY, wait_s, 0.02)
 
 
 def _write_budget(path: Path, runtime_us: int, wait_s: float = 5.0) -> None:
     """Write a real-time budget; the kernel refuses one its parent cannot cover (EINVAL), and
-    frees a removed group's budget only some time after its ``rmdir``, so a refusal is
-    retried until ``wait_s`` has passed."""
-    deadline = time.monotonic() + wait_s
-    while True:
-        try:
-            path.write_text(f"{runtime_us}\n")
-            return
-        except OSError as exc:
-            if exc.errno != errno.EINVAL or time.monotonic() > deadline:
-                raise CgroupError(f"{path}: a real-time budget of {runtime_us} us refused "
-                                  f"({exc}): more than its parent has free") from exc
-            time.sleep(0.05)
+    frees a removed group's budget only some time after its ``rmdir``."""
+    try:
+        _retrying(lambda: path.write_text(f"{runtime_us}\n"), errno.EINVAL, wait_s, 0.05)
+    except OSError as exc:
+        raise CgroupError(f"{path}: a real-time budget of {runtime_us} us refused "
+                          f"({exc}): more than its parent has free") from exc
 
 
 def _read_int(path: Path) -> int:

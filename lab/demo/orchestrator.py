@@ -284,7 +284,8 @@ def run_demo(config: DemoConfig,
         raise ConfigError("max_duration_s must be > 0")
     if config.display not in ("sim", "board-process"):
         raise ConfigError(f"display must be 'sim' or 'board-process', got {config.display!r}")
-    temp = config.workdir is None
+    # the work directory is deleted at the end: a temporary one not asked to be kept
+    deleted = config.workdir is None and not config.keep_files
     # absolute: the children run in the work directory, where a relative path would name
     # another place than the one this process reads back
     workdir = (Path(tempfile.mkdtemp(prefix="teletouch-demo-")) if config.workdir is None
@@ -331,7 +332,7 @@ def run_demo(config: DemoConfig,
             "ground_truth": "ground_truth.json", "record": "local.mcap",
             "remote_record": "remote.mcap", "report": "report.html"}.items()}
         # the recordings stay only where they outlive the temporary work directory
-        kept = not (temp and config.record_dir is None and not config.keep_files)
+        kept = not (deleted and config.record_dir is None)
         if not kept:
             files["report"] = Path(tempfile.gettempdir()) / \
                 f"teletouch-demo-report-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}.html"
@@ -432,7 +433,7 @@ def run_demo(config: DemoConfig,
         raise DemoError(f"demo failed: {err}") from err
     finally:
         procs.stop_all()
-        if temp and not config.keep_files:
+        if deleted:
             shutil.rmtree(workdir, ignore_errors=True)
 
 
