@@ -101,7 +101,10 @@ class WorkDelays:
 def work_delays(events: Sequence[Event], function: str) -> WorkDelays:
     """Queue-to-start delay of every run of work ``function``. The kernel traces a queueing
     only when the work was not pending, so a run pairs with the latest queueing before its
-    start; a queueing replaced by another before any start lost its start event."""
+    start; a queueing replaced by another before any start lost its start event. Rarely it
+    did not: the worker clears the pending flag microseconds before it traces the start, and
+    a queueing in between takes that start, understating the earlier queueing's delay (it is
+    counted as a lost start all the same)."""
     pending: dict[str, Event] = {}
     loss_times: list[float] = []
     delays = []
