@@ -197,9 +197,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--over-ms", type=float, default=50.0, help="count delays over this")
     ap.add_argument("--worst", action="store_true", help="detail the longest delay")
     args = ap.parse_args(argv)
-    text = subprocess.run(["perf", "script", "--show-lost-events", "-i", args.trace, "-F",
-                           "comm,tid,cpu,time,event,trace"],
-                          capture_output=True, text=True, check=True).stdout
+    try:
+        text = subprocess.run(["perf", "script", "--show-lost-events", "-i", args.trace, "-F",
+                               "comm,tid,cpu,time,event,trace"],
+                              capture_output=True, text=True, check=True).stdout
+    except FileNotFoundError:
+        ap.error(f"cannot read {args.trace}: the perf tool is not installed")
+    except subprocess.CalledProcessError as exc:
+        why = exc.stderr.strip().splitlines()[-1:] or [f"perf exited with {exc.returncode}"]
+        ap.error(f"cannot read {args.trace} as a perf trace: {why[0]}")
     events = parse(text.splitlines())
     work = work_delays(events, args.function)
     print(f"{args.trace}: {summary(work, args.over_ms)}")

@@ -5,10 +5,13 @@ lost."""
 # ruff: noqa: E501  (the traces hold perf's own lines, whole)
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from benchmarks.tty_flush_delays import (
     cpu_time,
+    main,
     parse,
     quantile,
     summary,
@@ -118,3 +121,14 @@ def test_the_worst_report_shows_the_workers_wakeup_migration_and_what_ran() -> N
                           "  cpu 1 burner two/701 prio 120: 200.0",
                           "  cpu 1 python3/501 prio 120: 100.0",
                           "  cpu 2 swapper/2/0 prio 120: 50.0"]
+
+
+def test_a_file_that_is_no_perf_trace_is_refused_with_its_name(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    bad = tmp_path / "not-a-trace.data"
+    bad.write_text("garbage\n")
+    with pytest.raises(SystemExit) as exit_info:
+        main([str(bad)])
+    assert exit_info.value.code == 2
+    # perf's own reason where perf is installed, or that it is not
+    assert f"error: cannot read {bad}" in capsys.readouterr().err
