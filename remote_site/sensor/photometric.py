@@ -107,16 +107,16 @@ class PhotometricModel:
             dv = (yy % pitch_px) - pitch_px / 2
             dot = np.hypot(du, dv) < s.marker_radius_mm / s.mm_per_px
             self._markers[dot] = 0.25
-        # Static per-pixel terms of the shading (see render): the lit colour is
-        # A (1 + gain * sum_k mix_kc (max(n.l_k, 0) / cos(elev) - 1)) with
-        # A = background * markers * brightness, i.e. base + sum_k coef_k * max(n.l_k, 0).
+        # Static terms of the shading (see render): the lit colour is
+        # A (1 + gain * sum_k mix_kc (max(n.l_k, 0) / cos(elev) - 1)) with the albedo
+        # A = background * markers * brightness, i.e. A (w0 + sum_k W_k * max(n.l_k, 0)).
         gain = np.float32(s.shading_gain)
-        lit = self._background * self._markers[..., None] * np.asarray(s.brightness, np.float32)
-        self._base = np.ascontiguousarray(lit * (1.0 - gain * self._mix.sum(axis=0)),
-                                          dtype=np.float32)
-        self._coef = np.ascontiguousarray(
-            lit[:, :, None, :] * (gain / self._cos_elev * self._mix)[None, None, :, :],
-            dtype=np.float32)  # (rows, cols, light, channel)
+        self._albedo = np.ascontiguousarray(
+            self._background * self._markers[..., None] * np.asarray(s.brightness, np.float32),
+            dtype=np.float32)
+        self._weights = np.ascontiguousarray(np.concatenate(
+            [1.0 - gain * self._mix.sum(axis=0, keepdims=True),  # w0 per channel
+             gain / self._cos_elev * self._mix]), dtype=np.float32)  # W (light, channel)
 
     @property
     def background_rgb(self) -> np.ndarray:
@@ -173,11 +173,11 @@ class PhotometricModel:
         camera_noise = self._noise_sample() if noise and s.noise_dn > 0 else None
         if flat:
             if self._flat_values is None:
-                self._flat_values = shaded_values(self._base, self._coef, self._lights)
+                self._flat_values = shaded_values(self._albedo, self._weights, self._lights)
             return finish_frame(self._flat_values, camera_noise, gain)
         # Unit normal of the surface z = h(x, y), seen from the camera side:
         # (-h_x, -h_y, 1) / sqrt(1 + h_x^2 + h_y^2); one fused pass with the static terms.
-        return shade_frame(surface, s.mm_per_px, self._base, self._coef, self._lights,
+        return shade_frame(surface, s.mm_per_px, self._albedo, self._weights, self._lights,
                            camera_noise, gain)
 
     def _noise_sample(self) -> np.ndarray:

@@ -2,13 +2,23 @@
 
 For a gel surface ``h`` (mm) the pixel colour of channel ``c`` is
 
-    I_c = base_c + sum_k coef_kc * max(lz_k - lx_k h_x - ly_k h_y, 0) / sqrt(1 + h_x^2 + h_y^2)
+    I_c = A_c * (w0_c + sum_k W_kc * max(lz_k - lx_k h_x - ly_k h_y, 0) / sqrt(1 + h_x^2 + h_y^2))
 
-plus camera noise, rounded and clipped to uint8, where the static per-pixel terms ``base``
-and ``coef`` fold the background, markers, brightness, light colours and shading gain
-(see :class:`~remote_site.sensor.photometric.PhotometricModel`). The slopes ``h_x``, ``h_y``
-follow :func:`numpy.gradient` (central differences inside, one-sided at the border). One
-fused loop replaces ~25 full-frame numpy passes (the frame stays in cache).
+plus camera noise, rounded and clipped to uint8, where the per-pixel albedo ``A`` folds the
+background, markers and brightness, and the nine weights ``W`` and three ``w0`` the light
+colours and shading gain (see :class:`~remote_site.sensor.photometric.PhotometricModel`).
+The slopes ``h_x``, ``h_y`` follow :func:`numpy.gradient` (central differences inside,
+one-sided at the border).
+
+The frame is done a row at a time in short loops over contiguous memory, which the
+compiler turns into vector instructions: the row's slopes, the three lights' terms per
+pixel, the colour of each pixel's three channels, then noise, rounding and the brightness
+gain. The one static image read per frame is the albedo (H x W x 3 float32). The earlier
+kernel read a static colour and nine weights per pixel (four times the memory) and
+rounded each channel with the gain's branch inside; it was 2.5x slower warm
+(``benchmarks/bench_sim_sensor.py``). Flat and pressed frames are rounded by the same row
+function, so the flat gel's cached values (:func:`shaded_values`) finish to the bytes the
+full shading gives a flat surface.
 """
 
 from __future__ import annotations
@@ -20,90 +30,111 @@ __all__ = ["finish_frame", "shade_frame", "shaded_values"]
 
 
 @njit(cache=True, nogil=True, inline="always", error_model="numpy", fastmath=True)
-def _pixel(gx: float, gy: float, i: int, j: int, base: np.ndarray, coef: np.ndarray,
-           lights: np.ndarray, noise: np.ndarray, use_noise: bool, gain: np.ndarray,
-           use_gain: bool, out: np.ndarray) -> None:  # pragma: no cover - compiled
+def _row_values(surface: np.ndarray, i: int, half: np.float32, full: np.float32,
+                albedo: np.ndarray, weights: np.ndarray, lights: np.ndarray,
+                scratch: np.ndarray, values: np.ndarray) -> None:  # pragma: no cover - compiled
+    """Row ``i``'s colour values before noise: ``values`` (cols * 3,) float32. ``albedo``
+    (rows, cols * 3); ``weights`` (4, 3): ``w0`` then each light's ``W``; ``scratch``
+    (4, cols) float32."""
+    rows, cols = surface.shape
     zero = np.float32(0.0)
-    norm = np.float32(1.0) / np.sqrt(np.float32(1.0) + gx * gx + gy * gy)
-    s0 = max(lights[0, 2] - lights[0, 0] * gx - lights[0, 1] * gy, zero) * norm
-    s1 = max(lights[1, 2] - lights[1, 0] * gx - lights[1, 1] * gy, zero) * norm
-    s2 = max(lights[2, 2] - lights[2, 0] * gx - lights[2, 1] * gy, zero) * norm
-    for c in range(3):
-        value = base[i, j, c] + coef[i, j, 0, c] * s0 + coef[i, j, 1, c] * s1 \
-            + coef[i, j, 2, c] * s2
-        if use_noise:
-            value += noise[i, j, c]
-        value = np.floor(value + np.float32(0.5))
-        out[i, j, c] = _gained(min(max(value, zero), np.float32(255.0)), gain, c, use_gain)
+    one = np.float32(1.0)
+    up = min(i + 1, rows - 1)
+    down = max(i - 1, 0)
+    scale_y = half if (up - down) == 2 else full
+    row = surface[i]
+    row_up = surface[up]
+    row_down = surface[down]
+    # numpy.gradient along the row: central differences inside, one-sided at the ends
+    gx = scratch[3]
+    gx[0] = (row[1] - row[0]) * full
+    gx[cols - 1] = (row[cols - 1] - row[cols - 2]) * full
+    for j in range(1, cols - 1):
+        gx[j] = (row[j + 1] - row[j - 1]) * half
+    # each light's term per pixel
+    l00, l01, l02 = lights[0, 0], lights[0, 1], lights[0, 2]
+    l10, l11, l12 = lights[1, 0], lights[1, 1], lights[1, 2]
+    l20, l21, l22 = lights[2, 0], lights[2, 1], lights[2, 2]
+    s0 = scratch[0]
+    s1 = scratch[1]
+    s2 = scratch[2]
+    for j in range(cols):
+        x = gx[j]
+        y = (row_up[j] - row_down[j]) * scale_y
+        norm = one / np.sqrt(one + x * x + y * y)
+        s0[j] = max(l02 - l00 * x - l01 * y, zero) * norm
+        s1[j] = max(l12 - l10 * x - l11 * y, zero) * norm
+        s2[j] = max(l22 - l20 * x - l21 * y, zero) * norm
+    # the three channels of every pixel (spelled out: the compiler vectorizes this form)
+    b0, b1, b2 = weights[0, 0], weights[0, 1], weights[0, 2]
+    m00, m01, m02 = weights[1, 0], weights[1, 1], weights[1, 2]
+    m10, m11, m12 = weights[2, 0], weights[2, 1], weights[2, 2]
+    m20, m21, m22 = weights[3, 0], weights[3, 1], weights[3, 2]
+    a = albedo[i]
+    for j in range(cols):
+        a0 = s0[j]
+        a1 = s1[j]
+        a2 = s2[j]
+        k = 3 * j
+        values[k] = a[k] * (b0 + m00 * a0 + m10 * a1 + m20 * a2)
+        values[k + 1] = a[k + 1] * (b1 + m01 * a0 + m11 * a1 + m21 * a2)
+        values[k + 2] = a[k + 2] * (b2 + m02 * a0 + m12 * a1 + m22 * a2)
 
 
 @njit(cache=True, nogil=True, inline="always", error_model="numpy", fastmath=True)
-def _gained(value: float, gain: np.ndarray, c: int,
-            use_gain: bool) -> np.uint8:  # pragma: no cover - compiled
-    # the LED brightness gain on the 8-bit value as cv2.multiply(frame, gain, dtype=CV_8U)
-    # applies it: in double precision, rounded half to even, saturated
-    if not use_gain:
-        return np.uint8(value)
-    scaled = np.rint(np.float64(value) * gain[c])
-    return np.uint8(min(max(scaled, 0.0), 255.0))
-
-
-@njit(cache=True, nogil=True, error_model="numpy", fastmath=True)
-def _flat_values(base: np.ndarray, coef: np.ndarray, lights: np.ndarray,
-                 out: np.ndarray) -> None:  # pragma: no cover - compiled
-    # _pixel with zero slopes (norm 1), before noise and rounding
+def _row_finish(values: np.ndarray, noise: np.ndarray, use_noise: bool, gain: np.ndarray,
+                out: np.ndarray) -> None:  # pragma: no cover - compiled
+    """``values`` plus ``noise``, rounded half-up and clipped to 0-255, then ``gain`` (per
+    value, float64) applied as ``cv2.multiply(frame, gain, dtype=cv2.CV_8U)`` does: in double
+    precision, rounded half to even, saturated. A gain of 1 leaves the rounded value as it
+    is (an integer times 1.0 is exact)."""
     zero = np.float32(0.0)
-    s0 = max(lights[0, 2], zero)
-    s1 = max(lights[1, 2], zero)
-    s2 = max(lights[2, 2], zero)
-    rows, cols = base.shape[0], base.shape[1]
-    for i in range(rows):
-        for j in range(cols):
-            for c in range(3):
-                out[i, j, c] = base[i, j, c] + coef[i, j, 0, c] * s0 \
-                    + coef[i, j, 1, c] * s1 + coef[i, j, 2, c] * s2
+    top = np.float32(255.0)
+    half = np.float32(0.5)
+    if use_noise:
+        for k in range(values.shape[0]):
+            v = min(max(np.floor(values[k] + noise[k] + half), zero), top)
+            out[k] = np.uint8(min(max(np.rint(np.float64(v) * gain[k]), 0.0), 255.0))
+    else:
+        for k in range(values.shape[0]):
+            v = min(max(np.floor(values[k] + half), zero), top)
+            out[k] = np.uint8(min(max(np.rint(np.float64(v) * gain[k]), 0.0), 255.0))
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=True)
-def _finish(values: np.ndarray, noise: np.ndarray, gain: np.ndarray, use_gain: bool,
-            out: np.ndarray) -> None:  # pragma: no cover - compiled
-    zero = np.float32(0.0)
-    rows, cols = values.shape[0], values.shape[1]
-    for i in range(rows):
-        for j in range(cols):
-            for c in range(3):
-                value = np.floor(values[i, j, c] + noise[i, j, c] + np.float32(0.5))
-                out[i, j, c] = _gained(min(max(value, zero), np.float32(255.0)), gain, c,
-                                       use_gain)
-
-
-@njit(cache=True, nogil=True, error_model="numpy", fastmath=True)
-def _shade(surface: np.ndarray, inv_pitch: float, base: np.ndarray, coef: np.ndarray,
+def _shade(surface: np.ndarray, inv_pitch: float, albedo: np.ndarray, weights: np.ndarray,
            lights: np.ndarray, noise: np.ndarray, use_noise: bool, gain: np.ndarray,
-           use_gain: bool, out: np.ndarray) -> None:  # pragma: no cover - compiled
+           out: np.ndarray) -> None:  # pragma: no cover - compiled
     rows, cols = surface.shape
     half = np.float32(0.5 * inv_pitch)
     full = np.float32(inv_pitch)
+    scratch = np.empty((4, cols), np.float32)
+    values = np.empty(3 * cols, np.float32)
     for i in range(rows):
-        # numpy.gradient: central differences inside, one-sided at the border
-        up = min(i + 1, rows - 1)
-        down = max(i - 1, 0)
-        scale_y = half if (up - down) == 2 else full
-        left_gx = (surface[i, 1] - surface[i, 0]) * full
-        _pixel(left_gx, (surface[up, 0] - surface[down, 0]) * scale_y, i, 0, base, coef,
-               lights, noise, use_noise, gain, use_gain, out)
-        for j in range(1, cols - 1):
-            gx = (surface[i, j + 1] - surface[i, j - 1]) * half
-            gy = (surface[up, j] - surface[down, j]) * scale_y
-            _pixel(gx, gy, i, j, base, coef, lights, noise, use_noise, gain, use_gain, out)
-        last = cols - 1
-        right_gx = (surface[i, last] - surface[i, last - 1]) * full
-        _pixel(right_gx, (surface[up, last] - surface[down, last]) * scale_y, i, last, base,
-               coef, lights, noise, use_noise, gain, use_gain, out)
+        _row_values(surface, i, half, full, albedo, weights, lights, scratch, values)
+        _row_finish(values, noise[i], use_noise, gain, out[i])
 
 
-def shade_frame(surface_mm: np.ndarray, pitch_mm: float, base: np.ndarray, coef: np.ndarray,
-                lights: np.ndarray, noise: np.ndarray | None,
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=True)
+def _values(surface: np.ndarray, inv_pitch: float, albedo: np.ndarray, weights: np.ndarray,
+            lights: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover - compiled
+    rows, cols = surface.shape
+    half = np.float32(0.5 * inv_pitch)
+    full = np.float32(inv_pitch)
+    scratch = np.empty((4, cols), np.float32)
+    for i in range(rows):
+        _row_values(surface, i, half, full, albedo, weights, lights, scratch, out[i])
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=True)
+def _finish(values: np.ndarray, noise: np.ndarray, use_noise: bool, gain: np.ndarray,
+            out: np.ndarray) -> None:  # pragma: no cover - compiled
+    for i in range(values.shape[0]):
+        _row_finish(values[i], noise[i], use_noise, gain, out[i])
+
+
+def shade_frame(surface_mm: np.ndarray, pitch_mm: float, albedo: np.ndarray,
+                weights: np.ndarray, lights: np.ndarray, noise: np.ndarray | None,
                 gain: np.ndarray | None = None) -> np.ndarray:
     """Shade one frame (see the module docstring for the formula).
 
@@ -113,8 +144,9 @@ def shade_frame(surface_mm: np.ndarray, pitch_mm: float, base: np.ndarray, coef:
     Args:
         surface_mm: (H, W) float32 gel surface.
         pitch_mm: pixel pitch (mm), > 0.
-        base: (H, W, 3) float32 static colour of flat gel minus the lit part.
-        coef: (H, W, 3 lights, 3 channels) float32 static shading weights.
+        albedo: (H, W, 3) float32 C-contiguous static colour of the lit flat gel.
+        weights: (4, 3) float32: the channels' constant term ``w0``, then each light's
+            weights ``W`` (light, channel).
         lights: (3, 3) float32 unit light directions (x, y, z) per light.
         noise: (H, W, 3) float32 camera noise, or None.
         gain: per-channel brightness gain applied to the 8-bit frame (as
@@ -127,28 +159,22 @@ def shade_frame(surface_mm: np.ndarray, pitch_mm: float, base: np.ndarray, coef:
     rows, cols = surface_mm.shape
     out = np.empty((rows, cols, 3), np.uint8)
     surface = np.ascontiguousarray(surface_mm, dtype=np.float32)
-    use_noise = noise is not None
-    noise_arr = noise if noise is not None else np.zeros((1, 1, 3), np.float32)
-    gain_arr = _gain_array(gain)
-    _shade(surface, float(1.0 / pitch_mm), base, coef, lights, noise_arr, use_noise, gain_arr,
-           gain is not None, out)
+    _shade(surface, float(1.0 / pitch_mm), _rows(albedo), weights, lights,
+           _rows(_noise_or_zeros(noise, albedo.shape)), noise is not None,
+           _gain_row(gain, cols), _rows(out))
     return out
 
 
-def _gain_array(gain: np.ndarray | None) -> np.ndarray:
-    return np.ones(3) if gain is None else np.asarray(gain, np.float64).reshape(3)
-
-
-def shaded_values(base: np.ndarray, coef: np.ndarray, lights: np.ndarray) -> np.ndarray:
+def shaded_values(albedo: np.ndarray, weights: np.ndarray, lights: np.ndarray) -> np.ndarray:
     """The colour of the flat gel (zero slopes) before noise and rounding, (H, W, 3) float32.
 
     :func:`finish_frame` of these values with a frame's noise gives the frame
-    :func:`shade_frame` renders for a flat surface with that noise (the same float32
-    arithmetic, so equal except where the two compilations round a sum differently in its
-    last bit and the value then lies on the .5 between two digital numbers: practically never).
+    :func:`shade_frame` renders for a flat surface with that noise: both are the same
+    compiled row functions, and a flat surface's slopes are exactly zero.
     """
-    out = np.empty(base.shape, np.float32)
-    _flat_values(base, coef, lights, out)
+    rows, cols = albedo.shape[0], albedo.shape[1]
+    out = np.empty(albedo.shape, np.float32)
+    _values(np.zeros((rows, cols), np.float32), 1.0, _rows(albedo), weights, lights, _rows(out))
     return out
 
 
@@ -157,6 +183,22 @@ def finish_frame(values: np.ndarray, noise: np.ndarray | None,
     """``values`` (H, W, 3 float32) plus ``noise``, rounded half-up and clipped to uint8, then
     ``gain`` applied as in :func:`shade_frame`."""
     out = np.empty(values.shape, np.uint8)
-    noise_arr = noise if noise is not None else np.zeros(values.shape, np.float32)
-    _finish(values, noise_arr, _gain_array(gain), gain is not None, out)
+    _finish(_rows(values), _rows(_noise_or_zeros(noise, values.shape)), noise is not None,
+            _gain_row(gain, values.shape[1]), _rows(out))
     return out
+
+
+def _rows(image: np.ndarray) -> np.ndarray:
+    """An (H, W, 3) array as (H, W * 3) rows (a view of a C-contiguous array)."""
+    return image.reshape(image.shape[0], -1)
+
+
+def _noise_or_zeros(noise: np.ndarray | None, shape: tuple[int, ...]) -> np.ndarray:
+    # without noise the kernels do not read it; a small stand-in keeps one compiled signature
+    return noise if noise is not None else np.zeros((shape[0], 1, 3), np.float32)
+
+
+def _gain_row(gain: np.ndarray | None, cols: int) -> np.ndarray:
+    """The per-channel gain repeated for every pixel of a row (float64, cols * 3)."""
+    g = np.ones(3) if gain is None else np.asarray(gain, np.float64).reshape(3)
+    return np.tile(g, cols)
