@@ -18,9 +18,13 @@ A source behaves like a camera:
   changes ``read_latest``: its frames just grow old, and the consumer's stale-frame logic
   applies.
 
+A live camera paced below its own rate (``fps``) takes every image off the device but
+decodes only those it publishes (OpenCV's ``grab`` and ``retrieve``): the images between
+cost no decoding.
+
 For tests, ``capture_factory`` replaces ``cv2.VideoCapture`` with any object offering
 ``isOpened()``, ``read() -> (ok, bgr)`` and ``release()`` (and optionally ``get(prop)`` for a
-file's frame rate).
+file's frame rate, and ``grab()`` with ``retrieve()`` to be read as OpenCV's are).
 """
 
 from __future__ import annotations
@@ -31,7 +35,7 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeGuard
 
 import numpy as np
 
@@ -59,6 +63,18 @@ class _Capture(Protocol):
     def isOpened(self) -> bool: ...
     def read(self) -> tuple[bool, Any]: ...
     def release(self) -> None: ...
+
+
+class _GrabCapture(_Capture, Protocol):
+    """A capture that takes an image off the device apart from decoding it (OpenCV's)."""
+
+    def grab(self) -> bool: ...
+    def retrieve(self) -> tuple[bool, Any]: ...
+
+
+def _decodes_apart(capture: _Capture) -> TypeGuard[_GrabCapture]:
+    return callable(getattr(capture, "grab", None)) and \
+        callable(getattr(capture, "retrieve", None))
 
 
 def crop_and_resize(bgr: np.ndarray, out_hw: tuple[int, int] = (240, 320),
@@ -259,6 +275,10 @@ class OpenCVCameraSensor(TactileSensor):
         capture = self._capture
         if capture is None:
             return False
+        # a live camera paced to fps (a file waits instead: see _publish)
+        live_period = None if self._file else self._period_s
+        if live_period is not None and _decodes_apart(capture):
+            return self._read_live_paced(capture, live_period)
         ok, bgr = capture.read()
         read_us = now_us()  # a live camera's image arrived (before this station's crop)
         looping = self.loop and self._file and self._newest is not None
@@ -267,10 +287,29 @@ class OpenCVCameraSensor(TactileSensor):
         if not ok or bgr is None:
             return self._end("end of the video file" if self._file else
                              "capture.read() failed (device lost or end of stream)")
+        if live_period is not None and not self._due_now(live_period):
+            return True  # frames between are dropped, not held
+        return self._publish(bgr, read_us)
+
+    def _read_live_paced(self, capture: _GrabCapture, period: float) -> bool:
+        """A live camera paced to ``fps``: every image is taken off the device as it comes
+        (``grab``), but only the due ones are decoded (``retrieve``); the images between
+        are dropped, not held and not decoded."""
+        if not capture.grab():
+            return self._end("capture.grab() failed (device lost or end of stream)")
+        read_us = now_us()  # the image arrived (before its decoding and this station's crop)
+        if not self._due_now(period):
+            return True
+        ok, bgr = capture.retrieve()
+        if not ok or bgr is None:
+            return self._end("capture.retrieve() failed (the image could not be decoded)")
+        return self._publish(bgr, read_us)
+
+    def _publish(self, bgr: Any, read_us: int) -> bool:
+        """Shape an image read at ``read_us`` and make it the newest frame (a video file's
+        after its pacing wait); False when the source ends or the sensor stops."""
         if bgr.ndim != 3 or bgr.shape[2] != 3 or bgr.dtype != np.uint8:
             return self._end(f"unexpected frame {bgr.shape} {bgr.dtype}")
-        if self._period_s is not None and not self._file and not self._due_now(self._period_s):
-            return True  # a live camera paced to fps: frames between are dropped, not held
         try:
             rgb = shape_frame(bgr, self.preset)
         except InputDataError as err:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import re
 import time
 from pathlib import Path
 from typing import Any
@@ -350,6 +351,76 @@ def test_camera_rejects_odd_frames_from_the_device() -> None:
                                 capture_factory=lambda src: FakeCapture([gray]))
     with pytest.raises(DeviceTimeoutError, match="unexpected frame"):
         sensor.connect()
+
+
+class GrabbingCapture(FakeCapture):
+    """An OpenCV-like live capture: ``grab`` takes the next image off the device (every
+    ``period_s``), ``retrieve`` decodes it (counted), ``read`` does both."""
+
+    def __init__(self, frame: np.ndarray, period_s: float = 0.002, grab_ok: bool = True,
+                 retrieve_ok: bool = True) -> None:
+        super().__init__([], repeat=frame)
+        self.frame = frame
+        self.period_s = period_s
+        self.grab_ok, self.retrieve_ok = grab_ok, retrieve_ok
+        self.grabs = self.retrieves = self.reads = 0
+
+    def grab(self) -> bool:
+        time.sleep(self.period_s)
+        self.grabs += 1
+        return self.grab_ok
+
+    def retrieve(self) -> tuple[bool, Any]:
+        self.retrieves += 1
+        return (True, self.frame.copy()) if self.retrieve_ok else (False, None)
+
+    def read(self) -> tuple[bool, Any]:
+        self.reads += 1
+        return super().read()
+
+
+def test_a_paced_live_camera_decodes_only_the_frames_it_publishes() -> None:
+    # OpenCV's V4L2 capture decodes an MJPEG image (or converts a YUYV one) in retrieve(), not
+    # in grab(): the images dropped between published frames are grabbed, never decoded
+    capture = GrabbingCapture(_raw_frame())
+    published: list[int] = []
+    sensor = OpenCVCameraSensor(0, capture_factory=lambda src: capture, fps=20.0)
+
+    def listener() -> None:
+        frame = sensor._latest()
+        assert frame is not None
+        published.append(frame.seq)
+
+    sensor.on_frame = listener
+    with sensor:
+        wait_until(lambda: len(published) >= 4, 5.0, "four frames")
+        assert sensor.read_latest(max_age_ms=scaled(200.0)).rgb.shape == (240, 320, 3)
+    assert capture.reads == 0
+    assert capture.retrieves == len(published)  # every decoded image was published
+    assert capture.grabs > capture.retrieves  # and the images between were not decoded
+
+
+def test_an_unpaced_live_camera_still_reads_every_frame() -> None:
+    # without fps a live camera paces itself: each image is published, so read() as before
+    # (a video file reads too: the file tests run on OpenCV's own capture)
+    capture = GrabbingCapture(_raw_frame())
+    with OpenCVCameraSensor(0, capture_factory=lambda src: capture) as sensor:
+        sensor.read_latest(max_age_ms=scaled(1000.0))
+    assert capture.reads >= 1 and capture.grabs == 0 and capture.retrieves == 0
+
+
+@pytest.mark.parametrize(("grab_ok", "retrieve_ok", "reason"), [
+    (False, True, "capture.grab() failed"),
+    (True, False, "capture.retrieve() failed"),
+])
+def test_a_paced_live_camera_that_fails_to_grab_or_decode_ends_with_the_reason(
+        grab_ok: bool, retrieve_ok: bool, reason: str) -> None:
+    capture = GrabbingCapture(_raw_frame(), grab_ok=grab_ok, retrieve_ok=retrieve_ok)
+    sensor = OpenCVCameraSensor(0, capture_factory=lambda src: capture, fps=20.0,
+                                first_frame_timeout_s=scaled(0.5))
+    with pytest.raises(DeviceTimeoutError, match=re.escape(reason)):
+        sensor.connect()
+    assert capture.released
 
 
 # --------------------------------------------------------------------------- registry
