@@ -14,11 +14,17 @@ The frame is done a row at a time in short loops over contiguous memory, which t
 compiler turns into vector instructions: the row's slopes, the three lights' terms per
 pixel, the colour of each pixel's three channels, then noise, rounding and the brightness
 gain. The one static image read per frame is the albedo (H x W x 3 float32). The earlier
-kernel read a static colour and nine weights per pixel (four times the memory) and
-rounded each channel with the gain's branch inside; it was 2.5x slower warm
-(``benchmarks/bench_sim_sensor.py``). Flat and pressed frames are rounded by the same row
-function, so the flat gel's cached values (:func:`shaded_values`) finish to the bytes the
-full shading gives a flat surface.
+kernel went pixel by pixel with the channels innermost, read a static colour and nine
+weights per pixel, and applied the gain with its branch inside; the shading alone took
+about 5x as long warm (786 against 159 us for a pressed 320 x 240 frame with the LED gain),
+the whole render step 2.9x (``benchmarks/bench_sim_sensor.py``). Flat and pressed frames
+are finished by the same row function, and the flat gel's cached values
+(:func:`shaded_values`) by the same row arithmetic as the full shading of a flat surface,
+whose slopes are exactly zero: the bytes are equal (checked on noisy frames with a gain;
+both are compiled from the same source, so equal instruction choices are expected, not
+guaranteed by the compiler).
+
+The kernels do not check bounds: the public functions check the shapes first.
 """
 
 from __future__ import annotations
@@ -157,6 +163,7 @@ def shade_frame(surface_mm: np.ndarray, pitch_mm: float, albedo: np.ndarray,
         (H, W, 3) uint8 frame.
     """
     rows, cols = surface_mm.shape
+    _check_shapes((rows, cols), albedo, weights, lights, noise)
     out = np.empty((rows, cols, 3), np.uint8)
     surface = np.ascontiguousarray(surface_mm, dtype=np.float32)
     _shade(surface, float(1.0 / pitch_mm), _rows(albedo), weights, lights,
@@ -169,10 +176,11 @@ def shaded_values(albedo: np.ndarray, weights: np.ndarray, lights: np.ndarray) -
     """The colour of the flat gel (zero slopes) before noise and rounding, (H, W, 3) float32.
 
     :func:`finish_frame` of these values with a frame's noise gives the frame
-    :func:`shade_frame` renders for a flat surface with that noise: both are the same
-    compiled row functions, and a flat surface's slopes are exactly zero.
+    :func:`shade_frame` renders for a flat surface with that noise (see the module
+    docstring).
     """
     rows, cols = albedo.shape[0], albedo.shape[1]
+    _check_shapes((rows, cols), albedo, weights, lights, None)
     out = np.empty(albedo.shape, np.float32)
     _values(np.zeros((rows, cols), np.float32), 1.0, _rows(albedo), weights, lights, _rows(out))
     return out
@@ -182,10 +190,23 @@ def finish_frame(values: np.ndarray, noise: np.ndarray | None,
                  gain: np.ndarray | None = None) -> np.ndarray:
     """``values`` (H, W, 3 float32) plus ``noise``, rounded half-up and clipped to uint8, then
     ``gain`` applied as in :func:`shade_frame`."""
+    _check_shapes(values.shape[:2], values, None, None, noise)
     out = np.empty(values.shape, np.uint8)
     _finish(_rows(values), _rows(_noise_or_zeros(noise, values.shape)), noise is not None,
             _gain_row(gain, values.shape[1]), _rows(out))
     return out
+
+
+def _check_shapes(hw: tuple[int, ...], image: np.ndarray, weights: np.ndarray | None,
+                  lights: np.ndarray | None, noise: np.ndarray | None) -> None:
+    """The shapes the kernels index without bounds checks (ValueError otherwise)."""
+    rows, cols = hw
+    if rows < 1 or cols < 2:
+        raise ValueError(f"a frame of {rows} x {cols} pixels cannot be shaded")
+    for name, array, shape in (("image", image, (rows, cols, 3)), ("weights", weights, (4, 3)),
+                               ("lights", lights, (3, 3)), ("noise", noise, (rows, cols, 3))):
+        if array is not None and array.shape != shape:
+            raise ValueError(f"{name} of shape {array.shape}, expected {shape}")
 
 
 def _rows(image: np.ndarray) -> np.ndarray:

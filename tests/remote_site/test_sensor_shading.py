@@ -93,13 +93,13 @@ def test_flat_gel_fast_path_equals_the_fused_kernel_with_the_same_noise() -> Non
     settings_ = PhotometricSettings(noise_dn=2.1, marker_pitch_mm=1.2, brightness=(1.1, 0.9, 1.0))
     fast, fused = PhotometricModel(settings_, seed=5), PhotometricModel(settings_, seed=5)
     flat = np.zeros((240, 320), np.float32)
-    for _ in range(5):
-        got = fast.render(flat).astype(int)
+    gain = np.array([1.03, 0.97, 1.0])
+    for _ in range(5):  # the same bytes: the same row arithmetic (see shading's docstring)
+        got = fast.render(flat, gain=gain)
         noise = fused._noise_sample()
-        want = shade_frame(flat, settings_.mm_per_px, fused._albedo, fused._weights, fused._lights,
-                           noise).astype(int)
-        diff = np.abs(got - want)
-        assert diff.max() <= 1 and np.count_nonzero(diff) <= 1e-5 * diff.size
+        np.testing.assert_array_equal(got, shade_frame(
+            flat, settings_.mm_per_px, fused._albedo, fused._weights, fused._lights, noise,
+            gain))
     np.testing.assert_array_equal(fast.render(flat, noise=False),
                                   shade_frame(flat, settings_.mm_per_px, fused._albedo,
                                               fused._weights, fused._lights, None))
@@ -129,3 +129,46 @@ def test_brightness_gain_in_the_kernel_equals_cv2_multiply(
     want = cv2.multiply(plain, (float(g32[0]), float(g32[1]), float(g32[2]), 0.0),  # type: ignore[call-overload,unused-ignore]
                         dtype=cv2.CV_8U)
     np.testing.assert_array_equal(got, np.asarray(want))
+
+
+@pytest.mark.parametrize("shape_hw", [(9, 13), (320, 240), (31, 257)])
+def test_other_frame_shapes_match_the_reference(shape_hw: tuple[int, int]) -> None:
+    rows, cols = shape_hw
+    model = PhotometricModel(PhotometricSettings(shape_hw=shape_hw, marker_pitch_mm=0.3))
+    yy, xx = np.mgrid[0:rows, 0:cols]
+    r2 = ((xx - cols / 3) ** 2 + (yy - rows / 2) ** 2) / (0.4 * max(rows, cols)) ** 2
+    depth = (0.3 * np.sqrt(np.maximum(1.0 - r2, 0.0))).astype(np.float32)
+    diff = np.abs(model.render(depth, noise=False).astype(int)
+                  - _reference(model, depth).astype(int))
+    assert diff.max() <= 1 and np.count_nonzero(diff) <= max(2, 1e-3 * diff.size)
+
+
+def test_rounding_clipping_and_gain_at_the_ends_of_the_range() -> None:
+    # what the default optics never reach: values below 0 and above 255 before the gain,
+    # a gain that saturates, and a product exactly on .5 (cv2.multiply rounds half to even)
+    from remote_site.sensor.shading import finish_frame
+
+    values = np.array([[[3.0, 250.0, 299.6], [-4.0, 2.5, 100.2]]], np.float32)
+    gain = np.array([1.5, 1.2, 0.5])
+    # 3 * 1.5 = 4.5 -> 4; 300 clipped to 255 before the gain: 127.5 -> 128 (not 150)
+    np.testing.assert_array_equal(finish_frame(values, None, gain), [[[4, 255, 128], [0, 4, 50]]])
+    noise = np.array([[[0.0, 10.0, -0.3], [-10.0, 0.0, 300.0]]], np.float32)
+    np.testing.assert_array_equal(finish_frame(values, noise), [[[3, 255, 255], [0, 3, 255]]])
+    np.testing.assert_array_equal(finish_frame(values, noise, gain),
+                                  [[[4, 255, 128], [0, 4, 128]]])
+
+
+def test_shapes_the_kernels_would_read_past_are_refused() -> None:
+    from remote_site.sensor.shading import finish_frame, shade_frame
+
+    model = PhotometricModel()
+    surface = np.zeros((240, 320), np.float32)
+    with pytest.raises(ValueError, match="noise"):
+        shade_frame(surface, 0.06, model._albedo, model._weights, model._lights,
+                    np.zeros((120, 320, 3), np.float32))
+    with pytest.raises(ValueError, match="image"):
+        shade_frame(surface, 0.06, model._albedo[:100], model._weights, model._lights, None)
+    with pytest.raises(ValueError, match="weights"):
+        shade_frame(surface, 0.06, model._albedo, model._weights[:3], model._lights, None)
+    with pytest.raises(ValueError, match="noise"):
+        finish_frame(np.zeros((4, 4, 3), np.float32), np.zeros((4, 3, 3), np.float32))
