@@ -18,9 +18,14 @@ A source behaves like a camera:
   changes ``read_latest``: its frames just grow old, and the consumer's stale-frame logic
   applies.
 
-A live camera paced below its own rate (``fps``) takes every image off the device but
-decodes only those it publishes (OpenCV's ``grab`` and ``retrieve``): the images between
-cost no decoding.
+A live camera is read in two steps where the capture offers them (OpenCV's ``grab`` and
+``retrieve``): each image is stamped as it is taken off the device, before its decoding, and
+one paced below its own rate (``fps``) decodes only the images it publishes. With OpenCV's
+V4L2 capture (a USB camera on Linux) ``retrieve`` does the decoding (MJPEG) or the colour
+conversion (YUYV), so the images dropped between cost none of it. With its FFmpeg capture
+(``rtsp://``, ``http://`` URLs) ``grab`` decodes and only the colour conversion is saved; a
+GStreamer pipeline decodes in its own threads. Never more work than ``read()``, which is
+``grab()`` then ``retrieve()``.
 
 For tests, ``capture_factory`` replaces ``cv2.VideoCapture`` with any object offering
 ``isOpened()``, ``read() -> (ok, bgr)`` and ``release()`` (and optionally ``get(prop)`` for a
@@ -124,6 +129,8 @@ class OpenCVCameraSensor(TactileSensor):
             stamped that much before they arrive, so the station pairs each with the command
             and the arm pose of its time, and ages it as what it is. 0 (the default): stamped
             at arrival, an upper bound on the image's time. Not measured here for any preset.
+            Arrival is when the image is taken off the device (``grab``, before decoding) where
+            the capture offers ``grab`` and ``retrieve``; when ``read()`` returns otherwise.
 
     Raises:
         ConfigError: an unknown preset, a non-positive rate / timeout, or a negative or
@@ -275,10 +282,10 @@ class OpenCVCameraSensor(TactileSensor):
         capture = self._capture
         if capture is None:
             return False
-        # a live camera paced to fps (a file waits instead: see _publish)
+        # a live camera paced to fps drops images (a file waits instead: see _publish)
         live_period = None if self._file else self._period_s
-        if live_period is not None and _decodes_apart(capture):
-            return self._read_live_paced(capture, live_period)
+        if not self._file and _decodes_apart(capture):
+            return self._read_live(capture, live_period)
         ok, bgr = capture.read()
         read_us = now_us()  # a live camera's image arrived (before this station's crop)
         looping = self.loop and self._file and self._newest is not None
@@ -291,14 +298,14 @@ class OpenCVCameraSensor(TactileSensor):
             return True  # frames between are dropped, not held
         return self._publish(bgr, read_us)
 
-    def _read_live_paced(self, capture: _GrabCapture, period: float) -> bool:
-        """A live camera paced to ``fps``: every image is taken off the device as it comes
-        (``grab``), but only the due ones are decoded (``retrieve``); the images between
-        are dropped, not held and not decoded."""
+    def _read_live(self, capture: _GrabCapture, period: float | None) -> bool:
+        """A live camera in two steps: the image is taken off the device (``grab``) and
+        stamped, then decoded (``retrieve``). Paced to ``fps`` (``period``), only the due
+        images are decoded; those between are dropped, not held and not decoded."""
         if not capture.grab():
             return self._end("capture.grab() failed (device lost or end of stream)")
         read_us = now_us()  # the image arrived (before its decoding and this station's crop)
-        if not self._due_now(period):
+        if period is not None and not self._due_now(period):
             return True
         ok, bgr = capture.retrieve()
         if not ok or bgr is None:

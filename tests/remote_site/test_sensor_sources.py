@@ -358,10 +358,12 @@ class GrabbingCapture(FakeCapture):
     ``period_s``), ``retrieve`` decodes it (counted), ``read`` does both."""
 
     def __init__(self, frame: np.ndarray, period_s: float = 0.002, grab_ok: bool = True,
-                 retrieve_ok: bool = True) -> None:
+                 retrieve_ok: bool = True, retrieve_s: float = 0.0) -> None:
         super().__init__([], repeat=frame)
         self.frame = frame
         self.period_s = period_s
+        self.retrieve_s = retrieve_s
+        self.retrieve_started_us: list[int] = []
         self.grab_ok, self.retrieve_ok = grab_ok, retrieve_ok
         self.grabs = self.retrieves = self.reads = 0
 
@@ -371,6 +373,8 @@ class GrabbingCapture(FakeCapture):
         return self.grab_ok
 
     def retrieve(self) -> tuple[bool, Any]:
+        self.retrieve_started_us.append(now_us())
+        time.sleep(self.retrieve_s)
         self.retrieves += 1
         return (True, self.frame.copy()) if self.retrieve_ok else (False, None)
 
@@ -400,13 +404,38 @@ def test_a_paced_live_camera_decodes_only_the_frames_it_publishes() -> None:
     assert capture.grabs > capture.retrieves  # and the images between were not decoded
 
 
-def test_an_unpaced_live_camera_still_reads_every_frame() -> None:
-    # without fps a live camera paces itself: each image is published, so read() as before
-    # (a video file reads too: the file tests run on OpenCV's own capture)
+def test_an_unpaced_live_camera_decodes_every_image_it_grabs() -> None:
+    # without fps a live camera paces itself: every image is published (a video file is
+    # read(): the file tests run on OpenCV's own capture)
     capture = GrabbingCapture(_raw_frame())
-    with OpenCVCameraSensor(0, capture_factory=lambda src: capture) as sensor:
-        sensor.read_latest(max_age_ms=scaled(1000.0))
-    assert capture.reads >= 1 and capture.grabs == 0 and capture.retrieves == 0
+    published: list[int] = []
+    sensor = OpenCVCameraSensor(0, capture_factory=lambda src: capture)
+    sensor.on_frame = lambda: published.append(1)
+    with sensor:
+        wait_until(lambda: len(published) >= 3, 5.0, "three frames")
+    assert capture.reads == 0 and capture.grabs == capture.retrieves == len(published)
+
+
+@pytest.mark.parametrize("fps", [None, 20.0])
+def test_a_live_camera_stamps_an_image_when_grabbed_before_decoding_it(
+        fps: float | None) -> None:
+    # the image arrived when it was taken off the device: its stamp comes before its
+    # decoding starts (a slow decoder does not make an image look younger)
+    capture = GrabbingCapture(_raw_frame(), retrieve_s=0.01)
+    arrivals: dict[int, int] = {}
+    sensor = OpenCVCameraSensor(0, capture_factory=lambda src: capture, fps=fps)
+
+    def listener() -> None:
+        frame = sensor._latest()
+        assert frame is not None
+        arrivals[frame.seq] = frame.received_us
+
+    sensor.on_frame = listener
+    with sensor:
+        wait_until(lambda: len(arrivals) >= 3, 5.0, "three frames")
+    assert capture.reads == 0
+    for seq, arrival_us in arrivals.items():  # frame seq n is the n-th image decoded
+        assert arrival_us <= capture.retrieve_started_us[seq - 1], (seq, arrivals)
 
 
 @pytest.mark.parametrize(("grab_ok", "retrieve_ok", "reason"), [
