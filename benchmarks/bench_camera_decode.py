@@ -139,16 +139,42 @@ def run_once(way: str, images: list[bytes], camera_fps: float, publish_fps: floa
             "cpu_ms_per_frame": 1e3 * cpu / max(frames, 1)}
 
 
+def _size(text: str) -> tuple[int, int]:
+    """``WxH``, both from 16 to 8192."""
+    w, sep, h = text.lower().partition("x")
+    if not (sep and w.isdigit() and h.isdigit() and 16 <= int(w) <= 8192
+            and 16 <= int(h) <= 8192):
+        raise argparse.ArgumentTypeError(f"{text!r}: WxH, e.g. 640x480 (16-8192 each)")
+    return int(w), int(h)
+
+
+def _positive(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not (value > 0 and value < float("inf")):
+        raise argparse.ArgumentTypeError(f"{text!r}: a finite number > 0")
+    return value
+
+
+def _count(text: str) -> int:
+    if not text.isdigit() or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: a whole number >= 1")
+    return int(text)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--size", default="640x480", help="image size WxH (default 640x480)")
-    ap.add_argument("--camera-fps", type=float, default=60.0)
-    ap.add_argument("--publish-fps", type=float, default=25.0, help="the sensor's fps")
-    ap.add_argument("--seconds", type=float, default=5.0)
-    ap.add_argument("--rounds", type=int, default=4)
+    ap.add_argument("--size", type=_size, default=(640, 480),
+                    help="image size WxH (default 640x480)")
+    ap.add_argument("--camera-fps", type=_positive, default=60.0)
+    ap.add_argument("--publish-fps", type=_positive, default=25.0, help="the sensor's fps")
+    ap.add_argument("--seconds", type=_positive, default=5.0)
+    ap.add_argument("--rounds", type=_count, default=4)
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
-    w, h = (int(v) for v in args.size.lower().split("x"))
+    w, h = args.size
     images = jpeg_images((w, h))
     runs: list[dict[str, Any]] = []
     for rnd in range(1, args.rounds + 1):
@@ -176,7 +202,7 @@ def main(argv: list[str] | None = None) -> int:
     (args.out / "runs.json").write_text(json.dumps(runs, indent=1))
     (args.out / "README.md").write_text(
         "# A paced live camera: decoding every image against only the due ones\n\n"
-        f"`python benchmarks/bench_camera_decode.py --size {args.size} --camera-fps "
+        f"`python benchmarks/bench_camera_decode.py --size {w}x{h} --camera-fps "
         f"{args.camera_fps:g} --publish-fps {args.publish_fps:g} --seconds {args.seconds:g} "
         f"--rounds {args.rounds}`: {len(images)} real GelSight Mini presses from the kit at "
         f"{w}x{h}, JPEG quality 90, decoded by `cv2.imdecode` in the stand-in's `retrieve` "

@@ -156,12 +156,18 @@ def report(runs: list[dict[str, Any]], trees: list[str], work: Path) -> str:
     return "\n".join(lines)
 
 
+def _count(text: str) -> int:
+    if not text.isdigit() or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: a whole number >= 1")
+    return int(text)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--tree", action="append", default=[], metavar="NAME=ROOT",
                     help="a checkout with its own .venv (repeat; the first is the reference)")
-    ap.add_argument("--rounds", type=int, default=4)
-    ap.add_argument("--repeats", type=int, default=3, help="passes over the poses per pacing")
+    ap.add_argument("--rounds", type=_count, default=4)
+    ap.add_argument("--repeats", type=_count, default=3, help="passes over the poses per pacing")
     ap.add_argument("--out", type=Path, help="results directory (runs.json, README.md)")
     ap.add_argument("--child", type=Path, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
