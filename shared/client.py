@@ -473,11 +473,16 @@ class StationLink:
             await asyncio.sleep(delay)
 
     async def _connect_once(self) -> None:
-        transport = await asyncio.wait_for(open_client_transport(
-            self.scheme, self.host, self.port, self.url,
-            max_message_bytes=self._session.max_message_bytes,
-            open_timeout_s=self._connect_timeout_s, write_buffer_bytes=self._write_buffer_bytes,
-            ssl_context=self._ssl_context), self._connect_timeout_s)
+        # asyncio.timeout, not wait_for: on Python 3.11 a wait_for cancelled (the link
+        # closing) just as the connection opened drops the opened transport, whose socket
+        # then stays open until the garbage collector finds it; cancelled here, the connect
+        # itself is interrupted and closes what it opened
+        async with asyncio.timeout(self._connect_timeout_s):
+            transport = await open_client_transport(
+                self.scheme, self.host, self.port, self.url,
+                max_message_bytes=self._session.max_message_bytes,
+                open_timeout_s=self._connect_timeout_s,
+                write_buffer_bytes=self._write_buffer_bytes, ssl_context=self._ssl_context)
         writer: asyncio.Task[None] | None = None
         try:
             await transport.write([self._session.connect(transport.framing, now_us())])
