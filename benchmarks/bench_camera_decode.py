@@ -42,6 +42,7 @@ if str(ROOT) not in sys.path:
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
+from benchmarks.cli_args import count, positive  # noqa: E402
 from remote_site.sensor.camera import OpenCVCameraSensor  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data" / "gelsight" / "gsmini_ball_9.47mm"
@@ -123,11 +124,11 @@ def run_once(way: str, images: list[bytes], camera_fps: float, publish_fps: floa
     sensor = OpenCVCameraSensor(0, capture_factory=lambda src: capture, fps=publish_fps)
     published = 0
 
-    def count() -> None:
+    def one_published() -> None:
         nonlocal published
         published += 1
 
-    sensor.on_frame = count
+    sensor.on_frame = one_published
     with sensor:
         time.sleep(0.5)  # past the first frame
         cpu0, wall0, pub0, dec0 = time.process_time(), time.monotonic(), published, \
@@ -148,30 +149,16 @@ def _size(text: str) -> tuple[int, int]:
     return int(w), int(h)
 
 
-def _positive(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
-    if not (value > 0 and value < float("inf")):
-        raise argparse.ArgumentTypeError(f"{text!r}: a finite number > 0")
-    return value
-
-
-def _count(text: str) -> int:
-    if not text.isdigit() or int(text) < 1:
-        raise argparse.ArgumentTypeError(f"{text!r}: a whole number >= 1")
-    return int(text)
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", type=_size, default=(640, 480),
                     help="image size WxH (default 640x480)")
-    ap.add_argument("--camera-fps", type=_positive, default=60.0)
-    ap.add_argument("--publish-fps", type=_positive, default=25.0, help="the sensor's fps")
-    ap.add_argument("--seconds", type=_positive, default=5.0)
-    ap.add_argument("--rounds", type=_count, default=4)
+    ap.add_argument("--camera-fps", type=positive, default=60.0)
+    ap.add_argument("--publish-fps", type=positive, default=25.0, help="the sensor's fps")
+    ap.add_argument("--seconds", type=positive, default=5.0)
+    ap.add_argument("--rounds", type=count, default=4)
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
     w, h = args.size

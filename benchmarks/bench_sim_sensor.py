@@ -33,6 +33,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -156,18 +157,21 @@ def report(runs: list[dict[str, Any]], trees: list[str], work: Path) -> str:
     return "\n".join(lines)
 
 
-def _count(text: str) -> int:
-    if not text.isdigit() or int(text) < 1:
-        raise argparse.ArgumentTypeError(f"{text!r}: a whole number >= 1")
-    return int(text)
-
 
 def main(argv: list[str] | None = None) -> int:
+    count: Callable[[str], int] = int  # a child: its parent checked the values
+    if "--child" not in (sys.argv[1:] if argv is None else argv):
+        # here, not at the top: a child runs with another tree's packages first on its path
+        repo = str(Path(__file__).resolve().parents[1])
+        if repo not in sys.path:
+            sys.path.insert(0, repo)
+        from benchmarks.cli_args import count
+
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--tree", action="append", default=[], metavar="NAME=ROOT",
                     help="a checkout with its own .venv (repeat; the first is the reference)")
-    ap.add_argument("--rounds", type=_count, default=4)
-    ap.add_argument("--repeats", type=_count, default=3, help="passes over the poses per pacing")
+    ap.add_argument("--rounds", type=count, default=4)
+    ap.add_argument("--repeats", type=count, default=3, help="passes over the poses per pacing")
     ap.add_argument("--out", type=Path, help="results directory (runs.json, README.md)")
     ap.add_argument("--child", type=Path, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
