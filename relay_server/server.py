@@ -97,7 +97,7 @@ _WS_LOG.addFilter(_RedactAuthorization())
 #: close, so the error is not destroyed by a reset (less than _CLOSE_TIMEOUT_S)
 _TCP_LINGER_S = 1.0
 _EVENTS_PER_FLUSH = 32  # messages of one TCP chunk routed before their forwards are written
-#: the WebSocket opening handshake must be done within this time
+#: the WebSocket opening handshake (and a TLS handshake) must be done within this time
 _OPEN_TIMEOUT_S = 10.0
 #: high-water mark of a WebSocket connection's write buffer
 _WS_WRITE_LIMIT = 256 * 1024
@@ -175,11 +175,14 @@ class RelayServer:
         def tcp_wire() -> TcpWire:
             return TcpWire(self._serve, self._wires, linger_s=_TCP_LINGER_S)
 
+        # a TLS handshake left unfinished is cut like an unfinished WebSocket opening (else
+        # asyncio's 60 s default holds the connection)
+        tls: dict[str, Any] = {} if self.tls is None else {
+            "ssl": self.tls, "ssl_handshake_timeout": _OPEN_TIMEOUT_S}
         self._ws_server = await loop.create_server(
-            ws_wire, cfg.host, cfg.port, ssl=self.tls, reuse_port=cfg.reuse_port or None)
+            ws_wire, cfg.host, cfg.port, reuse_port=cfg.reuse_port or None, **tls)
         self._tcp_server = await loop.create_server(
-            tcp_wire, cfg.host, cfg.resolved_tcp_port, ssl=self.tls,
-            reuse_port=cfg.reuse_port or None)
+            tcp_wire, cfg.host, cfg.resolved_tcp_port, reuse_port=cfg.reuse_port or None, **tls)
         ws, tcp = ("wss", "tls") if self.tls is not None else ("ws", "tcp")
         log.info("relay listening: %s://%s:%d (status: /status, /metrics), %s://%s:%d",
                  ws, cfg.host, self.ws_port, tcp, cfg.host, self.tcp_port)

@@ -123,11 +123,26 @@ class Client:
 
     async def close(self) -> None:
         if self.ws is not None:
-            await self.ws.close()
+            # read and drop what the relay still sends (as the station's transport does): an
+            # unread queue above websockets' high-water mark stops reading, the relay's close
+            # frame stays unread and the handshake waits out its 10 s close timeout
+            discard = asyncio.ensure_future(self._discard_incoming(self.ws))
+            try:
+                await self.ws.close()
+            finally:
+                discard.cancel()
+                await asyncio.gather(discard, return_exceptions=True)
         if self.writer is not None:
             self.writer.close()
             with contextlib.suppress(OSError, ConnectionError):
                 await self.writer.wait_closed()
+
+
+    @staticmethod
+    async def _discard_incoming(ws: ClientConnection) -> None:
+        with contextlib.suppress(ConnectionClosed, RuntimeError):  # RuntimeError: a reader
+            while True:  # is already receiving
+                await ws.recv(decode=False)
 
 
 @contextlib.asynccontextmanager

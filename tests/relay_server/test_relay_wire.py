@@ -22,6 +22,7 @@ from websockets.http11 import Response
 from websockets.protocol import State
 from websockets.uri import parse_uri
 
+from relay_server import server as relay_module
 from relay_server.auth import derive_token
 from relay_server.server import RelayServer
 from relay_server.wire import _SLICE_BYTES
@@ -314,17 +315,24 @@ async def test_a_slow_reader_only_fills_its_own_bounded_outbox() -> None:
 
 
 async def test_tls_ports_survive_plain_bytes_and_broken_handshakes(
-        lab_pki: dict[str, Path]) -> None:  # noqa: F811
+        lab_pki: dict[str, Path], monkeypatch: pytest.MonkeyPatch) -> None:  # noqa: F811
+    open_timeout_s = scaled(0.5)
+    monkeypatch.setattr(relay_module, "_OPEN_TIMEOUT_S", open_timeout_s)
     async with running_relay(tls_cert=lab_pki["relay.crt"], tls_key=lab_pki["relay.key"]
                              ) as relay:
         for port in (relay.ws_port, relay.tcp_port):
+            # plain bytes, a TLS record cut short (the handshake never finishes: cut after
+            # the open timeout, not asyncio's 60 s), a station's message without TLS
             for blob in (b"GET /status HTTP/1.1\r\n\r\n", b"\x16\x03\x01\x00\xff garbage",
                          frame(_hello("local", "x"))):
                 reader, writer = await asyncio.open_connection("127.0.0.1", port)
                 writer.write(blob)
-                with contextlib.suppress(OSError):
-                    async with asyncio.timeout(scaled(5.0)):
-                        await reader.read()  # the relay ends it
+                t0 = asyncio.get_running_loop().time()
+                async with asyncio.timeout(open_timeout_s + scaled(5.0)):
+                    with contextlib.suppress(ConnectionError):
+                        while await reader.read(4096):  # until the relay ends it
+                            pass
+                assert asyncio.get_running_loop().time() - t0 <= open_timeout_s + scaled(2.0)
                 writer.close()
         ctx = ssl.create_default_context(cafile=str(lab_pki["ca.crt"]))
         # a TLS handshake, then a station's messages on the TLS TCP port
