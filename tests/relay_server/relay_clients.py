@@ -137,7 +137,6 @@ class Client:
             with contextlib.suppress(OSError, ConnectionError):
                 await self.writer.wait_closed()
 
-
     @staticmethod
     async def _discard_incoming(ws: ClientConnection) -> None:
         with contextlib.suppress(ConnectionClosed, RuntimeError):  # RuntimeError: a reader
