@@ -271,19 +271,30 @@ class RandomWalk(MotionSource):
         self._n = 1
 
     def _extend(self, n_needed: int) -> None:
+        # one step per grid point, in plain floats per axis (about 20x faster than the same
+        # arithmetic on 3-element arrays, and the same IEEE operations in the same order)
+        decay, step = self._decay, self._step_s
+        lo, hi = self._lo.tolist(), self._hi.tolist()
         while self._n < n_needed:
             noise = self._rng.standard_normal((self._CHUNK, 3))
             chunk = np.empty((self._CHUNK, 3))
-            p = self._pos[-1][-1].copy()
-            v = self._vel
-            for i in range(self._CHUNK):
-                v = self._decay * v + self._kick * noise[i]
-                p = p + v * self._step_s
-                low, high = p < self._lo, p > self._hi
-                p = np.where(low, 2 * self._lo - p, np.where(high, 2 * self._hi - p, p))
-                v = np.where(low | high, -v, v)
-                chunk[i] = p
-            self._vel = v
+            last = self._pos[-1][-1]
+            vel = self._vel.tolist()
+            for a in range(3):
+                p, v, kick, low, high = float(last[a]), vel[a], float(self._kick[a]), lo[a], hi[a]
+                column = noise[:, a].tolist()
+                out = [0.0] * self._CHUNK
+                for i in range(self._CHUNK):
+                    v = decay * v + kick * column[i]
+                    p = p + v * step
+                    if p < low:  # reflected at the bound, the velocity turned
+                        p, v = 2 * low - p, -v
+                    elif p > high:
+                        p, v = 2 * high - p, -v
+                    out[i] = p
+                vel[a] = v
+                chunk[:, a] = out
+            self._vel = np.array(vel)
             self._pos.append(chunk)
             self._n += self._CHUNK
         if len(self._pos) > 1:
@@ -296,8 +307,11 @@ class RandomWalk(MotionSource):
         idx = t / self._step_s
         self._extend(int(np.max(idx, initial=0.0)) + 2)
         path = self._pos[0]
-        grid = np.arange(path.shape[0])
-        return np.stack([np.interp(idx, grid, path[:, a]) for a in range(3)], axis=1)
+        # linear between grid points (np.interp's arithmetic, without its O(n) grid)
+        j = np.floor(idx).astype(np.intp)
+        frac = (idx - j)[..., None]
+        left = path[j]
+        return (path[j + 1] - left) * frac + left
 
 
 class ReplayMotion(WaypointMotion):

@@ -81,6 +81,51 @@ def test_random_walk_stays_in_bounds_and_is_order_independent(seed: int, t_max: 
     assert np.all(np.isfinite(forward))
 
 
+def _walk_reference(seed: int, n: int, speed: float, z_speed: float, correlation_s: float,
+                    step_s: float, margin: float) -> np.ndarray:
+    """The walk's recurrence written out step by step on arrays (the walk's grid points):
+    Ornstein-Uhlenbeck velocity, position integrated, reflected at [margin, bound - margin]
+    with the velocity turned; noise drawn in the walk's chunks of 4096 steps."""
+    rng = np.random.default_rng(seed)
+    lo = np.full(3, margin)
+    hi = np.array([60.0, 60.0, 185.0]) - margin
+    decay = np.exp(-step_s / correlation_s)
+    kick = np.array([speed, speed, z_speed]) * np.sqrt(1 - decay**2)
+    p = np.clip(np.array([30.0, 30.0, 92.5]), lo, hi)
+    v = np.zeros(3)
+    out = [p]
+    noise = np.empty((0, 3))
+    for i in range(n - 1):
+        if i % 4096 == 0:
+            noise = rng.standard_normal((4096, 3))
+        v = decay * v + kick * noise[i % 4096]
+        p = p + v * step_s
+        low, high = p < lo, p > hi
+        p = np.where(low, 2 * lo - p, np.where(high, 2 * hi - p, p))
+        v = np.where(low | high, -v, v)
+        out.append(p)
+    return np.array(out)
+
+
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 2**31), speed=st.floats(0.0, 300.0),
+       correlation_s=st.floats(0.01, 5.0), margin=st.floats(0.0, 25.0))
+def test_random_walk_is_its_recurrence_exactly(seed: int, speed: float, correlation_s: float,
+                                               margin: float) -> None:
+    # on its grid points the walk is the recurrence, bit for bit (the walk runs it in plain
+    # floats per axis), over more than one chunk and with fast walks that hit the bounds;
+    # between grid points it is linear
+    step_s, n = 1 / 256, 9000  # a binary fraction: k * step / step is k exactly
+    walk = RandomWalk(seed, speed_mm_s=speed, z_speed_mm_s=speed / 5, correlation_s=correlation_s,
+                      margin_mm=margin, step_s=step_s)
+    expected = _walk_reference(seed, n, speed, speed / 5, correlation_s, step_s, margin)
+    grid = walk.sample(np.arange(n) * step_s)
+    np.testing.assert_array_equal(grid, expected)
+    between = walk.sample((np.arange(n - 1) + 0.25) * step_s)
+    np.testing.assert_allclose(between, 0.75 * expected[:-1] + 0.25 * expected[1:],
+                               rtol=0, atol=1e-9)
+
+
 def test_random_walk_seeds_differ_and_move() -> None:
     t = np.linspace(0, 5, 100)
     a, b = RandomWalk(1).sample(t), RandomWalk(2).sample(t)
