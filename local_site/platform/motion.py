@@ -238,7 +238,8 @@ class RandomWalk(MotionSource):
         z_speed_mm_s: RMS speed on z.
         correlation_s: velocity correlation time.
         start_mm: starting position (default: centre of the workspace, z at 100 mm).
-        workspace_mm: bounds; the walk stays within [margin, bound - margin].
+        workspace_mm: bounds; the walk stays within [margin, bound - margin] (a step longer
+            than that room, from a high speed or a wide margin, is folded back in).
         margin_mm: distance kept from each bound.
         step_s: generation grid.
     """
@@ -272,7 +273,8 @@ class RandomWalk(MotionSource):
 
     def _extend(self, n_needed: int) -> None:
         # one step per grid point, in plain floats per axis (about 20x faster than the same
-        # arithmetic on 3-element arrays, and the same IEEE operations in the same order)
+        # arithmetic on 3-element arrays, with the same IEEE operations in the same order:
+        # the same finite values)
         decay, step = self._decay, self._step_s
         lo, hi = self._lo.tolist(), self._hi.tolist()
         while self._n < n_needed:
@@ -291,6 +293,8 @@ class RandomWalk(MotionSource):
                         p, v = 2 * low - p, -v
                     elif p > high:
                         p, v = 2 * high - p, -v
+                    if not low <= p <= high:  # a step longer than the room: fold it in
+                        p, v = _fold(p, v, low, high)
                     out[i] = p
                 vel[a] = v
                 chunk[:, a] = out
@@ -307,11 +311,22 @@ class RandomWalk(MotionSource):
         idx = t / self._step_s
         self._extend(int(np.max(idx, initial=0.0)) + 2)
         path = self._pos[0]
-        # linear between grid points (np.interp's arithmetic, without its O(n) grid)
+        # linear between grid points (np.interp's arithmetic for finite paths, without its
+        # O(n) grid)
         j = np.floor(idx).astype(np.intp)
         frac = (idx - j)[..., None]
         left = path[j]
         return (path[j + 1] - left) * frac + left
+
+
+def _fold(p: float, v: float, low: float, high: float) -> tuple[float, float]:
+    """``p`` reflected at ``low`` and ``high`` as often as it takes to lie between them, and
+    ``v`` turned once per reflection (a triangle wave of period twice the room)."""
+    room = high - low
+    q = (p - low) % (2 * room)
+    if q > room:
+        return low + (2 * room - q), -v
+    return low + q, v
 
 
 class ReplayMotion(WaypointMotion):

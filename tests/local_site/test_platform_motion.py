@@ -85,7 +85,8 @@ def _walk_reference(seed: int, n: int, speed: float, z_speed: float, correlation
                     step_s: float, margin: float) -> np.ndarray:
     """The walk's recurrence written out step by step on arrays (the walk's grid points):
     Ornstein-Uhlenbeck velocity, position integrated, reflected at [margin, bound - margin]
-    with the velocity turned; noise drawn in the walk's chunks of 4096 steps."""
+    with the velocity turned (once: the drawn settings never step past the whole room);
+    noise drawn in the walk's chunks of 4096 steps; the default workspace and start."""
     rng = np.random.default_rng(seed)
     lo = np.full(3, margin)
     hi = np.array([60.0, 60.0, 185.0]) - margin
@@ -121,9 +122,51 @@ def test_random_walk_is_its_recurrence_exactly(seed: int, speed: float, correlat
     expected = _walk_reference(seed, n, speed, speed / 5, correlation_s, step_s, margin)
     grid = walk.sample(np.arange(n) * step_s)
     np.testing.assert_array_equal(grid, expected)
-    between = walk.sample((np.arange(n - 1) + 0.25) * step_s)
-    np.testing.assert_allclose(between, 0.75 * expected[:-1] + 0.25 * expected[1:],
-                               rtol=0, atol=1e-9)
+    assert np.all((grid >= margin) & (grid <= np.array([60.0, 60.0, 185.0]) - margin))
+    idx = np.arange(n - 1) + np.resize([0.1, 0.25, 0.5, 0.75, 0.9], n - 1)
+    between = walk.sample(idx * step_s)
+    for a in range(3):  # linear between them: np.interp's values
+        np.testing.assert_array_equal(between[:, a], np.interp(idx, np.arange(n), expected[:, a]))
+
+
+@pytest.mark.parametrize(("speed", "margin"), [(1e4, 2.0), (300.0, 29.9), (1e9, 0.0)])
+def test_a_random_walk_faster_than_its_room_stays_inside(speed: float, margin: float) -> None:
+    # steps longer than the whole room (found by review: one reflection left the walk at
+    # +-21,000 mm) are folded back in
+    t = np.linspace(0.0, 60.0, 3001)
+    path = RandomWalk(7, speed_mm_s=speed, z_speed_mm_s=speed, margin_mm=margin).sample(t)
+    assert np.all(np.isfinite(path))
+    assert np.all(path >= margin - 1e-9)
+    assert np.all(path <= np.array([60.0, 60.0, 185.0]) - margin + 1e-9)
+
+
+def test_a_fast_walk_is_reflected_as_often_as_it_takes() -> None:
+    # the fold against reflections one at a time, each turning the velocity (steps of up to
+    # several rooms: a handful of reflections each)
+    step_s, n, margin, speed = 1 / 256, 3000, 2.0, 2e4
+    lo, hi = np.full(3, margin), np.array([60.0, 60.0, 185.0]) - margin
+    rng = np.random.default_rng(5)
+    decay = np.exp(-step_s / 0.5)
+    kick = np.array([speed, speed, speed]) * np.sqrt(1 - decay**2)
+    p, v = np.array([30.0, 30.0, 92.5]), np.zeros(3)
+    expected, noise, folds = [p], np.empty((0, 3)), 0
+    for i in range(n - 1):
+        if i % 4096 == 0:
+            noise = rng.standard_normal((4096, 3))
+        v = decay * v + kick * noise[i % 4096]
+        p = p + v * step_s
+        reflections = 0
+        while np.any((p < lo) | (p > hi)):
+            reflections += 1
+            low, high = p < lo, p > hi
+            p = np.where(low, 2 * lo - p, np.where(high, 2 * hi - p, p))
+            v = np.where(low | high, -v, v)
+        folds += reflections > 1
+        expected.append(p)
+    assert folds > 100  # steps past the whole room, reflected more than once
+    walk = RandomWalk(5, speed_mm_s=speed, z_speed_mm_s=speed, margin_mm=margin, step_s=step_s)
+    got = walk.sample(np.arange(n) * step_s)
+    np.testing.assert_allclose(got, np.array(expected), rtol=0, atol=1e-6)
 
 
 def test_random_walk_seeds_differ_and_move() -> None:
