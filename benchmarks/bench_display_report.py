@@ -89,11 +89,12 @@ def _measure(mode: str, seconds: float) -> dict[str, Any]:
          str(theirs.fileno())], pass_fds=[theirs.fileno()])
     theirs.close()
     reporter = _Reporter(loop, ledger, ours, None, pins)
-    stop = threading.Event()
+    stop = threading.Event()  # the loop's
+    stop_reporting = threading.Event()  # the reporter thread's (the loop runs on after it)
     paced_ns: list[int] = []
 
     def report() -> None:  # _Reporter.run, timed
-        while not stop.wait(HEARTBEAT_S):
+        while not stop_reporting.wait(HEARTBEAT_S):
             start = time.thread_time_ns()
             reporter.send()
             paced_ns.append(time.thread_time_ns() - start)
@@ -114,8 +115,7 @@ def _measure(mode: str, seconds: float) -> dict[str, Any]:
         _, periods = loop.periods.since(recorded)
         reports = len(paced_ns)
         if mode == "report":
-            stop.set()  # the reporter thread ends; the loop goes on for the spun reports
-            stop = threading.Event()
+            stop_reporting.set()  # the reporter thread ends; the loop goes on for the spun
             time.sleep(2 * HEARTBEAT_S)
             due = time.perf_counter()
             for _ in range(SPUN_REPORTS):
@@ -125,6 +125,7 @@ def _measure(mode: str, seconds: float) -> dict[str, Any]:
                 start = time.thread_time_ns()
                 reporter.send()
                 spun_ns.append(time.thread_time_ns() - start)
+            assert thread.is_alive(), "the loop stopped before the spun reports"
         stop.set()
         thread.join()
     ours.close()
