@@ -52,8 +52,11 @@ class RelayConfig:
         ledger_window: samples kept per latency window (bounded ring buffer).
         max_sessions: sessions accepted at once.
         max_connections: open connections (both ports, any state) accepted at once; one
-            more gets ``too_many_connections`` (close 1013).
-        max_connections_per_ip: open connections from one remote address.
+            more gets ``too_many_connections`` (close 1013). Also the most connections
+            still in their opening (a TLS handshake, a WebSocket upgrade) at once: one more
+            is closed at the accept (``relay_server.wire.Admission``).
+        max_connections_per_ip: the same, from one remote address (behind a load balancer
+            that hides the clients' addresses, all of them count as its address).
         max_hello_bytes: the largest message accepted before the hello is accepted (the
             most a connection that has not said hello makes the relay buffer).
         rate_limit_per_s: sustained received messages per second per connection (token

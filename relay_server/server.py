@@ -45,7 +45,7 @@ from relay_server.config import RelayConfig
 from relay_server.metrics import prometheus_text, session_metrics, session_status
 from relay_server.session import Peer, Session
 from relay_server.view import RelayViewHub
-from relay_server.wire import TcpWire, Wire, WsWire
+from relay_server.wire import Admission, TcpWire, Wire, WsWire
 from shared.errors import (
     AuthError,
     ConfigError,
@@ -97,7 +97,8 @@ _WS_LOG.addFilter(_RedactAuthorization())
 #: close, so the error is not destroyed by a reset (less than _CLOSE_TIMEOUT_S)
 _TCP_LINGER_S = 1.0
 _EVENTS_PER_FLUSH = 32  # messages of one TCP chunk routed before their forwards are written
-#: the WebSocket opening handshake (and a TLS handshake) must be done within this time
+#: a connection's opening (its TLS handshake and WebSocket upgrade, where it has them) must
+#: be done within this time of the accept
 _OPEN_TIMEOUT_S = 10.0
 #: high-water mark of a WebSocket connection's write buffer
 _WS_WRITE_LIMIT = 256 * 1024
@@ -136,8 +137,6 @@ class RelayServer:
         self._peer_ids = itertools.count(1)
         self._ws_server: asyncio.Server | None = None
         self._tcp_server: asyncio.Server | None = None
-        #: every accepted socket (also those still in the WebSocket handshake)
-        self._wires: set[Wire] = set()
         self._handlers: set[asyncio.Task[Any]] = set()
         #: fire-and-forget tasks (closing replaced connections), kept referenced
         self._background: set[asyncio.Task[Any]] = set()
@@ -145,8 +144,14 @@ class RelayServer:
         #: connections with something queued to write directly (see _Connection._queued)
         self._to_flush: dict[_Connection, None] = {}
         self._flush_scheduled = False
-        self._per_ip: Counter[str] = Counter()
+        self._per_ip: Counter[str] = Counter()  # open connections per address
         self.tls = _server_tls_context(config)
+        self._admission = Admission(per_address=config.max_connections_per_ip,
+                                    total=config.max_connections,
+                                    open_timeout_s=_OPEN_TIMEOUT_S, tls=self.tls,
+                                    on_refused=self._refused_at_accept)
+        #: every accepted socket (also those still in the TLS or WebSocket handshake)
+        self._wires: set[Wire] = self._admission.wires
         self._closing = False
         #: the observers' live view (``config.view``), started by :meth:`start`
         self.view_hub: RelayViewHub | None = None
@@ -167,22 +172,19 @@ class RelayServer:
         hello_limit = 2 * self.peer_settings.max_hello_bytes
 
         def ws_wire() -> WsWire:
-            return WsWire(self._serve, self._wires, http=self._process_http,
+            return WsWire(self._serve, self._admission, http=self._process_http,
                           serving=lambda: not self._closing, max_size=hello_limit,
-                          write_limit=_WS_WRITE_LIMIT, open_timeout_s=_OPEN_TIMEOUT_S,
-                          logger=_WS_LOG)
+                          write_limit=_WS_WRITE_LIMIT, logger=_WS_LOG)
 
         def tcp_wire() -> TcpWire:
-            return TcpWire(self._serve, self._wires, linger_s=_TCP_LINGER_S)
+            return TcpWire(self._serve, self._admission, linger_s=_TCP_LINGER_S)
 
-        # a TLS handshake left unfinished is cut like an unfinished WebSocket opening (else
-        # asyncio's 60 s default holds the connection)
-        tls: dict[str, Any] = {} if self.tls is None else {
-            "ssl": self.tls, "ssl_handshake_timeout": _OPEN_TIMEOUT_S}
+        # plain listeners on both ports: with TLS, each wire runs its handshake itself,
+        # once the admission has counted it (see relay_server.wire)
         self._ws_server = await loop.create_server(
-            ws_wire, cfg.host, cfg.port, reuse_port=cfg.reuse_port or None, **tls)
+            ws_wire, cfg.host, cfg.port, reuse_port=cfg.reuse_port or None)
         self._tcp_server = await loop.create_server(
-            tcp_wire, cfg.host, cfg.resolved_tcp_port, reuse_port=cfg.reuse_port or None, **tls)
+            tcp_wire, cfg.host, cfg.resolved_tcp_port, reuse_port=cfg.reuse_port or None)
         ws, tcp = ("wss", "tls") if self.tls is not None else ("ws", "tcp")
         log.info("relay listening: %s://%s:%d (status: /status, /metrics), %s://%s:%d",
                  ws, cfg.host, self.ws_port, tcp, cfg.host, self.tcp_port)
@@ -250,8 +252,10 @@ class RelayServer:
             for task in pending:
                 task.cancel()
             await asyncio.gather(*pending, return_exceptions=True)
-        for wire in list(self._wires):  # still in the handshake, or a handler that hung
+        wires = list(self._wires)  # still in the handshake, or a handler that hung
+        for wire in wires:
             wire.abort()
+        await asyncio.gather(*(wire.gone(_CLOSE_TIMEOUT_S) for wire in wires))
         if self._ws_server is not None:
             await self._ws_server.wait_closed()
         if self._tcp_server is not None:
@@ -332,6 +336,9 @@ class RelayServer:
             if task is not None:
                 self._handlers.discard(task)
             await transport.close()
+
+    def _refused_at_accept(self) -> None:
+        self.counters["refused_at_accept"] += 1
 
     def _connection_limit(self, host: str) -> LimitError | None:
         """The refusal of a new connection from ``host`` (already counted), or None."""

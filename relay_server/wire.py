@@ -14,6 +14,12 @@ at most one per peer and event-loop iteration for the forwarded messages
 A wire is what the relay's connection sees as its transport: :meth:`Wire.write` (waits for
 the socket to take the data: flow control), :meth:`Wire.ready` / :meth:`Wire.write_nowait`
 (the direct write), :meth:`Wire.close` and :attr:`Wire.ended`.
+
+Every accepted socket first passes the relay's :class:`Admission`: the openings under way
+(accepted, not yet open: a TLS handshake, a WebSocket opening) are bounded per address and in
+total, and counted from the accept, before any TLS work; a socket beyond the bounds is
+dropped at once. The TLS handshake runs on the accepted socket (``loop.start_tls``) so that
+the count can start before it.
 """
 
 from __future__ import annotations
@@ -22,7 +28,11 @@ import abc
 import asyncio
 import contextlib
 import logging
+import math
+import ssl
 import struct
+import time
+from collections import Counter
 from collections.abc import Callable, Coroutine
 from typing import Any, cast
 
@@ -40,7 +50,7 @@ except ImportError:  # pragma: no cover
 from shared.protocol.connection import Framing
 from shared.transport import TransportClosed, set_nodelay
 
-__all__ = ["Opened", "TcpWire", "Wire", "WsWire"]
+__all__ = ["Admission", "Opened", "TcpWire", "Wire", "WsWire"]
 
 log = logging.getLogger(__name__)
 
@@ -64,22 +74,112 @@ _HEAD16 = struct.Struct("!BBH")
 _HEAD64 = struct.Struct("!BBQ")
 
 
+class Admission:
+    """What a relay's listeners share about the sockets they accept.
+
+    ``wires``: every accepted socket not yet gone. The **openings** under way (accepted,
+    not yet open: a TLS handshake, a WebSocket opening; each cut after ``open_timeout_s``)
+    are counted from the accept, per address and in total. A socket that would make them
+    more than ``per_address`` from one address, or ``total`` in all, is dropped at once,
+    before any TLS work and without a message: nothing can be said to it before its
+    opening. (An *open* connection over the relay's limits gets ``too_many_connections``
+    instead: that refusal is the relay's. A plain TCP connection is open at the accept: it
+    has no opening to count.) So a flood of unfinished openings from one address holds at
+    most ``per_address`` sockets, for at most ``open_timeout_s`` each.
+
+    The drops are logged as a WARNING at most once per ``warn_every_s``, with their count
+    since the last one: a flood from many addresses writes a few lines, not one per socket
+    or per address.
+
+    Args:
+        per_address: the most openings under way from one address.
+        total: the most openings under way in all.
+        open_timeout_s: the opening (TLS handshake and WebSocket upgrade) must be done
+            within this time of the accept.
+        tls: the server's TLS context (None: plain sockets).
+        on_refused: called for each socket dropped at accept.
+        warn_every_s: the least time between two warnings.
+        clock: seconds, monotonic (for the warnings' spacing).
+    """
+
+    def __init__(self, *, per_address: int, total: int, open_timeout_s: float,
+                 tls: ssl.SSLContext | None = None,
+                 on_refused: Callable[[], None] | None = None, warn_every_s: float = 60.0,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.per_address = per_address
+        self.total = total
+        self.open_timeout_s = open_timeout_s
+        self.tls = tls
+        self.wires: set[Wire] = set()
+        #: openings under way, per address
+        self.openings: Counter[str] = Counter()
+        self.opening_total = 0
+        self._on_refused = on_refused
+        self._warn_every_s = warn_every_s
+        self._clock = clock
+        self._warned_at = -math.inf
+        self._unreported = 0  # drops since the last warning
+
+    def admit(self, host: str) -> bool:
+        """Count a new socket's opening; False (counted nowhere) when it is beyond a bound."""
+        if self.opening_total >= self.total:
+            why = f"{self.opening_total} openings are under way in all"
+        elif self.openings[host] >= self.per_address:
+            why = f"{self.openings[host]} openings from {host} are under way"
+        else:
+            self.openings[host] += 1
+            self.opening_total += 1
+            return True
+        self._unreported += 1
+        now = self._clock()
+        if now - self._warned_at >= self._warn_every_s:
+            log.warning("%d connection(s) dropped at accept since the last such warning, the "
+                        "latest from %s: %s (TLS handshakes or WebSocket openings not "
+                        "finished; the relay's refused_at_accept counts them all)",
+                        self._unreported, host, why)
+            self._warned_at = now
+            self._unreported = 0
+        if self._on_refused is not None:
+            self._on_refused()
+        return False
+
+    def opened(self, host: str) -> None:
+        """An opening admitted by :meth:`admit` is over (open, failed or gone)."""
+        self.opening_total -= 1
+        self.openings[host] -= 1
+        if self.openings[host] <= 0:
+            del self.openings[host]
+
+
 class Wire(asyncio.Protocol, abc.ABC):
     """One accepted connection (the parts TCP and WebSocket share).
 
     Args:
-        opened: run once the connection is open (TCP: at once; WebSocket: after the
-            opening handshake), as a task, until the connection ends.
+        opened: run once the connection is open (TCP: at once, or after the TLS handshake;
+            WebSocket: after the opening handshake), as a task, until the connection ends.
+        admission: the relay's (see :class:`Admission`).
         linger_s: see :class:`TcpWire`.
     """
 
     framing: Framing
+    #: False where the connection is open at the accept (plain TCP): no opening to count
+    OPENS_LATER = True
 
-    def __init__(self, opened: Opened, wires: set[Wire], linger_s: float = 0.0) -> None:
+    def __init__(self, opened: Opened, admission: Admission, linger_s: float = 0.0) -> None:
         self._opened = opened
-        self._wires = wires
+        self._admission = admission
+        self._wires = admission.wires
         self._linger_s = linger_s
+        #: the stream the connection reads and writes (TLS: above the accepted socket)
         self.transport: asyncio.Transport | None = None
+        self._raw: asyncio.Transport | None = None  # the accepted socket
+        self._opening = False  # counted among the admission's openings
+        self._open_timer: asyncio.TimerHandle | None = None
+        self._tls_task: asyncio.Task[None] | None = None  # the TLS handshake
+        #: what the TLS layer decrypted before the handshake's task took the stream (the
+        #: bytes that came with the client's last handshake message), and its end
+        self._early_input: list[bytes] = []
+        self._early_eof = False
         self.host = "?"
         #: set when no more input will be handled: the peer closed, the connection was
         #: lost, or :meth:`stop` (the relay decided to close)
@@ -98,16 +198,70 @@ class Wire(asyncio.Protocol, abc.ABC):
     # ------------------------------------------------------------------ asyncio.Protocol
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        # a stream transport (read and write): asyncio's, or another event loop's that
-        # implements the same interface without subclassing it (uvloop's)
-        self.transport = cast(asyncio.Transport, transport)
-        self._wires.add(self)
-        set_nodelay(transport)
-        peer = transport.get_extra_info("peername")
+        # the accepted socket, a stream transport (read and write): asyncio's, or another
+        # event loop's that implements the same interface without subclassing it (uvloop's)
+        raw = cast(asyncio.Transport, transport)
+        peer = raw.get_extra_info("peername")
         if isinstance(peer, tuple) and peer:
             self.host = str(peer[0])
+        admission = self._admission
+        if admission.tls is not None or self.OPENS_LATER:
+            if not admission.admit(self.host):
+                raw.abort()
+                return
+            self._opening = True
+        self._raw = raw
+        self._wires.add(self)
+        set_nodelay(raw)
+        if admission.tls is None:
+            self._made(raw)
+        else:
+            # the TLS layer reads the client's hello, not this protocol (asyncio runs the
+            # task before it reads the socket; another event loop need not)
+            raw.pause_reading()
+            self._tls_task = asyncio.get_running_loop().create_task(
+                self._start_tls(raw, admission.tls), name="relay-tls-handshake")
+        if self._opening:
+            self._open_timer = asyncio.get_running_loop().call_later(
+                admission.open_timeout_s, self._open_timed_out)
+
+    async def _start_tls(self, raw: asyncio.Transport, tls: ssl.SSLContext) -> None:
+        transport: asyncio.Transport | None = None
+        try:
+            transport = cast("asyncio.Transport | None", await asyncio.get_running_loop(
+                ).start_tls(raw, self, tls, server_side=True,
+                            ssl_handshake_timeout=self._admission.open_timeout_s))
+        except OSError as err:  # plain bytes, a bad or cut record, timed out, a reset
+            log.debug("TLS handshake from %s failed: %r", self.host, err)
+        except Exception:
+            log.exception("relay bug in the TLS handshake of a connection from %s", self.host)
+        finally:
+            if transport is None:  # failed, cancelled, or the socket went meanwhile
+                raw.abort()
+                self.connection_lost(None)
+        if transport is None:
+            return
+        self._made(transport)
+        # a client whose close_notify came in the flight of its last handshake message gets
+        # no answer to what it sent with it: the TLS layer has closed the stream by now
+        early, self._early_input = self._early_input, []
+        for data in early:
+            self.data_received(data)
+        if self._early_eof:
+            self.eof_received()
+
+    def _made(self, transport: asyncio.Transport) -> None:
+        """The stream to speak on is there (the accepted socket, or TLS above it)."""
+        self.transport = transport
+
+    def _open_timed_out(self) -> None:
+        if self._opening:
+            self.abort()
 
     def data_received(self, data: bytes) -> None:
+        if self.transport is None:  # TLS: decrypted before the handshake's task went on
+            self._early_input.append(data)
+            return
         if self._discard:
             return
         if self._backlog or len(data) > _SLICE_BYTES:
@@ -153,10 +307,15 @@ class Wire(asyncio.Protocol, abc.ABC):
         """Parse received bytes (the framing of this wire)."""
 
     def eof_received(self) -> bool | None:
+        if self.transport is None:  # TLS: before the handshake's task went on
+            self._early_eof = True
+            return False
         self.ended.set()
         return False  # close our side too
 
     def connection_lost(self, exc: Exception | None) -> None:
+        # may come twice for a failed TLS handshake (from its task and from the TLS layer)
+        self._end_opening()
         self._wires.discard(self)
         self.ended.set()
         if not self._lost.done():
@@ -177,8 +336,17 @@ class Wire(asyncio.Protocol, abc.ABC):
 
     # ------------------------------------------------------------------ to the relay
 
+    def _end_opening(self) -> None:
+        if self._open_timer is not None:
+            self._open_timer.cancel()
+            self._open_timer = None
+        if self._opening:
+            self._opening = False
+            self._admission.opened(self.host)
+
     def _start(self) -> None:
         """The connection is open: run the relay's handler."""
+        self._end_opening()
         self.task = asyncio.get_running_loop().create_task(self._opened(self, self.host),
                                                            name="relay-connection")
 
@@ -205,9 +373,14 @@ class Wire(asyncio.Protocol, abc.ABC):
         self.ended.set()
 
     def abort(self) -> None:
-        """Drop the socket at once."""
-        if self.transport is not None:
-            self.transport.abort()
+        """Drop the socket at once (also in its TLS handshake)."""
+        transport = self.transport or self._raw
+        if transport is not None:
+            transport.abort()
+
+    async def gone(self, timeout_s: float) -> bool:
+        """Wait (bounded) until the socket is gone; True when it is."""
+        return await self._wait_lost(timeout_s)
 
     # ------------------------------------------------------------------ writing
 
@@ -286,9 +459,10 @@ class TcpWire(Wire):
     """
 
     framing: Framing = "tcp"
+    OPENS_LATER = False
 
-    def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        super().connection_made(transport)
+    def _made(self, transport: asyncio.Transport) -> None:
+        super()._made(transport)
         self._start()
 
     def _data(self, data: bytes) -> None:
@@ -351,19 +525,17 @@ class WsWire(Wire):
         serving: False once the relay shuts down (then upgrades get 503).
         max_size: the size limit of received messages until :meth:`set_receive_limit`.
         write_limit: the high-water mark of the socket's write buffer.
-        open_timeout_s: the opening handshake must be done within this time.
     """
 
     framing: Framing = "ws"
 
-    def __init__(self, opened: Opened, wires: set[Wire], *, http: HttpHandler,
+    def __init__(self, opened: Opened, admission: Admission, *, http: HttpHandler,
                  serving: Callable[[], bool], max_size: int, write_limit: int,
-                 open_timeout_s: float, logger: logging.Logger) -> None:
-        super().__init__(opened, wires)
+                 logger: logging.Logger) -> None:
+        super().__init__(opened, admission)
         self._http = http
         self._serving = serving
         self._write_limit = write_limit
-        self._open_timeout_s = open_timeout_s
         self.ws = ServerProtocol(max_size=max_size, logger=logger)
         self._max_size = max_size
         #: received bytes not yet parsed (the fast path: see _data)
@@ -375,25 +547,14 @@ class WsWire(Wire):
         #: protocol)
         self._fragments: list[bytes] = []
         self._fragment_text = False
-        self._open_timer: asyncio.TimerHandle | None = None
 
-    def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        super().connection_made(transport)
-        assert self.transport is not None
-        self.transport.set_write_buffer_limits(high=self._write_limit)
-        self._open_timer = asyncio.get_running_loop().call_later(
-            self._open_timeout_s, self._open_timed_out)
-
-    def _open_timed_out(self) -> None:
-        if self.ws.state is State.CONNECTING:
-            self.abort()
-
-    def connection_lost(self, exc: Exception | None) -> None:
-        if self._open_timer is not None:
-            self._open_timer.cancel()
-        super().connection_lost(exc)
+    def _made(self, transport: asyncio.Transport) -> None:
+        super()._made(transport)
+        transport.set_write_buffer_limits(high=self._write_limit)
 
     def eof_received(self) -> bool | None:
+        if self.transport is None:
+            return super().eof_received()
         self.ws.receive_eof()
         self._send()
         return super().eof_received()
@@ -505,8 +666,6 @@ class WsWire(Wire):
         ws.send_response(response)
         self._send()
         if ws.state is State.OPEN:
-            if self._open_timer is not None:
-                self._open_timer.cancel()
             self._start()
         elif ws.handshake_exc is not None:
             log.info("WebSocket handshake from %s failed: %s", self.host, ws.handshake_exc)
