@@ -61,6 +61,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="nats://HOST:PORT: join the relay workers on this NATS server into "
                              "one relay (stations may connect to any worker or host; "
                              "docs/operations.md)")
+    parser.add_argument("--nats-connect-timeout-s", dest="nats_connect_timeout_s", type=float,
+                        help="with --nats: give up starting when NATS cannot be reached "
+                             "within this time (default 10)")
     parser.add_argument("--workers", type=int, default=None,
                         help="relay worker processes on this host, sharing the ports "
                              "(SO_REUSEPORT); needs --nats; default with --nats: one per core")
@@ -88,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
 
     explicit = {name: getattr(args, name, None) for name in (
         "host", "port", "tcp_port", "secret", "token_file", "allow_any_token", "tls_cert",
-        "tls_key", "view", "nats_url", "workers",
+        "tls_key", "view", "nats_url", "nats_connect_timeout_s", "workers",
         "hello_timeout_s", "ping_interval_s", "stats_interval_s")}
     config = resolve_config(RelayConfig, "relay", explicit=explicit, toml_path=args.config)
     if args.print_token:

@@ -67,7 +67,6 @@ log = logging.getLogger(__name__)
 HEARTBEAT_S = 0.5
 _EXPIRE_S = 3 * HEARTBEAT_S
 _OUT_QUEUE = 20_000  # envelopes waiting for the NATS connection
-_FIRST_CONNECT_S = 10.0
 _MAX_QUEUED_US = 500_000  # an envelope older than this (since relay_in) is not published
 
 
@@ -87,6 +86,7 @@ class ClusterLink:
             raise ConfigError("a cluster needs relay.nats_url")
         self.url = config.nats_url
         self.ca_file = config.nats_ca_file
+        self.connect_timeout_s = config.nats_connect_timeout_s
         self.prefix = config.nats_subject_prefix
         self.sessions = sessions
         self.counters = counters
@@ -119,7 +119,7 @@ class ClusterLink:
         try:
             # nats-py retries an unreachable server for ever when reconnects are unlimited:
             # the first connection gets a deadline, later ones are retried
-            async with asyncio.timeout(_FIRST_CONNECT_S):
+            async with asyncio.timeout(self.connect_timeout_s):
                 self._nc = await nats.connect(
                     servers=[self.url], name=f"teletouch-relay-{self.worker_id}",
                     connect_timeout=5, allow_reconnect=True, max_reconnect_attempts=-1,
@@ -127,7 +127,8 @@ class ClusterLink:
                     pending_size=0)  # nothing buffered while reconnecting: no stale frames
         except (NoServersError, OSError, TimeoutError, ssl.SSLError) as err:
             raise ConfigError(f"cannot reach the NATS server {self.url} within "
-                              f"{_FIRST_CONNECT_S:g} s: {str(err) or type(err).__name__}") from err
+                              f"{self.connect_timeout_s:g} s (nats_connect_timeout_s): "
+                              f"{str(err) or type(err).__name__}") from err
         await self._nc.subscribe(f"{self.prefix}.hb", cb=self._on_heartbeat)
         await self._nc.subscribe(f"{self.prefix}.w.{self.worker_id}", cb=self._on_data)
         self._tasks = [asyncio.create_task(self._heartbeat_loop(), name="cluster-heartbeat"),

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -72,6 +73,8 @@ class RelayConfig:
         reuse_port: bind with SO_REUSEPORT (set for the workers of ``--workers``).
         nats_ca_file: PEM CA that signed the NATS server's certificate, for a ``tls://``
             ``nats_url`` (None: the system's trust store).
+        nats_connect_timeout_s: a worker that cannot reach NATS within this time of its
+            start exits with a start error (later losses of NATS are retried for ever).
         lock_memory: keep each relay process's memory in RAM while it serves (``mlockall``
             on fault, :mod:`shared.memlock`, as the stations do): forwarding never waits for
             a page read back from disk on a cloud host under memory pressure. Taken only
@@ -113,6 +116,7 @@ class RelayConfig:
     nats_subject_prefix: str = "teletouch"
     reuse_port: bool = False
     nats_ca_file: Path | None = None
+    nats_connect_timeout_s: float = 10.0
     lock_memory: bool = True
 
     def __post_init__(self) -> None:
@@ -146,6 +150,9 @@ class RelayConfig:
                               "(or tls://, ws://, wss://)")
         if not self.nats_subject_prefix.replace("_", "").replace("-", "").isalnum():
             raise ConfigError("relay.nats_subject_prefix must be letters, digits, - and _")
+        if not (math.isfinite(self.nats_connect_timeout_s) and self.nats_connect_timeout_s > 0):
+            raise ConfigError("relay.nats_connect_timeout_s must be a finite number > 0, got "
+                              f"{self.nats_connect_timeout_s!r}")
         if self.ping_burst_spacing_s < 0:
             raise ConfigError("relay.ping_burst_spacing_s must be >= 0")
         if (self.tls_cert is None) != (self.tls_key is None):

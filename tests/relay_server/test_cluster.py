@@ -303,8 +303,9 @@ async def test_unreachable_nats_is_a_clear_start_error() -> None:
     proc = await asyncio.create_subprocess_exec(
         *teletouch_cmd(), "relay", "--host", "127.0.0.1", "--port", str(free_tcp_port()),
         "--tcp-port", str(free_tcp_port()), "--allow-any-token", "--workers", "1", "--nats",
-        f"nats://127.0.0.1:{port}", stdout=asyncio.subprocess.DEVNULL,
-        stderr=asyncio.subprocess.PIPE)
+        f"nats://127.0.0.1:{port}", "--nats-connect-timeout-s", "1.5",
+        stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.PIPE)
     _, err = await asyncio.wait_for(proc.communicate(), scaled(60.0))
     assert proc.returncode != 0
-    assert f"cannot reach the NATS server nats://127.0.0.1:{port}" in err.decode()
+    assert (f"cannot reach the NATS server nats://127.0.0.1:{port} within 1.5 s "
+            "(nats_connect_timeout_s)") in err.decode()

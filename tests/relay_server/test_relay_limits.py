@@ -5,6 +5,7 @@ is logged once, and the relay keeps serving."""
 from __future__ import annotations
 
 import logging
+import math
 import struct
 
 import msgpack
@@ -151,3 +152,13 @@ def test_lock_memory_must_be_a_boolean(bad: object) -> None:
     with pytest.raises(ConfigError, match=r"relay\.lock_memory must be true or false"):
         RelayConfig(lock_memory=bad)  # type: ignore[arg-type]
     assert RelayConfig().lock_memory is True
+
+
+@pytest.mark.parametrize("bad", [0.0, -1.0, math.nan, math.inf])
+def test_the_nats_connect_timeout_must_be_finite_and_positive(bad: float) -> None:
+    from relay_server.config import RelayConfig
+    from shared.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"relay\.nats_connect_timeout_s must be a finite"):
+        RelayConfig(nats_connect_timeout_s=bad)
+    assert RelayConfig().nats_connect_timeout_s == 10.0
