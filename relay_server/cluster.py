@@ -6,9 +6,10 @@ makes several of them one relay:
 
 * **Directory.** Every worker publishes a heartbeat on ``<prefix>.hb`` every
   ``HEARTBEAT_S`` and at once when a peer joins or leaves: its id, pid, host, ports, and which
-  roles and how many observers of which sessions it holds, and its counters. A worker not heard
-  from for ``3 x HEARTBEAT_S`` is gone (a killed worker says nothing); a worker that closes
-  says so.
+  roles and how many observers of which sessions it holds, its counters, and its clock fields
+  (send time, boot id, wall anchor, echoes of the others' heartbeats). A worker not heard
+  from for ``3 x HEARTBEAT_S`` is gone (a killed worker says nothing; its entry is dropped
+  after ``_FORGET_S``); a worker that closes says so.
 * **Pairing.** A station may join any worker; a role held by another live worker is refused
   (``role_taken``, as on one relay; a station whose worker died retries within its grace
   window until the dead worker expires).
@@ -20,9 +21,11 @@ makes several of them one relay:
   policy (latest-wins slot or ordered queue: NATS keeps one publisher's order) and its writer
   stamps ``relay_in``, ``nats_out``, ``nats_in``, ``relay_out``. Books: the uplink ledger is
   the sender's worker's; relay residence (``relay_in -> relay_out``), end-to-end and the NATS
-  leg (``nats_out -> nats_in``) are the receiver's worker's. Across hosts the workers' wall
-  clocks must agree (NTP) for the residence and NATS-leg figures; station offsets are each
-  estimated against the worker the station is connected to, as before.
+  leg (``nats_out -> nats_in``) are the receiver's worker's. The sender puts its stamps of an
+  envelope on the receiver's clock, with the receiver's offset measured on their heartbeats
+  (:mod:`relay_server.worker_clocks`; exact for workers on one kernel), so the hosts' clocks
+  need not agree; station offsets are each estimated against the worker the station is
+  connected to, as before.
 * **Limits.** Envelopes wait in a bounded queue for the NATS connection (``nats_queue_full``
   when NATS stalls); one that waited more than 0.5 s since it reached the relay is dropped
   (``nats_stale``), and nothing is buffered while NATS reconnects (``nats_publish_failed``):
@@ -50,15 +53,17 @@ import ssl
 import time
 from collections import Counter
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import msgpack
 
 from relay_server.config import RelayConfig
 from relay_server.session import Session
+from relay_server.worker_clocks import WorkerClocks
 from shared.errors import ConfigError, RemoteProtocolError, RoleTakenError
 from shared.protocol import DataMessage, decode, encode
-from shared.timebase import now_us
+from shared.timebase import adopt_wall_anchor, wall_anchor_ns
 
 __all__ = ["HEARTBEAT_S", "ClusterLink", "run_workers", "worker_count"]
 
@@ -68,6 +73,7 @@ HEARTBEAT_S = 0.5
 _EXPIRE_S = 3 * HEARTBEAT_S
 _OUT_QUEUE = 20_000  # envelopes waiting for the NATS connection
 _MAX_QUEUED_US = 500_000  # an envelope older than this (since relay_in) is not published
+_FORGET_S = 60.0  # a worker not heard from for this long is dropped from the directory
 
 
 class ClusterLink:
@@ -78,10 +84,16 @@ class ClusterLink:
         sessions: the worker's sessions (the relay's dictionary, read live).
         counters: the worker's counters (``nats_*`` are added).
         ports: returns the worker's bound ``{"ws": port, "tcp": port}``.
+        anchor_ns: the worker's clock: wall time minus the monotonic clock. It must be
+            the clock of the times given to :meth:`forward` (the relay's ``now_us``, whose
+            anchor is the default: :func:`shared.timebase.wall_anchor_ns`); tests give two
+            links in one process different clocks with it.
+        worker_id: the worker's name in the cluster (default ``<host>-<pid>``).
     """
 
     def __init__(self, config: RelayConfig, sessions: dict[str, Session],
-                 counters: Counter[str], ports: Callable[[], dict[str, int]]) -> None:
+                 counters: Counter[str], ports: Callable[[], dict[str, int]],
+                 anchor_ns: int | None = None, worker_id: str | None = None) -> None:
         if config.nats_url is None:
             raise ConfigError("a cluster needs relay.nats_url")
         self.url = config.nats_url
@@ -91,8 +103,11 @@ class ClusterLink:
         self.sessions = sessions
         self.counters = counters
         self.ports = ports
-        self.worker_id = f"{socket.gethostname()}-{os.getpid()}".replace(".", "_")
+        self._anchor_ns = wall_anchor_ns() if anchor_ns is None else int(anchor_ns)
+        self.worker_id = worker_id or f"{socket.gethostname()}-{os.getpid()}".replace(".", "_")
         self.workers: dict[str, tuple[float, dict[str, Any]]] = {}  # id -> (seen, heartbeat)
+        #: the other workers' clocks against this one's (envelopes go out on theirs)
+        self.clocks = WorkerClocks(self.worker_id, _boot_id(), self._anchor_ns)
         self._nc: Any = None
         self._out: asyncio.Queue[tuple[str, tuple[Any, ...]]] = asyncio.Queue(_OUT_QUEUE)
         self._changed = asyncio.Event()
@@ -173,9 +188,13 @@ class ClusterLink:
         """A peer joined or left: publish a heartbeat now."""
         self._changed.set()
 
+    def _now(self) -> int:
+        """This worker's clock (``now_us`` unless another anchor was given)."""
+        return (time.monotonic_ns() + self._anchor_ns) // 1000
+
     def _heartbeat(self) -> dict[str, Any]:
         return {"w": self.worker_id, "pid": os.getpid(), "host": socket.gethostname(),
-                "ports": self.ports(), "t": now_us(),
+                "ports": self.ports(),
                 "sessions": {sid: [sorted(s.stations), len(s.observers)]
                              for sid, s in self.sessions.items()},
                 "counters": dict(self.counters), "drops": self._drops()}
@@ -192,8 +211,11 @@ class ClusterLink:
     async def _heartbeat_loop(self) -> None:
         while True:
             self._changed.clear()
+            self._forget_silent()
+            hb = self._heartbeat()
+            self.clocks.stamp(hb, self._now())  # last: building the rest takes time
             try:
-                await self._nc.publish(f"{self.prefix}.hb", msgpack.packb(self._heartbeat()))
+                await self._nc.publish(f"{self.prefix}.hb", msgpack.packb(hb))
             except Exception as err:  # NATS down: keep serving local sessions, retry
                 self.counters["nats_heartbeat_failed"] += 1
                 log.debug("heartbeat not published: %s", err)
@@ -202,18 +224,30 @@ class ClusterLink:
                     await self._changed.wait()
 
     async def _on_heartbeat(self, msg: Any) -> None:
+        received_us = self._now()
         try:
             hb = msgpack.unpackb(msg.data, raw=False)
             worker = hb["w"]
+            if not isinstance(worker, str):
+                raise TypeError("a heartbeat's worker id must be a string")
         except (ValueError, KeyError, TypeError, msgpack.UnpackException):
             self.counters["nats_bad_heartbeat"] += 1
             return
         if worker == self.worker_id:
             return
         if hb.get("gone"):
-            self.workers.pop(worker, None)
+            self.workers.pop(worker, None)  # its clock goes at the next _forget_silent
         else:
             self.workers[worker] = (time.monotonic(), hb)
+            self.clocks.heard(worker, hb, received_us)
+
+    def _forget_silent(self) -> None:
+        """Drop the workers not heard from for ``_FORGET_S`` (killed ones say nothing)."""
+        now = time.monotonic()
+        for worker in [w for w, (seen, _) in self.workers.items() if now - seen > _FORGET_S]:
+            del self.workers[worker]
+        for worker in self.clocks.known() - set(self.workers):
+            self.clocks.forget(worker)
 
     # ------------------------------------------------------------------ forwarding
 
@@ -246,11 +280,17 @@ class ClusterLink:
 
         while True:
             worker, body = await self._out.get()
-            t_out = now_us()
+            t_out = self._now()
             if t_out - body[2] > _MAX_QUEUED_US:  # waited too long for NATS: stale, dropped
                 self.counters["nats_stale"] += 1
                 continue
-            envelope = msgpack.packb([*body, t_out])  # ..., nats_out
+            # the stamps on the receiver's clock (relay_in, the sender's send time, nats_out)
+            sid, role, t_in_us, sent_ref_us, data, to_station = body
+            theirs = self.clocks.to_theirs
+            envelope = msgpack.packb([sid, role, theirs(worker, t_in_us),
+                                      None if sent_ref_us is None else
+                                      theirs(worker, sent_ref_us), data, to_station,
+                                      theirs(worker, t_out)])  # ..., nats_out
             try:
                 await self._nc.publish(f"{self.prefix}.w.{worker}", envelope)
                 self.counters["nats_sent"] += 1
@@ -261,11 +301,14 @@ class ClusterLink:
                 log.debug("NATS publish failed: %s", err)
 
     async def _on_data(self, msg: Any) -> None:
-        t_nats_in = now_us()
+        t_nats_in = self._now()
         try:
             sid, sender_role, t_in_us, sent_ref_us, data, to_station, t_out = \
                 msgpack.unpackb(msg.data, raw=False)
             message = decode(data)
+            if not (_is_time(t_in_us) and _is_time(t_out)
+                    and (sent_ref_us is None or _is_time(sent_ref_us))):
+                raise TypeError("an envelope's times must be integer microseconds")
         except (ValueError, TypeError, msgpack.UnpackException, RemoteProtocolError):
             self.counters["nats_bad_envelope"] += 1
             return
@@ -291,12 +334,29 @@ class ClusterLink:
         workers: dict[str, Any] = {}
         for worker, (seen, hb) in sorted(self.workers.items()):
             if now - seen < _EXPIRE_S:
-                workers[worker] = _worker_doc(hb, now - seen)
-        workers[self.worker_id] = _worker_doc(self._heartbeat(), 0.0)
+                workers[worker] = {**_worker_doc(hb, now - seen),
+                                   **self.clocks.status(worker, self._now())}
+        workers[self.worker_id] = {**_worker_doc(self._heartbeat(), 0.0), "clock_offset_us": 0,
+                                   "clock_uncertainty_us": 0, "nats_rtt_min_us": None,
+                                   "same_kernel": True}
         return {"worker": self.worker_id, "nats_url": self.url,
                 "nats_connected": bool(self._nc is not None and self._nc.is_connected),
                 "sessions": len({sid for doc in workers.values() for sid in doc["sessions"]}),
                 "workers": workers}
+
+
+def _is_time(value: object) -> bool:
+    """An integer microsecond time msgpack can carry (a peer's bug is not one)."""
+    return isinstance(value, int) and not isinstance(value, bool) and 0 <= value < 2**63
+
+
+def _boot_id() -> str | None:
+    """The running kernel's boot id (Linux), None elsewhere: workers with the same one
+    read one monotonic clock."""
+    try:
+        return Path("/proc/sys/kernel/random/boot_id").read_text().strip() or None
+    except OSError:
+        return None
 
 
 def _worker_doc(hb: dict[str, Any], age_s: float) -> dict[str, Any]:
@@ -317,9 +377,11 @@ def worker_count(config: RelayConfig) -> int:
     return (os.cpu_count() or 1) if config.nats_url else 1
 
 
-def _worker_main(config: RelayConfig, log_level: int) -> None:
+def _worker_main(config: RelayConfig, log_level: int, anchor_ns: int | None = None) -> None:
     from relay_server.server import serve_forever
 
+    if anchor_ns is not None:  # None: started by a supervisor of an earlier release
+        adopt_wall_anchor(anchor_ns)  # the supervisor's clock: its workers' stamps agree
     logging.basicConfig(level=log_level,
                         format=f"%(asctime)s worker-{os.getpid()} %(levelname)s %(name)s: "
                                "%(message)s")
@@ -351,7 +413,7 @@ def run_workers(config: RelayConfig, count: int) -> None:
     old = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
 
     def spawn() -> mp.process.BaseProcess:
-        proc = ctx.Process(target=_worker_main, args=(worker_config, level),
+        proc = ctx.Process(target=_worker_main, args=(worker_config, level, wall_anchor_ns()),
                            name="teletouch-relay-worker")
         proc.start()
         return proc

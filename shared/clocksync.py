@@ -44,11 +44,16 @@ class ClockSample:
         offset_us: station clock minus reference clock.
         delay_us: round-trip delay with the station's hold time removed (>= 0).
         t3_us: when the exchange completed (reference clock), for ageing.
+        dispersion_us: how far the clocks may have drifted apart during the exchange
+            (RFC 5905's dispersion), added to the sample's half-width: 0 for a clock
+            ping, whose hold is microseconds; a held exchange (the relay workers' echoed
+            heartbeats) sets it.
     """
 
     offset_us: float
     delay_us: float
     t3_us: int
+    dispersion_us: float = 0.0
 
     @property
     def uplink_us(self) -> float:
@@ -115,8 +120,9 @@ class ClockFilter:
             True when the sample revealed a clock step: the earlier samples inconsistent
             with it were dropped.
         """
-        if not (math.isfinite(sample.offset_us) and math.isfinite(sample.delay_us)):
-            raise InputDataError("clock sample is not finite")
+        if not (math.isfinite(sample.offset_us) and math.isfinite(sample.delay_us)
+                and math.isfinite(sample.dispersion_us) and sample.dispersion_us >= 0):
+            raise InputDataError("clock sample is not finite (or a negative dispersion)")
         self._estimate = None
         self._samples.append(sample)
         if self._interval(self._samples, sample.t3_us) is not None:
@@ -143,7 +149,7 @@ class ClockFilter:
                   ) -> tuple[float, float] | None:
         lo, hi = -math.inf, math.inf
         for s in samples:
-            half = s.delay_us / 2.0 + self._drift * max(0, now_us - s.t3_us)
+            half = s.delay_us / 2.0 + s.dispersion_us + self._drift * max(0, now_us - s.t3_us)
             lo = max(lo, s.offset_us - half)
             hi = min(hi, s.offset_us + half)
         return (lo, hi) if lo <= hi else None

@@ -85,8 +85,10 @@ whose successor is idle hand nothing on: their movements are not counted (not bu
 A clustered relay's stamps for a hop between its workers (``relay.nats_out`` right after
 ``relay.relay_in``, then ``relay.nats_in``) lie inside ``relay_forward_platform`` or
 ``relay_forward_tactile``, which then include that hop; they bound no stage of their own.
-The workers' clocks must agree (NTP across hosts): a NATS leg that ends before it began
-makes the frame ``unaligned``; a smaller disagreement goes into the forwarding stages.
+The sending worker puts its stamps on the receiving worker's clock (measured on their
+heartbeats, :mod:`relay_server.worker_clocks`); until that is known, or beyond the measure's
+error, a NATS leg that ends before it began makes the frame ``unaligned``, and a smaller
+disagreement goes into the forwarding stages.
 The stages of a frame are counted only when every clock among its stamps has a known offset
 (the remote station's offset reaches the local station a few seconds after joining) and every
 pair of consecutive stamps is a documented stage: such a frame is **aligned**. The others are
@@ -201,8 +203,9 @@ def trace_hops(hops: Sequence[Hop], offsets_us: Mapping[str, float | None]) -> S
         name = f"{hop.clock}.{hop.stage}"
         after = _WITHIN_STAGE.get(name)
         if after is not None and prev is not None and f"{prev.clock}.{prev.stage}" == after:
-            # the NATS leg runs between two workers' clocks: one that ends before it began
-            # shows them out of step (they must agree, NTP), an offset not known here
+            # the NATS leg runs between two workers' clocks (the sender's stamps put on the
+            # receiver's once measured): one that ends before it began shows them out of
+            # step, by an offset not known here
             unaligned |= name == "relay.nats_in" and hop.t_us < prev.t_us
             continue
         offset = 0.0 if hop.clock == "relay" else offsets_us.get(hop.clock)

@@ -10,6 +10,7 @@ import json
 import os
 import shutil
 import signal
+from collections import Counter
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
@@ -166,6 +167,13 @@ async def test_stations_on_two_workers_exchange_messages() -> None:
             doc_a, doc_b = await status(port_a), await status(port_b)
             assert doc_a["cluster"]["sessions"] == 1
             assert set(doc_a["cluster"]["workers"]) == set(doc_b["cluster"]["workers"])
+            # one kernel: the two processes' clocks differ by their wall anchors (read when
+            # each started: microseconds apart unless the wall clock was set in between)
+            clocks = [(w["same_kernel"], w["clock_uncertainty_us"]) for w in
+                      doc_a["cluster"]["workers"].values()]
+            assert clocks == [(True, 0)] * 2, clocks
+            assert all(abs(w["clock_offset_us"]) < 1_000
+                       for w in doc_a["cluster"]["workers"].values())
             # books: uplink on the sender's worker, NATS leg on the receiver's
             assert doc_b["sessions"]["c1"]["nats_us"]["local_to_remote"]["p50"] is not None
             assert doc_b["sessions"]["c1"]["forwarded"]["local_to_remote"] >= 41
@@ -309,3 +317,142 @@ async def test_unreachable_nats_is_a_clear_start_error() -> None:
     assert proc.returncode != 0
     assert (f"cannot reach the NATS server nats://127.0.0.1:{port} within 1.5 s "
             "(nats_connect_timeout_s)") in err.decode()
+
+
+class _Ledger:
+    def __init__(self) -> None:
+        self.legs: list[int] = []
+
+    def record(self, _: object, t_out: int, t_in: int) -> None:
+        self.legs.append(t_in - t_out)
+
+
+class _Direction:
+    def __init__(self) -> None:
+        self.nats = _Ledger()
+        self.uplink: dict[str, Any] = {}
+
+
+class _Sink:
+    """A worker's session as its cluster link sees it: the roles it holds, what it gets."""
+
+    def __init__(self, *stations: str) -> None:
+        self.stations = dict.fromkeys(stations)
+        self.observers: list[Any] = []
+        self.directions = {"local_to_remote": _Direction(), "remote_to_local": _Direction()}
+        self.delivered: list[tuple[int, int | None, tuple[tuple[str, str, int], ...]]] = []
+
+    def deliver(self, sender_role: str, msg: Message, t_in_us: int, sent_ref_us: int | None,
+                mid_hops: tuple[tuple[str, str, int], ...], to_station: bool) -> None:
+        self.delivered.append((t_in_us, sent_ref_us, mid_hops))
+
+
+@contextlib.asynccontextmanager
+async def _two_links(url: str, sink: _Sink, offset_us: int, same_kernel: bool
+                     ) -> AsyncIterator[tuple[Any, Any]]:
+    """Cluster links ``a`` and ``b`` in this process over NATS at ``url``; ``b``'s clock
+    ``offset_us`` ahead, on this kernel or (``same_kernel`` False) as if on another."""
+    from relay_server.cluster import ClusterLink
+    from relay_server.config import RelayConfig
+    from shared.timebase import wall_anchor_ns
+
+    config = RelayConfig(nats_url=url)
+    a = ClusterLink(config, {}, Counter(), lambda: {"ws": 1, "tcp": 2}, worker_id="a")
+    b = ClusterLink(config, {"s": sink}, Counter(),  # type: ignore[dict-item]
+                    lambda: {"ws": 3, "tcp": 4}, anchor_ns=wall_anchor_ns() + offset_us * 1000,
+                    worker_id="b")
+    if not same_kernel:
+        b.clocks.boot_id = "another-kernel"
+    await a.start()
+    try:
+        await b.start()
+        try:
+            yield a, b
+        finally:
+            await b.close()
+    finally:
+        await a.close()
+
+
+@pytest.mark.parametrize("same_kernel", [False, True])
+async def test_a_forwarded_message_reaches_a_worker_40_ms_ahead_on_its_clock(
+        same_kernel: bool) -> None:
+    """Two cluster links in this process over a real NATS server, one of them on a clock
+    40 ms ahead, measured on their heartbeats (as if on two hosts) or known exactly from the
+    anchors (one kernel): a message's stamps reach the receiver on its own clock, its NATS
+    leg short (not 40 ms long; above zero within the measure's error)."""
+    theta_us = 40_000
+    tolerance_us = 2_000 if not same_kernel else 2
+    sink = _Sink("remote")
+    async with nats_server() as url, _two_links(url, sink, theta_us, same_kernel) as (a, b):
+        async with asyncio.timeout(scaled(20.0)):
+            while True:
+                ab, ba = a.clocks.offset_us("b"), b.clocks.offset_us("a")
+                if ab is not None and ba is not None and abs(ab - theta_us) < \
+                        tolerance_us and abs(ba + theta_us) < tolerance_us:
+                    break
+                await asyncio.sleep(0.05)
+        doc = a.status()["workers"]["b"]
+        assert doc["same_kernel"] is same_kernel
+        if same_kernel:
+            assert (doc["clock_uncertainty_us"], doc["nats_rtt_min_us"]) == (0, None)
+        else:  # the truth within the bound; a round trip through NATS on this host
+            assert abs(doc["clock_offset_us"] - theta_us) <= doc["clock_uncertainty_us"] + 2
+            assert 0 < doc["nats_rtt_min_us"] < scaled(50_000), doc
+        t_in_a = now_us()
+        assert a.forward("s", "local", PlatformState(seq=1, ts_us=t_in_a), t_in_a,
+                         t_in_a - 100, need_station=True)
+        async with asyncio.timeout(scaled(10.0)):
+            while not sink.delivered:
+                await asyncio.sleep(0.01)
+    t_in_b, sent_ref_b, mid = sink.delivered[0]
+    # A's stamps on B's clock: 40 ms later, within the estimate's error
+    assert abs(t_in_b - (t_in_a + theta_us)) < tolerance_us
+    assert sent_ref_b is not None and abs(sent_ref_b - (t_in_a - 100 + theta_us)) < \
+        tolerance_us
+    (_, out_stage, t_out), (_, in_stage, t_nats_in) = mid
+    assert (out_stage, in_stage) == ("nats_out", "nats_in")
+    assert t_in_b <= t_out  # relay_in before nats_out, both put on B's clock
+    leg = t_nats_in - t_out  # without the correction about 40 ms
+    assert -tolerance_us < leg < scaled(20_000), leg
+    assert sink.directions["local_to_remote"].nats.legs == [leg]
+
+
+async def test_a_malformed_envelope_is_counted_not_delivered() -> None:
+    from types import SimpleNamespace
+
+    import msgpack
+
+    from relay_server.cluster import ClusterLink
+    from relay_server.config import RelayConfig
+    from shared.protocol import encode
+
+    sink = _Sink("remote")
+    counters: Counter[str] = Counter()
+    link = ClusterLink(RelayConfig(nats_url="nats://127.0.0.1:1"), {"s": sink},  # type: ignore[dict-item]
+                       counters, lambda: {"ws": 1, "tcp": 2}, worker_id="b")
+    data = encode(PlatformState(seq=1, ts_us=5))
+    for times in ((1_000, None, 2_000), ("x", None, 2_000), (1_000, 2**64 - 1, 2_000),
+                  (1_000, None, True), (-5, None, 2_000)):
+        t_in, sent_ref, t_out = times
+        await link._on_data(SimpleNamespace(data=msgpack.packb(
+            ["s", "local", t_in, sent_ref, data, True, t_out])))
+    assert len(sink.delivered) == 1 and sink.delivered[0][0] == 1_000
+    assert counters["nats_bad_envelope"] == 4
+
+
+def test_a_worker_silent_for_a_minute_is_forgotten_with_its_clock() -> None:
+    import time
+
+    from relay_server.cluster import ClusterLink
+    from relay_server.config import RelayConfig
+
+    link = ClusterLink(RelayConfig(nats_url="nats://127.0.0.1:1"), {}, Counter(),
+                       lambda: {"ws": 1, "tcp": 2}, worker_id="a")
+    for worker, age_s in (("dead", 61.0), ("quiet", 30.0)):
+        hb = {"w": worker, "boot": link.clocks.boot_id, "anchor": link.clocks.anchor_ns}
+        link.workers[worker] = (time.monotonic() - age_s, hb)
+        link.clocks.heard(worker, hb, 0)
+    assert link.clocks.known() == {"dead", "quiet"}
+    link._forget_silent()
+    assert set(link.workers) == {"quiet"} and link.clocks.known() == {"quiet"}
