@@ -124,8 +124,11 @@ class ClusterLink:
         import nats
         from nats.errors import NoServersError
 
+        last_error: list[Exception] = []  # the last one, for the start error
+
         async def on_error(err: Exception) -> None:
             self.counters["nats_errors"] += 1
+            last_error[:] = [err]
             log.warning("NATS: %s", err)
 
         tls = None
@@ -141,9 +144,11 @@ class ClusterLink:
                     reconnect_time_wait=0.5, error_cb=on_error, tls=tls,
                     pending_size=0)  # nothing buffered while reconnecting: no stale frames
         except (NoServersError, OSError, TimeoutError, ssl.SSLError) as err:
+            # the deadline's TimeoutError says less than the connection's own last error
+            cause = last_error[0] if last_error and isinstance(err, TimeoutError) else err
             raise ConfigError(f"cannot reach the NATS server {self.url} within "
                               f"{self.connect_timeout_s:g} s (nats_connect_timeout_s): "
-                              f"{str(err) or type(err).__name__}") from err
+                              f"{str(cause) or type(cause).__name__}") from err
         await self._nc.subscribe(f"{self.prefix}.hb", cb=self._on_heartbeat)
         await self._nc.subscribe(f"{self.prefix}.w.{self.worker_id}", cb=self._on_data)
         self._tasks = [asyncio.create_task(self._heartbeat_loop(), name="cluster-heartbeat"),
