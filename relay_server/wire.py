@@ -143,7 +143,7 @@ class Admission:
             self._on_refused()
         return False
 
-    def opened(self, host: str) -> None:
+    def release(self, host: str) -> None:
         """An opening admitted by :meth:`admit` is over (open, failed or gone)."""
         self.opening_total -= 1
         self.openings[host] -= 1
@@ -342,7 +342,7 @@ class Wire(asyncio.Protocol, abc.ABC):
             self._open_timer = None
         if self._opening:
             self._opening = False
-            self._admission.opened(self.host)
+            self._admission.release(self.host)
 
     def _start(self) -> None:
         """The connection is open: run the relay's handler."""
@@ -378,9 +378,6 @@ class Wire(asyncio.Protocol, abc.ABC):
         if transport is not None:
             transport.abort()
 
-    async def gone(self, timeout_s: float) -> bool:
-        """Wait (bounded) until the socket is gone; True when it is."""
-        return await self._wait_lost(timeout_s)
 
     # ------------------------------------------------------------------ writing
 
@@ -432,7 +429,8 @@ class Wire(asyncio.Protocol, abc.ABC):
         """Nothing waits for a reader: input is handled as it arrives."""
         return False
 
-    async def _wait_lost(self, timeout_s: float) -> bool:
+    async def gone(self, timeout_s: float) -> bool:
+        """Wait (bounded) until the socket is gone; True when it is."""
         with contextlib.suppress(TimeoutError, asyncio.TimeoutError):
             await asyncio.wait_for(asyncio.shield(self._lost), timeout_s)
         return self._lost.done()
@@ -443,7 +441,7 @@ class Wire(asyncio.Protocol, abc.ABC):
             return
         if not self.transport.is_closing():
             self.transport.close()
-        if not await self._wait_lost(_CLOSE_TIMEOUT_S):
+        if not await self.gone(_CLOSE_TIMEOUT_S):
             self.transport.abort()
 
 
@@ -504,7 +502,7 @@ class TcpWire(Wire):
             with contextlib.suppress(OSError, RuntimeError):
                 transport.write_eof()  # our side is done: the peer reads to EOF
         # discard (data_received drops it) until the peer closes too or the linger ends
-        await self._wait_lost(max(0.0, deadline - asyncio.get_running_loop().time()))
+        await self.gone(max(0.0, deadline - asyncio.get_running_loop().time()))
 
 
 class _Responder:
@@ -721,6 +719,6 @@ class WsWire(Wire):
             # the peer's close frame (what it still sends before it is read and dropped)
             # makes the protocol end the stream; the socket goes when the peer closes it
             self.ended.set()
-            if not await self._wait_lost(_CLOSE_TIMEOUT_S) and self.transport is not None:
+            if not await self.gone(_CLOSE_TIMEOUT_S) and self.transport is not None:
                 self.transport.abort()
 

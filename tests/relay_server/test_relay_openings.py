@@ -241,7 +241,7 @@ def test_drops_are_warned_at_most_once_a_minute_with_their_count(
     assert len(warnings) == 2 and warnings[1].startswith("51 connection(s)"), warnings
     assert "10.0.0.3" in warnings[1] and "in all" in warnings[1]
     assert len(refused) == 52
-    admission.opened("10.0.0.1")
-    admission.opened("10.0.0.2")
+    admission.release("10.0.0.1")
+    admission.release("10.0.0.2")
     assert (admission.opening_total, admission.openings) == (0, {})
     assert admission.admit("10.0.0.1")
