@@ -459,3 +459,82 @@ def test_a_worker_silent_for_a_minute_is_forgotten_with_its_clock() -> None:
     assert link.clocks.known() == {"dead", "quiet"}
     link._forget_silent()
     assert set(link.workers) == {"quiet"} and link.clocks.known() == {"quiet"}
+
+
+def test_a_supervisors_workers_stamp_on_its_clock(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``run_workers`` hands its wall anchor to every worker it starts, and a worker adopts
+    it before serving: the workers of one supervisor stamp on one clock, also when the wall
+    clock was stepped between their starts (here: the supervisor's anchor 7 s off)."""
+    import dataclasses
+
+    from relay_server import cluster, server
+    from relay_server.config import RelayConfig
+    from shared import timebase
+
+    monkeypatch.setattr(timebase, "_ANCHOR_NS", timebase.wall_anchor_ns() + 7_000_000_000)
+    supervisor_anchor = timebase.wall_anchor_ns()
+    started: list[tuple[Any, ...]] = []
+
+    class _Process:  # the spawned worker, not started: its arguments are what it would get
+        pid = None
+        exitcode = 0
+
+        def __init__(self, target: Any, args: tuple[Any, ...], name: str) -> None:
+            started.append((target, *args))
+
+        def start(self) -> None:
+            if len(started) == 2:  # both spawned: the supervisor is asked to stop
+                signal.raise_signal(signal.SIGTERM)
+
+        def is_alive(self) -> bool:
+            return False
+
+        def join(self, timeout: float | None = None) -> None:
+            pass
+
+    class _Context:
+        Process = _Process
+
+    monkeypatch.setattr(cluster.mp, "get_context", lambda method: _Context())
+    config = RelayConfig(nats_url="nats://127.0.0.1:1", port=18765, tcp_port=18766)
+    cluster.run_workers(config, 2)
+    assert [(s[0], s[3]) for s in started] == [(cluster._worker_main, supervisor_anchor)] * 2
+    assert started[0][1] == dataclasses.replace(config, reuse_port=True)
+
+    # the worker's side: its clock is the supervisor's once it serves
+    monkeypatch.setattr(timebase, "_ANCHOR_NS", supervisor_anchor - 9_000_000_000)
+    seen: list[int] = []
+
+    async def serve(config: RelayConfig) -> None:
+        seen.append(timebase.wall_anchor_ns())
+
+    monkeypatch.setattr(server, "serve_forever", serve)
+    old_sigint = signal.getsignal(signal.SIGINT)
+    try:
+        cluster._worker_main(started[0][1], started[0][2], started[0][3])
+    finally:
+        signal.signal(signal.SIGINT, old_sigint)
+    assert seen == [supervisor_anchor]
+
+
+async def test_the_heartbeat_forgets_a_silent_worker() -> None:
+    """A worker killed without a word is dropped, with its clock, by the next heartbeat."""
+    import time
+
+    from relay_server.cluster import ClusterLink
+    from relay_server.config import RelayConfig
+
+    async with nats_server() as url:
+        link = ClusterLink(RelayConfig(nats_url=url), {}, Counter(),
+                           lambda: {"ws": 1, "tcp": 2}, worker_id="a")
+        await link.start()
+        try:
+            hb = {"w": "dead", "boot": link.clocks.boot_id, "anchor": link.clocks.anchor_ns}
+            link.workers["dead"] = (time.monotonic() - 61.0, hb)
+            link.clocks.heard("dead", hb, 0)
+            link.changed()
+            async with asyncio.timeout(scaled(10.0)):
+                while "dead" in link.workers or "dead" in link.clocks.known():
+                    await asyncio.sleep(0.01)
+        finally:
+            await link.close()
