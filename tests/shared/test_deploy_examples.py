@@ -138,3 +138,107 @@ def test_the_image_copies_every_installed_package() -> None:
     dockerfile = (DEPLOY / "Dockerfile").read_text()
     for package in packages:
         assert f"COPY {package} ./{package}" in dockerfile, package
+
+
+def _lock_tool() -> Any:
+    """``deploy/lock.py``, a script beside the lock (not a package of the project)."""
+    import importlib.util
+    import sys
+
+    if "deploy_lock" not in sys.modules:
+        spec = importlib.util.spec_from_file_location("deploy_lock", DEPLOY / "lock.py")
+        assert spec is not None and spec.loader is not None
+        sys.modules["deploy_lock"] = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(sys.modules["deploy_lock"])  # dataclasses look it up there
+    return sys.modules["deploy_lock"]
+
+
+def test_the_lock_pins_every_dependency_within_its_range() -> None:
+    """The image installs from ``deploy/requirements.lock``: every runtime dependency, the
+    cluster extra and the build requirements are pinned, each to a release pyproject.toml
+    allows, each with the hashes of its files."""
+    lock = _lock_tool()
+    pins = lock.parse_lock((DEPLOY / "requirements.lock").read_text())
+    names = {r.name for r in lock.wanted()}
+    assert {"numpy", "websockets", "nats-py", "setuptools"} <= names
+    lock.check(pins, lock.wanted())
+    # nothing stale: every pin is needed by the project or its build, or by a pin that is
+    reached = {"teletouch", "build"}
+    while True:
+        more = {name for name, pin in pins.items() if set(pin.via) & reached} - reached
+        if not more:
+            break
+        reached |= more
+    assert set(pins) <= reached, set(pins) - reached
+
+
+def test_a_lock_that_no_longer_fits_is_refused() -> None:
+    lock = _lock_tool()
+    good = f"numpy==2.0.1 \\\n    --hash=sha256:{'a' * 64}\n    # via\n    #   teletouch\n"
+    assert lock.parse_lock(good)["numpy"].version == "2.0.1"
+    two = good.replace("\n    # via", " \\\n    --hash=sha256:" + "b" * 64 + "\n    # via")
+    assert lock.parse_lock(two)["numpy"].hashes == ["a" * 64, "b" * 64]
+    scipy = good.replace("numpy==2.0.1", "scipy==1.0")
+    for text, error in ((good.replace(" \\\n    --hash", "\n    --hash"), "line 1"),
+                        ("numpy==2.0.1 \\\n", "ends in a backslash"),
+                        (good + good, "pinned twice"),
+                        (good.replace("a" * 64, "a" * 63), "line 2"),
+                        ("numpy>=2 \\\n", "line 1"),
+                        # pip would drop this hash: no backslash joins it to the pin
+                        (two.replace("a" * 64 + " \\", "a" * 64), "line 3"),
+                        # pip would join scipy's line to numpy's and lose scipy
+                        (good.replace("a" * 64, "a" * 64 + " \\") + scipy, "line 3"),
+                        ("numpy==2.0.1; python_version<'3' \\\n    --hash=sha256:" + "a" * 64,
+                         "line 1"),
+                        (good.replace("==", "==="), "line 1")):
+        with pytest.raises(lock.LockError, match=error):
+            lock.parse_lock(text)
+    from packaging.requirements import Requirement
+
+    with pytest.raises(lock.LockError, match=r"numpy<2 but the lock pins 2\.0\.1.*scipy>=1 "
+                                             r"is not in the lock"):
+        lock.check(lock.parse_lock(good), [Requirement("numpy<2"), Requirement("scipy>=1")])
+    with pytest.raises(lock.LockError, match=r"numpy>=2 but the lock pins 2\.1rc1"):
+        lock.check(lock.parse_lock(good.replace("2.0.1", "2.1rc1")), [Requirement("numpy>=2")])
+
+
+def test_the_lock_reads_back_as_written() -> None:
+    lock = _lock_tool()
+    pins = {"a-b": lock.Pin("1.0", ["0" * 64, "f" * 64], ["build"]),
+            "c": lock.Pin("2.post1", ["1" * 64], ["a-b", "teletouch"])}
+    assert lock.parse_lock(lock.render(pins)) == pins
+
+
+def test_the_image_installs_the_lock_with_its_hashes() -> None:
+    dockerfile = (DEPLOY / "Dockerfile").read_text()
+    locked = dockerfile.index("pip install --require-hashes --no-deps -r "
+                              "deploy/requirements.lock")
+    project = dockerfile.index("pip install --no-deps --no-build-isolation .")
+    assert locked < project and "pip check" in dockerfile[project:]
+    # pip check ignores extras and the build: the lock is checked against pyproject.toml too
+    assert "python deploy/lock.py --check" in dockerfile[project:]
+    assert "COPY deploy/lock.py" in dockerfile
+    assert "COPY deploy/requirements.lock" in dockerfile[:locked]
+
+
+def test_the_lock_keeps_the_files_cpython_3_11_on_linux_installs() -> None:
+    lock = _lock_tool()
+    names = ["x-1.0-cp311-cp311-manylinux_2_17_x86_64.manylinux2014_x86_64.whl",
+             "x-1.0-cp311-cp311-manylinux_2_28_aarch64.whl",
+             "x-1.0-cp38-abi3-manylinux1_x86_64.whl",
+             "x-1.0-py3-none-any.whl", "x-1.0.tar.gz",
+             "x-1.0-cp312-cp312-manylinux_2_17_x86_64.whl", "x-1.0-cp311-cp311-win_amd64.whl",
+             "x-1.0-cp311-cp311-musllinux_1_2_x86_64.whl",
+             "x-1.0-cp311-cp311-macosx_11_0_arm64.whl", "x-1.1-py3-none-any.whl", "x-1.1.tar.gz",
+             "x-1.0-cp311-cp311-manylinux_2_17_x86_64.whl", "not a distribution.exe"]
+    files: list[dict[str, Any]] = [{"filename": n, "hashes": {"sha256": f"{i:064x}"}}
+                                   for i, n in enumerate(names)]
+    files[-2]["yanked"] = "broken build"
+    assert lock.select_files(files, "1.0", lock.target_tags()) == [f"{i:064x}" for i in range(5)]
+    # a pure-Python wheel serves both architectures
+    assert lock.select_files(files[3:4], "1.0", lock.target_tags()) == [f"{3:064x}"]
+    # an architecture left to build from the source archive is refused, by name
+    with pytest.raises(lock.LockError, match=r"no wheel for CPython 3\.11 on Linux aarch64$"):
+        lock.select_files([files[0], files[4]], "1.0", lock.target_tags())
+    with pytest.raises(lock.LockError, match="aarch64, x86_64"):
+        lock.select_files(files[4:9], "1.0", lock.target_tags())
