@@ -23,10 +23,19 @@ before it publishes them, with the receiver's offset measured as NTP's symmetric
   each widened for the clocks' drift since, and a bound on its error; a clock step is
   followed at the next exchange.
 
-Workers on one kernel (the same boot id; Linux) read one monotonic clock: their stamps differ
-by their wall anchors (:func:`shared.timebase.wall_anchor_ns`) exactly, with no estimate (0
-for the workers of one ``run_workers``, which take their supervisor's anchor). Where the boot
-id is unknown every offset is measured.
+Workers on one kernel (the same boot id; Linux) should read one monotonic clock, and their
+stamps then differ by their wall anchors (:func:`shared.timebase.wall_anchor_ns`) exactly
+(0 for the workers of one ``run_workers``, which take their supervisor's anchor). But a VM
+cloned from a snapshot keeps its boot id and not its monotonic clock, and a time namespace
+shifts the monotonic clock under one boot id; so such a peer is measured like any other,
+and its anchors' figure is taken, as exact (uncertainty 0), once an exchange agrees with it:
+within the measure's bound plus ``ANCHOR_SLACK_US``. Until then its offset is the measured
+one (none before the first exchange: stamps go out uncorrected, which for the workers of one
+supervisor is already exact). A process whose anchors a measure refutes is measured from
+then on (a WARNING, once per observing worker and peer process); its ``same_kernel`` in
+``/status`` is false. Where the boot id is unknown (not Linux) every offset is measured.
+A worker restarted under the same id (a container keeps its host name and pid) is a new
+process: another anchor or boot id in its heartbeat starts its figures again.
 
 The ``now_us`` clock never steps (monotonic plus an anchor read when a process starts): a
 relay started before its host's clock was set keeps that offset until it is restarted (the
@@ -44,7 +53,7 @@ from typing import Any, TypeGuard
 
 from shared.clocksync import ClockFilter, ClockSample
 
-__all__ = ["WARN_OFFSET_US", "WorkerClocks"]
+__all__ = ["ANCHOR_SLACK_US", "WARN_OFFSET_US", "WorkerClocks"]
 
 log = logging.getLogger(__name__)
 
@@ -56,6 +65,10 @@ _SANE_US = 100 * 365 * 86_400 * 1_000_000
 _DRIFT_PPM = 500.0
 #: own heartbeat send times an echo may name (a few heartbeat periods)
 _SENT_KEPT = 8
+#: how far beyond its bound the measure may lie from the anchors' figure of one kernel: a
+#: margin (rounding needs a few microseconds) so that no real exchange refutes true anchors;
+#: a clone's offset smaller than the bound plus this goes unnoticed, an error below 5 ms
+ANCHOR_SLACK_US = 1_000
 
 
 def _is_int(value: object) -> TypeGuard[int]:
@@ -67,8 +80,14 @@ class _Peer:
     """What this worker knows of another worker's clock."""
 
     filter: ClockFilter = field(default_factory=lambda: ClockFilter(drift_ppm=_DRIFT_PPM))
-    #: its clock minus ours when it reads the same monotonic clock (else None)
-    anchored_us: int | None = None
+    #: the process heard: its (boot id, anchor) as its heartbeats give them
+    process: tuple[object, object] | None = None
+    #: its clock minus ours by the wall anchors, when it gives our boot id (else None)
+    anchors_say_us: int | None = None
+    #: an exchange agreed with ``anchors_say_us``: one monotonic clock, taken as exact
+    anchored: bool = False
+    #: an exchange refuted ``anchors_say_us``: not one clock, measured from then on
+    refuted: bool = False
     #: the last heartbeat heard from it: (its send time, our receive time)
     heard: tuple[int, int] | None = None
     #: the send time of ours its last counted echo named (an echo counts once)
@@ -105,40 +124,63 @@ class WorkerClocks:
     def heard(self, worker: str, hb: dict[str, Any], received_us: int) -> None:
         """``worker``'s heartbeat ``hb`` arrived at ``received_us``; a figure that makes no
         sense (a peer's bug) is ignored."""
+        boot, anchor = hb.get("boot"), hb.get("anchor")
+        process = (boot if isinstance(boot, str) else None, anchor if _is_int(anchor) else None)
         peer = self._peers.get(worker)
-        if peer is None:
-            peer = self._peers[worker] = _Peer()
+        if peer is None or peer.process != process:  # new, or restarted under its id
+            peer = self._peers[worker] = _Peer(process=process)
         host = hb.get("host")
         peer.host = host if isinstance(host, str) else "?"
-        boot, anchor, sent = hb.get("boot"), hb.get("anchor"), hb.get("t")
         if self.boot_id is not None and boot == self.boot_id and _is_int(anchor) \
                 and abs(anchor - self.anchor_ns) < _SANE_US * 1000:
-            peer.anchored_us = round((anchor - self.anchor_ns) / 1000)
-            self._check(worker, peer)
-            return
-        peer.anchored_us = None
+            peer.anchors_say_us = round((anchor - self.anchor_ns) / 1000)
+        if self._measure(peer, hb, received_us) and peer.anchors_say_us is not None \
+                and not peer.refuted:
+            self._test_anchors(worker, peer, received_us)
+        self._check(worker, peer)
+
+    def _measure(self, peer: _Peer, hb: dict[str, Any], received_us: int) -> bool:
+        """Count the exchange ``hb`` completes, if any: True when it gave a sample."""
+        sent = hb.get("t")
         if not _is_int(sent) or abs(sent - received_us) > _SANE_US:
-            return
+            return False
         peer.heard = (sent, received_us)
         echo = hb.get("echo")
         mine = echo.get(self.me) if isinstance(echo, dict) else None
         if not (isinstance(mine, list) and len(mine) == 2 and all(map(_is_int, mine))):
-            return
+            return False
         t0, t1 = mine
         if t0 not in self._sent or (peer.echoed_t0 is not None and t0 <= peer.echoed_t0):
-            return  # not a heartbeat of ours (or long ago), or counted already
+            return False  # not a heartbeat of ours (or long ago), or counted already
         t2, t3 = sent, received_us
         if t3 < t0 or t2 < t1:
-            return
+            return False
         dispersion = _DRIFT_PPM * 1e-6 * (t3 - t0)  # the clocks' drift over the exchange
         delay = (t3 - t0) - (t2 - t1)
         if delay < -dispersion - 1:  # below what the drift can explain: a peer's bug
-            return
+            return False
         peer.echoed_t0 = t0
         peer.filter.add(ClockSample(offset_us=((t1 - t0) + (t2 - t3)) / 2.0,
                                     delay_us=float(max(0, delay)), t3_us=t3,
                                     dispersion_us=dispersion))
-        self._check(worker, peer)
+        return True
+
+    def _test_anchors(self, worker: str, peer: _Peer, now_us: int) -> None:
+        """Take the anchors' figure of a peer of this kernel while the measure holds it."""
+        measured, bound = peer.filter.offset_us, peer.filter.uncertainty_us(now_us)
+        said = peer.anchors_say_us
+        if measured is None or bound is None or said is None:
+            return
+        if abs(said - measured) <= bound + ANCHOR_SLACK_US:
+            peer.anchored = True
+            return
+        log.warning("relay worker %s (host %s) runs on this worker's kernel (boot id) but its "
+                    "clock is %+.1f ms from this one's, not %+.1f ms as the wall anchors say "
+                    "(within %.1f ms): not one monotonic clock (a VM cloned from a snapshot, "
+                    "or a time namespace?); its offset is measured from now on", worker,
+                    peer.host, measured / 1e3, said / 1e3, bound / 1e3)
+        peer.refuted = True
+        peer.anchored = False
 
     def _check(self, worker: str, peer: _Peer) -> None:
         offset = self.offset_us(worker)
@@ -163,8 +205,8 @@ class WorkerClocks:
         peer = self._peers.get(worker)
         if peer is None:
             return None
-        if peer.anchored_us is not None:
-            return peer.anchored_us
+        if peer.anchored and peer.anchors_say_us is not None:
+            return peer.anchors_say_us
         offset = peer.filter.offset_us
         return None if offset is None else round(offset)
 
@@ -184,12 +226,12 @@ class WorkerClocks:
     def status(self, worker: str, now_us: int) -> dict[str, Any]:
         """What ``/status`` shows of ``worker``'s clock at ``now_us`` (this worker's clock):
         its offset (its clock minus this one's), a bound on the offset's error by then, the
-        least round trip of the exchanges, and whether it reads the same monotonic clock."""
+        least round trip of the exchanges, and whether it reads the same monotonic clock (an
+        exchange agreed with the wall anchors: the offset is theirs, exact)."""
         peer = self._peers.get(worker)
-        same = peer is not None and peer.anchored_us is not None
-        measured = None if peer is None or same else peer.filter
-        bound = None if measured is None else measured.uncertainty_us(now_us)
-        rtt = None if measured is None else measured.delay_us
+        same = peer is not None and peer.anchored
+        bound = None if peer is None or same else peer.filter.uncertainty_us(now_us)
+        rtt = None if peer is None else peer.filter.delay_us
         return {"clock_offset_us": self.offset_us(worker),
                 "clock_uncertainty_us": 0 if same else
                 None if bound is None else round(bound),

@@ -157,18 +157,36 @@ def test_a_step_is_followed_at_the_next_exchanges() -> None:
     assert abs((world.b.offset_us("A") or 0) + 40_000) <= 200
 
 
-def test_one_kernel_is_exact_from_the_anchors() -> None:
+def _exchange(a: WorkerClocks, b: WorkerClocks, t_us: int, theta_us: int, up_us: int = 300,
+              down_us: int = 300, hold_us: int = 250_000, host: str = "?") -> int:
+    """A's heartbeat to B and B's back (echoing it) at true time ``t_us`` (A's clock; B's is
+    ``theta_us`` ahead); the true time after it."""
+    hb: dict[str, Any] = {"w": a.me}
+    a.stamp(hb, t_us)
+    t_us += up_us
+    b.heard(a.me, hb, t_us + theta_us)
+    t_us += hold_us
+    hb = {"w": b.me, "host": host}
+    b.stamp(hb, t_us + theta_us)
+    t_us += down_us
+    a.heard(b.me, hb, t_us)
+    return t_us + 250_000
+
+
+def test_one_kernel_is_exact_from_the_anchors_once_an_exchange_agrees() -> None:
     a = WorkerClocks("A", "kernel", _ANCHOR_NS)
     b = WorkerClocks("B", "kernel", _ANCHOR_NS + 40_000_000)  # its anchor 40 ms later
     hb: dict[str, Any] = {"w": "B"}
     b.stamp(hb, 123)
-    a.heard("B", hb, 5)  # the times do not matter: no exchange needed
+    a.heard("B", hb, 5)
+    assert a.offset_us("B") is None  # the anchors alone are not taken on trust
+    # a lopsided exchange measures 39.5 ms within 0.5 ms: it agrees, the anchors' 40 ms is
+    # taken as exact
+    _exchange(a, b, 1_000_000, 40_000, up_us=0, down_us=1_000)
     assert a.offset_us("B") == 40_000
-    assert a.status("B", 6) == {"clock_offset_us": 40_000, "clock_uncertainty_us": 0,
-                             "nats_rtt_min_us": None, "same_kernel": True}
-    hb = {"w": "A"}
-    a.stamp(hb, 5)
-    b.heard("A", hb, 6)
+    assert a.status("B", 2_000_000) == {"clock_offset_us": 40_000, "clock_uncertainty_us": 0,
+                                        "nats_rtt_min_us": 1_000, "same_kernel": True}
+    # B had its exchange too (A's heartbeat echoed B's first one)
     assert b.offset_us("A") == -40_000 and b.to_theirs("A", 50_000) == 10_000
 
 
@@ -236,8 +254,7 @@ def test_the_workers_of_one_host_are_warned_of_once(caplog: pytest.LogCaptureFix
     caplog.set_level(logging.WARNING, logger="relay_server.worker_clocks")
     a = WorkerClocks("A", "ka", _ANCHOR_NS)
     for n in range(4):  # four workers of one host whose clock is 20 ms ahead
-        a.heard(f"h2-{n}", {"w": f"h2-{n}", "host": "h2", "boot": "ka",
-                            "anchor": _ANCHOR_NS + 20_000_000}, 5)
+        _exchange(a, WorkerClocks(f"h2-{n}", "kb", _ANCHOR_NS), 1_000_000, 20_000, host="h2")
     assert [a.offset_us(f"h2-{n}") for n in range(4)] == [20_000] * 4
     assert len(caplog.records) == 1 and "host h2" in caplog.records[0].getMessage()
 
@@ -258,3 +275,106 @@ def test_an_offset_beyond_5_ms_is_warned_once_until_it_settles(
     world.theta_us = 12_000  # and off again: warned again
     world.run(5.0)
     assert len(caplog.records) == 4
+
+
+def _one_boot_id(world: _World, anchors_say_us: int) -> None:
+    """A and B report one boot id; B's wall anchor ``anchors_say_us`` after A's."""
+    world.a.boot_id = world.b.boot_id = "one-kernel"
+    world.b.anchor_ns = world.a.anchor_ns + anchors_say_us * 1000
+
+
+@given(theta_us=st.integers(-3_600_000_000, 3_600_000_000),
+       d_ab_us=st.integers(0, 100_000), d_ba_us=st.integers(0, 100_000),
+       jitter_us=st.integers(1, 50_000), seed=st.integers(0, 2**32 - 1))
+@example(theta_us=40_000, d_ab_us=0, d_ba_us=100_000, jitter_us=50_000, seed=0)
+def test_one_kernel_stays_exact_while_measured(theta_us: int, d_ab_us: int, d_ba_us: int,
+                                               jitter_us: int, seed: int) -> None:
+    """Workers of one kernel are measured too, and the measure, however lopsided the
+    delays, never refutes anchors that tell the truth: the offset stays exact."""
+    world = _World(theta_us, 0.0, d_ab_us, d_ba_us, jitter_us, seed)
+    _one_boot_id(world, theta_us)
+    for _ in range(20):
+        world.run(0.5)
+        for ours, theirs, sign in ((world.a, "B", 1), (world.b, "A", -1)):
+            got = ours.offset_us(theirs)  # none before the first exchange, then exact
+            assert got is None or got == sign * theta_us, got
+            assert ours.status(theirs, 0)["same_kernel"] is (got is not None)
+    assert world.a.offset_us("B") == theta_us and world.b.offset_us("A") == -theta_us
+    assert len(world.a._peers["B"].filter) > 1  # measured all along
+
+
+@pytest.mark.parametrize("wrong_by_us", [-40_000, 3_000, 3_600_000_000])
+def test_a_clone_of_this_kernel_is_found_out_and_measured(
+        wrong_by_us: int, caplog: pytest.LogCaptureFixture) -> None:
+    """A VM cloned from a snapshot (or a worker in a time namespace) reports this kernel's
+    boot id, but its monotonic clock is another: the anchors' figure is off by
+    ``wrong_by_us``. The measure finds it out within a few exchanges, the offset is the
+    measured one from then on, and it is said once."""
+    caplog.set_level(logging.WARNING, logger="relay_server.worker_clocks")
+    world = _World(25_000, 0.0, 300, 300, 200, seed=9)
+    _one_boot_id(world, 25_000 + wrong_by_us)
+    world.run(5.0)
+    for ours, theirs, sign in ((world.a, "B", 1), (world.b, "A", -1)):
+        got = ours.offset_us(theirs)
+        assert got is not None and abs(got - sign * 25_000) <= 200, got
+        status = ours.status(theirs, world.clock("A" if theirs == "B" else "B"))
+        assert status["same_kernel"] is False and status["clock_uncertainty_us"] > 0
+    world.run(5.0)  # refuted for good: the anchors are not taken up again
+    assert abs((world.a.offset_us("B") or 0) - 25_000) <= 200
+    said = [r for r in caplog.records if "not one monotonic clock" in r.getMessage()]
+    assert [r.getMessage().split()[2] for r in said] == ["B", "A"]  # once by each side
+
+
+@pytest.mark.parametrize(("off_us", "kept"), [(1_000, True), (-1_000, True), (2_500, False)])
+def test_anchors_a_little_off_stay_within_the_slack(off_us: int, kept: bool) -> None:
+    """Anchors off by less than the measure's bound (here 0.45-0.9 ms) plus the 1 ms slack
+    are kept (the error stays below that); beyond, they are refused."""
+    world = _World(25_000, 0.0, 300, 300, 200, seed=9)
+    _one_boot_id(world, 25_000 + off_us)
+    world.run(10.0)
+    for ours, theirs, sign in ((world.a, "B", 1), (world.b, "A", -1)):
+        got = ours.offset_us(theirs)
+        assert got is not None
+        if kept:
+            assert got == sign * (25_000 + off_us)
+        else:
+            assert abs(got - sign * 25_000) <= 200
+        assert ours.status(theirs, 0)["same_kernel"] is kept
+
+
+def test_a_worker_restarted_under_its_id_starts_again(caplog: pytest.LogCaptureFixture) -> None:
+    """B is killed and started again under the same id (a container keeps its host name and
+    pid) after the wall clock was stepped by 150 ms, and its first exchange is slow (its
+    loop busy at start-up): its new anchors are checked against its new figures alone, not
+    refuted by the old process's narrow exchanges."""
+    caplog.set_level(logging.WARNING, logger="relay_server.worker_clocks")
+    a, b = WorkerClocks("A", "k", _ANCHOR_NS), WorkerClocks("B", "k", _ANCHOR_NS)
+    t_us = 1_000_000_000
+    for _ in range(10):
+        t_us = _exchange(a, b, t_us, 0)
+    assert a.offset_us("B") == 0 and a.status("B", t_us)["same_kernel"] is True
+    b = WorkerClocks("B", "k", _ANCHOR_NS - 150_000_000)  # restarted: its clock 150 ms back
+    t_us = _exchange(a, b, t_us, -150_000, up_us=200_000)
+    assert a.offset_us("B") == -150_000 and a.status("B", t_us)["same_kernel"] is True
+    for _ in range(5):
+        t_us = _exchange(a, b, t_us, -150_000)
+    assert a.offset_us("B") == -150_000 and a.status("B", t_us)["same_kernel"] is True
+    assert not [r for r in caplog.records if "not one monotonic clock" in r.getMessage()]
+
+
+def test_a_clone_gets_no_ntp_warning_from_its_anchors(caplog: pytest.LogCaptureFixture) -> None:
+    """A clone whose anchors say it is an hour off, while its clock agrees with ours: no
+    warning of an hour's offset goes out before an exchange, and after it, only the clone's."""
+    caplog.set_level(logging.WARNING, logger="relay_server.worker_clocks")
+    a, b = WorkerClocks("A", "k", _ANCHOR_NS), WorkerClocks("B", "k", _ANCHOR_NS + 3_600 * 10**9)
+    hb: dict[str, Any] = {"w": "B"}
+    b.stamp(hb, 5)
+    a.heard("B", hb, 5)
+    assert a.offset_us("B") is None and caplog.records == []
+    _exchange(a, b, 1_000_000, 0)
+    assert a.offset_us("B") is not None and abs(a.offset_us("B") or 0) <= 300
+    said = [r.getMessage().split(" (within")[0] for r in caplog.records]
+    assert "relay worker B (host ?) runs on this worker's kernel (boot id) but its clock is " \
+           "+0.0 ms from this one's, not +3600000.0 ms as the wall anchors say" in said
+    assert len(said) == 2 and all("not one monotonic clock" in r.getMessage()
+                                  for r in caplog.records)  # B said it of A; no NTP warning
