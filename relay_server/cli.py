@@ -3,7 +3,9 @@
 Stations connect with a ``hello`` naming a session, a role (local, remote, observer)
 and the session token. The relay forwards local <-> remote with per-stream policy,
 estimates each station's clock offset (NTP-style) and pushes ``stats`` every second.
-Live figures: ``GET http://HOST:PORT/status`` (JSON) and ``GET /metrics`` (Prometheus).
+Live figures: ``GET http://HOST:PORT/status`` (JSON) and ``GET /metrics`` (Prometheus);
+liveness: ``GET /healthz`` (``ok``, no token), or ``teletouch relay --health-check`` on the
+relay's host with the same configuration (a container's HEALTHCHECK).
 
 Tokens: with ``--secret``, version-2 tokens bound to a session, a role and an expiry
 (``teletouch relay --print-token SESSION --role local --ttl-s 86400`` prints one; a local
@@ -20,6 +22,7 @@ examples:
   teletouch relay --print-token lab1 --role remote --ttl-s 604800
   teletouch relay --host 0.0.0.0 --workers 2 --nats nats://nats:4222   # one host, 2 cores
   curl http://127.0.0.1:8765/status
+  teletouch relay --config relay.toml --health-check    # exit 0 when that relay answers
 """
 
 from __future__ import annotations
@@ -72,6 +75,11 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                              "expiry) with --role, else the legacy per-session token")
     parser.add_argument("--role", choices=("local", "remote", "observer"),
                         help="with --print-token: the role the token admits")
+    parser.add_argument("--health-check", dest="health_check", action="store_true",
+                        help="do not serve: ask the relay this configuration describes "
+                             "(GET /healthz on its port, over TLS when it has a certificate, "
+                             "on the loopback address when it binds all) and exit 0 when it "
+                             "answers, 1 otherwise (a container's HEALTHCHECK)")
     parser.add_argument("--ttl-s", dest="ttl_s", type=int, default=None,
                         help="with --print-token --role: validity in seconds "
                              "(default 604800, 7 days)")
@@ -80,11 +88,11 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """Resolve the configuration and serve until SIGINT/SIGTERM."""
     import asyncio
+    import sys
     import time
 
     from relay_server.auth import derive_token, make_token
     from relay_server.config import RelayConfig
-    from relay_server.server import serve_forever
     from shared.config import resolve_config
     from shared.errors import ConfigError
     from shared.report import emit
@@ -94,6 +102,15 @@ def run(args: argparse.Namespace) -> int:
         "tls_key", "view", "nats_url", "nats_connect_timeout_s", "workers",
         "hello_timeout_s", "ping_interval_s", "stats_interval_s")}
     config = resolve_config(RelayConfig, "relay", explicit=explicit, toml_path=args.config)
+    if args.health_check:
+        from relay_server.health import health_url, probe
+
+        problem = probe(config)
+        if problem is not None:
+            emit(f"relay not healthy: {problem}", stream=sys.stderr)
+            return 1
+        emit(f"relay healthy: {health_url(config)}")
+        return 0
     if args.print_token:
         if not config.secret:
             raise ConfigError("--print-token needs a secret (--secret or $TELETOUCH_RELAY_SECRET)")
@@ -109,6 +126,7 @@ def run(args: argparse.Namespace) -> int:
             emit(derive_token(config.secret, args.print_token))
         return 0
     from relay_server.cluster import run_workers, worker_count
+    from relay_server.server import serve_forever
 
     workers = worker_count(config)
     if workers > 1:

@@ -42,6 +42,7 @@ from websockets.http11 import Request, Response
 
 from relay_server.auth import TokenAuthority, load_token_file
 from relay_server.config import RelayConfig
+from relay_server.health import HEALTH_PATH
 from relay_server.metrics import prometheus_text, session_metrics, session_status
 from relay_server.session import Peer, Session
 from relay_server.view import RelayViewHub
@@ -284,6 +285,9 @@ class RelayServer:
 
     def _process_http(self, connection: _Responder, request: Request) -> Response | None:
         path = request.path.split("?", 1)[0]
+        if path == HEALTH_PATH:  # liveness for a container's probe: no token, no figures
+            connection.quiet()  # every 30 s: not two INFO lines each time
+            return _http_response(connection, 200, "ok\n", "text/plain; charset=utf-8")
         if path in ("/status", "/metrics") and not self._status_allowed(request):
             self.counters["status_unauthorized"] += 1
             response = _http_response(connection, 401, "Tele-Touch relay: /status and "
@@ -300,7 +304,8 @@ class RelayServer:
                                   "text/plain; version=0.0.4; charset=utf-8")
         if "upgrade" not in request.headers.get("Connection", "").lower():
             return _http_response(connection, 404, "Tele-Touch relay: WebSocket endpoint; "
-                                  "see /status and /metrics\n", "text/plain; charset=utf-8")
+                                  "see /status, /metrics and /healthz\n",
+                                  "text/plain; charset=utf-8")
         return None
 
     def _status_allowed(self, request: Request) -> bool:

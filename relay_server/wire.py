@@ -505,6 +505,12 @@ class TcpWire(Wire):
         await self.gone(max(0.0, deadline - asyncio.get_running_loop().time()))
 
 
+#: where a connection's answer and close go when they are routine (a liveness probe every
+#: 30 s): not logged below WARNING
+_QUIET_LOG = logging.getLogger("relay_server.websockets.quiet")
+_QUIET_LOG.setLevel(logging.WARNING)
+
+
 class _Responder:
     """What the relay's HTTP handler answers with (``respond(status, text)``)."""
 
@@ -513,6 +519,10 @@ class _Responder:
 
     def respond(self, status: int, text: str) -> Response:
         return self._protocol.reject(status, text)
+
+    def quiet(self) -> None:
+        """Log this connection's answer and its close only at WARNING and above."""
+        self._protocol.logger = _QUIET_LOG
 
 
 class WsWire(Wire):

@@ -242,3 +242,44 @@ def test_the_lock_keeps_the_files_cpython_3_11_on_linux_installs() -> None:
         lock.select_files([files[0], files[4]], "1.0", lock.target_tags())
     with pytest.raises(lock.LockError, match="aarch64, x86_64"):
         lock.select_files(files[4:9], "1.0", lock.target_tags())
+
+
+def _exec_form(line: str) -> list[str]:
+    """The JSON array of a Dockerfile instruction's exec form."""
+    import json
+
+    return list(json.loads(line[line.index("["):]))
+
+
+def test_every_container_has_the_health_check_of_what_it_runs() -> None:
+    """The image's HEALTHCHECK asks a relay (``teletouch relay --health-check``) with the very
+    arguments of the image's command, so it resolves the same configuration (port, address,
+    TLS); every compose service of the image that runs a relay probes with its own command's
+    arguments, and every other one disables the probe (it would ask a relay that is not
+    there and call the container unhealthy)."""
+    import yaml
+
+    dockerfile = (DEPLOY / "Dockerfile").read_text()
+    instructions = dockerfile.replace("\\\n", " ")
+    health = _exec_form(re.search(r"^HEALTHCHECK [^\[]*CMD (\[.*\])$", instructions, re.M)[1])  # type: ignore[index]
+    command = _exec_form(re.search(r"^CMD (\[.*\])$", instructions, re.M)[1])  # type: ignore[index]
+    assert command[:2] == ["teletouch", "relay"] and health == [*command, "--health-check"]
+    checked = 0
+    for name in ("compose.yaml", "compose.cluster.yaml"):
+        services = yaml.safe_load((DEPLOY / name).read_text())["services"]
+        for service, spec in services.items():
+            if spec.get("image") != "teletouch:latest":
+                assert "healthcheck" not in spec, service  # another image, its own probe
+                continue
+            argv = spec["command"]
+            probe = spec.get("healthcheck", {})
+            if argv[:2] == ["teletouch", "relay"]:
+                test = probe.get("test", ["CMD", *health])
+                assert test == ["CMD", *argv, "--health-check"], (name, service)
+                assert not probe.get("disable"), (name, service)
+                config = argv[argv.index("--config") + 1]
+                assert (DEPLOY / "config" / Path(config).name).is_file()
+                checked += 1
+            else:
+                assert probe == {"disable": True}, (name, service)
+    assert checked == 3  # the relay, and the cluster's two
