@@ -24,6 +24,7 @@ from collections.abc import Sequence
 
 from shared import __version__
 from shared.errors import TeleTouchError
+from shared.sd_notify import process_notifier
 
 __all__ = ["BENCHMARKS", "COMMANDS", "build_parser", "main"]
 
@@ -125,6 +126,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if run is None:
         parser.print_help(sys.stderr)
         return 2
+    # systemd's variables (Type=notify), taken out of the environment before any thread or
+    # child starts: only this process speaks for its unit (shared/sd_notify.py)
+    process_notifier()
     _ctrl_c_stops()
     try:
         return int(run(args) or 0)

@@ -66,6 +66,7 @@ from shared.protocol.peer_session import (
     PeerSettings,
     StatsReported,
 )
+from shared.sd_notify import service
 from shared.timebase import now_us
 from shared.view import ViewAddress, ViewServer, ViewServerConfig, parse_view_address
 from shared.view.server import token_authorizer
@@ -720,7 +721,10 @@ async def _serve(relay: RelayServer, config: RelayConfig,
     if started is not None:
         started(relay)
     try:
-        await stop.wait()
+        # systemd (Type=notify): ready now; its watchdog pinged from this loop until the stop
+        async with service(f"relay serving: WebSocket port {relay.ws_port}, TCP port "
+                           f"{relay.tcp_port}"):
+            await stop.wait()
         log.info("relay shutting down")
     finally:
         for sig in (signal.SIGINT, signal.SIGTERM):

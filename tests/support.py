@@ -130,3 +130,76 @@ def motion_of(msg: DataMessage) -> int | None:
     """The ``local.motion`` stamp of a message (None without one)."""
     return next((h.t_us for h in msg.hops if h.stage == "motion" and h.clock == "local"),
                 None)
+
+
+class NotifySocket:
+    """A socket listening as systemd's ``NOTIFY_SOCKET`` does (abstract namespace), read all
+    along by a thread as systemd reads it (a unix datagram queue holds as few as 10), keeping
+    what arrives with the sender's pid (``SO_PASSCRED``, as systemd checks ``NotifyAccess``)."""
+
+    def __init__(self) -> None:
+        import threading
+        import uuid
+
+        self.name = f"@teletouch-test-{uuid.uuid4().hex}"
+        self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_PASSCRED, 1)
+        self._sock.bind("\0" + self.name[1:])
+        self._sock.settimeout(0.1)  # how soon the reader sees close()
+        self.messages: list[tuple[int, str]] = []
+        self._arrived = threading.Condition()
+        self._closed = False
+        self._reader = threading.Thread(target=self._read, name="notify-socket", daemon=True)
+        self._reader.start()
+
+    def env(self, watchdog_usec: int | None = None) -> dict[str, str]:
+        """The variables systemd gives a ``Type=notify`` service (with ``WatchdogSec=``)."""
+        env = {"NOTIFY_SOCKET": self.name}
+        if watchdog_usec is not None:
+            env["WATCHDOG_USEC"] = str(watchdog_usec)
+        return env
+
+    def _read(self) -> None:
+        import struct
+
+        creds = struct.calcsize("iII")
+        while not self._closed:
+            try:
+                data, ancdata, _, _ = self._sock.recvmsg(4096, socket.CMSG_SPACE(creds))
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            pid = -1
+            for level, kind, payload in ancdata:
+                if level == socket.SOL_SOCKET and kind == socket.SCM_CREDENTIALS:
+                    pid = struct.unpack("iII", payload[:creds])[0]
+            with self._arrived:
+                self.messages.append((pid, data.decode()))
+                self._arrived.notify_all()
+
+    def texts(self, pid: int | None = None) -> list[str]:
+        """What has arrived (from ``pid`` only, when given)."""
+        with self._arrived:
+            return [text for sender, text in self.messages if pid is None or sender == pid]
+
+    def until(self, predicate: Callable[[list[tuple[int, str]]], bool],
+              timeout_s: float) -> None:
+        """Until ``predicate(messages)`` holds, woken by each message (not polled).
+
+        Raises:
+            TimeoutError: not within ``timeout_s``.
+        """
+        with self._arrived:
+            if not self._arrived.wait_for(lambda: predicate(list(self.messages)), timeout_s):
+                raise TimeoutError(f"not told within {timeout_s} s: {self.messages}")
+
+    async def wait_for(self, predicate: Callable[[list[tuple[int, str]]], bool],
+                       timeout_s: float) -> None:
+        """:meth:`until`, from a coroutine (the event loop goes on meanwhile)."""
+        await asyncio.to_thread(self.until, predicate, timeout_s)
+
+    def close(self) -> None:
+        self._closed = True
+        self._reader.join()
+        self._sock.close()

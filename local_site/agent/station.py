@@ -75,6 +75,7 @@ from shared.protocol import (
 )
 from shared.protocol.tactile_codec import TactileDecoder
 from shared.report import StatusLine, to_jsonable
+from shared.sd_notify import service
 from shared.timebase import monotonic_s, now_us
 from shared.view import ViewAddress, ViewServer, ViewServerConfig
 from shared.workspace import WorkspaceConfig
@@ -518,7 +519,9 @@ class LocalAgent:
         try:
             stop_wait = aio.create_task(self._stop.wait())
             waiters: set[asyncio.Future[Any]] = {stop_wait, display_task}
-            await asyncio.wait(waiters, return_when=asyncio.FIRST_COMPLETED)
+            # systemd (Type=notify): ready now; its watchdog pinged from this loop
+            async with service("local station running"):
+                await asyncio.wait(waiters, return_when=asyncio.FIRST_COMPLETED)
             if not stop_wait.done():
                 stop_wait.cancel()
                 with contextlib.suppress(asyncio.CancelledError):

@@ -69,6 +69,7 @@ from shared.protocol.messages import (
     without_motion,
 )
 from shared.protocol.tactile_codec import CodecSettings, TactileEncoder
+from shared.sd_notify import service
 from shared.timebase import monotonic_s, now_us
 
 __all__ = ["RemoteStation", "StationCounters", "command_clock", "next_command_wait_s",
@@ -822,8 +823,10 @@ class RemoteStation:
                  asyncio.create_task(self._status_loop(), name="remote-status")]
         stopper = asyncio.create_task(stop.wait(), name="remote-stop")
         try:
-            done, _ = await asyncio.wait({*tasks, stopper}, timeout=duration_s,
-                                         return_when=asyncio.FIRST_COMPLETED)
+            # systemd (Type=notify): ready now; its watchdog pinged from this loop
+            async with service("remote station running"):
+                done, _ = await asyncio.wait({*tasks, stopper}, timeout=duration_s,
+                                             return_when=asyncio.FIRST_COMPLETED)
             for task in done:
                 if task is not stopper and not task.cancelled() and task.exception() is not None:
                     raise task.exception()  # type: ignore[misc]

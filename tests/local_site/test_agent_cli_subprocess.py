@@ -16,7 +16,7 @@ import shared.memlock as memlock
 from local_site.recording import load_recording
 from tests.local_site.agent_support import FakeRemote, wait_for
 from tests.relay_server.relay_clients import SECRET
-from tests.support import free_tcp_port, scaled
+from tests.support import NotifySocket, free_tcp_port, scaled
 
 EXE = shutil.which("teletouch")
 CMD = [EXE] if EXE else [sys.executable, "-m", "lab.cli"]
@@ -93,17 +93,28 @@ async def test_relay_and_local_processes_sigterm_writes_record_and_summary(tmp_p
 
 
 async def test_scene_mode_process_until_motion_done(tmp_path: Path) -> None:
+    """Also what systemd is told (``Type=notify``, ``WatchdogSec=``): ready once the loops
+    run, watchdog pings, stopping; from the station's process alone (not its children)."""
     summary = tmp_path / "scene.json"
+    notify = NotifySocket()
     proc = await asyncio.create_subprocess_exec(
         *CMD, "local", "--scene", "hemisphere:radius_mm=8", "--platform", "sim", "--display",
         "sim", "--motion", "raster:x0=26,x1=34,y0=30,y1=30,press_depth=0,pause=0,loop=0",
         "--until-motion-done", "--summary-json", str(summary), "--no-lock-memory",
-        stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.DEVNULL)
+        stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.DEVNULL,
+        env={**os.environ, **notify.env(100_000)})
     try:
         async with asyncio.timeout(scaled(20.0)):
             assert await proc.wait() == 0
+        await notify.wait_for(lambda got: bool(got) and got[-1][1] == "STOPPING=1",
+                              scaled(10.0))  # the reader thread has it too
+        texts = notify.texts()
+        assert notify.texts(proc.pid) == texts, notify.messages
     finally:
+        notify.close()
         await _stop(proc)
+    assert texts[0] == "READY=1\nSTATUS=local station running" and texts[-1] == "STOPPING=1"
+    assert set(texts[1:-1]) == {"WATCHDOG=1"} and len(texts) >= 3, texts
     doc = json.loads(summary.read_text())
     assert doc["mode"] == "scene" and doc["exit_reason"] == "motion_done"
     assert doc["memory_lock"] == {"locked": False, "reason": "off (lock_memory = false)"}

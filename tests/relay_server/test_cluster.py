@@ -24,7 +24,7 @@ from shared.protocol import ArmCommand, ArmState, Message, PlatformState
 from shared.timebase import now_us
 from tests.relay_server.test_relay_isolation_and_status import http_get
 from tests.relay_server.test_relay_tls import lab_pki  # noqa: F401 (a fixture)
-from tests.support import free_tcp_port, scaled, teletouch_cmd
+from tests.support import NotifySocket, free_tcp_port, scaled, teletouch_cmd
 
 pytest.importorskip("nats", reason="the cluster needs nats-py (pip install -e '.[cluster]')")
 from lab.bench.load_impl import nats_server_binary
@@ -467,6 +467,7 @@ def test_a_supervisors_workers_stamp_on_its_clock(monkeypatch: pytest.MonkeyPatc
     it before serving: the workers of one supervisor stamp on one clock, also when the wall
     clock was stepped between their starts (here: the supervisor's anchor 7 s off)."""
     import dataclasses
+    import threading
 
     from relay_server import cluster, server
     from relay_server.config import RelayConfig
@@ -495,6 +496,7 @@ def test_a_supervisors_workers_stamp_on_its_clock(monkeypatch: pytest.MonkeyPatc
 
     class _Context:
         Process = _Process
+        Event = threading.Event
 
     monkeypatch.setattr(cluster.mp, "get_context", lambda method: _Context())
     config = RelayConfig(nats_url="nats://127.0.0.1:1", port=18765, tcp_port=18766)
@@ -506,13 +508,13 @@ def test_a_supervisors_workers_stamp_on_its_clock(monkeypatch: pytest.MonkeyPatc
     monkeypatch.setattr(timebase, "_ANCHOR_NS", supervisor_anchor - 9_000_000_000)
     seen: list[int] = []
 
-    async def serve(config: RelayConfig) -> None:
+    async def serve(config: RelayConfig, started: Any = None) -> None:
         seen.append(timebase.wall_anchor_ns())
 
     monkeypatch.setattr(server, "serve_forever", serve)
     old_sigint = signal.getsignal(signal.SIGINT)
     try:
-        cluster._worker_main(started[0][1], started[0][2], started[0][3])
+        cluster._worker_main(*started[0][1:])
     finally:
         signal.signal(signal.SIGINT, old_sigint)
     assert seen == [supervisor_anchor]
@@ -539,3 +541,93 @@ async def test_the_heartbeat_forgets_a_silent_worker() -> None:
                     await asyncio.sleep(0.01)
         finally:
             await link.close()
+
+
+async def test_the_supervisor_alone_tells_systemd() -> None:
+    """Under systemd (``Type=notify``, ``WatchdogSec=``) ``--workers N`` is one service: its
+    supervisor says it is ready, pings the watchdog from its loop and says it stops; the
+    workers it spawns do not speak (systemd would refuse them: ``NotifyAccess=main``)."""
+    notify = NotifySocket()
+    try:
+        async with nats_server() as url, relay(url, workers=2,
+                                               env=notify.env(200_000)) as port:
+            doc = await wait_workers(port, 2)
+            workers = {w["pid"] for w in doc["cluster"]["workers"].values()}
+            await notify.wait_for(
+                lambda got: sum(text == "WATCHDOG=1" for _, text in got) >= 2, scaled(10.0))
+        await notify.wait_for(lambda got: bool(got) and got[-1][1] == "STOPPING=1",
+                              scaled(10.0))
+        senders = {pid for pid, _ in notify.messages}
+        assert len(senders) == 1 and not senders & workers, (senders, workers)
+        # ready once both workers serve (pings from the start: a slow start is no hang)
+        said = [text for text in notify.texts() if text != "WATCHDOG=1"]
+        assert len(said) == 2 and said[-1] == "STOPPING=1", said
+        assert said[0].startswith(f"READY=1\nSTATUS=relay supervisor: 2 workers on ports "
+                                  f"{port}/"), said
+    finally:
+        notify.close()
+
+
+def test_the_supervisor_is_ready_once_every_worker_serves(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """``READY=1`` waits for the last worker's ports (its ``serving`` event), not for the
+    spawn; pings go out meanwhile (a slow start is not a hang). Workers faked, events real."""
+    import threading
+
+    from relay_server import cluster
+    from relay_server.config import RelayConfig
+    from shared.sd_notify import Notifier
+
+    notify = NotifySocket()
+    notifier = Notifier({"NOTIFY_SOCKET": notify.name, "WATCHDOG_USEC": "100000"})
+    monkeypatch.setattr(cluster, "process_notifier", lambda: notifier)
+    serving: list[Any] = []
+    before_last: list[list[str]] = []
+
+    class _Process:
+        pid = None
+        exitcode = 0
+
+        def __init__(self, target: Any, args: tuple[Any, ...], name: str) -> None:
+            serving.append(args[3])
+
+        def start(self) -> None:
+            pass
+
+        def is_alive(self) -> bool:
+            return True
+
+        def join(self, timeout: float | None = None) -> None:
+            pass
+
+        def kill(self) -> None:
+            pass
+
+    class _Context:
+        Process = _Process
+        Event = threading.Event
+
+    def workers_come_up() -> None:
+        serving[0].set()
+        # a worker still starting: the supervisor pings, and says nothing more
+        notify.until(lambda got: len(got) >= 3, scaled(10.0))
+        before_last.append(notify.texts())
+        serving[1].set()
+        notify.until(lambda got: any(t.startswith("READY=1") for _, t in got), scaled(10.0))
+        signal.raise_signal(signal.SIGTERM)  # then the supervisor is stopped
+
+    monkeypatch.setattr(cluster.mp, "get_context", lambda method: _Context())
+    starter = threading.Timer(0.1, workers_come_up)
+    starter.start()
+    try:
+        cluster.run_workers(RelayConfig(nats_url="nats://127.0.0.1:1", port=18765,
+                                        tcp_port=18766), 2)
+        notify.until(lambda got: bool(got) and got[-1][1] == "STOPPING=1", scaled(10.0))
+    finally:
+        starter.join()
+        texts = notify.texts()
+        notify.close()
+    assert before_last and set(before_last[0]) == {"WATCHDOG=1"}, before_last
+    said = [t for t in texts if t != "WATCHDOG=1"]
+    assert said[0].startswith("READY=1\nSTATUS=relay supervisor: 2 workers") and \
+        said[-1] == "STOPPING=1" and len(said) == 2, texts

@@ -21,7 +21,7 @@ from remote_site.agent.world import build_world
 from shared.workspace import WorkspaceMap
 from tests.relay_server.test_relay_isolation_and_status import http_get, wait_relay_ready
 from tests.remote_site.test_agent_relay import SESSION, check_press_result, fake_local
-from tests.support import free_tcp_port, scaled, teletouch_cmd
+from tests.support import NotifySocket, free_tcp_port, scaled, teletouch_cmd
 
 SUMMARY_KEYS = {"role", "elapsed_s", "frames", "platform_states", "arm_commands", "arm",
                 "stiffness", "latency_ms", "link", "session", "arm_backend", "sensor_backend",
@@ -43,9 +43,12 @@ async def _remote_joined(port: int) -> bool:
 
 
 async def test_relay_and_remote_as_processes(tmp_path: Path) -> None:
+    """Also what systemd is told (``Type=notify``, ``WatchdogSec=``): each process is ready
+    once it serves, pings its watchdog and says it stops, and nothing else speaks for it."""
     cmd = teletouch_cmd()
     port, tcp_port = free_tcp_port(), free_tcp_port()
-    env = dict(os.environ, TELETOUCH_RELAY_SECRET="sub-secret")
+    relay_notify, remote_notify = NotifySocket(), NotifySocket()  # closed in the finally
+    env = dict(os.environ, TELETOUCH_RELAY_SECRET="sub-secret", **relay_notify.env(200_000))
     token = derive_token("sub-secret", SESSION)
     relay = await asyncio.create_subprocess_exec(
         *cmd, "relay", "--host", "127.0.0.1", "--port", str(port), "--tcp-port", str(tcp_port),
@@ -56,7 +59,11 @@ async def test_relay_and_remote_as_processes(tmp_path: Path) -> None:
         await wait_relay_ready(port)
         truth_path, summary_path = tmp_path / "truth.json", tmp_path / "summary.json"
         write_ground_truth(build_world("severity", 2, ideal=True), truth_path, WorkspaceMap())
-        remote_env = dict(os.environ, TELETOUCH_REMOTE_LINK_TOKEN=token)
+        await relay_notify.wait_for(lambda got: bool(got), scaled(10.0))
+        assert relay_notify.texts(relay.pid)[0] == (  # ready once it serves
+            f"READY=1\nSTATUS=relay serving: WebSocket port {port}, TCP port {tcp_port}")
+        remote_env = dict(os.environ, TELETOUCH_REMOTE_LINK_TOKEN=token,
+                          **remote_notify.env(200_000))
         remote = await asyncio.create_subprocess_exec(
             *cmd, "remote", "--relay", f"tcp://127.0.0.1:{tcp_port}", "--session", SESSION,
             "--arm", "sim", "--sensor", "sim", "--phantom", "severity", "--seed", "2",
@@ -66,6 +73,8 @@ async def test_relay_and_remote_as_processes(tmp_path: Path) -> None:
         async with asyncio.timeout(scaled(30.0)):  # the remote has opened its devices
             while not await _remote_joined(port):
                 await asyncio.sleep(0.1)
+        await remote_notify.wait_for(lambda got: ("READY=1\nSTATUS=remote station running") in
+                                     [t for _, t in got], scaled(30.0))
         truth = json.loads(truth_path.read_text())
         hardest = next(t for t in truth["tumors"] if t["id"] == truth["severity_order"][-1])
         got = await fake_local(f"ws://127.0.0.1:{port}/", tuple(hardest["center_mm"]),
@@ -74,6 +83,7 @@ async def test_relay_and_remote_as_processes(tmp_path: Path) -> None:
         async with asyncio.timeout(scaled(15.0)):
             out, err = await remote.communicate()
         assert remote.returncode == 0, err.decode()[-2000:]
+        await _told_systemd(remote_notify, remote.pid)
         check_press_result(got, truth, hardest["id"])
         summary = json.loads(summary_path.read_text())
         assert set(summary) >= SUMMARY_KEYS
@@ -84,11 +94,28 @@ async def test_relay_and_remote_as_processes(tmp_path: Path) -> None:
         assert summary["memory_lock"] == {"locked": refusal is None, "reason": refusal}
         assert "tactile frames sent" in out.decode()
         assert "Traceback" not in err.decode().split("remote station stopped")[0]
+        relay.send_signal(signal.SIGTERM)
+        async with asyncio.timeout(scaled(10.0)):
+            await relay.wait()
+        await _told_systemd(relay_notify, relay.pid)
     finally:
+        relay_notify.close()
+        remote_notify.close()
         if remote is not None:
             await _stop(remote)
-        relay.send_signal(signal.SIGTERM)
-        with contextlib.suppress(TimeoutError):
-            async with asyncio.timeout(scaled(10.0)):
-                await relay.wait()
+        if relay.returncode is None:
+            relay.send_signal(signal.SIGTERM)
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(scaled(10.0)):
+                    await relay.wait()
         await _stop(relay)
+
+
+async def _told_systemd(notify: NotifySocket, pid: int) -> None:
+    """``pid`` (ended) said it was ready, pinged its watchdog (every 0.1 s here) and said it
+    was stopping, in that order; nothing else said anything."""
+    await notify.wait_for(lambda got: bool(got) and got[-1][1] == "STOPPING=1", scaled(10.0))
+    texts = notify.texts()
+    assert notify.texts(pid) == texts, notify.messages  # not its children, nor its workers
+    assert texts[0].startswith("READY=1\nSTATUS=") and texts[-1] == "STOPPING=1", texts
+    assert set(texts[1:-1]) == {"WATCHDOG=1"} and len(texts) >= 4, texts

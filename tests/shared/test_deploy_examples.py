@@ -107,6 +107,12 @@ def test_units_and_compose_call_existing_subcommands() -> None:
     assert len(texts) == 3
     for text in texts:
         assert "Restart=on-failure" in text
+        # started once ready, restarted when the event loop hangs (shared/sd_notify.py)
+        assert re.search(r"^Type=notify$", text, re.M) and re.search(r"^WatchdogSec=\d+$",
+                                                                     text, re.M)
+        if "bin/teletouch relay" not in text:  # a station: numba caches where it may write
+            assert "CacheDirectory=teletouch\n" in text
+            assert "Environment=NUMBA_CACHE_DIR=/var/cache/teletouch/numba\n" in text
         assert "EnvironmentFile=/etc/teletouch/teletouch.env" in text
         # ranked above other jobs for CPU by the slice's weight (docs/speed.md section 35)
         assert re.search(r"^\[Service\][^\[]*^Slice=teletouch\.slice$", text, re.M | re.S)
@@ -283,3 +289,36 @@ def test_every_container_has_the_health_check_of_what_it_runs() -> None:
             else:
                 assert probe == {"disable": True}, (name, service)
     assert checked == 3  # the relay, and the cluster's two
+
+
+def test_the_stations_import_from_a_read_only_install_with_the_units_cache() -> None:
+    """Under ``ProtectSystem=strict`` (and in the image, as its unprivileged user) the install
+    and the home are read-only: numba then refuses to cache a kernel and a station does not
+    even import. With ``NUMBA_CACHE_DIR`` where the units and the image put it, it does.
+    Checked in a mount namespace with the tree and the home bound read-only (root only)."""
+    import os
+    import shutil
+    import subprocess
+    import sys
+    import tempfile
+
+    if os.geteuid() != 0 or shutil.which("unshare") is None:
+        pytest.skip("needs root and unshare(1) for a read-only bind mount")
+    tree = DEPLOY.parent
+    with tempfile.TemporaryDirectory() as home, tempfile.TemporaryDirectory() as cache:
+        read_only = " && ".join(f"mount --bind {d} {d} && mount -o remount,bind,ro {d}"
+                                for d in (tree, home))
+        station = f"{sys.executable} -c 'import local_site.render.interpolation; print(1)'"
+
+        def run(env: str) -> subprocess.CompletedProcess[str]:
+            return subprocess.run(["unshare", "-m", "sh", "-c",
+                                   f"{read_only} && cd / && {env} HOME={home} {station}"],
+                                  capture_output=True, text=True, timeout=300,
+                                  env={**os.environ, "PYTHONPATH": str(tree)})
+
+        bare = run("")
+        if bare.returncode != 0 and "mount" in bare.stderr and "permitted" in bare.stderr:
+            pytest.skip(f"no mount namespace here: {bare.stderr.strip()[:200]}")
+        assert bare.returncode != 0 and "no locator available" in bare.stderr, bare
+        cached = run(f"NUMBA_CACHE_DIR={cache}/numba")
+        assert cached.returncode == 0 and cached.stdout.strip() == "1", cached.stderr[-2000:]
