@@ -21,9 +21,14 @@ __all__ = ["HEALTH_PATH", "health_url", "probe"]
 HEALTH_PATH = "/healthz"
 
 
+def _probe_host(config: RelayConfig) -> str:
+    """The address the probe connects to: the relay's, loopback for every address."""
+    return {"0.0.0.0": "127.0.0.1", "": "127.0.0.1", "::": "::1"}.get(config.host, config.host)
+
+
 def health_url(config: RelayConfig) -> str:
     """Where the relay of ``config`` answers the probe."""
-    host = {"0.0.0.0": "127.0.0.1", "": "127.0.0.1", "::": "::1"}.get(config.host, config.host)
+    host = _probe_host(config)
     if ":" in host:
         host = f"[{host}]"
     scheme = "https" if config.tls_cert else "http"
@@ -34,8 +39,7 @@ def probe(config: RelayConfig, timeout_s: float = 2.0) -> str | None:
     """None when the relay of ``config`` answers ``GET /healthz`` with 200 ``ok``; else what
     went wrong, naming the URL. ``timeout_s`` bounds each step (connect, TLS handshake,
     read), not their sum: a container's probe has its own overall timeout."""
-    url = health_url(config)
-    host = url.split("://", 1)[1].rsplit(":", 1)[0].strip("[]")
+    url, host = health_url(config), _probe_host(config)
     conn: http.client.HTTPConnection
     if config.tls_cert:
         context = ssl.create_default_context()
