@@ -51,7 +51,8 @@ import logging
 from dataclasses import dataclass, field
 from typing import Any, TypeGuard
 
-from shared.clocksync import ClockFilter, ClockSample
+from shared.clocksync import ClockFilter, sample_from_timestamps
+from shared.errors import InputDataError
 
 __all__ = ["ANCHOR_SLACK_US", "WARN_OFFSET_US", "WorkerClocks"]
 
@@ -152,17 +153,12 @@ class WorkerClocks:
         t0, t1 = mine
         if t0 not in self._sent or (peer.echoed_t0 is not None and t0 <= peer.echoed_t0):
             return False  # not a heartbeat of ours (or long ago), or counted already
-        t2, t3 = sent, received_us
-        if t3 < t0 or t2 < t1:
-            return False
-        dispersion = _DRIFT_PPM * 1e-6 * (t3 - t0)  # the clocks' drift over the exchange
-        delay = (t3 - t0) - (t2 - t1)
-        if delay < -dispersion - 1:  # below what the drift can explain: a peer's bug
+        try:  # held up to a heartbeat: the clocks' drift meanwhile is counted
+            sample = sample_from_timestamps(t0, t1, sent, received_us, drift_ppm=_DRIFT_PPM)
+        except InputDataError:  # out of order, or a round trip below what drift explains
             return False
         peer.echoed_t0 = t0
-        peer.filter.add(ClockSample(offset_us=((t1 - t0) + (t2 - t3)) / 2.0,
-                                    delay_us=float(max(0, delay)), t3_us=t3,
-                                    dispersion_us=dispersion))
+        peer.filter.add(sample)
         return True
 
     def _test_anchors(self, worker: str, peer: _Peer, now_us: int) -> None:

@@ -61,7 +61,8 @@ class ClockSample:
         return self.delay_us / 2.0
 
 
-def sample_from_timestamps(t0_us: int, t1_us: int, t2_us: int, t3_us: int) -> ClockSample:
+def sample_from_timestamps(t0_us: int, t1_us: int, t2_us: int, t3_us: int,
+                           drift_ppm: float = 0.0) -> ClockSample:
     """Compute offset and delay of one exchange.
 
     Args:
@@ -69,23 +70,31 @@ def sample_from_timestamps(t0_us: int, t1_us: int, t2_us: int, t3_us: int) -> Cl
         t1_us: ping receive, station clock.
         t2_us: pong transmit, station clock.
         t3_us: pong receive, reference clock.
+        drift_ppm: how fast the two clocks may drift apart while the other side holds the
+            exchange (0 for a clock ping, held microseconds; the relay workers' echoed
+            heartbeats are held up to a heartbeat period). Its drift over the exchange is
+            the sample's ``dispersion_us``, and a round trip that this drift (and the
+            stamps' microsecond) could make negative counts as 0.
 
     Returns:
         The sample.
 
     Raises:
         InputDataError: the timestamps are inconsistent (t3 before t0, t2 before t1, or a
-            negative round trip), so the exchange says nothing about the clocks.
+            negative round trip beyond that drift), so the exchange says nothing about the
+            clocks.
     """
     if t3_us < t0_us or t2_us < t1_us:
         raise InputDataError(f"clock exchange out of order: t0={t0_us} t1={t1_us} "
                              f"t2={t2_us} t3={t3_us}")
+    dispersion = drift_ppm * 1e-6 * (t3_us - t0_us)
     delay = (t3_us - t0_us) - (t2_us - t1_us)
-    if delay < 0:
+    if delay < (-dispersion - 1 if drift_ppm > 0 else 0):
         raise InputDataError(f"clock exchange with negative round trip {delay} us "
                              "(station hold time longer than the round trip)")
     offset = ((t1_us - t0_us) + (t2_us - t3_us)) / 2.0
-    return ClockSample(offset_us=offset, delay_us=float(delay), t3_us=int(t3_us))
+    return ClockSample(offset_us=offset, delay_us=float(max(0, delay)), t3_us=int(t3_us),
+                       dispersion_us=dispersion)
 
 
 class ClockFilter:
