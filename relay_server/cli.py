@@ -70,6 +70,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--workers", type=int, default=None,
                         help="relay worker processes on this host, sharing the ports "
                              "(SO_REUSEPORT); needs --nats; default with --nats: one per core")
+    parser.add_argument("--worker-hang-timeout-s", dest="worker_hang_timeout_s", type=float,
+                        help="with --workers: kill and restart a worker whose event loop made "
+                             "no progress this long, its stacks logged first (default 10)")
     parser.add_argument("--print-token", dest="print_token", metavar="SESSION",
                         help="print a token of SESSION for the secret and exit: v2 (role, "
                              "expiry) with --role, else the legacy per-session token")
@@ -100,6 +103,7 @@ def run(args: argparse.Namespace) -> int:
     explicit = {name: getattr(args, name, None) for name in (
         "host", "port", "tcp_port", "secret", "token_file", "allow_any_token", "tls_cert",
         "tls_key", "view", "nats_url", "nats_connect_timeout_s", "workers",
+        "worker_hang_timeout_s",
         "hello_timeout_s", "ping_interval_s", "stats_interval_s")}
     config = resolve_config(RelayConfig, "relay", explicit=explicit, toml_path=args.config)
     if args.health_check:
@@ -125,8 +129,8 @@ def run(args: argparse.Namespace) -> int:
         else:
             emit(derive_token(config.secret, args.print_token))
         return 0
-    from relay_server.cluster import run_workers, worker_count
     from relay_server.server import serve_forever
+    from relay_server.workers import run_workers, worker_count
 
     workers = worker_count(config)
     if workers > 1:

@@ -34,20 +34,16 @@ makes several of them one relay:
   message refused by the receiving worker (``queue_full``, ``no_peer``) is counted there
   (``nats_undelivered_<code>``); the sender gets no ``error`` for it.
 
-``run_workers`` runs N workers on one host, one process each, all bound to the same ports
-with SO_REUSEPORT (the kernel spreads new connections over them); a worker that dies is
-started again.
+:mod:`relay_server.workers` runs N workers on one host, one process each, all bound to the
+same ports with SO_REUSEPORT, and restarts a worker that dies or hangs.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import dataclasses
 import logging
-import multiprocessing as mp
 import os
-import signal
 import socket
 import ssl
 import time
@@ -63,10 +59,9 @@ from relay_server.session import Session
 from relay_server.worker_clocks import WorkerClocks
 from shared.errors import ConfigError, RemoteProtocolError, RoleTakenError
 from shared.protocol import DataMessage, decode, encode
-from shared.sd_notify import SAY_WAIT_S, process_notifier
-from shared.timebase import adopt_wall_anchor, wall_anchor_ns
+from shared.timebase import wall_anchor_ns
 
-__all__ = ["HEARTBEAT_S", "ClusterLink", "run_workers", "worker_count"]
+__all__ = ["HEARTBEAT_S", "ClusterLink"]
 
 log = logging.getLogger(__name__)
 
@@ -371,104 +366,3 @@ def _worker_doc(hb: dict[str, Any], age_s: float) -> dict[str, Any]:
             "drops": hb.get("drops", {}),
             "sessions": {sid: {"stations": held[0], "observers": held[1]}
                          for sid, held in hb.get("sessions", {}).items()}}
-
-
-# --------------------------------------------------------------------------- workers
-
-
-def worker_count(config: RelayConfig) -> int:
-    """Worker processes to run: ``workers``, else one per core when clustered, else 1."""
-    if config.workers:
-        return config.workers
-    return (os.cpu_count() or 1) if config.nats_url else 1
-
-
-def _worker_main(config: RelayConfig, log_level: int, anchor_ns: int | None = None,
-                 serving: Any = None) -> None:
-    """A worker of ``run_workers``: serve until SIGTERM; set ``serving`` (an event) once the
-    ports are bound. The two optional arguments may be missing (a supervisor of an earlier
-    release)."""
-    from relay_server.server import serve_forever
-
-    if anchor_ns is not None:  # None: started by a supervisor of an earlier release
-        adopt_wall_anchor(anchor_ns)  # the supervisor's clock: its workers' stamps agree
-    logging.basicConfig(level=log_level,
-                        format=f"%(asctime)s worker-{os.getpid()} %(levelname)s %(name)s: "
-                               "%(message)s")
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the supervisor says when (SIGTERM)
-    asyncio.run(serve_forever(config, None if serving is None else
-                              lambda relay: serving.set()))
-
-
-def run_workers(config: RelayConfig, count: int) -> None:
-    """Run ``count`` relay workers on this host (one process each, SO_REUSEPORT) until
-    SIGINT or SIGTERM; restart a worker that dies.
-
-    Raises:
-        ConfigError: no ``nats_url``, or port 0 (the workers must share fixed ports).
-    """
-    if not config.nats_url:
-        raise ConfigError("--workers needs --nats nats://HOST:PORT")
-    if config.port == 0 or config.resolved_tcp_port == 0:
-        raise ConfigError("--workers needs fixed ports (not 0): the workers share them")
-    worker_config = dataclasses.replace(config, reuse_port=True)
-    # systemd hears this process alone (its variables were taken out of the environment at
-    # start: the workers do not inherit them), ready once every worker serves
-    notifier = process_notifier()
-    ctx = mp.get_context("spawn")
-    level = logging.getLogger().getEffectiveLevel()
-    procs: list[mp.process.BaseProcess] = []
-    serving: list[Any] = []  # per worker, an event it sets once its ports are bound
-    stopping = False
-
-    def stop(*_: object) -> None:
-        nonlocal stopping
-        stopping = True
-
-    old = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
-
-    def spawn() -> tuple[mp.process.BaseProcess, Any]:
-        ready = ctx.Event()
-        proc = ctx.Process(target=_worker_main, args=(worker_config, level, wall_anchor_ns(),
-                                                      ready),
-                           name="teletouch-relay-worker")
-        proc.start()
-        return proc, ready
-
-    try:
-        for _ in range(count):
-            proc, ready = spawn()
-            procs.append(proc)
-            serving.append(ready)
-        log.info("relay: %d workers on ports %d/%d joined by %s", count, config.port,
-                 config.resolved_tcp_port, config.nats_url)
-        said_ready = False
-        period = notifier.watchdog_period_s
-        pinged = time.monotonic()
-        while not stopping:
-            time.sleep(0.2 if period is None else min(0.2, period / 2))
-            if not said_ready and all(ready.is_set() for ready in serving):
-                said_ready = True
-                notifier.notify("READY=1", f"STATUS=relay supervisor: {count} workers on "
-                                f"ports {config.port}/{config.resolved_tcp_port}",
-                                wait_s=SAY_WAIT_S)
-            if period is not None and time.monotonic() - pinged >= period:
-                notifier.notify("WATCHDOG=1")  # this loop's liveness (it restarts workers)
-                pinged = time.monotonic()
-            for i, proc in enumerate(procs):
-                if not proc.is_alive() and not stopping:
-                    log.warning("relay worker %s exited (code %s); starting another",
-                                proc.pid, proc.exitcode)
-                    procs[i], serving[i] = spawn()
-    finally:
-        notifier.notify("STOPPING=1", wait_s=SAY_WAIT_S)
-        for proc in procs:
-            if proc.is_alive() and proc.pid is not None:
-                os.kill(proc.pid, signal.SIGTERM)
-        for proc in procs:
-            proc.join(10.0)
-            if proc.is_alive():
-                proc.kill()
-                proc.join()
-        for sig, handler in old.items():
-            signal.signal(sig, handler)

@@ -75,6 +75,9 @@ class RelayConfig:
             ``nats_url`` (None: the system's trust store).
         nats_connect_timeout_s: a worker that cannot reach NATS within this time of its
             start exits with a start error (later losses of NATS are retried for ever).
+        worker_hang_timeout_s: with more than one worker: a worker whose event loop made no
+            progress this long (at least 1 s) is killed (its threads' stacks written to its
+            log first) and started again (:mod:`relay_server.workers`).
         lock_memory: keep each relay process's memory in RAM while it serves (``mlockall``
             on fault, :mod:`shared.memlock`, as the stations do): forwarding never waits for
             a page read back from disk on a cloud host under memory pressure. Taken only
@@ -117,6 +120,7 @@ class RelayConfig:
     reuse_port: bool = False
     nats_ca_file: Path | None = None
     nats_connect_timeout_s: float = 10.0
+    worker_hang_timeout_s: float = 10.0
     lock_memory: bool = True
 
     def __post_init__(self) -> None:
@@ -150,9 +154,13 @@ class RelayConfig:
                               "(or tls://, ws://, wss://)")
         if not self.nats_subject_prefix.replace("_", "").replace("-", "").isalnum():
             raise ConfigError("relay.nats_subject_prefix must be letters, digits, - and _")
-        if not (math.isfinite(self.nats_connect_timeout_s) and self.nats_connect_timeout_s > 0):
-            raise ConfigError("relay.nats_connect_timeout_s must be a finite number > 0, got "
-                              f"{self.nats_connect_timeout_s!r}")
+        for name in ("nats_connect_timeout_s", "worker_hang_timeout_s"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ConfigError(f"relay.{name} must be a finite number > 0, got {value!r}")
+        if self.worker_hang_timeout_s < 1.0:
+            raise ConfigError("relay.worker_hang_timeout_s must be at least 1 s (the workers "
+                              f"beat every quarter of it), got {self.worker_hang_timeout_s!r}")
         if self.ping_burst_spacing_s < 0:
             raise ConfigError("relay.ping_burst_spacing_s must be >= 0")
         if (self.tls_cert is None) != (self.tls_key is None):

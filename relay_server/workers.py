@@ -1,0 +1,267 @@
+"""Relay workers on one host: ``teletouch relay --workers N --nats URL``.
+
+``run_workers`` runs N relay processes (*workers*, joined by NATS: :mod:`relay_server.cluster`)
+all bound to the same ports with SO_REUSEPORT, so the kernel spreads new connections over
+them, and supervises them:
+
+* a worker that **dies** is started again;
+* a worker that **hangs** without dying is killed and started again. Every worker's event
+  loop advances a counter in memory shared with its supervisor (its *beat*, every
+  ``BEAT_S``, or a quarter of the timeout if that is less); one whose beat stands still for
+  ``worker_hang_timeout_s`` (or that has not beaten within ``START_ALLOWANCE_S`` of its
+  spawn) is stuck: a busy loop, a deadlock, a blocking call. SO_REUSEPORT would otherwise
+  keep handing it new connections that it never serves, and a dead process is all that
+  restarts catch. Before the kill the worker is sent ``STACK_DUMP_SIGNAL``, on which it
+  writes every thread's stack to its standard error (:mod:`faulthandler`, which needs no help
+  from the stuck interpreter): the log says where it hung. A supervisor that was itself not
+  running for a while (a paused VM, a starved host) gives every worker a fresh timeout
+  rather than blaming them for its own gap;
+* under systemd it alone speaks for the service: ``READY=1`` once every worker serves,
+  ``WATCHDOG=1`` from its loop, ``STOPPING=1`` (:mod:`shared.sd_notify`);
+* its wall anchor goes to every worker it starts, so one host's workers stamp on one clock.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import faulthandler
+import logging
+import multiprocessing as mp
+import os
+import signal
+import time
+from typing import Any
+
+from relay_server.config import RelayConfig
+from shared.errors import ConfigError
+from shared.sd_notify import SAY_WAIT_S, process_notifier
+from shared.timebase import adopt_wall_anchor, wall_anchor_ns
+
+__all__ = ["BEAT_S", "STACK_DUMP_SIGNAL", "START_ALLOWANCE_S", "run_workers", "worker_count"]
+
+log = logging.getLogger(__name__)
+
+#: a worker's event loop advances its beat this often
+BEAT_S = 0.5
+#: a worker's first beat must come within this long of its spawn (or ``worker_hang_timeout_s``
+#: if longer): an interpreter's start and the relay's imports take seconds on a loaded host
+START_ALLOWANCE_S = 60.0
+#: a worker writes every thread's stack to its standard error on this signal (and goes on)
+STACK_DUMP_SIGNAL = signal.SIGUSR2
+#: how long stuck workers are given to write their stacks before they are killed
+_DUMP_WAIT_S = 1.0
+#: how long the supervisor waits for a killed worker to end before it goes on
+_REAP_WAIT_S = 0.1
+#: the supervisor's loop period
+_ROUND_S = 0.2
+#: a supervisor round that came this much later than due (or half the hang timeout, if less)
+#: means the supervisor itself was not running (the workers were probably not either): every
+#: worker gets a fresh timeout
+_SUPERVISOR_GAP_S = 2.0
+
+
+def worker_count(config: RelayConfig) -> int:
+    """Worker processes to run: ``workers``, else one per core when clustered, else 1."""
+    if config.workers:
+        return config.workers
+    return (os.cpu_count() or 1) if config.nats_url else 1
+
+
+async def _beat(beat: Any, period_s: float) -> None:
+    """Advance ``beat`` (a shared unsigned counter) every ``period_s`` while the loop runs."""
+    while True:
+        beat.value += 1
+        await asyncio.sleep(period_s)
+
+
+async def _serve_beating(config: RelayConfig, serving: Any, beat: Any) -> None:
+    from relay_server.server import serve_forever
+
+    period_s = min(BEAT_S, config.worker_hang_timeout_s / 4)
+    beating = None if beat is None else asyncio.create_task(_beat(beat, period_s),
+                                                            name="worker-beat")
+    try:
+        await serve_forever(config, None if serving is None else lambda relay: serving.set())
+    finally:
+        if beating is not None:
+            beating.cancel()
+
+
+def _worker_main(config: RelayConfig, log_level: int, anchor_ns: int | None = None,
+                 serving: Any = None, beat: Any = None) -> None:
+    """A worker of ``run_workers``: serve until SIGTERM; set ``serving`` (an event) once the
+    ports are bound; advance ``beat`` (a shared counter) from the event loop. The optional
+    arguments may be missing (a supervisor of an earlier release)."""
+    if anchor_ns is not None:  # None: started by a supervisor of an earlier release
+        adopt_wall_anchor(anchor_ns)  # the supervisor's clock: its workers' stamps agree
+    logging.basicConfig(level=log_level,
+                        format=f"%(asctime)s worker-{os.getpid()} %(levelname)s %(name)s: "
+                               "%(message)s")
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the supervisor says when (SIGTERM)
+    faulthandler.register(STACK_DUMP_SIGNAL, all_threads=True)  # before a hung one's kill
+    asyncio.run(_serve_beating(config, serving, beat))
+
+
+class _Progress:
+    """A worker's progress as its supervisor sees it: when its beat last moved.
+
+    Args:
+        beat: the worker's shared counter.
+        serving: its event, set once its ports are bound.
+        now_s: the spawn time (the supervisor's monotonic clock).
+        timeout_s: a beat that stands still this long means a stuck worker (once it serves;
+            until then :data:`START_ALLOWANCE_S` if that is longer: a starting worker's loop
+            may block a while on imports, TLS set-up and a full garbage collection).
+    """
+
+    def __init__(self, beat: Any, serving: Any, now_s: float, timeout_s: float) -> None:
+        self.beat = beat
+        self.serving = serving
+        self._seen = beat.value
+        self._since = now_s
+        self._timeout_s = timeout_s
+
+    def excuse(self, now_s: float) -> None:
+        """A fresh timeout from ``now_s`` (the supervisor was not running before)."""
+        self._since = now_s
+
+    def stuck(self, now_s: float) -> str | None:
+        """Why the worker counts as stuck (None: it does not)."""
+        value = self.beat.value
+        if value != self._seen:
+            self._seen, self._since = value, now_s
+            return None
+        still_s = now_s - self._since
+        if self.serving.is_set():
+            if still_s <= self._timeout_s:
+                return None
+            return (f"made no progress for {still_s:.1f} s (its event loop is stuck; "
+                    f"worker_hang_timeout_s {self._timeout_s:g})")
+        limit = max(self._timeout_s, START_ALLOWANCE_S)
+        if still_s <= limit:
+            return None
+        return (f"made no progress for {still_s:.1f} s while starting (its event loop is "
+                f"stuck; {limit:g} s allowed before it serves)")
+
+
+def _kill_stuck(procs: list[mp.process.BaseProcess]) -> list[mp.process.BaseProcess]:
+    """Have stuck workers write their stacks (:data:`STACK_DUMP_SIGNAL`; one wait for all),
+    then kill them. Returns those not yet reaped (for later rounds: a process in an
+    uninterruptible wait dies only when that wait ends, and the supervisor does not wait)."""
+    for proc in procs:
+        if proc.pid is not None:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(proc.pid, STACK_DUMP_SIGNAL)
+    time.sleep(_DUMP_WAIT_S)
+    for proc in procs:
+        proc.kill()
+        log.warning("relay worker %s killed (the stacks it wrote, if it had started, are "
+                    "above)", proc.pid)
+    return [proc for proc in procs if not _reaped(proc)]
+
+
+def _reaped(proc: mp.process.BaseProcess) -> bool:
+    proc.join(_REAP_WAIT_S)
+    return not proc.is_alive()
+
+
+def run_workers(config: RelayConfig, count: int) -> None:
+    """Run ``count`` relay workers on this host (one process each, SO_REUSEPORT) until
+    SIGINT or SIGTERM; restart a worker that dies or hangs (see the module's docstring).
+
+    Raises:
+        ConfigError: no ``nats_url``, or port 0 (the workers must share fixed ports).
+    """
+    if not config.nats_url:
+        raise ConfigError("--workers needs --nats nats://HOST:PORT")
+    if config.port == 0 or config.resolved_tcp_port == 0:
+        raise ConfigError("--workers needs fixed ports (not 0): the workers share them")
+    worker_config = dataclasses.replace(config, reuse_port=True)
+    # systemd hears this process alone (its variables were taken out of the environment at
+    # start: the workers do not inherit them), ready once every worker serves
+    notifier = process_notifier()
+    ctx = mp.get_context("spawn")
+    level = logging.getLogger().getEffectiveLevel()
+    procs: list[mp.process.BaseProcess] = []
+    serving: list[Any] = []  # per worker, an event it sets once its ports are bound
+    progress: list[_Progress] = []
+    dying: list[mp.process.BaseProcess] = []  # killed, not yet reaped
+    stopping = False
+
+    def stop(*_: object) -> None:
+        nonlocal stopping
+        stopping = True
+
+    old = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+
+    def spawn() -> tuple[mp.process.BaseProcess, Any, _Progress]:
+        ready = ctx.Event()
+        beat = ctx.Value("Q", 0, lock=False)
+        proc = ctx.Process(target=_worker_main, args=(worker_config, level, wall_anchor_ns(),
+                                                      ready, beat),
+                           name="teletouch-relay-worker")
+        proc.start()
+        return proc, ready, _Progress(beat, ready, time.monotonic(),
+                                      config.worker_hang_timeout_s)
+
+    try:
+        for _ in range(count):
+            proc, ready, watch = spawn()
+            procs.append(proc)
+            serving.append(ready)
+            progress.append(watch)
+        log.info("relay: %d workers on ports %d/%d joined by %s", count, config.port,
+                 config.resolved_tcp_port, config.nats_url)
+        said_ready = False
+        period = notifier.watchdog_period_s
+        round_s = _ROUND_S if period is None else min(_ROUND_S, period / 2)
+        gap_s = min(_SUPERVISOR_GAP_S, config.worker_hang_timeout_s / 2)
+        pinged = last_round = time.monotonic()
+        while not stopping:
+            time.sleep(round_s)
+            now = time.monotonic()
+            if now - last_round > round_s + gap_s:
+                log.warning("relay supervisor did not run for %.1f s: every worker gets a "
+                            "fresh hang timeout", now - last_round)
+                for watch in progress:
+                    watch.excuse(now)
+            if not said_ready and all(ready.is_set() for ready in serving):
+                said_ready = True
+                notifier.notify("READY=1", f"STATUS=relay supervisor: {count} workers on "
+                                f"ports {config.port}/{config.resolved_tcp_port}",
+                                wait_s=SAY_WAIT_S)
+            if period is not None and now - pinged >= period:
+                notifier.notify("WATCHDOG=1")  # this loop's liveness (it restarts workers)
+                pinged = now
+            ended, stuck = [], []
+            for i, proc in enumerate(procs):
+                if not proc.is_alive():
+                    log.warning("relay worker %s exited (code %s); starting another",
+                                proc.pid, proc.exitcode)
+                    ended.append(i)
+                elif (why := progress[i].stuck(now)) is not None:
+                    log.error("relay worker %s %s: killing it and starting another; its "
+                              "threads' stacks follow in its log", proc.pid, why)
+                    stuck.append(i)
+            if stuck:
+                dying += _kill_stuck([procs[i] for i in stuck])
+            dying = [proc for proc in dying if proc.is_alive()]  # is_alive reaps
+            for i in ended + stuck:
+                if stopping:
+                    break
+                procs[i], serving[i], progress[i] = spawn()
+            last_round = time.monotonic()  # a round's own work is not a gap
+    finally:
+        notifier.notify("STOPPING=1", wait_s=SAY_WAIT_S)
+        for proc in procs:
+            if proc.is_alive() and proc.pid is not None:
+                os.kill(proc.pid, signal.SIGTERM)
+        for proc in procs:
+            proc.join(10.0)
+            if proc.is_alive():
+                proc.kill()
+                proc.join(10.0)
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
