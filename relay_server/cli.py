@@ -70,9 +70,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--workers", type=int, default=None,
                         help="relay worker processes on this host, sharing the ports "
                              "(SO_REUSEPORT); needs --nats; default with --nats: one per core")
-    parser.add_argument("--worker-hang-timeout-s", dest="worker_hang_timeout_s", type=float,
-                        help="with --workers: kill and restart a worker whose event loop made "
-                             "no progress this long, its stacks logged first (default 10)")
+    parser.add_argument("--hang-timeout-s", dest="hang_timeout_s", type=float,
+                        help="a relay process whose event loop makes no progress this long "
+                             "writes its stacks and exits with code 1, to be restarted (with "
+                             "--workers, by the supervisor); 0: no such watchdog (default 10)")
     parser.add_argument("--print-token", dest="print_token", metavar="SESSION",
                         help="print a token of SESSION for the secret and exit: v2 (role, "
                              "expiry) with --role, else the legacy per-session token")
@@ -103,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
     explicit = {name: getattr(args, name, None) for name in (
         "host", "port", "tcp_port", "secret", "token_file", "allow_any_token", "tls_cert",
         "tls_key", "view", "nats_url", "nats_connect_timeout_s", "workers",
-        "worker_hang_timeout_s",
+        "hang_timeout_s",
         "hello_timeout_s", "ping_interval_s", "stats_interval_s")}
     config = resolve_config(RelayConfig, "relay", explicit=explicit, toml_path=args.config)
     if args.health_check:

@@ -75,9 +75,13 @@ class RelayConfig:
             ``nats_url`` (None: the system's trust store).
         nats_connect_timeout_s: a worker that cannot reach NATS within this time of its
             start exits with a start error (later losses of NATS are retried for ever).
-        worker_hang_timeout_s: with more than one worker: a worker whose event loop made no
-            progress this long (at least 1 s) is killed (its threads' stacks written to its
-            log first) and started again (:mod:`relay_server.workers`).
+        hang_timeout_s: a relay process whose event loop makes no progress this long, once
+            it serves, writes every thread's stack to its standard error and exits with code
+            1, for systemd, a container's restart policy or the workers' supervisor to start
+            it again (:mod:`shared.loop_watchdog`); the supervisor of ``workers`` also kills
+            a worker whose loop stood still a little longer (one that could not end itself)
+            and starts another (:mod:`relay_server.workers`). 0: neither (a debugger's
+            breakpoint stops the loop); else at least 1 s.
         lock_memory: keep each relay process's memory in RAM while it serves (``mlockall``
             on fault, :mod:`shared.memlock`, as the stations do): forwarding never waits for
             a page read back from disk on a cloud host under memory pressure. Taken only
@@ -120,7 +124,7 @@ class RelayConfig:
     reuse_port: bool = False
     nats_ca_file: Path | None = None
     nats_connect_timeout_s: float = 10.0
-    worker_hang_timeout_s: float = 10.0
+    hang_timeout_s: float = 10.0
     lock_memory: bool = True
 
     def __post_init__(self) -> None:
@@ -154,13 +158,13 @@ class RelayConfig:
                               "(or tls://, ws://, wss://)")
         if not self.nats_subject_prefix.replace("_", "").replace("-", "").isalnum():
             raise ConfigError("relay.nats_subject_prefix must be letters, digits, - and _")
-        for name in ("nats_connect_timeout_s", "worker_hang_timeout_s"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0):
-                raise ConfigError(f"relay.{name} must be a finite number > 0, got {value!r}")
-        if self.worker_hang_timeout_s < 1.0:
-            raise ConfigError("relay.worker_hang_timeout_s must be at least 1 s (the workers "
-                              f"beat every quarter of it), got {self.worker_hang_timeout_s!r}")
+        if not (math.isfinite(self.nats_connect_timeout_s) and self.nats_connect_timeout_s > 0):
+            raise ConfigError("relay.nats_connect_timeout_s must be a finite number > 0, got "
+                              f"{self.nats_connect_timeout_s!r}")
+        if not (self.hang_timeout_s == 0 or (math.isfinite(self.hang_timeout_s)
+                                             and self.hang_timeout_s >= 1.0)):
+            raise ConfigError("relay.hang_timeout_s must be 0 (no watchdog) or a finite number "
+                              f"of seconds >= 1, got {self.hang_timeout_s!r}")
         if self.ping_burst_spacing_s < 0:
             raise ConfigError("relay.ping_burst_spacing_s must be >= 0")
         if (self.tls_cert is None) != (self.tls_key is None):

@@ -55,6 +55,7 @@ from shared.errors import (
     ReplacedError,
     SessionError,
 )
+from shared.loop_watchdog import loop_watchdog
 from shared.memlock import MemoryLock, memory_locked
 from shared.protocol import Hello, Stats, Welcome
 from shared.protocol.peer_session import (
@@ -688,7 +689,9 @@ def _tune_gc_for_latency() -> None:
 
 async def serve_forever(config: RelayConfig,
                         started: Callable[[RelayServer], None] | None = None) -> None:
-    """Run a relay until SIGINT or SIGTERM, then shut it down gracefully.
+    """Run a relay until SIGINT or SIGTERM, then shut it down gracefully. While it serves,
+    a stuck event loop ends this process (``hang_timeout_s``, :mod:`shared.loop_watchdog`):
+    run it in a process of its own, not in a test runner's.
 
     Args:
         config: resolved settings.
@@ -721,9 +724,10 @@ async def _serve(relay: RelayServer, config: RelayConfig,
     if started is not None:
         started(relay)
     try:
-        # systemd (Type=notify): ready now; its watchdog pinged from this loop until the stop
+        # systemd (Type=notify): ready now; its watchdog pinged from this loop until the stop;
+        # this loop stuck for hang_timeout_s: stacks written, exit 1 (to be restarted)
         async with service(f"relay serving: WebSocket port {relay.ws_port}, TCP port "
-                           f"{relay.tcp_port}"):
+                           f"{relay.tcp_port}"), loop_watchdog(config.hang_timeout_s):
             await stop.wait()
         log.info("relay shutting down")
     finally:

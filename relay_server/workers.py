@@ -5,17 +5,19 @@ all bound to the same ports with SO_REUSEPORT, so the kernel spreads new connect
 them, and supervises them:
 
 * a worker that **dies** is started again;
-* a worker that **hangs** without dying is killed and started again. Every worker's event
-  loop advances a counter in memory shared with its supervisor (its *beat*, every
-  ``BEAT_S``, or a quarter of the timeout if that is less); one whose beat stands still for
-  ``worker_hang_timeout_s`` (or that has not beaten within ``START_ALLOWANCE_S`` of its
-  spawn) is stuck: a busy loop, a deadlock, a blocking call. SO_REUSEPORT would otherwise
-  keep handing it new connections that it never serves, and a dead process is all that
-  restarts catch. Before the kill the worker is sent ``STACK_DUMP_SIGNAL``, on which it
-  writes every thread's stack to its standard error (:mod:`faulthandler`, which needs no help
-  from the stuck interpreter): the log says where it hung. A supervisor that was itself not
+* a worker that **hangs** without dying is killed and started again. A relay process ends
+  itself when its event loop is stuck for ``hang_timeout_s`` (:mod:`shared.loop_watchdog`),
+  and its supervisor then starts another as for any death; the supervisor's own watch is for
+  a worker that cannot end itself (stopped, or not scheduled while the supervisor is).
+  Every worker's event loop advances a counter in memory shared with its supervisor (its
+  *beat*, every ``BEAT_S``, or a quarter of the timeout if that is less); one whose beat
+  stands still for ``hang_timeout_s`` + ``SELF_EXIT_MARGIN_S`` (``START_ALLOWANCE_S`` until
+  it serves) is stuck. SO_REUSEPORT would otherwise keep handing it new connections that it
+  never serves. Before the kill the worker is sent ``STACK_DUMP_SIGNAL``, on which it writes
+  every thread's stack to its standard error (:mod:`faulthandler`, which needs no help from
+  the stuck interpreter): the log says where it hung. A supervisor that was itself not
   running for a while (a paused VM, a starved host) gives every worker a fresh timeout
-  rather than blaming them for its own gap;
+  rather than blaming them for its own gap. ``hang_timeout_s`` 0: neither watch;
 * under systemd it alone speaks for the service: ``READY=1`` once every worker serves,
   ``WATCHDOG=1`` from its loop, ``STOPPING=1`` (:mod:`shared.sd_notify`);
 * its wall anchor goes to every worker it starts, so one host's workers stamp on one clock.
@@ -39,14 +41,18 @@ from shared.errors import ConfigError
 from shared.sd_notify import SAY_WAIT_S, process_notifier
 from shared.timebase import adopt_wall_anchor, wall_anchor_ns
 
-__all__ = ["BEAT_S", "STACK_DUMP_SIGNAL", "START_ALLOWANCE_S", "run_workers", "worker_count"]
+__all__ = ["BEAT_S", "SELF_EXIT_MARGIN_S", "STACK_DUMP_SIGNAL", "START_ALLOWANCE_S", "run_workers",
+           "worker_count"]
 
 log = logging.getLogger(__name__)
 
 #: a worker's event loop advances its beat this often
 BEAT_S = 0.5
-#: a worker's first beat must come within this long of its spawn (or ``worker_hang_timeout_s``
-#: if longer): an interpreter's start and the relay's imports take seconds on a loaded host
+#: the supervisor's limit for a beat that stands still, beyond ``hang_timeout_s``: a stuck
+#: worker that can end itself (its own watchdog, at ``hang_timeout_s``) does so first
+SELF_EXIT_MARGIN_S = 2.0
+#: a worker's beat may stand still this long until it serves (or the limit above if longer):
+#: an interpreter's start and the relay's imports and TLS set-up take seconds on a loaded host
 START_ALLOWANCE_S = 60.0
 #: a worker writes every thread's stack to its standard error on this signal (and goes on)
 STACK_DUMP_SIGNAL = signal.SIGUSR2
@@ -79,7 +85,7 @@ async def _beat(beat: Any, period_s: float) -> None:
 async def _serve_beating(config: RelayConfig, serving: Any, beat: Any) -> None:
     from relay_server.server import serve_forever
 
-    period_s = min(BEAT_S, config.worker_hang_timeout_s / 4)
+    period_s = min(BEAT_S, config.hang_timeout_s / 4) if config.hang_timeout_s else BEAT_S
     beating = None if beat is None else asyncio.create_task(_beat(beat, period_s),
                                                             name="worker-beat")
     try:
@@ -113,10 +119,12 @@ class _Progress:
         now_s: the spawn time (the supervisor's monotonic clock).
         timeout_s: a beat that stands still this long means a stuck worker (once it serves;
             until then :data:`START_ALLOWANCE_S` if that is longer: a starting worker's loop
-            may block a while on imports, TLS set-up and a full garbage collection).
+            may block a while on imports, TLS set-up and a full garbage collection); None:
+            never stuck.
     """
 
-    def __init__(self, beat: Any, serving: Any, now_s: float, timeout_s: float) -> None:
+    def __init__(self, beat: Any, serving: Any, now_s: float, timeout_s: float | None
+                 ) -> None:
         self.beat = beat
         self.serving = serving
         self._seen = beat.value
@@ -133,12 +141,14 @@ class _Progress:
         if value != self._seen:
             self._seen, self._since = value, now_s
             return None
+        if self._timeout_s is None:
+            return None
         still_s = now_s - self._since
         if self.serving.is_set():
             if still_s <= self._timeout_s:
                 return None
-            return (f"made no progress for {still_s:.1f} s (its event loop is stuck; "
-                    f"worker_hang_timeout_s {self._timeout_s:g})")
+            return (f"made no progress for {still_s:.1f} s (its event loop is stuck, and it "
+                    f"did not end itself; limit {self._timeout_s:g} s)")
         limit = max(self._timeout_s, START_ALLOWANCE_S)
         if still_s <= limit:
             return None
@@ -196,6 +206,8 @@ def run_workers(config: RelayConfig, count: int) -> None:
 
     old = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
 
+    limit_s = (config.hang_timeout_s + SELF_EXIT_MARGIN_S) if config.hang_timeout_s else None
+
     def spawn() -> tuple[mp.process.BaseProcess, Any, _Progress]:
         ready = ctx.Event()
         beat = ctx.Value("Q", 0, lock=False)
@@ -203,8 +215,7 @@ def run_workers(config: RelayConfig, count: int) -> None:
                                                       ready, beat),
                            name="teletouch-relay-worker")
         proc.start()
-        return proc, ready, _Progress(beat, ready, time.monotonic(),
-                                      config.worker_hang_timeout_s)
+        return proc, ready, _Progress(beat, ready, time.monotonic(), limit_s)
 
     try:
         for _ in range(count):
@@ -217,7 +228,8 @@ def run_workers(config: RelayConfig, count: int) -> None:
         said_ready = False
         period = notifier.watchdog_period_s
         round_s = _ROUND_S if period is None else min(_ROUND_S, period / 2)
-        gap_s = min(_SUPERVISOR_GAP_S, config.worker_hang_timeout_s / 2)
+        gap_s = min(_SUPERVISOR_GAP_S, config.hang_timeout_s / 2) if config.hang_timeout_s \
+            else _SUPERVISOR_GAP_S
         pinged = last_round = time.monotonic()
         while not stopping:
             time.sleep(round_s)
@@ -238,8 +250,9 @@ def run_workers(config: RelayConfig, count: int) -> None:
             ended, stuck = [], []
             for i, proc in enumerate(procs):
                 if not proc.is_alive():
-                    log.warning("relay worker %s exited (code %s); starting another",
-                                proc.pid, proc.exitcode)
+                    log.warning("relay worker %s exited (code %s%s); starting another",
+                                proc.pid, proc.exitcode, "; if its own watchdog ended it, "
+                                "its stacks are above" if proc.exitcode == 1 else "")
                     ended.append(i)
                 elif (why := progress[i].stuck(now)) is not None:
                     log.error("relay worker %s %s: killing it and starting another; its "

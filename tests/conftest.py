@@ -1,5 +1,10 @@
-"""Suite-wide fixtures: fail any test that leaks a task, a thread, a socket or a CAN bus.
+"""Suite-wide fixtures: fail any test that leaks a task, a thread, a socket or a CAN bus;
+keep the stations' process-ending watchdog out of the test runner.
 
+* ``_no_loop_watchdog_in_the_test_runner``: a station run in this process arms
+  faulthandler's timer (:mod:`shared.loop_watchdog`), which would end the whole test run
+  when a test blocks its loop; here the timer arms nothing (subprocesses keep theirs, and
+  ``tests/shared/test_loop_watchdog.py`` and ``test_station_watchdogs.py`` test it there);
 * ``_no_leaked_tasks``: asyncio tasks still running on the test's event loop;
 * ``_no_leaked_resources``: threads, socket file descriptors of this process and python-can
   ``virtual`` bus channels that a test opened and did not close. Threads and sockets that
@@ -19,6 +24,7 @@ Library threads that live for the whole session by design are not leaks (see
 from __future__ import annotations
 
 import asyncio
+import faulthandler
 import os
 import threading
 import time
@@ -117,6 +123,16 @@ def _leaks(threads_before: set[threading.Thread], sockets_before: dict[int, str]
     return {"thread": [repr(t) for t in threads],
             "socket": [f"fd {fd} -> {target}" for fd, target in sorted(sockets.items())],
             "can_bus": buses}
+
+
+def _inert_dump_traceback_later(timeout: float, repeat: bool = False, file: object = None,
+                                exit: bool = False) -> None:
+    """``faulthandler.dump_traceback_later`` in the test runner's process: arms nothing."""
+
+
+@pytest.fixture(autouse=True)
+def _no_loop_watchdog_in_the_test_runner(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(faulthandler, "dump_traceback_later", _inert_dump_traceback_later)
 
 
 @pytest.fixture(autouse=True)

@@ -13,6 +13,7 @@ whose kit data is missing, or fails it when ``CI=true``.
 from __future__ import annotations
 
 import asyncio
+import faulthandler
 import os
 import shutil
 import socket
@@ -30,6 +31,10 @@ TIMEOUT_SCALE = float(os.environ.get("TELETOUCH_TEST_TIMEOUT_SCALE", "1"))
 
 #: the repository's root (this file is ``<repo>/tests/support.py``)
 REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+#: faulthandler's own, before the suite's fixture made it inert (``tests/conftest.py``)
+REAL_DUMP_TRACEBACK_LATER = faulthandler.dump_traceback_later
 
 
 def scaled(seconds: float) -> float:

@@ -261,10 +261,10 @@ async def test_killed_worker_stations_reconnect_and_session_resumes() -> None:
 async def test_a_worker_that_hangs_is_replaced_and_its_stations_come_back() -> None:
     """A worker that stops serving without dying (here: SIGSTOP, so the kernel still hands
     it new connections on the shared port) is killed by its supervisor once its beat has
-    stood still for ``--worker-hang-timeout-s``; another worker takes its place, and a
+    stood still for ``--hang-timeout-s``; another worker takes its place, and a
     session whose stations were on it carries on."""
     async with nats_server() as url, relay(url, workers=2, extra=(
-            "--worker-hang-timeout-s", str(scaled(4.0)))) as port:
+            "--hang-timeout-s", str(scaled(4.0)))) as port:
         await wait_workers(port, 2)
         async with station(port, "local", "c9") as local, \
                 station(port, "remote", "c9") as remote:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import logging
+import sys
 import urllib.error
 import urllib.request
 from pathlib import Path
@@ -102,3 +103,81 @@ def test_health_check_exit_codes() -> None:
     finally:
         relay.terminate()
         relay.wait(scaled(30.0))
+
+
+#: ``teletouch`` with a bug put into the relay: its /status handler blocks the event loop
+_RELAY_WITH_A_BLOCKING_HANDLER = """
+import sys, time
+import relay_server.server as server
+
+def _a_status_handler_that_blocks(self):
+    time.sleep(3600)
+
+server.RelayServer.status = _a_status_handler_that_blocks
+from lab.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+async def test_a_relay_whose_loop_is_stuck_writes_its_stacks_and_exits() -> None:
+    """The relay's own watchdog (``hang_timeout_s``): a real ``teletouch relay`` whose event
+    loop a request blocks (a bug put in its /status handler) writes every thread's stack and
+    exits with code 1, for systemd, a container's ``restart: on-failure`` or the workers'
+    supervisor to start it again."""
+    port, tcp_port = free_tcp_port(), free_tcp_port()
+    config = RelayConfig(host="127.0.0.1", port=port, tcp_port=tcp_port)
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, "-c", _RELAY_WITH_A_BLOCKING_HANDLER, "--log-level", "WARNING",
+        "relay", "--host", "127.0.0.1", "--port", str(port), "--tcp-port", str(tcp_port),
+        "--allow-any-token", "--hang-timeout-s", str(scaled(5.0)),
+        stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.PIPE)
+    writer = None
+    try:
+        async with asyncio.timeout(scaled(30.0)):
+            while await asyncio.to_thread(probe, config, scaled(2.0)) is not None:
+                assert proc.returncode is None
+                await asyncio.sleep(0.1)
+        _, writer = await asyncio.open_connection("127.0.0.1", port)
+        writer.write(b"GET /status HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+        await writer.drain()
+        _, stderr = await asyncio.wait_for(proc.communicate(), scaled(30.0))
+        text = stderr.decode(errors="replace")
+        assert proc.returncode == 1, (proc.returncode, text[-3000:])
+        assert "Timeout (" in text and "in _a_status_handler_that_blocks" in text, text[-3000:]
+    finally:
+        if writer is not None:
+            writer.close()
+        if proc.returncode is None:
+            proc.kill()
+            await proc.wait()
+
+
+async def test_a_relay_that_serves_is_not_ended_by_its_watchdog() -> None:
+    """The control: a real relay with a short ``hang_timeout_s``, idle apart from health
+    probes for three timeouts, serves on; on SIGTERM it stops cleanly (exit 0), its watchdog
+    off before it closes its connections."""
+    timeout_s = scaled(2.0)
+    port, tcp_port = free_tcp_port(), free_tcp_port()
+    config = RelayConfig(host="127.0.0.1", port=port, tcp_port=tcp_port)
+    proc = await asyncio.create_subprocess_exec(
+        *teletouch_cmd(), "--log-level", "WARNING", "relay", "--host", "127.0.0.1", "--port",
+        str(port), "--tcp-port", str(tcp_port), "--allow-any-token", "--hang-timeout-s",
+        str(timeout_s), stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.PIPE)
+    try:
+        async with asyncio.timeout(scaled(30.0)):
+            while await asyncio.to_thread(probe, config, scaled(2.0)) is not None:
+                assert proc.returncode is None
+                await asyncio.sleep(0.1)
+        end = asyncio.get_running_loop().time() + 3 * timeout_s
+        while asyncio.get_running_loop().time() < end:  # the time itself is what is tested
+            assert proc.returncode is None
+            assert await asyncio.to_thread(probe, config, scaled(2.0)) is None
+            await asyncio.sleep(0.2)
+        proc.terminate()
+        _, stderr = await asyncio.wait_for(proc.communicate(), scaled(30.0))
+        text = stderr.decode(errors="replace")
+        assert proc.returncode == 0 and "Timeout (" not in text, (proc.returncode, text[-3000:])
+    finally:
+        if proc.returncode is None:
+            proc.kill()
+            await proc.wait()

@@ -183,8 +183,8 @@ def test_a_beat_that_stands_still_past_the_timeout_is_stuck(timeout_s: float) ->
     assert watch.stuck(400.0) is None
     assert watch.stuck(400.0 + timeout_s) is None
     assert watch.stuck(400.0 + timeout_s + 0.2) == (
-        f"made no progress for {timeout_s + 0.2:.1f} s (its event loop is stuck; "
-        f"worker_hang_timeout_s {timeout_s:g})")
+        f"made no progress for {timeout_s + 0.2:.1f} s (its event loop is stuck, and it did "
+        f"not end itself; limit {timeout_s:g} s)")
     beat.value += 1
     assert watch.stuck(500.0 + timeout_s * 5) is None  # moved: counted from this round
     assert watch.stuck(500.0 + timeout_s * 6) is None
@@ -260,9 +260,10 @@ def _fake_supervisor(monkeypatch: pytest.MonkeyPatch, clock: _FakeClock,
     monkeypatch.setattr(workers, "time", clock)
 
 
-#: 10.1 s: the limit falls between two of the supervisor's rounds (0.2 s apart)
+#: the supervisor's limit for a worker that did not end itself, 10.1 s: it falls between
+#: two of the supervisor's rounds (0.2 s apart)
 _CONFIG = RelayConfig(nats_url="nats://127.0.0.1:1", port=18765, tcp_port=18766,
-                      worker_hang_timeout_s=10.1)
+                      hang_timeout_s=10.1 - workers.SELF_EXIT_MARGIN_S)
 
 
 def test_a_supervisor_that_did_not_run_gives_its_workers_a_fresh_timeout(
@@ -316,6 +317,23 @@ def test_without_the_gap_a_stood_still_beat_is_killed(
     assert not [r for r in caplog.records if "did not run" in r.getMessage()]
 
 
+def test_no_watch_with_the_hang_timeout_off(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``hang_timeout_s`` 0 (a debugger's breakpoint stops the loop): a worker whose beat
+    stands still for longer than the start allowance is left alone."""
+    clock = _FakeClock(_Beat(), rounds=400, pauses={})
+    kills: list[float] = []
+    _fake_supervisor(monkeypatch, clock, kills)
+    real_sleep = clock.sleep
+
+    def sleep(seconds: float) -> None:
+        clock.beating = clock.rounds < 5
+        real_sleep(seconds)
+
+    monkeypatch.setattr(clock, "sleep", sleep)
+    workers.run_workers(dataclasses.replace(_CONFIG, hang_timeout_s=0.0), 1)
+    assert clock.now - clock.beats[-1] > workers.START_ALLOWANCE_S + 10.0 and not kills
+
+
 def test_the_command_line_sets_the_hang_timeout(monkeypatch: pytest.MonkeyPatch) -> None:
     from lab.cli import build_parser
     from relay_server import cli
@@ -324,9 +342,9 @@ def test_the_command_line_sets_the_hang_timeout(monkeypatch: pytest.MonkeyPatch)
     monkeypatch.setattr(workers, "run_workers", lambda config, count: got.append((config,
                                                                                   count)))
     args = build_parser().parse_args(["relay", "--workers", "2", "--nats", "nats://127.0.0.1:1",
-                                      "--worker-hang-timeout-s", "3.5"])
+                                      "--hang-timeout-s", "3.5"])
     assert cli.run(args) == 0
-    assert [(config.worker_hang_timeout_s, count) for config, count in got] == [(3.5, 2)]
+    assert [(config.hang_timeout_s, count) for config, count in got] == [(3.5, 2)]
 
 
 def _stuck_in_a_blocking_call() -> None:
@@ -356,7 +374,8 @@ def test_a_worker_that_hangs_is_killed_with_its_stacks_logged_and_replaced(
         monkeypatch: pytest.MonkeyPatch, tmp_path: Path, capfd: pytest.CaptureFixture[str],
         caplog: pytest.LogCaptureFixture) -> None:
     """A spawned worker whose event loop blocks (alive, but serving nothing) is found by
-    its supervisor once its beat has stood still for ``worker_hang_timeout_s``: it writes
+    its supervisor once its beat has stood still for ``hang_timeout_s`` and the margin the
+    worker has to end itself (this worker has no watchdog of its own): it writes
     its threads' stacks (the blocking call among them), is killed, and another is started."""
     pids = tmp_path / "pids"
     monkeypatch.setenv("TT_TEST_WORKER_PIDS", str(pids))
@@ -379,7 +398,7 @@ def test_a_worker_that_hangs_is_killed_with_its_stacks_logged_and_replaced(
     stopper = threading.Thread(target=stop_once_replaced)
     stopper.start()
     try:
-        workers.run_workers(dataclasses.replace(_CONFIG, worker_hang_timeout_s=scaled(1.0)), 1)
+        workers.run_workers(dataclasses.replace(_CONFIG, hang_timeout_s=scaled(1.0)), 1)
     finally:
         stopper.join()
     assert not failed, failed
@@ -388,7 +407,7 @@ def test_a_worker_that_hangs_is_killed_with_its_stacks_logged_and_replaced(
     errors = [text for level, text in said if level >= logging.ERROR]
     assert len(errors) == 1 and errors[0].startswith(
         f"relay worker {first} made no progress for "), said
-    assert "(its event loop is stuck; worker_hang_timeout_s" in errors[0], errors
+    assert "(its event loop is stuck, and it did not end itself; limit" in errors[0], errors
     assert (logging.WARNING, f"relay worker {first} killed (the stacks it wrote, if it had "
             "started, are above)") in said, said
     stderr = capfd.readouterr().err

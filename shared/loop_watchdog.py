@@ -1,0 +1,75 @@
+"""A process's own watchdog on its asyncio event loop: stuck loop, stacks written, process ended.
+
+A server whose event loop is stuck (a busy loop, a call that never returns, threads
+deadlocked) is alive to everything that watches processes: ``restart: on-failure`` in a
+container, systemd's ``Restart=`` without a watchdog, a supervisor waiting for its children
+to exit. It serves nothing and is never restarted. :func:`loop_watchdog` arms
+:func:`faulthandler.dump_traceback_later` with ``exit=True`` and re-arms it from the loop
+every ``REARM_S`` (or a quarter of the timeout if that is less): if the loop does not come
+back within the timeout, faulthandler's own thread (C code, which needs neither the loop nor
+the GIL) writes every thread's Python stack to standard error and ends the process with exit
+code 1, for whatever supervises it to start it again. The process ends between one re-arm
+period before the timeout and the timeout after the loop last turned.
+
+What it cannot tell apart from a hang: a host or process that was paused for longer than the
+timeout (a paused VM or container, a debugger), whose clock jumps on resume before the loop
+runs again. Such a process ends and is restarted.
+
+faulthandler has one such timer per process: this module is its only user, and a process
+should enter the block once (a second block would take the timer over).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import faulthandler
+import logging
+from collections.abc import AsyncIterator
+
+__all__ = ["REARM_S", "loop_watchdog"]
+
+log = logging.getLogger(__name__)
+
+#: the longest period between two re-arms
+REARM_S = 0.5
+
+
+@contextlib.asynccontextmanager
+async def loop_watchdog(timeout_s: float | None) -> AsyncIterator[None]:
+    """While the block runs, end this process (exit code 1, every thread's stack written to
+    standard error first) if the running event loop makes no progress for ``timeout_s``.
+
+    Args:
+        timeout_s: seconds (at least 0.1); None or 0: no watchdog.
+
+    Raises:
+        ValueError: a timeout below 0.1 s.
+        RuntimeError, OSError: standard error cannot be written to (no watchdog then).
+    """
+    if not timeout_s:
+        yield
+        return
+    if timeout_s < 0.1:
+        raise ValueError(f"a loop watchdog timeout of {timeout_s!r} s is below 0.1 s")
+    period_s = min(REARM_S, timeout_s / 4)
+    faulthandler.dump_traceback_later(timeout_s, exit=True)  # armed now: an error is raised
+
+    async def rearm() -> None:
+        while True:
+            await asyncio.sleep(period_s)
+            faulthandler.dump_traceback_later(timeout_s, exit=True)  # replaces the last
+
+    def ended(task: asyncio.Task[None]) -> None:
+        if not task.cancelled() and task.exception() is not None:
+            log.error("the event loop's watchdog stopped: %r; this process is not watched",
+                      task.exception())
+            faulthandler.cancel_dump_traceback_later()
+
+    task = asyncio.get_running_loop().create_task(rearm(), name="loop-watchdog")
+    task.add_done_callback(ended)
+    try:
+        yield
+    finally:
+        task.cancel()
+        faulthandler.cancel_dump_traceback_later()
