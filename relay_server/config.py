@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from shared.errors import ConfigError
+from shared.loop_watchdog import check_hang_timeout
 from shared.protocol.codec import DEFAULT_MAX_MESSAGE_BYTES
 
 __all__ = ["RelayConfig"]
@@ -161,10 +162,7 @@ class RelayConfig:
         if not (math.isfinite(self.nats_connect_timeout_s) and self.nats_connect_timeout_s > 0):
             raise ConfigError("relay.nats_connect_timeout_s must be a finite number > 0, got "
                               f"{self.nats_connect_timeout_s!r}")
-        if not (self.hang_timeout_s == 0 or (math.isfinite(self.hang_timeout_s)
-                                             and self.hang_timeout_s >= 1.0)):
-            raise ConfigError("relay.hang_timeout_s must be 0 (no watchdog) or a finite number "
-                              f"of seconds >= 1, got {self.hang_timeout_s!r}")
+        check_hang_timeout("relay.hang_timeout_s", self.hang_timeout_s)
         if self.ping_burst_spacing_s < 0:
             raise ConfigError("relay.ping_burst_spacing_s must be >= 0")
         if (self.tls_cert is None) != (self.tls_key is None):

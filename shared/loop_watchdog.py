@@ -25,14 +25,29 @@ import asyncio
 import contextlib
 import faulthandler
 import logging
+import math
 from collections.abc import AsyncIterator
 
-__all__ = ["REARM_S", "loop_watchdog"]
+from shared.errors import ConfigError
+
+__all__ = ["REARM_S", "check_hang_timeout", "loop_watchdog"]
 
 log = logging.getLogger(__name__)
 
 #: the longest period between two re-arms
 REARM_S = 0.5
+
+
+def check_hang_timeout(key: str, value: object) -> None:
+    """A process's ``hang_timeout_s`` setting: 0 (no watchdog) or finite seconds >= 1.
+
+    Raises:
+        ConfigError: anything else, naming ``key``.
+    """
+    if isinstance(value, bool) or not isinstance(value, int | float) or not (
+            value == 0 or (math.isfinite(value) and value >= 1.0)):
+        raise ConfigError(f"{key} must be 0 (no watchdog) or a finite number of seconds >= 1, "
+                          f"got {value!r}")
 
 
 @contextlib.asynccontextmanager

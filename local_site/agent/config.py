@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 from local_site.render.interpolation import DEFAULT_ORDER
 from shared.errors import ConfigError
+from shared.loop_watchdog import check_hang_timeout
 
 __all__ = ["RENDER_LOOP_MODES", "SAFE_STATE_MODES", "LocalAgentConfig"]
 
@@ -116,6 +117,12 @@ class LocalAgentConfig:
         view: serve the live view in the browser on ``HOST:PORT`` (empty: no view;
             ``127.0.0.1:8780`` keeps it on this machine, see docs/view.md).
         view_rate_hz: the view's snapshot rate (the page's update rate).
+        hang_timeout_s: the station's event loop stuck this long (a busy loop, a call that
+            never returns), once its loops run: every thread's stack is written to standard
+            error and the process exits with code 1 (:mod:`shared.loop_watchdog`), for
+            systemd or a container's ``restart: on-failure`` to start it again. The pins
+            (the board's watchdog, the display process's own checks) do not wait for it. 0:
+            no such watchdog (a debugger's breakpoint stops the loop); else at least 1 s.
     """
 
     platform: str = "sim"
@@ -152,8 +159,10 @@ class LocalAgentConfig:
     lock_memory: bool = True
     view: str = ""
     view_rate_hz: float = 40.0
+    hang_timeout_s: float = 30.0
 
     def __post_init__(self) -> None:
+        check_hang_timeout("local.agent.hang_timeout_s", self.hang_timeout_s)
         if self.safe_state not in SAFE_STATE_MODES:
             raise ConfigError(f"local.agent.safe_state must be one of {SAFE_STATE_MODES}, "
                               f"got {self.safe_state!r}")

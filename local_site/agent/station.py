@@ -62,6 +62,7 @@ from shared.errors import (
     SessionError,
 )
 from shared.gil import switch_interval
+from shared.loop_watchdog import loop_watchdog
 from shared.memlock import MemoryLock, memory_locked
 from shared.motion_to_touch import MotionToTouchLedger
 from shared.protocol import (
@@ -519,8 +520,9 @@ class LocalAgent:
         try:
             stop_wait = aio.create_task(self._stop.wait())
             waiters: set[asyncio.Future[Any]] = {stop_wait, display_task}
-            # systemd (Type=notify): ready now; its watchdog pinged from this loop
-            async with service("local station running"):
+            # systemd (Type=notify): ready now; its watchdog pinged from this loop; this
+            # loop stuck for hang_timeout_s: stacks written, exit 1 (to be restarted)
+            async with service("local station running"), loop_watchdog(self.config.hang_timeout_s):
                 await asyncio.wait(waiters, return_when=asyncio.FIRST_COMPLETED)
             if not stop_wait.done():
                 stop_wait.cancel()

@@ -11,6 +11,7 @@ import math
 from dataclasses import dataclass
 
 from shared.errors import ConfigError
+from shared.loop_watchdog import check_hang_timeout
 
 __all__ = ["RemoteAgentConfig"]
 
@@ -78,6 +79,12 @@ class RemoteAgentConfig:
             after; :mod:`shared.gil`): how long the frame pipeline's worker may keep the
             event loop (commands in, frames out) off the GIL. 0 leaves the interpreter's
             setting (5 ms) alone.
+        hang_timeout_s: the station's event loop stuck this long (a busy loop, a call that
+            never returns), once its loops run: every thread's stack is written to standard
+            error and the process exits with code 1 (:mod:`shared.loop_watchdog`), for
+            systemd or a container's ``restart: on-failure`` to start it again. The arm's
+            halt on lost commands (its own thread) and its safety limits do not wait for it.
+            0: no such watchdog (a debugger's breakpoint stops the loop); else at least 1 s.
     """
 
     frame_rate_hz: float = 60.0
@@ -102,8 +109,10 @@ class RemoteAgentConfig:
     opencv_threads: int = 1
     lock_memory: bool = True
     gil_switch_interval_s: float = 0.0
+    hang_timeout_s: float = 30.0
 
     def __post_init__(self) -> None:
+        check_hang_timeout("remote.agent.hang_timeout_s", self.hang_timeout_s)
         positive = ("frame_rate_hz", "patch_pitch_mm", "arm_poll_hz", "arm_state_hz",
                     "link_loss_halt_ms", "watchdog_period_s", "sensor_max_age_ms",
                     "stiffness_cell_mm", "status_interval_s", "pose_tolerance_mm")

@@ -60,6 +60,7 @@ from remote_site.tactile import AppliedCommand
 from shared.client import LinkCounters
 from shared.errors import InputDataError
 from shared.freshness import ClockView
+from shared.loop_watchdog import loop_watchdog
 from shared.protocol.messages import (
     MOTION_CARRY_MAX_US,
     ArmCommand,
@@ -823,8 +824,9 @@ class RemoteStation:
                  asyncio.create_task(self._status_loop(), name="remote-status")]
         stopper = asyncio.create_task(stop.wait(), name="remote-stop")
         try:
-            # systemd (Type=notify): ready now; its watchdog pinged from this loop
-            async with service("remote station running"):
+            # systemd (Type=notify): ready now; its watchdog pinged from this loop; this
+            # loop stuck for hang_timeout_s: stacks written, exit 1 (to be restarted)
+            async with service("remote station running"), loop_watchdog(self.config.hang_timeout_s):
                 done, _ = await asyncio.wait({*tasks, stopper}, timeout=duration_s,
                                              return_when=asyncio.FIRST_COMPLETED)
             for task in done:

@@ -12,7 +12,8 @@ import textwrap
 
 import pytest
 
-from shared.loop_watchdog import loop_watchdog
+from shared.errors import ConfigError
+from shared.loop_watchdog import check_hang_timeout, loop_watchdog
 from tests.support import REAL_DUMP_TRACEBACK_LATER, scaled
 
 _PROGRAM = textwrap.dedent('''
@@ -115,3 +116,16 @@ async def test_a_re_arm_that_fails_is_said_and_leaves_no_timer(
     assert [r.getMessage() for r in caplog.records] == [
         "the event loop's watchdog stopped: OSError('stderr gone'); this process is not "
         "watched"]
+
+
+@pytest.mark.parametrize("good", [0, 0.0, 1, 1.0, 30.0, 3600])
+def test_a_hang_timeout_is_off_or_at_least_a_second(good: float) -> None:
+    check_hang_timeout("x.hang_timeout_s", good)
+
+
+@pytest.mark.parametrize("bad", [0.99, 0.1, -1.0, -1e-9, float("nan"), float("inf"), True,
+                                 "10", None])
+def test_anything_else_is_refused_by_name(bad: object) -> None:
+    with pytest.raises(ConfigError, match=r"^x\.hang_timeout_s must be 0 \(no watchdog\) or a "
+                                          r"finite number of seconds >= 1, got "):
+        check_hang_timeout("x.hang_timeout_s", bad)

@@ -1,0 +1,63 @@
+"""The stations' own event-loop watchdogs (``hang_timeout_s``, :mod:`shared.loop_watchdog`):
+a real ``teletouch local`` and ``teletouch remote`` whose loop a bug blocks (put in by the
+test) write every thread's stack and exit with code 1, for systemd or a container's
+``restart: on-failure`` to start them again. The relay's: ``test_relay_health.py``."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import sys
+
+import pytest
+
+from tests.support import scaled
+
+pytestmark = pytest.mark.slow
+
+#: ``teletouch`` with a bug put into a station: its status coroutine blocks the event loop
+_WITH_A_BLOCKING_STATUS = """
+import asyncio, sys, time
+import local_site.agent.station as local_station
+import remote_site.agent.station as remote_station
+
+def _a_status_loop_that_blocks():
+    time.sleep(3600)
+
+async def _status(self):
+    await asyncio.sleep(0.5)
+    _a_status_loop_that_blocks()
+
+local_station.LocalAgent._status = _status
+remote_station.RemoteStation._status_loop = _status
+from lab.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+_COMMANDS = {
+    "local": ["local", "--scene", "hemisphere:radius_mm=8", "--platform", "sim", "--display",
+              "sim", "--motion", "raster:x0=26,x1=34,y0=30,y1=30,press_depth=0,pause=0",
+              "--no-lock-memory"],
+    # no relay: the station serves on while its link retries (a station never gives up)
+    "remote": ["remote", "--relay", "tcp://127.0.0.1:9", "--session", "s1", "--arm", "sim",
+               "--sensor", "sim", "--phantom", "severity", "--seed", "2", "--ideal"],
+}
+
+
+@pytest.mark.parametrize("role", ["local", "remote"])
+async def test_a_station_whose_loop_is_stuck_writes_its_stacks_and_exits(role: str) -> None:
+    env = {**os.environ, f"TELETOUCH_{role.upper()}_AGENT_HANG_TIMEOUT_S": str(scaled(3.0)),
+           "TELETOUCH_REMOTE_LINK_TOKEN": "x"}
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, "-c", _WITH_A_BLOCKING_STATUS, "--log-level", "WARNING",
+        *_COMMANDS[role], env=env, stdout=asyncio.subprocess.DEVNULL,
+        stderr=asyncio.subprocess.PIPE)
+    try:
+        _, stderr = await asyncio.wait_for(proc.communicate(), scaled(90.0))
+        text = stderr.decode(errors="replace")
+        assert proc.returncode == 1, (proc.returncode, text[-3000:])
+        assert "Timeout (" in text and "in _a_status_loop_that_blocks" in text, text[-3000:]
+    finally:
+        if proc.returncode is None:
+            proc.kill()
+            await proc.wait()
