@@ -38,6 +38,7 @@ from typing import Any
 
 from relay_server.config import RelayConfig
 from shared.errors import ConfigError
+from shared.loop_watchdog import rearm_period_s
 from shared.sd_notify import SAY_WAIT_S, process_notifier
 from shared.timebase import adopt_wall_anchor, wall_anchor_ns
 
@@ -85,7 +86,7 @@ async def _beat(beat: Any, period_s: float) -> None:
 async def _serve_beating(config: RelayConfig, serving: Any, beat: Any) -> None:
     from relay_server.server import serve_forever
 
-    period_s = min(BEAT_S, config.hang_timeout_s / 4) if config.hang_timeout_s else BEAT_S
+    period_s = rearm_period_s(config.hang_timeout_s) if config.hang_timeout_s else BEAT_S
     beating = None if beat is None else asyncio.create_task(_beat(beat, period_s),
                                                             name="worker-beat")
     try:
@@ -157,13 +158,15 @@ class _Progress:
 
 
 def _kill_stuck(procs: list[mp.process.BaseProcess]) -> list[mp.process.BaseProcess]:
-    """Have stuck workers write their stacks (:data:`STACK_DUMP_SIGNAL`; one wait for all),
-    then kill them. Returns those not yet reaped (for later rounds: a process in an
-    uninterruptible wait dies only when that wait ends, and the supervisor does not wait)."""
+    """Have stuck workers write their stacks (:data:`STACK_DUMP_SIGNAL`, then SIGCONT: a
+    stopped worker takes the signal once woken; one wait for all), then kill them. Returns
+    those not yet reaped (for later rounds: a process in an uninterruptible wait dies only
+    when that wait ends, and the supervisor does not wait)."""
     for proc in procs:
         if proc.pid is not None:
             with contextlib.suppress(ProcessLookupError):
                 os.kill(proc.pid, STACK_DUMP_SIGNAL)
+                os.kill(proc.pid, signal.SIGCONT)
     time.sleep(_DUMP_WAIT_S)
     for proc in procs:
         proc.kill()
@@ -271,7 +274,7 @@ def run_workers(config: RelayConfig, count: int) -> None:
         for proc in procs:
             if proc.is_alive() and proc.pid is not None:
                 os.kill(proc.pid, signal.SIGTERM)
-        for proc in procs:
+        for proc in procs + dying:
             proc.join(10.0)
             if proc.is_alive():
                 proc.kill()

@@ -30,12 +30,17 @@ from collections.abc import AsyncIterator
 
 from shared.errors import ConfigError
 
-__all__ = ["REARM_S", "check_hang_timeout", "loop_watchdog"]
+__all__ = ["REARM_S", "check_hang_timeout", "loop_watchdog", "rearm_period_s"]
 
 log = logging.getLogger(__name__)
 
 #: the longest period between two re-arms
 REARM_S = 0.5
+
+
+def rearm_period_s(timeout_s: float) -> float:
+    """How often a loop watched with ``timeout_s`` reports that it turns."""
+    return min(REARM_S, timeout_s / 4)
 
 
 def check_hang_timeout(key: str, value: object) -> None:
@@ -67,8 +72,10 @@ async def loop_watchdog(timeout_s: float | None) -> AsyncIterator[None]:
         return
     if timeout_s < 0.1:
         raise ValueError(f"a loop watchdog timeout of {timeout_s!r} s is below 0.1 s")
-    period_s = min(REARM_S, timeout_s / 4)
+    period_s = rearm_period_s(timeout_s)
     faulthandler.dump_traceback_later(timeout_s, exit=True)  # armed now: an error is raised
+    log.info("event loop watchdog: this process ends, its stacks written, if its event loop is "
+             "stuck for %g s (hang_timeout_s; 0 turns it off)", timeout_s)
 
     async def rearm() -> None:
         while True:

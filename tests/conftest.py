@@ -3,8 +3,9 @@ keep the stations' process-ending watchdog out of the test runner.
 
 * ``_no_loop_watchdog_in_the_test_runner``: a station run in this process arms
   faulthandler's timer (:mod:`shared.loop_watchdog`), which would end the whole test run
-  when a test blocks its loop; here the timer arms nothing (subprocesses keep theirs, and
-  ``tests/shared/test_loop_watchdog.py`` and ``test_station_watchdogs.py`` test it there);
+  when a test blocks its loop; here arming and cancelling it do nothing (subprocesses keep
+  theirs: ``tests/shared/test_loop_watchdog.py``, ``test_station_watchdogs.py`` and the
+  relay's in ``tests/relay_server/test_relay_health.py`` test it there);
 * ``_no_leaked_tasks``: asyncio tasks still running on the test's event loop;
 * ``_no_leaked_resources``: threads, socket file descriptors of this process and python-can
   ``virtual`` bus channels that a test opened and did not close. Threads and sockets that
@@ -130,9 +131,16 @@ def _inert_dump_traceback_later(timeout: float, repeat: bool = False, file: obje
     """``faulthandler.dump_traceback_later`` in the test runner's process: arms nothing."""
 
 
+def _inert_cancel_dump_traceback_later() -> None:
+    """``faulthandler.cancel_dump_traceback_later`` there: leaves pytest's own timer alone
+    (``faulthandler_timeout``, when set)."""
+
+
 @pytest.fixture(autouse=True)
 def _no_loop_watchdog_in_the_test_runner(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(faulthandler, "dump_traceback_later", _inert_dump_traceback_later)
+    monkeypatch.setattr(faulthandler, "cancel_dump_traceback_later",
+                        _inert_cancel_dump_traceback_later)
 
 
 @pytest.fixture(autouse=True)

@@ -15,6 +15,7 @@ from __future__ import annotations
 import asyncio
 import faulthandler
 import os
+import re
 import shutil
 import socket
 import sys
@@ -35,6 +36,16 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 
 #: faulthandler's own, before the suite's fixture made it inert (``tests/conftest.py``)
 REAL_DUMP_TRACEBACK_LATER = faulthandler.dump_traceback_later
+
+
+def assert_ended_by_loop_watchdog(returncode: int | None, stderr: str, frame: str) -> None:
+    """A process ended by its own event-loop watchdog (:mod:`shared.loop_watchdog`): exit
+    code 1, faulthandler's ``Timeout (H:MM:SS)!`` line, and the threads' stacks, with the
+    function ``frame`` among them."""
+    assert returncode == 1, (returncode, stderr[-3000:])
+    assert re.search(r"^Timeout \(\d+:\d\d:\d\d(\.\d+)?\)!$", stderr, re.MULTILINE), \
+        stderr[-3000:]
+    assert f"in {frame}" in stderr, stderr[-3000:]
 
 
 def scaled(seconds: float) -> float:

@@ -9,6 +9,7 @@ import contextlib
 import errno
 import json
 import os
+import re
 import shutil
 import signal
 from collections import Counter
@@ -33,10 +34,10 @@ pytestmark = pytest.mark.slow
 
 
 @contextlib.asynccontextmanager
-async def _process(*cmd: str, env: dict[str, str] | None = None
+async def _process(*cmd: str, env: dict[str, str] | None = None, stderr: Any = None
                    ) -> AsyncIterator[asyncio.subprocess.Process]:
     proc = await asyncio.create_subprocess_exec(*cmd, stdout=asyncio.subprocess.DEVNULL,
-                                                stderr=asyncio.subprocess.DEVNULL,
+                                                stderr=stderr or asyncio.subprocess.DEVNULL,
                                                 env=None if env is None else
                                                 {**os.environ, **env})
     try:
@@ -89,13 +90,13 @@ async def wait_workers(port: int, count: int) -> dict[str, Any]:
 
 @contextlib.asynccontextmanager
 async def relay(nats_url: str, workers: int = 1, env: dict[str, str] | None = None,
-                extra: tuple[str, ...] = ()) -> AsyncIterator[int]:
+                extra: tuple[str, ...] = (), stderr: Any = None) -> AsyncIterator[int]:
     """``teletouch relay --workers N --nats URL`` on fresh ports; yields the WebSocket port."""
     port, tcp_port = free_tcp_port(), free_tcp_port()
     async with _process(*teletouch_cmd(), "--log-level", "WARNING", "relay", "--host",
                         "127.0.0.1", "--port", str(port), "--tcp-port", str(tcp_port),
                         "--allow-any-token", "--workers", str(workers), "--nats", nats_url,
-                        *extra, env=env):
+                        *extra, env=env, stderr=stderr):
         yield port
 
 
@@ -258,13 +259,27 @@ async def test_killed_worker_stations_reconnect_and_session_resumes() -> None:
                     await asyncio.sleep(0.2)
 
 
-async def test_a_worker_that_hangs_is_replaced_and_its_stations_come_back() -> None:
-    """A worker that stops serving without dying (here: SIGSTOP, so the kernel still hands
-    it new connections on the shared port) is killed by its supervisor once its beat has
-    stood still for ``--hang-timeout-s``; another worker takes its place, and a
-    session whose stations were on it carries on."""
+async def test_a_worker_that_hangs_is_replaced_and_its_stations_come_back(
+        tmp_path: Path) -> None:
+    """A worker that stops serving without dying and cannot end itself (here: SIGSTOP, so
+    the kernel still hands it new connections on the shared port) is killed by its
+    supervisor once its beat has stood still for ``--hang-timeout-s`` and the margin; it is
+    woken first to write its stacks; another worker takes its place, and a session whose
+    stations were on it carries on."""
+    log_path = tmp_path / "relay.log"
+    with log_path.open("wb") as log_file, log_path.open("rb") as log_text:
+        await _a_stopped_worker_is_replaced(log_file)
+        text = log_text.read().decode(errors="replace")
+    found = re.search(r"relay worker (\d+) made no progress for ", text)
+    assert found, text[-3000:]
+    victim = found.group(1)
+    assert "(most recent call first)" in text, text[-3000:]  # its stacks, once woken
+    assert f"relay worker {victim} killed (the stacks it wrote" in text, text[-3000:]
+
+
+async def _a_stopped_worker_is_replaced(log_file: Any) -> None:
     async with nats_server() as url, relay(url, workers=2, extra=(
-            "--hang-timeout-s", str(scaled(4.0)))) as port:
+            "--hang-timeout-s", str(scaled(4.0))), stderr=log_file) as port:
         await wait_workers(port, 2)
         async with station(port, "local", "c9") as local, \
                 station(port, "remote", "c9") as remote:

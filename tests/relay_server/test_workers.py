@@ -132,7 +132,7 @@ def test_the_supervisor_is_ready_once_every_worker_serves(
     starter.start()
     try:
         workers.run_workers(RelayConfig(nats_url="nats://127.0.0.1:1", port=18765,
-                                        tcp_port=18766), 2)
+                                        tcp_port=18766, hang_timeout_s=0), 2)
         notify.until(lambda got: bool(got) and got[-1][1] == "STOPPING=1", scaled(10.0))
     finally:
         starter.join()
