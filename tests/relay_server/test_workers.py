@@ -20,8 +20,9 @@ import pytest
 from relay_server import server, workers
 from relay_server.config import RelayConfig
 from shared import timebase
+from shared.loop_watchdog import loop_watchdog
 from shared.sd_notify import Notifier
-from tests.support import NotifySocket, scaled, wait_until
+from tests.support import NotifySocket, assert_ended_by_loop_watchdog, scaled, wait_until
 
 
 class _Beat:
@@ -354,31 +355,39 @@ def _stuck_in_a_blocking_call() -> None:
 def _worker_that_hangs(config: RelayConfig, log_level: int, anchor_ns: int | None = None,
                        serving: Any = None, beat: Any = None) -> None:
     """The real worker (``workers._worker_main``) with a relay whose event loop blocks for
-    good once it serves and has beaten twice. Started by ``run_workers`` in a process of its
-    own."""
+    good once it serves and has beaten twice; with ``TT_TEST_WORKER_WATCHDOG`` set, under
+    the loop watchdog the relay's serving uses. Started by ``run_workers`` in a process of
+    its own."""
     with Path(os.environ["TT_TEST_WORKER_PIDS"]).open("a") as pids:
         pids.write(f"{os.getpid()}\n")
+    own_watchdog = config.hang_timeout_s if os.environ.get("TT_TEST_WORKER_WATCHDOG") else 0
 
     async def serve(config: RelayConfig, started: Any = None) -> None:
         if started is not None:
             started(None)
-        while beat.value < 2:
-            await asyncio.sleep(0.01)
-        _stuck_in_a_blocking_call()
+        async with loop_watchdog(own_watchdog):
+            while beat.value < 2:
+                await asyncio.sleep(0.01)
+            _stuck_in_a_blocking_call()
 
     server.serve_forever = serve  # this process is the worker: nothing else runs here
     workers._worker_main(config, log_level, anchor_ns, serving, beat)
 
 
-def test_a_worker_that_hangs_is_killed_with_its_stacks_logged_and_replaced(
-        monkeypatch: pytest.MonkeyPatch, tmp_path: Path, capfd: pytest.CaptureFixture[str],
-        caplog: pytest.LogCaptureFixture) -> None:
-    """A spawned worker whose event loop blocks (alive, but serving nothing) is found by
-    its supervisor once its beat has stood still for ``hang_timeout_s`` and the margin the
-    worker has to end itself (this worker has no watchdog of its own): it writes
-    its threads' stacks (the blocking call among them), is killed, and another is started."""
+@pytest.mark.parametrize("ends_itself", [False, True])
+def test_a_worker_that_hangs_is_replaced_with_its_stacks_logged(
+        ends_itself: bool, monkeypatch: pytest.MonkeyPatch, tmp_path: Path,
+        capfd: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture) -> None:
+    """A spawned worker whose event loop blocks (alive, but serving nothing) is replaced,
+    its threads' stacks (the blocking call among them) written first. With its own loop
+    watchdog (as every relay has) it ends itself at ``hang_timeout_s`` and the supervisor
+    starts another on its exit, before its own limit; without one (a worker that cannot end
+    itself) the supervisor finds it once its beat has stood still for ``hang_timeout_s``
+    and the margin, and kills it."""
     pids = tmp_path / "pids"
     monkeypatch.setenv("TT_TEST_WORKER_PIDS", str(pids))
+    if ends_itself:
+        monkeypatch.setenv("TT_TEST_WORKER_WATCHDOG", "1")
     monkeypatch.setattr(workers, "_worker_main", _worker_that_hangs)
     caplog.set_level(logging.WARNING, logger="relay_server.workers")
 
@@ -405,10 +414,16 @@ def test_a_worker_that_hangs_is_killed_with_its_stacks_logged_and_replaced(
     first = started()[0]
     said = [(r.levelno, r.getMessage()) for r in caplog.records]
     errors = [text for level, text in said if level >= logging.ERROR]
+    stderr = capfd.readouterr().err
+    if ends_itself:
+        assert not errors, said
+        assert (logging.WARNING, f"relay worker {first} exited (code 1; if its own watchdog "
+                "ended it, its stacks are above); starting another") in said, said
+        assert_ended_by_loop_watchdog(1, stderr, "_stuck_in_a_blocking_call")
+        return
     assert len(errors) == 1 and errors[0].startswith(
         f"relay worker {first} made no progress for "), said
     assert "(its event loop is stuck, and it did not end itself; limit" in errors[0], errors
     assert (logging.WARNING, f"relay worker {first} killed (the stacks it wrote, if it had "
             "started, are above)") in said, said
-    stderr = capfd.readouterr().err
     assert "in _stuck_in_a_blocking_call" in stderr, stderr[-3000:]
