@@ -215,38 +215,50 @@ async def test_role_held_on_another_worker_is_refused() -> None:
                 assert first.is_connected
 
 
+async def paired_pair(port: int, local: StationLink, remote: StationLink, session: str
+                      ) -> tuple[Message, dict[str, Any]]:
+    """Both stations connected and paired; the first state forwarded, and the status of the
+    worker that holds the local station."""
+    await local.wait_connected(scaled(10.0))
+    await remote.wait_connected(scaled(10.0))
+    await wait_paired(port, session)
+    # the status answered by one worker may show the pair before the other worker's view
+    # has caught up (heartbeats): a latest-wins state sent in between is dropped (no_peer,
+    # by design), so send until one is forwarded (this failed once beside two CPU burners
+    # with a single send)
+    first = await first_forwarded(local, remote)
+    doc = await status(port)
+    holder = next(w for w in doc["cluster"]["workers"].values()
+                  if "local" in w["sessions"].get(session, {}).get("stations", []))
+    return first, holder
+
+
+async def forwarded_again(local: StationLink, remote: StationLink, first: Message) -> None:
+    """Send states from ``local`` until a new one (numbered past ``first``) reaches
+    ``remote``: the session carries on after its worker was lost."""
+    after = seq = first.seq + 1000  # type: ignore[attr-defined]
+    async with asyncio.timeout(scaled(30.0)):
+        while True:
+            seq += 1
+            with contextlib.suppress(Exception):
+                await local.send(PlatformState(seq=seq, ts_us=now_us()))
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(0.5):
+                    msg = await recv_type(remote, "platform_state")
+                if msg.seq > after:  # type: ignore[attr-defined]
+                    return
+
+
 async def test_killed_worker_stations_reconnect_and_session_resumes() -> None:
     async with nats_server() as url, relay(url, workers=2) as port:
         doc = await wait_workers(port, 2)
         async with station(port, "local", "c4") as local, \
                 station(port, "remote", "c4") as remote:
-            await local.wait_connected(scaled(10.0))
-            await remote.wait_connected(scaled(10.0))
-            await wait_paired(port, "c4")
-            # the status answered by one worker may show the pair before the other worker's
-            # view has caught up (heartbeats): a latest-wins state sent in between is dropped
-            # (no_peer, by design), so send until one is forwarded (this failed once beside
-            # two CPU burners with a single send)
-            first = await first_forwarded(local, remote)
-            doc = await status(port)
-            holder = next(w for w in doc["cluster"]["workers"].values()
-                          if "local" in w["sessions"].get("c4", {}).get("stations", []))
+            first, holder = await paired_pair(port, local, remote, "c4")
             os.kill(holder["pid"], signal.SIGKILL)
             # the local station reconnects through the shared port to a live worker (the
             # supervisor also starts a replacement) and the session carries on
-            async with asyncio.timeout(scaled(30.0)):
-                after_kill = seq = first.seq + 1000  # type: ignore[attr-defined]
-                while True:
-                    seq += 1
-                    with contextlib.suppress(Exception):
-                        await local.send(PlatformState(seq=seq, ts_us=now_us()))
-                    try:
-                        async with asyncio.timeout(0.5):
-                            msg = await recv_type(remote, "platform_state")
-                        if msg.seq > after_kill:  # type: ignore[attr-defined]
-                            break
-                    except TimeoutError:
-                        pass
+            await forwarded_again(local, remote, first)
             await remote.send(ArmState(seq=2, ts_us=now_us()))
             assert (await recv_type(local, "arm_state")).seq == 2  # type: ignore[attr-defined]
             # the dead worker leaves the cluster's status when its heartbeats expire
@@ -280,17 +292,12 @@ async def test_a_worker_that_hangs_is_replaced_and_its_stations_come_back(
 async def _a_stopped_worker_is_replaced(log_file: Any) -> None:
     async with nats_server() as url, relay(url, workers=2, extra=(
             "--hang-timeout-s", str(scaled(4.0))), stderr=log_file) as port:
-        await wait_workers(port, 2)
+        doc = await wait_workers(port, 2)
+        before = {w["pid"] for w in doc["cluster"]["workers"].values()}
         async with station(port, "local", "c9") as local, \
                 station(port, "remote", "c9") as remote:
-            await local.wait_connected(scaled(10.0))
-            await remote.wait_connected(scaled(10.0))
-            await wait_paired(port, "c9")
-            first = await first_forwarded(local, remote)
-            doc = await status(port)
-            before = {w["pid"] for w in doc["cluster"]["workers"].values()}
-            victim = next(w["pid"] for w in doc["cluster"]["workers"].values()
-                          if "local" in w["sessions"].get("c9", {}).get("stations", []))
+            first, holder = await paired_pair(port, local, remote, "c9")
+            victim = holder["pid"]
             os.kill(victim, signal.SIGSTOP)
             try:
                 async with asyncio.timeout(scaled(30.0)):
@@ -303,21 +310,18 @@ async def _a_stopped_worker_is_replaced(log_file: Any) -> None:
             finally:
                 with contextlib.suppress(ProcessLookupError):
                     os.kill(victim, signal.SIGCONT)
-            doc = await wait_workers(port, 2)
-            after = {w["pid"] for w in doc["cluster"]["workers"].values()}
-            assert victim not in after and len(after - before) == 1, (before, after)
-            # the local station, whose connection the stopped worker held, is back
-            async with asyncio.timeout(scaled(30.0)):
-                seq = first.seq + 1000  # type: ignore[attr-defined]
+            # woken to write its stacks, the victim may have sent a last heartbeat: the
+            # directory keeps it until that expires
+            async with asyncio.timeout(scaled(15.0)):
                 while True:
-                    seq += 1
-                    with contextlib.suppress(Exception):
-                        await local.send(PlatformState(seq=seq, ts_us=now_us()))
-                    with contextlib.suppress(TimeoutError):
-                        async with asyncio.timeout(0.5):
-                            msg = await recv_type(remote, "platform_state")
-                        if msg.seq > first.seq + 1000:  # type: ignore[attr-defined]
-                            break
+                    doc = await wait_workers(port, 2)
+                    after = {w["pid"] for w in doc["cluster"]["workers"].values()}
+                    if victim not in after:
+                        break
+                    await asyncio.sleep(0.1)
+            assert len(after - before) == 1, (before, after)
+            # the local station, whose connection the stopped worker held, is back
+            await forwarded_again(local, remote, first)
 
 
 @pytest.mark.skipif(shutil.which("openssl") is None, reason="needs openssl")

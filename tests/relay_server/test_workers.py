@@ -196,18 +196,19 @@ def test_a_beat_that_stands_still_past_the_timeout_is_stuck(timeout_s: float) ->
 
 
 class _FakeClock:
-    """``time`` for the supervisor: ``sleep`` advances ``now`` and, while ``beating``, the
-    worker's beat; ``pauses`` maps a sleep (counted from 1) to one that lasts that long with
-    no beat (the host frozen: the supervisor and its worker alike). The supervisor is
-    stopped after ``rounds`` sleeps."""
+    """``time`` for the supervisor: ``sleep`` advances ``now`` and, up to the sleep
+    ``beats_until`` (sleeps counted from 1), the worker's beat; ``pauses`` maps a sleep to
+    one that lasts that long with no beat (the host frozen: the supervisor and its worker
+    alike). The supervisor is stopped after ``rounds`` sleeps."""
 
-    def __init__(self, beat: _Beat, rounds: int, pauses: dict[int, float]) -> None:
+    def __init__(self, beat: _Beat, rounds: int, pauses: dict[int, float],
+                 beats_until: int) -> None:
         self.now = 1000.0
         self.beat = beat
         self.rounds = 0
         self.last = rounds
         self.pauses = pauses
-        self.beating = True
+        self.beats_until = beats_until
         self.beats: list[float] = []  # when the beat moved
 
     def monotonic(self) -> float:
@@ -219,7 +220,7 @@ class _FakeClock:
             self.now += self.pauses[self.rounds]
             return
         self.now += seconds
-        if self.beating:
+        if self.rounds <= self.beats_until:
             self.beat.value += 1
             self.beats.append(self.now)
         if self.rounds >= self.last:
@@ -272,17 +273,10 @@ def test_a_supervisor_that_did_not_run_gives_its_workers_a_fresh_timeout(
     """A host frozen for 30 s (both the supervisor and its worker, whose beat stood still
     meanwhile) is not a hung worker: the supervisor sees its own gap and restarts the count.
     A worker whose beat then stays still is killed one timeout later, not before."""
-    clock = _FakeClock(_Beat(), rounds=200, pauses={20: 30.0})
+    # the round after the pause is the worker's last beat: it hangs from then on
+    clock = _FakeClock(_Beat(), rounds=200, pauses={20: 30.0}, beats_until=21)
     kills: list[float] = []
     _fake_supervisor(monkeypatch, clock, kills)
-    real_sleep = clock.sleep
-
-    def sleep(seconds: float) -> None:
-        real_sleep(seconds)
-        if clock.rounds == 21:  # the round after the pause: the worker hangs from now on
-            clock.beating = False
-
-    monkeypatch.setattr(clock, "sleep", sleep)
     workers.run_workers(_CONFIG, 1)
     warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert any(m.startswith("relay supervisor did not run for 30.0 s") for m in warned), warned
@@ -301,16 +295,9 @@ def test_without_the_gap_a_stood_still_beat_is_killed(
         monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
     """The same worker, the same 30 s with no beat, but the supervisor ran through them: a
     hang, killed in the first round past the timeout (the control of the test above)."""
-    clock = _FakeClock(_Beat(), rounds=100, pauses={})
+    clock = _FakeClock(_Beat(), rounds=100, pauses={}, beats_until=20)
     kills: list[float] = []
     _fake_supervisor(monkeypatch, clock, kills)
-    real_sleep = clock.sleep
-
-    def sleep(seconds: float) -> None:
-        clock.beating = clock.rounds < 20
-        real_sleep(seconds)
-
-    monkeypatch.setattr(clock, "sleep", sleep)
     workers.run_workers(_CONFIG, 1)
     last_beat = clock.beats[-1]
     assert last_beat == pytest.approx(1000.0 + 20 * 0.2)
@@ -321,16 +308,9 @@ def test_without_the_gap_a_stood_still_beat_is_killed(
 def test_no_watch_with_the_hang_timeout_off(monkeypatch: pytest.MonkeyPatch) -> None:
     """``hang_timeout_s`` 0 (a debugger's breakpoint stops the loop): a worker whose beat
     stands still for longer than the start allowance is left alone."""
-    clock = _FakeClock(_Beat(), rounds=400, pauses={})
+    clock = _FakeClock(_Beat(), rounds=400, pauses={}, beats_until=5)
     kills: list[float] = []
     _fake_supervisor(monkeypatch, clock, kills)
-    real_sleep = clock.sleep
-
-    def sleep(seconds: float) -> None:
-        clock.beating = clock.rounds < 5
-        real_sleep(seconds)
-
-    monkeypatch.setattr(clock, "sleep", sleep)
     workers.run_workers(dataclasses.replace(_CONFIG, hang_timeout_s=0.0), 1)
     assert clock.now - clock.beats[-1] > workers.START_ALLOWANCE_S + 10.0 and not kills
 
