@@ -89,6 +89,45 @@ async def async_wait_until(predicate: Callable[[], object], timeout_s: float,
             f"timed out after {scaled(timeout_s):.2f} s waiting for {what}") from err
 
 
+class LoopStalls:
+    """Stalls of the running event loop, seen by a task that sleeps ``tick_s`` at a time: the
+    time it woke later than asked, where that exceeded ``over_s``. A timing assertion of a
+    test on this (shared, sometimes loaded) machine may allow for what the machine took
+    away: a stall of the whole process holds up the loop too. Use as ``async with``."""
+
+    def __init__(self, tick_s: float = 0.01, over_s: float = 0.03) -> None:
+        self.tick_s, self.over_s = tick_s, over_s
+        self.stalls_s: list[float] = []
+        self._task: asyncio.Task[None] | None = None
+
+    async def __aenter__(self) -> LoopStalls:
+        self._task = asyncio.create_task(self._watch())
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        assert self._task is not None
+        self._task.cancel()
+        await asyncio.gather(self._task, return_exceptions=True)
+
+    async def _watch(self) -> None:
+        loop = asyncio.get_running_loop()
+        while True:
+            before = loop.time()
+            await asyncio.sleep(self.tick_s)
+            late = loop.time() - before - self.tick_s
+            if late > self.over_s:
+                self.stalls_s.append(late)
+
+    def count(self, longer_than_s: float) -> int:
+        """How many stalls were longer than ``longer_than_s``."""
+        return sum(1 for s in self.stalls_s if s > longer_than_s)
+
+    @property
+    def total_s(self) -> float:
+        """The stalls' total."""
+        return sum(self.stalls_s)
+
+
 def free_tcp_port() -> int:
     """Return a TCP port on 127.0.0.1 that is free right now."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:

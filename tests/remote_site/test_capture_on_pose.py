@@ -33,7 +33,7 @@ from tests.remote_site.test_agent_safety import (
     make_station,
     platform_state,
 )
-from tests.support import async_wait_until, scaled
+from tests.support import LoopStalls, async_wait_until, scaled
 
 
 def reading(position: tuple[float, float, float], target: tuple[float, float, float] | None,
@@ -299,7 +299,9 @@ async def test_the_frame_rate_setting_is_met_while_commands_come_faster() -> Non
     """Frames at 10 Hz, commands every 20 ms, each frame waiting for the next command
     (``command_fresh_ms = 0``): 0-20 ms per frame. Counted from each frame's start, those
     waits would add up (about 10 ms a frame, 200 ms over 20 frames); on the frame schedule
-    20 frames take 20 periods plus at most one wait."""
+    20 frames take 20 periods plus at most one wait. The schedule falls a period behind (a
+    late frame) only when the machine stalls the process, which is allowed for: a CI run
+    saw one late frame, with the arm halted for 200 ms without commands."""
     interval_s, period_s, n = 0.02, 0.1, 20
     link = FakeLink()
     safety = SafetyConfig(max_command_age_ms=scaled(100.0), command_timeout_ms=scaled(200.0))
@@ -309,17 +311,19 @@ async def test_the_frame_rate_setting_is_met_while_commands_come_faster() -> Non
     skip = 3  # the first frames, before the commands' interval is known
 
     try:
-        task = asyncio.create_task(hold_hand(
-            link, (0.0, 0.0, 12.0), interval_s,
-            until=lambda: len(station.frame_period_s) >= skip + n, stop=stop))
-        await station.run(stop, duration_s=scaled(30.0))
-        await task
+        async with LoopStalls() as stalls:
+            task = asyncio.create_task(hold_hand(
+                link, (0.0, 0.0, 12.0), interval_s,
+                until=lambda: len(station.frame_period_s) >= skip + n, stop=stop))
+            await station.run(stop, duration_s=scaled(30.0))
+            await task
         periods = list(station.frame_period_s)[skip:skip + n]
         assert station.captures.waited_for_command >= n // 2, station.captures
-        assert station.counters.frames_late == 0
-        assert sum(periods) <= n * period_s + scaled(0.06), (
+        # a late frame needs the schedule a period behind: waits (<= 20 ms) cannot do that
+        assert station.counters.frames_late <= stalls.count(period_s / 2), stalls.stalls_s
+        assert sum(periods) <= n * period_s + scaled(0.06) + stalls.total_s, (
             f"{n} frames took {sum(periods) * 1e3:.0f} ms against {n * period_s * 1e3:.0f}; "
-            f"periods {np.round(np.asarray(periods) * 1e3, 1)} ms")
+            f"periods {np.round(np.asarray(periods) * 1e3, 1)} ms; stalls {stalls.stalls_s}")
     finally:
         close_station(station)
 
