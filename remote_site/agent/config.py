@@ -80,7 +80,8 @@ class RemoteAgentConfig:
             event loop (commands in, frames out) off the GIL. 0 leaves the interpreter's
             setting (5 ms) alone.
         hang_timeout_s: the station's event loop stuck this long (a busy loop, a call that
-            never returns), once its loops run: every thread's stack is written to standard
+            never returns), or a frame's capture and processing in the pipeline's thread not
+            returned after it, once its loops run: every thread's stack is written to standard
             error and the process exits with code 1 (:mod:`shared.loop_watchdog`), for
             systemd or a container's ``restart: on-failure`` to start it again. The arm's
             halt on lost commands (its own thread) and its safety limits do not wait for it.

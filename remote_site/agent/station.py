@@ -60,7 +60,7 @@ from remote_site.tactile import AppliedCommand
 from shared.client import LinkCounters
 from shared.errors import InputDataError
 from shared.freshness import ClockView
-from shared.loop_watchdog import loop_watchdog
+from shared.loop_watchdog import WaitedCalls, loop_watchdog
 from shared.protocol.messages import (
     MOTION_CARRY_MAX_US,
     ArmCommand,
@@ -318,6 +318,8 @@ class RemoteStation:
         self._answered: AppliedCommand | None = None
         self.last_reading: ArmReading | None = None
         self.captures = CaptureCounters()
+        #: the frame calls in the pipeline's thread, watched like the loop (hang_timeout_s)
+        self.waited = WaitedCalls()
         #: set when a platform_state is applied to the arm (wakes a frame capture on pose)
         self._command_applied = asyncio.Event()
         #: the commands' recent interval (seconds, moving average; None: not known yet)
@@ -695,8 +697,9 @@ class RemoteStation:
                         max(0, now_us() - self.latest.arm_command_us) / 1e6)
                 captured = self.latest
                 source, chain = self._frame_source(captured)
-                outcome = await loop.run_in_executor(
-                    executor, self.pipeline.process, self._frame_seq + 1, source)
+                with self.waited.waiting_for("a frame's capture and processing"):
+                    outcome = await loop.run_in_executor(
+                        executor, self.pipeline.process, self._frame_seq + 1, source)
             else:
                 answered_before = self._answered
                 captured, chain, outcome = await self._streamed_frame(executor)
@@ -747,9 +750,10 @@ class RemoteStation:
         captured = self.applied_at(sensor_frame.timestamp_us)
         source, chain = self._frame_source(captured)
         reading = self.reading_at(sensor_frame.timestamp_us)
-        outcome = await asyncio.get_running_loop().run_in_executor(
-            executor, self.pipeline.build, self._frame_seq + 1, sensor_frame, reading, source,
-            capture_s)
+        with self.waited.waiting_for("a frame's processing"):
+            outcome = await asyncio.get_running_loop().run_in_executor(
+                executor, self.pipeline.build, self._frame_seq + 1, sensor_frame, reading,
+                source, capture_s)
         return captured, chain, outcome
 
     def _record(self, outcome: FrameOutcome) -> None:
@@ -825,8 +829,10 @@ class RemoteStation:
         stopper = asyncio.create_task(stop.wait(), name="remote-stop")
         try:
             # systemd (Type=notify): ready now; its watchdog pinged from this loop; this
-            # loop stuck for hang_timeout_s: stacks written, exit 1 (to be restarted)
-            async with service("remote station running"), loop_watchdog(self.config.hang_timeout_s):
+            # loop, or a frame's call in the pipeline's thread, stuck for hang_timeout_s:
+            # stacks written, exit 1 (to be restarted)
+            async with service("remote station running"), \
+                    loop_watchdog(self.config.hang_timeout_s, self.waited):
                 done, _ = await asyncio.wait({*tasks, stopper}, timeout=duration_s,
                                              return_when=asyncio.FIRST_COMPLETED)
             for task in done:

@@ -1,13 +1,16 @@
-"""``shared.loop_watchdog``: a process whose event loop is stuck writes its stacks and ends
-(exit code 1); one whose loop keeps turning, or that left the block, does not. Real
-subprocesses (the watchdog ends its process); the relay's own in
-``tests/relay_server/test_relay_health.py``."""
+"""``shared.loop_watchdog``: a process whose event loop is stuck, or that waits for a call in
+another thread that does not return, writes its stacks and ends (exit code 1); one whose loop
+keeps turning and whose calls return within the timeout, or that left the block, does not.
+Real subprocesses (the watchdog ends its process); the relay's own in
+``tests/relay_server/test_relay_health.py``, the stations' in ``test_station_watchdogs.py``."""
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 import textwrap
+import time
 
 import pytest
 
@@ -47,6 +50,112 @@ def _run(timeout_s: float, scenario: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run([sys.executable, "-c", _PROGRAM, str(timeout_s), scenario],
                           capture_output=True, text=True, timeout=scaled(60.0) + 10 * timeout_s,
                           check=False)
+
+
+_CALLS_PROGRAM = textwrap.dedent('''
+    import asyncio, logging, sys, time
+    from shared.loop_watchdog import WaitedCalls, loop_watchdog
+
+    TIMEOUT_S, CALL_S, N = float(sys.argv[1]), float(sys.argv[2]), int(sys.argv[3])
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
+
+    def _a_waited_call(seconds):
+        time.sleep(seconds)
+
+    async def main():
+        calls = WaitedCalls()
+        loop = asyncio.get_running_loop()
+        ticks = 0
+
+        async def ticker():  # the loop turns all along
+            nonlocal ticks
+            while True:
+                await asyncio.sleep(0.01)
+                ticks += 1
+
+        task = asyncio.create_task(ticker())
+        async with loop_watchdog(TIMEOUT_S, calls):
+            for _ in range(N):
+                print("call", time.monotonic(), ticks, flush=True)
+                with calls.waiting_for("the test's call"):
+                    await loop.run_in_executor(None, _a_waited_call, CALL_S)
+        task.cancel()
+        print("returned", flush=True)
+
+    asyncio.run(main())
+''')
+
+
+def _run_calls(timeout_s: float, call_s: float, n: int
+               ) -> tuple[subprocess.CompletedProcess[str], float]:
+    done = subprocess.run([sys.executable, "-c", _CALLS_PROGRAM, str(timeout_s), str(call_s),
+                           str(n)], capture_output=True, text=True,
+                          timeout=scaled(60.0) + 10 * timeout_s, check=False)
+    return done, time.monotonic()
+
+
+def test_a_call_that_does_not_return_ends_its_process_at_the_timeout() -> None:
+    """The loop turns all along (its ticker counts on between the calls); the call waited
+    for does not return: the process ends the timeout after the call began, not before,
+    with a WARNING naming it at half the timeout and the call's stack among those written."""
+    timeout_s = scaled(3.0)
+    done, ended = _run_calls(timeout_s, 3600.0, 1)
+    assert_ended_by_loop_watchdog(done.returncode, done.stderr, "_a_waited_call")
+    began = float(done.stdout.split()[1])
+    assert timeout_s - 0.05 <= ended - began <= timeout_s + scaled(5.0), ended - began
+    assert re.search(r"^WARNING the test's call has not returned for \d+\.\d s: this process "
+                     r"ends, its stacks written, if it has not returned after "
+                     rf"{timeout_s:g} s \(hang_timeout_s\)$", done.stderr, re.M), done.stderr
+
+
+def test_calls_that_return_just_within_the_timeout_end_nothing() -> None:
+    """Two calls of the timeout less a fifth of a second, one after the other, the loop
+    turning all along: neither ends the process, each is named at half the timeout."""
+    timeout_s = scaled(3.0)
+    done, _ = _run_calls(timeout_s, timeout_s - scaled(0.2), 2)
+    assert done.returncode == 0 and "Timeout (" not in done.stderr, (done.returncode,
+                                                                       done.stderr[-2000:])
+    lines = done.stdout.splitlines()
+    assert lines[-1] == "returned" and len(lines) == 3, lines
+    assert int(lines[1].split()[2]) > int(lines[0].split()[2])  # the ticker ran meanwhile
+    assert "WARNING the test's call has not returned for" in done.stderr  # at half
+
+
+async def test_a_call_is_judged_at_each_re_arm(monkeypatch: pytest.MonkeyPatch,
+                                               caplog: pytest.LogCaptureFixture) -> None:
+    """In this process (faulthandler faked): with calls returning, each re-arm sets the
+    timer a whole timeout ahead; a call waited for half the timeout is named once; one
+    waited for the timeout has the timer set to end the process at once, and the re-arms
+    stop (faulthandler's thread would end the process)."""
+    import asyncio
+    import faulthandler
+
+    from shared.loop_watchdog import WaitedCalls
+
+    arms: list[float] = []
+    monkeypatch.setattr(faulthandler, "dump_traceback_later",
+                        lambda timeout_s, exit=False: arms.append(timeout_s))
+    monkeypatch.setattr(faulthandler, "cancel_dump_traceback_later", lambda: None)
+    calls = WaitedCalls()
+    never = asyncio.get_running_loop().create_future()
+    async with loop_watchdog(0.4, calls):  # re-armed every 0.1 s
+        for _ in range(3):  # calls that return
+            with calls.waiting_for("a quick call"):
+                await asyncio.sleep(0.05)
+        assert arms and set(arms) == {0.4}, arms
+        assert calls.oldest() is None
+        with calls.waiting_for("a call that does not return"):
+            async with asyncio.timeout(scaled(10.0)):
+                while arms[-1] != 1e-3:
+                    await asyncio.wait({never}, timeout=0.01)
+            oldest = calls.oldest()
+            assert oldest is not None and oldest[0] == "a call that does not return"
+        n = len(arms)
+        await asyncio.sleep(0.3)  # three re-arm periods: none more
+        assert len(arms) == n
+    named = [r.getMessage() for r in caplog.records
+             if r.getMessage().startswith("a call that does not return has not returned for ")]
+    assert len(named) == 1 and "(hang_timeout_s)" in named[0], caplog.records
 
 
 def test_a_stuck_loop_ends_its_process_with_its_stacks() -> None:

@@ -1,7 +1,8 @@
 """The stations' own event-loop watchdogs (``hang_timeout_s``, :mod:`shared.loop_watchdog`):
 a real ``teletouch local`` and ``teletouch remote`` whose loop a bug blocks (put in by the
-test) write every thread's stack and exit with code 1, for systemd or a container's
-``restart: on-failure`` to start them again. The relay's: ``test_relay_health.py``."""
+test), or a remote whose frame call in the pipeline's thread never returns, write every
+thread's stack and exit with code 1, for systemd or a container's ``restart: on-failure`` to
+start them again. The relay's: ``test_relay_health.py``."""
 
 from __future__ import annotations
 
@@ -34,6 +35,29 @@ from lab.cli import main
 sys.exit(main(sys.argv[1:]))
 """
 
+#: ``teletouch`` with a remote whose fourth frame's processing (in the pipeline's thread)
+#: never returns (as a hung sensor driver's read would not); its event loop turns on
+_WITH_A_FRAME_THAT_HANGS = """
+import sys, time
+from remote_site.agent.pipeline import FramePipeline
+
+_process = FramePipeline.process
+_calls = []
+
+def _a_frame_call_that_hangs():
+    time.sleep(3600)
+
+def process(self, seq, source):
+    _calls.append(seq)
+    if len(_calls) == 4:
+        _a_frame_call_that_hangs()
+    return _process(self, seq, source)
+
+FramePipeline.process = process
+from lab.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
 _COMMANDS = {
     "local": ["local", "--scene", "hemisphere:radius_mm=8", "--platform", "sim", "--display",
               "sim", "--motion", "raster:x0=26,x1=34,y0=30,y1=30,press_depth=0,pause=0",
@@ -60,3 +84,25 @@ async def test_a_station_whose_loop_is_stuck_writes_its_stacks_and_exits(role: s
         if proc.returncode is None:
             proc.kill()
             await proc.wait()
+
+
+async def test_a_remote_whose_frame_call_hangs_writes_its_stacks_and_exits() -> None:
+    """The loop turns on (the status loop, the arm), but a frame never comes: the station
+    ends as for a stuck loop, after a WARNING naming the call at half the timeout."""
+    timeout_s = scaled(3.0)
+    env = {**os.environ, "TELETOUCH_REMOTE_AGENT_HANG_TIMEOUT_S": str(timeout_s),
+           "TELETOUCH_REMOTE_LINK_TOKEN": "x"}
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, "-c", _WITH_A_FRAME_THAT_HANGS, "--log-level", "WARNING",
+        *_COMMANDS["remote"], env=env, stdout=asyncio.subprocess.DEVNULL,
+        stderr=asyncio.subprocess.PIPE)
+    try:
+        _, stderr = await asyncio.wait_for(proc.communicate(), scaled(90.0))
+        text = stderr.decode(errors="replace")
+        assert_ended_by_loop_watchdog(proc.returncode, text, "_a_frame_call_that_hangs")
+        assert "a frame's capture and processing has not returned for" in text, text[-3000:]
+    finally:
+        if proc.returncode is None:
+            proc.kill()
+            await proc.wait()
+
