@@ -818,6 +818,14 @@ class RemoteStation:
 
             raise ConfigError(f"duration must be finite and > 0, got {duration_s}")
         self._started_s = monotonic_s()
+        # this loop, or a frame's call in the pipeline's thread, stuck for hang_timeout_s:
+        # stacks written, exit 1 (to be restarted); the close-down too, which waits for
+        # that thread
+        async with loop_watchdog(self.config.hang_timeout_s, self.waited):
+            await self._run_watched(stop, duration_s)
+
+    async def _run_watched(self, stop: asyncio.Event, duration_s: float | None) -> None:
+        """:meth:`run` under its watchdog: the loops, then the close-down."""
         # the command timeout (no command for 100 ms halts the arm) runs in its own thread:
         # a busy or stalled event loop cannot delay the halt (the arm loop polls too)
         self.safe_arm.start_watchdog(self.config.watchdog_period_s)
@@ -828,11 +836,8 @@ class RemoteStation:
                  asyncio.create_task(self._status_loop(), name="remote-status")]
         stopper = asyncio.create_task(stop.wait(), name="remote-stop")
         try:
-            # systemd (Type=notify): ready now; its watchdog pinged from this loop; this
-            # loop, or a frame's call in the pipeline's thread, stuck for hang_timeout_s:
-            # stacks written, exit 1 (to be restarted)
-            async with service("remote station running"), \
-                    loop_watchdog(self.config.hang_timeout_s, self.waited):
+            # systemd (Type=notify): ready now; its watchdog pinged from this loop
+            async with service("remote station running"):
                 done, _ = await asyncio.wait({*tasks, stopper}, timeout=duration_s,
                                              return_when=asyncio.FIRST_COMPLETED)
             for task in done:
@@ -846,7 +851,8 @@ class RemoteStation:
                     await task
             self.safe_arm.stop()
             self.safe_arm.close()  # the watchdog thread
-            await asyncio.get_running_loop().run_in_executor(None, executor.shutdown, True)
+            with self.waited.waiting_for("the pipeline's thread to end"):
+                await asyncio.get_running_loop().run_in_executor(None, executor.shutdown, True)
             self.stiffness.flush()
             self._stopped_s = monotonic_s()
             log.info("remote station stopped after %.1f s: %d tactile frames sent",

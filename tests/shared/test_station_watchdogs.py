@@ -50,6 +50,7 @@ def _a_frame_call_that_hangs():
 def process(self, seq, source):
     _calls.append(seq)
     if len(_calls) == 4:
+        print("hanging", file=sys.stderr, flush=True)
         _a_frame_call_that_hangs()
     return _process(self, seq, source)
 
@@ -106,3 +107,31 @@ async def test_a_remote_whose_frame_call_hangs_writes_its_stacks_and_exits() -> 
             proc.kill()
             await proc.wait()
 
+
+async def test_a_remote_stopped_while_a_frame_call_hangs_still_ends() -> None:
+    """SIGTERM while the frame call hangs: the station's close-down waits for the
+    pipeline's thread, so the watch holds until it has ended, and the station ends with
+    its stacks instead of waiting for that thread for ever."""
+    timeout_s = scaled(3.0)
+    env = {**os.environ, "TELETOUCH_REMOTE_AGENT_HANG_TIMEOUT_S": str(timeout_s),
+           "TELETOUCH_REMOTE_LINK_TOKEN": "x"}
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, "-c", _WITH_A_FRAME_THAT_HANGS, "--log-level", "WARNING",
+        *_COMMANDS["remote"], env=env, stdout=asyncio.subprocess.DEVNULL,
+        stderr=asyncio.subprocess.PIPE)
+    assert proc.stderr is not None
+    try:
+        lines: list[bytes] = []
+        async with asyncio.timeout(scaled(60.0)):
+            while not lines or lines[-1] != b"hanging\n":
+                lines.append(await proc.stderr.readline())
+                assert lines[-1], b"".join(lines)[-3000:]
+        proc.terminate()
+        rest = await asyncio.wait_for(proc.stderr.read(), scaled(60.0))
+        await proc.wait()
+        text = (b"".join(lines) + rest).decode(errors="replace")
+        assert_ended_by_loop_watchdog(proc.returncode, text, "_a_frame_call_that_hangs")
+    finally:
+        if proc.returncode is None:
+            proc.kill()
+            await proc.wait()
