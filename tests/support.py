@@ -93,21 +93,30 @@ class LoopStalls:
     """Stalls of the running event loop, seen by a task that sleeps ``tick_s`` at a time: the
     time it woke later than asked, where that exceeded ``over_s``. A timing assertion of a
     test on this (shared, sometimes loaded) machine may allow for what the machine took
-    away: a stall of the whole process holds up the loop too. Use as ``async with``."""
+    away: a stall of the whole process holds up the loop too. Use as ``async with``, or
+    :meth:`start` and :meth:`stop`."""
 
     def __init__(self, tick_s: float = 0.01, over_s: float = 0.03) -> None:
         self.tick_s, self.over_s = tick_s, over_s
         self.stalls_s: list[float] = []
         self._task: asyncio.Task[None] | None = None
 
-    async def __aenter__(self) -> LoopStalls:
+    def start(self) -> LoopStalls:
+        """Start watching (in a running loop); returns self."""
         self._task = asyncio.create_task(self._watch())
         return self
 
-    async def __aexit__(self, *exc: object) -> None:
+    async def stop(self) -> None:
+        """Stop watching."""
         assert self._task is not None
         self._task.cancel()
         await asyncio.gather(self._task, return_exceptions=True)
+
+    async def __aenter__(self) -> LoopStalls:
+        return self.start()
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.stop()
 
     async def _watch(self) -> None:
         loop = asyncio.get_running_loop()

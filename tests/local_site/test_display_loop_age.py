@@ -130,20 +130,6 @@ def test_unknown_or_uncertain_offsets_keep_the_pins_safe(make_loop: Build, link:
     assert loop.safe_reason == "clock_uncertain" and loop.counters.commands_sent == 0
 
 
-def test_a_frame_goes_stale_on_the_pins_when_no_newer_one_comes(make_loop: Build) -> None:
-    """Rendering stops when the frame on the pins ages past the bound, by its stamp (a
-    stopped sender, or a local station that was itself stopped): nothing newer is needed."""
-    loop, slot = make_loop(FakeLink(), max_frame_age_s=0.15)
-    t = now_us()
-    slot.put(frame(1, t - 140_000), now_us())
-    loop.tick()
-    assert loop.safe_reason is None
-    deadline = t + 2_000_000
-    while loop.safe_reason is None and now_us() < deadline:
-        loop.tick()
-    assert loop.safe_reason == "stale_frame"
-    age_us = now_us() - (t - 140_000)
-    assert age_us >= 150_000 - 1_000  # not before the bound (less the 2 x 500 us error bound)
 
 
 class SteppedClock:
@@ -170,6 +156,26 @@ def clock(monkeypatch: pytest.MonkeyPatch) -> SteppedClock:
     monkeypatch.setattr("local_site.agent.display_loop.monotonic_s", mono)
     monkeypatch.setattr("local_site.display.base.monotonic_s", mono)
     return c
+
+
+def test_a_frame_goes_stale_on_the_pins_when_no_newer_one_comes(
+        make_loop: Build, clock: SteppedClock) -> None:
+    """Rendering stops when the frame on the pins ages past the bound, by its stamp (a
+    stopped sender, or a local station that was itself stopped): nothing newer is needed.
+    (The loop's clocks stepped by the test: on the real ones a stall of 10 ms between the
+    put and the first tick aged the frame past the bound.)"""
+    loop, slot = make_loop(FakeLink(), max_frame_age_s=0.15)
+    stamp = clock.t_us - 140_000
+    slot.put(frame(1, stamp), clock.t_us)
+    loop.tick()
+    assert loop.safe_reason is None
+    while loop.safe_reason is None and clock.t_us - stamp < 2_000_000:
+        clock.t_us += 1_000
+        loop.tick()
+    assert loop.safe_reason == "stale_frame"
+    age_us = clock.t_us - stamp
+    # at the bound, not before it (less the 2 x 500 us error bound), nor a tick after it
+    assert 150_000 - 1_000 <= age_us <= 150_000 + 1_000, age_us
 
 
 def test_a_frame_that_ages_out_between_the_check_and_the_send_is_not_sent(

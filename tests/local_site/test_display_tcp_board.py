@@ -170,8 +170,10 @@ def test_the_serial_driver_reaches_the_board_through_a_socket_url_and_reconnects
         board: FirmwareEmulator) -> None:
     transport = board.transport
     assert isinstance(transport, TcpFirmwareTransport)
+    # the watchdog longer than a stall of this process between two commands (100 ms tripped
+    # it early, and the trip awaited below was a second one)
     display = open_display(transport.url, keepalive_interval_s=0.02,
-                           watchdog_ms=round(scaled(100)), connect_timeout_s=scaled(3.0))
+                           watchdog_ms=round(scaled(500)), connect_timeout_s=scaled(3.0))
     try:
         deadline = time.monotonic() + scaled(3.0)
         while abs(display.read_feedback(scaled(1.0)).position_mm.mean() - 3.0) > 0.05:

@@ -119,8 +119,9 @@ def test_the_simulated_camera_streams_stamps_its_exposure_and_says_so() -> None:
         with pytest.raises(DeviceTimeoutError, match="old"):  # aged from the exposure
             sensor.read_latest(max_age_ms=50.0)
         # the latency (longer than a period) does not slow the rate: images in flight queue
+        # (over 1.5 s: the camera skips the exposures a stall of this process passes over)
         count, t0 = len(notices), time.monotonic()
-        time.sleep(0.5)
+        time.sleep(1.5)
         rate = (len(notices) - count) / (time.monotonic() - t0)
         assert rate >= 0.6 * 40.0, f"{rate:.1f} images/s"
     seqs = [seq for seq, _ in notices]
@@ -208,11 +209,13 @@ def test_simulator_is_fast_enough_for_60_fps() -> None:
     model = PhotometricModel()
     depth = ball_depth_mm((240, 320), 0.0634, 160, 120, 3.0, 0.4)
     model.render(depth)
-    start = time.perf_counter()
+    times_s = []
     for _ in range(20):
+        start = time.perf_counter()
         model.render(depth)
-    per_frame_s = (time.perf_counter() - start) / 20
-    assert per_frame_s < 1 / 60
+        times_s.append(time.perf_counter() - start)
+    per_frame_s = float(np.median(times_s))  # a stall of the machine moves one, not this
+    assert per_frame_s < 1 / 60, times_s
 
 
 def test_simulator_markers_and_drift() -> None:

@@ -109,10 +109,10 @@ def test_a_call_that_does_not_return_ends_its_process_at_the_timeout() -> None:
 
 
 def test_calls_that_return_just_within_the_timeout_end_nothing() -> None:
-    """Two calls of the timeout less a fifth of a second, one after the other, the loop
-    turning all along: neither ends the process, each is named at half the timeout."""
+    """Two calls of the timeout less 0.6 s, one after the other, the loop turning all
+    along: neither ends the process, each is named at half the timeout."""
     timeout_s = scaled(3.0)
-    done, _ = _run_calls(timeout_s, timeout_s - scaled(0.2), 2)
+    done, _ = _run_calls(timeout_s, timeout_s - scaled(0.6), 2)
     assert done.returncode == 0 and "Timeout (" not in done.stderr, (done.returncode,
                                                                        done.stderr[-2000:])
     lines = done.stdout.splitlines()
