@@ -30,7 +30,7 @@ from tests.local_site.agent_support import (
     wait_for,
 )
 from tests.relay_server.relay_clients import running_relay
-from tests.support import LoopStalls, free_tcp_port, motion_of, scaled
+from tests.support import MachineStalls, free_tcp_port, motion_of, scaled
 
 
 def _pins_near(agent: LocalAgent, height_mm: float, tol_mm: float = 0.15) -> bool:
@@ -164,24 +164,21 @@ async def test_link_loss_goes_safe_then_reconnects_and_resumes(render_loop: str)
     url = f"ws://127.0.0.1:{port}/"
     agent = relay_agent(url, safe_state="flat", render_loop=render_loop)
     run = asyncio.create_task(agent.run())
+    # the link's losses (both relays' ends) watched for stalls of the machine: they hold up
+    # the loops and this test's look alike
+    stalls = MachineStalls()
     try:
         async with running_relay(port=port, tcp_port=tcp_port), FakeRemote(url) as remote:
             await wait_for(lambda: agent.loop is not None and _pins_near(agent, 2.0), 6.0,
                            "pins at 2 mm")
             rendered = any_loop_of(agent).counters.frames_rendered
-            stalls = LoopStalls().start()
-        # relay gone: the link is down, the pins go flat within ~100 ms (plus what a stall
-        # of the machine took: it holds up the loops and this test's look alike)
-        try:
-            await wait_for(lambda: not link_of(agent).is_connected, 2.0, "link down")
-            down_at = link_of(agent).link_down_since
-            assert down_at is not None
-            await wait_for(lambda: any_loop_of(agent).safe_reason is not None, 1.0,
-                           "safe state")
-            reaction_s = monotonic_s() - down_at
-        finally:
-            await stalls.stop()
-        assert reaction_s < 0.1 + scaled(0.15) + stalls.total_s, (reaction_s, stalls.stalls_s)
+            stalls.start()
+        # relay gone: the link is down, the pins go flat within ~100 ms
+        await wait_for(lambda: not link_of(agent).is_connected, 2.0, "link down")
+        down_at = link_of(agent).link_down_since
+        assert down_at is not None
+        await wait_for(lambda: any_loop_of(agent).safe_reason is not None, 1.0, "safe state")
+        reaction_s = monotonic_s() - down_at
         await wait_for(lambda: (fb := any_loop_of(agent).display.latest_feedback())
                        is not None and fb.safe_state and float(fb.position_mm.max()) < 0.3, 2.0,
                        "pins flat")
@@ -194,6 +191,8 @@ async def test_link_loss_goes_safe_then_reconnects_and_resumes(render_loop: str)
     finally:
         agent.request_stop("test")
         assert await run == 0
+        stalls.stop()
+    assert reaction_s < 0.1 + scaled(0.15) + stalls.total_s, (reaction_s, stalls.stalls_s)
     summary = agent.summary
     assert summary is not None
     assert summary["link"]["connects"] == 2 and summary["link"]["connection_losses"] >= 1

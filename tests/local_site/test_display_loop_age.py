@@ -130,8 +130,6 @@ def test_unknown_or_uncertain_offsets_keep_the_pins_safe(make_loop: Build, link:
     assert loop.safe_reason == "clock_uncertain" and loop.counters.commands_sent == 0
 
 
-
-
 class SteppedClock:
     """The loop's wall clock, moved on by the test (a process stopped at a chosen point)."""
 

@@ -4,8 +4,9 @@ commanded pose, not on an unrelated frame clock; a streaming sensor keeps the cl
 from __future__ import annotations
 
 import asyncio
+import itertools
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 
 import numpy as np
 import pytest
@@ -33,7 +34,7 @@ from tests.remote_site.test_agent_safety import (
     make_station,
     platform_state,
 )
-from tests.support import LoopStalls, async_wait_until, scaled
+from tests.support import MachineStalls, async_wait_until, scaled
 
 
 def reading(position: tuple[float, float, float], target: tuple[float, float, float] | None,
@@ -301,7 +302,8 @@ async def test_the_frame_rate_setting_is_met_while_commands_come_faster() -> Non
     waits would add up (about 10 ms a frame, 200 ms over 20 frames); on the frame schedule
     20 frames take 20 periods plus at most one wait. The schedule falls a period behind (a
     late frame) only when the machine stalls the process, which is allowed for: a CI run
-    saw one late frame, with the arm halted for 200 ms without commands."""
+    saw one late frame, with the arm halted for 200 ms without commands. (The stalls are
+    the machine's, seen from a thread: the station's own loop blocked is not excused.)"""
     interval_s, period_s, n = 0.02, 0.1, 20
     link = FakeLink()
     safety = SafetyConfig(max_command_age_ms=scaled(100.0), command_timeout_ms=scaled(200.0))
@@ -311,7 +313,7 @@ async def test_the_frame_rate_setting_is_met_while_commands_come_faster() -> Non
     skip = 3  # the first frames, before the commands' interval is known
 
     try:
-        async with LoopStalls() as stalls:
+        with MachineStalls() as stalls:
             task = asyncio.create_task(hold_hand(
                 link, (0.0, 0.0, 12.0), interval_s,
                 until=lambda: len(station.frame_period_s) >= skip + n, stop=stop))
@@ -331,29 +333,37 @@ async def test_the_frame_rate_setting_is_met_while_commands_come_faster() -> Non
 async def test_an_arm_tracking_a_moving_hand_is_judged_at_the_first_look() -> None:
     """An arm already closing in on a target it cannot reach within the pose wait (tracking
     a hand, 1 mm behind at 45 mm/s: 17 ms against 10) is captured at once, with no second
-    look; one that sets off from rest is given until the deadline while it speeds up (with
-    a longer pose wait: a stall of the test would end a 10 ms one before a third look)."""
+    look; one that sets off from rest is given until the deadline while it speeds up. Those
+    are looked at with a longer pose wait (a stall of the test ended a 10 ms one before a
+    third look) and a target far enough that at no speed they reach would it arrive within
+    the wait: only the rule for an arm from rest keeps them looked at."""
     from remote_site.tactile import AppliedCommand
 
     station = make_station(FakeLink(), config=RemoteAgentConfig(
         frame_rate_hz=30.0, status_interval_s=10.0, pose_wait_max_ms=10.0))
-    wait_ms = scaled(400.0)
+    wait_s = min(1.0, scaled(0.3))
     patient = make_station(FakeLink(), config=RemoteAgentConfig(
-        frame_rate_hz=30.0, status_interval_s=10.0, pose_wait_max_ms=wait_ms))
+        frame_rate_hz=30.0, status_interval_s=10.0, pose_wait_max_ms=wait_s * 1e3))
     target = (1.0, 0.0, 12.0)
+    far = (1e6, 0.0, 12.0)  # 1 km: at the speeds below, never within the wait
     looks: list[float] = []
 
     def tracking() -> ArmReading:
         looks.append(asyncio.get_running_loop().time())
         return ArmReading((0.0, 0.0, 12.0), (45.0, 0.0, 0.0), 0.0, "moving", target, 0.0)
 
-    speeds = iter([0.0, 20.0, 40.0, 60.0, 80.0, 100.0, 120.0, 140.0, 160.0, 180.0] * 100)
+    def speeding_up(first_mm_s: float) -> Iterator[float]:
+        """0.2 % faster every look (each look a millisecond or more apart)."""
+        return (first_mm_s * 1.002 ** k for k in itertools.count())
 
-    def from_rest() -> ArmReading:  # speeding up by 20 mm/s per look, never arriving
+    speeds: Iterator[float] = itertools.chain([0.0], speeding_up(20.0))
+
+    def from_rest() -> ArmReading:  # speeding up, never arriving
         looks.append(asyncio.get_running_loop().time())
-        return ArmReading((0.0, 0.0, 12.0), (next(speeds), 0.0, 0.0), 0.0, "moving", target,
-                          0.0)
+        return ArmReading((0.0, 0.0, 12.0), (next(speeds), 0.0, 0.0), 0.0,
+                          "moving", far, 0.0)
 
+    loop = asyncio.get_running_loop()
     try:
         command = AppliedCommand(platform_state(1, target), now_us())
         station.pipeline.read_arm = tracking
@@ -361,13 +371,12 @@ async def test_an_arm_tracking_a_moving_hand_is_judged_at_the_first_look() -> No
         assert len(looks) == 1 and station.captures.moving == 1
 
         looks.clear()
-        command = AppliedCommand(platform_state(2, target), now_us())
+        given = loop.time()
+        command = AppliedCommand(platform_state(2, far), now_us())
         patient.pipeline.read_arm = from_rest
-        async with LoopStalls() as stalls:
-            await patient._until_pose(command)
+        await patient._until_pose(command)
         assert len(looks) >= 3, "an arm setting off from rest was not given time"
-        # looked at until (about) the deadline
-        assert looks[-1] - looks[0] >= wait_ms / 2e3 - stalls.total_s, (looks, stalls.stalls_s)
+        assert looks[-1] >= given + wait_s - 0.002, "not looked at until the deadline"
         assert patient.captures.moving == 1
 
         # looked at a moment after the command, an arm from rest may already be above
@@ -375,16 +384,16 @@ async def test_an_arm_tracking_a_moving_hand_is_judged_at_the_first_look() -> No
         # (judged by the first look alone, a 10 mm step was captured 0.9 ms after its
         # command with the pad still at the start)
         looks.clear()
-        speeds = iter([2.0 * (k + 1) for k in range(1000)])
-        command = AppliedCommand(platform_state(3, target), now_us(), arm_speed_mm_s=0.0)
+        speeds = speeding_up(2.0)
+        command = AppliedCommand(platform_state(3, far), now_us(), arm_speed_mm_s=0.0)
         await patient._until_pose(command)
         assert len(looks) >= 3, "an arm given a command at rest was not given time"
         assert patient.captures.moving == 2
         # the same first look, for an arm that was moving when the command came: at once
         looks.clear()
-        speeds = iter([2.0 * (k + 1) for k in range(1000)])
+        speeds = speeding_up(2.0)
         station.pipeline.read_arm = from_rest
-        command = AppliedCommand(platform_state(4, target), now_us(), arm_speed_mm_s=40.0)
+        command = AppliedCommand(platform_state(4, far), now_us(), arm_speed_mm_s=40.0)
         await station._until_pose(command)
         assert len(looks) == 1
         assert station.captures.moving == 2

@@ -37,7 +37,7 @@ from shared.protocol import (
 )
 from shared.timebase import monotonic_s, now_us
 from shared.transport import TcpTransport, TransportClosed, WsTransport
-from tests.support import LoopStalls, free_tcp_port, motion_of, motion_state, scaled
+from tests.support import MachineStalls, free_tcp_port, motion_of, motion_state, scaled
 
 TOKEN = "s3cret"
 
@@ -319,19 +319,21 @@ async def test_backoff_timing_when_the_relay_is_unreachable(relay: FakeRelay) ->
     server = await asyncio.start_server(hang_up, "127.0.0.1", 0)
     port = server.sockets[0].getsockname()[1]
     try:
-        async with LoopStalls() as stalls, _link(
-                f"tcp://127.0.0.1:{port}", reconnect_min_s=0.05, reconnect_max_s=0.2,
-                reconnect_jitter=0.0) as link:
-            async with asyncio.timeout(scaled(5.0)):
-                while len(attempts) < 6:
-                    await asyncio.sleep(0.01)
-            assert not link.is_connected
-            expected = [0.05, 0.1, 0.2, 0.2, 0.2]
-            assert list(link.backoff_history_s)[:5] == pytest.approx(expected)
-            gaps = np.diff(attempts[:6])
-            for gap, delay in zip(gaps, expected, strict=True):  # a stall lengthens a gap
-                assert delay * 0.9 <= gap <= delay + scaled(0.1) + stalls.total_s, (
-                    gaps, stalls.stalls_s)
+        with MachineStalls() as stalls:
+            async with _link(
+                    f"tcp://127.0.0.1:{port}", reconnect_min_s=0.05, reconnect_max_s=0.2,
+                    reconnect_jitter=0.0) as link:
+                async with asyncio.timeout(scaled(5.0)):
+                    while len(attempts) < 6:
+                        await asyncio.sleep(0.01)
+                connected, history = link.is_connected, list(link.backoff_history_s)[:5]
+        assert not connected
+        expected = [0.05, 0.1, 0.2, 0.2, 0.2]
+        assert history == pytest.approx(expected)
+        gaps = np.diff(attempts[:6])
+        for gap, delay in zip(gaps, expected, strict=True):  # a stall lengthens a gap
+            assert delay * 0.9 <= gap <= delay + scaled(0.1) + stalls.total_s, (
+                gaps, stalls.stalls_s)
     finally:
         server.close()
         await server.wait_closed()
