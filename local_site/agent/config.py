@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from local_site.agent.platform_process import HANG_TIMEOUT_S as PLATFORM_HANG_TIMEOUT_S
 from local_site.render.interpolation import DEFAULT_ORDER
 from shared.errors import ConfigError
 from shared.loop_watchdog import check_hang_timeout
@@ -52,7 +53,7 @@ class LocalAgentConfig:
             (0.25 s: on a loaded 2-core host the reader thread was seen starved > 100 ms).
         platform_reopen_after_s: a platform silent this long (its port still open) is closed
             and reopened; before that its samples are taken the moment they come back
-            (>= ``platform_read_timeout_s``).
+            (>= ``platform_read_timeout_s``, < 15 s: the platform process's hang timeout).
         platform_process: read the platform in a process of its own, the newest sample in
             shared memory (:mod:`local_site.agent.platform_process`): the platform's threads
             then no longer take the display loop's GIL.
@@ -187,9 +188,12 @@ class LocalAgentConfig:
         if not (isinstance(self.platform_reopen_after_s, int | float)
                 and not isinstance(self.platform_reopen_after_s, bool)
                 and math.isfinite(self.platform_reopen_after_s)
-                and self.platform_reopen_after_s >= self.platform_read_timeout_s):
-            raise ConfigError("local.agent.platform_reopen_after_s must be finite and >= "
-                              "platform_read_timeout_s")
+                and self.platform_read_timeout_s <= self.platform_reopen_after_s
+                < PLATFORM_HANG_TIMEOUT_S):
+            raise ConfigError(
+                "local.agent.platform_reopen_after_s must be finite, >= platform_read_timeout_s "
+                f"and < {PLATFORM_HANG_TIMEOUT_S:g} s (the platform process's hang timeout), "
+                f"got {self.platform_reopen_after_s!r}")
         if self.device_retry_max_s < self.device_retry_min_s:
             raise ConfigError("local.agent.device_retry_max_s must be >= device_retry_min_s")
         if self.interpolation_order not in (0, 1, 3):

@@ -64,6 +64,10 @@ from local_site.platform.base import PlatformSample, PlatformStats
 from shared.errors import ConfigError
 from shared.timebase import monotonic_s, wall_anchor_ns
 
+#: a child whose heartbeat stopped this long is killed and started again (more than its
+#: ``reopen_after_s``: :class:`ProcessPlatformReader` refuses less)
+HANG_TIMEOUT_S = 15.0
+
 __all__ = ["HEARTBEAT_S", "ProcessPlatformReader", "ReaderHealth", "RecordView", "SampleRecord",
            "healthy_copy"]
 
@@ -341,7 +345,7 @@ class ProcessPlatformReader:
                  read_timeout_s: float = 0.1, reopen_after_s: float | None = None,
                  retry_min_s: float = 0.2, retry_max_s: float = 5.0,
                  motion_duration_s: float | None = None,
-                 hang_timeout_s: float = 15.0, lock_memory: bool = False) -> None:
+                 hang_timeout_s: float = HANG_TIMEOUT_S, lock_memory: bool = False) -> None:
         if not read_timeout_s > 0:
             raise ConfigError(f"read_timeout_s must be > 0, got {read_timeout_s}")
         reopen_after_s = reopen_after(read_timeout_s, reopen_after_s)

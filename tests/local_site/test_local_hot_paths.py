@@ -539,6 +539,17 @@ def test_platform_reader_reopen_after_must_cover_a_read_timeout() -> None:
         LocalAgentConfig(platform_read_timeout_s=0.25, platform_reopen_after_s=0.2)
 
 
+@pytest.mark.parametrize("reopen_after_s", [15.0, 20.0, float("inf"), float("nan")])
+def test_a_reopen_slower_than_the_platform_process_hang_timeout_is_refused_by_name(
+        reopen_after_s: float) -> None:
+    """Before, 20 s passed the settings and the station then refused to start with
+    "hang_timeout_s must be > reopen_after_s (20.0), got 15.0": a setting no user has."""
+    with pytest.raises(ConfigError, match=r"^local\.agent\.platform_reopen_after_s must be "
+                                          r"finite, >= platform_read_timeout_s and < 15 s "):
+        LocalAgentConfig(platform_reopen_after_s=reopen_after_s)
+    assert LocalAgentConfig(platform_reopen_after_s=14.9).platform_reopen_after_s == 14.9
+
+
 def test_platform_reader_poll_must_be_shorter_than_the_read_timeout() -> None:
     with pytest.raises(ConfigError, match="poll_s"):
         PlatformReader(SimulatedPlatform("hold"), read_timeout_s=0.1, poll_s=0.1)
