@@ -175,8 +175,9 @@ def resolve_config(
         An instance of ``cls``.
 
     Raises:
-        ConfigError: an unknown key in the TOML table, a value of the wrong type, or a
-            required field with no value anywhere.
+        ConfigError: an unknown key in the TOML table, a value of the wrong type, a
+            required field with no value anywhere, or values the settings refuse (named with
+            the table unless the message names the setting).
     """
     if not dataclasses.is_dataclass(cls):
         raise ConfigError(f"{cls!r} is not a dataclass")
@@ -210,4 +211,8 @@ def resolve_config(
     try:
         return cls(**values)
     except TypeError as err:
+        raise ConfigError(f"[{section}]: {err}") from err
+    except ConfigError as err:  # named with its table, unless it names its setting already
+        if str(err).startswith(f"{section}."):
+            raise
         raise ConfigError(f"[{section}]: {err}") from err

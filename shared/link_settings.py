@@ -6,6 +6,7 @@ tests can use them without the link's machinery.
 
 from __future__ import annotations
 
+import math
 import random
 import ssl
 from dataclasses import dataclass
@@ -119,3 +120,18 @@ class StationLinkConfig:
     liveness_timeout_s: float = 3.0
     max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
     ca_file: str | None = None
+
+    def __post_init__(self) -> None:
+        # checked where they are read (the resolver names the table): a station then
+        # refuses them before any device opens, not when its link is built
+        if not 0.0 < self.reconnect_min_s <= self.reconnect_max_s:
+            raise ConfigError(f"reconnect_min_s ({self.reconnect_min_s!r}) must be > 0 and <= "
+                              f"reconnect_max_s ({self.reconnect_max_s!r})")
+        for name in ("connect_timeout_s", "liveness_timeout_s"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int | float) \
+                    or not math.isfinite(value) or value <= 0:
+                raise ConfigError(f"{name} must be a finite number > 0, got {value!r}")
+        size = self.max_message_bytes
+        if isinstance(size, bool) or not isinstance(size, int) or size < 1:
+            raise ConfigError(f"max_message_bytes must be an integer >= 1, got {size!r}")

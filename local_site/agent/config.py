@@ -12,6 +12,7 @@ import math
 from dataclasses import dataclass
 
 from local_site.agent.platform_process import HANG_TIMEOUT_S as PLATFORM_HANG_TIMEOUT_S
+from local_site.agent.platform_reader import POLL_S as PLATFORM_POLL_S
 from local_site.render.interpolation import DEFAULT_ORDER
 from shared.errors import ConfigError
 from shared.loop_watchdog import check_hang_timeout
@@ -162,6 +163,43 @@ class LocalAgentConfig:
     view_rate_hz: float = 40.0
     hang_timeout_s: float = 30.0
 
+    def _check_display_timing(self) -> None:
+        """The board's watchdog against the ticks and keepalives that feed it."""
+        watchdog_ms = self.display_watchdog_ms
+        if isinstance(watchdog_ms, bool) or not isinstance(watchdog_ms, int) \
+                or not 1 <= watchdog_ms <= 0xFFFF:
+            raise ConfigError("local.agent.display_watchdog_ms must be an integer in [1, 65535] "
+                              f"(the board's watchdog, ms), got {watchdog_ms!r}")
+        tick_ms = 1000.0 / self.render_rate_hz
+        if not tick_ms <= watchdog_ms / 2:  # the ticks send the keepalives
+            raise ConfigError(
+                f"local.agent.render_rate_hz ({self.render_rate_hz:g} Hz: a tick every "
+                f"{tick_ms:g} ms) must tick at least twice within display_watchdog_ms "
+                f"({watchdog_ms}): the loop's ticks send the board's keepalive, and the board "
+                "parks the pins between ticks further apart")
+        if not self.display_keepalive_interval_s < watchdog_ms / 1000.0:
+            raise ConfigError(
+                "local.agent.display_keepalive_interval_s "
+                f"({self.display_keepalive_interval_s:g} s) must be shorter than "
+                f"display_watchdog_ms ({watchdog_ms})")
+
+    def _check_recording(self) -> None:
+        """What ``--record`` hands the recorder (checked whether it records or not)."""
+        size = self.record_queue_size
+        if isinstance(size, bool) or not isinstance(size, int) or size < 1:
+            raise ConfigError(f"local.agent.record_queue_size must be an integer >= 1, got "
+                              f"{size!r}")
+        pins = self.record_pins_rate_hz
+        if isinstance(pins, bool) or not isinstance(pins, int | float) \
+                or not math.isfinite(pins) or pins <= 0:
+            raise ConfigError(f"local.agent.record_pins_rate_hz must be a finite number > 0, "
+                              f"got {pins!r}")
+        image = self.record_image_rate_hz
+        if isinstance(image, bool) or not isinstance(image, int | float) \
+                or not (image == 0 or 0 < image <= 1000):
+            raise ConfigError("local.agent.record_image_rate_hz must be 0 (no images) or in "
+                              f"(0, 1000], got {image!r}")
+
     def __post_init__(self) -> None:
         check_hang_timeout("local.agent.hang_timeout_s", self.hang_timeout_s)
         if self.safe_state not in SAFE_STATE_MODES:
@@ -185,6 +223,12 @@ class LocalAgentConfig:
             raise ConfigError("local.agent.render_rate_hz must lie in [1, 10000]")
         if not 1.0 <= self.platform_send_rate_hz <= 10_000.0:
             raise ConfigError("local.agent.platform_send_rate_hz must lie in [1, 10000]")
+        self._check_display_timing()
+        if not self.platform_read_timeout_s > PLATFORM_POLL_S:
+            raise ConfigError(f"local.agent.platform_read_timeout_s must be > {PLATFORM_POLL_S:g} "
+                              "s (the platform reader's poll), got "
+                              f"{self.platform_read_timeout_s!r}")
+        self._check_recording()
         if not (isinstance(self.platform_reopen_after_s, int | float)
                 and not isinstance(self.platform_reopen_after_s, bool)
                 and math.isfinite(self.platform_reopen_after_s)

@@ -31,9 +31,12 @@ from local_site.platform.base import PlatformSample, PlatformStats, XYZPlatform
 from shared.errors import ConfigError, DeviceError, DeviceInitError, DeviceTimeoutError
 from shared.timebase import monotonic_s, now_us
 
-__all__ = ["PlatformReader", "reopen_after", "stale_since_s"]
+__all__ = ["POLL_S", "PlatformReader", "reopen_after", "stale_since_s"]
 
 log = logging.getLogger(__name__)
+
+#: the reader's pause between two health checks (its read timeout must be longer)
+POLL_S = 0.005
 
 
 def reopen_after(read_timeout_s: float, reopen_after_s: float | None) -> float:
@@ -75,7 +78,7 @@ class PlatformReader:
 
     def __init__(self, platform: XYZPlatform, *, read_timeout_s: float = 0.1,
                  retry_min_s: float = 0.2, retry_max_s: float = 5.0,
-                 motion_duration_s: float | None = None, poll_s: float = 0.005,
+                 motion_duration_s: float | None = None, poll_s: float = POLL_S,
                  reopen_after_s: float | None = None) -> None:
         if not 0 <= poll_s < read_timeout_s:
             raise ConfigError(f"poll_s must be in [0, read_timeout_s), got {poll_s}")

@@ -122,6 +122,23 @@ class AgentOptions:
     record: Path | None = None
 
 
+def check_arm_watchdog(agent: RemoteAgentConfig, safety: SafetyConfig) -> None:
+    """The arm's watchdog thread against the command timeout it enforces: it halts the arm
+    once the newest command is older than the timeout less its period (its next check
+    would come too late), so a period of half the timeout or more halts an arm whose
+    commands come every few milliseconds.
+
+    Raises:
+        ConfigError: naming both settings.
+    """
+    period_ms = agent.watchdog_period_s * 1000.0
+    if not period_ms < safety.command_timeout_ms / 2:
+        raise ConfigError(
+            f"remote.agent.watchdog_period_s ({period_ms:g} ms) must be under half "
+            f"arm.safety.command_timeout_ms ({safety.command_timeout_ms:g} ms): the arm is "
+            "halted once its newest command is older than the timeout less that period")
+
+
 def _set_opencv_threads(threads: int | None) -> int | None:
     """``cv2.setNumThreads(threads)`` (None or 0: unchanged); the count it replaced (None
     when unchanged). See ``RemoteAgentConfig.opencv_threads``."""
@@ -182,6 +199,7 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
         "frame_rate_hz": options.frame_rate_hz, "patch_pitch_mm": options.patch_pitch_mm,
         "tactile_codec": options.tactile_codec, "capture_on_pose": options.capture_on_pose,
         "lock_memory": options.lock_memory})
+    check_arm_watchdog(agent_cfg, safety)
     background_cfg = resolve_config(BackgroundSettings, "remote.background", toml_path=toml)
     # frames are aged from their image's time: a latency at or above an age limit refuses
     # every frame there (each tick, or the whole background capture)

@@ -537,6 +537,7 @@ async def _real_relay(port: int = 0, tcp_port: int = 0, stats_interval_s: float 
     relay = RelayServer(RelayConfig(host="127.0.0.1", port=port, tcp_port=tcp_port,
                                     tokens={"lab1": TOKEN}, stats_interval_s=stats_interval_s,
                                     ping_interval_s=ping_interval_s,
+                                    silence_timeout_s=max(10.0, 2 * ping_interval_s),
                                     ping_burst_spacing_s=0.005,
                                     hello_timeout_s=scaled(2.0)))
     await relay.start()

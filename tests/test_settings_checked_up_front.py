@@ -1,0 +1,113 @@
+"""Settings that a component built from them would refuse, or act on badly, are refused
+where they are read, naming the user's setting: before, each of these passed the settings'
+checks and then failed at start-up with an error naming a parameter no user has, or was
+acted on quietly (the board's watchdog tripping between two display ticks, the arm halted
+at every check)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+
+from local_site.agent.config import LocalAgentConfig
+from relay_server.config import RelayConfig
+from remote_site.agent.app import check_arm_watchdog
+from remote_site.agent.config import RemoteAgentConfig
+from remote_site.arm.safety import SafetyConfig
+from shared.config import resolve_config
+from shared.errors import ConfigError
+from shared.link_settings import StationLinkConfig
+
+_LOCAL: list[tuple[dict[str, Any], str]] = [
+    # the display loop's tick sends the board's keepalive: ticks further apart than half the
+    # board's watchdog let it trip between them (5 Hz: parked between nearly every tick)
+    ({"render_rate_hz": 5.0}, r"render_rate_hz \(5 Hz: a tick every 200 ms\) must tick at "
+                              r"least twice within display_watchdog_ms \(100\)"),
+    ({"render_rate_hz": 500.0, "display_watchdog_ms": 3},
+     r"render_rate_hz \(500 Hz: a tick every 2 ms\)"),
+    ({"display_watchdog_ms": 0}, r"display_watchdog_ms must be an integer in \[1, 65535\] "
+                                 r"\(the board's watchdog, ms\), got 0"),
+    ({"display_watchdog_ms": 70_000}, r"display_watchdog_ms must be an integer in"),
+    ({"display_watchdog_ms": 100.5}, r"display_watchdog_ms must be an integer in"),
+    ({"display_keepalive_interval_s": 0.2}, r"display_keepalive_interval_s \(0\.2 s\) must "
+                                            r"be shorter than display_watchdog_ms \(100\)"),
+    ({"platform_read_timeout_s": 0.004, "platform_reopen_after_s": 0.5},
+     r"platform_read_timeout_s must be > 0\.005 s \(the platform reader's poll\), got 0\.004"),
+    ({"record_queue_size": 0}, r"record_queue_size must be an integer >= 1, got 0"),
+    ({"record_pins_rate_hz": 0.0}, r"record_pins_rate_hz must be a finite number > 0"),
+    ({"record_image_rate_hz": -1.0}, r"record_image_rate_hz must be 0 \(no images\) or in "
+                                     r"\(0, 1000\]"),
+    ({"record_image_rate_hz": 2000.0}, r"record_image_rate_hz must be 0"),
+]
+
+
+@pytest.mark.parametrize(("settings", "message"), _LOCAL)
+def test_local_settings_a_component_would_refuse_are_refused_by_name(
+        settings: dict[str, Any], message: str) -> None:
+    with pytest.raises(ConfigError, match=r"^local\.agent\." + message):
+        LocalAgentConfig(**settings)
+
+
+def test_the_local_defaults_and_their_edges_pass() -> None:
+    LocalAgentConfig()
+    LocalAgentConfig(render_rate_hz=20.0)  # a tick every 50 ms: twice within 100 ms
+    LocalAgentConfig(display_watchdog_ms=65535, render_rate_hz=1.0)
+    LocalAgentConfig(platform_read_timeout_s=0.006)
+    LocalAgentConfig(record_image_rate_hz=1000.0, record_queue_size=1)
+
+
+@pytest.mark.parametrize(("settings", "message"), [
+    ({"reconnect_min_s": 1.0}, r"reconnect_min_s \(1\.0\) must be > 0 and <= "
+                               r"reconnect_max_s \(0\.5\)"),
+    ({"reconnect_min_s": 0.0}, r"reconnect_min_s \(0\.0\) must be > 0"),
+    ({"connect_timeout_s": 0.0}, r"connect_timeout_s must be a finite number > 0, got 0\.0"),
+    ({"liveness_timeout_s": -1.0}, r"liveness_timeout_s must be a finite number > 0"),
+    ({"max_message_bytes": 0}, r"max_message_bytes must be an integer >= 1, got 0"),
+])
+def test_link_settings_are_checked_where_they_are_read(settings: dict[str, Any],
+                                                       message: str) -> None:
+    """Named with their table by the resolver (before: "need 0 < reconnect_min_s <=
+    reconnect_max_s" from the link, on the remote only once the arm had been moved)."""
+    with pytest.raises(ConfigError, match=r"^" + message):
+        StationLinkConfig(**settings)
+    env = {f"TELETOUCH_REMOTE_LINK_{k.upper()}": str(v) for k, v in settings.items()}
+    with pytest.raises(ConfigError, match=r"^\[remote\.link\]: " + message):
+        resolve_config(StationLinkConfig, "remote.link", environ=env)
+
+
+@pytest.mark.parametrize(("settings", "message"), [
+    ({"port": 65535}, r"relay\.port=65535 leaves no port for the TCP listener \(port \+ 1\): "
+                      r"set relay\.tcp_port"),
+    ({"ping_interval_s": 10.0}, r"relay\.silence_timeout_s \(10 s\) must be longer than "
+                                r"relay\.ping_interval_s \(10 s\)"),
+])
+def test_relay_settings_that_would_fail_or_misbehave_are_refused(settings: dict[str, Any],
+                                                                 message: str) -> None:
+    with pytest.raises(ConfigError, match=r"^" + message):
+        RelayConfig(**settings)
+    RelayConfig(port=65535, tcp_port=65534)
+    RelayConfig(ping_interval_s=9.0)
+
+
+def test_an_arm_watchdog_period_near_the_command_timeout_is_refused() -> None:
+    """The watchdog halts the arm once a command is older than the timeout less its period:
+    at a period of half the timeout or more, commands arriving every few ms were halted."""
+    with pytest.raises(ConfigError, match=r"^remote\.agent\.watchdog_period_s \(50 ms\) must "
+                                          r"be under half arm\.safety\.command_timeout_ms "
+                                          r"\(100 ms\)"):
+        check_arm_watchdog(RemoteAgentConfig(watchdog_period_s=0.05), SafetyConfig())
+    check_arm_watchdog(RemoteAgentConfig(watchdog_period_s=0.049), SafetyConfig())
+    check_arm_watchdog(RemoteAgentConfig(), SafetyConfig(command_timeout_ms=20.0))
+
+
+def test_the_remote_station_refuses_it_before_anything_opens(
+        caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch) -> None:
+    from lab.cli import main
+
+    monkeypatch.setenv("TELETOUCH_REMOTE_AGENT_WATCHDOG_PERIOD_S", "0.08")
+    monkeypatch.setenv("TELETOUCH_REMOTE_LINK_TOKEN", "x")
+    assert main(["remote", "--relay", "tcp://127.0.0.1:9", "--session", "s1", "--arm", "sim",
+                 "--sensor", "sim", "--phantom", "severity", "--seed", "2", "--ideal"]) == 1
+    assert any("remote.agent.watchdog_period_s (80 ms) must be under half" in r.getMessage()
+               for r in caplog.records), caplog.records
