@@ -143,9 +143,9 @@ class RelayConfig:
         if self.tcp_port is None and self.port == 65535:
             raise ConfigError("relay.port=65535 leaves no port for the TCP listener (port + 1): "
                               "set relay.tcp_port")
-        if not self.silence_timeout_s > self.ping_interval_s:
+        if not self.silence_timeout_s >= 2 * self.ping_interval_s:
             raise ConfigError(
-                f"relay.silence_timeout_s ({self.silence_timeout_s:g} s) must be longer than "
+                f"relay.silence_timeout_s ({self.silence_timeout_s:g} s) must be at least twice "
                 f"relay.ping_interval_s ({self.ping_interval_s:g} s): a station that only "
                 "answers the pings would be closed as silent")
         ints = ("ping_burst", "max_message_bytes", "ordered_queue_len", "bad_message_budget",

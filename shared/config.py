@@ -212,7 +212,7 @@ def resolve_config(
         return cls(**values)
     except TypeError as err:
         raise ConfigError(f"[{section}]: {err}") from err
-    except ConfigError as err:  # named with its table, unless it names its setting already
-        if str(err).startswith(f"{section}."):
+    except ConfigError as err:  # named with its table, unless it names it already
+        if str(err).startswith((f"{section}.", f"{section}:", f"[{section}]")):
             raise
         raise ConfigError(f"[{section}]: {err}") from err

@@ -30,8 +30,12 @@ _LOCAL: list[tuple[dict[str, Any], str]] = [
                                  r"\(the board's watchdog, ms\), got 0"),
     ({"display_watchdog_ms": 70_000}, r"display_watchdog_ms must be an integer in"),
     ({"display_watchdog_ms": 100.5}, r"display_watchdog_ms must be an integer in"),
-    ({"display_keepalive_interval_s": 0.2}, r"display_keepalive_interval_s \(0\.2 s\) must "
-                                            r"be shorter than display_watchdog_ms \(100\)"),
+    ({"display_keepalive_interval_s": 0.2}, r"display_keepalive_interval_s \(200 ms\) plus a "
+                                            r"tick \(1 ms\) must be shorter than "
+                                            r"display_watchdog_ms \(100\)"),
+    # both rules apart would pass: a keepalive every second tick of 50 ms, 100 ms apart
+    ({"render_rate_hz": 20.0, "display_keepalive_interval_s": 0.06},
+     r"display_keepalive_interval_s \(60 ms\) plus a tick \(50 ms\)"),
     ({"platform_read_timeout_s": 0.004, "platform_reopen_after_s": 0.5},
      r"platform_read_timeout_s must be > 0\.005 s \(the platform reader's poll\), got 0\.004"),
     ({"record_queue_size": 0}, r"record_queue_size must be an integer >= 1, got 0"),
@@ -79,15 +83,15 @@ def test_link_settings_are_checked_where_they_are_read(settings: dict[str, Any],
 @pytest.mark.parametrize(("settings", "message"), [
     ({"port": 65535}, r"relay\.port=65535 leaves no port for the TCP listener \(port \+ 1\): "
                       r"set relay\.tcp_port"),
-    ({"ping_interval_s": 10.0}, r"relay\.silence_timeout_s \(10 s\) must be longer than "
-                                r"relay\.ping_interval_s \(10 s\)"),
+    ({"ping_interval_s": 5.1}, r"relay\.silence_timeout_s \(10 s\) must be at least twice "
+                               r"relay\.ping_interval_s \(5\.1 s\)"),
 ])
 def test_relay_settings_that_would_fail_or_misbehave_are_refused(settings: dict[str, Any],
                                                                  message: str) -> None:
     with pytest.raises(ConfigError, match=r"^" + message):
         RelayConfig(**settings)
     RelayConfig(port=65535, tcp_port=65534)
-    RelayConfig(ping_interval_s=9.0)
+    RelayConfig(ping_interval_s=5.0)
 
 
 def test_an_arm_watchdog_period_near_the_command_timeout_is_refused() -> None:
@@ -105,9 +109,13 @@ def test_the_remote_station_refuses_it_before_anything_opens(
         caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch) -> None:
     from lab.cli import main
 
+    opened: list[object] = []
+    monkeypatch.setattr("remote_site.agent.app.open_world_arm",
+                        lambda *args: opened.append(args))  # the first device opened
     monkeypatch.setenv("TELETOUCH_REMOTE_AGENT_WATCHDOG_PERIOD_S", "0.08")
     monkeypatch.setenv("TELETOUCH_REMOTE_LINK_TOKEN", "x")
     assert main(["remote", "--relay", "tcp://127.0.0.1:9", "--session", "s1", "--arm", "sim",
                  "--sensor", "sim", "--phantom", "severity", "--seed", "2", "--ideal"]) == 1
     assert any("remote.agent.watchdog_period_s (80 ms) must be under half" in r.getMessage()
                for r in caplog.records), caplog.records
+    assert opened == []

@@ -45,7 +45,8 @@ class LocalAgentConfig:
             never rendered; the pins go to their safe state instead.
         max_offset_uncertainty_s: frames are not rendered while that error bound is wider.
         platform_send_rate_hz: platform_state messages per second to the relay (at most).
-        render_rate_hz: display loop rate (the array refresh; >= 500 Hz required).
+        render_rate_hz: display loop rate (the array refresh; 1 kHz by default; its ticks
+            send the board's keepalive, so at least two ticks within display_watchdog_ms).
         render_loop: where the display loop runs: ``thread`` (a thread of the station),
             ``asyncio`` (a task on its event loop) or ``process`` (a process of its own with
             the board link and the renderer, :mod:`local_site.agent.display_process`; the
@@ -54,7 +55,8 @@ class LocalAgentConfig:
             (0.25 s: on a loaded 2-core host the reader thread was seen starved > 100 ms).
         platform_reopen_after_s: a platform silent this long (its port still open) is closed
             and reopened; before that its samples are taken the moment they come back
-            (>= ``platform_read_timeout_s``, < 15 s: the platform process's hang timeout).
+            (>= ``platform_read_timeout_s``; < 15 s, the platform process's hang timeout,
+            when the platform is read in a process of its own).
         platform_process: read the platform in a process of its own, the newest sample in
             shared memory (:mod:`local_site.agent.platform_process`): the platform's threads
             then no longer take the display loop's GIL.
@@ -177,11 +179,12 @@ class LocalAgentConfig:
                 f"{tick_ms:g} ms) must tick at least twice within display_watchdog_ms "
                 f"({watchdog_ms}): the loop's ticks send the board's keepalive, and the board "
                 "parks the pins between ticks further apart")
-        if not self.display_keepalive_interval_s < watchdog_ms / 1000.0:
+        keepalive_ms = self.display_keepalive_interval_s * 1000.0
+        if not keepalive_ms + tick_ms < watchdog_ms:  # a keepalive goes out on a tick
             raise ConfigError(
-                "local.agent.display_keepalive_interval_s "
-                f"({self.display_keepalive_interval_s:g} s) must be shorter than "
-                f"display_watchdog_ms ({watchdog_ms})")
+                f"local.agent.display_keepalive_interval_s ({keepalive_ms:g} ms) plus a tick "
+                f"({tick_ms:g} ms) must be shorter than display_watchdog_ms ({watchdog_ms}): "
+                "a keepalive goes out on the first tick after its interval")
 
     def _check_recording(self) -> None:
         """What ``--record`` hands the recorder (checked whether it records or not)."""
@@ -232,12 +235,16 @@ class LocalAgentConfig:
         if not (isinstance(self.platform_reopen_after_s, int | float)
                 and not isinstance(self.platform_reopen_after_s, bool)
                 and math.isfinite(self.platform_reopen_after_s)
-                and self.platform_read_timeout_s <= self.platform_reopen_after_s
-                < PLATFORM_HANG_TIMEOUT_S):
+                and self.platform_reopen_after_s >= self.platform_read_timeout_s):
+            raise ConfigError("local.agent.platform_reopen_after_s must be finite and >= "
+                              f"platform_read_timeout_s, got {self.platform_reopen_after_s!r}")
+        in_process = self.platform_process or self.render_loop == "process"
+        if in_process and not self.platform_reopen_after_s < PLATFORM_HANG_TIMEOUT_S:
             raise ConfigError(
-                "local.agent.platform_reopen_after_s must be finite, >= platform_read_timeout_s "
-                f"and < {PLATFORM_HANG_TIMEOUT_S:g} s (the platform process's hang timeout), "
-                f"got {self.platform_reopen_after_s!r}")
+                f"local.agent.platform_reopen_after_s must be < {PLATFORM_HANG_TIMEOUT_S:g} s "
+                "with the platform read in a process of its own (platform_process, or "
+                "render_loop = \"process\"; that process's hang timeout), got "
+                f"{self.platform_reopen_after_s!r}")
         if self.device_retry_max_s < self.device_retry_min_s:
             raise ConfigError("local.agent.device_retry_max_s must be >= device_retry_min_s")
         if self.interpolation_order not in (0, 1, 3):

@@ -544,10 +544,14 @@ def test_a_reopen_slower_than_the_platform_process_hang_timeout_is_refused_by_na
         reopen_after_s: float) -> None:
     """Before, 20 s passed the settings and the station then refused to start with
     "hang_timeout_s must be > reopen_after_s (20.0), got 15.0": a setting no user has."""
-    with pytest.raises(ConfigError, match=r"^local\.agent\.platform_reopen_after_s must be "
-                                          r"finite, >= platform_read_timeout_s and < 15 s "):
-        LocalAgentConfig(platform_reopen_after_s=reopen_after_s)
-    assert LocalAgentConfig(platform_reopen_after_s=14.9).platform_reopen_after_s == 14.9
+    for where in ({"render_loop": "process"}, {"platform_process": True}):
+        with pytest.raises(ConfigError, match=r"^local\.agent\.platform_reopen_after_s must be "
+                                              r"(< 15 s with the platform read in a process|"
+                                              r"finite)"):
+            LocalAgentConfig(platform_reopen_after_s=reopen_after_s, **where)
+        assert LocalAgentConfig(platform_reopen_after_s=14.9, **where)
+    if reopen_after_s < float("inf"):  # a thread reader has no such limit
+        assert LocalAgentConfig(platform_reopen_after_s=reopen_after_s, render_loop="thread")
 
 
 def test_platform_reader_poll_must_be_shorter_than_the_read_timeout() -> None:
