@@ -69,14 +69,19 @@ _COMMANDS = {
 }
 
 
-@pytest.mark.parametrize("role", ["local", "remote"])
-async def test_a_station_whose_loop_is_stuck_writes_its_stacks_and_exits(role: str) -> None:
+async def _station(program: str, role: str) -> asyncio.subprocess.Process:
+    """``teletouch`` with a bug put in (``program``) as a station with a 3 s (scaled) hang
+    timeout; its standard error piped."""
     env = {**os.environ, f"TELETOUCH_{role.upper()}_AGENT_HANG_TIMEOUT_S": str(scaled(3.0)),
            "TELETOUCH_REMOTE_LINK_TOKEN": "x"}
-    proc = await asyncio.create_subprocess_exec(
-        sys.executable, "-c", _WITH_A_BLOCKING_STATUS, "--log-level", "WARNING",
-        *_COMMANDS[role], env=env, stdout=asyncio.subprocess.DEVNULL,
-        stderr=asyncio.subprocess.PIPE)
+    return await asyncio.create_subprocess_exec(
+        sys.executable, "-c", program, "--log-level", "WARNING", *_COMMANDS[role], env=env,
+        stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.PIPE)
+
+
+@pytest.mark.parametrize("role", ["local", "remote"])
+async def test_a_station_whose_loop_is_stuck_writes_its_stacks_and_exits(role: str) -> None:
+    proc = await _station(_WITH_A_BLOCKING_STATUS, role)
     try:
         _, stderr = await asyncio.wait_for(proc.communicate(), scaled(90.0))
         assert_ended_by_loop_watchdog(proc.returncode, stderr.decode(errors="replace"),
@@ -90,13 +95,7 @@ async def test_a_station_whose_loop_is_stuck_writes_its_stacks_and_exits(role: s
 async def test_a_remote_whose_frame_call_hangs_writes_its_stacks_and_exits() -> None:
     """The loop turns on (the status loop, the arm), but a frame never comes: the station
     ends as for a stuck loop, after a WARNING naming the call at half the timeout."""
-    timeout_s = scaled(3.0)
-    env = {**os.environ, "TELETOUCH_REMOTE_AGENT_HANG_TIMEOUT_S": str(timeout_s),
-           "TELETOUCH_REMOTE_LINK_TOKEN": "x"}
-    proc = await asyncio.create_subprocess_exec(
-        sys.executable, "-c", _WITH_A_FRAME_THAT_HANGS, "--log-level", "WARNING",
-        *_COMMANDS["remote"], env=env, stdout=asyncio.subprocess.DEVNULL,
-        stderr=asyncio.subprocess.PIPE)
+    proc = await _station(_WITH_A_FRAME_THAT_HANGS, "remote")
     try:
         _, stderr = await asyncio.wait_for(proc.communicate(), scaled(90.0))
         text = stderr.decode(errors="replace")
@@ -112,13 +111,7 @@ async def test_a_remote_stopped_while_a_frame_call_hangs_still_ends() -> None:
     """SIGTERM while the frame call hangs: the station's close-down waits for the
     pipeline's thread, so the watch holds until it has ended, and the station ends with
     its stacks instead of waiting for that thread for ever."""
-    timeout_s = scaled(3.0)
-    env = {**os.environ, "TELETOUCH_REMOTE_AGENT_HANG_TIMEOUT_S": str(timeout_s),
-           "TELETOUCH_REMOTE_LINK_TOKEN": "x"}
-    proc = await asyncio.create_subprocess_exec(
-        sys.executable, "-c", _WITH_A_FRAME_THAT_HANGS, "--log-level", "WARNING",
-        *_COMMANDS["remote"], env=env, stdout=asyncio.subprocess.DEVNULL,
-        stderr=asyncio.subprocess.PIPE)
+    proc = await _station(_WITH_A_FRAME_THAT_HANGS, "remote")
     assert proc.stderr is not None
     try:
         lines: list[bytes] = []
