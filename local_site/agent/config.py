@@ -238,8 +238,8 @@ class LocalAgentConfig:
                 and self.platform_reopen_after_s >= self.platform_read_timeout_s):
             raise ConfigError("local.agent.platform_reopen_after_s must be finite and >= "
                               f"platform_read_timeout_s, got {self.platform_reopen_after_s!r}")
-        in_process = self.platform_process or self.render_loop == "process"
-        if in_process and not self.platform_reopen_after_s < PLATFORM_HANG_TIMEOUT_S:
+        own_process = self.platform_process or self.render_loop == "process"
+        if own_process and not self.platform_reopen_after_s < PLATFORM_HANG_TIMEOUT_S:
             raise ConfigError(
                 f"local.agent.platform_reopen_after_s must be < {PLATFORM_HANG_TIMEOUT_S:g} s "
                 "with the platform read in a process of its own (platform_process, or "
