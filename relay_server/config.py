@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from shared.config import check_positive
 from shared.errors import ConfigError
 from shared.loop_watchdog import check_hang_timeout
 from shared.protocol.codec import DEFAULT_MAX_MESSAGE_BYTES
@@ -167,9 +167,7 @@ class RelayConfig:
                               "(or tls://, ws://, wss://)")
         if not self.nats_subject_prefix.replace("_", "").replace("-", "").isalnum():
             raise ConfigError("relay.nats_subject_prefix must be letters, digits, - and _")
-        if not (math.isfinite(self.nats_connect_timeout_s) and self.nats_connect_timeout_s > 0):
-            raise ConfigError("relay.nats_connect_timeout_s must be a finite number > 0, got "
-                              f"{self.nats_connect_timeout_s!r}")
+        check_positive("relay.nats_connect_timeout_s", self.nats_connect_timeout_s)
         check_hang_timeout("relay.hang_timeout_s", self.hang_timeout_s)
         if self.ping_burst_spacing_s < 0:
             raise ConfigError("relay.ping_burst_spacing_s must be >= 0")

@@ -21,6 +21,7 @@ Example::
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import tomllib
 import types
@@ -31,11 +32,32 @@ from typing import Any, TypeVar
 
 from shared.errors import ConfigError
 
-__all__ = ["ENV_PREFIX", "load_toml_section", "resolve_config"]
+__all__ = ["ENV_PREFIX", "check_count", "check_positive", "load_toml_section", "resolve_config"]
 
 ENV_PREFIX = "TELETOUCH_"
 
 T = TypeVar("T")
+
+
+def check_positive(key: str, value: object) -> None:
+    """A setting that must be a finite number > 0 (not a bool).
+
+    Raises:
+        ConfigError: anything else, naming ``key``.
+    """
+    if isinstance(value, bool) or not isinstance(value, int | float) \
+            or not math.isfinite(value) or value <= 0:
+        raise ConfigError(f"{key} must be a finite number > 0, got {value!r}")
+
+
+def check_count(key: str, value: object) -> None:
+    """A setting that must be an integer >= 1 (not a bool).
+
+    Raises:
+        ConfigError: anything else, naming ``key``.
+    """
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ConfigError(f"{key} must be an integer >= 1, got {value!r}")
 
 
 def load_toml_section(path: str | os.PathLike[str] | None, section: str) -> dict[str, Any]:

@@ -23,6 +23,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
+from shared.config import check_positive
 from shared.errors import (
     CalibrationError,
     ConfigError,
@@ -59,10 +60,7 @@ class CheckSettings:
     def __post_init__(self) -> None:
         for name in ("connect_timeout_s", "read_timeout_s", "rate_window_s", "move_mm",
                      "move_timeout_s"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int | float) \
-                    or not math.isfinite(value) or value <= 0:
-                raise ConfigError(f"check.{name} must be a finite number > 0, got {value!r}")
+            check_positive(f"check.{name}", getattr(self, name))
         if self.move_mm > 10.0:
             raise ConfigError(f"check.move_mm must be at most 10 mm, got {self.move_mm}")
 

@@ -6,13 +6,13 @@ tests can use them without the link's machinery.
 
 from __future__ import annotations
 
-import math
 import random
 import ssl
 from dataclasses import dataclass
 from typing import Literal
 from urllib.parse import urlsplit
 
+from shared.config import check_count, check_positive
 from shared.errors import ConfigError
 from shared.protocol import DEFAULT_MAX_MESSAGE_BYTES
 
@@ -128,10 +128,5 @@ class StationLinkConfig:
             raise ConfigError(f"reconnect_min_s ({self.reconnect_min_s!r}) must be > 0 and <= "
                               f"reconnect_max_s ({self.reconnect_max_s!r})")
         for name in ("connect_timeout_s", "liveness_timeout_s"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int | float) \
-                    or not math.isfinite(value) or value <= 0:
-                raise ConfigError(f"{name} must be a finite number > 0, got {value!r}")
-        size = self.max_message_bytes
-        if isinstance(size, bool) or not isinstance(size, int) or size < 1:
-            raise ConfigError(f"max_message_bytes must be an integer >= 1, got {size!r}")
+            check_positive(name, getattr(self, name))
+        check_count("max_message_bytes", self.max_message_bytes)

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from local_site.agent.platform_process import HANG_TIMEOUT_S as PLATFORM_HANG_TIMEOUT_S
 from local_site.agent.platform_reader import POLL_S as PLATFORM_POLL_S
 from local_site.render.interpolation import DEFAULT_ORDER
+from shared.config import check_count, check_positive
 from shared.errors import ConfigError
 from shared.loop_watchdog import check_hang_timeout
 
@@ -188,15 +189,8 @@ class LocalAgentConfig:
 
     def _check_recording(self) -> None:
         """What ``--record`` hands the recorder (checked whether it records or not)."""
-        size = self.record_queue_size
-        if isinstance(size, bool) or not isinstance(size, int) or size < 1:
-            raise ConfigError(f"local.agent.record_queue_size must be an integer >= 1, got "
-                              f"{size!r}")
-        pins = self.record_pins_rate_hz
-        if isinstance(pins, bool) or not isinstance(pins, int | float) \
-                or not math.isfinite(pins) or pins <= 0:
-            raise ConfigError(f"local.agent.record_pins_rate_hz must be a finite number > 0, "
-                              f"got {pins!r}")
+        check_count("local.agent.record_queue_size", self.record_queue_size)
+        check_positive("local.agent.record_pins_rate_hz", self.record_pins_rate_hz)
         image = self.record_image_rate_hz
         if isinstance(image, bool) or not isinstance(image, int | float) \
                 or not (image == 0 or 0 < image <= 1000):
@@ -217,11 +211,7 @@ class LocalAgentConfig:
                     "device_retry_max_s", "display_keepalive_interval_s",
                     "status_interval_s")
         for name in positive:
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int | float) \
-                    or not math.isfinite(value) or value <= 0:
-                raise ConfigError(f"local.agent.{name} must be a finite number > 0, "
-                                  f"got {value!r}")
+            check_positive(f"local.agent.{name}", getattr(self, name))
         if not 1.0 <= self.render_rate_hz <= 10_000.0:
             raise ConfigError("local.agent.render_rate_hz must lie in [1, 10000]")
         if not 1.0 <= self.platform_send_rate_hz <= 10_000.0:
