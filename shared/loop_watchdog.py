@@ -3,19 +3,30 @@
 A server whose event loop is stuck (a busy loop, a call that never returns, threads
 deadlocked) is alive to everything that watches processes: ``restart: on-failure`` in a
 container, systemd's ``Restart=`` without a watchdog, a supervisor waiting for its children
-to exit. It serves nothing and is never restarted. :func:`loop_watchdog` arms
-:func:`faulthandler.dump_traceback_later` with ``exit=True`` and re-arms it from the loop
-every ``REARM_S`` (or a quarter of the timeout if that is less): if the loop does not come
-back within the timeout, faulthandler's own thread (C code, which needs neither the loop nor
-the GIL) writes every thread's Python stack to standard error and ends the process with exit
-code 1, for whatever supervises it to start it again. The process ends between one re-arm
-period before the timeout and the timeout after the loop last turned.
+to exit. It serves nothing and is never restarted. :func:`loop_watchdog` watches the loop from
+a thread of its own: the loop says that it turns every ``REARM_S`` (or a quarter of the
+timeout if that is less), and the thread, which wakes as often, ends the process once the loop
+has not turned for the timeout. It writes every thread's Python stack to standard error first
+and exits with code 1, for whatever supervises the process to start it again. The process
+ends between one period before the timeout and one period after it, counted from when the
+loop last turned.
+
+The stacks are read from the watch's thread under the interpreter's lock (GIL), so the other
+threads stand still while they are read. :func:`faulthandler.dump_traceback_later`, which
+this module used alone before, reads them from a C thread while they run on: a process whose
+display thread ran on beside a stuck loop died of SIGSEGV (exit code -11) part way through
+its stacks. A loop stuck in C code that holds the GIL for good (so that no other thread runs,
+the watch's included) is the one case a Python thread cannot see; there faulthandler stays the
+backstop: the watch's thread re-arms its timer for a whole timeout at each of its wakes, so
+once no Python thread but the stuck one has run for the timeout, faulthandler's thread writes
+the stacks (safe then: every other thread waits for the GIL) and ends the process with exit
+code 1, its first line ``Timeout (H:MM:SS)!``.
 
 A call the loop awaits in another thread (a frame's sensor read and reconstruction in an
 executor) can hang while the loop turns on: the process then serves on without the work that
 call was for, and nothing restarts it. Such calls are entered in a :class:`WaitedCalls` given
 to the watchdog (``with calls.waiting_for("what"): await ...``): one that has not returned
-after the timeout ends the process the same way (at the next re-arm: up to a re-arm period
+after the timeout ends the process the same way (at the watch's next wake: up to a period
 later), with its thread's stack among those written (a WARNING names it at half the
 timeout).
 
@@ -36,12 +47,17 @@ import faulthandler
 import itertools
 import logging
 import math
+import os
+import sys
+import threading
 import time
+import types
 from collections.abc import AsyncIterator, Iterator
 
 from shared.errors import ConfigError
 
-__all__ = ["REARM_S", "WaitedCalls", "check_hang_timeout", "loop_watchdog", "rearm_period_s"]
+__all__ = ["REARM_S", "WaitedCalls", "check_hang_timeout", "end_process", "loop_watchdog",
+           "rearm_period_s", "stacks"]
 
 log = logging.getLogger(__name__)
 
@@ -70,26 +86,110 @@ class WaitedCalls:
     """Calls in other threads that the event loop awaits (a device read, a frame's
     processing in an executor), with when each began: a loop watched with them
     (:func:`loop_watchdog`) counts one that has not returned within its timeout as a stuck
-    loop. Entered and left in the event loop's thread (the block wraps the ``await``)."""
+    loop. Entered and left in the event loop's thread (the block wraps the ``await``); read
+    from the watch's."""
 
     def __init__(self) -> None:
         self._began: dict[int, tuple[str, float]] = {}
         self._keys = itertools.count()
+        self._lock = threading.Lock()
 
     @contextlib.contextmanager
     def waiting_for(self, what: str) -> Iterator[None]:
         """The block awaits a call in another thread; ``what`` names it in the log."""
         key = next(self._keys)
-        self._began[key] = (what, time.monotonic())
+        with self._lock:
+            self._began[key] = (what, time.monotonic())
         try:
             yield
         finally:
-            del self._began[key]
+            with self._lock:
+                del self._began[key]
 
     def oldest(self) -> tuple[str, float] | None:
         """The call waited for longest: what it is and when it began (``time.monotonic``);
         None when none is."""
-        return min(self._began.values(), key=lambda call: call[1], default=None)
+        with self._lock:
+            return min(self._began.values(), key=lambda call: call[1], default=None)
+
+
+def stacks() -> str:
+    """Every other thread's Python stack, most recent call first, as faulthandler writes
+    them (without source lines: no file is read). Safe beside running threads: the frames
+    are read under the interpreter's lock."""
+    names = {thread.ident: thread.name for thread in threading.enumerate()}
+    lines: list[str] = []
+    for ident, frame in sys._current_frames().items():
+        if ident == threading.get_ident():
+            continue  # the caller's own (the watch's)
+        lines.append(f"Thread 0x{ident:016x} {names.get(ident, '?')!r} "
+                     "(most recent call first):")
+        at: types.FrameType | None = frame
+        while at is not None:
+            lines.append(f'  File "{at.f_code.co_filename}", line {at.f_lineno} in '
+                         f"{at.f_code.co_name}")
+            at = at.f_back
+        lines.append("")
+    return "\n".join(lines)
+
+
+def end_process(report: str) -> None:
+    """Write ``report`` and every thread's stack to standard error (its file descriptor: no
+    lock of ``sys.stderr`` or of logging is taken) and end this process with exit code 1 at
+    once (:func:`os._exit`: nothing else runs first). The test suite's process replaces it
+    (``tests/conftest.py``)."""
+    data = f"{report}\n{stacks()}".encode(errors="replace")
+    with contextlib.suppress(OSError):
+        while data:
+            data = data[os.write(2, data):]
+    os._exit(1)
+
+
+class _Watch:
+    """The watch's thread: wakes every ``period_s``; ends the process (:func:`end_process`)
+    once the loop's last turn (:attr:`turned`) or the oldest of ``calls`` is ``limit_s``
+    old; otherwise re-arms faulthandler's timer, the backstop, a whole ``limit_s`` ahead."""
+
+    def __init__(self, limit_s: float, period_s: float, calls: WaitedCalls | None) -> None:
+        self.limit_s = limit_s
+        self.period_s = period_s
+        self.calls = calls
+        #: when the event loop last turned (``time.monotonic``), set from the loop's thread
+        self.turned = time.monotonic()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="loop-watchdog", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self) -> None:
+        """Stop watching (from the loop's thread; returns once the watch's thread has)."""
+        self._stop.set()
+        if self._thread.is_alive() and self._thread is not threading.current_thread():
+            self._thread.join()
+
+    def _run(self) -> None:
+        try:
+            while not self._stop.wait(self.period_s):
+                stuck = self.stuck(time.monotonic())
+                if stuck is not None:
+                    end_process(f"Event loop watchdog: {stuck}; this process ends with exit "
+                                f"code 1 (hang_timeout_s {self.limit_s:g} s). Every thread's "
+                                "stack:")
+                    return
+                faulthandler.dump_traceback_later(self.limit_s, exit=True)  # replaces the last
+        except Exception as exc:  # said, and the backstop taken down with it
+            faulthandler.cancel_dump_traceback_later()
+            log.error("the event loop's watchdog stopped: %r; this process is not watched", exc)
+
+    def stuck(self, now: float) -> str | None:
+        """What is stuck at ``now``: the loop, the oldest waited call, or None."""
+        if now - self.turned >= self.limit_s:
+            return f"the event loop has not turned for {now - self.turned:.1f} s"
+        oldest = self.calls.oldest() if self.calls is not None else None
+        if oldest is not None and now - oldest[1] >= self.limit_s:
+            return f"{oldest[0]} has not returned for {now - oldest[1]:.1f} s"
+        return None
 
 
 @contextlib.asynccontextmanager
@@ -97,8 +197,8 @@ async def loop_watchdog(timeout_s: float | None, calls: WaitedCalls | None = Non
                         ) -> AsyncIterator[None]:
     """While the block runs, end this process (exit code 1, every thread's stack written to
     standard error first) if the running event loop makes no progress for ``timeout_s``, or
-    one of ``calls`` has not returned after ``timeout_s`` (seen by the next re-arm: up to a
-    re-arm period later).
+    one of ``calls`` has not returned after ``timeout_s`` (seen at the watch's next wake: up
+    to a period later).
 
     Args:
         timeout_s: seconds (at least 0.1); None or 0: no watchdog.
@@ -116,36 +216,41 @@ async def loop_watchdog(timeout_s: float | None, calls: WaitedCalls | None = Non
     limit_s: float = timeout_s
     period_s = rearm_period_s(limit_s)
     faulthandler.dump_traceback_later(limit_s, exit=True)  # armed now: an error is raised
+    watch = _Watch(limit_s, period_s, calls)
+    watch.start()
     log.info("event loop watchdog: this process ends, its stacks written, if its event loop is "
              "stuck, or a call it waits for in another thread has not returned, for %g s "
              "(hang_timeout_s; 0 turns it off)", limit_s)
 
-    async def rearm() -> None:
+    async def turning() -> None:
         warned: tuple[str, float] | None = None
         while True:
             await asyncio.sleep(period_s)
+            watch.turned = time.monotonic()
             oldest = calls.oldest() if calls is not None else None
-            waited_s = 0.0 if oldest is None else time.monotonic() - oldest[1]
-            if waited_s >= limit_s:  # that call is stuck: end now, as for a stuck loop
-                faulthandler.dump_traceback_later(1e-3, exit=True)
-                return
-            faulthandler.dump_traceback_later(limit_s, exit=True)  # replaces the last
-            if oldest is not None and oldest != warned and waited_s >= limit_s / 2:
+            waited_s = 0.0 if oldest is None else watch.turned - oldest[1]
+            if oldest is not None and oldest != warned and limit_s / 2 <= waited_s < limit_s:
                 warned = oldest
                 log.warning("%s has not returned for %.1f s: this process ends, its stacks "
                             "written, if it has not returned after %g s (hang_timeout_s)",
                             oldest[0], waited_s, limit_s)
 
     def ended(task: asyncio.Task[None]) -> None:
-        if not task.cancelled() and task.exception() is not None:
-            log.error("the event loop's watchdog stopped: %r; this process is not watched",
-                      task.exception())
-            faulthandler.cancel_dump_traceback_later()
+        # a loop that turns on without this task would be ended as stuck: stop the watch
+        if task.cancelled() and leaving:
+            return
+        watch.stop()
+        faulthandler.cancel_dump_traceback_later()
+        log.error("the event loop's watchdog stopped: %s; this process is not watched",
+                  "its task was cancelled" if task.cancelled() else repr(task.exception()))
 
-    task = asyncio.get_running_loop().create_task(rearm(), name="loop-watchdog")
+    leaving = False
+    task = asyncio.get_running_loop().create_task(turning(), name="loop-watchdog")
     task.add_done_callback(ended)
     try:
         yield
     finally:
+        leaving = True
         task.cancel()
+        watch.stop()
         faulthandler.cancel_dump_traceback_later()

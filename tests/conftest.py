@@ -1,9 +1,9 @@
 """Suite-wide fixtures: fail any test that leaks a task, a thread, a socket or a CAN bus;
 keep the stations' process-ending watchdog out of the test runner.
 
-* ``_no_loop_watchdog_in_the_test_runner``: a station run in this process arms
-  faulthandler's timer (:mod:`shared.loop_watchdog`), which would end the whole test run
-  when a test blocks its loop; here arming and cancelling it do nothing (subprocesses keep
+* ``_no_loop_watchdog_in_the_test_runner``: a station run in this process starts a watch
+  (:mod:`shared.loop_watchdog`) that would end the whole test run when a test blocks its
+  loop; here its ending of the process and faulthandler's timer do nothing (subprocesses keep
   theirs: ``tests/shared/test_loop_watchdog.py``, ``test_station_watchdogs.py`` and the
   relay's in ``tests/relay_server/test_relay_health.py`` test it there);
 * ``_no_leaked_tasks``: asyncio tasks still running on the test's event loop;
@@ -34,6 +34,7 @@ from collections.abc import AsyncIterator, Iterator
 import pytest
 from hypothesis import settings
 
+from shared import loop_watchdog
 from tests.support import scaled
 
 LEAK_KINDS = ("thread", "socket", "can_bus")
@@ -136,11 +137,16 @@ def _inert_cancel_dump_traceback_later() -> None:
     (``faulthandler_timeout``, when set)."""
 
 
+def _inert_end_process(report: str) -> None:
+    """``shared.loop_watchdog.end_process`` there: ends nothing (the watch's thread stops)."""
+
+
 @pytest.fixture(autouse=True)
 def _no_loop_watchdog_in_the_test_runner(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(faulthandler, "dump_traceback_later", _inert_dump_traceback_later)
     monkeypatch.setattr(faulthandler, "cancel_dump_traceback_later",
                         _inert_cancel_dump_traceback_later)
+    monkeypatch.setattr(loop_watchdog, "end_process", _inert_end_process)
 
 
 @pytest.fixture(autouse=True)

@@ -39,14 +39,19 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 REAL_DUMP_TRACEBACK_LATER = faulthandler.dump_traceback_later
 
 
-def assert_ended_by_loop_watchdog(returncode: int | None, stderr: str, frame: str) -> None:
+def assert_ended_by_loop_watchdog(returncode: int | None, stderr: str, frame: str, *,
+                                  stuck: str = "", backstop: bool = False) -> None:
     """A process ended by its own event-loop watchdog (:mod:`shared.loop_watchdog`): exit
-    code 1, faulthandler's ``Timeout (H:MM:SS)!`` line, and the threads' stacks, with the
+    code 1, the watch's first line (saying ``stuck`` is what is stuck, when given), or with
+    ``backstop`` faulthandler's ``Timeout (H:MM:SS)!``, and every thread's stack, with the
     function ``frame`` among them."""
     assert returncode == 1, (returncode, stderr[-3000:])
-    assert re.search(r"^Timeout \(\d+:\d\d:\d\d(\.\d+)?\)!$", stderr, re.MULTILINE), \
+    first = (r"^Timeout \(\d+:\d\d:\d\d(\.\d+)?\)!$" if backstop else
+             rf"^Event loop watchdog: {re.escape(stuck)}.*; this process ends with exit code 1 "
+             r"\(hang_timeout_s \S+ s\)\. Every thread's stack:$")
+    assert re.search(first, stderr, re.MULTILINE), stderr[-3000:]
+    assert re.search(rf"^  File \".+\", line \d+ in {re.escape(frame)}$", stderr, re.MULTILINE), \
         stderr[-3000:]
-    assert f"in {frame}" in stderr, stderr[-3000:]
 
 
 def scaled(seconds: float) -> float:

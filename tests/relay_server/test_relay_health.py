@@ -147,7 +147,8 @@ async def test_a_relay_whose_loop_is_stuck_writes_its_stacks_and_exits() -> None
         await writer.drain()
         _, stderr = await asyncio.wait_for(proc.communicate(), scaled(30.0))
         assert_ended_by_loop_watchdog(proc.returncode, stderr.decode(errors="replace"),
-                                      "_a_status_handler_that_blocks")
+                                      "_a_status_handler_that_blocks",
+                                      stuck="the event loop has not turned for ")
     finally:
         if writer is not None:
             writer.close()

@@ -399,7 +399,8 @@ def test_a_worker_that_hangs_is_replaced_with_its_stacks_logged(
         assert not errors, said
         assert (logging.WARNING, f"relay worker {first} exited (code 1; if its own watchdog "
                 "ended it, its stacks are above); starting another") in said, said
-        assert_ended_by_loop_watchdog(1, stderr, "_stuck_in_a_blocking_call")
+        assert_ended_by_loop_watchdog(1, stderr, "_stuck_in_a_blocking_call",
+                                      stuck="the event loop has not turned for ")
         return
     assert len(errors) == 1 and errors[0].startswith(
         f"relay worker {first} made no progress for "), said

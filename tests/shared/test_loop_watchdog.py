@@ -10,6 +10,7 @@ import re
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 
 import pytest
@@ -100,7 +101,8 @@ def test_a_call_that_does_not_return_ends_its_process_at_the_timeout() -> None:
     with a WARNING naming it at half the timeout and the call's stack among those written."""
     timeout_s = scaled(3.0)
     done, ended = _run_calls(timeout_s, 3600.0, 1)
-    assert_ended_by_loop_watchdog(done.returncode, done.stderr, "_a_waited_call")
+    assert_ended_by_loop_watchdog(done.returncode, done.stderr, "_a_waited_call",
+                                  stuck="the test's call has not returned for ")
     began = float(done.stdout.split()[1])
     assert timeout_s - 0.05 <= ended - began <= timeout_s + scaled(5.0), ended - began
     assert re.search(r"^WARNING the test's call has not returned for \d+\.\d s: this process "
@@ -113,63 +115,179 @@ def test_calls_that_return_just_within_the_timeout_end_nothing() -> None:
     along: neither ends the process, each is named at half the timeout."""
     timeout_s = scaled(3.0)
     done, _ = _run_calls(timeout_s, timeout_s - scaled(0.6), 2)
-    assert done.returncode == 0 and "Timeout (" not in done.stderr, (done.returncode,
-                                                                       done.stderr[-2000:])
+    assert done.returncode == 0 and "Timeout (" not in done.stderr and \
+        "Event loop watchdog" not in done.stderr, (done.returncode, done.stderr[-2000:])
     lines = done.stdout.splitlines()
     assert lines[-1] == "returned" and len(lines) == 3, lines
     assert int(lines[1].split()[2]) > int(lines[0].split()[2])  # the ticker ran meanwhile
     assert "WARNING the test's call has not returned for" in done.stderr  # at half
 
 
-async def test_a_call_is_judged_at_each_re_arm(monkeypatch: pytest.MonkeyPatch,
-                                               caplog: pytest.LogCaptureFixture) -> None:
-    """In this process (faulthandler faked): with calls returning, each re-arm sets the
-    timer a whole timeout ahead; a call waited for half the timeout is named once; one
-    waited for the timeout has the timer set to end the process at once, and the re-arms
-    stop (faulthandler's thread would end the process)."""
+async def test_a_call_is_judged_at_each_wake_of_the_watch(
+        monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    """In this process (faulthandler and the end faked): with calls returning, the watch's
+    thread re-arms the backstop a whole timeout ahead at each wake; a call waited for half
+    the timeout is named once; one waited for the timeout ends the process, the report
+    naming it, and the watch stops (no more re-arms)."""
     import asyncio
     import faulthandler
 
+    from shared import loop_watchdog as module
     from shared.loop_watchdog import WaitedCalls
 
     arms: list[float] = []
+    ends: list[str] = []
     monkeypatch.setattr(faulthandler, "dump_traceback_later",
                         lambda timeout_s, exit=False: arms.append(timeout_s))
-    monkeypatch.setattr(faulthandler, "cancel_dump_traceback_later", lambda: None)
+    monkeypatch.setattr(module, "end_process", ends.append)
     calls = WaitedCalls()
     never = asyncio.get_running_loop().create_future()
-    async with loop_watchdog(0.4, calls):  # re-armed every 0.1 s
-        for _ in range(3):  # calls that return
+    async with loop_watchdog(0.4, calls):  # the watch wakes every 0.1 s
+        for _ in range(5):  # calls that return
             with calls.waiting_for("a quick call"):
                 await asyncio.sleep(0.05)
-        assert arms and set(arms) == {0.4}, arms
-        assert calls.oldest() is None
+        assert len(arms) >= 2 and set(arms) == {0.4}, arms
+        assert calls.oldest() is None and ends == []
         with calls.waiting_for("a call that does not return"):
             async with asyncio.timeout(scaled(10.0)):
-                while arms[-1] != 1e-3:
+                while not ends:
                     await asyncio.wait({never}, timeout=0.01)
             oldest = calls.oldest()
             assert oldest is not None and oldest[0] == "a call that does not return"
         n = len(arms)
-        await asyncio.sleep(0.3)  # three re-arm periods: none more
-        assert len(arms) == n
+        await asyncio.sleep(0.3)  # three periods: no re-arm, no second end
+        assert len(arms) == n and len(ends) == 1
+    assert re.fullmatch(r"Event loop watchdog: a call that does not return has not returned "
+                        r"for 0\.\d s; this process ends with exit code 1 \(hang_timeout_s "
+                        r"0\.4 s\)\. Every thread's stack:", ends[0]), ends
     named = [r.getMessage() for r in caplog.records
              if r.getMessage().startswith("a call that does not return has not returned for ")]
     assert len(named) == 1 and "(hang_timeout_s)" in named[0], caplog.records
 
 
+async def test_a_loop_that_turns_on_without_its_turning_task_is_not_ended(
+        monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    """Something cancels the task that tells the watch the loop turns: the watch would end
+    a healthy process; it is stopped instead, the backstop cancelled, and an ERROR says so."""
+    import asyncio
+    import faulthandler
+
+    from shared import loop_watchdog as module
+
+    ends: list[str] = []
+    cancels: list[None] = []
+    monkeypatch.setattr(module, "end_process", ends.append)
+    monkeypatch.setattr(faulthandler, "cancel_dump_traceback_later",
+                        lambda: cancels.append(None))
+    async with loop_watchdog(0.4):
+        [task] = [t for t in asyncio.all_tasks() if t.get_name() == "loop-watchdog"]
+        task.cancel()
+        await asyncio.sleep(1.0)  # 2.5 timeouts, the loop turning
+        assert ends == [] and cancels, (ends, cancels)
+        assert not any(t.name == "loop-watchdog" for t in threading.enumerate())
+    assert [r.getMessage() for r in caplog.records if r.levelname == "ERROR"] == [
+        "the event loop's watchdog stopped: its task was cancelled; this process is not watched"]
+
+
 def test_a_stuck_loop_ends_its_process_with_its_stacks() -> None:
     timeout_s = scaled(3.0)
     done = _run(timeout_s, "stuck")
-    assert_ended_by_loop_watchdog(done.returncode, done.stderr, "_stuck_in_a_blocking_call")
+    assert_ended_by_loop_watchdog(done.returncode, done.stderr, "_stuck_in_a_blocking_call",
+                                  stuck="the event loop has not turned for ")
     assert done.stdout == "turned\n"  # it ran three timeouts first: no early end
+
+
+_BESIDE_THREADS_PROGRAM = textwrap.dedent('''
+    import asyncio, ctypes, sys, threading, time
+    from shared.loop_watchdog import loop_watchdog
+
+    TIMEOUT_S, HOLDING_THE_GIL = float(sys.argv[1]), sys.argv[2] == "holding"
+
+    def _deep(n):  # frames pushed and popped across the data stack's chunks all along
+        return _deep(n - 1) if n else 0
+
+    def _running_on():
+        while True:
+            _deep(900)
+
+    def _stuck():
+        if HOLDING_THE_GIL:  # C code that keeps the interpreter's lock: no thread runs
+            ctypes.PyDLL(None).sleep(3600)
+        time.sleep(3600)
+
+    async def main():
+        for _ in range(2):
+            threading.Thread(target=_running_on, daemon=True).start()
+        async with loop_watchdog(TIMEOUT_S):
+            await asyncio.sleep(TIMEOUT_S / 2)
+            _stuck()
+
+    asyncio.run(main())
+''')
+
+
+def test_a_stuck_loop_beside_threads_that_run_on_ends_with_its_stacks() -> None:
+    """Two threads run Python on beside the stuck loop, their frames coming and going: the
+    stacks are read where that is safe. (faulthandler alone read them while the threads ran
+    and died of SIGSEGV (exit code -11) in a CI run, and in 10 of 20 runs of this program.)
+    Five runs: all five pass faulthandler alone one time in 32."""
+    for _ in range(5):
+        done = subprocess.run([sys.executable, "-c", _BESIDE_THREADS_PROGRAM,
+                               str(scaled(1.0)), "sleeping"], capture_output=True, text=True,
+                              timeout=scaled(60.0), check=False)
+        assert_ended_by_loop_watchdog(done.returncode, done.stderr, "_stuck",
+                                      stuck="the event loop has not turned for ")
+        assert len(re.findall(r"^  File .+ in _running_on$", done.stderr, re.M)) == 2, \
+            done.stderr[-2000:]
+
+
+def test_a_loop_stuck_in_c_code_that_holds_the_gil_is_ended_by_the_backstop() -> None:
+    """No Python thread runs, the watch's neither: faulthandler's thread ends the process
+    (its ``Timeout`` line), a timeout after the watch last ran: at the earliest a period
+    (a quarter of the timeout here) before the loop got stuck."""
+    timeout_s = scaled(1.0)
+    began = time.monotonic()
+    done = subprocess.run([sys.executable, "-c", _BESIDE_THREADS_PROGRAM, str(timeout_s),
+                           "holding"], capture_output=True, text=True, timeout=scaled(60.0),
+                          check=False)
+    assert_ended_by_loop_watchdog(done.returncode, done.stderr, "_stuck", backstop=True)
+    assert "Event loop watchdog" not in done.stderr
+    # half a timeout turning, then stuck: not ended before a timeout less a period after that
+    assert time.monotonic() - began >= timeout_s * (0.5 + 1 - 0.25)
+
+
+def test_stacks_are_every_other_thread_s_most_recent_call_first() -> None:
+    from shared.loop_watchdog import stacks
+
+    release = threading.Event()
+
+    def _a_waiting_function() -> None:
+        release.wait()
+
+    thread = threading.Thread(target=_a_waiting_function, name="the-waiting-thread")
+    thread.start()
+    try:
+        text = stacks()
+    finally:
+        release.set()
+        thread.join()
+    blocks = {block.splitlines()[0]: block.splitlines()[1:] for block in text.split("\n\n")
+              if block}
+    [header] = [h for h in blocks if "'the-waiting-thread'" in h]
+    assert re.fullmatch(rf"Thread 0x{thread.ident:016x} 'the-waiting-thread' \(most recent call "
+                        r"first\):", header), header
+    frames = blocks[header]
+    assert all(re.fullmatch(r'  File ".+", line \d+ in \S+', line) for line in frames), frames
+    names = [line.rsplit(" in ", 1)[1] for line in frames]
+    assert names.index("wait") < names.index("_a_waiting_function") < names.index("run")
+    assert not any(f"0x{threading.get_ident():016x}" in h for h in blocks)  # not the caller's
 
 
 @pytest.mark.parametrize("scenario", ["turning", "left"])
 def test_a_turning_loop_or_one_that_left_the_block_is_not_ended(scenario: str) -> None:
     done = _run(scaled(3.0), scenario)
-    assert done.returncode == 0 and "Timeout (" not in done.stderr, (done.returncode,
-                                                                       done.stderr[-2000:])
+    assert done.returncode == 0 and "Timeout (" not in done.stderr and \
+        "Event loop watchdog" not in done.stderr, (done.returncode, done.stderr[-2000:])
     assert done.stdout == ("turned\nleft\n" if scenario == "left" else "turned\n")
 
 
@@ -204,12 +322,16 @@ async def test_a_watchdog_that_cannot_write_is_refused_at_the_start(
 
 async def test_a_re_arm_that_fails_is_said_and_leaves_no_timer(
         monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
-    """A timer left armed by a re-arm task that died would end a healthy process: it is
-    cancelled, and an ERROR says the process is not watched. (faulthandler faked: this is
-    the test runner's process.)"""
+    """The watch's thread fails to re-arm the backstop: a timer left armed by a watch that
+    stopped would end a healthy process; it is cancelled, an ERROR says the process is not
+    watched, and nothing ends it. (faulthandler faked: this is the test runner's process.)"""
     import asyncio
     import faulthandler
 
+    from shared import loop_watchdog as module
+
+    ends: list[str] = []
+    monkeypatch.setattr(module, "end_process", ends.append)
     calls: list[str] = []
 
     def arm(timeout_s: float, exit: bool = False) -> None:
@@ -225,6 +347,9 @@ async def test_a_re_arm_that_fails_is_said_and_leaves_no_timer(
             while "cancel" not in calls:
                 await asyncio.sleep(0.01)
         assert calls == ["arm", "arm", "arm", "cancel"]
+        time.sleep(0.5)  # the loop stuck for more than the timeout: unwatched now
+        await asyncio.sleep(0.2)
+        assert ends == []
     assert [r.getMessage() for r in caplog.records] == [
         "the event loop's watchdog stopped: OSError('stderr gone'); this process is not "
         "watched"]

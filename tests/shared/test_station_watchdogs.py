@@ -85,7 +85,8 @@ async def test_a_station_whose_loop_is_stuck_writes_its_stacks_and_exits(role: s
     try:
         _, stderr = await asyncio.wait_for(proc.communicate(), scaled(90.0))
         assert_ended_by_loop_watchdog(proc.returncode, stderr.decode(errors="replace"),
-                                      "_a_status_loop_that_blocks")
+                                      "_a_status_loop_that_blocks",
+                                      stuck="the event loop has not turned for ")
     finally:
         if proc.returncode is None:
             proc.kill()
@@ -99,7 +100,9 @@ async def test_a_remote_whose_frame_call_hangs_writes_its_stacks_and_exits() -> 
     try:
         _, stderr = await asyncio.wait_for(proc.communicate(), scaled(90.0))
         text = stderr.decode(errors="replace")
-        assert_ended_by_loop_watchdog(proc.returncode, text, "_a_frame_call_that_hangs")
+        assert_ended_by_loop_watchdog(
+            proc.returncode, text, "_a_frame_call_that_hangs",
+            stuck="a frame's capture and processing has not returned for ")
         assert "a frame's capture and processing has not returned for" in text, text[-3000:]
     finally:
         if proc.returncode is None:
