@@ -6,7 +6,8 @@ them, and supervises them:
 
 * a worker that **dies** is started again;
 * a worker that **hangs** without dying is killed and started again. A relay process ends
-  itself when its event loop is stuck for ``hang_timeout_s`` (:mod:`shared.loop_watchdog`),
+  itself when its event loop is stuck for ``hang_timeout_s`` (:mod:`shared.loop_watchdog`:
+  within a beat of it),
   and its supervisor then starts another as for any death; the supervisor's own watch is for
   a worker that cannot end itself (stopped, or not scheduled while the supervisor is).
   Every worker's event loop advances a counter in memory shared with its supervisor (its

@@ -17,10 +17,13 @@ this module used alone before, reads them from a C thread while they run on: a p
 display thread ran on beside a stuck loop died of SIGSEGV (exit code -11) part way through
 its stacks. A loop stuck in C code that holds the GIL for good (so that no other thread runs,
 the watch's included) is the one case a Python thread cannot see; there faulthandler stays the
-backstop: the watch's thread re-arms its timer for a whole timeout at each of its wakes, so
-once no Python thread but the stuck one has run for the timeout, faulthandler's thread writes
-the stacks (safe then: every other thread waits for the GIL) and ends the process with exit
-code 1, its first line ``Timeout (H:MM:SS)!``.
+backstop: the watch's thread re-arms its timer ``BACKSTOP_TIMEOUTS`` (2) timeouts ahead at
+each of its wakes, so once no Python thread but the stuck one has run for two timeouts,
+faulthandler's thread writes the stacks (safe then: every other thread waits for the GIL) and
+ends the process with exit code 1, its first line ``Timeout (H:MM:SS)!``. That line also
+ends a process that was paused for two timeouts or more (below, paused between a timeout and
+two, the watch acts first on resume); its stacks are then read while the threads run again,
+as before.
 
 A call the loop awaits in another thread (a frame's sensor read and reconstruction in an
 executor) can hang while the loop turns on: the process then serves on without the work that
@@ -56,8 +59,8 @@ from collections.abc import AsyncIterator, Iterator
 
 from shared.errors import ConfigError
 
-__all__ = ["REARM_S", "WaitedCalls", "check_hang_timeout", "end_process", "loop_watchdog",
-           "rearm_period_s", "stacks"]
+__all__ = ["BACKSTOP_TIMEOUTS", "REARM_S", "WaitedCalls", "check_hang_timeout", "end_process",
+           "loop_watchdog", "rearm_period_s", "stacks"]
 
 log = logging.getLogger(__name__)
 
@@ -136,51 +139,72 @@ def stacks() -> str:
 def end_process(report: str) -> None:
     """Write ``report`` and every thread's stack to standard error (its file descriptor: no
     lock of ``sys.stderr`` or of logging is taken) and end this process with exit code 1 at
-    once (:func:`os._exit`: nothing else runs first). The test suite's process replaces it
-    (``tests/conftest.py``)."""
-    data = f"{report}\n{stacks()}".encode(errors="replace")
-    with contextlib.suppress(OSError):
+    once (:func:`os._exit`: nothing else runs first), whatever fails on the way. The test
+    suite's process replaces it (``tests/conftest.py``)."""
+    try:
+        data = f"{report}\n{stacks()}".encode(errors="replace")
         while data:
             data = data[os.write(2, data):]
-    os._exit(1)
+    finally:
+        os._exit(1)
+
+
+#: faulthandler's timer, the backstop, ends the process this many timeouts after the watch
+#: last ran: the watch acts first on a process that was paused for less than that
+BACKSTOP_TIMEOUTS = 2
 
 
 class _Watch:
     """The watch's thread: wakes every ``period_s``; ends the process (:func:`end_process`)
     once the loop's last turn (:attr:`turned`) or the oldest of ``calls`` is ``limit_s``
-    old; otherwise re-arms faulthandler's timer, the backstop, a whole ``limit_s`` ahead."""
+    old; otherwise re-arms faulthandler's timer, the backstop, ``BACKSTOP_TIMEOUTS`` timeouts
+    ahead, writing to file descriptor ``fd``."""
 
-    def __init__(self, limit_s: float, period_s: float, calls: WaitedCalls | None) -> None:
+    def __init__(self, limit_s: float, period_s: float, calls: WaitedCalls | None,
+                 fd: int) -> None:
         self.limit_s = limit_s
         self.period_s = period_s
         self.calls = calls
+        self.fd = fd
         #: when the event loop last turned (``time.monotonic``), set from the loop's thread
         self.turned = time.monotonic()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="loop-watchdog", daemon=True)
 
+    def arm(self) -> None:
+        """(Re-)arm the backstop."""
+        faulthandler.dump_traceback_later(BACKSTOP_TIMEOUTS * self.limit_s, file=self.fd,
+                                          exit=True)
+
     def start(self) -> None:
         self._thread.start()
 
     def stop(self) -> None:
-        """Stop watching (from the loop's thread; returns once the watch's thread has)."""
+        """Stop watching, and the backstop (from the loop's thread; returns once the watch's
+        thread has stopped)."""
         self._stop.set()
         if self._thread.is_alive() and self._thread is not threading.current_thread():
             self._thread.join()
+        faulthandler.cancel_dump_traceback_later()
 
     def _run(self) -> None:
-        try:
-            while not self._stop.wait(self.period_s):
-                stuck = self.stuck(time.monotonic())
-                if stuck is not None:
-                    end_process(f"Event loop watchdog: {stuck}; this process ends with exit "
-                                f"code 1 (hang_timeout_s {self.limit_s:g} s). Every thread's "
-                                "stack:")
-                    return
-                faulthandler.dump_traceback_later(self.limit_s, exit=True)  # replaces the last
-        except Exception as exc:  # said, and the backstop taken down with it
-            faulthandler.cancel_dump_traceback_later()
-            log.error("the event loop's watchdog stopped: %r; this process is not watched", exc)
+        backstop = True
+        while not self._stop.wait(self.period_s):
+            stuck = self.stuck(time.monotonic())
+            if stuck is not None:
+                end_process(f"Event loop watchdog: {stuck}; this process ends with exit "
+                            f"code 1 (hang_timeout_s {self.limit_s:g} s). Every thread's "
+                            "stack:")
+                return
+            if backstop:
+                try:
+                    self.arm()  # replaces the last
+                except Exception as exc:  # said; the watch itself goes on
+                    backstop = False
+                    faulthandler.cancel_dump_traceback_later()
+                    log.error("the event loop watchdog's backstop (faulthandler's timer) "
+                              "failed: %r; a loop stuck in C code that keeps the "
+                              "interpreter's lock is not watched any more", exc)
 
     def stuck(self, now: float) -> str | None:
         """What is stuck at ``now``: the loop, the oldest waited call, or None."""
@@ -215,9 +239,16 @@ async def loop_watchdog(timeout_s: float | None, calls: WaitedCalls | None = Non
         raise ValueError(f"a loop watchdog timeout of {timeout_s!r} s is below 0.1 s")
     limit_s: float = timeout_s
     period_s = rearm_period_s(limit_s)
-    faulthandler.dump_traceback_later(limit_s, exit=True)  # armed now: an error is raised
-    watch = _Watch(limit_s, period_s, calls)
-    watch.start()
+    # sys.stderr's descriptor, taken once (an error is raised here when there is none): the
+    # re-arms then neither look sys.stderr up (a redirect would break them) nor flush it
+    faulthandler.dump_traceback_later(BACKSTOP_TIMEOUTS * limit_s, exit=True)
+    watch = _Watch(limit_s, period_s, calls, sys.stderr.fileno())
+    try:
+        watch.arm()
+        watch.start()
+    except BaseException:
+        faulthandler.cancel_dump_traceback_later()
+        raise
     log.info("event loop watchdog: this process ends, its stacks written, if its event loop is "
              "stuck, or a call it waits for in another thread has not returned, for %g s "
              "(hang_timeout_s; 0 turns it off)", limit_s)
@@ -235,22 +266,32 @@ async def loop_watchdog(timeout_s: float | None, calls: WaitedCalls | None = Non
                             "written, if it has not returned after %g s (hang_timeout_s)",
                             oldest[0], waited_s, limit_s)
 
-    def ended(task: asyncio.Task[None]) -> None:
-        # a loop that turns on without this task would be ended as stuck: stop the watch
-        if task.cancelled() and leaving:
-            return
-        watch.stop()
-        faulthandler.cancel_dump_traceback_later()
-        log.error("the event loop's watchdog stopped: %s; this process is not watched",
-                  "its task was cancelled" if task.cancelled() else repr(task.exception()))
-
+    loop = asyncio.get_running_loop()
     leaving = False
-    task = asyncio.get_running_loop().create_task(turning(), name="loop-watchdog")
-    task.add_done_callback(ended)
+    task: asyncio.Task[None]
+
+    def keep_turning() -> asyncio.Task[None]:
+        task = loop.create_task(turning(), name="loop-watchdog")
+        task.add_done_callback(ended)
+        return task
+
+    def ended(done: asyncio.Task[None]) -> None:
+        # the loop turns on without this task, and the watch would end it as stuck
+        nonlocal task
+        if leaving:
+            return
+        if done.cancelled():  # by something that cancels every task: turn on
+            with contextlib.suppress(RuntimeError):  # (not once the loop has closed)
+                task = keep_turning()
+                return
+        watch.stop()
+        log.error("the event loop's watchdog stopped: %s; this process is not watched",
+                  "the loop has closed" if done.cancelled() else repr(done.exception()))
+
+    task = keep_turning()
     try:
         yield
     finally:
         leaving = True
         task.cancel()
         watch.stop()
-        faulthandler.cancel_dump_traceback_later()

@@ -7,6 +7,7 @@ Real subprocesses (the watchdog ends its process); the relay's own in
 from __future__ import annotations
 
 import re
+import signal
 import subprocess
 import sys
 import textwrap
@@ -123,30 +124,40 @@ def test_calls_that_return_just_within_the_timeout_end_nothing() -> None:
     assert "WARNING the test's call has not returned for" in done.stderr  # at half
 
 
-async def test_a_call_is_judged_at_each_wake_of_the_watch(
-        monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
-    """In this process (faulthandler and the end faked): with calls returning, the watch's
-    thread re-arms the backstop a whole timeout ahead at each wake; a call waited for half
-    the timeout is named once; one waited for the timeout ends the process, the report
-    naming it, and the watch stops (no more re-arms)."""
-    import asyncio
+def _fake_arms(monkeypatch: pytest.MonkeyPatch) -> tuple[list[float], list[str]]:
+    """faulthandler's timer and the end of the process faked in this process: the
+    timeouts armed, and the reports of the ends."""
     import faulthandler
 
     from shared import loop_watchdog as module
-    from shared.loop_watchdog import WaitedCalls
 
     arms: list[float] = []
     ends: list[str] = []
     monkeypatch.setattr(faulthandler, "dump_traceback_later",
-                        lambda timeout_s, exit=False: arms.append(timeout_s))
+                        lambda timeout_s, file=None, exit=False: arms.append(timeout_s))
     monkeypatch.setattr(module, "end_process", ends.append)
+    return arms, ends
+
+
+async def test_a_call_is_judged_at_each_wake_of_the_watch(
+        monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    """In this process (faulthandler and the end faked): with calls returning, the watch's
+    thread re-arms the backstop two timeouts ahead at each wake; a call waited for half the
+    timeout is named once; one waited for the timeout ends the process, the report naming
+    it, and the watch stops (no more re-arms)."""
+    import asyncio
+
+    from shared.loop_watchdog import WaitedCalls
+
+    arms, ends = _fake_arms(monkeypatch)
+    limit_s = scaled(1.0)  # the watch wakes every quarter of it
     calls = WaitedCalls()
     never = asyncio.get_running_loop().create_future()
-    async with loop_watchdog(0.4, calls):  # the watch wakes every 0.1 s
-        for _ in range(5):  # calls that return
+    async with loop_watchdog(limit_s, calls):
+        for _ in range(10):  # calls that return
             with calls.waiting_for("a quick call"):
-                await asyncio.sleep(0.05)
-        assert len(arms) >= 2 and set(arms) == {0.4}, arms
+                await asyncio.sleep(limit_s / 20)
+        assert len(arms) >= 3 and set(arms) == {2 * limit_s}, arms
         assert calls.oldest() is None and ends == []
         with calls.waiting_for("a call that does not return"):
             async with asyncio.timeout(scaled(10.0)):
@@ -155,38 +166,57 @@ async def test_a_call_is_judged_at_each_wake_of_the_watch(
             oldest = calls.oldest()
             assert oldest is not None and oldest[0] == "a call that does not return"
         n = len(arms)
-        await asyncio.sleep(0.3)  # three periods: no re-arm, no second end
+        await asyncio.sleep(limit_s)  # four periods: no re-arm, no second end
         assert len(arms) == n and len(ends) == 1
     assert re.fullmatch(r"Event loop watchdog: a call that does not return has not returned "
-                        r"for 0\.\d s; this process ends with exit code 1 \(hang_timeout_s "
-                        r"0\.4 s\)\. Every thread's stack:", ends[0]), ends
+                        r"for \d+\.\d s; this process ends with exit code 1 \(hang_timeout_s "
+                        rf"{limit_s:g} s\)\. Every thread's stack:", ends[0]), ends
     named = [r.getMessage() for r in caplog.records
              if r.getMessage().startswith("a call that does not return has not returned for ")]
     assert len(named) == 1 and "(hang_timeout_s)" in named[0], caplog.records
 
 
-async def test_a_loop_that_turns_on_without_its_turning_task_is_not_ended(
+async def test_a_turning_task_that_something_cancels_is_started_again(
         monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
-    """Something cancels the task that tells the watch the loop turns: the watch would end
-    a healthy process; it is stopped instead, the backstop cancelled, and an ERROR says so."""
+    """Something cancels every task (its own task tearing down, say) while the block runs:
+    the watch would end a healthy process without the task that tells it the loop turns; a
+    new one is started, and a loop stuck after that is still seen."""
     import asyncio
+
+    _, ends = _fake_arms(monkeypatch)
+    limit_s = scaled(1.0)
+    async with loop_watchdog(limit_s):
+        for _ in range(2):
+            [task] = [t for t in asyncio.all_tasks() if t.get_name() == "loop-watchdog"]
+            task.cancel()
+            await asyncio.sleep(1.5 * limit_s)  # the loop turning
+        assert ends == [], ends
+        time.sleep(1.5 * limit_s)  # stuck
+        await asyncio.sleep(0)
+        assert len(ends) == 1 and "the event loop has not turned for" in ends[0], ends
+    assert not any(t.name == "loop-watchdog" for t in threading.enumerate())
+    assert [r for r in caplog.records if r.levelname == "ERROR"] == []
+
+
+async def test_a_watch_that_cannot_start_leaves_no_timer(
+        monkeypatch: pytest.MonkeyPatch) -> None:
     import faulthandler
 
     from shared import loop_watchdog as module
 
-    ends: list[str] = []
+    _fake_arms(monkeypatch)
     cancels: list[None] = []
-    monkeypatch.setattr(module, "end_process", ends.append)
     monkeypatch.setattr(faulthandler, "cancel_dump_traceback_later",
                         lambda: cancels.append(None))
-    async with loop_watchdog(0.4):
-        [task] = [t for t in asyncio.all_tasks() if t.get_name() == "loop-watchdog"]
-        task.cancel()
-        await asyncio.sleep(1.0)  # 2.5 timeouts, the loop turning
-        assert ends == [] and cancels, (ends, cancels)
-        assert not any(t.name == "loop-watchdog" for t in threading.enumerate())
-    assert [r.getMessage() for r in caplog.records if r.levelname == "ERROR"] == [
-        "the event loop's watchdog stopped: its task was cancelled; this process is not watched"]
+
+    def no_thread(self: object) -> None:
+        raise RuntimeError("can't start new thread")
+
+    monkeypatch.setattr(module._Watch, "start", no_thread)
+    with pytest.raises(RuntimeError, match="can't start new thread"):
+        async with loop_watchdog(scaled(1.0)):
+            pass
+    assert cancels == [None]
 
 
 def test_a_stuck_loop_ends_its_process_with_its_stacks() -> None:
@@ -220,6 +250,7 @@ _BESIDE_THREADS_PROGRAM = textwrap.dedent('''
             threading.Thread(target=_running_on, daemon=True).start()
         async with loop_watchdog(TIMEOUT_S):
             await asyncio.sleep(TIMEOUT_S / 2)
+            print("stuck", time.monotonic(), flush=True)
             _stuck()
 
     asyncio.run(main())
@@ -228,9 +259,9 @@ _BESIDE_THREADS_PROGRAM = textwrap.dedent('''
 
 def test_a_stuck_loop_beside_threads_that_run_on_ends_with_its_stacks() -> None:
     """Two threads run Python on beside the stuck loop, their frames coming and going: the
-    stacks are read where that is safe. (faulthandler alone read them while the threads ran
-    and died of SIGSEGV (exit code -11) in a CI run, and in 10 of 20 runs of this program.)
-    Five runs: all five pass faulthandler alone one time in 32."""
+    stacks are read where that is safe. (faulthandler's timer alone, the design before,
+    read them while the threads ran on: it died of SIGSEGV (exit code -11) in a CI run, and
+    in 10 of 20 runs of this program.) Five runs."""
     for _ in range(5):
         done = subprocess.run([sys.executable, "-c", _BESIDE_THREADS_PROGRAM,
                                str(scaled(1.0)), "sleeping"], capture_output=True, text=True,
@@ -243,17 +274,65 @@ def test_a_stuck_loop_beside_threads_that_run_on_ends_with_its_stacks() -> None:
 
 def test_a_loop_stuck_in_c_code_that_holds_the_gil_is_ended_by_the_backstop() -> None:
     """No Python thread runs, the watch's neither: faulthandler's thread ends the process
-    (its ``Timeout`` line), a timeout after the watch last ran: at the earliest a period
-    (a quarter of the timeout here) before the loop got stuck."""
+    (its ``Timeout`` line), two timeouts after the watch last ran: at the earliest a period
+    (a quarter of the timeout here) before the loop got stuck. (Armed only at the start, it
+    would end half a timeout earlier.)"""
     timeout_s = scaled(1.0)
-    began = time.monotonic()
     done = subprocess.run([sys.executable, "-c", _BESIDE_THREADS_PROGRAM, str(timeout_s),
                            "holding"], capture_output=True, text=True, timeout=scaled(60.0),
                           check=False)
+    ended = time.monotonic()
     assert_ended_by_loop_watchdog(done.returncode, done.stderr, "_stuck", backstop=True)
     assert "Event loop watchdog" not in done.stderr
-    # half a timeout turning, then stuck: not ended before a timeout less a period after that
-    assert time.monotonic() - began >= timeout_s * (0.5 + 1 - 0.25)
+    stuck = float(done.stdout.split()[1])
+    assert timeout_s * (2 - 0.25) <= ended - stuck <= 2 * timeout_s + scaled(5.0), ended - stuck
+
+
+_PAUSED_PROGRAM = textwrap.dedent('''
+    import asyncio, sys, threading
+    from shared.loop_watchdog import loop_watchdog
+
+    TIMEOUT_S = float(sys.argv[1])
+
+    def _deep(n):
+        return _deep(n - 1) if n else 0
+
+    def _running_on():
+        while True:
+            _deep(900)
+
+    async def main():
+        for _ in range(2):
+            threading.Thread(target=_running_on, daemon=True).start()
+        async with loop_watchdog(TIMEOUT_S):
+            print("watching", flush=True)
+            await asyncio.sleep(3 * TIMEOUT_S)
+
+    asyncio.run(main())
+''')
+
+
+def test_a_process_paused_for_less_than_two_timeouts_is_not_ended_by_the_backstop() -> None:
+    """SIGSTOP for 1.3 timeouts (a paused container, a debugger): on resume the loop turns
+    on, or the watch ends the process with its own reading of the stacks; faulthandler's
+    backstop, which reads them while the threads run again, does not act."""
+    timeout_s = scaled(2.0)
+    proc = subprocess.Popen([sys.executable, "-c", _PAUSED_PROGRAM, str(timeout_s)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None and proc.stdout.readline() == "watching\n"
+        proc.send_signal(signal.SIGSTOP)
+        time.sleep(1.3 * timeout_s)  # the pause itself
+        proc.send_signal(signal.SIGCONT)
+        _, stderr = proc.communicate(timeout=scaled(60.0))
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert "Timeout (" not in stderr, stderr[-2000:]
+    if proc.returncode != 0:
+        assert_ended_by_loop_watchdog(proc.returncode, stderr, "_run_once",
+                                      stuck="the event loop has not turned for ")
 
 
 def test_stacks_are_every_other_thread_s_most_recent_call_first() -> None:
@@ -320,11 +399,12 @@ async def test_a_watchdog_that_cannot_write_is_refused_at_the_start(
             pass
 
 
-async def test_a_re_arm_that_fails_is_said_and_leaves_no_timer(
+async def test_a_backstop_that_cannot_be_re_armed_is_said_and_the_watch_goes_on(
         monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
-    """The watch's thread fails to re-arm the backstop: a timer left armed by a watch that
-    stopped would end a healthy process; it is cancelled, an ERROR says the process is not
-    watched, and nothing ends it. (faulthandler faked: this is the test runner's process.)"""
+    """The watch's thread fails to re-arm faulthandler's timer: the timer is cancelled (one
+    left armed would end a healthy process), an ERROR says what is no longer watched, and
+    the watch itself goes on: a loop stuck after that still ends the process. (faulthandler
+    faked: this is the test runner's process.)"""
     import asyncio
     import faulthandler
 
@@ -334,25 +414,28 @@ async def test_a_re_arm_that_fails_is_said_and_leaves_no_timer(
     monkeypatch.setattr(module, "end_process", ends.append)
     calls: list[str] = []
 
-    def arm(timeout_s: float, exit: bool = False) -> None:
+    def arm(timeout_s: float, file: object = None, exit: bool = False) -> None:
         calls.append("arm")
-        if len(calls) == 3:
+        if len(calls) == 4:
             raise OSError("stderr gone")
 
     monkeypatch.setattr(faulthandler, "dump_traceback_later", arm)
     monkeypatch.setattr(faulthandler, "cancel_dump_traceback_later",
                         lambda: calls.append("cancel"))
-    async with loop_watchdog(0.4):  # re-armed every 0.1 s
+    limit_s = scaled(1.0)
+    async with loop_watchdog(limit_s):  # armed twice at the start, then at each wake
         async with asyncio.timeout(scaled(10.0)):
             while "cancel" not in calls:
                 await asyncio.sleep(0.01)
-        assert calls == ["arm", "arm", "arm", "cancel"]
-        time.sleep(0.5)  # the loop stuck for more than the timeout: unwatched now
-        await asyncio.sleep(0.2)
-        assert ends == []
-    assert [r.getMessage() for r in caplog.records] == [
-        "the event loop's watchdog stopped: OSError('stderr gone'); this process is not "
-        "watched"]
+        await asyncio.sleep(limit_s)  # four more wakes: no re-arm
+        assert calls == ["arm", "arm", "arm", "arm", "cancel"] and ends == [], (calls, ends)
+        time.sleep(1.5 * limit_s)  # stuck
+        await asyncio.sleep(0)
+        assert len(ends) == 1 and "the event loop has not turned for" in ends[0], ends
+    assert [r.getMessage() for r in caplog.records if r.levelname == "ERROR"] == [
+        "the event loop watchdog's backstop (faulthandler's timer) failed: OSError('stderr "
+        "gone'); a loop stuck in C code that keeps the interpreter's lock is not watched any "
+        "more"]
 
 
 @pytest.mark.parametrize("good", [0, 0.0, 1, 1.0, 30.0, 3600])
