@@ -108,6 +108,8 @@ class MachineStalls:
     def __init__(self, tick_s: float = 0.01, over_s: float = 0.03) -> None:
         self.tick_s, self.over_s = tick_s, over_s
         self.stalls_s: list[float] = []
+        #: each stall's (start, end), ``time.monotonic`` (asyncio's loop time)
+        self.spans: list[tuple[float, float]] = []
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._watch, name="machine-stalls", daemon=True)
 
@@ -132,11 +134,18 @@ class MachineStalls:
         while True:
             before = time.monotonic()
             stopped = self._stop.wait(self.tick_s)
-            late = time.monotonic() - before - self.tick_s
+            woke = time.monotonic()
+            late = woke - before - self.tick_s
             if late > self.over_s:
                 self.stalls_s.append(late)
+                self.spans.append((woke - late, woke))
             if stopped:
                 return
+
+    def overlaps(self, start: float, end: float) -> bool:
+        """Whether a stall (widened by ``over_s``, the shortest one seen) overlapped the
+        interval from ``start`` to ``end`` (``time.monotonic``)."""
+        return any(a - self.over_s < end and start < b + self.over_s for a, b in self.spans)
 
     def count(self, longer_than_s: float) -> int:
         """How many stalls were longer than ``longer_than_s``."""

@@ -15,12 +15,21 @@ from tests.support import MachineStalls, scaled
 def test_the_process_stopped_is_one_stall_of_about_its_length() -> None:
     with MachineStalls() as stalls:
         time.sleep(0.05)  # the watch has ticked
+        before = time.monotonic()
         # stopped by another process for 0.2 s, every thread of it (SIGSTOP, SIGCONT)
         subprocess.run(["sh", "-c", f"kill -STOP {os.getpid()}; sleep 0.2; "
                                     f"kill -CONT {os.getpid()}"], check=True)
+        after = time.monotonic()
     assert stalls.count(0.1) >= 1, stalls.stalls_s
     assert 0.15 <= max(stalls.stalls_s) <= 0.2 + scaled(0.3), stalls.stalls_s
     assert stalls.total_s >= max(stalls.stalls_s)
+    # where: within the stop, and seen by what overlaps it
+    [(start, end)] = [span for span in stalls.spans if span[1] - span[0] > 0.1]
+    assert before - stalls.tick_s <= start and end <= after + scaled(0.3), (before, after,
+                                                                           stalls.spans)
+    assert stalls.overlaps(start - 1.0, start + 0.01) and stalls.overlaps(end - 0.01, end + 1.0)
+    assert not stalls.overlaps(end + 0.05, end + 1.0) or any(
+        a > end for a, _ in stalls.spans)  # (unless a second stall came after)
 
 
 def test_a_busy_thread_is_not_a_stall() -> None:

@@ -17,7 +17,7 @@ import pytest
 
 from lab.faults import FaultRig, FaultSpec
 from local_site.agent.config import LocalAgentConfig
-from tests.support import scaled, wait_until
+from tests.support import MachineStalls, scaled, wait_until
 
 pytestmark = pytest.mark.slow
 
@@ -144,12 +144,13 @@ def test_local_station_sigstop_three_seconds_the_board_process_parks_the_pins_by
     rig: FaultRig = rig_factory(board_process=True, render_loop=render_loop)
     board = rig.board_log
     assert board is not None
-    _, t_cont = rig.inject(FaultSpec("stop", "local", 3.0))
+    with MachineStalls() as stalls:  # the machine's stalls hold the board's watchdog up too
+        _, t_cont = rig.inject(FaultSpec("stop", "local", 3.0))
     rig.poll()
     # the last command the board applied before SIGCONT (commands in flight at the stop may
     # land just after it); no command can reach it while the station is stopped
     last = max(m for m, _ in board.applied if m < t_cont)
-    deadline = last + BOARD_WATCHDOG_S + scaled(0.05)
+    deadline = last + BOARD_WATCHDOG_S + scaled(0.05) + stalls.total_s
     assert deadline < t_cont, f"the board applied a command {t_cont - last:.3f} s before " \
         f"SIGCONT: the station was not stopped"
     assert board.safe_at(deadline), (

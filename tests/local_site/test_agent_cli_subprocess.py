@@ -102,7 +102,11 @@ async def test_scene_mode_process_until_motion_done(tmp_path: Path) -> None:
         "sim", "--motion", "raster:x0=26,x1=34,y0=30,y1=30,press_depth=0,pause=0,loop=0",
         "--until-motion-done", "--summary-json", str(summary), "--no-lock-memory",
         stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.DEVNULL,
-        env={**os.environ, **notify.env(100_000)})
+        # a platform lost only when it is: not when the machine stalled the station longer
+        # than the default read timeout (250 ms)
+        env={**os.environ, **notify.env(100_000),
+             "TELETOUCH_LOCAL_AGENT_PLATFORM_READ_TIMEOUT_S": "5",
+             "TELETOUCH_LOCAL_AGENT_PLATFORM_REOPEN_AFTER_S": "5"})
     try:
         async with asyncio.timeout(scaled(20.0)):
             assert await proc.wait() == 0

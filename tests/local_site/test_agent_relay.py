@@ -126,7 +126,10 @@ async def test_platform_state_and_frames_flow_record_and_summary(tmp_path: Path,
 async def test_bad_frames_are_rejected_without_touching_the_pins() -> None:
     async with running_relay() as relay:
         url = f"ws://127.0.0.1:{relay.ws_port}/"
-        agent = relay_agent(url, stale_frame_timeout_s=30.0, max_frame_age_s=30.0)
+        # every timeout that would put the pins safe long: a stall of the machine must not
+        # look like a change the bad frames made
+        agent = relay_agent(url, stale_frame_timeout_s=30.0, max_frame_age_s=30.0,
+                            platform_read_timeout_s=10.0, platform_reopen_after_s=10.0)
         run = asyncio.create_task(agent.run())
         try:
             async with FakeRemote(url, height_mm=3.0) as remote:

@@ -19,7 +19,7 @@ from shared.config import resolve_config
 from shared.errors import ConfigError
 from shared.protocol import Hop, PlatformState, TactileFrame
 from tests.local_site.agent_support import loop_of, make_frame, reader_of, wait_for
-from tests.support import scaled
+from tests.support import MachineStalls, scaled
 
 DEPLOY_LOCAL = Path(__file__).resolve().parents[2] / "deploy" / "config" / "local.toml"
 
@@ -28,10 +28,14 @@ DEPLOY_LOCAL = Path(__file__).resolve().parents[2] / "deploy" / "config" / "loca
 async def test_scene_mode_renders_the_hemisphere_and_survives_an_unplugged_platform(
         platform: str) -> None:
     # The platform's read timeout is a product timeout under test: scaled, so a loaded
-    # machine does not report a spurious loss.
+    # machine does not report a spurious loss. A stall of the whole machine about as long
+    # (the last sample as old as that when the loop runs again) is a loss the pins rightly
+    # take: each such stall is allowed one more "platform_lost".
+    read_timeout_s = scaled(0.25)
     agent = LocalAgent(LocalAgentConfig(scene="hemisphere", motion="hold:x=30,y=30,z=100",
                                         platform=platform, device_retry_min_s=0.05,
-                                        platform_read_timeout_s=scaled(0.25)))
+                                        platform_read_timeout_s=read_timeout_s))
+    stalls = MachineStalls().start()
     run = asyncio.create_task(agent.run())
     try:
         # hemisphere r = 4.5 mm placed at the workspace centre, platform on its top:
@@ -46,7 +50,9 @@ async def test_scene_mode_renders_the_hemisphere_and_survives_an_unplugged_platf
         # first (a loaded machine), the pins wait in the safe state for the platform's first
         # sample, counted as one "platform_lost" at start. Count the unplug on top of that.
         at_start = dict(loop_of(agent).counters.safe_entries)
-        assert at_start in ({}, {"platform_lost": 1}) and reader_of(agent).errors == 0
+        assert set(at_start) <= {"platform_lost"} and reader_of(agent).errors == 0, at_start
+        assert at_start.get("platform_lost", 0) <= 1 + stalls.count(read_timeout_s / 2), \
+            (at_start, stalls.stalls_s)
         reader_of(agent).platform.unplug()  # type: ignore[attr-defined]
         await wait_for(lambda: loop_of(agent).safe_reason == "platform_lost", 2.0, "safe state")
         await wait_for(lambda: reader_of(agent).reconnects >= 1
@@ -54,10 +60,16 @@ async def test_scene_mode_renders_the_hemisphere_and_survives_an_unplugged_platf
                        4.0, "platform reopened and rendering again")
     finally:
         agent.request_stop("test")
-        assert await run == 0
+        try:
+            assert await run == 0
+        finally:
+            stalls.stop()
     s = agent.summary
     assert s is not None and s["mode"] == "scene" and s["link"] is None
-    assert s["safe_state"]["entries"] == {"platform_lost": at_start.get("platform_lost", 0) + 1}
+    entries = s["safe_state"]["entries"]
+    assert set(entries) == {"platform_lost"}, entries
+    lost = entries["platform_lost"] - at_start.get("platform_lost", 0)
+    assert 1 <= lost <= 1 + stalls.count(read_timeout_s / 2), (entries, stalls.stalls_s)
     assert s["platform"]["errors"] >= 1 and s["platform"]["reconnects"] >= 1
     assert s["display"]["commands_sent"] >= 2 and s["display"]["errors"] == 0
     assert s["display"]["driver"]["safe_states_sent"] >= 2  # the loss, and the shutdown

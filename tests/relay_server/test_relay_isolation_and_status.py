@@ -11,7 +11,7 @@ import numpy as np
 
 from shared.protocol import ArmCommand, ArmState, TactileFrame
 from tests.relay_server.relay_clients import Client, clients, running_relay
-from tests.support import scaled
+from tests.support import MachineStalls, scaled
 
 
 async def http_get(port: int, path: str) -> tuple[int, dict[str, str], str]:
@@ -66,13 +66,14 @@ async def test_stalled_consumer_does_not_delay_another_session() -> None:
         frame = TactileFrame(seq=0, ts_us=0, layers={"height_mm": layer})
         flood_bytes = 0
         during = []
-        for seq in range(1, 201):  # ~13 MB at a consumer that reads nothing
-            data = flooder.conn.encode(TactileFrame(seq=seq, ts_us=flooder.now(),
-                                                    layers=frame.layers))
-            flood_bytes += len(data)
-            await flooder.send_raw(data)
-            if seq % 10 == 0:
-                during.append(await round_trip_ms(l2, r2, 1000 + seq))
+        with MachineStalls() as stalls:  # a stall of the machine lengthens a round trip
+            for seq in range(1, 201):  # ~13 MB at a consumer that reads nothing
+                data = flooder.conn.encode(TactileFrame(seq=seq, ts_us=flooder.now(),
+                                                        layers=frame.layers))
+                flood_bytes += len(data)
+                await flooder.send_raw(data)
+                if seq % 10 == 0:
+                    during.append(await round_trip_ms(l2, r2, 1000 + seq))
         assert flood_bytes > 10_000_000
         status = relay.status()["sessions"]["stuck"]
         drops = status["drops"]["remote_to_local"]["latest_wins"]
@@ -81,7 +82,8 @@ async def test_stalled_consumer_does_not_delay_another_session() -> None:
         # (tactile_frame, arm_state) and per periodic control message (stats, clock_ping)
         assert status["queue_depth"]["local"] <= 4
         # the other session's round trip stays small (not seconds of queued frames)
-        assert max(during) < max(scaled(250.0), 10 * float(np.median(baseline)))
+        assert max(during) < max(scaled(250.0), 10 * float(np.median(baseline))) + \
+            1000 * stalls.total_s, (during, stalls.stalls_s)
         fine = relay.status()["sessions"]["fine"]
         assert fine["drops"]["local_to_remote"]["queue_full"] == 0
 

@@ -281,13 +281,17 @@ async def test_frames_answer_commands_as_they_arrive_not_after_they_aged() -> No
     stop = asyncio.Event()
 
     try:
-        task = asyncio.create_task(hold_hand(
-            link, position, interval_s, until=lambda: len(station.command_wait_s) >= 30,
-            stop=stop))
-        await station.run(stop, duration_s=scaled(30.0))
-        await task
+        # a stall of the machine is a long gap between two commands: the estimate (a mean
+        # with weight 1/8) moves up by at most an eighth of it
+        with MachineStalls() as stalls:
+            task = asyncio.create_task(hold_hand(
+                link, position, interval_s, until=lambda: len(station.command_wait_s) >= 30,
+                stop=stop))
+            await station.run(stop, duration_s=scaled(30.0))
+            await task
         ages_ms = np.asarray(station.command_wait_s)[5:] * 1e3  # after the rate is known
-        assert station.command_interval_s == pytest.approx(interval_s, rel=0.5)
+        assert station.command_interval_s == pytest.approx(
+            interval_s, abs=interval_s / 2 + stalls.total_s / 8), stalls.stalls_s
         assert float(np.median(ages_ms)) <= interval_s * 1e3 / 4, (
             f"command ages at capture {np.round(ages_ms, 1)} ms; {station.captures}")
         assert station.captures.waited_for_command >= 10
