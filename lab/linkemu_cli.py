@@ -75,6 +75,14 @@ class LinkSettings:
     duration_s: float | None = None
     stats_interval_s: float = 5.0
 
+    def __post_init__(self) -> None:
+        from shared.config import check_positive
+
+        # (0 would spin the status loop; a negative duration end at once)
+        check_positive("link.stats_interval_s", self.stats_interval_s)
+        if self.duration_s is not None:
+            check_positive("link.duration_s", self.duration_s)
+
 
 def parse_host_port(text: str, *, default_host: str = "127.0.0.1") -> tuple[str, int]:
     """Parse ``HOST:PORT``, ``:PORT`` or ``[v6]:PORT``.

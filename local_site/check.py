@@ -130,6 +130,9 @@ def check_display(spec: str, settings: CheckSettings | None = None, *,
     """
     cfg = settings or CheckSettings()
     figures: dict[str, Any] = {"watchdog_ms": watchdog_ms}
+    # the driver's keepalive must be shorter than the watchdog (this probe sends no stream
+    # of commands for it to keep alive): its default, or half a shorter watchdog
+    options.setdefault("keepalive_interval_s", min(0.02, watchdog_ms / 2000.0))
     try:
         display = open_display(spec, connect=False, connect_timeout_s=cfg.connect_timeout_s,
                                watchdog_ms=watchdog_ms, watchdog_mode="flat",

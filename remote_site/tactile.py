@@ -142,7 +142,7 @@ def sample_stiffness_map(stiffness_map: StiffnessMap, xs_mm: NDArray[np.float64]
     rows = np.clip(rows, 0, n_rows - 1)
     inside = row_ok[:, None] & col_ok[None, :]
     counts = stiffness_map.count[rows[:, None], cols[None, :]]
-    means = stiffness_map.mean_n_per_mm()[rows[:, None], cols[None, :]]
+    means = stiffness_map.mean_at(rows[:, None], cols[None, :])
     known = inside & (counts > 0)
     return np.where(known, means, 0.0), known
 

@@ -105,17 +105,31 @@ def test_an_arm_watchdog_period_near_the_command_timeout_is_refused() -> None:
     check_arm_watchdog(RemoteAgentConfig(), SafetyConfig(command_timeout_ms=20.0))
 
 
+def test_arm_states_faster_than_the_arm_is_polled_are_refused() -> None:
+    """Each arm_state carries one poll's reading: more states than polls were capped
+    without a word."""
+    with pytest.raises(ConfigError, match=r"^remote\.agent\.arm_state_hz \(300\) must be <= "
+                                          r"remote\.agent\.arm_poll_hz \(250\): each "):
+        RemoteAgentConfig(arm_state_hz=300.0)
+    RemoteAgentConfig(arm_state_hz=250.0)
+
+
+@pytest.mark.parametrize(("variable", "value", "said"), [
+    ("WATCHDOG_PERIOD_S", "0.08", "remote.agent.watchdog_period_s (80 ms) must be under half"),
+    # a tiny cell allocated a map of the phantom's area in such cells
+    ("STIFFNESS_CELL_MM", "0.001", "in cells of 0.001 mm would hold 3,600,000,000 cells"),
+    ("ARM_STATE_HZ", "1000", "remote.agent.arm_state_hz (1000) must be <= ")])
 def test_the_remote_station_refuses_it_before_anything_opens(
-        caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch) -> None:
+        variable: str, value: str, said: str, caplog: pytest.LogCaptureFixture,
+        monkeypatch: pytest.MonkeyPatch) -> None:
     from lab.cli import main
 
     opened: list[object] = []
-    monkeypatch.setattr("remote_site.agent.app.open_world_arm",
-                        lambda *args: opened.append(args))  # the first device opened
-    monkeypatch.setenv("TELETOUCH_REMOTE_AGENT_WATCHDOG_PERIOD_S", "0.08")
+    monkeypatch.setattr("remote_site.agent.app.open_world",
+                        lambda *args, **kwargs: opened.append(args))  # the first device opened
+    monkeypatch.setenv(f"TELETOUCH_REMOTE_AGENT_{variable}", value)
     monkeypatch.setenv("TELETOUCH_REMOTE_LINK_TOKEN", "x")
     assert main(["remote", "--relay", "tcp://127.0.0.1:9", "--session", "s1", "--arm", "sim",
                  "--sensor", "sim", "--phantom", "severity", "--seed", "2", "--ideal"]) == 1
-    assert any("remote.agent.watchdog_period_s (80 ms) must be under half" in r.getMessage()
-               for r in caplog.records), caplog.records
+    assert any(said in r.getMessage() for r in caplog.records), caplog.records
     assert opened == []

@@ -96,22 +96,22 @@ class RendererConfig:
         for name, value in numbers.items():
             if isinstance(value, bool) or not isinstance(value, int | float) \
                     or not math.isfinite(value):
-                raise ConfigError(f"render.{name} must be a finite number, got {value!r}")
+                raise ConfigError(f"local.render.{name} must be a finite number, got {value!r}")
         if self.height_mode not in HEIGHT_MODES:
-            raise ConfigError(f"render.height_mode must be one of {HEIGHT_MODES}, "
+            raise ConfigError(f"local.render.height_mode must be one of {HEIGHT_MODES}, "
                               f"got {self.height_mode!r}")
         if not 0.0 < self.pitch_mm <= 100.0:
-            raise ConfigError("render.pitch_mm must lie in (0, 100]")
+            raise ConfigError("local.render.pitch_mm must lie in (0, 100]")
         if not 0.0 < self.stroke_mm <= STROKE_MM:
-            raise ConfigError(f"render.stroke_mm must lie in (0, {STROKE_MM}]")
+            raise ConfigError(f"local.render.stroke_mm must lie in (0, {STROKE_MM}]")
         if not 0.0 < abs(self.height_gain) <= 1.0e3:
-            raise ConfigError("render.height_gain must be non-zero with |gain| <= 1000")
+            raise ConfigError("local.render.height_gain must be non-zero with |gain| <= 1000")
         if not 0.0 <= self.height_offset_mm <= self.stroke_mm:
-            raise ConfigError("render.height_offset_mm must lie within the stroke")
+            raise ConfigError("local.render.height_offset_mm must lie within the stroke")
         if not 0.0 <= self.move_threshold_mm <= 1.0:
-            raise ConfigError("render.move_threshold_mm must lie in [0, 1] mm")
+            raise ConfigError("local.render.move_threshold_mm must lie in [0, 1] mm")
         if not 0.0 <= self.friction_floor < 1.0:
-            raise ConfigError("render.friction_floor must lie in [0, 1)")
+            raise ConfigError("local.render.friction_floor must lie in [0, 1)")
 
 
 @dataclass

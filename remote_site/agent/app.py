@@ -213,6 +213,8 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
                               "the latency (plus a frame period, or some frames age out "
                               "before they are read)")
     workspace = load_workspace(toml_path=toml)
+    lo, hi = workspace.phantom_bounds_mm
+    bounds = MapBounds(lo[0], hi[0], lo[1], hi[1], agent_cfg.stiffness_cell_mm)  # (checked)
     stiffness_calibration = load_stiffness_calibration(options.sensor,
                                                        options.stiffness_calibration)
     if stiffness_cfg.gel_stiffness_n_per_mm is None:  # flags/env/TOML win over the file
@@ -230,8 +232,6 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
              "heights above the contact rim" if reconstructor.relief == "rim"
              else "heights above the free gel")
 
-    lo, hi = workspace.phantom_bounds_mm
-    bounds = MapBounds(lo[0], hi[0], lo[1], hi[1], agent_cfg.stiffness_cell_mm)
     stiffness = StiffnessStage(stiffness_cfg, bounds)
     assembler = TactileAssembler(workspace, stiffness_to_k=stiffness_to_k,
                                  patch_size_mm=agent_cfg.patch_size_mm,

@@ -26,13 +26,15 @@ class RemoteAgentConfig:
             pitch is the nearest integer multiple of the sensor pixel.
         patch_size_mm: (x, y) patch extent in phantom mm; 0 = the whole sensor area.
         arm_poll_hz: rate of the arm monitor (safety poll, stiffness samples, link check).
-        arm_state_hz: rate of ``arm_state`` messages to the local station.
+        arm_state_hz: rate of ``arm_state`` messages to the local station (at most
+            ``arm_poll_hz``: each carries one poll's reading).
         link_loss_halt_ms: the arm is halted when the link has been down this long.
         watchdog_period_s: period of the safety watchdog thread (command timeout, force
             limit), independent of the event loop.
         sensor_max_age_ms: a sensor frame older than this is refused (aged from its image's
             time: a camera's ``--sensor-latency-ms`` counts against it).
-        stiffness_cell_mm: cell size of the stiffness map.
+        stiffness_cell_mm: cell size of the stiffness map (the phantom's area in such
+            cells at most ``remote_site.stiffness.stiffness_map.MAX_CELLS``, a million).
         friction: value of the friction layer (0 for palpation).
         status_interval_s: how often the status line is refreshed.
         tactile_codec: ``compact`` (protocol v2 ``tactile_compact``: int16 layers, deltas
@@ -141,6 +143,10 @@ class RemoteAgentConfig:
                               f"got {self.lock_memory!r}")
         if self.frame_rate_hz > 1000.0 or self.arm_poll_hz > 2000.0:
             raise ConfigError("remote.agent: frame_rate_hz <= 1000 and arm_poll_hz <= 2000")
+        if self.arm_state_hz > self.arm_poll_hz:  # each arm_state is one poll's reading
+            raise ConfigError(f"remote.agent.arm_state_hz ({self.arm_state_hz:g}) must be <= "
+                              f"remote.agent.arm_poll_hz ({self.arm_poll_hz:g}): each "
+                              "arm_state carries one poll's reading")
         if len(self.patch_size_mm) != 2 or not all(
                 math.isfinite(v) and v >= 0 for v in self.patch_size_mm):
             raise ConfigError("remote.agent.patch_size_mm must be two numbers >= 0")

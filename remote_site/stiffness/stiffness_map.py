@@ -14,7 +14,10 @@ from numpy.typing import NDArray
 
 from shared.errors import ConfigError, InputDataError
 
-__all__ = ["MapBounds", "StiffnessMap"]
+__all__ = ["MAX_CELLS", "MapBounds", "StiffnessMap"]
+
+#: the most cells a map may have (three float64/int64 arrays: 24 MB)
+MAX_CELLS = 1_000_000
 
 
 @dataclass(frozen=True)
@@ -33,6 +36,16 @@ class MapBounds:
             raise ConfigError("map bounds must be finite with cell_mm > 0")
         if self.x_min_mm >= self.x_max_mm or self.y_min_mm >= self.y_max_mm:
             raise ConfigError("map bounds: min must be below max")
+        width_mm, height_mm = self.x_max_mm - self.x_min_mm, self.y_max_mm - self.y_min_mm
+        sides = (width_mm / self.cell_mm, height_mm / self.cell_mm)  # (inf for tiny cells)
+        cells = sides[0] * sides[1] if max(sides) > MAX_CELLS else \
+            math.prod(math.ceil(side) for side in sides)  # as :attr:`shape` counts them
+        if cells > MAX_CELLS:
+            raise ConfigError(
+                f"a stiffness map of {width_mm:g} x {height_mm:g} mm in cells of "
+                f"{self.cell_mm:g} mm would hold "
+                f"{f'{cells:,.0f}' if math.isfinite(cells) else 'countless'} cells, more than "
+                f"{MAX_CELLS:,}: the cells must be larger (remote.agent.stiffness_cell_mm)")
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -92,6 +105,12 @@ class StiffnessMap:
     def mean_n_per_mm(self) -> NDArray[np.float64]:
         """Mean per cell; 0 where there is no estimate (see :attr:`count`)."""
         return np.where(self.count > 0, self._mean, 0.0)
+
+    def mean_at(self, rows: NDArray[np.int64], cols: NDArray[np.int64]
+                ) -> NDArray[np.float64]:
+        """:meth:`mean_n_per_mm` at the cells ``[rows, cols]`` (numpy indexing, broadcast),
+        without the whole map: a frame's patch reads a few dozen cells of it."""
+        return np.where(self.count[rows, cols] > 0, self._mean[rows, cols], 0.0)
 
     def std_n_per_mm(self) -> NDArray[np.float64]:
         """Sample standard deviation per cell; 0 with fewer than two estimates."""

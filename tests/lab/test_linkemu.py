@@ -373,6 +373,20 @@ def test_cli_refuses_a_non_positive_signal_outage() -> None:
                  "127.0.0.1:1", "--outage-on-signal", "0", "--duration", "0.1"]) == 1
 
 
+@pytest.mark.parametrize(("flag", "value", "key"), [
+    ("--stats-interval", "0", "link.stats_interval_s"),  # would spin the status loop
+    ("--duration", "-1", "link.duration_s")])
+def test_cli_refuses_a_status_period_or_duration_that_is_not_positive(
+        flag: str, value: str, key: str, caplog: pytest.LogCaptureFixture) -> None:
+    from lab.cli import main
+
+    more = ["--duration", "0.1"] if flag != "--duration" else []
+    assert main(["link", "--listen", f"127.0.0.1:{free_tcp_port()}", "--target",
+                 "127.0.0.1:1", flag, value, *more]) == 1
+    said = [r.getMessage() for r in caplog.records]
+    assert any(f"{key} must be a finite number > 0, got" in m for m in said), said
+
+
 def test_one_process_serves_both_legs_each_with_its_own_delay_and_stats() -> None:
     """Two --listen ports in one ``teletouch link`` process: the demo's two legs."""
     import socket

@@ -54,6 +54,19 @@ def test_sim_devices_pass_with_json_one_entry_per_device(
     assert display["watchdog_tripped"] and display["watchdog_ms"] == 100
 
 
+@pytest.mark.parametrize("watchdog_ms", [1, 15])
+def test_a_watchdog_shorter_than_the_driver_s_keepalive_is_probed(
+        watchdog_ms: int, check_env: None, capsys: pytest.CaptureFixture[str]) -> None:
+    """--watchdog-ms under the driver's 20 ms keepalive failed the display with a setting no
+    user gives ("keepalive_interval_s (0.02) must be ... shorter than the watchdog")."""
+    code = main(["check", "local", "--platform", "sim", "--display", "sim", "--json",
+                 "--watchdog-ms", str(watchdog_ms)])
+    report = _strict_json(capsys.readouterr().out)
+    assert code == 0, report
+    display = report["devices"]["display"]["figures"]
+    assert display["watchdog_tripped"] and display["watchdog_ms"] == watchdog_ms
+
+
 def test_missing_serial_device_and_silent_can_channel_fail_naming_them(
         check_env: None, monkeypatch: pytest.MonkeyPatch,
         capsys: pytest.CaptureFixture[str]) -> None:

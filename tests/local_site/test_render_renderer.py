@@ -438,3 +438,18 @@ def test_the_compiled_pass_is_ready_before_the_first_render() -> None:
     renderer.render(PlaneScene(0.3, 0.0, 0.0), (0.5, 0.5))
     Renderer().render(PlaneScene(0.1, 0.0, 0.0), (1.0, 2.0))
     assert list(_finish_kernel.signatures) == compiled and len(compiled) == 1
+
+
+@pytest.mark.parametrize(("key", "value"), [("pitch_mm", 0.0), ("height_gain", 0.0),
+                                            ("friction_floor", 1.0), ("height_mode", "x"),
+                                            ("stroke_mm", float("nan"))])
+def test_a_bad_render_setting_is_refused_under_its_table_s_name(key: str, value: object) -> None:
+    """Named as the file and the environment name it (``[local.render]``), once."""
+    from shared.config import resolve_config
+
+    with pytest.raises(ConfigError, match=rf"^local\.render\.{key} must "):
+        RendererConfig(**{key: value})  # type: ignore[arg-type]
+    env = {f"TELETOUCH_LOCAL_RENDER_{key.upper()}": str(value)}
+    with pytest.raises(ConfigError, match=rf"^local\.render\.{key}\b") as refused:
+        resolve_config(RendererConfig, "local.render", environ=env)
+    assert "[local.render]" not in str(refused.value), refused.value

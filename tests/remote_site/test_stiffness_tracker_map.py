@@ -78,6 +78,36 @@ def test_stiffness_map_statistics() -> None:
         MapBounds(0, 0, 0, 1)
 
 
+def test_a_map_of_more_than_a_million_cells_is_refused() -> None:
+    from remote_site.stiffness.stiffness_map import MAX_CELLS
+
+    assert MAX_CELLS == 1_000_000
+    assert MapBounds(0, 100, 0, 100, 0.1).shape == (1000, 1000)  # the most: 24 MB
+    for cell_mm in (0.0999, 1e-300):  # (1e-300: cells beyond any float, no OverflowError)
+        with pytest.raises(ConfigError, match=r"^a stiffness map of 100 x 100 mm in cells of "
+                                              r".+ mm would hold .+ cells, more than "
+                                              r"1,000,000: the cells must be larger "
+                                              r"\(remote\.agent\.stiffness_cell_mm\)$"):
+            MapBounds(0, 100, 0, 100, cell_mm)
+    # counted as the map is made, each side rounded up: 1001 x 1000 (a review)
+    with pytest.raises(ConfigError, match=r"would hold 1,001,000 cells"):
+        MapBounds(0, 99.95, 0, 100.04, 0.1)
+
+
+@settings(max_examples=50, deadline=None)
+@given(points=st.lists(st.tuples(st.floats(-12, 12), st.floats(-12, 12), st.floats(0, 50)),
+                       max_size=40),
+       rows=st.lists(st.integers(0, 9), min_size=1, max_size=6),
+       cols=st.lists(st.integers(0, 9), min_size=1, max_size=6))
+def test_the_mean_at_some_cells_is_the_whole_map_s_there(
+        points: list[tuple[float, float, float]], rows: list[int], cols: list[int]) -> None:
+    m = StiffnessMap(MapBounds(-10, 10, -10, 10, 2.0))
+    for x, y, k in points:
+        m.add(x, y, k)
+    r, c = np.asarray(rows)[:, None], np.asarray(cols)[None, :]
+    np.testing.assert_array_equal(m.mean_at(r, c), m.mean_n_per_mm()[r, c])
+
+
 def test_durometer_model_round_trip_and_monotone() -> None:
     """The simulated probe's calibration inverts the simulator's physics (punch + durometer)."""
     to_k = sim_stiffness_calibration().stiffness_to_k()
