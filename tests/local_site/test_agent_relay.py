@@ -16,6 +16,7 @@ import pytest
 from local_site.agent import LocalAgent
 from local_site.platform.base import PlatformSample
 from local_site.recording import load_recording
+from local_site.scenes import TactileFrameScene
 from shared.protocol import PlatformState, TactileFrame
 from shared.recording import read_mcap
 from shared.timebase import monotonic_s, now_us
@@ -136,8 +137,11 @@ async def test_bad_frames_are_rejected_without_touching_the_pins() -> None:
                 await wait_for(lambda: agent.loop is not None and _pins_near(agent, 3.0), 6.0,
                                "pins at 3 mm")
                 remote.paused = True
-                await asyncio.sleep(scaled(0.1))  # frames in flight arrive
                 loop = loop_of(agent)
+                stream = loop.scene
+                assert isinstance(stream, TactileFrameScene)
+                await wait_for(lambda: stream.last_seq == remote.frames_sent, 2.0,
+                               "the frames in flight to arrive")
                 version = loop.scene.version
                 sent = loop.counters.commands_sent
                 command = loop.renderer.last_command
@@ -193,8 +197,10 @@ async def test_link_loss_goes_safe_then_reconnects_and_resumes(render_loop: str)
             assert remote.frames_sent > 0
     finally:
         agent.request_stop("test")
-        assert await run == 0
-        stalls.stop()
+        try:
+            assert await run == 0
+        finally:
+            stalls.stop()
     assert reaction_s < 0.1 + scaled(0.15) + stalls.total_s, (reaction_s, stalls.stalls_s)
     summary = agent.summary
     assert summary is not None

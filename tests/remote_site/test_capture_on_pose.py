@@ -168,13 +168,14 @@ async def hold_hand(link: FakeLink, position: tuple[float, float, float], interv
                     seq: int = 0) -> int:
     """A held hand: a fresh platform state at ``position`` every ``interval_s`` (on an
     absolute schedule, numbered on from ``seq``) until ``until()``; then ``stop`` is set.
-    Returns the last state's number."""
+    Returns the last state's number. After a stall the missed states are skipped, not sent
+    at once (as a station's uplink sends its newest sample)."""
     loop = asyncio.get_running_loop()
     next_t = loop.time()
     while not until():
         seq += 1
         link.inbox.put_nowait(platform_state(seq, position))
-        next_t += interval_s
+        next_t = max(next_t + interval_s, loop.time())
         await asyncio.sleep(max(0.0, next_t - loop.time()))
     if stop is not None:
         stop.set()
@@ -281,8 +282,9 @@ async def test_frames_answer_commands_as_they_arrive_not_after_they_aged() -> No
     stop = asyncio.Event()
 
     try:
-        # a stall of the machine is a long gap between two commands: the estimate (a mean
-        # with weight 1/8) moves up by at most an eighth of it
+        # a stall of the machine is one long gap between two commands: the estimate (a mean
+        # with weight 1/8; gaps above _COMMAND_GAP_MAX_S, 0.1 s, left out) moves up by at
+        # most an eighth of it
         with MachineStalls() as stalls:
             task = asyncio.create_task(hold_hand(
                 link, position, interval_s, until=lambda: len(station.command_wait_s) >= 30,
@@ -290,8 +292,10 @@ async def test_frames_answer_commands_as_they_arrive_not_after_they_aged() -> No
             await station.run(stop, duration_s=scaled(30.0))
             await task
         ages_ms = np.asarray(station.command_wait_s)[5:] * 1e3  # after the rate is known
-        assert station.command_interval_s == pytest.approx(
-            interval_s, abs=interval_s / 2 + stalls.total_s / 8), stalls.stalls_s
+        up_s = sum(min(stall, 0.1) for stall in stalls.stalls_s) / 8
+        estimate = station.command_interval_s
+        assert estimate is not None and \
+            interval_s / 2 <= estimate <= 1.5 * interval_s + up_s, (estimate, stalls.stalls_s)
         assert float(np.median(ages_ms)) <= interval_s * 1e3 / 4, (
             f"command ages at capture {np.round(ages_ms, 1)} ms; {station.captures}")
         assert station.captures.waited_for_command >= 10
