@@ -207,12 +207,19 @@ class _Watch:
                               "interpreter's lock is not watched any more", exc)
 
     def stuck(self, now: float) -> str | None:
-        """What is stuck at ``now``: the loop, the oldest waited call, or None."""
-        if now - self.turned >= self.limit_s:
-            return f"the event loop has not turned for {now - self.turned:.1f} s"
+        """What is stuck at ``now``: the loop, the oldest waited call, or None. A call
+        waited for the timeout while the loop has not turned for two periods either is the
+        loop's (an await cannot end while the loop stands still): named after it."""
+        stale_s = now - self.turned
         oldest = self.calls.oldest() if self.calls is not None else None
-        if oldest is not None and now - oldest[1] >= self.limit_s:
-            return f"{oldest[0]} has not returned for {now - oldest[1]:.1f} s"
+        waited_s = 0.0 if oldest is None else now - oldest[1]
+        if oldest is not None and waited_s >= self.limit_s:
+            if stale_s <= 2 * self.period_s:
+                return f"{oldest[0]} has not returned for {waited_s:.1f} s"
+            return (f"the event loop has not turned for {stale_s:.1f} s ({oldest[0]} "
+                    f"awaited for {waited_s:.1f} s)")
+        if stale_s >= self.limit_s:
+            return f"the event loop has not turned for {stale_s:.1f} s"
         return None
 
 
@@ -242,8 +249,8 @@ async def loop_watchdog(timeout_s: float | None, calls: WaitedCalls | None = Non
     # sys.stderr's descriptor, taken once (an error is raised here when there is none): the
     # re-arms then neither look sys.stderr up (a redirect would break them) nor flush it
     faulthandler.dump_traceback_later(BACKSTOP_TIMEOUTS * limit_s, exit=True)
-    watch = _Watch(limit_s, period_s, calls, sys.stderr.fileno())
     try:
+        watch = _Watch(limit_s, period_s, calls, sys.stderr.fileno())
         watch.arm()
         watch.start()
     except BaseException:
@@ -271,9 +278,9 @@ async def loop_watchdog(timeout_s: float | None, calls: WaitedCalls | None = Non
     task: asyncio.Task[None]
 
     def keep_turning() -> asyncio.Task[None]:
-        task = loop.create_task(turning(), name="loop-watchdog")
-        task.add_done_callback(ended)
-        return task
+        turner = loop.create_task(turning(), name="loop-watchdog")
+        turner.add_done_callback(ended)
+        return turner
 
     def ended(done: asyncio.Task[None]) -> None:
         # the loop turns on without this task, and the watch would end it as stuck
