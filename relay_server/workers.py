@@ -16,7 +16,9 @@ them, and supervises them:
   it serves) is stuck. SO_REUSEPORT would otherwise keep handing it new connections that it
   never serves. Before the kill the worker is sent ``STACK_DUMP_SIGNAL``, on which it writes
   every thread's stack to its standard error (:mod:`faulthandler`, which needs no help from
-  the stuck interpreter): the log says where it hung. A supervisor that was itself not
+  the stuck interpreter, and reads the stacks of threads that may run on: a dump can be cut
+  short by SIGSEGV, of a worker being killed anyway): the log says where it hung. A
+  supervisor that was itself not
   running for a while (a paused VM, a starved host) gives every worker a fresh timeout
   rather than blaming them for its own gap. ``hang_timeout_s`` 0: neither watch;
 * under systemd it alone speaks for the service: ``READY=1`` once every worker serves,

@@ -6,13 +6,15 @@ container, systemd's ``Restart=`` without a watchdog, a supervisor waiting for i
 to exit. It serves nothing and is never restarted. :func:`loop_watchdog` watches the loop from
 a thread of its own: the loop says that it turns every ``REARM_S`` (or a quarter of the
 timeout if that is less), and the thread, which wakes as often, ends the process once the loop
-has not turned for the timeout. It writes every thread's Python stack to standard error first
-and exits with code 1, for whatever supervises the process to start it again. The process
-ends between one period before the timeout and one period after it, counted from when the
-loop last turned.
+has not turned for the timeout. It writes a line saying what is stuck and every thread's
+Python stack to standard error first and exits with code 1, for whatever supervises the
+process to start it again. The process ends between the timeout and one period after it,
+counted from when the loop last turned (between one period before and one after, counted
+from when it got stuck).
 
-The stacks are read from the watch's thread under the interpreter's lock (GIL), so the other
-threads stand still while they are read. :func:`faulthandler.dump_traceback_later`, which
+The stacks are read from the watch's thread with Python's own frame objects, under the
+interpreter's lock (GIL), which keeps every read safe while the other threads run on.
+:func:`faulthandler.dump_traceback_later`, which
 this module used alone before, reads them from a C thread while they run on: a process whose
 display thread ran on beside a stuck loop died of SIGSEGV (exit code -11) part way through
 its stacks. A loop stuck in C code that holds the GIL for good (so that no other thread runs,
@@ -31,7 +33,8 @@ call was for, and nothing restarts it. Such calls are entered in a :class:`Waite
 to the watchdog (``with calls.waiting_for("what"): await ...``): one that has not returned
 after the timeout ends the process the same way (at the watch's next wake: up to a period
 later), with its thread's stack among those written (a WARNING names it at half the
-timeout).
+timeout). A call the loop awaited when the loop itself got stuck is named after the loop
+(``the event loop has not turned for 30.1 s (a frame's processing awaited for 30.4 s)``).
 
 What it cannot tell apart from a hang: a host or process that was paused for longer than the
 timeout (a paused VM or container, a debugger), whose clock jumps on resume before the loop
@@ -208,18 +211,19 @@ class _Watch:
 
     def stuck(self, now: float) -> str | None:
         """What is stuck at ``now``: the loop, the oldest waited call, or None. A call
-        waited for the timeout while the loop has not turned for two periods either is the
-        loop's (an await cannot end while the loop stands still): named after it."""
+        waited for the timeout while the loop has not turned for two periods either (an
+        await cannot end while the loop stands still) is judged at a later wake: the call's
+        if the loop turns again, the loop's once it has stood still for the timeout."""
         stale_s = now - self.turned
         oldest = self.calls.oldest() if self.calls is not None else None
         waited_s = 0.0 if oldest is None else now - oldest[1]
-        if oldest is not None and waited_s >= self.limit_s:
-            if stale_s <= 2 * self.period_s:
-                return f"{oldest[0]} has not returned for {waited_s:.1f} s"
-            return (f"the event loop has not turned for {stale_s:.1f} s ({oldest[0]} "
-                    f"awaited for {waited_s:.1f} s)")
         if stale_s >= self.limit_s:
-            return f"the event loop has not turned for {stale_s:.1f} s"
+            text = f"the event loop has not turned for {stale_s:.1f} s"
+            if oldest is not None and waited_s >= self.limit_s:
+                text += f" ({oldest[0]} awaited for {waited_s:.1f} s)"
+            return text
+        if oldest is not None and waited_s >= self.limit_s and stale_s <= 2 * self.period_s:
+            return f"{oldest[0]} has not returned for {waited_s:.1f} s"
         return None
 
 

@@ -18,7 +18,12 @@ import pytest
 
 from shared.errors import ConfigError
 from shared.loop_watchdog import check_hang_timeout, loop_watchdog
-from tests.support import REAL_DUMP_TRACEBACK_LATER, assert_ended_by_loop_watchdog, scaled
+from tests.support import (
+    REAL_DUMP_TRACEBACK_LATER,
+    MachineStalls,
+    assert_ended_by_loop_watchdog,
+    scaled,
+)
 
 _PROGRAM = textwrap.dedent('''
     import asyncio, sys, time
@@ -139,6 +144,14 @@ def _fake_arms(monkeypatch: pytest.MonkeyPatch) -> tuple[list[float], list[str]]
     return arms, ends
 
 
+def _stuck_until(ends: list[str], limit_s: float) -> None:
+    """The event loop stuck (this thread blocks it) until the watch has ended the process
+    (faked: ``ends``), or a deadline well past the timeout."""
+    deadline = time.monotonic() + limit_s + scaled(5.0)
+    while not ends and time.monotonic() < deadline:
+        time.sleep(0.01)
+
+
 async def test_a_call_is_judged_at_each_wake_of_the_watch(
         monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
     """In this process (faulthandler and the end faked): with calls returning, the watch's
@@ -179,7 +192,8 @@ async def test_a_call_is_judged_at_each_wake_of_the_watch(
 async def test_a_call_awaited_by_a_loop_that_stands_still_is_named_after_the_loop(
         monkeypatch: pytest.MonkeyPatch) -> None:
     """A call in flight when the loop got stuck reaches the timeout first (it began before
-    the loop's last turn): the report names the loop, and the call after it."""
+    the loop's last turn): it is judged once the loop has stood still for the timeout too,
+    and the report names the loop, and the call after it."""
     import asyncio
 
     from shared.loop_watchdog import WaitedCalls
@@ -189,9 +203,8 @@ async def test_a_call_awaited_by_a_loop_that_stands_still_is_named_after_the_loo
     calls = WaitedCalls()
     async with loop_watchdog(limit_s, calls):
         with calls.waiting_for("a frame's processing"):
-            await asyncio.sleep(limit_s / 2)  # the call in flight, the loop turning
-            time.sleep(1.5 * limit_s)  # then the loop stuck
-        await asyncio.sleep(0)
+            await asyncio.sleep(limit_s / 4)  # the call in flight, the loop turning
+            _stuck_until(ends, limit_s)  # then the loop stuck
     assert len(ends) == 1 and re.match(
         r"Event loop watchdog: the event loop has not turned for \d+\.\d s \(a frame's "
         r"processing awaited for \d+\.\d s\); ", ends[0]), ends
@@ -212,8 +225,7 @@ async def test_a_turning_task_that_something_cancels_is_started_again(
             task.cancel()
             await asyncio.sleep(1.5 * limit_s)  # the loop turning
         assert ends == [], ends
-        time.sleep(1.5 * limit_s)  # stuck
-        await asyncio.sleep(0)
+        _stuck_until(ends, limit_s)
         assert len(ends) == 1 and "the event loop has not turned for" in ends[0], ends
     assert not any(t.name == "loop-watchdog" for t in threading.enumerate())
     assert [r for r in caplog.records if r.levelname == "ERROR"] == []
@@ -299,17 +311,18 @@ def test_a_loop_stuck_in_c_code_that_holds_the_gil_is_ended_by_the_backstop() ->
     period (a quarter of the timeout here) before the loop got stuck. (Armed only at the
     start, it would end half a timeout earlier.)"""
     timeout_s = scaled(1.0)
-    done = subprocess.run([sys.executable, "-c", _BESIDE_THREADS_PROGRAM, str(timeout_s),
-                           "holding"], capture_output=True, text=True, timeout=scaled(60.0),
-                          check=False)
+    with MachineStalls() as stalls:  # a stall before "stuck" can put off the last re-arm
+        done = subprocess.run([sys.executable, "-c", _BESIDE_THREADS_PROGRAM, str(timeout_s),
+                               "holding"], capture_output=True, text=True,
+                              timeout=scaled(60.0), check=False)
     ended = time.monotonic()
     assert_ended_by_loop_watchdog(done.returncode, done.stderr, "_stuck", backstop=True)
     assert "Event loop watchdog" not in done.stderr
     stuck = float(done.stdout.split()[1])
     # (less a tenth of a timeout: the watch's wakes come late while the threads hold the
     # GIL in turns, a run saw 1.746 timeouts; armed only at the start: 1.5 timeouts)
-    assert timeout_s * (2 - 0.25 - 0.1) <= ended - stuck <= 2 * timeout_s + scaled(5.0), \
-        ended - stuck
+    assert timeout_s * (2 - 0.25 - 0.1) - stalls.total_s <= ended - stuck <= \
+        2 * timeout_s + scaled(5.0), (ended - stuck, stalls.stalls_s)
 
 
 _PAUSED_PROGRAM = textwrap.dedent('''
@@ -454,8 +467,7 @@ async def test_a_backstop_that_cannot_be_re_armed_is_said_and_the_watch_goes_on(
                 await asyncio.sleep(0.01)
         await asyncio.sleep(limit_s)  # four more wakes: no re-arm
         assert calls == ["arm", "arm", "arm", "arm", "cancel"] and ends == [], (calls, ends)
-        time.sleep(1.5 * limit_s)  # stuck
-        await asyncio.sleep(0)
+        _stuck_until(ends, limit_s)
         assert len(ends) == 1 and "the event loop has not turned for" in ends[0], ends
     assert [r.getMessage() for r in caplog.records if r.levelname == "ERROR"] == [
         "the event loop watchdog's backstop (faulthandler's timer) failed: OSError('stderr "
