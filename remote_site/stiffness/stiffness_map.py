@@ -38,8 +38,7 @@ class MapBounds:
             raise ConfigError("map bounds: min must be below max")
         width_mm, height_mm = self.x_max_mm - self.x_min_mm, self.y_max_mm - self.y_min_mm
         sides = (width_mm / self.cell_mm, height_mm / self.cell_mm)  # (inf for tiny cells)
-        cells = sides[0] * sides[1] if max(sides) > MAX_CELLS else \
-            math.prod(math.ceil(side) for side in sides)  # as :attr:`shape` counts them
+        cells = sides[0] * sides[1] if max(sides) > MAX_CELLS else math.prod(self.shape)
         if cells > MAX_CELLS:
             raise ConfigError(
                 f"a stiffness map of {width_mm:g} x {height_mm:g} mm in cells of "
