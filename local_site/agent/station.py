@@ -221,7 +221,8 @@ class LocalAgent:
             platform = None  # opened again in the reader's process, from the same spec
         if self.until_motion_done and motion_duration_s is None:
             raise ConfigError("--until-motion-done needs a platform with a scripted motion of "
-                              "finite length (the sim platform with raster, hold or replay)")
+                              "finite length (the sim platform with raster, hold, replay, or "
+                              "random with a duration)")
         display_opts: dict[str, Any] = dict(
             keepalive_interval_s=cfg.display_keepalive_interval_s,
             watchdog_ms=cfg.display_watchdog_ms, watchdog_mode=cfg.safe_state,

@@ -242,6 +242,8 @@ class RandomWalk(MotionSource):
             than that room, from a high speed or a wide margin, is folded back in).
         margin_mm: distance kept from each bound.
         step_s: generation grid.
+        duration_s: the walk's length (s): it holds its position from then on, so a run can
+            end with it (``--until-motion-done``); None (default): endless.
     """
 
     _CHUNK = 4096
@@ -249,12 +251,16 @@ class RandomWalk(MotionSource):
     def __init__(self, seed: int = 0, *, speed_mm_s: float = 15.0, z_speed_mm_s: float = 3.0,
                  correlation_s: float = 0.5, start_mm: Vec3 | None = None,
                  workspace_mm: Vec3 = DEFAULT_WORKSPACE_MM, margin_mm: float = 2.0,
-                 step_s: float = 0.005) -> None:
+                 step_s: float = 0.005, duration_s: float | None = None) -> None:
         values = (speed_mm_s, z_speed_mm_s, correlation_s, margin_mm, step_s, *workspace_mm)
         if not all(math.isfinite(v) and v >= 0 for v in values) or step_s <= 0 \
                 or correlation_s <= 0:
             raise ConfigError("random walk parameters must be finite, >= 0 (step and "
                               "correlation > 0)")
+        if duration_s is not None and not (math.isfinite(duration_s) and duration_s > 0):
+            raise ConfigError(f"random walk duration_s must be finite and > 0 (or None: "
+                              f"endless), got {duration_s!r}")
+        self.duration_s = None if duration_s is None else float(duration_s)
         self._rng = np.random.default_rng(seed)
         self._lo = np.full(3, margin_mm)
         self._hi = np.asarray(workspace_mm, dtype=float) - margin_mm
@@ -308,6 +314,8 @@ class RandomWalk(MotionSource):
         t = np.clip(np.asarray(t_s, dtype=float), 0.0, None)
         if not np.all(np.isfinite(t)):
             raise InputDataError("random walk queried at a non-finite time")
+        if self.duration_s is not None:  # held at its end
+            t = np.minimum(t, self.duration_s)
         idx = t / self._step_s
         self._extend(int(np.max(idx, initial=0.0)) + 2)
         path = self._pos[0]

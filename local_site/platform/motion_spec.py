@@ -16,7 +16,8 @@ underlying class is also accepted under its full name):
     Example: ``raster:x0=5,x1=55,y0=5,y1=55,spacing=2,speed=20,press_depth=3,press_every=4``
 ``random`` (:class:`~local_site.platform.motion.RandomWalk`)
     ``seed`` (int), ``speed``, ``z_speed`` (mm/s RMS), ``correlation`` (s), ``x``, ``y``,
-    ``z`` start (mm), ``margin`` (mm), ``step`` (s).
+    ``z`` start (mm), ``margin`` (mm), ``step`` (s), ``duration`` (s: the walk then holds
+    its position, so ``--until-motion-done`` can end a run; default endless).
 ``hold`` (:class:`~local_site.platform.motion.HoldMotion`)
     ``x``, ``y``, ``z`` (mm; default 30, 30, 100).
 ``replay``
@@ -48,7 +49,8 @@ _RASTER_ALIASES = {"spacing": "line_spacing_mm", "speed": "speed_mm_s", "z": "ho
                    "press_every": "press_spacing_mm", "press_speed": "press_speed_mm_s",
                    "dwell": "dwell_s", "pause": "start_pause_s"}
 _RANDOM_ALIASES = {"speed": "speed_mm_s", "z_speed": "z_speed_mm_s",
-                   "correlation": "correlation_s", "margin": "margin_mm", "step": "step_s"}
+                   "correlation": "correlation_s", "margin": "margin_mm", "step": "step_s",
+                   "duration": "duration_s"}
 _BOOL_WORDS = {"1": True, "true": True, "yes": True, "0": False, "false": False, "no": False}
 
 

@@ -98,10 +98,14 @@ def test_motion_specs() -> None:
     assert once.position_mm(100.0) == pytest.approx((20.0, 30.0, 100.0))  # holds: no loop
     walk = parse_motion_spec("random:seed=4,speed=5,x=10,y=10,z=50")
     assert isinstance(walk, RandomWalk) and walk.position_mm(0.0) == pytest.approx((10, 10, 50))
+    assert walk.duration_s is None
+    ending = parse_motion_spec("random:seed=4,speed=5,x=10,y=10,z=50,duration=2.5")
+    assert isinstance(ending, RandomWalk) and ending.duration_s == 2.5
     hold = parse_motion_spec("hold:x=12")
     assert isinstance(hold, HoldMotion) and hold.position_mm(5.0) == (12.0, 30.0, 100.0)
     for bad in ("raster:spacing", "raster:x0=5,x0=6", "raster:speed=fast", "raster:bogus=1",
-                "hold:w=1", "swim", "random:x=1", "raster:x0=50,x1=10", "replay:loop=1", ""):
+                "hold:w=1", "swim", "random:x=1", "raster:x0=50,x1=10", "replay:loop=1", "",
+                "random:duration=0", "random:duration=inf", "random:duration=-1"):
         with pytest.raises(ConfigError):
             parse_motion_spec(bad)
 

@@ -169,6 +169,25 @@ def test_a_fast_walk_is_reflected_as_often_as_it_takes() -> None:
     np.testing.assert_allclose(got, np.array(expected), rtol=0, atol=1e-6)
 
 
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**31), duration=st.floats(0.01, 20.0),
+       t=st.lists(st.floats(0.0, 40.0), min_size=1, max_size=30))
+def test_a_random_walk_with_a_duration_is_the_endless_walk_held_at_its_end(
+        seed: int, duration: float, t: list[float]) -> None:
+    times = np.array(t)
+    ending = RandomWalk(seed, speed_mm_s=40.0, duration_s=duration)
+    endless = RandomWalk(seed, speed_mm_s=40.0)
+    assert ending.duration_s == duration and endless.duration_s is None
+    np.testing.assert_array_equal(ending.sample(times), endless.sample(np.minimum(times, duration)))
+
+
+@pytest.mark.parametrize("duration", [0.0, -1.0, float("inf"), float("nan")])
+def test_a_random_walk_refuses_a_duration_that_is_not_positive_and_finite(
+        duration: float) -> None:
+    with pytest.raises(ConfigError, match="duration_s"):
+        RandomWalk(1, duration_s=duration)
+
+
 def test_random_walk_seeds_differ_and_move() -> None:
     t = np.linspace(0, 5, 100)
     a, b = RandomWalk(1).sample(t), RandomWalk(2).sample(t)
