@@ -20,6 +20,7 @@ Run: ``python benchmarks/m2t_tail_table.py benchmarks/results/m2t_tail``.
 
 from __future__ import annotations
 
+import argparse
 import json
 import re
 import statistics
@@ -109,7 +110,12 @@ def table(directory: Path) -> str:
 
 
 def main(argv: list[str]) -> int:
-    directory = Path(argv[0]) if argv else Path("benchmarks/results/m2t_tail")
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("directory", nargs="?", type=Path, default=Path("benchmarks/results/m2t_tail"),
+                    help="a directory of `bench cpu` runs (cpu-*.json); tail.md is written there")
+    directory = ap.parse_args(argv).directory
+    if not directory.is_dir():
+        ap.error(f"{directory} is not a directory")
     text = table(directory)
     (directory / "tail.md").write_text(text + "\n")
     print(text)
