@@ -70,7 +70,7 @@ log = logging.getLogger(__name__)
 
 #: why the pins are in their safe state, in order of precedence
 SAFE_REASONS = ("platform_lost", "link_lost", "no_frames", "clock_uncertain", "stale_frame",
-                "stale_scene", "shutdown")
+                "stale_scene", "display_lost", "shutdown")
 
 
 class LoopRecorder(Protocol):
@@ -431,6 +431,8 @@ class DisplayLoop:
         self._frame_clock: tuple[float, float] | None = None
         #: when the current frame may turn too old (monotonic s; None: local scene)
         self._frame_deadline_s: float | None = None
+        #: the same for the frame the pins' command was rendered from
+        self._pins_deadline_s: float | None = None
         self.recorder = recorder
         self.ledger = ledger
         self._retry_min_s = retry_min_s
@@ -622,7 +624,11 @@ class DisplayLoop:
             self.counters.render_rejected += 1
             if self.counters.render_rejected == 1 or log.isEnabledFor(logging.DEBUG):
                 log.warning("render refused, pins keep their last command: %s", err)
-            self._keepalive()
+            # kept alive only while the frame it was rendered from is fresh (not the newest
+            # frame's deadline: that frame was never rendered), and only a command rendered
+            # since the pins were last safe or reset: none -> nothing is re-sent
+            if self.pin_state.command is not None:
+                self._keepalive(self._pins_deadline_s)
             return
         if command is self.pin_state.command:
             self._keepalive()
@@ -637,6 +643,7 @@ class DisplayLoop:
             self._refuse_late(err)
             return
         self._set_pins(command, None)
+        self._pins_deadline_s = self._deadline()
         if self._frame_went_stale():
             # the process was stopped or starved *during* the send: the command may have
             # reached the pins with an old frame; it is withdrawn at once (safe state) and
@@ -682,9 +689,12 @@ class DisplayLoop:
         log.warning("%s", err)
         self.enter_safe_state("stale_frame")
 
-    def _keepalive(self) -> None:
+    def _keepalive(self, not_after_s: float | None = None) -> None:
+        """Re-send the pins' command when due, refused past ``not_after_s`` (default: the
+        current frame's deadline, for a command rendered from it)."""
         try:
-            if self.display.keepalive(not_after_s=self._deadline()):
+            if self.display.keepalive(not_after_s=self._deadline() if not_after_s is None
+                                      else not_after_s):
                 self.counters.keepalives_sent += 1
         except CommandExpiredError as err:
             self._refuse_late(err)
@@ -717,6 +727,14 @@ class DisplayLoop:
 
     def _display_failed(self, err: DeviceError, stop: Callable[[float], bool]) -> bool:
         self.counters.display_errors += 1
+        # no command is current while the board is away (its own watchdog parks the pins):
+        # published at once, and the outage counted as a safe episode (found by review:
+        # the last command was shown as live until the board was back)
+        self._set_pins(None, "display_lost")
+        if self._safe_since_s is None:
+            self._safe_since_s = monotonic_s()
+            self.counters.safe_entries["display_lost"] = \
+                self.counters.safe_entries.get("display_lost", 0) + 1
         if self.frames is not None:  # nothing renders until the display is back: an outage
             self.frames.rendering = False
         log.error("display failed: %s; reopening with backoff", err)

@@ -173,6 +173,8 @@ class LocalAgent:
         self.frames = FrameSlot()
         #: key frame state of the compact tactile codec (protocol v2)
         self.tactile_decoder = TactileDecoder()
+        #: the link session (``connects``) the decoder's key frame belongs to
+        self._decoder_connects = 0
         self.link: StationLink | None = None
         self.reader: PlatformReader | ProcessPlatformReader | None = None
         self.loop: DisplayLoop | DisplayProcess | None = None
@@ -376,7 +378,14 @@ class LocalAgent:
 
     def _decode_compact(self, msg: TactileCompact) -> TactileFrame | None:
         """The frame of a compact message; None while its key frame is missing (nothing is
-        rendered: the scene ages into the safe state) or when it does not decode."""
+        rendered: the scene ages into the safe state) or when it does not decode. A new
+        link session (a reconnect) forgets the key frame of the last one: a restarted sender
+        numbers its frames from 1 again, and its deltas must not be applied to an old key
+        frame that happens to share a seq."""
+        link = self.link
+        if link is not None and link.counters.connects != self._decoder_connects:
+            self.tactile_decoder.reset()
+            self._decoder_connects = link.counters.connects
         try:
             return self.tactile_decoder.decode(msg)
         except InputDataError as err:

@@ -482,6 +482,9 @@ class ArrayTacDisplay(Device):
             frame = fr.SafeStateFrame(mode=_SAFE_CODES[mode], seq=self._next_seq())
             self._send_frame(fr.ARB_ID_SAFE_STATE, fr.encode_safe_state(frame))
             self._force_next = True
+            # the withdrawn command is forgotten: a keepalive never sends it again
+            self._last_codes = None
+            self._last_applied = np.zeros((3, fr.N_PINS))
             self._n_safe += 1
         log.info("%s: safe state %s sent", self.name, mode)
 

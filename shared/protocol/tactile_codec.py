@@ -138,7 +138,7 @@ class TactileEncoder:
         key = self._key
         delta: dict[str, CompactLayer] | None = None
         if (key is not None and key.shape == shape and set(key.layers) == set(arrays)
-                and self._since_key < self.settings.key_every and frame.seq > key.seq):
+                and self._since_key < self.settings.key_every - 1 and frame.seq > key.seq):
             delta = self._delta(key, arrays)
         if delta is None:
             key = self._make_key(frame.seq, shape, arrays)
@@ -243,7 +243,7 @@ class TactileDecoder:
         if msg.key:
             try:
                 values = {name: _dequantize(layer) for name, layer in msg.layers.items()}
-                _check_ranges(values)
+                _check_ranges(values, msg.layers)
             except (AssertionError, InputDataError) as err:
                 self.counters.rejected += 1
                 raise InputDataError(f"tactile key frame seq={msg.seq} refused: {err}") from err
@@ -271,7 +271,7 @@ class TactileDecoder:
                 arr.ravel()[layer.idx] = deq
                 values[name] = arr
         try:
-            _check_ranges({n: values[n] for n in msg.layers})
+            _check_ranges({n: values[n] for n in msg.layers}, key.layers)
         except InputDataError as err:
             self.counters.rejected += 1
             raise InputDataError(f"tactile delta seq={msg.seq} refused: {err}") from err
@@ -279,15 +279,19 @@ class TactileDecoder:
         return _frame(msg, values)
 
 
-def _check_ranges(values: Mapping[str, np.ndarray]) -> None:
+def _check_ranges(values: Mapping[str, np.ndarray],
+                  keys: Mapping[str, CompactLayer]) -> None:
+    """Each decoded layer within its range, give or take one step of its key frame's scale
+    (at least the layer's resolution): the sender rounds the offset to a whole step, so a
+    value at the range's edge may decode up to half a step beyond it (``docs/protocol.md``);
+    the decoded frame is clipped to the range."""
     for name, arr in values.items():
         lo, hi = LAYER_RANGES[name]
         vmin, vmax = float(arr.min()), float(arr.max())
-        # one quantization step of slack: the sender rounds values at the range's edge
-        step = RESOLUTION[name]
+        step = max(RESOLUTION[name], keys[name].scale or 0.0)
         if vmin < lo - step or vmax > hi + step:
-            raise InputDataError(f"layer {name} decodes to [{vmin:.6g}, {vmax:.6g}], allowed "
-                                 f"[{lo}, {hi}]")
+            raise InputDataError(f"layer {name} decodes to [{vmin!r}, {vmax!r}], allowed "
+                                 f"[{lo}, {hi}] with a slack of {step!r}")
 
 
 def _frame(msg: TactileCompact, values: Mapping[str, NDArray[np.float32]]) -> TactileFrame:

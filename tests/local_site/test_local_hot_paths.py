@@ -261,10 +261,14 @@ def test_keepalive_returns_early_until_due_and_counts_as_before() -> None:
     assert np.array_equal(frame.height_codes, first.height_codes)
     assert np.array_equal(frame.k_codes, first.k_codes)
     assert np.array_equal(frame.f_codes, first.f_codes)
-    # after a safe state the next keepalive goes out at once (the board is parked)
+    # after a safe state the withdrawn command is forgotten: no keepalive sends it again
+    # (found by review: it went out at once, old touch after the safe state)
     display.safe_state("flat")
     n = len(display.sent)
-    assert display.keepalive() is True and len(display.sent) == n + 1
+    assert display.keepalive() is False and len(display.sent) == n
+    # and the next command goes out at once, even one equal to the withdrawn command
+    assert display.send_command(np.linspace(0, 4, 16), 0.75, 0.5).sent
+    assert len(display.sent) == n + 1
 
 
 # ---------------------------------------------------------------- firmware

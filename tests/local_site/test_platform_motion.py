@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -90,7 +91,9 @@ def _walk_reference(seed: int, n: int, speed: float, z_speed: float, correlation
     rng = np.random.default_rng(seed)
     lo = np.full(3, margin)
     hi = np.array([60.0, 60.0, 185.0]) - margin
-    decay = np.exp(-step_s / correlation_s)
+    # the walk's own math.exp: np.exp differs from it in the last bit for about 5 % of
+    # inputs, which made this bit-for-bit test fail on such examples
+    decay = math.exp(-step_s / correlation_s)
     kick = np.array([speed, speed, z_speed]) * np.sqrt(1 - decay**2)
     p = np.clip(np.array([30.0, 30.0, 92.5]), lo, hi)
     v = np.zeros(3)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import itertools
 from collections import Counter
 
+import msgpack
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -193,6 +194,30 @@ def test_stray_pong_is_counted_not_sampled() -> None:
     peer.accept(WELCOME, 2)
     peer.receive_data(encode(ClockPong(ping_id=42, t0_us=1, t1_us=2, t2_us=3)), 5)
     assert peer.events_received() == [HelloReceived(HELLO)] and counters["stray_pong"] == 1
+
+
+def test_a_pong_with_impossible_times_is_not_sampled() -> None:
+    """A pong whose station times are 2**63 - 1 made the offset ~9e18 us, and the next
+    message's delay overflowed the relay's ledgers. A station clock more than a century from
+    the relay's is a client's bug: the pong is counted as stray, not sampled."""
+    counters: Counter[str] = Counter()
+    peer = PeerSession("tcp", SETTINGS, 0, counters)
+    peer.receive_data(frame(encode(HELLO)), 1)
+    peer.accept(WELCOME, 2)
+    peer.events_received()
+    peer.tick(100)
+    peer.data_to_send(lambda: 100)  # ping 0, t0 = 100
+    wild = 2**63 - 1
+    peer.receive_data(frame(encode(ClockPong(ping_id=0, t0_us=100, t1_us=wild,
+                                             t2_us=wild))), 220)
+    assert peer.events_received() == [] and counters["stray_pong"] == 1
+    assert peer.clock.offset_us is None
+    peer.tick(112)
+    peer.data_to_send(lambda: 300)  # ping 1: an ordinary clock (1,000 s ahead) is sampled
+    peer.receive_data(frame(encode(ClockPong(ping_id=1, t0_us=300, t1_us=10**9,
+                                             t2_us=10**9))), 400)
+    (sampled,) = peer.events_received()
+    assert isinstance(sampled, ClockSampled) and peer.clock.offset_us == 10**9 - 350
 
 
 def test_ping_burst_then_interval_and_stats_due() -> None:
@@ -410,7 +435,7 @@ def test_a_compact_key_frame_is_never_replaced_by_a_delta() -> None:
 
 def test_a_key_frame_replaces_a_waiting_key_frame_and_the_delta_it_shows_first() -> None:
     # key 1, delta 2, key 3, delta 4, key 5 (a delta after each key frame)
-    encoder = TactileEncoder(CodecSettings(key_every=1))
+    encoder = TactileEncoder(CodecSettings(key_every=2))
     stream = [encoder.encode(motion_frame(seq, 1_000 * seq, 1_000 * seq + 1_000))
               for seq in range(1, 6)]
     assert [m.key for m in stream] == [True, False, True, False, True]
@@ -513,6 +538,48 @@ def test_error_budget_exhausted_closes_with_1008() -> None:
     assert peer.events_received() == []
 
 
+def test_a_data_message_without_room_for_the_relay_stamps_is_refused_on_receipt() -> None:
+    """An arm command of exactly max_message_bytes was accepted, then the relay's stamps
+    pushed it over the limit and it was dropped unsaid. One that leaves less than
+    FORWARD_ROOM_BYTES is refused at once, with an error naming its stream and seq."""
+    import dataclasses
+
+    from shared.protocol.peer_session import FORWARD_ROOM_BYTES
+
+    limit = 4096
+    small = dataclasses.replace(SETTINGS, max_message_bytes=limit, ping_burst=0)
+    counters: Counter[str] = Counter()
+    peer = PeerSession("tcp", small, 0, counters)
+    peer.receive_data(frame(encode(HELLO)), 1)
+    peer.accept(WELCOME, 2)
+    peer.events_received()
+    peer.data_to_send(lambda: 3)
+
+    def padded(seq: int, size: int) -> bytes:  # an unknown key pads it (forwarded as is)
+        body = {"v": 1, "type": "arm_command", "seq": seq, "ts": 1, "hops": [],
+                "action": "stop", "note": ""}
+        body["note"] = "x" * (size - len(msgpack.packb(body)) - 2)  # str8 -> str16: +2
+        data = msgpack.packb(body)
+        assert len(data) == size
+        return data
+
+    fits, full = padded(1, limit - FORWARD_ROOM_BYTES), padded(2, limit)
+    peer.receive_data(frame(fits) + frame(full), 10)
+    (received,) = peer.events_received()
+    assert isinstance(received, DataReceived) and received.message.seq == 1  # type: ignore[attr-defined]
+    (err,) = [decode(d[4:]) for d in peer.data_to_send(lambda: 11)]
+    assert isinstance(err, Error) and not err.fatal
+    assert (err.code, err.stream, err.seq) == ("too_large_to_forward", "arm_command", 2)
+    assert counters["bad_too_large_to_forward"] == 1 and not peer.closing
+    # the one that fits is forwarded with the relay's stamps (and a clustered relay's two)
+    relay = PeerSession("tcp", small, 0)
+    relay.outbox.put_ordered(received.message, forwarded=True, t_in_us=2**62,
+                             mid_hops=(("relay", "nats_out", 2**62), ("relay", "nats_in", 2**62)),
+                             wire=received.wire)
+    (out,) = relay.data_to_send(lambda: 2**62)
+    assert len(out) - 4 <= limit
+
+
 def test_observer_is_read_only_but_may_report_stats() -> None:
     peer = PeerSession("ws", SETTINGS, 0)
     peer.receive_data(encode(Hello(role="observer", session="lab1", token="t")), 1)
@@ -591,6 +658,81 @@ def test_token_bucket_never_grants_more_than_burst_plus_refill(
         assert 0 <= got <= count
         granted += got
     assert granted <= burst + rate * t / 1e6 + 1e-6
+
+
+def _windows_hold(times: list[int], granted: list[int], rate: float, burst: int) -> None:
+    """Every window [t_i, t_j] of arrivals got at most burst + rate * (t_j - t_i)."""
+    for i in range(len(times)):
+        total = 0
+        for j in range(i, len(times)):
+            total += granted[j]
+            assert total <= burst + rate * (times[j] - times[i]) / 1e6 + 1e-6, (
+                f"{total} granted in [{times[i]}, {times[j]}] us")
+
+
+@settings(max_examples=100, deadline=None)
+@given(rate=st.floats(1.0, 1e4), burst=st.integers(1, 10_000),
+       steps=st.lists(st.tuples(st.integers(0, 10**7), st.integers(0, 20_000)), max_size=40))
+def test_token_bucket_grants_at_most_burst_plus_refill_in_any_window(
+        rate: float, burst: int, steps: list[tuple[int, int]]) -> None:
+    """The refill of an idle time was credited before the cap: after a quiet minute the
+    bucket granted twice its burst at one instant."""
+    from shared.protocol.ratelimit import TokenBucket
+
+    bucket = TokenBucket(rate, burst, 0)
+    t, times, granted = 0, [], []
+    for dt, count in steps:
+        t += dt
+        times.append(t)
+        granted.append(bucket.take(count, t))
+    _windows_hold(times, granted, rate, burst)
+
+
+@settings(max_examples=60, deadline=None)
+@given(rate=st.floats(10.0, 1e4), burst=st.integers(1, 200),
+       steps=st.lists(st.tuples(st.integers(0, 3 * 10**6), st.integers(1, 250)), max_size=30))
+def test_the_relay_rate_limit_grants_at_most_burst_plus_refill_in_any_window(
+        rate: float, burst: int, steps: list[tuple[int, int]]) -> None:
+    """Through the relay's lazy charging (a counter, the bucket read now and then), at random
+    arrival times and chunk sizes: no window gets more than ``burst + rate * T``."""
+    import dataclasses
+
+    limited = dataclasses.replace(SETTINGS, rate_limit_per_s=rate, rate_limit_burst=burst,
+                                  ping_burst=0, bad_message_budget=10**6)
+    peer = PeerSession("tcp", limited, now_us=0)
+    peer.receive_data(frame(encode(HELLO)), 0)
+    peer.accept(WELCOME, 0)
+    peer.events_received()
+    seq = itertools.count()
+    t, times, granted = 0, [], []
+    for dt, count in steps:
+        t += dt
+        peer.receive_data(b"".join(frame(encode(PlatformState(seq=next(seq), ts_us=1)))
+                                   for _ in range(count)), t)
+        times.append(t)
+        granted.append(sum(isinstance(e, DataReceived) for e in peer.events_received()))
+    _windows_hold(times, granted, rate, burst)
+
+
+def test_a_steady_stream_under_the_rate_is_never_limited() -> None:
+    """The lazy charging is never much stricter than an exact bucket: streams under the rate,
+    one message at a time or in chunks of up to half the burst, are never refused."""
+    import dataclasses
+
+    limited = dataclasses.replace(SETTINGS, rate_limit_per_s=1000.0, rate_limit_burst=100,
+                                  ping_burst=0)
+    one = frame(encode(PlatformState(seq=1, ts_us=1)))
+    for period_us, chunk, extra in ((1_100, 1, 0), (1_010, 1, 0), (50_000, 45, 0),
+                                    (10_000, 9, 0), (1_100, 1, 45)):
+        counters: Counter[str] = Counter()
+        peer = PeerSession("tcp", limited, 0, counters)
+        peer.receive_data(frame(encode(HELLO)), 0)
+        peer.accept(WELCOME, 0)
+        for i in range(1, 5_000):
+            peer.receive_data(one * chunk, i * period_us)
+            if extra and i % 1000 == 0:  # now and then a backlog of up to half the burst
+                peer.receive_data(one * extra, i * period_us + 100)
+        assert counters["rate_limited"] == 0 and not peer.closing, (period_us, chunk, extra)
 
 
 def test_a_silent_station_is_closed_and_an_observer_is_not() -> None:
