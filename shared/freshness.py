@@ -7,7 +7,8 @@ own clock with a bound on the error (:mod:`shared.clocksync`) and reports both i
 ``u_A + u_B`` (plus the drift since the stats were built). :func:`judge_age` turns that into a
 verdict that errs on the safe side:
 
-* ``unknown_clock``: an offset is not known yet (no ``stats`` since the connection opened);
+* ``unknown_clock``: an offset is not known yet (no ``stats`` since the connection opened),
+  or its error bound is negative or not finite (a bound below zero would widen the window);
 * ``uncertain_clock``: the bound is wider than ``max_uncertainty_us``: the age cannot be
   judged finely enough to act on;
 * ``stale``: the stamp *may* be older than ``max_age_us`` (``age + uncertainty > max``);
@@ -51,10 +52,11 @@ class ClockView:
     received_us: int
 
     def relative(self, ours: str, theirs: str, now_us: int) -> tuple[float, float] | None:
-        """(our clock minus theirs, its error bound) at ``now_us``, or None if unknown."""
+        """(our clock minus theirs, its error bound) at ``now_us``, or None if unknown (an
+        offset or bound not reported, or a negative bound: it would shrink the other's)."""
         off_a, off_b = self.offsets_us.get(ours), self.offsets_us.get(theirs)
         u_a, u_b = self.uncertainties_us.get(ours), self.uncertainties_us.get(theirs)
-        if off_a is None or off_b is None or u_a is None or u_b is None:
+        if off_a is None or off_b is None or u_a is None or u_b is None or u_a < 0 or u_b < 0:
             return None
         aged = 2.0 * DRIFT_PPM * 1e-6 * max(0, now_us - self.received_us)
         return float(off_a - off_b), float(u_a + u_b) + aged
@@ -113,7 +115,8 @@ def judge_age(stamp_us: int, now_us: int, relative: tuple[float, float] | None, 
         stamp_us: the stamp, on the sender's clock.
         now_us: now, on our clock.
         relative: (our clock minus the sender's, its error bound), e.g. from
-            :meth:`ClockView.relative`; None when unknown.
+            :meth:`ClockView.relative`; None when unknown. A negative or non-finite bound
+            counts as unknown (a negative one would widen the age window).
         max_age_us: the largest age that may be acted on.
         max_uncertainty_us: the widest error bound that may be acted on.
     """
@@ -121,7 +124,7 @@ def judge_age(stamp_us: int, now_us: int, relative: tuple[float, float] | None, 
         return AgeVerdict("unknown_clock")
     offset_us, unc_us = relative
     age_us = now_us - (stamp_us + offset_us)
-    if not (math.isfinite(age_us) and math.isfinite(unc_us)):
+    if not (math.isfinite(age_us) and math.isfinite(unc_us)) or unc_us < 0:
         return AgeVerdict("unknown_clock")
     if unc_us > max_uncertainty_us:
         return AgeVerdict("uncertain_clock", age_us, unc_us)

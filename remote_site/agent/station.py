@@ -58,7 +58,7 @@ from remote_site.arm.base import ArmReading, polled_reading_at
 from remote_site.arm.safety import CommandResult, SafeArm
 from remote_site.tactile import AppliedCommand
 from shared.client import LinkCounters
-from shared.errors import InputDataError
+from shared.errors import DeviceError, InputDataError
 from shared.freshness import ClockView
 from shared.loop_watchdog import WaitedCalls, loop_watchdog
 from shared.protocol.messages import (
@@ -115,6 +115,8 @@ class StationCounters:
     arm_states_sent: int = 0
     link_loss_halts: int = 0
     stiffness_samples_rejected: int = 0
+    #: arm device errors (a lost state packet, a failed move) the loops went on after
+    arm_errors: int = 0
 
 
 @dataclass
@@ -204,6 +206,11 @@ class _Chain:
     first: PlatformState
     connects: int
     since_s: float
+
+
+def _finite(reading: ArmReading) -> bool:
+    """Whether a reading's force and position are finite (else the arm is at fault)."""
+    return math.isfinite(reading.force_n) and all(math.isfinite(v) for v in reading.position_mm)
 
 
 def next_command_wait_s(age_s: float, interval_s: float | None, fresh_s: float,
@@ -328,6 +335,8 @@ class RemoteStation:
         self._arm_state_seq = 0
         self._link_halted = False
         self._warned_no_clock = False
+        #: per loop, whether its last arm call failed (one warning per run of failures)
+        self._arm_failing: dict[str, bool] = {}
         self._started_s: float | None = None
         self._stopped_s: float | None = None
         window = 20_000
@@ -483,15 +492,31 @@ class RemoteStation:
 
     # ------------------------------------------------------------------ loops
 
+    def _arm_error(self, loop: str, err: DeviceError) -> None:
+        """An arm call of ``loop`` failed: counted, the first of a run logged, the arm
+        stopped if it can be. The loop goes on: one lost packet or failed move must not end
+        the station (a fault that lasts keeps the arm halted and is counted)."""
+        self.counters.arm_errors += 1
+        if not self._arm_failing.get(loop):
+            self._arm_failing[loop] = True
+            log.warning("arm error in the %s loop (halting the arm, going on): %s", loop, err)
+        with contextlib.suppress(DeviceError):
+            self.safe_arm.stop()
+
     async def _receive_loop(self) -> None:
         while True:
             msg = await self.link.recv()
-            if isinstance(msg, PlatformState):
-                self.apply_platform_state(msg)
-            elif isinstance(msg, ArmCommand):
-                self.apply_arm_command(msg)
-            elif log.isEnabledFor(logging.DEBUG):
-                log.debug("ignoring %s from the relay", msg.TYPE)
+            try:
+                if isinstance(msg, PlatformState):
+                    self.apply_platform_state(msg)
+                elif isinstance(msg, ArmCommand):
+                    self.apply_arm_command(msg)
+                elif log.isEnabledFor(logging.DEBUG):
+                    log.debug("ignoring %s from the relay", msg.TYPE)
+            except DeviceError as err:
+                self._arm_error("receive", err)
+            else:
+                self._arm_failing["receive"] = False
 
     def _check_link(self) -> None:
         if self.link.is_connected:
@@ -512,22 +537,17 @@ class RemoteStation:
         next_t = loop.time()
         next_state_t = next_t
         while True:
-            polled_us = now_us()
-            reading = self.safe_arm.poll()
-            # stamped halfway through the poll: an arm whose poll takes a while (a real
-            # one's round trip) is placed no later than it was
-            polled_us = (polled_us + now_us()) // 2
-            self.last_reading = reading
-            self._readings.append((polled_us, reading))
+            reading: ArmReading | None = None
             try:
-                self.stiffness.add_sample(reading.t_s, reading.position_mm, reading.force_n)
-            except InputDataError as err:
-                self.counters.stiffness_samples_rejected += 1
-                if self.counters.stiffness_samples_rejected == 1:
-                    log.warning("arm sample rejected by the stiffness stage: %s", err)
-            self._check_link()
+                reading = self._poll_arm()
+                self._check_link()
+            except DeviceError as err:
+                self._arm_error("arm monitor", err)
+            else:
+                self._arm_failing["arm monitor"] = False
             now = loop.time()
-            if now >= next_state_t:
+            # a non-finite reading cannot go on the wire (SafeArm halted the arm for it)
+            if reading is not None and _finite(reading) and now >= next_state_t:
                 next_state_t = max(next_state_t + state_period, now)
                 if self.link.is_connected:
                     self._arm_state_seq += 1
@@ -540,6 +560,26 @@ class RemoteStation:
             if delay < -0.05:
                 next_t = loop.time()
             await asyncio.sleep(max(0.0, delay))
+
+    def _poll_arm(self) -> ArmReading:
+        """One :meth:`SafeArm.poll`: the reading kept and handed to the stiffness stage
+        (a non-finite one only kept as the latest: it places nothing)."""
+        polled_us = now_us()
+        reading = self.safe_arm.poll()
+        # stamped halfway through the poll: an arm whose poll takes a while (a real
+        # one's round trip) is placed no later than it was
+        polled_us = (polled_us + now_us()) // 2
+        self.last_reading = reading
+        if not _finite(reading):
+            return reading
+        self._readings.append((polled_us, reading))
+        try:
+            self.stiffness.add_sample(reading.t_s, reading.position_mm, reading.force_n)
+        except InputDataError as err:
+            self.counters.stiffness_samples_rejected += 1
+            if self.counters.stiffness_samples_rejected == 1:
+                log.warning("arm sample rejected by the stiffness stage: %s", err)
+        return reading
 
     @property
     def _reads_on_arrival(self) -> bool:
@@ -900,6 +940,7 @@ class RemoteStation:
             "arm": {
                 **asdict(s),
                 "link_loss_halts": c.link_loss_halts,
+                "errors": c.arm_errors,
                 "arm_states_sent": c.arm_states_sent,
                 "final_position_mm": None if r is None else list(r.position_mm),
                 "final_force_n": None if r is None else r.force_n,

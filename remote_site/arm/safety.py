@@ -8,9 +8,17 @@ conventions:
 * no accepted command for ``command_timeout_ms`` (100 ms) halts the arm (checked by
   :meth:`SafeArm.poll`, which the station calls at >= 100 Hz, or by the built-in watchdog
   thread started with :meth:`SafeArm.start_watchdog`);
-* pressing stops at ``force_limit_n``: once the measured force reaches it the arm holds its
-  depth and refuses any deeper target (status ``force_limit``) until the force falls below
-  ``force_release_ratio * force_limit_n`` or the target is shallower;
+* pressing stops at ``force_limit_n``: once the measured force reaches it no target may lie
+  deeper than a hold depth (status ``force_limit``), whatever its x and y (sliding sideways
+  onto stiffer tissue at the same depth raises the force too). While a reading's force is at
+  or above the limit the hold depth rises to ``max_press_step_mm`` above the current depth
+  (never lower than before), so the arm backs off until the force falls below the limit; it
+  releases once the force falls below ``force_release_ratio * force_limit_n``. A halted arm
+  (stop, link-loss halt, watchdog halt) is only backed off where it is (its x and y, up to
+  the hold depth), never sent on towards its old target;
+* a reading with a non-finite force or position halts the arm (status ``fault``): the force
+  limit cannot be judged from it. Moves are refused (status ``fault``) while the arm's
+  reading is non-finite; once it is finite again the next accepted move resumes;
 * targets are clamped to the workspace box, and the applied command is returned;
 * below ``press_zone_z_mm`` (phantom z; the surface is z = 0) a downward target may lie at
   most ``max_press_step_mm`` below the arm's current depth. Pressing therefore advances in
@@ -60,10 +68,15 @@ class SafetyConfig:
         command_timeout_ms: the arm halts when the newest command it executed is this old
             (by its stamp, clock-corrected, error bound included; unstamped commands count
             from their arrival), i.e. no fresh command for this long.
-        force_limit_n: the pressing force limit.
+        force_limit_n: the pressing force limit. Once a reading reaches it, no target may
+            lie deeper than the hold depth (sideways targets too); while readings stay at or
+            above it the hold depth rises to ``max_press_step_mm`` above the arm's current
+            depth (never lower), so the arm backs off until the force is below the limit.
         force_release_ratio: the limit releases below this fraction of it.
         press_zone_z_mm: below this phantom z, downward targets are rate-limited.
-        max_press_step_mm: how far below the current depth a target may lie in that zone.
+        max_press_step_mm: how far below the current depth a target may lie in that zone,
+            and how far above the current depth the force limit's hold depth rises while
+            the force is at or above the limit.
     """
 
     max_command_age_ms: float = 100.0
@@ -126,6 +139,8 @@ class SafetyCounters:
     force_limited: int = 0
     press_rate_limited: int = 0
     watchdog_halts: int = 0
+    #: halts for a reading with a non-finite force or position (one per such episode)
+    fault_halts: int = 0
     max_age_ms: float = field(default=0.0)
 
 
@@ -162,6 +177,11 @@ class SafeArm:
         self._last_command_s: float | None = None
         self._halted = False
         self._limit_hold_z: float | None = None  # deepest z allowed while force-limited
+        #: the hold depth a halted arm was last backed off to (None: not backed off since the
+        #: halt): a halted arm is backed off again only when the hold depth rose above it
+        self._backoff_z: float | None = None
+        #: the arm's last reading was non-finite (an episode: halted, logged once)
+        self._fault = False
         self._lock = threading.RLock()
         self._watchdog: threading.Thread | None = None
         self._watchdog_stop = threading.Event()
@@ -215,6 +235,8 @@ class SafeArm:
             clamped = applied != target
             status = "moving"
             reading = self.arm.state()
+            if not self._reading_finite(reading):
+                return CommandResult(False, None, "fault", False, age_ms)
             self._update_force_limit(reading)
             z_now = reading.position_mm[2]
             cfg = self.config
@@ -258,6 +280,7 @@ class SafeArm:
                 return CommandResult(False, None, "stale_command", False, age_ms, "stale")
             self._last_command_s = self._mono() - sent_ago_s
             self._halted = False
+            self._backoff_z = None
             self.counters.applied += 1
             return CommandResult(True, applied, status, clamped, age_ms,
                                  speed_before_mm_s=math.hypot(*reading.velocity_mm_s))
@@ -288,19 +311,25 @@ class SafeArm:
         with self._lock:
             self.arm.stop()
             self._halted = True
+            self._backoff_z = None
 
-    def home(self) -> CommandResult:
-        """Move home (clamped and force-limited like any move)."""
-        return self.move(self.arm.limits.home_mm)
+    def home(self, *, sent_ts_us: int | None = None, clock_offset_us: float | None = 0.0,
+             offset_uncertainty_us: float = 0.0) -> CommandResult:
+        """Move home (age-checked, clamped and force-limited like any :meth:`move`)."""
+        return self.move(self.arm.limits.home_mm, sent_ts_us=sent_ts_us,
+                         clock_offset_us=clock_offset_us,
+                         offset_uncertainty_us=offset_uncertainty_us)
 
     def set_force_limit(self, force_limit_n: float) -> None:
         """Change the pressing force limit (never above the configured one).
 
+        Not age-checked: a wire command goes through :meth:`handle`, which is.
+
         Raises:
-            ConfigError: not a finite positive number.
+            ConfigError: ``force_limit_n`` is not a finite positive number.
         """
         if not (math.isfinite(force_limit_n) and force_limit_n > 0):
-            raise ConfigError("force limit must be finite and > 0")
+            raise ConfigError(f"force_limit_n must be finite and > 0, got {force_limit_n!r}")
         with self._lock:
             self._force_limit_n = min(float(force_limit_n), self.config.force_limit_n)
 
@@ -309,28 +338,73 @@ class SafeArm:
         """Apply a wire :class:`~shared.protocol.messages.ArmCommand`.
 
         ``move`` is age-checked like :meth:`move`; ``stop`` always acts (stopping is never
-        refused, however old); ``home`` and ``set_force_limit`` are age-checked.
+        refused, however old); ``home`` and ``set_force_limit`` are age-checked the same
+        way (an unknown or too uncertain clock refuses them). A ``set_force_limit`` without
+        a finite positive ``force_limit_n`` is refused (status ``fault``), never raised: a
+        bad command must not end the station's receive loop.
         """
         if command.action == "stop":
             self.stop()
             return CommandResult(True, None, "halted")
-        if command.action == "set_force_limit" and command.force_limit_n is not None:
-            self.set_force_limit(command.force_limit_n)
-            return CommandResult(True, None, "ok")
+        if command.action == "set_force_limit":
+            return self._handle_force_limit(command, clock_offset_us, offset_uncertainty_us)
         target = command.target_mm if command.action == "move" else self.arm.limits.home_mm
         if target is None:
             return CommandResult(False, None, "fault")
         return self.move(target, sent_ts_us=command.ts_us, clock_offset_us=clock_offset_us,
                          offset_uncertainty_us=offset_uncertainty_us)
 
+    def _handle_force_limit(self, command: ArmCommand, clock_offset_us: float | None,
+                            offset_uncertainty_us: float) -> CommandResult:
+        """A wire ``set_force_limit``: age-checked like a move, refused when invalid."""
+        limit = command.force_limit_n
+        clock = None if clock_offset_us is None else (clock_offset_us, offset_uncertainty_us)
+        with self._lock:
+            self.counters.commands += 1
+            verdict = self._judge(command.ts_us, clock)
+            if not verdict.fresh:
+                return self._refused(verdict)
+            if limit is None or not (math.isfinite(limit) and limit > 0):
+                log.warning("refused set_force_limit %d: force_limit_n must be finite and > 0, "
+                            "got %r", command.seq, limit)
+                return CommandResult(False, None, "fault", False, verdict.age_ms)
+            self.set_force_limit(limit)
+            return CommandResult(True, None, "ok", False, verdict.age_ms)
+
     # --------------------------------------------------------------- watchdog
 
+    def _reading_finite(self, reading: ArmReading) -> bool:
+        """False for a reading with a non-finite force or position, which cannot be judged
+        against the force limit: the arm is halted then (once per episode: counted in
+        ``fault_halts`` and logged) and stays halted until a move is accepted after the
+        readings are finite again."""
+        if math.isfinite(reading.force_n) and all(math.isfinite(v)
+                                                  for v in reading.position_mm):
+            self._fault = False
+            return True
+        if not self._fault:
+            self.arm.stop()
+            self._halted = True
+            self._backoff_z = None
+            self._fault = True
+            self.counters.fault_halts += 1
+            log.warning("arm reading not finite (force %r N, position %r mm): arm halted",
+                        reading.force_n, reading.position_mm)
+        return False
+
     def _update_force_limit(self, reading: ArmReading) -> bool:
-        """Engage or release the force limit from a reading; True when it is engaged."""
+        """Engage or release the force limit from a reading; True when it is engaged.
+
+        While the force is at or above the limit the hold depth rises to
+        ``max_press_step_mm`` above the current depth (never lower than before): holding the
+        depth alone would let a sideways slide onto stiffer tissue raise the force without
+        bound.
+        """
         z = reading.position_mm[2]
         if reading.force_n >= self._force_limit_n:
-            if self._limit_hold_z is None or z > self._limit_hold_z:
-                self._limit_hold_z = z
+            hold = z + self.config.max_press_step_mm
+            if self._limit_hold_z is None or hold > self._limit_hold_z:
+                self._limit_hold_z = hold
             return True
         if (self._limit_hold_z is not None
                 and reading.force_n < self.config.force_release_ratio * self._force_limit_n):
@@ -340,17 +414,32 @@ class SafeArm:
     def poll(self) -> ArmReading:
         """Enforce the command timeout and the force limit; return the arm's reading.
 
-        The returned status is ``halted`` after a watchdog halt and ``force_limit`` while the
-        force limit holds the arm.
+        The returned status is ``fault`` for a non-finite reading (the arm is halted),
+        ``halted`` after a halt and ``force_limit`` while the force limit holds the arm.
+
+        While the force limit holds, an arm tracking a target deeper than the hold depth is
+        re-targeted to that target's x and y at the hold depth. A halted arm is not: the
+        backends take any move as the end of a halt, so it would drive on to its old target;
+        it is only backed off where it is (its x and y), up to the hold depth, when it lies
+        below it.
         """
         with self._lock:
             reading = self.arm.state()
+            if not self._reading_finite(reading):
+                return reading.with_status("fault")
             limited = self._update_force_limit(reading)
-            if limited and reading.target_mm is not None and self._limit_hold_z is not None \
-                    and reading.target_mm[2] < self._limit_hold_z:
-                x, y, _ = reading.target_mm
-                self.arm.move_to((x, y, self._limit_hold_z))
-                self.counters.force_limited += 1
+            hold = self._limit_hold_z
+            if limited and hold is not None:
+                if self._halted:
+                    x, y, z = reading.position_mm
+                    if z < hold and (self._backoff_z is None or self._backoff_z < hold):
+                        self.arm.move_to((x, y, hold))
+                        self._backoff_z = hold
+                        self.counters.force_limited += 1
+                elif reading.target_mm is not None and reading.target_mm[2] < hold:
+                    x, y, _ = reading.target_mm
+                    self.arm.move_to((x, y, hold))
+                    self.counters.force_limited += 1
             # with the watchdog thread checking every period, a check halts when the
             # command will be past the timeout at the next check: the halt then comes
             # within the timeout, not up to one period after it
@@ -359,6 +448,7 @@ class SafeArm:
                     > self.config.command_timeout_ms - self._check_period_ms):
                 self.arm.stop()
                 self._halted = True
+                self._backoff_z = None
                 self.counters.watchdog_halts += 1
                 log.warning("no arm command for %.0f ms: arm halted",
                             self.config.command_timeout_ms)

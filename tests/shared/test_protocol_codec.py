@@ -84,7 +84,8 @@ def test_platform_state_round_trip(seq, ts, hops, pos, vel) -> None:
 
 @settings(max_examples=100, deadline=None)
 @given(action=st.sampled_from(["move", "stop", "home", "set_force_limit"]),
-       target=st.tuples(COORD, COORD, COORD), force=st.floats(0, 1000, allow_nan=False))
+       target=st.tuples(COORD, COORD, COORD),
+       force=st.floats(0, 1000, exclude_min=True, allow_nan=False))
 def test_arm_command_round_trip(action, target, force) -> None:
     msg = ArmCommand(seq=1, ts_us=2, action=action,
                      target_mm=target if action == "move" else None,

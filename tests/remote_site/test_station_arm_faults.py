@@ -1,0 +1,163 @@
+"""The station's loops go on after an arm fault: a transient device error (a lost state
+packet, a failed move), a non-finite reading, a set_force_limit the arm refuses."""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import logging
+import math
+
+import pytest
+
+from remote_site.agent.station import RemoteStation
+from remote_site.agent.stiffness_stage import StiffnessStage
+from remote_site.arm.base import ArmReading, Vec3
+from remote_site.arm.safety import SafeArm
+from remote_site.arm.sim import SimArm, SimArmConfig
+from remote_site.stiffness.estimator import StiffnessConfig
+from shared.client import LinkCounters
+from shared.freshness import ClockView
+from shared.protocol import ArmCommand, Message, PlatformState
+from shared.protocol.codec import encode
+from shared.timebase import now_us
+
+
+class FlakyArm(SimArm):
+    """A sim arm whose next reads or moves fail (as a real arm's lost packet or reflex)."""
+
+    fail_reads = 0
+    fail_moves = 0
+    nan_force = False
+
+    def _read(self) -> ArmReading:
+        if self.fail_reads:
+            self.fail_reads -= 1
+            raise TimeoutError("one lost state packet")  # -> DeviceTimeoutError
+        reading = super()._read()
+        return dataclasses.replace(reading, force_n=math.nan) if self.nan_force else reading
+
+    def _move_to(self, target_mm: Vec3) -> None:
+        if self.fail_moves:
+            self.fail_moves -= 1
+            raise RuntimeError("reflex")  # -> DeviceOperationError
+        super()._move_to(target_mm)
+
+
+class Link:
+    """A connected link with known clocks; sends are encoded as the real link does."""
+
+    def __init__(self, *msgs: Message) -> None:
+        self.counters = LinkCounters(connects=1)
+        self.inbox: asyncio.Queue[Message] = asyncio.Queue()
+        for msg in msgs:
+            self.inbox.put_nowait(msg)
+        self.sent: list[Message] = []
+
+    @property
+    def is_connected(self) -> bool:
+        return True
+
+    @property
+    def clock_view(self) -> ClockView:
+        return ClockView({"local": 0, "remote": 0}, {"local": 1000, "remote": 1000}, now_us())
+
+    def link_down_for_s(self, now_s: float | None = None) -> float:
+        return 0.0
+
+    async def send(self, msg: Message) -> None:
+        encode(msg)  # an invalid message (NaN) raises here, as StationLink.send does
+        self.sent.append(msg)
+
+    async def recv(self, timeout_s: float | None = None) -> Message:
+        return await self.inbox.get()
+
+
+def make_station(link: Link) -> tuple[RemoteStation, FlakyArm]:
+    arm = FlakyArm(None, SimArmConfig(realtime=False))
+    arm.connect()
+    stage = StiffnessStage(StiffnessConfig(gel_stiffness_n_per_mm=20.0))
+    return RemoteStation(link, SafeArm(arm), None, stage, lambda p: p), arm  # type: ignore[arg-type]
+
+
+async def run_for(coro: object, seconds: float) -> None:
+    """Run a loop for ``seconds``: it must still be running then."""
+    with pytest.raises(TimeoutError):
+        await asyncio.wait_for(coro, seconds)  # type: ignore[arg-type]
+
+
+def test_one_failed_arm_read_does_not_end_the_arm_loop(
+        caplog: pytest.LogCaptureFixture) -> None:
+    link = Link()
+    station, arm = make_station(link)
+    arm.fail_reads = 2  # two in a row: one warning
+    with caplog.at_level(logging.WARNING, logger="remote_site.agent.station"):
+        asyncio.run(run_for(station._arm_loop(), 0.2))
+    assert station.counters.arm_errors == 2
+    assert len([r for r in caplog.records if "arm error" in r.getMessage()]) == 1
+    assert station.safe_arm.halted  # stopped after the fault
+    assert station.last_reading is not None and station.counters.arm_states_sent > 0
+
+
+def test_one_failed_move_does_not_end_the_receive_loop(
+        caplog: pytest.LogCaptureFixture) -> None:
+    states = [PlatformState(seq=i, ts_us=now_us(), position_mm=(0.0, 0.0, 10.0 + i))
+              for i in (1, 2)]
+    link = Link(*states)
+    station, arm = make_station(link)
+    arm.fail_moves = 1
+    with caplog.at_level(logging.WARNING, logger="remote_site.agent.station"):
+        asyncio.run(run_for(station._receive_loop(), 0.2))
+    assert station.counters.arm_errors == 1
+    assert station.counters.platform_applied == 1  # the second state was applied
+    assert arm.state().target_mm == (0.0, 0.0, 12.0) and not station.safe_arm.halted
+    assert len([r for r in caplog.records if "arm error" in r.getMessage()]) == 1
+
+
+def test_a_refused_force_limit_does_not_end_the_receive_loop() -> None:
+    """A zero limit that got past the codec (built in-process) is refused by the arm, not
+    raised out of the receive loop."""
+    bad = ArmCommand(seq=1, ts_us=now_us(), action="set_force_limit", force_limit_n=0.0)
+    good = ArmCommand(seq=2, ts_us=now_us(), action="set_force_limit", force_limit_n=4.0)
+    station, _ = make_station(Link(bad, good))
+    asyncio.run(run_for(station._receive_loop(), 0.2))
+    assert station.counters.arm_commands == 2 and station.counters.arm_commands_applied == 1
+    assert station.safe_arm.force_limit_n == 4.0
+
+
+def test_a_non_finite_reading_does_not_end_the_arm_loop() -> None:
+    """The arm halts (SafeArm) and the NaN reading is not put on the wire, whose codec would
+    refuse it and end the loop."""
+    link = Link()
+    station, arm = make_station(link)
+    arm.nan_force = True
+    asyncio.run(run_for(station._arm_loop(), 0.1))
+    assert station.safe_arm.counters.fault_halts == 1 and station.safe_arm.halted
+    assert station.last_reading is not None and station.last_reading.status == "fault"
+    assert link.sent == []
+    arm.nan_force = False
+    asyncio.run(run_for(station._arm_loop(), 0.1))
+    assert link.sent  # finite again: arm_state goes out
+
+
+def test_arm_errors_are_in_the_summary(monkeypatch: pytest.MonkeyPatch) -> None:
+    from tests.remote_site.test_agent_safety import FakeLink, close_station
+    from tests.remote_site.test_agent_safety import make_station as make_full_station
+
+    station = make_full_station(FakeLink(), realtime=False)
+    try:
+        arm = station.safe_arm.arm
+        real_read = arm._read
+        failed = [False]
+
+        def read_once_failing() -> ArmReading:
+            if not failed[0]:
+                failed[0] = True
+                raise TimeoutError("one lost state packet")
+            return real_read()
+
+        monkeypatch.setattr(arm, "_read", read_once_failing)
+        asyncio.run(run_for(station._arm_loop(), 0.05))
+        assert station.summary()["arm"]["errors"] == 1
+    finally:
+        close_station(station)
