@@ -210,6 +210,13 @@ class Session:
         elif self.stations.get(peer.role) is peer:
             del self.stations[peer.role]
 
+    def _receiver(self, sender_role: str) -> Peer | None:
+        """The station that receives ``sender_role``'s data, or None: none joined, or the
+        relay already decided to close it (``silent``, a failed write: closed outbox) and
+        it only waits for its socket's close to leave the session."""
+        receiver = self.stations.get(_OTHER[sender_role])
+        return None if receiver is None or receiver.outbox.closed else receiver
+
     def route(self, sender: Peer, msg: DataMessage, t_in_us: int,
               wire: WireMessage | None = None) -> Error | None:
         """Forward one data message from a station with the stream's policy.
@@ -244,7 +251,7 @@ class Session:
             sent_ref_us = round(sent_station_us - offset)
             ledger.record(msg.seq, sent_ref_us, t_in_us)
         fwd = msg  # relay_in/relay_out hops are added when it is encoded for each receiver
-        receiver = self.stations.get(_OTHER[sender.role])
+        receiver = self._receiver(sender.role)
         elsewhere = False  # the receiver is on another worker of a cluster
         if self.remote is not None:
             elsewhere = self.remote.forward(self.session_id, sender.role, fwd, t_in_us,
@@ -286,7 +293,7 @@ class Session:
         # a compact key frame is never superseded in a latest-wins slot by the deltas that
         # need it: it goes in the ordered queue
         latest = is_latest_wins(msg)
-        receiver = self.stations.get(_OTHER[sender_role])
+        receiver = self._receiver(sender_role)
         if receiver is None:
             ledger.record_drop("no_peer")
             if msg.POLICY is StreamPolicy.LATEST_WINS:

@@ -13,7 +13,10 @@ ledger keeps
   ``seq_resets``: a sequence jump of more than ``max_seq_jump`` either way (a sender
   restart, or a hostile seq of 2^63 - 1) restarts the gap count from the new seq instead
   of adding the jump to ``lost`` (RFC 3550 A.1 treats a large jump the same way);
-* arrival rate over the window and the queue depth (current and peak).
+* arrival rate over the window and the queue depth (current and peak);
+* ``out_of_range``: arrivals whose delay is beyond :data:`MAX_DELAY_US` either way (a
+  peer's figures that make no sense: a hostile ``ts``, a wild clock) are counted there and
+  left out of the delays, jitter and rate (they count as received, their seq is accounted).
 
 Memory is O(window) whatever the run length.
 """
@@ -24,7 +27,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["LatencyLedger", "LedgerSnapshot", "merge_snapshots"]
+__all__ = ["MAX_DELAY_US", "LatencyLedger", "LedgerSnapshot", "merge_snapshots"]
+
+#: a delay beyond this either way is a peer's bug, not a latency (a century, in microseconds;
+#: far inside the int64 ring buffers)
+MAX_DELAY_US = 100 * 365 * 86_400 * 1_000_000
+_INT64_MIN, _INT64_MAX = -(1 << 63), (1 << 63) - 1
 
 
 @dataclass(frozen=True, slots=True)
@@ -46,6 +54,7 @@ class LedgerSnapshot:
     queue_depth_max: int
     window: int = 0
     seq_resets: int = 0
+    out_of_range: int = 0
     delays_us: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), repr=False)
     recv_times_us: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), repr=False)
 
@@ -64,6 +73,7 @@ class LedgerSnapshot:
             "jitter_us": self.jitter_us, "rate_hz": self.rate_hz,
             "queue_depth": self.queue_depth, "queue_depth_max": self.queue_depth_max,
             "window": self.window, "seq_resets": self.seq_resets,
+            "out_of_range": self.out_of_range,
         }
 
 
@@ -126,7 +136,8 @@ class LatencyLedger:
         self.max_seq_jump = max_seq_jump
         self._delays = np.zeros(window, np.int64)
         self._recv = np.zeros(window, np.int64)
-        self._n = 0  # total recorded; ring index = _n % window
+        self._n = 0  # delays booked; ring index = _n % window
+        self._received = 0  # arrivals (also those out of range)
         self._jitter_us = 0.0
         self._last_transit: int | None = None
         self._first_seq: int | None = None
@@ -134,6 +145,7 @@ class LatencyLedger:
         self._seq_received = 0
         self._lost_before_reset = 0  # loss banked by earlier sequence runs
         self.seq_resets = 0
+        self.out_of_range = 0  # arrivals with a delay beyond MAX_DELAY_US (not booked)
         self.out_of_order = 0
         self.dropped: dict[str, int] = {}
         self.queue_depth = 0
@@ -141,8 +153,8 @@ class LatencyLedger:
 
     @property
     def received(self) -> int:
-        """Messages recorded so far."""
-        return self._n
+        """Messages recorded so far (also those counted in ``out_of_range``)."""
+        return self._received
 
     @property
     def jitter_us(self) -> float:
@@ -159,17 +171,22 @@ class LatencyLedger:
 
         Returns:
             The one-way delay ``received_us - sent_us`` (may be negative if the clock
-            offset is off).
+            offset is off). One beyond :data:`MAX_DELAY_US` either way (or a receive time
+            outside int64) is not booked, only counted in ``out_of_range``.
         """
         transit = int(received_us) - int(sent_us)
-        i = self._n % self.window
-        self._delays[i] = transit
-        self._recv[i] = received_us
-        self._n += 1
-        if self._last_transit is not None:
-            d = transit - self._last_transit
-            self._jitter_us += (abs(d) - self._jitter_us) / 16.0
-        self._last_transit = transit
+        self._received += 1
+        if -MAX_DELAY_US <= transit <= MAX_DELAY_US and _INT64_MIN <= received_us <= _INT64_MAX:
+            i = self._n % self.window
+            self._delays[i] = transit
+            self._recv[i] = received_us
+            self._n += 1
+            if self._last_transit is not None:
+                d = transit - self._last_transit
+                self._jitter_us += (abs(d) - self._jitter_us) / 16.0
+            self._last_transit = transit
+        else:
+            self.out_of_range += 1
         if seq is not None:
             self._seq_received += 1
             if self._first_seq is None:
@@ -226,12 +243,12 @@ class LatencyLedger:
         recv = self._window(self._recv)
         p50, p99, mx, mn, mean = _stats(delays)
         return LedgerSnapshot(
-            received=self._n, lost=self.lost, out_of_order=self.out_of_order,
+            received=self._received, lost=self.lost, out_of_order=self.out_of_order,
             dropped=dict(self.dropped), delay_p50_us=p50, delay_p99_us=p99, delay_max_us=mx,
             delay_min_us=mn, delay_mean_us=mean, jitter_us=self._jitter_us,
             rate_hz=_rate_hz(recv), queue_depth=self.queue_depth,
             queue_depth_max=self.queue_depth_max, window=int(delays.size), delays_us=delays,
-            recv_times_us=recv, seq_resets=self.seq_resets)
+            recv_times_us=recv, seq_resets=self.seq_resets, out_of_range=self.out_of_range)
 
 
 def merge_snapshots(snapshots: list[LedgerSnapshot]) -> LedgerSnapshot:
@@ -256,4 +273,5 @@ def merge_snapshots(snapshots: list[LedgerSnapshot]) -> LedgerSnapshot:
         queue_depth=sum(s.queue_depth for s in snapshots),
         queue_depth_max=sum(s.queue_depth_max for s in snapshots), window=int(delays.size),
         seq_resets=sum(s.seq_resets for s in snapshots),
-        delays_us=delays, recv_times_us=np.concatenate([s.recv_times_us for s in snapshots]))
+        out_of_range=sum(s.out_of_range for s in snapshots), delays_us=delays,
+        recv_times_us=np.concatenate([s.recv_times_us for s in snapshots]))

@@ -80,6 +80,10 @@ __all__ = ["PEER_SETTINGS", "PeerModel", "peer", "relay", "station"]
 _T0_US = 1_700_000_000_000_000  # the harness clock starts at a realistic wall-clock time
 _HELLO_LIMIT = 1024
 _MESSAGE_LIMIT = 16 * 1024
+#: §1: a data message must leave this many bytes under the limit for the relay's stamps
+_FORWARD_ROOM = 128
+#: §3: a pong whose station times lie further than a century from the relay's is ignored
+_SANE_CLOCK_US = 100 * 365 * 86_400 * 1_000_000
 #: the relay settings of the ``peer`` target: small size limits (so ``oversize`` is reachable
 #: by a short input), the doc's budget and periods, a rate limit no input reaches
 PEER_SETTINGS = PeerSettings(max_message_bytes=_MESSAGE_LIMIT, max_hello_bytes=_HELLO_LIMIT,
@@ -164,7 +168,7 @@ class PeerModel:
         self.close_code = rule.close_code
         self.events.append(("closing", self.close_code))
 
-    def _per_message(self, code: str) -> None:
+    def _per_message(self, code: str, stream: str | None = None, seq: int | None = None) -> None:
         """A refused message after the hello: an error, or the budget's end."""
         rule = error_table()[code]
         if not self.joined or rule.fatality is Fatality.ALWAYS:
@@ -175,7 +179,7 @@ class PeerModel:
             if self.bad > self.budget:
                 self._fatal("too_many_errors")
                 return
-        self._reply(("error", code, False, None, None))
+        self._reply(("error", code, False, stream, seq))
 
     def feed(self, data: bytes | str, t_us: int) -> None:
         """One receive: a TCP chunk, a WebSocket binary message, or a text message."""
@@ -230,12 +234,16 @@ class PeerModel:
         if isinstance(msg, DataMessage):
             if self.observer:
                 self._per_message("read_only")
+            elif len(item) > _MESSAGE_LIMIT - _FORWARD_ROOM:  # no room for the relay's stamps
+                self._per_message("too_large_to_forward", msg.TYPE, msg.seq)
             else:
                 self.events.append(("data", msg, t_us))
         elif isinstance(msg, ClockPong):
             t0 = self.pings.pop(msg.ping_id, None)
             if (t0 is not None and t0 == msg.t0_us and t_us >= t0 and msg.t2_us >= msg.t1_us
-                    and (t_us - t0) - (msg.t2_us - msg.t1_us) >= 0):
+                    and (t_us - t0) - (msg.t2_us - msg.t1_us) >= 0
+                    and abs(msg.t1_us - t0) <= _SANE_CLOCK_US
+                    and abs(msg.t2_us - t_us) <= _SANE_CLOCK_US):
                 self.events.append(("clock", t0, msg.t1_us))
         elif isinstance(msg, ClockPing):
             self._reply(("clock_pong", msg.ping_id, msg.t0_us, t_us))

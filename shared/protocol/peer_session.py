@@ -66,6 +66,7 @@ from shared.protocol.queues import StreamQueue
 from shared.protocol.ratelimit import TokenBucket
 
 __all__ = [
+    "FORWARD_ROOM_BYTES",
     "ClockSampled",
     "Closing",
     "DataReceived",
@@ -85,6 +86,15 @@ _OBSERVER_MAY_SEND = (ClockPong, ClockPing, Stats, Bye)
 _DATA_MESSAGE_TYPES = frozenset(cls for cls in MESSAGE_TYPES.values()
                                 if issubclass(cls, DataMessage))
 _MAX_OUTSTANDING_PINGS = 16
+#: bytes a data message must leave under ``max_message_bytes`` for the stamps the relay adds
+#: when it forwards it: ``relay_in``, ``relay_out`` and, on a clustered relay, ``nats_out``
+#: and ``nats_in`` (at most 26 bytes each, and 2 for a longer ``hops`` header); one that does
+#: not is refused on receipt (``too_large_to_forward``) rather than dropped when written
+FORWARD_ROOM_BYTES = 128
+#: a station clock further than this from the relay's (a century, in microseconds) is a
+#: client's bug or a hostile pong, not a clock: its sample is refused (``stray_pong``), so
+#: an offset never carries the relay's latency figures out of range
+_SANE_US = 100 * 365 * 86_400 * 1_000_000
 
 #: called when a forwarded message is encoded: (pending entry, relay_out time) -> None
 OnSend = Callable[["Pending", int], None]
@@ -293,10 +303,11 @@ class PeerSession:
         self.close_reason = ""
         self._conn = ProtocolConnection(framing, settings.max_message_bytes, keep_wire=True)
         self._conn.set_receive_limit(min(settings.max_hello_bytes, settings.max_message_bytes))
+        self._forward_limit = settings.max_message_bytes - FORWARD_ROOM_BYTES
         self._bucket = TokenBucket(settings.rate_limit_per_s, settings.rate_limit_burst, now_us)
         self._over_rate = 0  # messages refused in the current over-rate episode
         self._rate_used = 0  # messages since the bucket was last read
-        self._rate_free = self._bucket.tokens  # tokens at that reading
+        self._rate_free = self._bucket.tokens // 2  # half the tokens at that reading
         self._rate_warned = False
         self._events: list[PeerEvent] = []
         self._held: list[tuple[Event, int]] | None = None  # between hello and accept()
@@ -330,7 +341,7 @@ class PeerSession:
         """Take received bytes (TCP: any chunk; WebSocket: one message, text refused)."""
         if self.closing:
             return
-        self._last_rx_us = now_us
+        previous_rx_us, self._last_rx_us = self._last_rx_us, now_us
         if isinstance(data, str):  # WebSocket text frame: not our protocol
             events: list[Event] = [MessageRejected(MalformedMessageError(
                 "text WebSocket messages are not accepted; send binary msgpack"))]
@@ -339,10 +350,10 @@ class PeerSession:
             events = self._conn.events_received()
         if self._joined and events:
             # the hot path is a counter: the bucket is only consulted once the messages
-            # since its last reading exceed the tokens it had then
+            # since its last reading exceed half the tokens it had then
             self._rate_used += len(events)
             if self._rate_used > self._rate_free:
-                events = self._settle_rate(events, now_us)
+                events = self._settle_rate(events, previous_rx_us, now_us)
         for event in events:
             if self.closing:
                 return
@@ -353,17 +364,29 @@ class PeerSession:
             else:
                 self._process(event, now_us)
 
-    def _settle_rate(self, events: list[Event], now_us: int) -> list[Event]:
+    def _settle_rate(self, events: list[Event], earlier_by_us: int,
+                     now_us: int) -> list[Event]:
         """Charge the bucket for the messages counted since its last reading; return the
         events it still allows (only this chunk's can be refused: the earlier ones fitted
-        in the tokens of the last reading)."""
-        used, self._rate_used = self._rate_used, 0
-        refused = used - self._bucket.take(used, now_us)
-        self._rate_free = self._bucket.tokens
+        in half the tokens of the last reading).
+
+        The earlier ones are charged as if all had come at ``earlier_by_us`` (the previous
+        chunk), this chunk's at ``now_us``: none earlier than it came, so the idle time
+        before them is not credited past the cap and the bucket grants no more than an
+        exact one (``burst + rate * T`` over any time ``T``). Not knowing how the earlier
+        ones were spread, it can be stricter than an exact bucket, by at most their number
+        (half the tokens of the last reading): what a steady stream under the rate, or a
+        backlog of up to half the burst on it, never meets."""
+        earlier, self._rate_used = self._rate_used - len(events), 0
+        if earlier > 0:
+            self._bucket.take(earlier, earlier_by_us)
+        refused = len(events) - self._bucket.take(len(events), now_us)
+        tokens = self._bucket.tokens
+        self._rate_free = tokens // 2
         if refused:
             self._rate_exceeded(refused)
             return events[:len(events) - refused]
-        if self._over_rate and self._rate_free * 2 >= self._bucket.burst:
+        if self._over_rate and tokens * 2 >= self._bucket.burst:
             self._over_rate = 0  # calm again (half the bucket back): the episode is over
         return events
 
@@ -431,6 +454,8 @@ class PeerSession:
             if self._observer:
                 self.reject(SessionError(f"observers are read-only; {event.message.TYPE} "
                                          "refused", code="read_only"))
+            elif event.size > self._forward_limit:
+                self._no_room(event.message, event.size)  # type: ignore[arg-type]
             else:
                 self._events.append(DataReceived(event.message, t_in_us,  # type: ignore[arg-type]
                                                  event.wire))
@@ -451,6 +476,8 @@ class PeerSession:
             if observer:
                 self.reject(SessionError(f"observers are read-only; {msg.TYPE} refused",
                                          code="read_only"))
+            elif event.size > self._forward_limit:
+                self._no_room(msg, event.size)
             else:
                 self._events.append(DataReceived(msg, t_in_us, event.wire))
         elif isinstance(msg, ClockPong):
@@ -477,6 +504,15 @@ class PeerSession:
         else:
             self.reject(SessionError(f"{msg.TYPE} is sent by the relay only",
                                      code="unexpected_type"))
+
+    def _no_room(self, msg: DataMessage, size: int) -> None:
+        """A data message too close to the size limit for the relay's stamps: refused now,
+        with a per-message error naming it, rather than dropped once stamped."""
+        self.reject(SessionError(
+            f"{msg.TYPE} seq {msg.seq} not forwarded: its {size} bytes leave less than "
+            f"{FORWARD_ROOM_BYTES} bytes under max_message_bytes "
+            f"({self.settings.max_message_bytes}) for the relay's stamps",
+            code="too_large_to_forward"), stream=msg.TYPE, seq=msg.seq)
 
     # ------------------------------------------------------------------ clock exchange
 
@@ -506,7 +542,8 @@ class PeerSession:
         t0 = self._pings.pop(pong.ping_id, None)
         settling = pong.ping_id in self._burst_ping_ids
         self._burst_ping_ids.discard(pong.ping_id)
-        if t0 is None or t0 != pong.t0_us:
+        if t0 is None or t0 != pong.t0_us or abs(pong.t1_us - t0) > _SANE_US \
+                or abs(pong.t2_us - t3_us) > _SANE_US:
             self.counters["stray_pong"] += 1
             return
         try:
@@ -597,8 +634,10 @@ class PeerSession:
         if not self.outbox.put_ordered(msg, build=build):
             self.counters["replies_dropped"] += 1
 
-    def reject(self, err: ProtocolError | SessionError) -> None:
-        """A per-message error: reply with a non-fatal ``error``, close past the budget."""
+    def reject(self, err: ProtocolError | SessionError, *, stream: str | None = None,
+               seq: int | None = None) -> None:
+        """A per-message error: reply with a non-fatal ``error`` (naming the data message
+        ``stream``/``seq`` when given), close past the budget."""
         if not self._joined:
             self.fail(err)
             return
@@ -617,7 +656,7 @@ class PeerSession:
             over.close_code = 1008
             self.fail(over)
             return
-        self.reply(Error(code=err.code, message=str(err), fatal=False))
+        self.reply(Error(code=err.code, message=str(err), fatal=False, stream=stream, seq=seq))
 
     def fail(self, err: ProtocolError | SessionError) -> None:
         """A fatal error: log once, queue a fatal ``error``, then close with its code."""
@@ -648,8 +687,9 @@ class PeerSession:
 
         Forwarded data messages get their ``relay_in`` and ``relay_out`` hops, the latter
         read from ``clock`` just before encoding, and their ``on_send`` callback; one
-        that grew past the size limit is skipped. One received with its bytes
-        (``Pending.wire``) is sent as those bytes with the hops spliced in, not re-encoded.
+        that grew past the size limit is skipped (counted ``forward_too_large``). One
+        received with its bytes (``Pending.wire``) is sent as those bytes with the hops
+        spliced in, not re-encoded.
 
         Args:
             clock: the relay clock in microseconds (read once per timed message).
@@ -674,6 +714,9 @@ class PeerSession:
                     except LocalProtocolError:
                         data = b""
                 if not data or len(data) > limit:
+                    # refused on receipt when it left no room for the stamps: only one the
+                    # relay encoded anew (not the sender's bytes) can still grow past it
+                    self.counters["forward_too_large"] += 1
                     if log.isEnabledFor(logging.DEBUG):
                         log.debug("forwarded %s too large after hops", msg.TYPE)
                     continue

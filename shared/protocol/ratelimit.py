@@ -1,11 +1,16 @@
 """Token bucket for the relay's per-connection message-rate limit (sans-I/O, integer us).
 
 The bucket holds up to ``burst`` tokens and refills at ``rate_per_s``; each received message
-takes one. The relay charges it lazily (:mod:`~shared.protocol.peer_session`): it counts
-messages and reads the bucket only when the count passes the tokens of the last reading,
-charging all of them at once; the refill of the interval is credited before the cap, as the
-messages arrived spread over it. So the bucket is never stricter than an exact one, and over
-any time ``T`` grants at most ``burst + rate_per_s * T`` messages.
+takes one. :meth:`TokenBucket.take` is an exact bucket for messages that arrive at the time
+given: its tokens after the refill since the last call are capped at ``burst`` before the
+charge (an idle connection saves up one burst, never more), so over any time ``T`` it grants
+at most ``burst + rate_per_s * T`` messages.
+
+The relay charges it lazily (:mod:`~shared.protocol.peer_session`): it counts messages and
+reads the bucket only when the count passes half the tokens of the last reading, then charges
+the earlier of them as if they had all come with the last chunk before this one (no earlier
+than they did: the bucket is never more lenient than an exact one) and this chunk's at its
+arrival.
 """
 
 from __future__ import annotations
@@ -42,14 +47,12 @@ class TokenBucket:
         return self._tokens_us // 1_000_000
 
     def take(self, count: int, now_us: int) -> int:
-        """Take up to ``count`` tokens; return how many were granted (0..count)."""
-        available = self._tokens_us
+        """Take up to ``count`` tokens for messages arriving at ``now_us``; return how many
+        were granted (0..count)."""
         elapsed = now_us - self._last_us
         if elapsed > 0:
             self._last_us = now_us
-            available += int(elapsed * self._rate)
-        granted = min(count, available // 1_000_000)
-        # the cap applies after the charge: the ``count`` messages arrived spread over the
-        # elapsed time, during which the real bucket refilled as they drained it
-        self._tokens_us = min(self._cap_us, available - granted * 1_000_000)
+            self._tokens_us = min(self._cap_us, self._tokens_us + int(elapsed * self._rate))
+        granted = min(count, self._tokens_us // 1_000_000)
+        self._tokens_us -= granted * 1_000_000
         return granted

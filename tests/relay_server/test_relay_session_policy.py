@@ -69,6 +69,25 @@ def test_no_peer_and_wrong_direction_and_role_taken() -> None:
     assert session.empty
 
 
+def test_a_station_the_relay_is_closing_is_no_receiver() -> None:
+    """A station the relay has decided to close (``silent``: its outbox is closed) stays in
+    the session until its socket's close is over (1-3 s); meanwhile an arm command to it
+    was put in the dead outbox: no ``no_peer``, no drop counted. It is now as if no
+    station were there."""
+    session = Session("s", 64)
+    local, remote = make_peer(1, "local"), make_peer(2, "remote")
+    session.join(local)
+    session.join(remote)
+    remote.outbox.closed = True
+    err = session.route(local, ArmCommand(seq=7, ts_us=1, action="stop"), 5)
+    assert err is not None and (err.code, err.stream, err.seq) == ("no_peer", "arm_command", 7)
+    assert session.route(local, PlatformState(seq=1, ts_us=1), 5) is None
+    uplink = session.directions["local_to_remote"].uplink
+    assert uplink["arm_command"].dropped == {"no_peer": 1}
+    assert uplink["platform_state"].dropped == {"no_peer": 1}
+    assert len(remote.outbox) == 0
+
+
 def test_ordered_and_latest_leave_in_arrival_order() -> None:
     box = Outbox(8)
     box.put_ordered(ArmCommand(seq=1, ts_us=0))

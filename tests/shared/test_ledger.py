@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from shared.ledger import LatencyLedger, merge_snapshots, percentiles
+from shared.ledger import MAX_DELAY_US, LatencyLedger, merge_snapshots, percentiles
 
 
 def reference_jitter(transits: np.ndarray) -> float:
@@ -115,6 +115,24 @@ def test_a_huge_sequence_jump_is_a_reset_not_loss() -> None:
     assert (snap.lost, snap.seq_resets) == (1, 2)
     assert snap.as_dict()["seq_resets"] == 2
     assert merge_snapshots([snap, snap]).seq_resets == 4
+
+
+def test_a_delay_out_of_range_is_counted_not_booked() -> None:
+    """A station clock offset of ~9e18 us made a delay overflow the int64 ring: OverflowError
+    out of the relay's routing. Such a delay is counted in ``out_of_range`` and left out of
+    the figures; the message still counts as received and its seq is accounted."""
+    ledger = LatencyLedger(8)
+    ledger.record(1, 0, 1_000)
+    ledger.record(2, -(2**62), 2**62)  # a delay of 2**63: beyond int64
+    ledger.record(3, 0, MAX_DELAY_US + 1)  # fits int64, but no latency is a century
+    ledger.record(4, 2**64, 2**64 + 5)  # a sane delay at a receive time beyond int64
+    ledger.record(5, 0, 2_000)
+    snap = ledger.snapshot()
+    assert (snap.received, snap.out_of_range, snap.lost, snap.window) == (5, 3, 0, 2)
+    assert snap.delays_us.tolist() == [1_000, 2_000] and snap.delay_max_us == 2_000
+    assert snap.jitter_us == 1_000 / 16.0
+    assert snap.as_dict()["out_of_range"] == 3
+    assert merge_snapshots([snap, snap]).out_of_range == 6
 
 
 @settings(max_examples=80, deadline=None)
