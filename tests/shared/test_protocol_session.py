@@ -566,7 +566,7 @@ def test_a_data_message_without_room_for_the_relay_stamps_is_refused_on_receipt(
     fits, full = padded(1, limit - FORWARD_ROOM_BYTES), padded(2, limit)
     peer.receive_data(frame(fits) + frame(full), 10)
     (received,) = peer.events_received()
-    assert isinstance(received, DataReceived) and received.message.seq == 1  # type: ignore[attr-defined]
+    assert isinstance(received, DataReceived) and received.message.seq == 1
     (err,) = [decode(d[4:]) for d in peer.data_to_send(lambda: 11)]
     assert isinstance(err, Error) and not err.fatal
     assert (err.code, err.stream, err.seq) == ("too_large_to_forward", "arm_command", 2)
