@@ -11,9 +11,12 @@ conventions:
 * pressing stops at ``force_limit_n``: once the measured force reaches it no target may lie
   deeper than a hold depth (status ``force_limit``), whatever its x and y (sliding sideways
   onto stiffer tissue at the same depth raises the force too). While a reading's force is at
-  or above the limit the hold depth rises to ``max_press_step_mm`` above the current depth
-  (never lower than before), so the arm backs off until the force falls below the limit; it
-  releases once the force falls below ``force_release_ratio * force_limit_n``. A halted arm
+  or above the limit the hold depth rises to ``force_backoff_mm`` x (force / limit) above
+  the current depth (never lower than before), so the arm backs off until the force falls
+  below the limit; it releases once the force falls below
+  ``force_release_ratio * force_limit_n`` and the newest command no longer asks for a depth
+  below the hold (a press held at the limit stays held, however stiff the tissue: released
+  at each back-off, it pressed again and buzzed around the limit). A halted arm
   (stop, link-loss halt, watchdog halt) is only backed off where it is (its x and y, up to
   the hold depth), never sent on towards its old target;
 * a reading with a non-finite force or position halts the arm (status ``fault``): the force
@@ -70,13 +73,16 @@ class SafetyConfig:
             from their arrival), i.e. no fresh command for this long.
         force_limit_n: the pressing force limit. Once a reading reaches it, no target may
             lie deeper than the hold depth (sideways targets too); while readings stay at or
-            above it the hold depth rises to ``max_press_step_mm`` above the arm's current
-            depth (never lower), so the arm backs off until the force is below the limit.
+            above it the hold depth rises above the arm's current depth by
+            ``force_backoff_mm`` x (force / limit) (never lower), so the arm backs off until
+            the force is below the limit.
         force_release_ratio: the limit releases below this fraction of it.
         press_zone_z_mm: below this phantom z, downward targets are rate-limited.
-        max_press_step_mm: how far below the current depth a target may lie in that zone,
-            and how far above the current depth the force limit's hold depth rises while
-            the force is at or above the limit.
+        max_press_step_mm: how far below the current depth a target may lie in that zone.
+        force_backoff_mm: how far above the current depth the force limit's hold depth
+            rises while the force is at the limit (in proportion above it: twice as far at
+            twice the limit); small, as on stiff tissue each step sheds stiffness x step of
+            force.
     """
 
     max_command_age_ms: float = 100.0
@@ -86,12 +92,15 @@ class SafetyConfig:
     force_release_ratio: float = 0.8
     press_zone_z_mm: float = 2.0
     max_press_step_mm: float = 0.3
+    force_backoff_mm: float = 0.05
 
     def __post_init__(self) -> None:
         vals = (self.max_command_age_ms, self.max_offset_uncertainty_ms,
-                self.command_timeout_ms, self.force_limit_n, self.max_press_step_mm)
+                self.command_timeout_ms, self.force_limit_n, self.max_press_step_mm,
+                self.force_backoff_mm)
         if not all(math.isfinite(v) and v > 0 for v in vals):
-            raise ConfigError("arm safety: ages, timeout and force limit must be finite and > 0")
+            raise ConfigError("arm safety: ages, timeout, force limit, press step and force "
+                              "back-off must be finite and > 0")
         if not 0 < self.force_release_ratio <= 1:
             raise ConfigError("arm safety: force_release_ratio must be in (0, 1]")
         if not math.isfinite(self.press_zone_z_mm):
@@ -180,6 +189,9 @@ class SafeArm:
         #: the hold depth a halted arm was last backed off to (None: not backed off since the
         #: halt): a halted arm is backed off again only when the hold depth rose above it
         self._backoff_z: float | None = None
+        #: the depth the newest accepted command asked for, before the hold (None: none
+        #: since the last halt): the limit is not released while it lies below the hold
+        self._wanted_z: float | None = None
         #: the arm's last reading was non-finite (an episode: halted, logged once)
         self._fault = False
         self._lock = threading.RLock()
@@ -245,6 +257,7 @@ class SafeArm:
                 if applied[2] < z_floor:
                     applied = (applied[0], applied[1], z_floor)
                     self.counters.press_rate_limited += 1
+            wanted_z = applied[2]  # the depth asked for, before the force limit's hold
             if self._limit_hold_z is not None and applied[2] < self._limit_hold_z:
                 applied = (applied[0], applied[1], self._limit_hold_z)
                 clamped = True
@@ -281,6 +294,7 @@ class SafeArm:
             self._last_command_s = self._mono() - sent_ago_s
             self._halted = False
             self._backoff_z = None
+            self._wanted_z = wanted_z
             self.counters.applied += 1
             return CommandResult(True, applied, status, clamped, age_ms,
                                  speed_before_mm_s=math.hypot(*reading.velocity_mm_s))
@@ -312,6 +326,7 @@ class SafeArm:
             self.arm.stop()
             self._halted = True
             self._backoff_z = None
+            self._wanted_z = None
 
     def home(self, *, sent_ts_us: int | None = None, clock_offset_us: float | None = 0.0,
              offset_uncertainty_us: float = 0.0) -> CommandResult:
@@ -386,6 +401,7 @@ class SafeArm:
             self.arm.stop()
             self._halted = True
             self._backoff_z = None
+            self._wanted_z = None
             self._fault = True
             self.counters.fault_halts += 1
             log.warning("arm reading not finite (force %r N, position %r mm): arm halted",
@@ -396,18 +412,23 @@ class SafeArm:
         """Engage or release the force limit from a reading; True when it is engaged.
 
         While the force is at or above the limit the hold depth rises to
-        ``max_press_step_mm`` above the current depth (never lower than before): holding the
+        ``force_backoff_mm`` x (force / limit) above the current depth (never lower than
+        before): holding the
         depth alone would let a sideways slide onto stiffer tissue raise the force without
         bound.
         """
         z = reading.position_mm[2]
         if reading.force_n >= self._force_limit_n:
-            hold = z + self.config.max_press_step_mm
+            # a step in proportion to the overshoot: small for a press that just reached the
+            # limit (stiff tissue sheds stiffness x step of force), larger for a slide onto
+            # an inclusion far past it
+            hold = z + self.config.force_backoff_mm * reading.force_n / self._force_limit_n
             if self._limit_hold_z is None or hold > self._limit_hold_z:
                 self._limit_hold_z = hold
             return True
         if (self._limit_hold_z is not None
-                and reading.force_n < self.config.force_release_ratio * self._force_limit_n):
+                and reading.force_n < self.config.force_release_ratio * self._force_limit_n
+                and (self._wanted_z is None or self._wanted_z >= self._limit_hold_z)):
             self._limit_hold_z = None
         return self._limit_hold_z is not None
 
@@ -449,6 +470,7 @@ class SafeArm:
                 self.arm.stop()
                 self._halted = True
                 self._backoff_z = None
+                self._wanted_z = None
                 self.counters.watchdog_halts += 1
                 log.warning("no arm command for %.0f ms: arm halted",
                             self.config.command_timeout_ms)

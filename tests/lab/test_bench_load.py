@@ -60,7 +60,7 @@ def test_the_compact_stream_is_the_remote_codec_key_frames_then_small_deltas() -
     messages = [m for m in decoded if isinstance(m, TactileCompact)]
     assert len(messages) == 61
     keys = [m for m in messages if m.key]
-    assert [m.seq for m in keys] == [1, 32]  # a key frame, then 30 deltas against it
+    assert [m.seq for m in keys] == [1, 31, 61]  # a key frame every 30 (key_every)
     sizes = [len(stream.message(seq)) for seq in range(62, 122)]
     assert max(sizes) < 8_000 and sum(sizes) / len(sizes) < 4_000  # far below 19 kB raw
     frames = [decoder.decode(m) for m in messages]
