@@ -145,7 +145,10 @@ class FramePipeline:
             The outcome; never raises for bad frames or sensor hiccups.
         """
         t0 = time.perf_counter()
-        reading = self.read_arm()
+        try:
+            reading = self.read_arm()
+        except DeviceError as err:  # a lost read: no frame this tick, the loop goes on
+            return self._reject("arm_error", err)
         taken = self.capture()
         if isinstance(taken, FrameOutcome):
             return taken

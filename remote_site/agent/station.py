@@ -58,7 +58,7 @@ from remote_site.arm.base import ArmReading, polled_reading_at
 from remote_site.arm.safety import CommandResult, SafeArm
 from remote_site.tactile import AppliedCommand
 from shared.client import LinkCounters
-from shared.errors import DeviceError, InputDataError
+from shared.errors import DeviceError, InputDataError, LocalProtocolError
 from shared.freshness import ClockView
 from shared.loop_watchdog import WaitedCalls, loop_watchdog
 from shared.protocol.messages import (
@@ -73,8 +73,8 @@ from shared.protocol.tactile_codec import CodecSettings, TactileEncoder
 from shared.sd_notify import service
 from shared.timebase import monotonic_s, now_us
 
-__all__ = ["RemoteStation", "StationCounters", "command_clock", "next_command_wait_s",
-           "next_frame_due_s", "percentiles_ms"]
+__all__ = ["ARM_FAULT_RESTART_S", "RemoteStation", "StationCounters", "command_clock",
+           "next_command_wait_s", "next_frame_due_s", "percentiles_ms"]
 
 log = logging.getLogger(__name__)
 
@@ -117,6 +117,8 @@ class StationCounters:
     stiffness_samples_rejected: int = 0
     #: arm device errors (a lost state packet, a failed move) the loops went on after
     arm_errors: int = 0
+    #: arm readings the wire refused to carry (a force or position beyond its ranges)
+    arm_states_refused: int = 0
 
 
 @dataclass
@@ -176,6 +178,10 @@ def closing_speed_mm_s(reading: ArmReading) -> float:
         return 0.0
     return sum(v * g for v, g in zip(reading.velocity_mm_s, gap, strict=True)) / dist
 
+
+#: arm calls of one loop failing this long without a success between end the station (for
+#: its supervisor to start it again and the arm backend to recover as it connects)
+ARM_FAULT_RESTART_S = 2.0
 
 #: an arm slower than this is at rest (the pose wait gives it time to set off)
 _AT_REST_MM_S = 1.0
@@ -336,7 +342,9 @@ class RemoteStation:
         self._link_halted = False
         self._warned_no_clock = False
         #: per loop, whether its last arm call failed (one warning per run of failures)
-        self._arm_failing: dict[str, bool] = {}
+        #: per loop, since when its arm calls have failed without a success between (None
+        #: or absent: the last one succeeded)
+        self._arm_failing: dict[str, float | None] = {}
         self._started_s: float | None = None
         self._stopped_s: float | None = None
         window = 20_000
@@ -495,11 +503,24 @@ class RemoteStation:
     def _arm_error(self, loop: str, err: DeviceError) -> None:
         """An arm call of ``loop`` failed: counted, the first of a run logged, the arm
         stopped if it can be. The loop goes on: one lost packet or failed move must not end
-        the station (a fault that lasts keeps the arm halted and is counted)."""
+        the station. A fault that lasts :data:`ARM_FAULT_RESTART_S` without a success
+        between is raised: it ends the station (exit 1), so that its supervisor (systemd's
+        ``Restart=``) starts it again and the arm backend recovers as it connects (a
+        Franka's reflex needs that), instead of a station that stays up with a dead arm.
+
+        Raises:
+            DeviceError: ``err``, once the run of failures has lasted that long.
+        """
         self.counters.arm_errors += 1
-        if not self._arm_failing.get(loop):
-            self._arm_failing[loop] = True
+        since = self._arm_failing.get(loop)
+        now_s = monotonic_s()
+        if since is None:
+            self._arm_failing[loop] = now_s
             log.warning("arm error in the %s loop (halting the arm, going on): %s", loop, err)
+        elif now_s - since >= ARM_FAULT_RESTART_S:
+            log.error("arm calls of the %s loop have failed for %.1f s: ending the station "
+                      "for its supervisor to start it again (%s)", loop, now_s - since, err)
+            raise err
         with contextlib.suppress(DeviceError):
             self.safe_arm.stop()
 
@@ -516,7 +537,7 @@ class RemoteStation:
             except DeviceError as err:
                 self._arm_error("receive", err)
             else:
-                self._arm_failing["receive"] = False
+                self._arm_failing["receive"] = None
 
     def _check_link(self) -> None:
         if self.link.is_connected:
@@ -544,7 +565,7 @@ class RemoteStation:
             except DeviceError as err:
                 self._arm_error("arm monitor", err)
             else:
-                self._arm_failing["arm monitor"] = False
+                self._arm_failing["arm monitor"] = None
             now = loop.time()
             # a non-finite reading cannot go on the wire (SafeArm halted the arm for it)
             if reading is not None and _finite(reading) and now >= next_state_t:
@@ -552,9 +573,15 @@ class RemoteStation:
                 if self.link.is_connected:
                     self._arm_state_seq += 1
                     source = self.latest.state.seq if self.latest is not None else None
-                    await self.link.send(reading.to_message(self._arm_state_seq, now_us(),
-                                                            source))
-                    self.counters.arm_states_sent += 1
+                    try:
+                        await self.link.send(reading.to_message(self._arm_state_seq, now_us(),
+                                                                source))
+                    except LocalProtocolError as err:  # a reading the wire's ranges refuse
+                        self.counters.arm_states_refused += 1
+                        if self.counters.arm_states_refused == 1:
+                            log.warning("arm_state not sent: %s", err)
+                    else:
+                        self.counters.arm_states_sent += 1
             next_t += period
             delay = next_t - loop.time()
             if delay < -0.05:
@@ -942,6 +969,7 @@ class RemoteStation:
                 "link_loss_halts": c.link_loss_halts,
                 "errors": c.arm_errors,
                 "arm_states_sent": c.arm_states_sent,
+                "arm_states_refused": c.arm_states_refused,
                 "final_position_mm": None if r is None else list(r.position_mm),
                 "final_force_n": None if r is None else r.force_n,
             },

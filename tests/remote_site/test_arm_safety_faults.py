@@ -192,6 +192,11 @@ def test_a_zero_or_negative_force_limit_is_refused_on_the_wire() -> None:
     for bad in (0.0, 0, -1.0):
         with pytest.raises(FieldError, match="force_limit_n"):
             ArmCommand.from_wire({**wire, "force_limit_n": bad})
+    # on any other action the field means nothing: a stop is never refused for it (found by
+    # review: the first version refused a stop carrying force_limit_n 0)
+    for action in ("stop", "home"):
+        stop = ArmCommand.from_wire({**wire, "action": action, "force_limit_n": 0.0})
+        assert stop.action == action
 
 
 def test_set_force_limit_commands_are_age_checked_and_never_raise() -> None:

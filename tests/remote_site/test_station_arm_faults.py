@@ -4,6 +4,7 @@ packet, a failed move), a non-finite reading, a set_force_limit the arm refuses.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import dataclasses
 import logging
 import math
@@ -17,6 +18,7 @@ from remote_site.arm.safety import SafeArm
 from remote_site.arm.sim import SimArm, SimArmConfig
 from remote_site.stiffness.estimator import StiffnessConfig
 from shared.client import LinkCounters
+from shared.errors import DeviceError, DeviceTimeoutError
 from shared.freshness import ClockView
 from shared.protocol import ArmCommand, Message, PlatformState
 from shared.protocol.codec import encode
@@ -159,5 +161,84 @@ def test_arm_errors_are_in_the_summary(monkeypatch: pytest.MonkeyPatch) -> None:
         monkeypatch.setattr(arm, "_read", read_once_failing)
         asyncio.run(run_for(station._arm_loop(), 0.05))
         assert station.summary()["arm"]["errors"] == 1
+    finally:
+        close_station(station)
+
+
+def test_an_arm_fault_that_lasts_ends_the_station_for_its_supervisor(
+        monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    """Found by review: riding out every DeviceError left a station up with a dead arm
+    (a Franka's reflex is recovered only as the backend connects). A run of failures with
+    no success between ends the loop, and so the station, after ARM_FAULT_RESTART_S."""
+    import remote_site.agent.station as station_module
+
+    monkeypatch.setattr(station_module, "ARM_FAULT_RESTART_S", 0.05)
+    station, arm = make_station(Link())
+    arm.fail_reads = 10**9  # every read fails from now on
+    with caplog.at_level(logging.ERROR, logger="remote_site.agent.station"), \
+            pytest.raises(DeviceError):
+        asyncio.run(asyncio.wait_for(station._arm_loop(), 5.0))
+    assert station.counters.arm_errors >= 2
+    assert any("ending the station" in r.getMessage() for r in caplog.records)
+
+
+def test_failures_with_successes_between_never_end_the_loop(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    import remote_site.agent.station as station_module
+
+    monkeypatch.setattr(station_module, "ARM_FAULT_RESTART_S", 0.05)
+    station, arm = make_station(Link())
+
+    async def every_other_read_fails() -> None:
+        loop = asyncio.create_task(station._arm_loop())
+        for _ in range(40):  # about 0.2 s of reads, a failure after each success
+            arm.fail_reads = 1
+            await asyncio.sleep(0.005)
+        assert not loop.done()
+        loop.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await loop
+
+    asyncio.run(every_other_read_fails())
+    assert station.counters.arm_errors >= 10
+
+
+def test_a_reading_beyond_the_wires_ranges_does_not_end_the_arm_loop() -> None:
+    """Found by review: a finite force beyond the wire's +-1000 N (a sensor glitch) made
+    the arm_state's encoding raise and ended the loop; it is counted and not sent."""
+    link = Link()
+    station, arm = make_station(link)
+    real_read = arm._read
+
+    def wild() -> ArmReading:
+        return dataclasses.replace(real_read(), force_n=1500.0)
+
+    arm._read = wild  # type: ignore[method-assign]
+    asyncio.run(run_for(station._arm_loop(), 0.1))
+    assert station.counters.arm_states_refused >= 1 and link.sent == []
+
+
+def test_a_lost_arm_read_costs_a_frame_not_the_frame_loop() -> None:
+    """Found by review: the frame pipeline read the arm outside any handler, so one lost
+    read ended the frame loop (and the station); it is a rejected frame now."""
+    from tests.remote_site.test_agent_safety import FakeLink, close_station
+    from tests.remote_site.test_agent_safety import make_station as make_full_station
+
+    station = make_full_station(FakeLink(), realtime=False)
+    try:
+        pipeline = station.pipeline
+        real_read = pipeline.read_arm
+        failed = [False]
+
+        def read_once_failing() -> ArmReading:
+            if not failed[0]:
+                failed[0] = True
+                raise DeviceTimeoutError("one lost state packet")
+            return real_read()
+
+        pipeline.read_arm = read_once_failing
+        outcome = pipeline.process(1, None)
+        assert outcome.frame is None and pipeline.rejected["arm_error"] == 1
+        assert pipeline.process(2, None).frame is not None  # the next read works
     finally:
         close_station(station)
