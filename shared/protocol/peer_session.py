@@ -507,12 +507,16 @@ class PeerSession:
 
     def _no_room(self, msg: DataMessage, size: int) -> None:
         """A data message too close to the size limit for the relay's stamps: refused now,
-        with a per-message error naming it, rather than dropped once stamped."""
-        self.reject(SessionError(
-            f"{msg.TYPE} seq {msg.seq} not forwarded: its {size} bytes leave less than "
-            f"{FORWARD_ROOM_BYTES} bytes under max_message_bytes "
-            f"({self.settings.max_message_bytes}) for the relay's stamps",
-            code="too_large_to_forward"), stream=msg.TYPE, seq=msg.seq)
+        with a per-message error naming it, rather than dropped once stamped. Not counted
+        against the bad-message budget (like ``queue_full``): a valid message from a
+        station whose sender allows the whole limit, not a broken one."""
+        self.counters["too_large_to_forward"] += 1
+        self.reply(Error(code="too_large_to_forward", fatal=False, stream=msg.TYPE,
+                         seq=msg.seq, message=(
+                             f"{msg.TYPE} seq {msg.seq} not forwarded: its {size} bytes "
+                             f"leave less than {FORWARD_ROOM_BYTES} bytes under "
+                             f"max_message_bytes ({self.settings.max_message_bytes}) for the "
+                             "relay's stamps")))
 
     # ------------------------------------------------------------------ clock exchange
 

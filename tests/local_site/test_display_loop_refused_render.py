@@ -22,9 +22,12 @@ from local_site.scenes import TactileFrameScene
 from shared.errors import DeviceInitError, DeviceOperationError
 from shared.protocol import TactileFrame
 from shared.timebase import now_us
-from tests.support import wait_until
+from tests.support import scaled, wait_until
 
-MAX_AGE_S = 0.05
+MAX_AGE_S = 1.0
+#: how long frame A stays fresh after it is made: the first tick must come within it (scaled:
+#: a loaded machine may take a while), and the test then waits it out
+FRESH_FOR_S = min(0.5, scaled(0.05))
 GOOD = PlatformSample((30.0, 30.0, 0.0), (0.0, 0.0, 0.0), 0, 1, 0)
 BAD = PlatformSample((float("nan"), 30.0, 0.0), (0.0, 0.0, 0.0), 0, 2, 0)
 
@@ -81,10 +84,11 @@ def past(deadline_s: float) -> None:
 
 def test_a_refused_render_keeps_a_command_alive_only_while_its_own_frame_is_fresh() -> None:
     loop, slot, display, sample = build()
-    slot.put(frame(1, 3.0, age_s=MAX_AGE_S - 0.005), now_us())  # A: fresh for 5 ms more
+    made = time.monotonic()
+    slot.put(frame(1, 3.0, age_s=MAX_AGE_S - FRESH_FOR_S), now_us())  # A: fresh a while more
     loop.tick()
     assert display.heights() == [3.0] and loop.pin_state.command is not None
-    past(time.monotonic() + 0.006)  # A is past its bound now
+    past(made + FRESH_FOR_S + 0.001)  # A is past its bound now
     sample[0] = BAD
     slot.put(frame(2, 0.5), now_us())  # B: fresh, but its render is refused
     loop.tick()
@@ -96,9 +100,10 @@ def test_a_refused_render_keeps_a_command_alive_only_while_its_own_frame_is_fres
 
 def test_a_refused_render_after_a_safe_state_sends_nothing() -> None:
     loop, slot, display, sample = build()
-    slot.put(frame(1, 3.0, age_s=MAX_AGE_S - 0.005), now_us())
+    made = time.monotonic()
+    slot.put(frame(1, 3.0, age_s=MAX_AGE_S - FRESH_FOR_S), now_us())
     loop.tick()
-    past(time.monotonic() + 0.006)
+    past(made + FRESH_FOR_S + 0.001)
     loop.tick()  # A aged out: the pins go safe
     assert display.heights() == [3.0, "safe"] and loop.safe_reason == "stale_frame"
     sample[0] = BAD

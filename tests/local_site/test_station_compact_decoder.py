@@ -34,7 +34,7 @@ def test_a_new_link_session_forgets_the_last_ones_key_frame() -> None:
     assert out is not None and float(out.layers["height_mm"][0, 0]) > 1.9
     # same link session: the delta decodes against the key frame held
     assert LocalAgent._decode_compact(station, old[1]) is not None  # type: ignore[arg-type]
-    # the link reconnects (a relay or sender restart); the new sender's key frame was missed
+    # the link reconnects (a relay restart, an outage): a key frame of the new session missed
     station.link.counters.connects = 2
     assert LocalAgent._decode_compact(station, new[1]) is None  # type: ignore[arg-type]
     assert station.tactile_decoder.counters.waiting_for_key == 1
