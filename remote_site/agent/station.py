@@ -182,6 +182,9 @@ def closing_speed_mm_s(reading: ArmReading) -> float:
 #: arm calls of one loop failing this long without a success between end the station (for
 #: its supervisor to start it again and the arm backend to recover as it connects)
 ARM_FAULT_RESTART_S = 2.0
+#: a failure this long after the previous one starts a new run (the receive loop may have
+#: had no command to apply in between)
+_ARM_FAULT_GAP_S = 0.5
 
 #: an arm slower than this is at rest (the pose wait gives it time to set off)
 _AT_REST_MM_S = 1.0
@@ -342,9 +345,9 @@ class RemoteStation:
         self._link_halted = False
         self._warned_no_clock = False
         #: per loop, whether its last arm call failed (one warning per run of failures)
-        #: per loop, since when its arm calls have failed without a success between (None
-        #: or absent: the last one succeeded)
-        self._arm_failing: dict[str, float | None] = {}
+        #: per loop, (since, last): when its run of arm failures began and when it last
+        #: failed (None or absent: the last call succeeded)
+        self._arm_failing: dict[str, tuple[float, float] | None] = {}
         self._started_s: float | None = None
         self._stopped_s: float | None = None
         window = 20_000
@@ -503,19 +506,23 @@ class RemoteStation:
     def _arm_error(self, loop: str, err: DeviceError) -> None:
         """An arm call of ``loop`` failed: counted, the first of a run logged, the arm
         stopped if it can be. The loop goes on: one lost packet or failed move must not end
-        the station. A fault that lasts :data:`ARM_FAULT_RESTART_S` without a success
-        between is raised: it ends the station (exit 1), so that its supervisor (systemd's
-        ``Restart=``) starts it again and the arm backend recovers as it connects (a
-        Franka's reflex needs that), instead of a station that stays up with a dead arm.
+        the station. A fault that lasts :data:`ARM_FAULT_RESTART_S` (failures with no
+        success and no gap of :data:`_ARM_FAULT_GAP_S` between) is raised: it ends the
+        station (exit 1), so that its supervisor (systemd's ``Restart=``) starts it again
+        and the arm backend recovers as it connects (a Franka's reflex needs that), instead
+        of a station that stays up with a dead arm.
 
         Raises:
             DeviceError: ``err``, once the run of failures has lasted that long.
         """
         self.counters.arm_errors += 1
-        since = self._arm_failing.get(loop)
+        run = self._arm_failing.get(loop)
         now_s = monotonic_s()
-        if since is None:
-            self._arm_failing[loop] = now_s
+        # a run is failures with no success and no quiet gap between: two lone failures
+        # of a loop that had nothing to do in between are not a lasting fault
+        since = now_s if run is None or now_s - run[1] > _ARM_FAULT_GAP_S else run[0]
+        self._arm_failing[loop] = (since, now_s)
+        if since == now_s:
             log.warning("arm error in the %s loop (halting the arm, going on): %s", loop, err)
         elif now_s - since >= ARM_FAULT_RESTART_S:
             log.error("arm calls of the %s loop have failed for %.1f s: ending the station "
@@ -527,17 +534,19 @@ class RemoteStation:
     async def _receive_loop(self) -> None:
         while True:
             msg = await self.link.recv()
+            result: CommandResult | None = None
             try:
                 if isinstance(msg, PlatformState):
-                    self.apply_platform_state(msg)
+                    result = self.apply_platform_state(msg)
                 elif isinstance(msg, ArmCommand):
-                    self.apply_arm_command(msg)
+                    result = self.apply_arm_command(msg)
                 elif log.isEnabledFor(logging.DEBUG):
                     log.debug("ignoring %s from the relay", msg.TYPE)
             except DeviceError as err:
                 self._arm_error("receive", err)
             else:
-                self._arm_failing["receive"] = None
+                if result is not None and result.accepted:  # the arm took a command
+                    self._arm_failing["receive"] = None
 
     def _check_link(self) -> None:
         if self.link.is_connected:
@@ -631,7 +640,11 @@ class RemoteStation:
         prev_closing: float | None = None
         from_rest: bool | None = None
         while True:
-            reading = self.pipeline.read_arm()
+            try:
+                reading = self.pipeline.read_arm()
+            except DeviceError as err:  # a lost read: no wait for the pose (counted)
+                self._arm_error("frames", err)
+                return
             eta_s = pose_eta_s(reading, tolerance_mm)
             if eta_s == 0.0:
                 self.captures.on_pose += 1
@@ -816,7 +829,11 @@ class RemoteStation:
         sensor_frame, capture_s = taken
         captured = self.applied_at(sensor_frame.timestamp_us)
         source, chain = self._frame_source(captured)
-        reading = self.reading_at(sensor_frame.timestamp_us)
+        try:
+            reading = self.reading_at(sensor_frame.timestamp_us)
+        except DeviceError as err:  # no polled reading yet, and the read failed
+            self._arm_error("frames", err)
+            return captured, chain, FrameOutcome(None, "rejected", "arm_error")
         with self.waited.waiting_for("a frame's processing"):
             outcome = await asyncio.get_running_loop().run_in_executor(
                 executor, self.pipeline.build, self._frame_seq + 1, sensor_frame, reading,

@@ -422,13 +422,16 @@ class SafeArm:
             # a step in proportion to the overshoot: small for a press that just reached the
             # limit (stiff tissue sheds stiffness x step of force), larger for a slide onto
             # an inclusion far past it
-            hold = z + self.config.force_backoff_mm * reading.force_n / self._force_limit_n
+            rise = min(self.config.force_backoff_mm * reading.force_n / self._force_limit_n,
+                       self.config.max_press_step_mm)  # one wild reading lifts it 0.3 mm
+            hold = min(z + rise, self._hi[2])  # never above the box: a command can reach it
             if self._limit_hold_z is None or hold > self._limit_hold_z:
                 self._limit_hold_z = hold
             return True
         if (self._limit_hold_z is not None
                 and reading.force_n < self.config.force_release_ratio * self._force_limit_n
-                and (self._wanted_z is None or self._wanted_z >= self._limit_hold_z)):
+                and (self._wanted_z is None
+                     or self._wanted_z >= min(self._limit_hold_z, self._hi[2]))):
             self._limit_hold_z = None
         return self._limit_hold_z is not None
 

@@ -513,11 +513,11 @@ class ArmCommand(DataMessage):
         lim = _WORKSPACE_LIMIT_MM
         target = (read_vector(d, t, "target_mm", 3, lo=-lim, hi=lim)
                   if read_optional(d, "target_mm") or action == "move" else None)
+        # read for set_force_limit only: on other actions the field means nothing, and a
+        # stop is never refused for it (whatever it holds)
         force = (read_float(d, t, "force_limit_n", lo=0.0, hi=1000.0)
-                 if read_optional(d, "force_limit_n") or action == "set_force_limit" else None)
-        if action == "set_force_limit" and force is not None and force <= 0.0:
-            # a zero limit is not a limit (SafeArm refuses it); on other actions the field
-            # means nothing (a stop is never refused for it)
+                 if action == "set_force_limit" else None)
+        if force is not None and force <= 0.0:  # a zero limit is not a limit (SafeArm refuses)
             raise FieldError(f"{t}.force_limit_n must be > 0, got {force}")
         return cls(**cls._read_head(d, t), action=action, target_mm=target,  # type: ignore[arg-type]
                    force_limit_n=force)

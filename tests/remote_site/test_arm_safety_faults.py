@@ -253,3 +253,52 @@ def test_a_press_held_at_the_limit_stays_held_however_stiff_the_tissue(
     limit = safe.config.force_limit_n
     assert releases == 0
     assert max(last) <= limit and min(last) >= limit - stiffness * safe.config.force_backoff_mm
+
+
+def _glitch_once(arm: SimArm, force_n: float) -> None:
+    real = arm._read
+    once = [True]
+
+    def glitch() -> ArmReading:
+        reading = real()
+        if once[0]:
+            once[0] = False
+            return dataclasses.replace(reading, force_n=force_n)
+        return reading
+
+    arm._read = glitch  # type: ignore[method-assign]
+
+
+@pytest.mark.parametrize(("limit", "spike", "z0"), [(None, 10.5, 14.5), (None, 1000.0, 3.0),
+                                                      (1.0, 1000.0, 0.0)])
+def test_one_wild_reading_neither_lifts_the_arm_far_nor_holds_it_for_good(
+        limit: float | None, spike: float, z0: float) -> None:
+    """Found by review of the back-off: one 1000 N glitch lifted the hold 5 mm (50 mm at a
+    1 N limit), and a hold above the box top could never be released by a command (the
+    commands are clamped to the box), so the arm stayed held until a halt."""
+    clock = [1000.0]
+    arm = SimArm(Spring(10.0), SimArmConfig(realtime=False))
+    arm.connect()
+    safe = SafeArm(arm, SafetyConfig(), bounds_mm=((-50.0, -50.0, -4.0), (50.0, 50.0, 14.5)),
+                   wall_clock_us=lambda: int(clock[0] * 1e6), monotonic=lambda: clock[0])
+    if limit is not None:
+        safe.set_force_limit(limit)
+
+    def stream(target: tuple[float, float, float], n: int = 300) -> None:
+        for _ in range(n):
+            safe.move(target, sent_ts_us=int(clock[0] * 1e6))
+            for _ in range(4):
+                arm.advance(0.001)
+                clock[0] += 0.001
+                safe.poll()
+
+    stream((0.0, 0.0, z0))
+    _glitch_once(arm, spike)
+    safe.poll()
+    hold = safe._limit_hold_z
+    assert hold is not None
+    assert hold <= min(z0 + safe.config.max_press_step_mm, 14.5) + 1e-9
+    stream((0.0, 0.0, 14.5))  # the operator lifts to the box top: released
+    assert safe._limit_hold_z is None
+    stream((0.0, 0.0, 0.5))  # and may come down again
+    assert arm.state().position_mm[2] == pytest.approx(0.5, abs=0.05)

@@ -8,6 +8,8 @@ import contextlib
 import dataclasses
 import logging
 import math
+import time
+from types import SimpleNamespace
 
 import pytest
 
@@ -242,3 +244,64 @@ def test_a_lost_arm_read_costs_a_frame_not_the_frame_loop() -> None:
         assert pipeline.process(2, None).frame is not None  # the next read works
     finally:
         close_station(station)
+
+
+def test_lone_failures_far_apart_are_not_a_lasting_fault(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Found by review: a failure, a quiet gap with nothing to do (no success either), then
+    another failure counted as one run of the gap's length and ended the station."""
+    import remote_site.agent.station as station_module
+
+    monkeypatch.setattr(station_module, "ARM_FAULT_RESTART_S", 0.05)
+    monkeypatch.setattr(station_module, "_ARM_FAULT_GAP_S", 0.02)
+    station, _ = make_station(Link())
+    err = DeviceTimeoutError("one lost state packet")
+    station._arm_error("receive", err)
+    deadline = time.monotonic() + 0.1
+    while time.monotonic() < deadline:  # a quiet gap longer than the restart limit
+        time.sleep(0.005)
+    station._arm_error("receive", err)  # a new run: not raised
+    assert station.counters.arm_errors == 2
+
+
+def test_a_lost_read_in_the_pose_wait_does_not_end_the_frame_loop() -> None:
+    """Found by review: the pose wait (capture on pose, the default) read the arm with no
+    handler, so one lost packet while waiting ended the frame loop and the station."""
+    from remote_site.tactile import AppliedCommand
+
+    station, arm = make_station(Link())
+    station.pipeline = SimpleNamespace(read_arm=arm.state)  # type: ignore[assignment]
+    arm.fail_reads = 1
+    command = AppliedCommand(PlatformState(seq=1, ts_us=now_us(), position_mm=(0.0, 0.0, 1.0)),
+                             now_us(), None)
+    asyncio.run(asyncio.wait_for(station._until_pose(command), 5.0))
+    assert station.counters.arm_errors == 1
+
+
+def test_a_receive_run_is_reset_only_by_a_command_the_arm_took(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Found by review: any message that made no arm call (a stale command, an ignored type)
+    counted as a success, so a reflex (moves failing) with a few stale commands between
+    never escalated."""
+    import remote_site.agent.station as station_module
+
+    monkeypatch.setattr(station_module, "ARM_FAULT_RESTART_S", 0.05)
+    stale = [PlatformState(seq=2 * i + 2, ts_us=now_us() - 10_000_000,
+                           position_mm=(0.0, 0.0, 5.0)) for i in range(200)]
+    fresh = [PlatformState(seq=2 * i + 1, ts_us=0, position_mm=(0.0, 0.0, 5.0))
+             for i in range(200)]
+    link = Link()
+    station, arm = make_station(link)
+    arm.fail_moves = 10**9
+
+    async def feed() -> None:
+        loop = asyncio.create_task(station._receive_loop())
+        for f, s in zip(fresh, stale, strict=True):
+            link.inbox.put_nowait(dataclasses.replace(f, ts_us=now_us()))
+            link.inbox.put_nowait(s)  # refused as stale: no arm call
+            await asyncio.sleep(0.002)
+            if loop.done():
+                break
+        with pytest.raises(DeviceError):
+            await asyncio.wait_for(loop, 5.0)
+
+    asyncio.run(feed())
