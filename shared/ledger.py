@@ -10,9 +10,10 @@ ledger keeps
 * sequence accounting: ``lost`` (RFC 3550: expected from the seq range minus received,
   so a late arrival fills its gap), ``out_of_order`` (seq not above the highest seen),
   ``dropped`` (discarded on purpose, e.g. relay latest-wins, by reason), and
-  ``seq_resets``: a sequence jump of more than ``max_seq_jump`` either way (a sender
-  restart, or a hostile seq of 2^63 - 1) restarts the gap count from the new seq instead
-  of adding the jump to ``lost`` (RFC 3550 A.1 treats a large jump the same way);
+  ``seq_resets``: a sequence jump of more than ``max_seq_jump`` forward (a hostile seq of
+  2^63 - 1) or of more than ``max_misorder`` back (a sender restarted from 1) restarts the
+  gap count from the new seq instead of adding the jump to ``lost`` or counting the new run
+  ``out_of_order`` (RFC 3550 A.1 treats such jumps the same way);
 * arrival rate over the window and the queue depth (current and peak);
 * ``out_of_range``: arrivals whose delay is beyond :data:`MAX_DELAY_US` either way (a
   peer's figures that make no sense: a hostile ``ts``, a wild clock) are counted there and
@@ -116,6 +117,9 @@ def _stats(delays: np.ndarray) -> tuple[float | None, ...]:
 
 #: default largest sequence jump still counted as loss (about 17 min of a 1 kHz stream)
 DEFAULT_MAX_SEQ_JUMP = 1 << 20
+#: a seq further back than this from the highest seen restarts the gap count (RFC 3550's
+#: MAX_MISORDER): a restarted sender, not a late message
+DEFAULT_MAX_MISORDER = 100
 
 
 class LatencyLedger:
@@ -123,17 +127,22 @@ class LatencyLedger:
 
     Args:
         window: delays (and arrival times) kept for percentiles and rate.
-        max_seq_jump: a seq further than this from the highest seen (either way) restarts
-            the gap accounting (counted in ``seq_resets``) instead of counting as loss.
+        max_seq_jump: a seq further ahead than this of the highest seen restarts the gap
+            accounting (counted in ``seq_resets``) instead of counting as loss.
+        max_misorder: a seq further back than this from the highest seen restarts it too
+            (found by review: a station restarted from seq 1 had its whole new run counted
+            ``out_of_order`` and its losses hidden); closer back, it is a late message.
     """
 
-    def __init__(self, window: int = 4096, max_seq_jump: int = DEFAULT_MAX_SEQ_JUMP) -> None:
+    def __init__(self, window: int = 4096, max_seq_jump: int = DEFAULT_MAX_SEQ_JUMP,
+                 max_misorder: int = DEFAULT_MAX_MISORDER) -> None:
         if window < 1:
             raise ValueError("window must be >= 1")
-        if max_seq_jump < 1:
-            raise ValueError("max_seq_jump must be >= 1")
+        if max_seq_jump < 1 or max_misorder < 1:
+            raise ValueError("max_seq_jump and max_misorder must be >= 1")
         self.window = window
         self.max_seq_jump = max_seq_jump
+        self.max_misorder = max_misorder
         self._delays = np.zeros(window, np.int64)
         self._recv = np.zeros(window, np.int64)
         self._n = 0  # delays booked; ring index = _n % window
@@ -188,18 +197,23 @@ class LatencyLedger:
         else:
             self.out_of_range += 1
         if seq is not None:
-            self._seq_received += 1
             if self._first_seq is None:
                 self._first_seq = self._highest_seq = seq
-            elif abs(seq - self._highest_seq) > self.max_seq_jump:
+                self._seq_received = 1
+            elif (seq - self._highest_seq > self.max_seq_jump
+                  or self._highest_seq - seq > self.max_misorder):
+                # the old run's loss, before this arrival counts in the new one (it was
+                # counted in the old, one short)
                 self._lost_before_reset += self._run_lost()
                 self.seq_resets += 1
                 self._first_seq = self._highest_seq = seq
                 self._seq_received = 1
-            elif seq > self._highest_seq:
-                self._highest_seq = seq
             else:
-                self.out_of_order += 1
+                self._seq_received += 1
+                if seq > self._highest_seq:
+                    self._highest_seq = seq
+                else:
+                    self.out_of_order += 1
         return transit
 
     def _run_lost(self) -> int:

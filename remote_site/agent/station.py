@@ -104,6 +104,10 @@ class StationCounters:
     platform_states: int = 0
     platform_applied: int = 0
     platform_dropped_no_clock: int = 0
+    #: platform states the arm's safety layer refused: stale by their stamp, or their age not
+    #: judged finely enough (the arm_commands' refusals are the safety layer's own counters)
+    platform_dropped_stale: int = 0
+    platform_dropped_clock: int = 0
     platform_invalid: int = 0
     arm_commands: int = 0
     arm_commands_applied: int = 0
@@ -401,6 +405,10 @@ class RemoteStation:
             self.counters.platform_invalid += 1
             log.warning("unusable platform_state %d: %s", state.seq, err)
             return None
+        if result.refused == "stale":
+            self.counters.platform_dropped_stale += 1
+        elif result.refused is not None:
+            self.counters.platform_dropped_clock += 1
         if result.accepted:
             t_us = now_us()
             if self.latest is not None:
@@ -976,7 +984,10 @@ class RemoteStation:
             "platform_states": {
                 "received": c.platform_states,
                 "applied": c.platform_applied,
-                "dropped_stale": s.dropped_stale,
+                # this stream's own (found by review: the safety layer's counter, which
+                # counts stale arm_commands too, and clock refusals went nowhere)
+                "dropped_stale": c.platform_dropped_stale,
+                "dropped_clock": c.platform_dropped_clock,
                 "dropped_no_clock": c.platform_dropped_no_clock,
                 "invalid": c.platform_invalid,
             },

@@ -192,6 +192,17 @@ def test_stale_platform_states_are_dropped_with_clock_correction() -> None:
         assert station.latest is not None and station.latest.state.seq == 1
         summary = station.summary()["platform_states"]
         assert (summary["received"], summary["applied"], summary["dropped_stale"]) == (2, 1, 1)
+        # a stale arm_command is not a platform state (found by review: the summary showed
+        # the safety layer's counter, which counts both), and a state from the future is a
+        # clock refusal, counted too
+        station.apply_arm_command(ArmCommand(seq=1, ts_us=now_us() + 500_000 - 150_000,
+                                             action="move", target_mm=(0.0, 0.0, 5.0)))
+        station.apply_platform_state(platform_state(3, (0.0, 0.0, 5.0),
+                                                    ts_us=now_us() + 500_000 + 40_000))
+        summary = station.summary()["platform_states"]
+        assert (summary["received"], summary["dropped_stale"], summary["dropped_clock"]) == \
+            (3, 1, 1)
+        assert station.safe_arm.counters.dropped_stale == 2  # the layer's own, both streams
         # the arm was told to go to the fresh state's target only
         assert station.safe_arm.arm.state().target_mm == pytest.approx((0.0, 0.0, 5.0))
     finally:

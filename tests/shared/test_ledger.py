@@ -117,6 +117,21 @@ def test_a_huge_sequence_jump_is_a_reset_not_loss() -> None:
     assert merge_snapshots([snap, snap]).seq_resets == 4
 
 
+def test_a_sender_restarted_from_seq_1_is_a_reset_and_its_losses_count() -> None:
+    """Found by review: a station restarted from seq 1 (a backward jump under 2^20) had its
+    whole new run counted out_of_order, and the losses of both runs vanished from lost."""
+    ledger = LatencyLedger(64)
+    for seq in (s for s in range(1, 5001) if not 2000 < s <= 2500):  # 500 lost
+        ledger.record(seq, 0, 10)
+    assert (ledger.lost, ledger.seq_resets) == (500, 0)
+    for seq in (s for s in range(1, 3001) if not 1000 < s <= 1300):  # restarted; 300 lost
+        ledger.record(seq, 0, 10)
+    assert (ledger.lost, ledger.out_of_order, ledger.seq_resets) == (800, 0, 1)
+    # a message a little late is still a late message, not a restart
+    ledger.record(2990, 0, 10)
+    assert (ledger.out_of_order, ledger.seq_resets) == (1, 1)
+
+
 def test_a_delay_out_of_range_is_counted_not_booked() -> None:
     """A station clock offset of ~9e18 us made a delay overflow the int64 ring: OverflowError
     out of the relay's routing. Such a delay is counted in ``out_of_range`` and left out of
