@@ -68,6 +68,8 @@ class DirectionStats:
         self.nats = LatencyLedger(window)  # NATS leg (nats_out -> nats_in) from other workers
         self.forwarded = 0
         self.unsynced = 0  # arrivals before the sender's clock offset was known
+        #: per stream, the connection (peer_id) whose messages the ledger counts now
+        self.senders: dict[str, int] = {}
 
     def stream(self, name: str) -> LatencyLedger:
         """The uplink ledger of one stream (created on first use)."""
@@ -249,6 +251,9 @@ class Session:
             direction.unsynced += 1
         else:
             sent_ref_us = round(sent_station_us - offset)
+            if direction.senders.get(stream) != sender.peer_id:  # a new connection sends it
+                direction.senders[stream] = sender.peer_id
+                ledger.sender_changed(msg.seq)
             ledger.record(msg.seq, sent_ref_us, t_in_us)
         fwd = msg  # relay_in/relay_out hops are added when it is encoded for each receiver
         receiver = self._receiver(sender.role)

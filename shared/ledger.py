@@ -216,6 +216,18 @@ class LatencyLedger:
                     self.out_of_order += 1
         return transit
 
+    def sender_changed(self, seq: int) -> None:
+        """A new connection sends this stream from now on, ``seq`` its first: a seq not
+        above the highest seen is a restarted sender (it numbers from 1 again), so the gap
+        count restarts (``seq_resets``) however short the old run was (found by review:
+        a run that had not passed ``max_misorder`` was still counted ``out_of_order``)."""
+        if self._first_seq is not None and seq <= self._highest_seq:
+            self._lost_before_reset += self._run_lost()
+            self.seq_resets += 1
+            self._first_seq = None
+            self._highest_seq = 0
+            self._seq_received = 0
+
     def _run_lost(self) -> int:
         if self._first_seq is None:
             return 0

@@ -125,6 +125,10 @@ class FramePipeline:
         factor = self.reconstructor.pool_factor(self.phantom_pitch_mm)
         return float(self.reconstructor.calibration.mm_per_px * factor)
 
+    def arm_read_failed(self, err: Exception) -> FrameOutcome:
+        """The outcome of a tick whose arm read failed: a rejected frame (``arm_error``)."""
+        return self._reject("arm_error", err)
+
     def _reject(self, reason: str, err: Exception) -> FrameOutcome:
         self.rejected[reason] += 1
         if self.rejected[reason] == 1:
@@ -148,7 +152,7 @@ class FramePipeline:
         try:
             reading = self.read_arm()
         except DeviceError as err:  # a lost read: no frame this tick, the loop goes on
-            return self._reject("arm_error", err)
+            return self.arm_read_failed(err)
         taken = self.capture()
         if isinstance(taken, FrameOutcome):
             return taken

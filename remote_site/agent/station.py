@@ -352,6 +352,7 @@ class RemoteStation:
         #: per loop, (since, last): when its run of arm failures began and when it last
         #: failed (None or absent: the last call succeeded)
         self._arm_failing: dict[str, tuple[float, float] | None] = {}
+        self._frame_read_warned = False
         self._started_s: float | None = None
         self._stopped_s: float | None = None
         window = 20_000
@@ -539,6 +540,15 @@ class RemoteStation:
         with contextlib.suppress(DeviceError):
             self.safe_arm.stop()
 
+    def _frame_read_failed(self, err: DeviceError) -> None:
+        """An arm read of the frame path failed: counted (``arm_errors``), the first
+        logged; the arm is left to the arm loop, whose polls stop it and judge a fault that
+        lasts."""
+        self.counters.arm_errors += 1
+        if not self._frame_read_warned:
+            self._frame_read_warned = True
+            log.warning("an arm read for a frame failed (counted, going on): %s", err)
+
     async def _receive_loop(self) -> None:
         while True:
             msg = await self.link.recv()
@@ -650,8 +660,12 @@ class RemoteStation:
         while True:
             try:
                 reading = self.pipeline.read_arm()
-            except DeviceError as err:  # a lost read: no wait for the pose (counted)
-                self._arm_error("frames", err)
+            except DeviceError as err:
+                # a lost read: the frame is taken without waiting for the pose (counted as
+                # not on pose). The arm is not stopped for it, nor is a run of failures
+                # kept: the arm loop's polls judge whether the arm is gone.
+                self._frame_read_failed(err)
+                self.captures.moving += 1
                 return
             eta_s = pose_eta_s(reading, tolerance_mm)
             if eta_s == 0.0:
@@ -840,8 +854,8 @@ class RemoteStation:
         try:
             reading = self.reading_at(sensor_frame.timestamp_us)
         except DeviceError as err:  # no polled reading yet, and the read failed
-            self._arm_error("frames", err)
-            return captured, chain, FrameOutcome(None, "rejected", "arm_error")
+            self._frame_read_failed(err)
+            return captured, chain, self.pipeline.arm_read_failed(err)
         with self.waited.waiting_for("a frame's processing"):
             outcome = await asyncio.get_running_loop().run_in_executor(
                 executor, self.pipeline.build, self._frame_seq + 1, sensor_frame, reading,

@@ -262,3 +262,23 @@ def test_a_tactile_frame_that_replaces_one_starts_where_that_one_started() -> No
     key, delta = local.outbox.take()
     assert key.wire is not None and decode(key.wire.data) == stream[0]  # ordered, untouched
     assert delta.message.seq == 5 and motion_of(delta.message) == 36_000  # type: ignore[attr-defined,arg-type]
+
+
+def test_a_restarted_station_is_a_new_sequence_run_for_the_ledger() -> None:
+    """Found by review: a station restarted from seq 1 had its new run counted out_of_order
+    and its losses hidden; the session tells the ledger when a new connection sends."""
+    session = Session("s", 64)
+    first, remote = make_peer(1, "local"), make_peer(2, "remote")
+    for p in (first, remote):
+        session.join(p)
+    first.clock.add_timestamps(0, 0, 0, 0)
+    for seq in (s for s in range(1, 41) if s != 20):  # one lost
+        session.route(first, PlatformState(seq=seq, ts_us=seq, position_mm=(0.0, 0.0, 1.0)), 50)
+    session.leave(first)
+    again = make_peer(3, "local")  # the restarted process: a new connection, seqs from 1
+    session.join(again)
+    again.clock.add_timestamps(0, 0, 0, 0)
+    for seq in (s for s in range(1, 31) if s != 10):  # one more lost
+        session.route(again, PlatformState(seq=seq, ts_us=seq, position_mm=(0.0, 0.0, 1.0)), 60)
+    ledger = session.directions["local_to_remote"].uplink["platform_state"]
+    assert (ledger.lost, ledger.out_of_order, ledger.seq_resets) == (2, 0, 1)

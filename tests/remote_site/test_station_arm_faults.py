@@ -275,6 +275,9 @@ def test_a_lost_read_in_the_pose_wait_does_not_end_the_frame_loop() -> None:
                              now_us(), None)
     asyncio.run(asyncio.wait_for(station._until_pose(command), 5.0))
     assert station.counters.arm_errors == 1
+    # not stopped for it (found by review: the operator's arm was halted short of its
+    # target), and the capture is counted as not on pose
+    assert not station.safe_arm.halted and station.captures.moving == 1
 
 
 def test_a_receive_run_is_reset_only_by_a_command_the_arm_took(

@@ -132,6 +132,22 @@ def test_a_sender_restarted_from_seq_1_is_a_reset_and_its_losses_count() -> None
     assert (ledger.out_of_order, ledger.seq_resets) == (1, 1)
 
 
+def test_a_new_sender_numbering_from_1_again_restarts_the_count_however_short_its_run() -> None:
+    """Found by review: a run that had not passed max_misorder (a station restarting every
+    couple of seconds) was still counted out_of_order; the relay tells the ledger when a new
+    connection sends the stream."""
+    ledger = LatencyLedger(64)
+    for seq in (s for s in range(1, 61) if s not in range(20, 30)):  # 10 lost
+        ledger.record(seq, 0, 10)
+    ledger.sender_changed(1)  # a restarted station: from 1 again
+    for seq in (s for s in range(1, 61) if s not in range(40, 45)):  # 5 lost
+        ledger.record(seq, 0, 10)
+    assert (ledger.lost, ledger.out_of_order, ledger.seq_resets) == (15, 0, 1)
+    ledger.sender_changed(61)  # the same station reconnected (resume): its seqs go on
+    ledger.record(61, 0, 10)
+    assert (ledger.lost, ledger.seq_resets) == (15, 1)
+
+
 def test_a_delay_out_of_range_is_counted_not_booked() -> None:
     """A station clock offset of ~9e18 us made a delay overflow the int64 ring: OverflowError
     out of the relay's routing. Such a delay is counted in ``out_of_range`` and left out of
