@@ -412,10 +412,11 @@ class SafeArm:
         """Engage or release the force limit from a reading; True when it is engaged.
 
         While the force is at or above the limit the hold depth rises to
-        ``force_backoff_mm`` x (force / limit) above the current depth (never lower than
-        before): holding the
-        depth alone would let a sideways slide onto stiffer tissue raise the force without
-        bound.
+        ``force_backoff_mm`` x (force / limit) above the current depth (at most a press step,
+        never above the box; never lower than before): holding the depth alone would let a
+        sideways slide onto stiffer tissue raise the force without bound. It is released
+        below ``force_release_ratio`` of the limit once the newest command no longer asks
+        for a depth below the hold.
         """
         z = reading.position_mm[2]
         if reading.force_n >= self._force_limit_n:
