@@ -200,7 +200,10 @@ def estimate_press(approach_mm: ArrayLike, force_n: ArrayLike,
         use = touching & (depth >= max(cfg.min_depth_mm, 1e-9))
         if np.count_nonzero(use) < cfg.min_samples:
             return StiffnessEstimate(False, "too_shallow", method=method)
-        if fit_ols(a[use], f[use])[0] <= 0:  # force must rise with depth to be loading
+        # force must rise with depth to be loading; samples all at one depth give no slope
+        # (0/0 = NaN, which "<= 0" let through as loading: found by review)
+        slope = fit_ols(a[use], f[use])[0] if np.ptp(a[use]) > 0 else math.nan
+        if not (math.isfinite(slope) and slope > 0):
             return StiffnessEstimate(False, "not_loading", method=method)
         k_meas = float(np.median(f[use] / depth[use]))
         resid = f[use] - k_meas * depth[use]

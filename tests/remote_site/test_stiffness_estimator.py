@@ -146,3 +146,14 @@ def test_no_gel_stiffness_is_refused_not_guessed() -> None:
         estimate_press(a, f, StiffnessConfig())
     with pytest.raises(ConfigError):
         StiffnessConfig(gel_stiffness_n_per_mm=-1.0)
+
+
+@pytest.mark.parametrize("depth", [0.6, 0.5])  # 0.5: the depths' mean is exact (0/0 = NaN)
+def test_the_ratio_method_refuses_a_hold_at_one_depth_with_falling_force(depth: float) -> None:
+    """Found by review: with every loading sample at one depth the OLS slope of the "force
+    must rise" check was 0/0 = NaN, which "<= 0" let through, so a relaxing hold (force
+    falling at constant depth) gave a valid ratio estimate."""
+    a = np.array([0.0, 0.1, 0.2] + [depth] * 10)
+    f = np.array([0.0, 0.2, 0.4, *np.linspace(3.0, 1.0, 10)])
+    est = estimate_press(a, f, StiffnessConfig(method="ratio", gel_stiffness_n_per_mm=20.0))
+    assert not est.valid and est.reason == "not_loading"
