@@ -15,13 +15,13 @@ import numpy as np
 
 from local_site.agent.display_loop import DisplayLoop, FrameSlot, SameClockLink
 from local_site.display import frames as fr
-from local_site.display.base import ArrayTacDisplay
 from local_site.platform.base import PlatformSample
 from local_site.render import Renderer
 from local_site.scenes import TactileFrameScene
 from shared.errors import DeviceInitError, DeviceOperationError
 from shared.protocol import TactileFrame
 from shared.timebase import now_us
+from tests.local_site.test_local_hot_paths import _CaptureDisplay
 from tests.support import scaled, wait_until
 
 MAX_AGE_S = 1.0
@@ -32,25 +32,12 @@ GOOD = PlatformSample((30.0, 30.0, 0.0), (0.0, 0.0, 0.0), 0, 1, 0)
 BAD = PlatformSample((float("nan"), 30.0, 0.0), (0.0, 0.0, 0.0), 0, 2, 0)
 
 
-class CaptureDisplay(ArrayTacDisplay):
-    """The driver's own logic, its frames kept instead of written to a board."""
+class CaptureDisplay(_CaptureDisplay):
+    """The driver's own logic, its frames kept instead of written to a board; a 1 ms
+    keepalive interval."""
 
     def __init__(self) -> None:
-        super().__init__(require_feedback=False, keepalive_interval_s=0.001)
-        self.sent: list[tuple[int, bytes]] = []
-
-    @property
-    def name(self) -> str:
-        return "capture"
-
-    def _connect(self) -> None:
-        pass
-
-    def _disconnect(self) -> None:
-        pass
-
-    def _send_frame(self, arb_id: int, payload: bytes) -> None:
-        self.sent.append((arb_id, payload))
+        super().__init__(keepalive_interval_s=0.001)
 
     def heights(self) -> list[str | float]:
         """Each frame sent: its first pin's height (mm), or "safe"."""

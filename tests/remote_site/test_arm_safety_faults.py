@@ -15,17 +15,7 @@ from remote_site.arm.base import ArmReading
 from remote_site.arm.sim import SimArm, SimArmConfig
 from shared.errors import FieldError
 from shared.protocol.messages import ArmCommand
-
-
-class FakeClock:
-    def __init__(self) -> None:
-        self.t_s = 1000.0
-
-    def wall_us(self) -> int:
-        return int(self.t_s * 1e6)
-
-    def mono(self) -> float:
-        return self.t_s
+from tests.remote_site.test_arm_safety import FakeClock
 
 
 class Spring:
