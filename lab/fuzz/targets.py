@@ -9,6 +9,7 @@ listed in :mod:`lab.fuzz.registry`.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import msgpack
@@ -53,16 +54,31 @@ class _Pairs(list[tuple[Any, Any]]):
     """A msgpack map kept as its (key, value) pairs (so no key type is lost)."""
 
 
-def _keys_are_str(obj: Any) -> bool:
-    """Every map key in ``obj``, at any depth, is a str (iterative: msgpack nests 1024 deep)."""
+def _keys_are_str_once(obj: Any) -> bool:
+    """Every map key in ``obj``, at any depth, is a str given once (iterative: msgpack nests
+    1024 deep)."""
     stack = [obj]
     while stack:
         node = stack.pop()
         if isinstance(node, _Pairs):
-            for k, v in node:
-                if not isinstance(k, str):
-                    return False
-                stack.append(v)
+            keys = [k for k, _ in node]
+            if not all(isinstance(k, str) for k in keys) or len(set(keys)) != len(keys):
+                return False
+            stack.extend(v for _, v in node)
+        elif isinstance(node, list):
+            stack.extend(node)
+    return True
+
+
+def _all_finite(obj: Any) -> bool:
+    """No float anywhere in ``obj`` is NaN or infinite (§2: "rejected everywhere")."""
+    stack = [obj]
+    while stack:
+        node = stack.pop()
+        if isinstance(node, float) and not math.isfinite(node):
+            return False
+        if isinstance(node, _Pairs):
+            stack.extend(v for _, v in node)
         elif isinstance(node, list):
             stack.extend(node)
     return True
@@ -71,7 +87,8 @@ def _keys_are_str(obj: Any) -> bool:
 def reference_envelope(data: bytes, limit: int) -> str | None:
     """What ``docs/protocol.md`` §1-§2 say of a message's envelope, written from the doc
     (not from the codec): the error code, or None when the envelope is fine and the fields
-    decide. Order: size, msgpack, one map with string keys everywhere, ``v``, ``type``."""
+    decide. Order: size, msgpack, one map with string keys everywhere, each once, ``v``,
+    ``type``."""
     if len(data) > limit:
         return "oversize"
     try:
@@ -79,9 +96,9 @@ def reference_envelope(data: bytes, limit: int) -> str | None:
                               object_pairs_hook=_Pairs)
     except Exception:  # any unpack failure: not msgpack, trailing bytes, bad UTF-8, depth
         return "malformed"
-    if not isinstance(obj, _Pairs) or not _keys_are_str(obj):
+    if not isinstance(obj, _Pairs) or not _keys_are_str_once(obj):
         return "malformed"
-    top = dict(obj)  # a repeated key: the last one counts, as in any msgpack map reader
+    top = dict(obj)
     v = top.get("v")
     if type(v) is not int or v not in (1, 2):  # §2: versions 1 and 2
         return "version"
@@ -103,9 +120,10 @@ def decoder(data: bytes) -> None:
     """Target: ``decode`` of one message.
 
     Promises checked: only the doc's errors, with the doc's close codes; the envelope verdict
-    matches :func:`reference_envelope`; a message that decodes can be encoded again
-    (validated) and decodes to the same bytes; a data message forwarded with the relay's two
-    hop stamps decodes with exactly those stamps appended (at most 32 kept).
+    matches :func:`reference_envelope`; a message that decodes has no NaN or infinity
+    anywhere (unknown keys too), can be encoded again (validated) and decodes to the same
+    bytes; a data message forwarded with the relay's two hop stamps decodes with exactly
+    those stamps appended (at most 32 kept).
     """
     expected = reference_envelope(data, DECODER_LIMIT)
     try:
@@ -119,6 +137,9 @@ def decoder(data: bytes) -> None:
                   f"a well-formed envelope refused as {err.code}: {err}")
         return
     check(expected is None, f"decoded a message the doc refuses as {expected}: {msg!r}")
+    check(_all_finite(msgpack.unpackb(data, raw=False, strict_map_key=False, use_list=True,
+                                      object_pairs_hook=_Pairs)),
+          f"decoded a message with a NaN or infinity in it: {msg!r}")
     wire = encode(msg)  # raises LocalProtocolError if a received message cannot be sent on
     check(encode(decode(wire)) == wire, f"re-encoding {msg.TYPE} is not stable")
     if isinstance(msg, DataMessage):

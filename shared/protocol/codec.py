@@ -10,8 +10,9 @@ the wire.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, NoReturn
 
 import msgpack
 
@@ -19,6 +20,7 @@ from shared.errors import (
     FieldError,
     LocalProtocolError,
     MalformedMessageError,
+    NonFiniteError,
     OversizeError,
     UnknownMessageTypeError,
     VersionError,
@@ -45,36 +47,94 @@ SUPPORTED_VERSIONS = frozenset({1, 2})
 DEFAULT_MAX_MESSAGE_BYTES = 4 * 1024 * 1024
 
 
-def _string_keys(obj: dict[Any, Any]) -> dict[Any, Any]:
-    # msgpack's strict_map_key still lets bin keys through; the protocol allows str only
-    for key in obj:
+class _NonFinite(ValueError):
+    """Raised by the unpack hooks at a NaN or infinity; caught in :func:`decode_map`."""
+
+
+_isfinite = math.isfinite
+
+
+def _map_of(pairs: list[tuple[Any, Any]]) -> dict[Any, Any]:
+    # every map, nested ones too: str keys only (msgpack's strict_map_key still lets bin
+    # keys through) and no key twice (which copy a reader keeps is not defined: the relay
+    # forwards the bytes it validated, so another reader could take a copy it never checked)
+    for key, _ in pairs:
         if key.__class__ is not str:
             raise ValueError(f"map keys must be strings, got a {type(key).__name__} key")
+    return _once(pairs)
+
+
+def _once(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    obj = dict(pairs)
+    if len(obj) != len(pairs):
+        seen: set[str] = set()
+        for key, _ in pairs:
+            if key in seen:
+                raise ValueError(f"map key {key[:40]!r} given twice")
+            seen.add(key)
     return obj
+
+
+def _checked_map(pairs: list[tuple[Any, Any]]) -> dict[Any, Any]:
+    """:func:`_map_of`, and finite numbers only (one pass: this runs for every map)."""
+    for key, value in pairs:
+        if key.__class__ is not str:
+            raise ValueError(f"map keys must be strings, got a {type(key).__name__} key")
+        if value.__class__ is float and not _isfinite(value):
+            raise _NonFinite(f"key {key[:40]!r} is {value}")
+    return _once(pairs)
+
+
+def _checked_list(items: list[Any]) -> list[Any]:
+    for value in items:
+        if value.__class__ is float and not _isfinite(value):
+            raise _NonFinite(f"an array element is {value}")
+    return items
 
 
 def decode_map(data: bytes | bytearray | memoryview, *,
                max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> dict[str, Any]:
-    """Unpack bytes into the raw message map, checking size, form and version.
+    """Unpack bytes into the raw message map, checking size, form, numbers and version.
 
     Raises:
         OversizeError: more than ``max_message_bytes`` bytes.
-        MalformedMessageError: not exactly one msgpack map with string keys (every map,
-            nested ones too: an int, float or bin key anywhere is malformed).
+        MalformedMessageError: not exactly one msgpack map with string keys, each given
+            once (every map, nested ones too: an int, float or bin key anywhere, or a key
+            twice, is malformed).
         VersionError: ``v`` is missing or unsupported.
+        UnknownMessageTypeError, FieldError: a number anywhere is NaN or infinite, and the
+            envelope (``v``, ``type``) or a field is wrong too (the errors in the order of
+            :func:`message_from_map`).
+        NonFiniteError: a number anywhere is NaN or infinite, unknown keys too.
     """
     if len(data) > max_message_bytes:
         raise OversizeError(f"message of {len(data)} bytes exceeds the limit of "
                             f"{max_message_bytes}")
     try:
-        obj = msgpack.unpackb(data, raw=False, strict_map_key=True, use_list=True,
-                              object_hook=_string_keys)
+        obj = _unpack(data, finite=True)
+    except _NonFinite as err:
+        _refuse_non_finite(data, err)
+    return _check_envelope(obj)
+
+
+def _unpack(data: bytes | bytearray | memoryview, *, finite: bool) -> Any:
+    try:
+        if finite:
+            return msgpack.unpackb(data, raw=False, strict_map_key=True, use_list=True,
+                                   object_pairs_hook=_checked_map, list_hook=_checked_list)
+        return msgpack.unpackb(data, raw=False, strict_map_key=True, use_list=True,
+                               object_pairs_hook=_map_of)
+    except _NonFinite:
+        raise
     except msgpack.ExtraData as err:
         raise MalformedMessageError("trailing bytes after the msgpack map") from err
     except (ValueError, TypeError, msgpack.UnpackException) as err:
         if "map key" in str(err) or "keys must be strings" in str(err):
-            raise MalformedMessageError(f"map keys must be strings: {err}") from err
+            raise MalformedMessageError(f"map keys must be strings, each once: {err}") from err
         raise MalformedMessageError(f"not valid msgpack: {err}") from err
+
+
+def _check_envelope(obj: Any) -> dict[str, Any]:
     if not isinstance(obj, dict):
         raise MalformedMessageError(f"a message must be a msgpack map, got {type(obj).__name__}")
     version = obj.get("v")
@@ -84,6 +144,15 @@ def decode_map(data: bytes | bytearray | memoryview, *,
         raise VersionError(f"protocol version {version} is not supported "
                            f"(supported: {sorted(SUPPORTED_VERSIONS)})")
     return obj
+
+
+def _refuse_non_finite(data: bytes | bytearray | memoryview, err: _NonFinite) -> NoReturn:
+    """A well-formed message with a NaN or infinity somewhere (the unpack stopped at it):
+    raise the error the checks would in order (envelope, type, the field's own), else a
+    NonFiniteError naming where it is (an unknown key: §2 refuses them everywhere)."""
+    obj = _check_envelope(_unpack(data, finite=False))  # the rest of it: a bad key after
+    message_from_map(obj)  # raises a field's own error (NonFiniteError naming the field)
+    raise NonFiniteError(f"a number must be finite: {err}") from None
 
 
 def message_from_map(obj: dict[str, Any]) -> Message:

@@ -9,8 +9,9 @@ bytes with a longer ``hops`` array (:func:`with_hops`): every other byte is the 
 
 The received message is still decoded and validated in full first (a bad one gets its
 error and is never forwarded); :func:`locate_hops` declines (None) whenever the bytes are not
-a plain case (no ``hops`` key, a top-level key given twice), and the caller then encodes
-the decoded message as before.
+a plain case (no ``hops`` key; a top-level key given twice, which the decoder refuses
+anyway), and the caller then encodes the decoded message as before. A message encoded anew
+loses the sender's unknown keys (``docs/protocol.md`` §2).
 """
 
 from __future__ import annotations

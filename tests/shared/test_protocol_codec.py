@@ -51,7 +51,7 @@ HOPS = st.lists(st.builds(Hop, st.sampled_from(["local", "remote", "relay"]), ST
                 max_size=32).map(tuple)
 
 
-def pack(obj: dict) -> bytes:
+def pack(obj: object) -> bytes:
     return msgpack.packb(obj, use_bin_type=True)
 
 
@@ -217,6 +217,96 @@ def test_non_finite_array_rejected(bad) -> None:
            "indentation_mm": 0.0}
     with pytest.raises(NonFiniteError, match="height_mm"):
         decode(pack(obj))
+
+
+def _with_pairs(pairs: list[tuple[str, object]]) -> bytes:
+    """A msgpack map of ``pairs`` as given (a key may come twice)."""
+    return bytes([0x80 | len(pairs)]) + b"".join(pack(k) + pack(v) for k, v in pairs)
+
+
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
+@pytest.mark.parametrize("where", ["top", "nested_map", "nested_list", "metrics_list"])
+def test_a_non_finite_number_under_an_unknown_key_is_refused(bad, where) -> None:
+    """§2: NaN and infinities are refused everywhere, unknown keys too (a relay forwards a
+    data message's unknown keys as the sender wrote them)."""
+    value = {"top": bad, "nested_map": {"a": {"b": bad}}, "nested_list": [1.0, [2.0, bad]],
+             "metrics_list": [{"x": bad}]}[where]
+    with pytest.raises(NonFiniteError, match="finite"):
+        decode(pack(good_platform_map(future=value)))
+
+
+def test_a_non_finite_number_keeps_the_earlier_checks_first() -> None:
+    """The checks' order holds with a NaN anywhere: a bad key or a key twice (even after
+    the NaN), the version, the type, then the field's own error naming it."""
+    nan = math.nan
+    with pytest.raises(MalformedMessageError, match="given twice"):
+        decode(_with_pairs([*good_platform_map(future=nan).items(), ("seq", 2)]))
+    with pytest.raises(VersionError):
+        decode(pack(good_platform_map(v=7, future=nan)))
+    with pytest.raises(UnknownMessageTypeError):
+        decode(pack(good_platform_map(type="nope", future=nan)))
+    with pytest.raises(NonFiniteError, match=r"position_mm\[1\]"):
+        decode(pack(good_platform_map(position_mm=[0.0, nan, 0.0], future=nan)))
+
+
+@pytest.mark.parametrize("where", ["top", "nested"])
+def test_a_key_given_twice_is_malformed(where) -> None:
+    """A map giving a key twice: which copy a reader keeps is not defined, and the relay
+    forwards the bytes it validated, so another reader could take a copy nobody checked."""
+    if where == "top":
+        data = _with_pairs([*good_platform_map().items(), ("position_mm", [9.0, 9.0, 9.0])])
+    else:
+        def frame(second: str) -> bytes:  # a tactile frame whose layers map is given as is
+            layers = _with_pairs([("height_mm", f4(np.zeros((2, 2)))),
+                                  (second, f4(np.full((2, 2), 0.5)))])
+            head = {k: v for k, v in tactile_map({}).items() if k != "layers"}
+            return (bytes([0x80 | (len(head) + 1)])
+                    + b"".join(pack(k) + pack(v) for k, v in head.items())
+                    + pack("layers") + layers)
+        assert isinstance(decode(frame("friction")), TactileFrame)  # the control
+        data = frame("height_mm")
+    with pytest.raises(MalformedMessageError, match="given twice"):
+        decode(data)
+
+
+FINITE_TREE = st.recursive(
+    st.none() | st.booleans() | st.integers(-(2**63), 2**64 - 1) | st.text(max_size=3)
+    | st.floats(allow_nan=False, allow_infinity=False) | st.binary(max_size=4),
+    lambda kids: st.lists(kids, max_size=3) | st.dictionaries(st.text(max_size=3), kids,
+                                                               max_size=3),
+    max_leaves=12)
+
+
+def _plant(tree: object, path: list[int], bad: float) -> object:
+    """``tree`` with one more leaf, ``bad``, in the list or map ``path`` picks (or beside it)."""
+    if isinstance(tree, list):
+        if path and tree:
+            i = path[0] % len(tree)
+            return [*tree[:i], _plant(tree[i], path[1:], bad), *tree[i + 1:]]
+        return [*tree, bad]
+    if isinstance(tree, dict):
+        if path and tree:
+            key = sorted(tree)[path[0] % len(tree)]
+            return {**tree, key: _plant(tree[key], path[1:], bad)}
+        return {**tree, "\x00planted": bad}
+    return [tree, bad]
+
+
+@settings(max_examples=300, deadline=None)
+@given(tree=FINITE_TREE, path=st.lists(st.integers(0, 5), max_size=6),
+       bad=st.sampled_from([math.nan, -math.nan, math.inf, -math.inf]),
+       single=st.booleans())
+def test_any_non_finite_number_anywhere_is_refused(tree, path, bad, single) -> None:
+    """Property: a valid message with any finite value under an unknown key decodes; the
+    same with one NaN or infinity planted anywhere in that value (a float32 or a float64 on
+    the wire) is refused as ``non_finite``."""
+    assert isinstance(decode(pack(good_platform_map(future=tree))), PlatformState)
+    planted = pack(good_platform_map(future=_plant(tree, path, bad)))
+    if single:  # the same number as a msgpack float32
+        planted = planted.replace(b"\xcb" + struct.pack(">d", bad),
+                                  b"\xca" + struct.pack(">f", bad))
+    with pytest.raises(NonFiniteError):
+        decode(planted)
 
 
 def tactile_map(layers: dict) -> dict:

@@ -5,9 +5,11 @@ from __future__ import annotations
 
 import msgpack
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from shared.errors import MalformedMessageError
 from shared.protocol import ArmCommand, ArmState, PlatformState, TactileFrame, decode, encode
 from shared.protocol.codec import decode_map
 from shared.protocol.forward import WireMessage, locate_hops, with_hops
@@ -105,7 +107,9 @@ def test_no_hops_key_or_a_duplicated_key_is_left_to_the_encoder() -> None:
              ("hops", [["local", "x", 1]])]
     dup = bytes([0x80 | len(pairs)]) + b"".join(msgpack.packb(k) + msgpack.packb(v)
                                                 for k, v in pairs)
-    assert locate_hops(dup, decode_map(dup)) is None
+    with pytest.raises(MalformedMessageError, match="given twice"):
+        decode_map(dup)  # refused on receipt; locate_hops still declines one on its own
+    assert locate_hops(dup, dict(pairs)) is None
 
 
 def test_the_relay_session_splices_and_falls_back_past_max_hops() -> None:
