@@ -184,10 +184,9 @@ class Reconstructor:
             border == "free" or (border == "auto" and self.relief == "rim"))
         background = validate_frame(calibration.background_rgb, name="calibration background")
         self._background = (background, inverse_background_pct(background))
-        self._last_bg_id: int | None = None
         self._last_bg: tuple[np.ndarray, np.ndarray] | None = None
         self._predictors: dict[int, GridPredictor] = {}
-        self._pooled_bg: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+        self._pooled_bg: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self._workspace = Workspace()
 
     @classmethod
@@ -221,7 +220,7 @@ class Reconstructor:
         """
         validated = validate_frame(background_rgb, self.shape_hw, name="station background")
         self._background = (validated, inverse_background_pct(validated))
-        self._pooled_bg.clear()  # keyed by the array's id: never reuse a stale entry
+        self._pooled_bg.clear()
 
     def pool_factor(self, out_pitch_mm: float | None) -> int:
         """Integer block size giving the pitch closest to ``out_pitch_mm`` (1 = full res).
@@ -237,13 +236,17 @@ class Reconstructor:
         return int(min(factor, max(1, min(self.shape_hw) // 2)))
 
     def _background_for(self, background: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        """(validated background, its inverse), cached for the last array object passed."""
+        """(validated background, its inverse), cached while the values passed are the same:
+        compared by value, not by the array's ``id`` (found by an audit: a buffer updated in
+        place was never read again, and a new temporary taking a freed one's ``id`` was
+        reconstructed against the old background)."""
         if background is None:
             return self._background
-        if self._last_bg is not None and id(background) == self._last_bg_id:
-            return self._last_bg
+        last = self._last_bg
+        if last is not None and background.shape == last[0].shape \
+                and np.array_equal(background, last[0]):
+            return last
         validated = validate_frame(background, self.shape_hw, name="background")
-        self._last_bg_id = id(background)
         self._last_bg = (validated, inverse_background_pct(validated))
         return self._last_bg
 
@@ -251,13 +254,13 @@ class Reconstructor:
                            factor: int) -> tuple[np.ndarray, np.ndarray]:
         key = (id(background), factor)
         cached = self._pooled_bg.get(key)
-        if cached is None:
+        if cached is None or cached[0] is not background:  # an id reused by a new array
             pooled = _pool(background, factor)
-            cached = (pooled, inverse_background_pct(pooled))
+            cached = (background, pooled, inverse_background_pct(pooled))
             if len(self._pooled_bg) > 16:
                 self._pooled_bg.clear()
-            self._pooled_bg[key] = cached
-        return cached
+            self._pooled_bg[key] = cached  # holds the array, so its id is not reused meanwhile
+        return cached[1], cached[2]
 
     def _grid_predictor(self, factor: int, shape: tuple[int, int]) -> GridPredictor:
         """The calibration model bound to the grid pooled by ``factor`` (built once)."""
