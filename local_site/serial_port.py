@@ -173,7 +173,9 @@ class SerialPortReader:
         name: the device's name for messages.
         thread_name: the reader thread's name.
         on_data: called from the reader thread with every non-empty chunk.
-        on_error: called from the reader thread when a read fails (not after close()).
+        on_error: called from the reader thread when a read fails (not after close()), or
+            with a :class:`~shared.errors.DeviceOperationError` when ``on_data`` raised; the
+            thread ends then (reopen the port to read on).
         baudrate: line speed.
         timeout_s: read timeout (how often the thread checks for close()).
         write_timeout_s: write timeout, or None to block.
@@ -283,7 +285,16 @@ class SerialPortReader:
             return False
         self.last_read_s = monotonic_s()
         if data:
-            self._on_data(data)
+            try:
+                self._on_data(data)
+            except Exception as err:  # a bug in a callback must not end the thread unseen
+                log.error("%s: handling received bytes failed", self.name, exc_info=True)
+                failure = DeviceOperationError(
+                    f"{self.name}: handling received bytes failed: {type(err).__name__}: {err}")
+                failure.__cause__ = err
+                if not reader.stopping:
+                    self._on_error(failure)
+                return False
         return True
 
     def silence_hint(self) -> str:

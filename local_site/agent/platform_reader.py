@@ -109,7 +109,8 @@ class PlatformReader:
     @property
     def latest(self) -> PlatformSample | None:
         """The newest sample (None before the first); replaced as a whole, safe to read
-        anywhere. While the device is reopened, the last sample of the previous connection."""
+        anywhere. While the device is reopened, the newest sample the driver had decoded
+        before (never an older one: stamps must not go backwards)."""
         sample = self.platform.latest()
         return sample if sample is not None else self._last_sample
 
@@ -192,6 +193,9 @@ class PlatformReader:
                 self.platform.disconnect()  # a silent device is reopened, not re-read
             except DeviceError as close_err:
                 log.debug("platform disconnect after loss failed: %s", close_err)
+            # connect() forgets the driver's newest sample: keep it (the one this thread read
+            # last may be older, and latest must never step back to it)
+            self._last_sample = self.platform.latest() or self._last_sample
 
     def _run(self) -> None:
         ever_connected = False

@@ -1,13 +1,13 @@
 """The XYZ platform device kind: one base class, backends implement a few private methods.
 
 :class:`XYZPlatform` owns everything that does not depend on how samples reach the host:
-counts -> mm, zeroing, workspace clamping, 32-bit counter and board-clock unwrapping,
-velocity, the board-clock -> host-clock mapping, waiting with timeouts, and the link-health
-checks; the lifecycle (``connect``/``disconnect``, context manager, errors by phase) is
-:class:`~shared.devices.base.Device`'s. A backend implements ``_connect()`` /
-``_disconnect()`` and, from its own reader thread,
-hands each raw :class:`~local_site.platform.protocol.EncoderSample` to
-:meth:`XYZPlatform._publish` (or a link failure to :meth:`XYZPlatform._link_failed`).
+counts -> mm, zeroing, workspace clamping, the 32-bit counter wrap, board-clock unwrapping,
+velocity, the board-clock -> host-clock mapping, a board restart on an open link, waiting with
+timeouts, and the link-health checks; the lifecycle (``connect``/``disconnect``, context
+manager, errors by phase) is :class:`~shared.devices.base.Device`'s. A backend implements
+``_connect()`` / ``_disconnect()`` and, from its own reader thread, hands each raw
+:class:`~local_site.platform.protocol.EncoderSample` to :meth:`XYZPlatform._publish` (or a
+link failure to :meth:`XYZPlatform._link_failed`).
 
 Typical use (lerobot habit)::
 
@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import math
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -41,6 +42,8 @@ __all__ = ["PlatformSample", "PlatformStats", "XYZPlatform"]
 log = logging.getLogger(__name__)
 
 Vec3 = tuple[float, float, float]
+#: the counters are 32-bit two's complement: a difference of two is taken modulo 2^32
+_HALF, _MASK = 1 << 31, (1 << 32) - 1
 
 
 @dataclass(frozen=True, slots=True)
@@ -52,7 +55,8 @@ class PlatformSample:
         velocity_mm_s: finite-difference velocity over the last ``velocity_window_s``.
         t_us: capture time on the host wall clock (board latch time mapped to the host clock,
             so USB/OS jitter does not enter it), integer microseconds.
-        seq: board sample number, unwrapped (monotonic while connected).
+        seq: board sample number, unwrapped (increases while connected; starts again when
+            the board restarts or the link is reopened).
         board_t_us: board clock at the latch instant, unwrapped, microseconds.
         clamped: True when the raw position lay outside the workspace.
     """
@@ -69,6 +73,8 @@ class PlatformSample:
 class PlatformStats:
     """Health of the encoder link.
 
+    Every counter is a total since the driver was created, over all its connections.
+
     Attributes:
         bytes_in: bytes received.
         frames_ok: valid frames decoded.
@@ -78,6 +84,8 @@ class PlatformStats:
         samples_missed: gaps in the board's sample sequence (frames lost or dropped).
         samples_clamped: samples that fell outside the workspace.
         reads: samples returned by ``read_state``.
+        board_restarts: times the board restarted on an open link (its ``seq`` or clock
+            went back, or it described itself differently).
     """
 
     bytes_in: int = 0
@@ -88,6 +96,7 @@ class PlatformStats:
     samples_missed: int = 0
     samples_clamped: int = 0
     reads: int = 0
+    board_restarts: int = 0
 
 
 class XYZPlatform(Device):
@@ -96,8 +105,12 @@ class XYZPlatform(Device):
     Args:
         geometry: axes' mechanics and workspace; default :class:`PlatformGeometry`.
         velocity_window_s: span of the finite difference for velocity.
-        stale_timeout_s: no valid frame for this long means the device is gone.
+        stale_timeout_s: no valid frame for this long means the device is gone (``connect()``
+            then closes and reopens it).
         connect_timeout_s: how long ``connect()`` waits for the first valid sample.
+
+    Raises:
+        ConfigError: a duration that is not finite and > 0.
     """
 
     _latest: PlatformSample | None
@@ -106,11 +119,9 @@ class XYZPlatform(Device):
     _raw_counts: tuple[int, int, int] | None
     _history: collections.deque[tuple[int, Vec3]]
     _clock_offset_us: int | None
-    _last_read_seq: int | None
+    _offset_board_t_us: int
+    _last_read: PlatformSample | None
     _last_rx_s: float
-    _missed: int
-    _clamped: int
-    _reads: int
 
     def __init__(self, *, geometry: PlatformGeometry | None = None,
                  velocity_window_s: float = 0.01, stale_timeout_s: float = 0.5,
@@ -118,8 +129,8 @@ class XYZPlatform(Device):
         for name, value in (("velocity_window_s", velocity_window_s),
                             ("stale_timeout_s", stale_timeout_s),
                             ("connect_timeout_s", connect_timeout_s)):
-            if not value > 0:
-                raise ConfigError(f"{name} must be > 0, got {value}")
+            if not 0 < value < math.inf:
+                raise ConfigError(f"{name} must be finite and > 0, got {value}")
         self.geometry = geometry or PlatformGeometry()
         self._mm_per_count = self.geometry.mm_per_count  # the geometry is immutable
         self._velocity_window_us = int(velocity_window_s * 1e6)
@@ -131,8 +142,11 @@ class XYZPlatform(Device):
         #: (must be quick: e.g. a copy into shared memory,
         #: :mod:`local_site.agent.platform_process`)
         self.sample_listener: Callable[[PlatformSample], None] | None = None
+        #: raw 32-bit counter values at the zero pose (raw, so that a reopened link, whose
+        #: counts are not unwrapped from the previous connection's, agrees with it)
         self._zero_counts = (0, 0, 0)
         self._zero_at_mm: Vec3 = (0.0, 0.0, 0.0)
+        self._missed = self._clamped = self._reads = self._restarts = 0
         self._reset_track()
 
     # ------------------------------------------------------------------ backend interface
@@ -172,7 +186,8 @@ class XYZPlatform(Device):
         log.info("%s: board info: %s", self.name, self._board_info)
 
     def _is_healthy(self) -> bool:
-        return self._link_error is None
+        return self._link_error is None and \
+            monotonic_s() - self._last_rx_s < self._stale_timeout_s
 
     def _after_disconnect(self) -> None:
         with self._cond:
@@ -205,16 +220,19 @@ class XYZPlatform(Device):
         """Wait for a sample newer than the one returned last, and return it.
 
         Args:
-            timeout_s: longest wait.
+            timeout_s: longest wait (0: only take a sample already there).
 
         Returns:
             The newest sample (samples in between are skipped: latest wins).
 
         Raises:
+            ConfigError: ``timeout_s`` is negative or not finite.
             DeviceNotConnectedError: called before ``connect()`` or after ``disconnect()``.
             DeviceOperationError: the link failed (device unplugged, port closed).
             DeviceTimeoutError: no new valid sample within ``timeout_s``.
         """
+        if not 0 <= timeout_s < math.inf:
+            raise ConfigError(f"read_state timeout_s must be finite and >= 0, got {timeout_s}")
         if not self._connected:
             raise DeviceNotConnectedError(f"{self.name}: read_state() before connect()")
         deadline = monotonic_s() + timeout_s
@@ -225,8 +243,8 @@ class XYZPlatform(Device):
                         f"{self.name}: device disappeared ({self._link_error}); "
                         f"call connect() to retry") from self._link_error
                 latest = self._latest
-                if latest is not None and latest.seq != self._last_read_seq:
-                    self._last_read_seq = latest.seq
+                if latest is not None and latest is not self._last_read:
+                    self._last_read = latest
                     self._reads += 1
                     return latest
                 if not self._connected:
@@ -259,7 +277,7 @@ class XYZPlatform(Device):
             self._zero_at_mm = at
             self._history.clear()
             if self._latest is not None:  # the next read_state waits for a post-zero sample
-                self._last_read_seq = self._latest.seq
+                self._last_read = self._latest
         log.info("%s zeroed at %s mm (counts %s)", self.name, at, self._zero_counts)
 
     def stats(self) -> PlatformStats:
@@ -268,29 +286,43 @@ class XYZPlatform(Device):
         return PlatformStats(bytes_in=d.bytes_in, frames_ok=d.frames_ok,
                              crc_errors=d.crc_errors, garbage_bytes=d.garbage_bytes,
                              unknown_types=d.unknown_types, samples_missed=self._missed,
-                             samples_clamped=self._clamped, reads=self._reads)
+                             samples_clamped=self._clamped, reads=self._reads,
+                             board_restarts=self._restarts)
 
     # ------------------------------------------------------------------ for backends
 
     def _reset_track(self) -> None:
-        """Forget the previous connection's samples (zero offset is kept on purpose)."""
+        """Forget the previous connection's samples (the zero and the counters are kept)."""
         self._latest = None
         self._board_info = None
         self._link_error = None
         self._raw_counts = None
-        self._unwrap = [WrapUnwrapper(32, signed=True) for _ in range(3)]
+        self._last_read = None
+        self._last_rx_s = monotonic_s()
+        self._restart_clock()
+
+    def _restart_clock(self) -> None:
+        """Start the seq and board-clock tracks, the clock mapping and velocity anew."""
         self._unwrap_seq = WrapUnwrapper(32, signed=False)
         self._unwrap_t = WrapUnwrapper(32, signed=False)
         self._history = collections.deque(maxlen=256)
         self._clock_offset_us = None
-        self._last_read_seq = None
-        self._last_rx_s = monotonic_s()
-        self._missed = 0
-        self._clamped = 0
-        self._reads = 0
+        self._offset_board_t_us = 0
+
+    def _board_restarted(self, why: str) -> None:
+        """The board restarted on the open link (reader thread): its seq and clock begin
+        anew, so the old mapping of its clock to ours would stamp every sample wrong."""
+        self._restarts += 1
+        log.warning("%s: the board restarted (%s); its clock is mapped anew (zero() again if "
+                    "its counters restarted too)", self.name, why)
+        with self._cond:
+            self._restart_clock()
 
     def _publish_info(self, info: BoardInfo) -> None:
         """Record the board's self-description (called by the backend)."""
+        previous = self._board_info
+        if previous is not None and info != previous:
+            self._board_restarted(f"it now describes itself as {info}, before {previous}")
         self._board_info = info
 
     def _publish(self, sample: EncoderSample, rx_us: int | None = None) -> None:
@@ -303,22 +335,39 @@ class XYZPlatform(Device):
         rx_us = now_us() if rx_us is None else rx_us
         seq = self._unwrap_seq.update(sample.seq)
         board_t = self._unwrap_t.update(sample.board_t_us)
-        counts = tuple(u.update(c) for u, c in zip(self._unwrap, sample.counts, strict=True))
+        previous = self._latest
+        # the previous sample of this track (none at the start of a connection or a restart)
+        before = previous if self._clock_offset_us is not None else None
+        if before is not None and (seq <= before.seq or board_t <= before.board_t_us):
+            self._board_restarted(f"seq {before.seq} -> {sample.seq}, board clock "
+                                  f"{before.board_t_us} -> {sample.board_t_us} us")
+            before = None
+            seq = self._unwrap_seq.update(sample.seq)
+            board_t = self._unwrap_t.update(sample.board_t_us)
         # board clock -> host clock: the smallest (arrival - latch) seen is the link's
-        # fixed delay; let it creep up slowly so clock drift cannot pin it.
+        # fixed delay. It follows a larger one by at most 1 us per ms of board time (1000
+        # ppm, far above a crystal's drift), so drift cannot pin it and frames that waited
+        # in a queue (a USB stall, a starved reader thread) cannot pull it up and stamp
+        # themselves fresh.
         candidate = rx_us - board_t
-        if self._clock_offset_us is None or candidate < self._clock_offset_us:
-            self._clock_offset_us = candidate
+        offset = self._clock_offset_us
+        if offset is None or candidate < offset:
+            offset, self._offset_board_t_us = candidate, board_t
         else:
-            self._clock_offset_us += max(1, (candidate - self._clock_offset_us) // 1000)
+            creep = (board_t - self._offset_board_t_us) // 1000
+            if creep > 0:
+                offset += min(candidate - offset, creep)
+                self._offset_board_t_us += creep * 1000
+        self._clock_offset_us = offset
         with self._cond:
-            # counts -> mm as geometry.counts_to_mm, without rebuilding its scale per sample
-            raw_mm = tuple((c - z) * s + a for c, z, s, a in zip(
-                counts, self._zero_counts, self._mm_per_count, self._zero_at_mm, strict=True))
+            # counts -> mm as geometry.counts_to_mm, without rebuilding its scale per sample;
+            # the counts relative to the zero pose, across a 32-bit wrap
+            raw_mm = tuple((((c - z + _HALF) & _MASK) - _HALF) * s + a for c, z, s, a in zip(
+                sample.counts, self._zero_counts, self._mm_per_count, self._zero_at_mm,
+                strict=True))
             position, clamped = self.geometry.clamp(raw_mm)  # type: ignore[arg-type]
-            previous = self._latest
-            if previous is not None and seq - previous.seq > 1:
-                self._missed += seq - previous.seq - 1
+            if before is not None and seq - before.seq > 1:
+                self._missed += seq - before.seq - 1
             self._clamped += clamped
             history = self._history
             history.append((board_t, position))
@@ -328,10 +377,10 @@ class XYZPlatform(Device):
             dt_s = (board_t - t_old) * 1e-6
             velocity = tuple((p - q) / dt_s for p, q in zip(position, p_old, strict=True)) \
                 if dt_s > 0 else (0.0, 0.0, 0.0)
-            self._raw_counts = counts  # type: ignore[assignment]
+            self._raw_counts = sample.counts
             # capture times never go backwards, even when a faster arrival lowers the offset
             # estimate (a sample stamped before its predecessor would look older than it is)
-            t_us = board_t + self._clock_offset_us
+            t_us = board_t + offset
             if previous is not None and t_us <= previous.t_us:
                 t_us = previous.t_us + 1
             published = PlatformSample(position_mm=position, velocity_mm_s=velocity,  # type: ignore[arg-type]

@@ -3,8 +3,9 @@
 The port is opened with :func:`serial.serial_for_url`, so a real board is named by its device
 (``/dev/ttyUSB0``, ``COM3``) or a URL (``socket://host:port``, ``rfc2217://...``), and a
 simulated one by ``loop://`` or a pty path. A reader thread drains the port, feeds the
-resynchronising decoder and publishes samples; a serial error ends the thread and is
-reported by the next ``read_state()`` as :class:`~shared.errors.DeviceOperationError`.
+resynchronising decoder and publishes samples; a serial error (or an error raised while
+handling a sample, e.g. by ``sample_listener``) ends the thread and is reported by the next
+``read_state()`` as :class:`~shared.errors.DeviceOperationError`.
 """
 
 from __future__ import annotations
@@ -52,7 +53,9 @@ class SerialEncoderPlatform(XYZPlatform):
         return f"encoder board at {self.url}"
 
     def _connect(self) -> None:
-        self._decoder = EncoderFrameDecoder()
+        decoder = EncoderFrameDecoder()  # a new connection starts at a frame boundary
+        decoder.stats = self._decoder.stats  # the counters are totals over all connections
+        self._decoder = decoder
         self._link.open(self.url, self.name)
 
     def _disconnect(self) -> None:
