@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from lab.replay import summarize
+from lab.replay import latency_stages, summarize
 from lab.scoring import score_findings
 from local_site.palpation import build_maps, maps_and_findings
 from local_site.recording import Recording, recording_from_mcap
@@ -133,18 +133,19 @@ def _latency_figure(mcap: McapRecording) -> tuple[str, list[dict[str, Any]]]:
         obj = m.json()
         t = (m.t_us - t0) / 1e6
         per = series.setdefault(str(obj.get("type")), {})
-        stages = list(dict(obj.get("stages_ms") or {}))
+        items, _ = latency_stages(obj)  # malformed values left out (counted in the summary)
+        stages = [n for n in items if n != "end_to_end"]
         if len(stages) > len(longest.get(str(obj.get("type")), [])):
             longest[str(obj.get("type"))] = stages
-        items = {**dict(obj.get("stages_ms") or {}), "end_to_end": obj.get("end_to_end_ms")}
         for name, v in items.items():
             if v is not None:
                 ts, vs = per.setdefault(name, ([], []))
                 ts.append(t)
                 vs.append(float(v))
     for msg_type, per in list(series.items()):  # hop order of the longest stamp list
-        order = sorted(per, key=lambda n: (n == "end_to_end", longest[msg_type].index(n)
-                                           if n in longest[msg_type] else len(per)))
+        ref = longest.get(msg_type, [])
+        order = sorted(per, key=lambda n: (n == "end_to_end", ref.index(n) if n in ref
+                                           else len(per)))
         series[msg_type] = {n: per[n] for n in order}
     rows = [{"stream": k, "stage": name, "count": len(v), "p50 ms": float(np.percentile(v, 50)),
              "p99 ms": float(np.percentile(v, 99)), "max ms": float(np.max(v))}
@@ -175,6 +176,15 @@ def _latency_figure(mcap: McapRecording) -> tuple[str, list[dict[str, Any]]]:
     return _png(fig), rows
 
 
+def _pin_values(v: Any) -> list[float]:
+    """16 pin values, or 16 NaN (no command: the safe state; or not 16 finite numbers)."""
+    try:
+        arr = np.asarray(v, dtype=float).ravel()
+    except (TypeError, ValueError):
+        arr = np.zeros(0)
+    return arr.tolist() if arr.size == 16 and np.isfinite(arr).all() else [np.nan] * 16
+
+
 def _pins_figure(mcap: McapRecording) -> str:
     plt = _plt()
     pins = list(mcap.on("/local/pins"))
@@ -183,17 +193,29 @@ def _pins_figure(mcap: McapRecording) -> str:
     t0 = pins[0].t_us
     tt = np.array([(m.t_us - t0) / 1e6 for m in pins])
     objs = [m.json() for m in pins]
-    cmd = np.array([o["commanded_mm"] for o in objs], dtype=float)
-    meas = np.array([o["measured_mm"] if o["measured_mm"] is not None else [np.nan] * 16
-                     for o in objs], dtype=float)
+    cmd = np.array([_pin_values(o.get("commanded_mm")) for o in objs])
+    meas = np.array([_pin_values(o.get("measured_mm")) for o in objs])
+    safe = np.array([o.get("safe_reason") is not None for o in objs])
+    # no sample for 2.5 sample periods: nothing is known then, no line is drawn across
+    # (recordings made before the safe state was sampled have such gaps while safe)
+    steps = np.diff(tt)
+    period = float(np.median(steps[steps > 0])) if (steps > 0).any() else 0.0
+    gaps = np.flatnonzero(steps > 2.5 * period) + 1
+    t_line = np.insert(tt, gaps, np.nan)
+    cmd, meas = np.insert(cmd, gaps, np.nan, axis=0), np.insert(meas, gaps, np.nan, axis=0)
     fig, axes = plt.subplots(1, 4, figsize=(12, 2.8), sharey=True)
     for ax, pin in zip(axes, (0, 5, 10, 15), strict=True):
-        ax.plot(tt, cmd[:, pin], lw=0.8, label="commanded")
-        ax.plot(tt, meas[:, pin], lw=0.8, label="measured")
+        ax.plot(t_line, cmd[:, pin], lw=0.8, label="commanded")
+        ax.plot(t_line, meas[:, pin], lw=0.8, label="measured")
+        if safe.any():
+            ax.fill_between(tt, 0, 1, where=safe, step="post", color="tab:red", alpha=0.15,
+                            transform=ax.get_xaxis_transform(), label="safe state")
         ax.set(title=f"pin {pin}", xlabel="time (s)")
     axes[0].set_ylabel("height (mm)")
     axes[0].legend(fontsize=7)
-    return _png(fig)
+    return (_png(fig) + f"<p>{len(gaps)} gaps with no pin sample for over 2.5 sample "
+            "periods (not drawn across: unknown then); shaded red: the safe state (no "
+            "command on the pins).</p>")
 
 
 _CSS = ("body{font-family:sans-serif;max-width:1100px;margin:auto;padding:1em}"
@@ -229,6 +251,12 @@ def write_report(local_path: str | os.PathLike[str], out_path: str | os.PathLike
             truth = json.loads(Path(truth_path).read_text())
         except (OSError, ValueError) as err:
             raise InputDataError(f"cannot read the ground truth {truth_path}: {err}") from err
+        try:  # its structure, checked before anything is drawn from it
+            if not isinstance(truth, dict):
+                raise InputDataError("not a JSON object")
+            score_findings([], truth)
+        except (InputDataError, TypeError, ValueError) as err:
+            raise InputDataError(f"the ground truth {truth_path} is malformed: {err}") from err
     summary = summarize(mcap)
     parts = [f"<h1>Tele-Touch session report</h1><p>{html.escape(str(mcap.path))}: "
              f"session {html.escape(str(rec.meta.get('session')))}, {summary['messages']} "
@@ -238,6 +266,15 @@ def write_report(local_path: str | os.PathLike[str], out_path: str | os.PathLike
         why = html.escape(str(mcap.stop_reason))
         parts.append(f'<p class="warn">The recording is incomplete ({why}): the station did '
                      "not close it; shown up to its last complete chunk.</p>")
+    if mcap.skipped_chunks:
+        parts.append(f'<p class="warn">{mcap.skipped_chunks} corrupt chunks of the recording '
+                     "were skipped: their messages are missing "
+                     f"({html.escape(str(mcap.skipped_reason))}).</p>")
+    counts = mcap.end.get("counts", {})
+    if counts.get("write_errors") or counts.get("messages_lost"):
+        parts.append(f'<p class="warn">The recorder could not write everything: '
+                     f"{counts.get('write_errors')} write errors, "
+                     f"{counts.get('messages_lost', 'an unknown number of')} messages lost.</p>")
     findings: list[Any] = []
     parts.append("<h2>Maps and findings</h2>")
     try:

@@ -35,7 +35,7 @@ from shared.recording import McapRecording, RecordedMessage
 from shared.timebase import now_us
 
 __all__ = ["PlaybackClock", "ReplayEvent", "ReplayResult", "Replayer", "format_summary",
-           "summarize"]
+           "latency_stages", "summarize"]
 
 log = logging.getLogger(__name__)
 
@@ -304,6 +304,24 @@ class Replayer:
         return result
 
 
+def latency_stages(obj: dict[str, Any]) -> tuple[dict[str, float | None], int]:
+    """The stages of a ``latency`` message, ``end_to_end`` last, and how many values were
+    left out as malformed (a value neither a finite number nor null, or ``stages_ms`` not
+    an object: the file is input; a string there must not stop the summary)."""
+    stages = obj.get("stages_ms")
+    items = list(stages.items()) if isinstance(stages, dict) else []
+    bad = 0 if stages is None or isinstance(stages, dict) else 1
+    out: dict[str, float | None] = {}
+    for name, v in [*items, ("end_to_end", obj.get("end_to_end_ms"))]:
+        if v is None:
+            out[str(name)] = None
+        elif isinstance(v, int | float) and not isinstance(v, bool) and np.isfinite(v):
+            out[str(name)] = float(v)
+        else:
+            bad += 1
+    return out, bad
+
+
 def _pcts(values: list[float | None]) -> dict[str, float | int | None]:
     arr = np.asarray([v for v in values if v is not None], dtype=float)
     if arr.size == 0:
@@ -325,6 +343,7 @@ def summarize(recording: McapRecording) -> dict[str, Any]:
         streams[topic] = {"count": int(tt.size), "encoding": first.encoding,
                           "rate_hz": (tt.size - 1) / span if span > 0 else None}
     latency: dict[str, dict[str, dict[str, Any]]] = {}
+    malformed = 0
     for topic in streams:
         if not topic.endswith("/latency"):
             continue
@@ -332,15 +351,20 @@ def summarize(recording: McapRecording) -> dict[str, Any]:
         for m in recording.on(topic):
             obj = m.json()
             stages = per.setdefault(str(obj.get("type")), {})
-            for name, v in dict(obj.get("stages_ms") or {}).items():
+            values, bad = latency_stages(obj)
+            malformed += bad
+            for name, v in values.items():
                 stages.setdefault(name, []).append(v)
-            stages.setdefault("end_to_end", []).append(obj.get("end_to_end_ms"))
         for msg_type, stages in per.items():
             latency[f"{topic} {msg_type}"] = {k: _pcts(v) for k, v in stages.items()}
     return {"path": str(recording.path), "station": recording.station,
             "complete": recording.complete, "stop_reason": recording.stop_reason,
+            "skipped_chunks": recording.skipped_chunks,
+            "skipped_reason": recording.skipped_reason,
+            "unreadable_messages": recording.unreadable_messages,
             "messages": len(msgs), "duration_s": duration_s, "streams": streams,
-            "latency_ms": latency, "end": recording.end.get("counts", {})}
+            "latency_ms": latency, "latency_malformed_values": malformed,
+            "end": recording.end.get("counts", {})}
 
 
 def _f(v: Any, digits: int = 2) -> str:
@@ -353,14 +377,28 @@ def format_summary(s: dict[str, Any]) -> str:
         "the last complete chunk"
     lines = [f"{s['path']}: {s['station']} station, {s['messages']} messages over "
              f"{s['duration_s']:.2f} s, {state}"]
-    dropped = s["end"].get("dropped_queue_full")
+    if s.get("skipped_chunks"):
+        lines.append(f"  CORRUPT: {s['skipped_chunks']} chunks skipped, their messages are "
+                     f"missing ({s['skipped_reason']})"
+                     + (f"; {s['unreadable_messages']} more on channels defined only there"
+                        if s.get("unreadable_messages") else ""))
+    end = s["end"]
+    dropped = end.get("dropped_queue_full")
     if dropped is not None:
-        lines.append(f"  recorder: {s['end'].get('messages_written')} written, {dropped} "
-                     "dropped (queue full)")
+        lost = end.get("messages_lost")  # not counted by recordings made before it was
+        lines.append(f"  recorder: {end.get('messages_written')} written, {dropped} "
+                     f"dropped (queue full), {end.get('write_errors', 0)} write errors"
+                     + ("" if lost is None else f", {lost} lost (write failed)"))
+        if end.get("write_errors") or lost:
+            lines.append("  WARNING: the recorder could not write everything: messages are "
+                         "missing from this file")
     lines.append(f"  {'stream':<34} {'encoding':<8} {'count':>7} {'rate Hz':>9}")
     for topic, st in s["streams"].items():
         lines.append(f"  {topic:<34} {st['encoding']:<8} {st['count']:>7} "
                      f"{_f(st['rate_hz'], 1):>9}")
+    if s.get("latency_malformed_values"):
+        lines.append(f"  latency: {s['latency_malformed_values']} malformed values (not a "
+                     "number) left out")
     for name, stages in s["latency_ms"].items():
         lines.append(f"  latency (ms) {name}:{'':<10}{'count':>7} {'p50':>8} {'p99':>8}")
         for stage, fig in stages.items():

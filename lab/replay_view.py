@@ -8,10 +8,15 @@ ended), and the page labels itself a replay everywhere a live session says "live
 old is shown as fresh.
 
 What is shown comes from the recording (``docs/recording.md``): the pins as recorded
-(``/local/pins``: commanded, measured, safe reason), the newest tactile frame (decoded in
+(``/local/pins``: commanded, measured, safe reason; a sample older than 2.5 sample periods
+is not shown: what the pins did then is unknown, as in recordings made before the safe
+state was sampled, which have no sample while the pins were safe), the newest tactile
+frame (decoded in
 order, compact frames included), the probe over the phantom (the recorded
 ``platform_state``, through the recorded workspace), the arm's end effector and force, and
-the per-stage latency of the newest tactile frame (``/<station>/latency``). Ages are in
+the per-stage latency of the newest tactile frame (``/<station>/latency``; a stage whose
+name is not ``<stage>_to_<stage>`` of protocol stage names, or whose value is not a finite
+number, is left out: the file is input, not trusted). Ages are in
 recorded time (the replay position minus the item's recorded time), so they stand still
 while the replay is paused. The palpation analysis is re-run, as at the live station, on the
 frames the station accepted (``/local/frame_accepted``), so findings appear as the replayed
@@ -25,6 +30,8 @@ server's thread.
 from __future__ import annotations
 
 import collections
+import math
+import re
 import threading
 from pathlib import Path
 from typing import Any
@@ -36,6 +43,7 @@ from local_site.render.pin_command import PIN_PITCH_MM
 from local_site.view.analysis import LiveAnalysis, LiveAnalysisConfig
 from shared.errors import ConfigError, InputDataError
 from shared.protocol import ArmState, PlatformState, TactileCompact, TactileFrame
+from shared.protocol.messages import _STAGE_PATTERN
 from shared.protocol.tactile_codec import TactileDecoder
 from shared.timebase import now_us
 from shared.view.encode import encode_patch, num, nums
@@ -47,6 +55,41 @@ _TRAIL_PERIOD_US = 25_000  # at most 40 trajectory points per recorded second
 _MAX_TRAIL = 50_000
 _PENDING = 512  # accepted frames / frames waiting for their partner (bounded)
 _DEFAULT_ANALYSIS = LiveAnalysisConfig()
+#: a latency stage name: ``<stage>_to_<stage>`` of protocol stage names, ``_<n>`` when repeated
+#: (``shared.recording.writer.hop_stages_ms``)
+_STAGE_NAME = re.compile(rf"(?:{_STAGE_PATTERN.pattern})_to_(?:{_STAGE_PATTERN.pattern})"
+                         r"(?:_\d{1,4})?")
+#: a pins sample older than this many sample periods is not shown (unknown)
+_PINS_MAX_AGE_PERIODS = 2.5
+_PINS_DEFAULT_RATE_HZ = 50.0  # the station's default record_pins_rate_hz
+
+
+def _finite(v: Any) -> float | None:
+    """``v`` when it is a finite number (not a bool), else None."""
+    if isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v):
+        return float(v)
+    return None
+
+
+def _pins16(v: Any) -> list[float | None] | None:
+    """The 16 pin values, or None unless ``v`` is a list of 16 finite numbers."""
+    if not isinstance(v, list) or len(v) != 16:
+        return None
+    vals = [_finite(x) for x in v]
+    return None if None in vals else vals
+
+
+def _pins_period_us(rec: Any) -> float:
+    """The recording's pins sample period: the recorded rate (``pins_rate_hz`` in the start
+    metadata), else (older recordings) the median interval of the samples, else the
+    station's default rate."""
+    rate = _finite(rec.meta.get("pins_rate_hz"))
+    if rate is not None and rate > 0:
+        return 1e6 / rate
+    t = np.asarray([m.t_us for m in rec.on(f"/{rec.station}/pins")], dtype=np.int64)
+    gaps = np.diff(t)
+    gaps = gaps[gaps > 0]
+    return float(np.median(gaps)) if gaps.size else 1e6 / _PINS_DEFAULT_RATE_HZ
 
 
 def _rx_us(frame: TactileFrame, fallback: int) -> int:
@@ -87,6 +130,7 @@ class ReplayViewSource:
         self._platform: tuple[PlatformState, int] | None = None
         self._arm: tuple[ArmState, int] | None = None
         self._pins: tuple[dict[str, Any], int] | None = None
+        self._pins_max_age_us = _PINS_MAX_AGE_PERIODS * _pins_period_us(rec)
         self._latency: tuple[dict[str, Any], int] | None = None
         self._trail: list[list[float]] = []
         self._trail_first = 0
@@ -197,14 +241,18 @@ class ReplayViewSource:
                 patch["age_ms"] = age_ms(frame_item[1])
         pins = safe_reason = None
         pins_item = self._pins
+        if pins_item is not None and pos - pins_item[1] > self._pins_max_age_us:
+            pins_item = None  # no sample for 2.5 periods: what the pins did is unknown
         if pins_item is not None:
             doc, t = pins_item
-            pins = {"commanded_mm": doc.get("commanded_mm"),
-                    "stiffness_k": doc.get("stiffness_k"), "friction": doc.get("friction"),
-                    "measured_mm": doc.get("measured_mm"),
-                    "measured_age_ms": None if doc.get("measured_mm") is None else age_ms(t),
+            measured = _pins16(doc.get("measured_mm"))
+            pins = {"commanded_mm": _pins16(doc.get("commanded_mm")),
+                    "stiffness_k": _pins16(doc.get("stiffness_k")),
+                    "friction": _pins16(doc.get("friction")), "measured_mm": measured,
+                    "measured_age_ms": None if measured is None else age_ms(t),
                     "board_safe_state": None, "recorded": True}
-            safe_reason = doc.get("safe_reason")
+            reason = doc.get("safe_reason")
+            safe_reason = None if reason is None else str(reason)
         arm = self._arm
         probe = {
             "platform_mm": None if platform is None else nums(platform, 3),
@@ -216,9 +264,11 @@ class ReplayViewSource:
         latency = None
         lat = self._latency
         if lat is not None:
-            latency = {"stages_ms": {k: num(v, 3) for k, v in
-                                     dict(lat[0].get("stages_ms") or {}).items()},
-                       "end_to_end_ms": num(lat[0].get("end_to_end_ms"), 3),
+            stages = lat[0].get("stages_ms")
+            stages = stages if isinstance(stages, dict) else {}
+            latency = {"stages_ms": {k: num(_finite(v), 3) for k, v in stages.items()
+                                     if _STAGE_NAME.fullmatch(k) and _finite(v) is not None},
+                       "end_to_end_ms": num(_finite(lat[0].get("end_to_end_ms")), 3),
                        "age_ms": age_ms(lat[1])}
         analysis = None
         if self._analysis is not None:

@@ -7,7 +7,10 @@ latency) and two of its own (``docs/recording.md``):
 
 * ``/local/frame_accepted``: each received tactile frame the display loop accepted into its
   scene (``seq``, ``rx_us``);
-* ``/local/pins``: the 16 pins commanded and measured, at ``record_pins_rate_hz``.
+* ``/local/pins``: the 16 pins commanded and measured and the safe-state reason, at
+  ``record_pins_rate_hz`` while rendering and while in the safe state, and at once on every
+  change between them (in the safe state no command exists: the commanded values are null).
+  The rate is written into the start metadata (``pins_rate_hz``).
 
 :func:`load_recording` reads such a file into :class:`Recording`, the arrays the palpation
 analysis reads: the platform positions sent (``platform_state`` tx) and the tactile frames
@@ -48,16 +51,23 @@ PinsSample = tuple[int, Any, Any, "str | None"]
 
 
 class PinsSampler:
-    """Samples the pins' state at most ``rate_hz`` times a second, stamped when read.
+    """Samples the pins' state at ``rate_hz``, and at once on every change of that state.
 
-    Only while a command is on the pins: in the safe state there is none to record.
+    The state is what the pins do: rendering a command, or held in their safe state (and
+    why; no command exists then: ``commanded`` None). Both are sampled, so a replay never
+    shows the last command as rendering while the pins were safe. Neither (no command and no
+    safe state: before the first command, or for the tick between leaving the safe state
+    and the next command) is not sampled: a reader takes a sample older than a few periods
+    as unknown.
 
     Offered the state on every display-loop tick (in whichever process the loop runs), it
-    returns a sample when one is due: the command then on the pins and the board's measured
-    positions, with the wall-clock time they were read.
+    returns a sample when one is due: the command then on the pins (or None), the board's
+    measured positions and the safe-state reason, with the wall-clock time they were read.
+    A sample is due ``1 / rate_hz`` after the previous one, or at once when the state
+    changed (a new command alone is no change: commands change every frame).
 
     Args:
-        rate_hz: samples per second, at most (> 0).
+        rate_hz: samples per second while the state stays the same (> 0).
 
     Raises:
         ConfigError: a rate that is not > 0.
@@ -69,13 +79,19 @@ class PinsSampler:
         self.rate_hz = rate_hz
         self._period_s = 1.0 / rate_hz
         self._next_s = 0.0
+        #: (a command is on the pins, safe reason) of the last sample; None: none yet
+        self._state: tuple[bool, str | None] | None = None
 
     def offer(self, commanded: Any, display: Any, safe_reason: str | None
               ) -> PinsSample | None:
-        """The sample, when one is due and a command is on the pins (else None, at once)."""
+        """The sample, when one is due (else None, at once)."""
+        if commanded is None and safe_reason is None:
+            return None  # nothing on the pins and not safe: no state to record
         now = time.monotonic()
-        if now < self._next_s or commanded is None:
+        state = (commanded is not None, safe_reason)
+        if now < self._next_s and state == self._state:
             return None
+        self._state = state
         self._next_s = now + self._period_s
         measured = display.latest_feedback() if display.is_connected else None
         # on the wall clock the station's messages are stamped on (shared.timebase: a
@@ -104,6 +120,7 @@ class SessionRecorder:
     def __init__(self, path: str | os.PathLike[str], meta: Mapping[str, Any] | None = None, *,
                  queue_size: int = 8192, pins_rate_hz: float = 50.0,
                  flush_interval_s: float = 1.0, image_rate_hz: float | None = None) -> None:
+        meta = {**(meta or {}), "pins_rate_hz": pins_rate_hz}
         self.mcap = McapRecorder(path, "local", meta=meta, queue_size=queue_size,
                                  flush_interval_s=flush_interval_s, image_rate_hz=image_rate_hz)
         self.path = self.mcap.path
@@ -121,10 +138,12 @@ class SessionRecorder:
         self.mcap.derived("frame_accepted", rx_us, {"seq": frame.seq, "rx_us": rx_us})
 
     def add_pins(self, commanded: Any, display: Any, safe_reason: str | None) -> None:
-        """Offer the pins' state; recorded at most at ``pins_rate_hz`` (else returns at once).
+        """Offer the pins' state; recorded at ``pins_rate_hz`` and on every change of state
+        (see :class:`PinsSampler`; else returns at once).
 
         Args:
-            commanded: the last :class:`~local_site.render.PinCommand` sent, or None.
+            commanded: the :class:`~local_site.render.PinCommand` on the pins, or None (the
+                safe state, or no command yet: not recorded).
             display: the :class:`~local_site.display.base.ArrayTacDisplay` (its latest
                 feedback is the measured heights).
             safe_reason: why the pins are in their safe state (None: rendering).
@@ -140,15 +159,16 @@ class SessionRecorder:
 
         Args:
             t_us: when the state was read (wall clock, us).
-            commanded: the :class:`~local_site.render.PinCommand` then on the pins.
+            commanded: the :class:`~local_site.render.PinCommand` then on the pins, or None
+                (the safe state: recorded as null values).
             measured_mm: the board's measured pin positions then (None: no feedback).
             safe_reason: why the pins were in their safe state (None: rendering).
         """
 
         def payload() -> dict[str, Any]:
-            h, k, f = commanded.arrays()
-            return {"commanded_mm": np.ravel(h).tolist(), "stiffness_k": np.ravel(k).tolist(),
-                    "friction": np.ravel(f).tolist(),
+            h, k, f = ([None] * 3 if commanded is None
+                       else [np.ravel(a).tolist() for a in commanded.arrays()])
+            return {"commanded_mm": h, "stiffness_k": k, "friction": f,
                     "measured_mm": None if measured_mm is None
                     else np.ravel(measured_mm).tolist(),
                     "safe_reason": safe_reason}
@@ -171,14 +191,17 @@ class SessionRecorder:
         from local_site.palpation import analyse_recording  # the analysis reads Recording
 
         if not self.mcap.sync():
-            log.warning("findings not recorded: the recording writer did not catch up")
+            log.warning("findings not recorded: the recording is not all on disk (%s)",
+                        "a write failed" if self.mcap.write_errors
+                        else "the writer did not catch up in time")
             return None
         try:
             findings = analyse_recording(load_recording(self.path), workspace)
         except (InputDataError, ConfigError) as err:
             log.info("no findings recorded: %s", err)
             return None
-        self.mcap.derived("findings", time.time_ns() // 1000, {"findings": [
+        # the session's clock (shared.timebase), as every other message: never stepped
+        self.mcap.derived("findings", now_us(), {"findings": [
             {"x_mm": f.center_mm[0], "y_mm": f.center_mm[1], "kind": f.kind,
              "radius_mm": f.equivalent_radius_mm, "confidence": getattr(f, "confidence", None),
              "severity_rank": f.severity_rank} for f in findings]})
@@ -284,8 +307,15 @@ def recording_from_mcap(rec: McapRecording) -> Recording:
     if rec.station != "local":
         raise RecordingFormatError(f"{rec.path} is the {rec.station!r} station's recording; "
                                    "the palpation analysis reads the local station's")
-    accepted = {(int(m.json().get("seq", -1)), int(m.json().get("rx_us", -1)))
-                for m in rec.on("/local/frame_accepted")}
+    accepted: set[tuple[int, int]] = set()
+    for m in rec.on("/local/frame_accepted"):
+        doc = m.json()
+        seq, rx_us = doc.get("seq"), doc.get("rx_us")
+        if not (type(seq) is int and type(rx_us) is int):  # bool is no number either
+            raise RecordingFormatError(
+                f"{rec.path}: a /local/frame_accepted message without integer seq and rx_us "
+                f"({str(doc)[:120]})")
+        accepted.add((seq, rx_us))
     p_t: list[int] = []
     p_mm: list[tuple[float, float, float]] = []
     cols: list[tuple[Any, ...]] = []

@@ -239,6 +239,7 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
     arm.connect()
     safe_arm: SafeArm | None = None
     recorder: McapRecorder | None = None
+    recording_error: ConfigError | None = None
     opencv_before = _set_opencv_threads(agent_cfg.opencv_threads)
     process_settings = contextlib.ExitStack()  # undone when the station ends
     memory_lock = process_settings.enter_context(memory_locked(agent_cfg.lock_memory))
@@ -299,9 +300,17 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
                                memory_lock=memory_lock.to_dict(),
                                gil_switch_interval_s=gil_switch_s)
                 if recorder is not None:
-                    summary["recording"] = await asyncio.to_thread(recorder.close, summary)
+                    try:
+                        summary["recording"] = await asyncio.to_thread(recorder.close, summary)
+                    except ConfigError as err:  # a full disk: the summary is written still
+                        log.error("%s", err)
+                        recording_error = err
+                        summary["recording"] = recorder.counts()
+                        summary["recording_error"] = str(err)
                 if on_summary is not None:
                     on_summary(summary)
+        if recording_error is not None:
+            raise recording_error  # exit 1 (as the local station), after the summary
         return summary
     finally:
         if safe_arm is not None:

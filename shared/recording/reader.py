@@ -2,7 +2,10 @@
 
 :func:`read_mcap` reads the file front to back (no index needed, so a file whose station
 was killed reads up to its last complete chunk; ``complete`` says whether the footer was
-reached). Wire channels decode into protocol messages with the protocol's own validation.
+reached). A chunk that fails its checksum or does not decompress (a flipped bit on disk) is
+skipped and counted (``skipped_chunks``, ``skipped_reason``): the chunks after it are read
+(their records are framed on their own). Wire channels decode into protocol messages with
+the protocol's own validation.
 
 Errors (:class:`RecordingFormatError`, an :class:`~shared.errors.InputDataError`) name what
 is wrong: not an MCAP file, an MCAP file that is not a Tele-Touch recording, a file cut
@@ -19,9 +22,9 @@ from pathlib import Path
 from typing import Any
 
 from mcap.exceptions import InvalidMagic
-from mcap.records import Channel, Footer, Header, Metadata, Schema
+from mcap.records import Channel, Chunk, Footer, Header, McapRecord, Metadata, Schema
 from mcap.records import Message as McapMessage
-from mcap.stream_reader import StreamReader
+from mcap.stream_reader import StreamReader, breakup_chunk
 
 from shared.errors import InputDataError, RemoteProtocolError
 from shared.protocol import Message
@@ -109,6 +112,10 @@ class McapRecording:
         stop_reason: why reading stopped early (None when complete).
         messages: every message, in file order.
         schemas: schema name -> JSON Schema (derived channels).
+        skipped_chunks: corrupt chunks skipped (their messages are missing).
+        skipped_reason: why the first of them was skipped (None: none skipped).
+        unreadable_messages: messages of the chunks after a skipped one whose channel was
+            defined only in a skipped chunk (and not repeated in the file's summary).
     """
 
     path: Path
@@ -119,6 +126,9 @@ class McapRecording:
     stop_reason: str | None = None
     messages: list[RecordedMessage] = field(default_factory=list)
     schemas: dict[str, dict[str, Any]] = field(default_factory=dict)
+    skipped_chunks: int = 0
+    skipped_reason: str | None = None
+    unreadable_messages: int = 0
 
     def topics(self) -> dict[str, int]:
         """Topic -> message count."""
@@ -169,46 +179,67 @@ def read_mcap(path: str | os.PathLike[str]) -> McapRecording:
     header: Header | None = None
     rec: McapRecording | None = None
     channels: dict[int, Channel] = {}
+    # (channel id, log time, data) of every message, in order: resolved at the end, when
+    # the channels the file's summary repeats are known too (a skipped chunk may have held
+    # a channel's only definition in the data section)
+    raw: list[tuple[int, int, bytes]] = []
     stop_reason: str | None = None
     complete = False
+    skipped = 0
+    skipped_reason: str | None = None
+
+    def take(record: McapRecord) -> None:
+        nonlocal header, rec, complete
+        if isinstance(record, Header):
+            header = record
+            if record.profile != PROFILE:
+                raise RecordingFormatError(
+                    f"{p} is an MCAP file but not a Tele-Touch recording (profile "
+                    f"{record.profile!r}, written by {record.library!r}; expected "
+                    f"profile {PROFILE!r})")
+        elif isinstance(record, Metadata):
+            if record.name == META_START and rec is None:
+                rec = McapRecording(path=p, station=record.metadata.get("station", "?"),
+                                    meta=_meta_json(record, "meta_json", p))
+            elif record.name == META_END and rec is not None:
+                rec.end = {"counts": _meta_json(record, "counts_json", p),
+                           "meta": _meta_json(record, "meta_json", p)}
+        elif isinstance(record, Schema):
+            if rec is not None and record.encoding == "jsonschema":
+                try:
+                    rec.schemas[record.name] = json.loads(record.data)
+                except ValueError as err:
+                    raise RecordingFormatError(f"{p}: schema {record.name} is not JSON"
+                                               ) from err
+        elif isinstance(record, Channel):
+            channels[record.id] = record
+        elif isinstance(record, McapMessage):
+            if rec is None:
+                raise RecordingFormatError(f"{p}: a message before the recording's "
+                                           f"{META_START!r} metadata")
+            raw.append((record.channel_id, record.log_time // 1000, bytes(record.data)))
+        elif isinstance(record, Footer):
+            complete = True
+
     try:
-        reader = StreamReader(fh, validate_crcs=True, record_size_limit=_RECORD_LIMIT)
+        reader = StreamReader(fh, validate_crcs=True, record_size_limit=_RECORD_LIMIT,
+                              emit_chunks=True)
         for record in reader.records:
-            if isinstance(record, Header):
-                header = record
-                if record.profile != PROFILE:
-                    raise RecordingFormatError(
-                        f"{p} is an MCAP file but not a Tele-Touch recording (profile "
-                        f"{record.profile!r}, written by {record.library!r}; expected "
-                        f"profile {PROFILE!r})")
-            elif isinstance(record, Metadata):
-                if record.name == META_START and rec is None:
-                    rec = McapRecording(path=p, station=record.metadata.get("station", "?"),
-                                        meta=_meta_json(record, "meta_json", p))
-                elif record.name == META_END and rec is not None:
-                    rec.end = {"counts": _meta_json(record, "counts_json", p),
-                               "meta": _meta_json(record, "meta_json", p)}
-            elif isinstance(record, Schema):
-                if rec is not None and record.encoding == "jsonschema":
-                    try:
-                        rec.schemas[record.name] = json.loads(record.data)
-                    except ValueError as err:
-                        raise RecordingFormatError(f"{p}: schema {record.name} is not JSON"
-                                                   ) from err
-            elif isinstance(record, Channel):
-                channels[record.id] = record
-            elif isinstance(record, McapMessage):
-                if rec is None:
-                    raise RecordingFormatError(f"{p}: a message before the recording's "
-                                               f"{META_START!r} metadata")
-                ch = channels.get(record.channel_id)
-                if ch is None:
-                    raise RecordingFormatError(f"{p}: a message on unknown channel "
-                                               f"{record.channel_id}")
-                rec.messages.append(RecordedMessage(ch.topic, record.log_time // 1000,
-                                                    ch.message_encoding, bytes(record.data)))
-            elif isinstance(record, Footer):
-                complete = True
+            if not isinstance(record, Chunk):
+                take(record)
+                continue
+            try:  # a whole chunk was read: its framing is its own, the next one's is intact
+                if record.uncompressed_size > _RECORD_LIMIT:
+                    raise ValueError(f"uncompressed size {record.uncompressed_size} bytes")
+                inner = breakup_chunk(record, validate_crc=True)
+            except Exception as err:  # a CRC mismatch, the decompressor's error, a torn record
+                skipped += 1
+                skipped_reason = skipped_reason or (
+                    f"chunk at {record.message_start_time // 1000} us: "
+                    f"{type(err).__name__}: {err}")
+                continue
+            for r in inner:
+                take(r)
     except InvalidMagic as err:
         if header is None:
             raise RecordingFormatError(f"{p} is not an MCAP file (it does not start with the "
@@ -230,6 +261,15 @@ def read_mcap(path: str | os.PathLike[str]) -> McapRecording:
             f"{p} is an MCAP file (profile {header.profile!r}) without the Tele-Touch start "
             f"metadata {META_START!r}: not a Tele-Touch recording, or cut before it started"
             + (f" ({stop_reason})" if stop_reason else ""))
+    for cid, t_us, data in raw:
+        ch = channels.get(cid)
+        if ch is None:
+            if not skipped:
+                raise RecordingFormatError(f"{p}: a message on unknown channel {cid}")
+            rec.unreadable_messages += 1  # defined in a skipped chunk only
+            continue
+        rec.messages.append(RecordedMessage(ch.topic, t_us, ch.message_encoding, data))
+    rec.skipped_chunks, rec.skipped_reason = skipped, skipped_reason
     rec.complete = complete and stop_reason is None
     rec.stop_reason = None if rec.complete else (stop_reason or "no footer")
     return rec

@@ -37,6 +37,7 @@ _NUM = {"type": "number"}
 _NUM_OR_NULL = {"type": ["number", "null"]}
 _INT = {"type": "integer"}
 _PINS = {"type": "array", "items": _NUM, "minItems": 16, "maxItems": 16}
+_PINS_OR_NULL = {"oneOf": [_PINS, {"type": "null"}]}
 
 
 def _obj(title: str, description: str, props: dict[str, Any],
@@ -76,9 +77,11 @@ DERIVED_SCHEMAS: dict[str, dict[str, Any]] = {
         "teletouch.Pins",
         "The 16 pins of the ArrayTac display: commanded height (mm), stiffness k and "
         "friction f, and the heights the board measured (null before its first report). "
-        "safe_reason is set while the pins are held in their safe state.",
-        {"commanded_mm": _PINS, "stiffness_k": _PINS, "friction": _PINS,
-         "measured_mm": {"oneOf": [_PINS, {"type": "null"}]},
+        "safe_reason is set while the pins are held in their safe state; no command "
+        "exists then: the commanded values are null. Sampled at a fixed rate and at once "
+        "on every change between rendering and the safe state.",
+        {"commanded_mm": _PINS_OR_NULL, "stiffness_k": _PINS_OR_NULL,
+         "friction": _PINS_OR_NULL, "measured_mm": _PINS_OR_NULL,
          "safe_reason": {"type": ["string", "null"]}}),
     "frame_accepted": _obj(
         "teletouch.FrameAccepted",

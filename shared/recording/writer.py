@@ -10,6 +10,16 @@ dropped and counted (``dropped``). The thread drains it every ``DRAIN_INTERVAL_S
 closes a chunk and flushes the file at least every ``flush_interval_s``, so a station killed
 with SIGKILL leaves a file readable up to its last complete chunk (at most that much is lost).
 
+A message counts as written (``messages_written``, ``per_topic``) only once a flush of its
+chunk succeeded; when a write or flush fails (a full disk), the messages not yet flushed are
+counted lost (``messages_lost``) and the failure in ``write_errors``: the recording goes on,
+and a moment of full disk is never reported as a complete file with nothing missing. The
+file gets a flush's bytes whole or not at all (:class:`_FlushedFile`), so what follows a
+failed flush is still readable front to back; channels first written in the lost bytes are
+written again. A file that lost bytes ends without the MCAP summary section (statistics,
+chunk and message indexes), which would count the lost messages and point at the lost
+chunks: a reader scans it front to back (``read_mcap`` always does).
+
 The recorder lives as long as the station, not as long as a connection: reconnections and
 relay restarts go into the same file. :meth:`McapRecorder.close` drains the queue, writes the
 end metadata and the MCAP summary and footer.
@@ -28,11 +38,13 @@ import threading
 import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any, BinaryIO, cast
 
 import cv2
 import numpy as np
-from mcap.writer import CompressionType, Writer
+from mcap.data_stream import RecordBuilder
+from mcap.records import DataEnd, Footer
+from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
 from shared import __version__
 from shared.errors import ConfigError
@@ -121,6 +133,54 @@ def _layer_max(frame: TactileFrame, name: str) -> float | None:
     return float(np.max(arr)) if isinstance(arr, np.ndarray) and arr.size else None
 
 
+class _FlushedFile:
+    """The MCAP writer's output: bytes wait in memory and reach the file at :meth:`flush`,
+    whole or not at all. A failed flush (a full disk) cuts the file back to where the last
+    good one ended and gives its bytes up (their messages are counted lost), so the file
+    never holds a torn record that would hide everything written after it.
+
+    Raises:
+        OSError: the file cannot be created.
+    """
+
+    def __init__(self, path: Path) -> None:
+        self._fh = open(path, "wb", buffering=0)  # noqa: SIM115 - closed by close()
+        self._size = 0  # bytes in the file
+        self._buf = bytearray()
+
+    def write(self, data: bytes) -> int:
+        self._buf += data
+        return len(data)
+
+    def tell(self) -> int:
+        return self._size + len(self._buf)
+
+    def flush(self) -> None:
+        """Write what waits; on failure the file ends where it did before, and raise.
+
+        Raises:
+            OSError: the write failed (the bytes are given up).
+        """
+        data, self._buf = self._buf, bytearray()
+        done = 0
+        try:
+            with memoryview(data) as view:
+                while done < len(data):
+                    n = self._fh.write(view[done:])
+                    if not n:
+                        raise OSError(f"write of {len(data) - done} bytes wrote none")
+                    done += n
+        except OSError:
+            # a torn write (part of it reached the file): cut it off; shrinking needs no space
+            self._fh.truncate(self._size)
+            self._fh.seek(self._size)
+            raise
+        self._size += len(data)
+
+    def close(self) -> None:
+        self._fh.close()
+
+
 class McapRecorder:
     """Writes one station's recording (see the module docstring).
 
@@ -160,18 +220,22 @@ class McapRecorder:
         self.station = station
         self.flush_interval_s = flush_interval_s
         try:
-            self._file: BinaryIO = open(self.path, "wb")  # noqa: SIM115 - closed by close()
+            self._file = _FlushedFile(self.path)
         except OSError as err:
             raise ConfigError(f"cannot write the recording {self.path}: {err}") from err
-        self._writer = Writer(self._file, chunk_size=chunk_bytes,
+        self._writer = Writer(cast(BinaryIO, self._file), chunk_size=chunk_bytes,
                               compression=CompressionType.ZSTD)
-        self._writer.start(profile=PROFILE, library=f"teletouch {__version__}")
-        self._writer.add_metadata(META_START, {
-            "format_version": FORMAT_VERSION, "station": station,
-            "started_us": str(time.time_ns() // 1000),
-            "meta_json": json.dumps(to_jsonable(dict(meta or {})), sort_keys=True,
-                                    allow_nan=False)})
-        self._writer.flush()
+        try:
+            self._writer.start(profile=PROFILE, library=f"teletouch {__version__}")
+            self._writer.add_metadata(META_START, {
+                "format_version": FORMAT_VERSION, "station": station,
+                "started_us": str(time.time_ns() // 1000),
+                "meta_json": json.dumps(to_jsonable(dict(meta or {})), sort_keys=True,
+                                        allow_nan=False)})
+            self._writer.flush()
+        except OSError as err:  # a full disk
+            self._file.close()
+            raise ConfigError(f"cannot write the recording {self.path}: {err}") from err
         #: items for the writer thread: appended by any thread, popped by the writer only
         #: (deque append/popleft are atomic); at most ``queue_size`` wait
         self._items: collections.deque[tuple[Any, ...]] = collections.deque()
@@ -180,11 +244,21 @@ class McapRecorder:
         self._stopping = False
         self._channels: dict[str, int] = {}
         self._schemas: dict[str, int] = {}
+        #: channels and schemas registered since the last flush (their records are in the
+        #: chunk it writes: registered again when that flush fails)
+        self._unflushed: list[tuple[dict[str, int], str]] = []
         self._offsets_us: dict[str, int | None] = {}
         self._seq = 0
         self.dropped = 0
+        #: messages on disk (their chunk flushed)
         self.written = 0
+        #: messages handed to the MCAP writer whose write or flush failed
+        self.lost = 0
         self.write_errors = 0
+        #: bytes were given up (the file ends without the MCAP summary)
+        self._bytes_lost = False
+        #: messages in the chunk not flushed yet, per topic (written or lost at the next flush)
+        self._pending: dict[str, int] = {}
         #: CPU time the writer thread used (seconds, updated as it runs)
         self.writer_cpu_s = 0.0
         self.message_counts: dict[str, int] = {}
@@ -238,14 +312,16 @@ class McapRecorder:
         Blocks the caller, so never call it from a loop that must not wait.
 
         Returns:
-            False when the recorder is closed or the writer did not get there in time.
+            False when the recorder is closed, the writer did not get there in time, or the
+            flush failed (at once, not after ``timeout_s``).
         """
         done = threading.Event()
+        flushed: list[bool] = []
         if self._closed:
             return False
-        self._items.append(("sync", done, None, 0))  # beyond the bound: it is not data
+        self._items.append(("sync", done, flushed, 0))  # beyond the bound: it is not data
         self._wake.set()
-        return done.wait(timeout_s)
+        return done.wait(timeout_s) and flushed == [True]
 
     # ------------------------------------------------------------------ writer thread
 
@@ -262,18 +338,50 @@ class McapRecorder:
                         name=name, encoding="jsonschema",
                         data=json.dumps(schema, sort_keys=True).encode())
                     self._schemas[name] = sid
+                    self._unflushed.append((self._schemas, name))
             cid = self._writer.register_channel(topic=topic, message_encoding=encoding,
                                                 schema_id=sid, metadata=metadata)
             self._channels[topic] = cid
+            self._unflushed.append((self._channels, topic))
         return cid
 
     def _add(self, topic: str, cid: int, data: bytes, t_us: int) -> None:
         self._seq += 1
         t_ns = t_us * 1000
-        self._writer.add_message(channel_id=cid, log_time=t_ns, data=data, publish_time=t_ns,
-                                 sequence=self._seq & 0xFFFFFFFF)
-        self.written += 1
-        self.message_counts[topic] = self.message_counts.get(topic, 0) + 1
+        self._pending[topic] = self._pending.get(topic, 0) + 1
+        try:  # a full chunk is written here: a failure loses the chunk
+            self._writer.add_message(channel_id=cid, log_time=t_ns, data=data,
+                                     publish_time=t_ns, sequence=self._seq & 0xFFFFFFFF)
+        except Exception:
+            self._lose_pending()
+            raise
+
+    def _lose_pending(self) -> None:
+        self._bytes_lost = True
+        self.lost += sum(self._pending.values())
+        self._pending.clear()
+        for registry, key in self._unflushed:  # their records were lost with the chunk
+            registry.pop(key, None)
+        self._unflushed.clear()
+
+    def _flush(self) -> bool:
+        """Complete the chunk and flush the file; its messages count as written, or as lost
+        when that fails (the failure is logged and counted; never raised)."""
+        try:
+            self._writer.flush()
+        except Exception as err:  # a full disk: the recording goes on
+            self.write_errors += 1
+            pending = sum(self._pending.values())
+            self._lose_pending()
+            log.error("recording %s: flush failed, %d messages lost: %s", self.path, pending,
+                      err)
+            return False
+        for topic, n in self._pending.items():
+            self.message_counts[topic] = self.message_counts.get(topic, 0) + n
+            self.written += n
+        self._pending.clear()
+        self._unflushed.clear()
+        return True
 
     def _write_json(self, name: str, payload: Mapping[str, Any], t_us: int) -> None:
         topic = derived_topic(self.station, name)
@@ -342,8 +450,10 @@ class McapRecorder:
         if kind == "wire":
             self._write_wire(a, b, t_us)
         elif kind == "sync":
-            self._writer.flush()
-            a.set()
+            try:
+                b.append(self._flush())
+            finally:  # the caller never waits out its timeout on a failed flush
+                a.set()
         else:
             self._write_json(a, b() if callable(b) else b, t_us)
 
@@ -369,21 +479,28 @@ class McapRecorder:
                 return
             if time.monotonic() - last_flush >= self.flush_interval_s:
                 last_flush = time.monotonic()
-                try:
-                    self._writer.flush()
-                except Exception as err:  # keep the thread: close() still needs it
-                    self.write_errors += 1
-                    log.error("recording %s: flush failed: %s", self.path, err)
+                self._flush()  # a failure keeps the thread: close() still needs it
 
     # ------------------------------------------------------------------ closing
 
     def counts(self) -> dict[str, Any]:
-        """What was written and dropped so far."""
+        """What was written (flushed to the file), dropped and lost so far."""
         return {"path": str(self.path), "messages_written": self.written,
                 "dropped_queue_full": self.dropped, "write_errors": self.write_errors,
+                "messages_lost": self.lost,
                 "writer_cpu_s": round(self.writer_cpu_s, 4),
                 "image_cpu_s": round(self.image_cpu_s, 4),
                 "per_topic": dict(sorted(self.message_counts.items()))}
+
+    def _finish_without_summary(self) -> None:
+        """End the file as ``Writer.finish`` does, but without the summary section: the
+        library's would count lost messages and index lost chunks (the data section's CRC
+        is not computed either way: 0)."""
+        records = RecordBuilder()
+        DataEnd(data_section_crc=0).write(records)
+        Footer(summary_start=0, summary_offset_start=0, summary_crc=0).write(records)
+        self._file.write(records.end())
+        self._file.write(MCAP0_MAGIC)
 
     def close(self, end_meta: Mapping[str, Any] | None = None) -> dict[str, Any]:
         """Drain the queue, write the end metadata, summary and footer; close the file.
@@ -402,18 +519,23 @@ class McapRecorder:
         if self._thread.is_alive():
             raise ConfigError(f"cannot finish the recording {self.path}: its writer thread "
                               "did not drain the queue within 30 s")
+        self._flush()  # the last chunk, so the end metadata counts it written or lost
         try:
             self._writer.add_metadata(META_END, {
                 "ended_us": str(time.time_ns() // 1000),
                 "counts_json": json.dumps(self.counts(), sort_keys=True),
                 "meta_json": json.dumps(to_jsonable(dict(end_meta or {})), sort_keys=True,
                                         allow_nan=False)})
-            self._writer.finish()
+            if self._bytes_lost:
+                self._finish_without_summary()
+            else:
+                self._writer.finish()
+            self._file.flush()
         except (OSError, ValueError) as err:
             raise ConfigError(f"cannot finish the recording {self.path}: {err}") from err
         finally:
             with contextlib.suppress(OSError):
                 self._file.close()
-        log.info("recording written to %s (%d messages, %d dropped)", self.path, self.written,
-                 self.dropped)
+        log.info("recording written to %s (%d messages, %d dropped, %d lost)", self.path,
+                 self.written, self.dropped, self.lost)
         return self.counts()

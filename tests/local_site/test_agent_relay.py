@@ -116,7 +116,10 @@ async def test_platform_state_and_frames_flow_record_and_summary(tmp_path: Path,
     assert rec.meta["complete"] and summary["recording"]["dropped_queue_full"] == 0
     mcap = read_mcap(tmp_path / "rec.mcap")
     pins = [m.json() for m in mcap.on("/local/pins")]
-    assert pins and all(len(p["commanded_mm"]) == 16 for p in pins)
+    assert pins and all(p["commanded_mm"] is None or len(p["commanded_mm"]) == 16
+                        for p in pins)
+    # a sample in the safe state has no command, a rendering one has one
+    assert all((p["commanded_mm"] is None) == (p["safe_reason"] is not None) for p in pins)
     assert any(p["measured_mm"] is not None and p["safe_reason"] is None for p in pins)
     latency = [m.json() for m in mcap.on("/local/latency")]
     assert latency and all(m["type"] == "tactile_frame" for m in latency)

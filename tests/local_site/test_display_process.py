@@ -446,7 +446,7 @@ def test_a_report_too_large_for_a_packet_sheds_its_oldest_items_not_all() -> Non
     assert sent[-1]["accepted"] == [] and sent[-1]["pins_samples"] == []
 
 
-def test_the_pins_sampler_keeps_its_rate_and_waits_for_a_command() -> None:
+def test_the_pins_sampler_keeps_its_rate_and_records_the_safe_state() -> None:
     with pytest.raises(ConfigError, match="pins_rate_hz"):
         PinsSampler(0.0)
 
@@ -454,11 +454,13 @@ def test_the_pins_sampler_keeps_its_rate_and_waits_for_a_command() -> None:
         is_connected = False
 
     sampler = PinsSampler(1e-3)
-    assert sampler.offer(None, Board(), "startup") is None  # nothing on the pins yet
+    assert sampler.offer(None, Board(), None) is None  # nothing on the pins, not safe
     first = sampler.offer("command", Board(), None)
     assert first is not None and first[1:] == ("command", None, None)
     assert abs(first[0] - now_us()) < 5e6
     assert sampler.offer("command", Board(), None) is None  # not due for 1,000 s
+    safe = sampler.offer(None, Board(), "no_frames")  # the safe state: a change, at once
+    assert safe is not None and safe[1:] == (None, None, "no_frames")
 
 
 def test_frames_superseded_in_the_childs_hand_over_are_counted() -> None:

@@ -290,9 +290,18 @@ function updateCharts(live, now) {
       charts.latency.push(name, now, ms, STAGE_COLOURS[idx % STAGE_COLOURS.length]);
     }
     charts.latency.push("end_to_end", now, lat.end_to_end_ms, "#ffffff");
-    $("latency-legend").innerHTML = state.stageNames.map((n, i) =>
-      `<span style="color:${STAGE_COLOURS[i % STAGE_COLOURS.length]}">${n} ${lat.stages_ms[n] !== undefined ? lat.stages_ms[n].toFixed(1) : "-"}</span>`)
-      .join(" &middot; ") + ` &middot; end to end ${lat.end_to_end_ms !== null ? lat.end_to_end_ms.toFixed(1) : "-"} ms`;
+    // built from text nodes, never parsed as HTML: stage names come from messages (and
+    // from a recording's file in a replay)
+    const fmt = (v) => (typeof v === "number" && isFinite(v) ? v.toFixed(1) : "-");
+    const legend = $("latency-legend");
+    legend.replaceChildren();
+    state.stageNames.forEach((n, i) => {
+      const span = document.createElement("span");
+      span.style.color = STAGE_COLOURS[i % STAGE_COLOURS.length];
+      span.textContent = `${n} ${fmt(lat.stages_ms[n])}`;
+      legend.append(span, " \u00b7 ");
+    });
+    legend.append(`end to end ${fmt(lat.end_to_end_ms)} ms`);
   }
   const linkUp = live.link && live.link.state === "up" ? 1 : 0;
   charts.state.push("link", now, linkUp * 0.9, "#3fb950");
