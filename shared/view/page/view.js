@@ -124,7 +124,7 @@ function drawPins(pins, replay) {
     ctx.fillStyle = "#8a96a3"; ctx.font = "14px system-ui";
     $("pins-age").textContent = "";
     ctx.fillText(pins ? "no pin command (safe state or not started)"
-      : replay ? "no pins recorded yet" : "pins: shown at the local station only", 10, H / 2);
+      : replay ? "pins: no recent sample recorded" : "pins: shown at the local station only", 10, H / 2);
     return;
   }
   const cmd = pins.commanded_mm, meas = pins.measured_mm, k = pins.stiffness_k, f = pins.friction;
@@ -356,7 +356,7 @@ function onSnapshot(msg) {
   setBadge("link", link.state === "up" ? "link up" : link.state === "none" ? "no relay link" : `link DOWN ${(link.down_s || 0).toFixed(1)} s`,
     link.state === "up" ? "ok" : link.state === "none" ? "" : "bad");
   const safe = live.safe && live.safe.reason;
-  if (live.replay && live.safe && live.safe.known === false) setBadge("safe", "recorded safe state: none recorded yet", "");
+  if (live.replay && live.safe && live.safe.known === false) setBadge("safe", "recorded safe state: unknown (no recent pins sample)", "");
   else if (live.safe && live.safe.known === false) setBadge("safe", "pins' safe state: known at the local station", "");
   else if (live.replay) setBadge("safe", safe ? `recorded SAFE STATE: ${safe}` : "recorded: rendering", safe ? "bad" : "");
   else setBadge("safe", safe ? `SAFE STATE: ${safe}` : "rendering", safe ? "bad" : "ok");
