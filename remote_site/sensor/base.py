@@ -65,12 +65,17 @@ class SensorHealth:
 
     Attributes:
         ended: the source delivered its last frame (a video file without looping, a
-            camera whose read failed); no frame will come any more.
+            simulator whose stream thread ended); no frame will come any more. A live
+            camera never ends: a lost device is reopened (``reopens``).
         stalls: times the source went silent for longer than its stall timeout while
             still running (a live camera that stopped delivering).
         stalled: the source is silent right now.
         loops: times a looped video file restarted.
         reason: why the source ended, or None.
+        bad_images: images skipped because they could not be used (failed to decode, the
+            wrong shape or type); the stream went on.
+        reopens: times a live camera whose read failed (unplugged, a dropped stream) was
+            opened again.
     """
 
     ended: bool = False
@@ -78,6 +83,8 @@ class SensorHealth:
     stalled: bool = False
     loops: int = 0
     reason: str | None = None
+    bad_images: int = 0
+    reopens: int = 0
 
 
 class TactileSensor(Device):

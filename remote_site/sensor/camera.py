@@ -12,11 +12,22 @@ A source behaves like a camera:
   ``n / fps`` s after the first, stamped with the time it is published, so a consumer sees
   the recording in real time instead of all of it within a second; ``loop=True`` restarts it
   at its end (by reopening it);
-* a source that **ends** (file without loop, a read failure) is reported once (WARNING)
-  and in :attr:`health` (``ended``); a source that **stalls** (no new frame for
-  ``stall_timeout_s``) is reported once per silence and counted (``stalls``). Neither
+* a video file without loop **ends** at its end: reported once (WARNING) and in
+  :attr:`health` (``ended``);
+* a live camera never ends by itself (a station never gives up on a transient fault): an
+  image that cannot be used (it failed to decode, or has the wrong shape or type) is
+  skipped and counted (``bad_images``), and a failed read (an unplugged camera, a dropped
+  stream) releases the device and opens it again after 0.1, 0.2, 0.5, 1 then every 2 s
+  (``reopens``); each is reported once per run;
+* a source that **stalls** (no new frame for ``stall_timeout_s``: a silent camera, or one
+  being reopened) is reported once per silence and counted (``stalls``). None of these
   changes ``read_latest``: its frames just grow old, and the consumer's stale-frame logic
   applies.
+
+Found by an audit: one corrupt image, or one read failure, ended the camera for good, and
+nothing reconnected it; and a reader thread abandoned while its read hung (an unplugged
+USB camera can block for seconds) later marked the next connection ended. Only the current
+connection's reader changes the sensor's state now.
 
 A live camera is read in two steps where the capture offers them (OpenCV's ``grab`` and
 ``retrieve``): each image is stamped as it is taken off the device, before its decoding, and
@@ -39,6 +50,7 @@ import math
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Protocol, TypeGuard
 
@@ -62,6 +74,8 @@ log = logging.getLogger(__name__)
 
 #: cv2.CAP_PROP_FPS (kept here so the module imports without OpenCV)
 _CAP_PROP_FPS = 5
+#: waits before opening a live camera again after a failed read (s); the last repeats
+REOPEN_BACKOFF_S = (0.1, 0.2, 0.5, 1.0, 2.0)
 
 
 class _Capture(Protocol):
@@ -176,6 +190,8 @@ class OpenCVCameraSensor(TactileSensor):
         self._next_due_s: float | None = None
         self._file = False  # whether the source is a video file (known at connect)
         self._health = SensorHealth()
+        self._bad_run = False  # the last image was bad (one warning per run of them)
+        self._reopen_tries = 0  # tries to open the camera again since its last frame
         self.read_error: str | None = None
 
     @property
@@ -235,13 +251,15 @@ class OpenCVCameraSensor(TactileSensor):
         self._newest = None
         self._next_due_s = None
         self._health = SensorHealth()
+        self._bad_run = False
+        self._reopen_tries = 0
         self.read_error = None
         self._wake.clear()
         self._reader = ReaderThread("tactile-camera", self._read_once)
         self._reader.start()
         deadline = time.monotonic() + self.first_frame_timeout_s
         while self._newest is None and time.monotonic() < deadline:
-            if self.read_error is not None:
+            if self._health.ended or not self._reader.is_alive:
                 break
             time.sleep(0.002)
         if self._newest is None:
@@ -265,22 +283,82 @@ class OpenCVCameraSensor(TactileSensor):
             return False
         self._capture = capture
         with self._lock:
-            self._health = SensorHealth(stalls=self._health.stalls, loops=self._health.loops + 1)
+            self._health = replace(self._health, loops=self._health.loops + 1)
         return True
 
+    def _current(self) -> bool:
+        """Whether the calling reader thread is this connection's (not one abandoned by a
+        disconnect while its read hung, whose late result must not touch the new one)."""
+        reader = self._reader
+        return reader is not None and reader.is_current_thread
+
     def _end(self, reason: str) -> bool:
+        if not self._current():
+            return False
+        if self._bad_run:  # the images before the end were skipped: say why
+            reason = f"{reason}, after images that were skipped: {self.read_error}"
         self.read_error = reason
         with self._lock:
-            self._health = SensorHealth(ended=True, stalls=self._health.stalls,
-                                        loops=self._health.loops, reason=reason)
+            self._health = replace(self._health, ended=True, reason=reason)
         if not self._wake.is_set():  # not a disconnect in progress
             log.warning("camera %r ended: %s; no new frame will come (the station keeps its "
                         "stale-frame behaviour)", self.source, reason)
         return False
 
+    def _bad_image(self, reason: str) -> bool:
+        """An image that cannot be used: skipped and counted; the stream goes on."""
+        if not self._current():
+            return False
+        self.read_error = reason
+        with self._lock:
+            self._health = replace(self._health, bad_images=self._health.bad_images + 1)
+        if not self._bad_run:
+            log.warning("camera %r: an image was skipped (%s); skipping such images until a "
+                        "good one comes", self.source, reason)
+        self._bad_run = True
+        return True
+
+    def _lost(self, reason: str) -> bool:
+        """A live camera's read failed (unplugged, a dropped stream): release it and open it
+        again, waiting :data:`REOPEN_BACKOFF_S` between tries, until it opens or the sensor
+        stops (False). Its frames age meanwhile (a stall)."""
+        if not self._current():
+            return False
+        if self._bad_run:  # the images before were skipped: say why
+            reason = f"{reason}, after images that were skipped: {self.read_error}"
+        self.read_error = reason
+        if not self._reopen_tries:  # once per outage: it lasts until a frame comes
+            log.warning("camera %r: %s; opening it again until it delivers", self.source,
+                        reason)
+        old, self._capture = self._capture, None
+        if old is not None:
+            old.release()
+        while not self._wake.wait(
+                REOPEN_BACKOFF_S[min(self._reopen_tries, len(REOPEN_BACKOFF_S) - 1)]):
+            self._reopen_tries += 1  # the waits grow until a frame comes, not until it opens
+            if not self._current():
+                return False
+            try:
+                capture = self._open_capture()
+            except Exception as err:  # vendor errors of any kind: try again
+                log.debug("camera %r: opening failed: %s", self.source, err)
+                continue
+            if not capture.isOpened():
+                capture.release()
+                continue
+            if not self._current():  # disconnected meanwhile: not ours to keep
+                capture.release()
+                return False
+            self._capture = capture
+            with self._lock:
+                self._health = replace(self._health, reopens=self._health.reopens + 1)
+            log.info("camera %r opened again (try %d)", self.source, self._reopen_tries)
+            return True
+        return False  # the sensor stops
+
     def _read_once(self) -> bool:
         capture = self._capture
-        if capture is None:
+        if capture is None or not self._current():
             return False
         # a live camera paced to fps drops images (a file waits instead: see _publish)
         live_period = None if self._file else self._period_s
@@ -292,8 +370,9 @@ class OpenCVCameraSensor(TactileSensor):
         if (not ok or bgr is None) and looping and self._restart() and self._capture:
             ok, bgr = self._capture.read()
         if not ok or bgr is None:
-            return self._end("end of the video file" if self._file else
-                             "capture.read() failed (device lost or end of stream)")
+            if self._file:
+                return self._end("end of the video file")
+            return self._lost("capture.read() failed (device lost or end of stream)")
         if live_period is not None and not self._due_now(live_period):
             return True  # frames between are dropped, not held
         return self._publish(bgr, read_us)
@@ -303,37 +382,45 @@ class OpenCVCameraSensor(TactileSensor):
         stamped, then decoded (``retrieve``). Paced to ``fps`` (``period``), only the due
         images are decoded; those between are dropped, not held and not decoded."""
         if not capture.grab():
-            return self._end("capture.grab() failed (device lost or end of stream)")
+            return self._lost("capture.grab() failed (device lost or end of stream)")
         read_us = now_us()  # the image arrived (before its decoding and this station's crop)
         if period is not None and not self._due_now(period):
             return True
         ok, bgr = capture.retrieve()
         if not ok or bgr is None:
-            return self._end("capture.retrieve() failed (the image could not be decoded)")
+            return self._bad_image("capture.retrieve() failed (the image could not be "
+                                   "decoded)")
         return self._publish(bgr, read_us)
 
     def _publish(self, bgr: Any, read_us: int) -> bool:
         """Shape an image read at ``read_us`` and make it the newest frame (a video file's
         after its pacing wait); False when the source ends or the sensor stops."""
-        if bgr.ndim != 3 or bgr.shape[2] != 3 or bgr.dtype != np.uint8:
-            return self._end(f"unexpected frame {bgr.shape} {bgr.dtype}")
+        if not isinstance(bgr, np.ndarray) or bgr.ndim != 3 or bgr.shape[2] != 3 \
+                or bgr.dtype != np.uint8:
+            return self._bad_image(f"unexpected frame {getattr(bgr, 'shape', None)} "
+                                   f"{getattr(bgr, 'dtype', type(bgr).__name__)}")
         try:
             rgb = shape_frame(bgr, self.preset)
         except InputDataError as err:
-            return self._end(str(err))
+            return self._bad_image(str(err))
         if self._period_s is not None and self._file and not self._wait_until_due():
             return False
         # a live camera's image arrived at the read; a file's plays the camera: it arrives
         # when it is released, after its pacing wait
         arrival_us = now_us() if self._file else read_us
         with self._lock:
+            if not self._current():
+                return False
+            self._bad_run = False
+            if self._reopen_tries:
+                log.info("camera %r delivers frames again", self.source)
+            self._reopen_tries = 0
             self._seq += 1
             self._newest = SensorFrame(rgb=rgb, timestamp_us=arrival_us - self._latency_us,
                                        seq=self._seq, arrival_us=arrival_us)
             if self._health.stalled:
                 log.info("camera %r delivers frames again", self.source)
-                self._health = SensorHealth(stalls=self._health.stalls,
-                                            loops=self._health.loops)
+                self._health = replace(self._health, stalled=False)
         self._frame_arrived()
         return True
 
@@ -375,7 +462,7 @@ class OpenCVCameraSensor(TactileSensor):
             return
         age_s = (now_us() - self._newest.received_us) / 1e6  # since it arrived
         if age_s > self.stall_timeout_s:
-            self._health = SensorHealth(stalls=h.stalls + 1, stalled=True, loops=h.loops)
+            self._health = replace(h, stalls=h.stalls + 1, stalled=True)
             log.warning("camera %r stalled: no new frame for %.1f s (stall %d)", self.source,
                         age_s, h.stalls + 1)
 

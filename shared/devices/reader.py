@@ -44,6 +44,12 @@ class ReaderThread:
         """True while the thread runs."""
         return self._thread.is_alive()
 
+    @property
+    def is_current_thread(self) -> bool:
+        """True when called from this reader's own thread (a backend's check that a late
+        callback comes from its current reader, not from one it abandoned)."""
+        return self._thread is threading.current_thread()
+
     def start(self) -> None:
         """Start the thread."""
         self._thread.start()
