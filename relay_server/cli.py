@@ -135,7 +135,8 @@ def run(args: argparse.Namespace) -> int:
 
     workers = worker_count(config)
     if workers > 1:
-        run_workers(config, workers)
+        run_workers(config, workers)  # checks what its workers would load before it starts them
     else:
+        config.check_nats_ca_file()  # loaded only once the ports are bound
         asyncio.run(serve_forever(config))
     return 0

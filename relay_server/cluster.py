@@ -6,10 +6,12 @@ makes several of them one relay:
 
 * **Directory.** Every worker publishes a heartbeat on ``<prefix>.hb`` every
   ``HEARTBEAT_S`` and at once when a peer joins or leaves: its id, pid, host, ports, and which
-  roles and how many observers of which sessions it holds, its counters, and its clock fields
-  (send time, boot id, wall anchor, echoes of the others' heartbeats). A worker not heard
-  from for ``3 x HEARTBEAT_S`` is gone (a killed worker says nothing; its entry is dropped
-  after ``_FORGET_S``); a worker that closes says so.
+  roles and how many observers of which sessions it holds, its counters, its clock fields
+  (send time, boot id, wall anchor, echoes of the others' heartbeats) and the clock offset
+  and bound of each station it holds. A worker not heard from for ``3 x HEARTBEAT_S`` is gone
+  (a killed worker says nothing; its entry is dropped after ``_FORGET_S``); a worker that
+  closes says so. A heartbeat of another shape (another release, a bug, a stray publisher)
+  is ignored (``nats_bad_heartbeat``).
 * **Pairing.** A station may join any worker; a role held by another live worker is refused
   (``role_taken``, as on one relay; a station whose worker died retries within its grace
   window until the dead worker expires).
@@ -25,12 +27,18 @@ makes several of them one relay:
   envelope on the receiver's clock, with the receiver's offset measured on their heartbeats
   (:mod:`relay_server.worker_clocks`; exact for workers on one kernel), so the hosts' clocks
   need not agree; station offsets are each estimated against the worker the station is
-  connected to, as before.
-* **Limits.** Envelopes wait in a bounded queue for the NATS connection (``nats_queue_full``
-  when NATS stalls); one that waited more than 0.5 s since it reached the relay is dropped
-  (``nats_stale``), and nothing is buffered while NATS reconnects (``nats_publish_failed``):
-  no frame is delivered late after a NATS outage. A message over the NATS server's max
-  payload (1 MB by default) is not forwarded across workers (``nats_too_large``). An ordered
+  connected to, as before, and a worker's ``stats`` report a station held by another worker
+  with that worker's heartbeat's figure moved onto its own clock
+  (:meth:`ClusterLink.station_clock`), so that the stations of a pair split across workers
+  can age-check each other's stamps.
+* **Limits.** Envelopes wait in a bounded queue for the publisher (``nats_queue_full``); one
+  more than 0.5 s old since it reached the relay is dropped (``nats_stale``) before it is
+  published and again when it arrives (the NATS client takes envelopes in while a stalled
+  server does not read them), and nothing is buffered while NATS reconnects
+  (``nats_publish_failed``): no frame is delivered late after a NATS stall or outage. An
+  envelope of another shape, or with a stream its sender's role does not send, is dropped
+  (``nats_bad_envelope``). A message over the NATS server's max payload (1 MB by default)
+  is not forwarded across workers (``nats_too_large``). An ordered
   message refused by the receiving worker (``queue_full``, ``no_peer``) is counted there
   (``nats_undelivered_<code>``); the sender gets no ``error`` for it.
 
@@ -43,7 +51,9 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 import os
+import re
 import socket
 import ssl
 import time
@@ -55,21 +65,40 @@ from typing import Any
 import msgpack
 
 from relay_server.config import RelayConfig
-from relay_server.session import Session
+from relay_server.session import STREAMS_OF, Session
 from relay_server.worker_clocks import WorkerClocks
 from shared.errors import ConfigError, RemoteProtocolError, RoleTakenError
 from shared.protocol import DataMessage, decode, encode
 from shared.timebase import wall_anchor_ns
 
-__all__ = ["HEARTBEAT_S", "ClusterLink"]
+__all__ = ["HEARTBEAT_S", "ClusterLink", "redact_url"]
 
 log = logging.getLogger(__name__)
 
 HEARTBEAT_S = 0.5
 _EXPIRE_S = 3 * HEARTBEAT_S
 _OUT_QUEUE = 20_000  # envelopes waiting for the NATS connection
-_MAX_QUEUED_US = 500_000  # an envelope older than this (since relay_in) is not published
+_MAX_QUEUED_US = 500_000  # an envelope older than this (since relay_in): not sent, not delivered
 _FORGET_S = 60.0  # a worker not heard from for this long is dropped from the directory
+#: a station's clock against its worker's may drift this fast (the clock filter's allowance)
+_STATION_DRIFT_PPM = 500.0
+#: a worker id is one token of a NATS subject (no space, dot or wildcard)
+_WORKER_ID = re.compile(r"[^\s.*>]{1,256}")
+_STATION_ROLES = frozenset(STREAMS_OF)
+
+
+def redact_url(url: str) -> str:
+    """``url`` without its user information (``nats://user:password@host`` ->
+    ``nats://***@host``: a token alone is a user name), to show it in logs and ``/status``;
+    each URL of a comma-separated list."""
+    parts = []
+    for part in url.split(","):
+        scheme, sep, rest = part.rpartition("://")
+        netloc, slash, path = rest.partition("/")
+        if "@" in netloc:
+            netloc = "***@" + netloc.rpartition("@")[2]
+        parts.append(f"{scheme}{sep}{netloc}{slash}{path}")
+    return ",".join(parts)
 
 
 class ClusterLink:
@@ -142,7 +171,7 @@ class ClusterLink:
         except (NoServersError, OSError, TimeoutError, ssl.SSLError) as err:
             # the deadline's TimeoutError says less than the connection's own last error
             cause = last_error[0] if last_error and isinstance(err, TimeoutError) else err
-            raise ConfigError(f"cannot reach the NATS server {self.url} within "
+            raise ConfigError(f"cannot reach the NATS server {redact_url(self.url)} within "
                               f"{self.connect_timeout_s:g} s (nats_connect_timeout_s): "
                               f"{str(cause) or type(cause).__name__}") from err
         await self._nc.subscribe(f"{self.prefix}.hb", cb=self._on_heartbeat)
@@ -150,7 +179,7 @@ class ClusterLink:
         self._tasks = [asyncio.create_task(self._heartbeat_loop(), name="cluster-heartbeat"),
                        asyncio.create_task(self._publish_loop(), name="cluster-publisher")]
         log.info("relay worker %s joined the cluster on %s (subjects %s.*)", self.worker_id,
-                 self.url, self.prefix)
+                 redact_url(self.url), self.prefix)
 
     async def close(self) -> None:
         """Say goodbye to the other workers and disconnect."""
@@ -180,10 +209,30 @@ class ClusterLink:
         if role == "observer":
             return
         for worker, hb in self._live().items():
-            held = hb.get("sessions", {}).get(session_id)
+            held = hb["sessions"].get(session_id)
             if held is not None and role in held[0]:
                 raise RoleTakenError(f"role {role!r} is already taken in session "
                                      f"{session_id!r} (on relay worker {worker})")
+
+    def station_clock(self, session_id: str, role: str) -> tuple[int, int] | None:
+        """The clock offset of station ``role`` of a session when another live worker holds
+        it, moved onto this worker's clock: (station clock minus this worker's, a bound on
+        its error now: the station's bound when that worker's heartbeat was sent, plus the
+        bound on that worker's offset, plus the station's drift since); None when no live
+        worker reports it, or that worker's clock is not known yet."""
+        now = self._now()
+        for worker, hb in self._live().items():
+            entry = hb["clocks"].get(session_id, {}).get(role)
+            if entry is None:
+                continue
+            theirs = self.clocks.estimate(worker, now)  # its clock minus ours
+            if theirs is None:
+                return None
+            offset, bound = entry  # station minus its clock, at its send time hb["t"]
+            age_us = max(0, now - (hb["t"] - theirs[0]))
+            return offset + theirs[0], math.ceil(
+                bound + theirs[1] + _STATION_DRIFT_PPM * 1e-6 * age_us)
+        return None
 
     def changed(self) -> None:
         """A peer joined or left: publish a heartbeat now."""
@@ -200,6 +249,17 @@ class ClusterLink:
                              for sid, s in self.sessions.items()},
                 "counters": dict(self.counters), "drops": self._drops()}
 
+    def _station_clocks(self, t_us: int) -> dict[str, dict[str, list[int]]]:
+        """Per session and role, the offset of each station this worker holds (station clock
+        minus this worker's) and a bound on its error at ``t_us``, where known."""
+        out: dict[str, dict[str, list[int]]] = {}
+        for sid, session in self.sessions.items():
+            for role, peer in session.stations.items():
+                offset, bound = peer.clock.offset_us, peer.clock.uncertainty_us(t_us)
+                if offset is not None and bound is not None:
+                    out.setdefault(sid, {})[role] = [round(offset), math.ceil(bound + 0.5)]
+        return out
+
     def _drops(self) -> dict[str, int]:
         """Messages this worker's sessions dropped, by reason (latest_wins, queue_full, ...)."""
         out: Counter[str] = Counter()
@@ -214,7 +274,9 @@ class ClusterLink:
             self._changed.clear()
             self._forget_silent()
             hb = self._heartbeat()
-            self.clocks.stamp(hb, self._now())  # last: building the rest takes time
+            t_us = self._now()
+            self.clocks.stamp(hb, t_us)  # last: building the rest takes time
+            hb["clocks"] = self._station_clocks(t_us)
             try:
                 await self._nc.publish(f"{self.prefix}.hb", msgpack.packb(hb))
             except Exception as err:  # NATS down: keep serving local sessions, retry
@@ -227,13 +289,12 @@ class ClusterLink:
     async def _on_heartbeat(self, msg: Any) -> None:
         received_us = self._now()
         try:
-            hb = msgpack.unpackb(msg.data, raw=False)
-            worker = hb["w"]
-            if not isinstance(worker, str):
-                raise TypeError("a heartbeat's worker id must be a string")
-        except (ValueError, KeyError, TypeError, msgpack.UnpackException):
+            hb = _checked_heartbeat(msgpack.unpackb(msg.data, raw=False))
+        except (ValueError, TypeError, msgpack.UnpackException):
+            # another release's shape, a bug, a stray publisher: ignored, as if not heard
             self.counters["nats_bad_heartbeat"] += 1
             return
+        worker = hb["w"]
         if worker == self.worker_id:
             return
         if hb.get("gone"):
@@ -260,7 +321,7 @@ class ClusterLink:
         station_elsewhere = False
         data: bytes | None = None
         for worker, hb in self._live().items():
-            held = hb.get("sessions", {}).get(session_id)
+            held = hb["sessions"].get(session_id)
             if held is None:
                 continue
             to_station = need_station and receiver in held[0]
@@ -288,10 +349,11 @@ class ClusterLink:
             # the stamps on the receiver's clock (relay_in, the sender's send time, nats_out)
             sid, role, t_in_us, sent_ref_us, data, to_station = body
             theirs = self.clocks.to_theirs
-            envelope = msgpack.packb([sid, role, theirs(worker, t_in_us),
-                                      None if sent_ref_us is None else
-                                      theirs(worker, sent_ref_us), data, to_station,
-                                      theirs(worker, t_out)])  # ..., nats_out
+            ref = None if sent_ref_us is None else theirs(worker, sent_ref_us)
+            if ref is not None and not _is_time(ref):
+                ref = None  # a station's nonsense stamp: forwarded, as on one relay
+            envelope = msgpack.packb([sid, role, theirs(worker, t_in_us), ref, data,
+                                      to_station, theirs(worker, t_out)])  # ..., nats_out
             try:
                 await self._nc.publish(f"{self.prefix}.w.{worker}", envelope)
                 self.counters["nats_sent"] += 1
@@ -310,11 +372,19 @@ class ClusterLink:
             if not (_is_time(t_in_us) and _is_time(t_out)
                     and (sent_ref_us is None or _is_time(sent_ref_us))):
                 raise TypeError("an envelope's times must be integer microseconds")
+            if not (isinstance(sid, str) and isinstance(to_station, bool)
+                    and sender_role in _STATION_ROLES
+                    and isinstance(message, DataMessage)
+                    and message.TYPE in STREAMS_OF[sender_role]):
+                raise TypeError("not a stream the sender's role sends")
         except (ValueError, TypeError, msgpack.UnpackException, RemoteProtocolError):
             self.counters["nats_bad_envelope"] += 1
             return
+        if t_nats_in - t_in_us > _MAX_QUEUED_US:  # held up on the way (a NATS stall)
+            self.counters["nats_stale"] += 1
+            return
         session = self.sessions.get(sid)
-        if session is None or not isinstance(message, DataMessage):
+        if session is None:
             self.counters["nats_no_session"] += 1
             return
         self.counters["nats_received"] += 1
@@ -340,7 +410,7 @@ class ClusterLink:
         workers[self.worker_id] = {**_worker_doc(self._heartbeat(), 0.0), "clock_offset_us": 0,
                                    "clock_uncertainty_us": 0, "nats_rtt_min_us": None,
                                    "same_kernel": True}
-        return {"worker": self.worker_id, "nats_url": self.url,
+        return {"worker": self.worker_id, "nats_url": redact_url(self.url),
                 "nats_connected": bool(self._nc is not None and self._nc.is_connected),
                 "sessions": len({sid for doc in workers.values() for sid in doc["sessions"]}),
                 "workers": workers}
@@ -349,6 +419,58 @@ class ClusterLink:
 def _is_time(value: object) -> bool:
     """An integer microsecond time msgpack can carry (a peer's bug is not one)."""
     return isinstance(value, int) and not isinstance(value, bool) and 0 <= value < 2**63
+
+
+_is_count = _is_time  # a count is a non-negative integer msgpack can carry too
+
+
+def _counts(raw: object) -> dict[str, int]:
+    if not (isinstance(raw, dict) and all(isinstance(k, str) and _is_count(v)
+                                          for k, v in raw.items())):
+        raise TypeError("not a map of counts")
+    return raw
+
+
+def _checked_heartbeat(raw: object) -> dict[str, Any]:
+    """A peer's heartbeat in the shape this worker reads, or an error (ValueError,
+    TypeError) for anything else: the directory fields are checked here, the clock fields
+    (``t`` only when station clocks come with it) by :class:`WorkerClocks`."""
+    if not isinstance(raw, dict):
+        raise TypeError("a heartbeat is a map")
+    worker = raw.get("w")
+    if not (isinstance(worker, str) and _WORKER_ID.fullmatch(worker)):
+        raise ValueError("a heartbeat's worker id must be one subject token")
+    if raw.get("gone") is True:
+        return {"w": worker, "gone": True}
+    sessions = raw.get("sessions")
+    if not isinstance(sessions, dict):
+        raise TypeError("a heartbeat's sessions are a map")
+    for sid, held in sessions.items():
+        if not (isinstance(sid, str) and isinstance(held, list) and len(held) == 2
+                and isinstance(held[0], list) and set(held[0]) <= _STATION_ROLES
+                and _is_count(held[1])):
+            raise TypeError(f"session {sid!r}: not [roles, observers]")
+    clocks = raw.get("clocks", {})
+    if not isinstance(clocks, dict):
+        raise TypeError("a heartbeat's station clocks are a map")
+    for sid, roles in clocks.items():
+        if not (isinstance(sid, str) and isinstance(roles, dict)
+                and set(roles) <= _STATION_ROLES
+                and all(isinstance(e, list) and len(e) == 2 and _is_int(e[0])
+                        and abs(e[0]) < 2**62 and _is_count(e[1]) for e in roles.values())):
+            raise TypeError(f"session {sid!r}: not station clocks")
+    if clocks and not (_is_int(raw.get("t")) and abs(raw["t"]) < 2**62):
+        raise TypeError("station clocks need the heartbeat's send time")
+    pid, host, ports = raw.get("pid"), raw.get("host"), raw.get("ports")
+    if not ((pid is None or _is_count(pid)) and (host is None or isinstance(host, str))):
+        raise TypeError("a heartbeat's pid or host")
+    return {**raw, "sessions": sessions, "clocks": clocks,
+            "ports": None if ports is None else _counts(ports),
+            "counters": _counts(raw.get("counters", {})), "drops": _counts(raw.get("drops", {}))}
+
+
+def _is_int(value: object) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
 
 
 def _boot_id() -> str | None:
@@ -362,7 +484,7 @@ def _boot_id() -> str | None:
 
 def _worker_doc(hb: dict[str, Any], age_s: float) -> dict[str, Any]:
     return {"pid": hb.get("pid"), "host": hb.get("host"), "ports": hb.get("ports"),
-            "heartbeat_age_s": round(age_s, 3), "counters": hb.get("counters", {}),
-            "drops": hb.get("drops", {}),
+            "heartbeat_age_s": round(age_s, 3), "counters": hb["counters"],
+            "drops": hb["drops"],
             "sessions": {sid: {"stations": held[0], "observers": held[1]}
-                         for sid, held in hb.get("sessions", {}).items()}}
+                         for sid, held in hb["sessions"].items()}}

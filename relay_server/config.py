@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import ssl
 from dataclasses import dataclass, field
 from pathlib import Path
+from urllib.parse import urlsplit
 
 from shared.config import check_positive
 from shared.errors import ConfigError
@@ -65,15 +67,18 @@ class RelayConfig:
             bucket); excess messages are discarded with ``rate_limited``.
         rate_limit_burst: bucket size; more than this many discarded in one over-rate
             episode closes the connection (``rate_limited``, close 1008).
-        nats_url: ``nats://HOST:PORT`` of the NATS server that joins relay workers into one
-            cluster (:mod:`relay_server.cluster`); None = today's single-process relay.
+        nats_url: ``nats://HOST:PORT`` (or ``tls://HOST:PORT``; credentials as
+            ``nats://USER:PASSWORD@HOST:PORT``) of the NATS server that joins relay workers
+            into one cluster (:mod:`relay_server.cluster`); None = today's single-process
+            relay.
         workers: relay worker processes on this host, all on the same ports (SO_REUSEPORT);
             0 = one per core when ``nats_url`` is set (1 without it).
         nats_subject_prefix: NATS subject prefix of this cluster (relays with another prefix
             on the same NATS server are another cluster).
         reuse_port: bind with SO_REUSEPORT (set for the workers of ``--workers``).
         nats_ca_file: PEM CA that signed the NATS server's certificate, for a ``tls://``
-            ``nats_url`` (None: the system's trust store).
+            ``nats_url`` (None: the system's trust store); read when the relay starts
+            (:meth:`check_nats_ca_file`).
         nats_connect_timeout_s: a worker that cannot reach NATS within this time of its
             start exits with a start error (later losses of NATS are retried for ever).
         hang_timeout_s: a relay process whose event loop makes no progress this long, once
@@ -140,6 +145,9 @@ class RelayConfig:
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ConfigError(f"relay.{name} must be > 0")
+        if self.port != 0 and self.tcp_port == self.port:
+            raise ConfigError(f"relay.tcp_port={self.tcp_port} is relay.port: the TCP listener "
+                              "needs a port of its own (or leave relay.tcp_port unset: port + 1)")
         if self.tcp_port is None and self.port == 65535:
             raise ConfigError("relay.port=65535 leaves no port for the TCP listener (port + 1): "
                               "set relay.tcp_port")
@@ -161,10 +169,8 @@ class RelayConfig:
         if self.workers > 1 and not self.nats_url:
             raise ConfigError("relay.workers > 1 needs relay.nats_url (--nats nats://HOST:PORT):"
                               " workers pair the stations of a session through NATS")
-        if self.nats_url is not None and not self.nats_url.startswith(
-                ("nats://", "tls://", "ws://", "wss://")):
-            raise ConfigError(f"relay.nats_url={self.nats_url!r} must be nats://HOST:PORT "
-                              "(or tls://, ws://, wss://)")
+        if self.nats_url is not None:
+            _check_nats_url(self.nats_url)
         if not self.nats_subject_prefix.replace("_", "").replace("-", "").isalnum():
             raise ConfigError("relay.nats_subject_prefix must be letters, digits, - and _")
         check_positive("relay.nats_connect_timeout_s", self.nats_connect_timeout_s)
@@ -177,9 +183,48 @@ class RelayConfig:
             if not isinstance(session, str) or not isinstance(token, str) or not token:
                 raise ConfigError("relay.tokens must map session ids to non-empty strings")
 
+    def check_nats_ca_file(self) -> None:
+        """Load ``nats_ca_file`` as the cluster link will (a file is read where the relay
+        starts, not where its settings are read, as ``tls_cert``: the settings of another
+        host resolve here).
+
+        Raises:
+            ConfigError: naming ``relay.nats_ca_file``: missing, unreadable, not PEM.
+        """
+        if self.nats_ca_file is None:
+            return
+        try:
+            ssl.create_default_context(cafile=str(self.nats_ca_file))
+        except OSError as err:  # ssl.SSLError too: not PEM, no certificate in it
+            raise ConfigError(f"relay.nats_ca_file={str(self.nats_ca_file)!r} is not a "
+                              f"readable PEM CA certificate: {err}") from err
+
     @property
     def resolved_tcp_port(self) -> int:
         """The TCP port to bind: ``tcp_port`` or ``port + 1`` (0 when ``port`` is 0)."""
         if self.tcp_port is not None:
             return self.tcp_port
         return self.port + 1 if self.port else 0
+
+
+def _check_nats_url(url: str) -> None:
+    """Refuse what the NATS client cannot connect to: one ``nats://`` or ``tls://`` URL with
+    a host and a port in 1..65535 if one is given (default 4222). The messages never show
+    the URL itself: it may hold a password.
+
+    Raises:
+        ConfigError: naming ``relay.nats_url`` and what is wrong with it.
+    """
+    shape = "relay.nats_url must be nats://HOST:PORT or tls://HOST:PORT"
+    if not url.startswith(("nats://", "tls://")):
+        scheme = url.partition("://")[0] if "://" in url else ""
+        raise ConfigError(f"{shape} (scheme {scheme!r} is not supported)")
+    try:
+        parts = urlsplit(url)
+        port = parts.port
+    except ValueError as err:  # a port that is not a number or beyond 65535, a bad [IPv6]
+        raise ConfigError(f"{shape}: {err}") from err
+    if not parts.hostname:
+        raise ConfigError(f"{shape}: it names no host")
+    if port == 0:
+        raise ConfigError(f"{shape}: port 0 is not a NATS server's port")

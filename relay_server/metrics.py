@@ -6,11 +6,15 @@
     session                 session id
     role                    the receiving peer's role
     clock_offset_us         {local, remote}: station clock minus relay clock (the middle of
-                              the clock filter's interval, see shared.clocksync)
+                              the clock filter's interval, see shared.clocksync); a station
+                              on another worker of a cluster: its offset against that
+                              worker moved onto this worker's clock (relay_server.cluster)
     clock_uncertainty_us    {local, remote}: bound on that offset's error when the stats
                               were built (half the interval plus drift since the last
-                              exchange); a station adds its own drift allowance for the
-                              time since it received them
+                              exchange; across workers plus the bound on the workers'
+                              offset and the drift since that worker's heartbeat); a
+                              station adds its own drift allowance for the time since it
+                              received them
     rtt_us                  {local, remote}: round trip of the chosen clock sample
     delay_us                {local_to_remote, remote_to_local}:
                               {station_to_relay, relay, relay_to_station, end_to_end}:
@@ -69,6 +73,15 @@ def _receiver_downlink(session: Session, direction: str) -> LatencyLedger | None
     return None if receiver is None else receiver.downlink
 
 
+def _held_elsewhere(session: Session, role: str) -> tuple[int | None, int | None]:
+    """The clock offset and its bound of a station another worker of a cluster holds, on
+    this worker's clock (:meth:`relay_server.cluster.ClusterLink.station_clock`), or
+    (None, None)."""
+    station_clock = getattr(session.remote, "station_clock", None)
+    found = None if station_clock is None else station_clock(session.session_id, role)
+    return (None, None) if found is None else found
+
+
 def session_metrics(session: Session, role: str) -> dict[str, Any]:
     """The ``stats`` metrics of a session as seen by a peer of ``role`` (see module doc)."""
     offsets: dict[str, int | None] = {}
@@ -78,8 +91,12 @@ def session_metrics(session: Session, role: str) -> dict[str, Any]:
     t_now = now_us()
     for r in ("local", "remote"):
         peer = _station(session, r)
-        off = None if peer is None else peer.clock.offset_us
-        unc = None if peer is None else peer.clock.uncertainty_us(t_now)
+        off: float | None = None
+        unc: float | None = None
+        if peer is not None:
+            off, unc = peer.clock.offset_us, peer.clock.uncertainty_us(t_now)
+        else:
+            off, unc = _held_elsewhere(session, r)
         uncertainty[r] = None if unc is None else math.ceil(unc)
         rtt = None if peer is None else peer.clock.delay_us
         offsets[r] = None if off is None else round(off)

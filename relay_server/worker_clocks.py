@@ -206,6 +206,19 @@ class WorkerClocks:
         offset = peer.filter.offset_us
         return None if offset is None else round(offset)
 
+    def estimate(self, worker: str, now_us: int) -> tuple[int, float] | None:
+        """``worker``'s clock minus this worker's (us) and a bound on its error at ``now_us``
+        (0 for a peer of this kernel whose anchors an exchange agreed with); None while not
+        known."""
+        peer = self._peers.get(worker)
+        offset = self.offset_us(worker)
+        if peer is None or offset is None:
+            return None
+        if peer.anchored:
+            return offset, 0.0
+        bound = peer.filter.uncertainty_us(now_us)
+        return None if bound is None else (offset, bound + 0.5)  # + the offset's rounding
+
     def to_theirs(self, worker: str, t_us: int) -> int:
         """A time on this worker's clock on ``worker``'s (unchanged while not known)."""
         offset = self.offset_us(worker)

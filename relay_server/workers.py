@@ -4,7 +4,15 @@
 all bound to the same ports with SO_REUSEPORT, so the kernel spreads new connections over
 them, and supervises them:
 
-* a worker that **dies** is started again;
+* before it starts any, it builds what every worker would (the token authority from the
+  credentials and the token file, the TLS context, the NATS CA): a bad setting is one clear
+  error, not N workers dying at start; ``view`` is refused with more than one worker (each
+  would bind it);
+* a worker that **dies before it ever served** (bound its ports) ends the supervisor with its
+  error (exit 1): a worker that cannot start would not start the next time either;
+* a worker that **dies** after it served is started again, after a delay that doubles with
+  each quick death (``_RESTART_MIN_S`` to ``_RESTART_MAX_S``; back to the shortest once one
+  ran ``_STEADY_S``): never given up, never a hot crash loop;
 * a worker that **hangs** without dying is killed and started again. A relay process ends
   itself when its event loop is stuck for ``hang_timeout_s`` (:mod:`shared.loop_watchdog`:
   within a beat of it),
@@ -39,6 +47,7 @@ import signal
 import time
 from typing import Any
 
+from relay_server.cluster import redact_url
 from relay_server.config import RelayConfig
 from shared.errors import ConfigError
 from shared.loop_watchdog import rearm_period_s
@@ -66,6 +75,14 @@ _DUMP_WAIT_S = 1.0
 _REAP_WAIT_S = 0.1
 #: the supervisor's loop period
 _ROUND_S = 0.2
+#: a worker that died after it served is started again after this delay, doubled for each
+#: further death of its replacements up to ``_RESTART_MAX_S``...
+_RESTART_MIN_S = 1.0
+_RESTART_MAX_S = 30.0
+#: ...until one of them ran this long (then the shortest delay again)
+_STEADY_S = 60.0
+#: room for a worker's start error, told to its supervisor (``_worker_main``'s ``failure``)
+_FAILURE_BYTES = 1024
 #: a supervisor round that came this much later than due (or half the hang timeout, if less)
 #: means the supervisor itself was not running (the workers were probably not either): every
 #: worker gets a fresh timeout
@@ -100,10 +117,11 @@ async def _serve_beating(config: RelayConfig, serving: Any, beat: Any) -> None:
 
 
 def _worker_main(config: RelayConfig, log_level: int, anchor_ns: int | None = None,
-                 serving: Any = None, beat: Any = None) -> None:
+                 serving: Any = None, beat: Any = None, failure: Any = None) -> None:
     """A worker of ``run_workers``: serve until SIGTERM; set ``serving`` (an event) once the
-    ports are bound; advance ``beat`` (a shared counter) from the event loop. The optional
-    arguments may be missing (a supervisor of an earlier release)."""
+    ports are bound; advance ``beat`` (a shared counter) from the event loop; an error before
+    ``serving`` is set goes to ``failure`` (a shared byte array) for the supervisor. The
+    optional arguments may be missing (a supervisor of an earlier release)."""
     if anchor_ns is not None:  # None: started by a supervisor of an earlier release
         adopt_wall_anchor(anchor_ns)  # the supervisor's clock: its workers' stamps agree
     logging.basicConfig(level=log_level,
@@ -111,7 +129,34 @@ def _worker_main(config: RelayConfig, log_level: int, anchor_ns: int | None = No
                                "%(message)s")
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the supervisor says when (SIGTERM)
     faulthandler.register(STACK_DUMP_SIGNAL, all_threads=True)  # before a hung one's kill
-    asyncio.run(_serve_beating(config, serving, beat))
+    try:
+        asyncio.run(_serve_beating(config, serving, beat))
+    except BaseException as err:
+        if failure is not None and serving is not None and not serving.is_set():
+            failure.value = f"{type(err).__name__}: {err}".encode()[:_FAILURE_BYTES - 1]
+        raise
+
+
+def _check_before_spawning(config: RelayConfig, count: int) -> None:
+    """Build what every worker builds before it serves, to fail once, clearly.
+
+    Raises:
+        ConfigError: ``view`` with more than one worker, or what the relay itself refuses
+            (no credentials, an unreadable token file, TLS certificate or NATS CA file, a
+            bad view address).
+    """
+    from relay_server.server import RelayServer
+    from shared.view import parse_view_address
+
+    if config.view.strip():
+        if count > 1:
+            raise ConfigError(f"relay.view ({config.view}) needs a single relay process, not "
+                              f"{count} workers (relay.workers, --workers; one per core by "
+                              "default with --nats): each would bind the view's address; "
+                              "set --workers 1 or turn the view off")
+        parse_view_address(config.view)
+    RelayServer(config)  # the token authority (credentials, token file), the TLS context
+    config.check_nats_ca_file()
 
 
 class _Progress:
@@ -188,12 +233,16 @@ def run_workers(config: RelayConfig, count: int) -> None:
     SIGINT or SIGTERM; restart a worker that dies or hangs (see the module's docstring).
 
     Raises:
-        ConfigError: no ``nats_url``, or port 0 (the workers must share fixed ports).
+        ConfigError: no ``nats_url``, or port 0 (the workers must share fixed ports); a
+            setting every worker would refuse at its start (see
+            :func:`_check_before_spawning`); a worker that died before it ever served
+            (its error in the message).
     """
     if not config.nats_url:
         raise ConfigError("--workers needs --nats nats://HOST:PORT")
     if config.port == 0 or config.resolved_tcp_port == 0:
         raise ConfigError("--workers needs fixed ports (not 0): the workers share them")
+    _check_before_spawning(config, count)
     worker_config = dataclasses.replace(config, reuse_port=True)
     # systemd hears this process alone (its variables were taken out of the environment at
     # start: the workers do not inherit them), ready once every worker serves
@@ -203,6 +252,11 @@ def run_workers(config: RelayConfig, count: int) -> None:
     procs: list[mp.process.BaseProcess] = []
     serving: list[Any] = []  # per worker, an event it sets once its ports are bound
     progress: list[_Progress] = []
+    failures: list[Any] = []  # per worker, its start error (a shared byte array)
+    born: list[float] = [time.monotonic()] * count  # per worker, when it was started
+    served = [False] * count  # per slot: a worker in it has served
+    quick = [0] * count  # per slot: deaths since one of its workers ran _STEADY_S
+    due: dict[int, float] = {}  # slots of dead workers -> when to start another
     dying: list[mp.process.BaseProcess] = []  # killed, not yet reaped
     stopping = False
 
@@ -214,23 +268,29 @@ def run_workers(config: RelayConfig, count: int) -> None:
 
     limit_s = (config.hang_timeout_s + SELF_EXIT_MARGIN_S) if config.hang_timeout_s else None
 
-    def spawn() -> tuple[mp.process.BaseProcess, Any, _Progress]:
+    def spawn() -> tuple[mp.process.BaseProcess, Any, _Progress, Any]:
         ready = ctx.Event()
         beat = ctx.Value("Q", 0, lock=False)
+        failure = ctx.Array("c", _FAILURE_BYTES, lock=False)
         proc = ctx.Process(target=_worker_main, args=(worker_config, level, wall_anchor_ns(),
-                                                      ready, beat),
+                                                      ready, beat, failure),
                            name="teletouch-relay-worker")
         proc.start()
-        return proc, ready, _Progress(beat, ready, time.monotonic(), limit_s)
+        return proc, ready, _Progress(beat, ready, time.monotonic(), limit_s), failure
+
+    def restart(i: int) -> None:
+        procs[i], serving[i], progress[i], failures[i] = spawn()
+        born[i] = time.monotonic()
 
     try:
         for _ in range(count):
-            proc, ready, watch = spawn()
+            proc, ready, watch, failure = spawn()
             procs.append(proc)
             serving.append(ready)
             progress.append(watch)
+            failures.append(failure)
         log.info("relay: %d workers on ports %d/%d joined by %s", count, config.port,
-                 config.resolved_tcp_port, config.nats_url)
+                 config.resolved_tcp_port, redact_url(config.nats_url))
         said_ready = False
         period = notifier.watchdog_period_s
         round_s = _ROUND_S if period is None else min(_ROUND_S, period / 2)
@@ -253,13 +313,25 @@ def run_workers(config: RelayConfig, count: int) -> None:
             if period is not None and now - pinged >= period:
                 notifier.notify("WATCHDOG=1")  # this loop's liveness (it restarts workers)
                 pinged = now
-            ended, stuck = [], []
+            stuck = []
             for i, proc in enumerate(procs):
-                if not proc.is_alive():
-                    log.warning("relay worker %s exited (code %s%s); starting another",
+                if i in due:
+                    continue  # dead, another starts later
+                alive = proc.is_alive()
+                served[i] = served[i] or serving[i].is_set()  # after: set, then died: served
+                if not alive:
+                    if not served[i]:  # it could not start: nor would the next one
+                        why = failures[i].value.decode(errors="replace") or "no error told"
+                        raise ConfigError(f"relay worker {proc.pid} ended before it served "
+                                          f"(exit code {proc.exitcode}): {why}")
+                    if now - born[i] >= _STEADY_S:
+                        quick[i] = 0
+                    delay_s = min(_RESTART_MAX_S, _RESTART_MIN_S * 2 ** quick[i])
+                    quick[i] = min(quick[i] + 1, 16)
+                    due[i] = now + delay_s
+                    log.warning("relay worker %s exited (code %s%s); starting another in %g s",
                                 proc.pid, proc.exitcode, "; if its own watchdog ended it, "
-                                "its stacks are above" if proc.exitcode == 1 else "")
-                    ended.append(i)
+                                "its stacks are above" if proc.exitcode == 1 else "", delay_s)
                 elif (why := progress[i].stuck(now)) is not None:
                     log.error("relay worker %s %s: killing it and starting another; its "
                               "threads' stacks follow in its log", proc.pid, why)
@@ -267,10 +339,11 @@ def run_workers(config: RelayConfig, count: int) -> None:
             if stuck:
                 dying += _kill_stuck([procs[i] for i in stuck])
             dying = [proc for proc in dying if proc.is_alive()]  # is_alive reaps
-            for i in ended + stuck:
+            for i in stuck + [i for i, at in due.items() if at <= now]:
                 if stopping:
                     break
-                procs[i], serving[i], progress[i] = spawn()
+                due.pop(i, None)
+                restart(i)
             last_round = time.monotonic()  # a round's own work is not a gap
     finally:
         notifier.notify("STOPPING=1", wait_s=SAY_WAIT_S)

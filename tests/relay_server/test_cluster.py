@@ -406,7 +406,11 @@ class _Sink:
     """A worker's session as its cluster link sees it: the roles it holds, what it gets."""
 
     def __init__(self, *stations: str) -> None:
-        self.stations = dict.fromkeys(stations)
+        from types import SimpleNamespace
+
+        from shared.clocksync import ClockFilter
+
+        self.stations = {role: SimpleNamespace(clock=ClockFilter()) for role in stations}
         self.observers: list[Any] = []
         self.directions = {"local_to_remote": _Direction(), "remote_to_local": _Direction()}
         self.delivered: list[tuple[int, int | None, tuple[tuple[str, str, int], ...]]] = []
@@ -503,12 +507,13 @@ async def test_a_malformed_envelope_is_counted_not_delivered() -> None:
     link = ClusterLink(RelayConfig(nats_url="nats://127.0.0.1:1"), {"s": sink},  # type: ignore[dict-item]
                        counters, lambda: {"ws": 1, "tcp": 2}, worker_id="b")
     data = encode(PlatformState(seq=1, ts_us=5))
-    for times in ((1_000, None, 2_000), ("x", None, 2_000), (1_000, 2**64 - 1, 2_000),
-                  (1_000, None, True), (-5, None, 2_000)):
+    t = link._now()  # an envelope older than 0.5 s is dropped (nats_stale)
+    for times in ((t, None, t + 1), ("x", None, t + 1), (t, 2**64 - 1, t + 1),
+                  (t, None, True), (-5, None, t + 1)):
         t_in, sent_ref, t_out = times
         await link._on_data(SimpleNamespace(data=msgpack.packb(
             ["s", "local", t_in, sent_ref, data, True, t_out])))
-    assert len(sink.delivered) == 1 and sink.delivered[0][0] == 1_000
+    assert len(sink.delivered) == 1 and sink.delivered[0][0] == t
     assert counters["nats_bad_envelope"] == 4
 
 

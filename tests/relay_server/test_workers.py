@@ -32,6 +32,17 @@ class _Beat:
         self.value = 0
 
 
+class _Failure:
+    """A worker's shared start error (``multiprocessing.Array`` of bytes), faked."""
+
+    def __init__(self) -> None:
+        self.value = b""
+
+
+#: the fake contexts' ``Array``
+_ARRAY = staticmethod(lambda typecode, size, lock: _Failure())
+
+
 def test_a_supervisors_workers_stamp_on_its_clock(monkeypatch: pytest.MonkeyPatch) -> None:
     """``run_workers`` hands its wall anchor to every worker it starts, and a worker adopts
     it before serving: the workers of one supervisor stamp on one clock, also when the wall
@@ -61,9 +72,11 @@ def test_a_supervisors_workers_stamp_on_its_clock(monkeypatch: pytest.MonkeyPatc
         Process = _Process
         Event = threading.Event
         Value = staticmethod(lambda typecode, value, lock: _Beat())
+        Array = _ARRAY
 
     monkeypatch.setattr(workers.mp, "get_context", lambda method: _Context())
-    config = RelayConfig(nats_url="nats://127.0.0.1:1", port=18765, tcp_port=18766)
+    config = RelayConfig(nats_url="nats://127.0.0.1:1", port=18765, tcp_port=18766,
+                         allow_any_token=True)
     workers.run_workers(config, 2)
     assert [(s[0], s[3]) for s in started] == [(workers._worker_main, supervisor_anchor)] * 2
     assert started[0][1] == dataclasses.replace(config, reuse_port=True)
@@ -118,6 +131,7 @@ def test_the_supervisor_is_ready_once_every_worker_serves(
         Process = _Process
         Event = threading.Event
         Value = staticmethod(lambda typecode, value, lock: _Beat())
+        Array = _ARRAY
 
     def workers_come_up() -> None:
         serving[0].set()
@@ -133,7 +147,8 @@ def test_the_supervisor_is_ready_once_every_worker_serves(
     starter.start()
     try:
         workers.run_workers(RelayConfig(nats_url="nats://127.0.0.1:1", port=18765,
-                                        tcp_port=18766, hang_timeout_s=0), 2)
+                                        tcp_port=18766, hang_timeout_s=0,
+                                        allow_any_token=True), 2)
         notify.until(lambda got: bool(got) and got[-1][1] == "STOPPING=1", scaled(10.0))
     finally:
         starter.join()
@@ -257,6 +272,7 @@ def _fake_supervisor(monkeypatch: pytest.MonkeyPatch, clock: _FakeClock,
         Process = _Process
         Event = _Ready
         Value = staticmethod(lambda typecode, value, lock: clock.beat)
+        Array = _ARRAY
 
     monkeypatch.setattr(workers.mp, "get_context", lambda method: _Context())
     monkeypatch.setattr(workers, "time", clock)
@@ -265,7 +281,7 @@ def _fake_supervisor(monkeypatch: pytest.MonkeyPatch, clock: _FakeClock,
 #: the supervisor's limit for a worker that did not end itself, 10.1 s: it falls between
 #: two of the supervisor's rounds (0.2 s apart)
 _CONFIG = RelayConfig(nats_url="nats://127.0.0.1:1", port=18765, tcp_port=18766,
-                      hang_timeout_s=10.1 - workers.SELF_EXIT_MARGIN_S)
+                      hang_timeout_s=10.1 - workers.SELF_EXIT_MARGIN_S, allow_any_token=True)
 
 
 def test_a_supervisor_that_did_not_run_gives_its_workers_a_fresh_timeout(
@@ -333,7 +349,7 @@ def _stuck_in_a_blocking_call() -> None:
 
 
 def _worker_that_hangs(config: RelayConfig, log_level: int, anchor_ns: int | None = None,
-                       serving: Any = None, beat: Any = None) -> None:
+                       serving: Any = None, beat: Any = None, failure: Any = None) -> None:
     """The real worker (``workers._worker_main``) with a relay whose event loop blocks for
     good once it serves and has beaten twice; with ``TT_TEST_WORKER_WATCHDOG`` set, under
     the loop watchdog the relay's serving uses. Started by ``run_workers`` in a process of
@@ -351,7 +367,7 @@ def _worker_that_hangs(config: RelayConfig, log_level: int, anchor_ns: int | Non
             _stuck_in_a_blocking_call()
 
     server.serve_forever = serve  # this process is the worker: nothing else runs here
-    workers._worker_main(config, log_level, anchor_ns, serving, beat)
+    workers._worker_main(config, log_level, anchor_ns, serving, beat, failure)
 
 
 @pytest.mark.parametrize("ends_itself", [False, True])
@@ -398,7 +414,7 @@ def test_a_worker_that_hangs_is_replaced_with_its_stacks_logged(
     if ends_itself:
         assert not errors, said
         assert (logging.WARNING, f"relay worker {first} exited (code 1; if its own watchdog "
-                "ended it, its stacks are above); starting another") in said, said
+                "ended it, its stacks are above); starting another in 1 s") in said, said
         assert_ended_by_loop_watchdog(1, stderr, "_stuck_in_a_blocking_call",
                                       stuck="the event loop has not turned for ")
         return
