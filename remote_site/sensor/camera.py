@@ -13,7 +13,9 @@ A source behaves like a camera:
   the recording in real time instead of all of it within a second; ``loop=True`` restarts it
   at its end (by reopening it);
 * a video file without loop **ends** at its end: reported once (WARNING) and in
-  :attr:`health` (``ended``);
+  :attr:`health` (``ended``), the only true end; an image of a file that cannot be used is
+  skipped and counted (``bad_images``) in its own time (the frames after it are not
+  published early);
 * a live camera never ends by itself (a station never gives up on a transient fault): an
   image that cannot be used (it failed to decode, or has the wrong shape or type) is
   skipped and counted (``bad_images``), and a failed read (an unplugged camera, a dropped
@@ -27,7 +29,8 @@ A source behaves like a camera:
 Found by an audit: one corrupt image, or one read failure, ended the camera for good, and
 nothing reconnected it; and a reader thread abandoned while its read hung (an unplugged
 USB camera can block for seconds) later marked the next connection ended. Only the current
-connection's reader changes the sensor's state now.
+connection's reader changes the sensor's state now; an abandoned one ends as its read
+returns, before it touches anything (nor does it decode from its capture, released by then).
 
 A live camera is read in two steps where the capture offers them (OpenCV's ``grab`` and
 ``retrieve``): each image is stamped as it is taken off the device, before its decoding, and
@@ -316,7 +319,9 @@ class OpenCVCameraSensor(TactileSensor):
             log.warning("camera %r: an image was skipped (%s); skipping such images until a "
                         "good one comes", self.source, reason)
         self._bad_run = True
-        return True
+        # a file's image keeps its time: the frames after it are not published early, nor
+        # a run of bad ones read as fast as the disk goes
+        return self._wait_until_due() if self._file else True
 
     def _lost(self, reason: str) -> bool:
         """A live camera's read failed (unplugged, a dropped stream): release it and open it
@@ -366,6 +371,8 @@ class OpenCVCameraSensor(TactileSensor):
             return self._read_live(capture, live_period)
         ok, bgr = capture.read()
         read_us = now_us()  # a live camera's image arrived (before this station's crop)
+        if not self._current():  # abandoned by a disconnect while it read
+            return False
         looping = self.loop and self._file and self._newest is not None
         if (not ok or bgr is None) and looping and self._restart() and self._capture:
             ok, bgr = self._capture.read()
@@ -381,9 +388,12 @@ class OpenCVCameraSensor(TactileSensor):
         """A live camera in two steps: the image is taken off the device (``grab``) and
         stamped, then decoded (``retrieve``). Paced to ``fps`` (``period``), only the due
         images are decoded; those between are dropped, not held and not decoded."""
-        if not capture.grab():
-            return self._lost("capture.grab() failed (device lost or end of stream)")
+        ok = capture.grab()
         read_us = now_us()  # the image arrived (before its decoding and this station's crop)
+        if not self._current():  # abandoned by a disconnect while it grabbed
+            return False
+        if not ok:
+            return self._lost("capture.grab() failed (device lost or end of stream)")
         if period is not None and not self._due_now(period):
             return True
         ok, bgr = capture.retrieve()
@@ -411,16 +421,14 @@ class OpenCVCameraSensor(TactileSensor):
         with self._lock:
             if not self._current():
                 return False
-            self._bad_run = False
-            if self._reopen_tries:
+            if self._reopen_tries or self._health.stalled:  # said once, after either
                 log.info("camera %r delivers frames again", self.source)
+                self._health = replace(self._health, stalled=False)
+            self._bad_run = False
             self._reopen_tries = 0
             self._seq += 1
             self._newest = SensorFrame(rgb=rgb, timestamp_us=arrival_us - self._latency_us,
                                        seq=self._seq, arrival_us=arrival_us)
-            if self._health.stalled:
-                log.info("camera %r delivers frames again", self.source)
-                self._health = replace(self._health, stalled=False)
         self._frame_arrived()
         return True
 

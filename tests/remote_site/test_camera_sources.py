@@ -174,6 +174,40 @@ def test_end_of_file_is_reported_once_and_frames_go_stale(
     assert len(ended) == 1
 
 
+def test_a_files_unusable_images_are_skipped_in_their_own_time(tmp_path: Path) -> None:
+    """Eight images of a recording that cannot be used (a grey one, one of the wrong size)
+    between two good ones, at 20 frames/s: skipped and counted, and the second good one is
+    published in its own time, 9 periods after the first (before: one period after it, the
+    rest of the recording early, and the bad ones read as fast as the disk goes)."""
+    path = tmp_path / "v.avi"
+    path.write_bytes(b"")  # a file on disk: paced; its images come from the capture below
+    bad = [np.zeros((240, 320), np.uint8), _numbered_frame(0, (350, 466))] * 4
+    images = [_numbered_frame(0), *bad, _numbered_frame(1)]
+
+    class Recording:
+        def isOpened(self) -> bool:
+            return True
+
+        def get(self, prop: int) -> float:
+            return 20.0
+
+        def read(self) -> tuple[bool, Any]:
+            return (True, images.pop(0)) if images else (False, None)
+
+        def release(self) -> None:
+            pass
+
+    arrivals: list[int] = []
+    sensor = OpenCVCameraSensor(str(path), preset="mini-recording",
+                                capture_factory=lambda src: Recording())
+    sensor.on_frame = lambda: arrivals.append(sensor._latest().received_us)  # type: ignore[union-attr]
+    with sensor:
+        wait_until(lambda: sensor.health.ended, 5.0, "the end of the file")
+        health = sensor.health
+    assert len(arrivals) == 2 and health.bad_images == 8
+    assert arrivals[1] - arrivals[0] >= 6 * 50_000, arrivals  # 9 periods due; 3 spared
+
+
 def test_looped_file_keeps_delivering(tmp_path: Path) -> None:
     path = _write_video(tmp_path / "v.avi", 5, fps=100.0)
     with open_sensor(str(path), preset="mini-recording", loop=True) as sensor:
