@@ -223,7 +223,9 @@ def _check_nats_url(url: str) -> None:
         parts = urlsplit(url)
         port = parts.port
     except ValueError as err:  # a port that is not a number or beyond 65535, a bad [IPv6]
-        raise ConfigError(f"{shape}: {err}") from err
+        # not the parser's text: it quotes the URL's parts, a password's too (found by review)
+        raise ConfigError(f"{shape}: its port is not a number in 1..65535, or its host is "
+                          "not a valid name or [IPv6] address") from err
     if not parts.hostname:
         raise ConfigError(f"{shape}: it names no host")
     if port == 0:

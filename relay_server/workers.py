@@ -320,6 +320,8 @@ def run_workers(config: RelayConfig, count: int) -> None:
                 alive = proc.is_alive()
                 served[i] = served[i] or serving[i].is_set()  # after: set, then died: served
                 if not alive:
+                    if stopping:  # a stop's SIGTERM to the process group ended it: expected
+                        break
                     if not served[i]:  # it could not start: nor would the next one
                         why = failures[i].value.decode(errors="replace") or "no error told"
                         raise ConfigError(f"relay worker {proc.pid} ended before it served "

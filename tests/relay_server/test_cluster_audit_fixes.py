@@ -48,11 +48,15 @@ def _link(sessions: dict[str, Any] | None = None, url: str = "nats://127.0.0.1:1
 
 
 def _envelope(sid: Any, role: Any, t_in: int, message: Any, t_out: int,
-              sent_ref: int | None = None, to_station: Any = True) -> SimpleNamespace:
+              sent_ref: int | None = None, to_station: Any = True,
+              synced: bool = True) -> SimpleNamespace:
+    """An envelope as NATS hands it over; ``synced``: its times are on the receiver's clock
+    (the sender knew the receiver's offset)."""
     import msgpack
 
     return SimpleNamespace(data=msgpack.packb(
-        [sid, role, t_in, sent_ref, encode(message), to_station, t_out]))
+        [sid, role, t_in, sent_ref, encode(message), to_station, t_out]),
+        headers={"tt-clock": "receiver"} if synced else None)
 
 
 # ------------------------------------------------------------------ 1: clock offsets
@@ -151,6 +155,13 @@ async def test_an_envelope_held_up_on_the_way_is_dropped_not_delivered_late() ->
     await link._on_data(_envelope("s", "local", t - 1_000,
                                   ArmCommand(seq=2, ts_us=t, action="stop"), t - 500))
     assert len(sink.delivered) == 1 and link.counters["nats_stale"] == 1
+    # before the workers' clocks are known the times are the sender's: a clock 2 s ahead
+    # is no stall (found by review: the first 0.25 s of traffic was dropped)
+    t = link._now()
+    await link._on_data(_envelope("s", "local", t - 2_000_000,
+                                  ArmCommand(seq=3, ts_us=t, action="stop"), t - 1_999_000,
+                                  synced=False))
+    assert len(sink.delivered) == 2 and link.counters["nats_stale"] == 1
 
 
 # ------------------------------------------------------------------ 3: a peer's mistakes
