@@ -44,6 +44,8 @@ log = logging.getLogger(__name__)
 Vec3 = tuple[float, float, float]
 #: the counters are 32-bit two's complement: a difference of two is taken modulo 2^32
 _HALF, _MASK = 1 << 31, (1 << 32) - 1
+#: the clock offset may rise 1 us per this many us of board time (1 %: see _publish)
+_CREEP_PER_US = 100
 
 
 @dataclass(frozen=True, slots=True)
@@ -86,6 +88,8 @@ class PlatformStats:
         reads: samples returned by ``read_state``.
         board_restarts: times the board restarted on an open link (its ``seq`` or clock
             went back, or it described itself differently).
+        duplicates: frames equal to the previous one in seq and board time (a link that
+            delivered one twice), dropped.
     """
 
     bytes_in: int = 0
@@ -97,6 +101,7 @@ class PlatformStats:
     samples_clamped: int = 0
     reads: int = 0
     board_restarts: int = 0
+    duplicates: int = 0
 
 
 class XYZPlatform(Device):
@@ -146,7 +151,7 @@ class XYZPlatform(Device):
         #: counts are not unwrapped from the previous connection's, agrees with it)
         self._zero_counts = (0, 0, 0)
         self._zero_at_mm: Vec3 = (0.0, 0.0, 0.0)
-        self._missed = self._clamped = self._reads = self._restarts = 0
+        self._missed = self._clamped = self._reads = self._restarts = self._duplicates = 0
         self._reset_track()
 
     # ------------------------------------------------------------------ backend interface
@@ -287,7 +292,7 @@ class XYZPlatform(Device):
                              crc_errors=d.crc_errors, garbage_bytes=d.garbage_bytes,
                              unknown_types=d.unknown_types, samples_missed=self._missed,
                              samples_clamped=self._clamped, reads=self._reads,
-                             board_restarts=self._restarts)
+                             board_restarts=self._restarts, duplicates=self._duplicates)
 
     # ------------------------------------------------------------------ for backends
 
@@ -338,6 +343,9 @@ class XYZPlatform(Device):
         previous = self._latest
         # the previous sample of this track (none at the start of a connection or a restart)
         before = previous if self._clock_offset_us is not None else None
+        if before is not None and seq == before.seq and board_t == before.board_t_us:
+            self._duplicates += 1  # the same frame again (a replaying link): not a restart
+            return
         if before is not None and (seq <= before.seq or board_t <= before.board_t_us):
             self._board_restarted(f"seq {before.seq} -> {sample.seq}, board clock "
                                   f"{before.board_t_us} -> {sample.board_t_us} us")
@@ -345,19 +353,21 @@ class XYZPlatform(Device):
             seq = self._unwrap_seq.update(sample.seq)
             board_t = self._unwrap_t.update(sample.board_t_us)
         # board clock -> host clock: the smallest (arrival - latch) seen is the link's
-        # fixed delay. It follows a larger one by at most 1 us per ms of board time (1000
-        # ppm, far above a crystal's drift), so drift cannot pin it and frames that waited
-        # in a queue (a USB stall, a starved reader thread) cannot pull it up and stamp
-        # themselves fresh.
+        # fixed delay. It follows a larger one by at most 1 us per 100 us of board time (1 %,
+        # above any board's drift: a crystal's tens of ppm, a ceramic resonator's 0.5 %,
+        # USB full speed's 0.25 %: a 1000 ppm cap left a 2500 ppm board's stamps behind
+        # without limit, found by review), so drift cannot pin it, and frames that waited in
+        # a queue (a USB stall, a starved reader thread) cannot pull it up and stamp
+        # themselves fresh by more than 1 % of their wait.
         candidate = rx_us - board_t
         offset = self._clock_offset_us
         if offset is None or candidate < offset:
             offset, self._offset_board_t_us = candidate, board_t
         else:
-            creep = (board_t - self._offset_board_t_us) // 1000
+            creep = (board_t - self._offset_board_t_us) // _CREEP_PER_US
             if creep > 0:
                 offset += min(candidate - offset, creep)
-                self._offset_board_t_us += creep * 1000
+                self._offset_board_t_us += creep * _CREEP_PER_US
         self._clock_offset_us = offset
         with self._cond:
             # counts -> mm as geometry.counts_to_mm, without rebuilding its scale per sample;

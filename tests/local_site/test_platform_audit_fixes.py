@@ -62,7 +62,8 @@ def loop_port() -> Iterator[serial.SerialBase]:
 def test_a_burst_of_queued_frames_is_not_stamped_fresher_than_it_is() -> None:
     """2 s of a 1 kHz board, then its frames wait 1 s in a queue (a USB stall, a starved reader
     thread) and arrive at once: before, the clock offset rose by 1/1000 of the difference per
-    sample and stamped the backlog up to 300 ms younger than it was."""
+    sample and stamped the backlog up to 300 ms younger than it was; now by at most 1 % of
+    the board time since the burst began (10 ms here)."""
     platform = _Board()
     for k in range(2000):
         _feed(platform, k, k * 1000, HOST0 + k * 1000 + LINK_US + (k % 7) * 50)
@@ -70,13 +71,16 @@ def test_a_burst_of_queued_frames_is_not_stamped_fresher_than_it_is() -> None:
     for k in range(2000, 3000):
         sample = _feed(platform, k, k * 1000, rx)
         true_age_us = rx - (HOST0 + k * 1000 + LINK_US)
-        assert rx - sample.t_us >= true_age_us - 2000, (k, rx - sample.t_us, true_age_us)
+        allowed_us = (k - 1999) * 1000 // 100 + 1000  # 1 % of the burst's board time
+        assert rx - sample.t_us >= true_age_us - allowed_us, (k, rx - sample.t_us, true_age_us)
 
 
-@pytest.mark.parametrize("ppm", [200, -200])
-def test_a_board_clock_drifting_200_ppm_is_still_tracked(ppm: int) -> None:
-    """The bounded creep (1000 ppm) follows a slow board clock: 60 s at 200 ppm would put the
-    stamps 12 ms off if the offset were pinned."""
+@pytest.mark.parametrize("ppm", [200, -200, 2500, -2500, 5000])
+def test_a_board_clock_drifting_is_still_tracked(ppm: int) -> None:
+    """The bounded creep (1 %) follows a board clock off by as much as a ceramic resonator
+    (0.5 %) or USB full speed (0.25 %): 60 s at 200 ppm would put the stamps 12 ms off if
+    the offset were pinned, and a 1000 ppm cap left a 2500 ppm board 450 ms behind after
+    300 s (found by review)."""
     platform = _Board()
     for k in range(60_000):
         latch = HOST0 + k * 1000
@@ -270,3 +274,18 @@ def test_read_state_refuses_a_timeout_that_is_not_finite_and_positive(timeout_s:
 def test_the_driver_refuses_an_infinite_duration(name: str) -> None:
     with pytest.raises(ConfigError, match=f"{name} must be finite and > 0"):
         SerialEncoderPlatform("loop://", **{name: float("inf")})  # type: ignore[arg-type]
+
+
+def test_a_frame_delivered_twice_is_dropped_not_a_restart() -> None:
+    """The same frame again (seq and board time equal to the last): dropped and counted, not
+    taken for a restart (found by review: it counted a restart and republished the frame)."""
+    platform = _Board()
+    for k in range(1, 100):
+        _feed(platform, k, k * 1000, HOST0 + k * 1000 + LINK_US)
+    last = platform.latest()
+    platform._publish(EncoderSample(99, 99_000, (0, 0, 0)), rx_us=HOST0 + 100_000 + LINK_US)
+    assert platform.latest() is last
+    sample = _feed(platform, 100, 100_000, HOST0 + 100_000 + LINK_US)
+    stats = platform.stats()
+    assert stats.duplicates == 1 and stats.board_restarts == 0
+    assert sample.seq == 100 and sample.t_us == HOST0 + 100_000 + LINK_US
