@@ -79,6 +79,8 @@ log = logging.getLogger(__name__)
 _CAP_PROP_FPS = 5
 #: waits before opening a live camera again after a failed read (s); the last repeats
 REOPEN_BACKOFF_S = (0.1, 0.2, 0.5, 1.0, 2.0)
+#: a live camera's unusable images are taken at most this often (no busy loop)
+_BAD_IMAGE_GAP_S = 0.002
 
 
 class _Capture(Protocol):
@@ -194,6 +196,7 @@ class OpenCVCameraSensor(TactileSensor):
         self._file = False  # whether the source is a video file (known at connect)
         self._health = SensorHealth()
         self._bad_run = False  # the last image was bad (one warning per run of them)
+        self._bad_since = 0.0  # when the run of bad images began (monotonic s)
         self._reopen_tries = 0  # tries to open the camera again since its last frame
         self.read_error: str | None = None
 
@@ -309,19 +312,25 @@ class OpenCVCameraSensor(TactileSensor):
         return False
 
     def _bad_image(self, reason: str) -> bool:
-        """An image that cannot be used: skipped and counted; the stream goes on."""
+        """An image that cannot be used: skipped and counted; the stream goes on. A live
+        camera that gives nothing but such images for ``stall_timeout_s`` is taken as lost
+        (opened again), and bad images come at most every ``_BAD_IMAGE_GAP_S`` (found by
+        review: a device returning empty images at once made a busy loop, never reopened)."""
         if not self._current():
             return False
         self.read_error = reason
         with self._lock:
             self._health = replace(self._health, bad_images=self._health.bad_images + 1)
+        now = time.monotonic()
         if not self._bad_run:
             log.warning("camera %r: an image was skipped (%s); skipping such images until a "
                         "good one comes", self.source, reason)
-        self._bad_run = True
-        # a file's image keeps its time: the frames after it are not published early, nor
-        # a run of bad ones read as fast as the disk goes
-        return self._wait_until_due() if self._file else True
+            self._bad_run, self._bad_since = True, now
+        if self._file:  # its image keeps its time: the frames after it are not early
+            return self._wait_until_due()
+        if now - self._bad_since > self.stall_timeout_s:
+            return self._lost(f"no usable image for {now - self._bad_since:.1f} s")
+        return not self._wake.wait(_BAD_IMAGE_GAP_S)
 
     def _lost(self, reason: str) -> bool:
         """A live camera's read failed (unplugged, a dropped stream): release it and open it
@@ -355,6 +364,7 @@ class OpenCVCameraSensor(TactileSensor):
                 capture.release()
                 return False
             self._capture = capture
+            self._bad_run = False  # a new run of bad images, if any, starts on this one
             with self._lock:
                 self._health = replace(self._health, reopens=self._health.reopens + 1)
             log.info("camera %r opened again (try %d)", self.source, self._reopen_tries)
@@ -362,6 +372,13 @@ class OpenCVCameraSensor(TactileSensor):
         return False  # the sensor stops
 
     def _read_once(self) -> bool:
+        try:
+            return self._read_step()
+        except Exception as err:  # a backend's own error (cv2.error, ...): one bad image
+            # (found by review: it ended the reader thread, the camera stalled for good)
+            return self._bad_image(f"the capture raised {type(err).__name__}: {err}")
+
+    def _read_step(self) -> bool:
         capture = self._capture
         if capture is None or not self._current():
             return False
@@ -409,6 +426,8 @@ class OpenCVCameraSensor(TactileSensor):
                 or bgr.dtype != np.uint8:
             return self._bad_image(f"unexpected frame {getattr(bgr, 'shape', None)} "
                                    f"{getattr(bgr, 'dtype', type(bgr).__name__)}")
+        if bgr.size == 0:
+            return self._bad_image(f"an empty image {bgr.shape}")
         try:
             rgb = shape_frame(bgr, self.preset)
         except InputDataError as err:
@@ -426,6 +445,7 @@ class OpenCVCameraSensor(TactileSensor):
                 self._health = replace(self._health, stalled=False)
             self._bad_run = False
             self._reopen_tries = 0
+            self.read_error = None  # the last problem is over (read_error is the current one)
             self._seq += 1
             self._newest = SensorFrame(rgb=rgb, timestamp_us=arrival_us - self._latency_us,
                                        seq=self._seq, arrival_us=arrival_us)

@@ -509,8 +509,8 @@ def test_the_remote_cli_names_a_missing_video_file_first(tmp_path: Path,
 
 class ScriptedCapture:
     """A live camera (grab + retrieve) whose images follow a script: ``"ok"``, ``"undecodable"``
-    (retrieve fails), ``"odd"`` (a grey 2-D image) or ``"unplugged"`` (grab fails); past the
-    script every image is good."""
+    (retrieve fails), ``"raises"`` (retrieve raises), ``"odd"`` (a grey 2-D image) or
+    ``"unplugged"`` (grab fails); past the script every image is good."""
 
     def __init__(self, script: list[str]) -> None:
         self.script = list(script)
@@ -531,6 +531,8 @@ class ScriptedCapture:
     def retrieve(self) -> tuple[bool, Any]:
         if self.step == "undecodable":
             return False, None
+        if self.step == "raises":
+            raise RuntimeError("a backend's own error")
         if self.step == "odd":
             return True, np.zeros((350, 466), np.uint8)
         return True, _raw_frame()
@@ -543,7 +545,7 @@ def test_a_bad_image_is_skipped_and_the_camera_goes_on() -> None:
     """One image that cannot be decoded, one of the wrong shape: both skipped and counted,
     the frames after them delivered (found by an audit: one such image ended the camera for
     good, and nothing reconnected it)."""
-    capture = ScriptedCapture(["ok", "ok", "undecodable", "ok", "odd", "ok"])
+    capture = ScriptedCapture(["ok", "ok", "undecodable", "ok", "odd", "ok", "raises", "ok"])
     seqs: list[int] = []
     sensor = OpenCVCameraSensor(0, capture_factory=lambda src: capture)
     sensor.on_frame = lambda: seqs.append(1)
@@ -551,7 +553,8 @@ def test_a_bad_image_is_skipped_and_the_camera_goes_on() -> None:
         wait_until(lambda: len(seqs) >= 10, 5.0, "ten frames")
         health = sensor.health
         sensor.read_latest(max_age_ms=scaled(500.0))
-    assert health.bad_images == 2 and not health.ended and health.reopens == 0
+    assert health.bad_images == 3 and not health.ended and health.reopens == 0
+    assert sensor.read_error is None  # the problem is over
 
 
 def test_a_live_camera_whose_read_fails_is_opened_again() -> None:
@@ -625,3 +628,31 @@ def test_a_reader_abandoned_while_its_read_hung_does_not_touch_the_next_connecti
         sensor.read_latest(max_age_ms=scaled(500.0))
     finally:
         sensor.disconnect()
+
+
+def test_a_camera_giving_only_empty_images_is_reopened_not_spun_on() -> None:
+    """A device that returns empty images at once (OpenCV 3 on an unplugged camera): no busy
+    loop (bad images at most every 2 ms), and after stall_timeout_s of nothing usable it is
+    taken as lost and opened again (found by review: 217,137 images skipped in 1.5 s,
+    never reopened)."""
+
+    class Empty(ScriptedCapture):
+        def grab(self) -> bool:
+            return True
+
+        def retrieve(self) -> tuple[bool, Any]:
+            return True, np.zeros((0, 0, 3), np.uint8)
+
+    opened: list[ScriptedCapture] = []
+
+    def factory(src: Any) -> ScriptedCapture:
+        opened.append(ScriptedCapture([]) if opened else Empty([]))
+        return opened[-1]
+
+    sensor = OpenCVCameraSensor(0, capture_factory=factory, stall_timeout_s=0.2,
+                                first_frame_timeout_s=scaled(5.0))
+    with sensor:  # connect waits for the first good frame: from the reopened device
+        health = sensor.health
+        sensor.read_latest(max_age_ms=scaled(500.0))
+    assert health.reopens == 1 and len(opened) == 2
+    assert 1 <= health.bad_images <= 0.2 / 0.002 + 10, health
