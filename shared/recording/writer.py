@@ -7,8 +7,9 @@ switches per second per station, docs/speed.md section 9); when the deque is ful
 dropped and counted (``dropped``). The thread drains it every ``DRAIN_INTERVAL_S`` (a
 ``sync`` or ``close`` wakes it at once), encodes, derives the JSON channels of
 :mod:`shared.recording.schemas` from the wire messages, and writes zstd-compressed chunks. It
-closes a chunk and flushes the file at least every ``flush_interval_s``, so a station killed
-with SIGKILL leaves a file readable up to its last complete chunk (at most that much is lost).
+closes a chunk and flushes the file at least every ``flush_interval_s`` (the chunks completed
+since the last flush wait in memory until then), so a station killed with SIGKILL leaves a
+file readable up to its last flush (at most that much is lost).
 
 A message counts as written (``messages_written``, ``per_topic``) only once a flush of its
 chunk succeeded; when a write or flush fails (a full disk), the messages not yet flushed are
