@@ -5,11 +5,22 @@ temperature), and the reconstruction divides every frame by the background: a st
 reads as slopes everywhere. So the station
 
 * **captures** the background at start, before any press (the arm is at its home pose, pad
-  lifted): the mean of ``frames`` distinct sensor frames, refused if the arm already feels a
-  force;
-* **refreshes** it while the pad is known to be out of contact: arm force below
-  ``max_force_n`` *and* no reconstructed contact, both for ``quiet_s``; the mean of the last
-  ``frames`` such frames replaces the background (:meth:`Reconstructor.set_background`);
+  lifted): the mean of ``frames`` distinct sensor frames, refused if the arm's force reading
+  is a press (at or above ``press_force_n``) or if the mean shows contact against the
+  calibration's background (the force reading alone let a background taken during a press
+  in: every lifted frame then read as contact against it, and it was never replaced);
+* **refreshes** it while the pad is known to be out of contact: no reconstructed contact,
+  no force reading at or above ``press_force_n``, and the *median* force of the last
+  ``quiet_s`` below ``max_force_n``, for ``quiet_s``; the mean of the last ``frames`` such
+  frames replaces the background (:meth:`Reconstructor.set_background`). The median, not
+  every reading: with the arm's force noise (0.1 N rms per reading for a Franka-class
+  joint-torque estimate, ``remote_site/agent/world.py``) some reading of 2 s exceeded
+  0.05 N, and the background was never refreshed;
+* **recovers** from a background in use that makes the lifted gel read as contact: a frame
+  with contact but no press force is checked against the calibration's background (at most
+  once per ``quiet_s``, and only while a station background is in use); if it shows no
+  contact there, such frames count as quiet and their
+  mean (checked the same way) replaces the background;
 * **reports** its drift from the calibration's background: the mean absolute difference per
   channel (R, G, B, grey levels), and the time since the last capture.
 
@@ -46,7 +57,15 @@ class BackgroundSettings:
     Attributes:
         frames: distinct sensor frames averaged per capture.
         quiet_s: out of contact for this long before a refresh (and between refreshes).
-        max_force_n: arm force below this counts as "pad lifted".
+        max_force_n: the median arm force over the last ``quiet_s`` below this counts as
+            "pad lifted". The median of n readings of noise sigma scatters by ~1.25 sigma /
+            sqrt(n): with ``force_noise_n`` 0.1 N and 2 s of frames at 25-80 frames/s
+            (n = 50-160), 0.011-0.018 N, so a lifted pad's median stays below 0.05 N unless
+            the force reading has an offset of about 0.05 N or more (tare the arm).
+        force_noise_n: rms noise of one force reading (default: the simulated Franka-class
+            estimate's, 0.1 N; about 0.01 N for a wrist force/torque sensor). One reading at
+            or above ``press_force_n = max_force_n + 3 x force_noise_n`` is a press: it
+            refuses the start capture and restarts the quiet stretch.
         capture_timeout_s: longest wait for the start capture's frames.
         max_frame_age_ms: a frame older than this is not used.
     """
@@ -54,6 +73,7 @@ class BackgroundSettings:
     frames: int = 5
     quiet_s: float = 2.0
     max_force_n: float = 0.05
+    force_noise_n: float = 0.1
     capture_timeout_s: float = 2.0
     max_frame_age_ms: float = 100.0
 
@@ -65,6 +85,15 @@ class BackgroundSettings:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ConfigError(f"background {name} must be finite and > 0, got {value!r}")
+        if not (math.isfinite(self.force_noise_n) and self.force_noise_n >= 0):
+            raise ConfigError(f"background force_noise_n must be finite and >= 0, got "
+                              f"{self.force_noise_n!r}")
+
+    @property
+    def press_force_n(self) -> float:
+        """One force reading at or above this is a press (3 sigma of the noise above
+        ``max_force_n``)."""
+        return self.max_force_n + 3.0 * self.force_noise_n
 
 
 def channel_drift(background: np.ndarray, reference: np.ndarray) -> list[float]:
@@ -96,13 +125,36 @@ class BackgroundTracker:
         self._reference = np.asarray(reconstructor.calibration.background_rgb, np.float32)
         self._quiet: deque[np.ndarray] = deque(maxlen=self.settings.frames)
         self._quiet_since_s: float | None = None
+        #: (time, force) of the quiet stretch's frames over the last quiet_s
+        self._forces: deque[tuple[float, float]] = deque()
+        #: the background in use makes the lifted gel read as contact (see _is_background)
+        self._suspect = False
+        self._next_check_s = -math.inf
         self.source = "calibration"
         self.captures = 0
         self.capture_failures = 0
         self.last_capture_s: float | None = None
         self.drift_rgb: list[float] = [0.0, 0.0, 0.0]
 
-    def _use(self, background: np.ndarray, now_s: float) -> bool:
+    def _contact_against_calibration(self, rgb: np.ndarray) -> str | None:
+        """None if ``rgb`` shows no contact against the calibration's background (full
+        resolution), else why it cannot be a no-contact frame."""
+        try:
+            hm = self.reconstructor.height_map(rgb, background=self._reference)
+        except InputDataError as err:
+            return f"is not usable ({err})"
+        if hm.contact:
+            return (f"shows contact against the calibration's background (up to "
+                    f"{hm.max_height_mm:.2f} mm over {hm.mask.mean():.1%} of the frame)")
+        return None
+
+    def _use(self, background: np.ndarray, now_s: float, check: bool = False) -> bool:
+        if check:
+            why = self._contact_against_calibration(background)
+            if why is not None:
+                self._failed(f"the frames' mean {why}: the pad is not free, or the sensor "
+                             "changed since its calibration (recalibrate)")
+                return False
         try:
             self.reconstructor.set_background(background)
         except InputDataError as err:
@@ -129,15 +181,18 @@ class BackgroundTracker:
 
         Args:
             sensor: the connected sensor.
-            force_n: the arm's current force (a force means the pad touches something).
+            force_n: the arm's current force reading (a press refuses the capture).
 
         Returns:
             True when the capture is in use; False (reported once) when the pad is not
-            free, the sensor delivers too few frames in time, or the frames are unusable.
+            free (a press force, or the frames' mean shows contact against the calibration's
+            background), the sensor delivers too few frames in time, or the frames are
+            unusable. The calibration's background stays in use; a refresh replaces it.
         """
         s = self.settings
-        if not force_n < s.max_force_n:
-            self._failed(f"arm force {force_n:.3f} N at start: the pad is not lifted")
+        if not force_n < s.press_force_n:
+            self._failed(f"arm force {force_n:.3f} N at start (a press: >= "
+                         f"{s.press_force_n:.2f} N): the pad is not lifted")
             return False
         frames: list[np.ndarray] = []
         last_seq: int | None = None
@@ -156,7 +211,7 @@ class BackgroundTracker:
         if len(frames) < s.frames:
             self._failed(f"{len(frames)} of {s.frames} frames within {s.capture_timeout_s} s")
             return False
-        if not self._use(np.mean(frames, axis=0), self._clock()):
+        if not self._use(np.mean(frames, axis=0), self._clock(), check=True):
             return False
         log.info("background captured at start (%d frames): drift from the calibration's "
                  "R %.1f G %.1f B %.1f grey levels", len(frames), *self.drift_rgb)
@@ -174,24 +229,53 @@ class BackgroundTracker:
             True when this frame completed a refresh.
         """
         now = self._clock()
-        if contact or not force_n < self.settings.max_force_n:
-            self._quiet.clear()
-            self._quiet_since_s = None
+        s = self.settings
+        if not force_n < s.press_force_n or (contact and not self._is_background(rgb, now)):
+            self._restart()
             return False
         if self._quiet_since_s is None:
             self._quiet_since_s = now
         self._quiet.append(rgb)
+        self._forces.append((now, force_n))
+        while now - self._forces[0][0] > s.quiet_s:
+            self._forces.popleft()
         quiet_for = now - self._quiet_since_s
         since_last = math.inf if self.last_capture_s is None else now - self.last_capture_s
-        if (len(self._quiet) < self.settings.frames or quiet_for < self.settings.quiet_s
-                or since_last < self.settings.quiet_s):
+        if len(self._quiet) < s.frames or quiet_for < s.quiet_s or since_last < s.quiet_s:
             return False
+        if not float(np.median([f for _, f in self._forces])) < s.max_force_n:
+            return False  # leaning on something, or the force reading has an offset
         mean = np.mean(np.stack(self._quiet).astype(np.float32), axis=0)
-        if not self._use(mean, now):
+        if not self._use(mean, now, check=self._suspect):
+            self._restart()
             return False
-        if log.isEnabledFor(logging.DEBUG):
+        if self._suspect:
+            log.warning("background replaced: the one in use made the lifted gel read as "
+                        "contact (taken during a press?)")
+            self._suspect = False
+        elif log.isEnabledFor(logging.DEBUG):
             log.debug("background refreshed: drift R %.1f G %.1f B %.1f", *self.drift_rgb)
         return True
+
+    def _restart(self) -> None:
+        """A press or a contact: the quiet stretch starts again."""
+        self._quiet.clear()
+        self._forces.clear()
+        self._quiet_since_s = None
+        self._suspect = False
+
+    def _is_background(self, rgb: np.ndarray, now: float) -> bool:
+        """Whether the contact a frame shows with no press force comes from the background in
+        use: the frame shows none against the calibration's (so never while that is the one
+        in use). Checked at most once per ``quiet_s`` while the answer is no; a yes holds
+        until the next press or refresh."""
+        if self._suspect:
+            return True
+        if self.source != "station" or now < self._next_check_s:
+            return False
+        self._next_check_s = now + self.settings.quiet_s
+        self._suspect = self._contact_against_calibration(rgb) is None
+        return self._suspect
 
     def summary(self) -> dict[str, Any]:
         """Source, drift from the calibration's background and age (plain JSON values)."""

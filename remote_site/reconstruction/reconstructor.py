@@ -18,6 +18,16 @@ slopes, ``pool="slopes"``) is block-averaged to the output grid before the model
 run, so a display-sized map costs a fraction of a full one; the calibration blur is then
 skipped (block averaging smooths more) and the contact evidence is counted on the pooled grid
 (a contact much smaller than one output cell may then read as "no contact").
+
+Plausibility (a frame that is not a tactile image is refused, never shown as a contact): a
+frame with contact evidence must show an image of the gel (not uniform, not noise:
+:func:`.frames.check_image_content`, against the background in use) and its heights must lie
+within ``max_height_mm`` of the free gel (the gel cannot be indented deeper than it is thick).
+Found by an audit: a solid grey frame, swapped colour channels, pure noise or a frame 24 %
+saturated reconstructed into bumps of 4-16 mm over ~80 % of the pad (the real presses: at most
+0.8 mm), carried to the display as contact. Such a frame raises
+:class:`~shared.errors.InputDataError` naming why; the station counts it (``bad_frame``) and
+goes on with the next frame.
 """
 
 from __future__ import annotations
@@ -35,7 +45,7 @@ from remote_site.reconstruction.features import (
     relative_change,
     row_medians,
 )
-from remote_site.reconstruction.frames import validate_frame
+from remote_site.reconstruction.frames import check_image_content, shading, validate_frame
 from remote_site.reconstruction.grid_predict import GridPredictor
 from remote_site.reconstruction.kernels import (
     evidence_kernel,
@@ -53,8 +63,8 @@ from remote_site.reconstruction.relief import (
 from remote_site.reconstruction.workspace import Workspace
 from shared.errors import ConfigError, InputDataError
 
-__all__ = ["BORDER_MODES", "FREE_BORDER_SLOPE", "HeightMap", "ReconstructionSettings",
-           "Reconstructor"]
+__all__ = ["BORDER_MODES", "FREE_BORDER_SLOPE", "MAX_HEIGHT_MM", "HeightMap",
+           "ReconstructionSettings", "Reconstructor"]
 
 log = logging.getLogger(__name__)
 
@@ -64,6 +74,8 @@ BORDER_MODES = ("auto", "fixed", "free")
 #: a border pixel steeper than this (slope magnitude) is free under ``border="free"``
 #: (chosen by 2-fold cross-validation on the GelSight Mini train split, docs/reconstruction.md)
 FREE_BORDER_SLOPE = 0.1
+#: default ``ReconstructionSettings.max_height_mm``
+MAX_HEIGHT_MM = 4.0
 
 
 @dataclass(frozen=True)
@@ -90,6 +102,13 @@ class ReconstructionSettings:
             pad, with free gel around them to anchor the height), ``"fixed"`` with the plane
             relief (a pad pressed flat into tissue: the whole frame may be deformed and the
             border is the only anchor; the palpation analysis was validated with it).
+        max_height_mm: a reconstructed |height| beyond this refuses the frame
+            (:class:`InputDataError`): the gel cannot be indented deeper than it is thick, a
+            few mm on GelSight-type pads (the simulated pad's gel: 3 mm). Default 4 mm: the
+            real GelSight Mini ball presses reach 0.84 mm, the simulated palpation at the arm's
+            10 N force limit 2.5 mm (its linear gel model overshoots the 3 mm), while swapped
+            colour channels or a partly saturated frame read 7-16 mm
+            (docs/reconstruction.md, section 6).
     """
 
     solver: str = "dst"
@@ -102,6 +121,7 @@ class ReconstructionSettings:
     pool: str = "change"
     relief: str | None = None
     border: str = "auto"
+    max_height_mm: float = MAX_HEIGHT_MM
 
     def __post_init__(self) -> None:
         if self.solver not in SOLVERS:
@@ -120,6 +140,8 @@ class ReconstructionSettings:
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 0):
                 raise ConfigError(f"{name} must be finite and >= 0, got {value}")
+        if not self.max_height_mm > 0:  # inf switches the check off
+            raise ConfigError(f"max_height_mm must be > 0, got {self.max_height_mm}")
 
 
 @dataclass(frozen=True)
@@ -187,6 +209,7 @@ class Reconstructor:
         self._last_bg: tuple[np.ndarray, np.ndarray] | None = None
         self._predictors: dict[int, GridPredictor] = {}
         self._pooled_bg: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._bg_shading: tuple[np.ndarray, np.ndarray] | None = None
         self._workspace = Workspace()
 
     @classmethod
@@ -274,12 +297,21 @@ class Reconstructor:
             self._predictors[factor] = cached
         return cached
 
+    def _shading_of(self, background: np.ndarray) -> np.ndarray:
+        """:func:`.frames.shading` of a validated background (cached while it is in use)."""
+        cached = self._bg_shading
+        if cached is None or cached[0] is not background:
+            cached = (background, shading(background))  # holds it: its id is not reused
+            self._bg_shading = cached
+        return cached[1]
+
     def slopes(self, frame_rgb: np.ndarray, background: np.ndarray | None = None,
                factor: int = 1) -> tuple[np.ndarray, np.ndarray, bool]:
         """Slope maps (dh/dx, dh/dy) on the grid pooled by ``factor``, and contact evidence.
 
         Raises:
-            InputDataError: the frame or background fails validation.
+            InputDataError: the frame or background fails validation, or a frame with contact
+                evidence is no image of the gel (uniform or noise).
         """
         return self._slopes(frame_rgb, background, factor, reuse=False)
 
@@ -297,6 +329,7 @@ class Reconstructor:
         shape3 = (*self.shape_hw, 3)
         frame = validate_frame(frame_rgb, self.shape_hw, out=scratch("frame", shape3))
         bg, inv_bg = self._background_for(background)
+        full_frame, full_bg = frame, bg
         pool_change = factor > 1 and self.settings.pool == "change"
         if pool_change:
             # Pool frame and background first (the ratio of block means ~ the block mean of the
@@ -327,7 +360,8 @@ class Reconstructor:
         else:
             gx.fill(0.0)
             gy.fill(0.0)
-        if has_contact:
+        if has_contact:  # a frame to integrate must be an image of the gel
+            check_image_content(full_frame, self._shading_of(full_bg))
             predictor = self._grid_predictor(factor if pool_change else 1, grid)
             predictor.predict_into(change, active, gx, gy)
         if factor > 1 and not pool_change:
@@ -348,7 +382,9 @@ class Reconstructor:
             The :class:`HeightMap`.
 
         Raises:
-            InputDataError: bad frame/background (size, dtype, NaN, saturated, black) or pitch.
+            InputDataError: bad frame/background (size, dtype, NaN, saturated, black) or pitch;
+                an implausible frame: no image of the gel (uniform or noise), or heights
+                beyond ``max_height_mm`` (see the module docstring).
         """
         factor = self.pool_factor(out_pitch_mm)
         pitch_mm = self.calibration.mm_per_px * factor
@@ -362,12 +398,25 @@ class Reconstructor:
         height, mask, finite = self._zero_level_and_mask(height, pitch_mm)
         if not finite:  # cannot happen with finite slopes; never pass it on
             raise InputDataError("reconstruction produced non-finite heights")
+        self._check_heights(height)
         if self.relief == "rim" and mask.any():
             # only the heights move: the contact (mask) stays what the gel's deformation
             # says, so a light touch whose cap lies under the threshold is still a contact
             # (the station's background tracker must never take it for the pad lifted)
             self._rim_relief(height, gx, gy, factor)
         return HeightMap(height, mask, pitch_mm, skipped=False)
+
+    def _check_heights(self, height: np.ndarray) -> None:
+        """Refuse heights beyond ``max_height_mm`` (deeper than the gel is thick)."""
+        limit = self.settings.max_height_mm
+        top, bottom = float(height.max()), float(height.min())
+        worst = top if top >= -bottom else bottom
+        if abs(worst) > limit:
+            raise InputDataError(
+                f"implausible frame: reconstructed height {worst:+.2f} mm is beyond "
+                f"max_height_mm {limit:g} (deeper than the gel is thick): not a tactile image "
+                "(colour channels swapped, a corrupted or partly saturated frame, or the wrong "
+                "calibration or background?)")
 
     def _free_border_mask(self, gx: np.ndarray, gy: np.ndarray) -> np.ndarray | None:
         """Border pixels steeper than ``FREE_BORDER_SLOPE`` when the border is free (see

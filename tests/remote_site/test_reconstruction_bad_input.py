@@ -123,7 +123,12 @@ def test_arbitrary_frames_give_finite_bounded_heights(rec: Reconstructor,
 def test_extreme_contrast_frame_stays_finite(rec: Reconstructor, background: np.ndarray) -> None:
     frame = background.copy()
     frame[100:140, 100:180] = [250, 5, 250]  # far outside the calibrated colours
-    hm = rec.height_map(frame)
+    # it reads 8.7 mm deep: more than a gel is thick, so it is refused by name ...
+    with pytest.raises(InputDataError, match="max_height_mm"):
+        rec.height_map(frame)
+    # ... and without that check the heights are still finite
+    unchecked = Reconstructor(rec.calibration, ReconstructionSettings(max_height_mm=np.inf))
+    hm = unchecked.height_map(frame)
     assert np.isfinite(hm.height_mm).all() and hm.contact
 
 
