@@ -126,6 +126,18 @@ class _Clock:
             signal.raise_signal(signal.SIGTERM)
 
 
+def _context(process: type) -> Any:
+    """A multiprocessing context for the supervisor whose workers are ``process``."""
+
+    class _Context:
+        Process = process
+        Event = threading.Event
+        Value = staticmethod(lambda typecode, value, lock: _Beat())
+        Array = staticmethod(lambda typecode, size, lock: _Failure())
+
+    return _Context()
+
+
 def test_a_worker_that_served_and_died_is_restarted_after_a_growing_delay(
         monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
     """Workers (faked) that serve, then die half a second later: each replacement starts
@@ -159,13 +171,7 @@ def test_a_worker_that_served_and_died_is_restarted_after_a_growing_delay(
         def kill(self) -> None:
             pass
 
-    class _Context:
-        Process = _Process
-        Event = threading.Event
-        Value = staticmethod(lambda typecode, value, lock: _Beat())
-        Array = staticmethod(lambda typecode, size, lock: _Failure())
-
-    monkeypatch.setattr(workers.mp, "get_context", lambda method: _Context())
+    monkeypatch.setattr(workers.mp, "get_context", lambda method: _context(_Process))
     monkeypatch.setattr(workers, "time", clock)
     caplog.set_level(logging.WARNING, logger="relay_server.workers")
     workers.run_workers(RelayConfig(nats_url="nats://127.0.0.1:1", port=18765, tcp_port=18766,
@@ -201,13 +207,7 @@ def test_the_supervisor_does_not_log_the_nats_password(
         def kill(self) -> None:
             pass
 
-    class _Context:
-        Process = _Process
-        Event = threading.Event
-        Value = staticmethod(lambda typecode, value, lock: _Beat())
-        Array = staticmethod(lambda typecode, size, lock: _Failure())
-
-    monkeypatch.setattr(workers.mp, "get_context", lambda method: _Context())
+    monkeypatch.setattr(workers.mp, "get_context", lambda method: _context(_Process))
     caplog.set_level(logging.INFO, logger="relay_server.workers")
     workers.run_workers(RelayConfig(nats_url="nats://relay:S3cretNatsPw@127.0.0.1:1",
                                     port=18765, tcp_port=18766, allow_any_token=True), 1)
@@ -327,13 +327,7 @@ def test_a_stop_while_the_workers_start_is_no_failure(monkeypatch: pytest.Monkey
         def terminate(self) -> None:
             pass
 
-    class _Context:
-        Process = _Process
-        Event = threading.Event
-        Value = staticmethod(lambda typecode, value, lock: _Beat())
-        Array = staticmethod(lambda typecode, size, lock: _Failure())
-
-    monkeypatch.setattr(workers.mp, "get_context", lambda method: _Context())
+    monkeypatch.setattr(workers.mp, "get_context", lambda method: _context(_Process))
     monkeypatch.setattr(workers, "time", clock)
     workers.run_workers(RelayConfig(nats_url="nats://127.0.0.1:1", port=18767, tcp_port=18768,
                                     hang_timeout_s=0, allow_any_token=True), 2)
