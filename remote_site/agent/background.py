@@ -130,6 +130,8 @@ class BackgroundTracker:
         #: the background in use makes the lifted gel read as contact (see _is_background)
         self._suspect = False
         self._next_check_s = -math.inf
+        #: (the background in use, whether it shows contact against the calibration's)
+        self._bg_checked: tuple[np.ndarray, bool] | None = None
         self.source = "calibration"
         self.captures = 0
         self.capture_failures = 0
@@ -211,7 +213,11 @@ class BackgroundTracker:
         if len(frames) < s.frames:
             self._failed(f"{len(frames)} of {s.frames} frames within {s.capture_timeout_s} s")
             return False
-        if not self._use(np.mean(frames, axis=0), self._clock(), check=True):
+        # not checked against the calibration's background: a gel whose lighting or surface
+        # changed since calibration day reads as contact against it, and refusing its own
+        # background left it so for the whole session (found by review); one taken during
+        # a press is replaced once the pad is lifted (offer)
+        if not self._use(np.mean(frames, axis=0), self._clock()):
             return False
         log.info("background captured at start (%d frames): drift from the calibration's "
                  "R %.1f G %.1f B %.1f grey levels", len(frames), *self.drift_rgb)
@@ -245,6 +251,9 @@ class BackgroundTracker:
             return False
         if not float(np.median([f for _, f in self._forces])) < s.max_force_n:
             return False  # leaning on something, or the force reading has an offset
+        recent = [f for t, f in self._forces if now - t <= s.quiet_s / 4]
+        if not float(np.median(recent)) < s.max_force_n:
+            return False  # a slow press under way: the stretch's median lags it by ~1 s
         mean = np.mean(np.stack(self._quiet).astype(np.float32), axis=0)
         if not self._use(mean, now, check=self._suspect):
             self._restart()
@@ -274,7 +283,13 @@ class BackgroundTracker:
         if self.source != "station" or now < self._next_check_s:
             return False
         self._next_check_s = now + self.settings.quiet_s
-        self._suspect = self._contact_against_calibration(rgb) is None
+        # only a background that itself shows contact against the calibration's is suspect
+        # (checked once per background): a light touch on a gel that changed since
+        # calibration day must not replace a good one (found by review)
+        bg = self.reconstructor.background_rgb
+        if self._bg_checked is None or self._bg_checked[0] is not bg:
+            self._bg_checked = (bg, self._contact_against_calibration(bg) is not None)
+        self._suspect = self._bg_checked[1] and self._contact_against_calibration(rgb) is None
         return self._suspect
 
     def summary(self) -> dict[str, Any]:
