@@ -46,6 +46,12 @@ Vec3 = tuple[float, float, float]
 _HALF, _MASK = 1 << 31, (1 << 32) - 1
 #: the clock offset may rise 1 us per this many us of board time (1 %: see _publish)
 _CREEP_PER_US = 100
+#: a board "started since its last sample" when its clock reads at most the host time since
+#: then, plus 2 % and this (link latency, jitter, a clock started a little before the first
+#: sample); see _booted_since_last
+_BOOT_SLACK_US = 100_000
+#: the fastest sample rate the INFO frame can state (uint16 Hz), for a board that sent none
+_MAX_RATE_HZ = 65_536
 
 
 @dataclass(frozen=True, slots=True)
@@ -86,10 +92,14 @@ class PlatformStats:
         samples_missed: gaps in the board's sample sequence (frames lost or dropped).
         samples_clamped: samples that fell outside the workspace.
         reads: samples returned by ``read_state``.
-        board_restarts: times the board restarted on an open link (its ``seq`` or clock
-            went back, or it described itself differently).
+        board_restarts: times the board restarted: on an open link (its ``seq`` or clock
+            went back, or it described itself differently), or while its link was down (its
+            clock says it started after the previous connection's last sample).
         duplicates: frames equal to the previous one in seq and board time (a link that
             delivered one twice), dropped.
+        position_rebases: restarts after which the position was continued from the last
+            sample before them (the board's counters began again where the platform was;
+            travel while the board was down is not seen).
     """
 
     bytes_in: int = 0
@@ -102,6 +112,7 @@ class PlatformStats:
     reads: int = 0
     board_restarts: int = 0
     duplicates: int = 0
+    position_rebases: int = 0
 
 
 class XYZPlatform(Device):
@@ -152,6 +163,14 @@ class XYZPlatform(Device):
         self._zero_counts = (0, 0, 0)
         self._zero_at_mm: Vec3 = (0.0, 0.0, 0.0)
         self._missed = self._clamped = self._reads = self._restarts = self._duplicates = 0
+        self._rebases = 0
+        #: the newest sample of the driver's life, kept across connections (a restarted board
+        #: is told by its clock against it): raw board clock, host arrival time, unclamped
+        #: position; and the board's sample rate from its last INFO
+        self._last_board_t_raw = 0
+        self._last_rx_us: int | None = None
+        self._last_raw_mm: Vec3 = (0.0, 0.0, 0.0)
+        self._rate_hz = _MAX_RATE_HZ
         self._reset_track()
 
     # ------------------------------------------------------------------ backend interface
@@ -279,7 +298,7 @@ class XYZPlatform(Device):
             if self._raw_counts is None:
                 raise DeviceNotConnectedError(f"{self.name}: zero() needs a sample first")
             self._zero_counts = self._raw_counts
-            self._zero_at_mm = at
+            self._zero_at_mm = self._last_raw_mm = at
             self._history.clear()
             if self._latest is not None:  # the next read_state waits for a post-zero sample
                 self._last_read = self._latest
@@ -292,7 +311,8 @@ class XYZPlatform(Device):
                              crc_errors=d.crc_errors, garbage_bytes=d.garbage_bytes,
                              unknown_types=d.unknown_types, samples_missed=self._missed,
                              samples_clamped=self._clamped, reads=self._reads,
-                             board_restarts=self._restarts, duplicates=self._duplicates)
+                             board_restarts=self._restarts, duplicates=self._duplicates,
+                             position_rebases=self._rebases)
 
     # ------------------------------------------------------------------ for backends
 
@@ -318,10 +338,61 @@ class XYZPlatform(Device):
         """The board restarted on the open link (reader thread): its seq and clock begin
         anew, so the old mapping of its clock to ours would stamp every sample wrong."""
         self._restarts += 1
-        log.warning("%s: the board restarted (%s); its clock is mapped anew (zero() again if "
-                    "its counters restarted too)", self.name, why)
+        log.warning("%s: the board restarted (%s); its clock is mapped anew", self.name, why)
         with self._cond:
             self._restart_clock()
+
+    def _booted_since_last(self, sample: EncoderSample, rx_us: int) -> bool:
+        """Whether the board started after the driver's newest sample (that of an earlier
+        connection, or the one before a restart on this link).
+
+        A board starts ``seq`` and its clock at 0. It started since then when its clock
+        reads no more than the host time since that sample (plus 2 % and 100 ms), the clock
+        does not simply continue from that sample's, and ``seq`` is no more than that clock
+        at the board's sample rate allows. A continuing board (reopened link) or one chance
+        frame with random fields does not pass (a wrapped clock of a continuing board is
+        caught by its ``seq``, up to outages of about an hour).
+        """
+        last_rx = self._last_rx_us
+        if last_rx is None:
+            return False
+        elapsed = rx_us - last_rx
+        if elapsed <= 0:  # the host clock stepped back: cannot tell
+            return False
+        slack = elapsed // 50 + _BOOT_SLACK_US
+        board_t = sample.board_t_us
+        if board_t > elapsed + slack:  # up since before that sample
+            return False
+        if abs(((board_t - self._last_board_t_raw) & _MASK) - elapsed) <= slack:
+            return False  # its clock went on from that sample's: it kept running
+        return sample.seq <= (board_t + _BOOT_SLACK_US) * self._rate_hz * 21 // 20_000_000 + 1
+
+    def _start_track(self, sample: EncoderSample, rx_us: int, restarted: bool) -> None:
+        """The first sample of a track (a connection, or after a restart on the link): when
+        the board started since the driver's newest sample, its counters began again where
+        the platform was, so the position goes on from that sample's instead of jumping to
+        the counters' new origin (reader thread, before the sample is mapped)."""
+        if not self._booted_since_last(sample, rx_us):
+            if restarted:
+                log.warning("%s: the board restarted, but its clock (%d us) does not say "
+                            "it started since the last sample: its counts are kept",
+                            self.name, sample.board_t_us)
+            return
+        if not restarted:
+            self._restarts += 1  # it restarted while the link was down
+        with self._cond:
+            jump = tuple(round((((c - z + _HALF) & _MASK) - _HALF) * s + a - b, 3)
+                         for c, z, s, a, b in zip(sample.counts, self._zero_counts,
+                                                  self._mm_per_count, self._zero_at_mm,
+                                                  self._last_raw_mm, strict=True))
+            self._zero_counts = sample.counts
+            self._zero_at_mm = self._last_raw_mm
+            self._rebases += 1
+        log.warning("%s: the board started again (its clock reads %d us): its counters count "
+                    "from where the platform was, so the position goes on from the last sample "
+                    "(%s mm; the counters alone would have moved it by %s mm); travel while "
+                    "it was down is not seen", self.name, sample.board_t_us,
+                    tuple(round(v, 3) for v in self._last_raw_mm), jump)
 
     def _publish_info(self, info: BoardInfo) -> None:
         """Record the board's self-description (called by the backend)."""
@@ -329,6 +400,8 @@ class XYZPlatform(Device):
         if previous is not None and info != previous:
             self._board_restarted(f"it now describes itself as {info}, before {previous}")
         self._board_info = info
+        if info.sample_rate_hz > 0:
+            self._rate_hz = info.sample_rate_hz
 
     def _publish(self, sample: EncoderSample, rx_us: int | None = None) -> None:
         """Turn one raw sample into a :class:`PlatformSample` (called by the backend).
@@ -346,12 +419,15 @@ class XYZPlatform(Device):
         if before is not None and seq == before.seq and board_t == before.board_t_us:
             self._duplicates += 1  # the same frame again (a replaying link): not a restart
             return
+        restarted = before is None and previous is not None  # (after an INFO's restart)
         if before is not None and (seq <= before.seq or board_t <= before.board_t_us):
             self._board_restarted(f"seq {before.seq} -> {sample.seq}, board clock "
                                   f"{before.board_t_us} -> {sample.board_t_us} us")
-            before = None
+            before, restarted = None, True
             seq = self._unwrap_seq.update(sample.seq)
             board_t = self._unwrap_t.update(sample.board_t_us)
+        if before is None:
+            self._start_track(sample, rx_us, restarted)
         # board clock -> host clock: the smallest (arrival - latch) seen is the link's
         # fixed delay. It follows a larger one by at most 1 us per 100 us of board time (1 %,
         # above any board's drift: a crystal's tens of ppm, a ceramic resonator's 0.5 %,
@@ -388,6 +464,8 @@ class XYZPlatform(Device):
             velocity = tuple((p - q) / dt_s for p, q in zip(position, p_old, strict=True)) \
                 if dt_s > 0 else (0.0, 0.0, 0.0)
             self._raw_counts = sample.counts
+            self._last_board_t_raw, self._last_rx_us, self._last_raw_mm = \
+                sample.board_t_us, rx_us, raw_mm  # type: ignore[assignment]
             # capture times never go backwards, even when a faster arrival lowers the offset
             # estimate (a sample stamped before its predecessor would look older than it is)
             t_us = board_t + offset

@@ -94,20 +94,24 @@ def test_a_board_clock_drifting_is_still_tracked(ppm: int) -> None:
 
 @pytest.mark.parametrize("uptime_s", [600, 4290])  # 10 min; 71.5 min: the clock's wrap near
 def test_a_board_that_restarts_on_an_open_link_is_stamped_fresh_at_once(uptime_s: int) -> None:
-    """seq and the board clock start again at 0 on the same link: before, the stamps stayed
-    at 'previous + 1 us' and the samples looked stale for ~8 s (10 min of uptime)."""
+    """seq, the board clock and the counters start again at 0 on the same link: before, the
+    stamps stayed at 'previous + 1 us' and the samples looked stale for ~8 s (10 min of
+    uptime), and then x jumped from 27.6 mm to the counters' new origin, 0."""
     platform = _Board()
     k0 = uptime_s * 1000
     for k in range(k0 - 1000, k0):
-        _feed(platform, k, k * 1000 % 2**32, HOST0 + k * 1000 + LINK_US, x_counts=k)
+        last = _feed(platform, k, k * 1000 % 2**32, HOST0 + k * 1000 + LINK_US,
+                     x_counts=k - k0 + 3000)
     for j in range(20):
         rx = HOST0 + (k0 + j) * 1000 + LINK_US
         sample = _feed(platform, j, j * 1000, rx, x_counts=j)
         assert rx - sample.t_us <= LINK_US, (j, rx - sample.t_us)  # fresh, not stale
         assert sample.seq == j and sample.board_t_us == j * 1000
+        assert sample.position_mm[0] == pytest.approx(last.position_mm[0] + j * MM_PER_COUNT_X)
     assert sample.velocity_mm_s[0] == pytest.approx(1000 * MM_PER_COUNT_X)
     stats = platform.stats()
     assert stats.board_restarts == 1 and stats.samples_missed == 0
+    assert stats.position_rebases == 1
 
 
 def test_a_board_that_describes_itself_differently_restarted() -> None:

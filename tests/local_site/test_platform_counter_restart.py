@@ -1,0 +1,207 @@
+"""A board that restarts begins its counters again where the platform is: the position goes on
+from the last sample instead of jumping to the counters' new origin (docs/platform_protocol.md,
+"Board restart"); a board that kept running, or one chance frame, keeps its counts."""
+
+from __future__ import annotations
+
+import pytest
+import serial
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
+
+from local_site.platform.base import XYZPlatform
+from local_site.platform.kinematics import PlatformGeometry
+from local_site.platform.motion import HoldMotion
+from local_site.platform.protocol import BoardInfo, EncoderSample
+from local_site.platform.serial_board import SerialEncoderPlatform
+from local_site.platform.sim_board import SimulatedEncoderBoard
+from shared.timebase import now_us
+from tests.support import scaled
+
+HOST0 = 1_700_000_000_000_000
+LINK_US = 1_000
+MM_PER_COUNT = PlatformGeometry().mm_per_count
+WRAP_US = 2**32
+
+
+class _Board(XYZPlatform):
+    """A platform the test feeds sample by sample."""
+
+    def _connect(self) -> None:
+        pass
+
+    def _disconnect(self) -> None:
+        pass
+
+
+def _feed(platform: XYZPlatform, seq: int, board_t_us: int, rx_us: int,
+          counts: tuple[int, int, int]) -> tuple[float, float, float]:
+    platform._publish(EncoderSample(seq % 2**32, board_t_us % WRAP_US, counts), rx_us=rx_us)
+    sample = platform.latest()
+    assert sample is not None
+    return sample.position_mm
+
+
+def _reopen(platform: XYZPlatform) -> None:
+    """What ``connect()`` does to the track after a link failure (the zero is kept)."""
+    platform._reset_track()
+
+
+def _run(platform: XYZPlatform, *, first_seq: int, first_t_us: int, host0_us: int,
+         n: int, counts0: tuple[int, int, int], period_us: int = 1000) \
+        -> tuple[float, float, float]:
+    for k in range(n):
+        position = _feed(platform, first_seq + k, first_t_us + k * period_us,
+                         host0_us + k * period_us + LINK_US,
+                         (counts0[0] + k, counts0[1], counts0[2]))
+    return position
+
+
+def test_a_board_restarted_while_the_link_was_down_keeps_the_position() -> None:
+    """The USB cable pulled for 3 s, the board power-cycled by it: the new connection's
+    counters start at 0 where the platform stands; before, x jumped from 27.6 mm to 0."""
+    platform = _Board()
+    last = _run(platform, first_seq=0, first_t_us=0, host0_us=HOST0, n=600_000 // 1000,
+                counts0=(3000, 1500, 800), period_us=1000)
+    _reopen(platform)
+    outage_us = 3_000_000
+    boot_age_us = 400_000  # the board came up 0.4 s before the link did
+    after = _feed(platform, 400, boot_age_us, HOST0 + 600 * 1000 + outage_us, (0, 0, 0))
+    assert after == pytest.approx(last)
+    moved = _feed(platform, 401, boot_age_us + 1000, HOST0 + 600 * 1000 + outage_us + 1000,
+                  (10, -5, 0))
+    assert moved == pytest.approx(tuple(v + c * s for v, c, s in
+                                        zip(last, (10, -5, 0), MM_PER_COUNT, strict=True)))
+    stats = platform.stats()
+    assert (stats.board_restarts, stats.position_rebases) == (1, 1)
+
+
+def test_a_board_that_kept_running_over_a_reopen_keeps_its_counts() -> None:
+    """A reopened link to a board that went on counting: the platform moved 2 mm meanwhile,
+    and the counters saw it."""
+    platform = _Board()
+    last = _run(platform, first_seq=10_000, first_t_us=10_000_000, host0_us=HOST0, n=200,
+                counts0=(3000, 0, 0))
+    _reopen(platform)
+    outage_us = 3_000_000
+    moved = round(2.0 / MM_PER_COUNT[0])
+    after = _feed(platform, 10_200 + 3000, 10_000_000 + 200_000 + outage_us,
+                  HOST0 + 200_000 + outage_us + LINK_US, (3200 + moved, 0, 0))
+    assert after[0] == pytest.approx(last[0] + (moved + 1) * MM_PER_COUNT[0])
+    stats = platform.stats()
+    assert (stats.board_restarts, stats.position_rebases) == (0, 0)
+
+
+def test_one_chance_frame_that_looks_like_a_restart_does_not_move_the_origin() -> None:
+    """A cut frame whose CRC matched by chance, with random fields: it counts as a restart
+    (its seq went back) but its clock does not say the board started, so the genuine frames
+    after it are placed by their counts as before."""
+    platform = _Board()
+    last = _run(platform, first_seq=5000, first_t_us=5_000_000, host0_us=HOST0, n=100,
+                counts0=(3000, 0, 0))
+    _feed(platform, 17, 2_345_678_901, HOST0 + 100_000 + LINK_US, (-123_456, 77, 9))
+    after = _feed(platform, 5100, 5_100_000, HOST0 + 100_000 + LINK_US + 1, (3100, 0, 0))
+    assert after[0] == pytest.approx(last[0] + MM_PER_COUNT[0])
+    assert platform.stats().position_rebases == 0
+
+
+def test_a_continuing_board_reopened_after_its_clock_wrapped_keeps_its_counts() -> None:
+    """Reopened after 80 min to a board up 10 min before: its clock wrapped meanwhile (71.6
+    min) and reads 18.4 min, less than the outage, and not where 80 min on from the last
+    sample would put it modulo 2^32 us; its seq (5.4 million samples at the rate its INFO
+    states) says it did not start since."""
+    platform = _Board()
+    platform._publish_info(BoardInfo(1, 3, 1024, 4, 1000, 0x0100))
+    uptime_us = 10 * 60 * 1_000_000
+    last = _run(platform, first_seq=uptime_us // 1000, first_t_us=uptime_us, host0_us=HOST0,
+                n=100, counts0=(3000, 0, 0))
+    _reopen(platform)
+    outage_us = 80 * 60 * 1_000_000
+    t_us = uptime_us + 100_000 + outage_us
+    after = _feed(platform, t_us // 1000, t_us, HOST0 + 100_000 + outage_us + LINK_US,
+                  (3100, 0, 0))
+    assert after[0] == pytest.approx(last[0] + MM_PER_COUNT[0])
+    assert platform.stats().position_rebases == 0
+
+
+def test_a_zero_taken_before_a_restart_is_the_reference_after_it() -> None:
+    platform = _Board()
+    _run(platform, first_seq=0, first_t_us=0, host0_us=HOST0, n=10, counts0=(3000, 0, 0))
+    platform.zero((10.0, 10.0, 10.0))
+    _reopen(platform)
+    after = _feed(platform, 0, 0, HOST0 + 2_000_000, (0, 0, 0))
+    assert after == pytest.approx((10.0, 10.0, 10.0))
+
+
+def test_a_simulated_board_restarted_on_a_serial_link_keeps_the_position() -> None:
+    """Through the real driver: the board's second life (seq, clock and counters from 0)
+    on the same pyserial loop port."""
+    port = serial.serial_for_url("loop://", timeout=0.02)
+    platform = SerialEncoderPlatform("loop://", port=port, connect_timeout_s=scaled(2.0))
+    first = SimulatedEncoderBoard(HoldMotion((20.0, 30.0, 40.0)), port.write,
+                                  sample_rate_hz=500)
+    try:
+        with first:
+            platform.connect()
+            while (sample := platform.read_state(scaled(1.0))).seq < 50:  # 0.1 s of its life
+                pass
+            before = sample.position_mm
+        assert before == pytest.approx((20.0, 30.0, 40.0), abs=0.01)
+        # the restarted board counts from where the platform stands: its counters read the
+        # pose (0, 0, 0) there, as a board powered up at the origin would
+        second = SimulatedEncoderBoard(HoldMotion((0.0, 0.0, 0.0)), port.write,
+                                       sample_rate_hz=500)
+        with second:
+            deadline = now_us() + int(scaled(2.0) * 1e6)
+            while platform.stats().board_restarts == 0 and now_us() < deadline:
+                platform.read_state(scaled(1.0))
+            after = platform.read_state(scaled(1.0)).position_mm
+        assert platform.stats().board_restarts == 1
+        assert after == pytest.approx(before, abs=0.01)
+    finally:
+        platform.disconnect()
+        port.close()
+
+
+@settings(max_examples=300, deadline=None)
+@given(uptime_us=st.integers(200_000, 7 * 24 * 3600 * 10**6),
+       outage_us=st.integers(1_000, 4 * 3600 * 10**6),
+       rate_hz=st.sampled_from([100, 250, 500, 1000, 2000, 8000]),
+       with_info=st.booleans(), restarted=st.booleans(), boot_frac=st.floats(0.0, 1.0))
+def test_the_restart_rule_over_uptimes_outages_and_rates(
+        uptime_us: int, outage_us: int, rate_hz: int, with_info: bool, restarted: bool,
+        boot_frac: float) -> None:
+    """A board that kept running over a reopen is never rebased (up to a week of uptime and
+    4 h of outage; an outage past a clock wrap needs the rate its INFO gave); a board that
+    restarted during the outage always is, except where the docs say it cannot be told: its
+    previous life's clock ended within the outage (plus slack) of a multiple of 2^32 us, so
+    the new clock is just where the old one would be, or it started more than 2^32 us (71.6
+    min) before the link came back."""
+    period_us = 1_000_000 // rate_hz
+    # an outage past a wrap of the clock is told by seq, which needs the board's rate
+    assume(with_info or outage_us < WRAP_US * 0.95)
+    platform = _Board()
+    if with_info:
+        platform._publish_info(BoardInfo(1, 3, 1024, 4, rate_hz, 0x0100))
+    seq0 = uptime_us // period_us
+    last = _run(platform, first_seq=seq0, first_t_us=uptime_us, host0_us=HOST0, n=5,
+                counts0=(3000, 2000, 1000), period_us=period_us)
+    _reopen(platform)
+    last_t = uptime_us + 4 * period_us
+    rx = HOST0 + 4 * period_us + LINK_US + outage_us
+    if restarted:
+        board_t = int(boot_frac * (outage_us - LINK_US))  # it started after the last sample
+        seq = board_t // period_us
+    else:
+        board_t = last_t + outage_us
+        seq = board_t // period_us
+    after = _feed(platform, seq, board_t, rx, (0, 0, 0))
+    rebased = platform.stats().position_rebases == 1
+    if not restarted:
+        assert not rebased
+        return
+    slack = outage_us // 50 + 100_000
+    looks_continuing = abs(((board_t - last_t) % WRAP_US) - outage_us) <= slack
+    if not looks_continuing and board_t < WRAP_US:  # (a clock wrapped since the start: no)
+        assert rebased
+        assert after == pytest.approx(last)
