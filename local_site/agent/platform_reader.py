@@ -13,13 +13,17 @@ latched more than ``read_timeout_s`` ago is not a position to render, however re
 decoded (the backlog a driver drains after its thread was starved, or a stall of the reader
 thread itself). Health therefore never waits for the reader thread to run.
 
-A link error (port closed, device unplugged) reopens the device at once, with an exponential
-backoff until it answers again or the agent stops. A device that is only *silent* keeps its
-open port for ``reopen_after_s``: the samples of a board that was late (or of a driver thread
-that could not run on a busy machine) are taken the moment they arrive, with no close/reopen
-gap; only a silence that lasts is treated like a lost link. (Closing and reopening at the
-first 250 ms of silence turned short stalls of the demo's simulated board into 0.65-0.85 s
-gaps in the platform uplink.)
+A link error (port closed, device unplugged) reopens the device after ``retry_min_s``, with
+an exponential backoff until it answers again or the agent stops. A link that fails again
+within ``retry_max_s`` of being reopened (a device that opens and then fails, a data
+callback that raises on every sample) goes on backing off from where the last episode left
+it, so such a link is reopened at most every ``retry_max_s``, not five times a second with a
+traceback each. A device that is only *silent* keeps its open port for ``reopen_after_s``:
+the samples of a board that was late (or of a driver thread that could not run on a busy
+machine) are taken the moment they arrive, with no close/reopen gap; only a silence that
+lasts is treated like a lost link. (Closing and reopening at the first 250 ms of silence
+turned short stalls of the demo's simulated board into 0.65-0.85 s gaps in the platform
+uplink.)
 """
 
 from __future__ import annotations
@@ -105,6 +109,10 @@ class PlatformReader:
         self.recoveries = 0
         self.last_error: str | None = None
         self._first_board_t_us: int | None = None
+        #: when the device was last opened, and the wait before the next reopen if it fails
+        #: again before retry_max_s has passed (doubling per such failure)
+        self._opened_at_s: float | None = None
+        self._flap_delay_s = retry_min_s
 
     @property
     def latest(self) -> PlatformSample | None:
@@ -155,14 +163,21 @@ class PlatformReader:
         """Close the device (after :meth:`stop`)."""
         self.platform.disconnect()
 
-    def _connect_with_backoff(self) -> bool:
+    def _connect_with_backoff(self, link_failed: bool = False) -> bool:
         delay = self._retry_min_s
+        opened_at = self._opened_at_s
+        if link_failed and opened_at is not None \
+                and monotonic_s() - opened_at < self._retry_max_s:
+            delay = self._flap_delay_s  # it failed soon after the last reopen: back off on
         first = True
-        if self._lost_at_s is not None and self.errors and self._stop.wait(self._retry_min_s):
-            return False
+        if self._lost_at_s is not None and self.errors:
+            if self._stop.wait(delay):
+                return False
+            delay = min(self._retry_max_s, delay * 2.0)
         while not self._stop.is_set():
             try:
                 self.platform.connect()
+                self._opened_at_s, self._flap_delay_s = monotonic_s(), delay
                 return True
             except DeviceInitError as err:
                 self.last_error = str(err)
@@ -199,10 +214,10 @@ class PlatformReader:
 
     def _run(self) -> None:
         ever_connected = False
-        needs_open = True
+        needs_open = link_failed = True
         while not self._stop.is_set():
             if needs_open:
-                if not self._connect_with_backoff():
+                if not self._connect_with_backoff(link_failed):
                     return
                 if ever_connected:
                     self.reconnects += 1
@@ -216,12 +231,13 @@ class PlatformReader:
                 # silent since one read timeout before the episode was noticed
                 needs_open = silent_since is not None and monotonic_s() - silent_since \
                     + self._read_timeout_s >= self._reopen_after_s
+                link_failed = False
                 self._lost(err, reopen=needs_open)
                 if not needs_open and self._poll_s > 0 and self._stop.wait(self._poll_s):
                     return  # (a read_state that times out at once must not spin)
                 continue
-            except DeviceError as err:  # the link failed: reopen now
-                needs_open = True
+            except DeviceError as err:  # the link failed: reopen
+                needs_open = link_failed = True
                 self._lost(err, reopen=True)
                 continue
             if not self._device_ok:  # the silence ended on the open port

@@ -19,7 +19,7 @@ from local_site.platform.protocol import BoardInfo, EncoderSample, encode_sample
 from local_site.platform.serial_board import SerialEncoderPlatform
 from local_site.platform.sim_board import SimulatedEncoderBoard
 from shared.errors import ConfigError, DeviceInitError, DeviceOperationError
-from shared.timebase import now_us
+from shared.timebase import monotonic_s, now_us
 from tests.support import scaled, wait_until
 
 HOST0 = 1_700_000_000_000_000  # host clock (us) at the board's sample 0
@@ -218,6 +218,62 @@ def test_an_exception_in_the_data_callback_fails_the_link_and_connect_reopens(
         platform.connect()  # the station's retry reopens the port
         assert platform.read_state(scaled(0.5)).position_mm == pytest.approx(
             (20.0, 20.0, 20.0), abs=0.01)
+
+
+class _FailsAfterOpening(_Board):
+    """Opens fine, then its link fails at once, every time (a data callback that raises on
+    every sample); records when each connection was made."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.opened_at_s: list[float] = []
+
+    def _connect(self) -> None:
+        super()._connect()
+        self.opened_at_s.append(monotonic_s())
+        self._link_failed(OSError("the data callback raised"))
+
+
+def test_a_link_that_fails_right_after_every_reopen_backs_off() -> None:
+    """Before, each reopen waited retry_min_s again (the backoff started anew with every
+    successful open): about five reopens a second, each with a traceback, for ever. Now the
+    waits go on doubling while a reopened link fails within retry_max_s (lower bounds only:
+    a loaded machine makes them longer, never shorter)."""
+    platform = _FailsAfterOpening()
+    reader = PlatformReader(platform, read_timeout_s=scaled(5.0), poll_s=0.001,
+                            retry_min_s=0.05, retry_max_s=0.4)
+    reader.start()
+    try:
+        wait_until(lambda: len(platform.opened_at_s) >= 6, 10.0, "six openings")
+    finally:
+        reader.stop()
+        platform.disconnect()
+    gaps = [b - a for a, b in zip(platform.opened_at_s, platform.opened_at_s[1:], strict=False)]
+    for k, gap in enumerate(gaps[:5]):
+        assert gap >= min(0.4, 0.05 * 2**k) * 0.95, (k, gaps)
+
+
+def test_a_link_that_failed_after_a_long_run_is_reopened_after_the_shortest_wait(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The backoff of a flapping link does not carry over to a failure after a connection
+    that lasted retry_max_s."""
+    reader = PlatformReader(_Board(), read_timeout_s=1.0, retry_min_s=0.05, retry_max_s=0.4)
+    reader.errors, reader._lost_at_s = 1, 0.0
+    waits: list[float] = []
+
+    def wait(seconds: float) -> bool:
+        waits.append(seconds)
+        return False
+
+    monkeypatch.setattr(reader._stop, "wait", wait)
+    reader._opened_at_s, reader._flap_delay_s = monotonic_s() - 1.0, 0.4
+    assert reader._connect_with_backoff(link_failed=True) and waits == [0.05]
+    reader._opened_at_s, reader._flap_delay_s = monotonic_s(), 0.2
+    assert reader._connect_with_backoff(link_failed=True) and waits == [0.05, 0.2]
+    assert reader._flap_delay_s == 0.4  # doubled for the next failure
+    reader._opened_at_s = monotonic_s()  # a silent device's reopen does not back off on
+    assert reader._connect_with_backoff(link_failed=False) and waits[-1] == 0.05
+    reader.platform.disconnect()
 
 
 # ---------------------------------------------------------------------- 6: lower findings
