@@ -26,7 +26,12 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from local_site.platform.kinematics import PlatformGeometry, WrapUnwrapper
-from local_site.platform.protocol import BoardInfo, DecoderStats, EncoderSample
+from local_site.platform.protocol import (
+    PROTOCOL_VERSION,
+    BoardInfo,
+    DecoderStats,
+    EncoderSample,
+)
 from shared.devices import Device
 from shared.errors import (
     ConfigError,
@@ -200,7 +205,7 @@ class XYZPlatform(Device):
                     break
                 self._cond.wait(remaining)
             latest, error = self._latest, self._link_error
-        if latest is None:
+        if latest is None or error is not None:  # (an INFO unlike the geometry, with a sample)
             reason = f"link failed: {error}" if error else \
                 f"no valid frame within {self._connect_timeout_s:.2f} s"
             # a silent board is a timeout inside the connect phase (tools tell it from a
@@ -262,10 +267,13 @@ class XYZPlatform(Device):
         deadline = monotonic_s() + timeout_s
         with self._cond:
             while True:
-                if self._link_error is not None:
+                error = self._link_error
+                if isinstance(error, ConfigError):  # (a board unlike the configuration)
+                    raise DeviceOperationError(f"{self.name}: {error}") from error
+                if error is not None:
                     raise DeviceOperationError(
-                        f"{self.name}: device disappeared ({self._link_error}); "
-                        f"call connect() to retry") from self._link_error
+                        f"{self.name}: device disappeared ({error}); "
+                        f"call connect() to retry") from error
                 latest = self._latest
                 if latest is not None and latest is not self._last_read:
                     self._last_read = latest
@@ -395,7 +403,19 @@ class XYZPlatform(Device):
                     tuple(round(v, 3) for v in self._last_raw_mm), jump)
 
     def _publish_info(self, info: BoardInfo) -> None:
-        """Record the board's self-description (called by the backend)."""
+        """Record the board's self-description (called by the backend); a board that counts
+        otherwise than the configured geometry fails the link (its positions would be off by
+        the ratio: a 2000-line encoder read 36.8 mm for 18.85)."""
+        geometry = self.geometry
+        if (info.protocol_version, info.axes, info.pulses_per_rev, info.decoding) != \
+                (PROTOCOL_VERSION, 3, geometry.pulses_per_rev, geometry.decoding):
+            self._link_failed(ConfigError(
+                f"the board describes itself as protocol v{info.protocol_version}, "
+                f"{info.axes} axes, {info.pulses_per_rev} pulses per revolution decoded "
+                f"x{info.decoding}; this driver reads protocol v{PROTOCOL_VERSION}, 3 axes, "
+                f"and the platform geometry is set for {geometry.pulses_per_rev} x"
+                f"{geometry.decoding}: set the geometry to the board's"))
+            return
         previous = self._board_info
         if previous is not None and info != previous:
             self._board_restarted(f"it now describes itself as {info}, before {previous}")
@@ -410,6 +430,8 @@ class XYZPlatform(Device):
             sample: the decoded frame.
             rx_us: host wall-clock arrival time; defaults to now.
         """
+        if self._link_error is not None:  # (a board unlike the geometry: nothing published)
+            return
         rx_us = now_us() if rx_us is None else rx_us
         seq = self._unwrap_seq.update(sample.seq)
         board_t = self._unwrap_t.update(sample.board_t_us)

@@ -48,9 +48,13 @@ class PlatformGeometry:
     workspace_mm: tuple[float, float, float] = DEFAULT_WORKSPACE_MM
 
     def __post_init__(self) -> None:
-        if self.pulses_per_rev <= 0 or self.decoding not in (1, 2, 4):
-            raise ConfigError(f"pulses_per_rev must be > 0 and decoding 1, 2 or 4; got "
-                              f"{self.pulses_per_rev}, {self.decoding}")
+        ppr = self.pulses_per_rev
+        # an integer the board's INFO frame can state (uint16): a NaN, a bool or 1024.5 gave
+        # nonsense millimetres before, a string a TypeError
+        if not (isinstance(ppr, int) and not isinstance(ppr, bool) and 0 < ppr <= 0xFFFF) \
+                or self.decoding not in (1, 2, 4) or isinstance(self.decoding, bool):
+            raise ConfigError(f"pulses_per_rev must be an integer in 1..65535 and decoding 1, "
+                              f"2 or 4; got {ppr!r}, {self.decoding!r}")
         for name, vec in (("mm_per_rev", self.mm_per_rev), ("workspace_mm", self.workspace_mm)):
             if len(vec) != 3 or not all(math.isfinite(v) and v > 0 for v in vec):
                 raise ConfigError(f"{name} must be three finite positive numbers, got {vec}")

@@ -28,6 +28,7 @@ The motion classes are used as they are; this module only parses the string.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 from local_site.platform.motion import (
@@ -75,9 +76,19 @@ def split_motion_spec(spec: str) -> tuple[str, dict[str, str]]:
 
 def _number(spec: str, key: str, value: str) -> float:
     try:
-        return float(value)
+        number = float(value)
     except ValueError as err:
         raise ConfigError(f"motion spec {spec!r}: {key}={value!r} is not a number") from err
+    if not math.isfinite(number):  # (a NaN start slipped through the random walk's checks)
+        raise ConfigError(f"motion spec {spec!r}: {key}={value!r} is not a finite number")
+    return number
+
+
+def _integer(spec: str, key: str, value: str) -> int:
+    try:
+        return int(value)
+    except ValueError as err:
+        raise ConfigError(f"motion spec {spec!r}: {key}={value!r} is not an integer") from err
 
 
 def _boolean(spec: str, key: str, value: str) -> bool:
@@ -110,7 +121,7 @@ def _random(spec: str, params: dict[str, str]) -> RandomWalk:
     start = [params.pop(k, None) for k in ("x", "y", "z")]
     for key, value in params.items():
         if key == "seed":
-            seed = int(_number(spec, key, value))
+            seed = _integer(spec, key, value)
             continue
         kwargs[_RANDOM_ALIASES.get(key, key)] = _number(spec, key, value)
     if any(v is not None for v in start):

@@ -23,6 +23,7 @@ from shared.errors import MalformedMessageError
 __all__ = [
     "INFO_STRUCT",
     "MAX_PAYLOAD_BYTES",
+    "PROTOCOL_VERSION",
     "SAMPLE_STRUCT",
     "SYNC",
     "TYPE_INFO",

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import re
 from pathlib import Path
 from typing import cast
 
@@ -108,6 +109,18 @@ def test_motion_specs() -> None:
                 "random:duration=0", "random:duration=inf", "random:duration=-1"):
         with pytest.raises(ConfigError):
             parse_motion_spec(bad)
+
+
+@pytest.mark.parametrize("bad, named", [
+    ("random:x=nan,y=1,z=1", "x='nan' is not a finite number"),  # accepted before
+    ("random:seed=nan", "seed='nan' is not an integer"),  # ValueError before
+    ("random:seed=1e400", "seed='1e400' is not an integer"),  # OverflowError before
+    ("random:seed=2.5", "seed='2.5' is not an integer"),  # taken as 2 before
+    ("hold:x=nan", "x='nan' is not a finite number"),  # InputDataError before
+])
+def test_motion_specs_refuse_non_finite_values_by_name(bad: str, named: str) -> None:
+    with pytest.raises(ConfigError, match=re.escape(named)):
+        parse_motion_spec(bad)
 
 
 def test_motion_spec_replay_file(tmp_path: Path) -> None:

@@ -15,6 +15,7 @@ from local_site.platform.motion import HoldMotion
 from local_site.platform.protocol import BoardInfo, EncoderSample
 from local_site.platform.serial_board import SerialEncoderPlatform
 from local_site.platform.sim_board import SimulatedEncoderBoard
+from shared.errors import ConfigError, DeviceInitError
 from shared.timebase import now_us
 from tests.support import scaled
 
@@ -205,3 +206,29 @@ def test_the_restart_rule_over_uptimes_outages_and_rates(
     if not looks_continuing and board_t < WRAP_US:  # (a clock wrapped since the start: no)
         assert rebased
         assert after == pytest.approx(last)
+
+
+def test_a_board_counting_otherwise_than_the_geometry_fails_the_link_by_name() -> None:
+    """A 2000-line encoder board read with the default 1024-line geometry: before, its INFO
+    was stored and 18.85 mm read as 36.8; now the link fails with what to set."""
+    port = serial.serial_for_url("loop://", timeout=0.02)
+    board_geometry = PlatformGeometry(pulses_per_rev=2000)
+    board = SimulatedEncoderBoard(HoldMotion((18.85, 10.0, 10.0)), port.write,
+                                  geometry=board_geometry, sample_rate_hz=500)
+    platform = SerialEncoderPlatform("loop://", port=port, connect_timeout_s=scaled(2.0))
+    try:
+        with board, pytest.raises(DeviceInitError, match=r"2000 pulses per revolution decoded"
+                                  r" x4.*geometry is set for 1024 x4"):
+            platform.connect()  # the board's first frame is its INFO
+    finally:
+        platform.disconnect()
+        port.close()
+    matching = SerialEncoderPlatform("loop://", geometry=board_geometry)
+    matching._publish_info(board.info)
+    assert matching._link_error is None
+
+
+@pytest.mark.parametrize("ppr", [1024.5, True, "1024", float("nan"), 0, 70_000])
+def test_the_geometry_refuses_pulses_that_are_no_board_count(ppr: object) -> None:
+    with pytest.raises(ConfigError, match=r"pulses_per_rev must be an integer in 1\.\.65535"):
+        PlatformGeometry(pulses_per_rev=ppr)  # type: ignore[arg-type]
