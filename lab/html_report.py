@@ -33,7 +33,7 @@ from lab.scoring import score_findings
 from local_site.palpation import build_maps, maps_and_findings
 from local_site.recording import Recording, recording_from_mcap
 from shared.errors import ConfigError, InputDataError
-from shared.recording import McapRecording, read_mcap
+from shared.recording import McapRecording, RecordingFormatError, read_mcap
 from shared.workspace import WorkspaceMap, load_workspace
 
 __all__ = ["write_report"]
@@ -130,7 +130,10 @@ def _latency_figure(mcap: McapRecording) -> tuple[str, list[dict[str, Any]]]:
     longest: dict[str, list[str]] = {}
     t0 = mcap.messages[0].t_us if mcap.messages else 0
     for m in mcap.on(topic):
-        obj = m.json()
+        try:
+            obj = m.json()
+        except RecordingFormatError:  # not a JSON object: left out (counted in the summary)
+            continue
         t = (m.t_us - t0) / 1e6
         per = series.setdefault(str(obj.get("type")), {})
         items, _ = latency_stages(obj)  # malformed values left out (counted in the summary)

@@ -31,7 +31,7 @@ from local_site.scenes import TactileFrameScene
 from shared.errors import ConfigError, InputDataError
 from shared.protocol import Message, PlatformState, TactileCompact, TactileFrame
 from shared.protocol.tactile_codec import TactileDecoder
-from shared.recording import McapRecording, RecordedMessage
+from shared.recording import McapRecording, RecordedMessage, RecordingFormatError
 from shared.timebase import now_us
 
 __all__ = ["PlaybackClock", "ReplayEvent", "ReplayResult", "Replayer", "format_summary",
@@ -71,6 +71,9 @@ class ReplayResult:
     frames_to_display: int = 0
     display: dict[str, Any] = field(default_factory=dict)
     subscriber_errors: int = 0
+    #: messages whose payload does not decode (a wire message off the protocol, a derived
+    #: one that is not a JSON object): skipped, the replay goes on
+    undecodable: int = 0
 
 
 class PlaybackClock:
@@ -224,10 +227,10 @@ class Replayer:
         return loop, slot, position
 
     def run(self, stop: threading.Event | None = None) -> ReplayResult:
-        """Replay to the end (or until ``stop`` is set); blocking.
+        """Replay to the end (or until ``stop`` is set); blocking. A message whose payload
+        does not decode is skipped and counted (``undecodable``; the first is logged).
 
         Raises:
-            RecordingFormatError: a payload does not decode.
             DeviceError: the display cannot be opened.
         """
         stop = stop or threading.Event()
@@ -257,7 +260,13 @@ class Replayer:
             for m in messages:
                 if not clock.wait_until(m.t_us, stop):
                     break
-                ev = self.event(m)
+                try:
+                    ev = self.event(m)
+                except RecordingFormatError as err:  # one bad payload must not end it
+                    result.undecodable += 1
+                    if result.undecodable == 1:
+                        log.warning("replay: %s (skipped; more are counted)", err)
+                    continue
                 frame = ev.message
                 if isinstance(frame, TactileCompact) and m.topic.endswith("/rx/tactile_compact"):
                     try:  # in order, as the station decoded them
@@ -349,7 +358,11 @@ def summarize(recording: McapRecording) -> dict[str, Any]:
             continue
         per: dict[str, dict[str, list[float | None]]] = {}
         for m in recording.on(topic):
-            obj = m.json()
+            try:
+                obj = m.json()
+            except RecordingFormatError:  # not a JSON object: left out, counted
+                malformed += 1
+                continue
             stages = per.setdefault(str(obj.get("type")), {})
             values, bad = latency_stages(obj)
             malformed += bad
@@ -398,7 +411,7 @@ def format_summary(s: dict[str, Any]) -> str:
                      f"{_f(st['rate_hz'], 1):>9}")
     if s.get("latency_malformed_values"):
         lines.append(f"  latency: {s['latency_malformed_values']} malformed values (not a "
-                     "number) left out")
+                     "number, or a message not a JSON object) left out")
     for name, stages in s["latency_ms"].items():
         lines.append(f"  latency (ms) {name}:{'':<10}{'count':>7} {'p50':>8} {'p99':>8}")
         for stage, fig in stages.items():

@@ -77,7 +77,8 @@ def run(args: argparse.Namespace) -> int:
                  f"rendered, {d['commands_sent']} pin commands" if d else "")
         emit(f"replayed {result.published} messages of {recording.station} "
              f"({result.recorded_duration_s:.2f} s recorded) in {result.duration_s:.2f} s"
-             + shown)
+             + shown + (f"; {result.undecodable} messages did not decode (skipped)"
+                        if result.undecodable else ""))
     return 0
 
 

@@ -10,7 +10,7 @@ import pytest
 from lab.replay import Replayer, ReplayEvent, format_summary, summarize
 from shared.errors import ConfigError
 from shared.protocol import ArmState, Hop, PlatformState
-from shared.recording import McapRecorder, read_mcap
+from shared.recording import McapRecorder, RecordedMessage, read_mcap
 
 T0 = 1_700_000_000_000_000
 
@@ -70,3 +70,22 @@ def test_replay_paces_publishes_in_order_and_survives_a_bad_subscriber(tmp_path:
                for e in events)
     with pytest.raises(ConfigError, match="speed"):
         Replayer(rec, speed=0.0)
+
+
+def test_a_payload_that_does_not_decode_is_skipped_and_counted(tmp_path: Path) -> None:
+    """A wire message off the protocol and a derived message that is not a JSON object: the
+    replay ended at the first (RecordingFormatError out of run) and the summary at the
+    second; now both are skipped and counted, and everything else is replayed."""
+    _recording(tmp_path / "r.mcap", n=20, period_us=5_000)
+    rec = read_mcap(tmp_path / "r.mcap")
+    good = len(rec.messages)
+    rec.messages.insert(3, RecordedMessage("/local/rx/arm_state", T0 + 1, "msgpack", b"\xc1"))
+    rec.messages.insert(7, RecordedMessage("/local/latency", T0 + 2, "json", b"[1, 2]"))
+    events: list[ReplayEvent] = []
+    replayer = Replayer(rec, speed=20.0, display="none")
+    replayer.subscribe(events.append)
+    result = replayer.run()
+    assert result.undecodable == 2 and result.published == len(events) == good
+    summary = summarize(rec)
+    assert summary["latency_malformed_values"] == 1
+    assert "or a message not a JSON object) left out" in format_summary(summary)
