@@ -161,6 +161,10 @@ class ClusterLink:
         tls = None
         if self.url.startswith("tls://") or self.ca_file is not None:
             tls = ssl.create_default_context(cafile=str(self.ca_file) if self.ca_file else None)
+        # TLS first, before the server's INFO: otherwise nats-py goes TLS only when the
+        # server's INFO asks for it, and a plain server (or a machine in the middle that
+        # leaves tls_required out) received the password and every frame in clear. The NATS
+        # server needs `handshake_first` in its tls block (deploy/config/nats.conf).
         try:
             # nats-py retries an unreachable server for ever when reconnects are unlimited:
             # the first connection gets a deadline, later ones are retried
@@ -169,6 +173,7 @@ class ClusterLink:
                     servers=[self.url], name=f"teletouch-relay-{self.worker_id}",
                     connect_timeout=5, allow_reconnect=True, max_reconnect_attempts=-1,
                     reconnect_time_wait=0.5, error_cb=on_error, tls=tls,
+                    tls_handshake_first=tls is not None,
                     pending_size=0)  # nothing buffered while reconnecting: no stale frames
         except (NoServersError, OSError, TimeoutError, ssl.SSLError) as err:
             # the deadline's TimeoutError says less than the connection's own last error

@@ -20,6 +20,7 @@ from typing import Any
 import pytest
 
 from shared.client import StationLink
+from shared.errors import ConfigError
 from shared.motion_to_touch import trace_hops
 from shared.protocol import ArmCommand, ArmState, Message, PlatformState
 from shared.timebase import now_us
@@ -328,9 +329,11 @@ async def _a_stopped_worker_is_replaced(log_file: Any) -> None:
 async def test_workers_join_over_tls_nats(lab_pki: dict[str, Path]) -> None:  # noqa: F811
     """nats-server with TLS (the lab CA's certificate for 127.0.0.1); the relays verify it
     with nats_ca_file and pair stations across workers as over plain NATS."""
-    tls = ("--tls", "--tlscert", str(lab_pki["relay.crt"]), "--tlskey", str(lab_pki["relay.key"]))
+    conf = lab_pki["ca.crt"].parent / "nats-tls.conf"  # (the relay starts TLS first)
+    conf.write_text(f'tls {{ cert_file: "{lab_pki["relay.crt"]}", key_file: '
+                    f'"{lab_pki["relay.key"]}", handshake_first: true }}\n')
     env = {"TELETOUCH_RELAY_NATS_CA_FILE": str(lab_pki["ca.crt"])}
-    async with nats_server(*tls) as url:
+    async with nats_server("-c", str(conf)) as url:
         url = url.replace("nats://", "tls://")
         async with relay(url, env=env) as port_a, relay(url, env=env) as port_b:
             await wait_workers(port_a, 2)
@@ -347,6 +350,43 @@ async def test_workers_join_over_tls_nats(lab_pki: dict[str, Path]) -> None:  # 
             doc = await status(port_a)
             assert doc["cluster"]["nats_url"].startswith("tls://")
             assert doc["cluster"]["nats_connected"] is True
+
+
+async def test_a_tls_url_never_sends_the_password_to_a_plain_server(
+        lab_pki: dict[str, Path]) -> None:  # noqa: F811
+    """A NATS server (or a machine in the middle) that does not ask for TLS in its INFO: the
+    relay sent its CONNECT, password included, in clear, and called itself connected; now it
+    starts TLS before reading anything, and the start fails by name."""
+    from relay_server.cluster import ClusterLink
+    from relay_server.config import RelayConfig
+
+    received = bytearray()
+
+    async def plain_nats(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        writer.write(b'INFO {"server_id":"x","version":"2.10.0","proto":1,"host":"127.0.0.1",'
+                     b'"port":4222,"max_payload":1048576,"auth_required":true}\r\n')
+        await writer.drain()
+        with contextlib.suppress(OSError, asyncio.IncompleteReadError):
+            while chunk := await reader.read(4096):
+                received.extend(chunk)
+                if b"CONNECT" in received:
+                    writer.write(b"PONG\r\n")
+                    await writer.drain()
+        writer.close()
+
+    server = await asyncio.start_server(plain_nats, "127.0.0.1", 0)
+    port = server.sockets[0].getsockname()[1]
+    config = RelayConfig(nats_url=f"tls://relay:S3cretPw@127.0.0.1:{port}",
+                         nats_ca_file=lab_pki["ca.crt"], nats_connect_timeout_s=scaled(3.0))
+    link = ClusterLink(config, {}, Counter(), lambda: {"ws": 1, "tcp": 2}, worker_id="a")
+    try:
+        with pytest.raises(ConfigError, match="cannot reach the NATS server"):
+            await link.start()
+    finally:
+        await link.close()
+        server.close()
+        await server.wait_closed()
+    assert b"S3cretPw" not in received and b"CONNECT" not in received
 
 
 async def test_observer_on_another_worker_sees_the_session() -> None:
