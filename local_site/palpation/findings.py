@@ -130,14 +130,64 @@ class DetectionConfig:
     malignant_ref_radius_mm: float = 5.15
 
     def __post_init__(self) -> None:
-        b, r = self.malignant_size_exponent, self.malignant_ref_radius_mm
-        for name, v in (("malignant_size_exponent", b), ("malignant_ref_radius_mm", r)):
+        """Every field checked here, so a bad value fails with its name, not deep inside
+        the detection.
+
+        Raises:
+            ConfigError: a field that is not a finite number (bool for
+                ``edge_sampled_arc_only``, int for ``min_samples``) or outside its range.
+        """
+        for name, (lo, lo_open, hi) in _DETECTION_RANGES.items():
+            v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
                 raise ConfigError(f"DetectionConfig.{name} must be a finite number, got {v!r}")
-        if b < 0.0:
-            raise ConfigError(f"DetectionConfig.malignant_size_exponent must be >= 0, got {b!r}")
-        if r <= 0.0:
-            raise ConfigError(f"DetectionConfig.malignant_ref_radius_mm must be > 0, got {r!r}")
+            if (v <= lo if lo_open else v < lo) or v > hi:
+                raise ConfigError(f"DetectionConfig.{name} must be "
+                                  f"{_range_text(lo, lo_open, hi)}, got {v!r}")
+        if isinstance(self.min_samples, bool) or not isinstance(self.min_samples, int) \
+                or self.min_samples < 1:
+            raise ConfigError(f"DetectionConfig.min_samples must be an integer >= 1, got "
+                              f"{self.min_samples!r}")
+        if not isinstance(self.edge_sampled_arc_only, bool):
+            raise ConfigError(f"DetectionConfig.edge_sampled_arc_only must be a bool, got "
+                              f"{self.edge_sampled_arc_only!r}")
+        for name, need in (("edge_band_mm", "inner < 0 < outer"),
+                           ("rim_band_mm", "inner < outer")):
+            band = getattr(self, name)
+            ok = (isinstance(band, tuple) and len(band) == 2
+                  and all(not isinstance(v, bool) and isinstance(v, (int, float))
+                          and math.isfinite(v) for v in band)
+                  and band[0] < band[1]
+                  and (name != "edge_band_mm" or band[0] < 0.0 < band[1]))
+            if not ok:
+                raise ConfigError(f"DetectionConfig.{name} must be two finite numbers "
+                                  f"(inner, outer) mm with {need}, got {band!r}")
+
+
+#: DetectionConfig's number fields: name -> (lower bound, lower bound excluded, upper bound)
+_DETECTION_RANGES: dict[str, tuple[float, bool, float]] = {
+    "smooth_mm": (0.0, False, math.inf),
+    "min_relief": (0.0, False, math.inf),
+    "noise_k": (0.0, False, math.inf),
+    "min_area_mm2": (0.0, False, math.inf),
+    "stiffness_smooth_mm": (0.0, False, math.inf),
+    "coverage_margin_mm": (0.0, False, math.inf),
+    "min_coverage": (0.0, False, 1.0),
+    "malignant_ref_edge_mm": (0.0, True, math.inf),
+    "malignant_ref_rim_relief": (0.0, True, math.inf),
+    "malignant_rim_exponent": (0.0, False, math.inf),
+    "type_uncertain_k": (0.0, True, math.inf),
+    "min_boundary_coverage": (0.0, False, 1.0),
+    "type_se_scale": (0.0, True, math.inf),
+    "malignant_size_exponent": (0.0, False, math.inf),
+    "malignant_ref_radius_mm": (0.0, True, math.inf),
+}
+
+
+def _range_text(lo: float, lo_open: bool, hi: float) -> str:
+    if math.isinf(hi):
+        return f"{'>' if lo_open else '>='} {lo:g}"
+    return f"in {'(' if lo_open else '['}{lo:g}, {hi:g}]"
 
 
 @dataclass(frozen=True)
@@ -388,7 +438,9 @@ def find_tumors(maps: PalpationMaps, config: DetectionConfig | None = None,
             from ``maps``.
 
     Returns:
-        Findings, most severe last, each with its severity rank (1 = least severe).
+        Findings, most severe last, each with its severity rank (1 = least severe); none
+        on a map with fewer than 2 cells on a side (no cell size, no gradient: nothing
+        has an outline there).
 
     Raises:
         ValueError: ``typing_maps`` is not on the grid of ``maps``.
@@ -400,6 +452,8 @@ def find_tumors(maps: PalpationMaps, config: DetectionConfig | None = None,
             and np.array_equal(typing_maps.x_mm, maps.x_mm)
             and np.array_equal(typing_maps.y_mm, maps.y_mm)):
         raise ValueError("typing_maps must be on the grid of maps")
+    if maps.relief.ndim != 2 or min(maps.relief.shape) < 2:
+        return []
     det = _detect(maps, cfg)
     if det is None:
         return []

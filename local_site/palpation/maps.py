@@ -23,6 +23,7 @@ Two maps are built on a regular phantom grid:
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -33,8 +34,17 @@ from local_site.recording import Recording
 from shared.errors import ConfigError, InputDataError
 from shared.workspace import WorkspaceMap
 
-__all__ = ["MapConfig", "PalpationMaps", "build_maps", "build_maps_at", "pad_profile",
-           "pad_signal"]
+__all__ = ["MAX_MAP_CELLS_PER_SIDE", "MapConfig", "PalpationMaps", "build_maps",
+           "build_maps_at", "map_grid", "pad_profile", "pad_signal"]
+
+#: largest map side (cells): the grid follows the workspace's phantom box, which an
+#: analysed recording brings in its metadata, so a huge box (or a tiny ``cell_mm``) is
+#: refused before any map is allocated (4096 x 4096 float64 is 128 MiB per map)
+MAX_MAP_CELLS_PER_SIDE = 4096
+
+
+def _is_number(v: object) -> bool:
+    return not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v)
 
 
 @dataclass(frozen=True)
@@ -79,7 +89,9 @@ class MapConfig:
 
     Raises:
         ConfigError: ``signal_percentile`` or ``typing_signal_percentile`` outside
-            [0, 100] or not a number.
+            [0, 100] or not a number; ``cell_mm`` not > 0, ``core_fraction`` outside
+            (0, 1], ``margin_mm``, ``min_indentation_mm`` or ``min_signal_fraction``
+            negative, or any of them not a finite number (the field is named).
     """
 
     cell_mm: float = 0.5
@@ -99,6 +111,17 @@ class MapConfig:
                     or not 0.0 <= p <= 100.0):
                 raise ConfigError(f"MapConfig.{name} must be a number in [0, 100], "
                                   f"got {p!r}")
+        checks = (("cell_mm", self.cell_mm, lambda v: v > 0.0, "> 0"),
+                  ("core_fraction", self.core_fraction, lambda v: 0.0 < v <= 1.0,
+                   "in (0, 1] (a level relative to the pad profile's peak)"),
+                  ("margin_mm", self.margin_mm, lambda v: v >= 0.0, ">= 0"),
+                  ("min_indentation_mm", self.min_indentation_mm, lambda v: v >= 0.0, ">= 0"),
+                  ("min_signal_fraction", self.min_signal_fraction, lambda v: v >= 0.0,
+                   ">= 0"))
+        for name, v, ok, what in checks:
+            if not (_is_number(v) and ok(v)):
+                raise ConfigError(f"MapConfig.{name} must be a finite number {what}, "
+                                  f"got {v!r}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -152,10 +175,13 @@ def pad_profile(patches: NDArray[np.floating], core_fraction: float = 0.7
         The profile (H, W), peak-normalised, and the core mask.
 
     Raises:
-        InputDataError: no patch, or patches with no positive height.
+        InputDataError: no patch, empty patches, or patches with no positive height.
     """
     if patches.shape[0] == 0:
         raise InputDataError("no contact frames to estimate the pad profile from")
+    if patches.ndim != 3 or patches.shape[1] == 0 or patches.shape[2] == 0:
+        raise InputDataError(f"contact frames must be (N, H, W) patches with H, W >= 1, "
+                             f"got shape {patches.shape}")
     flat = patches.reshape(patches.shape[0], -1).astype(np.float64)
     scale = np.percentile(flat, 75, axis=1)
     good = scale > 0
@@ -197,7 +223,9 @@ def build_maps(rec: Recording, workspace: WorkspaceMap,
         The maps.
 
     Raises:
-        InputDataError: no usable contact frame.
+        InputDataError: no usable contact frame, or a grid of more than
+            :data:`MAX_MAP_CELLS_PER_SIDE` cells on a side (the workspace's phantom box
+            over ``cell_mm``).
     """
     cfg = config or MapConfig()
     return build_maps_at(rec, workspace, cfg, (cfg.signal_percentile,))[0]
@@ -227,23 +255,22 @@ def build_maps_at(rec: Recording, workspace: WorkspaceMap, config: MapConfig | N
         One map per percentile, in order.
 
     Raises:
-        InputDataError: no usable contact frame.
+        InputDataError: no usable contact frame, or a grid of more than
+            :data:`MAX_MAP_CELLS_PER_SIDE` cells on a side.
         ConfigError: a percentile outside [0, 100].
     """
     cfg = config or MapConfig()
     for p in percentiles:
         if isinstance(p, bool) or not isinstance(p, (int, float)) or not 0.0 <= p <= 100.0:
             raise ConfigError(f"signal percentile must be a number in [0, 100], got {p!r}")
+    x_mm, y_mm = map_grid(workspace, cfg)  # refused before any work if too large
+    cell = cfg.cell_mm
     idx = _contact_frames(rec, cfg)
     if idx.size == 0:
         raise InputDataError("the recording has no contact frame pressed deeper than "
                              f"{cfg.min_indentation_mm} mm: nothing was palpated")
     patches = rec.frame_height_mm[idx]
     profile, core = pad_profile(patches, cfg.core_fraction)
-    lo, hi = workspace.phantom_bounds_mm
-    cell = cfg.cell_mm
-    x_mm = np.arange(lo[0] - cfg.margin_mm, hi[0] + cfg.margin_mm + cell / 2, cell)
-    y_mm = np.arange(lo[1] - cfg.margin_mm, hi[1] + cfg.margin_mm + cell / 2, cell)
     shape = (y_mm.size, x_mm.size)
     _, h_px, w_px = patches.shape
     secant = rec.frame_force_n[idx] / rec.frame_indentation_mm[idx]
@@ -299,6 +326,33 @@ def build_maps_at(rec: Recording, workspace: WorkspaceMap, config: MapConfig | N
                                  stiffness_n_per_mm=stiffness, frames_used=int(used.sum()),
                                  background_stiffness_n_per_mm=float(np.median(secant))))
     return out
+
+
+def map_grid(workspace: WorkspaceMap, config: MapConfig | None = None
+             ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The cell centres ``(x_mm, y_mm)`` of the maps: the workspace's phantom box plus
+    ``margin_mm`` on every side, every ``cell_mm``.
+
+    Raises:
+        InputDataError: more than :data:`MAX_MAP_CELLS_PER_SIDE` cells on a side (checked
+            before anything is allocated).
+    """
+    cfg = config or MapConfig()
+    lo, hi = workspace.phantom_bounds_mm
+    cell, margin = cfg.cell_mm, cfg.margin_mm
+    axes = []
+    for axis, name in ((0, "x"), (1, "y")):
+        start, stop = lo[axis] - margin, hi[axis] + margin + cell / 2
+        # np.arange's length, computed first: it would allocate whatever this says
+        n = math.ceil((stop - start) / cell) if math.isfinite((stop - start) / cell) else -1
+        if not 1 <= n <= MAX_MAP_CELLS_PER_SIDE:
+            raise InputDataError(
+                f"the map grid would have {n if n >= 0 else 'infinitely many'} cells along "
+                f"{name} (phantom box {lo[axis]:g}..{hi[axis]:g} mm plus {margin:g} mm "
+                f"margins, every {cell:g} mm); at most {MAX_MAP_CELLS_PER_SIDE}: check the "
+                "recording's workspace or use a larger MapConfig.cell_mm")
+        axes.append(np.arange(start, stop, cell))
+    return axes[0], axes[1]
 
 
 def _cell_index(points_mm: NDArray[np.float64], x_mm: NDArray[np.float64],

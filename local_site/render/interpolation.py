@@ -30,8 +30,8 @@ from numpy.typing import NDArray
 
 from shared.errors import ConfigError, InputDataError
 
-__all__ = ["DEFAULT_ORDER", "INTERPOLATION_ORDERS", "MAX_GRID_DIM", "GridLayers",
-           "keys_cubic_weights"]
+__all__ = ["DEFAULT_ORDER", "INTERPOLATION_ORDERS", "MAX_GRID_DIM", "MAX_LAYER_ABS",
+           "GridLayers", "keys_cubic_weights"]
 
 #: supported interpolation orders (0 nearest, 1 bilinear, 3 Keys cubic)
 INTERPOLATION_ORDERS = (0, 1, 3)
@@ -40,6 +40,12 @@ INTERPOLATION_ORDERS = (0, 1, 3)
 DEFAULT_ORDER = 3
 #: largest grid side accepted (same bound as the wire protocol's arrays)
 MAX_GRID_DIM = 4096
+#: largest magnitude of a layer value accepted: far beyond any physical layer (mm, k,
+#: friction, N/mm), far below where arithmetic overflows (the cubic border's ghost samples
+#: reach 7 x 7 = 49 times the data at a corner and |Keys weights| add up to <= 1.25 per
+#: axis, so every intermediate stays below ~1e14; a value near the float limit overflowed
+#: to inf and then NaN, even at the grid nodes)
+MAX_LAYER_ABS = 1.0e12
 #: tolerance (in grid cells) for deciding that a point lies inside the grid
 _INSIDE_TOL_CELLS = 1e-9
 
@@ -97,12 +103,14 @@ class GridLayers:
     """Layers on one regular grid, ready for interpolation.
 
     Args:
-        values: array ``(n_layers, ny, nx)`` of finite floats, ``ny, nx >= 2``.
+        values: array ``(n_layers, ny, nx)`` of finite floats, ``|v| <= MAX_LAYER_ABS``,
+            ``ny, nx >= 2``.
         x0_mm: x of column 0; y0_mm: y of row 0 (sample centres).
         dx_mm: column spacing; dy_mm: row spacing (both > 0).
 
     Raises:
-        InputDataError: wrong shape or non-finite values or spacing.
+        InputDataError: wrong shape, non-finite or too large values, or non-finite
+            spacing.
     """
 
     values: NDArray[np.float64]
@@ -122,8 +130,15 @@ class GridLayers:
         if not (2 <= ny <= MAX_GRID_DIM and 2 <= nx <= MAX_GRID_DIM):
             raise InputDataError(f"a layer grid needs 2..{MAX_GRID_DIM} samples per side, "
                                  f"got {ny} x {nx}")
-        if not np.isfinite(v).all():
-            raise InputDataError("grid layers contain NaN or Inf")
+        # the data range serves the bound check too (a NaN makes min or max NaN and an Inf
+        # leaves the bound, so both fail it): no extra pass over every frame's layers
+        value_range = np.stack([v.min(axis=(1, 2)), v.max(axis=(1, 2))], axis=1)
+        least, most = float(value_range[:, 0].min()), float(value_range[:, 1].max())
+        if not (least >= -MAX_LAYER_ABS and most <= MAX_LAYER_ABS):
+            if not np.isfinite(v).all():
+                raise InputDataError("grid layers contain NaN or Inf")
+            raise InputDataError(f"grid layer values must lie within +-{MAX_LAYER_ABS:g}, got "
+                                 f"[{least:.6g}, {most:.6g}]")
         geom = np.array([self.x0_mm, self.y0_mm, self.dx_mm, self.dy_mm], dtype=float)
         if not np.isfinite(geom).all() or self.dx_mm <= 0 or self.dy_mm <= 0:
             raise InputDataError("grid origin must be finite and spacing positive, got "
@@ -134,7 +149,6 @@ class GridLayers:
         padded.setflags(write=False)
         object.__setattr__(self, "values", v)
         object.__setattr__(self, "_padded", padded)
-        value_range = np.stack([v.min(axis=(1, 2)), v.max(axis=(1, 2))], axis=1)
         value_range.setflags(write=False)
         object.__setattr__(self, "value_range", value_range)
 

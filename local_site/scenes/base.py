@@ -81,6 +81,11 @@ class OutsidePolicy:
     def __post_init__(self) -> None:
         if self.mode not in self.MODES:
             raise ConfigError(f"outside policy must be one of {self.MODES}, got {self.mode!r}")
+        for name in ("height_mm", "stiffness_k", "friction"):
+            v = getattr(self, name)
+            if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.number)) \
+                    or isinstance(v, np.complexfloating):
+                raise ConfigError(f"outside {name} must be a number, got {v!r}")
         if not (np.isfinite(self.height_mm) and abs(self.height_mm) <= MAX_SCENE_HEIGHT_MM):
             raise ConfigError(f"outside height must be finite, |h| <= {MAX_SCENE_HEIGHT_MM}")
         if not K_MIN <= self.stiffness_k <= K_MAX:
@@ -193,8 +198,15 @@ class SceneSource(ABC):
         if not (np.isfinite([x0, x1, y0, y1, pitch_mm]).all() and pitch_mm > 0
                 and x1 > x0 and y1 > y0):
             raise InputDataError(f"bad raster extent {extent_mm} or pitch {pitch_mm}")
-        nx = round((x1 - x0) / pitch_mm) + 1
-        ny = round((y1 - y0) / pitch_mm) + 1
+        # steps per side as floats first: an extent wider than the float range (or a tiny
+        # pitch) makes them inf, which round() cannot turn into an int
+        steps_x, steps_y = (x1 - x0) / pitch_mm, (y1 - y0) / pitch_mm
+        if not (steps_x < _MAX_RASTER_DIM and steps_y < _MAX_RASTER_DIM):
+            raise InputDataError(f"raster of {steps_y + 1:.6g} x {steps_x + 1:.6g} samples "
+                                 f"(extent {extent_mm}, pitch {pitch_mm} mm) is too large "
+                                 f"(max {_MAX_RASTER_DIM} per side)")
+        nx = round(steps_x) + 1
+        ny = round(steps_y) + 1
         if nx > _MAX_RASTER_DIM or ny > _MAX_RASTER_DIM:
             raise InputDataError(f"raster of {ny} x {nx} samples is too large "
                                  f"(max {_MAX_RASTER_DIM} per side)")

@@ -1,9 +1,10 @@
 """A scene backed by layers on a regular grid (layer files and the remote stream).
 
 Values between grid samples are interpolated (order 0, 1 or 3, see
-:mod:`local_site.render.interpolation`); since cubic weights can overshoot, k and
-friction are clipped back to their ranges after interpolation (heights are not: the
-renderer clamps them to the stroke). Points outside the grid get the scene's
+:mod:`local_site.render.interpolation`); since cubic weights can overshoot, every layer,
+height included, is clipped to its own data range after interpolation
+(``GridLayers.sample(..., clip=True)``), so cubic ringing never goes beyond the data (the
+renderer then clamps heights to the display's stroke). Points outside the grid get the scene's
 :class:`~local_site.scenes.base.OutsidePolicy` (flat by default); an empty scene (no
 data yet) is "outside" everywhere.
 """

@@ -19,13 +19,23 @@ key                    required  content
 
 Missing stiffness means k = 1 (rigid); missing friction means 0. Shore 00 is mapped to
 k through :class:`~shared.hardness.HardnessTable` when the file is loaded.
+
+A file is hostile input: :func:`load_layer_file` refuses unknown members by name, then
+reads every member's ``.npy`` header and checks its dtype, shape and size before it reads
+(or decompresses) any array data, so a small file declaring a huge array is refused in
+milliseconds; any other read failure (corrupt zip or deflate stream, truncated data) is an
+:class:`~shared.errors.InputDataError` naming the file.
 """
 
 from __future__ import annotations
 
 import logging
+import lzma
+import math
 import os
+import struct
 import zipfile
+import zlib
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, ClassVar
@@ -42,6 +52,7 @@ from shared.hardness import K_MAX, K_MIN, HardnessTable
 __all__ = [
     "LAYER_FILE_KEYS",
     "LAYER_FILE_VERSION",
+    "MIN_LAYER_SPACING_MM",
     "LayerFileData",
     "LayerFileScene",
     "load_layer_file",
@@ -61,6 +72,16 @@ _LAYER_RANGES: dict[str, tuple[float, float]] = {
 }
 LAYER_FILE_KEYS: frozenset[str] = frozenset(
     {"format_version", "extent_mm", "description", *_LAYER_RANGES})
+#: smallest sample spacing (mm) a file may imply, ``(x_max - x_min) / (nx - 1)`` and the
+#: same along y: far below any physical use (a nanometre), far above where the division
+#: underflows to 0 (a file saved with a sub-normal spacing did not load)
+MIN_LAYER_SPACING_MM = 1.0e-6
+#: largest ``.npy`` member other than a layer (format_version, extent_mm, description)
+_MAX_SMALL_MEMBER_BYTES = 1 << 20
+#: what reading a hostile archive can raise besides our own checks
+_READ_ERRORS: tuple[type[BaseException], ...] = (
+    OSError, EOFError, ValueError, OverflowError, struct.error, zipfile.BadZipFile,
+    zipfile.LargeZipFile, zlib.error, lzma.LZMAError, NotImplementedError, RuntimeError)
 
 
 @dataclass(frozen=True, eq=False)
@@ -132,7 +153,8 @@ def validate_layers(arrays: Mapping[str, Any], *, where: str = "layer file",
 
     Raises:
         InputDataError: a missing, unknown or malformed key, NaN/Inf, out-of-range
-            values, mismatched shapes or a degenerate extent.
+            values, mismatched shapes, a degenerate extent or a sample spacing below
+            :data:`MIN_LAYER_SPACING_MM`.
     """
     unknown = sorted(set(arrays) - LAYER_FILE_KEYS)
     if unknown:
@@ -158,6 +180,13 @@ def validate_layers(arrays: Mapping[str, Any], *, where: str = "layer file",
     if height is None:  # unreachable: checked above; keeps the type checker informed
         raise InputDataError(f"{where}: required key 'height_mm' is missing")
     shape = height.shape
+    # the spacing exactly as LayerFileData.grid() computes it
+    dx = (float(ext[1]) - float(ext[0])) / (shape[1] - 1)
+    dy = (float(ext[3]) - float(ext[2])) / (shape[0] - 1)
+    if not (dx >= MIN_LAYER_SPACING_MM and dy >= MIN_LAYER_SPACING_MM):
+        raise InputDataError(f"{where}: extent_mm {ext.tolist()} over {shape[0]} x "
+                             f"{shape[1]} samples gives a spacing of dx = {dx:.6g}, "
+                             f"dy = {dy:.6g} mm; each must be >= {MIN_LAYER_SPACING_MM:g} mm")
     k_layer = _layer(arrays, "stiffness_k", where, shape)
     shore = _layer(arrays, "stiffness_shore00", where, shape)
     if k_layer is not None and shore is not None:
@@ -189,6 +218,9 @@ def load_layer_file(path: str | os.PathLike[str], *,
                     hardness: HardnessTable | None = None) -> LayerFileData:
     """Read and validate a layer file.
 
+    Unknown members are refused by name and every member's ``.npy`` header (dtype, shape,
+    size) is checked before any array data is read (see the module docstring).
+
     Args:
         path: the ``.npz`` file.
         hardness: the Shore 00 -> k table (default table when None).
@@ -198,25 +230,82 @@ def load_layer_file(path: str | os.PathLike[str], *,
 
     Raises:
         ConfigError: the file does not exist.
-        InputDataError: not an ``.npz`` archive, pickled content, or invalid layers.
+        InputDataError: not an ``.npz`` archive, unreadable or corrupt, an unknown member,
+            pickled content, an array too large, or invalid layers; the message names the
+            file.
     """
     where = os.fspath(path)
     if not os.path.isfile(path):
         raise ConfigError(f"layer file not found: {where}")
     try:
-        loaded = np.load(path, allow_pickle=False)
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
-        raise InputDataError(f"{where}: cannot read as .npz ({err})") from err
-    if not isinstance(loaded, np.lib.npyio.NpzFile):  # a plain .npy gives an ndarray
-        raise InputDataError(f"{where}: not an .npz archive (got a single "
-                             f"{type(loaded).__name__})")
-    try:
-        arrays = {key: loaded[key] for key in loaded.files}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:  # pickled or corrupt
-        raise InputDataError(f"{where}: cannot read as .npz ({err})") from err
-    finally:
-        loaded.close()
+        with open(path, "rb") as fh:
+            magic = fh.read(len(np.lib.format.MAGIC_PREFIX))
+        if magic == np.lib.format.MAGIC_PREFIX:
+            raise InputDataError(f"{where}: not an .npz archive (a single .npy array)")
+        with zipfile.ZipFile(path) as zf:
+            members = _members(zf, where)
+            for key, name in members.items():  # every header before any data
+                with zf.open(name) as f:
+                    _check_header(f, key, where)
+            arrays: dict[str, Any] = {}
+            for key, name in members.items():
+                with zf.open(name) as f:
+                    arrays[key] = np.lib.format.read_array(f, allow_pickle=False)
+    except InputDataError:
+        raise
+    except _READ_ERRORS as err:  # not a zip, corrupt member, truncated data, pickles ...
+        raise InputDataError(f"{where}: cannot read as .npz ({type(err).__name__}: "
+                             f"{err})") from err
     return validate_layers(arrays, where=where, hardness=hardness)
+
+
+def _members(zf: zipfile.ZipFile, where: str) -> dict[str, str]:
+    """Layer-file key -> archive member name (``key.npy``); unknown or repeated members
+    refused by name, before anything is decompressed."""
+    members: dict[str, str] = {}
+    unknown: list[str] = []
+    for name in zf.namelist():
+        key = name[:-len(".npy")] if name.endswith(".npy") else None
+        if key is None or key not in LAYER_FILE_KEYS:
+            unknown.append(name)
+        elif key in members:
+            raise InputDataError(f"{where}: member {name!r} appears twice")
+        else:
+            members[key] = name
+    if unknown:
+        raise InputDataError(f"{where}: unknown key(s) {sorted(unknown)}; allowed: "
+                             f"{sorted(LAYER_FILE_KEYS)} (as '<key>.npy' members)")
+    return members
+
+
+def _check_header(f: Any, key: str, where: str) -> None:
+    """Read the ``.npy`` header of member ``key`` from ``f`` and refuse, before any data is
+    read, a pickled dtype, a non-float or oversized layer, or an oversized other member."""
+    version = np.lib.format.read_magic(f)
+    if version == (1, 0):
+        shape, _fortran, dtype = np.lib.format.read_array_header_1_0(f)
+    elif version == (2, 0):
+        shape, _fortran, dtype = np.lib.format.read_array_header_2_0(f)
+    else:
+        raise InputDataError(f"{where}: '{key}' has .npy format version {version}; "
+                             "expected 1.0 or 2.0")
+    if dtype.hasobject:
+        raise InputDataError(f"{where}: '{key}' holds pickled (object) data, which is "
+                             "never loaded")
+    if any(d < 0 for d in shape):
+        raise InputDataError(f"{where}: '{key}' declares a negative shape {shape}")
+    nbytes = math.prod(shape) * dtype.itemsize
+    if key in _LAYER_RANGES:
+        if dtype.kind != "f":
+            raise InputDataError(f"{where}: '{key}' must be a float array, got dtype {dtype}")
+        if len(shape) != 2:
+            raise InputDataError(f"{where}: '{key}' must be 2-D (ny, nx), got shape {shape}")
+        if max(shape) > MAX_GRID_DIM:
+            raise InputDataError(f"{where}: '{key}' needs 2..{MAX_GRID_DIM} samples per "
+                                 f"side, got {shape}")
+    elif nbytes > _MAX_SMALL_MEMBER_BYTES:
+        raise InputDataError(f"{where}: '{key}' declares {nbytes} bytes (shape {shape}, "
+                             f"dtype {dtype}); at most {_MAX_SMALL_MEMBER_BYTES}")
 
 
 def save_layer_file(path: str | os.PathLike[str], *, height_mm: ArrayLike,
@@ -280,7 +369,11 @@ class LayerFileScene(GridScene):
             ConfigError: missing file.
             InputDataError: invalid content.
         """
-        scene = cls(load_layer_file(path, hardness=hardness), order=order, outside=outside)
+        data = load_layer_file(path, hardness=hardness)
+        try:
+            scene = cls(data, order=order, outside=outside)
+        except InputDataError as err:  # validated data always makes a grid; name the file
+            raise InputDataError(f"{os.fspath(path)}: {err}") from err
         ny, nx = scene.data.height_mm.shape
         log.info("layer file %s: %d x %d samples, extent %s mm, stiffness from %s",
                  os.fspath(path), ny, nx, scene.data.extent_mm, scene.data.stiffness_source)

@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from local_site.render.interpolation import GridLayers, keys_cubic_weights
+from local_site.render.interpolation import MAX_LAYER_ABS, GridLayers, keys_cubic_weights
 from shared.errors import ConfigError, InputDataError
 
 
@@ -159,3 +159,46 @@ def test_the_ghost_padding_equals_the_axis_by_axis_reference_bit_for_bit(
     assert got.shape == (layers, ny + 2, nx + 2) and got.flags.c_contiguous
     assert got.tobytes() == np.ascontiguousarray(want).tobytes()  # -0.0 and 0.0 differ here
     np.testing.assert_array_equal(got[:, 1:-1, 1:-1], values)
+
+
+#: the whole finite range, and the accepted range (so both outcomes are drawn often)
+_ANY_FINITE = (st.floats(allow_nan=False, allow_infinity=False)
+               | st.floats(-MAX_LAYER_ABS, MAX_LAYER_ABS))
+
+
+@settings(max_examples=80, deadline=None)
+@given(values=arrays(np.float64, st.tuples(st.just(1), st.integers(2, 5), st.integers(2, 5)),
+                     elements=_ANY_FINITE),
+       order=st.sampled_from([0, 1, 3]), data=st.data())
+def test_any_finite_grid_is_refused_or_interpolates_finitely_within_its_data(
+        values: np.ndarray, order: int, data: st.DataObject) -> None:
+    # over the WHOLE finite range: a grid is either refused up front or every sample is
+    # finite, the clipped one within the data, and a grid node returns the node's value
+    # (cubic border extrapolation of values near the float limit overflowed to inf -> NaN)
+    if np.abs(values).max() > MAX_LAYER_ABS:
+        with pytest.raises(InputDataError, match="within"):
+            GridLayers(values, x0_mm=0.0, y0_mm=0.0, dx_mm=1.0, dy_mm=1.0)
+        return
+    grid = GridLayers(values, x0_mm=0.0, y0_mm=0.0, dx_mm=1.0, dy_mm=1.0)
+    ny, nx = values.shape[1:]
+    r = data.draw(st.integers(0, ny - 1))
+    c = data.draw(st.integers(0, nx - 1))
+    px = data.draw(st.floats(-2.0, nx + 1.0))
+    py = data.draw(st.floats(-2.0, ny + 1.0))
+    pts = np.array([[float(c), float(r)], [px, py]])
+    raw, _ = grid.sample(pts, order)
+    out, _ = grid.sample(pts, order, clip=True)
+    assert np.isfinite(raw).all() and np.isfinite(out).all()
+    assert values.min() <= out.min() and out.max() <= values.max()
+    assert out[0, 0] == values[0, r, c]
+
+
+@pytest.mark.parametrize("big", [MAX_LAYER_ABS * 1.0001, 1e308, -1.7e308])
+def test_values_near_the_float_limit_are_refused(big: float) -> None:
+    values = np.zeros((1, 4, 4))
+    values[0, 0, 0] = big
+    with pytest.raises(InputDataError, match="within"):
+        GridLayers(values, x0_mm=0.0, y0_mm=0.0, dx_mm=1.0, dy_mm=1.0)
+    values[0, 0, 0] = np.copysign(MAX_LAYER_ABS, big)  # the bound itself is accepted
+    grid = GridLayers(values, x0_mm=0.0, y0_mm=0.0, dx_mm=1.0, dy_mm=1.0)
+    assert np.isfinite(grid.sample(np.array([[0.0, 0.0], [0.4, 0.6]]), 3)[0]).all()
