@@ -107,9 +107,18 @@ class RecordingFirmware(ArrayTacFirmware):
 
     def poll(self, now_s: float) -> list[tuple[int, bytes]]:
         was_safe, faults = self.safe_state, self.faults
-        out = super().poll(now_s)
-        self._note(was_safe, "fault" if self.faults > faults else "watchdog")
+        out = super().poll(now_s)  # (a watchdog trip in it is noted by run_watchdog)
+        if self.faults > faults:
+            self._note(was_safe, "fault")
         return out
+
+    def run_watchdog(self, now_s: float) -> bool:
+        # the emulator runs it before it hands over the frames of a tick, outside poll
+        was_safe = self.safe_state
+        tripped = super().run_watchdog(now_s)
+        if tripped:
+            self._note(was_safe, "watchdog")
+        return tripped
 
     def _note(self, was_safe: bool, reason: str) -> None:
         if self.safe_state and not was_safe:

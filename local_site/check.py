@@ -8,8 +8,12 @@ bounded times (:class:`~shared.device_check.CheckSettings`):
   numbers, so samples the host skipped still count), link errors, position and counts;
   with ``push_s`` the operator is asked to push the platform and the counts must move;
 * the ArrayTac drive board: opens, feedback rate, the safe state is applied, a zero command
-  (all pins retracted) is echoed back, and the link-loss watchdog trips once commands stop
-  (proof that the board's watchdog is armed with the configured timeout).
+  (all pins retracted) is echoed back, and the link-loss watchdog trips once commands stop,
+  after the timeout the command asked for: the trip time is measured on the board's clock
+  (``board_t_us`` of the feedback, wrap-aware) from the feedback echoing the command to the
+  first one showing the trip, and a board still untripped more than two feedback periods
+  past the timeout, or provably tripped more than two periods before it, fails (a board
+  that ignores the command's timeout would otherwise pass).
 
 A probe returns a :class:`~shared.device_check.DeviceCheck`; device errors become its one-line
 message (:func:`shared.device_check.failure_line`), never an exception.
@@ -121,12 +125,16 @@ def check_display(spec: str, settings: CheckSettings | None = None, *,
         spec: display spec (``sim``, ``can://socketcan/can0``, ...).
         settings: time bounds (defaults: :class:`CheckSettings`).
         watchdog_ms: the link-loss watchdog written into the zero command; the probe checks
-            that the board trips it once commands stop.
+            that the board trips it once commands stop, after that long (within two feedback
+            periods; see :func:`_watchdog_timing`).
         **options: backend keyword arguments.
 
     Returns:
         The result; ``ok`` when the board opened, sent feedback, parked, applied the zero
-        command and tripped its watchdog.
+        command and tripped its watchdog after ``watchdog_ms``. Its figures include
+        ``watchdog_trip_ms`` (board clock, from the feedback echoing the zero command to
+        the first feedback seen showing the trip) and ``watchdog_trip_bounds_ms`` (what the
+        feedback proves about the delay from the command's application to the trip).
     """
     cfg = settings or CheckSettings()
     figures: dict[str, Any] = {"watchdog_ms": watchdog_ms}
@@ -150,29 +158,83 @@ def check_display(spec: str, settings: CheckSettings | None = None, *,
             figures["feedback_rate_hz"] = round(rate_hz, 1)
 
             display.safe_state("flat")
-            parked = _wait_feedback(display, lambda fb: fb.safe_state, cfg.read_timeout_s,
-                                    "the safe state")
+            parked, _ = _wait_feedback(display, lambda fb: fb.safe_state, cfg.read_timeout_s,
+                                       "the safe state")
             figures["safe_state_applied"] = parked.safe_state
             applied = display.send_command(0.0)
-            echoed = _wait_feedback(display, lambda fb: fb.seq_echo == applied.seq,
-                                    cfg.read_timeout_s, f"zero command seq {applied.seq}")
+            echoed, before_echo = _wait_feedback(
+                display, lambda fb: fb.seq_echo == applied.seq, cfg.read_timeout_s,
+                f"zero command seq {applied.seq}", previous=parked)
             figures["zero_command_echoed"] = True
             figures["pin_position_max_mm"] = round(float(echoed.position_mm.max()), 4)
-            tripped = _wait_feedback(display, lambda fb: fb.watchdog_tripped,
-                                     watchdog_ms / 1000.0 + cfg.read_timeout_s,
-                                     f"the {watchdog_ms} ms watchdog to trip")
+            if echoed.watchdog_tripped:  # read late: the echo already shows the trip
+                tripped, before_trip = echoed, None
+            else:
+                tripped, before_trip = _wait_feedback(
+                    display, lambda fb: fb.watchdog_tripped,
+                    watchdog_ms / 1000.0 + cfg.read_timeout_s,
+                    f"the {watchdog_ms} ms watchdog to trip", previous=echoed)
             figures["watchdog_tripped"] = tripped.watchdog_tripped
             figures["commands_rejected"] = tripped.commands_rejected
+            period_ms = 1000.0 / rate_hz if rate_hz > 0 else float(watchdog_ms)
+            trip_ms, low_ms, high_ms = _watchdog_timing(before_echo, echoed, before_trip,
+                                                        tripped)
+            figures["watchdog_trip_ms"] = round(trip_ms, 1)
+            figures["watchdog_trip_bounds_ms"] = [round(low_ms, 1), round(high_ms, 1)]
+            slack_ms = 2 * period_ms
+            if low_ms > watchdog_ms + slack_ms:
+                return DeviceCheck(
+                    "display", spec, False,
+                    f"watchdog trips late: asked for {watchdog_ms} ms, the board was still "
+                    f"untripped {low_ms:.0f} ms after it echoed the zero command (tripped "
+                    f"{trip_ms:.0f} ms after the echo); check the firmware's watchdog",
+                    figures)
+            if high_ms < watchdog_ms - slack_ms:
+                return DeviceCheck(
+                    "display", spec, False,
+                    f"watchdog trips early: asked for {watchdog_ms} ms, the board tripped at "
+                    f"most {high_ms:.0f} ms after it applied the zero command; check the "
+                    "firmware's watchdog", figures)
     except TeleTouchError as err:
         return failed_check("display", spec, err, figures)
     return DeviceCheck("display", spec, True,
                        f"{figures['feedback_rate_hz']:.0f} feedback frames/s, safe state and a "
-                       f"zero command applied, {watchdog_ms} ms watchdog trips", figures)
+                       f"zero command applied, the {watchdog_ms} ms watchdog tripped "
+                       f"{figures['watchdog_trip_ms']:.0f} ms after the echo (board clock)",
+                       figures)
+
+
+def _board_dt_ms(later: Any, earlier: Any) -> float:
+    """Board-clock time from ``earlier`` to ``later`` feedback, ms (uint32 us, wraps)."""
+    return ((int(later.board_t_us) - int(earlier.board_t_us)) & 0xFFFFFFFF) / 1000.0
+
+
+def _watchdog_timing(before_echo: Any, echoed: Any, before_trip: Any | None,
+                     tripped: Any) -> tuple[float, float, float]:
+    """The watchdog's trip time, from the board's clock in its feedback.
+
+    The host reads only the latest feedback, so it may skip frames when it runs late; the
+    frames it did read bracket the two instants on the board's clock: the command was
+    applied after ``before_echo`` (its old ``seq_echo``) and by ``echoed``; the watchdog
+    tripped after ``before_trip`` (None: not seen, the echo already showed the trip) and by
+    ``tripped``. Skipped frames only widen the bracket, never move it past the truth.
+
+    Returns:
+        ``(trip_ms, low_ms, high_ms)``: ``tripped`` minus ``echoed`` (the measured time),
+        and the least and the most the delay from application to trip can have been.
+    """
+    trip_ms = _board_dt_ms(tripped, echoed)
+    low_ms = 0.0 if before_trip is None else _board_dt_ms(before_trip, echoed)
+    return trip_ms, low_ms, _board_dt_ms(tripped, before_echo)
 
 
 def _wait_feedback(display: Any, done: Callable[[Any], bool], timeout_s: float,
-                   what: str) -> Any:
+                   what: str, *, previous: Any = None) -> tuple[Any, Any]:
     """Wait for a feedback frame for which ``done`` holds.
+
+    Returns:
+        That frame, and the last frame read before it for which ``done`` did not hold
+        (``previous`` when it was the first one read).
 
     Raises:
         DeviceOperationError: the board kept answering, but never so (within ``timeout_s``).
@@ -195,8 +257,8 @@ def _wait_feedback(display: Any, done: Callable[[Any], bool], timeout_s: float,
             continue  # the loop reports the missing condition
         answered = True
         if done(fb):
-            return fb
-        since_us = fb.t_us
+            return fb, previous
+        previous, since_us = fb, fb.t_us
 
 
 def check_local(platform: str, display: str, settings: CheckSettings | None = None, *,

@@ -9,8 +9,10 @@ latency) and two of its own (``docs/recording.md``):
   scene (``seq``, ``rx_us``);
 * ``/local/pins``: the 16 pins commanded and measured and the safe-state reason, at
   ``record_pins_rate_hz`` while rendering and while in the safe state, and at once on every
-  change between them (in the safe state no command exists: the commanded values are null).
-  The rate is written into the start metadata (``pins_rate_hz``).
+  change between them (in the safe state no command exists: the commanded values are null;
+  the measured values are null while the board's latest feedback is older than
+  :data:`MEASURED_MAX_AGE_S`). The rate is written into the start metadata
+  (``pins_rate_hz``).
 
 :func:`load_recording` reads such a file into :class:`Recording`, the arrays the palpation
 analysis reads: the platform positions sent (``platform_state`` tx) and the tactile frames
@@ -40,7 +42,8 @@ from shared.protocol.tactile_codec import TactileDecoder
 from shared.recording import McapRecorder, McapRecording, RecordingFormatError, read_mcap
 from shared.timebase import now_us
 
-__all__ = ["PinsSampler", "Recording", "SessionRecorder", "load_recording", "recording_from_mcap"]
+__all__ = ["MEASURED_MAX_AGE_S", "PinsSampler", "Recording", "SessionRecorder", "load_recording",
+           "recording_from_mcap"]
 
 log = logging.getLogger(__name__)
 
@@ -48,6 +51,11 @@ log = logging.getLogger(__name__)
 #: one pins sample: (wall-clock us, the command on the pins, the measured positions or None,
 #: the safe-state reason or None)
 PinsSample = tuple[int, Any, Any, "str | None"]
+
+#: the board's measured positions are recorded only while its latest feedback arrived at
+#: most this long before the sample (ten periods of the drive board's 500 Hz feedback, one
+#: period of the default 50 Hz sampling); older ones are not what the pins do now: unknown
+MEASURED_MAX_AGE_S = 0.02
 
 
 class PinsSampler:
@@ -63,21 +71,30 @@ class PinsSampler:
     Offered the state on every display-loop tick (in whichever process the loop runs), it
     returns a sample when one is due: the command then on the pins (or None), the board's
     measured positions and the safe-state reason, with the wall-clock time they were read.
-    A sample is due ``1 / rate_hz`` after the previous one, or at once when the state
-    changed (a new command alone is no change: commands change every frame).
+    The measured positions are None when there is no feedback (not connected, no report
+    yet) or when the latest feedback arrived more than ``measured_max_age_s`` before the
+    sample (a silent board, a link that stopped): a sample never presents old positions as
+    the pins' state at its time. A sample is due ``1 / rate_hz`` after the previous one, or
+    at once when the state changed (a new command alone is no change: commands change every
+    frame).
 
     Args:
         rate_hz: samples per second while the state stays the same (> 0).
+        measured_max_age_s: oldest feedback whose positions are recorded (> 0).
 
     Raises:
-        ConfigError: a rate that is not > 0.
+        ConfigError: a rate or an age that is not > 0.
     """
 
-    def __init__(self, rate_hz: float) -> None:
+    def __init__(self, rate_hz: float, *,
+                 measured_max_age_s: float = MEASURED_MAX_AGE_S) -> None:
         if not rate_hz > 0:
             raise ConfigError(f"pins_rate_hz must be > 0, got {rate_hz}")
+        if not measured_max_age_s > 0:
+            raise ConfigError(f"measured_max_age_s must be > 0, got {measured_max_age_s}")
         self.rate_hz = rate_hz
         self._period_s = 1.0 / rate_hz
+        self._max_age_us = round(measured_max_age_s * 1e6)
         self._next_s = 0.0
         #: (a command is on the pins, safe reason) of the last sample; None: none yet
         self._state: tuple[bool, str | None] | None = None
@@ -95,9 +112,13 @@ class PinsSampler:
         self._next_s = now + self._period_s
         measured = display.latest_feedback() if display.is_connected else None
         # on the wall clock the station's messages are stamped on (shared.timebase: a
-        # display process adopts the station's anchor), so /local/pins lines up with them
-        return (now_us(), commanded, None if measured is None else measured.position_mm,
-                safe_reason)
+        # display process adopts the station's anchor), so /local/pins lines up with them;
+        # the feedback's t_us (its arrival) is on the same clock
+        t_us = now_us()
+        positions = None
+        if measured is not None and t_us - measured.t_us <= self._max_age_us:
+            positions = measured.position_mm
+        return (t_us, commanded, positions, safe_reason)
 
 
 class SessionRecorder:
@@ -161,7 +182,8 @@ class SessionRecorder:
             t_us: when the state was read (wall clock, us).
             commanded: the :class:`~local_site.render.PinCommand` then on the pins, or None
                 (the safe state: recorded as null values).
-            measured_mm: the board's measured pin positions then (None: no feedback).
+            measured_mm: the board's measured pin positions then (None: no feedback, or
+                none recent enough: see :class:`PinsSampler`).
             safe_reason: why the pins were in their safe state (None: rendering).
         """
 

@@ -1,12 +1,16 @@
 """Runs :class:`~local_site.display.firmware.ArrayTacFirmware` in real time on a link.
 
 :class:`FirmwareEmulator` is the drive board's main loop in a thread: on a fixed tick (2 ms
-by default) it applies every frame that arrived since the last tick (the MCU latches new
-commands at its control period), advances the plant and sends the feedback the firmware
-produces. The link is a :class:`FirmwareTransport`: the other end of
-a python-can bus (:class:`CanFirmwareTransport`), of a pty (:class:`PtyFirmwareTransport`) or
-a TCP port the host opens as ``socket://host:port`` (:class:`TcpFirmwareTransport`, the board
-as a process of its own: ``teletouch board``).
+by default) it runs the link-loss watchdog, then applies the frames that arrived since the
+last tick (the MCU latches new commands at its control period; at most
+``max_frames_per_tick``, the rest wait for the next tick), advances the plant and sends the
+feedback the firmware produces. The watchdog runs first so that a tick the thread reached
+late (a starved process) judges the frames that queued meanwhile as a real board's timer
+would: a command arriving after the timeout finds the trip latched and is refused. The link
+is a :class:`FirmwareTransport`: the other end of a python-can bus
+(:class:`CanFirmwareTransport`), of a pty (:class:`PtyFirmwareTransport`) or a TCP port the
+host opens as ``socket://host:port`` (:class:`TcpFirmwareTransport`, the board as a process
+of its own: ``teletouch board``).
 """
 
 from __future__ import annotations
@@ -31,7 +35,7 @@ from local_site.display.serial_framing import (
     LinkFrameDecoder,
     encode_link_frame,
 )
-from shared.errors import DeviceInitError
+from shared.errors import ConfigError, DeviceInitError
 
 __all__ = ["CanFirmwareTransport", "FirmwareEmulator", "FirmwareTransport",
            "PtyFirmwareTransport", "TcpFirmwareTransport"]
@@ -311,13 +315,19 @@ class FirmwareEmulator:
         firmware: the firmware (with its plant).
         transport: the board's end of the link; closed by :meth:`stop`.
         tick_s: plant/watchdog/feedback tick.
+        max_frames_per_tick: frames taken from the link per tick, at most (an MCU's receive
+            FIFO is bounded too); the rest wait in the link for the next tick, so a host
+            flooding the link cannot hold off the board's watchdog and feedback.
     """
 
     def __init__(self, firmware: ArrayTacFirmware, transport: FirmwareTransport, *,
-                 tick_s: float = 0.002) -> None:
+                 tick_s: float = 0.002, max_frames_per_tick: int = 64) -> None:
+        if max_frames_per_tick < 1:
+            raise ConfigError(f"max_frames_per_tick must be >= 1, got {max_frames_per_tick}")
         self.firmware = firmware
         self.transport = transport
         self._tick_s = tick_s
+        self._max_frames = max_frames_per_tick
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()
@@ -360,17 +370,21 @@ class FirmwareEmulator:
         try:
             while not self._stop.is_set():
                 # like the MCU, which latches what arrived at its next control period: the
-                # thread sleeps to the tick and takes every frame that came meanwhile (one
+                # thread sleeps to the tick and takes the frames that came meanwhile (one
                 # wake-up per tick, not one per frame; the feedback and the plant see the
-                # frames exactly when they did before, at that tick)
+                # frames at that tick)
                 wait_s = next_tick - clock()
                 if wait_s > 0:
                     time.sleep(wait_s)
                 now = clock()
-                item = link.recv(0.0)
-                while item is not None:
-                    fw.receive(item[0], item[1], now)
+                # the MCU's timer fires on time whatever waits in its receive FIFO: after a
+                # late tick, a command that queued past the timeout meets the latch (refused)
+                fw.run_watchdog(now)
+                for _ in range(self._max_frames):  # bounded: a flood never starves the tick
                     item = link.recv(0.0)
+                    if item is None:
+                        break
+                    fw.receive(item[0], item[1], now)
                 with self._lock:
                     force, self._finger_force_n = self._finger_force_n, None
                 if force is not None:

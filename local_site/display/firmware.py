@@ -139,18 +139,34 @@ class ArrayTacFirmware:
     def poll(self, now_s: float) -> list[tuple[int, bytes]]:
         """Advance to ``now_s``, run the watchdog, return the frames to send (feedback)."""
         self._advance_to(now_s)
-        if self._last_command_s is not None and not self.safe_state \
-                and now_s - self._last_command_s > self._watchdog_s:
-            self.watchdog_trips += 1
-            log.info("firmware watchdog: no command for %.0f ms -> safe state (%s)",
-                     (now_s - self._last_command_s) * 1e3,
-                     "hold" if self._watchdog_hold else "flat")
-            self._enter_safe(hold=self._watchdog_hold, by_watchdog=True)
+        self.run_watchdog(now_s)
         if now_s < self._next_feedback_s:
             return []
         self._next_feedback_s = max(self._next_feedback_s + self._feedback_period_s,
                                     now_s - self._feedback_period_s)
         return [(fr.ARB_ID_FEEDBACK, fr.encode_feedback(self.feedback_frame(now_s)))]
+
+    def run_watchdog(self, now_s: float) -> bool:
+        """Trip the link-loss watchdog if no command came for longer than its timeout.
+
+        :meth:`poll` runs it. A caller that hands over frames which queued while it was late
+        (the emulator's thread after a late tick) runs it first, at the time it handles
+        them: a real MCU's timer fires on time whatever waits in the receive FIFO, so a
+        command that arrives after the timeout (a frozen host's held one) finds the latch
+        set and is refused, not applied in place of the trip.
+
+        Returns:
+            True when it tripped now.
+        """
+        if self._last_command_s is None or self.safe_state \
+                or now_s - self._last_command_s <= self._watchdog_s:
+            return False
+        self.watchdog_trips += 1
+        log.info("firmware watchdog: no command for %.0f ms -> safe state (%s)",
+                 (now_s - self._last_command_s) * 1e3,
+                 "hold" if self._watchdog_hold else "flat")
+        self._enter_safe(hold=self._watchdog_hold, by_watchdog=True)
+        return True
 
     def feedback_frame(self, now_s: float) -> fr.FeedbackFrame:
         """The feedback frame describing the state at ``now_s``."""

@@ -76,7 +76,8 @@ DERIVED_SCHEMAS: dict[str, dict[str, Any]] = {
     "pins": _obj(
         "teletouch.Pins",
         "The 16 pins of the ArrayTac display: commanded height (mm), stiffness k and "
-        "friction f, and the heights the board measured (null before its first report). "
+        "friction f, and the heights the board measured (null before its first report, and when "
+        "its latest feedback is older than 20 ms). "
         "safe_reason is set while the pins are held in their safe state; no command "
         "exists then: the commanded values are null. Sampled at a fixed rate and at once "
         "on every change between rendering and the safe state.",

@@ -1,6 +1,8 @@
 """``teletouch check local``: the encoder board and drive-board probes, through the CLI as a
 lab runs it (simulated devices pass; a missing serial device and a silent CAN channel fail
-with one line naming the device), and one real subprocess."""
+with one line naming the device), and one real subprocess; a drive board whose watchdog
+ignores the command's timeout (trips late, or early) fails, the trip time measured on the
+board's clock."""
 
 from __future__ import annotations
 
@@ -9,12 +11,14 @@ import os
 import subprocess
 import sys
 import uuid
+from types import SimpleNamespace
 from typing import Any
 
 import pytest
 
 from lab.cli import main
-from local_site.check import check_platform
+from local_site.check import check_display, check_platform
+from local_site.display.firmware import ArrayTacFirmware
 from shared.device_check import CheckSettings
 from tests.support import REPO_ROOT, scaled
 
@@ -52,6 +56,8 @@ def test_sim_devices_pass_with_json_one_entry_per_device(
     assert display["feedback_rate_hz"] > 100.0
     assert display["safe_state_applied"] and display["zero_command_echoed"]
     assert display["watchdog_tripped"] and display["watchdog_ms"] == 100
+    low, high = display["watchdog_trip_bounds_ms"]
+    assert low <= display["watchdog_trip_ms"] <= high and high > 100
 
 
 @pytest.mark.parametrize("watchdog_ms", [1, 15])
@@ -118,3 +124,54 @@ def test_cli_subprocess_json() -> None:
     report = _strict_json(done.stdout)
     assert report["ok"] is True
     assert [report["devices"][d]["ok"] for d in ("platform", "display")] == [True, True]
+
+
+def _board_watchdog(monkeypatch: pytest.MonkeyPatch, timeout_s: float) -> None:
+    """The simulated board arms its watchdog with ``timeout_s``, whatever the command asks."""
+    apply = ArrayTacFirmware._apply_command
+
+    def ignoring_the_frame(self: ArrayTacFirmware, frame: Any, now_s: float) -> None:
+        apply(self, frame, now_s)
+        self._watchdog_s = timeout_s
+
+    monkeypatch.setattr(ArrayTacFirmware, "_apply_command", ignoring_the_frame)
+
+
+def _settings() -> CheckSettings:
+    return CheckSettings(connect_timeout_s=scaled(3.0), read_timeout_s=scaled(1.0),
+                         rate_window_s=0.2)
+
+
+def test_a_board_whose_watchdog_trips_late_fails(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Any trip within watchdog_ms + read_timeout_s passed: a board tripping at 600 ms when
+    asked for 100 ms was reported as "100 ms watchdog trips"."""
+    _board_watchdog(monkeypatch, 0.6)
+    result = check_display("sim", _settings(), watchdog_ms=100)
+    assert not result.ok, result.message
+    assert "watchdog trips late" in result.message
+    assert result.figures["watchdog_tripped"] is True
+    assert result.figures["watchdog_trip_bounds_ms"][0] > 104
+    assert result.figures["watchdog_trip_ms"] >= 550
+
+
+def test_a_board_whose_watchdog_trips_early_fails(monkeypatch: pytest.MonkeyPatch) -> None:
+    _board_watchdog(monkeypatch, 0.01)
+    result = check_display("sim", _settings(), watchdog_ms=300)
+    assert not result.ok, result.message
+    assert "watchdog trips early" in result.message
+    assert result.figures["watchdog_trip_bounds_ms"][1] < 296
+
+
+def test_the_trip_time_is_measured_across_the_board_clock_s_wrap() -> None:
+    from local_site.check import _watchdog_timing
+
+    def fb(board_t_us: int) -> SimpleNamespace:
+        return SimpleNamespace(board_t_us=board_t_us & 0xFFFFFFFF)
+
+    # the uint32 board clock wraps between the echo and the trip
+    trip_ms, low_ms, high_ms = _watchdog_timing(fb(-4_096), fb(-1_000), fb(97_000),
+                                                fb(99_000))
+    assert trip_ms == pytest.approx(100.0)
+    assert low_ms == pytest.approx(98.0) and high_ms == pytest.approx(103.096)
+    # the echo already showed the trip (the host read late): nothing proves it was late
+    assert _watchdog_timing(fb(0), fb(150_000), None, fb(150_000)) == (0.0, 0.0, 150.0)

@@ -1,13 +1,22 @@
-"""The emulated drive-board firmware, sans-I/O, with the real ArrayTac plant."""
+"""The emulated drive-board firmware, sans-I/O, with the real ArrayTac plant; and its
+real-time loop (:class:`FirmwareEmulator`) on a scripted link: a tick the thread reaches late
+runs the watchdog before the frames that queued meanwhile, and a flooding host cannot hold
+off the feedback."""
 
 from __future__ import annotations
+
+import collections
+import threading
+import time
 
 import numpy as np
 import pytest
 
 from local_site.arraytac_sim.plant import ArrayTacPlant
 from local_site.display import frames as fr
+from local_site.display.emulator import FirmwareEmulator, FirmwareTransport
 from local_site.display.firmware import ArrayTacFirmware
+from tests.support import wait_until
 
 TICK_S = 0.002
 
@@ -143,3 +152,84 @@ def test_non_finite_plant_state_degrades_safely() -> None:
     assert feedback[0].status & fr.STATUS_FAULT
     assert all(np.all(np.isfinite(fb.position_mm)) for fb in feedback)
     np.testing.assert_array_equal(fw.targets_mm, 0.0)
+
+
+# ------------------------------------------------------------------ the real-time loop
+
+
+class _ScriptedLink(FirmwareTransport):
+    """The board's end of a link the test drives: frames to deliver, feedback received."""
+
+    def __init__(self) -> None:
+        self.inbox: collections.deque[tuple[int, bytes]] = collections.deque()
+        self.feedback: list[fr.FeedbackFrame] = []
+        self.closed = threading.Event()
+
+    def recv(self, timeout_s: float) -> tuple[int, bytes] | None:
+        return self.inbox.popleft() if self.inbox else None
+
+    def send(self, arb_id: int, payload: bytes) -> None:
+        self.feedback.append(fr.decode_feedback(payload))
+
+    def close(self) -> None:
+        self.closed.set()
+
+
+def test_a_late_tick_runs_the_watchdog_before_the_frames_that_queued_meanwhile() -> None:
+    """The board's thread stalls 150 ms (a starved process) right after a 100 ms-watchdog
+    command, while a frozen host's held command (no RESUME) queues: a real board's timer
+    trips at 100 ms and its latch refuses the held command. The emulator applied the queued
+    frame first, then ran the watchdog: the held command replaced the trip."""
+    stall_s = 0.15
+
+    class StallingLink(_ScriptedLink):
+        stalled = False
+
+        def send(self, arb_id: int, payload: bytes) -> None:
+            super().send(arb_id, payload)
+            if not self.stalled and self.feedback[-1].seq_echo == 1:
+                self.stalled = True
+                time.sleep(stall_s)  # the stall itself (the thread is off the CPU)
+                self.inbox.append((fr.ARB_ID_COMMAND, _command(4.5, 2, watchdog_ms=100)))
+
+    link = StallingLink()
+    link.inbox.append((fr.ARB_ID_COMMAND, _command(2.0, 1, watchdog_ms=100)))
+    fw = ArrayTacFirmware(ArrayTacPlant())
+    with FirmwareEmulator(fw, link):
+        wait_until(lambda: link.stalled and not link.inbox and len(link.feedback) >= 3, 5.0,
+                   "feedback after the stall")
+    after = link.feedback[1]  # the first feedback of the late tick
+    assert after.status & fr.STATUS_WATCHDOG_TRIPPED and after.status & fr.STATUS_SAFE_STATE
+    assert after.seq_echo == 1 and after.status & fr.STATUS_COMMAND_REJECTED
+    assert fw.watchdog_trips == 1 and fw.commands_applied == 1
+    assert fw.commands_refused_latched == 1
+    np.testing.assert_array_equal(fw.targets_mm, 0.0)  # parked flat, not at 4.5 mm
+    assert link.closed.is_set()
+
+
+def test_a_host_flooding_the_link_does_not_hold_off_the_feedback() -> None:
+    """Frames are taken from the link up to a bound per tick: a host that sends faster than
+    the board decodes once kept the loop in its first tick (no feedback, no watchdog)."""
+    flooding = threading.Event()
+    flooding.set()
+    cmd = (fr.ARB_ID_COMMAND, _command(1.0, 7))
+
+    class FloodLink(_ScriptedLink):
+        def recv(self, timeout_s: float) -> tuple[int, bytes] | None:
+            return cmd if flooding.is_set() else None
+
+    link = FloodLink()
+    fw = ArrayTacFirmware(ArrayTacPlant())
+    emulator = FirmwareEmulator(fw, link)
+    try:
+        emulator.start()
+        wait_until(lambda: len(link.feedback) >= 5, 5.0, "feedback during the flood")
+    finally:
+        flooding.clear()  # (unfixed, the thread leaves its first tick only now)
+        emulator.stop()
+    assert emulator.error is None and link.closed.is_set()
+    assert all(f.seq_echo == 7 and not f.status & fr.STATUS_SAFE_STATE for f in link.feedback)
+    assert fw.commands_applied >= 5 and fw.watchdog_trips == 0
+    with pytest.raises(ValueError, match="max_frames_per_tick"):
+        FirmwareEmulator(fw, link, max_frames_per_tick=0)
+

@@ -3,6 +3,8 @@
 * the pins' safe state is recorded (``/local/pins`` with null commanded values), and the
   replay view shows it as such; a pins sample older than 2.5 periods is shown as unknown
   (old recordings have no sample while safe); the report draws no line across such a gap;
+* a pins sample records the measured positions as unknown (null) when the board's latest
+  feedback is stale (a silent board's last positions were recorded as current);
 * a recording's latency stage names and values are checked before the replay view passes
   them on (no markup, no string values that stop every snapshot);
 * a moment of full disk: messages count as written only once flushed, the others as lost;
@@ -97,6 +99,37 @@ def test_the_sampler_records_the_safe_state_at_once_and_at_its_rate() -> None:
     steady = PinsSampler(1e6)  # due at every offer: the safe state keeps being sampled
     assert steady.offer(None, Board(), "stale_scene") is not None
     assert steady.offer(None, Board(), "stale_scene") is not None
+
+
+def test_the_sampler_records_stale_feedback_as_unknown_positions(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The board's last feedback was recorded as the pins' positions however old it was (a
+    silent board: its positions of a second ago recorded as now)."""
+    monkeypatch.setattr("local_site.recording.now_us", lambda: T0)  # a clock standing still
+
+    class Board:
+        is_connected = True
+
+        def __init__(self, age_us: int) -> None:
+            self.feedback = SimpleNamespace(t_us=T0 - age_us, position_mm=np.full(16, 3.0))
+
+        def latest_feedback(self) -> SimpleNamespace:
+            return self.feedback
+
+    def measured(sampler: PinsSampler, age_us: int) -> Any:
+        sample = sampler.offer("command", Board(age_us), None)
+        assert sample is not None and sample[:2] == (T0, "command")
+        return sample[2]
+
+    sampler = PinsSampler(1e6)  # due at every offer
+    np.testing.assert_array_equal(measured(sampler, 0), 3.0)
+    assert measured(sampler, 1_000_000) is None  # silent for 1 s: unknown, not 3 mm
+    # the limit is the sampler's: 20 ms by default (ten periods of the board's 500 Hz)
+    assert measured(sampler, 20_000) is not None
+    assert measured(sampler, 20_001) is None
+    assert measured(PinsSampler(1e6, measured_max_age_s=0.001), 5_000) is None
+    with pytest.raises(ConfigError, match="measured_max_age_s"):
+        PinsSampler(50.0, measured_max_age_s=0.0)
 
 
 def test_a_safe_period_is_recorded_and_replayed_as_the_safe_state(tmp_path: Path) -> None:
@@ -479,7 +512,8 @@ def test_payloads_off_their_schema_are_left_out_counted_or_refused_clearly(
     assert s["latency_malformed_values"] == 2
     lat = s["latency_ms"]["/local/latency tactile_frame"]
     assert lat["relay_in_to_relay_out"]["count"] == 1 and lat["end_to_end"]["count"] == 2
-    assert "2 malformed values (not a number) left out" in format_summary(s)
+    assert "2 malformed values (not a number, or a message not a JSON object) left out" \
+        in format_summary(s)
     with pytest.raises(RecordingFormatError, match="frame_accepted message without integer"):
         load_recording(path)  # raised ValueError before
     pytest.importorskip("matplotlib")
