@@ -16,6 +16,7 @@ from local_site.arraytac_sim.plant import ArrayTacPlant
 from local_site.display import frames as fr
 from local_site.display.emulator import FirmwareEmulator, FirmwareTransport
 from local_site.display.firmware import ArrayTacFirmware
+from shared.errors import ConfigError
 from tests.support import wait_until
 
 TICK_S = 0.002
@@ -230,6 +231,6 @@ def test_a_host_flooding_the_link_does_not_hold_off_the_feedback() -> None:
     assert emulator.error is None and link.closed.is_set()
     assert all(f.seq_echo == 7 and not f.status & fr.STATUS_SAFE_STATE for f in link.feedback)
     assert fw.commands_applied >= 5 and fw.watchdog_trips == 0
-    with pytest.raises(ValueError, match="max_frames_per_tick"):
+    with pytest.raises(ConfigError, match="max_frames_per_tick"):
         FirmwareEmulator(fw, link, max_frames_per_tick=0)
 
