@@ -12,7 +12,15 @@ from shared.errors import ConfigError
 from shared.loop_watchdog import check_hang_timeout
 from shared.protocol.codec import DEFAULT_MAX_MESSAGE_BYTES
 
-__all__ = ["RelayConfig"]
+__all__ = ["MIN_PING_INTERVAL_S", "MIN_SECRET_CHARS", "PLACEHOLDER_SECRETS", "RelayConfig"]
+
+#: the shortest secret accepted: a short one (or ``secret = ""``, which a template's empty
+#: placeholder leaves) lets anyone who guesses it mint tokens for every session and role
+MIN_SECRET_CHARS = 32
+#: the placeholders of the example files (``deploy/teletouch.env.example``): never a secret
+PLACEHOLDER_SECRETS = frozenset({"change-me-to-64-hex-chars"})
+#: the shortest ``ping_interval_s`` / ``stats_interval_s``: shorter spins the relay's loop
+MIN_PING_INTERVAL_S = 0.01
 
 
 @dataclass(frozen=True)
@@ -26,6 +34,8 @@ class RelayConfig:
             ``port`` is 0); 0 = any free port.
         secret: shared secret for HMAC-derived tokens
             (``token = hex(HMAC-SHA256(secret, session_id))``); None = no derived tokens.
+            At least :data:`MIN_SECRET_CHARS` (32) characters, and not the example file's
+            placeholder (``python3 -c "import secrets; print(secrets.token_hex(32))"``).
         tokens: explicit session id -> token table (wins over the secret for that session).
         token_file: TOML file with a ``[tokens]`` table (session -> token), merged into
             ``tokens``.
@@ -43,10 +53,12 @@ class RelayConfig:
         view: serve the live view to the sessions' observers on ``HOST:PORT`` (a listener
             of its own; a browser needs the session id and an observer token); empty: off.
         hello_timeout_s: a client must send a valid ``hello`` within this time.
-        ping_interval_s: period of ``clock_ping`` to every station after the initial burst.
+        ping_interval_s: period of ``clock_ping`` to every station after the initial burst
+            (at least 10 ms).
         ping_burst: number of ``clock_ping`` sent right after ``welcome``.
         ping_burst_spacing_s: spacing of the burst pings.
-        stats_interval_s: period of the ``stats`` push to every connected peer.
+        stats_interval_s: period of the ``stats`` push to every connected peer (at least
+            10 ms).
         silence_timeout_s: a station that sends nothing (it answers every ping) for this long
             is closed (``silent``/4005), freeing its role; a dead or blackholed connection
             would otherwise hold it until TCP gives up, minutes later.
@@ -145,6 +157,12 @@ class RelayConfig:
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ConfigError(f"relay.{name} must be > 0")
+        for name in ("ping_interval_s", "stats_interval_s"):  # each sends to every station
+            if not getattr(self, name) >= MIN_PING_INTERVAL_S:
+                raise ConfigError(f"relay.{name} must be at least {MIN_PING_INTERVAL_S:g} s "
+                                  f"(got {getattr(self, name):g} s): a shorter period keeps "
+                                  "the relay busy sending to every station")
+        self._check_secret()
         if self.port != 0 and self.tcp_port == self.port:
             raise ConfigError(f"relay.tcp_port={self.tcp_port} is relay.port: the TCP listener "
                               "needs a port of its own (or leave relay.tcp_port unset: port + 1)")
@@ -182,6 +200,24 @@ class RelayConfig:
         for session, token in self.tokens.items():
             if not isinstance(session, str) or not isinstance(token, str) or not token:
                 raise ConfigError("relay.tokens must map session ids to non-empty strings")
+
+    def _check_secret(self) -> None:
+        """A secret that makes tokens forgeable is refused (the message never shows it)."""
+        secret = self.secret
+        if secret is None:
+            return
+        if not isinstance(secret, str):
+            raise ConfigError("relay.secret must be a string")
+        if secret.strip() in PLACEHOLDER_SECRETS:
+            raise ConfigError("relay.secret is the example file's placeholder: generate one "
+                              "with python3 -c \"import secrets; print(secrets.token_hex(32))\"")
+        if len(secret.strip()) < MIN_SECRET_CHARS:
+            what = "empty" if not secret.strip() else f"{len(secret.strip())} characters long"
+            raise ConfigError(
+                f"relay.secret is {what}: at least {MIN_SECRET_CHARS} characters are needed "
+                "(anyone who can guess it can make tokens for every session; leave it unset "
+                "for no derived tokens, or generate one with python3 -c \"import secrets; "
+                "print(secrets.token_hex(32))\")")
 
     def check_nats_ca_file(self) -> None:
         """Load ``nats_ca_file`` as the cluster link will (a file is read where the relay

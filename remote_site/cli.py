@@ -24,7 +24,21 @@ from __future__ import annotations
 
 import argparse
 
-__all__ = ["configure_parser", "parse_fiducials", "run"]
+__all__ = ["check_duration", "configure_parser", "parse_fiducials", "run"]
+
+
+def check_duration(duration_s: float | None) -> None:
+    """``--duration``: None (until stopped) or a finite number of seconds > 0.
+
+    Raises:
+        ConfigError: naming ``--duration``.
+    """
+    import math
+
+    from shared.errors import ConfigError
+
+    if duration_s is not None and not (math.isfinite(duration_s) and duration_s > 0):
+        raise ConfigError(f"--duration must be a finite number of seconds > 0, got {duration_s}")
 
 
 def parse_fiducials(text: str | None) -> tuple[tuple[float, float], ...]:
@@ -137,6 +151,7 @@ def run(args: argparse.Namespace) -> int:
     from remote_site.agent.app import AgentOptions, run_agent
     from shared.report import StatusLine, emit, to_jsonable
 
+    check_duration(args.duration)  # before the arm and the sensor open, not after
     options = AgentOptions(
         relay=args.relay, session=args.session, token=args.token, name=args.name,
         ca_file=args.ca_file,

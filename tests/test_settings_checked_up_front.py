@@ -133,3 +133,64 @@ def test_the_remote_station_refuses_it_before_anything_opens(
                  "--sensor", "sim", "--phantom", "severity", "--seed", "2", "--ideal"]) == 1
     assert any(said in r.getMessage() for r in caplog.records), caplog.records
     assert opened == []
+
+
+@pytest.mark.parametrize(("settings", "message"), [
+    # 100 meant as milliseconds: the pins would hold a touch 100 s after the link died
+    ({"link_loss_timeout_s": 100.0}, r"link_loss_timeout_s \(100 s\) must be <= 5 s: it "
+                                     r"bounds how long the pins may hold a touch"),
+    ({"stale_frame_timeout_s": 1e6}, r"stale_frame_timeout_s \(1e\+06 s\) must be <= 5 s"),
+    ({"max_frame_age_s": 1e6}, r"max_frame_age_s \(1e\+06 s\) must be <= 5 s"),
+    ({"max_frame_age_s": 5.01}, r"max_frame_age_s \(5\.01 s\) must be <= 5 s"),
+    ({"max_offset_uncertainty_s": 1e6}, r"max_offset_uncertainty_s \(1e\+06 s\) must be < "
+                                        r"local\.agent\.max_frame_age_s \(0\.15 s\)"),
+])
+def test_local_safety_timeouts_beyond_any_meaning_are_refused(settings: dict[str, Any],
+                                                              message: str) -> None:
+    with pytest.raises(ConfigError, match=r"^local\.agent\." + message):
+        LocalAgentConfig(**settings)
+    env = {f"TELETOUCH_LOCAL_AGENT_{k.upper()}": str(v) for k, v in settings.items()}
+    with pytest.raises(ConfigError, match=r"^local\.agent\." + message):
+        resolve_config(LocalAgentConfig, "local.agent", environ=env)
+
+
+def test_local_safety_timeouts_at_their_bound_pass() -> None:
+    LocalAgentConfig(link_loss_timeout_s=5.0, stale_frame_timeout_s=5.0, max_frame_age_s=5.0)
+    LocalAgentConfig(max_offset_uncertainty_s=0.149)
+
+
+def test_a_remote_link_loss_halt_beyond_any_meaning_is_refused() -> None:
+    with pytest.raises(ConfigError, match=r"^remote\.agent\.link_loss_halt_ms \(100000\) must "
+                                          r"be <= 5000"):
+        RemoteAgentConfig(link_loss_halt_ms=100_000.0)
+    RemoteAgentConfig(link_loss_halt_ms=5000.0)
+
+
+@pytest.mark.parametrize(("argv", "said"), [
+    # before: refused only once the arm and the sensor had been opened (the station's run)
+    (["--duration", "nan"], "--duration must be a finite number of seconds > 0, got nan"),
+    (["--duration", "-1"], "--duration must be a finite number of seconds > 0, got -1.0"),
+    (["--duration", "inf"], "--duration must be a finite number of seconds > 0, got inf"),
+    # a hello the relay refuses at every attempt, retried for ever
+    (["--session", "lab 1"], "session 'lab 1' is not a session id"),
+    (["--relay", "ws://u:hunter2@127.0.0.1:9/"], "holds user information"),
+])
+def test_a_remote_command_line_that_cannot_work_is_refused_before_anything_opens(
+        argv: list[str], said: str, caplog: pytest.LogCaptureFixture,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    from lab.cli import main
+
+    opened: list[object] = []
+    monkeypatch.setattr("remote_site.agent.app.open_world",
+                        lambda *args, **kwargs: opened.append(args))  # the first device opened
+    monkeypatch.setattr("remote_site.agent.app.open_world_arm",
+                        lambda *args, **kwargs: opened.append(args))
+    monkeypatch.setenv("TELETOUCH_REMOTE_LINK_TOKEN", "x")
+    base = {"--relay": "tcp://127.0.0.1:9", "--session": "s1"}
+    base.update(dict(zip(argv[::2], argv[1::2], strict=True)))
+    args = [item for pair in base.items() for item in pair]
+    assert main(["remote", *args, "--arm", "sim", "--sensor", "sim", "--phantom", "severity",
+                 "--seed", "2", "--ideal"]) == 1
+    assert any(said in r.getMessage() for r in caplog.records), caplog.records
+    assert not any("hunter2" in r.getMessage() for r in caplog.records)
+    assert opened == []

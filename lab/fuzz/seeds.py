@@ -33,7 +33,7 @@ __all__ = ["FUZZ_SECRET", "SESSIONS", "hello_for", "sample_messages", "seed_mess
            "seed_scripts"]
 
 #: the relay secret of the fuzz harnesses (tokens in the seeds are derived from it)
-FUZZ_SECRET = "fuzz-secret"
+FUZZ_SECRET = "fuzz-secret-0123456789abcdef0123456789"
 #: session ids used by the seeds (two, so cross-session isolation is exercised)
 SESSIONS = ("s1", "s2")
 _FAR_FUTURE_S = 4_000_000_000  # a v2 token expiry in 2096

@@ -18,7 +18,13 @@ from shared.config import check_count, check_positive
 from shared.errors import ConfigError
 from shared.loop_watchdog import check_hang_timeout
 
-__all__ = ["RENDER_LOOP_MODES", "SAFE_STATE_MODES", "LocalAgentConfig"]
+__all__ = ["MAX_SAFETY_TIMEOUT_S", "RENDER_LOOP_MODES", "SAFE_STATE_MODES", "LocalAgentConfig"]
+
+#: the longest link-loss, stale-frame and frame-age bound (docs/safety.md: the pins safe
+#: within 100 ms of the last valid input by default): beyond it, a rule that puts the pins in
+#: their safe state no longer acts in any meaningful time (``100`` meant as milliseconds
+#: would hold a touch 100 s after the link died)
+MAX_SAFETY_TIMEOUT_S = 5.0
 
 SAFE_STATE_MODES = ("flat", "hold")
 #: where the display loop runs: a dedicated thread (default, by measurement) or an asyncio task
@@ -39,12 +45,14 @@ class LocalAgentConfig:
         scene: a local scene (shape name or ``.npz`` layer file) to run without a relay;
             empty: render the remote tactile stream from the relay.
         safe_state: display safe state on link loss / stale scene / lost platform.
-        link_loss_timeout_s: link down longer than this puts the display in its safe state.
+        link_loss_timeout_s: link down longer than this puts the display in its safe state
+            (at most :data:`MAX_SAFETY_TIMEOUT_S`, 5 s, as the next two).
         stale_frame_timeout_s: no tactile frame for this long (while linked) does the same.
         max_frame_age_s: a tactile frame that may be older than this by its own capture
             stamp (clock-corrected with the relay's offsets, their error bound included) is
             never rendered; the pins go to their safe state instead.
-        max_offset_uncertainty_s: frames are not rendered while that error bound is wider.
+        max_offset_uncertainty_s: frames are not rendered while that error bound is wider
+            (below ``max_frame_age_s``: a bound as wide refuses every frame as stale).
         platform_send_rate_hz: platform_state messages per second to the relay (at most).
         render_rate_hz: display loop rate (the array refresh; 1 kHz by default; its ticks
             send the board's keepalive, so at least two ticks within display_watchdog_ms).
@@ -212,6 +220,17 @@ class LocalAgentConfig:
                     "status_interval_s")
         for name in positive:
             check_positive(f"local.agent.{name}", getattr(self, name))
+        for name in ("link_loss_timeout_s", "stale_frame_timeout_s", "max_frame_age_s"):
+            if not getattr(self, name) <= MAX_SAFETY_TIMEOUT_S:
+                raise ConfigError(
+                    f"local.agent.{name} ({getattr(self, name):g} s) must be <= "
+                    f"{MAX_SAFETY_TIMEOUT_S:g} s: it bounds how long the pins may hold a touch "
+                    "that is no longer valid (docs/safety.md; a value in ms?)")
+        if not self.max_offset_uncertainty_s < self.max_frame_age_s:
+            raise ConfigError(
+                f"local.agent.max_offset_uncertainty_s ({self.max_offset_uncertainty_s:g} s) "
+                f"must be < local.agent.max_frame_age_s ({self.max_frame_age_s:g} s): a frame "
+                "whose age is that uncertain is refused as stale anyway")
         if not 1.0 <= self.render_rate_hz <= 10_000.0:
             raise ConfigError("local.agent.render_rate_hz must lie in [1, 10000]")
         if not 1.0 <= self.platform_send_rate_hz <= 10_000.0:

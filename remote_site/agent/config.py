@@ -28,7 +28,8 @@ class RemoteAgentConfig:
         arm_poll_hz: rate of the arm monitor (safety poll, stiffness samples, link check).
         arm_state_hz: rate of ``arm_state`` messages to the local station (at most
             ``arm_poll_hz``: each carries one poll's reading).
-        link_loss_halt_ms: the arm is halted when the link has been down this long.
+        link_loss_halt_ms: the arm is halted when the link has been down this long (at most
+            5000 ms).
         watchdog_period_s: period of the safety watchdog thread (command timeout, force
             limit), independent of the event loop.
         sensor_max_age_ms: a sensor frame older than this is refused (aged from its image's
@@ -123,6 +124,10 @@ class RemoteAgentConfig:
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
                 raise ConfigError(f"remote.agent.{name} must be finite and > 0, got {value!r}")
+        if not self.link_loss_halt_ms <= 5000.0:  # docs/safety.md: halted within 100 ms
+            raise ConfigError(f"remote.agent.link_loss_halt_ms ({self.link_loss_halt_ms:g}) "
+                              "must be <= 5000: the arm must be halted soon after the link "
+                              "is lost (docs/safety.md)")
         if not (math.isfinite(self.pose_wait_max_ms) and 0.0 <= self.pose_wait_max_ms <= 1000.0):
             raise ConfigError("remote.agent.pose_wait_max_ms must lie in [0, 1000], got "
                               f"{self.pose_wait_max_ms!r}")

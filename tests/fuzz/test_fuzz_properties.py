@@ -16,7 +16,7 @@ from lab.fuzz.engine import seeds_for
 from lab.fuzz.mutate import mutate_message
 from lab.fuzz.registry import TARGETS
 from lab.fuzz.script import Kind, Op, dump, parse
-from lab.fuzz.seeds import hello_for, seed_messages
+from lab.fuzz.seeds import FUZZ_SECRET, hello_for, seed_messages
 from lab.fuzz.sessions import PEER_SETTINGS, PeerModel, _client_decode, _peer_events
 from lab.fuzz.targets import reference_deframe
 from relay_server.auth import TokenAuthority
@@ -122,7 +122,7 @@ class OneRelayConnection(RuleBasedStateMachine):
     def __init__(self) -> None:
         super().__init__()
         self.now = 1_700_000_000_000_000
-        auth = TokenAuthority({}, "fuzz-secret")
+        auth = TokenAuthority({}, FUZZ_SECRET)
         self.ps = PeerSession("ws", PEER_SETTINGS, self.now, Counter())
         self.model = PeerModel("ws", PEER_SETTINGS.ordered_queue_len, auth, self.now)
 

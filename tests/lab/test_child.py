@@ -11,7 +11,7 @@ from pathlib import Path
 from lab.child import module_argv
 from tests.support import scaled
 
-TOKEN_ARGS = ["relay", "--print-token", "s1", "--secret", "k"]
+TOKEN_ARGS = ["relay", "--print-token", "s1", "--secret", "k" * 32]
 
 
 def _decoys(where: Path) -> None:

@@ -30,7 +30,7 @@ from shared.recording import McapRecording, RecordingFormatError, read_mcap
 from tests.shared.test_mcap_independent import check_mcap, node_for_check
 from tests.support import free_tcp_port, scaled, teletouch_cmd, wait_until
 
-SECRET = "rec-secret"
+SECRET = "rec-secret-0123456789abcdef0123456789"
 SESSION = "rec"
 MOTION = ("raster:x0=24,x1=36,y0=24,y1=36,spacing=3,speed=20,z=10,press_depth=0,"
           "press_every=0,pause=0,loop=1")

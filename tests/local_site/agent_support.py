@@ -88,7 +88,7 @@ def relay_agent(url: str, tmp_path: Path | None = None, **overrides: Any) -> Loc
     # frames made in this process are young unless the machine is loaded: the age bound is
     # the subject of tests/local_site/test_display_loop_age.py, not of these
     settings: dict[str, Any] = dict(motion="hold:x=30,y=30,z=100", status_interval_s=0.25,
-                                    max_frame_age_s=scaled(0.5))
+                                    max_frame_age_s=min(scaled(0.5), 5.0))  # 5 s: the most allowed
     settings.update(overrides)
     link = StationLinkConfig(url=url, session=SESSION, token=TOKEN, reconnect_min_s=0.05,
                              reconnect_max_s=0.3)

@@ -131,8 +131,8 @@ async def test_bad_frames_are_rejected_without_touching_the_pins() -> None:
     async with running_relay() as relay:
         url = f"ws://127.0.0.1:{relay.ws_port}/"
         # every timeout that would put the pins safe long: a stall of the machine must not
-        # look like a change the bad frames made
-        agent = relay_agent(url, stale_frame_timeout_s=30.0, max_frame_age_s=30.0,
+        # look like a change the bad frames made (5 s: the longest the settings allow)
+        agent = relay_agent(url, stale_frame_timeout_s=5.0, max_frame_age_s=5.0,
                             platform_read_timeout_s=10.0, platform_reopen_after_s=10.0)
         run = asyncio.create_task(agent.run())
         try:
@@ -226,7 +226,7 @@ async def test_compact_frames_render_only_once_their_key_frame_arrived() -> None
         remote = StationLink(url, session=SESSION, role="remote", token=TOKEN)
         remote.start()
         await remote.wait_connected(timeout_s=scaled(10.0))
-        agent = relay_agent(url, stale_frame_timeout_s=30.0)
+        agent = relay_agent(url, stale_frame_timeout_s=5.0)  # the longest allowed
         run = asyncio.create_task(agent.run())
         try:
             await wait_for(lambda: agent.loop is not None and agent.link is not None

@@ -246,9 +246,10 @@ async def test_bad_frames_are_rejected_in_the_child_without_touching_the_pins() 
     # platform_lost) mid-test; the child takes a station silent for about 140 ms as a lost
     # link, and the board's watchdog trips after 100 ms without a command (a stall of the
     # machine does either): what is tested is that bad frames leave the pins as they are
-    async with _station(3.0, stale_frame_timeout_s=30.0, max_frame_age_s=30.0,
+    # (5 s: the longest the settings allow, local_site.agent.config.MAX_SAFETY_TIMEOUT_S)
+    async with _station(3.0, stale_frame_timeout_s=5.0, max_frame_age_s=5.0,
                         platform_read_timeout_s=5.0, platform_reopen_after_s=5.0,
-                        link_loss_timeout_s=30.0,
+                        link_loss_timeout_s=5.0,
                         display_watchdog_ms=5_000) as (agent, loop, remote):
         remote.paused = True
         await asyncio.sleep(scaled(0.2))  # frames in flight arrive, reports too

@@ -16,7 +16,7 @@ from shared.protocol import ClockPing, ClockPong, Hello, Message, ProtocolConnec
 from shared.timebase import now_us
 from tests.support import scaled
 
-SECRET = "test-secret"
+SECRET = "test-secret-0123456789abcdef0123456789"
 
 
 class Closed(Exception):

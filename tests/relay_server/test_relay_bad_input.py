@@ -12,7 +12,7 @@ import pytest
 
 from relay_server.server import RelayServer
 from shared.protocol import ArmCommand, Hello, PlatformState, TactileFrame, encode
-from tests.relay_server.relay_clients import Client, clients, running_relay
+from tests.relay_server.relay_clients import SECRET, Client, clients, running_relay
 from tests.support import scaled
 
 
@@ -85,7 +85,7 @@ async def test_auth_role_taken_and_hello_timeout(kind: str) -> None:
                  (second, "role_taken", 4002, None)]
         for client, code, close_code, token in cases:
             from relay_server.auth import derive_token
-            tok = derive_token("test-secret", "s") if token is None else token
+            tok = derive_token(SECRET, "s") if token is None else token
             await client.send(Hello(role="local", session="s", token=tok))
             err = await client.expect("error")
             assert (err.code, err.fatal) == (code, True)

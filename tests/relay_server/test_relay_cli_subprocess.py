@@ -36,7 +36,7 @@ async def test_teletouch_relay_subprocess() -> None:
     port, tcp_port = free_tcp_port(), free_tcp_port()
     exe = shutil.which("teletouch")
     cmd = [exe] if exe else [sys.executable, "-m", "lab.cli"]
-    env = dict(os.environ, TELETOUCH_RELAY_SECRET="cli-secret")
+    env = dict(os.environ, TELETOUCH_RELAY_SECRET="cli-secret-0123456789abcdef0123456789")
     proc = await asyncio.create_subprocess_exec(
         *cmd, "relay", "--host", "127.0.0.1", "--port", str(port), "--tcp-port", str(tcp_port),
         env=env, stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.PIPE)
@@ -55,7 +55,7 @@ async def test_teletouch_relay_subprocess() -> None:
         assert lock == {"locked": refusal is None, "reason": refusal}
         if refusal is None:
             assert locked_kib(proc.pid) > 0
-        token = derive_token("cli-secret", "demo")
+        token = derive_token("cli-secret-0123456789abcdef0123456789", "demo")
         conn = ProtocolConnection("ws")
         async with connect(f"ws://127.0.0.1:{port}") as local, \
                 connect(f"ws://127.0.0.1:{port}") as remote, \

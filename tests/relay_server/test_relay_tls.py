@@ -101,7 +101,7 @@ async def test_bad_tls_settings_are_config_errors(lab_pki: dict[str, Path],
     with pytest.raises(ConfigError, match="together"):
         RelayConfig(tls_cert=lab_pki["relay.crt"])
     with pytest.raises(ConfigError, match="TLS certificate"):
-        RelayServer(RelayConfig(secret="x", tls_cert=lab_pki["relay.crt"],
+        RelayServer(RelayConfig(secret="x" * 32, tls_cert=lab_pki["relay.crt"],
                                 tls_key=lab_pki["ca.crt"]))
     missing = tmp_path / "nope.pem"
     with pytest.raises(ConfigError, match="CA file"):

@@ -89,7 +89,7 @@ async def test_relay_refuses_wrong_role_and_expired_tokens_with_auth_4001(
 
 def test_print_token_with_role_and_ttl() -> None:
     def run(*args: str) -> str:
-        out = subprocess.run([sys.executable, "-m", "lab.cli", "relay", "--secret", "k",
+        out = subprocess.run([sys.executable, "-m", "lab.cli", "relay", "--secret", "k" * 32,
                               "--print-token", "lab1", *args], capture_output=True,
                              text=True, check=True)
         return out.stdout.strip()
@@ -99,5 +99,5 @@ def test_print_token_with_role_and_ttl() -> None:
     version, role, expiry, _ = tok.split(".")
     assert (version, role) == ("v2", "remote")
     assert before + 60 <= int(expiry) <= int(time.time()) + 60
-    TokenAuthority({}, "k").check("lab1", tok, "remote")
-    assert run() == derive_token("k", "lab1")
+    TokenAuthority({}, "k" * 32).check("lab1", tok, "remote")
+    assert run() == derive_token("k" * 32, "lab1")

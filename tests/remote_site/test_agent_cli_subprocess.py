@@ -48,8 +48,9 @@ async def test_relay_and_remote_as_processes(tmp_path: Path) -> None:
     cmd = teletouch_cmd()
     port, tcp_port = free_tcp_port(), free_tcp_port()
     relay_notify, remote_notify = NotifySocket(), NotifySocket()  # closed in the finally
-    env = dict(os.environ, TELETOUCH_RELAY_SECRET="sub-secret", **relay_notify.env(200_000))
-    token = derive_token("sub-secret", SESSION)
+    secret = "sub-secret-0123456789abcdef0123456789"  # 32 characters at least
+    env = dict(os.environ, TELETOUCH_RELAY_SECRET=secret, **relay_notify.env(200_000))
+    token = derive_token(secret, SESSION)
     relay = await asyncio.create_subprocess_exec(
         *cmd, "relay", "--host", "127.0.0.1", "--port", str(port), "--tcp-port", str(tcp_port),
         "--stats-interval-s", "0.2", env=env, stdout=asyncio.subprocess.DEVNULL,

@@ -243,8 +243,8 @@ async def _run_session(video: Path, calib: Path, summary_path: Path, n_presses: 
     """Relay and remote as processes, the test as the local station; the frames received."""
     cmd = teletouch_cmd()
     port = free_tcp_port()
-    env = dict(os.environ, TELETOUCH_RELAY_SECRET="video-secret")
-    token = derive_token("video-secret", SESSION)
+    env = dict(os.environ, TELETOUCH_RELAY_SECRET="video-secret-0123456789abcdef0123456789")
+    token = derive_token("video-secret-0123456789abcdef0123456789", SESSION)
     # the raw TCP listener on any free port: port + 1, the default, may be in use
     relay = await asyncio.create_subprocess_exec(
         *cmd, "relay", "--host", "127.0.0.1", "--port", str(port), "--tcp-port", "0", env=env,

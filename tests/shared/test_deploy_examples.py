@@ -95,6 +95,14 @@ def test_environment_file_names_real_settings() -> None:
             env[key.strip()] = value.strip()
     assert set(env) == {"TELETOUCH_RELAY_SECRET", "TELETOUCH_LOCAL_LINK_TOKEN",
                         "TELETOUCH_REMOTE_LINK_TOKEN"}
+    from shared.errors import ConfigError
+
+    # the placeholder is refused by name (tokens made with it would be forgeable), never shown
+    with pytest.raises(ConfigError, match=r"relay\.secret is the example file's placeholder") \
+            as refused:
+        resolve_config(RelayConfig, "relay", environ=env)
+    assert env["TELETOUCH_RELAY_SECRET"] not in str(refused.value)
+    env["TELETOUCH_RELAY_SECRET"] = "0f" * 32  # what the comment's command prints
     relay = resolve_config(RelayConfig, "relay", environ=env)
     assert relay.secret == env["TELETOUCH_RELAY_SECRET"]
     for role in ("local", "remote"):
