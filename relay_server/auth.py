@@ -119,7 +119,7 @@ class TokenAuthority:
             raise ConfigError("allow_legacy_tokens = false needs a secret for version-2 tokens")
 
     def check(self, session_id: str, token: str, role: str | None = None,
-              now_s: float | None = None) -> None:
+              now_s: float | None = None, *, legacy: bool = True) -> int | None:
         """Accept or refuse ``token`` for ``session_id`` and ``role``.
 
         Args:
@@ -127,6 +127,13 @@ class TokenAuthority:
             token: the token presented (never logged, never put in an error message).
             role: the role asked for; a version-2 token must name it.
             now_s: Unix time for the expiry check (default: now).
+            legacy: False: refuse legacy tokens here even where the relay accepts them
+                (they name no role: the observers' live view wants an observer token).
+
+        Returns:
+            The token's expiry (Unix time, s): a version-2 token stops being valid then,
+            and whoever keeps a connection open on it must check again. None: no expiry
+            (a legacy token, or ``allow_any``).
 
         Raises:
             AuthError: the token is missing, wrong, for another role, expired, or a
@@ -134,12 +141,15 @@ class TokenAuthority:
                 sessions and wrong tokens, so a client learns nothing about which exist).
         """
         if self._allow_any:
-            return
+            return None
         if not token:
             raise AuthError(f"missing token for session {session_id!r}")
         if token.startswith(_V2 + "."):
-            self._check_v2(session_id, token, role, time.time() if now_s is None else now_s)
-            return
+            return self._check_v2(session_id, token, role,
+                                  time.time() if now_s is None else now_s)
+        if not legacy:
+            raise AuthError(f"legacy token refused for session {session_id!r}: it names no "
+                            f"role; this needs a v2 {role or 'role'} token")
         if not self._allow_legacy:
             raise AuthError(f"legacy token refused for session {session_id!r}: this relay "
                             "accepts only v2 tokens (session, role and expiry)")
@@ -148,8 +158,9 @@ class TokenAuthority:
             expected = derive_token(self._secret, session_id)
         if expected is None or not hmac.compare_digest(expected.encode(), token.encode()):
             raise AuthError(f"wrong token for session {session_id!r}")
+        return None
 
-    def _check_v2(self, session_id: str, token: str, role: str | None, now_s: float) -> None:
+    def _check_v2(self, session_id: str, token: str, role: str | None, now_s: float) -> int:
         parts = token.split(".")
         # isdigit() alone admits "²" or "٣", which int() refuses or reads: ASCII digits only
         if (self._secret is None or len(parts) != 4 or not parts[2].isascii()
@@ -168,3 +179,4 @@ class TokenAuthority:
         if now_s > expiry_s:
             raise AuthError(f"the token for session {session_id!r} ({token_role}) expired "
                             f"at {expiry_s} (Unix time); ask for a new one")
+        return expiry_s

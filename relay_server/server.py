@@ -212,8 +212,10 @@ class RelayServer:
         """Serve the observers' live view (session + observer token per browser)."""
         hub = RelayViewHub()
 
-        def check(session: str, token: str) -> None:
-            self.auth.check(session, token, "observer")
+        def check(session: str, token: str) -> int | None:
+            # a v2 observer token only: a legacy token names no role (a station's would
+            # open the view); its expiry closes the browser when it passes
+            return self.auth.check(session, token, "observer", legacy=False)
 
         server = ViewServer(None, ViewServerConfig(), source_for=hub.source,
                             authorize=token_authorizer(check, (AuthError,)))
@@ -286,6 +288,12 @@ class RelayServer:
         return doc
 
     def _process_http(self, connection: _Responder, request: Request) -> Response | None:
+        # a single-valued header given twice (Authorization) is a client's mistake: 400,
+        # never an exception out of here (a 500 and a traceback per request)
+        if len(request.headers.get_all("Authorization")) > 1:
+            self.counters["http_bad_request"] += 1
+            return _http_response(connection, 400, "Tele-Touch relay: bad request\n",
+                                  "text/plain; charset=utf-8")
         path = request.path.split("?", 1)[0]
         if path == HEALTH_PATH:  # liveness for a container's probe: no token, no figures
             connection.quiet()  # every 30 s: not two INFO lines each time
@@ -304,7 +312,8 @@ class RelayServer:
             return _http_response(connection, 200, prometheus_text(self.sessions,
                                                                    dict(self.counters)),
                                   "text/plain; version=0.0.4; charset=utf-8")
-        if "upgrade" not in request.headers.get("Connection", "").lower():
+        # Connection is a list header: several lines are one list (as websockets reads it)
+        if "upgrade" not in ",".join(request.headers.get_all("Connection")).lower():
             return _http_response(connection, 404, "Tele-Touch relay: WebSocket endpoint; "
                                   "see /status, /metrics and /healthz\n",
                                   "text/plain; charset=utf-8")
@@ -314,7 +323,7 @@ class RelayServer:
         expected = self.config.status_token
         if not expected:
             return True
-        given = request.headers.get("Authorization", "")
+        given = ",".join(request.headers.get_all("Authorization"))  # one (checked above)
         scheme, _, token = given.partition(" ")
         return scheme.lower() == "bearer" and hmac.compare_digest(
             token.strip().encode(), expected.encode())

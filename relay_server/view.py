@@ -19,6 +19,7 @@ local-station code) and the render and end-to-end stages.
 
 from __future__ import annotations
 
+from array import array
 from collections import OrderedDict
 from typing import TYPE_CHECKING, Any
 
@@ -39,6 +40,7 @@ __all__ = ["RelayViewHub", "SessionViewSource"]
 
 _TRAIL_PERIOD_US = 25_000  # at most 40 trajectory points a second
 _MAX_TRAIL = 50_000
+_POINT = 4  # floats per trajectory point: phantom x, y, z (mm) and contact 0/1
 _MAX_SESSIONS = 64  # views kept (the least recently active go first)
 
 
@@ -57,7 +59,10 @@ class SessionViewSource:
         self._compact: tuple[TactileCompact, int] | None = None
         self._decoded_of: TactileCompact | None = None
         self._arm: tuple[ArmState, int] | None = None
-        self._trail: list[list[float]] = []
+        #: the trajectory, flat and compact (float32, ``_POINT`` per point: 16 bytes a point,
+        #: not ~170 as a list of lists): kept whether or not anyone watches, so an observer
+        #: who comes later sees the path so far (at most 2 x _MAX_TRAIL points, 1.6 MB)
+        self._trail = array("f")
         self._trail_first = 0
         self._last_trail_us = 0
         lo, hi = workspace.phantom_bounds_mm
@@ -72,11 +77,11 @@ class SessionViewSource:
                 ph = self.workspace.forward(np.asarray(msg.position_mm, dtype=np.float64))
                 contact = (self._compact is not None and bool(self._compact[0].contact)) or (
                     self._frame is not None and bool(self._frame[0].contact))
-                if len(self._trail) >= 2 * _MAX_TRAIL:
-                    del self._trail[:_MAX_TRAIL]
+                if len(self._trail) >= 2 * _MAX_TRAIL * _POINT:
+                    del self._trail[:_MAX_TRAIL * _POINT]
                     self._trail_first += _MAX_TRAIL
-                self._trail.append([round(float(ph[0]), 2), round(float(ph[1]), 2),
-                                    round(float(ph[2]), 2), 1.0 if contact else 0.0])
+                self._trail.extend((float(ph[0]), float(ph[1]), float(ph[2]),
+                                    1.0 if contact else 0.0))
         elif isinstance(msg, TactileFrame):
             self._frame, self._compact = (msg, t_in_us), None
         elif isinstance(msg, TactileCompact):
@@ -146,8 +151,10 @@ class SessionViewSource:
     def trail_since(self, start: int, limit: int) -> tuple[int, list[list[float]]]:
         """Trajectory points (phantom x, y, z mm and contact 0/1) from index ``start``."""
         first = max(start, self._trail_first)
-        offset = first - self._trail_first
-        return first, self._trail[offset:offset + limit]
+        offset = (first - self._trail_first) * _POINT
+        flat = self._trail[offset:offset + limit * _POINT].tolist()
+        return first, [[round(v, 2) for v in flat[i:i + _POINT]]
+                       for i in range(0, len(flat), _POINT)]
 
     def analysis(self) -> tuple[int, dict[str, Any] | None]:
         """No analysis at the relay (it is local-station code)."""

@@ -15,9 +15,13 @@ one sender task that sends the newest snapshot whenever the previous send has co
 a slow browser skips snapshots and nothing queues; a send stuck longer than
 ``send_timeout_s`` closes that browser. What a browser sends is read and discarded (messages
 above ``max_message_bytes`` close it, 1009); more than ``max_clients`` browsers get
-HTTP 503 before the upgrade. None of this touches the station's own loops: the server runs
-in a thread of its own (:meth:`ViewServer.start_thread`) or, at the relay, as tasks of the
-relay's event loop (:meth:`ViewServer.start`).
+HTTP 503 before the upgrade. With ``authorize`` only browsers whose hello was accepted count
+against ``max_clients``; connections still before their hello are capped apart
+(``max_pending_per_address`` per client address: HTTP 429, ``max_pending`` in all: 503), so
+sockets without a token cannot lock observers out; a refused browser's close handshake may
+take ``refuse_close_timeout_s``. None of this touches the station's own loops: the server
+runs in a thread of its own (:meth:`ViewServer.start_thread`) or, at the relay, as tasks of
+the relay's event loop (:meth:`ViewServer.start`).
 
 Each message to a browser::
 
@@ -26,6 +30,18 @@ Each message to a browser::
 
 ``trail`` carries the trajectory points this browser has not had yet (at most
 ``trail_batch`` per message), so a browser that skips snapshots still draws the whole path.
+The analysis is encoded once per version; one that cannot be encoded (a NaN) is dropped
+(``analysis_dropped``, logged once) and the live stream goes on.
+
+Who may open the WebSocket: a request whose ``Origin`` names another site than its ``Host``
+gets HTTP 403 (a web page the operator visits cannot read the view or send play/pause), and
+without ``authorize`` (a station's or a replay's view, no token) the ``Host`` must be an IP
+address, ``localhost``, the name the server was bound to or one of ``allowed_hosts`` (403
+otherwise: DNS rebinding). A token-protected view (the relay's) accepts any host name, as it
+is reached by its public name. A single-valued header given twice gets HTTP 400. A token
+with an expiry (``authorize`` returning a Unix time) closes its browser with 4001 when it
+expires. The WebSocket layer logs through ``shared.view.websockets``, which drops DEBUG
+records: frame contents (a hello's token) are never logged.
 """
 
 from __future__ import annotations
@@ -35,6 +51,8 @@ import contextlib
 import ipaddress
 import json
 import logging
+import math
+import socket
 import threading
 import time
 from collections import Counter
@@ -55,6 +73,23 @@ __all__ = ["PAGE_FILES", "ViewAddress", "ViewServer", "ViewServerConfig", "ViewS
            "parse_view_address"]
 
 log = logging.getLogger(__name__)
+
+
+class _NoDebug(logging.Filter):
+    """Drop the WebSocket layer's DEBUG records: they carry frame contents (a hello's token)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return record.levelno > logging.DEBUG
+
+
+#: the view's WebSocket layer logs here, never at DEBUG (no frame, no header is logged)
+_WS_LOG = logging.getLogger("shared.view.websockets")
+_WS_LOG.setLevel(logging.INFO)
+_WS_LOG.addFilter(_NoDebug())
+
+#: what ``authorize`` returns: False (refused), True (no expiry) or the Unix time (s) after
+#: which the token is no longer valid
+Verdict = bool | float
 
 #: file name -> content type of the page's files (package data of ``shared.view.page``)
 PAGE_FILES = {"index.html": "text/html; charset=utf-8",
@@ -131,6 +166,11 @@ class ViewServerConfig:
         trail_batch: most trajectory points in one message.
         hello_timeout_s: with ``authorize``: the hello must arrive within this time.
         prefix: path of the page (``/`` at a station, ``/view/`` at the relay).
+        max_pending: with ``authorize``: connections before their hello at once (503 beyond).
+        max_pending_per_address: with ``authorize``: the same, per client address (429).
+        refuse_close_timeout_s: how long a refused browser's close handshake may take.
+        allowed_hosts: host names (besides IP addresses, ``localhost`` and the bound name)
+            a view without ``authorize`` may be reached by (a tunnel's or proxy's name).
     """
 
     rate_hz: float = 40.0
@@ -140,6 +180,10 @@ class ViewServerConfig:
     trail_batch: int = 4000
     hello_timeout_s: float = 5.0
     prefix: str = "/"
+    max_pending: int = 64
+    max_pending_per_address: int = 4
+    refuse_close_timeout_s: float = 1.0
+    allowed_hosts: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if not 1.0 <= self.rate_hz <= 120.0:
@@ -147,7 +191,10 @@ class ViewServerConfig:
         if self.max_clients < 1 or self.max_message_bytes < 64 or self.trail_batch < 1:
             raise ConfigError("view max_clients >= 1, max_message_bytes >= 64, "
                               "trail_batch >= 1")
-        if not (self.send_timeout_s > 0 and self.hello_timeout_s > 0):
+        if self.max_pending < 1 or self.max_pending_per_address < 1:
+            raise ConfigError("view max_pending and max_pending_per_address must be >= 1")
+        if not (self.send_timeout_s > 0 and self.hello_timeout_s > 0
+                and self.refuse_close_timeout_s > 0):
             raise ConfigError("view timeouts must be > 0")
         if not (self.prefix.startswith("/") and self.prefix.endswith("/")):
             raise ConfigError("view prefix must start and end with '/'")
@@ -172,14 +219,62 @@ def _respond(connection: ServerConnection, status: int, body: bytes | str,
     return Response(response.status_code, response.reason_phrase, headers, data)
 
 
+class _BadRequest(ValueError):
+    """A malformed request (answered with HTTP 400)."""
+
+
+def _header(headers: Headers, name: str) -> str | None:
+    """The one value of a single-valued header, or None when absent.
+
+    Raises:
+        _BadRequest: the header is given more than once.
+    """
+    values = headers.get_all(name)
+    if len(values) > 1:
+        raise _BadRequest(f"{name} given {len(values)} times")
+    return values[0] if values else None
+
+
+def _authority(text: str, default_port: int) -> tuple[str, int] | None:
+    """(host name in lower case, port) of a ``Host`` header or an origin's authority; None
+    when it is malformed."""
+    text = text.strip().lower()
+    if not text or any(c in text for c in "/\\@?# \t"):
+        return None
+    if text.startswith("["):  # [IPv6] or [IPv6]:port
+        end = text.find("]")
+        host, rest = text[1:end], text[end + 1:]
+        if end < 0 or (rest and not rest.startswith(":")):
+            return None
+        port_text = rest[1:]
+    else:
+        host, _, port_text = text.partition(":")
+        if ":" in port_text:
+            return None  # an IPv6 address without brackets
+    if port_text and not (port_text.isascii() and port_text.isdigit() and len(port_text) <= 5):
+        return None
+    host = host.rstrip(".")  # "example.org." is "example.org"
+    return (host, int(port_text) if port_text else default_port) if host else None
+
+
+def _is_ip(host: str) -> bool:
+    try:
+        ipaddress.ip_address(host)
+    except ValueError:
+        return False
+    return True
+
+
 class ViewServer:
     """Serves the page and live snapshots of one :class:`ViewSource` (module docstring).
 
     Args:
         source: what to show (a station's view: one source, published all the time).
         config: rates and limits.
-        authorize: checks a browser's hello (session, token); None: no hello required
-            (a station's view, bound to loopback by default).
+        authorize: checks a browser's hello (session, token): returns False (refused),
+            True (accepted) or the Unix time (s) the token expires at (the browser is then
+            closed, 4001); None: no hello required (a station's view, bound to loopback by
+            default).
         source_for: with ``authorize`` (the relay): the source of a session, or None when
             the session is unknown; published only while a browser watches it.
         control: called (on the server's loop; must be quick) with each
@@ -188,7 +283,7 @@ class ViewServer:
     """
 
     def __init__(self, source: ViewSource | None, config: ViewServerConfig | None = None, *,
-                 authorize: Callable[[str, str], bool] | None = None,
+                 authorize: Callable[[str, str], Verdict] | None = None,
                  source_for: Callable[[str], ViewSource | None] | None = None,
                  control: Callable[[Mapping[str, Any]], None] | None = None) -> None:
         if (source is None) == (source_for is None) or (source_for is not None
@@ -207,6 +302,11 @@ class ViewServer:
         if source is not None:
             self._feeds[""] = _Feed(source, keep=True)
         self._clients = 0
+        #: connections before their hello (with ``authorize``), per client address
+        self._pending: Counter[str] = Counter()
+        #: host names (besides IP addresses and localhost) a view without token may be
+        #: reached by (set by start())
+        self._host_names: frozenset[str] = frozenset()
         #: CPU seconds this server's thread spent building, encoding and composing snapshots
         self.cpu_s = 0.0
         self._thread: threading.Thread | None = None
@@ -223,11 +323,19 @@ class ViewServer:
         Raises:
             ConfigError: the address cannot be bound.
         """
+        names = {name.lower().rstrip(".") for name in self.config.allowed_hosts}
+        if not _is_ip(host.strip("[]")):
+            names.add(host.lower().rstrip("."))
+        if not ViewAddress(host, port).is_loopback:  # reachable by the machine's own name
+            machine = socket.gethostname().lower()
+            names |= {machine, machine + ".local"}
+        self._host_names = frozenset(names - {""})
         try:
             self._server = await serve(
                 self._handler, host, port, process_request=self._process_request,
                 max_size=self.config.max_message_bytes, max_queue=4,
-                write_limit=64 * 1024, compression=None, ping_interval=20, ping_timeout=20)
+                write_limit=64 * 1024, compression=None, ping_interval=20, ping_timeout=20,
+                logger=_WS_LOG)
         except OSError as err:
             raise ConfigError(f"the view cannot listen on {host}:{port}: {err}") from err
         sock = next(iter(self._server.sockets))
@@ -344,11 +452,35 @@ class ViewServer:
                 self._error_logged = True
                 log.exception("view snapshot failed (logged once): %s", err)
             return
+        self._encode_analysis(feed)
         feed.live_json = text
         feed.seq += 1
         self.counters["snapshots"] += 1
         fresh, feed.fresh = feed.fresh, asyncio.Event()
         fresh.set()
+
+    def _encode_analysis(self, feed: _Feed) -> None:
+        """Encode the source's analysis once per version; one that cannot be encoded (a
+        non-finite number) is dropped, counted and logged once, and never sent."""
+        try:
+            version, analysis = feed.source.analysis()
+        except Exception as err:  # a view bug must never reach the station
+            self.counters["source_errors"] += 1
+            log.debug("view analysis unavailable: %s", err)
+            return
+        if version == feed.analysis_version:
+            return
+        feed.analysis_version = version
+        feed.analysis_json = None
+        if analysis is None:
+            return
+        try:
+            feed.analysis_json = json.dumps(analysis, allow_nan=False, separators=(",", ":"))
+        except (ValueError, TypeError, RecursionError) as err:
+            self.counters["analysis_dropped"] += 1
+            if self.counters["analysis_dropped"] == 1:
+                log.warning("view: analysis version %s cannot be sent (%s); dropped, the live "
+                            "view goes on (logged once)", version, err)
 
     def _message(self, client: _Client) -> str:
         t0 = time.thread_time()
@@ -361,14 +493,18 @@ class ViewServer:
         feed = client.feed
         first, points = feed.source.trail_since(client.trail_next, self.config.trail_batch)
         client.trail_next = first + len(points)
-        version, analysis = feed.source.analysis()
+        try:
+            trail = json.dumps(points, allow_nan=False, separators=(",", ":"))
+        except ValueError:  # a non-finite coordinate: sent as null, as num() does
+            self.counters["trail_nonfinite"] += 1
+            trail = json.dumps([[v if math.isfinite(v) else None for v in p] for p in points],
+                               separators=(",", ":"))
         parts = [f'{{"type":"snapshot","seq":{feed.seq},"live":{feed.live_json}',
-                 f',"trail":{{"from":{first},"points":'
-                 f'{json.dumps(points, allow_nan=False, separators=(",", ":"))}}}']
-        if version != client.analysis_version and analysis is not None:
-            client.analysis_version = version
-            parts.append(',"analysis":' + json.dumps(analysis, allow_nan=False,
-                                                     separators=(",", ":")))
+                 f',"trail":{{"from":{first},"points":{trail}}}']
+        if client.analysis_version != feed.analysis_version:
+            client.analysis_version = feed.analysis_version
+            if feed.analysis_json is not None:
+                parts.append(',"analysis":' + feed.analysis_json)
         parts.append("}")
         return "".join(parts)
 
@@ -376,6 +512,15 @@ class ViewServer:
 
     def _process_request(self, connection: ServerConnection, request: Request
                          ) -> Response | None:
+        try:
+            return self._route(connection, request)
+        except _BadRequest as err:  # a client's mistake: 400, never a 500 and a traceback
+            self.counters["http_bad_request"] += 1
+            log.debug("view: bad request: %s", err)
+            return _respond(connection, 400, "Tele-Touch view: bad request\n",
+                            "text/plain; charset=utf-8")
+
+    def _route(self, connection: ServerConnection, request: Request) -> Response | None:
         prefix = self.config.prefix
         path = request.path.split("?", 1)[0].split("#", 1)[0]
         if path == prefix.rstrip("/") and prefix != "/":
@@ -390,13 +535,74 @@ class ViewServer:
             self.counters["http_not_found"] += 1
             return _respond(connection, 404, "Tele-Touch view: not found\n",
                             "text/plain; charset=utf-8")
-        if "upgrade" not in request.headers.get("Connection", "").lower():
+        host, origin = _header(request.headers, "Host"), _header(request.headers, "Origin")
+        # Connection is a list header: several lines are one list (as websockets reads it)
+        if "upgrade" not in ",".join(request.headers.get_all("Connection")).lower():
             return _respond(connection, 426, "Tele-Touch view: WebSocket endpoint\n",
+                            "text/plain; charset=utf-8")
+        refusal = self._forbidden(host, origin)
+        if refusal is not None:
+            self.counters[refusal] += 1
+            if self.counters[refusal] == 1:
+                log.warning("view: WebSocket refused (%s): Host %r, Origin %r (logged once)",
+                            refusal, host, origin)
+            return _respond(connection, 403, "Tele-Touch view: forbidden\n",
                             "text/plain; charset=utf-8")
         if self._clients >= self.config.max_clients:
             self._refuse_logged()
             return _respond(connection, 503, "Tele-Touch view: too many viewers\n",
                             "text/plain; charset=utf-8")
+        if self._authorize is not None:
+            pending = self._pending_refusal(_address(connection))
+            if pending is not None:
+                return _respond(connection, pending, "Tele-Touch view: too many connections "
+                                "waiting for their hello\n", "text/plain; charset=utf-8")
+        return None
+
+    def _forbidden(self, host: str | None, origin: str | None) -> str | None:
+        """Why a WebSocket upgrade with these headers is refused (a counter's name), or None.
+
+        The ``Origin`` (sent by every browser) must name the page's own site, its ``Host``:
+        another site's page gets nothing. Without a token the ``Host`` must be a name this
+        server is known by (an IP address, localhost, the bound name, ``allowed_hosts``):
+        a rebound DNS name of another site gets nothing either.
+        """
+        if host is None:
+            return "ws_forbidden_host"
+        if origin is not None:
+            scheme, sep, rest = origin.strip().lower().partition("://")
+            if not sep or scheme not in ("http", "https"):
+                return "ws_forbidden_origin"  # "null", file://, extensions ...
+            default = 443 if scheme == "https" else 80
+            own, theirs = _authority(host, default), _authority(rest, default)
+            if own is None or theirs is None or own != theirs:
+                return "ws_forbidden_origin"
+        if self._authorize is not None:
+            return None  # the token protects it; reached by its public name
+        name = _authority(host, 0)
+        if name is None:
+            return "ws_forbidden_host"
+        hostname = name[0]
+        if (_is_ip(hostname) or hostname == "localhost" or hostname.endswith(".localhost")
+                or hostname in self._host_names):
+            return None
+        return "ws_forbidden_host"
+
+    def _pending_refusal(self, address: str) -> int | None:
+        """HTTP status for a connection that would pass the caps on connections before
+        their hello (429 for its address, 503 in all), or None."""
+        if self._pending[address] >= self.config.max_pending_per_address:
+            self.counters["pending_refused_address"] += 1
+            if self.counters["pending_refused_address"] == 1:
+                log.warning("view: %d connections from %s wait for their hello, refusing more "
+                            "(logged once)", self.config.max_pending_per_address, address)
+            return 429
+        if self._pending.total() >= self.config.max_pending:
+            self.counters["pending_refused"] += 1
+            if self.counters["pending_refused"] == 1:
+                log.warning("view: %d connections wait for their hello, refusing more "
+                            "(logged once)", self.config.max_pending)
+            return 503
         return None
 
     def _refuse_logged(self) -> None:
@@ -405,22 +611,33 @@ class ViewServer:
             log.warning("view: %d browsers connected, refusing more (logged once)",
                         self.config.max_clients)
 
-    async def _hello(self, ws: ServerConnection) -> _Feed | None:
-        """The feed this browser may watch (after its hello when tokens are needed)."""
+    async def _refuse(self, ws: ServerConnection, code: int, reason: str) -> None:
+        """Close a refused browser; one that does not answer the close is cut soon."""
+        ws.close_timeout = self.config.refuse_close_timeout_s
+        await ws.close(code, reason)
+
+    async def _hello(self, ws: ServerConnection) -> tuple[_Feed, float | None] | None:
+        """The feed this browser may watch and when its token expires (Unix time, None:
+        never), after its hello when tokens are needed; None: refused (and closed)."""
         authorize = self._authorize
         if authorize is None:
-            return self._feeds.get("")
+            return self._feeds[""], None
         try:
             async with asyncio.timeout(self.config.hello_timeout_s):
                 raw = await ws.recv()
             doc = json.loads(raw)
-        except (TimeoutError, ValueError, ConnectionClosed):
-            doc = None
+        except (TimeoutError, ValueError, RecursionError, ConnectionClosed):
+            doc = None  # RecursionError: a deeply nested hello of a few KiB
         session = doc.get("session") if isinstance(doc, dict) else None
         token = doc.get("token") if isinstance(doc, dict) else None
         feed = None
+        verdict: Verdict = False
         if (isinstance(doc, dict) and doc.get("type") == "hello" and isinstance(session, str)
-                and isinstance(token, str) and authorize(session, token)):
+                and isinstance(token, str)):
+            verdict = authorize(session, token)
+        expiry = None if isinstance(verdict, bool) else float(verdict)
+        if verdict is not False and (expiry is None or time.time() < expiry):
+            assert isinstance(session, str)
             feed = self._feeds.get(session)
             if feed is None and self._source_for is not None:
                 source = self._source_for(session)
@@ -430,8 +647,9 @@ class ViewServer:
                 feed = self._feeds.get("")
         if feed is None:
             self.counters["clients_unauthorized"] += 1
-            await ws.close(4001, "view needs a valid session and token")
-        return feed
+            await self._refuse(ws, 4001, "view needs a valid session and token")
+            return None
+        return feed, expiry
 
     async def _drain(self, ws: ServerConnection) -> None:
         """Read what the browser sends (so control frames keep flowing): control messages go
@@ -444,7 +662,7 @@ class ViewServer:
     def _controlled(self, raw: str | bytes) -> bool:
         try:
             doc = json.loads(raw)
-        except ValueError:
+        except (ValueError, RecursionError):
             return False
         if not (isinstance(doc, dict) and doc.get("type") == "control"):
             return False
@@ -459,23 +677,41 @@ class ViewServer:
         return True
 
     async def _handler(self, ws: ServerConnection) -> None:
+        if self._authorize is None:
+            await self._serve_browser(ws, self._feeds[""], None)
+            return
+        # before the hello: a slot of the pending caps, not of max_clients; a burst that
+        # passed the HTTP check together is cut here (no await in between)
+        address = _address(ws)
+        if self._pending_refusal(address) is not None:
+            await self._refuse(ws, 1013, "too many connections waiting for their hello")
+            return
+        self._pending[address] += 1
+        try:
+            granted = await self._hello(ws)
+        finally:
+            self._pending[address] -= 1
+            if self._pending[address] <= 0:
+                del self._pending[address]
+        if granted is not None:
+            await self._serve_browser(ws, *granted)
+
+    async def _serve_browser(self, ws: ServerConnection, feed: _Feed,
+                             expiry: float | None) -> None:
         # counted here, not before the upgrade: an upgrade that fails never holds a slot;
         # a burst that passed the HTTP check together is cut here (no await in between)
         if self._clients >= self.config.max_clients:
             self._refuse_logged()
-            await ws.close(1013, "too many viewers")
+            await self._refuse(ws, 1013, "too many viewers")
             return
         self._clients += 1
         try:
-            feed = await self._hello(ws)
-            if feed is None:
-                return
             self.counters["clients_served"] += 1
             client = _Client(feed)
             feed.clients += 1
             drain = asyncio.create_task(self._drain(ws), name="view-drain")
             try:
-                await self._send_loop(ws, client, drain)
+                await self._send_loop(ws, client, drain, expiry)
             finally:
                 feed.clients -= 1
                 drain.cancel()
@@ -485,15 +721,23 @@ class ViewServer:
             self._clients -= 1
 
     async def _send_loop(self, ws: ServerConnection, client: _Client,
-                         drain: asyncio.Task[None]) -> None:
+                         drain: asyncio.Task[None], expiry: float | None) -> None:
         feed = client.feed
         while not drain.done():
+            if expiry is not None and time.time() >= expiry:
+                self.counters["clients_expired"] += 1
+                await self._refuse(ws, 4001, "the token expired")
+                return
             if client.seq == feed.seq:
                 waiter = asyncio.ensure_future(feed.fresh.wait())
-                await asyncio.wait({waiter, drain}, return_when=asyncio.FIRST_COMPLETED)
+                remaining = None if expiry is None else max(0.0, expiry - time.time())
+                await asyncio.wait({waiter, drain}, timeout=remaining,
+                                   return_when=asyncio.FIRST_COMPLETED)
                 if not waiter.done():
                     waiter.cancel()
-                    break
+                    if drain.done():
+                        break
+                    continue  # the token's expiry: checked at the top
             if client.seq and feed.seq > client.seq + 1:
                 self.counters["snapshots_skipped"] += feed.seq - client.seq - 1
             client.seq = feed.seq
@@ -518,13 +762,23 @@ class ViewServer:
             self.counters["messages_sent"] += 1
 
 
+def _address(connection: ServerConnection) -> str:
+    """The client's IP address (the key of the per-address cap)."""
+    peer = connection.remote_address
+    return str(peer[0]) if isinstance(peer, tuple) and peer else str(peer)
+
+
 class _Feed:
     """One source's newest snapshot (JSON) and the event its browsers wait on."""
 
-    __slots__ = ("clients", "fresh", "keep", "live_json", "seq", "source")
+    __slots__ = ("analysis_json", "analysis_version", "clients", "fresh", "keep", "live_json",
+                 "seq", "source")
 
     def __init__(self, source: ViewSource, keep: bool) -> None:
         self.source = source
+        #: the source's analysis version seen last and its JSON (None: none or not sendable)
+        self.analysis_version: int | None = None
+        self.analysis_json: str | None = None
         self.keep = keep
         self.seq = 0
         self.live_json = "{}"
@@ -541,17 +795,21 @@ class _Client:
         self.feed = feed
         self.seq = 0
         self.trail_next = 0
-        self.analysis_version = -1
+        self.analysis_version: int | None = None
 
 
-def token_authorizer(check: Callable[[str, str], None],
-                     errors: tuple[type[BaseException], ...]) -> Callable[[str, str], bool]:
-    """Adapt a raising check(session, token) into the server's ``authorize`` callback."""
-    def authorize(session: str, token: str) -> bool:
+def token_authorizer(check: Callable[[str, str], float | None],
+                     errors: tuple[type[BaseException], ...]
+                     ) -> Callable[[str, str], Verdict]:
+    """Adapt a raising check(session, token) into the server's ``authorize`` callback.
+
+    ``check`` returns the token's expiry (Unix time, s) or None when it has none.
+    """
+    def authorize(session: str, token: str) -> Verdict:
         try:
-            check(session, token)
+            expiry = check(session, token)
         except errors:
             return False
-        return True
+        return True if expiry is None else float(expiry)
     return authorize
 

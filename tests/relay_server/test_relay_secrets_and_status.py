@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import asyncio
+import json
 import logging
 
 import pytest
+from websockets.asyncio.client import connect as websockets_connect
+from websockets.exceptions import ConnectionClosed
 
 from relay_server.auth import derive_token, make_token
 from shared.client import StationLink
@@ -15,16 +19,17 @@ from tests.relay_server.relay_clients import running_relay
 from tests.relay_server.test_relay_isolation_and_status import http_get
 from tests.support import scaled
 
-SECRET = "SECRET-7f3a9c-recognisable"
+SECRET = "SECRET-7f3a9c-recognisable-0123456789"
 STATUS_TOKEN = "STATUS-b41d-recognisable"
+#: the logger of the test's own browser (its DEBUG lines show the frames it sends)
+_TEST_CLIENT_LOG = logging.getLogger("tests.view_browser")
 
 
-async def _raw_get(port: int, path: str, auth: str | None) -> int:
-    import asyncio
-
+async def _raw_get(port: int, path: str, auth: str | None, *headers: str) -> int:
     reader, writer = await asyncio.open_connection("127.0.0.1", port)
     try:
         extra = f"Authorization: {auth}\r\n" if auth is not None else ""
+        extra += "".join(f"{h}\r\n" for h in headers)
         writer.write(f"GET {path} HTTP/1.1\r\nHost: x\r\n{extra}\r\n".encode())
         await writer.drain()
         async with asyncio.timeout(scaled(5.0)):
@@ -41,7 +46,9 @@ async def test_no_secret_or_token_in_any_log_at_debug(caplog: pytest.LogCaptureF
     v2 = make_token(SECRET, "sec", "remote", int(now_us() / 1e6) + 600)
     wrong = "WRONG-TOKEN-5e2f-recognisable"
     expired = make_token(SECRET, "sec", "observer", 1)
-    async with running_relay(secret=SECRET, status_token=STATUS_TOKEN) as relay:
+    observer = make_token(SECRET, "sec", "observer", int(now_us() / 1e6) + 600)
+    async with running_relay(secret=SECRET, status_token=STATUS_TOKEN,
+                             view="127.0.0.1:0") as relay:
         url = f"ws://127.0.0.1:{relay.ws_port}/"
         tcp = f"tcp://127.0.0.1:{relay.tcp_port}"
         async with StationLink(url, session="sec", role="local", token=legacy) as local, \
@@ -56,10 +63,28 @@ async def test_no_secret_or_token_in_any_log_at_debug(caplog: pytest.LogCaptureF
                     with pytest.raises(AuthError):
                         await bad.wait_connected(scaled(5.0))
             assert await _raw_get(relay.ws_port, "/status", f"Bearer {STATUS_TOKEN}") == 200
-    text = "\n".join(f"{r.name} {r.getMessage()} {r.exc_text or ''}" for r in caplog.records)
+            # the observers' live view: a hello carries its token in a WebSocket frame
+            assert relay.view_server is not None
+            view_url = f"ws://127.0.0.1:{relay.view_server.port}/ws"
+            for tok in (observer, wrong, legacy, expired):
+                async with websockets_connect(view_url, logger=_TEST_CLIENT_LOG) as ws:
+                    await ws.send(json.dumps({"type": "hello", "session": "sec",
+                                              "token": tok}))
+                    try:
+                        reply = json.loads(await asyncio.wait_for(ws.recv(), scaled(5.0)))
+                        assert tok == observer and reply["type"] == "snapshot"
+                    except ConnectionClosed as err:
+                        assert tok != observer and err.rcvd is not None
+                        assert err.rcvd.code == 4001
+    text = "\n".join(f"{r.name} {r.getMessage()} {r.exc_text or ''}" for r in caplog.records
+                     if r.name != _TEST_CLIENT_LOG.name)  # the test's browser logs its frames
     assert "expired" in text and "wrong token" in text  # the refusals were logged ...
-    for needle in (SECRET, STATUS_TOKEN, legacy, v2, wrong, expired, v2.rsplit(".", 1)[1]):
+    tokens = (legacy, v2, wrong, expired, observer)
+    # websockets shortens a logged frame to its head and tail: look for the tails as well
+    for needle in (SECRET, STATUS_TOKEN, *tokens, *(t.rsplit(".", 1)[-1] for t in tokens),
+                   *(t[-12:] for t in tokens)):
         assert needle not in text, needle  # ... without any secret
+    assert "shared.view" in text  # the view was served and logged
 
 
 async def test_status_and_metrics_need_the_bearer_token_when_set() -> None:
@@ -71,6 +96,22 @@ async def test_status_and_metrics_need_the_bearer_token_when_set() -> None:
             assert await _raw_get(port, path, f"Basic {STATUS_TOKEN}") == 401
             assert await _raw_get(port, path, f"Bearer {STATUS_TOKEN}") == 200
         assert relay.counters["status_unauthorized"] == 6
+
+
+async def test_repeated_headers_get_400_not_a_server_error(
+        caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.INFO)
+    async with running_relay(status_token=STATUS_TOKEN) as relay:
+        port = relay.ws_port
+        bearer = f"Bearer {STATUS_TOKEN}"
+        assert await _raw_get(port, "/status", bearer, f"Authorization: {bearer}") == 400
+        assert await _raw_get(port, "/status", "Bearer nope", f"Authorization: {bearer}") == 400
+        # Connection is a list header: two lines are one list (no upgrade here: 404)
+        assert await _raw_get(port, "/", None, "Connection: keep-alive",
+                              "Connection: close") == 404
+        assert relay.counters["http_bad_request"] == 2
+        assert await _raw_get(port, "/status", bearer) == 200  # still serving
+    assert not [r for r in caplog.records if r.levelno >= logging.ERROR]
 
 
 async def test_public_status_is_announced_with_a_warning(

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import itertools
 import json
+import logging
+import time
 import urllib.error
 import urllib.request
 from typing import Any
@@ -249,7 +252,7 @@ async def test_failed_upgrades_never_hold_a_viewer_slot() -> None:
     try:
         for _ in range(5):  # an upgrade without a key fails the handshake (HTTP 400)
             reader, writer = await asyncio.open_connection("127.0.0.1", server.port)
-            writer.write(b"GET /ws HTTP/1.1\r\nHost: x\r\nConnection: Upgrade\r\n"
+            writer.write(b"GET /ws HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: Upgrade\r\n"
                          b"Upgrade: websocket\r\n\r\n")
             await writer.drain()
             status = await reader.readline()
@@ -296,3 +299,261 @@ async def test_control_messages_reach_the_callback_only_where_one_is_given() -> 
     finally:
         await server.close()
         await plain.close()
+
+
+# ---------------------------------------------------------------- who may connect (audit)
+
+_KEY = "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ=="
+
+
+async def _upgrade_status(port: int, *headers: str) -> int:
+    """Send a WebSocket upgrade of /ws with ``headers`` over a raw socket: the status code."""
+    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+    try:
+        lines = ["GET /ws HTTP/1.1", *headers, "Upgrade: websocket", _KEY,
+                 "Sec-WebSocket-Version: 13"]
+        writer.write(("\r\n".join(lines) + "\r\n\r\n").encode())
+        await writer.drain()
+        async with asyncio.timeout(scaled(5)):
+            status = await reader.readline()
+    finally:
+        writer.close()
+        with contextlib.suppress(OSError):
+            await writer.wait_closed()
+    return int(status.split()[1])
+
+
+def _accept_s1(session: str, token: str) -> bool:
+    return session == "s1" and token == "good"
+
+
+async def test_a_page_of_another_site_cannot_open_the_view_or_send_control() -> None:
+    got: list[Any] = []
+    server = ViewServer(FakeSource(), ViewServerConfig(rate_hz=60.0), control=got.append)
+    await server.start("127.0.0.1", 0)
+    port = server.port
+    assert port is not None
+    url = f"ws://127.0.0.1:{port}/ws"
+    try:
+        for origin in ("https://evil.example", f"http://evil.example:{port}", "null",
+                       f"http://127.0.0.1:{port + 1}", f"http://localhost:{port}",
+                       f"file://127.0.0.1:{port}"):
+            with pytest.raises(InvalidStatus) as err:
+                async with connect(url, origin=origin) as ws:  # type: ignore[arg-type]
+                    await ws.send(json.dumps({"type": "control", "action": "pause"}))
+            assert err.value.response.status_code == 403, origin
+        assert server.counters["ws_forbidden_origin"] == 6 and got == []
+        # the page itself (same origin) and a client that sends no Origin are served
+        for same in (f"http://127.0.0.1:{port}", None):
+            async with connect(url, origin=same) as ws:  # type: ignore[arg-type]
+                assert json.loads(await ws.recv())["type"] == "snapshot"
+        assert await _upgrade_status(port, f"Host: localhost:{port}",
+                                     f"Origin: http://LOCALHOST:{port}",
+                                     "Connection: Upgrade") == 101
+    finally:
+        await server.close()
+
+
+async def test_a_view_without_token_answers_only_its_own_host_names() -> None:
+    """DNS rebinding: a page of evil.example whose name now points at 127.0.0.1 is same-origin
+    with itself, but its Host header names evil.example: refused."""
+    server = await _server(FakeSource(), allowed_hosts=("lab-pc.example",))
+    port = server.port
+    assert port is not None
+    try:
+        for host, code in ((f"evil.example:{port}", 403), ("evil.example", 403),
+                           ("bad host", 403), (f"127.0.0.1:{port}", 101),
+                           (f"localhost:{port}", 101), (f"[::1]:{port}", 101),
+                           (f"LAB-PC.example:{port}", 101)):
+            assert await _upgrade_status(port, f"Host: {host}", f"Origin: http://{host}",
+                                         "Connection: Upgrade") == code, host
+        assert await _upgrade_status(port, "Connection: Upgrade") == 403  # no Host at all
+        assert server.counters["ws_forbidden_host"] == 3  # "bad host": a malformed origin
+        assert server.counters["ws_forbidden_origin"] == 1
+    finally:
+        await server.close()
+    # a token-protected view (the relay's) is reached by its public name: any host name,
+    # as long as the Origin matches it
+    server = ViewServer(FakeSource(), ViewServerConfig(rate_hz=60.0), authorize=_accept_s1)
+    await server.start("127.0.0.1", 0)
+    port = server.port
+    assert port is not None
+    try:
+        public = f"relay.example.org:{port}"
+        assert await _upgrade_status(port, f"Host: {public}", f"Origin: http://{public}",
+                                     "Connection: Upgrade") == 101
+        assert await _upgrade_status(port, f"Host: {public}", "Origin: https://evil.example",
+                                     "Connection: Upgrade") == 403
+        # behind a TLS proxy that keeps the Host: https://relay.example.org -> default ports
+        assert await _upgrade_status(port, "Host: relay.example.org",
+                                     "Origin: https://relay.example.org",
+                                     "Connection: Upgrade") == 101
+    finally:
+        await server.close()
+
+
+async def test_repeated_headers_get_400_not_a_server_error(
+        caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.INFO)
+    server = await _server(FakeSource())
+    port = server.port
+    assert port is not None
+    host = f"Host: 127.0.0.1:{port}"
+    try:
+        assert await _upgrade_status(port, host, host, "Connection: Upgrade") == 400
+        assert await _upgrade_status(port, host, f"Origin: http://127.0.0.1:{port}",
+                                     "Origin: https://evil.example",
+                                     "Connection: Upgrade") == 400
+        # Connection is a list header: two lines are one list, and the upgrade goes through
+        assert await _upgrade_status(port, host, "Connection: keep-alive",
+                                     "Connection: Upgrade") == 101
+        assert server.counters["http_bad_request"] == 2
+        async with connect(f"ws://127.0.0.1:{port}/ws") as ws:  # still serving
+            assert json.loads(await ws.recv())["type"] == "snapshot"
+    finally:
+        await server.close()
+    assert not [r for r in caplog.records if r.levelno >= logging.ERROR]
+
+
+async def test_a_deeply_nested_hello_or_control_message_is_refused_cleanly(
+        caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.INFO)
+    nested = "[" * 2000 + "]" * 2000  # < 4 KiB, deeper than Python's recursion limit
+    server = ViewServer(FakeSource(), ViewServerConfig(rate_hz=60.0), authorize=_accept_s1)
+    await server.start("127.0.0.1", 0)
+    got: list[Any] = []
+    replay = ViewServer(FakeSource(), ViewServerConfig(rate_hz=60.0), control=got.append)
+    await replay.start("127.0.0.1", 0)
+    try:
+        async with connect(f"ws://127.0.0.1:{server.port}/ws") as ws:
+            await ws.send(nested)
+            with pytest.raises(ConnectionClosed) as err:
+                await ws.recv()
+            assert err.value.rcvd is not None and err.value.rcvd.code == 4001
+        async with connect(f"ws://127.0.0.1:{replay.port}/ws") as ws:
+            await ws.recv()
+            await ws.send(nested)
+            await async_wait_until(lambda: replay.counters["client_messages_ignored"] >= 1, 5,
+                                   "the nested message read and ignored")
+            for _ in range(3):  # still served
+                assert json.loads(await ws.recv())["type"] == "snapshot"
+    finally:
+        await server.close()
+        await replay.close()
+    assert not [r for r in caplog.records if r.levelno >= logging.ERROR]
+
+
+async def test_a_non_finite_analysis_is_dropped_and_the_live_stream_goes_on() -> None:
+    source = FakeSource()
+    server = await _server(source)
+    url = f"ws://127.0.0.1:{server.port}/ws"
+    try:
+        source.result, source.version = {"map": [1.0, float("nan")]}, 1
+        async with connect(url) as ws:
+            for _ in range(10):
+                msg = json.loads(await ws.recv())
+                assert msg["type"] == "snapshot" and "analysis" not in msg
+            assert server.counters["analysis_dropped"] == 1  # encoded once, not per message
+            source.result, source.version = {"map": [1.0, 2.0]}, 2
+            msg = await _first(ws, lambda m: "analysis" in m)
+            assert msg["analysis"] == {"map": [1.0, 2.0]}
+        async with connect(url) as ws:  # a browser that comes later gets it too
+            assert (await _first(ws, lambda m: "analysis" in m))["analysis"]["map"] == [1, 2]
+        assert server.counters["analysis_dropped"] == 1
+    finally:
+        await server.close()
+
+
+async def _first(ws: Any, predicate: Any) -> dict[str, Any]:
+    async with asyncio.timeout(scaled(5)):
+        while True:
+            msg = json.loads(await ws.recv())
+            if predicate(msg):
+                return dict(msg)
+
+
+async def test_sockets_without_a_token_cannot_lock_observers_out() -> None:
+    config = ViewServerConfig(rate_hz=60.0, max_clients=2, max_pending_per_address=3,
+                              hello_timeout_s=scaled(30))
+    server = ViewServer(FakeSource(), config, authorize=_accept_s1)
+    await server.start("127.0.0.1", 0)
+    url = f"ws://127.0.0.1:{server.port}/ws"
+    hello = json.dumps({"type": "hello", "session": "s1", "token": "good"})
+    try:
+        async with contextlib.AsyncExitStack() as stack:
+            for _ in range(3):  # silent: never send a hello
+                await stack.enter_async_context(connect(url))
+            await async_wait_until(lambda: sum(server._pending.values()) == 3, 5,
+                                   "3 connections waiting for their hello")
+            with pytest.raises(InvalidStatus) as err:  # the 4th from that address
+                async with connect(url):
+                    pass
+            assert err.value.response.status_code == 429
+            # observers from another address are served: silent sockets hold no viewer slot
+            observers = []
+            for _ in range(2):
+                ws = await stack.enter_async_context(
+                    connect(url, local_addr=("127.0.0.2", 0)))
+                await ws.send(hello)
+                assert json.loads(await ws.recv())["type"] == "snapshot"
+                observers.append(ws)
+            assert server.clients == 2
+            with pytest.raises(InvalidStatus) as err:  # max_clients counts the observers
+                async with connect(url, local_addr=("127.0.0.3", 0)):
+                    pass
+            assert err.value.response.status_code == 503
+    finally:
+        await server.close()
+
+
+async def test_a_refused_socket_that_never_answers_the_close_is_cut_soon() -> None:
+    config = ViewServerConfig(rate_hz=60.0, hello_timeout_s=0.2, refuse_close_timeout_s=0.3)
+    server = ViewServer(FakeSource(), config, authorize=_accept_s1)
+    await server.start("127.0.0.1", 0)
+    try:
+        reader, writer = await asyncio.open_connection("127.0.0.1", server.port)
+        writer.write(f"GET /ws HTTP/1.1\r\nHost: x\r\nConnection: Upgrade\r\nUpgrade: "
+                     f"websocket\r\n{_KEY}\r\nSec-WebSocket-Version: 13\r\n\r\n".encode())
+        await writer.drain()
+        t0 = time.monotonic()
+        async with asyncio.timeout(20):
+            while await reader.read(4096):  # never answers the close frame
+                pass
+        # the default close timeout is 10 s; 0.2 s hello + 0.3 s close here (8 s: load)
+        assert time.monotonic() - t0 < 8.0
+        assert not server._pending
+        writer.close()
+    finally:
+        await server.close()
+
+
+async def test_a_token_that_expires_closes_its_browser_with_4001() -> None:
+    expiry: list[float] = []
+
+    def authorize(session: str, token: str) -> float:
+        return expiry[-1]
+
+    server = ViewServer(FakeSource(), ViewServerConfig(rate_hz=60.0), authorize=authorize)
+    await server.start("127.0.0.1", 0)
+    url = f"ws://127.0.0.1:{server.port}/ws"
+    hello = json.dumps({"type": "hello", "session": "s1", "token": "t"})
+    try:
+        expiry.append(time.time() - 1)  # expired already
+        async with connect(url) as ws:
+            await ws.send(hello)
+            with pytest.raises(ConnectionClosed) as err:
+                await ws.recv()
+            assert err.value.rcvd is not None and err.value.rcvd.code == 4001
+        expiry.append(time.time() + scaled(1.0))
+        async with connect(url) as ws:
+            await ws.send(hello)
+            assert json.loads(await ws.recv())["type"] == "snapshot"  # valid for now
+            with pytest.raises(ConnectionClosed) as err:
+                async with asyncio.timeout(scaled(1.0) + scaled(5)):
+                    while True:
+                        await ws.recv()
+            assert err.value.rcvd is not None and err.value.rcvd.code == 4001
+            assert time.time() >= expiry[-1]
+        assert server.counters["clients_expired"] == 1
+    finally:
+        await server.close()
