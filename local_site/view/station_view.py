@@ -129,6 +129,9 @@ class StationView:
         probe = {
             "platform_mm": None if platform is None else nums(platform, 3),
             "phantom_mm": None if phantom is None else nums(phantom, 3),
+            # the sample's capture time is on the host wall clock (PlatformSample.t_us)
+            "platform_age_ms": None if sample is None
+            else num((now_us() - sample.t_us) / 1e3, 1),
             "end_effector_mm": None if self._arm is None else nums(self._arm[0].position_mm, 3),
             "end_effector_force_n": None if self._arm is None else num(self._arm[0].force_n),
             "arm_status": None if self._arm is None else self._arm[0].status,

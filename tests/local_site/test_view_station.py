@@ -32,11 +32,16 @@ from tests.relay_server.relay_clients import running_relay
 from tests.support import scaled, wait_until
 
 
-async def _until(ws: Any, predicate: Any, what: str, timeout_s: float = 10.0) -> dict[str, Any]:
+async def _until(ws: Any, predicate: Any, what: str, timeout_s: float = 10.0,
+                 trail: list[list[float]] | None = None) -> dict[str, Any]:
+    """The first snapshot whose ``live`` matches; ``trail`` collects every trajectory point
+    received on the way (a snapshot carries only the points its browser has not had yet)."""
     try:
         async with asyncio.timeout(scaled(timeout_s)):
             while True:
                 msg = json.loads(await ws.recv())
+                if trail is not None:
+                    trail.extend(msg["trail"]["points"])
                 live = msg["live"]
                 # every snapshot is of one moment: never a command beside the safe state
                 # that withdrew it (issue 9 under load)
@@ -61,6 +66,7 @@ async def test_the_view_shows_pins_patch_probe_link_and_latency_then_safe_state(
                 assert agent.view_server is not None
                 async with connect(f"ws://127.0.0.1:{agent.view_server.port}/ws",
                                    max_size=None) as ws:
+                    trail: list[list[float]] = []
                     msg = await _until(ws, lambda live: live["pins"]["measured_mm"] is not None
                                        and live["latency"] is not None
                                        # every stamp usable once both clock offsets are known
@@ -69,7 +75,7 @@ async def test_the_view_shows_pins_patch_probe_link_and_latency_then_safe_state(
                                        # rendering (a loaded machine may starve the
                                        # simulated platform for a moment: platform_lost)
                                        and live["safe"]["reason"] is None,
-                                       "pins and a patch", timeout_s=20.0)
+                                       "pins and a patch", timeout_s=20.0, trail=trail)
                     live = msg["live"]
                     assert live["station"] == "local" and live["link"]["state"] == "up"
                     assert live["safe"]["reason"] is None
@@ -85,7 +91,9 @@ async def test_the_view_shows_pins_patch_probe_link_and_latency_then_safe_state(
                     assert np.allclose(live["probe"]["phantom_mm"][:2], 0.0, atol=0.05)
                     assert "render" in live["latency"]["stages_ms"]
                     assert live["latency"]["end_to_end_ms"] > 0
-                    assert msg["trail"]["points"], "the trajectory has its first point"
+                    # (in this snapshot or an earlier one: a platform sample that did not
+                    # change between two snapshots adds no point, under load it happens)
+                    assert trail, "the trajectory has its first point"
                     remote.paused = True  # no frames: the pins go safe, the view says so
                     msg = await _until(ws, lambda live: live["safe"]["reason"] is not None,
                                        "the safe state")
@@ -253,3 +261,32 @@ def test_the_loop_withdraws_the_command_before_it_tells_the_board() -> None:
         loop.display.disconnect()
     assert seen and all(s.command is None and s.safe_reason == "stale_scene" for s in seen)
     assert loop.last_command is None and loop.safe_reason == "stale_scene"
+
+
+# ---------------------------------------------------------------- the probe position's age
+# (the page draws the probe hollow and STALE past 500 ms; the station sent no age at all)
+
+
+def test_the_probe_position_carries_the_age_of_its_platform_sample() -> None:
+    loop, view = _rendering_view()
+    reader = cast(Any, view.agent.reader)
+    try:
+        # the platform's newest sample stopped coming 0.8 s ago (board hung, link lost)
+        reader.latest = PlatformSample(position_mm=(30.0, 30.0, 100.0),
+                                       velocity_mm_s=(0.0, 0.0, 0.0),
+                                       t_us=now_us() - 800_000, seq=2, board_t_us=0)
+        old = view.live()["probe"]
+        reader.latest = PlatformSample(position_mm=(30.0, 30.0, 100.0),
+                                       velocity_mm_s=(0.0, 0.0, 0.0),
+                                       t_us=now_us(), seq=3, board_t_us=0)
+        fresh = view.live()["probe"]
+        reader.latest = None
+        none = view.live()["probe"]
+    finally:
+        loop.display.disconnect()
+    assert old["phantom_mm"] is not None
+    assert 800.0 <= old["platform_age_ms"] < 800.0 + scaled(5.0) * 1e3
+    assert 0.0 <= fresh["platform_age_ms"] < scaled(5.0) * 1e3
+    assert fresh["platform_age_ms"] < old["platform_age_ms"]
+    # no sample: no position and no age
+    assert none["phantom_mm"] is None and none["platform_age_ms"] is None

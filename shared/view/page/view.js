@@ -6,6 +6,10 @@
 "use strict";
 
 const STALE_MS = 500;        // older data is drawn dimmed and labelled stale
+// no snapshot for this long (and for 3 snapshot periods) while connected: the page says
+// "no data" and dims everything (a stream can stop with its socket still open)
+const NO_DATA_MS = STALE_MS;
+const FRESH_CHECK_MS = 100;  // how often the page checks that snapshots still arrive
 const CHART_S = 30;          // chart window
 const STAGE_COLOURS = ["#58a6ff", "#3fb950", "#d29922", "#bc8cff", "#ff7b72", "#39c5cf",
   "#e3b341", "#8b949e", "#f778ba", "#a5d6ff", "#7ee787", "#ffa657"];
@@ -15,6 +19,10 @@ const state = {
   messages: 0, pinUpdates: 0, lastPins: "", trail: [], trailNext: 0, analysis: null,
   findings: [], latencySamples: 0, live: null, mapLayer: "relief", connected: false,
   stageNames: [], receivedAt: [], replay: null, ws: null,
+  // freshness: when the last snapshot arrived (performance.now() ms; the socket's opening
+  // until the first), the last intervals between snapshots, and whether all is dimmed
+  lastMessageAt: 0, intervals: [], noData: false, dimmed: false, trailResets: 0,
+  analysisStopped: false, mapInfo: "",
 };
 window.teletouchView = state;
 
@@ -26,6 +34,13 @@ function setBadge(id, text, cls) {
   const el = $(id);
   el.textContent = text;
   el.className = "badge" + (cls ? " " + cls : "");
+}
+
+// what is drawn is not current (socket closed, or no snapshot for too long): dim it all
+function dimAll(on) {
+  state.dimmed = on;
+  for (const c of document.querySelectorAll("canvas")) c.classList.toggle("stale", on);
+  for (const id of ["link", "safe", "analysis", "station"]) $(id).classList.toggle("stale", on);
 }
 
 function b64bytes(text) {
@@ -217,7 +232,7 @@ function drawWorkspace() {
       // cell centres at x0 + i*cell: the image spans [x0 - cell/2, x0 + (w - 1/2) cell]
       const x0 = T.X(an.grid.x0_mm - cell / 2), y1 = T.Y(an.grid.y0_mm - cell / 2);
       const x1 = T.X(an.grid.x0_mm + (enc.w - 0.5) * cell), y0 = T.Y(an.grid.y0_mm + (enc.h - 0.5) * cell);
-      ctx.globalAlpha = 0.85;
+      ctx.globalAlpha = state.analysisStopped ? 0.3 : 0.85;
       drawImageScaled(ctx, quantisedImage(enc, true), x0, y0, x1 - x0, y1 - y0);
       ctx.globalAlpha = 1;
     }
@@ -236,10 +251,26 @@ function drawWorkspace() {
     ctx.beginPath(); ctx.moveTo(T.X(a[0]), T.Y(a[1])); ctx.lineTo(T.X(b[0]), T.Y(b[1])); ctx.stroke();
   }
   const probe = live && live.probe && live.probe.phantom_mm;
+  let probeInfo = "";
   if (probe) {
-    ctx.fillStyle = "#58a6ff"; ctx.beginPath();
-    ctx.arc(T.X(probe[0]), T.Y(probe[1]), 5, 0, 2 * Math.PI); ctx.fill();
+    // platform_age_ms: null = age unknown (stale); absent = the source gives no age
+    const age = live.probe.platform_age_ms;
+    const stale = age === null || (typeof age === "number" && age > STALE_MS);
+    const px = T.X(probe[0]), py = T.Y(probe[1]);
+    ctx.beginPath(); ctx.arc(px, py, 5, 0, 2 * Math.PI);
+    if (stale) {  // hollow and dim: where the probe was, not where it is
+      ctx.strokeStyle = "rgba(88,166,255,0.55)"; ctx.lineWidth = 1.5; ctx.stroke();
+      ctx.fillStyle = "#8a96a3"; ctx.font = "bold 11px system-ui";
+      ctx.fillText("STALE", px + 8, py + 4);
+    } else {
+      ctx.fillStyle = "#58a6ff"; ctx.fill();
+    }
+    probeInfo = typeof age === "number" ? (stale ? `probe STALE ${age.toFixed(0)} ms` : `probe ${age.toFixed(0)} ms old`)
+      : age === null ? "probe STALE (age unknown)" : "";
   }
+  $("probe-info").textContent = probeInfo;
+  // the analysis process has stopped: its last findings are drawn dimmed (not current)
+  if (state.analysisStopped) ctx.globalAlpha = 0.4;
   for (const f of state.findings) {
     const r = Math.max(4, f.equivalent_radius_mm * T.s);
     // malignant red, benign green, "uncertain" (a finding not fully covered) amber
@@ -250,6 +281,7 @@ function drawWorkspace() {
     ctx.fillStyle = ctx.strokeStyle; ctx.font = "bold 12px system-ui";
     ctx.fillText(`${f.kind} ${(100 * (f.confidence ?? 0)).toFixed(0)}%`, T.X(f.center_mm[0]) + r + 3, T.Y(f.center_mm[1]) - 3);
   }
+  ctx.globalAlpha = 1;
 }
 
 function updateFindings(an) {
@@ -265,11 +297,27 @@ function updateFindings(an) {
       `confidence ${(100 * (f.confidence ?? 0)).toFixed(0)}%`;
     ul.appendChild(li);
   }
-  $("map-info").textContent = an.state === "ok"
+  state.mapInfo = an.state === "ok"
     ? `analysis run ${an.run}: ${an.frames_used} contact frames of ${an.frames}, ${an.seconds.toFixed(2)} s; ` +
       `${state.findings.length} finding(s); confidence = share of the last 5 runs that found it`
     : `analysis run ${an.run}: ${an.reason || an.state}`;
-  setBadge("analysis", `analysis: ${state.findings.length} finding(s)`, state.findings.length ? "ok" : "");
+}
+
+// the analysis badge, the map text and the findings' dimming, from every snapshot: a dead
+// analysis process (analysis_state.alive false) leaves its last findings, no longer updated
+function updateAnalysisStatus(live) {
+  const as = live.analysis_state;
+  const stopped = !!as && as.alive === false;
+  state.analysisStopped = stopped;
+  const n = state.findings.length;
+  if (stopped) setBadge("analysis", "analysis stopped", "bad");
+  else if (state.analysis) setBadge("analysis", `analysis: ${n} finding(s)`, n ? "ok" : "");
+  else if (!as) setBadge("analysis", "analysis: runs at the local station", "");
+  else setBadge("analysis", "analysis: no result yet", "");
+  $("findings").classList.toggle("stale", stopped);
+  $("map-info").textContent = stopped
+    ? "ANALYSIS STOPPED: not updated any more; " + (state.mapInfo ? "the last result: " + state.mapInfo : "no result")
+    : state.mapInfo;
 }
 
 function updateCharts(live, now) {
@@ -328,22 +376,47 @@ function updateReplay(rp) {
     (rp.complete ? "" : " (file cut short: played to its last complete chunk)") + "; ages are in recorded time";
 }
 
+function pruneReceived(wall) {
+  while (state.receivedAt.length && state.receivedAt[0] < wall - 1) state.receivedAt.shift();
+}
+
+function updateRateBadge() {
+  const live = state.live;
+  const loop = (live && live.display_loop) || {};
+  const hz = `view ${state.receivedAt.length} Hz`;
+  // without data the loop's rate is not known any more
+  setBadge("rate", live && !live.replay && !state.noData ? `${hz}, loop ${loop.rate_hz ?? "?"} Hz` : hz,
+    state.noData ? "bad" : "");
+}
+
 function onSnapshot(msg) {
-  const wall = performance.now() / 1000;
+  const nowMs = performance.now();
+  const wall = nowMs / 1000;
   // charts run on the replay's recorded time in a replay (they stand still while paused)
   const now = msg.live && msg.live.replay ? msg.live.replay.position_s : wall;
   state.messages++;
+  if (state.messages > 1 && state.lastMessageAt) {
+    state.intervals.push(nowMs - state.lastMessageAt);
+    if (state.intervals.length > 20) state.intervals.shift();
+  }
+  state.lastMessageAt = nowMs;
+  state.noData = false;
+  if (state.dimmed) dimAll(false);  // fresh data: the panels say their own ages again
   state.receivedAt.push(wall);
-  while (state.receivedAt.length && state.receivedAt[0] < wall - 1) state.receivedAt.shift();
+  pruneReceived(wall);
   const live = msg.live;
   state.live = live;
   if (msg.trail) {
     const { from, points } = msg.trail;
-    if (from > state.trailNext) state.trailGaps = (state.trailGaps || 0) + 1; // oldest points dropped at the source
+    // the server sends a browser the trail from its oldest point at each connection: after
+    // a reconnect (or a restarted source) the trail starts again, never appended twice
+    if (from < state.trailNext) { state.trail = []; state.trailResets++; }
+    else if (from > state.trailNext) state.trailGaps = (state.trailGaps || 0) + 1; // oldest points dropped at the source
     for (const p of points) state.trail.push(p);
     state.trailNext = from + points.length;
   }
   if (msg.analysis) updateFindings(msg.analysis);
+  updateAnalysisStatus(live);
   const pinsKey = live.pins && live.pins.commanded_mm ? live.pins.commanded_mm.join(",") + "|" + (live.pins.measured_mm || []).join(",") : "";
   if (pinsKey && pinsKey !== state.lastPins) { state.pinUpdates++; state.lastPins = pinsKey; }
   drawPins(live.pins, !!live.replay);
@@ -360,22 +433,48 @@ function onSnapshot(msg) {
   else if (live.safe && live.safe.known === false) setBadge("safe", "pins' safe state: known at the local station", "");
   else if (live.replay) setBadge("safe", safe ? `recorded SAFE STATE: ${safe}` : "recorded: rendering", safe ? "bad" : "");
   else setBadge("safe", safe ? `SAFE STATE: ${safe}` : "rendering", safe ? "bad" : "ok");
-  if (!live.analysis_state && !state.analysis) setBadge("analysis", "analysis: runs at the local station", "");
-  const loop = live.display_loop || {};
-  setBadge("rate", live.replay ? `view ${state.receivedAt.length} Hz` : `view ${state.receivedAt.length} Hz, loop ${loop.rate_hz ?? "?"} Hz`, "");
+  updateRateBadge();
   $("station").textContent = `${live.replay ? "replay of the " : ""}${live.station}${live.session ? " session " + live.session : ""}, ${live.view ? live.view.clients : "?"} viewer(s)`;
 }
 
 // ------------------------------------------------------------------ connection
 
+// a %-escape that does not decode is kept as written (never an exception before the hello)
+function decodePart(text) {
+  try { return decodeURIComponent(text); } catch (e) { return text; }
+}
+
+// #session=S&token=T: each value runs to the next "&" ("=" inside a value is kept)
 function hashParams() {
-  const out = {};
+  const out = Object.create(null);
   for (const part of location.hash.replace(/^#/, "").split("&")) {
     if (!part) continue;
-    const [k, v] = part.split("=");
-    out[decodeURIComponent(k)] = decodeURIComponent(v || "");
+    const eq = part.indexOf("=");
+    const k = eq < 0 ? part : part.slice(0, eq);
+    out[decodePart(k)] = eq < 0 ? "" : decodePart(part.slice(eq + 1));
   }
   return out;
+}
+
+// while connected: no snapshot for NO_DATA_MS and 3 snapshot periods -> "no data", dimmed
+function snapshotPeriodMs() {
+  if (!state.intervals.length) return 0;
+  const sorted = [...state.intervals].sort((a, b) => a - b);
+  return sorted[Math.floor(sorted.length / 2)];
+}
+
+function checkFresh() {
+  const nowMs = performance.now();
+  pruneReceived(nowMs / 1000);
+  if (state.connected) {
+    const silentMs = nowMs - state.lastMessageAt;
+    if (silentMs > Math.max(NO_DATA_MS, 3 * snapshotPeriodMs())) {
+      state.noData = true;
+      if (!state.dimmed) dimAll(true);
+      setBadge("conn", `no data ${(silentMs / 1000).toFixed(1)} s`, "bad");
+    }
+  }
+  updateRateBadge();
 }
 
 function connect() {
@@ -387,8 +486,9 @@ function connect() {
   ws.onopen = () => {
     const p = hashParams();
     if (p.token) ws.send(JSON.stringify({ type: "hello", session: p.session || "", token: p.token }));
+    // what is drawn stays dimmed until the first snapshot of this connection
     state.connected = true; setBadge("conn", "connected", "");
-    for (const c of document.querySelectorAll("canvas")) c.classList.remove("stale");
+    state.lastMessageAt = performance.now(); state.intervals = [];
   };
   ws.onmessage = (ev) => {
     let msg;
@@ -396,9 +496,9 @@ function connect() {
     if (msg.type === "snapshot") onSnapshot(msg);
   };
   ws.onclose = (ev) => {
-    state.connected = false;
+    state.connected = false; state.noData = false;
     // what is drawn is no longer live: dim it until fresh snapshots arrive
-    for (const c of document.querySelectorAll("canvas")) c.classList.add("stale");
+    dimAll(true);
     setBadge("conn", ev.code === 4001 ? "refused: session token needed (#session=S&token=T)" : "disconnected; retrying", "bad");
     if (ev.code !== 4001) setTimeout(connect, 1000);
   };
@@ -417,4 +517,5 @@ $("replay-toggle").addEventListener("click", () => {
   if (!rp || !state.ws || state.ws.readyState !== WebSocket.OPEN) return;
   state.ws.send(JSON.stringify({ type: "control", action: rp.paused ? "play" : "pause" }));
 });
+setInterval(checkFresh, FRESH_CHECK_MS);
 connect();
