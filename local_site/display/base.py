@@ -7,6 +7,11 @@ the safe state, feedback decoding and bookkeeping; the lifecycle is
 ``_disconnect()`` and ``_send_frame(arb_id, payload)``, and hands every frame it receives to
 :meth:`ArrayTacDisplay._on_frame` from its reader thread.
 
+The link's health: a backend whose reader fails reports it (:meth:`_on_link_error`), and
+feedback is expected at least every ``feedback_timeout_s``; otherwise the sends raise
+:class:`~shared.errors.DeviceOperationError` and ``connect()`` reopens the link
+(docs/arraytac_can.md, "A broken link").
+
 Pin order: 16 pins, row-major on a 4 x 4 grid, ``index = row * 4 + col``; ``col`` grows along
 platform +x and ``row`` along +y; pin (row, col) sits at ((col - 1.5) * 1.7 mm,
 (row - 1.5) * 1.7 mm) from the array centre. Arrays may be given as shape (4, 4) in that
@@ -17,6 +22,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from abc import abstractmethod
 from dataclasses import dataclass
 from typing import Literal
@@ -40,6 +46,7 @@ from shared.errors import (
 from shared.timebase import monotonic_s, now_us
 
 __all__ = [
+    "FEEDBACK_TIMEOUT_S",
     "FRICTION_RANGE",
     "HEIGHT_RANGE_MM",
     "K_RANGE",
@@ -63,10 +70,22 @@ _HIGH = np.array([[HEIGHT_RANGE_MM[1]], [K_RANGE[1]], [FRICTION_RANGE[1]]])
 _CODE_LSB = np.array([[fr.HEIGHT_LSB_MM], [fr.K_LSB], [fr.F_LSB]])
 _CODE_OFFSET = np.array([[0.0], [fr.K_MIN], [0.0]])
 #: after a command with ``RESUME``, feedback still showing the watchdog trip is taken as news
-#: (the command lost) only when it arrives this much later: until then the board's answer may
-#: be on its way, and every further ``RESUME`` command would be one more that a freeze could
-#: hold past a new trip
+#: (the command lost) only when the board stamped it this much later (its own clock) than
+#: the board's clock at the write, at the earliest: until then the board's answer may be on
+#: its way, and every further ``RESUME`` command would be one more that a freeze could hold
+#: past a new trip
 RESUME_RETRY_US = 20_000
+#: default ``feedback_timeout_s``: no feedback for this long and the link counts as broken
+#: (100 periods of the board's 500 Hz feedback: far longer than a reader thread is starved on
+#: a loaded host, far shorter than an operator would notice)
+FEEDBACK_TIMEOUT_S = 0.2
+#: a board fault or rejection after this long without one starts a new episode (logged)
+_EPISODE_GAP_US = 1_000_000
+#: the clock of the link's health: the reader thread stamps each feedback's arrival with it
+#: and the sends compare it. ``time.monotonic`` itself (the clock behind
+#: :func:`shared.timebase.monotonic_s`), read directly: tests that step ``monotonic_s`` to
+#: play a stopped process step the loop's and the deadline's clock, not the reader's arrivals
+_link_clock_s = time.monotonic
 
 #: the shapes a layer may have as an array (a scalar is the third form)
 _PIN_SHAPES = ((4, 4), (fr.N_PINS,))
@@ -191,6 +210,11 @@ class PinFeedback:
         commands_rejected: frames the board dropped (CRC/format, or a command without
             ``RESUME`` after a watchdog trip), wrapping counter.
         watchdog_trips: watchdog firings, wrapping counter.
+        safe_hold: the safe state is ``hold`` (status ``SAFE_HOLD``).
+        command_rejected: the board rejected a frame since its previous feedback (status
+            ``COMMAND_REJECTED``).
+        fault: a plant/sensor fault since the board's previous feedback (status ``FAULT``;
+            it does not latch).
     """
 
     position_mm: np.ndarray
@@ -203,6 +227,9 @@ class PinFeedback:
     watchdog_tripped: bool
     commands_rejected: int
     watchdog_trips: int
+    safe_hold: bool = False
+    command_rejected: bool = False
+    fault: bool = False
 
 
 @dataclass(frozen=True, slots=True)
@@ -220,6 +247,11 @@ class DisplayStats:
         feedback_frames: valid feedback frames received.
         bad_frames: received frames that failed to decode.
         resumes: command frames sent with ``RESUME`` (the board's watchdog latch was seen).
+        board_faults: feedback frames reporting a board fault (``FAULT``: a plant/sensor
+            fault since the previous feedback).
+        board_rejections: frames the board rejected (the growth of its wrapping
+            ``commands_rejected`` counter since the session's first feedback: bad CRC or
+            format, or commands refused while its watchdog latch was set).
     """
 
     commands: int = 0
@@ -232,6 +264,8 @@ class DisplayStats:
     feedback_frames: int = 0
     bad_frames: int = 0
     resumes: int = 0
+    board_faults: int = 0
+    board_rejections: int = 0
 
 
 class ArrayTacDisplay(Device):
@@ -246,6 +280,12 @@ class ArrayTacDisplay(Device):
         disconnect_mode: safe state sent by ``disconnect()`` (None: send none).
         connect_timeout_s: ``connect()`` waits this long for the first feedback frame.
         require_feedback: wait for feedback in ``connect()`` (a board always sends it).
+        feedback_timeout_s: no feedback for this long means the link is broken (a silent
+            board, a reader stalled); counted from the session's first feedback frame. A
+            failed reader breaks it at once. A broken link makes ``send_command``,
+            ``keepalive`` and ``safe_state`` raise :class:`DeviceOperationError` and
+            ``connect()`` reopen it. Must exceed the board's feedback period with room for a
+            starved reader thread (default 0.2 s: 100 periods at 500 Hz).
     """
 
     _seq: int
@@ -264,12 +304,29 @@ class ArrayTacDisplay(Device):
     _n_feedback: int
     _n_bad: int
     _n_resumes: int
-    _resume_sent_us: int
+    _n_board_faults: int
+    _n_board_rejections: int
+    #: the board's rejection counter in the last feedback (None before the first)
+    _board_rejected: int | None
+    #: host arrival (us) of the last feedback reporting a fault / new rejections
+    _fault_seen_us: int
+    _rejection_seen_us: int
+    #: the board's clock (us, uint32) at the last ``RESUME`` write, at the earliest, and
+    #: its trip counter then (None: no ``RESUME`` sent in this session)
+    _resume_board_us: int | None
+    _resume_trips: int
+    #: the link's reader failed (None: it runs)
+    _link_error: BaseException | None
+    #: ``_link_clock_s()`` past this without new feedback: the link is broken
+    _feedback_deadline_s: float
 
     def __init__(self, *, keepalive_interval_s: float = 0.02, watchdog_ms: int = 100,
                  watchdog_mode: SafeMode = "flat", disconnect_mode: SafeMode | None = "flat",
-                 connect_timeout_s: float = 2.0, require_feedback: bool = True) -> None:
+                 connect_timeout_s: float = 2.0, require_feedback: bool = True,
+                 feedback_timeout_s: float = FEEDBACK_TIMEOUT_S) -> None:
         super().__init__()
+        if not feedback_timeout_s > 0:
+            raise ConfigError(f"feedback_timeout_s must be > 0, got {feedback_timeout_s}")
         if not 0 < watchdog_ms <= 0xFFFF:
             raise ConfigError(f"watchdog_ms must be in [1, 65535], got {watchdog_ms}")
         if not 0 < keepalive_interval_s < watchdog_ms / 1000.0:
@@ -284,6 +341,7 @@ class ArrayTacDisplay(Device):
         self._disconnect_mode = disconnect_mode
         self._connect_timeout_s = connect_timeout_s
         self._require_feedback = require_feedback
+        self._feedback_timeout_s = float(feedback_timeout_s)
         self._send_lock = threading.Lock()
         self._cond = threading.Condition()
         self._reset_session()
@@ -318,11 +376,15 @@ class ArrayTacDisplay(Device):
             raise DeviceInitError(f"{self.name}: no feedback from the drive board within "
                                   f"{self._connect_timeout_s:.2f} s") from err
 
+    def _is_healthy(self) -> bool:
+        """False once the reader failed or no feedback came for ``feedback_timeout_s``."""
+        return self._link_error is None and _link_clock_s() <= self._feedback_deadline_s
+
     def _before_disconnect(self) -> None:
-        """Send the disconnect safe state, best effort."""
+        """Send the disconnect safe state, best effort (a broken link is tried too)."""
         if self._disconnect_mode is not None:
             try:
-                self.safe_state(self._disconnect_mode)
+                self._send_safe_state(self._disconnect_mode)
             except DeviceOperationError as err:
                 log.warning("%s: safe state on disconnect failed: %s", self.name, err)
 
@@ -371,10 +433,14 @@ class ArrayTacDisplay(Device):
             InputDataError: a wrong shape or a NaN/Inf value; nothing is sent.
             CommandExpiredError: ``not_after_s`` had passed; nothing is sent.
             DeviceNotConnectedError: not connected.
-            DeviceOperationError: the link refused the frame.
+            DeviceOperationError: the link refused the frame, or it is broken (its reader
+                failed, or no feedback for ``feedback_timeout_s``); nothing is sent, and
+                ``connect()`` reopens it.
         """
         if not self._connected:
             raise DeviceNotConnectedError(f"{self.name}: send_command() before connect()")
+        if self._link_error is not None or _link_clock_s() > self._feedback_deadline_s:
+            raise self._broken_link_error()
         rows = _float_rows(height_mm, stiffness_k, friction)
         if rows is None:
             try:
@@ -411,8 +477,7 @@ class ArrayTacDisplay(Device):
             # (Decided after the check, a reader thread that read the trip first after the
             # freeze would let the held command through with RESUME.)
             fb = self._feedback
-            resume = (fb is not None and fb.watchdog_tripped
-                      and fb.t_us > self._resume_sent_us + RESUME_RETRY_US)
+            resume = fb is not None and fb.watchdog_tripped and self._trip_is_news(fb)
             if not_after_s is not None:
                 late_s = monotonic_s() - not_after_s
                 if late_s > 0:
@@ -431,9 +496,12 @@ class ArrayTacDisplay(Device):
             self._force_next = False
             self._n_frames += 1
             self._n_keepalives += keepalive
-            if resume:
+            if resume and fb is not None:
                 self._n_resumes += 1
-                self._resume_sent_us = now_us()
+                # the board's clock now is at least its stamp on that feedback plus the
+                # host time since it arrived (it was read after the board sent it)
+                self._resume_board_us = (fb.board_t_us + now_us() - fb.t_us) & 0xFFFFFFFF
+                self._resume_trips = fb.watchdog_trips
             if log.isEnabledFor(logging.DEBUG):
                 log.debug("%s: command seq %d keepalive=%s", self.name, frame.seq, keepalive)
             return self._applied(applied, clamped, sent=True, keepalive=keepalive)
@@ -449,7 +517,12 @@ class ArrayTacDisplay(Device):
 
         Raises:
             CommandExpiredError: ``not_after_s`` had passed; nothing is sent.
+            DeviceOperationError: as for :meth:`send_command` (a broken link is reported
+                even when no keepalive is due).
         """
+        if self._connected and (self._link_error is not None
+                                or _link_clock_s() > self._feedback_deadline_s):
+            raise self._broken_link_error()
         with self._send_lock:
             last = self._last_codes
             if last is None:
@@ -469,11 +542,21 @@ class ArrayTacDisplay(Device):
         ``hold`` (stay where they are, no vibration). The next ``send_command`` is always
         sent, whatever it contains.
 
+        On a broken link (reader failed, no feedback for ``feedback_timeout_s``) the frame
+        is still written (the board may still hear it), then :class:`DeviceOperationError`
+        says the pins' state is unknown.
+
         Raises:
             ConfigError: unknown mode.
             DeviceNotConnectedError: not connected.
-            DeviceOperationError: the link refused the frame.
+            DeviceOperationError: the link refused the frame, or it is broken.
         """
+        self._send_safe_state(mode)
+        if self._link_error is not None or _link_clock_s() > self._feedback_deadline_s:
+            raise self._broken_link_error("safe state sent, but ")
+
+    def _send_safe_state(self, mode: SafeMode) -> None:
+        """Write the safe-state frame (:meth:`safe_state` without the link's health)."""
         if mode not in _SAFE_CODES:
             raise ConfigError(f"safe-state mode must be 'flat' or 'hold', got {mode!r}")
         if not self._connected:
@@ -526,7 +609,9 @@ class ArrayTacDisplay(Device):
                             skipped_unchanged=self._n_skipped, keepalives=self._n_keepalives,
                             clamped=self._n_clamped, rejected_inputs=self._n_rejected,
                             safe_states_sent=self._n_safe, feedback_frames=self._n_feedback,
-                            bad_frames=self._n_bad, resumes=self._n_resumes)
+                            bad_frames=self._n_bad, resumes=self._n_resumes,
+                            board_faults=self._n_board_faults,
+                            board_rejections=self._n_board_rejections)
 
     # ------------------------------------------------------------------ for backends
 
@@ -541,19 +626,78 @@ class ArrayTacDisplay(Device):
             if log.isEnabledFor(logging.DEBUG):
                 log.debug("%s: bad feedback frame: %s", self.name, err)
             return
+        status = frame.status
         feedback = PinFeedback(
             position_mm=frame.position_mm, saturated=frame.saturated,
             drive_voltage_v=frame.drive_voltage_v,
             t_us=now_us() if rx_us is None else rx_us, board_t_us=frame.board_t_us,
-            seq_echo=frame.seq_echo, safe_state=bool(frame.status & fr.STATUS_SAFE_STATE),
-            watchdog_tripped=bool(frame.status & fr.STATUS_WATCHDOG_TRIPPED),
-            commands_rejected=frame.commands_rejected, watchdog_trips=frame.watchdog_trips)
+            seq_echo=frame.seq_echo, safe_state=bool(status & fr.STATUS_SAFE_STATE),
+            watchdog_tripped=bool(status & fr.STATUS_WATCHDOG_TRIPPED),
+            commands_rejected=frame.commands_rejected, watchdog_trips=frame.watchdog_trips,
+            safe_hold=bool(status & fr.STATUS_SAFE_HOLD),
+            command_rejected=bool(status & fr.STATUS_COMMAND_REJECTED),
+            fault=bool(status & fr.STATUS_FAULT))
         with self._cond:
             if feedback.safe_state:
                 self._force_next = True  # the board is parked: the next command must go out
             self._feedback = feedback
+            self._feedback_deadline_s = _link_clock_s() + self._feedback_timeout_s
             self._n_feedback += 1
+            self._count_board_errors(feedback)
             self._cond.notify_all()
+
+    def _count_board_errors(self, fb: PinFeedback) -> None:
+        """Count the board's faults and newly rejected frames; log the first of each episode
+        (one after ``_EPISODE_GAP_US`` without any)."""
+        last, self._board_rejected = self._board_rejected, fb.commands_rejected
+        rejected = 0 if last is None else (fb.commands_rejected - last) & 0xFFFF
+        if rejected:
+            self._n_board_rejections += rejected
+            if fb.t_us - self._rejection_seen_us > _EPISODE_GAP_US:
+                log.warning("%s: the board rejected %d frame(s) (bad CRC or format, or "
+                            "commands refused while its watchdog latch was set); further "
+                            "ones are counted in board_rejections", self.name, rejected)
+            self._rejection_seen_us = fb.t_us
+        if fb.fault:
+            self._n_board_faults += 1
+            if fb.t_us - self._fault_seen_us > _EPISODE_GAP_US:
+                log.warning("%s: the board reports a fault (plant/sensor); further ones are "
+                            "counted in board_faults", self.name)
+            self._fault_seen_us = fb.t_us
+
+    def _on_link_error(self, err: BaseException) -> None:
+        """The backend's reader failed (called from it before it ends): the link counts as
+        broken until ``connect()`` reopens it."""
+        log.error("%s: the link's reader failed: %s; the display reports a broken link "
+                  "until it is reopened", self.name, err)
+        with self._cond:
+            self._link_error = err
+            self._cond.notify_all()
+
+    def _broken_link_error(self, prefix: str = "") -> DeviceOperationError:
+        """The error for a broken link (the reader failed, or the board went silent)."""
+        err = self._link_error
+        if err is not None:
+            return DeviceOperationError(f"{self.name}: {prefix}the link's reader failed "
+                                        f"({err}); reopen the display")
+        silent_s = _link_clock_s() - self._feedback_deadline_s + self._feedback_timeout_s
+        return DeviceOperationError(
+            f"{self.name}: {prefix}no feedback from the drive board for {silent_s * 1e3:.0f} "
+            f"ms (feedback_timeout_s {self._feedback_timeout_s * 1e3:.0f} ms); reopen the "
+            "display")
+
+    def _trip_is_news(self, fb: PinFeedback) -> bool:
+        """Whether feedback showing a watchdog trip asks for a ``RESUME``: none was sent in
+        this session, the trip is a new one (the board's trip counter moved: also a
+        rebooted board), or the board stamped it ``RESUME_RETRY_US`` after the last
+        ``RESUME``'s write by its own clock (that ``RESUME`` was lost). Judged on the board's
+        clock, not on arrival: feedback queued on the way arrives late but is not news."""
+        since = self._resume_board_us
+        if since is None or fb.watchdog_trips != self._resume_trips:
+            return True
+        # wrap-aware difference of two uint32 clocks, as a signed 32-bit number
+        elapsed_us = ((fb.board_t_us - since + 0x80000000) & 0xFFFFFFFF) - 0x80000000
+        return elapsed_us > RESUME_RETRY_US
 
     def _reset_session(self) -> None:
         self._seq = 0
@@ -564,8 +708,15 @@ class ArrayTacDisplay(Device):
         self._feedback = None
         self._n_commands = self._n_frames = self._n_skipped = self._n_keepalives = 0
         self._n_clamped = self._n_rejected = self._n_safe = self._n_feedback = self._n_bad = 0
-        self._n_resumes = 0
-        self._resume_sent_us = -(1 << 62)
+        self._n_resumes = self._n_board_faults = self._n_board_rejections = 0
+        self._board_rejected = None
+        self._fault_seen_us = self._rejection_seen_us = -(1 << 62)
+        self._resume_board_us = None
+        self._resume_trips = 0
+        self._link_error = None
+        # armed by the first feedback frame (connect() waits for it unless require_feedback
+        # is off)
+        self._feedback_deadline_s = float("inf")
 
     def _next_seq(self) -> int:
         self._seq = (self._seq + 1) & 0xFFFF

@@ -2,7 +2,9 @@
 
 ``CanArrayTacDisplay(channel="can0", interface="socketcan")`` in the field,
 ``interface="virtual"`` in tests and for the simulator. Frames are CAN FD, standard 11-bit
-IDs, bit-rate switching on; a reader thread receives feedback (filtered to its ID).
+IDs, bit-rate switching on; a reader thread receives feedback (filtered to its ID). A receive
+error ends that thread and marks the link broken (:meth:`ArrayTacDisplay._on_link_error`):
+the next send raises, and ``connect()`` reopens the bus.
 """
 
 from __future__ import annotations
@@ -94,8 +96,10 @@ class CanArrayTacDisplay(ArrayTacDisplay):
         try:
             msg = bus.recv(timeout=0.05)
         except can.CanError as err:
+            # the thread ends: recorded, so the display reports a broken link (its sends
+            # raise, connect() reopens the bus with a new reader) instead of living on deaf
             if not reader.stopping:
-                log.warning("%s: receive failed: %s", self.name, err)
+                self._on_link_error(err)
             return False
         if msg is not None and not msg.is_error_frame:
             self._on_frame(msg.arbitration_id, bytes(msg.data))

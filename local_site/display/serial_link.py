@@ -57,4 +57,5 @@ class SerialArrayTacDisplay(ArrayTacDisplay):
             self._on_frame(arb_id, payload)
 
     def _on_read_error(self, err: BaseException) -> None:
-        log.warning("%s: read failed: %s", self.name, err)
+        # the reader thread ends after this: the link counts as broken until reopened
+        self._on_link_error(err)

@@ -14,7 +14,8 @@ from local_site.devices import open_display, parse_display_spec
 from local_site.display import frames as fr
 from local_site.display.can_link import CanArrayTacDisplay
 from shared.errors import ConfigError, DeviceNotConnectedError, InputDataError
-from tests.support import scaled
+from shared.timebase import now_us
+from tests.support import scaled, wait_until
 
 
 @pytest.fixture
@@ -161,19 +162,17 @@ def test_display_specs_parse() -> None:
         open_display("sim", bogus_option=1)
 
 
-def _feed(display: CanArrayTacDisplay, board: can.BusABC, status: int) -> None:
+def _feed(display: CanArrayTacDisplay, board: can.BusABC, status: int, *,
+          board_t_us: int = 0, trips: int = 1) -> None:
     """The raw bus plays the board: one feedback frame, waited for until decoded."""
     before = display.stats().feedback_frames
     board.send(can.Message(arbitration_id=fr.ARB_ID_FEEDBACK, is_fd=True, is_extended_id=False,
                            data=fr.encode_feedback(fr.FeedbackFrame(
-                               status=status, seq_echo=0, board_t_us=0,
+                               status=status, seq_echo=0, board_t_us=board_t_us,
                                position_codes=np.zeros(16, np.uint16), saturated_mask=0,
-                               commands_rejected=0, watchdog_trips=1,
+                               commands_rejected=0, watchdog_trips=trips,
                                voltage_codes=np.zeros(16, np.uint16)))))
-    deadline = time.monotonic() + scaled(1.0)
-    while display.stats().feedback_frames == before:
-        assert time.monotonic() < deadline, "feedback not decoded"
-        time.sleep(0.001)
+    wait_until(lambda: display.stats().feedback_frames > before, 1.0, "feedback decoded")
 
 
 def _flags(board: can.BusABC) -> list[int]:
@@ -181,29 +180,62 @@ def _flags(board: can.BusABC) -> list[int]:
             if m.arbitration_id == fr.ARB_ID_COMMAND]
 
 
-def test_resume_once_per_trip_read_and_again_only_when_the_trip_persists(
-        link, monkeypatch: pytest.MonkeyPatch) -> None:
-    from local_site.display import base
+TRIPPED = fr.STATUS_SAFE_STATE | fr.STATUS_WATCHDOG_TRIPPED
 
+
+def test_resume_once_per_trip_read_and_again_only_when_the_trip_persists(link) -> None:
     display, board = link
-    monkeypatch.setattr(base, "RESUME_RETRY_US", 60_000_000)  # the retry time never passes
     display.send_command(1.0)
     assert _flags(board) == [0]
-    tripped = fr.STATUS_SAFE_STATE | fr.STATUS_WATCHDOG_TRIPPED
-    _feed(display, board, tripped)
+    _feed(display, board, TRIPPED, board_t_us=1_000_000)
     display.send_command(2.0)  # built after the trip was read: RESUME
     assert _flags(board) == [fr.FLAG_RESUME]
-    # more feedback still showing the trip, within the retry time (the board's answer to the
-    # RESUME may be on its way): no second RESUME a freeze could hold past a new trip
-    _feed(display, board, tripped)
+    # more feedback still showing the trip, stamped by the board within the retry time of
+    # the RESUME (the board's answer may be on its way): no second RESUME a freeze could
+    # hold past a new trip
+    _feed(display, board, TRIPPED, board_t_us=1_005_000)
     display.send_command(3.0)
     assert _flags(board) == [0]
-    # the trip still reported after the retry time: the RESUME was lost, sent again
-    monkeypatch.setattr(base, "RESUME_RETRY_US", 0)  # the retry time has passed
-    _feed(display, board, tripped)
+    # the trip still reported a second later on the board's clock: the RESUME was lost
+    _feed(display, board, TRIPPED, board_t_us=2_000_000)
     display.send_command(4.0)
     assert _flags(board) == [fr.FLAG_RESUME]
     # the board left the latch: no RESUME
-    _feed(display, board, 0)
+    _feed(display, board, 0, board_t_us=2_010_000)
     display.send_command(5.0)
     assert _flags(board) == [0] and display.stats().resumes == 2
+
+
+@pytest.mark.parametrize("trip_t_us", [1_000_000, 0xFFFF_FFFF - 1_000])
+def test_late_delivered_feedback_is_judged_by_the_boards_clock_not_its_arrival(
+        link, trip_t_us: int) -> None:
+    # Found by audit: the retry was judged on the host's arrival time, so feedback the board
+    # sent before it applied the RESUME, delivered 20 ms late (a starved reader, a backlog
+    # on the bus or in a socket), counted as "RESUME lost" and a second RESUME went out.
+    display, board = link
+    _feed(display, board, TRIPPED, board_t_us=trip_t_us)
+    display.send_command(1.0)
+    assert _flags(board) == [fr.FLAG_RESUME]
+    sent_us = now_us()
+    # the retry time passes on the host: the board's reply is late
+    wait_until(lambda: now_us() > sent_us + 25_000, 1.0, "25 ms on the host clock")
+    # sent 2 ms after the trip frame by the board's clock (wrapping past 2**32 in the
+    # second case), i.e. before the board could have seen the RESUME: not news
+    _feed(display, board, TRIPPED, board_t_us=(trip_t_us + 2_000) & 0xFFFF_FFFF)
+    display.send_command(2.0)
+    assert _flags(board) == [0] and display.stats().resumes == 1
+    # a second later by the board's clock (wrapped), still tripped: lost, sent again
+    _feed(display, board, TRIPPED, board_t_us=(trip_t_us + 1_000_000) & 0xFFFF_FFFF)
+    display.send_command(3.0)
+    assert _flags(board) == [fr.FLAG_RESUME] and display.stats().resumes == 2
+
+
+def test_a_new_trip_asks_for_a_resume_at_once(link) -> None:
+    # the board left the latch and tripped again within the retry time (its trip counter
+    # moved): the new trip needs its own RESUME
+    display, board = link
+    _feed(display, board, TRIPPED, board_t_us=1_000_000, trips=1)
+    display.send_command(1.0)
+    _feed(display, board, TRIPPED, board_t_us=1_001_000, trips=2)
+    display.send_command(2.0)
+    assert _flags(board) == [fr.FLAG_RESUME, fr.FLAG_RESUME]
