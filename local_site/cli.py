@@ -22,9 +22,9 @@ Examples:
   teletouch local --scene hemisphere:radius_mm=10 --platform sim --display sim --duration 10
 
 Exit: 0 on a clean stop (duration, motion done, SIGTERM/SIGINT), 1 when the relay refuses
-the station for good (a wrong token, or its connection replaced by another proving it) or an
-output cannot be written, 2 on bad usage. A role held by another station (role_taken) is not
-final: the link keeps retrying until that station leaves.
+the station for good (a wrong token, or its connection replaced by another proving it), an
+output cannot be written or the recording lost messages, 2 on bad usage. A role held by
+another station (role_taken) is not final: the link keeps retrying until that station leaves.
 """
 
 from __future__ import annotations

@@ -625,9 +625,14 @@ class LocalAgent:
             try:
                 await asyncio.to_thread(self.recorder.close, end)
                 self.summary["recording"] = self.recorder.counts()
+                lost = self.recorder.mcap.loss_error()
+                if lost is not None:  # finished, but incomplete: not a clean stop
+                    raise lost
             except ConfigError as err:
                 log.error("%s", err)
                 self.exit_code = 1
+                self.summary["recording"] = self.recorder.counts()
+                self.summary["recording_error"] = str(err)
         if self.summary_path is not None:
             text = json.dumps(to_jsonable(self.summary), allow_nan=False, sort_keys=True)
             try:

@@ -302,6 +302,9 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
                 if recorder is not None:
                     try:
                         summary["recording"] = await asyncio.to_thread(recorder.close, summary)
+                        lost = recorder.loss_error()
+                        if lost is not None:  # finished, but incomplete: not a clean stop
+                            raise lost
                     except ConfigError as err:  # a full disk: the summary is written still
                         log.error("%s", err)
                         recording_error = err

@@ -493,6 +493,17 @@ class McapRecorder:
                 "image_cpu_s": round(self.image_cpu_s, 4),
                 "per_topic": dict(sorted(self.message_counts.items()))}
 
+    def loss_error(self) -> ConfigError | None:
+        """The error a station ends with when the file is finished but lost messages (a
+        write or flush failed: a full disk); None when nothing was lost. A session whose
+        record is incomplete must not end as a success (exit 0) with only a count saying
+        so."""
+        if not self.lost:
+            return None
+        return ConfigError(f"the recording {self.path} lost {self.lost} messages ("
+                           f"{self.write_errors} write errors, e.g. a full disk): the file "
+                           "reads, but incomplete")
+
     def _finish_without_summary(self) -> None:
         """End the file as ``Writer.finish`` does, but without the summary section: the
         library's would count lost messages and index lost chunks (the data section's CRC

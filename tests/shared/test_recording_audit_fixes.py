@@ -434,6 +434,53 @@ async def test_the_remote_writes_its_summary_when_its_recording_cannot_be_finish
     assert summaries[0]["recording"]["path"] == str(tmp_path / "remote.mcap")
 
 
+def _losing_close(monkeypatch: pytest.MonkeyPatch) -> None:
+    """McapRecorder.close as after a brief full disk: the file finished, 3 messages lost."""
+    real_close = McapRecorder.close
+
+    def losing_close(self: McapRecorder, end_meta: Any = None) -> dict[str, Any]:
+        counts = real_close(self, end_meta)
+        self.lost, self.write_errors = 3, 1
+        return {**counts, "messages_lost": 3, "write_errors": 1}
+
+    monkeypatch.setattr(McapRecorder, "close", losing_close)
+
+
+async def test_the_remote_exits_1_when_its_recording_lost_messages(
+        relay: Any, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Before, a recording that lost messages to a full disk ended the session as a success
+    (exit 0) with only messages_lost saying so."""
+    from remote_site.agent.app import AgentOptions, run_agent
+    from tests.support import scaled
+
+    _losing_close(monkeypatch)
+    options = AgentOptions(relay=f"tcp://127.0.0.1:{relay.tcp_port}", session="rec",
+                           token="tok", duration_s=0.5, record=tmp_path / "remote.mcap")
+    summaries: list[dict[str, Any]] = []
+    with pytest.raises(ConfigError, match="lost 3 messages"):  # exits 1 through the CLI
+        await asyncio.wait_for(run_agent(options, asyncio.Event(),
+                                         on_summary=summaries.append), scaled(60.0))
+    assert "lost 3 messages" in summaries[0]["recording_error"]
+    assert summaries[0]["recording"]["messages_lost"] == 3
+
+
+async def test_the_local_station_exits_1_when_its_recording_lost_messages(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from tests.local_site.agent_support import relay_agent
+    from tests.relay_server.relay_clients import running_relay
+    from tests.support import scaled
+
+    _losing_close(monkeypatch)
+    async with running_relay() as relay_server:
+        agent = relay_agent(f"ws://127.0.0.1:{relay_server.ws_port}/", tmp_path,
+                            render_loop="thread")
+        agent.duration_s = 0.5
+        code = await asyncio.wait_for(agent.run(), scaled(60.0))
+    assert code == 1
+    assert agent.summary is not None and "lost 3 messages" in agent.summary["recording_error"]
+    assert agent.summary["recording"]["messages_lost"] == 3
+
+
 # ---------------------------------------------------------------- a corrupt chunk, --truth
 
 
