@@ -170,10 +170,10 @@ class XYZPlatform(Device):
         self._missed = self._clamped = self._reads = self._restarts = self._duplicates = 0
         self._rebases = 0
         #: the newest sample of the driver's life, kept across connections (a restarted board
-        #: is told by its clock against it): raw board clock, host arrival time, unclamped
-        #: position; and the board's sample rate from its last INFO
+        #: is told by its clock against it): raw board clock, its latch time on the host clock
+        #: (t_us), unclamped position; and the board's sample rate from its last INFO
         self._last_board_t_raw = 0
-        self._last_rx_us: int | None = None
+        self._last_latch_us: int | None = None
         self._last_raw_mm: Vec3 = (0.0, 0.0, 0.0)
         self._rate_hz = _MAX_RATE_HZ
         self._reset_track()
@@ -355,17 +355,19 @@ class XYZPlatform(Device):
         connection, or the one before a restart on this link).
 
         A board starts ``seq`` and its clock at 0. It started since then when its clock
-        reads no more than the host time since that sample (plus 2 % and 100 ms), the clock
+        reads no more than the host time from that sample's latch to this sample's arrival
+        (plus 2 % and 100 ms; measured from the latch, not the arrival, so frames read in one
+        chunk or after a backlog are judged as they were latched), the clock
         does not simply continue from that sample's, and ``seq`` is no more than that clock
         at the board's sample rate allows. A continuing board (reopened link) or one chance
         frame with random fields does not pass (a wrapped clock of a continuing board is
         caught by its ``seq``, up to outages of about an hour).
         """
-        last_rx = self._last_rx_us
-        if last_rx is None:
+        last_latch = self._last_latch_us
+        if last_latch is None:
             return False
-        elapsed = rx_us - last_rx
-        if elapsed <= 0:  # the host clock stepped back: cannot tell
+        elapsed = rx_us - last_latch
+        if elapsed <= 0:  # (a latch is stamped at or before its arrival: cannot tell)
             return False
         slack = elapsed // 50 + _BOOT_SLACK_US
         board_t = sample.board_t_us
@@ -486,13 +488,13 @@ class XYZPlatform(Device):
             velocity = tuple((p - q) / dt_s for p, q in zip(position, p_old, strict=True)) \
                 if dt_s > 0 else (0.0, 0.0, 0.0)
             self._raw_counts = sample.counts
-            self._last_board_t_raw, self._last_rx_us, self._last_raw_mm = \
-                sample.board_t_us, rx_us, raw_mm  # type: ignore[assignment]
             # capture times never go backwards, even when a faster arrival lowers the offset
             # estimate (a sample stamped before its predecessor would look older than it is)
             t_us = board_t + offset
             if previous is not None and t_us <= previous.t_us:
                 t_us = previous.t_us + 1
+            self._last_board_t_raw, self._last_latch_us, self._last_raw_mm = \
+                sample.board_t_us, t_us, raw_mm  # type: ignore[assignment]
             published = PlatformSample(position_mm=position, velocity_mm_s=velocity,  # type: ignore[arg-type]
                                        t_us=t_us, seq=seq, board_t_us=board_t,
                                        clamped=clamped)

@@ -77,6 +77,26 @@ def test_a_board_restarted_while_the_link_was_down_keeps_the_position() -> None:
     assert (stats.board_restarts, stats.position_rebases) == (1, 1)
 
 
+def test_a_restart_read_in_one_chunk_with_the_samples_before_it_keeps_the_position() -> None:
+    """The last samples of the board's first life and the first of its second read at once
+    (a USB latency timer, a starved reader thread): they share one arrival stamp. Judged from
+    the last sample's arrival, the restart looked instantaneous (cannot tell) and the position
+    jumped to the counters' new origin (found by review); judged from its latch, it is a
+    restart like any other."""
+    platform = _Board()
+    for k in range(100):  # read as they come
+        _feed(platform, 5000 + k, 5_000_000 + k * 1000, HOST0 + k * 1000 + LINK_US,
+              (3000 + k, 0, 0))
+    chunk_rx = HOST0 + 100 * 1000 + 5 * 1000 + 16_000  # one 16 ms chunk, read late
+    for k in range(100, 105):  # the first life's last samples, then a reset
+        last = _feed(platform, 5000 + k, 5_000_000 + k * 1000, chunk_rx, (3000 + k, 0, 0))
+    for j in range(3):  # the second life: up 0.5 ms at its first sample
+        after = _feed(platform, j, 500 + j * 1000, chunk_rx, (j, 0, 0))
+        assert after[0] == pytest.approx(last[0] + j * MM_PER_COUNT[0])
+    stats = platform.stats()
+    assert (stats.board_restarts, stats.position_rebases) == (1, 1)
+
+
 def test_a_board_that_kept_running_over_a_reopen_keeps_its_counts() -> None:
     """A reopened link to a board that went on counting: the platform moved 2 mm meanwhile,
     and the counters saw it."""
