@@ -16,12 +16,28 @@ for state streams, ordered and bounded for the rest) is
 :class:`~shared.protocol.station_session.StationSession`; the sockets are
 :mod:`shared.transport`. This module only moves bytes, waits and retries.
 
-Refusals that retrying cannot fix are final: a wrong token (:class:`~shared.errors.AuthError`)
-and our connection replaced by another one proving our resume secret
-(:class:`~shared.errors.ReplacedError`). They are logged once and raised from
-``wait_connected``, ``send`` and ``recv``. A role held by another station
+The backoff starts afresh only after a connection stayed up for a while
+(``reconnect_max_s``, at least 2 s): a relay that welcomes and then closes at once (its rate
+limit, say) is retried with growing delays, not flooded. A connection is presumed dead after
+``liveness_timeout_s`` of silence, or 2.5 times the ``ping_interval_s`` the relay announced in
+its welcome when that is longer (a relay that pings slowly does not make an idle link flap); a
+dead connection is marked down at once and dropped without a close handshake.
+
+Refusals that retrying cannot fix are final: a wrong token (:class:`~shared.errors.AuthError`),
+our connection replaced by another one proving our resume secret
+(:class:`~shared.errors.ReplacedError`, over WebSocket and raw TCP alike) and a ``hello`` the
+relay could never accept (session id, token or name breaking the protocol's rules:
+:class:`~shared.errors.InvalidHelloError`, found before connecting). They are logged once and
+raised from ``wait_connected``, ``send`` and ``recv``. A role held by another station
 (:class:`~shared.errors.RoleTakenError`) is not final: the other may leave, so the link logs
-it and keeps retrying (a station never gives up on a transient fault).
+it and keeps retrying (a station never gives up on a transient fault). Nor is a relay
+certificate that fails verification (:class:`~shared.errors.TlsCertificateError`): its causes
+are often temporary (a certificate swapped while the relay restarts, a station clock wrong at
+boot), and the token is never sent over an unverified connection, so retrying is safe. It is
+retried with backoff up to 5 s, logged at ERROR at the first failure and then once a minute,
+and kept in :attr:`StationLink.last_error`; ``wait_connected`` raises it when an attempt made
+while it waits fails on the certificate. Every connection failure is logged once per outage
+and kind, then at most once a minute; the relay URL's user information is never shown.
 
 Example::
 
@@ -38,21 +54,26 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 import random
 import ssl
 from collections import deque
 from collections.abc import AsyncIterator, Callable
 from typing import Any
+from urllib.parse import unquote
 
 from websockets.exceptions import WebSocketException
 
 from shared.errors import (
     AuthError,
     ConfigError,
+    InvalidHelloError,
+    LocalProtocolError,
     ProtocolError,
     ReplacedError,
     RoleTakenError,
     SessionError,
+    TlsCertificateError,
 )
 from shared.freshness import ClockView, clock_view_from_stats
 from shared.link_settings import (
@@ -69,6 +90,7 @@ from shared.protocol import (
     Message,
     Stats,
     Welcome,
+    encode,
 )
 from shared.protocol.station_session import (
     Failed,
@@ -89,9 +111,30 @@ __all__ = [
     "StationLinkConfig",
     "backoff_delay_s",
     "parse_link_url",
+    "redact_url",
 ]
 
 log = logging.getLogger(__name__)
+
+#: a connection counts as having worked (the next backoff starts afresh) once it stayed up
+#: this long, or ``reconnect_max_s`` when that is longer
+STABLE_CONNECTION_S = 2.0
+#: the silence limit is at least this many times the ping interval the relay announces
+LIVENESS_PING_INTERVALS = 2.5
+#: largest delay between attempts that fail on the relay's TLS certificate
+TLS_RETRY_MAX_S = 5.0
+#: a connection failure already logged in this outage is logged again after this long
+REPEAT_LOG_S = 60.0
+
+
+def redact_url(url: str) -> str:
+    """``url`` without its user information (``ws://user:password@host/`` ->
+    ``ws://***@host/``), to show it in logs and errors."""
+    scheme, sep, rest = url.rpartition("://")
+    netloc, slash, path = rest.partition("/")
+    if "@" in netloc:
+        netloc = "***@" + netloc.rpartition("@")[2]
+    return f"{scheme}{sep}{netloc}{slash}{path}"
 
 
 # --------------------------------------------------------------------------- the link
@@ -107,10 +150,12 @@ class StationLink:
         token: the session token.
         name: a free label the relay shows in its status.
         reconnect_min_s: first reconnect delay.
-        reconnect_max_s: largest reconnect delay.
+        reconnect_max_s: largest reconnect delay (a relay certificate that fails
+            verification is retried up to 5 s apart).
         reconnect_jitter: fraction of each delay removed at random (0 to 1).
         connect_timeout_s: limit for opening the socket and for hello -> welcome.
-        liveness_timeout_s: silence after which a connection is treated as dead.
+        liveness_timeout_s: silence after which a connection is treated as dead (raised to
+            2.5 times the ping interval a relay announces in its welcome, when longer).
         max_message_bytes: size limit of one message, both directions.
         send_queue_size: bound of the ordered send queue (``send`` waits when full).
         receive_queue_size: bound of ordered messages waiting in the inbox.
@@ -121,7 +166,7 @@ class StationLink:
         seed: seed of the backoff jitter (None: random).
 
     Raises:
-        ConfigError: bad URL, role or numeric setting.
+        ConfigError: bad URL, role or numeric setting (NaN and infinities included).
     """
 
     def __init__(self, url: str, *, session: str, role: str, token: str, name: str = "",
@@ -135,15 +180,25 @@ class StationLink:
         self.scheme, self.host, self.port = parse_link_url(url)
         if role not in ROLES:
             raise ConfigError(f"role must be one of {sorted(ROLES)}, got {role!r}")
-        if not 0.0 < reconnect_min_s <= reconnect_max_s:
+        if not 0.0 < reconnect_min_s <= reconnect_max_s:  # also refuses NaN
             raise ConfigError("need 0 < reconnect_min_s <= reconnect_max_s")
         if not 0.0 <= reconnect_jitter <= 1.0:
             raise ConfigError("reconnect_jitter must be in [0, 1]")
+        if not all(math.isfinite(v) for v in (reconnect_min_s, reconnect_max_s,
+                                              connect_timeout_s, liveness_timeout_s)):
+            raise ConfigError("reconnect delays and timeouts must be finite numbers")
         if connect_timeout_s <= 0 or liveness_timeout_s <= 0:
             raise ConfigError("timeouts must be positive")
         if min(send_queue_size, receive_queue_size, max_message_bytes) < 1:
             raise ConfigError("queue sizes and max_message_bytes must be >= 1")
+        #: the relay URL as given (its user information, if any, is a secret)
         self.url = url
+        #: the URL as logs and errors show it (no user information)
+        self.safe_url = redact_url(url)
+        netloc = url.partition("://")[2].partition("/")[0]
+        userinfo = netloc.rpartition("@")[0]
+        #: user information to blank out of error texts (as written and percent-decoded)
+        self._secrets = sorted({userinfo, unquote(userinfo)} - {""}, key=len, reverse=True)
         self.role = role
         self._session = StationSession(
             Hello(role=role, session=session, token=token, name=name),
@@ -153,6 +208,10 @@ class StationLink:
             liveness_timeout_us=round(liveness_timeout_s * 1e6))
         self._reconnect = (reconnect_min_s, reconnect_max_s, reconnect_jitter)
         self._connect_timeout_s = connect_timeout_s
+        self._liveness_timeout_s = liveness_timeout_s
+        #: the silence limit in use on the current connection (see the module docstring)
+        self.liveness_timeout_s = liveness_timeout_s
+        self._stable_s = max(STABLE_CONNECTION_S, reconnect_max_s)
         self._write_buffer_bytes = max(0, write_buffer_bytes)
         self._ssl_context = ssl_context
         self._rng = random.Random(seed)
@@ -164,6 +223,12 @@ class StationLink:
         #: monotonic time of the last bytes received from the relay (None: never)
         self.last_received_s: float | None = None
         self.final_error: SessionError | None = None
+        #: why the latest connection attempt failed or the latest connection ended, while
+        #: the link is down (None once welcomed): a TLS certificate failure stays visible here
+        #: while the link retries
+        self.last_error: Exception | None = None
+        #: monotonic time of :attr:`last_error`
+        self.last_error_s: float | None = None
         #: reconnect delays actually waited, most recent last (for diagnostics and tests)
         self.backoff_history_s: deque[float] = deque(maxlen=64)
         self._readable = asyncio.Event()  # the inbox has messages
@@ -178,7 +243,15 @@ class StationLink:
         #: queues with :meth:`send` or takes with :meth:`recv` (a recorder; must not block)
         self.tap: Callable[[str, Message, int], None] | None = None
         self._closing = False
-        self._down_logged = False
+        #: kinds of failure logged in the current outage, and when each was last logged
+        self._failures_logged: dict[str, float] = {}
+        self._failures_since_log: dict[str, int] = {}
+        self._liveness_logged_s: float | None = None
+        #: set (and then replaced by a fresh one) when an attempt fails on the certificate
+        self._tls_failed = asyncio.Event()
+        self._welcomed_s: float | None = None
+        #: how long the connection that just ended had been welcomed (None: it never was)
+        self._up_for_s: float | None = None
         self._clock_view: tuple[Stats, ClockView] | None = None
 
     @classmethod
@@ -242,30 +315,42 @@ class StationLink:
         """Wait until the relay has welcomed us.
 
         Raises:
-            AuthError, RoleTakenError: the refusal is final.
-            TimeoutError: not connected within ``timeout_s``.
+            AuthError, ReplacedError, InvalidHelloError: the link was refused for good
+                (:attr:`final_error`).
+            TlsCertificateError: an attempt made while waiting failed on the relay's
+                certificate (the link goes on retrying: a later call may succeed).
+            SessionError: the link is closed or has failed.
+            TimeoutError: not connected within ``timeout_s`` (the message names the latest
+                failure).
         """
         self._raise_if_unusable()
         self.start()
         task = self._task
         if task is None:  # pragma: no cover - start() always sets it
             raise SessionError("the station link did not start", code="closed")
-        waiter = asyncio.ensure_future(self.connected.wait())
+        tls_failed = self._tls_failed
+        waiters = [asyncio.ensure_future(self.connected.wait()),
+                   asyncio.ensure_future(tls_failed.wait())]
         try:
-            await asyncio.wait({waiter, task}, timeout=timeout_s,
+            await asyncio.wait({*waiters, task}, timeout=timeout_s,
                                return_when=asyncio.FIRST_COMPLETED)
         finally:
-            waiter.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await waiter
+            for waiter in waiters:
+                waiter.cancel()
+            await asyncio.gather(*waiters, return_exceptions=True)
         self._raise_if_final()
         if task.done() and not task.cancelled() and task.exception() is not None:
             raise SessionError(f"the station link failed: {task.exception()}",
                                code="closed") from task.exception()
         welcome = self.welcome
-        if not self.connected.is_set() or welcome is None:
-            raise TimeoutError(f"not connected to {self.url} within {timeout_s} s")
-        return welcome
+        if self.connected.is_set() and welcome is not None:
+            return welcome
+        error = self.last_error
+        if tls_failed.is_set() and isinstance(error, TlsCertificateError):
+            raise error
+        latest = "" if error is None else \
+            f" (latest failure: {type(error).__name__}: {self._redact(str(error))})"
+        raise TimeoutError(f"not connected to {self.safe_url} within {timeout_s} s{latest}")
 
     # ------------------------------------------------------------------ status
 
@@ -434,67 +519,175 @@ class StationLink:
     async def _supervise(self) -> None:
         attempt = 0
         taken_logged = False
-        while not self._closing:
-            try:
-                await self._connect_once()
-            except (AuthError, ReplacedError) as err:
-                self.final_error = err
-                log.error("relay %s refused %s/%s for good (%s: %s); not retrying",
-                          self.url, self._session.hello.session, self.role,
-                          type(err).__name__, err)
-                self._wake_all()
-                return
-            except RoleTakenError as err:
-                self.counters.role_taken_refusals += 1
-                if not taken_logged:
-                    log.warning("relay %s: %s; another station holds the role, retrying "
-                                "until it leaves", self.url, err)
-                    taken_logged = True
-            except (OSError, TimeoutError, SessionError, ProtocolError,
-                    WebSocketException) as err:
-                if not self._down_logged:
-                    log.warning("link to %s unavailable (%s: %s); retrying with backoff",
-                                self.url, type(err).__name__, err)
-                    self._down_logged = True
-                elif log.isEnabledFor(logging.DEBUG):
-                    log.debug("reconnect attempt %d failed: %s", attempt, err)
-            if self.link_down_since is None:  # we had been welcomed: start afresh
-                attempt, taken_logged = 0, False
-            if self._session.connection_lost() or self.connected.is_set():
-                self.connected.clear()
-                self.link_down_since = monotonic_s()
-            if self._closing:
-                return
-            delay = backoff_delay_s(attempt, min_s=self._reconnect[0],
-                                    max_s=self._reconnect[1], jitter=self._reconnect[2],
-                                    rng=self._rng)
-            self.backoff_history_s.append(delay)
-            attempt += 1
-            await asyncio.sleep(delay)
+        try:
+            while not self._closing:
+                tls_failure = False
+                try:
+                    await self._connect_once()
+                except TlsCertificateError as err:  # an AuthError, but often temporary
+                    tls_failure = True
+                    self._note_failure(err)
+                    self._tls_failed.set()  # wakes the wait_connected calls waiting now
+                    self._tls_failed = asyncio.Event()
+                except (AuthError, ReplacedError, InvalidHelloError) as err:
+                    self._give_up(err)
+                    return
+                except RoleTakenError as err:
+                    self.counters.role_taken_refusals += 1
+                    self.last_error, self.last_error_s = err, monotonic_s()
+                    if not taken_logged:
+                        log.warning("relay %s: %s; another station holds the role, retrying "
+                                    "until it leaves", self.safe_url, self._redact(str(err)))
+                        taken_logged = True
+                except (OSError, TimeoutError, SessionError, ProtocolError,
+                        WebSocketException) as err:
+                    self._note_failure(err)
+                self._mark_down()
+                up_s, self._up_for_s = self._up_for_s, None
+                if up_s is not None and up_s >= self._stable_s:
+                    # the connection had worked: start afresh. Not after a connection that
+                    # ended soon after its welcome (a relay closing at once, its rate limit):
+                    # that one is retried with growing delays, not at the shortest
+                    attempt, taken_logged = 0, False
+                    self._failures_logged.clear()
+                    self._failures_since_log.clear()
+                if self._closing:
+                    return
+                max_s = self._reconnect[1]
+                if tls_failure:
+                    max_s = max(max_s, TLS_RETRY_MAX_S)
+                delay = backoff_delay_s(attempt, min_s=self._reconnect[0], max_s=max_s,
+                                        jitter=self._reconnect[2], rng=self._rng)
+                self.backoff_history_s.append(delay)
+                attempt += 1
+                await asyncio.sleep(delay)
+        except Exception as err:  # a bug or an unforeseen failure: stop, and say so
+            log.exception("the link to %s stopped on an unexpected error", self.safe_url)
+            self._give_up(SessionError(
+                f"the station link failed: {type(err).__name__}: {self._redact(str(err))}",
+                code="closed"), logged=True)
+        finally:
+            self._mark_down()  # however the loop ends, the link is no longer up
+
+    def _give_up(self, err: SessionError, *, logged: bool = False) -> None:
+        """A final refusal: keep it, say it once, wake every waiter."""
+        self.final_error = err
+        self.last_error, self.last_error_s = err, monotonic_s()
+        if not logged:
+            what = ("stopped for good" if isinstance(err, InvalidHelloError)
+                    else f"refused {self._session.hello.session}/{self.role} for good")
+            log.error("relay %s %s (%s: %s); not retrying", self.safe_url, what,
+                      type(err).__name__, self._redact(str(err)))
+        self._wake_all()
+
+    def _note_failure(self, err: Exception) -> None:
+        """A connection attempt failed or a connection ended: keep it in :attr:`last_error`
+        and log it, once per outage and kind of failure, then at most every
+        :data:`REPEAT_LOG_S` with the number of failures since (never every attempt)."""
+        now = monotonic_s()
+        self.last_error, self.last_error_s = err, now
+        kind = type(err).__name__
+        text = self._redact(str(err))
+        last = self._failures_logged.get(kind)
+        since = self._failures_since_log.get(kind, 0)
+        if last is not None and now - last < REPEAT_LOG_S:
+            self._failures_since_log[kind] = since + 1
+            if log.isEnabledFor(logging.DEBUG):
+                log.debug("link to %s: attempt failed (%s: %s)", self.safe_url, kind, text)
+            return
+        self._failures_logged[kind], self._failures_since_log[kind] = now, 0
+        again = "" if last is None else \
+            f" (again: {since + 1} such failures in the last {now - last:.0f} s)"
+        if isinstance(err, TlsCertificateError):
+            log.error("link to %s: %s: %s%s; retrying with backoff up to %g s (the token is "
+                      "never sent over an unverified connection)", self.safe_url, kind, text,
+                      again, max(self._reconnect[1], TLS_RETRY_MAX_S))
+        else:
+            log.warning("link to %s unavailable (%s: %s)%s; retrying with backoff",
+                        self.safe_url, kind, text, again)
+
+    def _redact(self, text: str) -> str:
+        """``text`` without the relay URL's user information."""
+        for secret in self._secrets:
+            text = text.replace(secret, "***")
+        return text
+
+    def _mark_down(self) -> None:
+        """The connection is gone, or about to be closed: say so at once (a graceful close
+        may take its timeout)."""
+        # (a connection the station closes itself, at its stop, is no loss)
+        was_open = self._session.connection_lost(lost=not self._closing)
+        if was_open or self.connected.is_set():
+            self.connected.clear()
+            self.link_down_since = monotonic_s()
+        if self._welcomed_s is not None:
+            self._up_for_s = monotonic_s() - self._welcomed_s
+            self._welcomed_s = None
+
+    def _check_hello(self) -> None:
+        """Refuse for good a hello the relay could never accept (before connecting).
+
+        Raises:
+            InvalidHelloError: the session id, token or name breaks the protocol's rules.
+        """
+        try:
+            encode(self._session.hello, max_message_bytes=self._session.max_message_bytes)
+        except LocalProtocolError as err:
+            raise self._invalid_hello(err) from err
+
+    def _invalid_hello(self, err: LocalProtocolError) -> InvalidHelloError:
+        return InvalidHelloError(
+            f"the relay can never accept this station's hello: {err}; fix the link settings "
+            "(session, token, name)")
+
+    def _connect_timed_out(self) -> TimeoutError:
+        steps = {"tcp": "TCP connect", "tls": "TCP connect and TLS handshake",
+                 "ws": "TCP connect and WebSocket handshake",
+                 "wss": "TCP connect, TLS and WebSocket handshakes"}[self.scheme]
+        return TimeoutError(
+            f"no connection to {self.safe_url} within connect_timeout_s = "
+            f"{self._connect_timeout_s:g} s (name lookup, {steps})")
 
     async def _connect_once(self) -> None:
+        self._check_hello()
         # asyncio.timeout, not wait_for: on Python 3.11 a wait_for cancelled (the link
         # closing) just as the connection opened drops the opened transport, whose socket
         # then stays open until the garbage collector finds it; cancelled here, the connect
         # itself is interrupted and closes what it opened
-        async with asyncio.timeout(self._connect_timeout_s):
-            transport = await open_client_transport(
-                self.scheme, self.host, self.port, self.url,
-                max_message_bytes=self._session.max_message_bytes,
-                open_timeout_s=self._connect_timeout_s,
-                write_buffer_bytes=self._write_buffer_bytes, ssl_context=self._ssl_context)
-        writer: asyncio.Task[None] | None = None
         try:
-            await transport.write([self._session.connect(transport.framing, now_us())])
+            async with asyncio.timeout(self._connect_timeout_s):
+                transport = await open_client_transport(
+                    self.scheme, self.host, self.port, self.url,
+                    max_message_bytes=self._session.max_message_bytes,
+                    open_timeout_s=self._connect_timeout_s,
+                    write_buffer_bytes=self._write_buffer_bytes,
+                    ssl_context=self._ssl_context)
+        except TimeoutError as err:  # asyncio's or websockets' own: both say nothing
+            raise self._connect_timed_out() from err
+        writer: asyncio.Task[None] | None = None
+        dead = False
+        try:
+            try:
+                hello = self._session.connect(transport.framing, now_us())
+            except LocalProtocolError as err:
+                raise self._invalid_hello(err) from err
+            await transport.write([hello])
             writer = asyncio.get_running_loop().create_task(self._write_loop(transport))
             self._transport = transport
             await self._read_loop(transport)
+        except TimeoutError:
+            dead = True  # the relay went silent: it would not answer a close handshake
+            raise
         finally:
             self._transport = None
+            self._mark_down()  # before closing: the close may take its whole timeout
             if writer is not None:
                 writer.cancel()
                 await asyncio.gather(writer, return_exceptions=True)
-            await transport.close()
+            if dead:
+                transport.abort()
+            else:
+                await transport.close()
 
     async def _read_loop(self, transport: Transport) -> None:
         session = self._session
@@ -516,16 +709,15 @@ class StationLink:
                 what = "relay silent" if silent.welcomed else "no welcome from the relay"
                 raise TimeoutError(f"{what} for {silent.silent_for_us / 1e6:.3g} s") from err
             except TransportClosed as err:
-                raise refusal_for_close_code(err.close_code, str(err)) or err from err
+                # a refusal: by its WebSocket close code, or (raw TCP has none) by the fatal
+                # error the relay sent before closing
+                raise (refusal_for_close_code(err.close_code, str(err))
+                       or session.closing_refusal or err) from err
             self.last_received_s = monotonic_s()
             session.receive_data(data.encode() if isinstance(data, str) else data, now_us())
             for event in session.events_received():
                 if isinstance(event, Welcomed):
-                    self.link_down_since = None
-                    self._down_logged = False
-                    self.connected.set()
-                    log.info("connected to %s as %s in session %s", self.url, self.role,
-                             event.welcome.session)
+                    self._welcomed(event.welcome)
                 elif isinstance(event, Refused | Failed):
                     raise event.error
                 elif isinstance(event, Rejected) and (self.counters.rejected_rx == 1
@@ -535,6 +727,25 @@ class StationLink:
                 self._readable.set()
             if not self._write_now():  # pongs, and what was queued while the link was down
                 self._tx_ready.set()
+
+    def _welcomed(self, welcome: Welcome) -> None:
+        # the relay pings every ping_interval_s: a silence limit shorter than a few of its
+        # intervals would declare an idle, healthy connection dead between two pings
+        liveness_s = max(self._liveness_timeout_s,
+                         LIVENESS_PING_INTERVALS * welcome.ping_interval_s)
+        self.liveness_timeout_s = liveness_s
+        self._session.liveness_timeout_us = round(liveness_s * 1e6)
+        if liveness_s > self._liveness_timeout_s and liveness_s != self._liveness_logged_s:
+            self._liveness_logged_s = liveness_s
+            log.info("relay %s pings every %g s: the link is presumed dead after %g s of "
+                     "silence (liveness_timeout_s %g s is shorter)", self.safe_url,
+                     welcome.ping_interval_s, liveness_s, self._liveness_timeout_s)
+        self.link_down_since = None
+        self.last_error = self.last_error_s = None
+        self._welcomed_s = monotonic_s()
+        self.connected.set()
+        log.info("connected to %s as %s in session %s", self.safe_url, self.role,
+                 welcome.session)
 
     async def _write_loop(self, transport: Transport) -> None:
         try:

@@ -19,7 +19,9 @@ one family and still see the cause::
     ├── SessionError                      session/role/auth refusals by the relay
     │   ├── AuthError                     missing or wrong token
     │   │   └── TlsCertificateError       the relay's TLS certificate is not trusted
+    │   │                                 (not final: the station link retries it)
     │   ├── RoleTakenError                a second `local`/`remote` in one session
+    │   ├── InvalidHelloError             our own hello breaks the rules (never sent)
     │   ├── HandshakeTimeoutError         no hello within the deadline
     │   └── LimitError                    a relay limit: connections, message rate
     ├── DeviceError                       hardware or simulated device trouble
@@ -58,6 +60,7 @@ __all__ = [
     "FieldError",
     "HandshakeTimeoutError",
     "InputDataError",
+    "InvalidHelloError",
     "LimitError",
     "LocalProtocolError",
     "MalformedMessageError",
@@ -202,6 +205,14 @@ class ReplacedError(SessionError):
 
     code = "replaced"
     close_code = 4004
+
+
+class InvalidHelloError(SessionError):
+    """The station's own ``hello`` breaks the protocol's rules (session id, token or name
+    invalid or too long): the relay could never accept it, so the station does not send it
+    and does not retry. Raised on the station's side; never sent by the relay."""
+
+    code = "invalid_hello"
 
 
 class PeerSilentError(SessionError):

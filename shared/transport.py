@@ -84,6 +84,11 @@ class Transport(Protocol):
     async def close(self, code: int = 1000, reason: str = "") -> None:
         """Close (``code`` is a WebSocket close code; TCP ignores it); never raises."""
 
+    def abort(self) -> None:
+        """Drop the connection at once: no close handshake, no flush of what is buffered
+        (for a dead or blackholed peer, which would never answer a graceful close); never
+        raises."""
+
 
 def set_nodelay(transport: Any) -> None:
     """Turn Nagle's algorithm off on an asyncio transport's TCP socket (if it has one)."""
@@ -153,6 +158,10 @@ class TcpTransport:
                 self._writer.close()
             with contextlib.suppress(OSError, asyncio.TimeoutError):
                 await asyncio.wait_for(self._writer.wait_closed(), _CLOSE_TIMEOUT_S)
+
+    def abort(self) -> None:
+        with contextlib.suppress(Exception):
+            self._writer.transport.abort()
 
     async def _linger(self) -> None:
         with contextlib.suppress(OSError, RuntimeError, asyncio.TimeoutError):
@@ -229,6 +238,10 @@ class WsTransport:
         finally:
             discard.cancel()
             await asyncio.gather(discard, return_exceptions=True)
+
+    def abort(self) -> None:
+        with contextlib.suppress(Exception):
+            self.ws.transport.abort()
 
     async def _discard_incoming(self) -> None:
         with contextlib.suppress(Exception):  # closed, or a reader is already receiving

@@ -418,7 +418,9 @@ class LocalAgent:
                         log.warning("relay error: %s: %s", msg.code, msg.message)
                 elif isinstance(msg, Bye):
                     log.info("relay said bye: %s", msg.reason)
-        except (AuthError, RoleTakenError) as err:
+        except SessionError as err:  # messages() raises only a final refusal (a wrong
+            # token, a replaced connection, a hello the relay can never accept): each ended
+            # the receive task silently but the first, with the station up and its link down
             log.error("the relay refused this station for good: %s", err)
             self.exit_code = 1
             self.request_stop("link_refused")

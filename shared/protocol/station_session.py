@@ -217,6 +217,11 @@ class StationSession:
         self._pongs: deque[tuple[int, int, int]] = deque(maxlen=_MAX_PENDING_PONGS)
         self._events: list[StationEvent] = []
         self._last_rx_us = 0
+        #: the refusal the relay announced on the current connection after its welcome (a
+        #: fatal ``error`` with a refusal's code, ``replaced``): the connection ends with it.
+        #: Over WebSocket the close code says the same (:func:`refusal_for_close_code`); raw
+        #: TCP has no close codes, so the glue raises this when the connection closes
+        self.closing_refusal: SessionError | None = None
 
     # ------------------------------------------------------------------ connection
 
@@ -232,12 +237,17 @@ class StationSession:
         self._pongs.clear()
         self._events.clear()
         self._last_rx_us = now_us
+        self.closing_refusal = None
         return self._conn.encode(self.hello)
 
-    def connection_lost(self) -> bool:
-        """The socket is gone; return True if the connection had been welcomed."""
+    def connection_lost(self, *, lost: bool = True) -> bool:
+        """The socket is gone; return True if the connection had been welcomed.
+
+        Args:
+            lost: count it in ``connection_losses`` (False: the station closed it itself).
+        """
         was_open, self._open, self._conn = self._open, False, None
-        if was_open:
+        if was_open and lost:
             self.counters.connection_losses += 1
         return was_open
 
@@ -316,8 +326,13 @@ class StationSession:
             self.latest_stats, self.latest_stats_rx_us = msg, now_us
         elif isinstance(msg, DataMessage) and self._stamp_hops:
             msg = msg.with_hop(self.role, "station_rx", now_us)
-        elif isinstance(msg, Error) and log.isEnabledFor(logging.DEBUG):
-            log.debug("relay error: %s: %s", msg.code, msg.message)
+        elif isinstance(msg, Error):
+            refusal = _REFUSALS_BY_CODE.get(msg.code) if msg.fatal else None
+            if refusal is not None and self.closing_refusal is None:
+                self.closing_refusal = refusal(
+                    f"relay closed the connection: {msg.code}: {msg.message}")
+            if log.isEnabledFor(logging.DEBUG):
+                log.debug("relay error: %s: %s", msg.code, msg.message)
         self.counters.messages_received += 1
         slot = latest_slot(msg)
         if slot is None:  # the glue stops reading while the inbox is full: a soft bound

@@ -383,3 +383,29 @@ async def test_the_motion_stamp_names_the_previous_sample_but_never_spans_an_out
         task.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await task
+
+
+@pytest.mark.parametrize("refusal", ["replaced", "invalid_hello"])
+async def test_every_final_refusal_of_the_link_ends_the_station_with_exit_1(
+        refusal: str) -> None:
+    """Only a wrong token or a taken role ended the station; a connection replaced by another
+    proving it (now final over raw TCP too) or a hello the relay can never accept ended the
+    station's receive task silently, the station up with its link down for good."""
+    from shared.errors import InvalidHelloError, ReplacedError
+
+    error = ReplacedError("replaced by another connection") if refusal == "replaced" else \
+        InvalidHelloError("the relay can never accept this station's hello")
+    async with running_relay() as relay:
+        agent = relay_agent(f"ws://127.0.0.1:{relay.ws_port}/")
+        run = asyncio.create_task(agent.run())
+        try:
+            await wait_for(lambda: agent.link is not None and agent.link.is_connected, 10.0,
+                           "the station's link")
+            assert agent.link is not None
+            agent.link._give_up(error)  # as the link's loop does on a final refusal
+            assert await asyncio.wait_for(run, scaled(20.0)) == 1
+        finally:
+            if not run.done():
+                agent.request_stop("test")
+                await run
+    assert agent.exit_reason == "link_refused"

@@ -66,8 +66,12 @@ class _Peer:
 class FakeRelay:
     """Minimal relay: token check, welcome, record everything received, manual control."""
 
-    def __init__(self, token: str = TOKEN, refuse_role_code: str | None = None) -> None:
+    def __init__(self, token: str = TOKEN, refuse_role_code: str | None = None,
+                 ping_interval_s: float = 0.05) -> None:
         self.token = token
+        #: announced in the welcome (the link's silence limit is at least 2.5 times it);
+        #: this fake never pings
+        self.ping_interval_s = ping_interval_s
         self.refuse_role_code = refuse_role_code
         self.received: asyncio.Queue[tuple[_Peer, Message]] = asyncio.Queue()
         self.peers: list[_Peer] = []
@@ -155,7 +159,8 @@ class FakeRelay:
                 await peer.close(4002)
                 return
             await peer.send(Welcome(session=hello.session, role=hello.role,
-                                    server_time_us=now_us(), max_message_bytes=1 << 22))
+                                    server_time_us=now_us(), max_message_bytes=1 << 22,
+                                    ping_interval_s=self.ping_interval_s))
             self.peers.append(peer)
             self.welcomed.set()
             while True:
