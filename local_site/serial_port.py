@@ -180,18 +180,22 @@ class SerialPortReader:
         timeout_s: read timeout (how often the thread checks for close()).
         write_timeout_s: write timeout, or None to block.
         port: an already-open port to use instead of opening ``url``; it is not closed.
+        on_poll: called from the reader thread each time a read of the port comes back
+            (with or without data), before ``on_data``: the reader runs.
     """
 
     def __init__(self, url: str, *, name: str, thread_name: str,
                  on_data: Callable[[bytes], None], on_error: Callable[[BaseException], None],
                  baudrate: int = 921_600, timeout_s: float = 0.05,
                  write_timeout_s: float | None = None,
-                 port: serial.SerialBase | None = None) -> None:
+                 port: serial.SerialBase | None = None,
+                 on_poll: Callable[[], None] | None = None) -> None:
         self.url = url
         self.name = name
         self._thread_name = thread_name
         self._on_data = on_data
         self._on_error = on_error
+        self._on_poll = on_poll
         self._baudrate = baudrate
         self._timeout_s = timeout_s
         self._write_timeout_s = write_timeout_s
@@ -284,6 +288,8 @@ class SerialPortReader:
                 self._on_error(err)
             return False
         self.last_read_s = monotonic_s()
+        if self._on_poll is not None:
+            self._on_poll()
         if data:
             try:
                 self._on_data(data)

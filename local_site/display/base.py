@@ -20,6 +20,7 @@ layout, as shape (16,), or as a scalar for all pins; results are always shape (1
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
@@ -75,10 +76,15 @@ _CODE_OFFSET = np.array([[0.0], [fr.K_MIN], [0.0]])
 #: its way, and every further ``RESUME`` command would be one more that a freeze could hold
 #: past a new trip
 RESUME_RETRY_US = 20_000
-#: default ``feedback_timeout_s``: no feedback for this long and the link counts as broken
-#: (100 periods of the board's 500 Hz feedback: far longer than a reader thread is starved on
-#: a loaded host, far shorter than an operator would notice)
+#: default ``feedback_timeout_s``: the reader thread, running, saw no feedback for this long
+#: (100 periods of the board's 500 Hz feedback) and the link counts as broken. Judged on the
+#: reader's own polls, not on the sender's clock: a reader starved by a loaded host (0.25-1 s
+#: measured here) or a stopped process is late, not a silent board (found by review: judged
+#: on the sender's clock, a 250 ms starvation reopened a healthy display and parked its pins)
 FEEDBACK_TIMEOUT_S = 0.2
+#: a reader that has not come back from a receive for this long is taken for stuck (its
+#: receives time out every 20-50 ms when it runs): the link counts as broken
+READER_STALL_S = 3.0
 #: a board fault or rejection after this long without one starts a new episode (logged)
 _EPISODE_GAP_US = 1_000_000
 #: the clock of the link's health: the reader thread stamps each feedback's arrival with it
@@ -234,7 +240,9 @@ class PinFeedback:
 
 @dataclass(frozen=True, slots=True)
 class DisplayStats:
-    """Counters of the command and feedback streams.
+    """Counters of the command and feedback streams: totals since the driver was created,
+    over all its connections (a reopened link used to start them at 0, losing the counts of
+    the fault episodes that made it reopen).
 
     Attributes:
         commands: ``send_command`` calls accepted.
@@ -315,10 +323,16 @@ class ArrayTacDisplay(Device):
     #: its trip counter then (None: no ``RESUME`` sent in this session)
     _resume_board_us: int | None
     _resume_trips: int
+    #: host time (now_us) of the last ``RESUME`` write
+    _resume_sent_us: int
+    #: the counters of the connections before this one
+    _carried: DisplayStats
     #: the link's reader failed (None: it runs)
     _link_error: BaseException | None
-    #: ``_link_clock_s()`` past this without new feedback: the link is broken
-    _feedback_deadline_s: float
+    #: ``_link_clock_s()`` at the last feedback frame and at the reader's last return from
+    #: a receive (frame or timeout); None before the session's first feedback
+    _feedback_s: float | None
+    _polled_s: float
 
     def __init__(self, *, keepalive_interval_s: float = 0.02, watchdog_ms: int = 100,
                  watchdog_mode: SafeMode = "flat", disconnect_mode: SafeMode | None = "flat",
@@ -377,8 +391,24 @@ class ArrayTacDisplay(Device):
                                   f"{self._connect_timeout_s:.2f} s") from err
 
     def _is_healthy(self) -> bool:
-        """False once the reader failed or no feedback came for ``feedback_timeout_s``."""
-        return self._link_error is None and _link_clock_s() <= self._feedback_deadline_s
+        """False once the reader failed, ran ``feedback_timeout_s`` without feedback, or has
+        not returned from a receive for :data:`READER_STALL_S`."""
+        return self._link_error is None and not self._silent()
+
+    def _silent(self) -> bool:
+        """The board is silent by the reader's own polls (see :data:`FEEDBACK_TIMEOUT_S`),
+        or the reader is stuck (:data:`READER_STALL_S`)."""
+        feedback_s = self._feedback_s
+        if feedback_s is None:  # judged from the session's first feedback frame on
+            return False
+        polled_s = self._polled_s
+        return polled_s - feedback_s > self._feedback_timeout_s or \
+            _link_clock_s() - max(polled_s, feedback_s) > READER_STALL_S
+
+    def _note_poll(self) -> None:
+        """The reader came back from a receive (a frame or a timeout): called by backends
+        from their reader thread."""
+        self._polled_s = _link_clock_s()
 
     def _before_disconnect(self) -> None:
         """Send the disconnect safe state, best effort (a broken link is tried too)."""
@@ -439,7 +469,7 @@ class ArrayTacDisplay(Device):
         """
         if not self._connected:
             raise DeviceNotConnectedError(f"{self.name}: send_command() before connect()")
-        if self._link_error is not None or _link_clock_s() > self._feedback_deadline_s:
+        if self._link_error is not None or self._silent():
             raise self._broken_link_error()
         rows = _float_rows(height_mm, stiffness_k, friction)
         if rows is None:
@@ -500,7 +530,8 @@ class ArrayTacDisplay(Device):
                 self._n_resumes += 1
                 # the board's clock now is at least its stamp on that feedback plus the
                 # host time since it arrived (it was read after the board sent it)
-                self._resume_board_us = (fb.board_t_us + now_us() - fb.t_us) & 0xFFFFFFFF
+                sent_us = self._resume_sent_us = now_us()
+                self._resume_board_us = (fb.board_t_us + sent_us - fb.t_us) & 0xFFFFFFFF
                 self._resume_trips = fb.watchdog_trips
             if log.isEnabledFor(logging.DEBUG):
                 log.debug("%s: command seq %d keepalive=%s", self.name, frame.seq, keepalive)
@@ -520,8 +551,7 @@ class ArrayTacDisplay(Device):
             DeviceOperationError: as for :meth:`send_command` (a broken link is reported
                 even when no keepalive is due).
         """
-        if self._connected and (self._link_error is not None
-                                or _link_clock_s() > self._feedback_deadline_s):
+        if self._connected and (self._link_error is not None or self._silent()):
             raise self._broken_link_error()
         with self._send_lock:
             last = self._last_codes
@@ -552,7 +582,7 @@ class ArrayTacDisplay(Device):
             DeviceOperationError: the link refused the frame, or it is broken.
         """
         self._send_safe_state(mode)
-        if self._link_error is not None or _link_clock_s() > self._feedback_deadline_s:
+        if self._link_error is not None or self._silent():
             raise self._broken_link_error("safe state sent, but ")
 
     def _send_safe_state(self, mode: SafeMode) -> None:
@@ -604,7 +634,14 @@ class ArrayTacDisplay(Device):
         return self._feedback
 
     def stats(self) -> DisplayStats:
-        """A snapshot of the counters."""
+        """A snapshot of the counters (totals over every connection)."""
+        session = self._session_stats()
+        carried = self._carried
+        return DisplayStats(**{f.name: getattr(session, f.name) + getattr(carried, f.name)
+                               for f in dataclasses.fields(DisplayStats)})
+
+    def _session_stats(self) -> DisplayStats:
+        """The counters of the current connection."""
         return DisplayStats(commands=self._n_commands, frames_sent=self._n_frames,
                             skipped_unchanged=self._n_skipped, keepalives=self._n_keepalives,
                             clamped=self._n_clamped, rejected_inputs=self._n_rejected,
@@ -641,7 +678,7 @@ class ArrayTacDisplay(Device):
             if feedback.safe_state:
                 self._force_next = True  # the board is parked: the next command must go out
             self._feedback = feedback
-            self._feedback_deadline_s = _link_clock_s() + self._feedback_timeout_s
+            self._feedback_s = self._polled_s = _link_clock_s()
             self._n_feedback += 1
             self._count_board_errors(feedback)
             self._cond.notify_all()
@@ -680,26 +717,40 @@ class ArrayTacDisplay(Device):
         if err is not None:
             return DeviceOperationError(f"{self.name}: {prefix}the link's reader failed "
                                         f"({err}); reopen the display")
-        silent_s = _link_clock_s() - self._feedback_deadline_s + self._feedback_timeout_s
+        feedback_s = self._feedback_s or 0.0
+        if _link_clock_s() - max(self._polled_s, feedback_s) > READER_STALL_S:
+            return DeviceOperationError(
+                f"{self.name}: {prefix}the link's reader has not come back from a receive "
+                f"for {(_link_clock_s() - self._polled_s) * 1e3:.0f} ms (stuck); reopen the "
+                "display")
         return DeviceOperationError(
-            f"{self.name}: {prefix}no feedback from the drive board for {silent_s * 1e3:.0f} "
-            f"ms (feedback_timeout_s {self._feedback_timeout_s * 1e3:.0f} ms); reopen the "
+            f"{self.name}: {prefix}no feedback from the drive board for "
+            f"{(self._polled_s - feedback_s) * 1e3:.0f} ms of the reader's polling "
+            f"(feedback_timeout_s {self._feedback_timeout_s * 1e3:.0f} ms); reopen the "
             "display")
 
     def _trip_is_news(self, fb: PinFeedback) -> bool:
         """Whether feedback showing a watchdog trip asks for a ``RESUME``: none was sent in
         this session, the trip is a new one (the board's trip counter moved: also a
-        rebooted board), or the board stamped it ``RESUME_RETRY_US`` after the last
-        ``RESUME``'s write by its own clock (that ``RESUME`` was lost). Judged on the board's
-        clock, not on arrival: feedback queued on the way arrives late but is not news."""
+        rebooted board), or that ``RESUME`` was lost: the feedback arrived
+        ``RESUME_RETRY_US`` after its write *and* the board stamped it that much after its
+        clock at the write (estimated from the newest feedback then). Either test alone sent
+        a second ``RESUME`` on feedback the board made before the first reached it: by
+        arrival, when it was delivered late (a backlog); by the board's clock, when the
+        reader had read the newest feedback late (the estimate is low by that much, found by
+        review)."""
         since = self._resume_board_us
         if since is None or fb.watchdog_trips != self._resume_trips:
             return True
+        if fb.t_us - self._resume_sent_us <= RESUME_RETRY_US:
+            return False
         # wrap-aware difference of two uint32 clocks, as a signed 32-bit number
         elapsed_us = ((fb.board_t_us - since + 0x80000000) & 0xFFFFFFFF) - 0x80000000
         return elapsed_us > RESUME_RETRY_US
 
     def _reset_session(self) -> None:
+        # the counters are totals: a new connection carries the previous ones' over
+        self._carried = self.stats() if hasattr(self, "_n_commands") else DisplayStats()
         self._seq = 0
         self._last_codes = None
         self._last_applied = np.zeros((3, fr.N_PINS))
@@ -713,10 +764,12 @@ class ArrayTacDisplay(Device):
         self._fault_seen_us = self._rejection_seen_us = -(1 << 62)
         self._resume_board_us = None
         self._resume_trips = 0
+        self._resume_sent_us = 0
         self._link_error = None
         # armed by the first feedback frame (connect() waits for it unless require_feedback
         # is off)
-        self._feedback_deadline_s = float("inf")
+        self._feedback_s = None
+        self._polled_s = _link_clock_s()
 
     def _next_seq(self) -> int:
         self._seq = (self._seq + 1) & 0xFFFF

@@ -36,7 +36,7 @@ class SerialArrayTacDisplay(ArrayTacDisplay):
         self._link = SerialPortReader(url, name=self.name, thread_name=f"arraytac-rx {url}",
                                       on_data=self._on_data, on_error=self._on_read_error,
                                       baudrate=baudrate, timeout_s=0.05,
-                                      write_timeout_s=write_timeout_s)
+                                      write_timeout_s=write_timeout_s, on_poll=self._note_poll)
 
     @property
     def name(self) -> str:

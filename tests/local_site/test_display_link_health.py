@@ -13,6 +13,7 @@ The board's fault and rejection reports reach the driver's counters.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import threading
 import uuid
@@ -174,10 +175,12 @@ def test_a_board_that_goes_silent_breaks_the_link_after_the_feedback_timeout(
     # the safe state is still written (the board may hear it), then reported as unsure
     assert _raises(lambda: display.safe_state("hold")) is not None
     assert [m.arbitration_id for m in _drain(board)] == [fr.ARB_ID_SAFE_STATE]
-    # connect() on the broken link reopens it (a new session: its counters start again)
+    # connect() on the broken link reopens it (a new session; the counters are totals)
+    sent_before = display.stats().frames_sent
     display.connect()
-    assert display.stats().frames_sent == 0
+    assert display.stats().frames_sent == sent_before
     assert display.send_command(2.0).sent
+    assert display.stats().frames_sent == sent_before + 1
 
 
 def test_feedback_timeout_must_be_positive() -> None:
@@ -330,3 +333,123 @@ def test_board_faults_and_rejections_are_decoded_counted_and_logged_once_per_epi
     # what the station's summary takes (dataclasses.asdict of the driver's stats)
     summary = dataclasses.asdict(display.stats())
     assert summary["board_faults"] == 3 and summary["board_rejections"] == 6
+
+
+# ---------------------------------------------------------------------- review of the above
+
+
+class _StallingSimDisplay(SimCanArrayTacDisplay):
+    """A simulated display whose reader thread, once armed, is not scheduled for ``stall_s``
+    (a loaded host starving it), or never comes back (``stall_s`` None: stuck)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.armed = threading.Event()
+        self.stalled = threading.Event()
+        self.release = threading.Event()
+        self.stall_s: float | None = 0.3
+
+    def _receive_once(self, bus: can.BusABC, reader: Any) -> bool:
+        if self.armed.is_set() and not self.stalled.is_set():
+            self.stalled.set()
+            if self.stall_s is None:
+                self.release.wait(30.0)
+            else:
+                self.release.wait(self.stall_s)
+        return super()._receive_once(bus, reader)
+
+
+def test_a_starved_reader_is_late_not_a_silent_board() -> None:
+    """The reader not scheduled for 300 ms while the loop commands a healthy board: judged on
+    the sender's clock, the send after 200 ms raised and the loop reopened the display and
+    parked its pins (found by review); judged on the reader's polls, nothing is wrong."""
+    display = _StallingSimDisplay()
+    display.connect()
+    try:
+        display.armed.set()
+        wait_until(display.stalled.is_set, 2.0, "the reader's stall")
+        errors = []
+        for k in range(40):  # 400 ms of commands while the reader does not run
+            err = _raises(functools.partial(display.send_command, 1.0 + 0.5 * (k % 2)))
+            if err is not None:
+                errors.append(str(err))
+            display.stalled.wait(0.01)  # (set: returns at once; paces the loop)
+            threading.Event().wait(0.01)
+        assert errors == []
+        assert display._is_healthy()
+    finally:
+        display.release.set()
+        display.disconnect()
+
+
+def test_a_reader_stuck_in_a_receive_breaks_the_link(monkeypatch: pytest.MonkeyPatch) -> None:
+    import local_site.display.base as base
+
+    monkeypatch.setattr(base, "READER_STALL_S", scaled(0.3))
+    display = _StallingSimDisplay()
+    display.stall_s = None
+    display.connect()
+    try:
+        display.armed.set()
+        wait_until(display.stalled.is_set, 2.0, "the reader's stall")
+        wait_until(lambda: _raises(lambda: display.send_command(1.0)) is not None, 3.0,
+                   "the stuck reader reported")
+        err = _raises(lambda: display.send_command(1.0))
+        assert err is not None and "has not come back from a receive" in str(err)
+    finally:
+        display.release.set()
+        display.disconnect()
+
+
+class _RecordingDisplay(ArrayTacDisplay):
+    def __init__(self) -> None:
+        super().__init__(require_feedback=False)
+        self.sent: list[fr.CommandFrame] = []
+
+    def _connect(self) -> None:
+        pass
+
+    def _disconnect(self) -> None:
+        pass
+
+    def _send_frame(self, arb_id: int, payload: bytes) -> None:
+        if arb_id == fr.ARB_ID_COMMAND:
+            self.sent.append(fr.decode_command(payload))
+
+
+def test_backlog_feedback_made_before_the_resume_arrived_asks_for_no_second_one() -> None:
+    """The reader read the trip 30 ms after the board sent it; the loop sent RESUME at once;
+    the reader then read a frame the board made 25 ms after the first, before the RESUME
+    reached it. Judged on the board's clock alone, it looked 20 ms past the RESUME and a
+    second one went out (found by review); it arrived at once after the write, so it is
+    not news."""
+    display = _RecordingDisplay()
+    display.connect()
+    board_us = 1_000_000
+    tripped = fr.STATUS_SAFE_STATE | fr.STATUS_WATCHDOG_TRIPPED
+    # read now, 30 ms after the board made it: its arrival stamp says nothing of that
+    display._on_frame(fr.ARB_ID_FEEDBACK, _feedback(tripped, trips=1, board_t_us=board_us))
+    display.send_command(1.0)
+    display._on_frame(fr.ARB_ID_FEEDBACK, _feedback(tripped, trips=1,
+                                                    board_t_us=board_us + 25_000))
+    display.send_command(1.5)
+    assert [bool(c.flags & fr.FLAG_RESUME) for c in display.sent] == [True, False]
+    assert display.stats().resumes == 1
+
+
+def test_the_counters_are_totals_over_reopened_links() -> None:
+    display = SimCanArrayTacDisplay()
+    display.connect()
+    try:
+        display.send_command(1.0)
+        assert display.emulator is not None
+        display.emulator.firmware.commands_rejected += 5  # the board rejected 5 frames
+        wait_until(lambda: display.stats().board_rejections == 5, 2.0, "the rejections")
+        before = display.stats()
+        display._on_link_error(OSError("receive failed"))
+        display.connect()  # the loop's reopen
+        after = display.stats()
+        assert after.board_rejections == 5 and after.commands == before.commands
+        assert after.frames_sent >= before.frames_sent
+    finally:
+        display.disconnect()
