@@ -174,6 +174,8 @@ def run_board(stop: threading.Event, *, host: str = "127.0.0.1", port: int = 0,
         "commands_rejected": firmware.commands_rejected,
         "commands_refused_latched": firmware.commands_refused_latched,
         "watchdog_trips": firmware.watchdog_trips,
+        # of which at a tick the emulator reached late (its own lateness may be the cause)
+        "watchdog_trips_on_late_ticks": emulator.late_tick_trips,
         "faults": firmware.faults,
         "overruns": firmware.overruns,
         "safe_state_at_exit": firmware.safe_state,

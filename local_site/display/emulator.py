@@ -328,6 +328,10 @@ class FirmwareEmulator:
         self.transport = transport
         self._tick_s = tick_s
         self._max_frames = max_frames_per_tick
+        #: watchdog trips at a tick the thread reached after longer than the timeout: the
+        #: emulator's own lateness may be the cause (its frames may have come in time); a
+        #: real board's timer is never late, so these are counted apart
+        self.late_tick_trips = 0
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()
@@ -366,7 +370,7 @@ class FirmwareEmulator:
     def _run(self) -> None:
         fw, link, tick = self.firmware, self.transport, self._tick_s
         clock = time.perf_counter
-        next_tick = clock()
+        next_tick = last_now = clock()
         try:
             while not self._stop.is_set():
                 # like the MCU, which latches what arrived at its next control period: the
@@ -379,7 +383,14 @@ class FirmwareEmulator:
                 now = clock()
                 # the MCU's timer fires on time whatever waits in its receive FIFO: after a
                 # late tick, a command that queued past the timeout meets the latch (refused)
-                fw.run_watchdog(now)
+                away_s, last_now = now - last_now, now
+                if fw.run_watchdog(now) and away_s > fw.watchdog_s:
+                    self.late_tick_trips += 1
+                    if self.late_tick_trips == 1:
+                        log.warning("emulated ArrayTac: its watchdog tripped at a tick %.0f ms "
+                                    "after the previous one (the emulator was late: the "
+                                    "commands may have come in time); counted in "
+                                    "late_tick_trips", away_s * 1e3)
                 for _ in range(self._max_frames):  # bounded: a flood never starves the tick
                     item = link.recv(0.0)
                     if item is None:

@@ -146,6 +146,11 @@ class ArrayTacFirmware:
                                     now_s - self._feedback_period_s)
         return [(fr.ARB_ID_FEEDBACK, fr.encode_feedback(self.feedback_frame(now_s)))]
 
+    @property
+    def watchdog_s(self) -> float:
+        """The link-loss watchdog's timeout in force (set by the commands)."""
+        return self._watchdog_s
+
     def run_watchdog(self, now_s: float) -> bool:
         """Trip the link-loss watchdog if no command came for longer than its timeout.
 

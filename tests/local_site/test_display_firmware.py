@@ -196,9 +196,10 @@ def test_a_late_tick_runs_the_watchdog_before_the_frames_that_queued_meanwhile()
     link = StallingLink()
     link.inbox.append((fr.ARB_ID_COMMAND, _command(2.0, 1, watchdog_ms=100)))
     fw = ArrayTacFirmware(ArrayTacPlant())
-    with FirmwareEmulator(fw, link):
+    with FirmwareEmulator(fw, link) as emulator:
         wait_until(lambda: link.stalled and not link.inbox and len(link.feedback) >= 3, 5.0,
                    "feedback after the stall")
+    assert emulator.late_tick_trips == 1  # told apart from a trip a real board would make
     after = link.feedback[1]  # the first feedback of the late tick
     assert after.status & fr.STATUS_WATCHDOG_TRIPPED and after.status & fr.STATUS_SAFE_STATE
     assert after.seq_echo == 1 and after.status & fr.STATUS_COMMAND_REJECTED
