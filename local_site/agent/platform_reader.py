@@ -15,10 +15,10 @@ thread itself). Health therefore never waits for the reader thread to run.
 
 A link error (port closed, device unplugged) reopens the device after ``retry_min_s``, with
 an exponential backoff until it answers again or the agent stops. A link that fails again
-within ``retry_max_s`` of being reopened (a device that opens and then fails, a data
-callback that raises on every sample) goes on backing off from where the last episode left
-it, so such a link is reopened at most every ``retry_max_s``, not five times a second with a
-traceback each. A device that is only *silent* keeps its open port for ``reopen_after_s``:
+within a second of being reopened (a device that opens and then fails, a data callback that
+raises on every sample) goes on backing off from where the last episode left it, so such a
+link is reopened at most every ``retry_max_s``, not five times a second with a traceback
+each. A device that is only *silent* keeps its open port for ``reopen_after_s``:
 the samples of a board that was late (or of a driver thread that could not run on a busy
 machine) are taken the moment they arrive, with no close/reopen gap; only a silence that
 lasts is treated like a lost link. (Closing and reopening at the first 250 ms of silence
@@ -41,6 +41,10 @@ log = logging.getLogger(__name__)
 
 #: the reader's pause between two health checks (its read timeout must be longer)
 POLL_S = 0.005
+#: a link that failed sooner than this after being opened is flapping: its reopen backs off
+#: on from the last wait; one that lived longer starts again at ``retry_min_s`` (a link that
+#: served 2 s and failed is not a flapping one: judged on ``retry_max_s``, 5 s, it was)
+_STABLE_S = 1.0
 
 
 def reopen_after(read_timeout_s: float, reopen_after_s: float | None) -> float:
@@ -166,8 +170,7 @@ class PlatformReader:
     def _connect_with_backoff(self, link_failed: bool = False) -> bool:
         delay = self._retry_min_s
         opened_at = self._opened_at_s
-        if link_failed and opened_at is not None \
-                and monotonic_s() - opened_at < self._retry_max_s:
+        if link_failed and opened_at is not None and monotonic_s() - opened_at < _STABLE_S:
             delay = self._flap_delay_s  # it failed soon after the last reopen: back off on
         first = True
         if self._lost_at_s is not None and self.errors:

@@ -176,6 +176,9 @@ class XYZPlatform(Device):
         self._last_latch_us: int | None = None
         self._last_raw_mm: Vec3 = (0.0, 0.0, 0.0)
         self._rate_hz = _MAX_RATE_HZ
+        #: the last INFO's disagreement with the geometry, kept across connections until a
+        #: matching INFO: no sample is published meanwhile
+        self._info_mismatch: ConfigError | None = None
         self._reset_track()
 
     # ------------------------------------------------------------------ backend interface
@@ -206,6 +209,7 @@ class XYZPlatform(Device):
                 self._cond.wait(remaining)
             latest, error = self._latest, self._link_error
         if latest is None or error is not None:  # (an INFO unlike the geometry, with a sample)
+            error = error or self._info_mismatch
             reason = f"link failed: {error}" if error else \
                 f"no valid frame within {self._connect_timeout_s:.2f} s"
             # a silent board is a timeout inside the connect phase (tools tell it from a
@@ -407,17 +411,24 @@ class XYZPlatform(Device):
     def _publish_info(self, info: BoardInfo) -> None:
         """Record the board's self-description (called by the backend); a board that counts
         otherwise than the configured geometry fails the link (its positions would be off by
-        the ratio: a 2000-line encoder read 36.8 mm for 18.85)."""
+        the ratio: a 2000-line encoder read 36.8 mm for 18.85), and no sample is published
+        again until an INFO of a matching board arrives, also on reopened links (a running
+        board's first samples come before its next INFO: they were published at the wrong
+        scale for up to a second on every reopen, found by review)."""
         geometry = self.geometry
         if (info.protocol_version, info.axes, info.pulses_per_rev, info.decoding) != \
                 (PROTOCOL_VERSION, 3, geometry.pulses_per_rev, geometry.decoding):
-            self._link_failed(ConfigError(
+            mismatch = ConfigError(
                 f"the board describes itself as protocol v{info.protocol_version}, "
                 f"{info.axes} axes, {info.pulses_per_rev} pulses per revolution decoded "
                 f"x{info.decoding}; this driver reads protocol v{PROTOCOL_VERSION}, 3 axes, "
                 f"and the platform geometry is set for {geometry.pulses_per_rev} x"
-                f"{geometry.decoding}: set the geometry to the board's"))
+                f"{geometry.decoding}: set the geometry to the board's")
+            self._info_mismatch = mismatch
+            if self._link_error is None:  # (once per connection: INFO comes every second)
+                self._link_failed(mismatch)
             return
+        self._info_mismatch = None
         previous = self._board_info
         if previous is not None and info != previous:
             self._board_restarted(f"it now describes itself as {info}, before {previous}")
@@ -432,8 +443,8 @@ class XYZPlatform(Device):
             sample: the decoded frame.
             rx_us: host wall-clock arrival time; defaults to now.
         """
-        if self._link_error is not None:  # (a board unlike the geometry: nothing published)
-            return
+        if self._link_error is not None or self._info_mismatch is not None:
+            return  # (a board unlike the geometry: nothing published)
         rx_us = now_us() if rx_us is None else rx_us
         seq = self._unwrap_seq.update(sample.seq)
         board_t = self._unwrap_t.update(sample.board_t_us)

@@ -86,9 +86,12 @@ def _number(spec: str, key: str, value: str) -> float:
 
 def _integer(spec: str, key: str, value: str) -> int:
     try:
-        return int(value)
+        number = int(value)
     except ValueError as err:
         raise ConfigError(f"motion spec {spec!r}: {key}={value!r} is not an integer") from err
+    if number < 0:  # (numpy's seeds: a bare ValueError from deep inside before)
+        raise ConfigError(f"motion spec {spec!r}: {key}={value!r} must be >= 0")
+    return number
 
 
 def _boolean(spec: str, key: str, value: str) -> bool:

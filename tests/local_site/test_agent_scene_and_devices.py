@@ -116,6 +116,7 @@ def test_motion_specs() -> None:
     ("random:seed=nan", "seed='nan' is not an integer"),  # ValueError before
     ("random:seed=1e400", "seed='1e400' is not an integer"),  # OverflowError before
     ("random:seed=2.5", "seed='2.5' is not an integer"),  # taken as 2 before
+    ("random:seed=-1", "seed='-1' must be >= 0"),  # numpy's ValueError before
     ("hold:x=nan", "x='nan' is not a finite number"),  # InputDataError before
 ])
 def test_motion_specs_refuse_non_finite_values_by_name(bad: str, named: str) -> None:

@@ -6,6 +6,7 @@ timeouts."""
 from __future__ import annotations
 
 import logging
+import threading
 from collections.abc import Iterator
 
 import pytest
@@ -221,17 +222,27 @@ def test_an_exception_in_the_data_callback_fails_the_link_and_connect_reopens(
 
 
 class _FailsAfterOpening(_Board):
-    """Opens fine, then its link fails at once, every time (a data callback that raises on
-    every sample); records when each connection was made."""
+    """Opens fine and delivers samples, then its link fails from the reader thread 20 ms
+    later, every time (a data callback that raises after a few samples); records when each
+    connection was made. (A failure inside _connect fails connect() itself, whose own retry
+    loop backed off before this fix too: found by review.)"""
 
     def __init__(self) -> None:
         super().__init__()
         self.opened_at_s: list[float] = []
+        self.seq = 0
 
     def _connect(self) -> None:
-        super()._connect()
         self.opened_at_s.append(monotonic_s())
-        self._link_failed(OSError("the data callback raised"))
+
+        def feed() -> None:
+            for _ in range(4):
+                self.seq += 1
+                self._publish(EncoderSample(self.seq, self.seq * 5000, (0, 0, 0)))
+                threading.Event().wait(0.005)
+            self._link_failed(OSError("the data callback raised"))
+
+        threading.Thread(target=feed, daemon=True).start()
 
 
 def test_a_link_that_fails_right_after_every_reopen_backs_off() -> None:
@@ -256,7 +267,7 @@ def test_a_link_that_fails_right_after_every_reopen_backs_off() -> None:
 def test_a_link_that_failed_after_a_long_run_is_reopened_after_the_shortest_wait(
         monkeypatch: pytest.MonkeyPatch) -> None:
     """The backoff of a flapping link does not carry over to a failure after a connection
-    that lasted retry_max_s."""
+    that lasted a second or more."""
     reader = PlatformReader(_Board(), read_timeout_s=1.0, retry_min_s=0.05, retry_max_s=0.4)
     reader.errors, reader._lost_at_s = 1, 0.0
     waits: list[float] = []
@@ -266,7 +277,7 @@ def test_a_link_that_failed_after_a_long_run_is_reopened_after_the_shortest_wait
         return False
 
     monkeypatch.setattr(reader._stop, "wait", wait)
-    reader._opened_at_s, reader._flap_delay_s = monotonic_s() - 1.0, 0.4
+    reader._opened_at_s, reader._flap_delay_s = monotonic_s() - 2.0, 0.4  # lived 2 s
     assert reader._connect_with_backoff(link_failed=True) and waits == [0.05]
     reader._opened_at_s, reader._flap_delay_s = monotonic_s(), 0.2
     assert reader._connect_with_backoff(link_failed=True) and waits == [0.05, 0.2]

@@ -252,3 +252,23 @@ def test_a_board_counting_otherwise_than_the_geometry_fails_the_link_by_name() -
 def test_the_geometry_refuses_pulses_that_are_no_board_count(ppr: object) -> None:
     with pytest.raises(ConfigError, match=r"pulses_per_rev must be an integer in 1\.\.65535"):
         PlatformGeometry(pulses_per_rev=ppr)  # type: ignore[arg-type]
+
+
+def test_a_board_unlike_the_geometry_publishes_nothing_on_reopened_links_either() -> None:
+    """After the INFO that disagreed, a reopened link to the running board gets samples
+    before the board's next INFO (once a second): they were published at the wrong scale
+    for up to a second on every reopen (found by review). Now nothing is published until an
+    INFO of a matching board arrives."""
+    platform = _Board()
+    platform._publish_info(BoardInfo(1, 3, 2000, 4, 1000, 0x0100))
+    _reopen(platform)
+    platform._publish(EncoderSample(10, 10_000, (4000, 0, 0)), rx_us=HOST0)
+    assert platform.latest() is None
+    platform._publish_info(BoardInfo(1, 3, 2000, 4, 1000, 0x0100))  # still the same board
+    _reopen(platform)
+    platform._publish(EncoderSample(11, 11_000, (4000, 0, 0)), rx_us=HOST0 + 1000)
+    assert platform.latest() is None
+    platform._publish_info(BoardInfo(1, 3, 1024, 4, 1000, 0x0100))  # the right board now
+    platform._publish(EncoderSample(12, 12_000, (4000, 0, 0)), rx_us=HOST0 + 2000)
+    latest = platform.latest()
+    assert latest is not None and latest.position_mm[0] == pytest.approx(4000 * MM_PER_COUNT[0])
