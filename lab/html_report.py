@@ -190,12 +190,17 @@ def _pin_values(v: Any) -> list[float]:
 
 def _pins_figure(mcap: McapRecording) -> str:
     plt = _plt()
-    pins = list(mcap.on("/local/pins"))
+    pins, objs = [], []
+    for m in mcap.on("/local/pins"):
+        try:
+            objs.append(m.json())
+        except RecordingFormatError:  # not a JSON object: left out (the summary counts it)
+            continue
+        pins.append(m)
     if not pins:
         return "<p>No pin channel in this recording.</p>"
     t0 = pins[0].t_us
     tt = np.array([(m.t_us - t0) / 1e6 for m in pins])
-    objs = [m.json() for m in pins]
     cmd = np.array([_pin_values(o.get("commanded_mm")) for o in objs])
     meas = np.array([_pin_values(o.get("measured_mm")) for o in objs])
     safe = np.array([o.get("safe_reason") is not None for o in objs])

@@ -94,6 +94,9 @@ class RecordedMessage:
             obj = json.loads(self.data)
         except (ValueError, UnicodeDecodeError) as err:
             raise RecordingFormatError(f"a message on {self.topic} is not JSON: {err}") from err
+        except RecursionError as err:  # nested deeper than the parser goes (a crafted file)
+            raise RecordingFormatError(f"a message on {self.topic} is nested too deep to "
+                                       "read") from err
         if not isinstance(obj, dict):
             raise RecordingFormatError(f"a message on {self.topic} is not a JSON object")
         return obj

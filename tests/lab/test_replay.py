@@ -81,11 +81,13 @@ def test_a_payload_that_does_not_decode_is_skipped_and_counted(tmp_path: Path) -
     good = len(rec.messages)
     rec.messages.insert(3, RecordedMessage("/local/rx/arm_state", T0 + 1, "msgpack", b"\xc1"))
     rec.messages.insert(7, RecordedMessage("/local/latency", T0 + 2, "json", b"[1, 2]"))
+    deep = b"[" * 100_000 + b"]" * 100_000  # nested past the parser (found by review)
+    rec.messages.insert(9, RecordedMessage("/local/latency", T0 + 3, "json", deep))
     events: list[ReplayEvent] = []
     replayer = Replayer(rec, speed=20.0, display="none")
     replayer.subscribe(events.append)
     result = replayer.run()
-    assert result.undecodable == 2 and result.published == len(events) == good
+    assert result.undecodable == 3 and result.published == len(events) == good
     summary = summarize(rec)
-    assert summary["latency_malformed_values"] == 1
+    assert summary["latency_malformed_values"] == 2
     assert "or a message not a JSON object) left out" in format_summary(summary)

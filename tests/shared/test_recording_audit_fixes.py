@@ -568,3 +568,23 @@ def test_payloads_off_their_schema_are_left_out_counted_or_refused_clearly(
 
     _, rows = _latency_figure(out)  # raised on the string and the list before
     assert {r["stage"] for r in rows} == {"relay_in_to_relay_out", "end_to_end"}
+
+
+def test_the_reports_figures_leave_out_messages_that_are_no_json_object(tmp_path: Path) -> None:
+    """A pins or latency message that is not a JSON object (or nested past the parser)
+    stopped the report (found by review)."""
+    pytest.importorskip("matplotlib")
+    from lab.html_report import _latency_figure, _pins_figure
+    from shared.recording.reader import RecordedMessage
+
+    path = tmp_path / "r.mcap"
+    rec = McapRecorder(path, "local", meta={"session": "bad"})
+    _platform(rec, 1, T0)
+    rec.close()
+    out = read_mcap(path)
+    for topic, t in (("/local/pins", T0 + 1), ("/local/latency", T0 + 2)):
+        out.messages.append(RecordedMessage(topic, t, "json", b"[1, 2]"))
+        out.messages.append(RecordedMessage(topic, t + 1, "json", b"[" * 100_000))
+    assert "No pin channel" in _pins_figure(out)
+    _, rows = _latency_figure(out)
+    assert rows == []
