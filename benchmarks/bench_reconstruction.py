@@ -37,6 +37,7 @@ from remote_site.reconstruction.reconstructor import (  # noqa: E402
     HeightMap,
     ReconstructionSettings,
     Reconstructor,
+    _pool_origin,
 )
 from remote_site.reconstruction.sphere import cap_depth_mm  # noqa: E402
 from remote_site.sensor.photometric import PhotometricModel  # noqa: E402
@@ -66,8 +67,10 @@ def _time_per_frame_ms(fn: Callable[[np.ndarray], object], frames: list[np.ndarr
 
 
 def _pool(a: np.ndarray, f: int) -> np.ndarray:
+    """Block means as the reconstructor pools: the pixels left over cut on both sides."""
     r, c = a.shape[0] // f, a.shape[1] // f
-    return a[: r * f, : c * f].reshape(r, f, c, f).mean(axis=(1, 3))
+    r0, c0 = _pool_origin(a.shape[0], f), _pool_origin(a.shape[1], f)
+    return a[r0: r0 + r * f, c0: c0 + c * f].reshape(r, f, c, f).mean(axis=(1, 3))
 
 
 def real_data(data: Path, repeats: int) -> tuple[list[dict], list[dict], list[dict], dict]:
@@ -131,8 +134,9 @@ def real_data(data: Path, repeats: int) -> tuple[list[dict], list[dict], list[di
                     hm = rec.height_map(frames[lb.image], out_pitch_mm=pitch)
                     diffs.append(np.sqrt(np.mean((hm.height_mm - _pool(full[lb.image], f)) ** 2)))
                     if f <= 4:
-                        shapes.append(evaluate_press(hm.height_mm, hm.mm_per_px, lb, MM_PER_PX,
-                                                     BALL_RADIUS_MM).shape_rmse_mm)
+                        shapes.append(evaluate_press(
+                            hm.height_mm, hm.mm_per_px, lb, MM_PER_PX, BALL_RADIUS_MM,
+                            sensor_shape_hw=frames[lb.image].shape[:2]).shape_rmse_mm)
                 def at_pitch(fr: np.ndarray, p: float | None = pitch,
                              r: Reconstructor = rec) -> HeightMap:
                     return r.height_map(fr, out_pitch_mm=p)

@@ -51,7 +51,8 @@ class PressMetrics:
 
 def evaluate_press(height_mm: np.ndarray, grid_mm_per_px: float, label: BallLabel,
                    sensor_mm_per_px: float, ball_radius_mm: float,
-                   trim_px: float = 4.0) -> PressMetrics:
+                   trim_px: float = 4.0,
+                   sensor_shape_hw: tuple[int, int] | None = None) -> PressMetrics:
     """Compare a height map (possibly on a pooled grid) with the labelled ball press.
 
     Args:
@@ -61,6 +62,8 @@ def evaluate_press(height_mm: np.ndarray, grid_mm_per_px: float, label: BallLabe
         sensor_mm_per_px: pitch of the sensor image the label refers to.
         ball_radius_mm: ball radius.
         trim_px: sensor pixels trimmed off the labelled radius.
+        sensor_shape_hw: the sensor frame's size, for a pooled grid whose factor leaves pixels
+            over (they are cut on both sides, the larger half at the end); None: none left.
 
     Raises:
         InputDataError: the contact region holds fewer than 4 grid points.
@@ -71,6 +74,10 @@ def evaluate_press(height_mm: np.ndarray, grid_mm_per_px: float, label: BallLabe
     centre_y_mm = label.center_y * sensor_mm_per_px
     dx = (cols + 0.5) * grid_mm_per_px - (0.5 * sensor_mm_per_px) - centre_x_mm
     dy = (rows + 0.5) * grid_mm_per_px - (0.5 * sensor_mm_per_px) - centre_y_mm
+    if factor > 1 and sensor_shape_hw is not None:  # blocks centred on the frame
+        left_over = [(n - (n // round(factor)) * round(factor)) // 2 for n in sensor_shape_hw]
+        dy = dy + left_over[0] * sensor_mm_per_px
+        dx = dx + left_over[1] * sensor_mm_per_px
     if factor == 1:
         dx = cols * grid_mm_per_px - centre_x_mm
         dy = rows * grid_mm_per_px - centre_y_mm

@@ -47,3 +47,16 @@ def test_a_shifted_exact_cap_is_a_label_error_not_a_shape_error(
     # the peak of the map is the cap's top plus the constant (a pixel may miss the apex)
     assert m.peak_err_mm == pytest.approx(offset, abs=2e-3)
     assert m.peak_err_mm + depth == pytest.approx(float(_cap(cx + sx, cy + sy, a, offset).max()))
+
+
+@pytest.mark.parametrize("factor", [16, 32])  # 240 x 320 leaves 0 x 0, then 16 x 0 over
+def test_a_pooled_grid_is_placed_as_the_reconstructor_pools(factor: int) -> None:
+    """The reconstructor cuts the pixels a factor leaves over on both sides; the metric took
+    the cut at the end only and misplaced the label by half of them (found by review)."""
+    from remote_site.reconstruction.reconstructor import _pool
+
+    cx, cy, a = 160.0, 118.0, 60.0
+    pooled = _pool(_cap(cx, cy, a).astype(np.float32), factor)
+    label = BallLabel("x.png", cx, cy, a)
+    m = evaluate_press(pooled, PITCH * factor, label, PITCH, R, sensor_shape_hw=(240, 320))
+    assert m.centre_shift_px < factor / 4  # at most a fraction of a block
