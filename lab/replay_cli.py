@@ -47,6 +47,11 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="with --view: stop serving the view when the replay ends")
     parser.add_argument("--no-analysis", action="store_true",
                         help="with --view: do not re-run the palpation analysis")
+    parser.add_argument("--view-allowed-host", dest="view_allowed_hosts", action="append",
+                        default=[], metavar="NAME",
+                        help="with --view: a host name the page may also be opened by (a "
+                        "tunnel's or proxy's; besides IP addresses, localhost and the bound "
+                        "name, which need none); repeatable. Any other name gets HTTP 403")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -55,6 +60,7 @@ def run(args: argparse.Namespace) -> int:
     from shared.errors import ConfigError
     from shared.recording import read_mcap
     from shared.report import emit, emit_json
+    from shared.view import ViewServerConfig
 
     recording = read_mcap(args.file)
     if args.summary:
@@ -64,11 +70,16 @@ def run(args: argparse.Namespace) -> int:
         else:
             emit(format_summary(summary))
         return 0
+    if args.view_allowed_hosts and not args.view:
+        raise ConfigError("--view-allowed-host needs --view")
+    view_config = (ViewServerConfig(allowed_hosts=tuple(args.view_allowed_hosts))
+                   if args.view else None)  # a bad name refused before the replay opens
     replayer = Replayer(recording, speed=args.speed, display=args.display,
                         start_paused=bool(args.view and args.paused))
     if args.paused and not args.view:
         raise ConfigError("--paused needs --view (the page's play button starts the replay)")
-    result = _replay_with_view(replayer, args) if args.view else replayer.run()
+    result = (_replay_with_view(replayer, args, view_config) if view_config is not None
+              else replayer.run())
     if args.json:
         emit_json(result.__dict__)
     else:
@@ -82,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _replay_with_view(replayer: Any, args: argparse.Namespace) -> Any:
+def _replay_with_view(replayer: Any, args: argparse.Namespace, config: Any) -> Any:
     """Serve the live view of the replay while it plays (and after, until Ctrl-C)."""
     import sys
 
@@ -97,7 +108,7 @@ def _replay_with_view(replayer: Any, args: argparse.Namespace) -> Any:
         log.warning("the replay's view listens on %s, not on loopback: whoever reaches it "
                     "sees this recording (no token; see docs/view.md)", address.host)
     source = ReplayViewSource(replayer, None if args.no_analysis else LiveAnalysisConfig())
-    server = ViewServer(source, control=source.control)
+    server = ViewServer(source, config, control=source.control)
     stop = threading.Event()
     try:
         port = server.start_thread(address.host, address.port)

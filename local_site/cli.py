@@ -141,7 +141,8 @@ def run(args: argparse.Namespace) -> int:
                        status=None if args.no_status else StatusLine(min_interval_s=5.0),
                        handle_signals=True,
                        view=parse_view_address(config.view) if config.view.strip() else None,
-                       view_config=ViewServerConfig(rate_hz=config.view_rate_hz),
+                       view_config=ViewServerConfig(rate_hz=config.view_rate_hz,
+                                                    allowed_hosts=config.view_allowed_hosts),
                        view_ready=lambda url: emit(f"live view: {url}"))
     agent.open()
     code = asyncio.run(agent.run())

@@ -51,8 +51,9 @@ KNOWN_SECTIONS: frozenset[str] = frozenset({
     "link", "check",
 })
 
-#: settings whose values are never shown in an error (a token given with the wrong type)
-_SECRET_WORDS = ("token", "secret", "password")
+#: settings whose values are never shown in an error (a token given with the wrong type);
+#: a URL may carry a password (``relay.nats_url``: ``tls://user:password@host``)
+_SECRET_WORDS = ("token", "secret", "password", "url")
 
 T = TypeVar("T")
 
@@ -248,7 +249,8 @@ def _coerce(value: Any, annotation: Any, name: str, *, typed: bool = False,
     values carry their own types) must already have the setting's type: ``"yes"`` for a
     boolean, ``"8080"`` for an integer or ``"1, 2"`` for a list is refused, not guessed at
     (an integer counts as a number). A number with a fraction is never an integer. A
-    ``secret`` value (a token, a secret, a password) is never shown in an error, only its type.
+    ``secret`` value (a token, a secret, a password, a URL) is never shown in an error, only
+    its type.
     """
     shown = _show(value, secret=secret)
     origin = typing.get_origin(annotation)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import ipaddress
 import random
+import re
 import ssl
 from dataclasses import dataclass
 from typing import Literal
@@ -57,12 +58,14 @@ Scheme = Literal["ws", "wss", "tcp", "tls"]
 
 
 def _shown_url(url: str) -> str:
-    """``url`` for a message: user information (a password, a token) replaced by ``***``."""
-    scheme, sep, rest = url.rpartition("://")
-    netloc, slash, path = rest.partition("/")
-    if "@" in netloc:
-        netloc = "***@" + netloc.rpartition("@")[2]
-    return f"{scheme}{sep}{netloc}{slash}{path}"
+    """``url`` for a message: when it holds any ``@``, everything from after ``scheme:``
+    (and ``//``) up to the last ``@`` is replaced by ``***`` (a password may hold ``/``,
+    ``:`` or ``@``, so no split at the first ``/`` finds where it ends)."""
+    if "@" not in url:
+        return url
+    match = re.match(r"[A-Za-z][A-Za-z0-9+.-]*:(//)?", url)
+    head = match.group(0) if match else ""
+    return f"{head}***@{url.rpartition('@')[2]}"
 
 
 def parse_link_url(url: str) -> tuple[Scheme, str, int]:
@@ -77,11 +80,15 @@ def parse_link_url(url: str) -> tuple[Scheme, str, int]:
 
     Raises:
         ConfigError: unknown scheme, missing host, a host name that cannot be looked up (a
-            label over 63 characters, an empty label), user information (``user:password@``:
-            the relay takes none, and it would be shown wherever the URL is), or a TCP URL
+            label over 63 characters, an empty label), user information (any ``@`` in the
+            URL, ``user:password@``: the relay takes none, and it would be shown wherever the
+            URL is; a password holding ``/`` would end the host early), or a TCP URL
             without a port. The message never shows user information.
     """
     shown = _shown_url(url)
+    if "@" in url:  # anywhere: a password holding '/' puts its '@' past urlsplit's host
+        raise ConfigError(f"relay URL {shown!r} holds user information (user:password@): the "
+                          "relay takes none (the station's token goes in its own setting)")
     try:
         parts = urlsplit(url)
         port = parts.port
@@ -91,9 +98,6 @@ def parse_link_url(url: str) -> tuple[Scheme, str, int]:
     scheme = parts.scheme.lower()
     if scheme not in ("ws", "wss", "tcp", "tls"):
         raise ConfigError(f"relay URL {shown!r}: scheme must be ws://, wss://, tcp:// or tls://")
-    if "@" in parts.netloc:
-        raise ConfigError(f"relay URL {shown!r} holds user information (user:password@): the "
-                          "relay takes none (the station's token goes in its own setting)")
     if not parts.hostname:
         raise ConfigError(f"relay URL {shown!r} has no host")
     try:

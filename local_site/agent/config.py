@@ -17,6 +17,7 @@ from local_site.render.interpolation import DEFAULT_ORDER
 from shared.config import check_count, check_positive
 from shared.errors import ConfigError
 from shared.loop_watchdog import check_hang_timeout
+from shared.view.server import check_host_names
 
 __all__ = ["MAX_SAFETY_TIMEOUT_S", "RENDER_LOOP_MODES", "SAFE_STATE_MODES", "LocalAgentConfig"]
 
@@ -130,6 +131,11 @@ class LocalAgentConfig:
         view: serve the live view in the browser on ``HOST:PORT`` (empty: no view;
             ``127.0.0.1:8780`` keeps it on this machine, see docs/view.md).
         view_rate_hz: the view's snapshot rate (the page's update rate).
+        view_allowed_hosts: host names (besides IP addresses, ``localhost``, the bound name
+            and, bound beyond loopback, the machine's name) the browser may reach the view
+            by: a tunnel's or a proxy's name (``TELETOUCH_LOCAL_AGENT_VIEW_ALLOWED_HOSTS=
+            a.example,b.example``); any other name gets HTTP 403 (DNS rebinding,
+            docs/security.md).
         hang_timeout_s: the station's event loop stuck this long (a busy loop, a call that
             never returns), once its loops run: every thread's stack is written to standard
             error and the process exits with code 1 (:mod:`shared.loop_watchdog`), for
@@ -172,6 +178,7 @@ class LocalAgentConfig:
     lock_memory: bool = True
     view: str = ""
     view_rate_hz: float = 40.0
+    view_allowed_hosts: tuple[str, ...] = ()
     hang_timeout_s: float = 30.0
 
     def _check_display_timing(self) -> None:
@@ -278,6 +285,7 @@ class LocalAgentConfig:
         if not (isinstance(self.view_rate_hz, int | float)
                 and 1.0 <= self.view_rate_hz <= 120.0):
             raise ConfigError("local.agent.view_rate_hz must lie in [1, 120]")
+        check_host_names("local.agent.view_allowed_hosts", self.view_allowed_hosts)
         for name in ("scene_center_x_mm", "scene_center_y_mm"):
             if not math.isfinite(getattr(self, name)):
                 raise ConfigError(f"local.agent.{name} must be finite")

@@ -14,7 +14,7 @@ key                    required  content
 ``stiffness_k``        no        float ``(ny, nx)`` in [0.5, 1] (display k)
 ``stiffness_shore00``  no        float ``(ny, nx)`` in [0, 100]; exclusive with stiffness_k
 ``friction``           no        float ``(ny, nx)`` in [0, 1]
-``description``        no        a string
+``description``        no        a string of at most 262,144 characters
 =====================  ========  ==========================================================
 
 Missing stiffness means k = 1 (rigid); missing friction means 0. Shore 00 is mapped to
@@ -52,6 +52,7 @@ from shared.hardness import K_MAX, K_MIN, HardnessTable
 __all__ = [
     "LAYER_FILE_KEYS",
     "LAYER_FILE_VERSION",
+    "MAX_DESCRIPTION_CHARS",
     "MIN_LAYER_SPACING_MM",
     "LayerFileData",
     "LayerFileScene",
@@ -78,6 +79,8 @@ LAYER_FILE_KEYS: frozenset[str] = frozenset(
 MIN_LAYER_SPACING_MM = 1.0e-6
 #: largest ``.npy`` member other than a layer (format_version, extent_mm, description)
 _MAX_SMALL_MEMBER_BYTES = 1 << 20
+#: longest description (numpy stores 4 bytes a character: 262,144 within that 1 MiB)
+MAX_DESCRIPTION_CHARS = _MAX_SMALL_MEMBER_BYTES // 4
 #: what reading a hostile archive can raise besides our own checks
 _READ_ERRORS: tuple[type[BaseException], ...] = (
     OSError, EOFError, ValueError, OverflowError, struct.error, zipfile.BadZipFile,
@@ -208,6 +211,9 @@ def validate_layers(arrays: Mapping[str, Any], *, where: str = "layer file",
         d = np.asarray(arrays["description"])
         if d.shape != () or d.dtype.kind != "U":
             raise InputDataError(f"{where}: description must be a string")
+        if d.nbytes > _MAX_SMALL_MEMBER_BYTES:  # what the reader refuses (_check_header)
+            raise InputDataError(f"{where}: description is {d.nbytes // 4} characters; at "
+                                 f"most {MAX_DESCRIPTION_CHARS} (1 MiB as stored)")
         description = str(d)
     return LayerFileData(height, k_layer, friction,
                          (float(ext[0]), float(ext[1]), float(ext[2]), float(ext[3])),

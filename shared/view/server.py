@@ -16,10 +16,15 @@ a slow browser skips snapshots and nothing queues; a send stuck longer than
 ``send_timeout_s`` closes that browser. What a browser sends is read and discarded (messages
 above ``max_message_bytes`` close it, 1009); more than ``max_clients`` browsers get
 HTTP 503 before the upgrade. With ``authorize`` only browsers whose hello was accepted count
-against ``max_clients``; connections still before their hello are capped apart
-(``max_pending_per_address`` per client address: HTTP 429, ``max_pending`` in all: 503), so
-sockets without a token cannot lock observers out; a refused browser's close handshake may
-take ``refuse_close_timeout_s``. None of this touches the station's own loops: the server
+against ``max_clients``. A connection is *pending* from its TCP accept until its WebSocket
+is open (without ``authorize``) or its hello was answered (with it): its HTTP request must
+arrive within ``open_timeout_s`` and its hello within ``hello_timeout_s``. Pending
+connections are capped per client address (``max_pending_per_address``; an IPv6 address
+counts by its /64) and in all (``max_pending``); a new connection over a cap closes the
+OLDEST pending one of its address (or of all) instead of being refused, so silent sockets
+cannot lock out a browser, which sends its request and hello at once, even when every
+browser comes through one proxy's address. A refused browser's close handshake may take
+``refuse_close_timeout_s``. None of this touches the station's own loops: the server
 runs in a thread of its own (:meth:`ViewServer.start_thread`) or, at the relay, as tasks of
 the relay's event loop (:meth:`ViewServer.start`).
 
@@ -52,6 +57,7 @@ import ipaddress
 import json
 import logging
 import math
+import re
 import socket
 import threading
 import time
@@ -59,7 +65,7 @@ from collections import Counter
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from importlib import resources
-from typing import Any, Protocol
+from typing import Any, ClassVar, Protocol
 
 from websockets.asyncio.server import Server, ServerConnection, serve
 from websockets.datastructures import Headers
@@ -70,7 +76,7 @@ from shared.errors import ConfigError
 from shared.timebase import now_us
 
 __all__ = ["PAGE_FILES", "ViewAddress", "ViewServer", "ViewServerConfig", "ViewSource",
-           "parse_view_address"]
+           "check_host_names", "parse_view_address"]
 
 log = logging.getLogger(__name__)
 
@@ -154,6 +160,26 @@ def parse_view_address(text: str) -> ViewAddress:
     return ViewAddress(host, port)
 
 
+#: a host name as a browser sends it in ``Host`` (an internationalized name in its xn-- form)
+_HOST_NAME = re.compile(r"[a-z0-9_]([a-z0-9_.-]{0,251}[a-z0-9_])?\.?", re.IGNORECASE)
+
+
+def check_host_names(key: str, names: object) -> None:
+    """Host names a view without token may also be reached by (``allowed_hosts``): each a
+    bare DNS name (letters, digits, ``-``, ``.``), no scheme, port or path.
+
+    Raises:
+        ConfigError: naming ``key`` and the first name that is none.
+    """
+    if not isinstance(names, tuple | list):
+        raise ConfigError(f"{key} must be a list of host names, got {names!r}")
+    for name in names:
+        if not (isinstance(name, str) and _HOST_NAME.fullmatch(name)):
+            raise ConfigError(f"{key}: {name!r} is not a host name (letters, digits, '-' and "
+                              "'.', as the browser's address bar shows it, without scheme, "
+                              "port or path; an internationalized name in its xn-- form)")
+
+
 @dataclass(frozen=True)
 class ViewServerConfig:
     """Settings of a view server.
@@ -164,10 +190,14 @@ class ViewServerConfig:
         max_message_bytes: largest message a browser may send (larger closes it, 1009).
         send_timeout_s: a send not finished in this time closes that browser.
         trail_batch: most trajectory points in one message.
-        hello_timeout_s: with ``authorize``: the hello must arrive within this time.
+        hello_timeout_s: with ``authorize``: the hello must arrive within this time (the
+            page sends it as soon as the WebSocket opens).
+        open_timeout_s: a connection's HTTP request (and the upgrade) must be done within
+            this time of its TCP accept (websockets' ``open_timeout``).
         prefix: path of the page (``/`` at a station, ``/view/`` at the relay).
-        max_pending: with ``authorize``: connections before their hello at once (503 beyond).
-        max_pending_per_address: with ``authorize``: the same, per client address (429).
+        max_pending: pending connections (before their upgrade, with ``authorize`` before
+            their hello) at once; one more closes the oldest.
+        max_pending_per_address: the same, per client address (an IPv6 address: its /64).
         refuse_close_timeout_s: how long a refused browser's close handshake may take.
         allowed_hosts: host names (besides IP addresses, ``localhost`` and the bound name)
             a view without ``authorize`` may be reached by (a tunnel's or proxy's name).
@@ -178,10 +208,11 @@ class ViewServerConfig:
     max_message_bytes: int = 4096
     send_timeout_s: float = 5.0
     trail_batch: int = 4000
-    hello_timeout_s: float = 5.0
+    hello_timeout_s: float = 2.0
+    open_timeout_s: float = 3.0
     prefix: str = "/"
     max_pending: int = 64
-    max_pending_per_address: int = 4
+    max_pending_per_address: int = 8
     refuse_close_timeout_s: float = 1.0
     allowed_hosts: tuple[str, ...] = ()
 
@@ -194,10 +225,11 @@ class ViewServerConfig:
         if self.max_pending < 1 or self.max_pending_per_address < 1:
             raise ConfigError("view max_pending and max_pending_per_address must be >= 1")
         if not (self.send_timeout_s > 0 and self.hello_timeout_s > 0
-                and self.refuse_close_timeout_s > 0):
+                and self.open_timeout_s > 0 and self.refuse_close_timeout_s > 0):
             raise ConfigError("view timeouts must be > 0")
         if not (self.prefix.startswith("/") and self.prefix.endswith("/")):
             raise ConfigError("view prefix must start and end with '/'")
+        check_host_names("view allowed_hosts", self.allowed_hosts)
 
 
 def _page_bytes() -> dict[str, bytes]:
@@ -302,8 +334,10 @@ class ViewServer:
         if source is not None:
             self._feeds[""] = _Feed(source, keep=True)
         self._clients = 0
-        #: connections before their hello (with ``authorize``), per client address
-        self._pending: Counter[str] = Counter()
+        #: pending connections (module docstring) per client address key, oldest first
+        self._pending: dict[str, dict[ServerConnection, None]] = {}
+        #: every pending connection and its address key, oldest first
+        self._pending_all: dict[ServerConnection, str] = {}
         #: host names (besides IP addresses and localhost) a view without token may be
         #: reached by (set by start())
         self._host_names: frozenset[str] = frozenset()
@@ -330,11 +364,17 @@ class ViewServer:
             machine = socket.gethostname().lower()
             names |= {machine, machine + ".local"}
         self._host_names = frozenset(names - {""})
+        view = self
+
+        class _Connection(_ViewConnection):
+            owner = view
+
         try:
             self._server = await serve(
                 self._handler, host, port, process_request=self._process_request,
                 max_size=self.config.max_message_bytes, max_queue=4,
                 write_limit=64 * 1024, compression=None, ping_interval=20, ping_timeout=20,
+                open_timeout=self.config.open_timeout_s, create_connection=_Connection,
                 logger=_WS_LOG)
         except OSError as err:
             raise ConfigError(f"the view cannot listen on {host}:{port}: {err}") from err
@@ -415,6 +455,12 @@ class ViewServer:
     def clients(self) -> int:
         """Browsers connected now."""
         return self._clients
+
+    @property
+    def pending(self) -> int:
+        """Pending connections now (before their upgrade or, with ``authorize``, their
+        hello)."""
+        return len(self._pending_all)
 
     # ------------------------------------------------------------------ publishing
 
@@ -552,11 +598,6 @@ class ViewServer:
             self._refuse_logged()
             return _respond(connection, 503, "Tele-Touch view: too many viewers\n",
                             "text/plain; charset=utf-8")
-        if self._authorize is not None:
-            pending = self._pending_refusal(_address(connection))
-            if pending is not None:
-                return _respond(connection, pending, "Tele-Touch view: too many connections "
-                                "waiting for their hello\n", "text/plain; charset=utf-8")
         return None
 
     def _forbidden(self, host: str | None, origin: str | None) -> str | None:
@@ -588,22 +629,40 @@ class ViewServer:
             return None
         return "ws_forbidden_host"
 
-    def _pending_refusal(self, address: str) -> int | None:
-        """HTTP status for a connection that would pass the caps on connections before
-        their hello (429 for its address, 503 in all), or None."""
-        if self._pending[address] >= self.config.max_pending_per_address:
-            self.counters["pending_refused_address"] += 1
-            if self.counters["pending_refused_address"] == 1:
-                log.warning("view: %d connections from %s wait for their hello, refusing more "
-                            "(logged once)", self.config.max_pending_per_address, address)
-            return 429
-        if self._pending.total() >= self.config.max_pending:
-            self.counters["pending_refused"] += 1
-            if self.counters["pending_refused"] == 1:
-                log.warning("view: %d connections wait for their hello, refusing more "
-                            "(logged once)", self.config.max_pending)
-            return 503
-        return None
+    def _admit(self, connection: _ViewConnection) -> None:
+        """A new TCP connection: pending until :meth:`_settle`; over a cap, the oldest
+        pending connection of its address (or of all) is closed to make room."""
+        key = _address_key(connection.remote_address)
+        mine = self._pending.setdefault(key, {})
+        mine[connection] = None
+        self._pending_all[connection] = key
+        if len(mine) > self.config.max_pending_per_address:
+            self._evict(next(iter(mine)), "pending_evicted_address",
+                        f"{len(mine)} connections from {key} wait for their request or hello")
+        elif len(self._pending_all) > self.config.max_pending:
+            self._evict(next(iter(self._pending_all)), "pending_evicted",
+                        f"{len(self._pending_all)} connections wait for their request or hello")
+
+    def _settle(self, connection: ServerConnection) -> None:
+        """``connection`` is no longer pending (served, refused or gone); idempotent."""
+        key = self._pending_all.pop(connection, None)
+        if key is None:
+            return
+        mine = self._pending.get(key)
+        if mine is not None:
+            mine.pop(connection, None)
+            if not mine:
+                del self._pending[key]
+
+    def _evict(self, connection: ServerConnection, counter: str, why: str) -> None:
+        """Close a pending connection at once (it never answers a close handshake)."""
+        self._settle(connection)
+        if isinstance(connection, _ViewConnection):
+            connection.evicted = True
+        self.counters[counter] += 1
+        if self.counters[counter] == 1:
+            log.warning("view: %s; the oldest is closed (logged once)", why)
+        connection.transport.abort()
 
     def _refuse_logged(self) -> None:
         self.counters["clients_refused"] += 1
@@ -646,7 +705,8 @@ class ViewServer:
             elif feed is None and self.source is not None:
                 feed = self._feeds.get("")
         if feed is None:
-            self.counters["clients_unauthorized"] += 1
+            if not getattr(ws, "evicted", False):
+                self.counters["clients_unauthorized"] += 1
             await self._refuse(ws, 4001, "view needs a valid session and token")
             return None
         return feed, expiry
@@ -678,21 +738,14 @@ class ViewServer:
 
     async def _handler(self, ws: ServerConnection) -> None:
         if self._authorize is None:
+            self._settle(ws)
             await self._serve_browser(ws, self._feeds[""], None)
             return
-        # before the hello: a slot of the pending caps, not of max_clients; a burst that
-        # passed the HTTP check together is cut here (no await in between)
-        address = _address(ws)
-        if self._pending_refusal(address) is not None:
-            await self._refuse(ws, 1013, "too many connections waiting for their hello")
-            return
-        self._pending[address] += 1
+        # before the hello: still pending (a slot of the pending caps, not of max_clients)
         try:
             granted = await self._hello(ws)
         finally:
-            self._pending[address] -= 1
-            if self._pending[address] <= 0:
-                del self._pending[address]
+            self._settle(ws)
         if granted is not None:
             await self._serve_browser(ws, *granted)
 
@@ -762,10 +815,39 @@ class ViewServer:
             self.counters["messages_sent"] += 1
 
 
-def _address(connection: ServerConnection) -> str:
-    """The client's IP address (the key of the per-address cap)."""
-    peer = connection.remote_address
-    return str(peer[0]) if isinstance(peer, tuple) and peer else str(peer)
+def _address_key(peer: Any) -> str:
+    """The key of the per-address cap of a peer address (``remote_address``): its IP
+    address; for IPv6 its /64 (one host usually holds a whole /64), an IPv4-mapped IPv6
+    address as the IPv4 address."""
+    text = str(peer[0]) if isinstance(peer, tuple) and peer else str(peer)
+    try:
+        ip = ipaddress.ip_address(text.split("%", 1)[0])
+    except ValueError:
+        return text
+    if isinstance(ip, ipaddress.IPv6Address):
+        if ip.ipv4_mapped is not None:
+            return str(ip.ipv4_mapped)
+        return str(ipaddress.IPv6Network((ip, 64), strict=False))
+    return str(ip)
+
+
+class _ViewConnection(ServerConnection):
+    """A connection that registers with its :class:`ViewServer` (``owner``, set by a
+    subclass per server) from its TCP accept: pending until served, refused or gone."""
+
+    owner: ClassVar[ViewServer | None] = None
+    #: closed by a pending cap (not counted as an unauthorized browser)
+    evicted = False
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        super().connection_made(transport)
+        if self.owner is not None:
+            self.owner._admit(self)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        super().connection_lost(exc)
+        if self.owner is not None:
+            self.owner._settle(self)
 
 
 class _Feed:

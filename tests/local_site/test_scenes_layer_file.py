@@ -143,6 +143,23 @@ def test_save_refuses_layers_that_would_not_load(tmp_path: Path) -> None:
     assert not (tmp_path / "x.npz").exists()
 
 
+def test_save_refuses_a_description_the_reader_would_refuse(tmp_path: Path) -> None:
+    """A description over 262,144 characters (1 MiB as stored) was saved, then refused
+    at load by the small-member limit; now it is refused at save, by name."""
+    most = 262_144  # local_site.scenes.layer_file.MAX_DESCRIPTION_CHARS
+    h = np.zeros((3, 3))
+    path = tmp_path / "edge.npz"
+    save_layer_file(path, height_mm=h, extent_mm=(0, 1, 0, 1),
+                    description="d" * most)
+    assert len(load_layer_file(path).description) == most
+    long = tmp_path / "long.npz"
+    with pytest.raises(InputDataError, match=r"long\.npz: description is 262145 characters; "
+                       r"at most 262144"):
+        save_layer_file(long, height_mm=h, extent_mm=(0, 1, 0, 1),
+                        description="d" * (most + 1))
+    assert not long.exists()
+
+
 # --- hostile files: refused by member name and .npy header before any data is read ---
 
 def _npy(arr: np.ndarray) -> bytes:

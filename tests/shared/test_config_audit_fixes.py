@@ -211,6 +211,11 @@ def test_an_integer_too_large_for_a_number_is_refused_by_name(tmp_path: Path,
     (RelayConfig, "relay", "[relay]\nsecret = 27182818284\n", "27182818284"),
     (RelayConfig, "relay", '[relay]\nstatus_token = ["SUPERSECRET"]\n', "SUPERSECRET"),
     (RelayConfig, "relay", '[relay]\ntokens = ["lab1", "SUPERSECRET"]\n', "SUPERSECRET"),
+    # a URL may carry the NATS password (it was echoed: "cannot use ['tls://...']")
+    (RelayConfig, "relay", '[relay]\nnats_url = ["tls://relay:SECRETPW@nats:4222"]\n',
+     "SECRETPW"),
+    (StationLinkConfig, "local.link", '[local.link]\nurl = ["ws://u:SECRETPW@relay/"]\n',
+     "SECRETPW"),
 ])
 def test_a_secret_of_the_wrong_type_is_not_shown(tmp_path: Path, cls: type, section: str,
                                                  text: str, needle: str) -> None:

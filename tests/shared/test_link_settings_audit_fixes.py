@@ -83,6 +83,31 @@ def test_a_bad_url_with_a_password_does_not_show_it() -> None:
         assert "hunter2" not in str(refused.value)
 
 
+@pytest.mark.parametrize("url", [
+    "ws://user:SECRET/PW@relay.example/",     # a '/' in the password: '@' past the host
+    "ws:/user:SECRETPW@relay.example/",       # one slash: no netloc at all
+    "ws://user:12345/SECRETPW@relay.example/",  # was taken as host 'user', port 12345
+    "wss://user:SECRET@PW@relay.example:443/",  # an '@' in the password
+    "tcp://SECRETPW@relay.example:8766",
+    "ws://relay.example/SECRETPW@x",
+])
+def test_a_url_with_an_at_sign_anywhere_is_refused_and_masked(url: str) -> None:
+    with pytest.raises(ConfigError, match=r"holds user information") as refused:
+        StationLinkConfig(url=url)
+    message = str(refused.value)
+    assert "SECRET" not in message and "PW" not in message, message
+    assert "***@" in message
+
+
+def test_the_mask_keeps_the_scheme_and_what_follows_the_last_at() -> None:
+    from shared.link_settings import _shown_url
+    assert _shown_url("ws://user:SECRET/PW@relay.example/") == "ws://***@relay.example/"
+    assert _shown_url("ws:/user:SECRETPW@relay.example/") == "ws:***@relay.example/"
+    assert _shown_url("user:pw/x@relay.example") == "user:***@relay.example"
+    assert _shown_url("pw/x@relay.example") == "***@relay.example"
+    assert _shown_url("wss://relay.example:443/path") == "wss://relay.example:443/path"
+
+
 @pytest.mark.parametrize(("settings", "said"), [
     ({"reconnect_max_s": 1e9}, r"^reconnect_max_s \(1000000000\.0\) must be <= 60 s"),
     ({"reconnect_max_s": 60.5}, r"^reconnect_max_s \(60\.5\) must be <= 60 s"),

@@ -15,6 +15,7 @@ from typing import Any
 import pytest
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed, InvalidStatus
+from websockets.protocol import State
 
 from shared.errors import ConfigError
 from shared.view import ViewServer, ViewServerConfig, parse_view_address
@@ -472,7 +473,21 @@ async def _first(ws: Any, predicate: Any) -> dict[str, Any]:
                 return dict(msg)
 
 
-async def test_sockets_without_a_token_cannot_lock_observers_out() -> None:
+async def _closed_by_server(ws: Any) -> bool:
+    """True once the server closed ``ws`` (a connected WebSocket that sent nothing)."""
+    try:
+        async with asyncio.timeout(scaled(5)):
+            await ws.recv()
+    except ConnectionClosed:
+        return True
+    except TimeoutError:
+        return False
+    return False
+
+
+async def test_silent_sockets_from_one_address_cannot_lock_an_observer_out() -> None:
+    """Behind a proxy every browser has the proxy's address: silent sockets from that
+    address (no hello) used to get the observer HTTP 429; now the oldest gives way."""
     config = ViewServerConfig(rate_hz=60.0, max_clients=2, max_pending_per_address=3,
                               hello_timeout_s=scaled(30))
     server = ViewServer(FakeSource(), config, authorize=_accept_s1)
@@ -481,22 +496,23 @@ async def test_sockets_without_a_token_cannot_lock_observers_out() -> None:
     hello = json.dumps({"type": "hello", "session": "s1", "token": "good"})
     try:
         async with contextlib.AsyncExitStack() as stack:
-            for _ in range(3):  # silent: never send a hello
-                await stack.enter_async_context(connect(url))
-            await async_wait_until(lambda: sum(server._pending.values()) == 3, 5,
+            silent = [await stack.enter_async_context(connect(url)) for _ in range(3)]
+            await async_wait_until(lambda: server.pending == 3, 5,
                                    "3 connections waiting for their hello")
-            with pytest.raises(InvalidStatus) as err:  # the 4th from that address
-                async with connect(url):
-                    pass
-            assert err.value.response.status_code == 429
-            # observers from another address are served: silent sockets hold no viewer slot
-            observers = []
-            for _ in range(2):
-                ws = await stack.enter_async_context(
-                    connect(url, local_addr=("127.0.0.2", 0)))
-                await ws.send(hello)
-                assert json.loads(await ws.recv())["type"] == "snapshot"
-                observers.append(ws)
+            # an observer from the same address: served; the oldest silent socket is closed
+            ws = await stack.enter_async_context(connect(url))
+            await ws.send(hello)
+            assert json.loads(await ws.recv())["type"] == "snapshot"
+            assert await _closed_by_server(silent[0])
+            assert server.counters["pending_evicted_address"] == 1
+            assert server.counters["clients_unauthorized"] == 0  # an eviction is no refusal
+            await async_wait_until(lambda: server.pending == 2, 5, "2 silent sockets left")
+            assert server.clients == 1
+            # the other silent sockets are left alone until a newer one needs room
+            assert silent[1].state is State.OPEN and silent[2].state is State.OPEN
+            ws2 = await stack.enter_async_context(connect(url, local_addr=("127.0.0.2", 0)))
+            await ws2.send(hello)
+            assert json.loads(await ws2.recv())["type"] == "snapshot"
             assert server.clients == 2
             with pytest.raises(InvalidStatus) as err:  # max_clients counts the observers
                 async with connect(url, local_addr=("127.0.0.3", 0)):
@@ -504,6 +520,99 @@ async def test_sockets_without_a_token_cannot_lock_observers_out() -> None:
             assert err.value.response.status_code == 503
     finally:
         await server.close()
+
+
+async def test_the_global_pending_cap_closes_the_oldest_of_all() -> None:
+    config = ViewServerConfig(rate_hz=60.0, max_pending=4, max_pending_per_address=3,
+                              hello_timeout_s=scaled(30))
+    server = ViewServer(FakeSource(), config, authorize=_accept_s1)
+    await server.start("127.0.0.1", 0)
+    url = f"ws://127.0.0.1:{server.port}/ws"
+    hello = json.dumps({"type": "hello", "session": "s1", "token": "good"})
+    try:
+        async with contextlib.AsyncExitStack() as stack:
+            first = [await stack.enter_async_context(connect(url)) for _ in range(3)]
+            await stack.enter_async_context(connect(url, local_addr=("127.0.0.2", 0)))
+            await async_wait_until(lambda: server.pending == 4, 5, "4 pending connections")
+            ws = await stack.enter_async_context(connect(url, local_addr=("127.0.0.3", 0)))
+            await ws.send(hello)
+            assert json.loads(await ws.recv())["type"] == "snapshot"
+            assert await _closed_by_server(first[0])
+            assert server.counters["pending_evicted"] == 1
+    finally:
+        await server.close()
+
+
+async def _server_closes(reader: asyncio.StreamReader, timeout_s: float) -> bool:
+    """True when the server closes a raw connection (EOF or reset) within ``timeout_s``."""
+    try:
+        async with asyncio.timeout(timeout_s):
+            return await reader.read(4096) == b""
+    except (ConnectionResetError, BrokenPipeError):
+        return True
+    except TimeoutError:
+        return False
+
+
+@pytest.mark.parametrize("token", [False, True])
+async def test_sockets_that_never_send_their_request_are_capped(token: bool) -> None:
+    """Raw TCP connections that send nothing were held 10 s each without a cap (400 held
+    400 descriptors); they count as pending now: beyond the cap the oldest are closed, and a
+    browser from the same address is still served."""
+    config = ViewServerConfig(rate_hz=60.0, max_pending_per_address=3,
+                              open_timeout_s=scaled(30), hello_timeout_s=scaled(30))
+    server = ViewServer(FakeSource(), config, authorize=_accept_s1 if token else None)
+    await server.start("127.0.0.1", 0)
+    writers = []
+    try:
+        conns = []
+        for _ in range(10):
+            reader, writer = await asyncio.open_connection("127.0.0.1", server.port)
+            conns.append(reader)
+            writers.append(writer)
+        closed = [await _server_closes(r, scaled(5)) for r in conns[:7]]
+        assert closed == [True] * 7
+        assert not any([await _server_closes(r, 0.2) for r in conns[7:]])
+        assert server.pending == 3
+        assert server.counters["pending_evicted_address"] == 7
+        status, _, body = await asyncio.to_thread(_get, f"http://127.0.0.1:{server.port}/")
+        assert status == 200 and "<html" in body.lower()
+        async with connect(f"ws://127.0.0.1:{server.port}/ws") as ws:
+            if token:
+                await ws.send(json.dumps({"type": "hello", "session": "s1", "token": "good"}))
+            assert json.loads(await ws.recv())["type"] == "snapshot"
+    finally:
+        for writer in writers:
+            writer.close()
+        await server.close()
+
+
+async def test_a_socket_that_never_sends_its_request_is_cut_after_open_timeout() -> None:
+    assert ViewServerConfig().open_timeout_s <= 3.0  # websockets' default was 10 s
+    assert ViewServerConfig().hello_timeout_s <= 2.0  # the page sends its hello at once
+    server = await _server(FakeSource(), open_timeout_s=0.3)
+    try:
+        reader, writer = await asyncio.open_connection("127.0.0.1", server.port)
+        t0 = time.monotonic()
+        assert await _server_closes(reader, scaled(5))
+        assert time.monotonic() - t0 >= 0.25
+        writer.close()
+        await async_wait_until(lambda: server.pending == 0, 5, "no pending connection")
+    finally:
+        await server.close()
+
+
+@pytest.mark.parametrize(("peer", "key"), [
+    (("203.0.113.7", 5000), "203.0.113.7"),
+    (("2001:db8:1:2:aaaa::1", 5000, 0, 0), "2001:db8:1:2::/64"),
+    (("2001:db8:1:2:bbbb::9", 5000, 0, 0), "2001:db8:1:2::/64"),
+    (("fe80::1%eth0", 5000, 0, 2), "fe80::/64"),
+    (("::ffff:198.51.100.4", 5000, 0, 0), "198.51.100.4"),
+    ("/tmp/sock", "/tmp/sock"),
+])
+def test_the_per_address_cap_keys_ipv6_by_its_64(peer: Any, key: str) -> None:
+    from shared.view.server import _address_key
+    assert _address_key(peer) == key
 
 
 async def test_a_refused_socket_that_never_answers_the_close_is_cut_soon() -> None:
