@@ -95,11 +95,12 @@ def redact_url(url: str) -> str:
     each URL of a comma-separated list."""
     parts = []
     for part in url.split(","):
-        scheme, sep, rest = part.rpartition("://")
-        netloc, slash, path = rest.partition("/")
-        if "@" in netloc:
-            netloc = "***@" + netloc.rpartition("@")[2]
-        parts.append(f"{scheme}{sep}{netloc}{slash}{path}")
+        scheme, sep, rest = part.partition("://")
+        if not sep:
+            scheme, rest = "", part
+        if "@" in rest:  # up to the LAST '@': a password may hold '/' (found by review)
+            rest = "***@" + rest.rpartition("@")[2]
+        parts.append(f"{scheme}{sep}{rest}")
     return ",".join(parts)
 
 

@@ -264,5 +264,10 @@ def _check_nats_url(url: str) -> None:
                           "not a valid name or [IPv6] address") from err
     if not parts.hostname:
         raise ConfigError(f"{shape}: it names no host")
+    if parts.path not in ("", "/") or parts.query or parts.fragment:
+        # a NATS URL has no path: one is a password holding '/' or '?' (its '@' after the
+        # host; the host was then the user name and part of the password shown as a path)
+        raise ConfigError(f"{shape} and nothing after the port (a password must not hold "
+                          "'/', '?' or '#': use a hex one)")
     if port == 0:
         raise ConfigError(f"{shape}: port 0 is not a NATS server's port")

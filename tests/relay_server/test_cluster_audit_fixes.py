@@ -264,6 +264,22 @@ def test_redact_url_hides_the_user_information() -> None:
     assert redact_url("nats://u:p@ss@h:1") == "nats://***@h:1"
     assert redact_url("u:p@h:1,nats://u:p@g:2") == "***@h:1,nats://***@g:2"
     assert redact_url("nats://127.0.0.1:4222") == "nats://127.0.0.1:4222"
+    # a password holding '/': split at the first '/', it was shown whole (found by review)
+    assert redact_url("tls://relay:12345/PW@nats:4222") == "tls://***@nats:4222"
+    assert redact_url("nats://relay:ab/cd@h:1,tls://x:y/z@g:2") == "nats://***@h:1,tls://***@g:2"
+
+
+@pytest.mark.parametrize("url", ["tls://relay:12345/PW@nats:4222", "nats://u:p?w@h:4222",
+                                 "nats://h:4222/path"])
+def test_a_nats_url_with_anything_after_its_port_is_refused(url: str) -> None:
+    """A password holding '/' made the user name the host and the rest a path: accepted,
+    and connecting to the wrong host with the password's start as a port."""
+    from relay_server.config import RelayConfig
+    from shared.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="relay.nats_url must be") as info:
+        RelayConfig(nats_url=url)
+    assert "PW" not in str(info.value) and "p?w" not in str(info.value)
 
 
 async def test_the_nats_password_is_not_shown(tmp_path: Path) -> None:
