@@ -288,8 +288,6 @@ class SerialPortReader:
                 self._on_error(err)
             return False
         self.last_read_s = monotonic_s()
-        if self._on_poll is not None:
-            self._on_poll()
         if data:
             try:
                 self._on_data(data)
@@ -301,6 +299,10 @@ class SerialPortReader:
                 if not reader.stopping:
                     self._on_error(failure)
                 return False
+        # after the bytes were handled: noted before, a backlog's feedback read after a stall
+        # looked older than the poll for a moment, a silent board to a busy sender (review)
+        if self._on_poll is not None:
+            self._on_poll()
         return True
 
     def silence_hint(self) -> str:

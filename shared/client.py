@@ -73,10 +73,12 @@ from shared.errors import (
     ReplacedError,
     RoleTakenError,
     SessionError,
+    TeleTouchError,
     TlsCertificateError,
 )
 from shared.freshness import ClockView, clock_view_from_stats
 from shared.link_settings import (
+    MAX_LINK_TIMEOUT_S,
     StationLinkConfig,
     backoff_delay_s,
     client_tls_context,
@@ -664,6 +666,13 @@ class StationLink:
                     ssl_context=self._ssl_context)
         except TimeoutError as err:  # asyncio's or websockets' own: both say nothing
             raise self._connect_timed_out() from err
+        except (TeleTouchError, OSError, WebSocketException):
+            raise
+        except Exception as err:  # e.g. a malformed redirect's Location (ValueError): the
+            # relay's answer, transient like a refused connection (it ended the link for good)
+            raise SessionError(f"cannot open the connection to {self.safe_url}: "
+                               f"{type(err).__name__}: {self._redact(str(err))}",
+                               code="connect_failed") from err
         writer: asyncio.Task[None] | None = None
         dead = False
         try:
@@ -731,8 +740,11 @@ class StationLink:
     def _welcomed(self, welcome: Welcome) -> None:
         # the relay pings every ping_interval_s: a silence limit shorter than a few of its
         # intervals would declare an idle, healthy connection dead between two pings
+        # (bounded as the setting is: a relay announcing an hour must not make a blackholed
+        # link go unnoticed for hours; found by review)
         liveness_s = max(self._liveness_timeout_s,
-                         LIVENESS_PING_INTERVALS * welcome.ping_interval_s)
+                         min(LIVENESS_PING_INTERVALS * welcome.ping_interval_s,
+                             MAX_LINK_TIMEOUT_S))
         self.liveness_timeout_s = liveness_s
         self._session.liveness_timeout_us = round(liveness_s * 1e6)
         if liveness_s > self._liveness_timeout_s and liveness_s != self._liveness_logged_s:

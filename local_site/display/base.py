@@ -82,6 +82,10 @@ RESUME_RETRY_US = 20_000
 #: measured here) or a stopped process is late, not a silent board (found by review: judged
 #: on the sender's clock, a 250 ms starvation reopened a healthy display and parked its pins)
 FEEDBACK_TIMEOUT_S = 0.2
+#: a board clock this far behind the estimate of its clock at the last ``RESUME`` is a
+#: rebooted board's (feedback read after the write was made after the estimate's feedback:
+#: never more than the host's time between that read and the write behind it)
+_BOARD_CLOCK_BACK_US = 1_000_000
 #: a reader that has not come back from a receive for this long is taken for stuck (its
 #: receives time out every 20-50 ms when it runs): the link counts as broken
 READER_STALL_S = 3.0
@@ -398,10 +402,10 @@ class ArrayTacDisplay(Device):
     def _silent(self) -> bool:
         """The board is silent by the reader's own polls (see :data:`FEEDBACK_TIMEOUT_S`),
         or the reader is stuck (:data:`READER_STALL_S`)."""
+        polled_s = self._polled_s  # (read first: the reader writes feedback, then poll)
         feedback_s = self._feedback_s
         if feedback_s is None:  # judged from the session's first feedback frame on
             return False
-        polled_s = self._polled_s
         return polled_s - feedback_s > self._feedback_timeout_s or \
             _link_clock_s() - max(polled_s, feedback_s) > READER_STALL_S
 
@@ -742,10 +746,13 @@ class ArrayTacDisplay(Device):
         since = self._resume_board_us
         if since is None or fb.watchdog_trips != self._resume_trips:
             return True
-        if fb.t_us - self._resume_sent_us <= RESUME_RETRY_US:
-            return False
         # wrap-aware difference of two uint32 clocks, as a signed 32-bit number
         elapsed_us = ((fb.board_t_us - since + 0x80000000) & 0xFFFFFFFF) - 0x80000000
+        if elapsed_us < -_BOARD_CLOCK_BACK_US:
+            return True  # the board's clock went back: a rebooted board, tripped anew with
+            # its trip counter restarted at the same count (it never got a RESUME: review)
+        if fb.t_us - self._resume_sent_us <= RESUME_RETRY_US:
+            return False
         return elapsed_us > RESUME_RETRY_US
 
     def _reset_session(self) -> None:

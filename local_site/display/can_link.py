@@ -101,7 +101,7 @@ class CanArrayTacDisplay(ArrayTacDisplay):
             if not reader.stopping:
                 self._on_link_error(err)
             return False
-        self._note_poll()  # the reader runs (silence is judged on its polls)
         if msg is not None and not msg.is_error_frame:
             self._on_frame(msg.arbitration_id, bytes(msg.data))
+        self._note_poll()  # the reader runs (silence is judged on its polls), after the frame
         return True

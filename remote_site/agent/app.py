@@ -186,7 +186,8 @@ async def run_agent(options: AgentOptions, stop: asyncio.Event, status: Any = No
             stiffness calibration for a real sensor.
         CalibrationError: missing or mismatched calibration.
         DeviceInitError: a device could not be opened.
-        AuthError, RoleTakenError: the relay refused the station for good.
+        SessionError: the relay refused the station for good (a wrong token, a
+                connection replaced by another, a hello it can never accept).
     """
     check_sensor_source(options.sensor)  # a mistyped --sensor is named before anything else
     toml = options.config_path

@@ -916,7 +916,8 @@ class RemoteStation:
         The arm is halted and the worker thread joined before returning.
 
         Raises:
-            AuthError, RoleTakenError: the relay refused the station for good.
+            SessionError: the relay refused the station for good (a wrong token, a
+                connection replaced by another, a hello it can never accept).
             ConfigError: ``duration_s`` is not positive.
         """
         if duration_s is not None and not (math.isfinite(duration_s) and duration_s > 0):

@@ -18,11 +18,13 @@ import logging
 import threading
 import uuid
 from collections.abc import Callable, Iterator
+from types import SimpleNamespace
 from typing import Any
 
 import can
 import numpy as np
 import pytest
+import serial
 
 from local_site.agent.display_loop import DisplayLoop, FrameSlot, SameClockLink
 from local_site.arraytac_sim.plant import ArrayTacPlant
@@ -453,3 +455,52 @@ def test_the_counters_are_totals_over_reopened_links() -> None:
         assert after.frames_sent >= before.frames_sent
     finally:
         display.disconnect()
+
+
+def test_a_rebooted_board_tripped_anew_gets_a_resume() -> None:
+    """RESUME for trip 1; the board reboots quickly (under feedback_timeout_s: no reopen),
+    its trip counter restarted and its clock near 0, and trips again (trip 1 again): no
+    RESUME went out until its clock passed the old estimate, up to 35 min, the board
+    refusing every command meanwhile (found by review)."""
+    display = _RecordingDisplay()
+    display.connect()
+    tripped = fr.STATUS_SAFE_STATE | fr.STATUS_WATCHDOG_TRIPPED
+    display._on_frame(fr.ARB_ID_FEEDBACK, _feedback(tripped, trips=1, board_t_us=1_000_000_000))
+    display.send_command(1.0)  # RESUME for trip 1
+    display._on_frame(fr.ARB_ID_FEEDBACK, _feedback(0, trips=1, board_t_us=1_000_010_000))
+    display.send_command(1.5)
+    display._on_frame(fr.ARB_ID_FEEDBACK, _feedback(tripped, trips=1, board_t_us=150_000))
+    display.send_command(1.0)
+    assert [bool(c.flags & fr.FLAG_RESUME) for c in display.sent] == [True, False, True]
+
+
+def test_the_readers_poll_is_noted_after_the_frames_it_read() -> None:
+    """Noted before the frames were handled, the poll was fresh while the feedback in the
+    same read still looked old: after a stall, a busy sender saw 'no feedback for 300 ms'
+    and reopened a healthy display (7 of 10 trials on serial; found by review)."""
+    order: list[str] = []
+
+    class _Bus:
+        def recv(self, timeout: float) -> can.Message:
+            return can.Message(arbitration_id=fr.ARB_ID_FEEDBACK, data=_feedback(), is_fd=True)
+
+    display = CanArrayTacDisplay("order", interface="virtual")
+    display._on_frame = lambda *a, **k: order.append("frame")  # type: ignore[method-assign]
+    display._note_poll = lambda: order.append("poll")  # type: ignore[method-assign]
+    display._receive_once(_Bus(), SimpleNamespace(stopping=False))  # type: ignore[arg-type]
+    assert order == ["frame", "poll"]
+
+    from local_site.serial_port import SerialPortReader
+
+    order.clear()
+    port = serial.serial_for_url("loop://", timeout=0.02)
+    try:
+        reader = SerialPortReader("loop://", name="order", thread_name="t",
+                                  on_data=lambda data: order.append("data"),
+                                  on_error=lambda err: None, port=port,
+                                  on_poll=lambda: order.append("poll"))
+        port.write(b"abc")
+        reader._read_once(port, SimpleNamespace(stopping=False))  # type: ignore[arg-type]
+        assert order == ["data", "poll"]
+    finally:
+        port.close()

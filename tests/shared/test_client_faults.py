@@ -423,3 +423,71 @@ async def test_the_link_is_marked_down_before_its_connection_is_closed(
         await relay.drop_all()
         await async_wait_until(lambda: bool(seen), 2.0, "the close")
     assert seen[0][0] is False and seen[0][1] is not None
+
+
+# --------------------------------------------------------------------------- review of the above
+
+
+async def test_a_relay_announcing_a_huge_ping_interval_does_not_stretch_liveness() -> None:
+    """A welcome announcing pings every hour made a blackholed link go unnoticed for 2.5 h
+    (found by review): the limit is bounded as the setting is (60 s)."""
+    from shared.link_settings import MAX_LINK_TIMEOUT_S
+
+    async def handler(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        conn = ProtocolConnection("tcp")
+        hello = None
+        while hello is None:
+            data = await reader.read(65536)
+            if not data:
+                writer.close()
+                return
+            conn.receive_data(data)
+            hello = next((e.message for e in conn.events_received()
+                          if isinstance(e, MessageReceived)), None)
+        assert isinstance(hello, Hello)
+        conn.send(Welcome(session=hello.session, role=hello.role, server_time_us=now_us(),
+                          max_message_bytes=1 << 20, ping_interval_s=3600.0))
+        for chunk in conn.data_to_send():
+            writer.write(chunk)
+        await writer.drain()
+        await reader.read()  # held open until the station leaves
+        writer.close()
+
+    server = await asyncio.start_server(handler, "127.0.0.1", 0)
+    port = server.sockets[0].getsockname()[1]
+    try:
+        async with _link(f"tcp://127.0.0.1:{port}", liveness_timeout_s=3.0) as link:
+            await link.wait_connected(scaled(3.0))
+            assert link.liveness_timeout_s == pytest.approx(MAX_LINK_TIMEOUT_S)
+    finally:
+        server.close()
+        await server.wait_closed()
+
+
+@pytest.mark.parametrize("location", [b"ws://127.0.0.1:99999/", b"ws://127.0.0.1:abc/",
+                                      b"ws://a..b/", b"ws://" + b"a" * 70 + b".example/"])
+async def test_a_malformed_redirect_is_retried_not_final(location: bytes) -> None:
+    """A proxy answering with a redirect whose Location does not parse (websockets raises
+    ValueError or UnicodeError) ended the link for good, and the local station with it
+    (found by review); it is the relay side's answer, retried like a refused connection."""
+
+    async def handler(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        await reader.read(4096)
+        writer.write(b"HTTP/1.1 302 Found\r\nLocation: " + location +
+                     b"\r\nContent-Length: 0\r\n\r\n")
+        await writer.drain()
+        writer.close()
+
+    server = await asyncio.start_server(handler, "127.0.0.1", 0)
+    port = server.sockets[0].getsockname()[1]
+    try:
+        async with _link(f"ws://127.0.0.1:{port}/", reconnect_min_s=0.02,
+                         reconnect_max_s=0.05) as link:
+            await async_wait_until(lambda: len(link.backoff_history_s) >= 3, 5.0,
+                                   "three attempts")
+            assert link.final_error is None
+            assert link._task is not None and not link._task.done()
+            assert "cannot open the connection" in str(link.last_error)
+    finally:
+        server.close()
+        await server.wait_closed()
