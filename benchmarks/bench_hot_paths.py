@@ -11,15 +11,17 @@ time spent preempted by other jobs on a loaded machine is not counted) per opera
 of 5 repetitions inside each process, then the median over the pairs and the new/old ratio.
 
 Operations: one render of the 4 x 4 pins from a 30 x 40 tactile frame while the platform
-moves (the 1 kHz display path); a tactile frame's per-hop wire cost (encode with validation +
-decode with validation, as the remote, the relay and the local station each do) as sent by
-each tree's default (old: ``tactile_frame`` float32; new: ``tactile_compact`` delta, plus the
-sender's encoder and the receiver's decoder); a ``platform_state`` encode + decode; the serial
-link framing (COBS + delimiter) of one 64-byte drive-board command; and, each call after a
-0.2 ms sleep as in the display loop (caches cold; net of an empty call with the same sleep),
-the loop's whole iteration (``DisplayLoop.tick`` on a 30 x 40 tactile frame renewed every
-16 ticks, the platform moving 20 mm/s, commands to an emulated drive board on a pty) and one
-``send_command`` of a changed 16-pin command.
+moves (the 1 kHz display path); one encoder sample turned into a platform sample by the
+platform driver (``platform_sample_us``, its 1 kHz reader path); a tactile frame's per-hop
+wire cost (encode with validation + decode with validation, as the remote, the relay and the
+local station each do) as sent by each tree's default (old: ``tactile_frame`` float32; new:
+``tactile_compact`` delta, plus the sender's encoder and the receiver's decoder); a
+``platform_state`` encode + decode; the serial link framing (COBS + delimiter) of one
+64-byte drive-board command; and, each call after a 0.2 ms sleep as in the display loop
+(caches cold; net of an empty call with the same sleep), the loop's whole iteration
+(``DisplayLoop.tick`` on a 30 x 40 tactile frame renewed every 16 ticks, the platform moving
+20 mm/s, commands to an emulated drive board on a pty) and one ``send_command`` of a changed
+16-pin command.
 Writes ``benchmarks/results/hot_paths.md`` (``--stem`` for another name).
 """
 
@@ -152,6 +154,28 @@ def send():
 
 out["send_command_cold_us"] = cost_after_sleep(send, 1000) - empty
 display.disconnect()
+
+# the platform driver's per-sample work (1 kHz): one encoder sample decoded by the board
+# link's reader thread into a PlatformSample (clock mapping, counts -> mm, velocity)
+from local_site.platform.base import XYZPlatform
+from local_site.platform.protocol import EncoderSample
+
+class FedPlatform(XYZPlatform):
+    def _connect(self):
+        pass
+
+    def _disconnect(self):
+        pass
+
+board = FedPlatform()
+n_sample = [0]
+t0_us = now_us()
+
+def publish():
+    k = n_sample[0] = n_sample[0] + 1
+    board._publish(EncoderSample(k, k * 1000, (3000 + k % 500, 2000, 1000)), t0_us + k * 1000)
+
+out["platform_sample_us"] = cost(publish, 5000)
 print(json.dumps(out))
 '''
 
