@@ -277,7 +277,7 @@ def test_a_nats_url_with_anything_after_its_port_is_refused(url: str) -> None:
     from relay_server.config import RelayConfig
     from shared.errors import ConfigError
 
-    with pytest.raises(ConfigError, match="relay.nats_url must be") as info:
+    with pytest.raises(ConfigError, match=r"relay\.nats_url must be") as info:
         RelayConfig(nats_url=url)
     assert "PW" not in str(info.value) and "p?w" not in str(info.value)
 
