@@ -143,8 +143,8 @@ def test_misspelt_relay_and_safety_variables_are_refused() -> None:
 
 def test_variables_of_other_sections_commands_and_tools_are_left_alone() -> None:
     env = {"TELETOUCH_TEST_TIMEOUT_SCALE": "3", "TELETOUCH_CONFIG": "",
-           "TELETOUCH_NATS_PASSWORD": "pw", "TELETOUCH_FAULT_PROBE": "/tmp/p",
-           "TELETOUCH_FAULT_CLOCK": "/tmp/c", "TELETOUCH_TEST_ARTIFACTS": "/tmp",
+           "TELETOUCH_NATS_PASSWORD": "pw", "TELETOUCH_FAULT_PROBE": "probe.txt",
+           "TELETOUCH_FAULT_CLOCK": "clock.txt", "TELETOUCH_TEST_ARTIFACTS": "artifacts",
            "TELETOUCH_CHROMIUM": "chromium", "TELETOUCH_HW_PLATFORM": "/dev/ttyUSB0",
            "TELETOUCH_RELAY_SECRET": "k" * 32, "TELETOUCH_RELAY_NATS_URL": "nats://n:4222",
            "TELETOUCH_LOCAL_LINK_TOKEN": "T", "TELETOUCH_LOCAL_AGENT_DISPLAY": "sim",

@@ -4,7 +4,6 @@ the replay's view (review: ``allowed_hosts`` had no way in, such a name always g
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import os
 import re
 import subprocess
@@ -19,29 +18,15 @@ from shared.errors import ConfigError
 from shared.view import ViewServerConfig
 from tests.lab.browser_support import interrupt
 from tests.recordings import write_local_recording
+from tests.shared.test_view_server import _upgrade_status
 from tests.support import REPO_ROOT, scaled, wait_until
 
 CLI = [sys.executable, "-m", "lab.cli"]
-_KEY = "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ=="
 
 
 def _status(port: int, host: str) -> int:
     """The status of a WebSocket upgrade of /ws sent with ``Host: host:port``."""
-    async def go() -> int:
-        reader, writer = await asyncio.open_connection("127.0.0.1", port)
-        try:
-            lines = ["GET /ws HTTP/1.1", f"Host: {host}:{port}", "Connection: Upgrade",
-                     "Upgrade: websocket", _KEY, "Sec-WebSocket-Version: 13"]
-            writer.write(("\r\n".join(lines) + "\r\n\r\n").encode())
-            await writer.drain()
-            async with asyncio.timeout(scaled(10)):
-                status = await reader.readline()
-        finally:
-            writer.close()
-            with contextlib.suppress(OSError):
-                await writer.wait_closed()
-        return int(status.split()[1])
-    return asyncio.run(go())
+    return asyncio.run(_upgrade_status(port, f"Host: {host}:{port}", "Connection: Upgrade"))
 
 
 def test_the_station_setting_resolves_from_toml_and_environment(tmp_path: Path) -> None:

@@ -608,7 +608,7 @@ async def test_a_socket_that_never_sends_its_request_is_cut_after_open_timeout()
     (("2001:db8:1:2:bbbb::9", 5000, 0, 0), "2001:db8:1:2::/64"),
     (("fe80::1%eth0", 5000, 0, 2), "fe80::/64"),
     (("::ffff:198.51.100.4", 5000, 0, 0), "198.51.100.4"),
-    ("/tmp/sock", "/tmp/sock"),
+    ("run/view.sock", "run/view.sock"),  # a unix socket peer: not an IP address
 ])
 def test_the_per_address_cap_keys_ipv6_by_its_64(peer: Any, key: str) -> None:
     from shared.view.server import _address_key
