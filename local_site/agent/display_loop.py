@@ -611,7 +611,12 @@ class DisplayLoop:
         now_s = monotonic_s()
         reason = self._safety_reason(now_s)
         if reason is not None:
-            self.enter_safe_state(reason, now_s)
+            if self.safe_reason is None:
+                self.enter_safe_state(reason, now_s)
+            else:
+                # nothing is sent while safe, so a dead board must be asked for: found
+                # only when rendering resumed, it cost the first fresh frame a reopen
+                self.display.check_link()
             return
         if self.safe_reason is not None:
             self._leave_safe_state(now_s)
@@ -838,9 +843,13 @@ class DisplayLoop:
             self._safe_since_s = now_s
         if not self.display.is_connected:
             return
+        # published before the board is told, and whether or not it hears: no reader may
+        # show the last command as current after shutdown (the board's watchdog parks the
+        # pins of a link that refused the frame)
+        if self._safe_since_s is None:
+            self._safe_since_s = now_s
+        self._set_pins(None, reason)
         try:
             self.display.safe_state(self.safe_mode)
         except DeviceError as err:
             log.warning("safe state at shutdown failed: %s", err)
-            return
-        self._set_pins(None, reason)

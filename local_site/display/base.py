@@ -555,8 +555,7 @@ class ArrayTacDisplay(Device):
             DeviceOperationError: as for :meth:`send_command` (a broken link is reported
                 even when no keepalive is due).
         """
-        if self._connected and (self._link_error is not None or self._silent()):
-            raise self._broken_link_error()
+        self.check_link()
         with self._send_lock:
             last = self._last_codes
             if last is None:
@@ -570,6 +569,18 @@ class ArrayTacDisplay(Device):
             values = self._last_applied
         applied = self.send_command(values[0], values[1], values[2], not_after_s=not_after_s)
         return applied.sent
+
+    def check_link(self) -> None:
+        """Raise if the link is broken, without sending anything: for a caller that holds
+        the pins in their safe state and sends nothing, yet must notice a dead board (and
+        reopen it) before it renders again.
+
+        Raises:
+            DeviceOperationError: the link is broken (its reader failed, or no feedback for
+                ``feedback_timeout_s``); ``connect()`` reopens it.
+        """
+        if self._connected and (self._link_error is not None or self._silent()):
+            raise self._broken_link_error()
 
     def safe_state(self, mode: SafeMode = "flat") -> None:
         """Put the pins in a safe state now: ``flat`` (all retracted, no vibration) or

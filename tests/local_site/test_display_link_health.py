@@ -301,6 +301,59 @@ def test_the_loop_reopens_the_display_of_a_board_that_went_silent() -> None:
         display.disconnect()
 
 
+def test_a_board_that_dies_while_the_pins_are_safe_is_reopened_before_rendering_resumes() -> None:
+    """No frame has come yet (the pins are safe, nothing is sent): the board's thread dies.
+    Before, the loop sent nothing while safe and never asked, so the dead link stood until
+    the first fresh frame's render raised (found by review); now it is reopened meanwhile."""
+    display = SimCanArrayTacDisplay(keepalive_interval_s=0.02, watchdog_ms=round(scaled(100)),
+                                    connect_timeout_s=scaled(3.0))
+    display.connect()
+    first = display.emulator
+    assert first is not None
+    broken = threading.Event()
+    plant = first.firmware.plant
+    advance = plant.advance
+
+    def dies_once(duration_s: float) -> None:
+        if not broken.is_set():
+            broken.set()
+            raise RuntimeError("plant bug")
+        advance(duration_s)
+
+    try:
+        with _RunningLoop(display, retry_min_s=0.01, retry_max_s=0.05) as running:
+            wait_until(lambda: running.loop.safe_reason == "no_frames", 5.0, "the pins safe")
+            plant.advance = dies_once  # type: ignore[method-assign]
+            wait_until(lambda: running.loop.counters.display_reconnects >= 1, 10.0,
+                       "the dead board noticed while safe, and the display reopened")
+            assert first.error is not None
+            assert running.loop.counters.display_errors == 1
+            wait_until(lambda: running.loop.safe_reason == "no_frames", 5.0,
+                       "the pins safe again on the new board")
+    finally:
+        display.disconnect()
+
+
+def test_a_finish_on_a_broken_link_shows_no_command() -> None:
+    """The last command stayed in ``pin_state`` (shown as live) when the shutdown's safe
+    state raised on a broken link (found by review)."""
+    display = SimCanArrayTacDisplay(keepalive_interval_s=0.02, connect_timeout_s=scaled(3.0))
+    display.connect()
+    slot = FrameSlot()
+    loop = DisplayLoop(display, Renderer(), TactileFrameScene(), positions=lambda: GOOD,
+                       platform_ok=lambda: True, frames=slot, link=SameClockLink(),
+                       stale_timeout_s=10.0, max_frame_age_s=10.0)
+    try:
+        slot.put(_frame(1, 2.0), now_us())
+        loop.tick()
+        assert loop.pin_state.command is not None and loop.safe_reason is None
+        display._on_link_error(OSError("receive failed"))
+        loop.finish("shutdown")
+        assert loop.pin_state.command is None and loop.safe_reason == "shutdown"
+    finally:
+        display.disconnect()
+
+
 # ---------------------------------------------------------------------- board reports
 
 
