@@ -23,13 +23,14 @@ import tomllib
 from collections.abc import Mapping
 from pathlib import Path
 
-from shared.errors import AuthError, ConfigError
+from shared.errors import AuthError, ConfigError, TokenExpiredError
+from shared.protocol.tokens import V2_PREFIX as _V2
+from shared.protocol.tokens import v2_fields
 
 __all__ = ["TOKEN_ROLES", "TokenAuthority", "derive_token", "load_token_file", "make_token"]
 
 #: roles a version-2 token can name
 TOKEN_ROLES = frozenset({"local", "remote", "observer"})
-_V2 = "v2"
 
 log = logging.getLogger(__name__)
 
@@ -161,13 +162,10 @@ class TokenAuthority:
         return None
 
     def _check_v2(self, session_id: str, token: str, role: str | None, now_s: float) -> int:
-        parts = token.split(".")
-        # isdigit() alone admits "²" or "٣", which int() refuses or reads: ASCII digits only
-        if (self._secret is None or len(parts) != 4 or not parts[2].isascii()
-                or not parts[2].isdigit()):
+        fields = v2_fields(token)
+        if self._secret is None or fields is None:
             raise AuthError(f"wrong token for session {session_id!r}")
-        _, token_role, expiry_text, mac = parts
-        expiry_s = int(expiry_text)
+        token_role, expiry_s, mac = fields
         if token_role not in TOKEN_ROLES:
             raise AuthError(f"wrong token for session {session_id!r}")
         expected = _v2_mac(self._secret, session_id, token_role, expiry_s)
@@ -177,6 +175,7 @@ class TokenAuthority:
             raise AuthError(f"the token for session {session_id!r} is for role "
                             f"{token_role!r}, not {role!r}")
         if now_s > expiry_s:
-            raise AuthError(f"the token for session {session_id!r} ({token_role}) expired "
-                            f"at {expiry_s} (Unix time); ask for a new one")
+            raise TokenExpiredError(f"the token for session {session_id!r} ({token_role}) "
+                                    f"expired at {expiry_s} (Unix time, {now_s - expiry_s:.0f} "
+                                    "s ago by the relay's clock); ask for a new one")
         return expiry_s

@@ -23,7 +23,10 @@ limit, say) is retried with growing delays, not flooded. A connection is presume
 its welcome when that is longer (a relay that pings slowly does not make an idle link flap); a
 dead connection is marked down at once and dropped without a close handshake.
 
-Refusals that retrying cannot fix are final: a wrong token (:class:`~shared.errors.AuthError`),
+Refusals that retrying cannot fix are final: a wrong token (:class:`~shared.errors.AuthError`;
+a version-2 token the relay calls expired, :class:`~shared.errors.TokenExpiredError`, only
+when this station's wall clock agrees: otherwise one of the clocks is wrong and the link
+retries with backoff up to :data:`CLOCK_RETRY_MAX_S`, logging the disagreement at ERROR),
 our connection replaced by another one proving our resume secret
 (:class:`~shared.errors.ReplacedError`, over WebSocket and raw TCP alike) and a ``hello`` the
 relay could never accept (session id, token or name breaking the protocol's rules:
@@ -57,6 +60,7 @@ import logging
 import math
 import random
 import ssl
+import time
 from collections import deque
 from collections.abc import AsyncIterator, Callable
 from typing import Any
@@ -75,6 +79,7 @@ from shared.errors import (
     SessionError,
     TeleTouchError,
     TlsCertificateError,
+    TokenExpiredError,
 )
 from shared.freshness import ClockView, clock_view_from_stats
 from shared.link_settings import (
@@ -103,6 +108,7 @@ from shared.protocol.station_session import (
     Welcomed,
     refusal_for_close_code,
 )
+from shared.protocol.tokens import v2_fields
 from shared.timebase import monotonic_s, now_us
 from shared.transport import Transport, TransportClosed, open_client_transport
 
@@ -125,6 +131,9 @@ STABLE_CONNECTION_S = 2.0
 LIVENESS_PING_INTERVALS = 2.5
 #: largest delay between attempts that fail on the relay's TLS certificate
 TLS_RETRY_MAX_S = 5.0
+#: largest delay between attempts the relay refuses as an expired token that this station's
+#: clock says is still valid (one of the clocks is wrong: retried until they agree)
+CLOCK_RETRY_MAX_S = 30.0
 #: a connection failure already logged in this outage is logged again after this long
 REPEAT_LOG_S = 60.0
 
@@ -523,9 +532,15 @@ class StationLink:
         taken_logged = False
         try:
             while not self._closing:
-                tls_failure = False
+                tls_failure = clock_disagreement = False
                 try:
                     await self._connect_once()
+                except TokenExpiredError as err:
+                    if self._token_valid_for_s() is None:
+                        self._give_up(err)
+                        return
+                    clock_disagreement = True
+                    self._note_failure(err)
                 except TlsCertificateError as err:  # an AuthError, but often temporary
                     tls_failure = True
                     self._note_failure(err)
@@ -558,6 +573,8 @@ class StationLink:
                 max_s = self._reconnect[1]
                 if tls_failure:
                     max_s = max(max_s, TLS_RETRY_MAX_S)
+                if clock_disagreement:
+                    max_s = max(max_s, CLOCK_RETRY_MAX_S)
                 delay = backoff_delay_s(attempt, min_s=self._reconnect[0], max_s=max_s,
                                         jitter=self._reconnect[2], rng=self._rng)
                 self.backoff_history_s.append(delay)
@@ -600,13 +617,28 @@ class StationLink:
         self._failures_logged[kind], self._failures_since_log[kind] = now, 0
         again = "" if last is None else \
             f" (again: {since + 1} such failures in the last {now - last:.0f} s)"
-        if isinstance(err, TlsCertificateError):
+        if isinstance(err, TokenExpiredError):
+            valid_s = self._token_valid_for_s()
+            log.error("link to %s: %s: %s%s; but by this station's clock the token is valid "
+                      "for %.0f s more: one of the two clocks is wrong (check time sync on "
+                      "both); retrying with backoff up to %g s", self.safe_url, kind, text,
+                      again, valid_s or 0.0, max(self._reconnect[1], CLOCK_RETRY_MAX_S))
+        elif isinstance(err, TlsCertificateError):
             log.error("link to %s: %s: %s%s; retrying with backoff up to %g s (the token is "
                       "never sent over an unverified connection)", self.safe_url, kind, text,
                       again, max(self._reconnect[1], TLS_RETRY_MAX_S))
         else:
             log.warning("link to %s unavailable (%s: %s)%s; retrying with backoff",
                         self.safe_url, kind, text, again)
+
+    def _token_valid_for_s(self) -> float | None:
+        """How long this station's version-2 token is still valid by its own wall clock
+        (None: expired, or not a version-2 token)."""
+        fields = v2_fields(self._session.hello.token)
+        if fields is None:
+            return None
+        left_s = fields.expiry_s - time.time()
+        return left_s if left_s >= 0 else None
 
     def _redact(self, text: str) -> str:
         """``text`` without the relay URL's user information."""

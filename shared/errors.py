@@ -74,6 +74,7 @@ __all__ = [
     "SessionError",
     "TeleTouchError",
     "TlsCertificateError",
+    "TokenExpiredError",
     "UnknownMessageTypeError",
     "VersionError",
 ]
@@ -183,6 +184,14 @@ class AuthError(SessionError):
 
     code = "auth"
     close_code = 4001
+
+
+class TokenExpiredError(AuthError):
+    """A version-2 token past its expiry by the relay's clock (same close code as ``auth``).
+    Final for a station whose own clock agrees; one whose clock says the token is still
+    valid retries, since one of the two clocks is wrong (often for a while after a boot)."""
+
+    code = "token_expired"
 
 
 class TlsCertificateError(AuthError):

@@ -34,6 +34,7 @@ from shared.errors import (
     ReplacedError,
     RoleTakenError,
     SessionError,
+    TokenExpiredError,
 )
 from shared.protocol.codec import DEFAULT_MAX_MESSAGE_BYTES, encode
 from shared.protocol.connection import (
@@ -77,7 +78,9 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 _REFUSALS = (AuthError, RoleTakenError, HandshakeTimeoutError, ReplacedError)
-_REFUSALS_BY_CODE: dict[str, type[SessionError]] = {c.code: c for c in _REFUSALS}
+# an expired token shares auth's close code: told apart only by the error before the close
+_REFUSALS_BY_CODE: dict[str, type[SessionError]] = {
+    c.code: c for c in (*_REFUSALS, TokenExpiredError)}
 _REFUSALS_BY_CLOSE: dict[int, type[SessionError]] = {c.close_code: c for c in _REFUSALS}
 _MAX_PENDING_PONGS = 16
 

@@ -18,6 +18,7 @@ import shutil
 import subprocess
 from collections.abc import AsyncIterator
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import pytest
@@ -29,6 +30,7 @@ from shared.errors import (
     ReplacedError,
     SessionError,
     TlsCertificateError,
+    TokenExpiredError,
 )
 from shared.link_settings import client_tls_context
 from shared.protocol import Hello, MessageReceived, ProtocolConnection, Welcome
@@ -491,3 +493,74 @@ async def test_a_malformed_redirect_is_retried_not_final(location: bytes) -> Non
     finally:
         server.close()
         await server.wait_closed()
+
+
+# ---------------------------------------------------------------- a token the relay calls expired
+
+
+@contextlib.asynccontextmanager
+async def _relay_clock_ahead(monkeypatch: pytest.MonkeyPatch, ahead_s: list[float]
+                             ) -> AsyncIterator[Any]:
+    """A relay with a secret whose wall clock runs ``ahead_s[0]`` ahead (changeable)."""
+    import time
+
+    import relay_server.auth
+    from relay_server.config import RelayConfig
+    from relay_server.server import RelayServer
+    from tests.relay_server.relay_clients import SECRET
+
+    real = time.time
+    monkeypatch.setattr(relay_server.auth, "time",
+                        SimpleNamespace(time=lambda: real() + ahead_s[0]))
+    relay = RelayServer(RelayConfig(host="127.0.0.1", port=0, tcp_port=0, secret=SECRET,
+                                    hello_timeout_s=scaled(2.0)))
+    await relay.start()
+    try:
+        yield relay
+    finally:
+        await relay.close()
+
+
+def _v2_token(expiry_in_s: float) -> str:
+    import time
+
+    from relay_server.auth import make_token
+    from tests.relay_server.relay_clients import SECRET
+
+    return make_token(SECRET, "lab1", "local", int(time.time() + expiry_in_s))
+
+
+@pytest.mark.parametrize("scheme", ["ws", "tcp"])
+async def test_a_token_the_relays_clock_calls_expired_is_retried_while_ours_says_valid(
+        monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture,
+        scheme: str) -> None:
+    """The relay's clock an hour ahead (wrong at its boot): it refuses a token valid for
+    10 more minutes as expired. Before, ``auth`` was final and the station gave up for good;
+    now it retries with backoff, logs the disagreement once, and connects once the relay's
+    clock is set right."""
+    caplog.set_level(logging.INFO, logger="shared.client")
+    ahead_s = [3600.0]
+    async with _relay_clock_ahead(monkeypatch, ahead_s) as relay:
+        port = relay.ws_port if scheme == "ws" else relay.tcp_port
+        url = f"ws://127.0.0.1:{port}/" if scheme == "ws" else f"tcp://127.0.0.1:{port}"
+        link = _link(url, token=_v2_token(600), reconnect_min_s=0.01, reconnect_max_s=0.02)
+        async with link:
+            await async_wait_until(lambda: len(link.backoff_history_s) >= 3, 10.0,
+                                   "three attempts refused as expired")
+            assert link.final_error is None and isinstance(link.last_error, TokenExpiredError)
+            ahead_s[0] = 0.0  # time sync sets the relay's clock right
+            welcome = await link.wait_connected(scaled(10.0))
+            assert welcome.session == "lab1"
+    said = [r for r in caplog.records if "one of the two clocks is wrong" in r.getMessage()]
+    assert len(said) == 1 and said[0].levelno == logging.ERROR
+
+
+async def test_a_token_both_clocks_call_expired_is_final(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    async with _relay_clock_ahead(monkeypatch, [0.0]) as relay:
+        link = _link(f"ws://127.0.0.1:{relay.ws_port}/", token=_v2_token(-5),
+                     reconnect_min_s=0.01, reconnect_max_s=0.02)
+        async with link:
+            with pytest.raises(TokenExpiredError, match="expired"):
+                await link.wait_connected(scaled(5.0))
+            assert isinstance(link.final_error, TokenExpiredError)
