@@ -555,7 +555,8 @@ class _Connection:
                                      server_time_us=now_us(),
                                      ping_interval_s=cfg.ping_interval_s,
                                      max_message_bytes=cfg.max_message_bytes,
-                                     resume=self.peer.resume_secret), now_us())
+                                     resume=self.peer.resume_secret,
+                                     stats_interval_s=cfg.stats_interval_s), now_us())
         # the hello limit is over: full size now (WebSocket; TCP's parser is the session's)
         self.transport.set_receive_limit(2 * cfg.max_message_bytes)
         self._restart_ticker()  # the schedule changed: pings and stats instead of the timeout

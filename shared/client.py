@@ -20,7 +20,8 @@ The backoff starts afresh only after a connection stayed up for a while
 (``reconnect_max_s``, at least 2 s): a relay that welcomes and then closes at once (its rate
 limit, say) is retried with growing delays, not flooded. A connection is presumed dead after
 ``liveness_timeout_s`` of silence, or 2.5 times the ``ping_interval_s`` the relay announced in
-its welcome when that is longer (a relay that pings slowly does not make an idle link flap); a
+its welcome when that is longer (a relay that pings slowly does not make an idle link flap;
+for an observer, which is not pinged, its ``stats_interval_s``); a
 dead connection is marked down at once and dropped without a close handshake.
 
 Refusals that retrying cannot fix are final: a wrong token (:class:`~shared.errors.AuthError`;
@@ -774,16 +775,20 @@ class StationLink:
         # intervals would declare an idle, healthy connection dead between two pings
         # (bounded as the setting is: a relay announcing an hour must not make a blackholed
         # link go unnoticed for hours; found by review)
+        # an observer is not pinged: the relay's stats push is all it hears when the session
+        # is quiet (a relay that does not announce it: assumed to push as often as it pings)
+        what, interval_s = "pings", welcome.ping_interval_s
+        if self.role == "observer" and welcome.stats_interval_s > 0:
+            what, interval_s = "sends stats", welcome.stats_interval_s
         liveness_s = max(self._liveness_timeout_s,
-                         min(LIVENESS_PING_INTERVALS * welcome.ping_interval_s,
-                             MAX_LINK_TIMEOUT_S))
+                         min(LIVENESS_PING_INTERVALS * interval_s, MAX_LINK_TIMEOUT_S))
         self.liveness_timeout_s = liveness_s
         self._session.liveness_timeout_us = round(liveness_s * 1e6)
         if liveness_s > self._liveness_timeout_s and liveness_s != self._liveness_logged_s:
             self._liveness_logged_s = liveness_s
-            log.info("relay %s pings every %g s: the link is presumed dead after %g s of "
-                     "silence (liveness_timeout_s %g s is shorter)", self.safe_url,
-                     welcome.ping_interval_s, liveness_s, self._liveness_timeout_s)
+            log.info("relay %s %s every %g s: the link is presumed dead after %g s of "
+                     "silence (liveness_timeout_s %g s is shorter)", self.safe_url, what,
+                     interval_s, liveness_s, self._liveness_timeout_s)
         self.link_down_since = None
         self.last_error = self.last_error_s = None
         self._welcomed_s = monotonic_s()

@@ -214,6 +214,9 @@ class Welcome(Message):
     #: per-connection secret: a reconnecting station sends it in its next ``hello`` and the
     #: relay replaces this connection if it is still held (``""``: the relay gives none)
     resume: str = field(default="", repr=False)
+    #: period of the relay's ``stats`` push, the only traffic an idle observer gets (0: not
+    #: announced, by a relay from before it)
+    stats_interval_s: float = 0.0
 
     def to_wire(self) -> dict[str, Any]:
         out: dict[str, Any] = {"session": self.session, "role": self.role,
@@ -222,6 +225,8 @@ class Welcome(Message):
                                "max_message_bytes": self.max_message_bytes}
         if self.resume:
             out["resume"] = self.resume
+        if self.stats_interval_s:
+            out["stats_interval_s"] = self.stats_interval_s
         return out
 
     @classmethod
@@ -232,7 +237,9 @@ class Welcome(Message):
                    server_time_us=read_int(d, t, "server_time_us"),
                    ping_interval_s=read_float(d, t, "ping_interval_s", lo=0.0, hi=3600.0),
                    max_message_bytes=read_int(d, t, "max_message_bytes"),
-                   resume=read_str(d, t, "resume", max_len=64) if "resume" in d else "")
+                   resume=read_str(d, t, "resume", max_len=64) if "resume" in d else "",
+                   stats_interval_s=read_float(d, t, "stats_interval_s", lo=0.0, hi=3600.0)
+                   if "stats_interval_s" in d else 0.0)
 
 
 @dataclass(frozen=True, slots=True)

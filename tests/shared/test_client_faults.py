@@ -183,6 +183,22 @@ async def test_an_idle_link_does_not_flap_when_the_relay_pings_slowly(
     assert len(said) == 1
 
 
+async def test_an_idle_observer_does_not_flap_when_the_relay_pushes_stats_slowly() -> None:
+    """An observer is not pinged: in a quiet session the stats push (every 0.4 s here) is all
+    it hears. Its silence limit followed the ping interval (0.05 s), so it presumed a healthy
+    link dead between two pushes and reconnected over and over (found by review); the
+    welcome now announces ``stats_interval_s`` and an observer waits 2.5 of those."""
+    stats_s = scaled(0.4)
+    async with (_real_relay(stats_interval_s=stats_s, ping_interval_s=0.05) as relay,
+                _link(f"ws://127.0.0.1:{relay.ws_port}/", role="observer",
+                      liveness_timeout_s=0.15) as link):
+        welcome = await link.wait_connected(scaled(3.0))
+        assert welcome.stats_interval_s == pytest.approx(stats_s)
+        assert link.liveness_timeout_s == pytest.approx(2.5 * stats_s)
+        await asyncio.sleep(4 * stats_s)  # idle: nothing but the relay's stats
+        assert link.counters.connects == 1 and link.counters.connection_losses == 0
+
+
 async def test_a_silence_limit_longer_than_the_relays_interval_is_kept(relay: FakeRelay) -> None:
     async with _link(relay.url("tcp"), liveness_timeout_s=0.15, reconnect_min_s=0.02) as link:
         await link.wait_connected(scaled(2.0))
