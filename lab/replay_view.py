@@ -257,6 +257,9 @@ class ReplayViewSource:
         probe = {
             "platform_mm": None if platform is None else nums(platform, 3),
             "phantom_mm": None if phantom is None else nums(phantom, 3),
+            # on the replay's clock: a platform that stopped reporting in the recording is
+            # drawn stale in the replay too
+            "platform_age_ms": None if platform_item is None else age_ms(platform_item[1]),
             "end_effector_mm": None if arm is None else nums(arm[0].position_mm, 3),
             "end_effector_force_n": None if arm is None else num(arm[0].force_n),
             "arm_status": None if arm is None else arm[0].status,

@@ -77,6 +77,10 @@ def test_after_the_replay_the_view_shows_the_recordings_last_state(recording: Pa
         assert live["patch"]["age_ms"] == pytest.approx((end - frames[-1].t_us) / 1e3, abs=0.1)
         assert live["pins"]["commanded_mm"] == pins[-1].json()["commanded_mm"]
         assert live["link"] == {"state": "replay"}
+        # the probe's age on the replay's clock (none was sent before: never drawn stale)
+        last_platform = max(m.t_us for m, _ in rec.wire_messages("tx", "platform_state"))
+        assert live["probe"]["platform_age_ms"] == pytest.approx(
+            (end - last_platform) / 1e3, abs=0.1)
         # the trajectory: recorded platform positions through the workspace, in order
         first, points = source.trail_since(0, 10_000)
         assert first == 0 and len(points) >= 10
