@@ -38,6 +38,10 @@ _LOCAL: list[tuple[dict[str, Any], str]] = [
      r"display_keepalive_interval_s \(60 ms\) plus a tick \(50 ms\)"),
     ({"platform_read_timeout_s": 0.004, "platform_reopen_after_s": 0.5},
      r"platform_read_timeout_s must be > 0\.005 s \(the platform reader's poll\), got 0\.004"),
+    ({"display_feedback_timeout_s": 0.0}, r"display_feedback_timeout_s must be a number in "
+                                          r"\(0, 10\] s"),
+    ({"display_feedback_timeout_s": 200}, r"display_feedback_timeout_s must be a number in"),
+    ({"display_feedback_timeout_s": float("nan")}, r"display_feedback_timeout_s must be"),
     ({"record_queue_size": 0}, r"record_queue_size must be an integer >= 1, got 0"),
     ({"record_pins_rate_hz": 0.0}, r"record_pins_rate_hz must be a finite number > 0"),
     ({"record_image_rate_hz": -1.0}, r"record_image_rate_hz must be 0 \(no images\) or in "
@@ -59,6 +63,20 @@ def test_the_local_defaults_and_their_edges_pass() -> None:
     LocalAgentConfig(display_watchdog_ms=65535, render_rate_hz=1.0)
     LocalAgentConfig(platform_read_timeout_s=0.006)
     LocalAgentConfig(record_image_rate_hz=1000.0, record_queue_size=1)
+    LocalAgentConfig(display_feedback_timeout_s=10)
+
+
+def test_the_display_feedback_timeout_reaches_the_driver() -> None:
+    """A board set to feed back slower than ~50 Hz needs a longer limit than the driver's
+    0.2 s default, or its healthy link is reopened over and over: the station had no
+    setting for it."""
+    from local_site.agent.station import LocalAgent
+
+    agent = LocalAgent(LocalAgentConfig(scene="hemisphere", display_feedback_timeout_s=1.5))
+    agent.open()
+    assert agent.loop is not None
+    display = agent.loop.display
+    assert display._feedback_timeout_s == 1.5  # type: ignore[union-attr]
 
 
 @pytest.mark.parametrize(("settings", "message"), [

@@ -26,6 +26,8 @@ __all__ = ["MAX_SAFETY_TIMEOUT_S", "RENDER_LOOP_MODES", "SAFE_STATE_MODES", "Loc
 #: their safe state no longer acts in any meaningful time (``100`` meant as milliseconds
 #: would hold a touch 100 s after the link died)
 MAX_SAFETY_TIMEOUT_S = 5.0
+#: the longest silence of the drive board before its link counts as lost
+MAX_FEEDBACK_TIMEOUT_S = 10.0
 
 SAFE_STATE_MODES = ("flat", "hold")
 #: where the display loop runs: a dedicated thread (default, by measurement) or an asyncio task
@@ -74,6 +76,10 @@ class LocalAgentConfig:
         device_retry_max_s: largest such delay (the delay doubles up to it).
         display_keepalive_interval_s: unchanged commands are re-sent this often.
         display_watchdog_ms: the drive board's link-loss watchdog.
+        display_feedback_timeout_s: no feedback from the drive board for this long (by the
+            driver's reader) breaks the link, and the display loop reopens it (default 0.2 s:
+            100 periods of the board's 500 Hz feedback; a board set to feed back slower needs
+            more, at most 10 s).
         interpolation_order: interpolation of grid scenes (0, 1 or 3; default
             :data:`~local_site.render.interpolation.DEFAULT_ORDER`, Keys cubic).
         scene_center_x_mm: x where a shape without ``x_mm`` is placed (platform frame).
@@ -163,6 +169,7 @@ class LocalAgentConfig:
     device_retry_max_s: float = 5.0
     display_keepalive_interval_s: float = 0.02
     display_watchdog_ms: int = 100
+    display_feedback_timeout_s: float = 0.2
     interpolation_order: int = DEFAULT_ORDER
     scene_center_x_mm: float = 30.0
     scene_center_y_mm: float = 30.0
@@ -195,6 +202,13 @@ class LocalAgentConfig:
                 f"{tick_ms:g} ms) must tick at least twice within display_watchdog_ms "
                 f"({watchdog_ms}): the loop's ticks send the board's keepalive, and the board "
                 "parks the pins between ticks further apart")
+        feedback_s = self.display_feedback_timeout_s
+        if isinstance(feedback_s, bool) or not isinstance(feedback_s, int | float) \
+                or not 0 < feedback_s <= MAX_FEEDBACK_TIMEOUT_S:
+            raise ConfigError(
+                "local.agent.display_feedback_timeout_s must be a number in (0, "
+                f"{MAX_FEEDBACK_TIMEOUT_S:g}] s (a silent drive board counts as lost after it), "
+                f"got {feedback_s!r}")
         keepalive_ms = self.display_keepalive_interval_s * 1000.0
         if not keepalive_ms + tick_ms < watchdog_ms:  # a keepalive goes out on a tick
             raise ConfigError(

@@ -228,7 +228,7 @@ class LocalAgent:
         display_opts: dict[str, Any] = dict(
             keepalive_interval_s=cfg.display_keepalive_interval_s,
             watchdog_ms=cfg.display_watchdog_ms, watchdog_mode=cfg.safe_state,
-            disconnect_mode=cfg.safe_state)
+            disconnect_mode=cfg.safe_state, feedback_timeout_s=cfg.display_feedback_timeout_s)
         display_opts.update(self._display_options)
         display = open_display(cfg.display, connect=False, **display_opts)
         if self.remote_mode:
