@@ -158,7 +158,7 @@ display.disconnect()
 # the platform driver's per-sample work (1 kHz): one encoder sample decoded by the board
 # link's reader thread into a PlatformSample (clock mapping, counts -> mm, velocity)
 from local_site.platform.base import XYZPlatform
-from local_site.platform.protocol import EncoderSample
+from local_site.platform.protocol import BoardInfo, EncoderSample
 
 class FedPlatform(XYZPlatform):
     def _connect(self):
@@ -168,6 +168,7 @@ class FedPlatform(XYZPlatform):
         pass
 
 board = FedPlatform()
+board._publish_info(BoardInfo(1, 3, 1024, 4, 1000, 1))  # samples are used after an INFO
 n_sample = [0]
 t0_us = now_us()
 

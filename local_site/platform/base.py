@@ -57,6 +57,8 @@ _CREEP_PER_US = 100
 _BOOT_SLACK_US = 100_000
 #: the fastest sample rate the INFO frame can state (uint16 Hz), for a board that sent none
 _MAX_RATE_HZ = 65_536
+#: no INFO seen yet in the driver's life: samples wait for it (see ``_info_mismatch``)
+_AWAITING_INFO = ConfigError("no INFO frame from the board yet")
 
 
 @dataclass(frozen=True, slots=True)
@@ -177,8 +179,10 @@ class XYZPlatform(Device):
         self._last_raw_mm: Vec3 = (0.0, 0.0, 0.0)
         self._rate_hz = _MAX_RATE_HZ
         #: the last INFO's disagreement with the geometry, kept across connections until a
-        #: matching INFO: no sample is published meanwhile
-        self._info_mismatch: ConfigError | None = None
+        #: matching INFO: no sample is published meanwhile. Until the driver's first INFO it
+        #: says so: a running board's samples before its first INFO (up to a second) were
+        #: published unchecked, at the wrong scale for a board unlike the geometry
+        self._info_mismatch: ConfigError | None = _AWAITING_INFO
         self._reset_track()
 
     # ------------------------------------------------------------------ backend interface
@@ -210,8 +214,15 @@ class XYZPlatform(Device):
             latest, error = self._latest, self._link_error
         if latest is None or error is not None:  # (an INFO unlike the geometry, with a sample)
             error = error or self._info_mismatch
-            reason = f"link failed: {error}" if error else \
-                f"no valid frame within {self._connect_timeout_s:.2f} s"
+            if error is _AWAITING_INFO and self._unpublished:
+                reason, error = (f"no INFO frame within {self._connect_timeout_s:.2f} s (the "
+                                 "board sends one at start-up and every second; its samples "
+                                 "are not used before it: the geometry is checked against "
+                                 "it)"), None
+            else:
+                error = None if error is _AWAITING_INFO else error
+                reason = f"link failed: {error}" if error else \
+                    f"no valid frame within {self._connect_timeout_s:.2f} s"
             # a silent board is a timeout inside the connect phase (tools tell it from a
             # port that does not open by this cause)
             raise DeviceInitError(f"{self.name}: {reason}") from (
@@ -331,6 +342,8 @@ class XYZPlatform(Device):
     def _reset_track(self) -> None:
         """Forget the previous connection's samples (the zero and the counters are kept)."""
         self._latest = None
+        #: valid samples of this connection not published (no INFO yet, or an unlike one)
+        self._unpublished = 0
         self._board_info = None
         self._link_error = None
         self._raw_counts = None
@@ -444,7 +457,9 @@ class XYZPlatform(Device):
             rx_us: host wall-clock arrival time; defaults to now.
         """
         if self._link_error is not None or self._info_mismatch is not None:
-            return  # (a board unlike the geometry: nothing published)
+            # (a board unlike the geometry, or no INFO yet: nothing published)
+            self._unpublished += 1
+            return
         rx_us = now_us() if rx_us is None else rx_us
         seq = self._unwrap_seq.update(sample.seq)
         board_t = self._unwrap_t.update(sample.board_t_us)

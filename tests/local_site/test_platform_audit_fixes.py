@@ -16,7 +16,13 @@ from local_site.agent.platform_reader import PlatformReader
 from local_site.platform.base import PlatformSample, XYZPlatform
 from local_site.platform.kinematics import PlatformGeometry
 from local_site.platform.motion import HoldMotion
-from local_site.platform.protocol import BoardInfo, EncoderSample, encode_sample_frame
+from local_site.platform.protocol import (
+    PROTOCOL_VERSION,
+    BoardInfo,
+    EncoderSample,
+    encode_info_frame,
+    encode_sample_frame,
+)
 from local_site.platform.serial_board import SerialEncoderPlatform
 from local_site.platform.sim_board import SimulatedEncoderBoard
 from shared.errors import ConfigError, DeviceInitError, DeviceOperationError
@@ -26,6 +32,8 @@ from tests.support import scaled, wait_until
 HOST0 = 1_700_000_000_000_000  # host clock (us) at the board's sample 0
 LINK_US = 1_000  # the link's fixed delay
 MM_PER_COUNT_X = PlatformGeometry().mm_per_count[0]
+#: the INFO of a board like the default geometry (samples are used only after one)
+INFO = encode_info_frame(BoardInfo(PROTOCOL_VERSION, 3, 1024, 4, 1000, 1))
 
 
 class _Board(XYZPlatform):
@@ -33,6 +41,7 @@ class _Board(XYZPlatform):
 
     def __init__(self) -> None:
         super().__init__(connect_timeout_s=scaled(2.0))
+        self._info_mismatch = None  # a matching INFO taken as seen
         self.first = EncoderSample(0, 0, (0, 0, 0))
 
     def _connect(self) -> None:
@@ -293,19 +302,19 @@ def test_a_link_that_failed_after_a_long_run_is_reopened_after_the_shortest_wait
 def test_the_link_counters_are_totals_over_reconnects(loop_port: serial.SerialBase) -> None:
     corrupt = bytearray(encode_sample_frame(1, 1000, (0, 0, 0)))
     corrupt[-1] ^= 0x55
-    loop_port.write(encode_sample_frame(0, 0, (0, 0, 0)) + bytes(corrupt)
+    loop_port.write(INFO + encode_sample_frame(0, 0, (0, 0, 0)) + bytes(corrupt)
                     + encode_sample_frame(2, 2000, (0, 0, 0)))
     platform = SerialEncoderPlatform("loop://", port=loop_port)
     platform.connect()
     try:
-        wait_until(lambda: platform.stats().frames_ok == 2, 2.0, "both good frames")
+        wait_until(lambda: platform.stats().frames_ok == 3, 2.0, "the INFO and both good frames")
         platform.read_state(scaled(0.5))
         before = platform.stats()
         assert (before.crc_errors, before.samples_missed, before.reads) == (1, 1, 1)
         platform.disconnect()  # (the frame below must wait for the new connection)
         loop_port.write(encode_sample_frame(3, 3000, (0, 0, 0)))
         platform.connect()
-        wait_until(lambda: platform.stats().frames_ok == 3, 2.0, "the frame after the reopen")
+        wait_until(lambda: platform.stats().frames_ok == 4, 2.0, "the frame after the reopen")
         after = platform.stats()
         assert (after.crc_errors, after.samples_missed, after.reads) == (1, 1, 1)
         assert after.bytes_in == before.bytes_in + 26
@@ -318,7 +327,7 @@ def test_connect_reopens_a_link_silent_for_the_stale_timeout(
         loop_port: serial.SerialBase, caplog: pytest.LogCaptureFixture) -> None:
     """Before, stale_timeout_s was accepted and never used: connect() on a link silent for
     ten times that long did nothing."""
-    loop_port.write(encode_sample_frame(0, 0, (0, 0, 0)))
+    loop_port.write(INFO + encode_sample_frame(0, 0, (0, 0, 0)))
     platform = SerialEncoderPlatform("loop://", port=loop_port, stale_timeout_s=0.05,
                                      connect_timeout_s=scaled(0.5))
     platform.connect()

@@ -4,6 +4,8 @@ from the last sample instead of jumping to the counters' new origin (docs/platfo
 
 from __future__ import annotations
 
+from typing import Any
+
 import pytest
 import serial
 from hypothesis import assume, given, settings
@@ -12,7 +14,12 @@ from hypothesis import strategies as st
 from local_site.platform.base import XYZPlatform
 from local_site.platform.kinematics import PlatformGeometry
 from local_site.platform.motion import HoldMotion
-from local_site.platform.protocol import BoardInfo, EncoderSample
+from local_site.platform.protocol import (
+    BoardInfo,
+    EncoderSample,
+    encode_info_frame,
+    encode_sample_frame,
+)
 from local_site.platform.serial_board import SerialEncoderPlatform
 from local_site.platform.sim_board import SimulatedEncoderBoard
 from shared.errors import ConfigError, DeviceInitError
@@ -26,7 +33,11 @@ WRAP_US = 2**32
 
 
 class _Board(XYZPlatform):
-    """A platform the test feeds sample by sample."""
+    """A platform the test feeds sample by sample (a matching INFO taken as seen)."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        self._info_mismatch = None
 
     def _connect(self) -> None:
         pass
@@ -246,6 +257,40 @@ def test_a_board_counting_otherwise_than_the_geometry_fails_the_link_by_name() -
     matching = SerialEncoderPlatform("loop://", geometry=board_geometry)
     matching._publish_info(board.info)
     assert matching._link_error is None
+
+
+def test_a_running_boards_samples_before_its_first_info_are_not_published() -> None:
+    """The very first connection to a board already running: its samples before its first
+    INFO (up to a second) were published unchecked, a 2000-line board's at the wrong scale
+    (found by review). Now the driver publishes nothing before its first INFO; a silent
+    board is still told apart from one that sends samples and no INFO."""
+    port = serial.serial_for_url("loop://", timeout=0.02)
+    platform = SerialEncoderPlatform("loop://", port=port, connect_timeout_s=scaled(0.3))
+    try:
+        with pytest.raises(DeviceInitError, match="no valid frame within"):
+            platform.connect()  # silent
+        port.write(encode_sample_frame(1, 1_000, (4000, 0, 0)))  # counts of a 2000-line board
+        with pytest.raises(DeviceInitError, match="no INFO frame within"):
+            platform.connect()
+        assert platform.latest() is None
+        port.write(encode_info_frame(BoardInfo(1, 3, 2000, 4, 1000, 1))
+                   + encode_sample_frame(2, 2_000, (4000, 0, 0)))
+        with pytest.raises(DeviceInitError, match="2000 pulses per revolution"):
+            platform.connect()
+        assert platform.latest() is None
+        port.write(encode_info_frame(BoardInfo(1, 3, 1024, 4, 1000, 1))  # the right board
+                   + encode_sample_frame(3, 3_000, (4000, 0, 0)))
+        platform.connect()
+        latest = platform.latest()
+        assert latest is not None and latest.position_mm[0] == pytest.approx(
+            4000 * MM_PER_COUNT[0])
+        platform.disconnect()
+        port.write(encode_sample_frame(4, 4_000, (4000, 0, 0)))  # a reopen: no INFO needed
+        platform.connect()
+        assert platform.latest() is not None
+    finally:
+        platform.disconnect()
+        port.close()
 
 
 @pytest.mark.parametrize("ppr", [1024.5, True, "1024", float("nan"), 0, 70_000])

@@ -298,6 +298,7 @@ def test_capture_times_never_go_backwards(steps: list[tuple[int, int]]) -> None:
     """Arrival delays of any size and order (a loaded host): t_us strictly increases and
     never precedes the latch time on the host clock (board time + the smallest delay)."""
     platform = SerialEncoderPlatform("loop://")
+    platform._info_mismatch = None  # a matching INFO taken as seen
     board_t, previous = 1_000, None
     min_delay = None
     for seq, (dt_us, delay_us) in enumerate(steps, start=1):
