@@ -422,6 +422,19 @@ def _typing_from(typing: _Detection, region: NDArray[np.bool_], cell: float,
     return None
 
 
+def _check_grid(maps: PalpationMaps) -> None:
+    """Refuse a grid the detection cannot measure on (see :func:`find_tumors`)."""
+    x, y = np.asarray(maps.x_mm, np.float64), np.asarray(maps.y_mm, np.float64)
+    if x.ndim != 1 or y.ndim != 1 or maps.relief.shape != (y.size, x.size):
+        raise ValueError(f"the maps' grid ({y.size} x {x.size} cells) does not match their "
+                         f"relief's shape {maps.relief.shape}")
+    steps = np.concatenate([np.diff(x), np.diff(y)])
+    if steps.size and not (np.all(np.isfinite(steps)) and steps.min() > 0
+                           and np.allclose(steps, steps[0], rtol=1e-6, atol=0.0)):
+        raise ValueError("the maps' grid must ascend evenly with one cell size on x and y "
+                         f"(steps from {steps.min():g} to {steps.max():g} mm)")
+
+
 def find_tumors(maps: PalpationMaps, config: DetectionConfig | None = None,
                 typing_maps: PalpationMaps | None = None) -> list[Finding]:
     """Detect and characterise tumors in the maps.
@@ -443,9 +456,12 @@ def find_tumors(maps: PalpationMaps, config: DetectionConfig | None = None,
         has an outline there).
 
     Raises:
-        ValueError: ``typing_maps`` is not on the grid of ``maps``.
+        ValueError: ``typing_maps`` is not on the grid of ``maps``, or the grid does not
+            ascend evenly with one cell size on both axes, or does not match the maps' shape
+            (a descending grid gave a negative cell size to the gradients and smoothing).
     """
     cfg = config or DetectionConfig()
+    _check_grid(maps)
     cell = maps.cell_mm
     if typing_maps is not None and not (
             typing_maps.x_mm.shape == maps.x_mm.shape and typing_maps.y_mm.shape == maps.y_mm.shape

@@ -3,6 +3,7 @@ recording's workspace, degenerate (1 x N) maps, and every setting validated up f
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 
@@ -119,6 +120,27 @@ def test_find_tumors_never_crashes_and_its_findings_lie_on_the_grid(
         assert maps.x_mm[0] <= f.center_mm[0] <= maps.x_mm[-1]
         assert maps.y_mm[0] <= f.center_mm[1] <= maps.y_mm[-1]
         assert 0.0 <= f.confidence <= 1.0 and 0.5 <= f.type_confidence <= 1.0
+
+
+@pytest.mark.parametrize("grid", ["descending", "uneven", "x_and_y_differ", "shape"])
+def test_find_tumors_refuses_a_grid_it_cannot_measure_on(grid: str) -> None:
+    """A descending grid gave the gradients and the smoothing a negative cell size and was
+    analysed as if nothing were wrong (found by review)."""
+    count = _FULL[:10, :12]
+    good = _palpation_maps(np.zeros((10, 12)), count)
+    x, y = good.x_mm.copy(), good.y_mm.copy()
+    if grid == "descending":
+        x, y = x[::-1].copy(), y[::-1].copy()
+    elif grid == "uneven":
+        x[5:] += 0.1
+    elif grid == "x_and_y_differ":
+        y = y * 2.0
+    else:
+        x = x[:-1]
+    bad = dataclasses.replace(good, x_mm=x, y_mm=y)
+    with pytest.raises(ValueError, match="grid"):
+        find_tumors(bad)
+    find_tumors(good)
 
 
 def test_empty_patches_are_an_input_error() -> None:
