@@ -18,6 +18,8 @@ one family and still see the cause::
     │       └── OversizeError             frame longer than the configured limit
     ├── SessionError                      session/role/auth refusals by the relay
     │   ├── AuthError                     missing or wrong token
+    │   │   ├── TokenExpiredError         a v2 token expired by the relay's clock (not
+    │   │   │                             final while the station's clock calls it valid)
     │   │   └── TlsCertificateError       the relay's TLS certificate is not trusted
     │   │                                 (not final: the station link retries it)
     │   ├── RoleTakenError                a second `local`/`remote` in one session
@@ -172,6 +174,8 @@ class SessionError(TeleTouchError):
 
     code: str = "session"
     close_code: int = 4000
+    #: a finer cause within ``code``, sent as the ``error``'s ``reason`` (None: none)
+    reason: str | None = None
 
     def __init__(self, message: str, *, code: str | None = None) -> None:
         super().__init__(message)
@@ -187,11 +191,12 @@ class AuthError(SessionError):
 
 
 class TokenExpiredError(AuthError):
-    """A version-2 token past its expiry by the relay's clock (same close code as ``auth``).
-    Final for a station whose own clock agrees; one whose clock says the token is still
-    valid retries, since one of the two clocks is wrong (often for a while after a boot)."""
+    """A version-2 token past its expiry by the relay's clock: ``auth`` with ``reason``
+    ``expired`` on the wire (a station of an older release reads a plain ``auth``). Final for
+    a station whose own clock agrees; one whose clock says the token is still valid retries,
+    since one of the two clocks is wrong (often for a while after a boot)."""
 
-    code = "token_expired"
+    reason = "expired"
 
 
 class TlsCertificateError(AuthError):

@@ -341,6 +341,8 @@ class Error(Message):
     fatal: bool = False
     stream: str | None = None
     seq: int | None = None
+    #: a finer cause within ``code`` for a client to act on (``expired`` with ``auth``)
+    reason: str | None = None
 
     def to_wire(self) -> dict[str, Any]:
         out: dict[str, Any] = {"code": self.code, "message": self.message[:1024],
@@ -349,6 +351,8 @@ class Error(Message):
             out["stream"] = self.stream
         if self.seq is not None:
             out["seq"] = self.seq
+        if self.reason is not None:
+            out["reason"] = self.reason
         return out
 
     @classmethod
@@ -359,7 +363,9 @@ class Error(Message):
                    fatal=read_bool(d, t, "fatal"),
                    stream=read_str(d, t, "stream", max_len=64)
                    if read_optional(d, "stream") else None,
-                   seq=read_int(d, t, "seq") if read_optional(d, "seq") else None)
+                   seq=read_int(d, t, "seq") if read_optional(d, "seq") else None,
+                   reason=read_str(d, t, "reason", max_len=64)
+                   if read_optional(d, "reason") else None)
 
 
 @dataclass(frozen=True, slots=True)

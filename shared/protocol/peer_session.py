@@ -669,8 +669,8 @@ class PeerSession:
         self.counters[f"fatal_{err.code}"] += 1
         log.warning("%s %s closed: %s: %s (close %d)", self.framing, self.where, err.code,
                     err, err.close_code)
-        self.outbox.put_ordered(Error(code=err.code, message=str(err), fatal=True),
-                                force=True)
+        self.outbox.put_ordered(Error(code=err.code, message=str(err), fatal=True,
+                                      reason=getattr(err, "reason", None)), force=True)
         self._close(err.close_code, err.code)
 
     def shutdown(self) -> None:

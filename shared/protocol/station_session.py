@@ -78,9 +78,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 _REFUSALS = (AuthError, RoleTakenError, HandshakeTimeoutError, ReplacedError)
-# an expired token shares auth's close code: told apart only by the error before the close
-_REFUSALS_BY_CODE: dict[str, type[SessionError]] = {
-    c.code: c for c in (*_REFUSALS, TokenExpiredError)}
+_REFUSALS_BY_CODE: dict[str, type[SessionError]] = {c.code: c for c in _REFUSALS}
 _REFUSALS_BY_CLOSE: dict[int, type[SessionError]] = {c.close_code: c for c in _REFUSALS}
 _MAX_PENDING_PONGS = 16
 
@@ -113,6 +111,14 @@ def _supersede(msg: Message, slot: str, waiting: Callable[[str], Message | None]
             if held_slot != slot:
                 others.append(held_slot)
     return msg, others
+
+
+def _refusal_class(msg: Error) -> type[SessionError] | None:
+    """The refusal a fatal ``error`` means (an expired token is ``auth`` with ``reason``
+    ``expired``), or None."""
+    if msg.code == AuthError.code and msg.reason == TokenExpiredError.reason:
+        return TokenExpiredError
+    return _REFUSALS_BY_CODE.get(msg.code)
 
 
 def refusal_for_close_code(close_code: int | None, reason: str) -> SessionError | None:
@@ -308,7 +314,7 @@ class StationSession:
                     self._events.append(Welcomed(msg))
                     continue
                 if isinstance(msg, Error):
-                    refusal = _REFUSALS_BY_CODE.get(msg.code, SessionError)
+                    refusal = _refusal_class(msg) or SessionError
                     self._events.append(Refused(refusal(
                         f"relay refused hello: {msg.code}: {msg.message}", code=msg.code)))
                     self._conn = None
@@ -330,7 +336,7 @@ class StationSession:
         elif isinstance(msg, DataMessage) and self._stamp_hops:
             msg = msg.with_hop(self.role, "station_rx", now_us)
         elif isinstance(msg, Error):
-            refusal = _REFUSALS_BY_CODE.get(msg.code) if msg.fatal else None
+            refusal = _refusal_class(msg) if msg.fatal else None
             if refusal is not None and self.closing_refusal is None:
                 self.closing_refusal = refusal(
                     f"relay closed the connection: {msg.code}: {msg.message}")
