@@ -21,6 +21,9 @@ MIN_SECRET_CHARS = 32
 PLACEHOLDER_SECRETS = frozenset({"change-me-to-64-hex-chars"})
 #: the shortest ``ping_interval_s`` / ``stats_interval_s``: shorter spins the relay's loop
 MIN_PING_INTERVAL_S = 0.01
+#: the longest ``ping_interval_s`` / ``stats_interval_s``: what ``welcome`` can announce
+#: (docs/protocol.md; a longer one made the relay refuse its own welcome to every station)
+MAX_PING_INTERVAL_S = 3600.0
 
 
 @dataclass(frozen=True)
@@ -162,6 +165,10 @@ class RelayConfig:
                 raise ConfigError(f"relay.{name} must be at least {MIN_PING_INTERVAL_S:g} s "
                                   f"(got {getattr(self, name):g} s): a shorter period keeps "
                                   "the relay busy sending to every station")
+            if not getattr(self, name) <= MAX_PING_INTERVAL_S:
+                raise ConfigError(f"relay.{name} must be at most {MAX_PING_INTERVAL_S:g} s "
+                                  f"(got {getattr(self, name):g} s): the welcome announces it "
+                                  "to every station, and the protocol bounds it there")
         self._check_secret()
         if self.port != 0 and self.tcp_port == self.port:
             raise ConfigError(f"relay.tcp_port={self.tcp_port} is relay.port: the TCP listener "

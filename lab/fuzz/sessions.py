@@ -303,7 +303,7 @@ def _peer_events(ps: PeerSession, model: PeerModel) -> list[tuple[Any, ...]]:
                 continue
             ps.accept(Welcome(session=ev.hello.session, role=ev.hello.role,
                               server_time_us=_T0_US, ping_interval_s=1.0,
-                              max_message_bytes=_MESSAGE_LIMIT), _T0_US)
+                              max_message_bytes=_MESSAGE_LIMIT, stats_interval_s=1.0), _T0_US)
             out.extend(_peer_events(ps, model))  # what was held behind the hello
         elif isinstance(ev, DataReceived):
             out.append(("data", ev.message, ev.t_in_us))
@@ -576,7 +576,8 @@ def relay(data: bytes) -> None:
                       f"two {ev.hello.role} stations joined one session")
                 p.ps.accept(Welcome(session=ev.hello.session, role=ev.hello.role,
                                     server_time_us=now, ping_interval_s=cfg.ping_interval_s,
-                                    max_message_bytes=cfg.max_message_bytes), now)
+                                    max_message_bytes=cfg.max_message_bytes,
+                                    stats_interval_s=cfg.stats_interval_s), now)
                 dispatch(p)
                 return
             if isinstance(ev, DataReceived) and p.peer is not None:

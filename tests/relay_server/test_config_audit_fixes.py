@@ -58,3 +58,15 @@ def test_a_period_that_spins_the_relay_is_refused(name: str) -> None:
     with pytest.raises(ConfigError, match=rf"^relay\.{name} must be at least 0\.01 s"):
         RelayConfig(**short)
     RelayConfig(**{**short, name: 0.01})
+
+
+@pytest.mark.parametrize("name", ["ping_interval_s", "stats_interval_s"])
+def test_a_period_the_welcome_cannot_announce_is_refused(name: str) -> None:
+    """7200 s passed the settings, and then the relay refused its own welcome (the protocol
+    bounds the announced period at 3600 s) and closed every station with 1011 (found by
+    review)."""
+    long: dict[str, Any] = {name: 7200.0, "silence_timeout_s": 20_000.0}
+    with pytest.raises(ConfigError, match=rf"^relay\.{name} must be at most 3600 s "
+                                          r"\(got 7200 s\)"):
+        RelayConfig(**long)
+    RelayConfig(**{**long, name: 3600.0})
