@@ -159,6 +159,10 @@ def failure_line(err: TeleTouchError) -> str:
     if isinstance(err, DeviceTimeoutError) or (isinstance(err, DeviceInitError) and _caused_by(
             err, (DeviceTimeoutError, TimeoutError))):
         return f"opened but silent: {text}; check power, wiring, bus/baud settings"
+    if isinstance(err, DeviceInitError) and _caused_by(err, ConfigError):
+        return f"bad setting: {text}"  # (the device disagrees with its configured setting)
+    if isinstance(err, DeviceInitError) and _caused_by(err, DeviceOperationError):
+        return f"opened but failed: {text}"  # (it talks, but not as it must)
     if isinstance(err, DeviceInitError):
         return f"could not open: {text}; check the cable/port/permissions"
     if isinstance(err, DeviceOperationError):

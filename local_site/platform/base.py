@@ -215,14 +215,16 @@ class XYZPlatform(Device):
         if latest is None or error is not None:  # (an INFO unlike the geometry, with a sample)
             error = error or self._info_mismatch
             if error is _AWAITING_INFO and self._unpublished:
-                reason, error = (f"no INFO frame within {self._connect_timeout_s:.2f} s (the "
-                                 "board sends one at start-up and every second; its samples "
-                                 "are not used before it: the geometry is checked against "
-                                 "it)"), None
-            else:
-                error = None if error is _AWAITING_INFO else error
-                reason = f"link failed: {error}" if error else \
-                    f"no valid frame within {self._connect_timeout_s:.2f} s"
+                # not a silence: the board talks, but not as it must (firmware, or its INFO
+                # frames corrupted on the line)
+                reason = (f"no INFO frame within {self._connect_timeout_s:.2f} s, "
+                          f"{self._unpublished} samples (the board sends one at start-up and "
+                          "every second; its samples are not used before it: the geometry is "
+                          "checked against it)")
+                raise DeviceInitError(f"{self.name}: {reason}") from DeviceOperationError(reason)
+            error = None if error is _AWAITING_INFO else error
+            reason = f"link failed: {error}" if error else \
+                f"no valid frame within {self._connect_timeout_s:.2f} s"
             # a silent board is a timeout inside the connect phase (tools tell it from a
             # port that does not open by this cause)
             raise DeviceInitError(f"{self.name}: {reason}") from (

@@ -22,6 +22,7 @@ from local_site.platform.protocol import (
 )
 from local_site.platform.serial_board import SerialEncoderPlatform
 from local_site.platform.sim_board import SimulatedEncoderBoard
+from shared.device_check import failure_line
 from shared.errors import ConfigError, DeviceInitError
 from shared.timebase import now_us
 from tests.support import scaled
@@ -270,14 +271,17 @@ def test_a_running_boards_samples_before_its_first_info_are_not_published() -> N
         with pytest.raises(DeviceInitError, match="no valid frame within"):
             platform.connect()  # silent
         port.write(encode_sample_frame(1, 1_000, (4000, 0, 0)))  # counts of a 2000-line board
-        with pytest.raises(DeviceInitError, match="no INFO frame within"):
+        with pytest.raises(DeviceInitError, match="no INFO frame within") as no_info:
             platform.connect()
         assert platform.latest() is None
+        # what `teletouch check` says: it talks, so not "silent" (found by review)
+        assert failure_line(no_info.value).startswith("opened but failed: ")
         port.write(encode_info_frame(BoardInfo(1, 3, 2000, 4, 1000, 1))
                    + encode_sample_frame(2, 2_000, (4000, 0, 0)))
-        with pytest.raises(DeviceInitError, match="2000 pulses per revolution"):
+        with pytest.raises(DeviceInitError, match="2000 pulses per revolution") as unlike:
             platform.connect()
         assert platform.latest() is None
+        assert failure_line(unlike.value).startswith("bad setting: ")
         port.write(encode_info_frame(BoardInfo(1, 3, 1024, 4, 1000, 1))  # the right board
                    + encode_sample_frame(3, 3_000, (4000, 0, 0)))
         platform.connect()
