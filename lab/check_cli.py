@@ -51,6 +51,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                             "move (default 0: not asked)")
     local.add_argument("--watchdog-ms", dest="watchdog_ms", type=int, default=100,
                        help="drive-board watchdog to configure and check (default 100)")
+    local.add_argument("--feedback-timeout-s", dest="feedback_timeout_s", type=float,
+                       metavar="S", help="the drive board counts as lost after S s without "
+                       "feedback: as the station's local.agent.display_feedback_timeout_s, "
+                       "for a board set to feed back slower (default 0.2, at most 10)")
     _common(local)
     remote = sub.add_parser("remote", help="the arm and the tactile camera",
                             description="Probe the remote station's arm and sensor.")
@@ -80,15 +84,20 @@ def run(args: argparse.Namespace) -> int:
         emit(f"teletouch check: {err}", stream=sys.stderr)
         return EXIT_USAGE
     if args.check_station == "local":
-        if args.push_s < 0 or not 1 <= args.watchdog_ms <= 0xFFFF:
-            emit("teletouch check local: --push-s must be >= 0 and --watchdog-ms in "
-                 "[1, 65535]", stream=sys.stderr)
+        from local_site.agent.config import MAX_FEEDBACK_TIMEOUT_S
+
+        feedback_s = args.feedback_timeout_s
+        if args.push_s < 0 or not 1 <= args.watchdog_ms <= 0xFFFF or (
+                feedback_s is not None and not 0 < feedback_s <= MAX_FEEDBACK_TIMEOUT_S):
+            emit("teletouch check local: --push-s must be >= 0, --watchdog-ms in "
+                 f"[1, 65535] and --feedback-timeout-s in (0, {MAX_FEEDBACK_TIMEOUT_S:g}]",
+                 stream=sys.stderr)
             return EXIT_USAGE
         from local_site.check import check_local
 
         report = check_local(args.platform, args.display, settings, push_s=args.push_s,
                              notify=lambda text: emit(text, stream=sys.stderr),
-                             watchdog_ms=args.watchdog_ms)
+                             watchdog_ms=args.watchdog_ms, feedback_timeout_s=feedback_s)
     else:
         from remote_site.check import check_remote
 

@@ -263,7 +263,8 @@ def _wait_feedback(display: Any, done: Callable[[Any], bool], timeout_s: float,
 
 def check_local(platform: str, display: str, settings: CheckSettings | None = None, *,
                 push_s: float = 0.0, notify: Callable[[str], None] | None = None,
-                watchdog_ms: int = 100) -> CheckReport:
+                watchdog_ms: int = 100,
+                feedback_timeout_s: float | None = None) -> CheckReport:
     """Probe the local station's platform and display, one after the other.
 
     Args:
@@ -273,10 +274,13 @@ def check_local(platform: str, display: str, settings: CheckSettings | None = No
         push_s: see :func:`check_platform`.
         notify: see :func:`check_platform`.
         watchdog_ms: see :func:`check_display`.
+        feedback_timeout_s: the display driver's silent-board limit, as the station's
+            ``display_feedback_timeout_s`` (None: the driver's default).
 
     Returns:
         The report (``exit_code`` 0 when both passed).
     """
+    options = {} if feedback_timeout_s is None else {"feedback_timeout_s": feedback_timeout_s}
     return CheckReport("local", (
         check_platform(platform, settings, push_s=push_s, notify=notify),
-        check_display(display, settings, watchdog_ms=watchdog_ms)))
+        check_display(display, settings, watchdog_ms=watchdog_ms, **options)))

@@ -110,7 +110,33 @@ def test_usage_errors_exit_2(capsys: pytest.CaptureFixture[str]) -> None:
     assert info.value.code == 2
     assert main(["check", "local", "--platform", "sim", "--display", "sim",
                  "--push-s", "-1"]) == 2
-    capsys.readouterr()
+    for bad in ("0", "11", "nan"):
+        assert main(["check", "local", "--platform", "sim", "--display", "sim",
+                     "--feedback-timeout-s", bad]) == 2
+    assert "--feedback-timeout-s in (0, 10]" in capsys.readouterr().err
+
+
+def test_the_feedback_timeout_reaches_the_probed_driver(
+        check_env: None, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """A board set to feed back slower than the driver's 0.2 s default needs the station's
+    ``display_feedback_timeout_s``: the check had no way to take it, so it failed a board
+    the station ran fine (found by review)."""
+    import local_site.check as check
+
+    seen: list[float] = []
+    real = check.open_display
+
+    def spy(spec: str, **kwargs: Any) -> Any:
+        display = real(spec, **kwargs)
+        seen.append(display._feedback_timeout_s)
+        return display
+
+    monkeypatch.setattr(check, "open_display", spy)
+    code = main(["check", "local", "--platform", "sim", "--display", "sim", "--json",
+                 "--feedback-timeout-s", "1.5"])
+    assert code == 0, capsys.readouterr()
+    assert seen == [1.5]
 
 
 def test_cli_subprocess_json() -> None:
