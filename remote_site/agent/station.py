@@ -373,6 +373,8 @@ class RemoteStation:
         self.encoder = TactileEncoder(CodecSettings(
             weber=cfg.tactile_weber, floor={"height_mm": cfg.tactile_floor_um * 1e-3},
             key_every=cfg.tactile_key_every)) if cfg.tactile_codec == "compact" else None
+        #: the link session (``counters.connects``) the encoder's key frame was sent in
+        self._encoder_connects = -1
 
     # ------------------------------------------------------------------ commands
 
@@ -819,6 +821,14 @@ class RemoteStation:
                 if self.link.is_connected:
                     msg: Message = outcome.frame
                     if self.encoder is not None:
+                        connects = self.link.counters.connects
+                        if connects != self._encoder_connects:
+                            # a new link session: a key frame first. The last session's
+                            # unsent key frame was dropped at the welcome, and a link back
+                            # between two frame ticks never passed the branch below (the
+                            # receiver waited up to key_every frames; found by audit)
+                            self.encoder.reset()
+                            self._encoder_connects = connects
                         msg = self.encoder.encode(outcome.frame)
                     await self.link.send(msg)
                     self.counters.frames_sent += 1

@@ -257,6 +257,39 @@ async def test_arm_halts_on_link_loss() -> None:
         close_station(station)
 
 
+class _ReconnectingLink(FakeLink):
+    """A link that reconnects, unseen by the frame loop, after the third frame sent."""
+
+    async def send(self, msg: Message) -> None:
+        await super().send(msg)
+        if sum(isinstance(m, TactileCompact) for m in self.sent) == 3:
+            self.counters.connects += 1  # down and welcomed again between two frame ticks
+
+
+async def test_a_link_back_between_two_frame_ticks_gets_a_key_frame_first() -> None:
+    """The encoder was reset only on a frame tick that found the link down: a link back
+    between two ticks went on with deltas against a key frame the relay may never have had
+    (dropped with the queue at the welcome); the receiver rendered nothing for up to
+    key_every frames (found by audit)."""
+    link = _ReconnectingLink()
+    station = make_station(link, config=RemoteAgentConfig(frame_rate_hz=30.0,
+                                                          status_interval_s=0.05))
+    try:
+        stop = asyncio.Event()
+        runner = asyncio.create_task(station.run(stop, duration_s=scaled(5.0)))
+        while sum(isinstance(m, TactileCompact) for m in link.sent) < 5 and not runner.done():
+            await asyncio.sleep(0.01)
+        stop.set()
+        await runner
+        frames = [m for m in link.sent if isinstance(m, TactileCompact)]
+        assert len(frames) >= 5
+        assert frames[0].key and not frames[1].key and not frames[2].key
+        assert frames[3].key, "the new session's first frame must be a key frame"
+        assert not frames[4].key and frames[4].key_seq == frames[3].seq
+    finally:
+        close_station(station)
+
+
 async def test_pressing_stops_at_the_force_limit() -> None:
     link = FakeLink()
     limit_n = 2.0
