@@ -29,7 +29,7 @@ from local_site.platform.base import PlatformSample
 from local_site.render import Renderer
 from local_site.scenes import TactileFrameScene
 from shared.errors import ConfigError, InputDataError
-from shared.protocol import Message, PlatformState, TactileCompact, TactileFrame
+from shared.protocol import Message, PlatformState, TactileCompact, TactileFrame, Welcome
 from shared.protocol.tactile_codec import TactileDecoder
 from shared.recording import McapRecording, RecordedMessage, RecordingFormatError
 from shared.timebase import now_us
@@ -268,6 +268,8 @@ class Replayer:
                         log.warning("replay: %s (skipped; more are counted)", err)
                     continue
                 frame = ev.message
+                if isinstance(frame, Welcome):  # a new link session, as the station did
+                    decoder.reset()
                 if isinstance(frame, TactileCompact) and m.topic.endswith("/rx/tactile_compact"):
                     try:  # in order, as the station decoded them
                         frame = decoder.decode(frame)

@@ -42,7 +42,7 @@ from lab.replay import Replayer, ReplayEvent
 from local_site.render.pin_command import PIN_PITCH_MM
 from local_site.view.analysis import LiveAnalysis, LiveAnalysisConfig
 from shared.errors import ConfigError, InputDataError
-from shared.protocol import ArmState, PlatformState, TactileCompact, TactileFrame
+from shared.protocol import ArmState, PlatformState, TactileCompact, TactileFrame, Welcome
 from shared.protocol.messages import _STAGE_PATTERN
 from shared.protocol.tactile_codec import TactileDecoder
 from shared.timebase import now_us
@@ -151,6 +151,9 @@ class ReplayViewSource:
     def on_event(self, ev: ReplayEvent) -> None:
         """One replayed message (the replayer's subscriber; keeps references only)."""
         msg, topic, t = ev.message, ev.topic, ev.t_us
+        if isinstance(msg, Welcome):  # a new link session: the station forgot its key frame
+            self._decoder.reset()
+            return
         if isinstance(msg, TactileCompact):
             try:  # in order, as the station decoded them
                 msg = self._decoder.decode(msg)

@@ -37,7 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from shared.errors import ConfigError, InputDataError
-from shared.protocol import Message, PlatformState, TactileCompact, TactileFrame
+from shared.protocol import Message, PlatformState, TactileCompact, TactileFrame, Welcome
 from shared.protocol.tactile_codec import TactileDecoder
 from shared.recording import McapRecorder, McapRecording, RecordingFormatError, read_mcap
 from shared.timebase import now_us
@@ -346,6 +346,9 @@ def recording_from_mcap(rec: McapRecording) -> Recording:
     decoder = TactileDecoder()  # compact frames decode in order, as the station did
     for m, wire in rec.wire_messages():
         msg: Message | None = wire
+        if isinstance(wire, Welcome):  # a new link session: the station forgot its key frame
+            decoder.reset()
+            continue
         if isinstance(wire, TactileCompact) and m.topic == "/local/rx/tactile_compact":
             try:
                 msg = decoder.decode(wire)

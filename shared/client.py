@@ -57,6 +57,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import logging
 import math
 import random
@@ -252,7 +253,9 @@ class StationLink:
         #: the open connection while one is up (for :meth:`_write_now`)
         self._transport: Transport | None = None
         #: called with ("tx" | "rx", message, wall-clock us) for every message the station
-        #: queues with :meth:`send` or takes with :meth:`recv` (a recorder; must not block)
+        #: queues with :meth:`send` or takes with :meth:`recv`, and for each ``welcome`` (its
+        #: ``resume`` secret blanked) as it arrives: a replay starts decoding compact frames
+        #: anew there, as the station does (a recorder; must not block)
         self.tap: Callable[[str, Message, int], None] | None = None
         self._closing = False
         #: kinds of failure logged in the current outage, and when each was last logged
@@ -793,6 +796,8 @@ class StationLink:
         self.last_error = self.last_error_s = None
         self._welcomed_s = monotonic_s()
         self.connected.set()
+        if self.tap is not None:  # never the resume secret: recordings are shared
+            self.tap("rx", dataclasses.replace(welcome, resume=""), now_us())
         log.info("connected to %s as %s in session %s", self.safe_url, self.role,
                  welcome.session)
 

@@ -2,8 +2,9 @@
 
 Sender (:class:`TactileEncoder`):
 
-* every layer is quantized to int16 with a per-layer ``scale`` (at most the layer's
-  resolution, :data:`RESOLUTION`: 1 um for heights) and ``offset`` chosen in each key frame;
+* every layer is quantized to int16 with a per-layer ``scale`` (the layer's resolution,
+  :data:`RESOLUTION`: 1 um for heights, or coarser when the key frame's span needs it) and
+  ``offset`` chosen in each key frame;
 * a **key frame** carries every layer in full; one is sent first, every ``key_every``
   frames, whenever the layer set or shape changes, when a value would not fit the key
   frame's int16 range, and when a delta would not be smaller than a key frame;
@@ -20,8 +21,11 @@ lost key frame is recovered at the next one. So the error of every decoded sampl
 most ``max(weber * |key value|, floor, scale / 2)`` (quantization), whatever was lost.
 
 Receiver (:class:`TactileDecoder`): holds the newest key frame; a delta whose key frame it
-does not hold (joined late, key frame lost, sender restarted) gives ``None``: nothing is
-rendered from it and the scene ages into the safe state until the next key frame.
+does not hold (joined late, key frame lost) gives ``None``: nothing is rendered from it and
+the scene ages into the safe state until the next key frame. A restarted sender numbers its
+frames from 1 again: its deltas may name a key ``seq`` the receiver holds from the old
+sender, so a receiver forgets its key frame at each new link session (:meth:`reset`; the
+local station does, and a replay at each recorded ``welcome``).
 """
 
 from __future__ import annotations
@@ -37,7 +41,8 @@ from shared.protocol.messages import LAYER_RANGES, CompactLayer, TactileCompact,
 
 __all__ = ["RESOLUTION", "CodecSettings", "DecoderCounters", "TactileDecoder", "TactileEncoder"]
 
-#: coarsest quantization step per layer (its unit): 1 um for heights
+#: finest quantization step per layer (its unit): 1 um for heights; a key frame whose values
+#: span more than 64,000 steps uses a coarser one
 RESOLUTION: dict[str, float] = {
     "height_mm": 0.001,
     "stiffness_k": 1.0e-4,

@@ -15,8 +15,9 @@ import pytest
 from lab.replay import PlaybackClock, Replayer
 from lab.replay_view import ReplayViewSource
 from local_site.view.analysis import LiveAnalysisConfig
-from shared.protocol import PlatformState, TactileFrame
-from shared.recording import read_mcap
+from shared.protocol import Hop, PlatformState, TactileFrame, Welcome
+from shared.protocol.tactile_codec import TactileEncoder
+from shared.recording import McapRecorder, read_mcap
 from tests.lab.browser_support import interrupt
 from tests.recordings import write_local_recording
 from tests.support import REPO_ROOT, wait_until
@@ -178,3 +179,47 @@ def test_ctrl_c_ends_a_replay_view_promptly_and_cleanly_even_if_sigint_came_in_i
     assert b"replayed " in ended.stdout
     assert "Traceback" not in text, text[-2000:]
     wait_until(lambda: not _group(proc.pid), 10, "every process of the replay gone")
+
+
+def _frame(seq: int, height_mm: float, t_us: int, peak_mm: float | None = None
+           ) -> TactileFrame:
+    height = np.full((8, 8), height_mm, np.float32)
+    if peak_mm is not None:
+        height[3, 3] = peak_mm  # one sample changed: the encoder sends a delta
+    return TactileFrame(seq=seq, ts_us=t_us, center_mm=(30.0, 30.0), pitch_mm=0.5,
+                        hops=(Hop("local", "station_rx", t_us),), layers={"height_mm": height})
+
+
+def test_a_replay_forgets_the_key_frame_at_a_new_link_session(tmp_path: Path) -> None:
+    """The station forgets its key frame at each new link session (a restarted sender
+    numbers its frames from 1 again); the replay kept one decoder for the whole recording and
+    applied the new sender's delta to the old sender's key frame of the same seq, showing
+    2 mm where the station rendered nothing (found by audit). The link's welcome is recorded
+    now (its resume secret blanked), and the replay starts anew there."""
+    path = tmp_path / "local.mcap"
+    rec = McapRecorder(path, "local", meta={"session": "s"})
+    t = 1_700_000_000_000_000
+    old, new = TactileEncoder(), TactileEncoder()
+    rec.tap("rx", Welcome(session="s", role="local", resume="f" * 32), t)
+    rec.tap("rx", old.encode(_frame(1, 2.0, t + 1000)), t + 1000)
+    delta = old.encode(_frame(2, 2.0, t + 2000, peak_mm=3.0))
+    assert not delta.key and delta.key_seq == 1
+    rec.tap("rx", delta, t + 2000)
+    rec.tap("rx", Welcome(session="s", role="local"), t + 3000)  # the sender restarted
+    new.encode(_frame(1, 0.5, t + 4000))  # its key frame lost on the way
+    stray = new.encode(_frame(2, 0.5, t + 5000))  # a delta on key seq 1, 0 mm of change
+    assert not stray.key and stray.key_seq == 1
+    rec.tap("rx", stray, t + 5000)
+    rec.close()
+    recording = read_mcap(path)
+    assert "f" * 32 not in path.read_bytes().decode("latin-1")
+    replayer = Replayer(recording, speed=100.0, display="none")
+    source = ReplayViewSource(replayer, None)
+    try:
+        replayer.run()
+        patch = source.live()["patch"]
+        # the last frame decoded is the old session's seq 2 (its 3 mm peak), not the new
+        # sender's delta applied to the old key frame (2 mm flat)
+        assert patch["seq"] == 2 and patch["hi_mm"] == pytest.approx(3.0, abs=0.01)
+    finally:
+        source.close()

@@ -512,6 +512,21 @@ async def test_the_tap_records_a_state_as_its_queue_carried_it() -> None:
     await link.close()
 
 
+async def test_the_tap_records_each_welcome_without_its_resume_secret() -> None:
+    """A replay must start decoding compact frames anew where the station did (each new link
+    session): the welcome is tapped as it arrives, its resume secret blanked."""
+    async with _real_relay() as relay:
+        link = _link(f"ws://127.0.0.1:{relay.ws_port}/")
+        tapped: list[Any] = []
+        link.tap = lambda direction, msg, t_us: tapped.append((direction, msg))
+        async with link:
+            welcome = await link.wait_connected(scaled(3.0))
+            assert welcome.resume  # the link itself keeps it
+            welcomes = [m for d, m in tapped if d == "rx" and isinstance(m, Welcome)]
+            assert len(welcomes) == 1 and welcomes[0].resume == ""
+            assert welcomes[0].session == "lab1" and welcomes[0].role == "local"
+
+
 async def test_invalid_message_is_refused_locally(relay: FakeRelay) -> None:
     async with _link(relay.url("ws")) as link:
         with pytest.raises(LocalProtocolError):
