@@ -321,6 +321,14 @@ class _Flag:
         return self._owner._health().motion_done
 
 
+def _add_stats(a: PlatformStats | None, b: PlatformStats | None) -> PlatformStats | None:
+    """Counters of two children added up (None: none reported)."""
+    if a is None or b is None:
+        return a if b is None else b
+    return PlatformStats(**{f.name: getattr(a, f.name) + getattr(b, f.name)
+                            for f in dataclasses.fields(PlatformStats)})
+
+
 class ProcessPlatformReader:
     """A :class:`PlatformReader` in a child process (see the module docstring).
 
@@ -379,6 +387,9 @@ class ProcessPlatformReader:
             0, None, dataclasses.replace(_NOT_STARTED, lost_since_mono_s=monotonic_s()))
         self._carried = (0, 0, 0, 0)  # reads, errors, reconnects, recoveries of dead children
         self._stats: PlatformStats | None = None
+        #: the link counters of the children before the running one (those that ended on
+        #: their own: a killed child writes none)
+        self._carried_stats: PlatformStats | None = None
         #: times a child process was started again after it died or hung
         self.restarts = 0
         #: why the last child ended unasked (None: none did)
@@ -536,6 +547,9 @@ class ProcessPlatformReader:
             with contextlib.suppress(OSError):
                 process.stdin.close()
         if self._stats_fd is not None:
+            # a child that ended on its own wrote its link counters on the way out (a killed
+            # one could not: those are lost, the reader's counters below are not)
+            self._carried_stats = _add_stats(self._carried_stats, self._read_stats())
             os.close(self._stats_fd)
             self._stats_fd = None
         health = self._read()[2]
@@ -569,7 +583,7 @@ class ProcessPlatformReader:
                 process.kill()
                 with contextlib.suppress(subprocess.TimeoutExpired):
                     process.wait(timeout_s)
-            self._stats = self._read_stats()
+            self._stats = _add_stats(self._carried_stats, self._read_stats())
         if self._stats_fd is not None:
             os.close(self._stats_fd)
             self._stats_fd = None
@@ -609,7 +623,9 @@ class ProcessPlatformReader:
             return None
 
     def platform_stats(self) -> PlatformStats:
-        """The device link's counters as the child reported them at :meth:`stop`."""
+        """The device link's counters as the children reported them: the running child's
+        at :meth:`stop` plus those of the children before it that ended on their own (a
+        child killed as hung writes none)."""
         return self._stats if self._stats is not None else PlatformStats()
 
     def disconnect(self) -> None:

@@ -222,6 +222,30 @@ def test_a_killed_platform_process_makes_it_lost_then_is_started_again() -> None
         reader.stop()
 
 
+def test_the_link_counters_of_a_child_that_ended_carry_over() -> None:
+    """A child that ends on its own writes its link counters on the way out: they were
+    dropped with its pipe, and the station's summary showed only the last child's (the
+    very faults that led to a restart vanished; found by audit). The sim board counts its
+    samples from 0 in each child: the totals must cover both."""
+    reader = _started()
+    try:
+        wait_until(lambda: (s := reader.latest) is not None and s.seq >= 500, 10.0,
+                   "500 samples from the first child")
+        first = reader._process
+        assert first is not None and first.stdin is not None
+        first_seq = reader.latest.seq  # type: ignore[union-attr]
+        first.stdin.close()  # it ends by itself (as on a crash, it writes its counters)
+        first.wait(timeout=scaled(5.0))
+        wait_until(lambda: reader.restarts >= 1 and reader._process is not first
+                   and reader.healthy, 30.0, "the second child publishing")
+    finally:
+        reader.stop()
+    second_seq = reader.latest.seq  # type: ignore[union-attr]
+    stats = reader.platform_stats()
+    # frames decoded by both children: at least their samples up to the last one seen
+    assert stats.frames_ok >= 0.9 * (first_seq + second_seq), (stats, first_seq, second_seq)
+
+
 def test_a_stopped_platform_process_is_reported_lost() -> None:
     reader = _started()
     process = reader._process
