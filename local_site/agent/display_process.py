@@ -618,7 +618,17 @@ class DisplayProcess:
                         sock.send(pickle.dumps(("link", state), protocol=5),
                                   socket.MSG_DONTWAIT)
             ready, _, _ = select.select([sock], [], [], max(0.0, next_beat - monotonic_s()))
-            if ready and not self._drain(sock):
+            try:
+                drained = not ready or self._drain(sock)
+            except _BadReport as err:
+                # the child's fault, not the station's: it is ended (the end of its socket
+                # makes it park the pins) and started again (found by audit: the station
+                # stopped, exit 1, and the child was killed before it could park them)
+                with contextlib.suppress(OSError):
+                    sock.shutdown(socket.SHUT_RDWR)
+                return f"sent a report the station cannot read ({err}): ended (exit " \
+                    f"{_reap(process, _CHILD_STOP_S)})"
+            if not drained:
                 return f"exited with {_reap(process, _CHILD_STOP_S)}"
             if process.poll() is not None:
                 return f"exited with {process.returncode}"
@@ -638,7 +648,10 @@ class DisplayProcess:
                 return False
             if not data:
                 return False
-            self._take(pickle.loads(data))
+            try:
+                self._take(pickle.loads(data))
+            except Exception as err:  # (unpickling, or a report without its fields)
+                raise _BadReport(f"{type(err).__name__}: {err}") from err
 
     def _stop_child(self, process: subprocess.Popen[bytes], sock: socket.socket) -> None:
         """Ask the child to stop (it puts the pins in their safe state and closes the board)
@@ -649,12 +662,21 @@ class DisplayProcess:
         end = monotonic_s() + _CHILD_STOP_S
         while monotonic_s() < end and not self._final:
             ready, _, _ = select.select([sock], [], [], max(0.0, end - monotonic_s()))
-            if ready and not self._drain(sock):
+            try:
+                if ready and not self._drain(sock):
+                    break
+            except _BadReport as err:
+                log.warning("display process sent a report the station cannot read at its "
+                            "stop: %s", err)
                 break
         code = _reap(process, max(0.1, end - monotonic_s()))
         if not self._final:
             log.warning("display process did not stop cleanly (exit %s)", code)
         self._no_child()
+
+
+class _BadReport(Exception):
+    """A report from the display child that the station cannot read or fold in."""
 
 
 def _reap(process: subprocess.Popen[bytes], timeout_s: float) -> int:

@@ -128,6 +128,42 @@ def test_adopted_wall_anchor_stamps_on_the_other_clock() -> None:
         timebase.adopt_wall_anchor(before)
 
 
+@pytest.mark.parametrize("report", ["not a pickle", "a report without its fields"])
+def test_a_report_the_station_cannot_read_restarts_the_child_not_the_station(
+        report: str) -> None:
+    """One malformed report from the display child left the supervisor with the exception:
+    the child was killed before it could park the pins and the station stopped, exit 1
+    (found by audit). Now the child is ended through the end of its socket (it parks the
+    pins) and started again, like a child that died."""
+    payload = ("b'not a pickle'" if report == "not a pickle"
+               else "pickle.dumps(('report', {'loops': (1, 0)}))")
+    child = ("import json, pickle, socket, sys; "
+             "s = socket.socket(fileno=json.loads(sys.argv[1])['sock_fd']); "
+             f"s.send({payload})\n"  # then ends at its socket's end, or when told to stop
+             "while (d := s.recv(1 << 20)) and b'stop' not in d: pass")
+    process = _unserved(link=SameClockLink(), retry_min_s=0.05, retry_max_s=0.1)
+    process.child_argv = ("-c", child)
+    stop = threading.Event()
+    failed: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            process.run_in_thread(stop)
+        except BaseException as err:
+            failed.append(err)
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    try:
+        wait_until(lambda: process.restarts >= 1 or failed, 20.0, "the child started again")
+        assert not failed, failed
+        assert process.child_error is not None and "cannot read" in process.child_error
+    finally:
+        stop.set()
+        thread.join(scaled(15.0))
+    assert not thread.is_alive() and not failed
+
+
 class _NoPlatform:
     """A platform record that is never read (for a DisplayProcess whose child never runs)."""
 
