@@ -155,10 +155,16 @@ class SampleRecord:
     # ------------------------------------------------------------------ writer (the child)
 
     def claim(self) -> None:
-        """Become the writer: one that died inside a write left the counter odd."""
+        """Become the writer: one that died inside a write left the counter odd, and the
+        record half new, half old; it is closed as not healthy in the same step (before, the
+        mixed sample read as consistent, under the dead writer's healthy health; found by
+        audit), so nothing renders from it until the next writer's first health."""
         with self._write_lock:
             counter = self.counter
             if counter & 1:
+                now = monotonic_s()
+                self._HEALTH.pack_into(self._buf, self._HEALTH_AT, False, False, now, 0, 0, 0,
+                                       0, now, 0xFFFF)
                 self._HEAD.pack_into(self._buf, 0, counter + 1)
 
     def write_sample(self, sample: PlatformSample) -> None:
@@ -574,7 +580,8 @@ class ProcessPlatformReader:
             self._supervisor.join(timeout_s)
             self._supervisor = None
         process, self._process = self._process, None
-        if process is not None:
+        # (a child that already ended, e.g. one waiting for its restart, has nothing to hear)
+        if process is not None and process.poll() is None:
             try:
                 process.communicate(b"stop\n", timeout=timeout_s)
             except (subprocess.TimeoutExpired, OSError, ValueError) as err:
@@ -583,6 +590,7 @@ class ProcessPlatformReader:
                 process.kill()
                 with contextlib.suppress(subprocess.TimeoutExpired):
                     process.wait(timeout_s)
+        if process is not None:
             self._stats = _add_stats(self._carried_stats, self._read_stats())
         if self._stats_fd is not None:
             os.close(self._stats_fd)

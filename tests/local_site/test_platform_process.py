@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import asyncio
+import dataclasses
+import logging
 import math
 import os
 import signal
@@ -14,7 +16,12 @@ from hypothesis import strategies as st
 
 import shared.memlock as memlock
 from local_site.agent import LocalAgent, LocalAgentConfig
-from local_site.agent.platform_process import ProcessPlatformReader, ReaderHealth, SampleRecord
+from local_site.agent.platform_process import (
+    _NOT_STARTED,
+    ProcessPlatformReader,
+    ReaderHealth,
+    SampleRecord,
+)
 from local_site.platform.base import PlatformSample
 from shared.errors import ConfigError
 from shared.timebase import monotonic_s, now_us
@@ -70,6 +77,7 @@ def test_a_writer_that_died_inside_a_write_is_not_waited_for() -> None:
     try:
         sample = PlatformSample((1.0, 2.0, 3.0), (0.0, 0.0, 0.0), 5, 6, 7)
         writer.write_sample(sample)
+        writer.write_health(dataclasses.replace(_NOT_STARTED, healthy=True))
         writer._HEAD.pack_into(writer._buf, 0, writer.counter + 1)  # it dies inside a write
         assert writer.counter % 2 == 1
         with MachineStalls() as stalls:
@@ -79,6 +87,11 @@ def test_a_writer_that_died_inside_a_write_is_not_waited_for() -> None:
         assert took_s < scaled(0.05) + stalls.total_s, took_s  # a bounded try, not a wait
         successor = SampleRecord(writer.fd)
         successor.claim()
+        # the half-written record reads back, but never as healthy (found by audit: the
+        # dead writer's healthy health came with a mixed sample)
+        claimed = reader.read()
+        assert claimed is not None and not claimed[2].healthy
+        assert claimed[2].lost_since_mono_s is not None
         successor.write_sample(sample)
         got = reader.read()
         assert got is not None and got[0] % 2 == 0 and got[1] == sample
@@ -244,6 +257,21 @@ def test_the_link_counters_of_a_child_that_ended_carry_over() -> None:
     stats = reader.platform_stats()
     # frames decoded by both children: at least their samples up to the last one seen
     assert stats.frames_ok >= 0.9 * (first_seq + second_seq), (stats, first_seq, second_seq)
+
+
+def test_a_stop_while_a_dead_child_waits_for_its_restart_is_quiet(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """stop() told the retired child to stop through its closed pipe and warned that it
+    "did not stop" (found by audit)."""
+    reader = _started(retry_max_s=5.0)
+    reader._retry_min_s = 5.0  # the restart waits: the stop comes inside the wait
+    process = reader._process
+    assert process is not None
+    os.kill(process.pid, signal.SIGKILL)
+    wait_until(lambda: reader.child_error is not None, 10.0, "the death noticed")
+    with caplog.at_level(logging.WARNING, logger="local_site.agent.platform_process"):
+        reader.stop()
+    assert "did not stop" not in caplog.text
 
 
 def test_a_stopped_platform_process_is_reported_lost() -> None:
