@@ -269,9 +269,11 @@ def test_the_loop_reopens_a_link_whose_reader_failed_and_the_latched_board_obeys
     assert tcp_board.error is None
 
 
-def test_the_loop_reopens_the_display_of_a_board_that_went_silent() -> None:
-    # the emulated board's thread dies (a bug in its plant): the bus takes the commands,
-    # nothing answers; the reopen starts a new board
+def _sim_board_that_dies_once() -> tuple[SimCanArrayTacDisplay, FirmwareEmulator,
+                                          Callable[[], None]]:
+    """A connected simulated display, its first board, and what makes that board's thread
+    die at its next step (a bug in its plant): the bus takes the commands, nothing answers;
+    a reopen starts a new board."""
     display = SimCanArrayTacDisplay(keepalive_interval_s=0.02, watchdog_ms=round(scaled(100)),
                                     connect_timeout_s=scaled(3.0))
     display.connect()
@@ -287,10 +289,18 @@ def test_the_loop_reopens_the_display_of_a_board_that_went_silent() -> None:
             raise RuntimeError("plant bug")
         advance(duration_s)
 
+    def kill() -> None:
+        plant.advance = dies_once  # type: ignore[method-assign]
+
+    return display, first, kill
+
+
+def test_the_loop_reopens_the_display_of_a_board_that_went_silent() -> None:
+    display, first, kill = _sim_board_that_dies_once()
     try:
         with _RunningLoop(display, retry_min_s=0.01, retry_max_s=0.05) as running:
             wait_until(lambda: running.rendering(2.0), 5.0, "the loop renders")
-            plant.advance = dies_once  # type: ignore[method-assign]
+            kill()
             wait_until(lambda: running.loop.counters.display_reconnects >= 1, 10.0,
                        "the silent board noticed and the display reopened (before: never)")
             assert first.error is not None
@@ -305,25 +315,11 @@ def test_a_board_that_dies_while_the_pins_are_safe_is_reopened_before_rendering_
     """No frame has come yet (the pins are safe, nothing is sent): the board's thread dies.
     Before, the loop sent nothing while safe and never asked, so the dead link stood until
     the first fresh frame's render raised (found by review); now it is reopened meanwhile."""
-    display = SimCanArrayTacDisplay(keepalive_interval_s=0.02, watchdog_ms=round(scaled(100)),
-                                    connect_timeout_s=scaled(3.0))
-    display.connect()
-    first = display.emulator
-    assert first is not None
-    broken = threading.Event()
-    plant = first.firmware.plant
-    advance = plant.advance
-
-    def dies_once(duration_s: float) -> None:
-        if not broken.is_set():
-            broken.set()
-            raise RuntimeError("plant bug")
-        advance(duration_s)
-
+    display, first, kill = _sim_board_that_dies_once()
     try:
         with _RunningLoop(display, retry_min_s=0.01, retry_max_s=0.05) as running:
             wait_until(lambda: running.loop.safe_reason == "no_frames", 5.0, "the pins safe")
-            plant.advance = dies_once  # type: ignore[method-assign]
+            kill()
             wait_until(lambda: running.loop.counters.display_reconnects >= 1, 10.0,
                        "the dead board noticed while safe, and the display reopened")
             assert first.error is not None

@@ -171,16 +171,25 @@ async def test_an_idle_link_does_not_flap_when_the_relay_pings_slowly(
     presumes it dead only after 2.5 of the relay's announced intervals."""
     caplog.set_level(logging.INFO, logger="shared.client")
     ping_s = scaled(0.4)
-    async with (_real_relay(stats_interval_s=60.0, ping_interval_s=ping_s) as relay,
-                _link(f"ws://127.0.0.1:{relay.ws_port}/", role="remote",
-                      liveness_timeout_s=0.15) as link):
-        welcome = await link.wait_connected(scaled(3.0))
-        assert welcome.ping_interval_s == pytest.approx(ping_s)
-        assert link.liveness_timeout_s == pytest.approx(2.5 * ping_s)
-        await asyncio.sleep(4 * ping_s)  # idle: nothing but the relay's pings
-        assert link.counters.connects == 1 and link.counters.connection_losses == 0
+    welcome = await _idle_link_holds("remote", ping_s=ping_s, stats_s=60.0, period_s=ping_s)
+    assert welcome.ping_interval_s == pytest.approx(ping_s)
     said = [r for r in caplog.records if "presumed dead after" in r.getMessage()]
     assert len(said) == 1
+
+
+async def _idle_link_holds(role: str, *, ping_s: float, stats_s: float,
+                           period_s: float) -> Welcome:
+    """An idle link of ``role`` with a 0.15 s silence limit to a relay pinging every
+    ``ping_s`` and pushing stats every ``stats_s``: its limit is 2.5 periods of the relay's
+    traffic it gets (``period_s``), and it holds for 4 of them."""
+    async with (_real_relay(stats_interval_s=stats_s, ping_interval_s=ping_s) as relay,
+                _link(f"ws://127.0.0.1:{relay.ws_port}/", role=role,
+                      liveness_timeout_s=0.15) as link):
+        welcome = await link.wait_connected(scaled(3.0))
+        assert link.liveness_timeout_s == pytest.approx(2.5 * period_s)
+        await asyncio.sleep(4 * period_s)  # idle: nothing but the relay's own traffic
+        assert link.counters.connects == 1 and link.counters.connection_losses == 0
+    return welcome
 
 
 async def test_an_idle_observer_does_not_flap_when_the_relay_pushes_stats_slowly() -> None:
@@ -189,14 +198,9 @@ async def test_an_idle_observer_does_not_flap_when_the_relay_pushes_stats_slowly
     link dead between two pushes and reconnected over and over (found by review); the
     welcome now announces ``stats_interval_s`` and an observer waits 2.5 of those."""
     stats_s = scaled(0.4)
-    async with (_real_relay(stats_interval_s=stats_s, ping_interval_s=0.05) as relay,
-                _link(f"ws://127.0.0.1:{relay.ws_port}/", role="observer",
-                      liveness_timeout_s=0.15) as link):
-        welcome = await link.wait_connected(scaled(3.0))
-        assert welcome.stats_interval_s == pytest.approx(stats_s)
-        assert link.liveness_timeout_s == pytest.approx(2.5 * stats_s)
-        await asyncio.sleep(4 * stats_s)  # idle: nothing but the relay's stats
-        assert link.counters.connects == 1 and link.counters.connection_losses == 0
+    welcome = await _idle_link_holds("observer", ping_s=0.05, stats_s=stats_s,
+                                     period_s=stats_s)
+    assert welcome.stats_interval_s == pytest.approx(stats_s)
 
 
 async def test_a_silence_limit_longer_than_the_relays_interval_is_kept(relay: FakeRelay) -> None:
@@ -521,20 +525,13 @@ async def _relay_clock_ahead(monkeypatch: pytest.MonkeyPatch, ahead_s: list[floa
     import time
 
     import relay_server.auth
-    from relay_server.config import RelayConfig
-    from relay_server.server import RelayServer
-    from tests.relay_server.relay_clients import SECRET
+    from tests.relay_server.relay_clients import running_relay
 
     real = time.time
     monkeypatch.setattr(relay_server.auth, "time",
                         SimpleNamespace(time=lambda: real() + ahead_s[0]))
-    relay = RelayServer(RelayConfig(host="127.0.0.1", port=0, tcp_port=0, secret=SECRET,
-                                    hello_timeout_s=scaled(2.0)))
-    await relay.start()
-    try:
+    async with running_relay() as relay:
         yield relay
-    finally:
-        await relay.close()
 
 
 def _v2_token(expiry_in_s: float) -> str:
