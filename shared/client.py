@@ -797,7 +797,10 @@ class StationLink:
         self._welcomed_s = monotonic_s()
         self.connected.set()
         if self.tap is not None:  # never the resume secret: recordings are shared
-            self.tap("rx", dataclasses.replace(welcome, resume=""), now_us())
+            try:
+                self.tap("rx", dataclasses.replace(welcome, resume=""), now_us())
+            except Exception:  # a recorder's fault must not end the link (it runs here)
+                log.exception("the link's tap failed on a welcome; the link goes on")
         log.info("connected to %s as %s in session %s", self.safe_url, self.role,
                  welcome.session)
 

@@ -70,6 +70,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 from local_site.agent.display_loop import DisplayLoopCounters, PinState
 from local_site.agent.period_stats import PeriodStats
 from local_site.display.base import DisplayStats, PinFeedback
@@ -648,10 +650,10 @@ class DisplayProcess:
                 return False
             if not data:
                 return False
-            try:
-                self._take(pickle.loads(data))
-            except Exception as err:  # (unpickling, or a report without its fields)
-                raise _BadReport(f"{type(err).__name__}: {err}") from err
+            # a report is checked whole before any of it is taken: the child's fault ends the
+            # child; a fault in what takes it (the recorder, the view) is the station's own
+            # and is not blamed on a child (found by review: it restarted children for ever)
+            self._take(_checked_report(data))
 
     def _stop_child(self, process: subprocess.Popen[bytes], sock: socket.socket) -> None:
         """Ask the child to stop (it puts the pins in their safe state and closes the board)
@@ -677,6 +679,64 @@ class DisplayProcess:
 
 class _BadReport(Exception):
     """A report from the display child that the station cannot read or fold in."""
+
+
+def _is_int(value: Any) -> bool:
+    return type(value) is int
+
+
+def _pairs_of_ints(value: Any) -> bool:
+    return isinstance(value, list) and all(
+        isinstance(p, tuple) and len(p) == 2 and _is_int(p[0]) and _is_int(p[1])
+        for p in value)
+
+
+#: each field of a report and what it must be (see ``display_child``)
+_REPORT_FIELDS: dict[str, Any] = {
+    "periods": lambda v: isinstance(v, np.ndarray) and v.ndim == 1
+    and np.issubdtype(v.dtype, np.floating),
+    "loops": lambda v: isinstance(v, tuple) and len(v) == 2 and all(map(_is_int, v)),
+    "counters": lambda v: isinstance(v, DisplayLoopCounters),
+    "render_stats": lambda v: isinstance(v, RenderStats),
+    "display_stats": lambda v: isinstance(v, DisplayStats),
+    "superseded": _is_int,
+    "priority": lambda v: isinstance(v, tuple) and len(v) == 2,
+    "connected": lambda v: type(v) is bool,
+    "feedback": lambda v: v is None or isinstance(v, PinFeedback),
+    "pins": lambda v: isinstance(v, PinState),
+    "safe_since_s": lambda v: v is None or type(v) is float,
+    "started_s": lambda v: v is None or type(v) is float,
+    "accepted": _pairs_of_ints,
+    "rendered": lambda v: isinstance(v, list) and all(
+        isinstance(r, tuple) and len(r) == 3 for r in v),
+    "pins_samples": lambda v: isinstance(v, list) and all(isinstance(s, tuple) for s in v),
+    "shed": _is_int,
+    "final": lambda v: type(v) is bool,
+}
+
+
+def _checked_report(data: bytes) -> tuple[str, Any]:
+    """One message of the display child, unpickled and checked whole (a report: every field
+    present and of its type) before anything of it is taken.
+
+    Raises:
+        _BadReport: it does not unpickle, or is no message, or a report is malformed.
+    """
+    try:
+        message = pickle.loads(data)
+    except Exception as err:  # whatever a corrupt pickle raises
+        raise _BadReport(f"{type(err).__name__}: {err}") from err
+    if not (isinstance(message, tuple) and len(message) == 2 and isinstance(message[0], str)):
+        raise _BadReport(f"not a (kind, body) message: {type(message).__name__}")
+    kind, report = message
+    if kind == "report":
+        if not isinstance(report, dict):
+            raise _BadReport(f"a report that is a {type(report).__name__}, not a dict")
+        bad = [name for name, ok in _REPORT_FIELDS.items()
+               if name not in report or not ok(report[name])]
+        if bad:
+            raise _BadReport(f"a report with missing or malformed {', '.join(bad)}")
+    return message
 
 
 def _reap(process: subprocess.Popen[bytes], timeout_s: float) -> int:

@@ -581,7 +581,10 @@ class ProcessPlatformReader:
             self._supervisor = None
         process, self._process = self._process, None
         # (a child that already ended, e.g. one waiting for its restart, has nothing to hear)
-        if process is not None and process.poll() is None:
+        if process is not None and process.poll() is not None and process.stdin is not None:
+            with contextlib.suppress(OSError):
+                process.stdin.close()
+        elif process is not None:
             try:
                 process.communicate(b"stop\n", timeout=timeout_s)
             except (subprocess.TimeoutExpired, OSError, ValueError) as err:
@@ -590,8 +593,11 @@ class ProcessPlatformReader:
                 process.kill()
                 with contextlib.suppress(subprocess.TimeoutExpired):
                     process.wait(timeout_s)
-        if process is not None:
-            self._stats = _add_stats(self._carried_stats, self._read_stats())
+        # (also when no child runs: the children before it that ended on their own count)
+        stats = _add_stats(self._carried_stats, self._read_stats())
+        if stats is not None:  # (a second stop() keeps the first one's)
+            self._stats = stats
+        self._carried_stats = None
         if self._stats_fd is not None:
             os.close(self._stats_fd)
             self._stats_fd = None

@@ -190,17 +190,13 @@ def _frame(seq: int, height_mm: float, t_us: int, peak_mm: float | None = None
                         hops=(Hop("local", "station_rx", t_us),), layers={"height_mm": height})
 
 
-def test_a_replay_forgets_the_key_frame_at_a_new_link_session(tmp_path: Path) -> None:
-    """The station forgets its key frame at each new link session (a restarted sender
-    numbers its frames from 1 again); the replay kept one decoder for the whole recording and
-    applied the new sender's delta to the old sender's key frame of the same seq, showing
-    2 mm where the station rendered nothing (found by audit). The link's welcome is recorded
-    now (its resume secret blanked), and the replay starts anew there."""
-    path = tmp_path / "local.mcap"
+def _two_sessions(path: Path) -> None:
+    """A recording of two link sessions: the old sender's key frame (2 mm) and a delta (a
+    3 mm peak), then a restarted sender's delta on its key seq 1, whose key frame was lost."""
     rec = McapRecorder(path, "local", meta={"session": "s"})
     t = 1_700_000_000_000_000
     old, new = TactileEncoder(), TactileEncoder()
-    rec.tap("rx", Welcome(session="s", role="local", resume="f" * 32), t)
+    rec.tap("rx", Welcome(session="s", role="local"), t)  # as the link taps it
     rec.tap("rx", old.encode(_frame(1, 2.0, t + 1000)), t + 1000)
     delta = old.encode(_frame(2, 2.0, t + 2000, peak_mm=3.0))
     assert not delta.key and delta.key_seq == 1
@@ -211,8 +207,17 @@ def test_a_replay_forgets_the_key_frame_at_a_new_link_session(tmp_path: Path) ->
     assert not stray.key and stray.key_seq == 1
     rec.tap("rx", stray, t + 5000)
     rec.close()
+
+
+def test_a_replay_forgets_the_key_frame_at_a_new_link_session(tmp_path: Path) -> None:
+    """The station forgets its key frame at each new link session (a restarted sender
+    numbers its frames from 1 again); the replay kept one decoder for the whole recording and
+    applied the new sender's delta to the old sender's key frame of the same seq, showing
+    2 mm where the station rendered nothing (found by audit). The link's welcome is recorded
+    now (its resume secret blanked), and the replay starts anew there."""
+    path = tmp_path / "local.mcap"
+    _two_sessions(path)
     recording = read_mcap(path)
-    assert "f" * 32 not in path.read_bytes().decode("latin-1")
     replayer = Replayer(recording, speed=100.0, display="none")
     source = ReplayViewSource(replayer, None)
     try:
@@ -223,3 +228,11 @@ def test_a_replay_forgets_the_key_frame_at_a_new_link_session(tmp_path: Path) ->
         assert patch["seq"] == 2 and patch["hi_mm"] == pytest.approx(3.0, abs=0.01)
     finally:
         source.close()
+
+
+def test_a_replay_on_a_display_hands_it_only_what_the_station_decoded(tmp_path: Path) -> None:
+    """The same for the replay that drives a display: the stray delta never reaches it."""
+    path = tmp_path / "local.mcap"
+    _two_sessions(path)
+    result = Replayer(read_mcap(path), speed=100.0, display="sim").run()
+    assert result.frames_to_display == 2

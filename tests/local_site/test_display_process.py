@@ -128,15 +128,26 @@ def test_adopted_wall_anchor_stamps_on_the_other_clock() -> None:
         timebase.adopt_wall_anchor(before)
 
 
-@pytest.mark.parametrize("report", ["not a pickle", "a report without its fields"])
+_ALL_FIELDS_NONE = ("{k: None for k in ('periods', 'loops', 'counters', 'render_stats', "
+                    "'display_stats', 'superseded', 'priority', 'connected', 'feedback', "
+                    "'pins', 'safe_since_s', 'started_s', 'accepted', 'rendered', "
+                    "'pins_samples', 'shed', 'final')}")
+
+
+@pytest.mark.parametrize("report", ["not a pickle", "a report without its fields",
+                                    "a report with every field malformed"])
 def test_a_report_the_station_cannot_read_restarts_the_child_not_the_station(
         report: str) -> None:
     """One malformed report from the display child left the supervisor with the exception:
     the child was killed before it could park the pins and the station stopped, exit 1
     (found by audit). Now the child is ended through the end of its socket (it parks the
-    pins) and started again, like a child that died."""
-    payload = ("b'not a pickle'" if report == "not a pickle"
-               else "pickle.dumps(('report', {'loops': (1, 0)}))")
+    pins) and started again, like a child that died. A report is checked whole before any
+    of it is taken (one partly taken then failing broke the next child's counts; found by
+    review)."""
+    payload = {"not a pickle": "b'not a pickle'",
+               "a report without its fields": "pickle.dumps(('report', {'loops': (1, 0)}))",
+               "a report with every field malformed":
+                   f"pickle.dumps(('report', {_ALL_FIELDS_NONE}))"}[report]
     child = ("import json, pickle, socket, sys; "
              "s = socket.socket(fileno=json.loads(sys.argv[1])['sock_fd']); "
              f"s.send({payload})\n"  # then ends at its socket's end, or when told to stop
@@ -162,6 +173,52 @@ def test_a_report_the_station_cannot_read_restarts_the_child_not_the_station(
         stop.set()
         thread.join(scaled(15.0))
     assert not thread.is_alive() and not failed
+
+
+def test_a_malformed_report_is_refused_whole_before_any_of_it_is_taken() -> None:
+    """Valid loops, then no counters and no periods: the report was half taken (its counts
+    replaced) before it failed, and the next retirement broke the supervisor (found by
+    review)."""
+    from local_site.agent.display_process import _BadReport
+
+    process = _unserved()
+    ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    try:
+        kind, report = _report(5, None)
+        report["counters"], report["periods"] = None, "x"
+        theirs.send(pickle.dumps((kind, report)))
+        before = process._counts
+        with pytest.raises(_BadReport, match=r"malformed periods, .*counters"):
+            process._drain(ours)
+        assert process._counts is before
+        process._retire()  # the child is ended: its counts join, without a crash
+    finally:
+        ours.close()
+        theirs.close()
+
+
+def test_a_fault_in_what_takes_a_report_is_the_stations_not_the_childs() -> None:
+    """A bug on the station's side (here its recorder) is not blamed on the child: before,
+    it restarted a healthy child for ever, parking the pins each time (found by review)."""
+
+    class BrokenRecorder:
+        def add_frame(self, *args: Any) -> None:
+            raise RuntimeError("station recorder bug")
+
+        record_pins = add_frame
+
+    process = _unserved(link=SameClockLink(), retry_min_s=0.05, retry_max_s=0.1)
+    process.recorder = BrokenRecorder()
+    ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    try:
+        kind, report = _report(1, None)
+        report["pins_samples"] = [(1, None, None, "no_frames")]
+        theirs.send(pickle.dumps((kind, report)))
+        with pytest.raises(RuntimeError, match="station recorder bug"):
+            process._drain(ours)
+    finally:
+        ours.close()
+        theirs.close()
 
 
 class _NoPlatform:

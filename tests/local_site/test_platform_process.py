@@ -163,8 +163,9 @@ def test_options_must_cross_to_the_child_as_json() -> None:
 
 
 def _started(**kwargs: object) -> ProcessPlatformReader:
+    kwargs.setdefault("retry_min_s", 0.05)
     reader = ProcessPlatformReader("sim", {"motion": HOLD}, read_timeout_s=scaled(0.5),
-                                   retry_min_s=0.05, **kwargs)  # type: ignore[arg-type]
+                                   **kwargs)  # type: ignore[arg-type]
     reader.start()
     # the child starts Python and imports the drivers first
     wait_until(lambda: reader.healthy and reader.latest is not None, 20.0, "a first sample")
@@ -263,12 +264,12 @@ def test_a_stop_while_a_dead_child_waits_for_its_restart_is_quiet(
         caplog: pytest.LogCaptureFixture) -> None:
     """stop() told the retired child to stop through its closed pipe and warned that it
     "did not stop" (found by audit)."""
-    reader = _started(retry_max_s=5.0)
-    reader._retry_min_s = 5.0  # the restart waits: the stop comes inside the wait
+    reader = _started(retry_min_s=5.0, retry_max_s=5.0)  # the stop comes inside the wait
     process = reader._process
     assert process is not None
     os.kill(process.pid, signal.SIGKILL)
     wait_until(lambda: reader.child_error is not None, 10.0, "the death noticed")
+    assert reader.restarts == 0  # still waiting for the restart
     with caplog.at_level(logging.WARNING, logger="local_site.agent.platform_process"):
         reader.stop()
     assert "did not stop" not in caplog.text
