@@ -846,9 +846,7 @@ class DisplayLoop:
         # published before the board is told, and whether or not it hears: no reader may
         # show the last command as current after shutdown (the board's watchdog parks the
         # pins of a link that refused the frame)
-        if self._safe_since_s is None:  # a safe episode opens: counted as an entry too
-            self._safe_since_s = now_s
-            self.counters.safe_entries[reason] = self.counters.safe_entries.get(reason, 0) + 1
+        # (no safe episode opens here: the session's safe time and entries end with it)
         self._set_pins(None, reason)
         try:
             self.display.safe_state(self.safe_mode)

@@ -346,8 +346,8 @@ def test_a_finish_on_a_broken_link_shows_no_command() -> None:
         display._on_link_error(OSError("receive failed"))
         loop.finish("shutdown")
         assert loop.pin_state.command is None and loop.safe_reason == "shutdown"
-        # the safe episode it opened is an entry too (safe time and entries agree)
-        assert loop.counters.safe_entries == {"shutdown": 1}
+        # the shutdown opens no safe episode: neither an entry nor safe time
+        assert loop.counters.safe_entries == {} and loop.safe_since_s is None
     finally:
         display.disconnect()
 
