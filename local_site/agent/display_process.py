@@ -77,6 +77,7 @@ from local_site.agent.period_stats import PeriodStats
 from local_site.display.base import DisplayStats, PinFeedback
 from local_site.render import RendererConfig
 from local_site.render.renderer import RenderStats
+from shared.counters import add_counters
 from shared.errors import ConfigError
 from shared.freshness import ClockView
 from shared.motion_to_touch import MotionToTouchLedger
@@ -169,13 +170,6 @@ def fold_counters(base: DisplayLoopCounters, more: DisplayLoopCounters) -> Displ
     return out
 
 
-def _add_stats(a: Any, b: Any) -> Any:
-    """Two snapshots of an all-integer counters dataclass (``DisplayStats``, ``RenderStats``)
-    added field by field."""
-    return type(a)(**{f.name: getattr(a, f.name) + getattr(b, f.name)
-                      for f in dataclasses.fields(a)})
-
-
 @dataclass(frozen=True)
 class _Totals:
     """What one child (or all the children that ended) counted."""
@@ -191,8 +185,8 @@ class _Totals:
 
     def plus(self, other: _Totals) -> _Totals:
         return _Totals(fold_counters(self.counters, other.counters),
-                       _add_stats(self.display, other.display),
-                       _add_stats(self.render, other.render),
+                       add_counters(self.display, other.display),
+                       add_counters(self.render, other.render),
                        self.superseded + other.superseded, self.iterations + other.iterations,
                        self.overruns + other.overruns, self.shed + other.shed)
 

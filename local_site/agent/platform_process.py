@@ -61,6 +61,7 @@ from typing import Any
 
 from local_site.agent.platform_reader import reopen_after, stale_since_s
 from local_site.platform.base import PlatformSample, PlatformStats
+from shared.counters import add_counters
 from shared.errors import ConfigError
 from shared.timebase import monotonic_s, wall_anchor_ns
 
@@ -331,8 +332,7 @@ def _add_stats(a: PlatformStats | None, b: PlatformStats | None) -> PlatformStat
     """Counters of two children added up (None: none reported)."""
     if a is None or b is None:
         return a if b is None else b
-    return PlatformStats(**{f.name: getattr(a, f.name) + getattr(b, f.name)
-                            for f in dataclasses.fields(PlatformStats)})
+    return add_counters(a, b)
 
 
 class ProcessPlatformReader:

@@ -20,7 +20,6 @@ layout, as shape (16,), or as a scalar for all pins; results are always shape (1
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import threading
 import time
@@ -33,6 +32,7 @@ from numba import njit
 from numpy.typing import NDArray
 
 from local_site.display import frames as fr
+from shared.counters import add_counters
 from shared.devices import Device
 from shared.errors import (
     CommandExpiredError,
@@ -652,8 +652,7 @@ class ArrayTacDisplay(Device):
         """A snapshot of the counters (totals over every connection)."""
         session = self._session_stats()
         carried = self._carried
-        return DisplayStats(**{f.name: getattr(session, f.name) + getattr(carried, f.name)
-                               for f in dataclasses.fields(DisplayStats)})
+        return add_counters(session, carried)
 
     def _session_stats(self) -> DisplayStats:
         """The counters of the current connection."""
