@@ -824,18 +824,17 @@ class RemoteStation:
                         connects = self.link.counters.connects
                         if connects != self._encoder_connects:
                             # a new link session: a key frame first. The last session's
-                            # unsent key frame was dropped at the welcome, and a link back
-                            # between two frame ticks never passed the branch below (the
-                            # receiver waited up to key_every frames; found by audit)
+                            # unsent key frame was dropped at the welcome (reset only on a
+                            # tick that found the link down, a link back between two ticks
+                            # went on with deltas: the receiver waited up to key_every
+                            # frames; found by audit)
                             self.encoder.reset()
                             self._encoder_connects = connects
                         msg = self.encoder.encode(outcome.frame)
                     await self.link.send(msg)
                     self.counters.frames_sent += 1
-                else:
+                else:  # (a key frame first when it is back: a new link session, above)
                     self.counters.frames_not_sent_link_down += 1
-                    if self.encoder is not None:
-                        self.encoder.reset()  # a key frame first when the link is back
             if on_pose:
                 next_t, late = next_frame_due_s(next_t, start, loop.time(), period, answered)
                 self.counters.frames_late += late
